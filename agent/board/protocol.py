@@ -1,0 +1,1252 @@
+"""Control Bus messages: typed requests and replies with their exact byte layouts. No I/O.
+
+Every Control Bus command of SLAMTEC's profile (docs/protocols/control-bus.md) has a request
+class and, where the board answers with data, a reply class. Fixed-point fields (Q8, Q16, mm,
+degrees) are converted to SI units (metres, m/s, radians) here and nowhere else.
+
+Both roles use this module: the agent's link encodes requests and decodes replies against the
+request it sent; the simulated board decodes requests and encodes replies. Decoding never raises:
+it returns a typed value or a ``Rejected``/``Malformed`` value saying why.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import ClassVar, TypeAlias
+
+from fleetlink.agent.board.frames import Frame, encode_frame
+
+__all__ = [
+    "CMD_BASE",
+    "CMD_ECHO",
+    "CMD_SYNC",
+    "DEFAULT_CTRL_BUS",
+    "REPLY_CODES",
+    "RESP_ECHO",
+    "RESP_ERROR",
+    "RESP_INVALID",
+    "RESP_OK",
+    "RESP_SYNC",
+    "Profile",
+    "ErrorCode",
+    "CtrlBus",
+]
+
+# Request CMD values.
+CMD_SYNC = 0x00
+CMD_ECHO = 0x01
+DEFAULT_CTRL_BUS = 0xF8  # SLAMTEC's CTRL_BUS; the thesis prints 0xA8 (a Profile setting)
+CMD_BASE = 0xF9  # reference firmware only: 1 enter DFU, 2 reboot
+
+# Response codes.
+RESP_SYNC = 0x00
+RESP_ECHO = 0x01
+RESP_OK = 0x02
+RESP_ERROR = 0x03
+RESP_INVALID = 0xFF
+REPLY_CODES = frozenset({RESP_SYNC, RESP_ECHO, RESP_OK, RESP_ERROR, RESP_INVALID})
+
+Q8 = 256.0
+Q16 = 65536.0
+_DEG = math.pi / 180.0
+
+
+class ErrorCode(IntEnum):
+    NOT_SYNCHRONISED = 0x0010  # first byte not a flag, or a new request before the last was handled
+    REQUEST_TOO_LONG = 0x0020  # longer than the board's buffer
+    CHECKSUM_MISMATCH = 0x0040
+    NOT_SUPPORTED = 0x8000  # CMD or Control Bus command unknown; also a wrong protocol version
+    BAD_ARGUMENTS = 0x8001
+    OPERATION_FAILED = 0x8002
+
+    @property
+    def is_protocol_error(self) -> bool:
+        """Codes below 0x8000 say the channel broke (we or the line), not that a command was refused."""
+        return self.value < 0x8000
+
+    @classmethod
+    def describe(cls, code: int) -> str:
+        try:
+            return f"0x{code:04X} {cls(code).name.lower().replace('_', ' ')}"
+        except ValueError:
+            return f"0x{code:04X} unknown error"
+
+
+class CtrlBus(IntEnum):
+    """Control Bus command codes (payload[0] of a CTRL_BUS request)."""
+
+    CONNECT_BASE = 0x10
+    GET_BASE_CONF = 0x20
+    GET_BINARY_CONF = 0x21
+    GET_BASE_STATUS = 0x30
+    GET_BASE_MOTOR_DATA = 0x31
+    GET_BASE_SENSOR_DATA = 0x32
+    GET_BASE_BUMPER_DATA = 0x33
+    GET_AUTO_HOME_DATA = 0x34
+    SET_BASE_MOTOR = 0x40
+    SET_V_AND_GET_DEADRECKON = 0x41
+    POLL_BASE_CMD = 0x50
+    POLL_BASE_ANS_CMD = 0x5F
+    SEND_EVENT = 0x60
+    HEALTH_MGMT = 0x90
+    # fleetlink extension for the disinfection robot's board (codes SLAMTEC leaves unused).
+    SET_UV_LAMP = 0xA0
+    SET_ATOMISER = 0xA1
+    SET_FAN = 0xA2
+    GET_PAYLOAD_STATUS = 0xA3
+    GET_ENV_DATA = 0xA4
+    GET_POWER_DATA = 0xA5
+    GET_BUTTONS = 0xA6
+    SET_LEDS = 0xA7
+    BEEP = 0xA9
+
+
+@dataclass(frozen=True, slots=True)
+class Profile:
+    """Settings of one board's dialect of the protocol."""
+
+    ctrl_bus_cmd: int = DEFAULT_CTRL_BUS
+    long_requests: bool = False  # the reference base accepts both; standard frames are shorter
+
+    @property
+    def request_codes(self) -> frozenset[int]:
+        return frozenset({CMD_SYNC, CMD_ECHO, self.ctrl_bus_cmd, CMD_BASE})
+
+
+DEFAULT_PROFILE = Profile()
+
+
+class BadPayload(ValueError):
+    """A payload whose layout does not match its command (raised only inside this module)."""
+
+
+def _s32(x: float) -> int:
+    v = round(x)
+    if not -0x8000_0000 <= v <= 0x7FFF_FFFF:
+        raise ValueError(f"{x} does not fit a signed 32-bit field")
+    return v
+
+
+def _u32(x: float) -> int:
+    v = round(x)
+    if not 0 <= v <= 0xFFFF_FFFF:
+        raise ValueError(f"{x} does not fit an unsigned 32-bit field")
+    return v
+
+
+def _finite(name: str, *values: float) -> None:
+    for v in values:
+        if not math.isfinite(v):
+            raise ValueError(f"{name} must be finite, got {v}")
+
+
+def _unpack(st: struct.Struct, payload: bytes) -> tuple[int, ...]:
+    if len(payload) != st.size:
+        raise BadPayload(f"expected {st.size} bytes, got {len(payload)}")
+    return st.unpack(payload)
+
+
+# --------------------------------------------------------------------------------------------
+# Replies (the OK payloads)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Empty:
+    """An OK reply without data."""
+
+    def encode(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode(cls, payload: bytes) -> Empty:
+        if payload:
+            raise BadPayload(f"expected an empty payload, got {len(payload)} bytes")
+        return cls()
+
+
+_BASE_INFO = struct.Struct("<12sHH3I")
+
+
+@dataclass(frozen=True, slots=True)
+class BaseInfo:
+    """CONNECT_BASE: model u8[12], firmware u16, hardware u16, serial u32[3]."""
+
+    model: str
+    firmware: int
+    hardware: int
+    serial: tuple[int, int, int]
+
+    def encode(self) -> bytes:
+        return _BASE_INFO.pack(self.model.encode("ascii")[:12], self.firmware, self.hardware, *self.serial)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> BaseInfo:
+        model, fw, hw, s0, s1, s2 = _unpack(_BASE_INFO, payload)
+        text = bytes(model).split(b"\0", 1)[0].decode("ascii", "replace")
+        return cls(text, fw, hw, (s0, s1, s2))
+
+    @property
+    def serial_text(self) -> str:
+        return "".join(f"{s:08X}" for s in self.serial)
+
+    @property
+    def firmware_text(self) -> str:
+        return f"{self.firmware >> 8}.{self.firmware & 0xFF}"
+
+
+_POSE = struct.Struct("<iiiI")
+
+
+@dataclass(frozen=True, slots=True)
+class MountPose:
+    """A sensor's or bumper's pose on the base: metres and radians (counter-clockwise)."""
+
+    x: float
+    y: float
+    z: float
+    angle: float
+
+    def encode(self) -> bytes:
+        return _POSE.pack(
+            _s32(self.x * 1000 * Q8),
+            _s32(self.y * 1000 * Q8),
+            _s32(self.z * 1000 * Q8),
+            _u32((math.degrees(self.angle) % 360.0) * Q8),
+        )
+
+    @classmethod
+    def decode(cls, payload: bytes) -> MountPose:
+        x, y, z, a = _POSE.unpack(payload)
+        return cls(x / Q8 / 1000, y / Q8 / 1000, z / Q8 / 1000, a / Q8 * _DEG)
+
+
+_CONF_HEAD = struct.Struct("<BIBB")
+_NO_POSE = MountPose(0.0, 0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class BaseConf:
+    """GET_BASE_CONF: shape, radius, drive, and up to 8 range sensors and 8 bumpers."""
+
+    base_type: int  # 0 circle, 1 square
+    radius: float  # m
+    motor_type: int  # 0 two-wheel differential
+    sensors: tuple[MountPose, ...]
+    bumpers: tuple[MountPose, ...]
+
+    def encode(self) -> bytes:
+        if len(self.sensors) > 8 or len(self.bumpers) > 8:
+            raise ValueError("at most 8 sensors and 8 bumpers")
+        out = bytearray(
+            _CONF_HEAD.pack(self.base_type, _u32(self.radius * 1000 * Q8), self.motor_type, len(self.sensors))
+        )
+        for p in (*self.sensors, *[_NO_POSE] * (8 - len(self.sensors))):
+            out += p.encode()
+        out.append(len(self.bumpers))
+        for p in (*self.bumpers, *[_NO_POSE] * (8 - len(self.bumpers))):
+            out += p.encode()
+        return bytes(out)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> BaseConf:
+        size = _CONF_HEAD.size + 8 * _POSE.size + 1 + 8 * _POSE.size
+        if len(payload) != size:
+            raise BadPayload(f"expected {size} bytes, got {len(payload)}")
+        base_type, radius, motor, n_sensors = _CONF_HEAD.unpack_from(payload)
+        off = _CONF_HEAD.size
+        sensors = [MountPose.decode(payload[off + i * 16 : off + i * 16 + 16]) for i in range(8)]
+        off += 8 * 16
+        n_bumpers = payload[off]
+        off += 1
+        bumpers = [MountPose.decode(payload[off + i * 16 : off + i * 16 + 16]) for i in range(8)]
+        if n_sensors > 8 or n_bumpers > 8:
+            raise BadPayload(f"{n_sensors} sensors / {n_bumpers} bumpers (at most 8 each)")
+        return cls(base_type, radius / Q8 / 1000, motor, tuple(sensors[:n_sensors]), tuple(bumpers[:n_bumpers]))
+
+
+@dataclass(frozen=True, slots=True)
+class BinaryConf:
+    """GET_BINARY_CONF: an opaque blob."""
+
+    blob: bytes
+
+    def encode(self) -> bytes:
+        return self.blob
+
+    @classmethod
+    def decode(cls, payload: bytes) -> BinaryConf:
+        return cls(bytes(payload))
+
+
+_STATUS = struct.Struct("<BB")
+
+
+@dataclass(frozen=True, slots=True)
+class BaseStatus:
+    """GET_BASE_STATUS: battery percent and power flags."""
+
+    battery_percent: int
+    power_flags: int  # bit 0 charging, bit 1 external power, bit 2 on dock
+
+    CHARGING: ClassVar[int] = 0x01
+    EXTERNAL_POWER: ClassVar[int] = 0x02
+    ON_DOCK: ClassVar[int] = 0x04
+
+    @property
+    def charging(self) -> bool:
+        return bool(self.power_flags & 0x01)
+
+    @property
+    def external_power(self) -> bool:
+        return bool(self.power_flags & 0x02)
+
+    @property
+    def on_dock(self) -> bool:
+        return bool(self.power_flags & 0x04)
+
+    def encode(self) -> bytes:
+        return _STATUS.pack(self.battery_percent, self.power_flags)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> BaseStatus:
+        pct, flags = _unpack(_STATUS, payload)
+        if pct > 100:
+            raise BadPayload(f"battery {pct} % is above 100")
+        return cls(pct, flags)
+
+
+_MOTOR = struct.Struct("<iiB")
+
+
+@dataclass(frozen=True, slots=True)
+class MotorData:
+    """GET_BASE_MOTOR_DATA: cumulative wheel distances (m) and status bits."""
+
+    left: float
+    right: float
+    status: int  # bit 1 stall, bit 2 traction lost
+
+    STALL: ClassVar[int] = 0x02
+    TRACTION_LOST: ClassVar[int] = 0x04
+
+    def encode(self) -> bytes:
+        return _MOTOR.pack(_wrap32(self.left * 1000), _wrap32(self.right * 1000), self.status)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> MotorData:
+        left, right, status = _unpack(_MOTOR, payload)
+        return cls(left / 1000, right / 1000, status)
+
+
+def _wrap32(x: float) -> int:
+    """Cumulative counters wrap like the board's s32 (after ~2,147 km)."""
+    v = round(x) & 0xFFFF_FFFF
+    return v - 0x1_0000_0000 if v & 0x8000_0000 else v
+
+
+_SENSORS = struct.Struct("<16I")
+
+
+@dataclass(frozen=True, slots=True)
+class SensorData:
+    """GET_BASE_SENSOR_DATA: 16 range readings in metres (configured order; unused = 0)."""
+
+    distances: tuple[float, ...]
+
+    def encode(self) -> bytes:
+        vals = list(self.distances)[:16] + [0.0] * (16 - len(self.distances))
+        return _SENSORS.pack(*(_u32(min(d, 65535.0) * 1000 * Q16) if d > 0 else 0 for d in vals))
+
+    @classmethod
+    def decode(cls, payload: bytes) -> SensorData:
+        raw = _unpack(_SENSORS, payload)
+        return cls(tuple(v / Q16 / 1000 for v in raw))
+
+
+@dataclass(frozen=True, slots=True)
+class BumperData:
+    """GET_BASE_BUMPER_DATA: a bitmap, bumpers from bit 0 then cliff sensors; a 0 bit = triggered.
+
+    Firmwares differ in width (u8 or u32); ``width`` records which was received.
+    """
+
+    bitmap: int
+    width: int = 4
+
+    def triggered(self, bit: int) -> bool:
+        return not (self.bitmap >> bit) & 1
+
+    def encode(self) -> bytes:
+        return self.bitmap.to_bytes(self.width, "little")
+
+    @classmethod
+    def decode(cls, payload: bytes) -> BumperData:
+        if len(payload) not in (1, 4):
+            raise BadPayload(f"expected 1 or 4 bytes, got {len(payload)}")
+        return cls(int.from_bytes(payload, "little"), len(payload))
+
+
+@dataclass(frozen=True, slots=True)
+class AutoHomeData:
+    """GET_AUTO_HOME_DATA: docking beacon probes."""
+
+    beacon_count: int
+    probes: bytes
+
+    def encode(self) -> bytes:
+        return bytes((self.beacon_count, len(self.probes))) + self.probes
+
+    @classmethod
+    def decode(cls, payload: bytes) -> AutoHomeData:
+        if len(payload) < 2 or len(payload) != 2 + payload[1]:
+            raise BadPayload("beacon count, probe count and that many probes expected")
+        return cls(payload[0], bytes(payload[2:]))
+
+
+_DEADRECKON = struct.Struct("<iiiB")
+
+
+@dataclass(frozen=True, slots=True)
+class DeadReckon:
+    """SET_V_AND_GET_DEADRECKON reply: motion since the previous call, in the base frame."""
+
+    dx: float  # m
+    dy: float  # m
+    dtheta: float  # rad, counter-clockwise
+    status: int
+
+    def encode(self) -> bytes:
+        return _DEADRECKON.pack(
+            _s32(self.dx * 1000 * Q16), _s32(self.dy * 1000 * Q16), _s32(math.degrees(self.dtheta) * Q16), self.status
+        )
+
+    @classmethod
+    def decode(cls, payload: bytes) -> DeadReckon:
+        dx, dy, dth, status = _unpack(_DEADRECKON, payload)
+        return cls(dx / Q16 / 1000, dy / Q16 / 1000, dth / Q16 * _DEG, status)
+
+
+@dataclass(frozen=True, slots=True)
+class PendingBaseCommand:
+    """POLL_BASE_CMD reply: a pending command from the base (e.g. a button asking to go home)."""
+
+    command: int | None
+
+    GO_HOME: ClassVar[int] = 0x01
+
+    def encode(self) -> bytes:
+        return b"" if self.command is None else bytes((self.command,))
+
+    @classmethod
+    def decode(cls, payload: bytes) -> PendingBaseCommand:
+        if len(payload) > 1:
+            raise BadPayload(f"expected 0 or 1 byte, got {len(payload)}")
+        return cls(payload[0] if payload else None)
+
+
+_HEALTH = struct.Struct("<BB")
+
+
+@dataclass(frozen=True, slots=True)
+class Health:
+    """HEALTH_MGMT 1 (get health): flags and error count."""
+
+    flags: int  # bit 0 warning, 1 error, 2 fatal
+    error_count: int
+
+    WARNING: ClassVar[int] = 0x01
+    ERROR: ClassVar[int] = 0x02
+    FATAL: ClassVar[int] = 0x04
+
+    def encode(self) -> bytes:
+        return _HEALTH.pack(self.flags, self.error_count)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> Health:
+        flags, count = _unpack(_HEALTH, payload)
+        return cls(flags, count)
+
+
+_HEALTH_ERROR = struct.Struct("<I32s")
+
+
+@dataclass(frozen=True, slots=True)
+class HealthError:
+    """HEALTH_MGMT 2 (get error): code u32 and a 32-byte message."""
+
+    code: int
+    message: str
+
+    def encode(self) -> bytes:
+        return _HEALTH_ERROR.pack(self.code, self.message.encode("ascii", "replace")[:32])
+
+    @classmethod
+    def decode(cls, payload: bytes) -> HealthError:
+        code, msg = _unpack(_HEALTH_ERROR, payload)
+        return cls(code, bytes(msg).split(b"\0", 1)[0].decode("ascii", "replace"))
+
+
+class HealthErrorCode(IntEnum):
+    """fleetlink board error codes reported through HEALTH_MGMT."""
+
+    CORE_DISCONNECTED = 0x0001  # the link watchdog fired
+    MOTOR_STALL = 0x0002
+    TANK_EMPTY = 0x0003
+    BATTERY_LOW = 0x0004
+
+
+_PAYLOAD_STATUS = struct.Struct("<BBBB")
+
+
+@dataclass(frozen=True, slots=True)
+class PayloadStatus:
+    """GET_PAYLOAD_STATUS (extension): UV-C lamp, atomiser level, fan, tank level %."""
+
+    uv_lamp: bool
+    atomiser_level: int  # 0-3
+    fan: bool
+    tank_percent: int
+
+    def encode(self) -> bytes:
+        return _PAYLOAD_STATUS.pack(int(self.uv_lamp), self.atomiser_level, int(self.fan), self.tank_percent)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> PayloadStatus:
+        uv, level, fan, tank = _unpack(_PAYLOAD_STATUS, payload)
+        if level > 3 or tank > 100 or uv > 1 or fan > 1:
+            raise BadPayload(f"payload status out of range: uv={uv} level={level} fan={fan} tank={tank}")
+        return cls(bool(uv), level, bool(fan), tank)
+
+
+_ENV = struct.Struct("<BhHHH")
+
+
+@dataclass(frozen=True, slots=True)
+class EnvData:
+    """GET_ENV_DATA (extension): disinfectant level, temperature, humidity, air quality."""
+
+    disinfectant_percent: int
+    temperature_c: float  # 0.01 °C on the wire
+    humidity_percent: float  # 0.01 % on the wire
+    pm2_5: float  # µg/m³, 0.1 on the wire
+    tvoc_ppb: int
+
+    def encode(self) -> bytes:
+        return _ENV.pack(
+            self.disinfectant_percent,
+            round(self.temperature_c * 100),
+            round(self.humidity_percent * 100),
+            round(self.pm2_5 * 10),
+            self.tvoc_ppb,
+        )
+
+    @classmethod
+    def decode(cls, payload: bytes) -> EnvData:
+        level, t, h, pm, tvoc = _unpack(_ENV, payload)
+        if level > 100 or h > 10000:
+            raise BadPayload(f"environment reading out of range: level={level} humidity={h / 100}")
+        return cls(level, t / 100, h / 100, pm / 10, tvoc)
+
+
+_POWER = struct.Struct("<HhBB")
+
+
+@dataclass(frozen=True, slots=True)
+class PowerData:
+    """GET_POWER_DATA (extension): battery voltage and current, percent, power flags."""
+
+    voltage: float  # V (mV on the wire)
+    current: float  # A, positive when charging (mA on the wire)
+    battery_percent: int
+    power_flags: int  # as BaseStatus
+
+    def encode(self) -> bytes:
+        return _POWER.pack(round(self.voltage * 1000), round(self.current * 1000), self.battery_percent, self.power_flags)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> PowerData:
+        mv, ma, pct, flags = _unpack(_POWER, payload)
+        return cls(mv / 1000, ma / 1000, pct, flags)
+
+
+@dataclass(frozen=True, slots=True)
+class Buttons:
+    """GET_BUTTONS (extension): bit 0 power, 1 home, 2 start/pause, 3 emergency stop engaged."""
+
+    bitmap: int
+
+    POWER: ClassVar[int] = 0x01
+    HOME: ClassVar[int] = 0x02
+    START: ClassVar[int] = 0x04
+    ESTOP: ClassVar[int] = 0x08
+
+    def encode(self) -> bytes:
+        return bytes((self.bitmap,))
+
+    @classmethod
+    def decode(cls, payload: bytes) -> Buttons:
+        if len(payload) != 1:
+            raise BadPayload(f"expected 1 byte, got {len(payload)}")
+        return cls(payload[0])
+
+
+Reply: TypeAlias = (
+    Empty
+    | BaseInfo
+    | BaseConf
+    | BinaryConf
+    | BaseStatus
+    | MotorData
+    | SensorData
+    | BumperData
+    | AutoHomeData
+    | DeadReckon
+    | PendingBaseCommand
+    | Health
+    | HealthError
+    | PayloadStatus
+    | EnvData
+    | PowerData
+    | Buttons
+)
+
+
+# --------------------------------------------------------------------------------------------
+# Requests (a CTRL_BUS frame's payload: command code, then arguments)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class ConnectBase:
+    protocol_version: int = 1
+
+    CODE: ClassVar[int] = CtrlBus.CONNECT_BASE
+    REPLY: ClassVar[type[Reply]] = BaseInfo
+
+    def encode_args(self) -> bytes:
+        return bytes((self.protocol_version,))
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> ConnectBase:
+        if len(args) != 1:
+            raise BadPayload(f"expected protocol version u8, got {len(args)} bytes")
+        return cls(args[0])
+
+
+@dataclass(frozen=True, slots=True)
+class GetBaseConf:
+    CODE: ClassVar[int] = CtrlBus.GET_BASE_CONF
+    REPLY: ClassVar[type[Reply]] = BaseConf
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetBaseConf:
+        _expect_empty(args)
+        return cls()
+
+
+def _expect_empty(args: bytes) -> None:
+    if args:
+        raise BadPayload(f"expected no arguments, got {len(args)} bytes")
+
+
+@dataclass(frozen=True, slots=True)
+class GetBinaryConf:
+    CODE: ClassVar[int] = CtrlBus.GET_BINARY_CONF
+    REPLY: ClassVar[type[Reply]] = BinaryConf
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetBinaryConf:
+        _expect_empty(args)
+        return cls()
+
+
+@dataclass(frozen=True, slots=True)
+class GetBaseStatus:
+    CODE: ClassVar[int] = CtrlBus.GET_BASE_STATUS
+    REPLY: ClassVar[type[Reply]] = BaseStatus
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetBaseStatus:
+        _expect_empty(args)
+        return cls()
+
+
+@dataclass(frozen=True, slots=True)
+class GetMotorData:
+    CODE: ClassVar[int] = CtrlBus.GET_BASE_MOTOR_DATA
+    REPLY: ClassVar[type[Reply]] = MotorData
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetMotorData:
+        _expect_empty(args)
+        return cls()
+
+
+@dataclass(frozen=True, slots=True)
+class GetSensorData:
+    CODE: ClassVar[int] = CtrlBus.GET_BASE_SENSOR_DATA
+    REPLY: ClassVar[type[Reply]] = SensorData
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetSensorData:
+        _expect_empty(args)
+        return cls()
+
+
+@dataclass(frozen=True, slots=True)
+class GetBumperData:
+    CODE: ClassVar[int] = CtrlBus.GET_BASE_BUMPER_DATA
+    REPLY: ClassVar[type[Reply]] = BumperData
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetBumperData:
+        _expect_empty(args)
+        return cls()
+
+
+@dataclass(frozen=True, slots=True)
+class GetAutoHomeData:
+    data_type: int = 0  # 0 beacon
+
+    CODE: ClassVar[int] = CtrlBus.GET_AUTO_HOME_DATA
+    REPLY: ClassVar[type[Reply]] = AutoHomeData
+
+    def encode_args(self) -> bytes:
+        return bytes((self.data_type,))
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetAutoHomeData:
+        if len(args) != 1:
+            raise BadPayload(f"expected data_type u8, got {len(args)} bytes")
+        return cls(args[0])
+
+
+_WHEELS = struct.Struct("<4i")
+
+
+@dataclass(frozen=True, slots=True)
+class SetBaseMotor:
+    """Wheel speeds in m/s (mm/s s32 on the wire): [0] left, [1] right, [2], [3] unused here."""
+
+    speeds: tuple[float, float, float, float]
+
+    CODE: ClassVar[int] = CtrlBus.SET_BASE_MOTOR
+    REPLY: ClassVar[type[Reply]] = Empty
+
+    @classmethod
+    def wheels(cls, left: float, right: float) -> SetBaseMotor:
+        return cls((left, right, 0.0, 0.0))
+
+    def encode_args(self) -> bytes:
+        _finite("wheel speed", *self.speeds)
+        return _WHEELS.pack(*(_s32(s * 1000) for s in self.speeds))
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> SetBaseMotor:
+        a, b, c, d = _unpack(_WHEELS, args)
+        return cls((a / 1000, b / 1000, c / 1000, d / 1000))
+
+
+_VELOCITY = struct.Struct("<iii")
+
+
+@dataclass(frozen=True, slots=True)
+class SetVelocity:
+    """SET_V_AND_GET_DEADRECKON: body velocity in, motion since the last call out.
+
+    vx, vy in m/s and omega in rad/s (Q16 s32 on the wire). The master sends this every motion
+    poll, which is also what keeps the board's link watchdog fed.
+    """
+
+    vx: float
+    vy: float = 0.0
+    omega: float = 0.0
+
+    CODE: ClassVar[int] = CtrlBus.SET_V_AND_GET_DEADRECKON
+    REPLY: ClassVar[type[Reply]] = DeadReckon
+
+    def encode_args(self) -> bytes:
+        _finite("velocity", self.vx, self.vy, self.omega)
+        return _VELOCITY.pack(_s32(self.vx * Q16), _s32(self.vy * Q16), _s32(self.omega * Q16))
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> SetVelocity:
+        vx, vy, w = _unpack(_VELOCITY, args)
+        return cls(vx / Q16, vy / Q16, w / Q16)
+
+
+@dataclass(frozen=True, slots=True)
+class PollBaseCommand:
+    CODE: ClassVar[int] = CtrlBus.POLL_BASE_CMD
+    REPLY: ClassVar[type[Reply]] = PendingBaseCommand
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> PollBaseCommand:
+        _expect_empty(args)
+        return cls()
+
+
+@dataclass(frozen=True, slots=True)
+class AnswerBaseCommand:
+    """POLL_BASE_ANS_CMD: clears the pending base command."""
+
+    CODE: ClassVar[int] = CtrlBus.POLL_BASE_ANS_CMD
+    REPLY: ClassVar[type[Reply]] = Empty
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> AnswerBaseCommand:
+        _expect_empty(args)
+        return cls()
+
+
+class BaseEvent(IntEnum):
+    LIDAR_CONNECT_FAILED = 0x61
+    SYSTEM_UP = 0x63
+    CORE_DISCONNECTED = 0x65
+
+
+@dataclass(frozen=True, slots=True)
+class SendEvent:
+    event: int
+
+    CODE: ClassVar[int] = CtrlBus.SEND_EVENT
+    REPLY: ClassVar[type[Reply]] = Empty
+
+    def encode_args(self) -> bytes:
+        return bytes((self.event,))
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> SendEvent:
+        if len(args) != 1:
+            raise BadPayload(f"expected event u8, got {len(args)} bytes")
+        return cls(args[0])
+
+
+@dataclass(frozen=True, slots=True)
+class GetHealth:
+    """HEALTH_MGMT sub-command 1."""
+
+    CODE: ClassVar[int] = CtrlBus.HEALTH_MGMT
+    REPLY: ClassVar[type[Reply]] = Health
+
+    def encode_args(self) -> bytes:
+        return b"\x01"
+
+
+@dataclass(frozen=True, slots=True)
+class GetHealthError:
+    """HEALTH_MGMT sub-command 2: the error at ``index``."""
+
+    index: int
+
+    CODE: ClassVar[int] = CtrlBus.HEALTH_MGMT
+    REPLY: ClassVar[type[Reply]] = HealthError
+
+    def encode_args(self) -> bytes:
+        return bytes((2, self.index))
+
+
+@dataclass(frozen=True, slots=True)
+class ClearHealthError:
+    """HEALTH_MGMT sub-command 3: clear the error with ``code``."""
+
+    code: int
+
+    CODE: ClassVar[int] = CtrlBus.HEALTH_MGMT
+    REPLY: ClassVar[type[Reply]] = Empty
+
+    def encode_args(self) -> bytes:
+        return b"\x03" + struct.pack("<I", self.code)
+
+
+def _decode_health(args: bytes) -> GetHealth | GetHealthError | ClearHealthError:
+    if args == b"\x01":
+        return GetHealth()
+    if len(args) == 2 and args[0] == 2:
+        return GetHealthError(args[1])
+    if len(args) == 5 and args[0] == 3:
+        return ClearHealthError(struct.unpack_from("<I", args, 1)[0])
+    raise BadPayload("HEALTH_MGMT expects 01, 02 index, or 03 code")
+
+
+@dataclass(frozen=True, slots=True)
+class SetUvLamp:
+    on: bool
+
+    CODE: ClassVar[int] = CtrlBus.SET_UV_LAMP
+    REPLY: ClassVar[type[Reply]] = Empty
+
+    def encode_args(self) -> bytes:
+        return bytes((int(self.on),))
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> SetUvLamp:
+        return cls(_flag(args))
+
+
+def _flag(args: bytes) -> bool:
+    if len(args) != 1 or args[0] > 1:
+        raise BadPayload("expected one byte, 0 (off) or 1 (on)")
+    return bool(args[0])
+
+
+@dataclass(frozen=True, slots=True)
+class SetAtomiser:
+    """Atomiser level 0 (off) to 3; the board refuses levels above 0 with an empty tank."""
+
+    level: int
+
+    CODE: ClassVar[int] = CtrlBus.SET_ATOMISER
+    REPLY: ClassVar[type[Reply]] = Empty
+
+    def encode_args(self) -> bytes:
+        if not 0 <= self.level <= 3:
+            raise ValueError(f"atomiser level {self.level} is not 0-3")
+        return bytes((self.level,))
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> SetAtomiser:
+        if len(args) != 1 or args[0] > 3:
+            raise BadPayload("expected atomiser level 0-3")
+        return cls(args[0])
+
+
+@dataclass(frozen=True, slots=True)
+class SetFan:
+    on: bool
+
+    CODE: ClassVar[int] = CtrlBus.SET_FAN
+    REPLY: ClassVar[type[Reply]] = Empty
+
+    def encode_args(self) -> bytes:
+        return bytes((int(self.on),))
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> SetFan:
+        return cls(_flag(args))
+
+
+@dataclass(frozen=True, slots=True)
+class GetPayloadStatus:
+    CODE: ClassVar[int] = CtrlBus.GET_PAYLOAD_STATUS
+    REPLY: ClassVar[type[Reply]] = PayloadStatus
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetPayloadStatus:
+        _expect_empty(args)
+        return cls()
+
+
+@dataclass(frozen=True, slots=True)
+class GetEnvData:
+    CODE: ClassVar[int] = CtrlBus.GET_ENV_DATA
+    REPLY: ClassVar[type[Reply]] = EnvData
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetEnvData:
+        _expect_empty(args)
+        return cls()
+
+
+@dataclass(frozen=True, slots=True)
+class GetPowerData:
+    CODE: ClassVar[int] = CtrlBus.GET_POWER_DATA
+    REPLY: ClassVar[type[Reply]] = PowerData
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetPowerData:
+        _expect_empty(args)
+        return cls()
+
+
+@dataclass(frozen=True, slots=True)
+class GetButtons:
+    CODE: ClassVar[int] = CtrlBus.GET_BUTTONS
+    REPLY: ClassVar[type[Reply]] = Buttons
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetButtons:
+        _expect_empty(args)
+        return cls()
+
+
+_LEDS = struct.Struct("<BBBB")
+
+
+@dataclass(frozen=True, slots=True)
+class SetLeds:
+    """mode 0 off, 1 solid, 2 blink, 3 breathe; colour as 8-bit RGB."""
+
+    mode: int
+    red: int = 0
+    green: int = 0
+    blue: int = 0
+
+    CODE: ClassVar[int] = CtrlBus.SET_LEDS
+    REPLY: ClassVar[type[Reply]] = Empty
+
+    def encode_args(self) -> bytes:
+        return _LEDS.pack(self.mode, self.red, self.green, self.blue)
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> SetLeds:
+        mode, r, g, b = _unpack(_LEDS, args)
+        if mode > 3:
+            raise BadPayload(f"LED mode {mode} is not 0-3")
+        return cls(mode, r, g, b)
+
+
+_BEEP = struct.Struct("<HH")
+
+
+@dataclass(frozen=True, slots=True)
+class Beep:
+    frequency_hz: int
+    duration_s: float  # ms on the wire
+
+    CODE: ClassVar[int] = CtrlBus.BEEP
+    REPLY: ClassVar[type[Reply]] = Empty
+
+    def encode_args(self) -> bytes:
+        return _BEEP.pack(self.frequency_hz, round(self.duration_s * 1000))
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> Beep:
+        f, ms = _unpack(_BEEP, args)
+        return cls(f, ms / 1000)
+
+
+Request: TypeAlias = (
+    ConnectBase
+    | GetBaseConf
+    | GetBinaryConf
+    | GetBaseStatus
+    | GetMotorData
+    | GetSensorData
+    | GetBumperData
+    | GetAutoHomeData
+    | SetBaseMotor
+    | SetVelocity
+    | PollBaseCommand
+    | AnswerBaseCommand
+    | SendEvent
+    | GetHealth
+    | GetHealthError
+    | ClearHealthError
+    | SetUvLamp
+    | SetAtomiser
+    | SetFan
+    | GetPayloadStatus
+    | GetEnvData
+    | GetPowerData
+    | GetButtons
+    | SetLeds
+    | Beep
+)
+
+REQUEST_TYPES: tuple[type, ...] = (
+    ConnectBase,
+    GetBaseConf,
+    GetBinaryConf,
+    GetBaseStatus,
+    GetMotorData,
+    GetSensorData,
+    GetBumperData,
+    GetAutoHomeData,
+    SetBaseMotor,
+    SetVelocity,
+    PollBaseCommand,
+    AnswerBaseCommand,
+    SendEvent,
+    GetHealth,
+    GetHealthError,
+    ClearHealthError,
+    SetUvLamp,
+    SetAtomiser,
+    SetFan,
+    GetPayloadStatus,
+    GetEnvData,
+    GetPowerData,
+    GetButtons,
+    SetLeds,
+    Beep,
+)
+
+_DECODERS: dict[int, object] = {
+    cls.CODE: cls.decode_args  # type: ignore[attr-defined]
+    for cls in REQUEST_TYPES
+    if hasattr(cls, "decode_args")
+}
+_DECODERS[CtrlBus.HEALTH_MGMT] = _decode_health
+
+
+# --------------------------------------------------------------------------------------------
+# Whole frames, both directions
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Sync:
+    """SYNC request or reply: the board sends the whole request frame back unchanged."""
+
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Echo:
+    """ECHO request or reply."""
+
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class BaseCommand:
+    """0xF9 base/UI command (reference firmware): 1 enter DFU, 2 reboot."""
+
+    command: int
+
+
+@dataclass(frozen=True, slots=True)
+class Rejected:
+    """A request the board cannot serve, with the error code it must answer."""
+
+    error: int
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class ErrorReply:
+    """An ERROR response from the board."""
+
+    code: int
+
+    def __str__(self) -> str:
+        return ErrorCode.describe(self.code)
+
+
+@dataclass(frozen=True, slots=True)
+class InvalidReply:
+    """An INVALID response (packet incomplete or malformed)."""
+
+    payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Malformed:
+    """A reply whose code or payload does not fit what was asked."""
+
+    reason: str
+
+
+IncomingRequest: TypeAlias = Request | Sync | Echo | BaseCommand | Rejected
+IncomingReply: TypeAlias = Reply | Sync | Echo | ErrorReply | InvalidReply | Malformed
+
+
+def encode_request(req: Request, profile: Profile = DEFAULT_PROFILE) -> bytes:
+    """The CTRL_BUS frame for one typed request."""
+    return encode_frame(profile.ctrl_bus_cmd, bytes((req.CODE,)) + req.encode_args(), long=profile.long_requests)
+
+
+def encode_sync(data: bytes = b"", profile: Profile = DEFAULT_PROFILE) -> bytes:
+    return encode_frame(CMD_SYNC, data, long=profile.long_requests)
+
+
+def encode_echo(data: bytes = b"", profile: Profile = DEFAULT_PROFILE) -> bytes:
+    return encode_frame(CMD_ECHO, data, long=profile.long_requests)
+
+
+def decode_request(frame: Frame, profile: Profile = DEFAULT_PROFILE) -> IncomingRequest:
+    """Board side: a typed request, or ``Rejected`` with the error code to answer."""
+    code = frame.code
+    payload = frame.payload
+    if code == profile.ctrl_bus_cmd:
+        if not payload:
+            return Rejected(ErrorCode.BAD_ARGUMENTS, "CTRL_BUS request without a command byte")
+        decoder = _DECODERS.get(payload[0])
+        if decoder is None:
+            return Rejected(ErrorCode.NOT_SUPPORTED, f"Control Bus command 0x{payload[0]:02X} not supported")
+        try:
+            return decoder(payload[1:])  # type: ignore[operator, no-any-return]
+        except (BadPayload, struct.error) as exc:
+            return Rejected(ErrorCode.BAD_ARGUMENTS, f"{CtrlBus(payload[0]).name}: {exc}")
+    if code == CMD_SYNC:
+        return Sync(payload)
+    if code == CMD_ECHO:
+        return Echo(payload)
+    if code == CMD_BASE:
+        if len(payload) != 1:
+            return Rejected(ErrorCode.BAD_ARGUMENTS, "base command expects one byte")
+        return BaseCommand(payload[0])
+    return Rejected(ErrorCode.NOT_SUPPORTED, f"request CMD 0x{code:02X} not supported")
+
+
+def decode_reply(frame: Frame, expected: type[Reply] | None) -> IncomingReply:
+    """Master side: decode a reply against the reply type of the request that was sent."""
+    code = frame.code
+    if code == RESP_OK:
+        if expected is None:
+            return Malformed("OK reply without a request in flight")
+        try:
+            return expected.decode(frame.payload)  # type: ignore[return-value]
+        except (BadPayload, struct.error, UnicodeError) as exc:
+            return Malformed(f"{expected.__name__}: {exc}")
+    if code == RESP_ERROR:
+        if len(frame.payload) != 2:
+            return Malformed(f"ERROR reply with {len(frame.payload)} payload bytes (u16 expected)")
+        return ErrorReply(frame.payload[0] | (frame.payload[1] << 8))
+    if code == RESP_SYNC:
+        return Sync(frame.payload)
+    if code == RESP_ECHO:
+        return Echo(frame.payload)
+    if code == RESP_INVALID:
+        return InvalidReply(frame.payload)
+    return Malformed(f"unknown response code 0x{code:02X}")
+
+
+def encode_ok(reply: Reply) -> bytes:
+    """Board side: the OK frame (always long, like the reference base)."""
+    return encode_frame(RESP_OK, reply.encode(), long=True)
+
+
+def encode_error(code: int) -> bytes:
+    return encode_frame(RESP_ERROR, struct.pack("<H", code), long=True)

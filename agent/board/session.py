@@ -1,0 +1,362 @@
+"""A board session: connect, poll on a schedule, keep a snapshot, reconnect by itself.
+
+``PollSchedule`` is pure (what is due at time t). ``BoardSession`` owns one ``BoardClient`` and
+runs the schedule: motion (SET_V_AND_GET_DEADRECKON, which also feeds the board's watchdog) at
+50 Hz, wheel distances and range sensors at 20 Hz, bumpers and cliffs at 20 Hz, battery and power
+at 1 Hz, health at 2 Hz with the error list fetched when it changes. ``tick()`` runs one round
+and returns when the next one is due; ``run_forever()`` loops it on the injected clock (in a thread
+for real time; the lockstep field calls ``tick`` itself).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import random
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field, replace
+from queue import Empty as QueueEmpty
+from queue import SimpleQueue
+
+from fleetlink.agent.board import protocol as p
+from fleetlink.agent.board.link import (
+    BoardClient,
+    BoardDisconnected,
+    BoardError,
+    BoardRefused,
+    BoardTimeout,
+)
+from fleetlink.agent.board.transport import Port, PortClosed
+from fleetlink.shared.clock import Clock
+
+log = logging.getLogger(__name__)
+
+__all__ = ["BoardSession", "BoardSnapshot", "PollRates", "PollSchedule"]
+
+
+@dataclass(frozen=True, slots=True)
+class PollRates:
+    """Hz per poll task; 0 disables a task."""
+
+    motion: float = 50.0
+    motor: float = 20.0
+    sensors: float = 20.0
+    bumpers: float = 20.0
+    status: float = 1.0
+    power: float = 1.0
+    health: float = 2.0
+    payload: float = 2.0
+    env: float = 0.5
+    buttons: float = 5.0
+    base_command: float = 2.0
+
+
+class PollSchedule:
+    """Which poll tasks are due at a given time; tasks keep their phase and never bunch up."""
+
+    def __init__(self, rates: PollRates, start: float) -> None:
+        self.periods = {name: 1.0 / hz for name, hz in _fields(rates) if hz > 0}
+        self.next_due = dict.fromkeys(self.periods, start)
+
+    def due(self, now: float) -> list[str]:
+        tasks = [name for name, t in self.next_due.items() if t <= now]
+        for name in tasks:
+            period = self.periods[name]
+            nxt = self.next_due[name] + period
+            # After a stall (reconnect, slow link), skip missed slots instead of bursting.
+            self.next_due[name] = nxt if nxt > now else now + period
+        return tasks
+
+    def next_time(self) -> float:
+        return min(self.next_due.values())
+
+
+def _fields(rates: PollRates) -> list[tuple[str, float]]:
+    return [(name, getattr(rates, name)) for name in rates.__dataclass_fields__]
+
+
+@dataclass(frozen=True, slots=True)
+class BoardSnapshot:
+    """Everything known about the board; replaced whole on every change (safe to share)."""
+
+    connected: bool = False
+    info: p.BaseInfo | None = None
+    conf: p.BaseConf | None = None
+    status: p.BaseStatus | None = None
+    power: p.PowerData | None = None
+    motor: p.MotorData | None = None
+    sensors: p.SensorData | None = None
+    bumpers: p.BumperData | None = None
+    health: p.Health | None = None
+    errors: tuple[p.HealthError, ...] = ()
+    payload: p.PayloadStatus | None = None
+    env: p.EnvData | None = None
+    buttons: p.Buttons | None = None
+    # Dead reckoning integrated from SET_V_AND_GET_DEADRECKON deltas (odometry frame).
+    odom: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    command: tuple[float, float] = (0.0, 0.0)  # vx m/s, omega rad/s being sent
+    updated: float = 0.0  # clock time of the last successful poll
+    connects: int = 0
+    last_error: str = ""
+
+
+@dataclass(slots=True)
+class _Call:
+    request: p.Request
+    future: Future[p.Reply] = field(default_factory=Future)
+
+
+class BoardSession:
+    """Owns the board link. Thread-safe entry points: ``set_velocity``, ``call``, ``snapshot``, ``stop``."""
+
+    def __init__(
+        self,
+        open_port: Callable[[], Port],
+        clock: Clock,
+        profile: p.Profile = p.DEFAULT_PROFILE,
+        rates: PollRates | None = None,
+        timeout: float = 0.1,
+        retries: int = 2,
+        max_failures: int = 3,
+        on_update: Callable[[BoardSnapshot], None] | None = None,
+        seed: int | None = None,
+    ) -> None:
+        self._open_port = open_port
+        self.clock = clock
+        self.profile = profile
+        self.rates = rates or PollRates()
+        self.timeout = timeout
+        self.retries = retries
+        self.max_failures = max_failures
+        self.on_update = on_update
+        self.client: BoardClient | None = None
+        self._snap = BoardSnapshot()
+        self._lock = threading.Lock()
+        self._calls: SimpleQueue[_Call] = SimpleQueue()
+        self._command = (0.0, 0.0)
+        self._stop = threading.Event()
+        self._failures = 0
+        self._schedule: PollSchedule | None = None
+        self._backoff = 0.2
+        self._retry_at = 0.0
+        self._rng = random.Random(seed)
+        self._thread: threading.Thread | None = None
+
+    # -- thread-safe API -------------------------------------------------------------------
+
+    @property
+    def snapshot(self) -> BoardSnapshot:
+        return self._snap
+
+    def set_velocity(self, vx: float, omega: float) -> None:
+        """Body velocity sent at the motion rate; non-finite values are refused."""
+        if not (math.isfinite(vx) and math.isfinite(omega)):
+            raise ValueError(f"velocity must be finite, got vx={vx} omega={omega}")
+        self._command = (vx, omega)
+
+    def call(self, request: p.Request) -> Future[p.Reply]:
+        """Queue a one-off request (payload, LEDs, ...), sent between polls."""
+        item = _Call(request)
+        self._calls.put(item)
+        return item.future
+
+    def start(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self.run_forever, name="board-session", daemon=True)
+            self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+        self._disconnect("stopped")
+
+    def __enter__(self) -> BoardSession:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- the loop ---------------------------------------------------------------------------
+
+    def run_forever(self) -> None:
+        while not self._stop.is_set():
+            nxt = self.tick()
+            self.clock.sleep_until(min(nxt, self.clock.now() + 0.05))
+
+    def tick(self) -> float:
+        """One round: connect if needed, run what is due, serve queued calls. Returns the next due time."""
+        now = self.clock.now()
+        if self.client is None:
+            if now < self._retry_at:
+                return self._retry_at
+            if not self._connect():
+                return self._retry_at
+        assert self._schedule is not None
+        try:
+            for task in self._schedule.due(now):
+                getattr(self, f"_poll_{task}")()
+            self._serve_calls()
+            self._failures = 0
+        except BoardDisconnected as exc:
+            self._disconnect(str(exc))
+            return self._retry_at
+        except (BoardTimeout, BoardError) as exc:
+            self._failures += 1
+            self._set(last_error=str(exc))
+            if self._failures >= self.max_failures:
+                self._disconnect(f"{self._failures} failed exchanges in a row: {exc}")
+                return self._retry_at
+        return self._schedule.next_time()
+
+    def _connect(self) -> bool:
+        try:
+            port = self._open_port()
+        except (PortClosed, OSError) as exc:
+            self._schedule_retry(f"cannot open board port: {exc}")
+            return False
+        client = BoardClient(port, self.clock, self.profile, self.timeout, self.retries)
+        try:
+            info = client.connect(attempts=2)
+            conf = client.request(p.GetBaseConf())
+        except BoardError as exc:
+            client.close()
+            self._schedule_retry(f"board handshake failed: {exc}")
+            return False
+        assert isinstance(conf, p.BaseConf)
+        self.client = client
+        self._failures = 0
+        self._backoff = 0.2
+        self._schedule = PollSchedule(self.rates, self.clock.now())
+        log.info("board connected: %s firmware %s serial %s", info.model, info.firmware_text, info.serial_text)
+        self._set(connected=True, info=info, conf=conf, connects=self._snap.connects + 1, last_error="")
+        return True
+
+    def _schedule_retry(self, reason: str) -> None:
+        if self._snap.last_error != reason:
+            log.warning("%s (retrying)", reason)
+        # Jittered exponential backoff, capped at 2 s.
+        delay = self._backoff * (0.5 + self._rng.random())
+        self._backoff = min(2.0, self._backoff * 2)
+        self._retry_at = self.clock.now() + delay
+        self._set(connected=False, last_error=reason)
+
+    def _disconnect(self, reason: str) -> None:
+        if self.client is not None:
+            log.warning("board link lost: %s", reason)
+            self.client.close()
+            self.client = None
+            self._schedule_retry(reason)
+
+    def _set(self, **changes: object) -> None:
+        with self._lock:
+            self._snap = replace(self._snap, **changes)  # type: ignore[arg-type]
+            snap = self._snap
+        if self.on_update is not None:
+            self.on_update(snap)
+
+    def _ask(self, req: p.Request) -> p.Reply:
+        assert self.client is not None
+        return self.client.request(req)
+
+    def _serve_calls(self) -> None:
+        while True:
+            try:
+                call = self._calls.get_nowait()
+            except QueueEmpty:
+                return
+            if not call.future.set_running_or_notify_cancel():
+                continue
+            try:
+                call.future.set_result(self._ask(call.request))
+            except BoardRefused as exc:
+                call.future.set_exception(exc)
+            except BoardError as exc:
+                call.future.set_exception(exc)
+                raise
+
+    # -- poll tasks -------------------------------------------------------------------------
+
+    def _poll_motion(self) -> None:
+        vx, omega = self._command
+        dr = self._ask(p.SetVelocity(vx, 0.0, omega))
+        assert isinstance(dr, p.DeadReckon)
+        x, y, th = self._snap.odom
+        c, s = math.cos(th), math.sin(th)
+        odom = (x + c * dr.dx - s * dr.dy, y + s * dr.dx + c * dr.dy, _wrap(th + dr.dtheta))
+        self._set(odom=odom, command=(vx, omega), updated=self.clock.now())
+
+    def _poll_motor(self) -> None:
+        self._set(motor=self._ask(p.GetMotorData()), updated=self.clock.now())
+
+    def _poll_sensors(self) -> None:
+        self._set(sensors=self._ask(p.GetSensorData()))
+
+    def _poll_bumpers(self) -> None:
+        self._set(bumpers=self._ask(p.GetBumperData()))
+
+    def _poll_status(self) -> None:
+        self._set(status=self._ask(p.GetBaseStatus()))
+
+    def _poll_power(self) -> None:
+        self._set(power=self._optional(p.GetPowerData()))
+
+    def _poll_payload(self) -> None:
+        self._set(payload=self._optional(p.GetPayloadStatus()))
+
+    def _poll_env(self) -> None:
+        self._set(env=self._optional(p.GetEnvData()))
+
+    def _poll_buttons(self) -> None:
+        self._set(buttons=self._optional(p.GetButtons()))
+
+    def _poll_base_command(self) -> None:
+        pending = self._ask(p.PollBaseCommand())
+        assert isinstance(pending, p.PendingBaseCommand)
+        if pending.command is not None:
+            log.info("base asks for command 0x%02X", pending.command)
+            self._ask(p.AnswerBaseCommand())
+
+    def _poll_health(self) -> None:
+        health = self._ask(p.GetHealth())
+        assert isinstance(health, p.Health)
+        if health != self._snap.health:
+            errors = []
+            for i in range(health.error_count):
+                err = self._ask(p.GetHealthError(i))
+                assert isinstance(err, p.HealthError)
+                errors.append(err)
+            for err in errors:
+                if err not in self._snap.errors:
+                    log.warning("board health: 0x%04X %s", err.code, err.message)
+            self._set(health=health, errors=tuple(errors))
+
+    def _optional(self, req: p.Request) -> p.Reply | None:
+        """Extension commands: a board without them answers NOT_SUPPORTED; stop asking."""
+        try:
+            return self._ask(req)
+        except BoardRefused as exc:
+            if exc.code == p.ErrorCode.NOT_SUPPORTED and self._schedule is not None:
+                name = _TASK_OF.get(type(req))
+                if name:
+                    self._schedule.next_due.pop(name, None)
+            return None
+
+    def clear_error(self, code: int) -> Future[p.Reply]:
+        return self.call(p.ClearHealthError(code))
+
+
+_TASK_OF: dict[type, str] = {
+    p.GetPowerData: "power",
+    p.GetPayloadStatus: "payload",
+    p.GetEnvData: "env",
+    p.GetButtons: "buttons",
+}
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi

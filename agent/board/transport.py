@@ -1,0 +1,122 @@
+"""Byte transports for the board and the lidar: opened by URL, or an in-process pair for lockstep.
+
+* ``/dev/ttyUSB0``, a pty path, ``socket://host:port``, ``loop://``: pyserial's ``serial_for_url``.
+* ``InProcessPort``: a callable that turns request bytes into reply bytes (the simulated board
+  in the same process), for lockstep runs where simulated time only moves when we move it.
+
+Ports expose ``write(data)``, ``read_some(clock, deadline) -> bytes`` (whatever arrives before the
+deadline; ``b""`` on timeout) and ``close()``. A port that has failed raises ``PortClosed``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Protocol
+
+from fleetlink.shared.clock import Clock
+
+__all__ = ["InProcessPort", "Port", "PortClosed", "SerialPort", "open_port"]
+
+BAUDRATE = 115200  # the Control Bus and the RPLIDAR A1 both run 115200 8N1
+
+
+class PortClosed(ConnectionError):
+    """The port could not be opened, or the other end went away."""
+
+
+class Port(Protocol):
+    def write(self, data: bytes) -> None: ...
+
+    def read_some(self, clock: Clock, deadline: float) -> bytes: ...
+
+    def close(self) -> None: ...
+
+
+class SerialPort:
+    """A pyserial port; ``read_some`` blocks in short slices so a deadline is honoured."""
+
+    def __init__(self, url: str, baudrate: int = BAUDRATE, slice_s: float = 0.005) -> None:
+        import serial  # pyserial: imported here so sans-I/O users never load it
+
+        self.url = url
+        self._serial_error: type[Exception] = serial.SerialException
+        try:
+            self._port = serial.serial_for_url(url, baudrate=baudrate, timeout=slice_s, write_timeout=1.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise PortClosed(f"cannot open {url}: {exc}") from exc
+        self._slice = slice_s
+
+    def write(self, data: bytes) -> None:
+        try:
+            self._port.write(data)
+        except (self._serial_error, OSError) as exc:
+            raise PortClosed(f"{self.url}: write failed: {exc}") from exc
+
+    def read_some(self, clock: Clock, deadline: float) -> bytes:
+        try:
+            while True:
+                waiting = self._port.in_waiting
+                data: bytes = self._port.read(waiting or 1)
+                if data:
+                    if waiting == 0 and self._port.in_waiting:
+                        data += self._port.read(self._port.in_waiting)
+                    return data
+                if clock.now() >= deadline:
+                    return b""
+        except (self._serial_error, OSError) as exc:
+            raise PortClosed(f"{self.url}: read failed: {exc}") from exc
+
+    def set_dtr(self, level: bool) -> None:
+        """The RPLIDAR A1's motor is switched by DTR (low = motor on)."""
+        try:
+            self._port.dtr = level
+        except (self._serial_error, OSError, AttributeError):
+            pass
+
+    def close(self) -> None:
+        try:
+            self._port.close()
+        except (self._serial_error, OSError):
+            pass
+
+
+class InProcessPort:
+    """One end of an in-process byte pair: ``peer`` answers every write synchronously.
+
+    ``cut`` models a severed cable: writes vanish and nothing comes back. Under a simulated clock,
+    waiting for a reply that never comes advances simulated time to the deadline.
+    """
+
+    def __init__(self, peer: Callable[[bytes], bytes]) -> None:
+        self._peer = peer
+        self._inbox = bytearray()
+        self.cut = False
+        self.closed = False
+
+    def write(self, data: bytes) -> None:
+        if self.closed:
+            raise PortClosed("in-process port is closed")
+        if self.cut:
+            return
+        self._inbox += self._peer(bytes(data))
+
+    def inject(self, data: bytes) -> None:
+        """Bytes that arrive without being asked for (line noise in tests)."""
+        self._inbox += data
+
+    def read_some(self, clock: Clock, deadline: float) -> bytes:
+        if self.closed:
+            raise PortClosed("in-process port is closed")
+        if self._inbox:
+            data = bytes(self._inbox)
+            self._inbox.clear()
+            return data
+        clock.sleep_until(deadline)
+        return b""
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def open_port(url: str, baudrate: int = BAUDRATE) -> SerialPort:
+    return SerialPort(url, baudrate)
