@@ -1,0 +1,204 @@
+"""Key expressions (Zenoh) and topics (MQTT): one scheme, one builder.
+
+Every message lives at ``fleetlink/v1/<robot>/<topic>``. The same string is a Zenoh key expression
+and an MQTT topic, so a bridge between the two never rewrites names.
+
+* ``<robot>`` is a robot id: 1-64 characters from ``[A-Za-z0-9_-]``. That excludes every
+  character with a meaning in either system (``/``, ``*``, ``#``, ``+``, ``$``, ``?``).
+* ``<topic>`` is one or more ``/``-separated segments, each following the same rule as a robot
+  id (e.g. ``board``, ``map/updates``), at most ``MAX_TOPIC_SEGMENTS`` of them.
+* The robot id ``sim`` is reserved: ``fleetlink/v1/sim/<robot>/truth`` carries the simulator's
+  ground truth about ``<robot>``. So that the all-robots wildcards never match a truth key, no
+  ordinary topic may end in the segment ``truth``.
+
+Pure functions, no I/O. Every validator raises ``ValueError`` with a message naming the bad part.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+
+__all__ = [
+    "ID_PATTERN",
+    "MAX_TOPIC_SEGMENTS",
+    "MQTT_ALL",
+    "MQTT_ALL_TRUTH",
+    "PREFIX",
+    "RESERVED_ROBOT_IDS",
+    "SIM",
+    "TRUTH_TOPIC",
+    "ZENOH_ALL",
+    "ZENOH_ALL_TRUTH",
+    "check_id",
+    "check_robot_id",
+    "check_topic",
+    "is_truth_key",
+    "is_valid_id",
+    "key",
+    "mqtt_all_robots",
+    "mqtt_robot",
+    "parse_key",
+    "parse_truth_key",
+    "truth_key",
+    "zenoh_all_robots",
+    "zenoh_robot",
+]
+
+PREFIX = "fleetlink/v1"
+"""Interface name and major version of the key scheme; every key starts with it."""
+
+ID_PATTERN = r"[A-Za-z0-9_-]{1,64}"
+"""What a robot id, a sender id and each topic segment must match (in full)."""
+
+SIM = "sim"
+"""Reserved robot id: the simulation namespace ``fleetlink/v1/sim/<robot>/truth``."""
+
+TRUTH_TOPIC = "truth"
+"""The only topic in the simulation namespace (ground truth about one robot)."""
+
+RESERVED_ROBOT_IDS = frozenset({SIM})
+
+MAX_TOPIC_SEGMENTS = 8
+
+ZENOH_ALL = f"{PREFIX}/**"
+"""Zenoh key expression matching every fleetlink key (including the sim namespace)."""
+
+MQTT_ALL = f"{PREFIX}/#"
+"""MQTT topic filter matching every fleetlink topic (including the sim namespace)."""
+
+ZENOH_ALL_TRUTH = f"{PREFIX}/{SIM}/*/{TRUTH_TOPIC}"
+MQTT_ALL_TRUTH = f"{PREFIX}/{SIM}/+/{TRUTH_TOPIC}"
+
+_ID_RE = re.compile(ID_PATTERN)
+_PREFIX_SLASH = PREFIX + "/"
+_SIM_PREFIX = f"{PREFIX}/{SIM}/"
+_MAX_SHOWN = 80
+
+
+def _show(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= _MAX_SHOWN else text[: _MAX_SHOWN - 3] + "..."
+
+
+def is_valid_id(value: object) -> bool:
+    """True if ``value`` is a string matching ``ID_PATTERN`` (robot ids, sender ids, segments)."""
+    return isinstance(value, str) and _ID_RE.fullmatch(value) is not None
+
+
+def check_id(value: object, what: str = "id") -> str:
+    """Return ``value`` if it is a valid id (charset only, no reserved names), else ValueError."""
+    if not isinstance(value, str):
+        raise ValueError(f"invalid {what} {_show(value)}: expected a string, got {type(value).__name__}")
+    if _ID_RE.fullmatch(value) is None:
+        raise ValueError(f"invalid {what} {_show(value)}: must be 1-64 characters from [A-Za-z0-9_-]")
+    return value
+
+
+def check_robot_id(robot: object) -> str:
+    """Return ``robot`` if it is a valid, unreserved robot id, else raise ValueError."""
+    value = check_id(robot, "robot id")
+    if value in RESERVED_ROBOT_IDS:
+        raise ValueError(f"invalid robot id {value!r}: reserved for the simulation namespace")
+    return value
+
+
+def check_topic(topic: object) -> str:
+    """Return ``topic`` if it is a valid ordinary topic name, else raise ValueError.
+
+    A topic is 1-``MAX_TOPIC_SEGMENTS`` segments joined by ``/``, each a valid id. Its last
+    segment may not be ``truth`` (reserved for the simulation namespace).
+    """
+    if not isinstance(topic, str):
+        raise ValueError(f"invalid topic {_show(topic)}: expected a string, got {type(topic).__name__}")
+    segments = topic.split("/")
+    if len(segments) > MAX_TOPIC_SEGMENTS:
+        raise ValueError(f"invalid topic {_show(topic)}: more than {MAX_TOPIC_SEGMENTS} segments")
+    for segment in segments:
+        if _ID_RE.fullmatch(segment) is None:
+            raise ValueError(
+                f"invalid topic {_show(topic)}: segment {_show(segment)} must be 1-64 characters from [A-Za-z0-9_-]"
+            )
+    if segments[-1] == TRUTH_TOPIC:
+        raise ValueError(
+            f"invalid topic {_show(topic)}: a final segment {TRUTH_TOPIC!r} is reserved for the "
+            "simulation namespace (use truth_key())"
+        )
+    return topic
+
+
+def key(robot: str, topic: str) -> str:
+    """``fleetlink/v1/<robot>/<topic>``; the same string serves Zenoh and MQTT."""
+    return f"{_PREFIX_SLASH}{check_robot_id(robot)}/{check_topic(topic)}"
+
+
+def parse_key(key_expr: str) -> tuple[str, str]:
+    """Split ``fleetlink/v1/<robot>/<topic>`` into ``(robot, topic)``; ValueError if malformed.
+
+    Truth keys (``fleetlink/v1/sim/<robot>/truth``) are rejected here: check ``is_truth_key``
+    first and use ``parse_truth_key`` for them.
+    """
+    if not isinstance(key_expr, str):
+        raise ValueError(f"invalid key {_show(key_expr)}: expected a string, got {type(key_expr).__name__}")
+    return _parse_key(key_expr)
+
+
+@functools.lru_cache(maxsize=4096)
+def _parse_key(key_expr: str) -> tuple[str, str]:
+    # Cached: a subscriber sees the same few hundred keys over and over.
+    if not key_expr.startswith(_PREFIX_SLASH):
+        raise ValueError(f"invalid key {_show(key_expr)}: must start with {_PREFIX_SLASH!r}")
+    robot, sep, topic = key_expr[len(_PREFIX_SLASH) :].partition("/")
+    if not sep:
+        raise ValueError(f"invalid key {_show(key_expr)}: expected {PREFIX}/<robot>/<topic>")
+    if robot == SIM:
+        raise ValueError(f"invalid key {_show(key_expr)}: {SIM!r} is the simulation namespace (use parse_truth_key())")
+    try:
+        check_robot_id(robot)
+        check_topic(topic)
+    except ValueError as exc:
+        raise ValueError(f"invalid key {_show(key_expr)}: {exc}") from None
+    return robot, topic
+
+
+def truth_key(robot: str) -> str:
+    """``fleetlink/v1/sim/<robot>/truth``: the simulator's ground truth about ``robot``."""
+    return f"{_SIM_PREFIX}{check_robot_id(robot)}/{TRUTH_TOPIC}"
+
+
+def is_truth_key(key_expr: str) -> bool:
+    """True if ``key_expr`` is in the simulation namespace (well-formed or not)."""
+    return isinstance(key_expr, str) and key_expr.startswith(_SIM_PREFIX)
+
+
+def parse_truth_key(key_expr: str) -> str:
+    """The robot id of a truth key ``fleetlink/v1/sim/<robot>/truth``; ValueError if malformed."""
+    if not is_truth_key(key_expr):
+        raise ValueError(f"invalid truth key {_show(key_expr)}: must start with {_SIM_PREFIX!r}")
+    robot, sep, topic = key_expr[len(_SIM_PREFIX) :].partition("/")
+    if not sep or topic != TRUTH_TOPIC:
+        raise ValueError(f"invalid truth key {_show(key_expr)}: expected {_SIM_PREFIX}<robot>/{TRUTH_TOPIC}")
+    try:
+        return check_robot_id(robot)
+    except ValueError as exc:
+        raise ValueError(f"invalid truth key {_show(key_expr)}: {exc}") from None
+
+
+def zenoh_all_robots(topic: str) -> str:
+    """Zenoh key expression for ``topic`` from every robot: ``fleetlink/v1/*/<topic>``."""
+    return f"{_PREFIX_SLASH}*/{check_topic(topic)}"
+
+
+def mqtt_all_robots(topic: str) -> str:
+    """MQTT topic filter for ``topic`` from every robot: ``fleetlink/v1/+/<topic>``."""
+    return f"{_PREFIX_SLASH}+/{check_topic(topic)}"
+
+
+def zenoh_robot(robot: str) -> str:
+    """Zenoh key expression for every topic of one robot: ``fleetlink/v1/<robot>/**``."""
+    return f"{_PREFIX_SLASH}{check_robot_id(robot)}/**"
+
+
+def mqtt_robot(robot: str) -> str:
+    """MQTT topic filter for every topic of one robot: ``fleetlink/v1/<robot>/#``."""
+    return f"{_PREFIX_SLASH}{check_robot_id(robot)}/#"
