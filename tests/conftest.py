@@ -1,0 +1,40 @@
+"""Shared fixtures: see tests/harness.
+
+Fixtures:
+  mosquitto                      a started private broker (MosquittoBroker), stopped at teardown
+  mosquitto_factory(extra_conf)  -> started MosquittoBroker with extra config lines
+  zenoh_peers(n=2)               -> ZenohPeers: n connected loopback zenoh sessions, closed at teardown
+  _no_thread_leaks (autouse)     fails a test that leaves a non-daemon thread running
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+
+import pytest
+
+from tests.harness import leaked_threads
+from tests.harness.mosquitto import mosquitto, mosquitto_factory
+from tests.harness.zenoh_peers import zenoh_peers
+
+__all__ = ["mosquitto", "mosquitto_factory", "zenoh_peers"]
+
+THREAD_GRACE_S = 2.0
+
+
+@pytest.fixture(autouse=True)
+def _no_thread_leaks() -> Iterator[None]:
+    # Autouse and function-scoped, so it is set up before the test's other function-scoped
+    # fixtures and torn down after them: their cleanup (closing zenoh sessions, stopping paho
+    # loops) has already run when the check happens.
+    before = set(threading.enumerate())
+    yield
+    leaked = leaked_threads(before, grace=THREAD_GRACE_S)
+    if leaked:
+        names = ", ".join(f"{t.name!r} (target={getattr(t, '_target', None)!r})" for t in leaked)
+        pytest.fail(
+            f"test left {len(leaked)} non-daemon thread(s) running {THREAD_GRACE_S}s after teardown: "
+            f"{names}. Close zenoh sessions / stop clients / join worker threads.",
+            pytrace=False,
+        )
