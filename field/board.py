@@ -175,6 +175,8 @@ class SimulatedBoard:
         if isinstance(req, p.Rejected):
             log.debug("board refused request: %s", req.reason)
             return self._error(req.error)
+        if isinstance(req, (p.Sync, p.Echo)):
+            return frame.encode()
         if isinstance(req, p.BaseCommand):
             # DFU/reboot: acknowledged; a reboot forgets the connection.
             if req.command == 2:
@@ -201,7 +203,7 @@ class SimulatedBoard:
     # Commands
     # ---------------------------------------------------------------------------------------
 
-    def _serve(self, req: p.Request) -> p.Reply:  # noqa: C901 - one branch per command reads best
+    def _serve(self, req: p.Request) -> p.Reply:
         st, cfg = self.state, self.config
         if isinstance(req, p.ConnectBase):
             if req.protocol_version != 1:
@@ -214,9 +216,7 @@ class SimulatedBoard:
             br = p.MountPose(cfg.radius * math.cos(-0.6), cfg.radius * math.sin(-0.6), 0.03, 2 * math.pi - 0.6)
             return p.BaseConf(0, cfg.radius, 0, (us,), (bl, br))
         if isinstance(req, p.GetBinaryConf):
-            return p.BinaryConf(
-                f"track={cfg.wheel_track};radius={cfg.radius};vmax={cfg.max_wheel_speed}".encode()
-            )
+            return p.BinaryConf(f"track={cfg.wheel_track};radius={cfg.radius};vmax={cfg.max_wheel_speed}".encode())
         if isinstance(req, p.GetBaseStatus):
             return p.BaseStatus(self.battery_percent, self._power_flags())
         if isinstance(req, p.GetMotorData):
@@ -323,7 +323,7 @@ class SimulatedBoard:
             st.watchdog_trips += 1
             st.set_left = st.set_right = 0.0
             self._raise_error(p.HealthErrorCode.CORE_DISCONNECTED, "core disconnected")
-            self.events.append("link watchdog: no request for %.1f s, wheels stopped" % cfg.watchdog)
+            self.events.append(f"link watchdog: no request for {cfg.watchdog:.1f} s, wheels stopped")
         if st.watchdog_tripped:
             st.set_left = st.set_right = 0.0
 
@@ -331,18 +331,19 @@ class SimulatedBoard:
         speeds = []
         for i, (v, target) in enumerate(((st.v_left, st.set_left), (st.v_right, st.set_right))):
             pid = self._pid[i]
-            if target == 0.0 or (v * target < 0 and abs(v) > 1e-3):
-                goal = 0.0
-            else:
-                goal = target
+            goal = 0.0 if target == 0.0 or (v * target < 0 and abs(v) > 0.001) else target
             if goal == 0.0 and abs(v) < 1e-3:
                 pid.reset()
                 speeds.append(0.0)
                 continue
             duty = pid.update((goal - v) / cfg.max_wheel_speed)
             # Motor: first-order response of speed to duty.
-            v += (duty * cfg.max_wheel_speed - v) * min(1.0, dt / cfg.motor_tau)
-            speeds.append(v)
+            v_next = v + (duty * cfg.max_wheel_speed - v) * min(1.0, dt / cfg.motor_tau)
+            if goal == 0.0 and v_next * v <= 0.0:
+                # Braking ends at standstill: a stop never turns the wheel the other way.
+                pid.reset()
+                v_next = 0.0
+            speeds.append(v_next)
         vl, vr = speeds
 
         # Differential drive over dt (exact arc).
@@ -368,7 +369,11 @@ class SimulatedBoard:
                 pid.reset()
             self._battery(dt, 0.0)
             return
-        st.bumped_left = st.bumped_right = False
+        if (st.bumped_left or st.bumped_right) and (
+            not self.floor.walls or self.floor.clearance(nx, ny) > self.floor.clearance(st.x, st.y)
+        ):
+            # A bump switch stays pressed while the body rests against the wall; moving away releases it.
+            st.bumped_left = st.bumped_right = False
         st.stalled = False
         st.v_left, st.v_right = vl, vr
         st.dist_left += vl * dt
@@ -476,14 +481,21 @@ class SimulatedBoard:
         out = []
         for side in (1, -1):
             a = st.theta + side * 0.5
-            out.append(self.floor.over_cliff(st.x + cfg.cliff_offset * math.cos(a), st.y + cfg.cliff_offset * math.sin(a)))
+            out.append(
+                self.floor.over_cliff(st.x + cfg.cliff_offset * math.cos(a), st.y + cfg.cliff_offset * math.sin(a))
+            )
         return out[0], out[1]
 
     def bumper_bitmap(self) -> int:
         st = self.state
         bits = ALL_CLEAR
         cliff_l, cliff_r = self.cliff_sensors()
-        for bit, hit in ((BUMPER_LEFT, st.bumped_left), (BUMPER_RIGHT, st.bumped_right), (CLIFF_LEFT, cliff_l), (CLIFF_RIGHT, cliff_r)):
+        for bit, hit in (
+            (BUMPER_LEFT, st.bumped_left),
+            (BUMPER_RIGHT, st.bumped_right),
+            (CLIFF_LEFT, cliff_l),
+            (CLIFF_RIGHT, cliff_r),
+        ):
             if hit:
                 bits &= ~(1 << bit)
         return bits & 0xFFFF_FFFF
@@ -526,4 +538,3 @@ class _Refusal(Exception):
     def __init__(self, code: int) -> None:
         super().__init__(p.ErrorCode.describe(code))
         self.code = code
-

@@ -7,6 +7,7 @@ and a new server on the same port models a board that restarts.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import select
@@ -73,10 +74,8 @@ class BoardServer:
             self._listener = None
         if self._pty_fds is not None:
             for fd in self._pty_fds:
-                try:
+                with contextlib.suppress(OSError):
                     os.close(fd)
-                except OSError:
-                    pass
             self._pty_fds = None
 
     def __enter__(self) -> BoardServer:
@@ -161,15 +160,11 @@ class BoardServer:
                 continue
             reply = self._handle(data)
             if reply:
-                try:
+                with contextlib.suppress(OSError):
                     os.write(master, reply)
-                except OSError:
-                    pass
 
 
 def _close(sock: socket.socket) -> None:
-    try:
+    with contextlib.suppress(OSError):
         sock.shutdown(socket.SHUT_RDWR)
-    except OSError:
-        pass
     sock.close()

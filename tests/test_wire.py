@@ -13,6 +13,9 @@ from typing import Annotated, Any, ClassVar
 
 import msgpack
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SimClock
 from fleetlink.shared.messages import BoardStatus
@@ -30,8 +33,6 @@ from fleetlink.shared.wire import (
     encode,
     sized,
 )
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 
 # --------------------------------------------------------------------------------------------------
 # Fixtures and helpers

@@ -16,10 +16,10 @@ board's 512 bytes.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass, field
 from functools import reduce
 from operator import xor
 from typing import NamedTuple
-from dataclasses import dataclass, field
 
 import numpy as np
 

@@ -30,9 +30,9 @@ __all__ = [
     "RESP_INVALID",
     "RESP_OK",
     "RESP_SYNC",
-    "Profile",
-    "ErrorCode",
     "CtrlBus",
+    "ErrorCode",
+    "Profile",
 ]
 
 # Request CMD values.
@@ -359,7 +359,9 @@ class SensorData:
 
     def encode(self) -> bytes:
         vals = list(self.distances)[:16] + [0.0] * (16 - len(self.distances))
-        return _SENSORS.pack(*(_u32(min(d, 65535.0) * 1000 * Q16) if d > 0 else 0 for d in vals))
+        # Clamp to the largest u32 Q16 mm reading (65.536 m), in metres like ``d``.
+        top = 0xFFFF_FFFF / Q16 / 1000
+        return _SENSORS.pack(*(_u32(min(d, top) * 1000 * Q16) if d > 0 else 0 for d in vals))
 
     @classmethod
     def decode(cls, payload: bytes) -> SensorData:
@@ -565,7 +567,9 @@ class PowerData:
     power_flags: int  # as BaseStatus
 
     def encode(self) -> bytes:
-        return _POWER.pack(round(self.voltage * 1000), round(self.current * 1000), self.battery_percent, self.power_flags)
+        return _POWER.pack(
+            round(self.voltage * 1000), round(self.current * 1000), self.battery_percent, self.power_flags
+        )
 
     @classmethod
     def decode(cls, payload: bytes) -> PowerData:
@@ -1227,7 +1231,7 @@ def decode_reply(frame: Frame, expected: type[Reply] | None) -> IncomingReply:
         if expected is None:
             return Malformed("OK reply without a request in flight")
         try:
-            return expected.decode(frame.payload)  # type: ignore[return-value]
+            return expected.decode(frame.payload)
         except (BadPayload, struct.error, UnicodeError) as exc:
             return Malformed(f"{expected.__name__}: {exc}")
     if code == RESP_ERROR:

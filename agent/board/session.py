@@ -172,7 +172,10 @@ class BoardSession:
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
-        self._disconnect("stopped")
+        if self.client is not None:
+            self.client.close()
+            self.client = None
+            self._set(connected=False, last_error="stopped")
 
     def __enter__(self) -> BoardSession:
         self.start()

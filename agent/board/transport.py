@@ -10,6 +10,7 @@ deadline; ``b""`` on timeout) and ``close()``. A port that has failed raises ``P
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from typing import Protocol
 
@@ -68,16 +69,12 @@ class SerialPort:
 
     def set_dtr(self, level: bool) -> None:
         """The RPLIDAR A1's motor is switched by DTR (low = motor on)."""
-        try:
+        with contextlib.suppress(self._serial_error, OSError, AttributeError):
             self._port.dtr = level
-        except (self._serial_error, OSError, AttributeError):
-            pass
 
     def close(self) -> None:
-        try:
+        with contextlib.suppress(self._serial_error, OSError):
             self._port.close()
-        except (self._serial_error, OSError):
-            pass
 
 
 class InProcessPort:

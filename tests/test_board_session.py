@@ -1,0 +1,318 @@
+"""BoardSession against the simulated board: the link watchdog, reconnection and the snapshot.
+
+Real-time tests serve the board on TCP and on a pty (``BoardServer``) and poll with deadlines;
+the lockstep tests run the same session on a ``SimClock`` through an ``InProcessPort``, stepping
+the board by hand, so their timings are exact.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from fleetlink.agent.board import protocol as p
+from fleetlink.agent.board.link import BoardRefused
+from fleetlink.agent.board.session import BoardSession, BoardSnapshot
+from fleetlink.agent.board.transport import InProcessPort, SerialPort
+from fleetlink.field.board import SimulatedBoard
+from fleetlink.field.board_server import BoardServer
+from fleetlink.shared.clock import SimClock, SystemClock
+from tests.test_board_link import serve_board
+
+CLOCK = SystemClock()
+MOTION_PERIOD = 1.0 / 50  # the session's motion poll (which is what feeds the watchdog)
+WATCHDOG = 1.0
+# From 0.3 m/s the wheels brake to a standstill in ~35 ms (PID and 80 ms motor lag); allow 100 ms.
+BRAKE_BUDGET = 0.1
+CORE_DISCONNECTED = p.HealthError(p.HealthErrorCode.CORE_DISCONNECTED, "core disconnected")
+
+
+def wait_for(predicate: Callable[[], object], timeout: float, what: str, interval: float = 0.002) -> float:
+    """Poll until ``predicate`` is true; return the time it was first seen true. Fails after ``timeout``."""
+    deadline = CLOCK.now() + timeout
+    while True:
+        now = CLOCK.now()
+        if predicate():
+            return now
+        if now > deadline:
+            raise AssertionError(f"timed out after {timeout:.2f} s waiting for {what}")
+        CLOCK.sleep_until(now + interval)
+
+
+@pytest.fixture(params=["tcp", "pty"])
+def served_board(request: pytest.FixtureRequest) -> Iterator[tuple[BoardServer, str]]:
+    with serve_board(request.param) as served:
+        yield served
+
+
+def session_for(url: str, **kwargs: object) -> BoardSession:
+    return BoardSession(lambda: SerialPort(url), CLOCK, seed=1, **kwargs)
+
+
+def wheels(server: BoardServer) -> tuple[float, float]:
+    st = server.board.state
+    return st.v_left, st.v_right
+
+
+# ---------------------------------------------------------------------------------------------
+# Watchdog, real time
+# ---------------------------------------------------------------------------------------------
+
+
+def test_watchdog_stops_the_wheels_when_the_agent_goes_quiet(served_board: tuple[BoardServer, str]) -> None:
+    server, url = served_board
+    board = server.board
+    session = session_for(url)
+    try:
+        session.start()
+        session.set_velocity(0.3, 0.0)
+        wait_for(lambda: min(wheels(server)) > 0.28, 3.0, "the wheels to reach 0.3 m/s")
+        assert session.snapshot.connected
+    finally:
+        # The agent goes quiet. (stop() also closes the port, which for socket:// URLs includes
+        # pyserial's 0.3 s courtesy sleep, so the time is taken before it.)
+        quiet_at = CLOCK.now()
+        session.stop()
+    with server.lock:
+        last = board.state.last_ctrl_bus
+        assert not board.state.watchdog_tripped
+        assert min(wheels(server)) > 0.25
+    assert last is not None
+
+    tripped_at = wait_for(lambda: board.state.watchdog_tripped, WATCHDOG + 0.5, "the watchdog")
+    stopped_at = wait_for(lambda: wheels(server) == (0.0, 0.0), 0.5, "the wheels to stop")
+    with server.lock:
+        assert (board.state.set_left, board.state.set_right) == (0.0, 0.0)
+        assert board.state.watchdog_trips == 1
+        assert (p.HealthErrorCode.CORE_DISCONNECTED, "core disconnected") in board.state.errors
+    # Not before the threshold (measured from the board's own record of the last CTRL_BUS request)...
+    assert tripped_at - last > WATCHDOG
+    # ... and the set-point is zero within 1000 ms + one poll period of the agent going quiet.
+    assert tripped_at - quiet_at <= WATCHDOG + MOTION_PERIOD, f"{tripped_at - quiet_at:.3f} s"
+    assert tripped_at - last <= WATCHDOG + MOTION_PERIOD, f"{tripped_at - last:.3f} s"
+    assert stopped_at - tripped_at <= BRAKE_BUDGET, f"wheels took {stopped_at - tripped_at:.3f} s to stop"
+    # Stopped means stopped: the wheels stay at zero and did not turn backwards.
+    x = board.state.x
+    wait_for(lambda: CLOCK.now() > stopped_at + 0.1, 1.0, "100 ms")
+    assert wheels(server) == (0.0, 0.0)
+    assert board.state.x == x
+
+    # A new session: the board resumes driving, and the master learns why it had stopped.
+    with session_for(url) as session:
+        session.set_velocity(0.3, 0.0)
+        wait_for(lambda: min(wheels(server)) > 0.25, 2.0, "driving to resume")
+        assert not board.state.watchdog_tripped
+        wait_for(lambda: CORE_DISCONNECTED in session.snapshot.errors, 2.0, "the health error in the snapshot")
+        health = session.snapshot.health
+        assert health is not None and health.flags & p.Health.WARNING and health.error_count >= 1
+        # The master acknowledges it.
+        assert session.clear_error(p.HealthErrorCode.CORE_DISCONNECTED).result(timeout=2.0) == p.Empty()
+        wait_for(lambda: CORE_DISCONNECTED not in session.snapshot.errors, 2.0, "the error to clear")
+    assert any("link restored" in e for e in board.events)
+
+
+# ---------------------------------------------------------------------------------------------
+# Lockstep: SimClock + InProcessPort + board.step
+# ---------------------------------------------------------------------------------------------
+
+
+class Lockstep:
+    """A session and a board sharing a SimClock; the test decides when time moves."""
+
+    def __init__(self, board: SimulatedBoard | None = None) -> None:
+        self.clock = SimClock(start=10.0)
+        self.board = board or SimulatedBoard(now=self.clock.now())
+        self.board.start_clock(self.clock.now())
+        self.ports: list[InProcessPort] = []
+        self.session = BoardSession(self._open, self.clock, seed=3)
+
+    def _open(self) -> InProcessPort:
+        port = InProcessPort(lambda data: self.board.receive(data, self.clock.now()))
+        self.ports.append(port)
+        return port
+
+    def run(self, duration: float) -> None:
+        """The agent is alive: tick the session whenever it is due, stepping the board in between."""
+        end = self.clock.now() + duration
+        while self.clock.now() < end:
+            nxt = self.session.tick()
+            self.clock.set(min(end, max(nxt, self.clock.now())))
+            self.board.step(self.clock.now())
+
+    def quiet(self, duration: float, dt: float = 0.001) -> None:
+        """The agent is silent: only the board runs."""
+        end = self.clock.now() + duration
+        while self.clock.now() < end - 1e-12:
+            self.clock.advance(dt)
+            self.board.step(self.clock.now())
+
+
+def test_watchdog_in_lockstep() -> None:
+    ls = Lockstep()
+    board, st = ls.board, ls.board.state
+    ls.session.set_velocity(0.3, 0.0)
+    ls.run(1.0)
+    assert ls.session.snapshot.connected
+    assert st.v_left == pytest.approx(0.3, abs=0.005) and st.v_right == pytest.approx(0.3, abs=0.005)
+    last, quiet_at = st.last_ctrl_bus, ls.clock.now()
+    assert last is not None and quiet_at - last <= MOTION_PERIOD
+
+    tripped_at = stopped_at = None
+    while stopped_at is None and ls.clock.now() < quiet_at + 2.0:
+        ls.quiet(0.001)
+        if tripped_at is None and st.watchdog_tripped:
+            tripped_at = ls.clock.now()
+            assert (st.set_left, st.set_right) == (0.0, 0.0)
+        if tripped_at is not None and (st.v_left, st.v_right) == (0.0, 0.0):
+            stopped_at = ls.clock.now()
+        if tripped_at is None:
+            assert st.v_left > 0.29, "the wheels must keep going until the watchdog fires"
+    assert tripped_at is not None and stopped_at is not None
+    assert tripped_at - last == pytest.approx(WATCHDOG, abs=0.0011)  # 1 ms sampling
+    assert tripped_at - last > WATCHDOG
+    assert tripped_at - quiet_at <= WATCHDOG + MOTION_PERIOD
+    assert stopped_at - tripped_at <= 0.05, f"{stopped_at - tripped_at:.3f} s to brake from 0.3 m/s"
+    assert (p.HealthErrorCode.CORE_DISCONNECTED, "core disconnected") in st.errors
+    assert any("link watchdog" in e for e in board.events)
+    ls.quiet(1.0)
+    assert (st.v_left, st.v_right) == (0.0, 0.0) and st.watchdog_trips == 1
+
+    # The agent comes back (same session, same link): the next request re-arms driving.
+    ls.run(1.0)
+    assert not st.watchdog_tripped
+    assert st.v_left == pytest.approx(0.3, abs=0.005)
+    assert CORE_DISCONNECTED in ls.session.snapshot.errors
+    assert ls.session.snapshot.connects == 1
+    ls.session.stop()
+    assert not ls.session.snapshot.connected
+    assert all(port.closed for port in ls.ports)
+
+
+def test_lockstep_odometry_follows_an_arc() -> None:
+    ls = Lockstep(SimulatedBoard(pose=(0.0, 0.0, 0.0)))
+    ls.session.set_velocity(0.25, 0.5)
+    ls.run(4.0)
+    ls.session.set_velocity(0.0, 0.0)
+    ls.run(0.5)  # stop, and let one more motion poll collect the last of the motion
+    st, snap = ls.board.state, ls.session.snapshot
+    assert (st.v_left, st.v_right) == (0.0, 0.0)
+    assert math.hypot(st.x, st.y) > 0.8
+    assert snap.odom[0] == pytest.approx(st.x, abs=1e-4)
+    assert snap.odom[1] == pytest.approx(st.y, abs=1e-4)
+    assert math.remainder(snap.odom[2] - st.theta, 2 * math.pi) == pytest.approx(0.0, abs=1e-4)
+    ls.session.stop()
+
+
+# ---------------------------------------------------------------------------------------------
+# Reconnection
+# ---------------------------------------------------------------------------------------------
+
+
+def test_session_reconnects_after_the_board_restarts() -> None:
+    first = BoardServer(SimulatedBoard(), CLOCK)
+    tcp_port = first.serve_tcp()
+    second: BoardServer | None = None
+    try:
+        with session_for(f"socket://127.0.0.1:{tcp_port}") as session:
+            wait_for(lambda: session.snapshot.connected, 3.0, "the first connection")
+            assert session.snapshot.connects == 1
+            session.set_velocity(0.2, 0.0)
+            wait_for(lambda: first.board.state.v_left > 0.15, 2.0, "driving on the first board")
+
+            first.stop()  # the board restarts: the socket closes and the port is gone for a moment
+            second = BoardServer(SimulatedBoard(), CLOCK)
+            assert second.serve_tcp(port=tcp_port) == tcp_port
+            restarted_at = CLOCK.now()
+
+            wait_for(
+                lambda: session.snapshot.connects == 2 and session.snapshot.connected,
+                5.0,
+                "the session to reconnect by itself",
+            )
+            reconnect_s = CLOCK.now() - restarted_at
+            assert reconnect_s < 3.0
+            snap = session.snapshot
+            assert snap.info is not None and snap.info.model == "FLK-UVC-01"
+            assert second.board.state.connected
+            # The new board drives on the command the agent still holds.
+            wait_for(lambda: second.board.state.v_left > 0.15, 2.0, "driving on the restarted board")
+            assert session.snapshot.last_error == ""
+    finally:
+        first.stop()
+        if second is not None:
+            second.stop()
+
+
+# ---------------------------------------------------------------------------------------------
+# The snapshot
+# ---------------------------------------------------------------------------------------------
+
+
+def _filled(s: BoardSnapshot) -> bool:
+    fields = (s.info, s.conf, s.status, s.motor, s.sensors, s.bumpers, s.health, s.payload, s.env, s.power)
+    return s.connected and all(f is not None for f in fields)
+
+
+def test_snapshot_fills_in_and_odometry_tracks_the_board(served_board: tuple[BoardServer, str]) -> None:
+    server, url = served_board
+    board = server.board
+    updates: list[BoardSnapshot] = []
+    with session_for(url, on_update=updates.append) as session:
+        wait_for(lambda: _filled(session.snapshot), 3.0, "every part of the snapshot")
+        snap = session.snapshot
+        assert snap.connects == 1 and snap.last_error == ""
+        assert snap.info is not None and snap.info.model == "FLK-UVC-01"
+        assert snap.conf is not None and snap.conf.radius == pytest.approx(0.17, abs=1e-3)
+        assert snap.status is not None and snap.status.battery_percent == 100
+        assert snap.power is not None and snap.power.voltage == pytest.approx(16.8, abs=0.05)
+        assert snap.bumpers is not None and snap.bumpers.bitmap == 0xFFFF_FFFF
+        assert snap.health == p.Health(0, 0) and snap.errors == ()
+        assert snap.payload == p.PayloadStatus(False, 0, False, 100)
+        assert snap.env is not None and snap.env.disinfectant_percent == 100
+        assert snap.sensors is not None and len(snap.sensors.distances) == 16
+        assert updates and updates[-1].connected
+
+        # Non-finite commands are refused and do not replace the current one.
+        for vx, omega in ((math.nan, 0.0), (0.0, math.inf), (-math.inf, math.nan)):
+            with pytest.raises(ValueError):
+                session.set_velocity(vx, omega)
+        assert session.snapshot.command == (0.0, 0.0)
+
+        # Drive forward, stop, and compare the integrated odometry with where the board really is.
+        session.set_velocity(0.25, 0.0)
+        wait_for(lambda: board.state.x > 0.2, 3.0, "the robot to move 20 cm")
+        assert session.snapshot.command == (0.25, 0.0)
+        session.set_velocity(0.0, 0.0)
+        wait_for(lambda: wheels(server) == (0.0, 0.0), 1.0, "the robot to stop")
+        polled = session.snapshot.updated
+        wait_for(lambda: session.snapshot.updated > polled + 2 * MOTION_PERIOD, 1.0, "two more motion polls")
+        x, y, th = session.snapshot.odom
+        with server.lock:
+            true_x, true_y, true_th = board.state.x, board.state.y, board.state.theta
+        assert x == pytest.approx(true_x, abs=0.002)
+        assert y == pytest.approx(true_y, abs=0.002)
+        assert th == pytest.approx(true_th, abs=0.002)
+        motor = session.snapshot.motor
+        assert motor is not None
+        wait_for(lambda: session.snapshot.motor is not motor, 1.0, "a fresh motor poll")
+        motor = session.snapshot.motor
+        assert motor is not None
+        assert motor.left == pytest.approx(true_x, abs=0.002) and motor.right == pytest.approx(true_x, abs=0.002)
+
+        # One-off calls between polls.
+        assert session.call(p.SetUvLamp(True)).result(timeout=2.0) == p.Empty()
+        assert board.state.uv_lamp
+        status = session.call(p.GetPayloadStatus()).result(timeout=2.0)
+        assert isinstance(status, p.PayloadStatus) and status.uv_lamp
+        wait_for(
+            lambda: session.snapshot.payload is not None and session.snapshot.payload.uv_lamp,
+            2.0,
+            "the polled payload status to show the lamp on",
+        )
+        # A refused call fails its future without upsetting the session.
+        refused = session.call(p.GetHealthError(99)).exception(timeout=2.0)
+        assert isinstance(refused, BoardRefused) and refused.code == p.ErrorCode.BAD_ARGUMENTS
+        assert session.snapshot.connected and session.snapshot.connects == 1
+    assert not session.snapshot.connected
