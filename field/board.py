@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 from fleetlink.agent.board import protocol as p
 from fleetlink.agent.board.frames import BOARD_BUFFER, Frame, FrameDecoder
-from fleetlink.field.floor import Floor, cone_range
+from fleetlink.field.floor import Floor
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,10 @@ class BoardConfig:
     tank_ml: float = 500.0
     atomiser_ml_per_s: tuple[float, float, float, float] = (0.0, 0.25, 0.5, 1.0)
     dock: tuple[float, float] | None = None  # x, y of a charging dock; on it when within 0.1 m
+    wheel_scale: tuple[float, float] = (1.0, 1.0)  # true / nominal wheel radius, left and right
+    gyro_bias: float = 0.0  # rad/s
+    gyro_noise: float = 0.0  # rad/s, sd per control tick
+    ultrasonic_noise: float = 0.005  # m, sd
     noise_seed: int = 0
 
 
@@ -112,6 +116,10 @@ class BoardState:
     requests: int = 0
     error_replies: int = 0
     watchdog_trips: int = 0
+    true_v: float = 0.0  # ground truth body velocity, m/s and rad/s
+    true_w: float = 0.0
+    gyro_rate: float = 0.0  # rad/s as the gyro reports it
+    gyro_yaw: float = 0.0  # integrated gyro heading, rad
 
 
 class SimulatedBoard:
@@ -135,6 +143,7 @@ class SimulatedBoard:
         # No code filter: an unknown CMD must be answered with 0x8000, not silently skipped.
         self._decoder = FrameDecoder(valid_codes=None, max_frame=BOARD_BUFFER, report_drops=True)
         self._now = now
+        self.slip = [0.0, 0.0]  # fraction of each wheel's motion lost to slip (scripted events set it)
         self.events: list[str] = []  # human-readable firmware events, drained by the owner
 
     # ---------------------------------------------------------------------------------------
@@ -346,47 +355,49 @@ class SimulatedBoard:
             speeds.append(v_next)
         vl, vr = speeds
 
-        # Differential drive over dt (exact arc).
-        v = (vl + vr) / 2
-        w = (vr - vl) / cfg.wheel_track
+        # Encoders count wheel rotation at the nominal radius; the floor sees the true radius
+        # (wheel-scale error) and loses whatever slips.
+        enc_l, enc_r = vl * dt, vr * dt
+        true_l = enc_l * cfg.wheel_scale[0] * (1.0 - self.slip[0])
+        true_r = enc_r * cfg.wheel_scale[1] * (1.0 - self.slip[1])
         th = st.theta
-        if abs(w) < 1e-9:
-            dx_w, dy_w = v * dt * math.cos(th), v * dt * math.sin(th)
-        else:
-            dx_w = v / w * (math.sin(th + w * dt) - math.sin(th))
-            dy_w = -v / w * (math.cos(th + w * dt) - math.cos(th))
+        dx_w, dy_w, dth = _arc(th, (true_l + true_r) / 2, (true_r - true_l) / cfg.wheel_track)
         nx, ny = st.x + dx_w, st.y + dy_w
-        blocked = self.floor.walls and self.floor.clearance(nx, ny) < cfg.radius
-        if blocked and self.floor.clearance(nx, ny) < self.floor.clearance(st.x, st.y):
-            # The body hit a wall: it stops, the bumper on that side fires, the wheels stall.
+        here = self.floor.clearance(st.x, st.y)
+        there = self.floor.clearance(nx, ny) if (dx_w or dy_w) else here
+        if there < cfg.radius and there < here:
+            # The body hit something: it stops, the bumper on that side fires, the wheels stall.
             side = self._contact_side(nx, ny)
             st.bumped_left = side <= 0
             st.bumped_right = side >= 0
             st.stalled = True
             st.v_left = st.v_right = 0.0
             st.set_left = st.set_right = 0.0
+            st.true_v = st.true_w = 0.0
             for pid in self._pid:
                 pid.reset()
             self._battery(dt, 0.0)
             return
-        if (st.bumped_left or st.bumped_right) and (
-            not self.floor.walls or self.floor.clearance(nx, ny) > self.floor.clearance(st.x, st.y)
-        ):
+        if (st.bumped_left or st.bumped_right) and there > here:
             # A bump switch stays pressed while the body rests against the wall; moving away releases it.
             st.bumped_left = st.bumped_right = False
         st.stalled = False
         st.v_left, st.v_right = vl, vr
-        st.dist_left += vl * dt
-        st.dist_right += vr * dt
+        st.dist_left += enc_l
+        st.dist_right += enc_r
         st.x, st.y = nx, ny
-        st.theta = (th + w * dt + math.pi) % (2 * math.pi) - math.pi
-        # Dead reckoning in the frame of the last SET_V_AND_GET_DEADRECKON call.
-        c, s = math.cos(st.dr_theta), math.sin(st.dr_theta)
-        lx = math.cos(-th) * dx_w - math.sin(-th) * dy_w  # motion in the body frame
-        ly = math.sin(-th) * dx_w + math.cos(-th) * dy_w
-        st.dr_x += c * lx - s * ly
-        st.dr_y += s * lx + c * ly
-        st.dr_theta += w * dt
+        st.theta = (th + dth + math.pi) % (2 * math.pi) - math.pi
+        st.true_v = (true_l + true_r) / (2 * dt)
+        st.true_w = dth / dt
+        # The gyro sees the true turn rate, plus its bias and noise.
+        noise = self._rng.gauss(0.0, cfg.gyro_noise) if cfg.gyro_noise else 0.0
+        st.gyro_rate = st.true_w + cfg.gyro_bias + noise
+        st.gyro_yaw = (st.gyro_yaw + st.gyro_rate * dt + math.pi) % (2 * math.pi) - math.pi
+        # Dead reckoning from the encoders, in the frame of the last SET_V_AND_GET_DEADRECKON call.
+        lx, ly, lth = _arc(st.dr_theta, (enc_l + enc_r) / 2, (enc_r - enc_l) / cfg.wheel_track)
+        st.dr_x += lx
+        st.dr_y += ly
+        st.dr_theta += lth
         self._battery(dt, (abs(vl) + abs(vr)) / (2 * cfg.max_wheel_speed))
         self._payload(dt)
 
@@ -471,10 +482,12 @@ class SimulatedBoard:
         lo, hi = cfg.ultrasonic_range
         sx = st.x + cfg.radius * math.cos(st.theta)
         sy = st.y + cfg.radius * math.sin(st.theta)
-        d = cone_range(self.floor.walls, sx, sy, st.theta, cfg.ultrasonic_cone / 2, hi)
+        # The nearest reflector inside the cone (9 rays), walls and other robots alike.
+        half = cfg.ultrasonic_cone / 2
+        d = min(self.floor.rays(sx, sy, [st.theta - half + i * half / 4 for i in range(9)], hi))
         if math.isinf(d):
             return 0.0
-        return max(lo, d + self._rng.gauss(0.0, 0.005))
+        return max(lo, d + self._rng.gauss(0.0, cfg.ultrasonic_noise))
 
     def cliff_sensors(self) -> tuple[bool, bool]:
         st, cfg = self.state, self.config
@@ -532,6 +545,15 @@ class SimulatedBoard:
 
     def drain_tank(self) -> None:
         self.state.tank_ml = 0.0
+
+
+def _arc(theta: float, ds: float, dth: float) -> tuple[float, float, float]:
+    """Displacement (dx, dy, dtheta) of a differential drive moving ds along an arc turning dth,
+    starting at heading theta (exact, not Euler)."""
+    if abs(dth) < 1e-9:
+        return ds * math.cos(theta), ds * math.sin(theta), dth
+    r = ds / dth
+    return r * (math.sin(theta + dth) - math.sin(theta)), -r * (math.cos(theta + dth) - math.cos(theta)), dth
 
 
 class _Refusal(Exception):

@@ -44,6 +44,10 @@ class Floor:
         """Distance to the nearest wall along a ray, or ``inf`` if none within ``max_range``."""
         return ray_cast(self.walls, x, y, angle, max_range)
 
+    def rays(self, x: float, y: float, angles: Sequence[float], max_range: float) -> list[float]:
+        """Several rays from one point (a sensor cone); the multi-robot world vectorises this."""
+        return [ray_cast(self.walls, x, y, a, max_range) for a in angles]
+
     def clearance(self, x: float, y: float) -> float:
         """Distance from a point to the nearest wall."""
         return min((point_segment_distance(x, y, s) for s in self.walls), default=math.inf)
