@@ -80,12 +80,15 @@ class SerialPort:
 class InProcessPort:
     """One end of an in-process byte pair: ``peer`` answers every write synchronously.
 
-    ``cut`` models a severed cable: writes vanish and nothing comes back. Under a simulated clock,
-    waiting for a reply that never comes advances simulated time to the deadline.
+    ``cut`` models a severed cable: writes vanish and nothing comes back. Waiting for a reply that
+    never comes either advances the clock to the deadline (one actor owns time, as in a unit test),
+    or, with ``wait_advances_clock=False``, times out at once without moving time (the lockstep
+    field, where one robot's dead link must not move everybody's clock).
     """
 
-    def __init__(self, peer: Callable[[bytes], bytes]) -> None:
+    def __init__(self, peer: Callable[[bytes], bytes], wait_advances_clock: bool = True) -> None:
         self._peer = peer
+        self._wait_advances_clock = wait_advances_clock
         self._inbox = bytearray()
         self.cut = False
         self.closed = False
@@ -108,7 +111,8 @@ class InProcessPort:
             data = bytes(self._inbox)
             self._inbox.clear()
             return data
-        clock.sleep_until(deadline)
+        if self._wait_advances_clock:
+            clock.sleep_until(deadline)
         return b""
 
     def close(self) -> None:
