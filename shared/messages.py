@@ -15,7 +15,7 @@ from typing import Annotated, ClassVar
 
 from .wire import Message, bounded, register, sized
 
-__all__ = ["MAX_BOARD_ERRORS", "MAX_BOARD_SENSORS", "BoardStatus"]
+__all__ = ["MAX_BOARD_ERRORS", "MAX_BOARD_SENSORS", "BoardStatus", "Truth"]
 
 MAX_BOARD_ERRORS = 16
 MAX_BOARD_SENSORS = 16
@@ -49,3 +49,28 @@ class BoardStatus(Message):
     """Range sensor readings in metres, at most 16, each >= 0."""
     watchdog_tripped: bool
     """The board's motor watchdog has stopped the motors."""
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Truth(Message):
+    """Ground truth about one simulated robot, published by the field on ``fleetlink/v1/sim/<robot>/truth``.
+
+    Only the simulator publishes it; agents must never use it (scoring compares against it).
+    """
+
+    TOPIC: ClassVar[str] = "truth"
+
+    sim_time_s: Annotated[float, bounded(0.0)]
+    """Simulated seconds since the field started."""
+    x: float
+    """Metres, in the plan's frame (the UWB frame)."""
+    y: float
+    theta: Annotated[float, bounded(-3.2, 3.2)]
+    """Heading, radians, counter-clockwise from +x, in [-pi, pi]."""
+    v: float
+    """Forward speed over ground, m/s."""
+    omega: float
+    """Turn rate, rad/s."""
+    bumped: bool
+    """A bump switch is pressed."""
