@@ -30,6 +30,7 @@ class Rect:
 class Floor:
     walls: list[Segment] = field(default_factory=list)
     cliffs: list[Rect] = field(default_factory=list)
+    cliff_polygons: list[tuple[Point, ...]] = field(default_factory=list)  # e.g. a stairwell (field.plans)
 
     @classmethod
     def box(cls, width: float, height: float) -> Floor:
@@ -53,7 +54,19 @@ class Floor:
         return min((point_segment_distance(x, y, s) for s in self.walls), default=math.inf)
 
     def over_cliff(self, x: float, y: float) -> bool:
-        return any(r.contains(x, y) for r in self.cliffs)
+        return any(r.contains(x, y) for r in self.cliffs) or any(point_in_polygon(x, y, p) for p in self.cliff_polygons)
+
+
+def point_in_polygon(x: float, y: float, polygon: Sequence[Point]) -> bool:
+    """Even-odd test: is (x, y) inside a simple polygon given by its corners (either winding)?"""
+    inside = False
+    n = len(polygon)
+    for i in range(n):
+        x1, y1 = polygon[i]
+        x2, y2 = polygon[(i + 1) % n]
+        if (y1 > y) != (y2 > y) and x < x1 + (y - y1) * (x2 - x1) / (y2 - y1):
+            inside = not inside
+    return inside
 
 
 def ray_cast(walls: Iterable[Segment], x: float, y: float, angle: float, max_range: float) -> float:
