@@ -1,102 +1,176 @@
-"""The simulated field, in real time. For now: simulated control boards served on TCP, one agent-side
-board link per robot talking to its board through real bytes, each robot wandering its room and
-avoiding walls with its ultrasonic sensor, and their live board status on the terminal. Later
-issues add lidars, UWB, the full agents and the operator console.
+"""The simulated field.
 
-Stop with Ctrl-C, or give --duration.
+Without an action it starts the demo in real time: the built-in "demo" scenario (or --scenario),
+every robot's control board and lidar served on TCP like real hardware, an agent-side board link
+per robot talking to its board through real bytes, ground truth published on Zenoh under
+fleetlink/v1/sim/<robot>/truth, and each robot's live board status on the terminal. Stop with
+Ctrl-C, or give --duration.
+
+`fleetlink field run SCENARIO --lockstep --out DIR` runs a scenario in simulated time, as fast as
+the CPU allows, and writes the robots' true trajectories (see docs/field-scenarios.md).
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import threading
+from pathlib import Path
+
+SCENARIOS = Path(__file__).resolve().parent.parent / "field" / "scenarios"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--robots", type=int, default=2, help="how many robots (default 2)")
     parser.add_argument(
-        "--duration", type=float, default=0.0, help="stop after this many seconds (default: run until Ctrl-C)"
+        "--scenario", default="demo", help="a built-in scenario name or a scenario file (default: demo)"
     )
-    parser.add_argument("--speed", type=float, default=0.25, help="cruise speed in m/s (default 0.25)")
+    parser.add_argument(
+        "--duration", type=float, default=0.0, help="stop after this many seconds (default: until Ctrl-C)"
+    )
     parser.add_argument("--refresh", type=float, default=4.0, help="status refreshes per second (default 4)")
+    parser.add_argument("--pty", action="store_true", help="serve boards and lidars on pseudo-terminals instead of TCP")
+    parser.add_argument(
+        "--zenoh-listen",
+        default="tcp/127.0.0.1:7447",
+        help="Zenoh endpoint for ground truth (default tcp/127.0.0.1:7447; 'none' disables publishing)",
+    )
+    sub = parser.add_subparsers(dest="field_command", metavar="ACTION")
+    run = sub.add_parser(
+        "run",
+        help="run a scenario (lockstep: simulated time as fast as possible; or real time)",
+        description="Run a scenario. With --lockstep, simulated time runs as fast as the CPU allows and "
+        "the robots' true trajectories are written to --out.",
+    )
+    run.add_argument("scenario", help="a scenario file, or a built-in scenario name")
+    run.add_argument("--lockstep", action="store_true", help="simulated time, as fast as possible, deterministic")
+    run.add_argument("--out", type=Path, help="output folder (required with --lockstep)")
+    run.add_argument(
+        "--duration", dest="run_duration", type=float, default=None, help="override the scenario's duration (s)"
+    )
+    run.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+
+
+def resolve_scenario(name: str) -> Path:
+    path = Path(name)
+    if path.exists():
+        return path
+    builtin = SCENARIOS / f"{name}.toml"
+    if builtin.exists():
+        return builtin
+    known = ", ".join(sorted(p.stem for p in SCENARIOS.glob("*.toml")))
+    raise FileNotFoundError(f"no scenario file {name!r} and no built-in scenario of that name (built-in: {known})")
 
 
 def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from fleetlink.field.plans import PlanError, load_plan
+    from fleetlink.field.scenario import ScenarioError, load_scenario
+
+    name = args.scenario
+    try:
+        scenario = load_scenario(resolve_scenario(name))
+        if args.field_command == "run":
+            if args.run_duration is not None:
+                scenario = replace(scenario, duration=args.run_duration)
+            if args.seed is not None:
+                scenario = replace(scenario, seed=args.seed)
+        plan = load_plan(scenario.plan)
+    except (FileNotFoundError, ScenarioError, PlanError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.field_command == "run" and args.lockstep:
+        return _run_lockstep(scenario, plan, args.out)
+    duration = scenario.duration if args.field_command == "run" else args.duration
+    return _run_realtime(scenario, plan, duration, args)
+
+
+def _run_lockstep(scenario: object, plan: object, out: Path | None) -> int:
+    from fleetlink.field.lockstep import FieldRun, write_outputs
+
+    if out is None:
+        print("error: --lockstep needs --out DIR", file=sys.stderr)
+        return 2
+    try:
+        result = FieldRun(scenario, plan).run()  # type: ignore[arg-type]
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    write_outputs(result, out)
+    print(
+        f"{result.scenario.name}: {result.sim_seconds:.1f} s simulated in {result.wall_seconds:.1f} s "
+        f"({result.real_time_factor:.1f}x real time), {len(result.truth)} robot(s), {result.scans} lidar scans"
+    )
+    for line in result.events:
+        print(f"  {line}")
+    print(f"wrote {out}/truth/*.csv, {out}/events.log, {out}/summary.json")
+    return 0
+
+
+def _run_realtime(scenario: object, plan: object, duration: float, args: argparse.Namespace) -> int:
     from fleetlink.agent.board.session import BoardSession
     from fleetlink.agent.board.transport import SerialPort
-    from fleetlink.field.board import BoardConfig, SimulatedBoard
-    from fleetlink.field.board_server import BoardServer
-    from fleetlink.field.floor import Floor
+    from fleetlink.field.drivers import Wanderer, scripted
+    from fleetlink.field.realtime import RealtimeField
+    from fleetlink.field.truth import TruthPublisher
     from fleetlink.operator.board_status import render
     from fleetlink.shared.clock import SystemClock
 
-    if args.robots < 1 or not math.isfinite(args.speed) or args.refresh <= 0:
-        print("error: --robots must be >= 1, --speed finite, --refresh > 0", file=sys.stderr)
-        return 2
     clock = SystemClock()
-    servers: list[BoardServer] = []
-    sessions: list[tuple[str, BoardSession]] = []
-    try:
-        for i in range(args.robots):
-            floor = Floor.box(6.0, 4.0)
-            floor.add_wall(3.0, 0.0, 3.0, 1.6)  # a half wall to steer around
-            board = SimulatedBoard(
-                BoardConfig(noise_seed=i, dock=(0.5, 0.5)), floor, pose=(1.0 + 0.4 * i, 2.0, 0.3 * i)
+    publisher = None
+    if args.zenoh_listen != "none":
+        try:
+            publisher = TruthPublisher.open(args.zenoh_listen, clock)
+        except Exception as exc:  # zenoh raises its own ZError
+            print(
+                f"warning: cannot publish ground truth on {args.zenoh_listen}: {exc}; continuing without",
+                file=sys.stderr,
             )
-            server = BoardServer(board, clock)
-            port = server.serve_tcp()
-            servers.append(server)
-            url = f"socket://127.0.0.1:{port}"
+    field = RealtimeField(scenario, plan, clock, truth_sink=publisher.publish if publisher else None, pty=args.pty)  # type: ignore[arg-type]
+    sessions: list[tuple[str, BoardSession, object]] = []
+    try:
+        endpoints = field.start()
+        for i, spec in enumerate(field.scenario.robots):
+            url = endpoints[spec.name].board
             session = BoardSession(lambda url=url: SerialPort(url), clock, seed=i)
             session.start()
-            sessions.append((f"robot-{i + 1} ({url})", session))
+            driver = Wanderer(spec.speed) if spec.drive == "wander" else spec
+            sessions.append((spec.name, session, driver))
         stop = threading.Event()
         start = clock.now()
         tty = sys.stdout.isatty()
         while not stop.wait(1.0 / args.refresh):
             now = clock.now()
-            for _, session in sessions:
-                _wander(session, args.speed)
+            t = now - start
+            for _, session, driver in sessions:
+                if isinstance(driver, Wanderer):
+                    session.set_velocity(*driver.command(session.snapshot, t))
+                elif getattr(driver, "drive", "") == "script":
+                    session.set_velocity(*scripted(driver.script, t))  # type: ignore[attr-defined]
             lines = [
-                f"fleetlink field: {len(sessions)} simulated robot(s), t = {now - start:6.1f} s   (Ctrl-C to stop)",
-                "",
+                f"fleetlink field: {field.scenario.name} on {field.plan.name}, {len(sessions)} robot(s), t = {t:6.1f} s   (Ctrl-C to stop)"
             ]
-            for name, session in sessions:
-                lines += [*render(name, session.snapshot, now), ""]
-            if tty:
-                sys.stdout.write("\x1b[H\x1b[2J" + "\n".join(lines) + "\n")
-            else:
-                sys.stdout.write("\n".join(lines) + "\n")
+            if publisher is not None:
+                lines.append(f"ground truth on Zenoh {args.zenoh_listen}: fleetlink/v1/sim/<robot>/truth")
+            lines.append("")
+            for name, session, _ in sessions:
+                ep = endpoints[name]
+                lines += render(f"{name} (board {ep.board}, lidar {ep.lidar or 'none'})", session.snapshot, now) + [""]
+            for line in field.events.log[-5:]:
+                lines.append(f"event: {line}")
+            out = "\n".join(lines) + "\n"
+            sys.stdout.write(("\x1b[H\x1b[2J" + out) if tty else out)
             sys.stdout.flush()
-            if args.duration and now - start >= args.duration:
+            if duration and t >= duration:
                 break
     except KeyboardInterrupt:
         pass
     finally:
-        for _, session in sessions:
+        for _, session, _ in sessions:
             session.set_velocity(0.0, 0.0)
-        for _, session in sessions:
+        for _, session, _ in sessions:
             session.stop()
-        for server in servers:
-            server.stop()
+        field.stop()
+        if publisher is not None:
+            publisher.close()
     return 0
-
-
-def _wander(session: object, speed: float) -> None:
-    """A tiny reactive driver so the demo moves: cruise, turn away when the ultrasonic sees a wall."""
-    from fleetlink.agent.board.session import BoardSession
-
-    assert isinstance(session, BoardSession)
-    snap = session.snapshot
-    if not snap.connected or snap.sensors is None:
-        return
-    front = snap.sensors.distances[0]
-    bumped = snap.bumpers is not None and (snap.bumpers.triggered(0) or snap.bumpers.triggered(1))
-    if bumped:
-        session.set_velocity(-0.1, 0.8)
-    elif 0 < front < 0.6:
-        session.set_velocity(0.0, 1.2)
-    else:
-        session.set_velocity(speed, 0.0)

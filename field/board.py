@@ -24,6 +24,7 @@ __all__ = ["BoardConfig", "SimulatedBoard"]
 # Bumper bitmap layout of this board (0 = triggered): bumpers from bit 0, cliff sensors after.
 BUMPER_LEFT, BUMPER_RIGHT, CLIFF_LEFT, CLIFF_RIGHT = 0, 1, 2, 3
 ALL_CLEAR = 0xFFFF_FFFF
+_HOME_BUTTON = 0x02  # GET_BUTTONS bit 1
 
 
 @dataclass(slots=True)
@@ -535,6 +536,10 @@ class SimulatedBoard:
         self.state.buttons |= buttons
         if buttons & p.Buttons.HOME:
             self.state.pending_base_command = p.PendingBaseCommand.GO_HOME
+
+    def press_home(self) -> None:
+        """Someone presses the home button: the base then asks the master to go home."""
+        self.press(_HOME_BUTTON)
 
     def release(self, buttons: int) -> None:
         self.state.buttons &= ~buttons

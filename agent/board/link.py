@@ -127,7 +127,7 @@ class BoardClient:
         nonce = self._nonce.to_bytes(4, "little")
         self.stats.syncs += 1
         self._pending.clear()
-        self.port.write(p.encode_sync(nonce, self.profile))
+        self._write(p.encode_sync(nonce, self.profile))
         deadline = self.clock.now() + (timeout or self.timeout)
         while True:
             frame = self._next_frame(deadline)
@@ -140,7 +140,7 @@ class BoardClient:
 
     def echo(self, data: bytes) -> bytes:
         """ECHO: the board sends the frame back; returns the echoed payload."""
-        self.port.write(p.encode_echo(data, self.profile))
+        self._write(p.encode_echo(data, self.profile))
         deadline = self.clock.now() + self.timeout
         while True:
             frame = self._next_frame(deadline)
@@ -176,7 +176,7 @@ class BoardClient:
             self._pending.clear()
         self.stats.requests += 1
         start = self.clock.now()
-        self.port.write(frame)
+        self._write(frame)
         deadline = start + timeout
         while True:
             got = self._next_frame(deadline)
@@ -200,6 +200,12 @@ class BoardClient:
                 self.stats.protocol_errors += 1
                 raise BoardProtocolError(f"{type(req).__name__}: {reply}")
             return reply
+
+    def _write(self, data: bytes) -> None:
+        try:
+            self.port.write(data)
+        except PortClosed as exc:
+            raise BoardDisconnected(str(exc)) from exc
 
     def _next_frame(self, deadline: float) -> Frame | None:
         while not self._pending:

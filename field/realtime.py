@@ -1,0 +1,197 @@
+"""Run a scenario in real time: every robot's board and lidar served on TCP (or a pty) like hardware.
+
+One physics thread advances the world on the system clock; the boards answer their masters from
+the device servers' threads under the same lock, and the lidars' measurement streams go out as
+the physics produces them. Ground truth goes to a sink (the field publishes it on the Zenoh key
+the wire contract reserves for simulation). Scripted events run at their times.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from fleetlink.field.board_server import BoardServer
+from fleetlink.field.build import build_world, lidar_model
+from fleetlink.field.device_server import DeviceServer
+from fleetlink.field.events import EventRunner
+from fleetlink.field.plans import FloorPlan, load_plan
+from fleetlink.field.rplidar import SimulatedRplidar
+from fleetlink.field.scenario import Scenario
+from fleetlink.field.world import World, WorldRobot
+from fleetlink.shared.clock import Clock, SystemClock
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Endpoints", "RealtimeField", "TruthSample"]
+
+
+@dataclass(frozen=True, slots=True)
+class TruthSample:
+    robot: str
+    sim_time: float
+    x: float
+    y: float
+    theta: float
+    v: float
+    omega: float
+    bumped: bool
+
+
+@dataclass(frozen=True, slots=True)
+class Endpoints:
+    board: str  # socket://host:port or a pty path
+    lidar: str | None
+
+
+class RealtimeField:
+    def __init__(
+        self,
+        scenario: Scenario,
+        plan: FloorPlan | None = None,
+        clock: Clock | None = None,
+        truth_sink: Callable[[TruthSample], None] | None = None,
+        truth_hz: float = 20.0,
+        step_hz: float = 200.0,
+        host: str = "127.0.0.1",
+        pty: bool = False,
+    ) -> None:
+        self.scenario = scenario
+        self.plan = plan or load_plan(scenario.plan)
+        self.clock = clock or SystemClock()
+        self.truth_sink = truth_sink
+        self.truth_period = 1.0 / truth_hz
+        self.step_period = 1.0 / step_hz
+        self.host = host
+        self.pty = pty
+        self.lock = threading.Lock()
+        self.world: World = build_world(scenario, self.plan)
+        self.boards: dict[str, BoardServer] = {}
+        self.lidars: dict[str, tuple[SimulatedRplidar, DeviceServer]] = {}
+        self.endpoints: dict[str, Endpoints] = {}
+        self.events = EventRunner(scenario.events, self.plan, self.world, self._cut_link)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._start_time = 0.0
+
+    # -- lifecycle -------------------------------------------------------------------------------
+
+    def start(self) -> dict[str, Endpoints]:
+        now = self.clock.now()
+        self._start_time = now
+        self.world.now = 0.0
+        for i, (spec, robot) in enumerate(zip(self.scenario.robots, self.world.robots, strict=True)):
+            robot.board.start_clock(0.0)
+            board_server = BoardServer(robot.board, _Offset(self.clock, now), step_hz=None, lock=self.lock)
+            board_url = self._serve(board_server)
+            self.boards[spec.name] = board_server
+            lidar_url = None
+            model = lidar_model(self.scenario, spec, i)
+            if model is not None:
+                device = SimulatedRplidar(model.config, self._scan_source(robot, model))
+                device.start_clock(0.0)
+                server = DeviceServer(device, _Offset(self.clock, now), step_hz=None, lock=self.lock, name="lidar")
+                lidar_url = self._serve(server)
+                self.lidars[spec.name] = (device, server)
+            self.endpoints[spec.name] = Endpoints(board_url, lidar_url)
+        self._thread = threading.Thread(target=self._run, name="field-physics", daemon=True)
+        self._thread.start()
+        return self.endpoints
+
+    def _serve(self, server: DeviceServer) -> str:
+        if self.pty:
+            return server.serve_pty()
+        return f"socket://{self.host}:{server.serve_tcp(self.host, 0)}"
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+            self._thread = None
+        for server in self.boards.values():
+            server.stop()
+        for _, server in self.lidars.values():
+            server.stop()
+
+    def __enter__(self) -> RealtimeField:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def sim_time(self) -> float:
+        return self.clock.now() - self._start_time
+
+    # -- the physics loop ------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        next_step = self.clock.now()
+        next_truth = next_step
+        while not self._stop.is_set():
+            t = self.sim_time
+            outputs: list[tuple[DeviceServer, bytes]] = []
+            with self.lock:
+                self.events.advance(t)
+                self.world.step(t)
+                for device, server in self.lidars.values():
+                    out = device.step(t)
+                    if out:
+                        outputs.append((server, out))
+            for server, out in outputs:
+                server.emit(out)
+            now = self.clock.now()
+            if self.truth_sink is not None and now >= next_truth:
+                next_truth = max(next_truth + self.truth_period, now)
+                self._publish_truth(t)
+            next_step += self.step_period
+            if next_step < now:
+                next_step = now
+            self.clock.sleep_until(next_step)
+
+    def _cut_link(self, robot: str, cut: bool) -> None:
+        self.boards[robot].paused = cut
+
+    def _publish_truth(self, t: float) -> None:
+        assert self.truth_sink is not None
+        for r in self.world.robots:
+            st = r.board.state
+            sample = TruthSample(
+                r.name, t, st.x, st.y, st.theta, st.true_v, st.true_w, st.bumped_left or st.bumped_right
+            )
+            try:
+                self.truth_sink(sample)
+            except Exception:  # a sink failure must not stop the physics
+                log.exception("truth sink failed")
+
+    def _scan_source(
+        self, robot: WorldRobot, model: object
+    ) -> Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        def source(now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            x, y, th = robot.pose
+            circles = self.world.other_bodies(robot.index, x, y, model.config.max_range)  # type: ignore[attr-defined]
+            return model.revolution(x, y, th, self.world.raycaster, circles)  # type: ignore[attr-defined, no-any-return]
+
+        return source
+
+
+class _Offset:
+    """The field's devices count time from the field's start, like the lockstep run."""
+
+    def __init__(self, clock: Clock, start: float) -> None:
+        self._clock = clock
+        self._start = start
+
+    def now(self) -> float:
+        return self._clock.now() - self._start
+
+    def wall(self) -> float:
+        return self._clock.wall()
+
+    def sleep_until(self, deadline: float) -> None:
+        self._clock.sleep_until(deadline + self._start)

@@ -1,0 +1,207 @@
+"""The multi-robot world: robots' bodies on a floor plan, moved by their simulated boards, in lockstep.
+
+Each robot's ``SimulatedBoard`` runs its firmware (wheel PID, motor lag, encoders, battery) and
+moves its body through a ``RobotView``: the floor's walls and obstacles plus every other robot,
+so robots collide with walls and with each other, and their ultrasonic sensors see both. All
+boards advance in the same control sub-steps, so the outcome depends only on the seed and the
+commands. Pure: time comes in as an argument; no threads, no sockets.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fleetlink.field.board import BoardConfig, SimulatedBoard
+from fleetlink.field.floor import point_segment_distance
+from fleetlink.field.raycast import Raycaster
+
+__all__ = ["Pose", "RobotView", "World", "WorldRobot"]
+
+Pose = tuple[float, float, float]
+Segment = tuple[float, float, float, float]
+
+
+class SegmentGrid:
+    """Uniform grid over segments: which segments pass near a point, without scanning them all."""
+
+    def __init__(self, segments: np.ndarray, cell: float = 1.0) -> None:
+        self.cell = cell
+        self.segments: list[Segment] = [tuple(map(float, s)) for s in np.asarray(segments, dtype=float).reshape(-1, 4)]  # type: ignore[misc]
+        self._cells: dict[tuple[int, int], list[int]] = {}
+        for k, (x1, y1, x2, y2) in enumerate(self.segments):
+            length = math.hypot(x2 - x1, y2 - y1)
+            steps = max(1, math.ceil(length / (cell / 2)))
+            seen: set[tuple[int, int]] = set()
+            for i in range(steps + 1):
+                t = i / steps
+                key = (math.floor((x1 + t * (x2 - x1)) / cell), math.floor((y1 + t * (y2 - y1)) / cell))
+                if key not in seen:
+                    seen.add(key)
+                    self._cells.setdefault(key, []).append(k)
+
+    def near(self, x: float, y: float) -> set[int]:
+        """Segments passing through the 3x3 cells around (x, y): all within ``cell`` of it, and more."""
+        cx, cy = math.floor(x / self.cell), math.floor(y / self.cell)
+        out: set[int] = set()
+        cells = self._cells
+        for i in (cx - 1, cx, cx + 1):
+            for j in (cy - 1, cy, cy + 1):
+                ids = cells.get((i, j))
+                if ids:
+                    out.update(ids)
+        return out
+
+    def clearance(self, x: float, y: float) -> float:
+        """Distance to the nearest segment, exact up to ``cell``; ``cell`` or more otherwise."""
+        best = math.inf
+        segs = self.segments
+        for k in self.near(x, y):
+            d = point_segment_distance(x, y, segs[k])
+            if d < best:
+                best = d
+        return best
+
+
+@dataclass(slots=True)
+class WorldRobot:
+    name: str
+    index: int
+    board: SimulatedBoard
+    view: RobotView
+    extras: dict[str, object] = field(default_factory=dict)  # lidar device etc., owned by the field
+
+    @property
+    def pose(self) -> Pose:
+        st = self.board.state
+        return st.x, st.y, st.theta
+
+    @property
+    def radius(self) -> float:
+        return self.board.config.radius
+
+
+class RobotView:
+    """One robot's surroundings as its board sees them: the floor plus every other robot."""
+
+    def __init__(self, world: World, index: int) -> None:
+        self.world = world
+        self.index = index
+
+    @property
+    def walls(self) -> list[Segment]:
+        return self.world.grid.segments
+
+    def clearance(self, x: float, y: float) -> float:
+        w = self.world
+        best = w.grid.clearance(x, y)
+        for j in w.neighbours[self.index]:
+            ox, oy, r = w.bodies[j]
+            d = math.hypot(x - ox, y - oy) - r
+            if d < best:
+                best = d
+        return best
+
+    def ray(self, x: float, y: float, angle: float, max_range: float) -> float:
+        return self.rays(x, y, [angle], max_range)[0]
+
+    def rays(self, x: float, y: float, angles: Sequence[float], max_range: float) -> list[float]:
+        w = self.world
+        circles = w.other_bodies(self.index, x, y, max_range)
+        d = w.raycaster.cast(x, y, np.asarray(angles, dtype=float), max_range, circles)
+        return [float(v) for v in d]
+
+    def over_cliff(self, x: float, y: float) -> bool:
+        return self.world.is_cliff(x, y)
+
+
+class World:
+    """Robots on a plan. ``step(now)`` advances every board to ``now`` in shared control sub-steps."""
+
+    def __init__(
+        self,
+        segments: np.ndarray,
+        is_cliff: Callable[[float, float], bool] | None = None,
+        control_period: float = 0.005,
+        start: float = 0.0,
+    ) -> None:
+        self.control_period = control_period
+        self.is_cliff: Callable[[float, float], bool] = is_cliff or (lambda x, y: False)
+        self.robots: list[WorldRobot] = []
+        self.by_name: dict[str, WorldRobot] = {}
+        self.bodies: list[tuple[float, float, float]] = []  # x, y, radius per robot, refreshed per sub-step
+        self.neighbours: list[list[int]] = []
+        self._segments = np.asarray(segments, dtype=float).reshape(-1, 4)
+        self.grid = SegmentGrid(self._segments)
+        self.raycaster = Raycaster(self._segments)
+        self.now = start
+
+    # -- building ------------------------------------------------------------------------------
+
+    def add_robot(self, name: str, pose: Pose, config: BoardConfig | None = None) -> WorldRobot:
+        if name in self.by_name:
+            raise ValueError(f"robot {name!r} is already in the world")
+        index = len(self.robots)
+        view = RobotView(self, index)
+        board = SimulatedBoard(config or BoardConfig(), view, pose=pose, now=self.now)  # type: ignore[arg-type]
+        robot = WorldRobot(name, index, board, view)
+        self.robots.append(robot)
+        self.by_name[name] = robot
+        self._refresh_bodies()
+        return robot
+
+    def set_segments(self, segments: np.ndarray) -> None:
+        """Change the blocking geometry (a door closes, an obstacle appears)."""
+        self._segments = np.asarray(segments, dtype=float).reshape(-1, 4)
+        self.grid = SegmentGrid(self._segments)
+        self.raycaster.set_segments(self._segments)
+
+    @property
+    def segments(self) -> np.ndarray:
+        return self._segments
+
+    # -- time ------------------------------------------------------------------------------------
+
+    def step(self, now: float) -> None:
+        """Advance all robots to ``now`` together."""
+        dt = self.control_period
+        while self.now < now - 1e-12:
+            t = min(now, self.now + dt)
+            self._refresh_bodies()
+            for robot in self.robots:
+                robot.board.step(t, max_dt=dt)
+            self.now = t
+
+    def truth(self) -> dict[str, tuple[float, float, float, float, float]]:
+        """Ground truth per robot: x, y, theta, v, omega."""
+        out = {}
+        for r in self.robots:
+            st = r.board.state
+            out[r.name] = (st.x, st.y, st.theta, st.true_v, st.true_w)
+        return out
+
+    # -- geometry shared by the views ------------------------------------------------------------
+
+    def other_bodies(self, index: int, x: float, y: float, max_range: float) -> np.ndarray | None:
+        """Other robots as circles (cx, cy, r) within reach of a sensor at (x, y)."""
+        rows = [
+            b for j, b in enumerate(self.bodies) if j != index and math.hypot(b[0] - x, b[1] - y) - b[2] <= max_range
+        ]
+        return np.asarray(rows, dtype=float) if rows else None
+
+    def _refresh_bodies(self) -> None:
+        self.bodies = [(r.board.state.x, r.board.state.y, r.radius) for r in self.robots]
+        n = len(self.bodies)
+        if n < 2:
+            self.neighbours = [[] for _ in range(n)]
+            return
+        # Robots that could touch within one sub-step: a numpy distance matrix, then short lists.
+        xy = np.array([(b[0], b[1]) for b in self.bodies])
+        rad = np.array([b[2] for b in self.bodies])
+        d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+        reach = rad[:, None] + rad[None, :] + 0.5
+        close = (d < reach) & ~np.eye(n, dtype=bool)
+        self.neighbours = [list(np.flatnonzero(row)) for row in close]
