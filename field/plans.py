@@ -1,7 +1,7 @@
 """Floor plans for the field: walls, obstacles, cliffs, doors, named start poses and UWB anchors.
 
 A plan is a frozen value. It comes from a built-in name (``apartment``, ``office``, ``hall``: TOML
-files in ``field/plans/``), from a TOML file in the same format (docs/field-plans.md), or from a
+files in ``field/floorplans/``), from a TOML file in the same format (docs/field-plans.md), or from a
 ROS map_server map (PGM + YAML, walls taken from the occupancy grid, see ``field/mapserver.py``).
 Everything is validated when the plan is made; problems name the file, the key and the reason.
 
@@ -45,7 +45,7 @@ __all__ = [
 
 ROBOT_RADIUS = 0.17  # m: the body every start must clear
 BUILTIN_PLANS = ("apartment", "office", "hall")  # the hand-drawn plans; builtin_plans() adds example maps
-PLANS_DIR = Path(__file__).with_name("plans")
+PLANS_DIR = Path(__file__).with_name("floorplans")  # not "plans/": see docs/field-plans.md
 MAX_GRID_STARTS = 10_000
 
 Polygon = tuple[Point, ...]
@@ -187,9 +187,9 @@ class FloorPlan:
         set_(self, "_labels", tuple(labels))
 
         starts: dict[str, Pose] = {}
-        for k, pose in self.starts.items():
-            where = f"starts.{k}"
-            name_ok(k, where)
+        for sname, pose in self.starts.items():
+            where = f"starts.{sname}"
+            name_ok(sname, where)
             if len(pose) != 3:
                 raise fail(where, f"expected (x, y, theta), got {pose!r}")
             x, y, theta = (number(c, f"{where}.{n}") for c, n in zip(pose, ("x", "y", "theta"), strict=True))
@@ -209,7 +209,7 @@ class FloorPlan:
                         where,
                         f"({x:g}, {y:g}) is {d[j]:.3f} m from {labels[j]}: a robot (radius {ROBOT_RADIUS} m) needs more room",
                     )
-            starts[k] = Pose(x, y, theta)
+            starts[sname] = Pose(x, y, theta)
         set_(self, "starts", MappingProxyType(starts))
 
     def __hash__(self) -> int:
@@ -465,11 +465,11 @@ def _parse_parts(r: _Reader, data: Mapping[str, Any]) -> dict[str, Any]:
                 )
         theta = math.radians(r.number(t["theta_deg"], f"{where}.theta_deg"))
         width = max(2, len(str(nx * ny)))
-        k = 0
+        index = 0
         for row in range(ny):
             for col in range(nx):
-                k += 1
-                name = f"{prefix}{k:0{width}d}"
+                index += 1
+                name = f"{prefix}{index:0{width}d}"
                 if name in starts:
                     raise r.fail(where, f"start {name!r} already exists")
                 starts[name] = Pose(x0 + col * dx, y0 + row * dy, theta)
@@ -506,7 +506,7 @@ def _read_toml(path: Path) -> dict[str, Any]:
 
 
 def builtin_plans() -> tuple[str, ...]:
-    """Names ``load_plan`` accepts without a path: the TOML plans and the example maps in ``field/plans/``."""
+    """Names ``load_plan`` accepts without a path: the TOML plans and the example maps in ``field/floorplans/``."""
     tomls = {p.stem for p in PLANS_DIR.glob("*.toml") if not p.name.endswith(".plan.toml")}
     maps = {p.stem for p in PLANS_DIR.glob("*.yaml")}
     return tuple(sorted(tomls | maps))
