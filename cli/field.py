@@ -155,7 +155,7 @@ def _run_realtime(scenario: object, plan: object, duration: float, args: argpars
             lines.append("")
             for name, session, _ in sessions:
                 ep = endpoints[name]
-                lines += render(f"{name} (board {ep.board}, lidar {ep.lidar or 'none'})", session.snapshot, now) + [""]
+                lines += [*render(f"{name} (board {ep.board}, lidar {ep.lidar or 'none'})", session.snapshot, now), ""]
             for line in field.events.log[-5:]:
                 lines.append(f"event: {line}")
             out = "\n".join(lines) + "\n"

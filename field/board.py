@@ -144,6 +144,7 @@ class SimulatedBoard:
         # No code filter: an unknown CMD must be answered with 0x8000, not silently skipped.
         self._decoder = FrameDecoder(valid_codes=None, max_frame=BOARD_BUFFER, report_drops=True)
         self._now = now
+        self._slow_dt = 0.0
         self.slip = [0.0, 0.0]  # fraction of each wheel's motion lost to slip (scripted events set it)
         self.events: list[str] = []  # human-readable firmware events, drained by the owner
 
@@ -337,6 +338,12 @@ class SimulatedBoard:
         if st.watchdog_tripped:
             st.set_left = st.set_right = 0.0
 
+        if st.v_left == 0.0 and st.v_right == 0.0 and st.set_left == 0.0 and st.set_right == 0.0:
+            # Standing still with nothing to do: only the slow housekeeping runs.
+            st.true_v = st.true_w = 0.0
+            self._housekeeping(dt)
+            return
+
         # Per-wheel speed loop with stop-before-reverse; a zero set-point is a stop.
         speeds = []
         for i, (v, target) in enumerate(((st.v_left, st.set_left), (st.v_right, st.set_right))):
@@ -364,9 +371,8 @@ class SimulatedBoard:
         th = st.theta
         dx_w, dy_w, dth = _arc(th, (true_l + true_r) / 2, (true_r - true_l) / cfg.wheel_track)
         nx, ny = st.x + dx_w, st.y + dy_w
-        here = self.floor.clearance(st.x, st.y)
-        there = self.floor.clearance(nx, ny) if (dx_w or dy_w) else here
-        if there < cfg.radius and there < here:
+        there = self.floor.clearance(nx, ny) if (dx_w or dy_w) else math.inf
+        if there < cfg.radius and there < self.floor.clearance(st.x, st.y):
             # The body hit something: it stops, the bumper on that side fires, the wheels stall.
             side = self._contact_side(nx, ny)
             st.bumped_left = side <= 0
@@ -377,9 +383,9 @@ class SimulatedBoard:
             st.true_v = st.true_w = 0.0
             for pid in self._pid:
                 pid.reset()
-            self._battery(dt, 0.0)
+            self._housekeeping(dt)
             return
-        if (st.bumped_left or st.bumped_right) and there > here:
+        if (st.bumped_left or st.bumped_right) and there > self.floor.clearance(st.x, st.y):
             # A bump switch stays pressed while the body rests against the wall; moving away releases it.
             st.bumped_left = st.bumped_right = False
         st.stalled = False
@@ -399,8 +405,15 @@ class SimulatedBoard:
         st.dr_x += lx
         st.dr_y += ly
         st.dr_theta += lth
-        self._battery(dt, (abs(vl) + abs(vr)) / (2 * cfg.max_wheel_speed))
-        self._payload(dt)
+        self._housekeeping(dt)
+
+    def _housekeeping(self, dt: float) -> None:
+        """Battery and payload change slowly: update them every 50 ms, not every control tick."""
+        self._slow_dt += dt
+        if self._slow_dt >= 0.05:
+            self._battery(self._slow_dt, 0.0)
+            self._payload(self._slow_dt)
+            self._slow_dt = 0.0
 
     def _contact_side(self, x: float, y: float) -> int:
         """-1 if the nearest wall is to the robot's left, +1 to its right, 0 ahead."""
@@ -536,6 +549,18 @@ class SimulatedBoard:
         self.state.buttons |= buttons
         if buttons & p.Buttons.HOME:
             self.state.pending_base_command = p.PendingBaseCommand.GO_HOME
+
+    def drive(self, vx: float, omega: float, now: float) -> None:
+        """Set the body velocity directly, as a CTRL_BUS velocity request would (feeds the watchdog).
+
+        For lockstep runs whose stand-in drivers need no byte link; agents always go through bytes.
+        """
+        self.step(now)
+        st = self.state
+        st.last_ctrl_bus = now
+        st.watchdog_tripped = False
+        half = self.config.wheel_track / 2
+        self._set_wheels(vx - omega * half, vx + omega * half)
 
     def press_home(self) -> None:
         """Someone presses the home button: the base then asks the master to go home."""

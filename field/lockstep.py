@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from fleetlink.agent.board import protocol as p
 from fleetlink.agent.board.session import BoardSession, BoardSnapshot, PollRates
 from fleetlink.agent.board.transport import InProcessPort
 from fleetlink.field.build import build_world, lidar_model, robot_seed
@@ -80,8 +81,17 @@ class RunResult:
 
 
 class FieldRun:
-    def __init__(self, scenario: Scenario, plan: FloorPlan | None = None, poll: PollRates = LOCKSTEP_POLL) -> None:
+    def __init__(
+        self,
+        scenario: Scenario,
+        plan: FloorPlan | None = None,
+        poll: PollRates = LOCKSTEP_POLL,
+        board_links: bool = True,
+    ) -> None:
+        """``board_links=False`` lets the stand-in drivers command the boards directly instead of
+        through an agent-side board session (to measure the field alone)."""
         self.scenario = scenario
+        self.board_links = board_links
         self.plan = plan or load_plan(scenario.plan)
         self.clock = SimClock()
         self.closed_doors: set[str] = set()
@@ -108,6 +118,7 @@ class FieldRun:
         wall0 = time.perf_counter()
         self._record(t)
         next_truth = t + truth_period
+        poll_hz = LOCKSTEP_POLL.motion
         while t < end - 1e-12:
             t = min(end, t + dt)
             self.events.advance(t)
@@ -115,8 +126,12 @@ class FieldRun:
             self.clock.set(t)
             for rig in self.rigs:
                 if t >= rig.next_session:
-                    rig.session.set_velocity(*rig.drive(rig.session.snapshot, t))
-                    rig.next_session = rig.session.tick()
+                    if self.board_links:
+                        rig.session.set_velocity(*rig.drive(rig.session.snapshot, t))
+                        rig.next_session = rig.session.tick()
+                    else:
+                        rig.robot.board.drive(*rig.drive(_direct_snapshot(rig.robot), t), t)
+                        rig.next_session = t + 1.0 / poll_hz
                 if rig.lidar is not None and t >= rig.next_scan:
                     self._scan(rig)
                     rig.next_scan += 1.0 / rig.lidar.config.rate_hz
@@ -170,6 +185,16 @@ class FieldRun:
         rig.last_scan = rig.lidar.revolution(x, y, th, self.world.raycaster, circles)
         self.raycast_seconds += time.perf_counter() - t0
         rig.scans += 1
+
+
+def _direct_snapshot(robot: WorldRobot) -> BoardSnapshot:
+    """What a board session would know, read straight off the board (no byte link)."""
+    board = robot.board
+    return BoardSnapshot(
+        connected=True,
+        sensors=p.SensorData((board.ultrasonic(),)),
+        bumpers=p.BumperData(board.bumper_bitmap(), 4),
+    )
 
 
 def _driver(spec: RobotSpec, seed: int) -> Callable[[BoardSnapshot, float], tuple[float, float]]:

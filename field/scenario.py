@@ -100,7 +100,7 @@ class Scenario:
     lidar: LidarSettings = field(default_factory=LidarSettings)
     events: tuple[Event, ...] = ()
     truth_rate_hz: float = 20.0
-    control_period: float = 0.005
+    control_period: float = 0.01
     source: str = "<memory>"
 
 
@@ -222,7 +222,7 @@ def parse_scenario(data: Mapping[str, Any], source: str = "<memory>") -> Scenari
         raise r.fail("seed", f"expected a non-negative integer, got {seed!r}")
     duration = r.num(data, "duration_s", "top level", 60.0, lo=0.0)
     truth_rate = r.num(data, "truth_rate_hz", "top level", 20.0, lo=0.1, hi=1000.0)
-    control = r.num(data, "control_period_s", "top level", 0.005, lo=0.001, hi=0.05)
+    control = r.num(data, "control_period_s", "top level", 0.01, lo=0.001, hi=0.05)
 
     nt = r.table(data, "noise")
     r.keys(nt, "noise", set(Noise.__dataclass_fields__))

@@ -22,6 +22,9 @@ from fleetlink.field.raycast import Raycaster
 __all__ = ["Pose", "RobotView", "World", "WorldRobot"]
 
 Pose = tuple[float, float, float]
+
+NEIGHBOUR_REFRESH = 0.05  # s between neighbour-list refreshes
+NEIGHBOUR_MARGIN = 0.5  # m beyond touching, so fast robots cannot cross it between refreshes
 Segment = tuple[float, float, float, float]
 
 
@@ -43,17 +46,21 @@ class SegmentGrid:
                     seen.add(key)
                     self._cells.setdefault(key, []).append(k)
 
-    def near(self, x: float, y: float) -> set[int]:
+        # For each cell, the segments of its 3x3 neighbourhood, computed once on demand.
+        self._near: dict[tuple[int, int], tuple[int, ...]] = {}
+
+    def near(self, x: float, y: float) -> tuple[int, ...]:
         """Segments passing through the 3x3 cells around (x, y): all within ``cell`` of it, and more."""
-        cx, cy = math.floor(x / self.cell), math.floor(y / self.cell)
-        out: set[int] = set()
-        cells = self._cells
-        for i in (cx - 1, cx, cx + 1):
-            for j in (cy - 1, cy, cy + 1):
-                ids = cells.get((i, j))
-                if ids:
-                    out.update(ids)
-        return out
+        key = (math.floor(x / self.cell), math.floor(y / self.cell))
+        hit = self._near.get(key)
+        if hit is None:
+            cx, cy = key
+            out: set[int] = set()
+            for i in (cx - 1, cx, cx + 1):
+                for j in (cy - 1, cy, cy + 1):
+                    out.update(self._cells.get((i, j), ()))
+            hit = self._near[key] = tuple(sorted(out))
+        return hit
 
     def clearance(self, x: float, y: float) -> float:
         """Distance to the nearest segment, exact up to ``cell``; ``cell`` or more otherwise."""
@@ -99,8 +106,8 @@ class RobotView:
         w = self.world
         best = w.grid.clearance(x, y)
         for j in w.neighbours[self.index]:
-            ox, oy, r = w.bodies[j]
-            d = math.hypot(x - ox, y - oy) - r
+            other = w.robots[j].board
+            d = math.hypot(x - other.state.x, y - other.state.y) - other.config.radius
             if d < best:
                 best = d
         return best
@@ -132,8 +139,8 @@ class World:
         self.is_cliff: Callable[[float, float], bool] = is_cliff or (lambda x, y: False)
         self.robots: list[WorldRobot] = []
         self.by_name: dict[str, WorldRobot] = {}
-        self.bodies: list[tuple[float, float, float]] = []  # x, y, radius per robot, refreshed per sub-step
-        self.neighbours: list[list[int]] = []
+        self.neighbours: list[list[int]] = []  # robots near each robot, refreshed every few sub-steps
+        self._next_neighbours = start
         self._segments = np.asarray(segments, dtype=float).reshape(-1, 4)
         self.grid = SegmentGrid(self._segments)
         self.raycaster = Raycaster(self._segments)
@@ -150,7 +157,8 @@ class World:
         robot = WorldRobot(name, index, board, view)
         self.robots.append(robot)
         self.by_name[name] = robot
-        self._refresh_bodies()
+        self.neighbours.append([])
+        self._next_neighbours = self.now  # refresh at the next step
         return robot
 
     def set_segments(self, segments: np.ndarray) -> None:
@@ -170,7 +178,9 @@ class World:
         dt = self.control_period
         while self.now < now - 1e-12:
             t = min(now, self.now + dt)
-            self._refresh_bodies()
+            if t >= self._next_neighbours:
+                self._refresh_bodies()
+                self._next_neighbours = t + NEIGHBOUR_REFRESH
             for robot in self.robots:
                 robot.board.step(t, max_dt=dt)
             self.now = t
@@ -185,6 +195,11 @@ class World:
 
     # -- geometry shared by the views ------------------------------------------------------------
 
+    @property
+    def bodies(self) -> list[tuple[float, float, float]]:
+        """Every robot as a circle: x, y, radius."""
+        return [(r.board.state.x, r.board.state.y, r.radius) for r in self.robots]
+
     def other_bodies(self, index: int, x: float, y: float, max_range: float) -> np.ndarray | None:
         """Other robots as circles (cx, cy, r) within reach of a sensor at (x, y)."""
         rows = [
@@ -193,15 +208,15 @@ class World:
         return np.asarray(rows, dtype=float) if rows else None
 
     def _refresh_bodies(self) -> None:
-        self.bodies = [(r.board.state.x, r.board.state.y, r.radius) for r in self.robots]
-        n = len(self.bodies)
+        bodies = self.bodies
+        n = len(bodies)
         if n < 2:
             self.neighbours = [[] for _ in range(n)]
             return
-        # Robots that could touch within one sub-step: a numpy distance matrix, then short lists.
-        xy = np.array([(b[0], b[1]) for b in self.bodies])
-        rad = np.array([b[2] for b in self.bodies])
-        d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
-        reach = rad[:, None] + rad[None, :] + 0.5
+        # Robots that could touch before the next refresh (0.6 m/s each for NEIGHBOUR_REFRESH s
+        # is well inside the margin): a numpy distance matrix, then short lists.
+        arr = np.asarray(bodies)
+        d = np.hypot(arr[:, None, 0] - arr[None, :, 0], arr[:, None, 1] - arr[None, :, 1])
+        reach = arr[:, None, 2] + arr[None, :, 2] + NEIGHBOUR_MARGIN
         close = (d < reach) & ~np.eye(n, dtype=bool)
-        self.neighbours = [list(np.flatnonzero(row)) for row in close]
+        self.neighbours = [np.flatnonzero(row).tolist() for row in close]
