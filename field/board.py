@@ -321,6 +321,7 @@ class SimulatedBoard:
             dt = min(max_dt, now - self._now)
             self._tick(dt)
             self._now += dt
+        self._flush_housekeeping()
 
     def _tick(self, dt: float) -> None:
         st, cfg = self.state, self.config
@@ -408,9 +409,11 @@ class SimulatedBoard:
         self._housekeeping(dt)
 
     def _housekeeping(self, dt: float) -> None:
-        """Battery and payload change slowly: update them every 50 ms, not every control tick."""
+        """Battery and payload change slowly: update them once per ``step`` call, not every tick."""
         self._slow_dt += dt
-        if self._slow_dt >= 0.05:
+
+    def _flush_housekeeping(self) -> None:
+        if self._slow_dt > 0.0:
             self._battery(self._slow_dt, 0.0)
             self._payload(self._slow_dt)
             self._slow_dt = 0.0
