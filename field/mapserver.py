@@ -279,7 +279,7 @@ def read_pgm(path: str | Path) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
     """Read a binary (``P5``) or ASCII (``P2``) PGM, 8 or 16 bit, header comments allowed.
 
     Returns the pixels as stored (row 0 = the top row of the picture): uint8 when maxval < 256,
-    uint16 otherwise. Use :func:`to_8bit` for map_server's 0-255 scale.
+    uint16 otherwise. ``read_map`` scales them to 0-255 with the header's maxval (``to_8bit``).
     """
     p = Path(path)
     try:
