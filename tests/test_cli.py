@@ -49,7 +49,11 @@ def test_no_subcommand_prints_help_and_fails() -> None:
 
 def test_probe_talks_to_a_served_board_and_drives_it() -> None:
     serve = subprocess.Popen(
-        [*FLEETLINK, "board", "serve", "--port", "0"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        [*FLEETLINK, "board", "serve", "--port", "0"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         assert serve.stdout is not None
