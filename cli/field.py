@@ -15,7 +15,12 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from fleetlink.agent.board.transport import Port
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "field" / "scenarios"
 
@@ -109,8 +114,7 @@ def _run_lockstep(scenario: object, plan: object, out: Path | None) -> int:
 
 def _run_realtime(scenario: object, plan: object, duration: float, args: argparse.Namespace) -> int:
     from fleetlink.agent.board.session import BoardSession
-    from fleetlink.agent.board.transport import SerialPort
-    from fleetlink.field.drivers import Wanderer, scripted
+    from fleetlink.field.drivers import Driver, driver_for
     from fleetlink.field.realtime import RealtimeField
     from fleetlink.field.truth import TruthPublisher
     from fleetlink.operator.board_status import render
@@ -127,15 +131,14 @@ def _run_realtime(scenario: object, plan: object, duration: float, args: argpars
                 file=sys.stderr,
             )
     field = RealtimeField(scenario, plan, clock, truth_sink=publisher.publish if publisher else None, pty=args.pty)  # type: ignore[arg-type]
-    sessions: list[tuple[str, BoardSession, object]] = []
+    sessions: list[tuple[str, BoardSession, Driver]] = []
     try:
         endpoints = field.start()
         for i, spec in enumerate(field.scenario.robots):
             url = endpoints[spec.name].board
-            session = BoardSession(lambda url=url: SerialPort(url), clock, seed=i)
+            session = BoardSession(_opener(url), clock, seed=i)
             session.start()
-            driver = Wanderer(spec.speed) if spec.drive == "wander" else spec
-            sessions.append((spec.name, session, driver))
+            sessions.append((spec.name, session, driver_for(spec, i)))
         stop = threading.Event()
         start = clock.now()
         tty = sys.stdout.isatty()
@@ -143,10 +146,7 @@ def _run_realtime(scenario: object, plan: object, duration: float, args: argpars
             now = clock.now()
             t = now - start
             for _, session, driver in sessions:
-                if isinstance(driver, Wanderer):
-                    session.set_velocity(*driver.command(session.snapshot, t))
-                elif getattr(driver, "drive", "") == "script":
-                    session.set_velocity(*scripted(driver.script, t))  # type: ignore[attr-defined]
+                session.set_velocity(*driver(session.snapshot, t))
             lines = [
                 f"fleetlink field: {field.scenario.name} on {field.plan.name}, {len(sessions)} robot(s), t = {t:6.1f} s   (Ctrl-C to stop)"
             ]
@@ -174,3 +174,9 @@ def _run_realtime(scenario: object, plan: object, duration: float, args: argpars
         if publisher is not None:
             publisher.close()
     return 0
+
+
+def _opener(url: str) -> Callable[[], Port]:
+    from fleetlink.agent.board.transport import SerialPort
+
+    return lambda: SerialPort(url)

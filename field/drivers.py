@@ -6,12 +6,15 @@ Pure: a board snapshot and the time in, a velocity command out.
 from __future__ import annotations
 
 import random
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from fleetlink.agent.board.session import BoardSnapshot
+from fleetlink.field.scenario import RobotSpec
 
-__all__ = ["Wanderer", "scripted"]
+__all__ = ["Driver", "Wanderer", "driver_for", "scripted"]
+
+Driver = Callable[[BoardSnapshot, float], tuple[float, float]]
 
 
 @dataclass(slots=True)
@@ -45,3 +48,13 @@ def scripted(script: Sequence[tuple[float, float, float]], t: float) -> tuple[fl
             break
         v, w = sv, sw
     return v, w
+
+
+def driver_for(spec: RobotSpec, seed: int) -> Driver:
+    """The stand-in driver a scenario asks for: wander, its script, or idle."""
+    if spec.drive == "wander":
+        return Wanderer(spec.speed, rng=random.Random(seed)).command
+    if spec.drive == "script":
+        script = spec.script
+        return lambda snap, t: scripted(script, t)
+    return lambda snap, t: (0.0, 0.0)

@@ -11,7 +11,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import random
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,7 +21,7 @@ from fleetlink.agent.board import protocol as p
 from fleetlink.agent.board.session import BoardSession, BoardSnapshot, PollRates
 from fleetlink.agent.board.transport import InProcessPort
 from fleetlink.field.build import build_world, lidar_model, robot_seed
-from fleetlink.field.drivers import Wanderer, scripted
+from fleetlink.field.drivers import Driver, driver_for
 from fleetlink.field.events import EventRunner
 from fleetlink.field.plans import FloorPlan, load_plan
 from fleetlink.field.scenario import RobotSpec, Scenario
@@ -53,7 +52,7 @@ class Rig:
 
     spec: RobotSpec
     robot: WorldRobot
-    drive: Callable[[BoardSnapshot, float], tuple[float, float]]
+    drive: Driver
     lidar: Any
     session: BoardSession = field(init=False)
     link_cut: bool = False
@@ -103,7 +102,7 @@ class FieldRun:
         for i, (spec, robot) in enumerate(zip(scenario.robots, self.world.robots, strict=True)):
             seed = robot_seed(scenario, i)
             lidar = lidar_model(scenario, spec, i)
-            rig = Rig(spec, robot, _driver(spec, seed), lidar)
+            rig = Rig(spec, robot, driver_for(spec, seed), lidar)
             rig.session = BoardSession(self._port_factory(rig), self.clock, rates=poll, seed=seed)
             self.rigs.append(rig)
 
@@ -195,15 +194,6 @@ def _direct_snapshot(robot: WorldRobot) -> BoardSnapshot:
         sensors=p.SensorData((board.ultrasonic(),)),
         bumpers=p.BumperData(board.bumper_bitmap(), 4),
     )
-
-
-def _driver(spec: RobotSpec, seed: int) -> Callable[[BoardSnapshot, float], tuple[float, float]]:
-    if spec.drive == "wander":
-        return Wanderer(spec.speed, rng=random.Random(seed)).command
-    if spec.drive == "script":
-        script = spec.script
-        return lambda snap, t: scripted(script, t)
-    return lambda snap, t: (0.0, 0.0)
 
 
 def write_outputs(result: RunResult, out_dir: str | Path) -> Path:

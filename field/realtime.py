@@ -114,8 +114,8 @@ class RealtimeField:
             self._thread = None
         for server in self.boards.values():
             server.stop()
-        for _, server in self.lidars.values():
-            server.stop()
+        for _, lidar_server in self.lidars.values():
+            lidar_server.stop()
 
     def __enter__(self) -> RealtimeField:
         self.start()
@@ -175,7 +175,7 @@ class RealtimeField:
         def source(now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             x, y, th = robot.pose
             circles = self.world.other_bodies(robot.index, x, y, model.config.max_range)  # type: ignore[attr-defined]
-            return model.revolution(x, y, th, self.world.raycaster, circles)  # type: ignore[attr-defined, no-any-return]
+            return model.revolution(x, y, th, self.world.raycaster, circles)  # type: ignore[attr-defined]
 
         return source
 

@@ -1210,7 +1210,7 @@ def decode_request(frame: Frame, profile: Profile = DEFAULT_PROFILE) -> Incoming
         if decoder is None:
             return Rejected(ErrorCode.NOT_SUPPORTED, f"Control Bus command 0x{payload[0]:02X} not supported")
         try:
-            return decoder(payload[1:])  # type: ignore[operator, no-any-return]
+            return decoder(payload[1:])  # type: ignore[operator]
         except (BadPayload, struct.error) as exc:
             return Rejected(ErrorCode.BAD_ARGUMENTS, f"{CtrlBus(payload[0]).name}: {exc}")
     if code == CMD_SYNC:
