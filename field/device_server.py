@@ -17,7 +17,6 @@ import select
 import socket
 import threading
 import tty
-
 from typing import Protocol
 
 from fleetlink.shared.clock import Clock
