@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import re
-import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +24,7 @@ import numpy.typing as npt
 
 from fleetlink.field.floor import Floor, Point, Segment, point_in_polygon
 from fleetlink.field.mapserver import MapError, OccupancyMap, image_from_grid, read_map
+from fleetlink.shared.config import TomlReader, read_toml
 
 __all__ = [
     "BUILTIN_PLANS",
@@ -349,66 +349,9 @@ def _inside(px: npt.NDArray[np.float64], py: npt.NDArray[np.float64], poly: Poly
 # -- TOML ------------------------------------------------------------------------------------------
 
 
-class _Reader:
+class _Reader(TomlReader):
     def __init__(self, source: str) -> None:
-        self.source = source
-
-    def fail(self, where: str, problem: str) -> PlanError:
-        return PlanError(f"{self.source}: {where}: {problem}")
-
-    def keys(self, table: Mapping[str, Any], where: str, allowed: Iterable[str], required: Iterable[str] = ()) -> None:
-        allowed_set, required_set = set(allowed), set(required)
-        unknown = sorted(set(table) - allowed_set)
-        if unknown:
-            raise self.fail(where, f"unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed_set))}")
-        missing = sorted(required_set - set(table))
-        if missing:
-            raise self.fail(where, f"missing key(s) {', '.join(missing)}")
-
-    def number(self, v: object, where: str) -> float:
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise self.fail(where, f"expected a number, got {type(v).__name__} {v!r}")
-        f = float(v)
-        if not math.isfinite(f):
-            raise self.fail(where, f"must be finite, got {f}")
-        return f
-
-    def integer(self, v: object, where: str, lo: int, hi: int) -> int:
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise self.fail(where, f"expected a whole number, got {type(v).__name__} {v!r}")
-        if not lo <= v <= hi:
-            raise self.fail(where, f"must be between {lo} and {hi}, got {v}")
-        return v
-
-    def text(self, v: object, where: str) -> str:
-        if not isinstance(v, str):
-            raise self.fail(where, f"expected a string, got {type(v).__name__} {v!r}")
-        return v
-
-    def numbers(self, v: object, where: str, n: int, shape: str) -> tuple[float, ...]:
-        if not isinstance(v, list) or len(v) != n:
-            raise self.fail(where, f"expected {shape}, got {v!r}")
-        return tuple(self.number(c, f"{where}[{k}]") for k, c in enumerate(v))
-
-    def polygon(self, v: object, where: str) -> Polygon:
-        if not isinstance(v, list):
-            raise self.fail(where, f"expected a list of [x, y] points, got {v!r}")
-        if len(v) < 3:
-            raise self.fail(where, f"a polygon needs at least 3 points, got {len(v)}")
-        pts = [self.numbers(q, f"{where}[{k}]", 2, "[x, y]") for k, q in enumerate(v)]
-        return tuple((p[0], p[1]) for p in pts)
-
-    def tables(self, data: Mapping[str, Any], key: str) -> list[Mapping[str, Any]]:
-        v = data.get(key, [])
-        if not isinstance(v, list) or not all(isinstance(t, dict) for t in v):
-            raise self.fail(key, f"expected an array of tables ([[{key}]])")
-        return v
-
-    def table(self, data: Mapping[str, Any], key: str) -> Mapping[str, Any]:
-        v = data.get(key, {})
-        if not isinstance(v, dict):
-            raise self.fail(key, f"expected a table ([{key}])")
-        return v
+        super().__init__(source, PlanError)
 
 
 def _parse_parts(r: _Reader, data: Mapping[str, Any]) -> dict[str, Any]:
@@ -495,14 +438,7 @@ def parse_plan(data: Mapping[str, Any], source: str = "<memory>", default_name: 
 
 
 def _read_toml(path: Path) -> dict[str, Any]:
-    try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise PlanError(f"{path}: cannot read: {exc}") from exc
-    except UnicodeDecodeError as exc:
-        raise PlanError(f"{path}: not UTF-8 text: {exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise PlanError(f"{path}: not valid TOML: {exc}") from exc
+    return read_toml(path, PlanError)
 
 
 def builtin_plans() -> tuple[str, ...]:

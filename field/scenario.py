@@ -7,11 +7,12 @@ with the file, the key and the reason; nothing is half-loaded.
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
+
+from fleetlink.shared.config import TomlReader, read_toml
 
 __all__ = [
     "Event",
@@ -106,92 +107,45 @@ class Scenario:
 
 def load_scenario(path: str | Path) -> Scenario:
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ScenarioError(f"{p}: cannot read: {exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{p}: not valid TOML: {exc}") from exc
-    scenario = parse_scenario(data, source=str(p))
+    scenario = parse_scenario(read_toml(p, ScenarioError), source=str(p))
     plan = scenario.plan
     if ("/" in plan or plan.endswith((".toml", ".yaml", ".yml"))) and not Path(plan).is_absolute():
         plan = str((p.parent / plan).resolve())
-    return _replace(scenario, plan=plan)
+    return replace(scenario, plan=plan)
 
 
-def _replace(s: Scenario, **kw: Any) -> Scenario:
-    from dataclasses import replace
+class _Reader(TomlReader):
+    """Scenario-flavoured helpers on the shared TOML reader: optional keys with defaults."""
 
-    return replace(s, **kw)
-
-
-class _Reader:
     def __init__(self, source: str) -> None:
-        self.source = source
+        super().__init__(source, ScenarioError)
 
-    def fail(self, where: str, problem: str) -> ScenarioError:
-        return ScenarioError(f"{self.source}: {where}: {problem}")
-
-    def keys(self, table: Mapping[str, Any], where: str, allowed: set[str], required: set[str] = frozenset()) -> None:  # type: ignore[assignment]
-        unknown = sorted(set(table) - allowed)
-        if unknown:
-            raise self.fail(where, f"unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
-        missing = sorted(required - set(table))
-        if missing:
-            raise self.fail(where, f"missing key(s) {', '.join(missing)}")
-
-    def num(
+    def opt_num(
         self,
         table: Mapping[str, Any],
         key: str,
         where: str,
-        default: float | None = None,
+        default: float,
         lo: float | None = None,
         hi: float | None = None,
     ) -> float:
+        return default if key not in table else self.number(table[key], f"{where}.{key}", lo, hi)
+
+    def req_num(self, table: Mapping[str, Any], key: str, where: str, lo: float | None = None) -> float:
         if key not in table:
-            if default is None:
-                raise self.fail(where, f"missing key {key}")
-            return default
-        v = table[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise self.fail(f"{where}.{key}", f"expected a number, got {type(v).__name__}")
-        v = float(v)
-        if not math.isfinite(v):
-            raise self.fail(f"{where}.{key}", f"must be finite, got {v}")
-        if lo is not None and v < lo:
-            raise self.fail(f"{where}.{key}", f"must be >= {lo}, got {v}")
-        if hi is not None and v > hi:
-            raise self.fail(f"{where}.{key}", f"must be <= {hi}, got {v}")
-        return v
+            raise self.fail(where, f"missing key {key}")
+        return self.number(table[key], f"{where}.{key}", lo)
 
-    def text(self, table: Mapping[str, Any], key: str, where: str, default: str | None = None) -> str:
+    def opt_text(self, table: Mapping[str, Any], key: str, where: str, default: str) -> str:
+        return default if key not in table else self.text(table[key], f"{where}.{key}", nonempty=True)
+
+    def req_text(self, table: Mapping[str, Any], key: str, where: str) -> str:
         if key not in table:
-            if default is None:
-                raise self.fail(where, f"missing key {key}")
-            return default
-        v = table[key]
-        if not isinstance(v, str) or not v:
-            raise self.fail(f"{where}.{key}", f"expected a non-empty string, got {v!r}")
-        return v
+            raise self.fail(where, f"missing key {key}")
+        return self.text(table[key], f"{where}.{key}", nonempty=True)
 
-    def flag(self, table: Mapping[str, Any], key: str, where: str, default: bool) -> bool:
-        v = table.get(key, default)
-        if not isinstance(v, bool):
-            raise self.fail(f"{where}.{key}", f"expected true or false, got {v!r}")
-        return v
-
-    def table(self, data: Mapping[str, Any], key: str) -> Mapping[str, Any]:
-        v = data.get(key, {})
-        if not isinstance(v, dict):
-            raise self.fail(key, "expected a table")
-        return v
-
-    def tables(self, data: Mapping[str, Any], key: str) -> list[Mapping[str, Any]]:
-        v = data.get(key, [])
-        if not isinstance(v, list) or not all(isinstance(t, dict) for t in v):
-            raise self.fail(key, f"expected an array of tables ([[{key}]])")
-        return v
+    def opt_flag(self, table: Mapping[str, Any], key: str, where: str, default: bool) -> bool:
+        return default if key not in table else self.flag(table[key], f"{where}.{key}")
 
 
 def parse_scenario(data: Mapping[str, Any], source: str = "<memory>") -> Scenario:
@@ -215,30 +169,32 @@ def parse_scenario(data: Mapping[str, Any], source: str = "<memory>") -> Scenari
         },
         {"plan", "robots"},
     )
-    name = r.text(data, "name", "top level", default=Path(source).stem)
-    plan = r.text(data, "plan", "top level")
+    name = r.opt_text(data, "name", "top level", Path(source).stem)
+    plan = r.req_text(data, "plan", "top level")
     seed = data.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise r.fail("seed", f"expected a non-negative integer, got {seed!r}")
-    duration = r.num(data, "duration_s", "top level", 60.0, lo=0.0)
-    truth_rate = r.num(data, "truth_rate_hz", "top level", 20.0, lo=0.1, hi=1000.0)
-    control = r.num(data, "control_period_s", "top level", 0.01, lo=0.001, hi=0.05)
+    duration = r.opt_num(data, "duration_s", "top level", 60.0, lo=0.0)
+    truth_rate = r.opt_num(data, "truth_rate_hz", "top level", 20.0, lo=0.1, hi=1000.0)
+    control = r.opt_num(data, "control_period_s", "top level", 0.01, lo=0.001, hi=0.05)
 
     nt = r.table(data, "noise")
     r.keys(nt, "noise", set(Noise.__dataclass_fields__))
-    noise = Noise(**{k: r.num(nt, k, "noise", getattr(Noise(), k), lo=0.0) for k in Noise.__dataclass_fields__})
+    noise = Noise(**{k: r.opt_num(nt, k, "noise", getattr(Noise(), k), lo=0.0) for k in Noise.__dataclass_fields__})
     if noise.lidar_dropout > 1.0:
         raise r.fail("noise.lidar_dropout", "is a probability (0-1)")
 
     lt = r.table(data, "lidar")
     r.keys(lt, "lidar", {"enabled", "rate_hz"})
-    lidar = LidarSettings(r.flag(lt, "enabled", "lidar", True), r.num(lt, "rate_hz", "lidar", 10.0, lo=1.0, hi=20.0))
+    lidar = LidarSettings(
+        r.opt_flag(lt, "enabled", "lidar", True), r.opt_num(lt, "rate_hz", "lidar", 10.0, lo=1.0, hi=20.0)
+    )
 
     robots: list[RobotSpec] = []
     for i, t in enumerate(r.tables(data, "robots")):
         where = f"robots[{i}]"
         r.keys(t, where, {"name", "start", "pose", "drive", "script", "speed", "wheel_track", "lidar"}, {"name"})
-        rname = r.text(t, "name", where)
+        rname = r.req_text(t, "name", where)
         if any(x.name == rname for x in robots):
             raise r.fail(f"{where}.name", f"robot {rname!r} appears twice")
         pose = None
@@ -258,7 +214,7 @@ def parse_scenario(data: Mapping[str, Any], source: str = "<memory>") -> Scenari
             raise r.fail(f"{where}.start", "expected the name of a start pose of the plan")
         if (pose is None) == (start is None):
             raise r.fail(where, "give exactly one of start (a named start of the plan) or pose")
-        drive = r.text(t, "drive", where, "wander")
+        drive = r.opt_text(t, "drive", where, "wander")
         if drive not in DRIVES:
             raise r.fail(f"{where}.drive", f"expected one of {', '.join(DRIVES)}, got {drive!r}")
         script: list[tuple[float, float, float]] = []
@@ -281,9 +237,9 @@ def parse_scenario(data: Mapping[str, Any], source: str = "<memory>") -> Scenari
                 start,
                 drive,
                 tuple(script),
-                r.num(t, "speed", where, 0.25, lo=0.0, hi=1.0),
-                r.num(t, "wheel_track", where, 0.22, lo=0.05, hi=1.0),
-                r.flag(t, "lidar", where, True),
+                r.opt_num(t, "speed", where, 0.25, lo=0.0, hi=1.0),
+                r.opt_num(t, "wheel_track", where, 0.22, lo=0.05, hi=1.0),
+                r.opt_flag(t, "lidar", where, True),
             )
         )
     if not robots:
@@ -293,10 +249,10 @@ def parse_scenario(data: Mapping[str, Any], source: str = "<memory>") -> Scenari
     for i, t in enumerate(r.tables(data, "anchors")):
         where = f"anchors[{i}]"
         r.keys(t, where, {"id", "x", "y", "z"}, {"id", "x", "y"})
-        aid = r.text(t, "id", where)
+        aid = r.req_text(t, "id", where)
         if any(a[0] == aid for a in anchors):
             raise r.fail(f"{where}.id", f"anchor {aid!r} appears twice")
-        anchors.append((aid, r.num(t, "x", where), r.num(t, "y", where), r.num(t, "z", where, 2.4)))
+        anchors.append((aid, r.req_num(t, "x", where), r.req_num(t, "y", where), r.opt_num(t, "z", where, 2.4)))
 
     names = {rb.name for rb in robots}
     events: list[Event] = []
@@ -305,15 +261,15 @@ def parse_scenario(data: Mapping[str, Any], source: str = "<memory>") -> Scenari
         r.keys(
             t, where, {"at_s", "kind", "robot", "door", "duration_s", "wheel", "fraction", "polygon"}, {"at_s", "kind"}
         )
-        kind = r.text(t, "kind", where)
+        kind = r.req_text(t, "kind", where)
         if kind not in EVENT_KINDS:
             raise r.fail(f"{where}.kind", f"expected one of {', '.join(EVENT_KINDS)}, got {kind!r}")
         robot = t.get("robot")
         if kind in ("link_cut", "wheel_slip", "press_home"):
-            robot = r.text(t, "robot", where)
+            robot = r.req_text(t, "robot", where)
             if robot not in names:
                 raise r.fail(f"{where}.robot", f"no robot named {robot!r} in this scenario")
-        door = r.text(t, "door", where) if kind in ("door_close", "door_open") else None
+        door = r.req_text(t, "door", where) if kind in ("door_close", "door_open") else None
         polygon: list[tuple[float, float]] = []
         if kind == "obstacle":
             pts = t.get("polygon")
@@ -329,18 +285,18 @@ def parse_scenario(data: Mapping[str, Any], source: str = "<memory>") -> Scenari
             ):
                 raise r.fail(f"{where}.polygon", "expected at least 3 [x, y] points with finite numbers")
             polygon = [(float(q[0]), float(q[1])) for q in pts]
-        wheel = r.text(t, "wheel", where, "left")
+        wheel = r.opt_text(t, "wheel", where, "left")
         if wheel not in ("left", "right"):
             raise r.fail(f"{where}.wheel", "expected left or right")
         events.append(
             Event(
-                r.num(t, "at_s", where, lo=0.0),
+                r.req_num(t, "at_s", where, lo=0.0),
                 kind,
                 robot,
                 door,
-                r.num(t, "duration_s", where, 0.0 if kind not in ("link_cut", "wheel_slip") else 3.0, lo=0.0),
+                r.opt_num(t, "duration_s", where, 0.0 if kind not in ("link_cut", "wheel_slip") else 3.0, lo=0.0),
                 wheel,
-                r.num(t, "fraction", where, 0.5, lo=0.0, hi=1.0),
+                r.opt_num(t, "fraction", where, 0.5, lo=0.0, hi=1.0),
                 tuple(polygon),
             )
         )
