@@ -25,6 +25,8 @@ Pose = tuple[float, float, float]
 
 NEIGHBOUR_REFRESH = 0.05  # s between neighbour-list refreshes
 NEIGHBOUR_MARGIN = 0.5  # m beyond touching, so fast robots cannot cross it between refreshes
+SHORT_RANGE = 2.0  # m: rays up to this long are cast in Python against nearby geometry
+SENSING_MARGIN = SHORT_RANGE + 0.5  # m: robots a short-range sensor could see before the next refresh
 Segment = tuple[float, float, float, float]
 
 
@@ -61,6 +63,18 @@ class SegmentGrid:
                     out.update(self._cells.get((i, j), ()))
             hit = self._near[key] = tuple(sorted(out))
         return hit
+
+    def near_radius(self, x: float, y: float, radius: float) -> tuple[int, ...]:
+        """Segments that may come within ``radius`` of (x, y) (a superset)."""
+        if radius <= self.cell:
+            return self.near(x, y)
+        reach = math.ceil(radius / self.cell)
+        cx, cy = math.floor(x / self.cell), math.floor(y / self.cell)
+        out: set[int] = set()
+        for i in range(cx - reach, cx + reach + 1):
+            for j in range(cy - reach, cy + reach + 1):
+                out.update(self._cells.get((i, j), ()))
+        return tuple(out)
 
     def clearance(self, x: float, y: float) -> float:
         """Distance to the nearest segment, exact up to ``cell``; ``cell`` or more otherwise."""
@@ -117,12 +131,50 @@ class RobotView:
 
     def rays(self, x: float, y: float, angles: Sequence[float], max_range: float) -> list[float]:
         w = self.world
-        circles = w.other_bodies(self.index, x, y, max_range)
-        d = w.raycaster.cast(x, y, np.asarray(angles, dtype=float), max_range, circles)
+        if max_range <= SHORT_RANGE:
+            # Short sensors (ultrasonic, bump geometry): a few nearby segments and robots in plain
+            # Python beat numpy's per-call overhead by a wide margin.
+            segs = [w.grid.segments[k] for k in w.grid.near_radius(x, y, max_range)]
+            circles = [
+                (o.board.state.x, o.board.state.y, o.radius) for o in (w.robots[j] for j in w.sensing[self.index])
+            ]
+            return [_short_ray(segs, circles, x, y, a, max_range) for a in angles]
+        bodies = w.other_bodies(self.index, x, y, max_range)
+        d = w.raycaster.cast(x, y, np.asarray(angles, dtype=float), max_range, bodies)
         return [float(v) for v in d]
 
     def over_cliff(self, x: float, y: float) -> bool:
         return self.world.is_cliff(x, y)
+
+
+def _short_ray(
+    segs: list[Segment], circles: list[tuple[float, float, float]], x: float, y: float, angle: float, max_range: float
+) -> float:
+    """One ray against a handful of segments and circles; ``inf`` beyond ``max_range``."""
+    dx, dy = math.cos(angle), math.sin(angle)
+    best = max_range
+    hit = False
+    for x1, y1, x2, y2 in segs:
+        ex, ey = x2 - x1, y2 - y1
+        denom = dx * ey - dy * ex
+        if denom == 0.0:
+            continue
+        wx, wy = x1 - x, y1 - y
+        t = (wx * ey - wy * ex) / denom
+        if 0.0 <= t <= best:
+            u = (wx * dy - wy * dx) / denom
+            if 0.0 <= u <= 1.0:
+                best, hit = t, True
+    for cx, cy, r in circles:
+        fx, fy = x - cx, y - cy
+        b = fx * dx + fy * dy
+        c = fx * fx + fy * fy - r * r
+        disc = b * b - c
+        if disc >= 0.0:
+            t = -b - math.sqrt(disc)
+            if 0.0 <= t <= best:
+                best, hit = t, True
+    return best if hit else math.inf
 
 
 class World:
@@ -140,6 +192,7 @@ class World:
         self.robots: list[WorldRobot] = []
         self.by_name: dict[str, WorldRobot] = {}
         self.neighbours: list[list[int]] = []  # robots near each robot, refreshed every few sub-steps
+        self.sensing: list[list[int]] = []  # robots within short-sensor reach of each robot
         self._next_neighbours = start
         self._segments = np.asarray(segments, dtype=float).reshape(-1, 4)
         self.grid = SegmentGrid(self._segments)
@@ -158,6 +211,7 @@ class World:
         self.robots.append(robot)
         self.by_name[name] = robot
         self.neighbours.append([])
+        self.sensing.append([])
         self._next_neighbours = self.now  # refresh at the next step
         return robot
 
@@ -212,11 +266,13 @@ class World:
         n = len(bodies)
         if n < 2:
             self.neighbours = [[] for _ in range(n)]
+            self.sensing = [[] for _ in range(n)]
             return
         # Robots that could touch before the next refresh (0.6 m/s each for NEIGHBOUR_REFRESH s
         # is well inside the margin): a numpy distance matrix, then short lists.
         arr = np.asarray(bodies)
         d = np.hypot(arr[:, None, 0] - arr[None, :, 0], arr[:, None, 1] - arr[None, :, 1])
         reach = arr[:, None, 2] + arr[None, :, 2] + NEIGHBOUR_MARGIN
-        close = (d < reach) & ~np.eye(n, dtype=bool)
-        self.neighbours = [np.flatnonzero(row).tolist() for row in close]
+        others = ~np.eye(n, dtype=bool)
+        self.neighbours = [np.flatnonzero(row).tolist() for row in (d < reach) & others]
+        self.sensing = [np.flatnonzero(row).tolist() for row in (d < reach + SENSING_MARGIN) & others]
