@@ -1,0 +1,275 @@
+"""The agent's lidar driver against the simulated RPLIDAR, over real bytes.
+
+One suite, three transports: a real TCP socket and a pty (pyserial's ``serial_for_url``; the lidar
+served by ``DeviceServer`` in real time, stepped at 100 Hz) and ``InProcessLidarPort`` under a
+``SimClock`` (lockstep: simulated time moves only while the driver waits).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fleetlink.agent.board.transport import InProcessPort, SerialPort
+from fleetlink.agent.lidar import protocol as lp
+from fleetlink.agent.lidar.driver import (
+    LidarDisconnected,
+    LidarDriver,
+    LidarError,
+    LidarProtocolError,
+    LidarTimeout,
+)
+from fleetlink.field.device_server import DeviceServer
+from fleetlink.field.lidar import LidarConfig, LidarModel, scan_source_for
+from fleetlink.field.raycast import Raycaster
+from fleetlink.field.rplidar import InProcessLidarPort, SimulatedRplidar
+from fleetlink.shared.clock import Clock, SimClock, SystemClock
+
+W, H = 6.0, 4.0
+ROOM = np.array([(0, 0, W, 0), (W, 0, W, H), (W, H, 0, H), (0, H, 0, 0)], dtype=float)
+POSE = (2.0, 1.5, 0.4)
+RATE_HZ = 10.0  # 800 samples a turn at 8000 samples/s: three turns in well under a second
+
+
+def room_distance(x: float, y: float, a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    with np.errstate(divide="ignore"):
+        tx = np.where(c > 1e-15, (W - x) / c, np.where(c < -1e-15, -x / c, np.inf))
+        ty = np.where(s > 1e-15, (H - y) / s, np.where(s < -1e-15, -y / s, np.inf))
+    return np.minimum(tx, ty)
+
+
+def make_lidar(rate_hz: float = RATE_HZ, now: float = 0.0) -> SimulatedRplidar:
+    model = LidarModel(LidarConfig(rate_hz=rate_hz).noiseless(), np.random.default_rng(7))
+    return SimulatedRplidar(model.config, scan_source_for(model, lambda t: POSE, Raycaster(ROOM)), now=now)
+
+
+@pytest.fixture(autouse=True)
+def _no_close_sleep_in_pyserial_sockets(monkeypatch: pytest.MonkeyPatch) -> None:
+    """pyserial's socket:// ``close()`` sleeps 0.3 s "in case of quick reconnects"; skip it here."""
+    from serial.urlhandler import protocol_socket
+
+    monkeypatch.setattr(protocol_socket, "time", SimpleNamespace(sleep=lambda seconds: None))
+
+
+@contextlib.contextmanager
+def serve_lidar(kind: str, lidar: SimulatedRplidar | None = None, port: int = 0) -> Iterator[tuple[DeviceServer, str]]:
+    server = DeviceServer(lidar or make_lidar(), SystemClock(), step_hz=100, name="lidar")
+    try:
+        url = f"socket://127.0.0.1:{server.serve_tcp(port=port)}" if kind == "tcp" else server.serve_pty()
+        yield server, url
+    finally:
+        server.stop()
+
+
+@dataclass
+class Rig:
+    kind: str
+    lidar: SimulatedRplidar
+    clock: Clock
+    driver: LidarDriver
+    server: DeviceServer | None = None
+
+
+@pytest.fixture(params=["inproc", "tcp", "pty"])
+def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
+    kind = request.param
+    if kind == "inproc":
+        clock = SimClock(start=100.0)
+        lidar = make_lidar(now=clock.now())
+        driver = LidarDriver(InProcessLidarPort(lidar, clock), clock)
+        yield Rig(kind, lidar, clock, driver)
+        driver.close()
+        return
+    with serve_lidar(kind) as (server, url):
+        clock = SystemClock()
+        driver = LidarDriver(SerialPort(url), clock)
+        try:
+            yield Rig(kind, server.device, clock, driver, server)  # type: ignore[arg-type,unused-ignore]
+        finally:
+            driver.close()
+
+
+def check_turn(rev: lp.Revolution) -> None:
+    # 800 samples per turn at 10 Hz; the model's phase is fixed (noiseless), so exactly 800
+    assert len(rev) == 800
+    assert np.all(np.diff(rev.angles_rad) > 0)
+    assert np.all(rev.distances_m > 0) and np.all(rev.qualities > 0)
+    ref = room_distance(POSE[0], POSE[1], rev.angles_rad + POSE[2])
+    # angles travel as 1/64 degree and distances as 1/4 mm
+    np.testing.assert_allclose(rev.distances_m, ref, atol=2e-3)
+
+
+def test_identify_scan_and_stop(rig: Rig) -> None:
+    drv = rig.driver
+    info = drv.get_info()
+    assert info == lp.DeviceInfo(0x18, (1, 29), 7, b"FLK-RPLIDAR-A1\x00\x01")
+    assert drv.get_health() == lp.DeviceHealth(lp.HEALTH_GOOD, 0)
+    assert drv.get_samplerate() == lp.SampleRate(125, 125)
+    t0 = rig.clock.now()
+    assert drv.start_scan() == lp.SCAN_DESCRIPTOR
+    assert drv.scanning and drv.motor_on and rig.lidar.motor_on  # SET_MOTOR_PWM went ahead of SCAN
+    revs = drv.read_revolutions(3, timeout=3.0)
+    for rev in revs:
+        check_turn(rev)
+    stamps = [r.stamp for r in revs]
+    assert all(s is not None for s in stamps)
+    elapsed = rig.clock.now() - t0
+    assert 0.3 <= elapsed < 2.0  # the first complete turn ends when the second starts: 4 turn starts
+    if rig.kind == "inproc":
+        assert np.diff(np.array(stamps, dtype=float)) == pytest.approx([0.1, 0.1], abs=0.006)
+    drv.stop()
+    assert not drv.scanning and not rig.lidar.scanning
+    assert drv.get_health().ok  # no stale nodes in the way of the next answer
+    assert drv.decoder.stats.resync_bytes == 0
+    drv.stop_motor()
+    deadline = rig.clock.now() + 1.0
+    while rig.lidar.motor_on and rig.clock.now() < deadline:  # over TCP / a pty it takes a moment
+        rig.clock.sleep_until(rig.clock.now() + 0.01)
+    assert not rig.lidar.motor_on
+
+
+def test_restart_scan_and_requests_stop_it(rig: Rig) -> None:
+    drv = rig.driver
+    drv.start_scan()
+    drv.read_revolutions(1, timeout=2.0)
+    assert drv.get_info().model == 0x18  # stops the scan first
+    assert not drv.scanning
+    drv.start_scan(force=True)
+    drv.start_scan()  # a scan restarted while running
+    check_turn(drv.read_revolutions(1, timeout=2.0)[0])
+    with pytest.raises(LidarError):
+        drv.stop()
+        drv.poll(rig.clock.now() + 0.1)
+
+
+def test_inproc_slow_rate_matches_the_a1() -> None:
+    clock = SimClock(start=5.0)
+    lidar = make_lidar(rate_hz=5.5, now=clock.now())
+    with LidarDriver(InProcessLidarPort(lidar, clock), clock) as drv:
+        drv.start_scan()
+        revs = drv.read_revolutions(3, timeout=2.0)
+        assert [len(r) for r in revs] == [1455] * 3  # 8000 / 5.5 = 1454.5, phase 0
+        for r in revs:
+            np.testing.assert_allclose(r.distances_m, room_distance(*POSE[:2], r.angles_rad + POSE[2]), atol=2e-3)
+    assert not lidar.motor_on and not lidar.scanning  # close() stopped both
+
+
+def test_inproc_line_noise_is_survived() -> None:
+    clock = SimClock()
+    lidar = make_lidar(now=clock.now())
+    port = InProcessLidarPort(lidar, clock)
+    drv = LidarDriver(port, clock)
+    drv.start_scan()
+    drv.read_revolutions(1, timeout=1.0)
+    port.inject(b"\x00\x55\xa5\x17garbage")
+    revs = drv.read_revolutions(3, timeout=1.0)
+    assert drv.decoder.stats.resync_bytes > 0
+    assert sum(len(r) == 800 for r in revs) >= 2  # at most the turn hit by the noise is off
+    drv.close()
+
+
+def test_inproc_timeouts_and_stall() -> None:
+    clock = SimClock()
+    lidar = make_lidar(now=clock.now())
+    port = InProcessLidarPort(lidar, clock)
+    drv = LidarDriver(port, clock, timeout=0.3, stall_timeout=0.5)
+    port.cut = True
+    t0 = clock.now()
+    with pytest.raises(LidarTimeout, match="GET_HEALTH"):
+        drv.get_health()
+    assert clock.now() - t0 == pytest.approx(0.3)
+    with pytest.raises(LidarTimeout):
+        drv.start_scan()
+    port.cut = False
+    drv.start_scan()
+    drv.read_revolutions(1, timeout=1.0)
+    lidar.motor_on = False  # the motor stalls: nothing more arrives
+    with pytest.raises(LidarTimeout, match="nothing received"):
+        for _ in range(10):
+            drv.poll(clock.now() + 0.2)
+    with pytest.raises(LidarTimeout):
+        drv.read_revolutions(1, timeout=0.1)
+    assert drv.stats.timeouts >= 3
+    drv.close()
+
+
+def test_protocol_errors() -> None:
+    clock = SimClock()
+    bad_health = lp.encode_descriptor(2, 0, lp.AnswerType.DEVICE_HEALTH) + b"\x00\x00"
+    drv = LidarDriver(InProcessPort(lambda data: bad_health), clock, timeout=0.2)
+    with pytest.raises(LidarProtocolError):
+        drv.get_health()
+    drv = LidarDriver(
+        InProcessPort(lambda data: lp.encode_descriptor(20, 0, 4) if data[1:2] == b"\x20" else b""), clock
+    )
+    with pytest.raises(LidarProtocolError):
+        drv.start_scan()
+    assert drv.stats.protocol_errors == 1
+
+
+def test_inproc_disconnect_and_reconnect() -> None:
+    clock = SimClock()
+    lidar = make_lidar(now=clock.now())
+    ports: list[InProcessLidarPort] = []
+
+    def opener() -> InProcessLidarPort:
+        ports.append(InProcessLidarPort(lidar, clock))
+        return ports[-1]
+
+    drv = LidarDriver(opener(), clock, opener=opener)
+    drv.start_scan()
+    ports[0].close()
+    with pytest.raises(LidarDisconnected):
+        drv.poll(clock.now() + 0.1)
+    assert not drv.scanning
+    drv.reconnect()
+    drv.start_scan()
+    check_turn(drv.read_revolutions(1, timeout=1.0)[0])
+    assert drv.stats.reconnects == 1
+    drv.close()
+    drv.close()  # idempotent
+
+
+def test_tcp_device_restart_and_reconnect() -> None:
+    """The lidar's server goes away mid-scan (a USB adapter unplugged); a new one takes the port."""
+    with serve_lidar("tcp") as (server, url):
+        drv = LidarDriver.open(url, SystemClock())
+        drv.start_scan()
+        drv.read_revolutions(1, timeout=2.0)
+        port = server.port
+        server.stop()
+        with pytest.raises(LidarDisconnected):
+            for _ in range(50):
+                drv.poll(SystemClock().now() + 0.1)
+    assert port is not None
+    with serve_lidar("tcp", port=port):
+        drv.reconnect()
+        assert drv.get_health().ok
+        drv.start_scan()
+        check_turn(drv.read_revolutions(1, timeout=2.0)[0])
+        drv.close()
+    with pytest.raises(LidarDisconnected):
+        LidarDriver.open("socket://127.0.0.1:1", SystemClock())
+
+
+def test_angles_are_counter_clockwise_in_the_sensor_frame() -> None:
+    """A wall 1 m to the robot's left (+y in the sensor frame) shows up at +pi/2."""
+    clock = SimClock()
+    segment = np.array([(-5.0, 1.0, 5.0, 1.0)])
+    model = LidarModel(LidarConfig(rate_hz=RATE_HZ).noiseless(), np.random.default_rng(0))
+    source = scan_source_for(model, lambda t: (0.0, 0.0, 0.0), Raycaster(segment))
+    lidar = SimulatedRplidar(model.config, source, now=0.0)
+    with LidarDriver(InProcessLidarPort(lidar, clock), clock) as drv:
+        drv.start_scan()
+        rev = drv.read_revolutions(1, timeout=1.0)[0]
+    left = int(np.argmin(np.abs(rev.angles_rad - math.pi / 2)))
+    right = int(np.argmin(np.abs(rev.angles_rad - 3 * math.pi / 2)))
+    assert rev.distances_m[left] == pytest.approx(1.0, abs=1e-3)
+    assert rev.distances_m[right] == 0.0  # nothing on the right within range
