@@ -231,7 +231,7 @@ class SimulatedBoard:
         if isinstance(req, p.GetBaseStatus):
             return p.BaseStatus(self.battery_percent, self._power_flags())
         if isinstance(req, p.GetMotorData):
-            status = p.MotorData.STALL if st.stalled else 0
+            status = p.MotorStatus.STALL if st.stalled else 0
             return p.MotorData(st.dist_left, st.dist_right, status)
         if isinstance(req, p.GetSensorData):
             return p.SensorData((self.ultrasonic(),))
@@ -488,9 +488,9 @@ class SimulatedBoard:
         st = self.state
         flags = 0
         if st.charging:
-            flags |= p.BaseStatus.CHARGING
+            flags |= p.PowerFlag.CHARGING
         if st.external_power:
-            flags |= p.BaseStatus.EXTERNAL_POWER | p.BaseStatus.ON_DOCK
+            flags |= p.PowerFlag.EXTERNAL_POWER | p.PowerFlag.ON_DOCK
         return flags
 
     def ultrasonic(self) -> float:
@@ -533,7 +533,7 @@ class SimulatedBoard:
     def health_flags(self) -> int:
         flags = 0
         for code, _ in self.state.errors:
-            flags |= p.Health.ERROR if code in (p.HealthErrorCode.MOTOR_STALL,) else p.Health.WARNING
+            flags |= p.HealthFlag.ERROR if code in (p.HealthErrorCode.MOTOR_STALL,) else p.HealthFlag.WARNING
         return flags
 
     def _raise_error(self, code: int, message: str) -> None:
@@ -550,8 +550,8 @@ class SimulatedBoard:
     def press(self, buttons: int) -> None:
         """Press buttons (Buttons bits); HOME also queues a go-home base command."""
         self.state.buttons |= buttons
-        if buttons & p.Buttons.HOME:
-            self.state.pending_base_command = p.PendingBaseCommand.GO_HOME
+        if buttons & p.Button.HOME:
+            self.state.pending_base_command = p.PendingCommandCode.GO_HOME
 
     def drive(self, vx: float, omega: float, now: float) -> None:
         """Set the body velocity directly, as a CTRL_BUS velocity request would (feeds the watchdog).

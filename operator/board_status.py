@@ -28,7 +28,7 @@ def render(robot: str, snap: BoardSnapshot, now: float) -> list[str]:
     )
     if snap.motor:
         m = snap.motor
-        stall = "  STALL" if m.status & p.MotorData.STALL else ""
+        stall = "  STALL" if m.status & p.MotorStatus.STALL else ""
         lines.append(f"  wheels     left {m.left:8.3f} m   right {m.right:8.3f} m{stall}")
     if snap.status:
         s = snap.status

@@ -387,3 +387,25 @@ def test_frames_in_random_garbage(frames: list[Frame], garbage: list[bytes], cut
     assert matched == len(frames) or spurious > 0
     if spurious == 0:
         assert got == frames
+
+
+def test_valid_codes_can_change_between_feeds() -> None:
+    # The decoder caches a 256-entry table of valid codes; replacing valid_codes must take effect.
+    odd = encode_frame(0x77, b"\x01")
+    dec = FrameDecoder(None)
+    assert dec.feed(odd) == [Frame(0x77, b"\x01")]
+    dec.valid_codes = p.REPLY_CODES
+    assert dec.feed(odd) == []
+    assert dec.stats.bad_code == 1
+    dec.valid_codes = frozenset({0x77})
+    assert dec.feed(odd) == [Frame(0x77, b"\x01")]
+
+
+def test_frames_built_by_the_decoder_are_frames() -> None:
+    dec = FrameDecoder(p.REPLY_CODES, report_drops=True)
+    out = dec.feed(b"\x99" + GOOD + GOOD[:-1] + b"\x00" + GOOD)  # garbage, frame, bad checksum, frame
+    assert out == [Dropped("garbage", 1), GOOD_FRAME, Dropped("checksum", 1), Dropped("garbage", 6), GOOD_FRAME]
+    assert [type(x) for x in out] == [Dropped, Frame, Dropped, Dropped, Frame]
+    assert out[1] == GOOD_FRAME and out[1].code == 0x02 and out[1].payload == b"\x57\x05" and out[1].long
+    assert out[1].encode() == GOOD
+    assert dec.stats.frames == 2

@@ -8,6 +8,10 @@ a ``SimClock`` (lockstep: simulated time moves only while the client waits).
 from __future__ import annotations
 
 import contextlib
+import os
+import socket
+import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -18,7 +22,7 @@ import pytest
 from fleetlink.agent.board import protocol as p
 from fleetlink.agent.board.frames import BOARD_BUFFER, FLAG_LONG, FLAG_STANDARD, Frame, FrameDecoder, encode_frame
 from fleetlink.agent.board.link import BoardClient, BoardProtocolError, BoardRefused
-from fleetlink.agent.board.transport import InProcessPort, Port, SerialPort
+from fleetlink.agent.board.transport import InProcessPort, Port, PortClosed, SerialPort
 from fleetlink.field.board import SimulatedBoard
 from fleetlink.field.board_server import BoardServer
 from fleetlink.shared.clock import Clock, SimClock, SystemClock
@@ -354,7 +358,7 @@ def test_operation_failed_on_an_empty_tank(rig: Rig) -> None:
     # The failure is in the health list, readable and clearable by the master.
     health = rig.client.request(p.GetHealth())
     assert isinstance(health, p.Health)
-    assert health.error_count == 1 and health.flags & p.Health.WARNING
+    assert health.error_count == 1 and health.flags & p.HealthFlag.WARNING
     err = rig.client.request(p.GetHealthError(0))
     assert err == p.HealthError(p.HealthErrorCode.TANK_EMPTY, "disinfectant tank empty")
     assert rig.client.request(p.ClearHealthError(p.HealthErrorCode.TANK_EMPTY)) == p.Empty()
@@ -392,3 +396,90 @@ def test_client_retries_through_a_garbled_request(rig: Rig, mangle: Callable[[by
     assert stats.retries == 1
     with rig.locked():
         assert rig.board.state.error_replies == errors_before + 1
+
+
+# ---------------------------------------------------------------------------------------------
+# SerialPort.read_some: everything available in one call, deadlines honoured
+# ---------------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def raw_peer(kind: str) -> Iterator[tuple[SerialPort, Callable[[bytes], None], Callable[[], None]]]:
+    """A SerialPort on a TCP socket or a pty whose other end the test drives: (port, send, hang_up)."""
+    if kind == "tcp":
+        listener = socket.create_server(("127.0.0.1", 0))
+        port = SerialPort(f"socket://127.0.0.1:{listener.getsockname()[1]}")
+        conn, _ = listener.accept()
+        listener.close()
+        try:
+            yield port, conn.sendall, conn.close
+        finally:
+            port.close()
+            conn.close()
+    else:
+        master, slave = os.openpty()
+        port = SerialPort(os.ttyname(slave))
+        open_fds = [master, slave]
+
+        def send(data: bytes) -> None:
+            os.write(master, data)
+
+        def hang_up() -> None:
+            while open_fds:
+                os.close(open_fds.pop())
+
+        try:
+            yield port, send, hang_up
+        finally:
+            port.close()
+            hang_up()
+
+
+@pytest.mark.parametrize("kind", ["tcp", "pty"])
+def test_read_some_returns_everything_available_in_one_call(kind: str) -> None:
+    clock = SystemClock()
+    replies = b"".join(p.encode_ok(p.DeadReckon(0.01, 0.0, 0.02, 0)) for _ in range(10))  # 180 bytes
+    with raw_peer(kind) as (port, send, _):
+        send(replies)
+        time.sleep(0.05)  # all of it has arrived
+        got = port.read_some(clock, clock.now() + 1.0)
+        assert got == replies  # one call (pyserial's socket in_waiting alone would give 1 byte)
+        # Nothing more: returns empty at the deadline, not much later.
+        t0 = time.perf_counter()
+        assert port.read_some(clock, clock.now() + 0.03) == b""
+        assert 0.025 <= time.perf_counter() - t0 < 0.5
+
+
+@pytest.mark.parametrize("kind", ["tcp", "pty"])
+def test_read_some_returns_as_soon_as_bytes_arrive(kind: str) -> None:
+    clock = SystemClock()
+    with raw_peer(kind) as (port, send, _):
+        timer = threading.Timer(0.05, send, (b"\x50\x01\x00\x02\x53",))
+        timer.start()
+        t0 = time.perf_counter()
+        got = port.read_some(clock, clock.now() + 2.0)
+        elapsed = time.perf_counter() - t0
+        timer.join()
+        assert got == b"\x50\x01\x00\x02\x53"
+        assert elapsed < 1.0  # woken by the bytes, not by the deadline
+
+
+def test_read_some_on_a_closed_tcp_peer_raises_port_closed() -> None:
+    clock = SystemClock()
+    with raw_peer("tcp") as (port, _, hang_up):
+        hang_up()
+        with pytest.raises(PortClosed):
+            port.read_some(clock, clock.now() + 1.0)
+
+
+def test_read_some_without_a_descriptor_loop_url() -> None:
+    clock = SystemClock()
+    port = SerialPort("loop://")
+    try:
+        port.write(b"hello board")
+        assert port.read_some(clock, clock.now() + 1.0) == b"hello board"
+        t0 = time.perf_counter()
+        assert port.read_some(clock, clock.now() + 0.03) == b""
+        assert time.perf_counter() - t0 < 0.5
+    finally:
+        port.close()

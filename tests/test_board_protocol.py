@@ -174,7 +174,7 @@ def test_reply_layouts() -> None:
     assert p.BumperData.decode(b"\xfe\xff\xff\xff").triggered(0)
     # PendingBaseCommand: empty or one byte.
     assert p.PendingBaseCommand.decode(b"") == p.PendingBaseCommand(None)
-    assert p.PendingBaseCommand.decode(b"\x01") == p.PendingBaseCommand(p.PendingBaseCommand.GO_HOME)
+    assert p.PendingBaseCommand.decode(b"\x01") == p.PendingBaseCommand(p.PendingCommandCode.GO_HOME)
 
 
 # --------------------------------------------------------------------------------------------
@@ -433,3 +433,40 @@ def test_board_error_codes() -> None:
     # ... and the board still serves a good request afterwards.
     frames = FrameDecoder(p.REPLY_CODES).feed(board.receive(p.encode_request(p.SetAtomiser(0)), 0.0))
     assert p.decode_reply(frames[0], p.Empty) == p.Empty()
+
+
+def test_replies_are_named_tuples_and_decode_reply_matches_decode() -> None:
+    """decode_reply's fast dispatch gives the same value and type as each class's ``decode``."""
+    samples: dict[type, bytes] = {
+        p.DeadReckon: struct.pack("<iiiB", 10 * 65536, -5 * 65536, 90 * 65536, 2),
+        p.MotorData: struct.pack("<iiB", 1234, -50, 2),
+        p.SensorData: struct.pack("<16I", *range(0, 16 * 65536000, 65536000)),
+        p.BumperData: b"\xfe\xff\xff\xff",
+        p.BaseStatus: b"\x57\x05",
+        p.Health: b"\x01\x02",
+        p.Buttons: b"\x0a",
+        p.PowerData: struct.pack("<HhBB", 16800, -350, 100, 5),
+        p.Empty: b"",
+    }
+    for cls, wire in samples.items():
+        got = p.decode_reply(Frame(p.RESP_OK, wire, True), cls)
+        assert type(got) is cls and isinstance(got, tuple) and hasattr(cls, "_fields")
+        assert got == cls.decode(wire) and got.encode() == wire
+    assert p.decode_reply(Frame(p.RESP_OK, samples[p.SensorData], True), p.SensorData).distances[:3] == (0.0, 1.0, 2.0)
+    # Not a reply type: Malformed, not an exception.
+    got = p.decode_reply(Frame(p.RESP_OK, b""), p.GetHealth)  # type: ignore[arg-type]
+    assert isinstance(got, p.Malformed) and "GetHealth" in got.reason
+
+
+def test_flag_enums() -> None:
+    status = p.BaseStatus(87, p.PowerFlag.CHARGING | p.PowerFlag.ON_DOCK)
+    assert status.encode() == b"\x57\x05" and status.charging and status.on_dock and not status.external_power
+    assert p.MotorData.decode(struct.pack("<iiB", 0, 0, 2)).status & p.MotorStatus.STALL
+    assert p.Health.decode(b"\x05\x01").flags == p.HealthFlag.WARNING | p.HealthFlag.FATAL
+    assert p.Buttons.decode(b"\x0a").bitmap == p.Button.HOME | p.Button.ESTOP
+    assert p.PendingBaseCommand.decode(b"\x01").command == p.PendingCommandCode.GO_HOME
+    # Wrong sizes keep their wording.
+    got = p.decode_reply(Frame(p.RESP_OK, b"\x00\x00"), p.Buttons)
+    assert isinstance(got, p.Malformed) and got.reason == "Buttons: expected 1 byte, got 2"
+    got = p.decode_reply(Frame(p.RESP_OK, bytes(12)), p.DeadReckon)
+    assert isinstance(got, p.Malformed) and got.reason == "DeadReckon: expected 13 bytes, got 12"

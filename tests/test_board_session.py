@@ -106,7 +106,7 @@ def test_watchdog_stops_the_wheels_when_the_agent_goes_quiet(served_board: tuple
         assert not board.state.watchdog_tripped
         wait_for(lambda: CORE_DISCONNECTED in session.snapshot.errors, 2.0, "the health error in the snapshot")
         health = session.snapshot.health
-        assert health is not None and health.flags & p.Health.WARNING and health.error_count >= 1
+        assert health is not None and health.flags & p.HealthFlag.WARNING and health.error_count >= 1
         # The master acknowledges it.
         assert session.clear_error(p.HealthErrorCode.CORE_DISCONNECTED).result(timeout=2.0) == p.Empty()
         wait_for(lambda: CORE_DISCONNECTED not in session.snapshot.errors, 2.0, "the error to clear")

@@ -15,6 +15,8 @@ board's 512 bytes.
 
 from __future__ import annotations
 
+import itertools
+import struct
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import reduce
@@ -51,7 +53,8 @@ class Frame(NamedTuple):
     """One frame: ``code`` is the request CMD or the response code.
 
     A NamedTuple rather than a frozen dataclass: the decoder makes hundreds of thousands a
-    second, and tuple construction is several times cheaper.
+    second, and tuple construction is several times cheaper (the decoder goes further and
+    builds them with the C-level ``tuple.__new__``, skipping this class's Python ``__new__``).
     """
 
     code: int
@@ -119,6 +122,8 @@ class FrameDecoder:
     report_drops: bool = False  # also yield a ``Dropped`` marker, in order, for each rejection
     stats: FrameStats = field(default_factory=FrameStats)
     _buf: bytearray = field(default_factory=bytearray)
+    _table: bytes = field(default=b"", init=False, repr=False, compare=False)
+    _table_for: frozenset[int] | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def buffered(self) -> int:
@@ -161,36 +166,72 @@ class FrameDecoder:
         st = self.stats
         setattr(st, reason, getattr(st, reason) + 1)
 
-    def _scan(self, out: list[Frame | Dropped]) -> None:
-        data = bytes(self._buf)
+    def _code_table(self) -> bytes:
+        """``table[code]`` is 1 when ``code`` may start a frame: one index instead of a set test."""
         codes = self.valid_codes
+        if codes is not self._table_for or not self._table:
+            self._table = bytes(1 if codes is None or c in codes else 0 for c in range(256))
+            self._table_for = codes
+        return self._table
+
+    def _scan(self, out: list[Frame | Dropped]) -> None:
+        buf = self._buf
+        n = len(buf)
+        # Three zero bytes of padding let one struct call read a header at any position; every
+        # test below uses n, the real length, so the padding is never part of a frame.
+        buf += _PAD
+        data = bytes(buf)
+        del buf[n:]
+        header = _HEADER.unpack_from
+        valid = self._code_table()
         cap = self.max_frame
+        cap_long = cap - 4  # largest Length of a long frame (3 header bytes and the checksum)
+        cap_std = cap - 3
         st = self.stats
         report = self.report_drops
-        append = out.append
-        find = data.find
+        # Frames are collected as plain tuples and made Frames in one C-level pass at the end
+        # (Frame's own __new__ is Python code, several times slower); drop markers, when
+        # reported, remember how many frames preceded them.
+        found: list[tuple[int, bytes, bool]] = []
+        push = found.append
+        marks: list[tuple[int, Dropped]] = []
         # Prefix XOR of the buffer, computed once per scan and only when a candidate is
         # complete: the checksum of data[a:b] is then px[a] ^ px[b], O(1) per frame.
         px: bytes | None = None
         pos = 0
-        n = len(data)
-        delivered = 0
         while pos < n:
-            flag = data[pos]
+            # Fast path: a complete, valid frame is delivered at once (one test each for the
+            # length, the code, completeness and the checksum); any failure falls through to
+            # the exact classification below, which keeps the drop reasons and their order.
+            flag, word, third = header(data, pos)
             if flag == FLAG_LONG:
-                if n - pos < 4:
-                    break
-                length = data[pos + 1] | (data[pos + 2] << 8)
-                head = 3
+                length = word
+                code = third
+                end = pos + 4 + length
+                if 0 < length <= cap_long and valid[code] and end <= n:
+                    if px is None:
+                        px = _prefix_xor(data)
+                    if px[pos] == px[end]:
+                        push((code, data[pos + 4 : end - 1], True))
+                        pos = end
+                        continue
+                head = 4  # bytes a complete header needs (through the code byte)
             elif flag == FLAG_STANDARD:
-                if n - pos < 3:
-                    break
-                length = data[pos + 1]
-                head = 2
+                length = word & 0xFF
+                code = word >> 8
+                end = pos + 3 + length
+                if 0 < length <= cap_std and valid[code] and end <= n:
+                    if px is None:
+                        px = _prefix_xor(data)
+                    if px[pos] == px[end]:
+                        push((code, data[pos + 3 : end - 1], False))
+                        pos = end
+                        continue
+                head = 3
             else:
                 # Skip to the next candidate flag byte with C-level searches.
-                a = find(b"\x10", pos + 1)
-                b = find(b"\x50", pos + 1)
+                a = data.find(b"\x10", pos + 1, n)
+                b = data.find(b"\x50", pos + 1, n)
                 if a < 0:
                     nxt = b if b >= 0 else n
                 elif b < 0 or a < b:
@@ -199,39 +240,52 @@ class FrameDecoder:
                     nxt = b
                 st.garbage_bytes += nxt - pos
                 if report:
-                    append(Dropped("garbage", nxt - pos))
+                    marks.append((len(found), Dropped("garbage", nxt - pos)))
                 pos = nxt
                 continue
-            end = pos + head + length + 1
+            # The candidate at pos failed a test: which one, in the order the checks apply.
+            if n - pos < head:
+                break  # header incomplete: wait for more
             if length == 0 or end - pos > cap:
                 st.bad_length += 1
                 if report:
-                    append(Dropped("too_long" if length else "zero_length", 1))
-                pos += 1
-                continue
-            code = data[pos + head]
-            if codes is not None and code not in codes:
+                    marks.append((len(found), Dropped("too_long" if length else "zero_length", 1)))
+            elif not valid[code]:
                 st.bad_code += 1
                 if report:
-                    append(Dropped("bad_code", 1))
-                pos += 1
-                continue
-            if end > n:
-                break
-            if px is None:
-                px = _prefix_xor(data)
-            if px[pos] != px[end]:
+                    marks.append((len(found), Dropped("bad_code", 1)))
+            elif end > n:
+                break  # plausible so far: wait for the rest
+            else:
                 st.bad_checksum += 1
                 if report:
-                    append(Dropped("checksum", 1))
-                pos += 1
-                continue
-            append(Frame(code, data[pos + head + 1 : end - 1], flag == FLAG_LONG))
-            delivered += 1
-            pos = end
-        st.frames += delivered
+                    marks.append((len(found), Dropped("checksum", 1)))
+            pos += 1
+        st.frames += len(found)
+        if marks:
+            _interleave(out, found, marks)
+        else:
+            out += map(_new, itertools.repeat(Frame), found)
         if pos:
-            del self._buf[:pos]
+            del buf[:pos]
+
+
+# _scan's helpers.
+_PAD = b"\x00\x00\x00"  # lets _HEADER read at any position of a buffer
+_HEADER = struct.Struct("<BHB")  # flag, u16 (a long frame's Length; a standard one's Length + code), u8
+_new = tuple.__new__  # C-level construction of a NamedTuple from a tuple
+
+
+def _interleave(
+    out: list[Frame | Dropped], found: list[tuple[int, bytes, bool]], marks: list[tuple[int, Dropped]]
+) -> None:
+    """Append the frames with each drop marker at its place in the stream."""
+    done = 0
+    for k, mark in marks:
+        out += map(_new, itertools.repeat(Frame), found[done:k])
+        out.append(mark)
+        done = k
+    out += map(_new, itertools.repeat(Frame), found[done:])
 
 
 def _prefix_xor(buf: bytes) -> bytes:

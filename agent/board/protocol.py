@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from enum import IntEnum
-from typing import ClassVar, TypeAlias
+from enum import IntEnum, IntFlag
+from typing import Any, ClassVar, NamedTuple, Protocol, TypeAlias, TypeVar, cast
 
 from fleetlink.agent.board.frames import Frame, encode_frame
 
@@ -30,8 +31,13 @@ __all__ = [
     "RESP_INVALID",
     "RESP_OK",
     "RESP_SYNC",
+    "Button",
     "CtrlBus",
     "ErrorCode",
+    "HealthFlag",
+    "MotorStatus",
+    "PendingCommandCode",
+    "PowerFlag",
     "Profile",
 ]
 
@@ -52,6 +58,8 @@ REPLY_CODES = frozenset({RESP_SYNC, RESP_ECHO, RESP_OK, RESP_ERROR, RESP_INVALID
 Q8 = 256.0
 Q16 = 65536.0
 _DEG = math.pi / 180.0
+
+_T = TypeVar("_T")
 
 
 class ErrorCode(IntEnum):
@@ -151,11 +159,86 @@ def _unpack(st: struct.Struct, payload: bytes) -> tuple[int, ...]:
 
 # --------------------------------------------------------------------------------------------
 # Replies (the OK payloads)
+#
+# Replies are NamedTuples: the master decodes tens of thousands a second, and a tuple built with
+# the C-level ``tuple.__new__`` costs a fraction of a frozen dataclass's ``__init__``. Each reply
+# type has a module-level ``_decode_<name>`` function (plain function, looked up by type in
+# ``decode_reply``); ``Reply.decode`` classmethods wrap the same functions for other callers.
+# Scaling to SI units is written out per field: ``x / 65536000.0`` is the same float as the
+# former ``x / Q16 / 1000`` (dividing by a power of two is exact), so values are unchanged.
+#
+# Being tuples, two replies of different types with equal fields compare equal
+# (``Health(0, 0) == BaseStatus(0, 0)``); compare ``type()`` too where that matters.
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True, slots=True)
-class Empty:
+class _TupleNew(Protocol):
+    def __call__(self, cls: type[_T], iterable: Iterable[Any], /) -> _T: ...
+
+
+_new = cast(_TupleNew, tuple.__new__)  # builds a NamedTuple from a tuple without its Python __new__
+
+_MM = 1000.0  # mm per m
+_Q8_MM = Q8 * 1000  # mm Q8 per m
+_Q16_MM = Q16 * 1000  # mm Q16 per m
+_Q8_DEG = _DEG / Q8  # rad per deg Q8 (exact: Q8 is a power of two)
+_Q16_DEG = _DEG / Q16  # rad per deg Q16
+
+
+class PowerFlag(IntFlag):
+    """Bits of ``BaseStatus.power_flags`` and ``PowerData.power_flags``."""
+
+    CHARGING = 0x01
+    EXTERNAL_POWER = 0x02
+    ON_DOCK = 0x04
+
+
+class MotorStatus(IntFlag):
+    """Bits of ``MotorData.status``."""
+
+    STALL = 0x02
+    TRACTION_LOST = 0x04
+
+
+class HealthFlag(IntFlag):
+    """Bits of ``Health.flags``."""
+
+    WARNING = 0x01
+    ERROR = 0x02
+    FATAL = 0x04
+
+
+class Button(IntFlag):
+    """Bits of ``Buttons.bitmap``."""
+
+    POWER = 0x01
+    HOME = 0x02
+    START = 0x04
+    ESTOP = 0x08  # emergency stop engaged
+
+
+class PendingCommandCode(IntEnum):
+    """Values of ``PendingBaseCommand.command``."""
+
+    GO_HOME = 0x01
+
+
+def _checked(decode: Callable[[bytes], _T], cls: type, payload: bytes) -> _T:
+    """``decode(payload)``, with a wrong-size ``struct.error`` reported as ``BadPayload``."""
+    try:
+        return decode(payload)
+    except struct.error:
+        raise BadPayload(_size_problem(cls, payload)) from None
+
+
+def _size_problem(cls: type | None, payload: bytes) -> str:
+    size = _REPLY_SIZES.get(cls) if cls is not None else None
+    if size is None:
+        return f"payload of {len(payload)} bytes does not fit"
+    return f"expected {size} byte{'s' if size != 1 else ''}, got {len(payload)}"
+
+
+class Empty(NamedTuple):
     """An OK reply without data."""
 
     def encode(self) -> bytes:
@@ -163,16 +246,19 @@ class Empty:
 
     @classmethod
     def decode(cls, payload: bytes) -> Empty:
-        if payload:
-            raise BadPayload(f"expected an empty payload, got {len(payload)} bytes")
-        return cls()
+        return _decode_empty(payload)
+
+
+def _decode_empty(payload: bytes) -> Empty:
+    if payload:
+        raise BadPayload(f"expected an empty payload, got {len(payload)} bytes")
+    return _new(Empty, ())
 
 
 _BASE_INFO = struct.Struct("<12sHH3I")
 
 
-@dataclass(frozen=True, slots=True)
-class BaseInfo:
+class BaseInfo(NamedTuple):
     """CONNECT_BASE: model u8[12], firmware u16, hardware u16, serial u32[3]."""
 
     model: str
@@ -185,9 +271,7 @@ class BaseInfo:
 
     @classmethod
     def decode(cls, payload: bytes) -> BaseInfo:
-        model, fw, hw, s0, s1, s2 = _unpack(_BASE_INFO, payload)
-        text = bytes(model).split(b"\0", 1)[0].decode("ascii", "replace")
-        return cls(text, fw, hw, (s0, s1, s2))
+        return _checked(_decode_base_info, cls, payload)
 
     @property
     def serial_text(self) -> str:
@@ -198,11 +282,16 @@ class BaseInfo:
         return f"{self.firmware >> 8}.{self.firmware & 0xFF}"
 
 
+def _decode_base_info(payload: bytes) -> BaseInfo:
+    model, fw, hw, s0, s1, s2 = _BASE_INFO.unpack(payload)
+    text = bytes(model).split(b"\0", 1)[0].decode("ascii", "replace")
+    return _new(BaseInfo, (text, fw, hw, (s0, s1, s2)))
+
+
 _POSE = struct.Struct("<iiiI")
 
 
-@dataclass(frozen=True, slots=True)
-class MountPose:
+class MountPose(NamedTuple):
     """A sensor's or bumper's pose on the base: metres and radians (counter-clockwise)."""
 
     x: float
@@ -220,16 +309,20 @@ class MountPose:
 
     @classmethod
     def decode(cls, payload: bytes) -> MountPose:
-        x, y, z, a = _POSE.unpack(payload)
-        return cls(x / Q8 / 1000, y / Q8 / 1000, z / Q8 / 1000, a / Q8 * _DEG)
+        return _checked(_decode_mount_pose, cls, payload)
+
+
+def _decode_mount_pose(payload: bytes) -> MountPose:
+    x, y, z, a = _POSE.unpack(payload)
+    return _new(MountPose, (x / _Q8_MM, y / _Q8_MM, z / _Q8_MM, a * _Q8_DEG))
 
 
 _CONF_HEAD = struct.Struct("<BIBB")
+_CONF_SIZE = _CONF_HEAD.size + 8 * _POSE.size + 1 + 8 * _POSE.size
 _NO_POSE = MountPose(0.0, 0.0, 0.0, 0.0)
 
 
-@dataclass(frozen=True, slots=True)
-class BaseConf:
+class BaseConf(NamedTuple):
     """GET_BASE_CONF: shape, radius, drive, and up to 8 range sensors and 8 bumpers."""
 
     base_type: int  # 0 circle, 1 square
@@ -253,23 +346,25 @@ class BaseConf:
 
     @classmethod
     def decode(cls, payload: bytes) -> BaseConf:
-        size = _CONF_HEAD.size + 8 * _POSE.size + 1 + 8 * _POSE.size
-        if len(payload) != size:
-            raise BadPayload(f"expected {size} bytes, got {len(payload)}")
-        base_type, radius, motor, n_sensors = _CONF_HEAD.unpack_from(payload)
-        off = _CONF_HEAD.size
-        sensors = [MountPose.decode(payload[off + i * 16 : off + i * 16 + 16]) for i in range(8)]
-        off += 8 * 16
-        n_bumpers = payload[off]
-        off += 1
-        bumpers = [MountPose.decode(payload[off + i * 16 : off + i * 16 + 16]) for i in range(8)]
-        if n_sensors > 8 or n_bumpers > 8:
-            raise BadPayload(f"{n_sensors} sensors / {n_bumpers} bumpers (at most 8 each)")
-        return cls(base_type, radius / Q8 / 1000, motor, tuple(sensors[:n_sensors]), tuple(bumpers[:n_bumpers]))
+        return _checked(_decode_base_conf, cls, payload)
 
 
-@dataclass(frozen=True, slots=True)
-class BinaryConf:
+def _decode_base_conf(payload: bytes) -> BaseConf:
+    if len(payload) != _CONF_SIZE:
+        raise BadPayload(f"expected {_CONF_SIZE} bytes, got {len(payload)}")
+    base_type, radius, motor, n_sensors = _CONF_HEAD.unpack_from(payload)
+    off = _CONF_HEAD.size
+    sensors = [_decode_mount_pose(payload[off + i * 16 : off + i * 16 + 16]) for i in range(8)]
+    off += 8 * 16
+    n_bumpers = payload[off]
+    off += 1
+    bumpers = [_decode_mount_pose(payload[off + i * 16 : off + i * 16 + 16]) for i in range(8)]
+    if n_sensors > 8 or n_bumpers > 8:
+        raise BadPayload(f"{n_sensors} sensors / {n_bumpers} bumpers (at most 8 each)")
+    return _new(BaseConf, (base_type, radius / _Q8_MM, motor, tuple(sensors[:n_sensors]), tuple(bumpers[:n_bumpers])))
+
+
+class BinaryConf(NamedTuple):
     """GET_BINARY_CONF: an opaque blob."""
 
     blob: bytes
@@ -279,67 +374,70 @@ class BinaryConf:
 
     @classmethod
     def decode(cls, payload: bytes) -> BinaryConf:
-        return cls(bytes(payload))
+        return _decode_binary_conf(payload)
+
+
+def _decode_binary_conf(payload: bytes) -> BinaryConf:
+    return _new(BinaryConf, (bytes(payload),))
 
 
 _STATUS = struct.Struct("<BB")
 
 
-@dataclass(frozen=True, slots=True)
-class BaseStatus:
-    """GET_BASE_STATUS: battery percent and power flags."""
+class BaseStatus(NamedTuple):
+    """GET_BASE_STATUS: battery percent and power flags (``PowerFlag`` bits)."""
 
     battery_percent: int
     power_flags: int  # bit 0 charging, bit 1 external power, bit 2 on dock
 
-    CHARGING: ClassVar[int] = 0x01
-    EXTERNAL_POWER: ClassVar[int] = 0x02
-    ON_DOCK: ClassVar[int] = 0x04
-
     @property
     def charging(self) -> bool:
-        return bool(self.power_flags & 0x01)
+        return bool(self.power_flags & PowerFlag.CHARGING)
 
     @property
     def external_power(self) -> bool:
-        return bool(self.power_flags & 0x02)
+        return bool(self.power_flags & PowerFlag.EXTERNAL_POWER)
 
     @property
     def on_dock(self) -> bool:
-        return bool(self.power_flags & 0x04)
+        return bool(self.power_flags & PowerFlag.ON_DOCK)
 
     def encode(self) -> bytes:
         return _STATUS.pack(self.battery_percent, self.power_flags)
 
     @classmethod
     def decode(cls, payload: bytes) -> BaseStatus:
-        pct, flags = _unpack(_STATUS, payload)
-        if pct > 100:
-            raise BadPayload(f"battery {pct} % is above 100")
-        return cls(pct, flags)
+        return _checked(_decode_base_status, cls, payload)
+
+
+def _decode_base_status(payload: bytes) -> BaseStatus:
+    fields = _STATUS.unpack(payload)
+    if fields[0] > 100:
+        raise BadPayload(f"battery {fields[0]} % is above 100")
+    return _new(BaseStatus, fields)
 
 
 _MOTOR = struct.Struct("<iiB")
 
 
-@dataclass(frozen=True, slots=True)
-class MotorData:
-    """GET_BASE_MOTOR_DATA: cumulative wheel distances (m) and status bits."""
+class MotorData(NamedTuple):
+    """GET_BASE_MOTOR_DATA: cumulative wheel distances (m) and status bits (``MotorStatus``)."""
 
     left: float
     right: float
     status: int  # bit 1 stall, bit 2 traction lost
-
-    STALL: ClassVar[int] = 0x02
-    TRACTION_LOST: ClassVar[int] = 0x04
 
     def encode(self) -> bytes:
         return _MOTOR.pack(_wrap32(self.left * 1000), _wrap32(self.right * 1000), self.status)
 
     @classmethod
     def decode(cls, payload: bytes) -> MotorData:
-        left, right, status = _unpack(_MOTOR, payload)
-        return cls(left / 1000, right / 1000, status)
+        return _checked(_decode_motor_data, cls, payload)
+
+
+def _decode_motor_data(payload: bytes) -> MotorData:
+    left, right, status = _MOTOR.unpack(payload)
+    return _new(MotorData, (left / _MM, right / _MM, status))
 
 
 def _wrap32(x: float) -> int:
@@ -351,8 +449,7 @@ def _wrap32(x: float) -> int:
 _SENSORS = struct.Struct("<16I")
 
 
-@dataclass(frozen=True, slots=True)
-class SensorData:
+class SensorData(NamedTuple):
     """GET_BASE_SENSOR_DATA: 16 range readings in metres (configured order; unused = 0)."""
 
     distances: tuple[float, ...]
@@ -365,12 +462,21 @@ class SensorData:
 
     @classmethod
     def decode(cls, payload: bytes) -> SensorData:
-        raw = _unpack(_SENSORS, payload)
-        return cls(tuple(v / Q16 / 1000 for v in raw))
+        return _checked(_decode_sensor_data, cls, payload)
 
 
-@dataclass(frozen=True, slots=True)
-class BumperData:
+def _decode_sensor_data(payload: bytes) -> SensorData:
+    # Written out: about 3x faster than a comprehension or map() over the 16 values.
+    v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11, v12, v13, v14, v15 = _SENSORS.unpack(payload)
+    s = _Q16_MM
+    distances = (
+        v0 / s, v1 / s, v2 / s, v3 / s, v4 / s, v5 / s, v6 / s, v7 / s,
+        v8 / s, v9 / s, v10 / s, v11 / s, v12 / s, v13 / s, v14 / s, v15 / s,
+    )  # fmt: skip
+    return _new(SensorData, (distances,))
+
+
+class BumperData(NamedTuple):
     """GET_BASE_BUMPER_DATA: a bitmap, bumpers from bit 0 then cliff sensors; a 0 bit = triggered.
 
     Firmwares differ in width (u8 or u32); ``width`` records which was received.
@@ -387,13 +493,17 @@ class BumperData:
 
     @classmethod
     def decode(cls, payload: bytes) -> BumperData:
-        if len(payload) not in (1, 4):
-            raise BadPayload(f"expected 1 or 4 bytes, got {len(payload)}")
-        return cls(int.from_bytes(payload, "little"), len(payload))
+        return _decode_bumper_data(payload)
 
 
-@dataclass(frozen=True, slots=True)
-class AutoHomeData:
+def _decode_bumper_data(payload: bytes) -> BumperData:
+    n = len(payload)
+    if n != 4 and n != 1:
+        raise BadPayload(f"expected 1 or 4 bytes, got {n}")
+    return _new(BumperData, (int.from_bytes(payload, "little"), n))
+
+
+class AutoHomeData(NamedTuple):
     """GET_AUTO_HOME_DATA: docking beacon probes."""
 
     beacon_count: int
@@ -404,16 +514,19 @@ class AutoHomeData:
 
     @classmethod
     def decode(cls, payload: bytes) -> AutoHomeData:
-        if len(payload) < 2 or len(payload) != 2 + payload[1]:
-            raise BadPayload("beacon count, probe count and that many probes expected")
-        return cls(payload[0], bytes(payload[2:]))
+        return _decode_auto_home_data(payload)
+
+
+def _decode_auto_home_data(payload: bytes) -> AutoHomeData:
+    if len(payload) < 2 or len(payload) != 2 + payload[1]:
+        raise BadPayload("beacon count, probe count and that many probes expected")
+    return _new(AutoHomeData, (payload[0], bytes(payload[2:])))
 
 
 _DEADRECKON = struct.Struct("<iiiB")
 
 
-@dataclass(frozen=True, slots=True)
-class DeadReckon:
+class DeadReckon(NamedTuple):
     """SET_V_AND_GET_DEADRECKON reply: motion since the previous call, in the base frame."""
 
     dx: float  # m
@@ -428,56 +541,58 @@ class DeadReckon:
 
     @classmethod
     def decode(cls, payload: bytes) -> DeadReckon:
-        dx, dy, dth, status = _unpack(_DEADRECKON, payload)
-        return cls(dx / Q16 / 1000, dy / Q16 / 1000, dth / Q16 * _DEG, status)
+        return _checked(_decode_dead_reckon, cls, payload)
 
 
-@dataclass(frozen=True, slots=True)
-class PendingBaseCommand:
-    """POLL_BASE_CMD reply: a pending command from the base (e.g. a button asking to go home)."""
+def _decode_dead_reckon(payload: bytes) -> DeadReckon:
+    dx, dy, dth, status = _DEADRECKON.unpack(payload)
+    return _new(DeadReckon, (dx / _Q16_MM, dy / _Q16_MM, dth * _Q16_DEG, status))
+
+
+class PendingBaseCommand(NamedTuple):
+    """POLL_BASE_CMD reply: a pending command from the base (``PendingCommandCode``), or None."""
 
     command: int | None
-
-    GO_HOME: ClassVar[int] = 0x01
 
     def encode(self) -> bytes:
         return b"" if self.command is None else bytes((self.command,))
 
     @classmethod
     def decode(cls, payload: bytes) -> PendingBaseCommand:
-        if len(payload) > 1:
-            raise BadPayload(f"expected 0 or 1 byte, got {len(payload)}")
-        return cls(payload[0] if payload else None)
+        return _decode_pending_base_command(payload)
+
+
+def _decode_pending_base_command(payload: bytes) -> PendingBaseCommand:
+    if len(payload) > 1:
+        raise BadPayload(f"expected 0 or 1 byte, got {len(payload)}")
+    return _new(PendingBaseCommand, (payload[0] if payload else None,))
 
 
 _HEALTH = struct.Struct("<BB")
 
 
-@dataclass(frozen=True, slots=True)
-class Health:
-    """HEALTH_MGMT 1 (get health): flags and error count."""
+class Health(NamedTuple):
+    """HEALTH_MGMT 1 (get health): flags (``HealthFlag`` bits) and error count."""
 
     flags: int  # bit 0 warning, 1 error, 2 fatal
     error_count: int
-
-    WARNING: ClassVar[int] = 0x01
-    ERROR: ClassVar[int] = 0x02
-    FATAL: ClassVar[int] = 0x04
 
     def encode(self) -> bytes:
         return _HEALTH.pack(self.flags, self.error_count)
 
     @classmethod
     def decode(cls, payload: bytes) -> Health:
-        flags, count = _unpack(_HEALTH, payload)
-        return cls(flags, count)
+        return _checked(_decode_health_reply, cls, payload)
+
+
+def _decode_health_reply(payload: bytes) -> Health:
+    return _new(Health, _HEALTH.unpack(payload))
 
 
 _HEALTH_ERROR = struct.Struct("<I32s")
 
 
-@dataclass(frozen=True, slots=True)
-class HealthError:
+class HealthError(NamedTuple):
     """HEALTH_MGMT 2 (get error): code u32 and a 32-byte message."""
 
     code: int
@@ -488,8 +603,12 @@ class HealthError:
 
     @classmethod
     def decode(cls, payload: bytes) -> HealthError:
-        code, msg = _unpack(_HEALTH_ERROR, payload)
-        return cls(code, bytes(msg).split(b"\0", 1)[0].decode("ascii", "replace"))
+        return _checked(_decode_health_error, cls, payload)
+
+
+def _decode_health_error(payload: bytes) -> HealthError:
+    code, msg = _HEALTH_ERROR.unpack(payload)
+    return _new(HealthError, (code, bytes(msg).split(b"\0", 1)[0].decode("ascii", "replace")))
 
 
 class HealthErrorCode(IntEnum):
@@ -504,8 +623,7 @@ class HealthErrorCode(IntEnum):
 _PAYLOAD_STATUS = struct.Struct("<BBBB")
 
 
-@dataclass(frozen=True, slots=True)
-class PayloadStatus:
+class PayloadStatus(NamedTuple):
     """GET_PAYLOAD_STATUS (extension): UV-C lamp, atomiser level, fan, tank level %."""
 
     uv_lamp: bool
@@ -518,17 +636,20 @@ class PayloadStatus:
 
     @classmethod
     def decode(cls, payload: bytes) -> PayloadStatus:
-        uv, level, fan, tank = _unpack(_PAYLOAD_STATUS, payload)
-        if level > 3 or tank > 100 or uv > 1 or fan > 1:
-            raise BadPayload(f"payload status out of range: uv={uv} level={level} fan={fan} tank={tank}")
-        return cls(bool(uv), level, bool(fan), tank)
+        return _checked(_decode_payload_status, cls, payload)
+
+
+def _decode_payload_status(payload: bytes) -> PayloadStatus:
+    uv, level, fan, tank = _PAYLOAD_STATUS.unpack(payload)
+    if level > 3 or tank > 100 or uv > 1 or fan > 1:
+        raise BadPayload(f"payload status out of range: uv={uv} level={level} fan={fan} tank={tank}")
+    return _new(PayloadStatus, (uv == 1, level, fan == 1, tank))
 
 
 _ENV = struct.Struct("<BhHHH")
 
 
-@dataclass(frozen=True, slots=True)
-class EnvData:
+class EnvData(NamedTuple):
     """GET_ENV_DATA (extension): disinfectant level, temperature, humidity, air quality."""
 
     disinfectant_percent: int
@@ -548,23 +669,26 @@ class EnvData:
 
     @classmethod
     def decode(cls, payload: bytes) -> EnvData:
-        level, t, h, pm, tvoc = _unpack(_ENV, payload)
-        if level > 100 or h > 10000:
-            raise BadPayload(f"environment reading out of range: level={level} humidity={h / 100}")
-        return cls(level, t / 100, h / 100, pm / 10, tvoc)
+        return _checked(_decode_env_data, cls, payload)
+
+
+def _decode_env_data(payload: bytes) -> EnvData:
+    level, t, h, pm, tvoc = _ENV.unpack(payload)
+    if level > 100 or h > 10000:
+        raise BadPayload(f"environment reading out of range: level={level} humidity={h / 100}")
+    return _new(EnvData, (level, t / 100, h / 100, pm / 10, tvoc))
 
 
 _POWER = struct.Struct("<HhBB")
 
 
-@dataclass(frozen=True, slots=True)
-class PowerData:
+class PowerData(NamedTuple):
     """GET_POWER_DATA (extension): battery voltage and current, percent, power flags."""
 
     voltage: float  # V (mV on the wire)
     current: float  # A, positive when charging (mA on the wire)
     battery_percent: int
-    power_flags: int  # as BaseStatus
+    power_flags: int  # ``PowerFlag`` bits, as BaseStatus
 
     def encode(self) -> bytes:
         return _POWER.pack(
@@ -573,29 +697,32 @@ class PowerData:
 
     @classmethod
     def decode(cls, payload: bytes) -> PowerData:
-        mv, ma, pct, flags = _unpack(_POWER, payload)
-        return cls(mv / 1000, ma / 1000, pct, flags)
+        return _checked(_decode_power_data, cls, payload)
 
 
-@dataclass(frozen=True, slots=True)
-class Buttons:
-    """GET_BUTTONS (extension): bit 0 power, 1 home, 2 start/pause, 3 emergency stop engaged."""
+def _decode_power_data(payload: bytes) -> PowerData:
+    mv, ma, pct, flags = _POWER.unpack(payload)
+    return _new(PowerData, (mv / _MM, ma / _MM, pct, flags))
+
+
+_BUTTONS = struct.Struct("<B")
+
+
+class Buttons(NamedTuple):
+    """GET_BUTTONS (extension): ``Button`` bits: 0 power, 1 home, 2 start/pause, 3 emergency stop engaged."""
 
     bitmap: int
-
-    POWER: ClassVar[int] = 0x01
-    HOME: ClassVar[int] = 0x02
-    START: ClassVar[int] = 0x04
-    ESTOP: ClassVar[int] = 0x08
 
     def encode(self) -> bytes:
         return bytes((self.bitmap,))
 
     @classmethod
     def decode(cls, payload: bytes) -> Buttons:
-        if len(payload) != 1:
-            raise BadPayload(f"expected 1 byte, got {len(payload)}")
-        return cls(payload[0])
+        return _checked(_decode_buttons, cls, payload)
+
+
+def _decode_buttons(payload: bytes) -> Buttons:
+    return _new(Buttons, _BUTTONS.unpack(payload))
 
 
 Reply: TypeAlias = (
@@ -617,6 +744,44 @@ Reply: TypeAlias = (
     | PowerData
     | Buttons
 )
+
+# decode_reply's dispatch: reply type -> decoder of its OK payload.
+_REPLY_DECODERS: dict[type[Reply] | None, Callable[[bytes], Reply]] = {
+    Empty: _decode_empty,
+    BaseInfo: _decode_base_info,
+    BaseConf: _decode_base_conf,
+    BinaryConf: _decode_binary_conf,
+    BaseStatus: _decode_base_status,
+    MotorData: _decode_motor_data,
+    SensorData: _decode_sensor_data,
+    BumperData: _decode_bumper_data,
+    AutoHomeData: _decode_auto_home_data,
+    DeadReckon: _decode_dead_reckon,
+    PendingBaseCommand: _decode_pending_base_command,
+    Health: _decode_health_reply,
+    HealthError: _decode_health_error,
+    PayloadStatus: _decode_payload_status,
+    EnvData: _decode_env_data,
+    PowerData: _decode_power_data,
+    Buttons: _decode_buttons,
+}
+
+# Fixed payload sizes, for the message when a payload has the wrong size.
+_REPLY_SIZES: dict[type, int] = {
+    BaseInfo: _BASE_INFO.size,
+    MountPose: _POSE.size,
+    BaseConf: _CONF_SIZE,
+    BaseStatus: _STATUS.size,
+    MotorData: _MOTOR.size,
+    SensorData: _SENSORS.size,
+    DeadReckon: _DEADRECKON.size,
+    Health: _HEALTH.size,
+    HealthError: _HEALTH_ERROR.size,
+    PayloadStatus: _PAYLOAD_STATUS.size,
+    EnvData: _ENV.size,
+    PowerData: _POWER.size,
+    Buttons: _BUTTONS.size,
+}
 
 
 # --------------------------------------------------------------------------------------------
@@ -1116,7 +1281,7 @@ REQUEST_TYPES: tuple[type, ...] = (
     Beep,
 )
 
-_DECODERS: dict[int, object] = {
+_DECODERS: dict[int, Callable[[bytes], IncomingRequest]] = {
     cls.CODE: cls.decode_args  # type: ignore[attr-defined]
     for cls in REQUEST_TYPES
     if hasattr(cls, "decode_args")
@@ -1210,7 +1375,7 @@ def decode_request(frame: Frame, profile: Profile = DEFAULT_PROFILE) -> Incoming
         if decoder is None:
             return Rejected(ErrorCode.NOT_SUPPORTED, f"Control Bus command 0x{payload[0]:02X} not supported")
         try:
-            return decoder(payload[1:])  # type: ignore[operator]
+            return decoder(payload[1:])
         except (BadPayload, struct.error) as exc:
             return Rejected(ErrorCode.BAD_ARGUMENTS, f"{CtrlBus(payload[0]).name}: {exc}")
     if code == CMD_SYNC:
@@ -1225,25 +1390,33 @@ def decode_request(frame: Frame, profile: Profile = DEFAULT_PROFILE) -> Incoming
 
 
 def decode_reply(frame: Frame, expected: type[Reply] | None) -> IncomingReply:
-    """Master side: decode a reply against the reply type of the request that was sent."""
-    code = frame.code
+    """Master side: decode a reply against the reply type of the request that was sent.
+
+    The OK path is the master's hot loop (tens of thousands of replies a second): one dict
+    lookup by type, then the type's plain decoder function (struct unpack, SI scaling, C-level
+    tuple construction). Failures, including a payload of the wrong size, become ``Malformed``.
+    """
+    code, payload, _ = frame
     if code == RESP_OK:
-        if expected is None:
-            return Malformed("OK reply without a request in flight")
         try:
-            return expected.decode(frame.payload)
+            return _REPLY_DECODERS[expected](payload)
         except (BadPayload, struct.error, UnicodeError) as exc:
-            return Malformed(f"{expected.__name__}: {exc}")
+            reason = _size_problem(expected, payload) if isinstance(exc, struct.error) else str(exc)
+            return Malformed(f"{getattr(expected, '__name__', expected)}: {reason}")
+        except KeyError:
+            if expected is None:
+                return Malformed("OK reply without a request in flight")
+            return Malformed(f"{getattr(expected, '__name__', expected)}: not a reply type")
     if code == RESP_ERROR:
-        if len(frame.payload) != 2:
-            return Malformed(f"ERROR reply with {len(frame.payload)} payload bytes (u16 expected)")
-        return ErrorReply(frame.payload[0] | (frame.payload[1] << 8))
+        if len(payload) != 2:
+            return Malformed(f"ERROR reply with {len(payload)} payload bytes (u16 expected)")
+        return ErrorReply(payload[0] | (payload[1] << 8))
     if code == RESP_SYNC:
-        return Sync(frame.payload)
+        return Sync(payload)
     if code == RESP_ECHO:
-        return Echo(frame.payload)
+        return Echo(payload)
     if code == RESP_INVALID:
-        return InvalidReply(frame.payload)
+        return InvalidReply(payload)
     return Malformed(f"unknown response code 0x{code:02X}")
 
 

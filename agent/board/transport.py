@@ -11,6 +11,8 @@ deadline; ``b""`` on timeout) and ``close()``. A port that has failed raises ``P
 from __future__ import annotations
 
 import contextlib
+import os
+import select
 from collections.abc import Callable
 from typing import Protocol
 
@@ -34,7 +36,18 @@ class Port(Protocol):
 
 
 class SerialPort:
-    """A pyserial port; ``read_some`` blocks in short slices so a deadline is honoured."""
+    """A pyserial port; ``read_some`` returns whatever has arrived as soon as anything has.
+
+    Ports with a file descriptor (ttys, ptys, ``socket://``) wait in ``select()`` and then take
+    everything available in one non-blocking read (``os.read`` on POSIX, where all three are
+    plain descriptors; pyserial's ``read`` with timeout 0 elsewhere). pyserial's ``in_waiting``
+    is only 0 or 1 on ``socket://``, so sizing reads by it fetched one byte per call. Ports
+    without a descriptor (``loop://``, ...) fall back to short blocking reads sized by
+    ``in_waiting``. Either way the wait is cut into slices of at most ``slice_s``, so a deadline
+    on any clock is honoured.
+    """
+
+    READ_CHUNK = 4096
 
     def __init__(self, url: str, baudrate: int = BAUDRATE, slice_s: float = 0.005) -> None:
         import serial  # pyserial: imported here so sans-I/O users never load it
@@ -46,6 +59,15 @@ class SerialPort:
         except (serial.SerialException, OSError, ValueError) as exc:
             raise PortClosed(f"cannot open {url}: {exc}") from exc
         self._slice = slice_s
+        self._fd: int | None = None
+        try:
+            fd = self._port.fileno()
+            if isinstance(fd, int) and fd >= 0:
+                self._port.timeout = 0  # reads never block: select() does the waiting
+                self._fd = fd
+        except (AttributeError, NotImplementedError, OSError, ValueError, self._serial_error):
+            pass  # no descriptor to wait on (e.g. loop://)
+        self._os_read = os.name == "posix"  # the descriptor is non-blocking (pyserial opens it so)
 
     def write(self, data: bytes) -> None:
         try:
@@ -55,17 +77,47 @@ class SerialPort:
 
     def read_some(self, clock: Clock, deadline: float) -> bytes:
         try:
+            if self._fd is None:
+                return self._read_polling(clock, deadline)
+            fd = (self._fd,)
             while True:
-                waiting = self._port.in_waiting
-                data: bytes = self._port.read(waiting or 1)
-                if data:
-                    if waiting == 0 and self._port.in_waiting:
-                        data += self._port.read(self._port.in_waiting)
-                    return data
+                wait = min(self._slice, deadline - clock.now())
+                ready, _, _ = select.select(fd, (), (), wait if wait > 0 else 0)
+                if ready:
+                    data = self._read_ready()
+                    if data:
+                        return data
                 if clock.now() >= deadline:
                     return b""
-        except (self._serial_error, OSError) as exc:
+        except PortClosed:
+            raise
+        except (self._serial_error, OSError, ValueError) as exc:
             raise PortClosed(f"{self.url}: read failed: {exc}") from exc
+
+    def _read_ready(self) -> bytes:
+        """Everything available now, once select() has said the descriptor is readable."""
+        if not self._os_read:
+            data: bytes = self._port.read(self.READ_CHUNK)  # timeout 0: returns what is there
+            return data
+        assert self._fd is not None
+        try:
+            data = os.read(self._fd, self.READ_CHUNK)
+        except BlockingIOError:
+            return b""  # a spurious wake-up
+        if not data:
+            raise PortClosed(f"{self.url}: closed by the other end")
+        return data
+
+    def _read_polling(self, clock: Clock, deadline: float) -> bytes:
+        while True:
+            waiting = self._port.in_waiting
+            data: bytes = self._port.read(waiting or 1)  # blocks at most one slice
+            if data:
+                if self._port.in_waiting:
+                    data += self._port.read(self._port.in_waiting)
+                return data
+            if clock.now() >= deadline:
+                return b""
 
     def set_dtr(self, level: bool) -> None:
         """The RPLIDAR A1's motor is switched by DTR (low = motor on)."""
