@@ -19,7 +19,7 @@ Frames and conventions:
 * Noise: range sd = ``range_noise_sd + range_noise_rel * d``; samples are dropped (distance 0) with
   probability ``dropout`` plus ``far_dropout * (d / max_range) ** 2``; returns nearer than
   ``min_range`` or beyond ``max_range`` (after noise) are 0; quality falls from 63 at close range
-  towards ``quality_far`` at ``max_range``. Samples outside ``fov_deg`` (centred on the sensor's
+  towards ``quality_far`` at ``max_range`` (linear in the true distance, plus noise). Samples outside ``fov_deg`` (centred on the sensor's
   forward axis) are 0.
 * Every random draw comes from the ``numpy.random.Generator`` passed in, in a fixed order and a
   fixed number per sample whatever the settings, so a seeded model gives the same turns twice, and
@@ -30,18 +30,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
 
 from fleetlink.field.raycast import Raycaster
 
-__all__ = ["LidarConfig", "LidarModel", "Revolution", "ScanSource", "scan_source_for"]
+__all__ = ["LidarConfig", "LidarModel", "ScanSource", "Turn", "scan_source_for"]
 
 FloatArray = npt.NDArray[np.float64]
-Revolution = tuple[FloatArray, FloatArray, npt.NDArray[np.uint8]]  # angles (rad), distances (m), qualities
-ScanSource = Callable[[float], Revolution]
+Turn = tuple[FloatArray, FloatArray, npt.NDArray[np.uint8]]  # angles (rad), distances (m), qualities
+ScanSource = Callable[[float], Turn]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -92,8 +92,6 @@ class LidarConfig:
 
     def noiseless(self) -> LidarConfig:
         """The same lidar without noise, dropouts or random phase (for tests against geometry)."""
-        from dataclasses import replace
-
         return replace(
             self,
             range_noise_sd=0.0,
@@ -120,7 +118,7 @@ class LidarModel:
         theta: float,
         raycaster: Raycaster,
         circles: npt.ArrayLike | None = None,
-    ) -> Revolution:
+    ) -> Turn:
         """One turn from the robot pose (x, y, theta): (angles rad sensor frame, distances m, qualities).
 
         ``circles`` (M, 3: cx, cy, r) are other bodies the rays can hit (other robots).
@@ -139,24 +137,28 @@ class LidarModel:
         true = raycaster.cast_fan(lx, ly, yaw + phase, step, n, cfg.max_range, circles)
 
         # Fixed draws per sample, whatever the settings (common random numbers).
-        gauss = rng.standard_normal(n)
+        gauss = rng.standard_normal((2, n))  # range noise, quality noise
         drop_u = rng.random(n)
-        q_gauss = rng.standard_normal(n)
 
         hit = np.isfinite(true)
         d = np.where(hit, true, 0.0)
-        measured = d + gauss * (cfg.range_noise_sd + cfg.range_noise_rel * d)
-        frac = d / cfg.max_range
-        p_drop = cfg.dropout + cfg.far_dropout * frac * frac
-        ok = hit & (drop_u >= p_drop) & (measured >= cfg.min_range) & (measured <= cfg.max_range)
+        measured = d * (1.0 + cfg.range_noise_rel * gauss[0])
+        measured += cfg.range_noise_sd * gauss[0]
+        ok = hit & (measured >= cfg.min_range) & (measured <= cfg.max_range)
+        if cfg.far_dropout > 0.0:
+            frac = d / cfg.max_range
+            ok &= drop_u >= cfg.dropout + cfg.far_dropout * frac * frac
+        elif cfg.dropout > 0.0:
+            ok &= drop_u >= cfg.dropout
         if cfg.fov_deg < 360.0:
             half = math.radians(cfg.fov_deg) / 2.0
             off = np.mod(angles + math.pi, _TWO_PI) - math.pi  # bearing from the forward axis
             ok &= np.abs(off) <= half
         distances = np.where(ok, measured, 0.0)
-        q = cfg.quality_near + (cfg.quality_far - cfg.quality_near) * np.minimum(measured / cfg.max_range, 1.0)
-        q = q + cfg.quality_noise * q_gauss
-        qualities = np.where(ok, np.clip(np.rint(q), 1, 63), 0).astype(np.uint8)
+        slope = (cfg.quality_far - cfg.quality_near) / cfg.max_range
+        q = np.rint(cfg.quality_near + slope * d + cfg.quality_noise * gauss[1])
+        np.clip(q, 1, 63, out=q)
+        qualities = np.where(ok, q, 0.0).astype(np.uint8)
         self.revolutions += 1
         return angles, distances, qualities
 
@@ -173,7 +175,7 @@ def scan_source_for(
     ``circles(x, y)`` gives the other bodies near the lidar.
     """
 
-    def source(now: float) -> Revolution:
+    def source(now: float) -> Turn:
         x, y, theta = pose(now)
         rc = raycaster if isinstance(raycaster, Raycaster) else raycaster()
         return model.revolution(x, y, theta, rc, circles(x, y) if circles is not None else None)

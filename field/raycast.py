@@ -141,13 +141,14 @@ class Raycaster:
     ) -> FloatArray:
         """``cast`` for the rays ``start + k * step``, k = 0 .. count-1 (a lidar turn).
 
-        Needs 0 < step and count * step <= 2 pi; other fans fall back to the general path.
+        The fast path needs 0 < step and (count - 1) * step < 2 pi (no ray comes round to the
+        first one's bearing again); other fans take the general path.
         """
         count = int(count)
         step = float(step)
         if count <= 0:
             return np.full(0, np.inf)
-        if not (step > 0.0 and count * step <= _TWO_PI + 1e-9):
+        if not (step > 0.0 and (count - 1) * step < _TWO_PI):
             angles = float(start) + step * _ramp(count)
             return self._cast(float(x), float(y), angles, None, float(max_range), circles)
         return self._cast(float(x), float(y), None, (float(start), step, count), float(max_range), circles)
@@ -200,21 +201,37 @@ class Raycaster:
             sn = np.sin(sorted_ang)
 
         # Each obstacle's bearing span, then the run(s) of rays inside it, then only those pairs.
+        if seg is not None and circ is not None:
+            ls, ws = _segment_spans(seg)
+            lc, wc = _circle_spans(circ)
+            lo, width = np.concatenate((ls, lc)), np.concatenate((ws, wc))
+        elif seg is not None:
+            lo, width = _segment_spans(seg)
+        else:
+            assert circ is not None
+            lo, width = _circle_spans(circ)
+        starts, counts = _fan_runs(lo, width, fan) if fan is not None else _sorted_runs(lo, width, sorted_ang)
+        if k and m:
+            # [segments' runs, their wrapped runs, circles' runs, theirs]: segment pairs come first
+            km = k + m
+            starts = np.concatenate((starts[:k], starts[km : km + k], starts[k:km], starts[km + k :]))
+            counts = np.concatenate((counts[:k], counts[km : km + k], counts[k:km], counts[km + k :]))
         out = best if order is None else np.full(n, np.inf)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            if seg is not None:
-                lo, width = _segment_spans(seg)
-                runs = _fan_runs(lo, width, fan) if fan is not None else _sorted_runs(lo, width, sorted_ang)
-                pairs = _pairs(*runs)
-                if pairs is not None:
-                    _pair_segments(out, cs, sn, seg, *pairs)
-            if circ is not None:
-                lo, width = _circle_spans(circ)
-                runs = _fan_runs(lo, width, fan) if fan is not None else _sorted_runs(lo, width, sorted_ang)
-                pairs = _pairs(*runs)
-                if pairs is not None:
-                    _pair_circles(out, cs, sn, circ, *pairs)
-        out[out > rmax] = np.inf
+        total = int(counts.sum())
+        if total:
+            first = np.cumsum(counts) - counts  # where each run begins among the pairs
+            owner = np.repeat(_owners(k, m), counts)
+            ray = np.repeat(starts - first, counts)
+            ray += _ramp_int(total)
+            split = int(counts[: 2 * k].sum()) if k and m else (total if k else 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                if split:
+                    assert seg is not None
+                    _pair_segments(out, cs, sn, seg, owner[:split], ray[:split])
+                if split < total:
+                    assert circ is not None
+                    _pair_circles(out, cs, sn, circ, owner[split:], ray[split:])
+            out[out > rmax] = np.inf
         if order is not None:
             best[order] = out
         return best
@@ -289,7 +306,7 @@ def _as_fan(ang: FloatArray) -> tuple[float, float] | None:
         return None
     a0 = float(ang[0])
     step = (float(ang[-1]) - a0) / (n - 1)
-    if not (step > 0.0 and n * step <= _TWO_PI + 1e-9):
+    if not (step > 0.0 and (n - 1) * step < _TWO_PI):
         return None
     if float(np.abs(ang - (a0 + step * _ramp(n))).max()) > 1e-9:
         return None
@@ -406,18 +423,20 @@ def _fan_runs(lo: FloatArray, width: FloatArray, fan: tuple[float, float, int]) 
     return starts, counts
 
 
-def _pairs(starts: IntArray, counts: IntArray) -> tuple[IntArray, IntArray] | None:
-    """(owner, ray) for every ray of every run; runs are [each span's first run, its wrapped run]."""
-    total = int(counts.sum())
-    if total == 0:
-        return None
-    k = starts.size // 2
-    owners = _ramp_int(k)
-    first = np.cumsum(counts) - counts  # where each run begins among the pairs
-    owner = np.repeat(np.concatenate((owners, owners)), counts)
-    ray = np.repeat(starts - first, counts)
-    ray += _ramp_int(total)
-    return owner, ray
+_OWNERS: dict[tuple[int, int], IntArray] = {}
+
+
+def _owners(k: int, m: int) -> IntArray:
+    """Owner of each run, laid out [0..k-1, 0..k-1, 0..m-1, 0..m-1] (segments' runs, circles')."""
+    key = (k, m)
+    r = _OWNERS.get(key)
+    if r is None:
+        if len(_OWNERS) > 256:
+            _OWNERS.clear()
+        r = np.concatenate((_ramp_int(k), _ramp_int(k), _ramp_int(m), _ramp_int(m)))
+        r.flags.writeable = False
+        _OWNERS[key] = r
+    return r
 
 
 def _pair_segments(out: FloatArray, cs: FloatArray, sn: FloatArray, seg: _Segs, owner: IntArray, ray: IntArray) -> None:

@@ -99,8 +99,9 @@ def test_descriptor_bytes() -> None:
 
 
 def test_node_bytes() -> None:
-    # start node, quality 15, 90.0 degrees, 1.5 m
+    # start node, quality 15, 90.0 degrees, 1.5 m (the example in docs/protocols/rplidar.md)
     b = lp.encode_node(True, 15, 90.0, 1.5)
+    assert b == bytes.fromhex("3D012D7017")
     assert b[0] == (15 << 2) | 0b01
     assert int.from_bytes(b[1:3], "little") == (90 * 64) << 1 | 1
     assert int.from_bytes(b[3:5], "little") == 6000

@@ -57,6 +57,15 @@ def test_square_room_from_the_centre(n: int) -> None:
     np.testing.assert_allclose(rc.cast(3.0, 2.0, shuffled, 12.0), room_distance(3.0, 2.0, shuffled), rtol=1e-12)
 
 
+@pytest.mark.parametrize(("count", "step"), [(1455, 2 * math.pi / 1454.5), (1500, 2 * math.pi / 1450), (10, 0.3)])
+def test_fans_of_any_length(count: int, step: float) -> None:
+    """A lidar turn may overlap itself by a sample (1455 samples of 2 pi / 1454.5) or more."""
+    rc = Raycaster(ROOM)
+    a = 0.7 + step * np.arange(count)
+    np.testing.assert_allclose(rc.cast_fan(3.0, 2.0, 0.7, step, count, 12.0), room_distance(3.0, 2.0, a), rtol=1e-12)
+    np.testing.assert_allclose(rc.cast(3.0, 2.0, a, 12.0), room_distance(3.0, 2.0, a), rtol=1e-12)
+
+
 def test_cardinal_rays_parallel_to_walls() -> None:
     """Each cardinal ray is parallel to two walls: it must hit the wall ahead, not the parallel ones."""
     rc = Raycaster(ROOM)
