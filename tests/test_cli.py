@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -80,13 +81,35 @@ def test_probe_reports_an_unreachable_board_clearly() -> None:
 
 def test_field_demo_shows_live_board_status() -> None:
     start = time.monotonic()
-    out = run("field", "--duration", "2", "--refresh", "2", "--robots", "2")
+    out = run("field", "--duration", "2", "--refresh", "2", "--zenoh-listen", "tcp/127.0.0.1:0")
     assert out.returncode == 0, out.stderr
     assert time.monotonic() - start < 25
-    assert "robot-1" in out.stdout and "robot-2" in out.stdout
-    assert "link up" in out.stdout
+    assert "demo on apartment" in out.stdout
+    assert "uvc-1" in out.stdout and "uvc-2" in out.stdout
+    assert "link up" in out.stdout and "lidar socket://127.0.0.1:" in out.stdout
     assert "battery    100 %" in out.stdout
     assert "Traceback" not in out.stderr
+
+
+def test_field_runs_a_scenario_in_lockstep_and_writes_truth(tmp_path: Path) -> None:
+    out = run("field", "run", "office-drill", "--lockstep", "--duration", "12", "--out", str(tmp_path), timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "door room-3 closes" in out.stdout and "x real time" in out.stdout
+    rows = (tmp_path / "truth" / "scout-1.csv").read_text().splitlines()
+    assert rows[0] == "t_s,x_m,y_m,theta_rad,v_m_per_s,omega_rad_per_s"
+    assert len(rows) == 1 + 12 * 20 + 1
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["seed"] == 7 and summary["robots"] == ["scout-1", "scout-2"]
+
+
+def test_field_run_reports_bad_scenarios_clearly(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('plan = "office"\n[[robots]]\nname = "a"\nstart = "attic"\n')
+    out = run("field", "run", str(bad), "--lockstep", "--out", str(tmp_path / "o"))
+    assert out.returncode == 2
+    assert "no start 'attic'" in out.stderr
+    out = run("field", "run", "no-such-scenario", "--lockstep", "--out", str(tmp_path / "o"))
+    assert out.returncode == 2 and "built-in:" in out.stderr
 
 
 def test_probe_works_over_a_pty() -> None:
