@@ -173,9 +173,11 @@ class DeviceServer:
                         continue
                     if not data:
                         break
-                    reply = self._handle(data)
-                    if reply:
-                        with self._write_lock:
+                    # Handle and send under the write lock, so bytes the device streams on its
+                    # own (a lidar's nodes) can never overtake the reply that started them.
+                    with self._write_lock:
+                        reply = self._handle(data)
+                        if reply:
                             conn.sendall(reply)
             except OSError:
                 pass
@@ -198,10 +200,11 @@ class DeviceServer:
                 if self._stop.wait(0.05):
                     return
                 continue
-            reply = self._handle(data)
-            if reply:
-                with self._write_lock, contextlib.suppress(OSError):
-                    os.write(master, reply)
+            with self._write_lock:
+                reply = self._handle(data)
+                if reply:
+                    with contextlib.suppress(OSError):
+                        os.write(master, reply)
 
 
 def _close(sock: socket.socket) -> None:
