@@ -100,9 +100,10 @@ class WorldRobot:
         st = self.board.state
         return st.x, st.y, st.theta
 
-    @property
-    def radius(self) -> float:
-        return self.board.config.radius
+    radius: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.radius = self.board.config.radius
 
 
 class RobotView:
@@ -135,9 +136,21 @@ class RobotView:
             # Short sensors (ultrasonic, bump geometry): a few nearby segments and robots in plain
             # Python beat numpy's per-call overhead by a wide margin.
             segs = [w.grid.segments[k] for k in w.grid.near_radius(x, y, max_range)]
-            circles = [
-                (o.board.state.x, o.board.state.y, o.radius) for o in (w.robots[j] for j in w.sensing[self.index])
-            ]
+            circles = []
+            lo, hi = min(angles), max(angles)
+            mid, half = (lo + hi) / 2, (hi - lo) / 2
+            for j in w.sensing[self.index]:
+                st = w.robots[j].board.state
+                r = w.robots[j].radius
+                d = math.hypot(st.x - x, st.y - y)
+                # Only robots within reach and inside the fan of rays can be hit.
+                if d - r > max_range:
+                    continue
+                if d > r and abs(math.remainder(math.atan2(st.y - y, st.x - x) - mid, math.tau)) > half + math.asin(
+                    r / d
+                ):
+                    continue
+                circles.append((st.x, st.y, r))
             return [_short_ray(segs, circles, x, y, a, max_range) for a in angles]
         bodies = w.other_bodies(self.index, x, y, max_range)
         d = w.raycaster.cast(x, y, np.asarray(angles, dtype=float), max_range, bodies)
@@ -193,6 +206,8 @@ class World:
         self.by_name: dict[str, WorldRobot] = {}
         self.neighbours: list[list[int]] = []  # robots near each robot, refreshed every few sub-steps
         self.sensing: list[list[int]] = []  # robots within short-sensor reach of each robot
+        self._bodies_array: np.ndarray | None = None  # every robot as (x, y, r), cached per step
+        self._bodies_at = -1.0
         self._next_neighbours = start
         self._segments = np.asarray(segments, dtype=float).reshape(-1, 4)
         self.grid = SegmentGrid(self._segments)
@@ -256,10 +271,13 @@ class World:
 
     def other_bodies(self, index: int, x: float, y: float, max_range: float) -> np.ndarray | None:
         """Other robots as circles (cx, cy, r) within reach of a sensor at (x, y)."""
-        rows = [
-            b for j, b in enumerate(self.bodies) if j != index and math.hypot(b[0] - x, b[1] - y) - b[2] <= max_range
-        ]
-        return np.asarray(rows, dtype=float) if rows else None
+        if self._bodies_at != self.now or self._bodies_array is None:
+            self._bodies_array = np.asarray(self.bodies, dtype=float).reshape(-1, 3)
+            self._bodies_at = self.now
+        arr = self._bodies_array
+        reach = np.hypot(arr[:, 0] - x, arr[:, 1] - y) - arr[:, 2] <= max_range
+        reach[index] = False
+        return arr[reach] if reach.any() else None
 
     def _refresh_bodies(self) -> None:
         bodies = self.bodies
