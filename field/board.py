@@ -121,6 +121,7 @@ class BoardState:
     true_w: float = 0.0
     gyro_rate: float = 0.0  # rad/s as the gyro reports it
     gyro_yaw: float = 0.0  # integrated gyro heading, rad
+    gyro_samples: int = 0
 
 
 class SimulatedBoard:
@@ -292,6 +293,8 @@ class SimulatedBoard:
             return p.EnvData(self.tank_percent, st.temperature_c, st.humidity, st.pm2_5, st.tvoc_ppb)
         if isinstance(req, p.GetPowerData):
             return p.PowerData(st.voltage, self._current(), self.battery_percent, self._power_flags())
+        if isinstance(req, p.GetImuData):
+            return p.ImuData(st.gyro_rate, st.gyro_yaw, st.gyro_samples)
         if isinstance(req, p.GetButtons):
             return p.Buttons(st.buttons)
         if isinstance(req, p.SetLeds):
@@ -340,8 +343,13 @@ class SimulatedBoard:
             st.set_left = st.set_right = 0.0
 
         if st.v_left == 0.0 and st.v_right == 0.0 and st.set_left == 0.0 and st.set_right == 0.0:
-            # Standing still with nothing to do: only the slow housekeeping runs.
+            # Standing still with nothing to do: only the slow housekeeping runs (and the gyro,
+            # which at rest reads its bias).
             st.true_v = st.true_w = 0.0
+            st.gyro_rate = cfg.gyro_bias
+            if cfg.gyro_bias:
+                st.gyro_yaw = (st.gyro_yaw + cfg.gyro_bias * dt + math.pi) % (2 * math.pi) - math.pi
+            st.gyro_samples += 1
             self._housekeeping(dt)
             return
 
@@ -401,6 +409,7 @@ class SimulatedBoard:
         noise = self._rng.gauss(0.0, cfg.gyro_noise) if cfg.gyro_noise else 0.0
         st.gyro_rate = st.true_w + cfg.gyro_bias + noise
         st.gyro_yaw = (st.gyro_yaw + st.gyro_rate * dt + math.pi) % (2 * math.pi) - math.pi
+        st.gyro_samples += 1
         # Dead reckoning from the encoders, in the frame of the last SET_V_AND_GET_DEADRECKON call.
         lx, ly, lth = _arc(st.dr_theta, (enc_l + enc_r) / 2, (enc_r - enc_l) / cfg.wheel_track)
         st.dr_x += lx

@@ -43,6 +43,7 @@ LOCKSTEP_POLL = PollRates(
     env=0.0,
     buttons=0.0,
     base_command=1.0,
+    imu=0.0,
 )
 
 

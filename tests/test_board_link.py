@@ -195,6 +195,7 @@ COMMANDS: dict[type, tuple[Any, type | int, Check]] = {
         lambda r: r.voltage == pytest.approx(16.8, abs=0.05) and r.current < 0 and r.battery_percent == 100,
     ),
     p.GetButtons: (p.GetButtons(), p.Buttons, lambda r: r.bitmap == 0),
+    p.GetImuData: (p.GetImuData(), p.ImuData, lambda r: r.yaw_rate == 0.0 and r.yaw == 0.0 and r.samples >= 0),
     p.SetLeds: (p.SetLeds(1, 255, 0, 0), p.Empty, lambda r: True),
     p.Beep: (p.Beep(880, 0.1), p.Empty, lambda r: True),
 }

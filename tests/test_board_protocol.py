@@ -58,6 +58,7 @@ REQUEST_STRATEGIES: dict[type, st.SearchStrategy[typing.Any]] = {
     p.GetEnvData: st.just(p.GetEnvData()),
     p.GetPowerData: st.just(p.GetPowerData()),
     p.GetButtons: st.just(p.GetButtons()),
+    p.GetImuData: st.just(p.GetImuData()),
     p.SetLeds: st.builds(p.SetLeds, st.integers(0, 3), u8, u8, u8),
     p.Beep: st.builds(p.Beep, u16, u16.map(mm)),
 }
@@ -222,6 +223,7 @@ REPLY_WIRE: dict[type, st.SearchStrategy[bytes]] = {
     ),
     p.PowerData: st.tuples(u16, st.integers(-0x8000, 0x7FFF), u8, u8).map(lambda t: struct.pack("<HhBB", *t)),
     p.Buttons: st.binary(min_size=1, max_size=1),
+    p.ImuData: st.tuples(s32, s32, u32).map(lambda t: struct.pack("<iiI", *t)),
 }
 
 

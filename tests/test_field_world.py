@@ -198,3 +198,20 @@ def test_robot_spec_and_unknown_start_are_reported() -> None:
     sc = replace(sc, robots=(RobotSpec("r", start="entrance"),), events=(Event(1.0, "door_close", door="x"),))
     with pytest.raises(ValueError, match="no door 'x'"):
         FieldRun(sc)
+
+
+def test_the_gyro_reports_turn_rate_with_its_bias_over_the_control_bus() -> None:
+    from fleetlink.agent.board import protocol as p
+    from fleetlink.agent.board.frames import FrameDecoder
+
+    world = World(ROOM)
+    robot = world.add_robot("r", (5.0, 5.0, 0.0), BoardConfig(gyro_bias=0.01, gyro_noise=0.0))
+    robot.board.drive(0.0, 0.5, 0.0)
+    run_steady(world, 0.0, 2.0)
+    frames = FrameDecoder(p.REPLY_CODES).feed(robot.board.receive(p.encode_request(p.GetImuData()), 2.0))
+    imu = p.decode_reply(frames[0], p.ImuData)  # type: ignore[arg-type]
+    assert isinstance(imu, p.ImuData)
+    assert imu.yaw_rate == pytest.approx(0.5 + 0.01, abs=2e-3)
+    truth_turn = robot.board.state.theta
+    assert imu.yaw == pytest.approx(truth_turn + 0.01 * 2.0, abs=0.02)  # integrated bias shows as drift
+    assert imu.samples >= 400  # one gyro sample per 5 ms control tick, for 2 s

@@ -110,6 +110,7 @@ class CtrlBus(IntEnum):
     GET_BUTTONS = 0xA6
     SET_LEDS = 0xA7
     BEEP = 0xA9
+    GET_IMU_DATA = 0xAA
 
 
 @dataclass(frozen=True, slots=True)
@@ -725,6 +726,36 @@ def _decode_buttons(payload: bytes) -> Buttons:
     return _new(Buttons, _BUTTONS.unpack(payload))
 
 
+_IMU = struct.Struct("<iiI")
+_Q16_TO_RAD = 1.0 / Q16 * _DEG
+
+
+class ImuData(NamedTuple):
+    """GET_IMU_DATA (extension): the gyro's yaw rate and integrated yaw, and a sample counter.
+
+    yaw_rate (rad/s) and yaw (rad, wrapped to [-pi, pi)) travel as degrees Q16 s32, like
+    SET_V_AND_GET_DEADRECKON's dtheta; samples u32 counts gyro updates since power-on.
+    """
+
+    yaw_rate: float
+    yaw: float
+    samples: int
+
+    def encode(self) -> bytes:
+        return _IMU.pack(
+            _s32(math.degrees(self.yaw_rate) * Q16), _s32(math.degrees(self.yaw) * Q16), self.samples & 0xFFFF_FFFF
+        )
+
+    @classmethod
+    def decode(cls, payload: bytes) -> ImuData:
+        return _checked(_decode_imu, cls, payload)
+
+
+def _decode_imu(payload: bytes) -> ImuData:
+    rate, yaw, samples = _IMU.unpack(payload)
+    return _new(ImuData, (rate * _Q16_TO_RAD, yaw * _Q16_TO_RAD, samples))
+
+
 Reply: TypeAlias = (
     Empty
     | BaseInfo
@@ -743,6 +774,7 @@ Reply: TypeAlias = (
     | EnvData
     | PowerData
     | Buttons
+    | ImuData
 )
 
 # decode_reply's dispatch: reply type -> decoder of its OK payload.
@@ -764,6 +796,7 @@ _REPLY_DECODERS: dict[type[Reply] | None, Callable[[bytes], Reply]] = {
     EnvData: _decode_env_data,
     PowerData: _decode_power_data,
     Buttons: _decode_buttons,
+    ImuData: _decode_imu,
 }
 
 # Fixed payload sizes, for the message when a payload has the wrong size.
@@ -781,6 +814,7 @@ _REPLY_SIZES: dict[type, int] = {
     EnvData: _ENV.size,
     PowerData: _POWER.size,
     Buttons: _BUTTONS.size,
+    ImuData: _IMU.size,
 }
 
 
@@ -1179,6 +1213,20 @@ class GetButtons:
         return cls()
 
 
+@dataclass(frozen=True, slots=True)
+class GetImuData:
+    CODE: ClassVar[int] = CtrlBus.GET_IMU_DATA
+    REPLY: ClassVar[type[Reply]] = ImuData
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetImuData:
+        _expect_empty(args)
+        return cls()
+
+
 _LEDS = struct.Struct("<BBBB")
 
 
@@ -1249,6 +1297,7 @@ Request: TypeAlias = (
     | GetEnvData
     | GetPowerData
     | GetButtons
+    | GetImuData
     | SetLeds
     | Beep
 )
@@ -1277,6 +1326,7 @@ REQUEST_TYPES: tuple[type, ...] = (
     GetEnvData,
     GetPowerData,
     GetButtons,
+    GetImuData,
     SetLeds,
     Beep,
 )

@@ -50,6 +50,7 @@ class PollRates:
     payload: float = 2.0
     env: float = 0.5
     buttons: float = 5.0
+    imu: float = 20.0
     base_command: float = 2.0
 
 
@@ -94,6 +95,7 @@ class BoardSnapshot:
     payload: p.PayloadStatus | None = None
     env: p.EnvData | None = None
     buttons: p.Buttons | None = None
+    imu: p.ImuData | None = None
     # Dead reckoning integrated from SET_V_AND_GET_DEADRECKON deltas (odometry frame).
     odom: tuple[float, float, float] = (0.0, 0.0, 0.0)
     command: tuple[float, float] = (0.0, 0.0)  # vx m/s, omega rad/s being sent
@@ -317,6 +319,9 @@ class BoardSession:
     def _poll_buttons(self) -> None:
         self._set(buttons=self._optional(p.GetButtons()))
 
+    def _poll_imu(self) -> None:
+        self._set(imu=self._optional(p.GetImuData()))
+
     def _poll_base_command(self) -> None:
         pending = self._ask(p.PollBaseCommand())
         assert isinstance(pending, p.PendingBaseCommand)
@@ -358,6 +363,7 @@ _TASK_OF: dict[type, str] = {
     p.GetPayloadStatus: "payload",
     p.GetEnvData: "env",
     p.GetButtons: "buttons",
+    p.GetImuData: "imu",
 }
 
 
