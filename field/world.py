@@ -146,15 +146,14 @@ class RobotView:
                 # Only robots within reach and inside the fan of rays can be hit.
                 if d - r > max_range:
                     continue
-                if d > r and abs(math.remainder(math.atan2(st.y - y, st.x - x) - mid, math.tau)) > half + math.asin(
-                    r / d
-                ):
+                bearing = math.atan2(st.y - y, st.x - x)
+                if d > r and abs(math.remainder(bearing - mid, math.tau)) > half + math.asin(r / d):
                     continue
                 circles.append((st.x, st.y, r))
             return [_short_ray(segs, circles, x, y, a, max_range) for a in angles]
         bodies = w.other_bodies(self.index, x, y, max_range)
-        d = w.raycaster.cast(x, y, np.asarray(angles, dtype=float), max_range, bodies)
-        return [float(v) for v in d]
+        hits = w.raycaster.cast(x, y, np.asarray(angles, dtype=float), max_range, bodies)
+        return [float(v) for v in hits]
 
     def over_cliff(self, x: float, y: float) -> bool:
         return self.world.is_cliff(x, y)
