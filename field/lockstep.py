@@ -23,6 +23,7 @@ from fleetlink.agent.board.transport import InProcessPort
 from fleetlink.field.build import build_world, lidar_model, robot_seed
 from fleetlink.field.drivers import Driver, driver_for
 from fleetlink.field.events import EventRunner
+from fleetlink.field.lidar_worker import LidarWorker
 from fleetlink.field.plans import FloorPlan, load_plan
 from fleetlink.field.scenario import RobotSpec, Scenario
 from fleetlink.field.world import WorldRobot
@@ -56,6 +57,7 @@ class Rig:
     drive: Driver
     lidar: Any
     session: BoardSession = field(init=False)
+    remote_lidar: bool = False  # cast by the lidar worker process
     link_cut: bool = False
     next_session: float = 0.0
     next_scan: float = 0.0
@@ -87,9 +89,13 @@ class FieldRun:
         plan: FloorPlan | None = None,
         poll: PollRates = LOCKSTEP_POLL,
         board_links: bool = True,
+        lidar_worker: bool = False,
+        worker_share: float = 0.7,
     ) -> None:
         """``board_links=False`` lets the stand-in drivers command the boards directly instead of
-        through an agent-side board session (to measure the field alone)."""
+        through an agent-side board session (to measure the field alone). ``lidar_worker`` casts
+        ``worker_share`` of the robots' lidars in a second process while this one steps the physics
+        and casts the rest (same results; both cores busy); ``close()`` ends it."""
         self.scenario = scenario
         self.board_links = board_links
         self.plan = plan or load_plan(scenario.plan)
@@ -106,6 +112,27 @@ class FieldRun:
             rig = Rig(spec, robot, driver_for(spec, seed), lidar)
             rig.session = BoardSession(self._port_factory(rig), self.clock, rates=poll, seed=seed)
             self.rigs.append(rig)
+        self.worker: LidarWorker | None = None
+        self._worker_geometry = self.world.geometry_version
+        if lidar_worker and any(r.lidar is not None for r in self.rigs):
+            self.worker = LidarWorker(self.world.segments)
+            for rig in self.rigs:
+                i = rig.robot.index
+                # Spread the worker's robots evenly: robot i goes there when the running share steps up.
+                if rig.lidar is not None and int((i + 1) * worker_share) > int(i * worker_share):
+                    rig.remote_lidar = True
+                    self.worker.add_model(i, rig.lidar.config, robot_seed(scenario, i))
+
+    def close(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
+            self.worker = None
+
+    def __enter__(self) -> FieldRun:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     # -- running -------------------------------------------------------------------------------
 
@@ -140,6 +167,12 @@ class FieldRun:
             if t >= next_truth - 1e-9:
                 self._record(t)
                 next_truth += truth_period
+        if self.worker is not None:
+            results = list(self.worker.drain())
+            self.worker.results.clear()
+            self.raycast_seconds += sum(r.cast_seconds for r in results)
+            for r in results:
+                self.rigs[r.robot].last_scan = (r.angles, r.distances, r.qualities)
         wall = time.perf_counter() - wall0
         return RunResult(
             scenario=self.scenario,
@@ -181,6 +214,13 @@ class FieldRun:
         assert rig.lidar is not None
         x, y, th = rig.robot.pose
         circles = self.world.other_bodies(rig.robot.index, x, y, rig.lidar.config.max_range)
+        if rig.remote_lidar and self.worker is not None:
+            if self._worker_geometry != self.world.geometry_version:
+                self.worker.set_segments(self.world.segments)
+                self._worker_geometry = self.world.geometry_version
+            self.worker.submit(rig.robot.index, self.clock.now(), x, y, th, circles)
+            rig.scans += 1
+            return
         t0 = time.perf_counter()
         rig.last_scan = rig.lidar.revolution(x, y, th, self.world.raycaster, circles)
         self.raycast_seconds += time.perf_counter() - t0

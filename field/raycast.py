@@ -441,9 +441,13 @@ def _owners(k: int, m: int) -> IntArray:
 
 def _pair_segments(out: FloatArray, cs: FloatArray, sn: FloatArray, seg: _Segs, owner: IntArray, ray: IntArray) -> None:
     """Each pair's ray lies inside its segment's span, so it meets the segment: only t is needed."""
-    t = seg.cross.take(owner)
-    t /= cs.take(ray) * seg.ey.take(owner) - sn.take(ray) * seg.ex.take(owner)
-    np.minimum.at(out, ray, np.where(t >= 0.0, t, np.inf))  # NaN: a ray along the segment, from its line
+    denom = cs.take(ray) * seg.ey.take(owner) - sn.take(ray) * seg.ex.take(owner)
+    # A ray along the segment's own line (seen edge-on) is parallel to it: no hit, as in the
+    # scalar caster. Rounding in the sine/cosine table leaves such a denominator at ~1e-17, not 0.
+    edge_on = np.abs(denom) < 1e-12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = seg.cross.take(owner) / np.where(edge_on, 1.0, denom)
+    np.minimum.at(out, ray, np.where((t >= 0.0) & ~edge_on, t, np.inf))
 
 
 def _pair_circles(

@@ -50,6 +50,7 @@ class SegmentGrid:
 
         # For each cell, the segments of its 3x3 neighbourhood, computed once on demand.
         self._near: dict[tuple[int, int], tuple[int, ...]] = {}
+        self._near_radius: dict[tuple[int, int, int], tuple[int, ...]] = {}
 
     def near(self, x: float, y: float) -> tuple[int, ...]:
         """Segments passing through the 3x3 cells around (x, y): all within ``cell`` of it, and more."""
@@ -69,12 +70,16 @@ class SegmentGrid:
         if radius <= self.cell:
             return self.near(x, y)
         reach = math.ceil(radius / self.cell)
-        cx, cy = math.floor(x / self.cell), math.floor(y / self.cell)
-        out: set[int] = set()
-        for i in range(cx - reach, cx + reach + 1):
-            for j in range(cy - reach, cy + reach + 1):
-                out.update(self._cells.get((i, j), ()))
-        return tuple(out)
+        key = (math.floor(x / self.cell), math.floor(y / self.cell), reach)
+        hit = self._near_radius.get(key)
+        if hit is None:
+            cx, cy, _ = key
+            out: set[int] = set()
+            for i in range(cx - reach, cx + reach + 1):
+                for j in range(cy - reach, cy + reach + 1):
+                    out.update(self._cells.get((i, j), ()))
+            hit = self._near_radius[key] = tuple(sorted(out))
+        return hit
 
     def clearance(self, x: float, y: float) -> float:
         """Distance to the nearest segment, exact up to ``cell``; ``cell`` or more otherwise."""
@@ -211,6 +216,7 @@ class World:
         self._segments = np.asarray(segments, dtype=float).reshape(-1, 4)
         self.grid = SegmentGrid(self._segments)
         self.raycaster = Raycaster(self._segments)
+        self.geometry_version = 0  # bumped by set_segments, so copies elsewhere know to follow
         self.now = start
 
     # -- building ------------------------------------------------------------------------------
@@ -234,6 +240,7 @@ class World:
         self._segments = np.asarray(segments, dtype=float).reshape(-1, 4)
         self.grid = SegmentGrid(self._segments)
         self.raycaster.set_segments(self._segments)
+        self.geometry_version += 1
 
     @property
     def segments(self) -> np.ndarray:

@@ -215,3 +215,18 @@ def test_the_gyro_reports_turn_rate_with_its_bias_over_the_control_bus() -> None
     truth_turn = robot.board.state.theta
     assert imu.yaw == pytest.approx(truth_turn + 0.01 * 2.0, abs=0.02)  # integrated bias shows as drift
     assert imu.samples >= 400  # one gyro sample per 5 ms control tick, for 2 s
+
+
+def test_the_lidar_worker_process_gives_the_same_scans_as_in_process() -> None:
+    sc = replace(scenario(), lidar=LidarSettings(True, 10.0), duration=2.0)
+    local = FieldRun(sc)
+    local_result = local.run()
+    with FieldRun(sc, lidar_worker=True, worker_share=0.5) as remote:
+        remote_result = remote.run()
+        assert any(r.remote_lidar for r in remote.rigs) and not all(r.remote_lidar for r in remote.rigs)
+        assert remote_result.truth == local_result.truth
+        assert remote_result.scans == local_result.scans == 2 * 2 * 10
+        for a, b in zip(local.rigs, remote.rigs, strict=True):
+            assert a.last_scan is not None and b.last_scan is not None
+            for x, y in zip(a.last_scan, b.last_scan, strict=True):  # type: ignore[call-overload]
+                assert np.array_equal(x, y)
