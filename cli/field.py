@@ -6,6 +6,11 @@ per robot talking to its board through real bytes, ground truth published on Zen
 fleetlink/v1/sim/<robot>/truth, and each robot's live board status on the terminal. Stop with
 Ctrl-C, or give --duration.
 
+`fleetlink field --secure` runs it all as a secured site would (field/secure.py): deploy/'s
+Mosquitto and Zenoh router with generated passwords and ACLs (TLS with a throwaway CA when openssl
+is there), agents logged in as their robot ids, the UWB gateway as uwb-gateway, ground truth as
+sim, the console as the operator; it prints where the credentials are so another console can join.
+
 `fleetlink field run SCENARIO --lockstep --out DIR` runs a scenario in simulated time, as fast as
 the CPU allows, and writes the robots' true trajectories (see docs/field-scenarios.md).
 """
@@ -17,7 +22,7 @@ import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from fleetlink.agent.board.transport import Port
@@ -40,6 +45,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--zenoh-listen",
         default="tcp/127.0.0.1:7447",
         help="Zenoh endpoint for ground truth (default tcp/127.0.0.1:7447; 'none' disables publishing)",
+    )
+    parser.add_argument(
+        "--console",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="run an agent per robot and open the operator console on the field (auto: when the terminal is interactive)",
+    )
+    parser.add_argument(
+        "--mqtt",
+        dest="mqtt_url",
+        help="MQTT broker for agents, UWB and console (default: an embedded mosquitto, else amqtt)",
+    )
+    parser.add_argument(
+        "--secure",
+        action="store_true",
+        help="a secured site: deploy/'s broker and router with passwords, ACLs and TLS (needs mosquitto)",
+    )
+    parser.add_argument(
+        "--operator",
+        action="append",
+        default=None,
+        help="with --secure: operator accounts op-<name> (repeat; the first is the field's console; "
+        "default op-operator-1)",
     )
     sub = parser.add_subparsers(dest="field_command", metavar="ACTION")
     run = sub.add_parser(
@@ -89,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
     if args.field_command == "run" and args.lockstep:
         return _run_lockstep(scenario, plan, args.out)
     duration = scenario.duration if args.field_command == "run" else args.duration
+    if getattr(args, "secure", False):
+        return _run_secure(scenario, plan, duration, args)
     return _run_realtime(scenario, plan, duration, args)
 
 
@@ -117,7 +147,7 @@ def _run_lockstep(scenario: Scenario, plan: FloorPlan, out: Path | None) -> int:
     return 0
 
 
-def _run_realtime(scenario: object, plan: object, duration: float, args: argparse.Namespace) -> int:
+def _run_realtime(scenario: Scenario, plan: FloorPlan, duration: float, args: argparse.Namespace) -> int:
     from fleetlink.agent.board.session import BoardSession
     from fleetlink.field.drivers import Driver, driver_for
     from fleetlink.field.realtime import RealtimeField
@@ -135,10 +165,24 @@ def _run_realtime(scenario: object, plan: object, duration: float, args: argpars
                 f"warning: cannot publish ground truth on {args.zenoh_listen}: {exc}; continuing without",
                 file=sys.stderr,
             )
-    field = RealtimeField(scenario, plan, clock, truth_sink=publisher.publish if publisher else None, pty=args.pty)  # type: ignore[arg-type]
+    # Ground truth fans out to Zenoh and, with the console, to the UWB simulator (added later).
+    sinks: list[Callable[[Any], None]] = [publisher.publish] if publisher is not None else []
+
+    def truth_sink(sample: Any) -> None:
+        for sink in list(sinks):
+            sink(sample)
+
+    field = RealtimeField(scenario, plan, clock, truth_sink=truth_sink, pty=args.pty)
     sessions: list[tuple[str, BoardSession, Driver]] = []
+    console = args.console == "on" or (args.console == "auto" and sys.stdin.isatty() and sys.stdout.isatty())
     try:
         endpoints = field.start()
+        if console:  # agents drive the boards and the console drives the agents (cli/console.py)
+            from fleetlink.cli.console import run_field_console
+
+            return run_field_console(
+                endpoints, clock, args.mqtt_url, scenario=field.scenario, plan=field.plan, add_truth_sink=sinks.append
+            )
         for i, spec in enumerate(field.scenario.robots):
             url = endpoints[spec.name].board
             session = BoardSession(_opener(url), clock, seed=i)
@@ -185,3 +229,73 @@ def _opener(url: str) -> Callable[[], Port]:
     from fleetlink.agent.board.transport import SerialPort
 
     return lambda: SerialPort(url)
+
+
+def _run_secure(scenario: Scenario, plan: FloorPlan, duration: float, args: argparse.Namespace) -> int:
+    """The field as a secured site (field/secure.py): agents, UWB gateway, truth and console log in."""
+    import logging
+
+    from fleetlink.field.realtime import RealtimeField
+    from fleetlink.field.secure import SecureField, SecureSite, SiteError, missing_tools
+    from fleetlink.shared.clock import SystemClock
+
+    if args.mqtt_url:
+        print("error: --secure runs its own broker (deploy/'s configuration); leave out --mqtt", file=sys.stderr)
+        return 2
+    missing = missing_tools()
+    if missing:
+        print(
+            f"error: --secure needs {', '.join(missing)}: the embedded amqtt fallback has no password file "
+            "and no ACL, so it cannot run a secured site (install with .ci/install-mosquitto, or "
+            "apt-get install mosquitto)",
+            file=sys.stderr,
+        )
+        return 2
+    operators = args.operator or ["op-operator-1"]
+    clock = SystemClock()
+    try:
+        site = SecureSite([r.name for r in scenario.robots], operators).start()
+    except (SiteError, ValueError) as exc:
+        print(f"error: cannot start the secured site: {exc}", file=sys.stderr)
+        return 2
+    sinks: list[Callable[[Any], None]] = []
+
+    def truth_sink(sample: Any) -> None:
+        for sink in list(sinks):
+            sink(sample)
+
+    field = RealtimeField(scenario, plan, clock, truth_sink=truth_sink, pty=args.pty)
+    secure: SecureField | None = None
+    console = args.console == "on" or (args.console == "auto" and sys.stdin.isatty() and sys.stdout.isatty())
+    try:
+        endpoints = field.start()
+        secure = SecureField(site, endpoints, clock, scenario=field.scenario, plan=field.plan).start()
+        sinks.append(secure.truth_sink)
+        for line in site.describe():
+            print(line, file=sys.stderr)
+        if console:
+            from fleetlink.cli.console import ConsoleSettings, run_console
+
+            logging.getLogger().handlers.clear()  # logs would scribble over the console
+            logging.basicConfig(
+                filename="field.log", level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+            )
+            link = secure.operator_link(operators[0]).start()
+            settings = ConsoleSettings(
+                operator=operators[0], zenoh_connect=(site.zenoh_endpoint,), mqtt_url=site.mqtt_url
+            )
+            return run_console(settings, link)
+        stop = threading.Event()
+        start = clock.now()
+        print(f"fleetlink field --secure: {field.scenario.name}, {len(endpoints)} robot(s); Ctrl-C to stop")
+        while not stop.wait(1.0):
+            if duration and clock.now() - start >= duration:
+                break
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if secure is not None:
+            secure.stop()
+        field.stop()
+        site.stop()
+    return 0

@@ -16,6 +16,10 @@ from collections.abc import Sequence
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "field": ("fleetlink.cli.field", "start the simulated field and watch it live (the demo)"),
     "board": ("fleetlink.cli.board", "serve a simulated control board, or probe a real one"),
+    "agent": ("fleetlink.cli.agent", "run one robot's agent (board link, Zenoh + MQTT command links)"),
+    "uwb": ("fleetlink.cli.uwb", "the UWB gateway: fixes from the field's true poses, over MQTT (PANS too)"),
+    "map": ("fleetlink.cli.map", "maps: fetch a robot's map, read a map_server map, build one from a CARMEN log"),
+    "console": ("fleetlink.cli.console", "the operator console: join a fleet over Zenoh (primary) and MQTT (fallback)"),
 }
 
 

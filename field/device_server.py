@@ -6,6 +6,13 @@ that feeds the device and writes its replies. Unless the owner steps the device 
 steps all its devices from one physics loop and passes ``step_hz=None``), a stepper thread advances
 it; bytes a device emits on its own (a lidar's measurement stream) go out as they are produced.
 ``stop()`` closes everything; a new server on the same port models a device that restarts.
+
+Many devices in one process (the real-time field serves 50 boards) can share one ``Reactor``:
+a single selector thread accepts and serves every TCP connection instead of a thread per device,
+so a request costs one wake-up of one thread rather than a thread switch (and a fight for the
+GIL) among dozens. Behaviour on the wire is the same: one master at a time per device (the
+listener is not watched while a master is connected), replies written before the next request
+is read, a paused device silent.
 """
 
 from __future__ import annotations
@@ -14,16 +21,18 @@ import contextlib
 import logging
 import os
 import select
+import selectors
 import socket
 import threading
 import tty
+from collections.abc import Callable
 from typing import Protocol
 
 from fleetlink.shared.clock import Clock
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DeviceServer", "SimDevice"]
+__all__ = ["DeviceServer", "Reactor", "SimDevice"]
 
 
 class SimDevice(Protocol):
@@ -36,6 +45,62 @@ class SimDevice(Protocol):
     def start_clock(self, now: float) -> None: ...
 
 
+class Reactor:
+    """One selector thread serving the TCP sockets of many ``DeviceServer``s."""
+
+    def __init__(self, name: str = "device-reactor") -> None:
+        self._sel = selectors.DefaultSelector()
+        self._lock = threading.Lock()  # guards register/unregister against the loop's select
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._sel.register(self._wake_r, selectors.EVENT_READ, None)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def register(self, sock: socket.socket, callback: Callable[[], None]) -> None:
+        with self._lock:
+            self._sel.register(sock, selectors.EVENT_READ, callback)
+        self._wake()
+
+    def unregister(self, sock: socket.socket) -> None:
+        with self._lock, contextlib.suppress(KeyError, ValueError, OSError):
+            self._sel.unregister(sock)
+        self._wake()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake()
+        self._thread.join(2.0)
+        self._sel.close()
+        self._wake_r.close()
+        self._wake_w.close()
+
+    def _wake(self) -> None:
+        with contextlib.suppress(OSError):
+            self._wake_w.send(b"\0")
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            with self._lock:
+                pass  # let a pending register/unregister in before blocking
+            try:
+                events = self._sel.select(1.0)
+            except (OSError, ValueError):
+                if self._stop.is_set():
+                    return
+                continue
+            for key, _ in events:
+                if key.data is None:
+                    with contextlib.suppress(OSError):
+                        self._wake_r.recv(4096)
+                    continue
+                try:
+                    key.data()
+                except Exception:  # one device's bug must not stop every other device
+                    log.exception("device reactor callback failed")
+
+
 class DeviceServer:
     def __init__(
         self,
@@ -44,8 +109,10 @@ class DeviceServer:
         step_hz: float | None = 200.0,
         lock: threading.Lock | None = None,
         name: str = "device",
+        reactor: Reactor | None = None,
     ) -> None:
         self.device = device
+        self.reactor = reactor
         self.clock = clock
         self.lock = lock or threading.Lock()
         self.name = name
@@ -70,7 +137,11 @@ class DeviceServer:
         ls.settimeout(0.1)
         self._listener = ls
         self.port = ls.getsockname()[1]
-        self._spawn(self._accept_loop, f"{self.name}-tcp")
+        if self.reactor is not None:
+            ls.setblocking(False)
+            self.reactor.register(ls, self._on_accept)
+        else:
+            self._spawn(self._accept_loop, f"{self.name}-tcp")
         self._ensure_stepper()
         return self.port
 
@@ -86,6 +157,11 @@ class DeviceServer:
 
     def stop(self) -> None:
         self._stop.set()
+        if self.reactor is not None:
+            if self._listener is not None:
+                self.reactor.unregister(self._listener)
+            if self._conn is not None:
+                self.reactor.unregister(self._conn)
         if self._conn is not None:
             _close(self._conn)
         for t in self._threads:
@@ -185,6 +261,48 @@ class DeviceServer:
                 _close(conn)
                 self._conn = None
                 log.info("%s: master disconnected", self.name)
+
+    # -- on a shared reactor (its thread) ----------------------------------------------------
+
+    def _on_accept(self) -> None:
+        assert self._listener is not None and self.reactor is not None
+        try:
+            conn, peer = self._listener.accept()
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            self.reactor.unregister(self._listener)
+            return
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.settimeout(1.0)  # reads only when ready; a reply write never blocks the reactor long
+        self._conn = conn
+        log.info("%s: master connected from %s:%d", self.name, *peer)
+        self.reactor.unregister(self._listener)  # one master at a time, like a UART
+        self.reactor.register(conn, self._on_readable)
+
+    def _on_readable(self) -> None:
+        conn, reactor = self._conn, self.reactor
+        if conn is None or reactor is None:
+            return
+        try:
+            data = conn.recv(4096)
+            if data:
+                with self._write_lock:
+                    reply = self._handle(data)
+                    if reply:
+                        conn.sendall(reply)
+                return
+        except (BlockingIOError, InterruptedError, TimeoutError):
+            return
+        except OSError:
+            pass
+        # Closed by the master (or broken): forget it, listen for the next one.
+        reactor.unregister(conn)
+        _close(conn)
+        self._conn = None
+        log.info("%s: master disconnected", self.name)
+        if not self._stop.is_set() and self._listener is not None:
+            reactor.register(self._listener, self._on_accept)
 
     def _pty_loop(self) -> None:
         assert self._pty_fds is not None

@@ -17,7 +17,7 @@ import numpy as np
 
 from fleetlink.field.board_server import BoardServer
 from fleetlink.field.build import build_world, lidar_model
-from fleetlink.field.device_server import DeviceServer
+from fleetlink.field.device_server import DeviceServer, Reactor
 from fleetlink.field.events import EventRunner
 from fleetlink.field.plans import FloorPlan, load_plan
 from fleetlink.field.rplidar import SimulatedRplidar
@@ -73,6 +73,7 @@ class RealtimeField:
         self.boards: dict[str, BoardServer] = {}
         self.lidars: dict[str, tuple[SimulatedRplidar, DeviceServer]] = {}
         self.endpoints: dict[str, Endpoints] = {}
+        self._reactor: Reactor | None = None  # one selector thread serves every device's TCP socket
         self.events = EventRunner(scenario.events, self.plan, self.world, self._cut_link)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -84,9 +85,13 @@ class RealtimeField:
         now = self.clock.now()
         self._start_time = now
         self.world.now = 0.0
+        if not self.pty:
+            self._reactor = Reactor("field-devices")
         for i, (spec, robot) in enumerate(zip(self.scenario.robots, self.world.robots, strict=True)):
             robot.board.start_clock(0.0)
-            board_server = BoardServer(robot.board, _Offset(self.clock, now), step_hz=None, lock=self.lock)
+            board_server = BoardServer(
+                robot.board, _Offset(self.clock, now), step_hz=None, lock=self.lock, reactor=self._reactor
+            )
             board_url = self._serve(board_server)
             self.boards[spec.name] = board_server
             lidar_url = None
@@ -94,7 +99,9 @@ class RealtimeField:
             if model is not None:
                 device = SimulatedRplidar(model.config, self._scan_source(robot, model))
                 device.start_clock(0.0)
-                server = DeviceServer(device, _Offset(self.clock, now), step_hz=None, lock=self.lock, name="lidar")
+                server = DeviceServer(
+                    device, _Offset(self.clock, now), step_hz=None, lock=self.lock, name="lidar", reactor=self._reactor
+                )
                 lidar_url = self._serve(server)
                 self.lidars[spec.name] = (device, server)
             self.endpoints[spec.name] = Endpoints(board_url, lidar_url)
@@ -116,6 +123,9 @@ class RealtimeField:
             server.stop()
         for _, lidar_server in self.lidars.values():
             lidar_server.stop()
+        if self._reactor is not None:
+            self._reactor.stop()
+            self._reactor = None
 
     def __enter__(self) -> RealtimeField:
         self.start()

@@ -231,8 +231,12 @@ def test_out_of_step_nodes_are_skipped_bytewise() -> None:
     good = lp.encode_node(False, 20, 10.0, 1.0)
     bad_s = bytes((0b11,)) + good[1:]  # S and !S agree
     bad_check = good[:1] + bytes((good[1] & 0xFE,)) + good[2:]  # check bit 0
-    nodes = nodes_of(dec.feed(bad_s + bad_check + good))
-    assert as_tuples(nodes)[-1] == (False, 20, 10.0, 1.0)
+    # A byte-offset read between them may pass the check bits; the in-step run after it must
+    # still come through whole (angle continuity lets a run of RESYNC_RUN nodes re-anchor).
+    run = b"".join(lp.encode_node(False, 20, 10.0 + 0.5 * i, 1.0) for i in range(lp.RESYNC_RUN))
+    nodes = nodes_of(dec.feed(bad_s + bad_check + run))
+    want = [(False, 20, 10.0 + 0.5 * i, 1.0) for i in range(lp.RESYNC_RUN)]
+    assert as_tuples(nodes)[-lp.RESYNC_RUN :] == want
     assert dec.stats.resync_bytes >= 2
 
 
@@ -331,7 +335,12 @@ def test_false_start_flags_do_not_split_a_turn(batch: bool) -> None:
     """A node decoded out of step may carry a start flag mid-turn; only a wrapping angle starts a turn."""
     ang, dist, q = realistic_turn(9, 100)
     turn = lp.encode_nodes(ang, dist, q)
-    bogus = lp.encode_node(True, 5, 200.0, 1.0)  # a start flag at 200 deg, after a node at ~180 deg
+    # A start flag mid-turn on a node whose angle does continue the turn (so angle continuity in
+    # the decoder lets it through and only the assembler's wrap check can catch it).
+    mid = lp.LidarDecoder()
+    mid.assume(lp.SCAN_DESCRIPTOR)
+    prev_deg = nodes_of(mid.feed(turn[245:250]))[0].angle_deg
+    bogus = lp.encode_node(True, 5, prev_deg + 0.5, 1.0)
     stream = turn + turn[:250] + bogus + turn[250:] + turn
     results = {}
     for check in (True, False):

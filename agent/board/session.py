@@ -29,7 +29,7 @@ from fleetlink.agent.board.link import (
     BoardTimeout,
 )
 from fleetlink.agent.board.transport import Port, PortClosed
-from fleetlink.shared.clock import Clock
+from fleetlink.shared.clock import Clock, SystemClock
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +139,9 @@ class BoardSession:
         self._calls: SimpleQueue[_Call] = SimpleQueue()
         self._command = (0.0, 0.0)
         self._stop = threading.Event()
+        # A new velocity is sent at once, not at the next 50 Hz slot: the loop waits on this.
+        self._wake = threading.Event()
+        self._urgent = False
         self._failures = 0
         self._schedule: PollSchedule | None = None
         self._backoff = 0.2
@@ -156,7 +159,10 @@ class BoardSession:
         """Body velocity sent at the motion rate; non-finite values are refused."""
         if not (math.isfinite(vx) and math.isfinite(omega)):
             raise ValueError(f"velocity must be finite, got vx={vx} omega={omega}")
-        self._command = (vx, omega)
+        if (vx, omega) != self._command:
+            self._command = (vx, omega)
+            self._urgent = True
+            self._wake.set()
 
     def call(self, request: p.Request) -> Future[p.Reply]:
         """Queue a one-off request (payload, LEDs, ...), sent between polls."""
@@ -171,6 +177,7 @@ class BoardSession:
 
     def stop(self, timeout: float = 2.0) -> None:
         self._stop.set()
+        self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
@@ -190,8 +197,13 @@ class BoardSession:
 
     def run_forever(self) -> None:
         while not self._stop.is_set():
-            nxt = self.tick()
-            self.clock.sleep_until(min(nxt, self.clock.now() + 0.05))
+            nxt = min(self.tick(), self.clock.now() + 0.05)
+            if isinstance(self.clock, SystemClock):
+                # Real time: sleep until the next poll, or until a new velocity arrives.
+                self._wake.wait(max(0.0, nxt - self.clock.now()))
+                self._wake.clear()
+            else:
+                self.clock.sleep_until(nxt)
 
     def tick(self) -> float:
         """One round: connect if needed, run what is due, serve queued calls. Returns the next due time."""
@@ -202,6 +214,10 @@ class BoardSession:
             if not self._connect():
                 return self._retry_at
         assert self._schedule is not None
+        if self._urgent:
+            self._urgent = False
+            if "motion" in self._schedule.next_due:
+                self._schedule.next_due["motion"] = now
         try:
             for task in self._schedule.due(now):
                 getattr(self, f"_poll_{task}")()

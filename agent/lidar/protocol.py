@@ -331,6 +331,18 @@ class DecoderStats:
 
 _IDLE, _SINGLE, _STREAM = "idle", "answer", "stream"
 
+# Angle continuity, the second resync check. The two check bits of a node pass at a wrong byte
+# offset about one time in four, and because a real turn's angle bytes change slowly, a stream
+# read one byte out of step can pass them for many nodes in a row. In step, each node's angle
+# advances by well under a degree (a little backward jitter allowed); out of step, the "angle"
+# is made of distance bytes and jumps about at random. A node that breaks continuity with the
+# last one emitted is taken only if it starts a run of RESYNC_RUN nodes continuous among
+# themselves (a genuine jump, e.g. after a burst of lost bytes); otherwise the decoder slips a byte.
+# A stream's first node has nothing to continue and is taken on its check bits alone.
+MAX_ANGLE_STEP_DEG = 20.0
+ANGLE_JITTER_DEG = 5.0
+RESYNC_RUN = 4
+
 _KNOWN_SIZES: dict[int, int] = {AnswerType.DEVICE_INFO: 20, AnswerType.DEVICE_HEALTH: 3, AnswerType.SAMPLE_RATE: 4}
 
 
@@ -346,6 +358,7 @@ class LidarDecoder:
         self._buf = bytearray()
         self._state = _IDLE
         self._desc: Descriptor | None = None
+        self._last_angle: float | None = None  # degrees, of the last node emitted in this stream
 
     # -- public ----------------------------------------------------------------------------------
 
@@ -368,6 +381,7 @@ class LidarDecoder:
         self._buf.clear()
         self._state = _IDLE
         self._desc = None
+        self._last_angle = None
 
     def assume(self, descriptor: Descriptor) -> None:
         """Continue as if ``descriptor`` had just been received (joining a lidar already streaming)."""
@@ -389,6 +403,7 @@ class LidarDecoder:
 
     def _enter(self, desc: Descriptor) -> None:
         self._desc = desc
+        self._last_angle = None
         if desc.size == 0:
             self._state = _IDLE
         elif desc.mode == SEND_MODE_MULTI:
@@ -464,7 +479,15 @@ class LidarDecoder:
             b1 = data[pos + 1]
             if ((b0 ^ (b0 >> 1)) & 1) and (b1 & 1):
                 m = _valid_run(data, pos, n)
+                last = self._last_angle
+                if last is not None and not _continuous(last, _angle_at(data, pos)) and m < RESYNC_RUN:
+                    if m == (n - pos) // NODE_LEN:
+                        return pos, pos > start  # too few bytes yet to tell a jump from a slip: wait
+                    st.resync_bytes += 1
+                    pos += 1
+                    continue
                 self._emit_nodes(data, pos, m, out)
+                self._last_angle = _angle_at(data, pos + NODE_LEN * (m - 1))
                 st.nodes += m
                 pos += NODE_LEN * m
                 continue
@@ -501,10 +524,20 @@ class LidarDecoder:
             out.extend(batch.nodes())
 
 
+def _angle_at(data: bytes, pos: int) -> float:
+    return ((data[pos + 1] | data[pos + 2] << 8) >> 1) / ANGLE_Q
+
+
+def _continuous(prev_deg: float, next_deg: float) -> bool:
+    return (next_deg - prev_deg + ANGLE_JITTER_DEG) % 360.0 < MAX_ANGLE_STEP_DEG + ANGLE_JITTER_DEG
+
+
 def _valid_run(data: bytes, pos: int, n: int) -> int:
-    """How many consecutive in-step nodes start at ``pos`` (the first is known to be in step)."""
+    """How many consecutive in-step nodes start at ``pos`` (the first passes the check bits):
+    each further node passes the check bits and continues the previous node's angle."""
     total = 0
     window = 8
+    prev: float | None = None
     while True:
         k = min(window, (n - pos) // NODE_LEN)
         if k <= 0:
@@ -512,9 +545,13 @@ def _valid_run(data: bytes, pos: int, n: int) -> int:
         arr = np.frombuffer(data, dtype=np.uint8, count=NODE_LEN * k, offset=pos).reshape(k, NODE_LEN)
         b0 = arr[:, 0]
         ok = ((b0 ^ (b0 >> 1)) & arr[:, 1] & 1).astype(np.bool_)
+        angle = ((arr[:, 1].astype(np.int32) | (arr[:, 2].astype(np.int32) << 8)) >> 1) / ANGLE_Q
+        step = np.diff(angle, prepend=angle[0] if prev is None else prev)
+        ok &= (step + ANGLE_JITTER_DEG) % 360.0 < MAX_ANGLE_STEP_DEG + ANGLE_JITTER_DEG
         if ok.all():
             total += k
             pos += NODE_LEN * k
+            prev = float(angle[-1])
             window = min(window * 8, 4096)
             continue
         return total + int(np.argmin(ok))

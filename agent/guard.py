@@ -1,0 +1,141 @@
+"""Collision guard: sits between every velocity command and the motors (pure, no I/O).
+
+The rescue-robot seed's rules:
+
+* front ultrasonic nearer than ``stop_distance_m``: forward and turning commands are refused and
+  the robot stops; backing away (v < 0) stays allowed;
+* go-to, once turned toward the goal: refuse to drive when the obstacle ahead is nearer than the
+  drive distance plus ``stop_distance_m`` (the robot would end up inside the safety margin);
+* cliff: stop; forward and turning refused, backing away allowed (the cliff sensors look ahead);
+* bump: stop; forward and turning refused, backing out allowed.
+
+A reading of ``None`` or outside the sensor's range (0.25-1.5 m on the US-100) means "nothing
+seen": the sensor reports no echo as 0 and clamps at its minimum, so an out-of-range value is not
+evidence of an obstacle. Non-finite commands are refused as invalid. Every refusal carries a
+machine-readable reason and a human text.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+
+__all__ = ["CollisionGuard", "GuardConfig", "GuardDecision", "GuardInputs", "Refusal", "RefusalReason"]
+
+
+class RefusalReason(StrEnum):
+    OBSTACLE_AHEAD = "obstacle_ahead"  # ultrasonic below the stop distance
+    OBSTACLE_IN_PATH = "obstacle_in_path"  # go-to: obstacle nearer than drive distance + stop distance
+    CLIFF = "cliff"
+    BUMP = "bump"
+    INVALID_COMMAND = "invalid_command"  # NaN or infinite velocity
+
+
+@dataclass(frozen=True, slots=True)
+class Refusal:
+    reason: RefusalReason
+    text: str
+    distance_m: float | None = None  # the ultrasonic reading that caused it, when one did
+
+
+@dataclass(frozen=True, slots=True)
+class GuardConfig:
+    stop_distance_m: float = 0.40  # refuse forward/turning below this front reading
+    sensor_min_m: float = 0.25  # US-100 range; readings outside it mean "nothing seen"
+    sensor_max_m: float = 1.5
+    # The seed refuses turning in place near an obstacle (its base was not round). A round base
+    # sweeps no new floor when it spins, so such robots may set this True.
+    allow_turn_in_place: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("stop_distance_m", "sensor_min_m", "sensor_max_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"GuardConfig.{name} must be a finite distance >= 0, got {v!r}")
+        if self.sensor_min_m >= self.sensor_max_m:
+            raise ValueError(
+                f"GuardConfig: sensor_min_m ({self.sensor_min_m}) must be below sensor_max_m ({self.sensor_max_m})"
+            )
+
+
+@dataclass(frozen=True, slots=True)
+class GuardInputs:
+    ultrasonic_m: float | None = None  # front range; None or out of range = clear
+    cliff: bool = False
+    bumped: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class GuardDecision:
+    v: float
+    omega: float
+    refusal: Refusal | None = None
+
+    @property
+    def refused(self) -> bool:
+        return self.refusal is not None
+
+
+class CollisionGuard:
+    """Stateless filter: a requested (v, omega) and the sensors in, the allowed (v, omega) out."""
+
+    def __init__(self, config: GuardConfig | None = None) -> None:
+        self.config = config or GuardConfig()
+
+    def obstacle_m(self, inputs: GuardInputs) -> float | None:
+        """The front reading if it is a valid echo inside the sensor's range, else None."""
+        d = inputs.ultrasonic_m
+        cfg = self.config
+        if d is None or not math.isfinite(d) or d < cfg.sensor_min_m or d > cfg.sensor_max_m:
+            return None
+        return d
+
+    def filter(
+        self, v: float, omega: float, inputs: GuardInputs, *, goto_drive_distance_m: float | None = None
+    ) -> GuardDecision:
+        if not (math.isfinite(v) and math.isfinite(omega)):
+            return GuardDecision(
+                0.0, 0.0, Refusal(RefusalReason.INVALID_COMMAND, f"invalid command v={v} omega={omega}")
+            )
+        cfg = self.config
+        backing = v < 0.0
+        forward = v > 0.0
+        turning_in_place = v == 0.0 and omega != 0.0
+        if backing:
+            # Backing away is always allowed: it is how a robot gets out of every situation below.
+            return GuardDecision(v, omega)
+        moving = forward or turning_in_place
+        if inputs.cliff and moving:
+            return GuardDecision(0.0, 0.0, Refusal(RefusalReason.CLIFF, "cliff ahead: only backing away is allowed"))
+        if inputs.bumped and moving:
+            return GuardDecision(0.0, 0.0, Refusal(RefusalReason.BUMP, "bumper pressed: only backing out is allowed"))
+        d = self.obstacle_m(inputs)
+        if (
+            d is not None
+            and d < cfg.stop_distance_m
+            and (forward or (turning_in_place and not cfg.allow_turn_in_place))
+        ):
+            what = "driving forward" if forward else "turning"
+            return GuardDecision(
+                0.0,
+                0.0,
+                Refusal(
+                    RefusalReason.OBSTACLE_AHEAD,
+                    f"obstacle {d:.2f} m ahead (< {cfg.stop_distance_m:.2f} m): {what} refused, backing away allowed",
+                    d,
+                ),
+            )
+        if forward and goto_drive_distance_m is not None and d is not None:
+            need = goto_drive_distance_m + cfg.stop_distance_m
+            if d < need:
+                return GuardDecision(
+                    0.0,
+                    0.0,
+                    Refusal(
+                        RefusalReason.OBSTACLE_IN_PATH,
+                        f"obstacle {d:.2f} m ahead, goal {goto_drive_distance_m:.2f} m away needs {need:.2f} m clear",
+                        d,
+                    ),
+                )
+        return GuardDecision(v, omega)

@@ -1,0 +1,180 @@
+"""The command gate: every inbound payload passes here, from either link. Pure: no I/O, time passed in.
+
+* decodes and validates (``wire.decode_key``: the header's robot must match the key);
+* drops a command already executed: same (topic, sender, headerId, timestamp) -- an operator
+  may send the same bytes on both links, and re-sends are byte-identical -- or an order whose
+  (orderId, orderUpdateId) was already executed; an order update older than the last one is stale;
+* counts rejections per (link, topic) and says which ones are new enough to log (once per
+  link, topic and offending field), so garbage never floods the log;
+* builds the ``Ack`` for a command, addressed to the link it came from.
+
+The header timestamp is part of the dedupe key so a sender that restarts (headerId back to 0)
+is not mistaken for a replay.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any
+
+from fleetlink.shared import keys, wire
+from fleetlink.shared.messages import Ack, AckResult, InstantActions, LinkName, Order, Teleop
+
+__all__ = ["COMMAND_TOPICS", "Accepted", "CommandGate", "Duplicate", "GateStats", "Rejected", "Verdict"]
+
+COMMAND_TOPICS = (Order.TOPIC, InstantActions.TOPIC, Teleop.TOPIC)
+Command = Order | InstantActions | Teleop
+
+
+@dataclass(frozen=True, slots=True)
+class Accepted:
+    """A fresh message: run it (and, for a command, ack it on ``link``)."""
+
+    msg: wire.Message
+    link: LinkName
+
+
+@dataclass(frozen=True, slots=True)
+class Duplicate:
+    """A command already executed: do not run it again; ``ack`` answers it on ``link``."""
+
+    msg: Command
+    link: LinkName
+    ack: dict[str, Any]
+
+
+@dataclass(frozen=True, slots=True)
+class Rejected:
+    """Malformed or unwanted input. ``log`` is true the first time this (link, topic, field) is seen."""
+
+    link: LinkName
+    topic: str
+    reason: str
+    log: bool
+
+
+Verdict = Accepted | Duplicate | Rejected
+
+
+@dataclass(slots=True)
+class GateStats:
+    accepted: int = 0
+    duplicates: int = 0
+    rejected: dict[tuple[str, str], int] = field(default_factory=dict)
+    """(link, topic) -> count; topic is ``?`` when the key itself was unusable."""
+    last_reason: str = ""
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
+
+class CommandGate:
+    def __init__(
+        self,
+        robot: str,
+        *,
+        topics: tuple[str, ...] = COMMAND_TOPICS,
+        horizon_s: float = 120.0,
+        max_entries: int = 8192,
+    ) -> None:
+        self.robot = keys.check_robot_id(robot)
+        self.topics = frozenset(topics)
+        self.horizon_s = horizon_s
+        self.max_entries = max_entries
+        self.stats = GateStats()
+        # (topic, sender, headerId, timestamp) -> (time seen, link it first came on)
+        self._seen: OrderedDict[tuple[str, str, int, float], tuple[float, LinkName]] = OrderedDict()
+        self._orders: dict[str, int] = {}  # orderId -> highest executed orderUpdateId
+        self._logged: set[tuple[str, str, str]] = set()
+
+    # -- inbound -----------------------------------------------------------------------------
+
+    def receive(self, link: LinkName, key: str, payload: bytes, now: float) -> Verdict:
+        try:
+            robot, topic = keys.parse_key(key)
+        except ValueError as exc:
+            return self.reject(link, "?", f"key: {exc}")
+        if robot != self.robot or topic not in self.topics:
+            return self.reject(link, topic, f"key: not an input of agent {self.robot}: {key}")
+        try:
+            msg = wire.decode_key(key, payload)
+        except wire.WireError as exc:
+            return self.reject(link, topic, exc.reason, exc.field)
+        if not isinstance(msg, Order | InstantActions | Teleop):
+            self.stats.accepted += 1
+            return Accepted(msg, link)
+        self._expire(now)
+        h = msg.header
+        ident = (topic, h.sender, h.headerId, h.timestamp)
+        first = self._seen.get(ident)
+        if first is not None:
+            self.stats.duplicates += 1
+            return Duplicate(
+                msg, link, self.ack(msg, link, AckResult.DUPLICATE, f"already received on {first[1].value}")
+            )
+        self._seen[ident] = (now, link)
+        if isinstance(msg, Order):
+            last = self._orders.get(msg.orderId)
+            if last is not None and msg.orderUpdateId == last:
+                self.stats.duplicates += 1
+                reason = f"order {msg.orderId}/{msg.orderUpdateId} already executed"
+                return Duplicate(msg, link, self.ack(msg, link, AckResult.DUPLICATE, reason))
+            if last is not None and msg.orderUpdateId < last:
+                return self.reject(
+                    link,
+                    topic,
+                    f"orderUpdateId: {msg.orderUpdateId} is older than the executed {last}",
+                    "orderUpdateId",
+                )
+        self.stats.accepted += 1
+        return Accepted(msg, link)
+
+    def reject(self, link: LinkName, topic: str, reason: str, what: str = "") -> Rejected:
+        """Count one rejected input (also for inputs decoded elsewhere, e.g. PANS JSON)."""
+        slot = (link.value, topic)
+        self.stats.rejected[slot] = self.stats.rejected.get(slot, 0) + 1
+        self.stats.last_reason = reason
+        tag = (link.value, topic, what or reason.partition(":")[0])
+        first = tag not in self._logged
+        if first and len(self._logged) < 1024:
+            self._logged.add(tag)
+        return Rejected(link, topic, reason, first)
+
+    def executed_order(self, order: Order) -> None:
+        """The pilot took this order: later copies of (orderId, orderUpdateId) are duplicates."""
+        last = self._orders.get(order.orderId)
+        if last is None or order.orderUpdateId > last:
+            self._orders[order.orderId] = order.orderUpdateId
+            if len(self._orders) > 1024:  # old orders are forgotten first (dicts keep insertion order)
+                del self._orders[next(iter(self._orders))]
+
+    # -- acks ------------------------------------------------------------------------------------
+
+    def ack(self, msg: Command, link: LinkName, result: AckResult, reason: str = "") -> dict[str, Any]:
+        """The fields of the ``Ack`` answering ``msg`` (stamp with ``HeaderCounter.make(Ack, **fields)``)."""
+        order = msg if isinstance(msg, Order) else None
+        return {
+            "commandTopic": msg.TOPIC,
+            "commandSender": msg.header.sender,
+            "commandHeaderId": msg.header.headerId,
+            "orderId": order.orderId if order else None,
+            "orderUpdateId": order.orderUpdateId if order else None,
+            "result": result,
+            "reason": reason[:256],
+            "link": link,
+        }
+
+    def make_ack(self, counter: wire.HeaderCounter, fields: dict[str, Any]) -> Ack:
+        return counter.make(Ack, **fields)
+
+    # -- internals ------------------------------------------------------------------------------
+
+    def _expire(self, now: float) -> None:
+        seen = self._seen
+        while seen:
+            ident, (t, _) = next(iter(seen.items()))
+            if now - t <= self.horizon_s and len(seen) < self.max_entries:
+                break
+            del seen[ident]

@@ -1,0 +1,248 @@
+"""CARMEN log reader (FLASER, ROBOTLASER1, ODOM, PARAM), and replay of a log into a map.
+
+Line-oriented, whitespace-separated, ``#`` comments (CARMEN's ``carmen/src/global/readlog.c``):
+
+    FLASER n r1 .. rn x y theta odom_x odom_y odom_theta ipc_timestamp ipc_hostname logger_timestamp
+    ROBOTLASER1 laser_type start_angle fov angular_resolution max_range accuracy remission_mode
+                n r1 .. rn m rem1 .. remm laser_x laser_y laser_theta robot_x robot_y robot_theta
+                tv rv forward_safety_dist side_safety_dist turn_axis ipc_timestamp ipc_hostname logger_timestamp
+    ODOM x y theta tv rv accel ipc_timestamp ipc_hostname logger_timestamp
+    PARAM name value [ipc_hostname logger_timestamp]
+
+FLASER beams follow CARMEN's guesses for an under-specified SICK: start at -90 degrees, field of
+view and spacing from ``carmen_laser_guess_fov`` / ``carmen_laser_guess_angle_increment`` (180
+beams: 1 degree apart, -90 .. +89), maximum range 80 m. The FLASER ``x y theta`` is the pose the
+logging robot believed (the corrected pose in Radish's corrected logs); ``odom_*`` is the raw
+odometry, which is what replay seeds the matcher with. ``ipc_timestamp`` is kept as the text found
+in the log so it can be written back verbatim.
+
+Anything else (unknown message types such as NEFF, blank lines, comments) is skipped and counted;
+malformed lines are skipped and counted by reason, and the first few are kept for a log message.
+Pure: parses text; ``open_log`` is the one helper that opens a file (plain or .gz).
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import math
+from collections import Counter
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["CarmenStats", "LaserRecord", "OdomRecord", "guess_fov", "guess_increment", "open_log", "read_records"]
+
+Pose = tuple[float, float, float]
+MAX_BEAMS = 100_000
+
+
+@dataclass(frozen=True, slots=True)
+class LaserRecord:
+    kind: str  # FLASER or ROBOTLASER1
+    ranges: npt.NDArray[np.float64]
+    angles: npt.NDArray[np.float64]  # rad, sensor frame
+    max_range: float
+    pose: Pose  # the logged robot pose (corrected, in corrected logs)
+    odom: Pose  # raw odometry of the robot
+    laser_offset: Pose  # the laser on the robot (ROBOTLASER1: from laser vs robot pose)
+    ipc_timestamp: str  # verbatim
+    timestamp: float
+    line: int
+
+
+@dataclass(frozen=True, slots=True)
+class OdomRecord:
+    pose: Pose
+    tv: float
+    rv: float
+    ipc_timestamp: str
+    timestamp: float
+    line: int
+
+
+@dataclass(slots=True)
+class CarmenStats:
+    lines: int = 0
+    scans: int = 0
+    odom: int = 0
+    params: dict[str, str] = field(default_factory=dict)
+    comments: int = 0
+    blank: int = 0
+    unknown: Counter[str] = field(default_factory=Counter)
+    malformed: Counter[str] = field(default_factory=Counter)
+    examples: list[str] = field(default_factory=list)  # the first few malformed lines, with reasons
+
+    def summary(self) -> str:
+        parts = [f"{self.lines} lines", f"{self.scans} scans", f"{self.odom} odometry"]
+        if self.unknown:
+            parts.append("skipped " + ", ".join(f"{n} {k}" for k, n in sorted(self.unknown.items())))
+        if self.malformed:
+            parts.append("malformed " + ", ".join(f"{n} ({k})" for k, n in sorted(self.malformed.items())))
+        return "; ".join(parts)
+
+
+def guess_fov(n: int) -> float:
+    """carmen_laser_guess_fov."""
+    return {
+        181: math.pi,
+        180: math.pi / 180.0 * 179.0,
+        361: math.pi,
+        360: math.pi / 180.0 * 179.5,
+        401: math.pi / 180.0 * 100.0,
+        400: math.pi / 100.0 * 99.75,
+    }.get(n, math.pi)
+
+
+def guess_increment(n: int) -> float:
+    """carmen_laser_guess_angle_increment."""
+    if n in (180, 181):
+        return math.pi / 180.0
+    if n in (360, 361):
+        return math.pi / 360.0
+    if n in (400, 401):
+        return math.pi / 720.0
+    return guess_fov(n) / max(1, n - 1)
+
+
+class _Bad(Exception):
+    pass
+
+
+def _num(tok: str, what: str) -> float:
+    try:
+        v = float(tok)
+    except ValueError:
+        raise _Bad(f"{what}: not a number") from None
+    if not math.isfinite(v):
+        raise _Bad(f"{what}: not finite")
+    return v
+
+
+def _count(tok: str, what: str) -> int:
+    try:
+        n = int(tok)
+    except ValueError:
+        raise _Bad(f"{what}: not a whole number") from None
+    if not 0 <= n <= MAX_BEAMS:
+        raise _Bad(f"{what}: {n} out of range")
+    return n
+
+
+def _ranges(toks: list[str], at: int, n: int) -> npt.NDArray[np.float64]:
+    try:
+        r = np.array(toks[at : at + n], dtype=np.float64)
+    except ValueError:
+        raise _Bad("ranges: not numbers") from None
+    return r  # NaN/inf ranges are dropped later as invalid returns
+
+
+def _pose(toks: list[str], at: int, what: str) -> Pose:
+    return (_num(toks[at], what + " x"), _num(toks[at + 1], what + " y"), _num(toks[at + 2], what + " theta"))
+
+
+def _flaser(toks: list[str], line: int, offset: Pose) -> LaserRecord:
+    if len(toks) < 2:
+        raise _Bad("FLASER: missing beam count")
+    n = _count(toks[1], "FLASER beam count")
+    if len(toks) < 2 + n + 7:
+        raise _Bad("FLASER: too few fields")
+    ranges = _ranges(toks, 2, n)
+    k = 2 + n
+    pose = _pose(toks, k, "pose")
+    odom = _pose(toks, k + 3, "odometry")
+    ts_text = toks[k + 6]
+    ts = _num(ts_text, "ipc_timestamp")
+    angles = -math.pi / 2.0 + guess_increment(n) * np.arange(n, dtype=np.float64)
+    return LaserRecord("FLASER", ranges, angles, 80.0, pose, odom, offset, ts_text, ts, line)
+
+
+def _robotlaser(toks: list[str], line: int) -> LaserRecord:
+    if len(toks) < 9:
+        raise _Bad("ROBOTLASER1: too few fields")
+    start = _num(toks[2], "start_angle")
+    res = _num(toks[4], "angular_resolution")
+    max_range = _num(toks[5], "maximum_range")
+    n = _count(toks[8], "ROBOTLASER1 beam count")
+    k = 9 + n
+    if len(toks) < k + 1:
+        raise _Bad("ROBOTLASER1: too few fields")
+    ranges = _ranges(toks, 9, n)
+    m = _count(toks[k], "remission count")
+    k += 1 + m
+    if len(toks) < k + 12:
+        raise _Bad("ROBOTLASER1: too few fields")
+    laser = _pose(toks, k, "laser pose")
+    robot = _pose(toks, k + 3, "robot pose")
+    ts_text = toks[k + 11]
+    ts = _num(ts_text, "ipc_timestamp")
+    angles = start + res * np.arange(n, dtype=np.float64)
+    c, s = math.cos(robot[2]), math.sin(robot[2])
+    dx, dy = laser[0] - robot[0], laser[1] - robot[1]
+    offset = (c * dx + s * dy, -s * dx + c * dy, (laser[2] - robot[2] + math.pi) % (2 * math.pi) - math.pi)
+    return LaserRecord("ROBOTLASER1", ranges, angles, max_range, robot, robot, offset, ts_text, ts, line)
+
+
+def _odom(toks: list[str], line: int) -> OdomRecord:
+    if len(toks) < 8:
+        raise _Bad("ODOM: too few fields")
+    pose = _pose(toks, 1, "pose")
+    return OdomRecord(pose, _num(toks[4], "tv"), _num(toks[5], "rv"), toks[7], _num(toks[7], "ipc_timestamp"), line)
+
+
+def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iterator[LaserRecord | OdomRecord]:
+    """Laser and odometry records from log lines; everything else is counted in ``stats``."""
+    st = stats if stats is not None else CarmenStats()
+    front_offset: Pose = (0.0, 0.0, 0.0)
+    for number, raw in enumerate(lines, start=1):
+        st.lines += 1
+        text = raw.strip()
+        if not text:
+            st.blank += 1
+            continue
+        if text.startswith("#"):
+            st.comments += 1
+            continue
+        toks = text.split()
+        kind = toks[0]
+        try:
+            if kind == "FLASER":
+                rec: LaserRecord | OdomRecord = _flaser(toks, number, front_offset)
+                st.scans += 1
+            elif kind == "ROBOTLASER1":
+                rec = _robotlaser(toks, number)
+                st.scans += 1
+            elif kind == "ODOM":
+                rec = _odom(toks, number)
+                st.odom += 1
+            elif kind == "PARAM":
+                if len(toks) < 3:
+                    raise _Bad("PARAM: too few fields")
+                st.params[toks[1]] = toks[2]
+                if toks[1] == "robot_frontlaser_offset":
+                    front_offset = (_num(toks[2], "robot_frontlaser_offset"), 0.0, 0.0)
+                continue
+            else:
+                st.unknown[kind[:32]] += 1
+                continue
+        except _Bad as exc:
+            reason = str(exc)
+            st.malformed[reason] += 1
+            if len(st.examples) < 5:
+                st.examples.append(f"line {number}: {reason}")
+            continue
+        yield rec
+
+
+def open_log(path: str | Path) -> TextIO:
+    """A text stream over a log file, gunzipping ``.gz`` (by magic bytes, whatever the name)."""
+    p = Path(path)
+    with p.open("rb") as f:
+        magic = f.read(2)
+    if magic == b"\x1f\x8b":
+        return io.TextIOWrapper(gzip.open(p, "rb"), encoding="utf-8", errors="replace")
+    return p.open("r", encoding="utf-8", errors="replace")

@@ -1,0 +1,141 @@
+"""The map as it travels: int8 cells (-1 unknown, 0-100) compressed with zlib, whole or as a patch.
+
+Pure functions plus ``SharedMap``, the receiving side's copy that applies ``MapUpdate`` patches and
+says when it needs a fresh ``MapSnapshot``. The message classes are in ``shared/messages.py``.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from fleetlink.shared.messages import MAX_MAP_CELLS, MAX_MAP_DATA, MapEncoding, MapSnapshot, MapUpdate
+
+__all__ = ["ENCODING", "SharedMap", "decode_cells", "encode_cells", "patch_fields", "snapshot_fields"]
+
+ENCODING = MapEncoding.ZLIB_INT8
+Cells = npt.NDArray[np.int8]
+
+
+def encode_cells(cells: npt.ArrayLike) -> bytes:
+    a = np.ascontiguousarray(np.asarray(cells, dtype=np.int8))
+    return zlib.compress(a.tobytes(), 6)
+
+
+def decode_cells(data: bytes, width: int, height: int) -> Cells:
+    """Decompress exactly ``width * height`` cells; ValueError for anything else (never more memory)."""
+    n = width * height
+    if n > MAX_MAP_CELLS:
+        raise ValueError(f"{width} x {height} cells is over the limit")
+    d = zlib.decompressobj()
+    try:
+        raw = d.decompress(data, n + 1)
+    except zlib.error as exc:
+        raise ValueError(f"cells: not valid zlib data ({exc})") from None
+    if len(raw) != n or d.unconsumed_tail or not d.eof:
+        raise ValueError(f"cells: expected {n} bytes, got {len(raw)}{'+' if d.unconsumed_tail else ''}")
+    a = np.frombuffer(raw, dtype=np.int8).reshape(height, width).copy()
+    if a.size and (a.min() < -1 or a.max() > 100):
+        raise ValueError("cells: values must be -1 or 0-100")
+    return a
+
+
+def _downsample(cells: Cells) -> Cells:
+    """Half the resolution: occupied wins, then free, then unknown (safe for planning)."""
+    h, w = cells.shape
+    p = np.full((h + h % 2, w + w % 2), -1, dtype=np.int8)
+    p[:h, :w] = cells
+    blocks = (
+        p.reshape(p.shape[0] // 2, 2, p.shape[1] // 2, 2)
+        .transpose(0, 2, 1, 3)
+        .reshape(p.shape[0] // 2, p.shape[1] // 2, 4)
+    )
+    out: Cells = blocks.max(axis=2)
+    return out
+
+
+def snapshot_fields(cells: Cells, resolution: float, origin: tuple[float, float], version: int) -> dict[str, Any]:
+    """Keyword fields of a ``MapSnapshot``; halves the resolution until the compressed cells fit."""
+    data = encode_cells(cells)
+    while len(data) > MAX_MAP_DATA:
+        cells = _downsample(cells)
+        resolution *= 2.0
+        data = encode_cells(cells)
+    return {
+        "version": version,
+        "resolution": float(resolution),
+        "origin_x": float(origin[0]),
+        "origin_y": float(origin[1]),
+        "width": int(cells.shape[1]),
+        "height": int(cells.shape[0]),
+        "encoding": ENCODING,
+        "cells": data,
+    }
+
+
+def patch_fields(
+    cells: Cells,
+    resolution: float,
+    origin: tuple[float, float],
+    box: tuple[int, int, int, int],
+    version: int,
+    base_version: int,
+) -> dict[str, Any] | None:
+    """Keyword fields of a ``MapUpdate`` for ``box`` (row0, col0, row1, col1), or None if it does not fit."""
+    h, w = cells.shape
+    r0, c0, r1, c1 = max(0, box[0]), max(0, box[1]), min(h, box[2]), min(w, box[3])
+    data = encode_cells(cells[r0:r1, c0:c1])
+    if len(data) > MAX_MAP_DATA:
+        return None
+    return {
+        "version": version,
+        "base_version": base_version,
+        "resolution": float(resolution),
+        "origin_x": float(origin[0]),
+        "origin_y": float(origin[1]),
+        "width": int(w),
+        "height": int(h),
+        "col": int(c0),
+        "row": int(r0),
+        "patch_width": int(c1 - c0),
+        "patch_height": int(r1 - r0),
+        "encoding": ENCODING,
+        "cells": data,
+    }
+
+
+@dataclass(slots=True)
+class SharedMap:
+    """A copy of another robot's map, kept current from snapshots and updates."""
+
+    cells: Cells
+    resolution: float
+    origin: tuple[float, float]
+    version: int
+
+    @classmethod
+    def from_snapshot(cls, msg: MapSnapshot) -> SharedMap:
+        return cls(
+            decode_cells(msg.cells, msg.width, msg.height), msg.resolution, (msg.origin_x, msg.origin_y), msg.version
+        )
+
+    def apply(self, msg: MapUpdate) -> bool:
+        """Apply a patch; False (unchanged) when it does not follow this copy: fetch a snapshot then.
+
+        ValueError for a patch that cannot be right (outside the map, cells of the wrong size)."""
+        if msg.col + msg.patch_width > msg.width or msg.row + msg.patch_height > msg.height:
+            raise ValueError("the patch lies outside the map")
+        if msg.base_version != self.version or msg.version <= self.version:
+            return False
+        if (msg.width, msg.height) != (self.cells.shape[1], self.cells.shape[0]):
+            return False
+        if msg.resolution != self.resolution or (msg.origin_x, msg.origin_y) != self.origin:
+            return False
+        patch = decode_cells(msg.cells, msg.patch_width, msg.patch_height)
+        self.cells[msg.row : msg.row + msg.patch_height, msg.col : msg.col + msg.patch_width] = patch
+        self.version = msg.version
+        return True

@@ -1,0 +1,289 @@
+"""A log-odds occupancy grid that grows as the robot explores, with vectorised ray updates.
+
+The sweeping-robot seed's equations (7-11), the standard binary Bayes filter per cell:
+
+    p(m | z_1:t) / (1 - p(m | z_1:t))  =  [p(m | z_t) / (1 - p(m | z_t))] * [p(m | z_1:t-1) / (1 - ...)] / [p0 / (1 - p0)]
+    l_t = l_{t-1} + log(p(m | z_t) / (1 - p(m | z_t))) - l_0          with l = log(p / (1 - p))
+    p   = 1 - 1 / (1 + exp(l))
+
+where ``p(m | z_t)`` is the inverse sensor model: ``p_occ`` for the cell a beam ends in, ``p_free``
+for the cells it passes through, and ``l_0 = log(p0 / (1 - p0))`` the prior (0 for p0 = 0.5).
+Log-odds are clamped to ``[l_min, l_max]`` so a cell can still change its mind (a door opens).
+Each cell is updated at most once per scan (a cell crossed by several beams counts once; a cell
+that is both crossed and hit counts as hit).
+
+Cells: ``grid[row, col]``, row 0 at the bottom (``y = origin_y``), like map_server. The frame is
+the UWB frame (metres). The grid grows in chunks (``grow_step``) when a scan reaches beyond it;
+``origin`` moves accordingly.
+
+It also keeps the matcher's *likelihood field*: the occupied probability blurred by a small
+binomial kernel (so scores and gradients are smooth), plus a max-pooled coarse copy for the
+correlative search. Both are refreshed only over the box a scan touched.
+
+Pure numpy; no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["Box", "GridConfig", "LogOddsGrid", "logit"]
+
+FloatArray = npt.NDArray[np.float64]
+F32 = npt.NDArray[np.float32]
+Box = tuple[int, int, int, int]  # row0, col0, row1, col1 (exclusive)
+
+_KERNEL = np.array([1.0, 4.0, 6.0, 4.0, 1.0], dtype=np.float32) / 16.0
+_K = 2  # kernel half-width, cells
+
+
+def logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+@dataclass(frozen=True, slots=True)
+class GridConfig:
+    resolution: float = 0.05  # m per cell
+    p_occ: float = 0.7  # inverse sensor model: cell where a beam ends
+    p_free: float = 0.4  # cells a beam passes through
+    p_prior: float = 0.5
+    l_min: float = -2.0  # clamp (p ~ 0.12)
+    l_max: float = 3.5  # clamp (p ~ 0.97)
+    grow_step: float = 8.0  # m added on a side when the grid must grow
+    coarse: int = 4  # cells per coarse cell (the correlative search's first level)
+
+    def __post_init__(self) -> None:
+        if not (self.resolution > 0 and math.isfinite(self.resolution)):
+            raise ValueError(f"resolution must be > 0, got {self.resolution}")
+        for name in ("p_occ", "p_free", "p_prior"):
+            v = getattr(self, name)
+            if not 0.0 < v < 1.0:
+                raise ValueError(f"{name} must be in (0, 1), got {v}")
+        if not self.p_free < self.p_prior < self.p_occ:
+            raise ValueError("need p_free < p_prior < p_occ")
+        if not self.l_min < 0.0 < self.l_max:
+            raise ValueError("need l_min < 0 < l_max")
+        if self.coarse < 1 or self.grow_step <= 0:
+            raise ValueError("coarse must be >= 1 and grow_step > 0")
+
+
+class LogOddsGrid:
+    """The map. ``integrate(pose, ranges, angles, hit)`` adds one scan; see the module docstring."""
+
+    def __init__(self, config: GridConfig | None = None, origin: tuple[float, float] = (0.0, 0.0)) -> None:
+        self.config = cfg = config or GridConfig()
+        self.resolution = cfg.resolution
+        self.l_occ = logit(cfg.p_occ) - logit(cfg.p_prior)
+        self.l_free = logit(cfg.p_free) - logit(cfg.p_prior)
+        c = cfg.coarse
+        self.origin = (float(origin[0]), float(origin[1]))
+        self.logodds: F32 = np.zeros((c, c), dtype=np.float32)
+        self.seen = np.zeros((c, c), dtype=bool)
+        self.field: F32 = np.zeros((c, c), dtype=np.float32)
+        self.coarse_field: F32 = np.zeros((1, 1), dtype=np.float32)
+        self._tag = np.zeros(c * c, dtype=np.uint8)
+        self.empty = True  # nothing integrated yet
+        self.version = 0  # +1 per integrated scan
+        self.dirty: Box | None = None  # cells changed since the last take_dirty()
+
+    # -- geometry ------------------------------------------------------------------------------
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        h, w = self.logodds.shape
+        return int(h), int(w)
+
+    def to_cell(self, xy: FloatArray) -> FloatArray:
+        """World (N, 2) -> continuous (col, row) cell coordinates (cell centres at k + 0.5)."""
+        out: FloatArray = (xy - np.asarray(self.origin)) / self.resolution
+        return out
+
+    def ensure(self, xmin: float, ymin: float, xmax: float, ymax: float) -> None:
+        """Grow (in ``grow_step`` chunks, keeping a multiple of ``coarse`` cells) to cover the box."""
+        cfg, res = self.config, self.resolution
+        h, w = self.shape
+        ox, oy = self.origin
+        if self.empty and not self.seen.any():
+            # First scan: centre the grid on it. Cell *centres* sit on round coordinates (multiples
+            # of the resolution): a wall on a round coordinate (buildings, a UWB frame aligned with
+            # them, the simulator's plans) then falls in the middle of a cell, so scans from either
+            # side hit the same cell; on a cell edge it would be mapped half a cell towards whichever
+            # side saw it, and the matcher would inherit that offset.
+            pad = cfg.grow_step
+            ox = math.floor((xmin - pad) / res) * res - res / 2.0
+            oy = math.floor((ymin - pad) / res) * res - res / 2.0
+            w0 = math.ceil((xmax + pad - ox) / res)
+            h0 = math.ceil((ymax + pad - oy) / res)
+            self._realloc(0, 0, h0, w0, ox, oy, fresh=True)
+            return
+        step = math.ceil(cfg.grow_step / res)
+        add_l = step if xmin < ox else 0
+        add_b = step if ymin < oy else 0
+        add_r = step if xmax > ox + w * res else 0
+        add_t = step if ymax > oy + h * res else 0
+        while xmin < ox - add_l * res:
+            add_l += step
+        while ymin < oy - add_b * res:
+            add_b += step
+        while xmax > ox + (w + add_r) * res:
+            add_r += step
+        while ymax > oy + (h + add_t) * res:
+            add_t += step
+        if add_l or add_b or add_r or add_t:
+            self._realloc(add_b, add_l, h + add_b + add_t, w + add_l + add_r, ox - add_l * res, oy - add_b * res)
+
+    def _realloc(self, row0: int, col0: int, h: int, w: int, ox: float, oy: float, fresh: bool = False) -> None:
+        c = self.config.coarse
+        # Keep shapes a multiple of the coarse factor (pad on the top/right), offsets too.
+        row0 += (-row0) % c
+        col0 += (-col0) % c
+        oy = self.origin[1] - row0 * self.resolution if not fresh else oy
+        ox = self.origin[0] - col0 * self.resolution if not fresh else ox
+        h = max(h, row0 + self.shape[0])
+        w = max(w, col0 + self.shape[1])
+        h += (-h) % c
+        w += (-w) % c
+        old_h, old_w = self.shape
+        lo = np.zeros((h, w), dtype=np.float32)
+        seen = np.zeros((h, w), dtype=bool)
+        fld = np.zeros((h, w), dtype=np.float32)
+        if not fresh:
+            lo[row0 : row0 + old_h, col0 : col0 + old_w] = self.logodds
+            seen[row0 : row0 + old_h, col0 : col0 + old_w] = self.seen
+            fld[row0 : row0 + old_h, col0 : col0 + old_w] = self.field
+            if self.dirty is not None:
+                r0, c0, r1, c1 = self.dirty
+                self.dirty = (r0 + row0, c0 + col0, r1 + row0, c1 + col0)
+        self.logodds, self.seen, self.field = lo, seen, fld
+        self.origin = (ox, oy)
+        self.coarse_field = fld.reshape(h // c, c, w // c, c).max(axis=(1, 3))
+        self._tag = np.zeros(h * w, dtype=np.uint8)
+
+    # -- updates -------------------------------------------------------------------------------
+
+    def integrate(
+        self,
+        sensor_pose: tuple[float, float, float],
+        ranges: FloatArray,
+        angles: FloatArray,
+        hit: npt.NDArray[np.bool_],
+    ) -> Box | None:
+        """Add one scan taken from ``sensor_pose`` (x, y, theta of the sensor in the map frame).
+
+        ``ranges``/``angles``: valid beams (see ``scan.prepare``); ``hit`` False for beams that
+        returned nothing within range (they only clear). Returns the changed box of cells.
+        """
+        if ranges.size == 0:
+            return None
+        sx, sy, sth = sensor_pose
+        res = self.resolution
+        world_a = angles + sth
+        cos_a, sin_a = np.cos(world_a), np.sin(world_a)
+        ex, ey = sx + ranges * cos_a, sy + ranges * sin_a
+        # Keep a metre of empty cells around everything seen: the matcher reads past the edge as 0.
+        self.ensure(
+            min(float(ex.min()), sx) - 1.0, min(float(ey.min()), sy) - 1.0,
+            max(float(ex.max()), sx) + 1.0, max(float(ey.max()), sy) + 1.0,
+        )  # fmt: skip
+        h, w = self.shape
+        ox, oy = self.origin
+        # Free samples: one per cell length along each beam, stopping short of the endpoint.
+        step = res
+        counts = np.maximum((ranges / step - 0.5).astype(np.int64), 0)
+        total = int(counts.sum())
+        beam = np.repeat(np.arange(ranges.size), counts)
+        starts = np.cumsum(counts) - counts
+        k = np.arange(total, dtype=np.float64) - np.repeat(starts, counts) + 0.5
+        fx = sx + k * step * cos_a[beam]
+        fy = sy + k * step * sin_a[beam]
+        fcol = ((fx - ox) / res).astype(np.int64)
+        frow = ((fy - oy) / res).astype(np.int64)
+        free_idx = frow * w + fcol
+        ocol = ((ex[hit] - ox) / res).astype(np.int64)
+        orow = ((ey[hit] - oy) / res).astype(np.int64)
+        occ_idx = orow * w + ocol
+        np.clip(free_idx, 0, h * w - 1, out=free_idx)
+        np.clip(occ_idx, 0, h * w - 1, out=occ_idx)
+        tag = self._tag
+        tag[free_idx] = 1
+        tag[occ_idx] = 2  # hit wins over crossed
+        cells = np.concatenate((free_idx, occ_idx))
+        delta = np.where(tag[cells] == 2, np.float32(self.l_occ), np.float32(self.l_free))
+        flat = self.logodds.reshape(-1)
+        # Fancy-index assignment with repeated indices writes each cell once with the same value:
+        # exactly one update per cell per scan, without sorting.
+        new = np.clip(flat[cells] + delta, self.config.l_min, self.config.l_max)
+        flat[cells] = new
+        tag[cells] = 0
+        self.seen.reshape(-1)[cells] = True
+        rows = np.concatenate((frow, orow))
+        cols = np.concatenate((fcol, ocol))
+        box = (int(rows.min()), int(cols.min()), int(rows.max()) + 1, int(cols.max()) + 1)
+        self._refresh_field(box)
+        self.empty = False
+        self.version += 1
+        self.dirty = box if self.dirty is None else _union(self.dirty, box)
+        return box
+
+    def _refresh_field(self, box: Box) -> None:
+        """Recompute the likelihood field (and its coarse copy) over ``box`` plus the kernel's reach."""
+        h, w = self.shape
+        c = self.config.coarse
+        r0, c0, r1, c1 = box
+        # The output region, grown by the kernel, aligned to coarse cells.
+        orow0 = max(0, (r0 - _K) // c * c)
+        ocol0 = max(0, (c0 - _K) // c * c)
+        orow1 = min(h, -(-(r1 + _K) // c) * c)
+        ocol1 = min(w, -(-(c1 + _K) // c) * c)
+        # Input region: the output plus the kernel's half-width (zero outside the grid).
+        irow0, icol0 = max(0, orow0 - _K), max(0, ocol0 - _K)
+        irow1, icol1 = min(h, orow1 + _K), min(w, ocol1 + _K)
+        lo = self.logodds[irow0:irow1, icol0:icol1]
+        ih, iw = lo.shape
+        # Occupied evidence in [0, 1]: 0 for free/unknown, rising with the log-odds above 0. Written into
+        # a zero-padded buffer; every step below works in place (the same arithmetic, fewer temporaries).
+        pad = np.zeros((ih + 2 * _K, iw + 2 * _K), dtype=np.float32)
+        occ = pad[_K : _K + ih, _K : _K + iw]
+        np.divide(lo, np.float32(self.l_occ * 2.0), out=occ)
+        np.maximum(occ, np.float32(0.0), out=occ)
+        np.minimum(occ, np.float32(1.0), out=occ)
+        tmp = np.multiply(pad[:, 0:iw], _KERNEL[0])
+        buf = np.empty_like(tmp)
+        for i in range(1, 2 * _K + 1):
+            tmp += np.multiply(pad[:, i : i + iw], _KERNEL[i], out=buf)
+        blur = np.multiply(tmp[0:ih, :], _KERNEL[0])
+        buf = buf[0:ih, :]
+        for i in range(1, 2 * _K + 1):
+            blur += np.multiply(tmp[i : i + ih, :], _KERNEL[i], out=buf)
+        # A one-cell wall blurred across it peaks at 6/16: scale so a wall reads ~1.
+        blur *= np.float32(16.0 / 6.0)
+        np.minimum(blur, np.float32(1.0), out=blur)
+        self.field[orow0:orow1, ocol0:ocol1] = blur[orow0 - irow0 : orow1 - irow0, ocol0 - icol0 : ocol1 - icol0]
+        sub = self.field[orow0:orow1, ocol0:ocol1]
+        self.coarse_field[orow0 // c : orow1 // c, ocol0 // c : ocol1 // c] = sub.reshape(
+            sub.shape[0] // c, c, sub.shape[1] // c, c
+        ).max(axis=(1, 3))
+
+    # -- views ---------------------------------------------------------------------------------
+
+    def probability(self) -> FloatArray:
+        """p(occupied) per cell (0.5 where never seen)."""
+        return 1.0 - 1.0 / (1.0 + np.exp(self.logodds.astype(np.float64)))
+
+    def occupancy(self) -> npt.NDArray[np.int8]:
+        """map_server-style cells: -1 unknown, else round(100 * p)."""
+        out = np.rint(100.0 * self.probability()).astype(np.int8)
+        out[~self.seen] = -1
+        return out
+
+    def take_dirty(self) -> Box | None:
+        box, self.dirty = self.dirty, None
+        return box
+
+
+def _union(a: Box, b: Box) -> Box:
+    return (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))

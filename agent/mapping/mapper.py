@@ -1,0 +1,274 @@
+"""The onboard mapper: one small class the agent runtime feeds with lidar scans and fused poses.
+
+    mapper = OnboardMapper(MapperConfig())
+    result = mapper.add_scan(t, ranges, angles, pose_guess)   # -> ScanResult; result.pose is the robot pose
+    mapper.plan((x0, y0), (x1, y1))                           # -> [(x, y), ...], [] (no path) or None (no map)
+
+Per scan: prepare (valid returns, polar to Cartesian), segment and drop tiny segments, thin the
+points for matching, match against the map seeded by ``pose_guess`` (the fused pose), and fall back
+to the guess when the match is poor (score below ``min_score``, too few points, or no map yet). The
+scan is integrated into the grid when the robot has moved ``keyframe_distance`` / turned
+``keyframe_angle`` since the last integrated scan (the matcher needs no new map between nearby
+scans, and ray updates are the costly part), or when ``keyframe_period`` seconds have passed.
+
+``add_scan_odometry(t, ranges, angles, odom_pose)`` is the same with an odometry pose (in its own
+frame) instead of a map-frame guess: the guess is the last matched pose moved by the odometry
+increment (used by log replay).
+
+Poses are the *robot* pose (x, y, theta) in the map frame (the UWB frame when seeded by fusion);
+the lidar's mount on the robot is in the config. Time is passed in; nothing here reads a clock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from fleetlink.agent.mapping import scan as scanprep
+from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
+from fleetlink.agent.mapping.matcher import LocalMap, MatchConfig, field_score, icp_refine, match_scan, scan_normals
+from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig
+
+__all__ = ["MapperConfig", "OnboardMapper", "Pose", "ScanResult", "compose", "relative"]
+
+Pose = tuple[float, float, float]
+FloatArray = npt.NDArray[np.float64]
+
+
+def wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def compose(a: Pose, b: Pose) -> Pose:
+    """a (+) b: pose b given in a's frame, expressed in a's parent frame."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap(a[2] + b[2]))
+
+
+def relative(a: Pose, b: Pose) -> Pose:
+    """a^-1 (+) b: pose b seen from a."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return (c * dx + s * dy, -s * dx + c * dy, wrap(b[2] - a[2]))
+
+
+@dataclass(frozen=True, slots=True)
+class MapperConfig:
+    grid: GridConfig = field(default_factory=GridConfig)
+    match: MatchConfig = field(default_factory=MatchConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    matching: bool = True  # False: map at the guess (odometry / fused pose only)
+    min_range: float = 0.15  # m
+    max_range: float = 12.0  # m; readings at/over it only clear space
+    segment_eps: float = 0.3  # m, absolute break distance
+    segment_tau: float = 5.0  # break where a gap is tau times its neighbour
+    min_segment_points: int = 3
+    match_cell: float = 0.1  # m, thinning cell for the matcher's points
+    min_score: float = 0.15  # below: the match is poor, keep the guess (measured on intel and the office)
+    min_points: int = 20  # fewer matchable points: keep the guess
+    keyframe_distance: float = 0.1  # m
+    keyframe_angle: float = math.radians(5.0)
+    keyframe_period: float = 5.0  # s
+    mount: Pose = (0.0, 0.0, 0.0)  # lidar on the robot: x, y, yaw
+    refine_local: bool = True  # point-to-line refinement against the last keyframes (False: field only)
+    local_keyframes: int = 5
+    local_cell: float = 0.1  # m, fusion cell of the local map
+    local_spacing: float = 0.3  # m: a keyframe joins the local map this far from the last one that did
+    local_spacing_angle: float = math.radians(10.0)
+    icp_cell: float = 0.0  # m, thinning of the refined points (0: all)
+    icp_sigma: float = 0.03  # m, point-to-line residual scale (Cauchy)
+    icp_max_distance: float = 0.15  # m, farthest correspondence
+    min_inlier_ratio: float = 0.3  # refined with at least this share of points matched: accept (else min_score rules)
+    # Motion prior of an odometry-seeded guess (add_scan_odometry): sd = base + per metre moved
+    # (+ per radian turned, for the heading). add_scan uses MatchConfig's prior_sigma_* unless given.
+    odom_sigma_xy: float = 0.01  # m
+    odom_sigma_xy_per_m: float = 0.1
+    odom_sigma_theta: float = 0.01  # rad
+    odom_sigma_theta_per_m: float = 0.035  # rad per m (2 deg)
+    odom_sigma_theta_per_rad: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.min_range < self.max_range:
+            raise ValueError("need 0 <= min_range < max_range")
+        if self.segment_eps <= 0 or self.segment_tau <= 1.0:
+            raise ValueError("need segment_eps > 0 and segment_tau > 1")
+        if not 0.0 <= self.min_score <= 1.0:
+            raise ValueError("min_score must be in [0, 1]")
+
+
+@dataclass(frozen=True, slots=True)
+class ScanResult:
+    t: float
+    pose: Pose  # robot pose after matching (or the guess)
+    guess: Pose
+    matched: bool  # the match was used (False: fell back to the guess)
+    score: float
+    integrated: bool  # the scan was added to the grid
+
+
+class OnboardMapper:
+    """Builds the map on board; see the module docstring. Not thread-safe (one owner)."""
+
+    def __init__(self, config: MapperConfig | None = None) -> None:
+        self.config = cfg = config or MapperConfig()
+        self.grid = LogOddsGrid(cfg.grid)
+        self.trajectory: list[tuple[float, Pose]] = []
+        self.scans = 0
+        self.matched = 0
+        self.fallbacks = 0
+        self.rejected = 0  # scans with no usable beams, or a non-finite pose
+        self._last_key: tuple[float, Pose] | None = None
+        self._last_pose: Pose | None = None
+        self._last_odom: Pose | None = None
+        self._planner: PathPlanner | None = None
+        self._local = LocalMap(cfg.local_keyframes, cfg.local_cell)
+        self._last_local: Pose | None = None
+        self._planner_version = -1
+
+    @property
+    def version(self) -> int:
+        return self.grid.version
+
+    @property
+    def pose(self) -> Pose | None:
+        return self._last_pose
+
+    def add_scan_odometry(self, t: float, ranges: npt.ArrayLike, angles: npt.ArrayLike, odom: Pose) -> ScanResult:
+        """Like ``add_scan`` with the guess = last pose moved by the odometry increment since the last scan."""
+        prior: tuple[float, float] | None = None
+        if self._last_pose is None or self._last_odom is None:
+            guess = odom
+        else:
+            inc = relative(self._last_odom, odom)
+            guess = compose(self._last_pose, inc)
+            cfg = self.config
+            d = math.hypot(inc[0], inc[1])
+            prior = (
+                cfg.odom_sigma_xy + cfg.odom_sigma_xy_per_m * d,
+                cfg.odom_sigma_theta + cfg.odom_sigma_theta_per_m * d + cfg.odom_sigma_theta_per_rad * abs(inc[2]),
+            )
+        self._last_odom = odom
+        return self.add_scan(t, ranges, angles, guess, prior)
+
+    def add_scan(
+        self,
+        t: float,
+        ranges: npt.ArrayLike,
+        angles: npt.ArrayLike,
+        pose_guess: Pose,
+        prior: tuple[float, float] | None = None,
+    ) -> ScanResult:
+        """One lidar turn (ranges m, angles rad CCW in the sensor frame) near ``pose_guess``; returns the pose.
+
+        ``prior``: (sd xy m, sd theta rad) of the guess; None: ``MatchConfig.prior_sigma_*``."""
+        cfg = self.config
+        self.scans += 1
+        guess = (float(pose_guess[0]), float(pose_guess[1]), wrap(float(pose_guess[2])))
+        if not all(math.isfinite(v) for v in guess) or not math.isfinite(t):
+            self.rejected += 1
+            raise ValueError(f"non-finite pose guess {pose_guess!r} or time {t!r}")
+        r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, cfg.max_range)
+        pts = scanprep.to_points(r[hit], a[hit])
+        keep_hit = np.ones(len(pts), dtype=bool)
+        labels = np.zeros(len(pts), dtype=np.int64)
+        if len(pts):
+            labels = scanprep.segment_labels(pts, cfg.segment_eps, cfg.segment_tau)
+            keep_hit = scanprep.filter_segments(labels, cfg.min_segment_points)
+        kept = pts[keep_hit]
+        match_pts = scanprep.thin(kept, cfg.match_cell)
+
+        sensor_guess = compose(guess, cfg.mount)
+        pose, score, matched = guess, 0.0, False
+        if cfg.matching and not self.grid.empty and len(match_pts) >= cfg.min_points:
+            m = match_scan(self.grid, match_pts, sensor_guess, cfg.match, prior)
+            found, score = m.pose, m.score
+            good = False
+            if cfg.refine_local and len(self._local):
+                sd = prior if prior is not None else (cfg.match.prior_sigma_xy, cfg.match.prior_sigma_theta)
+                icp_pts = scanprep.thin(kept, cfg.icp_cell)
+                r_ = icp_refine(self._local, icp_pts, found, sensor_guess, sd, cfg.icp_sigma, cfg.icp_max_distance)
+                if r_.inliers >= cfg.min_points:
+                    found = r_.pose
+                    score = field_score(self.grid, match_pts, found)
+                    good = r_.inliers >= cfg.min_inlier_ratio * len(icp_pts)
+            if good or score >= cfg.min_score:
+                pose = compose(found, _inverse(cfg.mount))
+                pose = (pose[0], pose[1], wrap(pose[2]))
+                matched = True
+        if matched:
+            self.matched += 1
+        elif not self.grid.empty:
+            self.fallbacks += 1
+
+        integrated = False
+        if r.size and self._is_keyframe(t, pose):
+            # Drop the noise segments' endpoints from the map, but keep their beams' free space.
+            full_hit = hit.copy()
+            idx = np.flatnonzero(hit)
+            full_hit[idx[~keep_hit]] = False
+            self.grid.integrate(compose(pose, cfg.mount), r, a, full_hit)
+            if cfg.refine_local and self._spaced(pose):
+                self._last_local = pose
+                self._local.add(compose(pose, cfg.mount), kept, scan_normals(pts, labels)[keep_hit])
+            self._last_key = (t, pose)
+            integrated = True
+        self._last_pose = pose
+        self.trajectory.append((t, pose))
+        return ScanResult(t, pose, guess, matched, score, integrated)
+
+    def _spaced(self, pose: Pose) -> bool:
+        p0 = self._last_local
+        if p0 is None:
+            return True
+        cfg = self.config
+        return (
+            math.hypot(pose[0] - p0[0], pose[1] - p0[1]) >= cfg.local_spacing
+            or abs(wrap(pose[2] - p0[2])) >= cfg.local_spacing_angle
+        )
+
+    def _is_keyframe(self, t: float, pose: Pose) -> bool:
+        if self._last_key is None:
+            return True
+        cfg = self.config
+        t0, p0 = self._last_key
+        return (
+            math.hypot(pose[0] - p0[0], pose[1] - p0[1]) >= cfg.keyframe_distance
+            or abs(wrap(pose[2] - p0[2])) >= cfg.keyframe_angle
+            or t - t0 >= cfg.keyframe_period
+        )
+
+    # -- outputs -------------------------------------------------------------------------------
+
+    def occupancy(self) -> tuple[npt.NDArray[np.int8], float, tuple[float, float]]:
+        """(cells, resolution, origin): map_server-style int8 cells, row 0 at the bottom."""
+        return self.grid.occupancy(), self.grid.resolution, self.grid.origin
+
+    def planner(self) -> PathPlanner:
+        """A planner over the current map (rebuilt when the map changed)."""
+        if self._planner is None or self._planner_version != self.grid.version:
+            cells, res, origin = self.occupancy()
+            self._planner = PathPlanner(cells, res, origin, self.config.planner)
+            self._planner_version = self.grid.version
+        return self._planner
+
+    def plan(
+        self,
+        start_xy: tuple[float, float],
+        goal_xy: tuple[float, float],
+        blocked: Sequence[tuple[float, float]] = (),
+    ) -> list[tuple[float, float]] | None:
+        """The path provider the pilot takes: waypoints from start to goal, [] when there is no path,
+        None when there is no map yet (the pilot then drives straight). ``blocked``: points where the
+        robot found the way barred, planned around."""
+        if self.grid.empty:
+            return None
+        return self.planner().route(start_xy, goal_xy, blocked)
+
+
+def _inverse(p: Pose) -> Pose:
+    c, s = math.cos(p[2]), math.sin(p[2])
+    return (-(c * p[0] + s * p[1]), -(-s * p[0] + c * p[1]), -p[2])

@@ -1,0 +1,507 @@
+"""Scan-to-map matching: correlative search coarse to fine, then Gauss-Newton refinement.
+
+``match_scan(grid, points, guess, config)`` finds the sensor pose that puts the scan's points on
+the map's walls, searching a window around ``guess`` (the fused pose, or odometry):
+
+1. **Coarse**: every rotation in ``±search_theta`` (``coarse_angle_step``) against every
+   translation in ``±search_xy`` in steps of one coarse cell (``GridConfig.coarse`` cells), scored
+   on the max-pooled likelihood field. Max-pooling makes the coarse score an (almost) upper bound
+   of the fine one over the coarse cell, so the best coarse candidate is where the fine optimum is.
+2. **Fine**: around the best coarse candidate, rotations one coarse step either side in
+   ``fine_angle_step`` and translations cell by cell, on the full-resolution field.
+3. **Refinement**: Gauss-Newton on the bilinearly interpolated field (Kohlbrecher et al.'s Hector
+   formulation: minimise sum (1 - M(S_i(xi)))^2), sub-cell accurate.
+
+Scores are the mean field value at the points (0: none on a known wall, 1: all of them), less a
+Gaussian motion prior on the deviation from the guess (Olson's correlative matching): a long
+corridor scores the same all along, and the prior keeps the guess there.
+
+``icp_refine`` then refines against a ``LocalMap`` (the last keyframes' points and normals):
+point-to-line Gauss-Newton with the same prior, so a direction the points do not constrain stays
+at the guess while the others follow the walls.
+The caller decides what a poor score means (the mapper falls back to odometry).
+
+Pure numpy; no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from fleetlink.agent.mapping.grid import LogOddsGrid
+
+__all__ = [
+    "IcpResult",
+    "LocalMap",
+    "Match",
+    "MatchConfig",
+    "field_score",
+    "icp_refine",
+    "match_scan",
+    "refine",
+    "scan_normals",
+]
+
+FloatArray = npt.NDArray[np.float64]
+Pose = tuple[float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class MatchConfig:
+    search_xy: float = 0.3  # m, half-width of the translation window around the guess
+    search_theta: float = math.radians(15.0)  # rad, half-width of the rotation window
+    coarse_angle_step: float = math.radians(1.5)
+    fine_angle_step: float = math.radians(0.375)
+    refine_iterations: int = 8
+    candidates: int = 1  # coarse candidates searched finely (2 costs twice the time for little gain measured)
+    prior_weight: float = 0.3  # score penalty per unit of squared Mahalanobis deviation from the guess / 2
+    prior_sigma_xy: float = 0.1  # m, default motion-prior sd (callers pass their own, e.g. from odometry)
+    prior_sigma_theta: float = math.radians(5.0)
+
+    def __post_init__(self) -> None:
+        if self.search_xy < 0 or self.search_theta < 0:
+            raise ValueError("search windows must be >= 0")
+        if not (self.coarse_angle_step > 0 and 0 < self.fine_angle_step <= self.coarse_angle_step):
+            raise ValueError("need 0 < fine_angle_step <= coarse_angle_step")
+
+
+@dataclass(frozen=True, slots=True)
+class Match:
+    pose: Pose  # the sensor pose found
+    score: float  # mean likelihood of the points at ``pose`` (0..1)
+    guess_score: float  # the same at the guess
+
+
+def _lookup(field: npt.NDArray[np.float32], rows: npt.NDArray[np.int64], cols: npt.NDArray[np.int64]) -> FloatArray:
+    h, w = field.shape
+    ok = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+    flat = np.where(ok, rows * w + cols, 0)
+    return np.where(ok, field.reshape(-1)[flat], 0.0).astype(np.float64)
+
+
+def _transform(points: FloatArray, x: float, y: float, th: float) -> FloatArray:
+    c, s = math.cos(th), math.sin(th)
+    return np.column_stack((x + c * points[:, 0] - s * points[:, 1], y + s * points[:, 0] + c * points[:, 1]))
+
+
+def field_score(grid: LogOddsGrid, points: FloatArray, pose: Pose) -> float:
+    """Mean field value (bilinearly interpolated) of ``points`` (sensor frame) seen from ``pose``."""
+    if len(points) == 0:
+        return 0.0
+    return _score_at(grid.field, points[:, 0], points[:, 1], pose, grid.origin, grid.resolution)
+
+
+def _search(
+    field: npt.NDArray[np.float32],
+    points: FloatArray,
+    cell_size: float,
+    origin: tuple[float, float],
+    x: float,
+    y: float,
+    thetas: FloatArray,
+    offsets: npt.NDArray[np.int64],
+    penalty: FloatArray,
+    top: int = 1,
+) -> list[tuple[int, int, float]]:
+    """The ``top`` best (theta index, offset index, score) of rotations x integer cell offsets on ``field``."""
+    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    px, py = points[None, :, 0], points[None, :, 1]
+    cols = np.floor((x + c * px - s * py - origin[0]) / cell_size).astype(np.int64)  # (A, N)
+    rows = np.floor((y + s * px + c * py - origin[1]) / cell_size).astype(np.int64)
+    h, w = field.shape
+    oc, orr = offsets[:, 0], offsets[:, 1]
+    if (
+        int(rows.min()) + int(orr.min()) >= 0
+        and int(rows.max()) + int(orr.max()) < h
+        and int(cols.min()) + int(oc.min()) >= 0
+        and int(cols.max()) + int(oc.max()) < w
+    ):
+        # Every candidate inside the grid (the usual case): one flat index per point and per offset.
+        rows *= w
+        rows += cols
+        r = rows[:, None, :] + (orr * w + oc)[None, :, None]  # (A, T, N)
+    else:
+        # Clip instead of masking (cheaper): the grid always extends past every integrated scan, so
+        # its edge cells are empty and a point beyond the edge reads 0 either way.
+        r = np.clip(rows[:, None, :] + orr[None, :, None], 0, h - 1)
+        q = np.clip(cols[:, None, :] + oc[None, :, None], 0, w - 1)
+        r *= w
+        r += q
+    scores = np.add.reduce(field.reshape(-1).take(r), axis=2, dtype=np.float32)
+    scores /= r.shape[2]  # the mean, as np.mean computes it
+    scores = scores - penalty  # (A, T)
+    flat = scores.ravel()
+    if top == 1:
+        b = int(flat.argmax())
+        return [(*divmod(b, scores.shape[1]), float(flat[b]))]
+    k = min(top, flat.size)
+    best = np.argpartition(-flat, k - 1)[:k] if k < flat.size else np.arange(flat.size)
+    best = best[np.argsort(-flat[best], kind="stable")]
+    return [(*divmod(int(b), scores.shape[1]), float(flat[b])) for b in best]
+
+
+def _grid_offsets(lo: int, hi: int) -> npt.NDArray[np.int64]:
+    k = np.arange(lo, hi + 1, dtype=np.int64)
+    qq, rr = np.meshgrid(k, k)
+    return np.column_stack((qq.ravel(), rr.ravel()))
+
+
+def match_scan(
+    grid: LogOddsGrid,
+    points: FloatArray,
+    guess: Pose,
+    config: MatchConfig | None = None,
+    prior: tuple[float, float] | None = None,
+) -> Match:
+    """Best sensor pose for ``points`` (sensor frame, (N, 2)) near ``guess``; see the module docstring.
+
+    ``prior``: (sd xy m, sd theta rad) of the guess (a Gaussian motion prior, Olson 2009): the score
+    is penalised by ``prior_weight * d^2 / 2`` for a candidate ``d`` standard deviations away."""
+    cfg = config or MatchConfig()
+    sxy, sth = prior if prior is not None else (cfg.prior_sigma_xy, cfg.prior_sigma_theta)
+    sxy, sth = max(sxy, 1e-3), max(sth, 1e-4)
+    gx, gy, gth = guess
+    guess_score = field_score(grid, points, guess)
+    if len(points) == 0 or grid.empty:
+        return Match(guess, guess_score, guess_score)
+    res = grid.resolution
+    cc = grid.config.coarse
+    big = res * cc
+    w = cfg.prior_weight
+
+    # 1. coarse
+    na = round(cfg.search_theta / cfg.coarse_angle_step)
+    dth = cfg.coarse_angle_step * np.arange(-na, na + 1, dtype=np.float64)
+    nt = math.ceil(cfg.search_xy / big)
+    offs = _grid_offsets(-nt, nt)
+    pen_t = (offs[:, 0] ** 2 + offs[:, 1] ** 2) * (big / sxy) ** 2
+    pen_a = (dth / sth) ** 2
+    pen = 0.5 * w * (pen_a[:, None] + pen_t[None, :])
+    coarse = _search(grid.coarse_field, points, big, grid.origin, gx, gy, gth + dth, offs, pen, top=cfg.candidates)
+
+    # 2. fine, around each of the best coarse candidates: one coarse step of rotation either side,
+    # the coarse cell and a cell around it (a point near a coarse cell's edge may belong to either).
+    nf = round(cfg.coarse_angle_step / cfg.fine_angle_step)
+    foffs = _grid_offsets(-(cc // 2 + 1), cc // 2 + 1)
+    best: tuple[float, Pose] | None = None
+    for a, t, _ in coarse:
+        cth = gth + float(dth[a])
+        cx = gx + float(offs[t, 0]) * big
+        cy = gy + float(offs[t, 1]) * big
+        fth = cth + cfg.fine_angle_step * np.arange(-nf, nf + 1, dtype=np.float64)
+        fx = cx + foffs[:, 0] * res - gx
+        fy = cy + foffs[:, 1] * res - gy
+        fpen_t = (fx**2 + fy**2) / sxy**2
+        fpen_a = ((fth - gth) / sth) ** 2
+        fpen = 0.5 * w * (fpen_a[:, None] + fpen_t[None, :])
+        fa, ft, fs = _search(grid.field, points, res, grid.origin, cx, cy, fth, foffs, fpen)[0]
+        if best is None or fs > best[0]:
+            best = (fs, (cx + float(foffs[ft, 0]) * res, cy + float(foffs[ft, 1]) * res, float(fth[fa])))
+    assert best is not None
+    pose = best[1]
+
+    # 3. refine
+    pose = refine(grid, points, pose, cfg.refine_iterations)
+    score = field_score(grid, points, pose)
+    if score < guess_score:  # never worse than where we started
+        return Match(guess, guess_score, guess_score)
+    return Match(pose, score, guess_score)
+
+
+def _corners(field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(4, N) field values at the cells around continuous cell coords (u, v) (order m00, m10, m01, m11,
+    0 outside the field), and the fractional parts fu, fv."""
+    h, w = field.shape
+    uf, vf = np.floor(u), np.floor(v)
+    fu, fv = u - uf, v - vf
+    u0, v0 = uf.astype(np.int64), vf.astype(np.int64)
+    if len(u0) and int(u0.min()) >= 0 and int(u0.max()) < w - 1 and int(v0.min()) >= 0 and int(v0.max()) < h - 1:
+        # All four corners inside (the usual case): one gather, no masks.
+        flat = v0 * w + u0
+        idx = np.empty((4, len(flat)), dtype=np.int64)
+        idx[0] = flat
+        np.add(flat, 1, out=idx[1])
+        np.add(flat, w, out=idx[2])
+        np.add(flat, w + 1, out=idx[3])
+        m: FloatArray = field.reshape(-1).take(idx).astype(np.float64)
+        return m, fu, fv
+    m = np.stack(
+        (_lookup(field, v0, u0), _lookup(field, v0, u0 + 1), _lookup(field, v0 + 1, u0), _lookup(field, v0 + 1, u0 + 1))
+    )
+    return m, fu, fv
+
+
+def _interp(field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray) -> FloatArray:
+    """Bilinearly interpolated value of ``field`` at continuous cell coords (cell centres at k)."""
+    (m00, m10, m01, m11), fu, fv = _corners(field, u, v)
+    gu = 1 - fu
+    out: FloatArray = (1 - fv) * (gu * m00 + fu * m10) + fv * (gu * m01 + fu * m11)
+    return out
+
+
+def _bilinear(
+    field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Value and gradient (d/du, d/dv, per cell) of ``field`` at continuous cell coords (cell centres at k)."""
+    (m00, m10, m01, m11), fu, fv = _corners(field, u, v)
+    gu, gv = 1 - fu, 1 - fv
+    val = gv * (gu * m00 + fu * m10) + fv * (gu * m01 + fu * m11)
+    du = gv * (m10 - m00) + fv * (m11 - m01)
+    dv = gu * (m01 - m00) + fu * (m11 - m10)
+    return val, du, dv
+
+
+def _score_at(
+    field: npt.NDArray[np.float32], px: FloatArray, py: FloatArray, pose: Pose, origin: tuple[float, float], res: float
+) -> float:
+    """``field_score`` on the sensor-frame coordinates ``px``, ``py`` (no (N, 2) intermediates)."""
+    x, y, th = pose
+    c, s = math.cos(th), math.sin(th)
+    u = (x + c * px - s * py - origin[0]) / res - 0.5
+    v = (y + s * px + c * py - origin[1]) / res - 0.5
+    return float(_interp(field, u, v).mean())
+
+
+def refine(grid: LogOddsGrid, points: FloatArray, pose: Pose, iterations: int = 8) -> Pose:
+    """Gauss-Newton on the interpolated field from ``pose``, with step halving: a step is taken only
+    if it raises the mean field value (the field is peaked, so full steps overshoot)."""
+    x, y, th = pose
+    res = grid.resolution
+    ox, oy = grid.origin
+    px, py = points[:, 0], points[:, 1]
+    current = -1.0
+    for _ in range(iterations):
+        c, s = math.cos(th), math.sin(th)
+        wx = x + c * px - s * py
+        wy = y + s * px + c * py
+        val, du, dv = _bilinear(grid.field, (wx - ox) / res - 0.5, (wy - oy) / res - 0.5)
+        if current < 0.0:
+            current = float(val.mean())
+        gx, gy = du / res, dv / res  # per metre
+        dwx_dth = -s * px - c * py
+        dwy_dth = c * px - s * py
+        jac = np.column_stack((gx, gy, gx * dwx_dth + gy * dwy_dth))
+        hess = jac.T @ jac
+        grad = jac.T @ (1.0 - val)
+        if not np.isfinite(hess).all() or np.trace(hess) < 1e-9:
+            break
+        hess += np.diag(np.maximum(np.diag(hess), 1e-6) * 0.1 + 1e-6)  # Levenberg damping
+        try:
+            step = np.linalg.solve(hess, grad)
+        except np.linalg.LinAlgError:
+            break
+        # Bound the step: the linearisation holds within about a cell.
+        step = step / max(1.0, math.hypot(step[0], step[1]) / res, abs(step[2]) / math.radians(1.0))
+        for _half in range(4):
+            cand = (x + float(step[0]), y + float(step[1]), th + float(step[2]))
+            score = _score_at(grid.field, px, py, cand, grid.origin, res)
+            if score > current:
+                break
+            step = step / 2.0
+        else:
+            break  # no step along this direction helps: at the optimum
+        x, y, th = cand
+        gain, current = score - current, score
+        if gain < 1e-5:
+            break
+    return (x, y, th)
+
+
+# -- point-to-line refinement against a local map of recent keyframes ------------------------------
+
+_KEY_OFFSET = 1 << 30
+_NX = np.repeat(np.arange(-1, 2, dtype=np.int64), 3)  # the 3x3 neighbourhood of a cell
+_NY = np.tile(np.arange(-1, 2, dtype=np.int64), 3)
+
+
+def _keys(kx: npt.NDArray[np.int64], ky: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    out: npt.NDArray[np.int64] = (kx + _KEY_OFFSET) * (1 << 32) + (ky + _KEY_OFFSET)
+    return out
+
+
+def scan_normals(points: FloatArray, labels: npt.NDArray[np.int64], reach: int = 2) -> FloatArray:
+    """Unit normal per point (sensor frame, facing the sensor) from its neighbours along the scan within
+    its segment (``reach`` either side); NaN where a point has no neighbour in its segment."""
+    n = len(points)
+    out = np.full((n, 2), np.nan)
+    if n < 2:
+        return out
+    idx = np.arange(n)
+    lo = idx.copy()
+    hi = idx.copy()
+    for k in range(1, reach + 1):
+        a = np.maximum(idx - k, 0)
+        b = np.minimum(idx + k, n - 1)
+        lo = np.where(labels[a] == labels, a, lo)
+        hi = np.where(labels[b] == labels, b, hi)
+    d = points[hi] - points[lo]
+    length = np.hypot(d[:, 0], d[:, 1])
+    ok = (hi > lo) & (length > 1e-6)
+    nx, ny = -d[:, 1], d[:, 0]
+    flip = nx * points[:, 0] + ny * points[:, 1] > 0  # face the sensor (the origin)
+    nx = np.where(flip, -nx, nx)
+    ny = np.where(flip, -ny, ny)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out[ok, 0] = nx[ok] / length[ok]
+        out[ok, 1] = ny[ok] / length[ok]
+    return out
+
+
+class LocalMap:
+    """The points and normals of the last ``keyframes`` integrated scans, in the map frame, fused per
+    ``cell`` (mean point, mean normal): the reference for point-to-line refinement. Matching against
+    recent keyframes instead of the whole grid keeps the accumulated grid's blur and older errors out of
+    the fine alignment."""
+
+    def __init__(self, keyframes: int = 5, cell: float = 0.1) -> None:
+        if keyframes < 1 or cell <= 0:
+            raise ValueError("need keyframes >= 1 and cell > 0")
+        self.keyframes = keyframes
+        self.cell = cell
+        self._frames: list[tuple[FloatArray, FloatArray]] = []
+        self.keys: npt.NDArray[np.int64] = np.zeros(0, dtype=np.int64)
+        self.points: FloatArray = np.zeros((0, 2))
+        self.normals: FloatArray = np.zeros((0, 2))
+        self._table: npt.NDArray[np.int32] = np.full(1, -1, dtype=np.int32)
+        self._tx0 = self._ty0 = self._tw = self._th = 0
+        self._noff: npt.NDArray[np.int64] = np.zeros(9, dtype=np.int64)
+        self._px: FloatArray = np.zeros(1)
+        self._py: FloatArray = np.zeros(1)
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def add(self, sensor_pose: Pose, points: FloatArray, normals: FloatArray) -> None:
+        """Add one keyframe's points and normals (sensor frame) seen from ``sensor_pose``."""
+        ok = np.isfinite(normals).all(axis=1)
+        c, s = math.cos(sensor_pose[2]), math.sin(sensor_pose[2])
+        wp = _transform(points[ok], *sensor_pose)
+        nv = normals[ok]
+        wn = np.column_stack((c * nv[:, 0] - s * nv[:, 1], s * nv[:, 0] + c * nv[:, 1]))
+        self._frames.append((wp, wn))
+        del self._frames[: -self.keyframes]
+        pts = np.vstack([f[0] for f in self._frames])
+        nrm = np.vstack([f[1] for f in self._frames])
+        k = np.floor(pts / self.cell).astype(np.int64)
+        keys, inv = np.unique(_keys(k[:, 0], k[:, 1]), return_inverse=True)
+        inv = inv.ravel()
+        cnt = np.bincount(inv).astype(np.float64)
+        mean = np.column_stack([np.bincount(inv, pts[:, i]) / cnt for i in (0, 1)])
+        nsum = np.column_stack([np.bincount(inv, nrm[:, i]) for i in (0, 1)])
+        nlen = np.hypot(nsum[:, 0], nsum[:, 1])
+        good = nlen > 0.5 * cnt  # normals that agree (a thin wall seen from both sides cancels out)
+        self.keys = keys[good]
+        self.points = mean[good]
+        self.normals = nsum[good] / nlen[good, None]
+        self._build_table()
+
+    def _build_table(self) -> None:
+        """A dense table over the fused points' cells: per cell, the index of its fused point (-1: none).
+        ``nearest`` then reads the 3x3 cells around a point with one gather instead of nine sorted-key
+        searches; built once per keyframe added. Three empty cells pad each side: a query cell more than
+        one cell outside the points' box reads the all-empty cell next to the corner instead."""
+        n = len(self.keys)
+        if n == 0:
+            self._table = np.full(1, -1, dtype=np.int32)
+            self._tx0 = self._ty0 = self._tw = self._th = 0
+            return
+        cx = (self.keys >> 32) - _KEY_OFFSET
+        cy = (self.keys & 0xFFFFFFFF) - _KEY_OFFSET
+        self._tx0, self._ty0 = int(cx.min()) - 3, int(cy.min()) - 3
+        self._tw, self._th = int(cx.max()) - self._tx0 + 4, int(cy.max()) - self._ty0 + 4
+        table = np.full(self._tw * self._th, -1, dtype=np.int32)
+        table[(cy - self._ty0) * self._tw + (cx - self._tx0)] = np.arange(n, dtype=np.int32)
+        self._table = table
+        self._noff = _NY * self._tw + _NX  # the 3x3 neighbours' flat offsets, in _NX/_NY order
+        # Gathers read these; index -1 (none) reads the appended point at infinity.
+        self._px = np.append(self.points[:, 0], np.inf)
+        self._py = np.append(self.points[:, 1], np.inf)
+
+    def nearest(self, xy: FloatArray) -> tuple[npt.NDArray[np.int64], FloatArray]:
+        """Index of the nearest fused point within the 3x3 cells around each of ``xy`` (-1: none), and
+        its distance."""
+        return self.nearest_xy(xy[:, 0], xy[:, 1])
+
+    def nearest_xy(self, x: FloatArray, y: FloatArray) -> tuple[npt.NDArray[np.int64], FloatArray]:
+        """``nearest`` on separate coordinate arrays."""
+        n = len(x)
+        if n == 0 or len(self.keys) == 0:
+            return np.full(n, -1, dtype=np.int64), np.full(n, np.inf)
+        ix = np.floor(x / self.cell).astype(np.int64) - self._tx0
+        iy = np.floor(y / self.cell).astype(np.int64) - self._ty0
+        inside = (ix >= 2) & (ix < self._tw - 2) & (iy >= 2) & (iy < self._th - 2)
+        cells = np.where(inside, iy * self._tw + ix, self._tw + 1)
+        i = self._table[cells[:, None] + self._noff[None, :]]  # (N, 9), -1: none
+        d = np.hypot(self._px[i] - x[:, None], self._py[i] - y[:, None])  # none: inf
+        j = d.argmin(axis=1)
+        rows = np.arange(n)
+        dist = d[rows, j]
+        best = np.where(np.isfinite(dist), i[rows, j], -1).astype(np.int64)
+        return best, dist
+
+
+@dataclass(frozen=True, slots=True)
+class IcpResult:
+    pose: Pose
+    inliers: int  # correspondences used at the last iteration
+    weak: float  # smallest eigenvalue of the data information (1/m^2 units, theta scaled by 1 m)
+
+
+def icp_refine(
+    local: LocalMap,
+    points: FloatArray,
+    pose: Pose,
+    prior_pose: Pose,
+    prior: tuple[float, float],
+    sigma: float = 0.03,
+    max_distance: float = 0.15,
+    iterations: int = 8,
+) -> IcpResult:
+    """Point-to-line Gauss-Newton of ``points`` (sensor frame) against ``local`` from ``pose``, with a
+    Gaussian prior at ``prior_pose`` ((sd xy, sd theta)). Correspondences (nearest fused point within
+    ``max_distance``) are found again at every iteration; residuals are Cauchy-weighted (scale
+    ``sigma``). Along a direction the points do not constrain (a corridor) the data information is ~0
+    and the prior holds the pose there: the fallback to odometry happens per direction."""
+    x, y, th = pose
+    px, py = points[:, 0], points[:, 1]
+    sxy, sth = max(prior[0], 1e-3), max(prior[1], 1e-4)
+    lam = np.diag([1.0 / sxy**2, 1.0 / sxy**2, 1.0 / sth**2])
+    inliers = 0
+    hd_last: FloatArray | None = None
+    lpx, lpy = local.points[:, 0], local.points[:, 1]
+    lnx, lny = local.normals[:, 0], local.normals[:, 1]
+    for _ in range(iterations):
+        c, s = math.cos(th), math.sin(th)
+        wx = x + c * px - s * py
+        wy = y + s * px + c * py
+        idx, dist = local.nearest_xy(wx, wy)
+        ok = dist <= max_distance  # none: inf
+        inliers = int(np.count_nonzero(ok))
+        if inliers < 3:
+            break
+        i = idx[ok]
+        nx, ny = lnx[i], lny[i]
+        pxo, pyo = px[ok], py[ok]
+        r = nx * (wx[ok] - lpx[i]) + ny * (wy[ok] - lpy[i])
+        w = 1.0 / (1.0 + (r / sigma) ** 2) / sigma**2
+        dth = nx * (-s * pxo - c * pyo) + ny * (c * pxo - s * pyo)
+        jac = np.column_stack((nx, ny, dth))
+        jw = (jac * w[:, None]).T
+        hd = jw @ jac
+        dev = np.array([x - prior_pose[0], y - prior_pose[1], math.remainder(th - prior_pose[2], 2.0 * math.pi)])
+        hess = hd + lam
+        grad = jw @ r + lam @ dev
+        try:
+            step = -np.linalg.solve(hess, grad)
+        except np.linalg.LinAlgError:
+            break
+        x, y, th = x + float(step[0]), y + float(step[1]), th + float(step[2])
+        hd_last = hd
+        if math.hypot(step[0], step[1]) < 1e-4 and abs(step[2]) < 1e-4:
+            break
+    weak = 0.0 if hd_last is None else float(np.linalg.eigvalsh(hd_last)[0])
+    return IcpResult((x, y, th), inliers, weak)

@@ -1,0 +1,438 @@
+"""A* over the inflated occupancy grid: the path provider the pilot takes.
+
+    planner = PathPlanner(cells, resolution, origin)          # map_server-style int8 cells
+    planner((x0, y0), (x1, y1)) -> [(x, y), ...] | None       # waypoints after the start, ending at the goal
+    planner.route(start, goal, blocked=[(x, y)]) -> [...]     # the pilot's path provider: [] when no path
+
+The map is re-gridded at ``plan_resolution`` (a plan cell is blocked if any map cell in it is
+occupied, or unknown when ``unknown_is_blocked``). Every plan cell gets its distance to the nearest
+blocked cell (exact Euclidean between cell centres, up to ``inflation + cost_radius``). A cell is
+traversable when that distance, less half a plan cell (so the cell's worst corner counts), is at
+least ``inflation`` (robot radius plus a margin). A* runs 8-connected with octile heuristic; each
+step costs its length times ``1 + cost_weight * (1 - d / cost_radius)`` near walls, so paths keep
+to the middle of corridors. The cell path is then laid out as a few waypoints (``_lay``): each
+leg as long as possible while its straight line stays as clear of walls as the cell path was at its
+narrowest over that stretch (so shortcuts go through the middle of doorways, not past a jamb), and
+while the front ultrasonic will not bar it: the collision guard refuses a drive start when the
+cone (40 deg, a 1.5 m range) sees anything nearer than the leg plus its stop distance, and any
+forward motion or turn in place below the stop distance. ``leg_ok`` and ``turn_ok`` ray-cast that
+cone (widened by the aim tolerance) over the map at its own resolution; a leg that would be
+refused on the map's own walls (a door frame seen past the end of a long approach, a waypoint
+facing a wall) is cut shorter, so the approach to a door ends in front of its middle and the next
+leg goes straight through. ``SensorCone`` holds the sensor's figures (``PlannerConfig.sensor``;
+None turns the check off).
+
+``blocked`` points (where the robot's own sensor found the way barred, e.g. a box not on the map)
+are planned around as discs of ``blocked_radius``, inflated like walls, for that call only (the
+caller keeps them for as long as they matter: the pilot, for the order that met them). A point
+within ``known_tolerance`` of a wall already on the map is that wall, seen by the cone: ignored
+(otherwise one echo off a door frame closes the doorway).
+
+A start inside the inflated zone (a robot parked near a wall) is moved to the nearest traversable
+cell within ``escape`` metres, which becomes the first waypoint; a goal there is refused (None).
+
+Pure numpy + heapq; no I/O.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["PathPlanner", "PlannerConfig", "SensorCone"]
+
+Point = tuple[float, float]
+_SQRT2 = math.sqrt(2.0)
+_MOVES = (
+    (1, 0, 1.0),
+    (-1, 0, 1.0),
+    (0, 1, 1.0),
+    (0, -1, 1.0),
+    (1, 1, _SQRT2),
+    (1, -1, _SQRT2),
+    (-1, 1, _SQRT2),
+    (-1, -1, _SQRT2),
+)
+
+
+@dataclass(frozen=True, slots=True)
+class SensorCone:
+    """The front ultrasonic as the collision guard reads it (defaults: ``GuardConfig``, the field's
+    board): legs are laid so that the guard's drive-start check passes on the map's own walls."""
+
+    offset: float = 0.17  # m ahead of the robot's centre
+    half_angle: float = math.radians(20.0)  # the cone's half-width
+    max_range: float = 1.5  # m: farther echoes read as "nothing seen"
+    stop_distance: float = 0.40  # m: the guard's threshold (``GuardConfig.stop_distance_m``)
+    angle_margin: float = math.radians(3.0)  # the drive starts within the aim tolerance (3 deg)
+    range_margin: float = 0.08  # m: pose error, sensor noise, the map's rasterisation
+    ray_step: float = math.radians(2.0)  # the cone is checked as rays this far apart
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerConfig:
+    robot_radius: float = 0.17  # m
+    margin: float = 0.05  # m beyond the radius
+    cost_radius: float = 0.4  # m of soft cost beyond the inflation
+    cost_weight: float = 3.0
+    plan_resolution: float = 0.1  # m
+    occupied_threshold: int = 65  # cells >= this are walls (map_saver's threshold)
+    unknown_is_blocked: bool = True
+    escape: float = 0.5  # m a blocked start may be moved
+    max_expansions: int = 2_000_000
+    blocked_radius: float = 0.25  # m: a ``blocked`` point is planned around as a disc this size
+    known_tolerance: float = 0.15  # m: a ``blocked`` point this near a mapped wall is that wall: ignored
+    sensor: SensorCone | None = field(default_factory=lambda: SensorCone())  # None: legs not checked
+
+    @property
+    def inflation(self) -> float:
+        return self.robot_radius + self.margin
+
+
+class PathPlanner:
+    def __init__(
+        self,
+        cells: npt.ArrayLike,
+        resolution: float,
+        origin: tuple[float, float] = (0.0, 0.0),
+        config: PlannerConfig | None = None,
+    ) -> None:
+        self.config = cfg = config or PlannerConfig()
+        g = np.asarray(cells)
+        if g.ndim != 2 or g.size == 0:
+            raise ValueError(f"cells: expected a non-empty 2-D grid, got shape {g.shape}")
+        blocked = g >= cfg.occupied_threshold
+        if cfg.unknown_is_blocked:
+            blocked |= g < 0
+        f = max(1, round(cfg.plan_resolution / resolution))
+        self.resolution = res = resolution * f
+        self.origin = (float(origin[0]), float(origin[1]))
+        h, w = -(-g.shape[0] // f), -(-g.shape[1] // f)
+        pad = np.zeros((h * f, w * f), dtype=bool)
+        pad[: g.shape[0], : g.shape[1]] = blocked
+        self.blocked: npt.NDArray[np.bool_] = np.asarray(pad.reshape(h, f, w, f).any(axis=(1, 3)), dtype=bool)
+        reach = cfg.inflation + cfg.cost_radius + res
+        self.distance = _distance(self.blocked, res, reach)
+        self.free = self.distance - res / 2.0 >= cfg.inflation
+        cr = max(cfg.cost_radius, 1e-9)
+        near = np.clip(1.0 - (self.distance - res / 2.0 - cfg.inflation) / cr, 0.0, 1.0)
+        self.cost = 1.0 + cfg.cost_weight * near
+        # What the ultrasonic echoes from, at the map's own resolution (the plan grid is coarser).
+        self.echo: npt.NDArray[np.bool_] = np.asarray(blocked, dtype=bool)
+        self.echo_resolution = float(resolution)
+
+    def cell(self, p: Point) -> tuple[int, int]:
+        """(row, col) of a world point."""
+        return (
+            math.floor((p[1] - self.origin[1]) / self.resolution),
+            math.floor((p[0] - self.origin[0]) / self.resolution),
+        )
+
+    def center(self, rc: tuple[int, int]) -> Point:
+        return (self.origin[0] + (rc[1] + 0.5) * self.resolution, self.origin[1] + (rc[0] + 0.5) * self.resolution)
+
+    def _inside(self, rc: tuple[int, int]) -> bool:
+        return bool(0 <= rc[0] < self.free.shape[0] and 0 <= rc[1] < self.free.shape[1])
+
+    def is_free(self, p: Point) -> bool:
+        rc = self.cell(p)
+        return self._inside(rc) and bool(self.free[rc])
+
+    def __call__(self, start_xy: Point, goal_xy: Point, blocked: Sequence[Point] = ()) -> list[Point] | None:
+        if not all(math.isfinite(v) for v in (*start_xy, *goal_xy)):
+            return None
+        marks = self.unknown_marks(blocked)
+        free, cost, dist = self._with_blocked(marks)
+        goal = self.cell(goal_xy)
+        if not self._inside(goal) or not free[goal]:
+            return None
+        first = self.cell(start_xy)
+        start = self._escape(first, free)
+        if start is None:
+            return None
+        cells = self._astar(start, goal, free, cost)
+        if cells is None:
+            return None
+        s = (float(start_xy[0]), float(start_xy[1]))
+        g = (float(goal_xy[0]), float(goal_xy[1]))
+        return self._lay(s, g, cells, free, dist, marks, escaped=start != first)
+
+    def route(self, start_xy: Point, goal_xy: Point, blocked: Sequence[Point] = ()) -> list[Point]:
+        """The pilot's path provider form: waypoints, or [] when there is no path."""
+        return self(start_xy, goal_xy, blocked) or []
+
+    def unknown_marks(self, blocked: Sequence[Point]) -> list[Point]:
+        """The ``blocked`` points the map does not already explain: finite, and farther than
+        ``known_tolerance`` from a mapped wall (an echo from a known wall is that wall)."""
+        out = []
+        tol = self.config.known_tolerance + self.resolution / 2.0
+        for x, y in blocked:
+            if not (math.isfinite(x) and math.isfinite(y)):
+                continue
+            rc = self.cell((x, y))
+            if self._inside(rc) and self.distance[rc] <= tol:
+                continue
+            out.append((float(x), float(y)))
+        return out
+
+    def _with_blocked(
+        self, pts: Sequence[Point]
+    ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """(free, cost, distance) with ``pts`` added as discs (the planner's own arrays without any)."""
+        if not pts:
+            return self.free, self.cost, self.distance
+        cfg, res = self.config, self.resolution
+        dist = self.distance.copy()
+        reach = cfg.blocked_radius + cfg.inflation + cfg.cost_radius + res
+        h, w = dist.shape
+        for x, y in pts:
+            r0, c0 = self.cell((x - reach, y - reach))
+            r1, c1 = self.cell((x + reach, y + reach))
+            r0, c0, r1, c1 = max(r0, 0), max(c0, 0), min(r1 + 1, h), min(c1 + 1, w)
+            if r0 >= r1 or c0 >= c1:
+                continue
+            ys = self.origin[1] + (np.arange(r0, r1) + 0.5) * res
+            xs = self.origin[0] + (np.arange(c0, c1) + 0.5) * res
+            d = np.hypot(xs[None, :] - x, ys[:, None] - y) - cfg.blocked_radius
+            np.minimum(dist[r0:r1, c0:c1], np.maximum(d, 0.0), out=dist[r0:r1, c0:c1])
+        free = np.asarray(dist - res / 2.0 >= cfg.inflation, dtype=bool)
+        cr = max(cfg.cost_radius, 1e-9)
+        near = np.clip(1.0 - (dist - res / 2.0 - cfg.inflation) / cr, 0.0, 1.0)
+        return free, 1.0 + cfg.cost_weight * near, dist
+
+    # -- what the front ultrasonic will see (the guard's view of a leg) ----------------------------
+
+    def cone_range(self, xy: Point, heading: float, reach: float, marks: Sequence[Point] = ()) -> float:
+        """Nearest echo (m, capped at ``reach``) the front ultrasonic would report with the robot at
+        ``xy`` facing ``heading``, over the cone widened by ``angle_margin``, from the map (and
+        from ``marks``, the obstacles the map lacks, as small discs)."""
+        return self._cone_min(xy, np.array([heading]), reach, marks)
+
+    def _cone_min(self, xy: Point, headings: npt.NDArray[np.float64], reach: float, marks: Sequence[Point]) -> float:
+        sc = self.config.sensor
+        assert sc is not None
+        half = sc.half_angle + sc.angle_margin
+        k = max(2, math.ceil(2.0 * half / sc.ray_step) + 1)
+        offs = np.linspace(-half, half, k)
+        sx = xy[0] + sc.offset * np.cos(headings)  # the sensor sits ahead of the centre
+        sy = xy[1] + sc.offset * np.sin(headings)
+        ang = (headings[:, None] + offs[None, :]).ravel()
+        ox, oy = np.repeat(sx, k), np.repeat(sy, k)
+        step = self.echo_resolution / 2.0
+        ts = np.arange(step, reach + step, step)
+        px = ox[:, None] + np.cos(ang)[:, None] * ts[None, :]
+        py = oy[:, None] + np.sin(ang)[:, None] * ts[None, :]
+        cols = np.floor((px - self.origin[0]) / self.echo_resolution).astype(np.int64)
+        rows = np.floor((py - self.origin[1]) / self.echo_resolution).astype(np.int64)
+        h, w = self.echo.shape
+        inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+        hit = ~inside  # off the map: unknown, assume it echoes
+        hit[inside] = self.echo[rows[inside], cols[inside]]
+        for mx, my in marks:
+            hit |= np.hypot(px - mx, py - my) < _MARK_ECHO_M
+        any_hit = hit.any(axis=1)
+        if not any_hit.any():
+            return reach
+        first = np.argmax(hit, axis=1)
+        return float(min(reach, ts[first[any_hit]].min()))
+
+    def leg_ok(self, a: Point, b: Point, marks: Sequence[Point] = ()) -> bool:
+        """The guard will let the robot drive from ``a`` to ``b`` (once turned toward ``b``): nothing
+        in the cone nearer than the leg plus the stop distance (or, beyond the sensor's range,
+        nothing it can see), and at ``b`` nothing ahead inside the stop distance."""
+        sc = self.config.sensor
+        if sc is None:
+            return True
+        length = math.dist(a, b)
+        if length < 1e-9:
+            return True
+        h = math.atan2(b[1] - a[1], b[0] - a[0])
+        need = min(length + sc.stop_distance, sc.max_range) + sc.range_margin
+        if self.cone_range(a, h, need, marks) < need:
+            return False
+        near = sc.stop_distance + sc.range_margin
+        return self.cone_range(b, h, near, marks) >= near
+
+    def turn_ok(self, xy: Point, h0: float, h1: float, marks: Sequence[Point] = ()) -> bool:
+        """The guard will let the robot turn in place at ``xy`` from ``h0`` to ``h1`` (shorter arc):
+        the cone sees nothing inside the stop distance anywhere along the sweep."""
+        sc = self.config.sensor
+        if sc is None:
+            return True
+        d = math.remainder(h1 - h0, 2.0 * math.pi)
+        n = max(1, math.ceil(abs(d) / math.radians(5.0)))
+        headings = h0 + d * np.arange(n + 1) / n
+        near = sc.stop_distance + sc.range_margin
+        return self._cone_min(xy, headings, near, marks) >= near
+
+    # -- waypoints ---------------------------------------------------------------------------------
+
+    def _lay(
+        self,
+        start: Point,
+        goal: Point,
+        cells: list[tuple[int, int]],
+        free: npt.NDArray[np.bool_],
+        dist: npt.NDArray[np.float64],
+        marks: Sequence[Point],
+        escaped: bool,
+    ) -> list[Point]:
+        """Waypoints along the A* cell path: each leg as long as possible while (1) its straight line
+        stays as clear of walls as the cell path was at its narrowest over that stretch (capped at
+        ``inflation + cost_radius``), so shortcuts keep to the middle of doorways and corridors, and
+        (2) the guard will accept it (``leg_ok``; the turn onto it, ``turn_ok``). When no leg
+        passes (2), the longest that passes (1) is taken."""
+        cfg = self.config
+        n = len(cells)
+        pts = [self.center(rc) for rc in cells]
+        pts[-1] = goal
+        out: list[Point] = []
+        h_in: float | None = None
+        if escaped:
+            out.append(pts[0])  # out of the inflated zone first, straight to the nearest free cell
+            h_in = math.atan2(pts[0][1] - start[1], pts[0][0] - start[0])
+        else:
+            pts[0] = start
+        if n == 1:
+            return [*out, goal] if out[-1:] != [goal] else out
+        rr = np.array([rc[0] for rc in cells])
+        cc = np.array([rc[1] for rc in cells])
+        dpath = dist[rr, cc]
+        keep_cap = cfg.inflation + cfg.cost_radius
+        i = 0
+        while i < n - 1:
+            bott = np.minimum.accumulate(dpath[i:])
+            chosen = fallback = None
+            for j in range(n - 1, i, -1):
+                need = min(float(bott[j - i]), keep_cap) - self.resolution / 2.0 - 1e-9
+                if j > i + 1 and not self._visible(cells[i], cells[j], free, dist, need):
+                    continue
+                if fallback is None:
+                    fallback = j
+                if cfg.sensor is None:
+                    chosen = j
+                    break
+                if not self.leg_ok(pts[i], pts[j], marks):
+                    continue
+                h = math.atan2(pts[j][1] - pts[i][1], pts[j][0] - pts[i][0])
+                if h_in is not None and not self.turn_ok(pts[i], h_in, h, marks):
+                    continue
+                chosen = j
+                break
+            j = chosen if chosen is not None else (fallback if fallback is not None else i + 1)
+            h_in = math.atan2(pts[j][1] - pts[i][1], pts[j][0] - pts[i][0])
+            out.append(pts[j])
+            i = j
+        return out
+
+    def _escape(self, rc: tuple[int, int], free_grid: npt.NDArray[np.bool_]) -> tuple[int, int] | None:
+        if self._inside(rc) and free_grid[rc]:
+            return rc
+        n = math.ceil(self.config.escape / self.resolution)
+        best: tuple[float, tuple[int, int]] | None = None
+        for dr in range(-n, n + 1):
+            for dc in range(-n, n + 1):
+                q = (rc[0] + dr, rc[1] + dc)
+                d = math.hypot(dr, dc)
+                if d <= n and self._inside(q) and free_grid[q] and (best is None or d < best[0]):
+                    best = (d, q)
+        return None if best is None else best[1]
+
+    def _astar(
+        self,
+        start: tuple[int, int],
+        goal: tuple[int, int],
+        free_grid: npt.NDArray[np.bool_],
+        cost_grid: npt.NDArray[np.float64],
+    ) -> list[tuple[int, int]] | None:
+        h, w = free_grid.shape
+        free = free_grid.ravel().tolist()
+        cost = cost_grid.ravel().tolist()
+        s, g = start[0] * w + start[1], goal[0] * w + goal[1]
+        gr, gc = goal
+        best = {s: 0.0}
+        parent = {s: -1}
+        heap = [(0.0, 0.0, s)]
+        closed = set()
+        expansions = 0
+        while heap:
+            _, gcost, u = heapq.heappop(heap)
+            if u in closed:
+                continue
+            if u == g:
+                path = []
+                while u != -1:
+                    path.append((u // w, u % w))
+                    u = parent[u]
+                return path[::-1]
+            closed.add(u)
+            expansions += 1
+            if expansions > self.config.max_expansions:
+                return None
+            ur, uc = divmod(u, w)
+            for dr, dc, step in _MOVES:
+                r, c = ur + dr, uc + dc
+                if r < 0 or r >= h or c < 0 or c >= w:
+                    continue
+                v = r * w + c
+                if not free[v] or v in closed:
+                    continue
+                if dr and dc and not (free[ur * w + c] and free[r * w + uc]):
+                    continue  # no corner cutting
+                ng = gcost + step * 0.5 * (cost[u] + cost[v])
+                if ng < best.get(v, math.inf):
+                    best[v] = ng
+                    parent[v] = u
+                    ddr, ddc = abs(r - gr), abs(c - gc)
+                    heur = (ddr + ddc) + (_SQRT2 - 2.0) * min(ddr, ddc)
+                    heapq.heappush(heap, (ng + heur, ng, v))
+        return None
+
+    def _visible(
+        self,
+        a: tuple[int, int],
+        b: tuple[int, int],
+        free: npt.NDArray[np.bool_],
+        dist: npt.NDArray[np.float64],
+        need: float,
+    ) -> bool:
+        """The straight line between two cells' centres crosses only traversable cells at least
+        ``need`` from the nearest blocked cell (both cells either side of it where it passes between
+        two centres)."""
+        n = int(max(abs(b[0] - a[0]), abs(b[1] - a[1])) * 2) + 1
+        t = np.linspace(0.0, 1.0, n + 1)
+        fr = a[0] + (b[0] - a[0]) * t
+        fc = a[1] + (b[1] - a[1]) * t
+        rows = np.concatenate((np.rint(fr), np.floor(fr + 0.5 - 1e-9))).astype(np.int64)
+        cols = np.concatenate((np.rint(fc), np.floor(fc + 0.5 - 1e-9))).astype(np.int64)
+        return bool(free[rows, cols].all() and (dist[rows, cols] >= need).all())
+
+
+_MARK_ECHO_M = 0.12  # a marked point (10 cm behind the echo the pilot met) echoes as a disc this size
+
+
+def _distance(blocked: npt.NDArray[np.bool_], res: float, reach: float) -> npt.NDArray[np.float64]:
+    """Distance (m, between cell centres) to the nearest blocked cell, capped at ``reach``."""
+    h, w = blocked.shape
+    n = math.ceil(reach / res)
+    dist = np.full((h, w), reach, dtype=np.float64)
+    dist[blocked] = 0.0
+    pad = np.zeros((h + 2 * n, w + 2 * n), dtype=bool)
+    pad[n : n + h, n : n + w] = blocked
+    offsets = sorted(
+        (
+            (math.hypot(dr, dc) * res, dr, dc)
+            for dr in range(-n, n + 1)
+            for dc in range(-n, n + 1)
+            if 0 < math.hypot(dr, dc) * res < reach
+        ),
+    )
+    for d, dr, dc in offsets:
+        shifted = pad[n + dr : n + dr + h, n + dc : n + dc + w]
+        np.minimum(dist, np.where(shifted, d, reach), out=dist)
+    return dist

@@ -1,0 +1,324 @@
+"""Benchmark: N robots on the real-time field, an agent process each, one headless console.
+
+    .venv/bin/python bench/scale.py [--robots 50] [--seconds 300] [--lidar-hz 0] [--no-mqtt] [--json FILE]
+
+The site as docs/operations.md lays it out: the real-time field (``RealtimeField``, the hall-50
+scenario cut to N robots) serves every robot's simulated board (and lidar, at ``--lidar-hz``; 0:
+none) over TCP in this process; one Zenoh router in its own process; with MQTT on (the default) a
+private Mosquitto; and one ``fleetlink agent --config robot-<n>.toml`` process per robot, its Zenoh
+session a client of the router (pose at 20 Hz, state at 1 Hz), its MQTT link on the broker. The
+console is a Zenoh client of the router in this process subscribed to ``fleetlink/v1/*/pose``: it
+decodes every pose and measures, over ``--seconds`` after a warm-up in which every robot has
+been heard:
+
+* poses delivered: received / (20 Hz x robots x seconds) -- the goal's definition; beside it the
+  ratio by sequence number (received / headerId span), which separates loss on the way from an
+  agent publishing below its rate;
+* staleness at the console: receive time minus the pose's header timestamp (same host, same wall
+  clock), p50/p99/max;
+* per agent: CPU % of one core and RSS (from /proc, sampled every second; max over the run);
+  beside them the CPU of the agents together, of this process (field + console), the router and
+  the broker, so one sees where the cores go.
+
+Goals: >= 99.9 % delivered, staleness p99 <= 100 ms, agent RSS <= 80 MB. The table shows each
+figure beside its goal. With ``--lidar-hz`` > 0 every robot gets a simulated lidar at that rate and
+its agent reads it (``lidar =`` in its robot.toml; the runtime's lidar worker feeds its mapper);
+0 (the default) runs without lidars. The rate is reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+POSE_HZ = 20.0
+GOALS = {"delivered_ratio": 0.999, "staleness_p99_s": 0.100, "agent_rss_max_bytes": 80 * 1024 * 1024}
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+PAGE = os.sysconf("SC_PAGE_SIZE")
+
+ROUTER_SCRIPT = r"""
+import json, sys, zenoh
+c = zenoh.Config()
+c.insert_json5("mode", '"router"')
+c.insert_json5("scouting/multicast/enabled", "false")
+c.insert_json5("listen/endpoints", json.dumps([sys.argv[1]]))
+c.insert_json5("connect/endpoints", "[]")
+s = zenoh.open(c)
+print("ready", flush=True)
+sys.stdin.read()
+s.close()
+"""
+
+
+def cpu_seconds(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime + stime
+
+
+def rss_bytes(pid: int) -> int:
+    with open(f"/proc/{pid}/statm") as f:
+        return int(f.read().split()[1]) * PAGE
+
+
+def pct(values: list[float], q: float) -> float:
+    if not values:
+        return float("nan")
+    s = sorted(values)
+    return s[min(len(s) - 1, int(q * len(s)))]
+
+
+@dataclass
+class Console:
+    """The headless console: decodes every pose, counts and times the ones inside the window."""
+
+    measuring: bool = False
+    counts: dict[str, int] = field(default_factory=dict)
+    ids: dict[str, list[int]] = field(default_factory=dict)
+    staleness: list[float] = field(default_factory=list)
+    heard: set[str] = field(default_factory=set)
+    bad: int = 0
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_sample(self, sample: Any) -> None:
+        from fleetlink.shared import wire
+
+        now = time.time()  # a bench may read the wall clock to measure (same clock as the header's)
+        try:
+            msg = wire.decode_key(str(sample.key_expr), sample.payload.to_bytes())
+        except wire.WireError:
+            with self.lock:
+                self.bad += 1
+            return
+        robot = msg.header.robot
+        with self.lock:
+            self.heard.add(robot)
+            if self.measuring:
+                self.counts[robot] = self.counts.get(robot, 0) + 1
+                self.ids.setdefault(robot, []).append(msg.header.headerId)
+                self.staleness.append(now - msg.header.timestamp)
+
+
+def robot_toml(name: str, board: str, lidar: str | None, router: str, mqtt_port: int | None) -> str:
+    text = f"""robot = "{name}"
+board = "{board}"
+tag = "{name}"
+{f'lidar = "{lidar}"' if lidar else ""}
+
+[zenoh]
+connect = ["{router}"]
+mode = "client"
+
+[rates]
+control_hz = 50.0
+pose_hz = {POSE_HZ}
+state_hz = 1.0
+"""
+    if mqtt_port is not None:
+        text += f'\n[mqtt]\nurl = "mqtt://127.0.0.1:{mqtt_port}"\n'
+    return text
+
+
+def run(n: int, seconds: float, lidar_hz: float, use_mqtt: bool, warmup_timeout: float) -> dict[str, Any]:
+    import zenoh
+
+    from fleetlink.field.plans import load_plan
+    from fleetlink.field.realtime import RealtimeField
+    from fleetlink.field.scenario import LidarSettings, load_scenario
+    from fleetlink.shared.clock import SystemClock
+    from fleetlink.shared.zenoh_config import peer_config
+    from tests.harness.mosquitto import MosquittoBroker, free_port
+
+    sc = load_scenario(ROOT / "field" / "scenarios" / "hall-50.toml")
+    if n > len(sc.robots):
+        raise SystemExit(f"the hall-50 scenario has {len(sc.robots)} robots; asked for {n}")
+    sc = replace(sc, robots=sc.robots[:n], lidar=LidarSettings(lidar_hz > 0, lidar_hz if lidar_hz > 0 else 10.0))
+    tmp = Path(tempfile.mkdtemp(prefix="fleetlink-scale-"))
+    router_ep = f"tcp/127.0.0.1:{free_port()}"
+    procs: list[subprocess.Popen[bytes]] = []
+    broker = None
+    fld = RealtimeField(sc, load_plan(sc.plan), SystemClock())
+    console = Console()
+    session = None
+    try:
+        router = subprocess.Popen(
+            [sys.executable, "-c", ROUTER_SCRIPT, router_ep], stdin=subprocess.PIPE, stdout=subprocess.PIPE
+        )
+        assert router.stdout is not None
+        if router.stdout.readline().strip() != b"ready":
+            raise SystemExit("the zenoh router did not start")
+        if use_mqtt:
+            broker = MosquittoBroker(tmp / "broker").start()
+        endpoints = fld.start()
+        session = zenoh.open(peer_config(connect=[router_ep], mode="client"))
+        session.declare_subscriber("fleetlink/v1/*/pose", console.on_sample)
+        exe = str(Path(sys.executable).parent / "fleetlink")
+        agents: dict[str, subprocess.Popen[bytes]] = {}
+        for name, ep in endpoints.items():
+            cfg = tmp / f"robot-{name}.toml"
+            cfg.write_text(robot_toml(name, ep.board, ep.lidar, router_ep, broker.port if broker else None))
+            log = (tmp / f"agent-{name}.log").open("wb")
+            agents[name] = subprocess.Popen(
+                [exe, "agent", "--config", str(cfg)], stdin=subprocess.DEVNULL, stdout=log, stderr=log
+            )
+        procs = list(agents.values())
+        t_start = time.perf_counter()
+        while len(console.heard) < n:
+            dead = [k for k, p in agents.items() if p.poll() is not None]
+            if dead:
+                raise SystemExit(f"agents exited: {dead}; logs in {tmp}")
+            if time.perf_counter() - t_start > warmup_timeout:
+                raise SystemExit(f"only {len(console.heard)} of {n} robots heard after {warmup_timeout:.0f} s")
+            time.sleep(0.2)
+        time.sleep(2.0)  # let the last ones settle
+        startup_s = time.perf_counter() - t_start
+        pids = {k: p.pid for k, p in agents.items()}
+        cpu0 = {k: cpu_seconds(pid) for k, pid in pids.items()}
+        self_cpu0, router_cpu0 = cpu_seconds(os.getpid()), cpu_seconds(router.pid)
+        broker_pid = broker.pid if broker is not None else None
+        broker_cpu0 = cpu_seconds(broker_pid) if broker_pid else 0.0
+        rss_max = dict.fromkeys(pids, 0)
+        with console.lock:
+            console.measuring = True
+        t0 = time.perf_counter()
+        end = t0 + seconds
+        while (now := time.perf_counter()) < end:
+            for k, pid in pids.items():
+                rss_max[k] = max(rss_max[k], rss_bytes(pid))
+            time.sleep(min(1.0, max(0.0, end - now)))
+        with console.lock:
+            console.measuring = False
+        window = time.perf_counter() - t0
+        cpu = {k: (cpu_seconds(pid) - cpu0[k]) / window for k, pid in pids.items()}
+        self_cpu = (cpu_seconds(os.getpid()) - self_cpu0) / window
+        router_cpu = (cpu_seconds(router.pid) - router_cpu0) / window
+        broker_cpu = (cpu_seconds(broker_pid) - broker_cpu0) / window if broker_pid else 0.0
+        crashed = [k for k, p in agents.items() if p.poll() is not None]
+        received = sum(console.counts.values())
+        expected = POSE_HZ * n * window
+        span = sum(max(v) - min(v) + 1 for v in console.ids.values() if v)
+        return {
+            "robots": n,
+            "seconds_s": window,
+            "startup_s": startup_s,
+            "lidar_rate_hz": lidar_hz,
+            "mqtt": use_mqtt,
+            "poses_expected": expected,
+            "poses_received": received,
+            "delivered_ratio": received / expected,
+            "delivered_by_sequence_ratio": received / span if span else 0.0,
+            "rate_min_robot_hz": min(console.counts.get(k, 0) for k in pids) / window,
+            "staleness_p50_s": pct(console.staleness, 0.50),
+            "staleness_p99_s": pct(console.staleness, 0.99),
+            "staleness_max_s": max(console.staleness, default=float("nan")),
+            "bad_poses": console.bad,
+            "agent_cpu_mean_ratio": statistics.fmean(cpu.values()),
+            "agent_cpu_max_ratio": max(cpu.values()),
+            "agent_rss_mean_bytes": statistics.fmean(rss_max.values()),
+            "agent_rss_max_bytes": max(rss_max.values()),
+            "field_and_console_cpu_ratio": self_cpu,
+            "router_cpu_ratio": router_cpu,
+            "broker_cpu_ratio": broker_cpu,
+            "agent_cpu_total_ratio": sum(cpu.values()),
+            "host_cpus": os.cpu_count() or 0,
+            "agents_crashed": len(crashed),
+        }
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.terminate()
+        for p in procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        if session is not None:
+            session.close()
+        fld.stop()
+        if broker is not None:
+            broker.stop()
+        if "router" in locals():
+            router.stdin.close()  # type: ignore[union-attr]
+            try:
+                router.wait(10)
+            except subprocess.TimeoutExpired:
+                router.kill()
+                router.wait()
+
+
+def table(r: dict[str, Any]) -> str:
+    rows = [
+        ("poses delivered", f"{r['delivered_ratio'] * 100:.3f} %", ">= 99.9 %", r["delivered_ratio"] / 0.999),
+        ("  by sequence (lost on the way)", f"{r['delivered_by_sequence_ratio'] * 100:.3f} %", "", None),
+        ("  slowest robot's pose rate", f"{r['rate_min_robot_hz']:.2f} Hz", "20 Hz", r["rate_min_robot_hz"] / POSE_HZ),
+        ("staleness p50", f"{r['staleness_p50_s'] * 1e3:.1f} ms", "", None),
+        ("staleness p99", f"{r['staleness_p99_s'] * 1e3:.1f} ms", "<= 100 ms", r["staleness_p99_s"] / 0.100),
+        ("staleness max", f"{r['staleness_max_s'] * 1e3:.1f} ms", "", None),
+        (
+            "agent RSS max",
+            f"{r['agent_rss_max_bytes'] / 2**20:.1f} MB",
+            "<= 80 MB",
+            r["agent_rss_max_bytes"] / 2**20 / 80,
+        ),
+        ("agent RSS mean", f"{r['agent_rss_mean_bytes'] / 2**20:.1f} MB", "", None),
+        (
+            "agent CPU mean / max",
+            f"{r['agent_cpu_mean_ratio'] * 100:.1f} / {r['agent_cpu_max_ratio'] * 100:.1f} %",
+            "",
+            None,
+        ),
+        ("agents' CPU, all together", f"{r['agent_cpu_total_ratio'] * 100:.1f} %", "", None),
+        ("field + console CPU", f"{r['field_and_console_cpu_ratio'] * 100:.1f} %", "", None),
+        ("router CPU", f"{r['router_cpu_ratio'] * 100:.1f} %", "", None),
+        ("broker CPU", f"{r['broker_cpu_ratio'] * 100:.1f} %", "", None),
+    ]
+    lidar = f"{r['lidar_rate_hz']:g} Hz, read by each agent" if r["lidar_rate_hz"] else "off"
+    head = (
+        f"{r['robots']} robots, {r['seconds_s']:.0f} s measured, agents in separate processes, "
+        f"lidar {lidar}, MQTT {'on' if r['mqtt'] else 'off'}, "
+        f"{r['host_cpus']} CPUs; {r['agents_crashed']} agents crashed, {r['bad_poses']} undecodable poses"
+    )
+    lines = [head, f"{'':34} {'ours':>16} {'goal':>10} {'ratio':>7}"]
+    for name, ours, goal, ratio in rows:
+        lines.append(f"{name:34} {ours:>16} {goal:>10} {'' if ratio is None else f'{ratio:.3f}':>7}")
+    met = (
+        r["delivered_ratio"] >= GOALS["delivered_ratio"]
+        and r["staleness_p99_s"] <= GOALS["staleness_p99_s"]
+        and r["agent_rss_max_bytes"] <= GOALS["agent_rss_max_bytes"]
+    )
+    lines.append(f"goals {'met' if met else 'NOT met'}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--robots", type=int, default=50)
+    ap.add_argument("--seconds", type=float, default=300.0)
+    ap.add_argument("--lidar-hz", type=float, default=0.0, help="field lidar rate (0: no lidars)")
+    ap.add_argument("--no-mqtt", action="store_true", help="agents on Zenoh only (no broker)")
+    ap.add_argument("--warmup-timeout", type=float, default=120.0)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args(argv)
+    r = run(args.robots, args.seconds, args.lidar_hz, not args.no_mqtt, args.warmup_timeout)
+    print(table(r))
+    if args.json:
+        args.json.write_text(json.dumps(r, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

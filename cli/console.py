@@ -1,0 +1,494 @@
+"""The operator console: join an existing fleet over Zenoh (primary) and MQTT (fallback).
+
+    fleetlink console --zenoh-connect tcp/10.0.0.5:7447 --mqtt mqtt://10.0.0.5:1883
+    fleetlink console --config console.toml
+    fleetlink console --read-only ...
+    fleetlink console --user op-alice --password-file op-alice.password --ca-file ca.crt \
+        --zenoh-connect tls/router.site-a.example:7447 --mqtt mqtts://broker.site-a.example:8883
+
+On a secured site (docs/operations.md) the console logs in to the router and the broker as
+``--user`` (``op-<name>``, also its sender id unless --operator says otherwise) with the password
+in ``--password-file``; ``--ca-file`` is the site CA for tls/ and mqtts:// endpoints.
+
+Keys: u i o / j k l / m , . (teleop_twist_keyboard), arrows and w a s d drive the selected robot;
+space or k stops it; Esc stops every robot; q/z, W/x, e/c change speeds; t takes the control
+lease; h returns home; p toggles the payload; ':' types a goal or a mark; '/' filters; a click on
+the map sends a goal (after confirmation) or places a mark; ctrl+q quits (and stops every robot).
+See docs/console.md.
+
+Config file (TOML), every key optional; command-line options win:
+
+    operator = "operator-1"
+    read_only = false
+    marks_file = "marks.json"
+    user = "op-alice"                    # a secured site: the login on both links (or --user)
+    password_file = "op-alice.password"
+    ca_file = "ca.crt"                   # the site CA, for tls/ and mqtts://
+    [zenoh]
+    connect = ["tls/router.site-a.example:7447"]
+    listen = []
+    [mqtt]
+    url = "mqtts://broker.site-a.example:8883"
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import socket
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ConsoleSettings:
+    operator: str = "operator-1"
+    zenoh_connect: tuple[str, ...] = ()
+    zenoh_listen: tuple[str, ...] = ()
+    mqtt_url: str = "mqtt://127.0.0.1:1883"
+    read_only: bool = False
+    marks_file: Path | None = field(default_factory=lambda: Path("marks.json"))
+    user: str | None = None
+    password: str | None = field(default=None, repr=False)
+    ca_file: str | None = None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", type=Path, help="a console TOML file (see above)")
+    parser.add_argument("--operator", help="this console's sender id (default operator-1)")
+    parser.add_argument("--zenoh-connect", action="append", default=None, help="Zenoh endpoint to connect to (repeat)")
+    parser.add_argument("--zenoh-listen", action="append", default=None, help="Zenoh endpoint to listen on (repeat)")
+    parser.add_argument("--mqtt", dest="mqtt_url", help="MQTT broker url (default mqtt://127.0.0.1:1883)")
+    parser.add_argument("--read-only", action="store_true", default=None, help="watch only: send no command")
+    parser.add_argument("--marks", type=Path, dest="marks_file", help="where marks are saved (default marks.json)")
+    parser.add_argument("--user", help="log in to the router and the broker as this user (op-<name>)")
+    parser.add_argument("--password-file", type=Path, help="the --user's password (one line)")
+    parser.add_argument("--ca-file", help="the site CA for tls/ Zenoh endpoints and mqtts:// urls")
+
+
+def load_settings(args: argparse.Namespace) -> ConsoleSettings:
+    """Defaults, then the config file, then command-line options. ConfigError/ValueError with reasons."""
+    from fleetlink.operator.links import parse_mqtt_url
+    from fleetlink.shared import keys
+    from fleetlink.shared.config import TomlReader, read_toml
+
+    s = ConsoleSettings()
+    operator_given = bool(args.operator)
+    if args.config is not None:
+        data = read_toml(args.config)
+        r = TomlReader(str(args.config))
+        r.keys(data, "", ("operator", "read_only", "marks_file", "zenoh", "mqtt", "user", "password_file", "ca_file"))
+        if "user" in data:
+            s.user = r.text(data["user"], "user", nonempty=True)
+        if "password_file" in data:
+            s.password = _read_password(Path(r.text(data["password_file"], "password_file", nonempty=True)))
+        if "ca_file" in data:
+            s.ca_file = r.text(data["ca_file"], "ca_file", nonempty=True)
+        if "operator" in data:
+            operator_given = True
+            s.operator = r.text(data["operator"], "operator", nonempty=True)
+        if "read_only" in data:
+            s.read_only = r.flag(data["read_only"], "read_only")
+        if "marks_file" in data:
+            s.marks_file = Path(r.text(data["marks_file"], "marks_file", nonempty=True))
+        if "zenoh" in data:
+            z = r.table(data, "zenoh")
+            r.keys(z, "zenoh", ("connect", "listen"))
+            s.zenoh_connect = tuple(
+                r.text(e, f"zenoh.connect[{i}]", nonempty=True) for i, e in enumerate(z.get("connect", []))
+            )
+            s.zenoh_listen = tuple(
+                r.text(e, f"zenoh.listen[{i}]", nonempty=True) for i, e in enumerate(z.get("listen", []))
+            )
+        if "mqtt" in data:
+            m = r.table(data, "mqtt")
+            r.keys(m, "mqtt", ("url",), ("url",))
+            s.mqtt_url = r.text(m["url"], "mqtt.url", nonempty=True)
+    if getattr(args, "user", None):
+        s.user = args.user
+    if getattr(args, "password_file", None):
+        s.password = _read_password(args.password_file)
+    if getattr(args, "ca_file", None):
+        s.ca_file = args.ca_file
+    if s.user is not None and not operator_given:
+        s.operator = s.user  # the login name is the sender id (docs/operations.md section 8)
+    if args.operator:
+        s.operator = args.operator
+    if args.zenoh_connect:
+        s.zenoh_connect = tuple(args.zenoh_connect)
+    if args.zenoh_listen:
+        s.zenoh_listen = tuple(args.zenoh_listen)
+    if args.mqtt_url:
+        s.mqtt_url = args.mqtt_url
+    if args.read_only:
+        s.read_only = True
+    if args.marks_file:
+        s.marks_file = args.marks_file
+    keys.check_id(s.operator, "operator id")
+    if (s.user is None) != (s.password is None):
+        raise ValueError("--user and --password-file go together (both or neither)")
+    if s.user is not None or s.ca_file is not None or s.mqtt_url.startswith("mqtts://"):
+        mqtt_client_settings(s)  # raises ConfigError on a bad url
+    else:
+        parse_mqtt_url(s.mqtt_url)
+    return s
+
+
+def _read_password(path: Path) -> str:
+    try:
+        password = path.read_text(encoding="utf-8").strip("\r\n")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"cannot read the password file {str(path)!r}: {exc}") from exc
+    if not password:
+        raise ValueError(f"the password file {str(path)!r} is empty")
+    return password
+
+
+def mqtt_client_settings(s: ConsoleSettings) -> Any:
+    """``shared.mqtt.MqttSettings`` for a console with credentials or TLS (None: a plain url will do)."""
+    from fleetlink.shared.mqtt import MqttSettings
+
+    if s.user is None and s.ca_file is None and not s.mqtt_url.startswith("mqtts://"):
+        return None
+    return MqttSettings.from_url(s.mqtt_url, username=s.user, password=s.password, ca_file=s.ca_file)
+
+
+def open_link(settings: ConsoleSettings, clock: Any) -> Any:
+    """The console's OperatorLink (Zenoh + MQTT), started."""
+    from fleetlink.operator.links import MqttTransport, OperatorLink, ZenohTransport
+
+    auth: dict[str, Any] = {}
+    if settings.user is not None:
+        auth = {"username": settings.user, "password": settings.password}
+        if not settings.zenoh_listen:
+            auth["mode"] = "client"  # a client of the site's router
+    if settings.ca_file is not None:
+        auth["root_ca"] = settings.ca_file
+    primary = ZenohTransport.open(settings.zenoh_listen, settings.zenoh_connect, **auth)
+    try:
+        fallback = MqttTransport(
+            settings.mqtt_url,
+            client_id=f"{settings.operator}-{socket.gethostname()}"[:64],
+            settings=mqtt_client_settings(settings),
+        )
+    except Exception:
+        primary.close()
+        raise
+    return OperatorLink(clock, settings.operator, primary, fallback).start()
+
+
+def run_console(settings: ConsoleSettings, link: Any = None) -> int:
+    """Open the links (unless given), run the app, stop every robot and close the links on the way out."""
+    import threading
+
+    from fleetlink.operator.console import ConsoleApp, attach
+    from fleetlink.operator.fleet import FleetModel
+    from fleetlink.operator.maps import MapFetcher, MapFollower
+    from fleetlink.shared.clock import SystemClock
+
+    clock = SystemClock()
+    if link is None:
+        link = open_link(settings, clock)
+    fleet = FleetModel(settings.operator)
+    lock = threading.Lock()
+    maps = MapFollower(fleet)
+    attach(link, fleet, lock, maps)
+    app = ConsoleApp(link, fleet, clock, lock=lock, read_only=settings.read_only, marks_file=settings.marks_file)
+    fetcher = MapFetcher(maps, link.fetch_map, clock, lock).start()
+    stop = threading.Event()
+    share_marks(link, fleet, lock, stop)
+    try:
+        app.run()
+    finally:
+        app.send_stop_to_all()  # also after a crash or Ctrl-C: safety before features
+        stop.set()
+        fetcher.stop()
+        link.close()
+    return 0
+
+
+def share_marks(link: Any, fleet: Any, lock: Any, stop: Any, asks: tuple[float, ...] = (0.5, 2.0, 6.0)) -> Any:
+    """Answer other consoles' marks queries, and ask theirs (a few times: peers take a moment to
+    find each other), so a console that starts late still gets the marks placed before it."""
+    import threading
+
+    def held() -> list[Any]:
+        with lock:
+            return fleet.live_marks()
+
+    link.serve_marks(held)
+
+    def ask() -> None:
+        waited = 0.0
+        for at in asks:
+            if stop.wait(at - waited):
+                return
+            waited = at
+            try:
+                link.fetch_marks()
+            except Exception as exc:  # closed on the way out: nothing to ask any more
+                log.debug("asking for marks: %s", exc)
+
+    thread = threading.Thread(target=ask, name="console-marks", daemon=True)
+    thread.start()
+    return thread
+
+
+def run(args: argparse.Namespace) -> int:
+    from fleetlink.shared.config import ConfigError
+
+    try:
+        settings = load_settings(args)
+    except (ConfigError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    # Logs would scribble over the terminal UI: keep warnings, send them to a file next to the marks.
+    logging.getLogger().handlers.clear()
+    logging.basicConfig(
+        filename="console.log", level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    try:
+        return run_console(settings)
+    except Exception as exc:  # zenoh raises its own ZError for bad endpoints
+        print(f"error: cannot start the console: {exc}", file=sys.stderr)
+        return 1
+
+
+class EmbeddedBroker:
+    """A private mosquitto on a free loopback port, for `fleetlink field` when no broker is configured."""
+
+    def __init__(self) -> None:
+        import shutil
+        import tempfile
+
+        self.binary = shutil.which("mosquitto") or (
+            "/usr/sbin/mosquitto" if Path("/usr/sbin/mosquitto").exists() else None
+        )
+        self.dir = Path(tempfile.mkdtemp(prefix="fleetlink-broker-"))
+        self.proc: Any = None
+        self.port = 0
+
+    def start(self) -> str | None:
+        """The broker's url, or None if no mosquitto binary is installed."""
+        import getpass
+        import subprocess
+        import time
+
+        if self.binary is None:
+            return None
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+        conf = self.dir / "mosquitto.conf"
+        conf.write_text(
+            f"user {getpass.getuser()}\nlistener {self.port} 127.0.0.1\nallow_anonymous true\n"
+            f"set_tcp_nodelay true\npersistence false\nlog_dest file {self.dir / 'mosquitto.log'}\n"
+        )
+        self.proc = subprocess.Popen(
+            [self.binary, "-c", str(conf)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            preexec_fn=_die_with_parent,  # a killed terminal must not leave the broker running
+        )
+        for _ in range(200):
+            try:
+                with socket.create_connection(("127.0.0.1", self.port), timeout=0.1):
+                    return f"mqtt://127.0.0.1:{self.port}"
+            except OSError:
+                time.sleep(0.02)
+        self.stop()
+        return None
+
+    def stop(self) -> None:
+        import shutil
+
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            self.proc.wait(5)
+        self.proc = None
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def _die_with_parent() -> None:
+    """In the child before exec: ask Linux to SIGTERM it when its parent dies (no-op elsewhere)."""
+    import ctypes
+    import signal
+
+    with contextlib.suppress(OSError):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+class PythonBroker:
+    """A pure-Python MQTT broker (amqtt) on a free loopback port, in a thread of this process.
+
+    The fallback when no mosquitto binary is installed, so a fresh machine still has the MQTT
+    fallback link (retained messages, QoS 1). Slower than mosquitto, fine for a demo field.
+    """
+
+    def __init__(self) -> None:
+        self.port = 0
+        self._loop: Any = None
+        self._broker: Any = None
+        self._thread: Any = None
+
+    def start(self) -> str | None:
+        """The broker's url, or None if amqtt is not installed or did not start."""
+        import asyncio
+        import threading
+
+        try:
+            from amqtt.broker import Broker
+        except ImportError:
+            return None
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+        config = {
+            "listeners": {"default": {"type": "tcp", "bind": f"127.0.0.1:{self.port}"}},
+            "plugins": {"amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}},
+        }
+        self._loop = loop = asyncio.new_event_loop()
+        started = threading.Event()
+        failed: list[BaseException] = []
+
+        def run() -> None:
+            asyncio.set_event_loop(loop)
+            try:
+                self._broker = Broker(config, loop=loop)
+                loop.run_until_complete(self._broker.start())
+            except BaseException as exc:  # reported below, the field goes on without MQTT
+                failed.append(exc)
+                started.set()
+                return
+            started.set()
+            loop.run_forever()
+
+        self._thread = threading.Thread(target=run, name="amqtt-broker", daemon=True)
+        self._thread.start()
+        if not started.wait(15.0) or failed:
+            log.warning("the embedded amqtt broker did not start: %s", failed[0] if failed else "timeout")
+            return None
+        return f"mqtt://127.0.0.1:{self.port}"
+
+    def stop(self) -> None:
+        import asyncio
+
+        loop, broker = self._loop, self._broker
+        self._loop = self._broker = None
+        if loop is None:
+            return
+        if broker is not None and loop.is_running():
+            with contextlib.suppress(Exception):
+                asyncio.run_coroutine_threadsafe(broker.shutdown(), loop).result(5.0)
+        if loop.is_running():
+            loop.call_soon_threadsafe(loop.stop)
+        if self._thread is not None:
+            self._thread.join(5.0)
+
+
+def start_broker() -> tuple[Any, str | None, str]:
+    """An embedded broker: mosquitto if installed, else amqtt. (broker, url or None, what it is)."""
+    broker: Any = EmbeddedBroker()
+    url = broker.start()
+    if url is not None:
+        return broker, url, "embedded mosquitto"
+    broker.stop()
+    broker = PythonBroker()
+    url = broker.start()
+    if url is not None:
+        return broker, url, "embedded amqtt (no mosquitto binary)"
+    broker.stop()
+    return None, None, "none"
+
+
+def field_gateway(scenario: Any, plan: Any, mqtt_url: str, clock: Any) -> Any:
+    """The UWB simulator for the field: the scenario's anchors (else its plan's), a tag per robot."""
+    from fleetlink.positioning.anchors import Anchor
+    from fleetlink.positioning.config import GatewayConfig
+    from fleetlink.positioning.publisher import UwbGateway
+    from fleetlink.shared.mqtt import MqttSettings
+
+    anchors = tuple(Anchor(*a) for a in scenario.anchors) or tuple(Anchor(a.id, a.x, a.y, a.z) for a in plan.anchors)
+    if len(anchors) < 3:
+        return None
+    config = GatewayConfig(
+        anchors=anchors,
+        auto_tags=True,
+        walls=plan.segments(),
+        mqtt=MqttSettings.from_url(mqtt_url),
+        gateway_id="field-uwb",
+    )
+    return UwbGateway(config, clock, subscribe_truth=False)
+
+
+def run_field_console(
+    endpoints: Any,
+    clock: Any,
+    mqtt_url: str | None,
+    operator: str = "operator-1",
+    *,
+    scenario: Any = None,
+    plan: Any = None,
+    add_truth_sink: Any = None,
+) -> int:
+    """`fleetlink field` with the console: a broker (unless given), the UWB simulator, an agent per
+    robot, the console on top.
+
+    The console's Zenoh peer listens on a free loopback port and every agent connects to it. The
+    UWB gateway is fed from the field's truth sink (``add_truth_sink``) and publishes fixes on MQTT.
+    """
+    from fleetlink.field.agents import FieldAgents
+    from fleetlink.operator.links import MqttTransport, OperatorLink, ZenohTransport
+
+    broker = None
+    agents = None
+    link = None
+    gateway = None
+    mqtt_ok = True
+    try:
+        if mqtt_url is None:
+            broker, mqtt_url, what = start_broker()
+            if mqtt_url is None:
+                print(
+                    "warning: no MQTT broker: no mosquitto binary (.ci/install-mosquitto) and the amqtt "
+                    "package did not start: running without the MQTT fallback and without UWB",
+                    file=sys.stderr,
+                )
+                mqtt_url = "mqtt://127.0.0.1:1"
+                mqtt_ok = False
+            else:
+                print(f"fleetlink field: MQTT on {mqtt_url} ({what})", file=sys.stderr)
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+        settings = ConsoleSettings(operator=operator, zenoh_listen=(endpoint,), mqtt_url=mqtt_url)
+        # From here on logs would scribble over the console: they go to field.log.
+        logging.getLogger().handlers.clear()
+        logging.basicConfig(
+            filename="field.log", level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+        )
+        if mqtt_ok and scenario is not None and plan is not None and add_truth_sink is not None:
+            gateway = field_gateway(scenario, plan, mqtt_url, clock)
+            if gateway is not None:
+                gateway.start()
+                add_truth_sink(gateway.on_truth_sample)
+        primary = ZenohTransport.open(settings.zenoh_listen, ())
+        link = OperatorLink(clock, operator, primary, MqttTransport(mqtt_url, client_id=operator)).start()
+        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[endpoint], mqtt_url=mqtt_url)
+        agents.start()
+        link, owned = None, link  # run_console closes it from here on
+        return run_console(settings, owned)
+    finally:
+        if link is not None:
+            link.close()
+        if agents is not None:
+            agents.stop()
+        if gateway is not None:
+            gateway.stop()
+        if broker is not None:
+            broker.stop()

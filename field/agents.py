@@ -1,0 +1,99 @@
+"""One robot agent per simulated robot, in-process, against the real-time field's boards over TCP.
+
+``FieldAgents(field.endpoints, zenoh_connect=[...], mqtt_url=...)``: ``start()`` builds an
+``AgentRuntime`` per robot (its own Zenoh session connecting to ``zenoh_connect``, the shared
+broker for MQTT, which also carries the UWB fixes: tag id = robot name) and ``stop()`` stops
+them all. An agent is the board's only master: do not also run a demo ``BoardSession`` on the
+same board.
+
+Security (issue 8) can be switched on as on a real site: ``mqtt`` (a ``shared.mqtt.MqttSettings``,
+instead of ``mqtt_url``: TLS, CA) with ``mqtt_passwords`` (robot -> password, username = robot id),
+``zenoh_passwords`` likewise for a router's usrpwd (``zenoh_root_ca`` for tls/ endpoints), and
+``operators``: the operator ids every agent accepts commands from (empty: anyone).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Mapping, Sequence
+
+from fleetlink.agent.config import AgentConfig, MqttSettings, Rates, ZenohSettings, mqtt_settings
+from fleetlink.agent.runtime import AgentRuntime
+from fleetlink.field.realtime import Endpoints
+from fleetlink.shared.clock import Clock, SystemClock
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FieldAgents"]
+
+
+class FieldAgents:
+    def __init__(
+        self,
+        endpoints: Mapping[str, Endpoints],
+        *,
+        clock: Clock | None = None,
+        zenoh_connect: Sequence[str] = (),
+        zenoh_listen: Mapping[str, Sequence[str]] | None = None,
+        zenoh_mode: str = "peer",
+        zenoh_passwords: Mapping[str, str] | None = None,
+        zenoh_root_ca: str | None = None,
+        mqtt_url: str | None = None,
+        mqtt: MqttSettings | None = None,
+        mqtt_passwords: Mapping[str, str] | None = None,
+        operators: Sequence[str] = (),
+        map_id: str = "",
+        rates: Rates | None = None,
+    ) -> None:
+        self.clock = clock or SystemClock()
+        base_mqtt = mqtt if mqtt is not None else (mqtt_settings(mqtt_url) if mqtt_url else None)
+        self.configs: list[AgentConfig] = []
+        for name, ep in endpoints.items():
+            zpw = (zenoh_passwords or {}).get(name)
+            m = base_mqtt
+            if m is not None and mqtt_passwords is not None and name in mqtt_passwords:
+                m = dataclasses.replace(m, username=name, password=mqtt_passwords[name], client_id=None)
+            self.configs.append(
+                AgentConfig(
+                    robot=name,
+                    board=ep.board,
+                    lidar=ep.lidar,
+                    tag=name,
+                    map_id=map_id,
+                    zenoh=ZenohSettings(
+                        listen=tuple((zenoh_listen or {}).get(name, ())),
+                        connect=tuple(zenoh_connect),
+                        mode=zenoh_mode,
+                        username=name if zpw is not None else None,
+                        password=zpw,
+                        root_ca=zenoh_root_ca,
+                    ),
+                    mqtt=m,
+                    rates=rates or Rates(),
+                    operators=tuple(operators),
+                )
+            )
+        self.agents: dict[str, AgentRuntime] = {}
+
+    def start(self) -> dict[str, AgentRuntime]:
+        for i, cfg in enumerate(self.configs):
+            agent = AgentRuntime(cfg, self.clock, seed=i)
+            agent.start()
+            self.agents[cfg.robot] = agent
+        return self.agents
+
+    def stop(self) -> None:
+        for agent in self.agents.values():
+            try:
+                agent.stop()
+            except Exception:  # keep stopping the others
+                log.exception("stopping agent %s failed", agent.config.robot)
+        self.agents.clear()
+
+    def __enter__(self) -> FieldAgents:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

@@ -1,0 +1,227 @@
+"""The map widget: occupancy grids, robots (pose, heading, trail), anchors, goals and marks.
+
+The geometry (``MapGeometry``) is pure and tested on its own: one terminal cell is ``scale`` metres
+wide and ``2 * scale`` metres tall (terminal cells are about twice as tall as wide), world +y is up.
+The widget renders line by line from a per-frame cell table that is rebuilt only when the fleet
+model's version or the view changed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from rich.segment import Segment
+from rich.style import Style
+from textual import events
+from textual.message import Message
+from textual.strip import Strip
+from textual.widget import Widget
+
+from fleetlink.operator.fleet import FleetModel
+
+__all__ = ["MapGeometry", "MapView"]
+
+ASPECT = 2.0
+HEADING_CHARS = "→↗↑↖←↙↓↘"
+
+
+@dataclass(slots=True)
+class MapGeometry:
+    width: int
+    height: int
+    center_x: float = 0.0
+    center_y: float = 0.0
+    scale: float = 0.25
+    """Metres per cell, horizontally."""
+
+    def to_world(self, col: int, row: int) -> tuple[float, float]:
+        """Centre of cell (col, row) in metres."""
+        x = self.center_x + (col + 0.5 - self.width / 2) * self.scale
+        y = self.center_y - (row + 0.5 - self.height / 2) * self.scale * ASPECT
+        return x, y
+
+    def to_cell(self, x: float, y: float) -> tuple[int, int]:
+        col = math.floor((x - self.center_x) / self.scale + self.width / 2)
+        row = math.floor(-(y - self.center_y) / (self.scale * ASPECT) + self.height / 2)
+        return col, row
+
+    def inside(self, col: int, row: int) -> bool:
+        return 0 <= col < self.width and 0 <= row < self.height
+
+    def zoom(self, factor: float) -> None:
+        self.scale = min(20.0, max(0.02, self.scale * factor))
+
+    def pan(self, dcols: float, drows: float) -> None:
+        self.center_x += dcols * self.scale
+        self.center_y -= drows * self.scale * ASPECT
+
+
+def heading_char(theta: float) -> str:
+    return HEADING_CHARS[round(theta / (math.pi / 4)) % 8]
+
+
+ROBOT_STYLE = Style(color="bright_green", bold=True)
+SELECTED_STYLE = Style(color="black", bgcolor="bright_green", bold=True)
+LOST_STYLE = Style(color="red", bold=True)
+TRAIL_STYLE = Style(color="green", dim=True)
+GOAL_STYLE = Style(color="yellow", bold=True)
+MARK_STYLE = Style(color="magenta", bold=True)
+ANCHOR_STYLE = Style(color="cyan", bold=True)
+WALL_STYLE = Style(color="white")
+FREE_STYLE = Style(color="grey30")
+EMPTY = Style()
+
+Cell = tuple[str, Style]
+
+
+class MapView(Widget, can_focus=True):
+    """Click: ``MapView.Clicked`` with the world coordinate. Wheel: zoom. Shift+arrows: pan."""
+
+    class Clicked(Message):
+        def __init__(self, x: float, y: float) -> None:
+            super().__init__()
+            self.x = x
+            self.y = y
+
+    def __init__(self, fleet: FleetModel, selected: Callable[[], str | None], **kwargs: object) -> None:
+        super().__init__(**kwargs)  # type: ignore[arg-type]
+        self.fleet = fleet
+        self.selected = selected
+        self.geometry = MapGeometry(80, 24)
+        self._cells: dict[tuple[int, int], Cell] = {}
+        self._drawn: tuple[object, ...] = ()
+        self.frames = 0
+
+    def on_resize(self, event: events.Resize) -> None:
+        self._sync_size()
+        self.update_view()
+
+    def _sync_size(self) -> None:
+        size = self.content_size
+        if size.width and size.height:
+            self.geometry.width, self.geometry.height = size.width, size.height
+
+    def fit(self) -> None:
+        """Centre on the robots."""
+        points = [v.pose[:2] for v in self.fleet.robots.values() if v.pose is not None]
+        points += list(self.fleet.anchors.values())
+        if points:
+            self.geometry.center_x = sum(p[0] for p in points) / len(points)
+            self.geometry.center_y = sum(p[1] for p in points) / len(points)
+        self.refresh()
+
+    def update_view(self) -> None:
+        """Redraw if anything the picture depends on changed (called by the app's timer)."""
+        self._sync_size()
+        g = self.geometry
+        key = (self.fleet.version, g.width, g.height, g.center_x, g.center_y, g.scale, self.selected())
+        if key != self._drawn:
+            self._drawn = key
+            self._rebuild()
+            self.refresh()
+
+    def _rebuild(self) -> None:
+        g = self.geometry
+        cells: dict[tuple[int, int], Cell] = {}
+
+        protected: set[tuple[int, int]] = set()
+        """Anchors, marks, goals and robots: a name label is drawn over the map (walls, free
+        space, trails) but never over one of these."""
+
+        def put(x: float, y: float, char: str, style: Style, *, protect: bool = True) -> None:
+            c = g.to_cell(x, y)
+            if g.inside(*c):
+                cells[c] = (char, style)
+                if protect:
+                    protected.add(c)
+
+        # The robots' maps merged (occupied wins over free, free over unknown), sampled at the
+        # terminal cells' centres.
+        merged = np.full((g.height, g.width), 255, dtype=np.uint8)
+        xs = g.center_x + (np.arange(g.width) + 0.5 - g.width / 2) * g.scale
+        ys = g.center_y - (np.arange(g.height) + 0.5 - g.height / 2) * g.scale * ASPECT
+        for ox, oy, res, w, h, data in self.fleet.grids.values():
+            grid = np.frombuffer(data, dtype=np.uint8).reshape(h, w)
+            i = np.floor((xs - ox) / res).astype(np.int64)
+            j = np.floor((ys - oy) / res).astype(np.int64)
+            ci, cj = (i >= 0) & (i < w), (j >= 0) & (j < h)
+            if not ci.any() or not cj.any():
+                continue
+            sample = np.full((g.height, g.width), 255, dtype=np.uint8)
+            sample[np.ix_(cj, ci)] = grid[np.ix_(j[cj], i[ci])]
+            merged = np.where(sample == 100, 100, np.where((sample == 0) & (merged == 255), 0, merged))
+            # Zoomed out, a terminal cell covers several grid cells: a thin wall between the
+            # sampled centres must still show, so every occupied grid cell marks its terminal cell.
+            jj, ii = np.nonzero(grid == 100)
+            cols = np.floor((ox + (ii + 0.5) * res - g.center_x) / g.scale + g.width / 2).astype(np.int64)
+            rows = np.floor(-(oy + (jj + 0.5) * res - g.center_y) / (g.scale * ASPECT) + g.height / 2).astype(np.int64)
+            keep = (cols >= 0) & (cols < g.width) & (rows >= 0) & (rows < g.height)
+            merged[rows[keep], cols[keep]] = 100
+        for row, col in zip(*np.nonzero(merged == 100), strict=True):
+            cells[(int(col), int(row))] = ("█", WALL_STYLE)
+        for row, col in zip(*np.nonzero(merged == 0), strict=True):
+            cells[(int(col), int(row))] = ("·", FREE_STYLE)
+        for name, (x, y) in self.fleet.anchors.items():
+            put(x, y, "A", ANCHOR_STYLE)
+            del name
+        selected = self.selected()
+        for view in self.fleet.robots.values():
+            for x, y in view.trail:
+                put(x, y, "∙", TRAIL_STYLE, protect=False)
+        for mark in self.fleet.live_marks():
+            put(mark.x, mark.y, "✚" if mark.kind == "casualty" else "*", MARK_STYLE)
+        for view in self.fleet.robots.values():
+            if view.goal is not None:
+                put(view.goal[0], view.goal[1], "G", GOAL_STYLE)
+        labels: list[tuple[int, int, str, Style]] = []
+        for view in self.fleet.robots.values():
+            if view.pose is None:
+                continue
+            x, y, th = view.pose
+            style = LOST_STYLE if view.lost else SELECTED_STYLE if view.robot == selected else ROBOT_STYLE
+            put(x, y, heading_char(th), style)
+            col, row = g.to_cell(x, y)
+            labels.append((col, row, view.robot[:6], style))
+        for col, row, name, style in labels:  # after every glyph, so no label hides a robot
+            for k, ch in enumerate(name):
+                c = (col + 2 + k, row)
+                if g.inside(*c) and c not in protected:
+                    cells[c] = (ch, style)
+        self._cells = cells
+        self.frames += 1
+
+    def render_line(self, y: int) -> Strip:
+        width = self.content_size.width
+        cells = self._cells
+        segments: list[Segment] = []
+        run: list[str] = []
+        run_style = EMPTY
+        for x in range(width):
+            char, style = cells.get((x, y), (" ", EMPTY))
+            if style is not run_style and run:
+                segments.append(Segment("".join(run), run_style))
+                run = []
+            run_style = style
+            run.append(char)
+        if run:
+            segments.append(Segment("".join(run), run_style))
+        return Strip(segments, width)
+
+    def on_click(self, event: events.Click) -> None:
+        offset = event.get_content_offset(self)
+        if offset is None:  # on the border
+            return
+        self._sync_size()
+        x, y = self.geometry.to_world(offset.x, offset.y)
+        self.post_message(self.Clicked(x, y))
+
+    def on_mouse_scroll_up(self, event: events.MouseScrollUp) -> None:
+        self.geometry.zoom(1 / 1.25)
+        self.update_view()
+
+    def on_mouse_scroll_down(self, event: events.MouseScrollDown) -> None:
+        self.geometry.zoom(1.25)
+        self.update_view()

@@ -1,0 +1,261 @@
+"""Who may say what: one access policy, rendered for Mosquitto (ACL file) and Zenoh (``access_control``).
+
+Usernames (the same on both links, docs/operations.md):
+
+* an agent logs in as its robot id (``r1``); it writes only its own telemetry and reads only its
+  own commands and UWB fixes;
+* an operator logs in as ``op-<name>``; it reads everything and writes commands to any robot
+  (whether a robot *obeys* is the agent's business: allowed operators, the control lease);
+* the positioning system logs in as ``uwb-gateway`` and writes only fixes;
+* the simulated field logs in as ``sim`` and writes only ground truth (test sites only);
+* another site's router logs in as ``router-<site>`` (Zenoh only) and may exchange everything.
+
+Robot ids may therefore not start with ``op-`` or ``router-`` nor be ``uwb-gateway`` (``sim`` is
+already reserved by ``shared.keys``); ``check_robot_username`` enforces it.
+
+Mosquitto needs no per-robot lines (``pattern ... %u``); Zenoh's ACL has no such substitution, so
+its rules list every robot. Both renderings come from the tables below, so they cannot drift;
+``python -m fleetlink.shared.access --robot r1 --robot r2 --operator op-alice`` prints both.
+Pure functions, no I/O (except under ``__main__``).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+from fleetlink.shared.keys import PREFIX, check_id, check_robot_id
+
+__all__ = [
+    "AGENT_READS",
+    "AGENT_WRITES",
+    "COMMAND_TOPICS",
+    "GATEWAY_USER",
+    "GATEWAY_WRITES_MQTT",
+    "OPERATOR_PREFIX",
+    "OPERATOR_WRITES",
+    "ROUTER_PREFIX",
+    "SIM_USER",
+    "check_operator_username",
+    "check_robot_username",
+    "mosquitto_acl",
+    "zenoh_access_control",
+]
+
+OPERATOR_PREFIX = "op-"
+ROUTER_PREFIX = "router-"
+GATEWAY_USER = "uwb-gateway"
+SIM_USER = "sim"
+
+AGENT_WRITES: tuple[str, ...] = ("state", "pose", "connection", "ack", "events", "board", "lease", "map")
+"""Topics an agent publishes about itself (``map`` includes everything below it, e.g. ``map/updates``)."""
+
+COMMAND_TOPICS: tuple[str, ...] = ("order", "actions", "teleop", "lease/request")
+"""Topics operators publish to a robot; the robot reads only its own."""
+
+OPERATOR_WRITES: tuple[str, ...] = (*COMMAND_TOPICS, "marks")
+"""Commands, and the marks operators share with each other (``fleetlink/v1/<robot>/marks``)."""
+
+FIX_TOPICS: tuple[str, ...] = ("uwb", "uwb/ranges")
+"""UWB fixes: written only by the positioning system, read by the robot they are about."""
+
+AGENT_READS: tuple[str, ...] = COMMAND_TOPICS + FIX_TOPICS
+
+DWM_FIX_TOPICS: tuple[str, ...] = ("dwm/node/+/uplink/location", "dwm/node/+/uplink/status")
+"""Decawave PANS gateway topics (MQTT only) the positioning system may also write."""
+
+GATEWAY_STATUS_MQTT = "fleetlink/uwb/+/status"
+"""The gateway's own retained status and last will (positioning/gateway.py ``status_topic``)."""
+
+GATEWAY_WRITES_MQTT: tuple[str, ...] = (
+    *(f"{PREFIX}/+/{t}" for t in FIX_TOPICS),
+    *DWM_FIX_TOPICS,
+    GATEWAY_STATUS_MQTT,
+)
+
+_SUBTREE = frozenset({"map"})  # topics that own a subtree of keys
+
+
+def check_robot_username(robot: str) -> str:
+    """A robot id that is also safe as a broker username (not an operator, router or the gateway)."""
+    check_robot_id(robot)
+    if robot.startswith((OPERATOR_PREFIX, ROUTER_PREFIX)) or robot == GATEWAY_USER:
+        raise ValueError(
+            f"invalid robot id {robot!r}: ids starting with {OPERATOR_PREFIX!r} or {ROUTER_PREFIX!r} "
+            f"and {GATEWAY_USER!r} are broker usernames of other roles"
+        )
+    return robot
+
+
+def check_operator_username(name: str) -> str:
+    check_id(name, "operator username")
+    if not name.startswith(OPERATOR_PREFIX) or len(name) == len(OPERATOR_PREFIX):
+        raise ValueError(f"invalid operator username {name!r}: must be {OPERATOR_PREFIX}<name>")
+    return name
+
+
+def _mqtt(robot: str, topic: str) -> str:
+    return f"{PREFIX}/{robot}/{topic}/#" if topic in _SUBTREE else f"{PREFIX}/{robot}/{topic}"
+
+
+def _zenoh(robot: str, topic: str) -> str:
+    return f"{PREFIX}/{robot}/{topic}/**" if topic in _SUBTREE else f"{PREFIX}/{robot}/{topic}"
+
+
+def mosquitto_acl(operators: Iterable[str] = ()) -> str:
+    """The Mosquitto ``acl_file`` text. Agents need no lines of their own (``%u`` is the robot id)."""
+    ops = [check_operator_username(o) for o in operators]
+    lines = [
+        "# fleetlink Mosquitto ACL. Generated from shared/access.py (python -m fleetlink.shared.access);",
+        "# regenerate rather than edit. Anything not granted here is denied: unauthorised publishes are",
+        "# dropped by the broker, unauthorised subscriptions receive nothing.",
+        "#",
+        "# Agents log in with their robot id as username: they write only their own telemetry and read",
+        "# only their own commands and fixes. Patterns apply to every user; the role prefixes (op-,",
+        "# router-, uwb-gateway, sim) are not valid robot ids, so they grant other roles nothing useful.",
+    ]
+    lines += [f"pattern write {_mqtt('%u', t)}" for t in AGENT_WRITES]
+    lines += [f"pattern read {_mqtt('%u', t)}" for t in AGENT_READS]
+    lines += [
+        "# PANS tag locations straight from a DWM1001 gateway: tag ids are not robot ids, so every",
+        "# user may read every tag's location (read only; only uwb-gateway writes them).",
+    ]
+    lines += [f"pattern read {DWM_FIX_TOPICS[0]}"]
+    lines += ["", "# The positioning system writes fixes and nothing else; it may read the simulator's truth."]
+    lines += [f"user {GATEWAY_USER}"]
+    lines += [f"topic write {t}" for t in GATEWAY_WRITES_MQTT]
+    lines += [f"topic read {PREFIX}/{SIM_USER}/+/truth", "topic read dwm/#"]
+    lines += ["", "# The simulated field (test sites only) writes ground truth."]
+    lines += [f"user {SIM_USER}", f"topic write {PREFIX}/{SIM_USER}/+/truth"]
+    lines += ["", "# Operators: read everything, write commands to any robot. One block per operator."]
+    for op in ops:
+        lines += [f"user {op}"]
+        lines += [f"topic write {PREFIX}/+/{t}" for t in OPERATOR_WRITES]
+        lines += [f"topic read {PREFIX}/#", f"topic read {GATEWAY_STATUS_MQTT}", "topic read dwm/#"]
+    return "\n".join(lines) + "\n"
+
+
+_ALL_MESSAGES = [
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "declare_queryable",
+    "reply",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+]
+
+
+def _rule(rule_id: str, flows: Sequence[str], messages: Sequence[str], key_exprs: Sequence[str]) -> dict[str, Any]:
+    return {
+        "id": rule_id,
+        "permission": "allow",
+        "flows": list(flows),
+        "messages": list(messages),
+        "key_exprs": list(key_exprs),
+    }
+
+
+def zenoh_access_control(
+    robots: Iterable[str], operators: Iterable[str] = (), routers: Iterable[str] = (), *, simulator: bool = False
+) -> dict[str, Any]:
+    """The router's ``access_control`` section: default deny, one subject per username.
+
+    Flows are seen from the router: ``ingress`` is what a client sends it (its puts, its
+    subscriptions), ``egress`` what the router forwards to the client. Each grant is given in
+    both directions where it applies, so a client can neither send nor receive what it may not.
+    """
+    robot_ids = [check_robot_username(r) for r in robots]
+    ops = [check_operator_username(o) for o in operators]
+    peers = [check_id(r, "router username") for r in routers]
+    for r in peers:
+        if not r.startswith(ROUTER_PREFIX):
+            raise ValueError(f"invalid router username {r!r}: must be {ROUTER_PREFIX}<site>")
+    rules: list[dict[str, Any]] = []
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+
+    def grant(subject: str, usernames: list[str], subject_rules: list[dict[str, Any]]) -> None:
+        if not usernames:
+            return
+        rules.extend(subject_rules)
+        subjects.append({"id": subject, "usernames": usernames})
+        policies.append({"id": subject, "rules": [r["id"] for r in subject_rules], "subjects": [subject]})
+
+    for robot in robot_ids:
+        writes = [_zenoh(robot, t) for t in AGENT_WRITES]
+        reads = [_zenoh(robot, t) for t in AGENT_READS]
+        own = f"{PREFIX}/{robot}/**"
+        grant(
+            f"robot-{robot}",
+            [robot],
+            [
+                _rule(f"{robot}-publish", ["ingress"], ["put", "delete"], writes),
+                # Subscribing anywhere in its own subtree is allowed (the agent may declare one
+                # wildcard subscriber); what it receives is limited on egress to its inputs.
+                _rule(f"{robot}-subscribe", ["ingress"], ["declare_subscriber"], [own]),
+                _rule(f"{robot}-commands-in", ["egress"], ["put", "delete"], reads),
+                _rule(f"{robot}-presence", ["ingress"], ["liveliness_token"], [own]),
+                _rule(f"{robot}-serve-map", ["ingress"], ["declare_queryable", "reply"], [_zenoh(robot, "map")]),
+                _rule(f"{robot}-map-queries", ["egress"], ["query"], [_zenoh(robot, "map")]),
+            ],
+        )
+    fixes = [f"{PREFIX}/*/{t}" for t in FIX_TOPICS]
+    truth = [f"{PREFIX}/{SIM_USER}/*/truth"]
+    grant(
+        "uwb-gateway",
+        [GATEWAY_USER],
+        [
+            _rule("gateway-fixes", ["ingress"], ["put", "delete"], [*fixes, "fleetlink/uwb/*/status"]),
+            _rule("gateway-truth", ["ingress"], ["declare_subscriber"], truth),
+            _rule("gateway-truth-in", ["egress"], ["put"], truth),
+        ],
+    )
+    if simulator:
+        grant("simulator", [SIM_USER], [_rule("sim-truth", ["ingress"], ["put"], truth)])
+    everything = [f"{PREFIX}/**"]
+    grant(
+        "operators",
+        ops,
+        [
+            _rule("operator-commands", ["ingress"], ["put"], [f"{PREFIX}/*/{t}" for t in OPERATOR_WRITES]),
+            _rule(
+                "operator-watch",
+                ["ingress"],
+                ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"],
+                [*everything, "fleetlink/uwb/*/status"],
+            ),
+            _rule(
+                "operator-watch-in",
+                ["egress"],
+                ["put", "delete", "reply", "liveliness_token"],
+                [*everything, "fleetlink/uwb/*/status"],
+            ),
+            # Each console answers queries for the marks it holds, so a console that joins late
+            # catches up (operator/links.py MARKS_QUERY).
+            _rule("operator-serve-marks", ["ingress"], ["declare_queryable", "reply"], [f"{PREFIX}/*/marks"]),
+            _rule("operator-marks-queries", ["egress"], ["query"], [f"{PREFIX}/*/marks"]),
+        ],
+    )
+    grant("routers", peers, [_rule("router-link", ["ingress", "egress"], _ALL_MESSAGES, everything)])
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser(description="Print the Mosquitto ACL and the Zenoh access_control section.")
+    parser.add_argument("--robot", action="append", default=[], help="robot id (Zenoh lists every robot)")
+    parser.add_argument("--operator", action="append", default=[], help="op-<name>")
+    parser.add_argument("--router", action="append", default=[], help="router-<site> (linked site routers)")
+    parser.add_argument("--simulator", action="store_true", help="let the simulated field (user sim) publish truth")
+    parser.add_argument("--what", choices=("mosquitto", "zenoh"), default="mosquitto")
+    args = parser.parse_args()
+    if args.what == "mosquitto":
+        print(mosquitto_acl(args.operator), end="")
+    else:
+        section = zenoh_access_control(args.robot, args.operator, args.router, simulator=args.simulator)
+        print(json.dumps({"access_control": section}, indent=2))

@@ -1,0 +1,250 @@
+"""The agent end to end against a simulated board over TCP: teleop moves the wheels, silence stops them;
+UWB fixes over MQTT (native and PANS) localise it; the control lease and the operators allowlist."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import pytest
+
+from fleetlink.agent.config import ConfigError, parse_agent_config
+from fleetlink.shared import wire
+from fleetlink.shared.clock import SystemClock
+from fleetlink.shared.messages import (
+    AckResult,
+    Action,
+    ActionType,
+    FixStatus,
+    InstantActions,
+    LeaseRequest,
+    Teleop,
+    UwbFix,
+)
+from tests.harness import MosquittoBroker, wait_until
+from tests.test_agent_links import Rig, make_rig, rig  # noqa: F401  (the fixture)
+
+
+def test_teleop_moves_the_wheels_and_silence_stops_them(rig: Rig) -> None:  # noqa: F811
+    op, board, agent = rig.op, rig.board, rig.agent
+    sent = []
+
+    def drive() -> bool:
+        m = op.counter.make(Teleop, v=0.3, omega=0.0, ttl_s=0.5)
+        sent.append(m.header.headerId)
+        op.send(m, mqtt_=False)
+        return board.state.v_left > 0.1 and board.state.v_right > 0.1
+
+    wait_until(drive, interval=0.1, message="the wheels to turn under teleop")
+    assert op.acks_for(sent[0], "teleop")[0][1].result is AckResult.ACCEPTED
+    # The operator goes quiet: the agent's deadman stops the robot (not the board's watchdog,
+    # which needs the agent itself to fall silent).
+    wait_until(lambda: abs(board.state.v_left) < 0.01 and abs(board.state.v_right) < 0.01, message="the stop")
+    assert not board.state.watchdog_tripped
+    assert agent.board.snapshot.command == (0.0, 0.0)
+    wait_until(lambda: (s := op.last_state()) is not None and s.driveMode == "idle", message="idle in state")
+
+
+@pytest.mark.parametrize(
+    ("data", "fragment"),
+    [
+        ({"board": "socket://x:1", "zenoh": {}}, "missing key(s) robot"),
+        ({"robot": "sim", "board": "x", "zenoh": {}}, "reserved"),
+        ({"robot": "r1", "board": "x"}, "needs a [zenoh] or an [mqtt]"),
+        ({"robot": "r1", "board": "x", "mqtt": {"url": "http://h"}}, "mqtt.url"),
+        ({"robot": "r1", "board": "x", "zenoh": {"connect": "tcp/1.2.3.4:1"}}, "zenoh.connect"),
+        ({"robot": "r1", "board": "x", "zenoh": {}, "limits": {"v_max": -1}}, "limits.v_max"),
+        ({"robot": "r1", "board": "x", "zenoh": {}, "bogus": 1}, "unknown key(s) bogus"),
+        ({"robot": "r1", "board": "x", "zenoh": {}, "operators": "op-alice"}, "operators"),
+        ({"robot": "r1", "board": "x", "zenoh": {"username": "r1"}}, "go together"),
+        ({"robot": "r1", "board": "x", "zenoh": {"root_ca": "/nonexistent/ca.crt"}}, "zenoh.root_ca"),
+        ({"robot": "r1", "board": "x", "mqtt": {"url": "mqtt://h", "password": "p"}}, "needs a username"),
+    ],
+)
+def test_config_errors_are_clear(data: dict[str, object], fragment: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_agent_config(data, "robot.toml")
+    assert fragment in str(info.value)
+    assert str(info.value).startswith("robot.toml: ")
+
+
+def test_example_config_loads() -> None:
+    from pathlib import Path
+
+    from fleetlink.agent.config import load_agent_config
+
+    cfg = load_agent_config(Path(__file__).resolve().parent.parent / "deploy" / "robot.example.toml")
+    assert cfg.robot == "r1" and cfg.zenoh is not None and cfg.mqtt is not None
+    assert cfg.operators == ("op-alice", "op-bob")
+
+
+# --------------------------------------------------------------------------------------------------
+# Localisation: UWB fixes over MQTT into the fusion
+
+
+def _native_fix(gw: wire.HeaderCounter, x: float, y: float) -> bytes:
+    return wire.encode(
+        gw.make(
+            UwbFix,
+            tag="r1",
+            x=x,
+            y=y,
+            z=0.3,
+            sd_x=0.05,
+            sd_y=0.05,
+            quality=90,
+            status=FixStatus.OK,
+            anchors=("a1", "a2", "a3"),
+            residual_rms_m=0.02,
+            measured_at=time.time(),
+        )
+    )
+
+
+def _pans_fix(x: float, y: float) -> bytes:
+    stamp = str(int(time.time() * 1e6))
+    return json.dumps({"position": {"x": x, "y": y, "z": 0.3, "quality": 90}, "timestamp": stamp}).encode()
+
+
+def test_uwb_fixes_native_and_pans_localise_the_agent_and_silence_goes_stale(rig: Rig) -> None:  # noqa: F811
+    op, core = rig.op, rig.agent.core
+    gw = wire.HeaderCounter(SystemClock(), robot="r1", sender="uwb-gateway")
+    assert core.fusion is not None and not core.fusion.position_initialized
+    st = op.last_state()
+    assert st is not None and st.uwbStale and not st.agvPosition.positionInitialized
+
+    def localised(send: object) -> bool:
+        send()  # type: ignore[operator]
+        s = op.last_state()
+        return (
+            s is not None
+            and s.agvPosition.positionInitialized
+            and not s.uwbStale
+            and math.hypot(s.agvPosition.x - 3.0, s.agvPosition.y - 2.0) < 0.1
+        )
+
+    # Native fixes (the gateway's UwbFix on fleetlink/v1/r1/uwb), the robot standing at (3, 2).
+    wait_until(
+        lambda: localised(lambda: op.mclient.publish("fleetlink/v1/r1/uwb", _native_fix(gw, 3.0, 2.0), qos=0)),
+        interval=0.05,
+        message="positionInitialized and a map pose near the native fixes",
+    )
+    # PANS JSON from a DWM1001 tag: accepted by the fusion too.
+    before = core.fusion.accepted
+    wait_until(
+        lambda: (
+            localised(lambda: op.mclient.publish("dwm/node/r1/uplink/location", _pans_fix(3.0, 2.0)))
+            and core.fusion.accepted >= before + 10
+        ),
+        interval=0.05,
+        message="PANS fixes accepted by the fusion",
+    )
+    assert core.gate.stats.rejected.get(("mqtt", "pans"), 0) == 0
+    # Silence: UWB stale in state (the pose holds on odometry).
+    wait_until(lambda: (s := op.last_state()) is not None and s.uwbStale, message="uwbStale after UWB silence")
+    s = op.last_state()
+    assert s is not None and s.agvPosition.positionInitialized
+    assert math.hypot(s.agvPosition.x - 3.0, s.agvPosition.y - 2.0) < 0.1
+
+
+# --------------------------------------------------------------------------------------------------
+# Access: the control lease and the operators allowlist
+
+
+def _teleop(counter: wire.HeaderCounter) -> Teleop:
+    return counter.make(Teleop, v=0.3, omega=0.0, ttl_s=0.5)
+
+
+def _ack(r: Rig, msg: wire.Message, link: str) -> tuple[AckResult, str]:
+    hid, sender = msg.header.headerId, msg.header.sender
+
+    def mine() -> list[wire.Message]:
+        return [a for lk, a in r.op.acks_for(hid, msg.TOPIC) if lk == link and a.commandSender == sender]
+
+    wait_until(mine, message=f"ack of {msg.TOPIC} on {link}")
+    a = mine()[0]
+    return a.result, a.reason
+
+
+def test_lease_holder_drives_others_are_refused_with_the_holder_named(rig: Rig) -> None:  # noqa: F811
+    op, board = rig.op, rig.board
+    eve = wire.HeaderCounter(SystemClock(), robot="r1", sender="op-eve")
+    wait_until(lambda: any(le.holder == "" for _, le in op.leases), message="the free lease announced")
+    take = op.counter.make(LeaseRequest, duration_s=30.0, release=False)
+    op.send(take, mqtt_=False)
+    assert _ack(rig, take, "zenoh") == (AckResult.ACCEPTED, "")
+    for link in ("zenoh", "mqtt"):  # every console sees it, on either link
+        wait_until(
+            lambda link=link: any(lk == link and le.holder == "operator-1" for lk, le in op.leases),
+            message=f"the lease announced on {link}",
+        )
+    # Another operator: its teleop, order-like actions and lease request are refused, naming the holder.
+    m = _teleop(eve)
+    op.send(m, zenoh_=False)
+    result, reason = _ack(rig, m, "mqtt")
+    assert result is AckResult.REJECTED and "leased to operator-1" in reason
+    resume = eve.make(
+        InstantActions, actions=(Action(actionId="a1", actionType=ActionType.RESUME, actionParameters=()),)
+    )
+    op.send(resume, zenoh_=False)
+    assert _ack(rig, resume, "mqtt")[0] is AckResult.REJECTED
+    grab = eve.make(LeaseRequest, duration_s=30.0, release=False)
+    op.send(grab, mqtt_=False)
+    result, reason = _ack(rig, grab, "zenoh")
+    assert result is AckResult.REJECTED and "operator-1" in reason
+    assert abs(board.state.v_left) < 0.01 and rig.agent.board.snapshot.command == (0.0, 0.0)
+    assert rig.agent.core.refused_lease == 2
+    # Stopping stays everyone's right.
+    stop = eve.make(InstantActions, actions=(Action(actionId="s1", actionType=ActionType.STOP, actionParameters=()),))
+    op.send(stop, mqtt_=False)
+    assert _ack(rig, stop, "zenoh")[0] is AckResult.ACCEPTED
+    # The holder drives.
+    wait_until(
+        lambda: op.send(_teleop(op.counter), mqtt_=False) is not None and board.state.v_left > 0.1,
+        interval=0.1,
+        message="the holder's teleop to turn the wheels",
+    )
+    # Released: the other operator may drive.
+    free = op.counter.make(LeaseRequest, duration_s=0.0, release=True)
+    op.send(free, mqtt_=False)
+    assert _ack(rig, free, "zenoh")[0] is AckResult.ACCEPTED
+    wait_until(lambda: op.leases[-1][1].holder == "", message="the release announced")
+    wait_until(
+        lambda: (s := op.last_state()) is not None and s.driveMode == "idle", message="the holder's ttl to lapse"
+    )
+    m = _teleop(eve)
+    op.send(m, mqtt_=False)
+    assert _ack(rig, m, "zenoh") == (AckResult.ACCEPTED, "")
+    # Driving took the free lease for op-eve: every console sees it, and the first operator is
+    # now the one refused -- nobody drives without holding the lease.
+    wait_until(lambda: op.leases[-1][1].holder == "op-eve", message="driving took the free lease")
+    m = _teleop(op.counter)
+    op.send(m, mqtt_=False)
+    result, reason = _ack(rig, m, "zenoh")
+    assert result is AckResult.REJECTED and "leased to op-eve" in reason
+
+
+def test_unlisted_operator_cannot_drive_over_either_link(mosquitto: MosquittoBroker) -> None:
+    with make_rig(mosquitto, operators=("operator-1",)) as r:
+        eve = wire.HeaderCounter(SystemClock(), robot="r1", sender="op-eve")
+        for link in ("zenoh", "mqtt"):
+            m = _teleop(eve)
+            r.op.send(m, zenoh_=link == "zenoh", mqtt_=link == "mqtt")
+            result, reason = _ack(r, m, link)
+            assert result is AckResult.REJECTED and "not allowed" in reason
+            grab = eve.make(LeaseRequest, duration_s=30.0, release=False)
+            r.op.send(grab, zenoh_=link == "zenoh", mqtt_=link == "mqtt")
+            assert _ack(r, grab, link)[0] is AckResult.REJECTED
+        assert abs(r.board.state.v_left) < 0.01 and r.agent.board.snapshot.command == (0.0, 0.0)
+        core = r.agent.core
+        assert core.refused_operators == 4
+        assert core.gate.stats.rejected.get(("zenoh", "teleop"), 0) == 1
+        assert core.gate.stats.rejected.get(("mqtt", "teleop"), 0) == 1
+        assert all(le.holder == "" for _, le in r.op.leases)
+        # The listed operator drives.
+        wait_until(
+            lambda: r.op.send(_teleop(r.op.counter), mqtt_=False) is not None and r.board.state.v_left > 0.1,
+            interval=0.1,
+            message="the listed operator's teleop to turn the wheels",
+        )

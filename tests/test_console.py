@@ -1,0 +1,477 @@
+"""The Textual console with run_test and Pilot.
+
+The console runs on the real OperatorLink (link manager, codec, command ids) over in-memory
+transports: the test sees exactly the bytes that would go on Zenoh or MQTT and injects what a
+robot would say. (Real Zenoh and Mosquitto under the link: tests/test_operator_links.py; the real
+field and agents: tests/e2e.)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import html
+import itertools
+import json
+import re
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from textual.widgets import Input, Static
+
+from fleetlink.agent.mapping.codec import snapshot_fields
+from fleetlink.operator.console import ConsoleApp, attach
+from fleetlink.operator.fleet import FleetModel
+from fleetlink.operator.linkmanager import LinkPolicy
+from fleetlink.operator.links import OperatorLink
+from fleetlink.operator.maps import MapFollower
+from fleetlink.operator.mapview import ASPECT, MapView
+from fleetlink.shared import keys, wire
+from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.messages import (
+    Ack,
+    AckResult,
+    ActionType,
+    InstantActions,
+    Lease,
+    LinkName,
+    MapSnapshot,
+    Mark,
+    Order,
+    Pose,
+    Teleop,
+)
+
+ME = "operator-1"
+
+
+def run_async(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Run an async test on a fresh event loop (no pytest async plugin needed)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        return asyncio.run(fn(*args, **kwargs))
+
+    return wrapper
+
+
+class MemoryTransport:
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.sent: list[tuple[str, bytes]] = []
+        self._receive: Callable[[str, bytes], None] | None = None
+        self.lock = threading.Lock()
+        self.responder: Callable[[MemoryTransport, str, bytes], None] | None = None
+
+    def start(self, on_message: Callable[[str, bytes], None]) -> None:
+        self._receive = on_message
+
+    def publish(self, key: str, payload: bytes) -> None:
+        with self.lock:
+            self.sent.append((key, payload))
+        if self.responder is not None:
+            self.responder(self, key, payload)
+
+    def close(self) -> None:
+        self._receive = None
+
+    def inject(self, msg: wire.Message) -> None:
+        assert self._receive is not None
+        self._receive(keys.key(msg.header.robot, type(msg).TOPIC), wire.encode(msg))
+
+    def messages(self, cls: type[wire.Message] | None = None) -> list[Any]:
+        with self.lock:
+            out = [wire.decode_key(k, p) for k, p in self.sent]
+        return [m for m in out if cls is None or isinstance(m, cls)]
+
+
+class Rig:
+    """Console + OperatorLink over memory transports + a fake robot voice."""
+
+    def __init__(self, tmp_path: Path, read_only: bool = False, clock: Clock | None = None) -> None:
+        self.clock = clock if clock is not None else SystemClock()
+        self.zenoh = MemoryTransport("zenoh")
+        self.mqtt = MemoryTransport("mqtt")
+        policy = LinkPolicy(state_window_s=0.35, ack_timeout_s=0.25, holdoff_s=1.0)
+        self.link = OperatorLink(self.clock, ME, self.zenoh, self.mqtt, policy=policy, poll_hz=50.0)
+        self.fleet = FleetModel(ME)
+        self.lock = threading.Lock()
+        attach(self.link, self.fleet, self.lock)
+        self.marks_file = tmp_path / "marks.json"
+        self.app = ConsoleApp(
+            self.link, self.fleet, self.clock, lock=self.lock, read_only=read_only,
+            marks_file=self.marks_file, repeat_timeout_s=0.8,
+        )  # fmt: skip
+        self.agents: dict[str, wire.HeaderCounter] = {}
+        self.zenoh.responder = self.mqtt.responder = self._ack
+        self.voices: dict[str, tuple[float, float]] = {}
+        """Robots that keep talking (pose at 20 Hz) on ``self.up`` links, like a live agent."""
+        self.up: tuple[str, ...] = ("zenoh", "mqtt")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._talk, daemon=True)
+
+    def start(self) -> None:
+        self.link.start()
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.link.close()
+
+    def _ack(self, transport: MemoryTransport, key: str, payload: bytes) -> None:
+        """Like an agent: ack every order and instant action on the link it came on."""
+        msg = wire.decode_key(key, payload)
+        if not isinstance(msg, Order | InstantActions):
+            return
+        fields = {
+            "commandTopic": msg.TOPIC, "commandSender": msg.header.sender, "commandHeaderId": msg.header.headerId,
+            "orderId": None, "orderUpdateId": None, "result": AckResult.ACCEPTED, "reason": "",
+            "link": LinkName(transport.name),
+        }  # fmt: skip
+        transport.inject(self.counter(msg.header.robot).make(Ack, **fields))
+
+    def _talk(self) -> None:
+        while not self._stop.wait(0.05):
+            for robot, (x, y) in list(self.voices.items()):
+                self.pose(robot, x, y, links=self.up)
+
+    def counter(self, robot: str) -> wire.HeaderCounter:
+        if robot not in self.agents:
+            self.agents[robot] = wire.HeaderCounter(self.clock, robot=robot, sender=f"agent-{robot}")
+        return self.agents[robot]
+
+    def pose(
+        self, robot: str, x: float, y: float, theta: float = 0.0, links: tuple[str, ...] = ("zenoh", "mqtt")
+    ) -> None:
+        msg = self.counter(robot).make(
+            Pose, x=x, y=y, theta=theta, sd_x_m=0.05, sd_y_m=0.05, sd_theta_rad=0.01, odom_x=x, odom_y=y,
+            odom_theta=theta, vx=0.0, omega=0.0, uwbStale=False,
+        )  # fmt: skip
+        for link in links:
+            (self.zenoh if link == "zenoh" else self.mqtt).inject(msg)
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Any:
+    r = Rig(tmp_path)
+    r.start()
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+async def settle(pilot: Any, seconds: float = 0.25) -> None:
+    await asyncio.sleep(seconds)
+    await pilot.pause()
+
+
+async def with_robots(rig: Rig, pilot: Any, *robots: str) -> None:
+    for i, robot in enumerate(robots):
+        rig.voices[robot] = (float(i), 0.0)
+    await settle(pilot)
+
+
+def dedupe(drives: list[Teleop]) -> list[Teleop]:
+    """Consecutive re-sends of the same twist (the 10 Hz keep-alive) collapsed into one."""
+    out: list[Teleop] = []
+    for t in drives:
+        if not out or (out[-1].v, out[-1].omega) != (t.v, t.omega):
+            out.append(t)
+    return out
+
+
+async def type_text(pilot: Any, text: str) -> None:
+    names = {" ": "space", "-": "minus", ".": "full_stop"}
+    await pilot.press(*[names.get(c, c) for c in text])
+
+
+def screen_text(app: ConsoleApp) -> str:
+    svg = app.export_screenshot()
+    text = " ".join(re.findall(r">([^<]*)</text>", svg))
+    return html.unescape(text).replace("\xa0", " ")
+
+
+@run_async
+async def test_keys_produce_drive_commands(rig: Rig) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        await pilot.press("i")
+        await pilot.press("j")
+        await pilot.press("comma")
+        await pilot.press("u")
+        await pilot.press("up")
+        await pilot.press("d")
+        await pilot.pause()
+        drives = dedupe(rig.zenoh.messages(Teleop))
+        signs = [(round(t.v, 2) > 0) - (round(t.v, 2) < 0) for t in drives[:6]]
+        turns = [(t.omega > 0) - (t.omega < 0) for t in drives[:6]]
+        assert signs == [1, 0, -1, 1, 1, 0]
+        assert turns == [0, 1, 0, 1, 0, -1]
+        assert all(t.header.robot == "r1" and t.ttl_s > 0 for t in drives)
+        # Speed step: q raises both speeds by 10 %.
+        v0 = drives[0].v
+        await pilot.press("q")
+        await pilot.press("i")
+        await pilot.pause()
+        assert rig.zenoh.messages(Teleop)[-1].v == pytest.approx(v0 * 1.1)
+
+
+@run_async
+async def test_drive_repeats_at_10hz_then_auto_stop(rig: Rig) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        for _ in range(20):  # a held key: a stream of repeats
+            await pilot.press("i")
+        held = rig.zenoh.messages(Teleop)
+        assert len(held) >= 2 and all(t.v > 0 for t in held)
+        gaps = [b.header.timestamp - a.header.timestamp for a, b in itertools.pairwise(held)]
+        assert min(gaps) >= 0.09  # never faster than 10 Hz, however fast the repeats
+        await settle(pilot, 1.1)  # repeats stopped: the console sends stop by itself
+        after = rig.zenoh.messages(Teleop)
+        assert after[-1].v == 0 and after[-1].omega == 0
+        assert sum(1 for t in after if t.v == 0 and t.omega == 0) == 1  # once, not forever
+        await pilot.press("i")
+        await pilot.press("space")
+        await pilot.pause()
+        last = rig.zenoh.messages(Teleop)[-1]
+        assert (last.v, last.omega) == (0.0, 0.0)
+
+
+@run_async
+async def test_click_on_map_sends_goal_at_world_coordinate(rig: Rig) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        mv = rig.app.query_one(MapView)
+        mv.geometry.center_x, mv.geometry.center_y, mv.geometry.scale = 0.0, 0.0, 0.5
+        w, h = mv.content_size.width, mv.content_size.height
+        col, row = 10, 5
+        await pilot.click("#map", offset=(col + 1, row + 1))  # +1: the map's border
+        await pilot.pause()
+        await pilot.press("y")
+        await pilot.pause()
+        orders = rig.zenoh.messages(Order)
+        assert len(orders) == 1
+        goal = orders[0].goal
+        assert goal.x == pytest.approx((col + 0.5 - w / 2) * 0.5)
+        assert goal.y == pytest.approx(-(row + 0.5 - h / 2) * 0.5 * ASPECT)
+        # Cancel: nothing sent.
+        await pilot.click("#map", offset=(3, 3))
+        await pilot.pause()
+        await pilot.press("n")
+        await pilot.pause()
+        assert len(rig.zenoh.messages(Order)) == 1
+
+
+@run_async
+async def test_typed_goal_home_and_payload(rig: Rig) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        await pilot.press("colon")
+        await type_text(pilot, "goal 3.5 -2 90")
+        await pilot.press("enter")
+        await pilot.pause()
+        order = rig.zenoh.messages(Order)[-1]
+        assert (order.goal.x, order.goal.y) == (3.5, -2.0)
+        assert order.goal.theta == pytest.approx(1.5708, abs=1e-3)
+        await pilot.press("h")
+        await pilot.press("p")
+        await pilot.pause()
+        home = rig.zenoh.messages(Order)[-1]
+        assert home.returnHome and home.goal is None
+        action = rig.zenoh.messages(InstantActions)[-1].actions[0]
+        assert action.actionType is ActionType.PAYLOAD and action.actionParameters[0].value == "true"
+        await pilot.press("colon")
+        await type_text(pilot, "goal nan 1")
+        await pilot.press("enter")
+        await pilot.pause()
+        assert len(rig.zenoh.messages(Order)) == 2  # refused, with a notice
+        assert "bad command" in screen_text(rig.app)
+
+
+@run_async
+async def test_mark_flow_shared_and_saved(rig: Rig, tmp_path: Path) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        await pilot.click("#map", offset=(20, 8))
+        await pilot.pause()
+        await pilot.press("m")
+        await pilot.pause()
+        await pilot.press("colon")
+        await type_text(pilot, "mark hazard 1 2 gas leak")
+        await pilot.press("enter")
+        await pilot.pause()
+        marks = rig.zenoh.messages(Mark)
+        assert [m.kind for m in marks] == ["casualty", "hazard"]
+        assert (marks[1].x, marks[1].y, marks[1].label) == (1.0, 2.0, "gas leak")
+        saved = json.loads(rig.marks_file.read_text())["marks"]
+        assert {m["markId"] for m in saved} == {m.markId for m in marks}
+        # A mark from another console arrives over Zenoh and shows up.
+        other = wire.HeaderCounter(rig.clock, robot="r1", sender="operator-2")
+        rig.zenoh.inject(other.make(Mark, markId="op2-1", x=4.0, y=4.0, label="victim", kind="casualty", removed=False))
+        await settle(pilot)
+        assert "op2-1" in rig.fleet.marks
+    # A new console loads the saved marks.
+    again = Rig(tmp_path)
+    assert {m.markId for m in marks} <= set(again.fleet.marks)
+
+
+@run_async
+async def test_link_indicator_changes_on_failover(rig: Rig) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        assert rig.app.query_one("#fleet").get_cell("r1", "link").plain == "zenoh"
+        rig.up = ("mqtt",)  # the robot is heard on MQTT only now
+        await settle(pilot, 0.7)
+        assert rig.app.query_one("#fleet").get_cell("r1", "link").plain == "mqtt"
+        assert "failover" in screen_text(rig.app)
+        await pilot.press("i")
+        await pilot.pause()
+        assert rig.mqtt.messages(Teleop), "drive commands follow the fallback"
+
+
+@run_async
+async def test_lease_held_by_another_refuses_driving(rig: Rig) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        rig.zenoh.inject(rig.counter("r1").make(Lease, holder="operator-2", until=rig.clock.wall() + 30))
+        await settle(pilot)
+        await pilot.press("i")
+        await pilot.pause()
+        assert not rig.zenoh.messages(Teleop)
+        text = screen_text(rig.app)
+        assert "held by operator-2" in text and "operator-2" in rig.app.query_one("#fleet").get_cell("r1", "lease")
+        # Take it: the request goes out; once the robot grants it, driving works.
+        await pilot.press("t")
+        await pilot.pause()
+        assert rig.zenoh.messages()[-1].TOPIC == "lease/request"
+        rig.zenoh.inject(rig.counter("r1").make(Lease, holder=ME, until=rig.clock.wall() + 30))
+        await settle(pilot)
+        await pilot.press("i")
+        await pilot.pause()
+        assert rig.zenoh.messages(Teleop)
+
+
+@run_async
+async def test_escape_stops_every_robot_and_quit_sends_stop(rig: Rig) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1", "r2", "r3")
+        await pilot.press("escape")
+        await pilot.pause()
+        stops = rig.zenoh.messages(InstantActions)
+        assert sorted(m.header.robot for m in stops) == ["r1", "r2", "r3"]
+        assert all(m.actions[0].actionType is ActionType.STOP for m in stops)
+        await pilot.press("ctrl+q")
+        await pilot.pause()
+    after = rig.zenoh.messages(InstantActions)
+    assert len(after) == 6 and rig.zenoh.messages(Teleop)[-1].v == 0
+
+
+@run_async
+async def test_read_only_sends_nothing(tmp_path: Path) -> None:
+    r = Rig(tmp_path, read_only=True)
+    r.start()
+    try:
+        async with r.app.run_test(size=(140, 44)) as pilot:
+            await with_robots(r, pilot, "r1")
+            for key in ("i", "escape", "h", "p", "t"):
+                await pilot.press(key)
+            await pilot.press("colon")
+            await type_text(pilot, "goal 1 1")
+            await pilot.press("enter")
+            await pilot.press("ctrl+q")
+            await pilot.pause()
+        assert r.zenoh.sent == [] and r.mqtt.sent == []
+    finally:
+        r.close()
+
+
+@run_async
+async def test_main_screen_snapshot(rig: Rig) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1", "r2")
+        rig.zenoh.inject(rig.counter("r2").make(Lease, holder="", until=0.0))
+        await settle(pilot)
+        text = screen_text(rig.app)
+        for needle in ("fleetlink console", ME, "id", "mode", "batt", "link", "health", "age", "uwb", "lease",
+                       "r1", "r2", "zenoh", "free", "STOP ALL"):  # fmt: skip
+            assert needle in text, needle
+        # The map draws both robots' labels.
+        assert re.search(r"r1", text) and re.search(r"r2", text)
+        # Filter: only r2 remains.
+        await pilot.press("slash", "r", "2", "enter")
+        await settle(pilot)
+        table = rig.app.query_one("#fleet")
+        assert [str(k.value) for k in table.rows] == ["r2"]
+
+
+def status_line(app: ConsoleApp) -> str:
+    """The status line as drawn (style tags in it would have been swallowed)."""
+    return app.query_one("#status", Static).render_line(0).text
+
+
+@run_async
+async def test_status_line_shows_the_mode(rig: Rig, tmp_path: Path) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        assert "[driving]" in status_line(rig.app) and "READ-ONLY" not in status_line(rig.app)
+    r = Rig(tmp_path, read_only=True)
+    r.start()
+    try:
+        async with r.app.run_test(size=(140, 44)) as pilot:
+            await with_robots(r, pilot, "r1")
+            assert "[READ-ONLY]" in status_line(r.app)
+    finally:
+        r.close()
+
+
+@run_async
+async def test_tab_selects_the_next_robot(rig: Rig) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1", "r2", "r3")
+        assert rig.app.selected == "r1"
+        seen = []
+        for _ in range(3):
+            await pilot.press("tab")
+            await pilot.pause()
+            seen.append(rig.app.selected)
+        assert seen == ["r2", "r3", "r1"]  # wraps round
+        assert isinstance(rig.app.focused, MapView)  # the focus stayed where it was
+        assert "robot r1" in status_line(rig.app)
+        # In an input, tab keeps its usual meaning: the focus moves on, the robot stays.
+        await pilot.press("slash")
+        assert rig.app.focused is rig.app.query_one("#filter", Input)
+        await pilot.press("tab")
+        await pilot.pause()
+        assert rig.app.selected == "r1"
+        assert rig.app.focused is not rig.app.query_one("#filter", Input)
+
+
+@run_async
+async def test_robot_name_shows_inside_a_mapped_room(rig: Rig) -> None:
+    """The label is drawn over the map's free cells and walls, beside the robot's glyph."""
+    cells = np.zeros((40, 60), dtype=np.int8)  # 6 m x 4 m from (0, 0), walls all round
+    cells[0, :] = cells[-1, :] = cells[:, 0] = cells[:, -1] = 100
+    snap = rig.counter("r1").make(MapSnapshot, **snapshot_fields(cells, 0.1, (0.0, 0.0), 1))
+    with rig.lock:
+        assert MapFollower(rig.fleet).on_snapshot("r1", snap)
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        rig.voices["r1"] = (3.0, 2.0)
+        rig.voices["r2"] = (5.8, 1.0)  # its label runs over the right-hand wall and out of the room
+        await settle(pilot)
+        await pilot.press("f")  # centre on the robots
+        await settle(pilot)
+        view = rig.app.query_one(MapView)
+        lines = {}
+        for robot, (x, y) in rig.voices.items():
+            col, row = view.geometry.to_cell(x, y)
+            line = view.render_line(row).text
+            lines[robot] = line
+            assert line[col] == "→", (robot, line)  # the glyph is not hidden by any label
+            assert line[col + 2 : col + 4] == robot, (robot, line)
+        assert "·" in lines["r1"] and "█" in lines["r1"]  # the row is inside the mapped room

@@ -1,0 +1,103 @@
+"""FieldAgents: an agent per robot of the real-time field, over its boards on TCP; teleop over Zenoh moves one."""
+
+from __future__ import annotations
+
+import math
+
+import zenoh
+
+from fleetlink.field.agents import FieldAgents
+from fleetlink.field.realtime import RealtimeField
+from fleetlink.shared import keys, wire
+from fleetlink.shared.clock import SystemClock
+from fleetlink.shared.messages import Teleop
+from tests.harness import wait_until
+from tests.harness.mosquitto import free_port
+from tests.harness.zenoh_peers import zenoh_config
+from tests.test_field_realtime import quiet_scenario
+
+
+def test_field_agents_drive_the_field_robots_over_zenoh() -> None:
+    clock = SystemClock()
+    scenario = quiet_scenario(
+        robots=[
+            {"name": "uvc-1", "start": "living", "drive": "idle"},
+            {"name": "uvc-2", "start": "bedroom", "drive": "idle"},
+        ],
+        lidar={"enabled": False},
+    )
+    field = RealtimeField(scenario, clock=clock)
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    session = None
+    agents = None
+    try:
+        endpoints = field.start()
+        # The operator's session listens; every agent connects to it (as the console does).
+        session = zenoh.open(zenoh_config(listen=[listen]))
+        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[listen], operators=("op-test",))
+        running = agents.start()
+        assert set(running) == {"uvc-1", "uvc-2"}
+        wait_until(
+            lambda: all(a.board.snapshot.connected and a.zenoh is not None and a.zenoh.up for a in running.values()),
+            message="every agent on its board and on zenoh",
+        )
+        robots = {r.name: r for r in field.world.robots}
+        start = {name: r.pose for name, r in robots.items()}
+        op = wire.HeaderCounter(clock, robot="uvc-1", sender="op-test")
+
+        def moved(name: str) -> float:
+            a, b = start[name], robots[name].pose
+            return math.hypot(b[0] - a[0], b[1] - a[1])
+
+        def drive() -> bool:
+            session.put(keys.key("uvc-1", "teleop"), wire.encode(op.make(Teleop, v=0.2, omega=0.0, ttl_s=0.5)))
+            return moved("uvc-1") > 0.1
+
+        wait_until(drive, interval=0.1, message="uvc-1 to move under teleop over zenoh")
+        assert moved("uvc-2") < 0.01  # the other robot was not addressed
+    finally:
+        if agents is not None:
+            agents.stop()
+        if session is not None:
+            session.close()
+        field.stop()
+
+
+def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -> None:
+    from fleetlink.agent.mapping.codec import decode_cells
+    from fleetlink.agent.mapping.share import fetch_map
+
+    clock = SystemClock()
+    field = RealtimeField(quiet_scenario(), clock=clock)  # one robot, its lidar at 10 Hz over TCP
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    session = None
+    agents = None
+    try:
+        endpoints = field.start()
+        assert endpoints["uvc-1"].lidar is not None
+        session = zenoh.open(zenoh_config(listen=[listen]))
+        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[listen])
+        agent = agents.start()["uvc-1"]
+        wait_until(lambda: agent.scans >= 15, timeout=20.0, message="lidar scans into the mapper")
+
+        def occupied() -> int:
+            snap = fetch_map(session, "uvc-1", timeout=2.0)
+            if snap is None:
+                return 0
+            cells = decode_cells(snap.cells, snap.width, snap.height)
+            return int((cells >= 65).sum())
+
+        wait_until(lambda: occupied() > 50, timeout=10.0, interval=0.5, message="a map with walls from a get")
+        # The map also reaches the pilot: go-tos now follow A* waypoints over it.
+        wait_until(lambda: agent.core.pilot.path_provider is not None, message="a planner in the pilot")
+        with agent._lock:
+            pose = agent.core.fusion.map_pose()
+            x, y = pose.x, pose.y
+            route = agent.core.pilot.path_provider((x, y), (x + 0.5, y))
+        assert route and route[-1] == (x + 0.5, y)
+    finally:
+        if agents is not None:
+            agents.stop()
+        if session is not None:
+            session.close()
+        field.stop()

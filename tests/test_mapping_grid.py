@@ -1,0 +1,85 @@
+"""Log-odds grid: the update equations, clamping, one update per cell per scan, growth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid, logit
+
+
+def _beam(grid: LogOddsGrid, r: float = 2.0, hit: bool = True) -> None:
+    grid.integrate((0.0, 0.0, 0.0), np.array([r]), np.array([0.0]), np.array([hit]))
+
+
+def _p(grid: LogOddsGrid, x: float, y: float) -> float:
+    col, row = (int(v) for v in np.floor(grid.to_cell(np.array([[x, y]])))[0])
+    return float(grid.probability()[row, col])
+
+
+def test_hits_and_misses_follow_the_log_odds_equations() -> None:
+    cfg = GridConfig(resolution=0.1, p_occ=0.7, p_free=0.4, l_min=-5.0, l_max=5.0)
+    g = LogOddsGrid(cfg)
+    for n in range(1, 4):
+        _beam(g)
+        # l_n = n * log(p_occ / (1 - p_occ)) (prior 0.5): p = 1 - 1 / (1 + exp(l)).
+        want_hit = 1.0 - 1.0 / (1.0 + math.exp(n * logit(0.7)))
+        want_free = 1.0 - 1.0 / (1.0 + math.exp(n * logit(0.4)))
+        assert _p(g, 2.02, 0.0) == pytest.approx(want_hit, rel=1e-5)
+        assert _p(g, 1.0, 0.0) == pytest.approx(want_free, rel=1e-5)
+    assert _p(g, 3.0, 0.0) == pytest.approx(0.5)  # beyond the hit: untouched
+    occ = g.occupancy()
+    col, row = (int(v) for v in np.floor(g.to_cell(np.array([[3.0, 0.0]])))[0])
+    assert occ[row, col] == -1  # never seen
+
+
+def test_non_half_prior_is_subtracted() -> None:
+    cfg = GridConfig(resolution=0.1, p_occ=0.8, p_free=0.3, p_prior=0.4, l_min=-9.0, l_max=9.0)
+    g = LogOddsGrid(cfg)
+    _beam(g)
+    # l_1 = logit(p_occ) - logit(p0) with l_0 = 0 stored as the prior's offset.
+    assert g.logodds.max() == pytest.approx(logit(0.8) - logit(0.4), rel=1e-5)
+
+
+def test_clamping_bounds_the_log_odds() -> None:
+    g = LogOddsGrid(GridConfig(resolution=0.1, l_min=-1.0, l_max=2.0))
+    for _ in range(30):
+        _beam(g)
+    assert g.logodds.max() == pytest.approx(2.0)
+    assert g.logodds.min() == pytest.approx(-1.0)
+
+
+def test_a_cell_counts_once_per_scan_and_a_hit_beats_a_crossing() -> None:
+    g = LogOddsGrid(GridConfig(resolution=0.1, l_min=-9.0, l_max=9.0))
+    # 50 nearly parallel beams cross the same cells near the sensor; two end in the same cell.
+    ang = np.linspace(-0.01, 0.01, 50)
+    r = np.full(50, 2.0)
+    g.integrate((0.0, 0.0, 0.0), r, ang, np.ones(50, dtype=bool))
+    assert g.logodds.min() == pytest.approx(g.l_free, rel=1e-5)
+    assert g.logodds.max() == pytest.approx(g.l_occ, rel=1e-5)
+    # A beam that passes through a cell another beam of the same scan ends in: still "hit".
+    g2 = LogOddsGrid(GridConfig(resolution=0.1, l_min=-9.0, l_max=9.0))
+    g2.integrate((0.0, 0.0, 0.0), np.array([1.05, 3.0]), np.array([0.0, 0.0]), np.array([True, True]))
+    assert _p(g2, 1.05, 0.0) > 0.5
+
+
+def test_no_hit_beams_only_clear() -> None:
+    g = LogOddsGrid(GridConfig(resolution=0.1))
+    _beam(g, 2.0, hit=False)
+    assert g.logodds.max() <= 0.0
+    assert g.logodds.min() < 0.0
+
+
+def test_grid_grows_and_keeps_what_it_knew() -> None:
+    g = LogOddsGrid(GridConfig(resolution=0.1, grow_step=2.0))
+    _beam(g, 2.0)
+    shape0, origin0 = g.shape, g.origin
+    g.integrate((30.0, -20.0, 0.0), np.array([2.0]), np.array([math.pi / 2]), np.array([True]))
+    assert g.shape[0] > shape0[0] and g.shape[1] > shape0[1]
+    assert g.origin[1] < origin0[1]
+    assert _p(g, 2.02, 0.0) > 0.6  # the first hit survived the move
+    assert _p(g, 30.0, -17.98) > 0.6
+    assert g.shape[0] % g.config.coarse == 0 and g.shape[1] % g.config.coarse == 0
+    assert g.coarse_field.max() == pytest.approx(float(g.field.max())) and g.field.max() > 0.0

@@ -1,0 +1,147 @@
+"""CARMEN logs: parsing (robust to junk), replay of a small constructed log, the CLI's outputs read
+back by the map_server rules and as a field floor plan."""
+
+from __future__ import annotations
+
+import gzip
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fleetlink.agent.mapping.carmen import CarmenStats, LaserRecord, OdomRecord, read_records
+from fleetlink.agent.mapping.mapper import MapperConfig, compose, relative
+from fleetlink.agent.mapping.replay import replay
+from fleetlink.cli.main import main
+from fleetlink.field.mapserver import read_map
+from fleetlink.field.plans import load_plan
+from fleetlink.field.raycast import Raycaster
+
+ROOM = np.array(
+    [
+        [0.0, 0.0, 6.0, 0.0],
+        [6.0, 0.0, 6.0, 4.0],
+        [6.0, 4.0, 0.0, 4.0],
+        [0.0, 4.0, 0.0, 0.0],
+        [2.5, 1.5, 3.1, 1.5],
+        [3.1, 1.5, 3.1, 2.1],
+        [3.1, 2.1, 2.5, 2.1],
+        [2.5, 2.1, 2.5, 1.5],
+    ]
+)
+TIMESTAMPS = ["1000.000100", "1000.2", "1000.40000", "1000.6", "1000.8", "1001", "1001.2", "1001.4"]
+
+
+def _poses() -> list[tuple[float, float, float]]:
+    return [(1.0 + 0.12 * i, 1.0 + 0.05 * i, 0.1 * i) for i in range(len(TIMESTAMPS))]
+
+
+def _flaser(rc: Raycaster, pose: tuple[float, float, float], odom: tuple[float, float, float], ts: str) -> str:
+    n = 181
+    r = rc.cast_fan(pose[0], pose[1], pose[2] - math.pi / 2, math.pi / 180, n, 80.0)
+    r = np.where(np.isfinite(r), r, 81.91)
+    ranges = " ".join(f"{v:.3f}" for v in r)
+    return f"FLASER {n} {ranges} {pose[0]} {pose[1]} {pose[2]} {odom[0]} {odom[1]} {odom[2]} {ts} nohost {ts}"
+
+
+def _log_lines() -> list[str]:
+    rc = Raycaster(ROOM)
+    # Odometry lives in its own frame: the true path seen from an arbitrary start, slightly off.
+    frame = (10.0, -3.0, 1.0)
+    lines = [
+        "# message formats defined: PARAM SYNC ODOM FLASER",
+        "PARAM robot_frontlaser_offset 0.0 nohost 0",
+        "",
+        "SYNC 0.0 nohost 0",
+    ]
+    poses = _poses()
+    for i, (pose, ts) in enumerate(zip(poses, TIMESTAMPS, strict=True)):
+        odom = compose(frame, relative(poses[0], pose))
+        odom = (odom[0] + 0.02 * i, odom[1], odom[2] + 0.01 * i)  # drifting odometry
+        lines.append(f"ODOM {odom[0]} {odom[1]} {odom[2]} 0.1 0.0 0.0 {ts} nohost {ts}")
+        lines.append(_flaser(rc, pose, odom, ts))
+        lines.append(f"NEFF {i} 100 nohost {ts}")
+        if i == 3:
+            lines += ["FLASER 181 1.0 2.0", "FLASER abc", "FLASER 3 1 2 3 a b c 0 0 0 1.0 nohost 1.0", "ODOM 1 2"]
+    return lines
+
+
+def test_reader_skips_and_counts_what_it_cannot_use() -> None:
+    stats = CarmenStats()
+    recs = list(read_records(_log_lines(), stats))
+    lasers = [r for r in recs if isinstance(r, LaserRecord)]
+    assert len(lasers) == len(TIMESTAMPS) == stats.scans
+    assert sum(isinstance(r, OdomRecord) for r in recs) == len(TIMESTAMPS)
+    assert [r.ipc_timestamp for r in lasers] == TIMESTAMPS
+    assert stats.unknown == {"NEFF": len(TIMESTAMPS), "SYNC": 1}
+    assert sum(stats.malformed.values()) == 4 and len(stats.examples) == 4
+    assert stats.comments == 1 and stats.blank == 1 and stats.params["robot_frontlaser_offset"] == "0.0"
+    # FLASER beams: -90 deg upwards in 1 degree steps.
+    assert lasers[0].angles[0] == pytest.approx(-math.pi / 2)
+    assert lasers[0].angles[90] == pytest.approx(0.0)
+
+
+def test_robotlaser1_is_read_with_its_own_geometry() -> None:
+    n = 5
+    line = (
+        f"ROBOTLASER1 0 -1.0 2.0 0.5 30.0 0.01 0 {n} 1 2 3 4 5 0 "
+        "1.1 2.0 0.5 1.0 2.0 0.5 0.2 0.0 0.5 0.2 0.0 77.125 host 77.2"
+    )
+    (rec,) = list(read_records([line]))
+    assert isinstance(rec, LaserRecord) and rec.kind == "ROBOTLASER1"
+    assert rec.angles.tolist() == [-1.0, -0.5, 0.0, 0.5, 1.0]
+    assert rec.max_range == 30.0 and rec.ipc_timestamp == "77.125"
+    assert rec.laser_offset == pytest.approx((0.1 * math.cos(0.5), -0.1 * math.sin(0.5), 0.0))
+
+
+def test_replay_recovers_the_path_despite_drifting_odometry() -> None:
+    result = replay(read_records(_log_lines()))
+    est = [p for _, p in result.rows]
+    truth = _poses()
+    assert [ts for ts, _ in result.rows] == TIMESTAMPS
+    # The map frame is the first odometry pose; compare the path relative to the first scan.
+    for e, t in zip(est, truth, strict=True):
+        r_est, r_true = relative(est[0], e), relative(truth[0], t)
+        assert math.hypot(r_est[0] - r_true[0], r_est[1] - r_true[1]) < 0.03
+        assert abs(r_est[2] - r_true[2]) < math.radians(0.5)
+    # Odometry alone drifts about 0.15 m and 4 degrees by the end.
+    plain = replay(read_records(_log_lines()), MapperConfig(matching=False))
+    r_odo = relative(plain.rows[0][1], plain.rows[-1][1])
+    r_true = relative(truth[0], truth[-1])
+    assert math.hypot(r_odo[0] - r_true[0], r_odo[1] - r_true[1]) > 0.12
+
+
+def test_cli_replay_writes_map_server_files_and_a_verbatim_trajectory(tmp_path: Path) -> None:
+    log = tmp_path / "room.log.gz"
+    with gzip.open(log, "wt") as f:
+        f.write("\n".join(_log_lines()) + "\n")
+    out = tmp_path / "out"
+    assert main(["map", "replay", str(log), "--out", str(out)]) == 0
+    rows = (out / "trajectory.txt").read_text().splitlines()
+    assert [r.split()[0] for r in rows] == TIMESTAMPS
+    assert all(len(r.split()) == 4 for r in rows)
+    # Read back by the map_server rules: the room's walls are occupied, its inside free.
+    m = read_map(out / "map.yaml")
+    assert m.image is not None and m.resolution == pytest.approx(0.05)
+    first = [float(v) for v in rows[0].split()[1:]]
+
+    def cell(x: float, y: float) -> int:
+        # Room coordinates -> map frame (the map frame is the first scan's odometry pose).
+        p = compose(tuple(first), relative(_poses()[0], (x, y, 0.0)))  # type: ignore[arg-type]
+        col, row = m.cell_of(p[0], p[1])
+        return int(m.grid[row, col])
+
+    assert cell(1.5, 2.8) == 0  # free floor
+    assert cell(3.0, 0.0) == 100 or cell(3.0, 0.02) == 100 or cell(3.0, -0.02) == 100  # south wall
+    # The same file is a field floor plan.
+    plan = load_plan(out / "map.yaml")
+    assert len(plan.walls) > 4
+    assert main(["map", "load", str(out / "map.yaml")]) == 0
+
+
+def test_cli_replay_rejects_a_log_without_scans(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    log = tmp_path / "empty.log"
+    log.write_text("# nothing\nODOM 0 0 0 0 0 0 1.0 h 1.0\nGARBAGE\n")
+    assert main(["map", "replay", str(log), "--out", str(tmp_path / "o")]) == 1
+    assert "no usable scans" in capsys.readouterr().err

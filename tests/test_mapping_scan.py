@@ -1,0 +1,54 @@
+"""Scan preparation and adaptive segmentation on constructed scans."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fleetlink.agent.mapping.scan import filter_segments, prepare, segment_labels, thin, to_points
+
+
+def test_prepare_drops_invalid_and_marks_max_range_as_no_hit() -> None:
+    r = np.array([1.0, np.nan, 0.0, -1.0, 0.05, np.inf, 12.0, 30.0, 2.0])
+    a = np.linspace(0, 1, r.size)
+    rr, aa, hit = prepare(r, a, min_range=0.1, max_range=12.0)
+    assert rr.tolist() == [1.0, 12.0, 12.0, 2.0]
+    assert hit.tolist() == [True, False, False, True]
+    assert np.allclose(aa, a[[0, 6, 7, 8]])
+
+
+def test_two_walls_at_different_depths_split_by_distance() -> None:
+    # A wall at x = 2 (beams -30..-1 deg) and one at x = 4 (0..30 deg): one depth jump.
+    ang = np.radians(np.arange(-30, 31, 1.0))
+    r = np.where(ang < 0, 2.0 / np.cos(ang), 4.0 / np.cos(ang))
+    labels = segment_labels(to_points(r, ang), eps=0.3, tau=5.0)
+    assert labels.max() == 1
+    assert (labels[ang < 0] == 0).all() and (labels[ang >= 0] == 1).all()
+
+
+def test_ratio_rule_splits_a_small_jump_that_eps_misses() -> None:
+    # Points 1 cm apart along a line, then a 20 cm step (under eps = 0.3), then 1 cm apart again.
+    a = np.column_stack((np.arange(10) * 0.01, np.zeros(10)))
+    b = np.column_stack((0.09 + 0.2 + np.arange(10) * 0.01, np.zeros(10)))
+    pts = np.vstack((a, b))
+    assert segment_labels(pts, eps=0.3, tau=math.inf).max() == 0  # distance rule alone: one segment
+    labels = segment_labels(pts, eps=0.3, tau=5.0)
+    assert labels.tolist() == [0] * 10 + [1] * 10
+
+
+def test_evenly_spaced_points_stay_one_segment_and_isolated_points_are_noise() -> None:
+    ang = np.radians(np.arange(0, 90, 1.0))
+    pts = to_points(np.full(ang.size, 3.0), ang)  # an arc: equal gaps
+    assert segment_labels(pts, 0.3, 5.0).max() == 0
+    # A stray return in the middle of the arc forms its own tiny segment, which is filtered.
+    r = np.full(ang.size, 3.0)
+    r[45] = 1.0
+    labels = segment_labels(to_points(r, ang), 0.3, 5.0)
+    keep = filter_segments(labels, min_points=3)
+    assert not keep[45] and keep.sum() == ang.size - 1
+
+
+def test_thin_keeps_one_point_per_cell() -> None:
+    pts = np.array([[0.01, 0.01], [0.02, 0.02], [0.5, 0.5], [0.51, 0.52], [1.0, 0.0]])
+    assert thin(pts, 0.1).tolist() == [[0.01, 0.01], [0.5, 0.5], [1.0, 0.0]]
