@@ -305,3 +305,45 @@ def test_malformed_payloads_on_every_input_topic_are_rejected_and_counted(rig: R
     m = op.counter.make(Teleop, v=0.1, omega=0.0, ttl_s=0.5)
     op.send(m, mqtt_=False)
     wait_until(lambda: op.acks_for(m.header.headerId, "teleop"), message="an ack after the garbage")
+
+
+def test_zenoh_link_delivers_samples_on_different_keys_in_the_order_sent(zenoh_peers: Any) -> None:
+    """A teleop then a lease release must reach the agent in that order: zenoh-python would run
+    each subscriber's callback on a thread of its own, so the link queues them on one."""
+    from fleetlink.agent.links.zenoh_link import ZenohLink
+
+    peers = zenoh_peers(1)
+    operator = peers[0]
+    got: list[tuple[str, bytes]] = []
+    done = threading.Event()
+    n = 600
+
+    probed: set[str] = set()
+
+    def on_input(link: LinkName, key: str, payload: bytes) -> None:
+        if payload == b"probe":
+            probed.add(key)
+            return
+        got.append((key, payload))
+        if len(got) == n:
+            done.set()
+
+    inputs = ("order", "actions", "teleop", "lease/request")
+    link = ZenohLink("r1", on_input, connect=peers.endpoints, inputs=inputs)
+    link.start()
+    try:
+        wait_until(lambda: link.up, message="the agent's zenoh link to the operator")
+        # Declarations take a moment to propagate: probe until a sample on each key gets through.
+        for t in inputs:
+            wait_until(
+                lambda t=t: operator.put(keys.key("r1", t), b"probe") is None and keys.key("r1", t) in probed,
+                interval=0.05,
+                message=f"the subscription on {t}",
+            )
+        sent = [(keys.key("r1", inputs[i % len(inputs)]), i.to_bytes(4, "big")) for i in range(n)]
+        for k, payload in sent:
+            operator.put(k, payload)
+        assert done.wait(10.0), f"only {len(got)} of {n} samples arrived"
+        assert got == sent
+    finally:
+        link.stop()

@@ -5,12 +5,19 @@ does the rest. Telemetry goes out with congestion control DROP (a slow subscribe
 the control loop); acks and events go express with high priority. Presence is a liveliness token
 on ``fleetlink/v1/<robot>/alive``. The session is closed explicitly in ``stop()``: zenoh runs
 callbacks on non-daemon threads that would keep the process alive.
+
+Order: zenoh-python runs a plain Python callback on a thread of its own per subscriber, so
+samples on different keys (a teleop, then a lease release) could reach the agent out of the
+order they were sent in. Each subscriber's callback therefore runs on zenoh's network thread
+(``indirect=False``) and only queues the sample; one delivery thread hands them to ``on_input``
+in arrival order, so the network thread never waits on the agent.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import queue
 import threading
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -28,6 +35,9 @@ URGENT_TOPICS = frozenset({"ack", "events", "order", "actions", "teleop", "conne
 """Published express with INTERACTIVE_HIGH priority and congestion control BLOCK; the rest DROP."""
 
 OnInput = Callable[[LinkName, str, bytes], None]
+
+INBOX_SIZE = 1024
+"""Samples waiting for the agent; beyond this (an agent stalled for seconds) new ones are dropped and counted."""
 
 
 class ZenohLink:
@@ -67,14 +77,20 @@ class ZenohLink:
         self._opts: dict[str, dict[str, Any]] = {}
         self._token: Any = None
         self._lock = threading.Lock()
+        self._inbox: queue.Queue[tuple[str, bytes] | None] = queue.Queue(INBOX_SIZE)
+        self._delivery: threading.Thread | None = None
         self.publish_errors = 0
+        self.inbox_dropped = 0
 
     def start(self) -> None:
         import zenoh
 
+        self._delivery = threading.Thread(target=self._deliver, name=f"zenoh-in-{self.robot}", daemon=True)
+        self._delivery.start()
         self._session = zenoh.open(peer_config(self.listen, self.connect, mode=self.mode, **self._security))
         for k in self.input_keys:
-            self._subs.append(self._session.declare_subscriber(k, self._on_sample))
+            handler = zenoh.handlers.Callback(self._on_sample, indirect=False)
+            self._subs.append(self._session.declare_subscriber(k, handler))
         self._token = self._session.liveliness().declare_token(keys.key(self.robot, ALIVE_TOPIC))
         log.info("zenoh link for %s: listen %s connect %s", self.robot, self.listen, self.connect)
 
@@ -110,6 +126,11 @@ class ZenohLink:
     def stop(self) -> None:
         with self._lock:
             session, self._session = self._session, None
+            delivery, self._delivery = self._delivery, None
+        if delivery is not None:
+            with contextlib.suppress(queue.Full):
+                self._inbox.put(None, timeout=1.0)
+            delivery.join(timeout=2.0)
         if session is None:
             return
         for d in [*self._subs, self._token]:
@@ -143,7 +164,19 @@ class ZenohLink:
         return opts
 
     def _on_sample(self, sample: Any) -> None:
+        # On zenoh's network thread: queue and return at once.
         try:
-            self.on_input(self.name, str(sample.key_expr), sample.payload.to_bytes())
-        except Exception:  # never let a bug kill zenoh's callback thread silently
-            log.exception("zenoh input handler failed")
+            self._inbox.put_nowait((str(sample.key_expr), sample.payload.to_bytes()))
+        except queue.Full:
+            self.inbox_dropped += 1
+            if self.inbox_dropped == 1:
+                log.warning("zenoh inbox full (%d samples): the agent is not keeping up; dropping input", INBOX_SIZE)
+        except Exception:  # never let a bug kill zenoh's network thread
+            log.exception("zenoh input callback failed")
+
+    def _deliver(self) -> None:
+        while (item := self._inbox.get()) is not None:
+            try:
+                self.on_input(self.name, *item)
+            except Exception:  # a handler bug must not stop delivery
+                log.exception("zenoh input handler failed")
