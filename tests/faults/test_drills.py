@@ -16,6 +16,7 @@ import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import paho.mqtt.client as mqtt
 import pytest
@@ -241,10 +242,12 @@ def test_unauthorised_clients_cannot_drive_over_mqtt(tmp_path: Path) -> None:
     agent = AgentRuntime(cfg, clock, seed=1)
     clients: list[mqtt.Client] = []
 
-    def client(user: str | None, password: str | None) -> mqtt.Client:
+    def client(user: str | None, password: str | None, **callbacks: Any) -> mqtt.Client:
         c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=f"drill-{user}")
         if user:
             c.username_pw_set(user, password)
+        for name, fn in callbacks.items():  # before connecting: a fast connect must not miss on_connect
+            setattr(c, name, fn)
         c.connect_async("127.0.0.1", broker.port)
         c.loop_start()
         clients.append(c)
@@ -254,9 +257,12 @@ def test_unauthorised_clients_cannot_drive_over_mqtt(tmp_path: Path) -> None:
         agent.start()
         wait_until(lambda: agent.mqtt is not None and agent.mqtt.up and agent.board.snapshot.connected)
         acks: list[Ack] = []
-        op = client("op-alice", "pw-alice")
-        op.on_message = lambda _c, _u, m: acks.append(wire.decode_key(m.topic, m.payload))
-        op.on_connect = lambda c, *_a: c.subscribe(keys.key("r1", "ack"), qos=1)
+        op = client(
+            "op-alice",
+            "pw-alice",
+            on_message=lambda _c, _u, m: acks.append(wire.decode_key(m.topic, m.payload)),
+            on_connect=lambda c, *_a: c.subscribe(keys.key("r1", "ack"), qos=1),
+        )
         wait_until(op.is_connected)
         attackers = [client("r2", "pw-r2"), client(None, None), client("r1", "wrong")]
         wait_until(lambda: attackers[0].is_connected())
