@@ -149,8 +149,11 @@ class ConsoleApp(App[None]):
     BINDINGS: ClassVar = [
         Binding("ctrl+q", "quit", "quit", priority=True),
         Binding("escape", "stop_all", "STOP ALL", priority=True),
-        Binding("slash", "focus_filter", "filter"),
-        Binding("colon", "focus_command", "command"),
+        # Priority, so the focus moves while the key is first handled: the keys queued behind it
+        # (a fast typist, a paste) then reach the input instead of driving the robot. In an input
+        # or a dialog the action steps aside and the character is typed.
+        Binding("slash", "focus_filter", "filter", priority=True),
+        Binding("colon", "focus_command", "command", priority=True),
         Binding("t", "lease", "take lease"),
         Binding("T", "release_lease", "release"),
         Binding("h", "home", "home"),
@@ -600,11 +603,18 @@ class ConsoleApp(App[None]):
 
     # -- inputs ---------------------------------------------------------------------------------
 
+    # The focus moves at once, not through Widget.focus() (deferred with call_later), for the
+    # same reason the bindings are priority ones: the keys right behind must reach the input.
+    def _focus_input(self, selector: str) -> None:
+        if isinstance(self.focused, Input) or len(self.screen_stack) > 1:
+            raise SkipAction()
+        self.screen.set_focus(self.query_one(selector, Input))
+
     def action_focus_filter(self) -> None:
-        self.query_one("#filter", Input).focus()
+        self._focus_input("#filter")
 
     def action_focus_command(self) -> None:
-        self.query_one("#command", Input).focus()
+        self._focus_input("#command")
 
     def on_input_changed(self, event: Input.Changed) -> None:
         if event.input.id == "filter":

@@ -295,6 +295,32 @@ async def test_typed_goal_home_and_payload(rig: Rig) -> None:
 
 
 @run_async
+async def test_keys_typed_right_after_colon_go_to_the_command_line_not_to_teleop(rig: Rig) -> None:
+    """A fast typist (or a paste, or tmux) sends ':goal 1.5 2' in one burst: every key after the
+    colon belongs to the command line. Were the focus moved later, 'l' would turn the robot."""
+    from textual import events
+
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        names = {" ": "space", ".": "full_stop", ":": "colon"}
+        burst = [events.Key(names.get(c, c), c) for c in ":goal 1.5 2"] + [events.Key("enter", "\r")]
+        for key in burst:  # as the terminal driver delivers them: all queued before the first is handled
+            key.set_sender(rig.app)
+            rig.app._driver.send_message(key)  # what pilot.press does, without waiting between keys
+        await pilot.pause()
+        await pilot.pause()
+        assert rig.zenoh.messages(Teleop) == [] and rig.mqtt.messages(Teleop) == []
+        order = rig.zenoh.messages(Order)[-1]
+        assert (order.goal.x, order.goal.y) == (1.5, 2.0)
+        # In the command line a colon is just a character.
+        await pilot.press("colon")
+        await type_text(pilot, "mark hazard 1 2 gas:leak")
+        await pilot.press("enter")
+        await pilot.pause()
+        assert rig.zenoh.messages(Mark)[-1].label == "gas:leak"
+
+
+@run_async
 async def test_mark_flow_shared_and_saved(rig: Rig, tmp_path: Path) -> None:
     async with rig.app.run_test(size=(140, 44)) as pilot:
         await with_robots(rig, pilot, "r1")
