@@ -8,6 +8,7 @@ send (a sentinel); once the sentinel has arrived, anything sent before it would 
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -372,7 +373,9 @@ def test_zenoh_tls_with_site_ca(tmp_path: Path, site_ca: SiteCA) -> None:
 def test_systemd_units_verify(tmp_path: Path) -> None:
     tool = shutil.which("systemd-analyze")
     if tool is None:
-        pytest.skip("systemd-analyze not installed")
+        if os.environ.get("CI"):  # CI's machine has systemd: the units must be verified there
+            pytest.fail("systemd-analyze not installed on the CI machine")
+        pytest.skip("systemd-analyze not installed (Debian package systemd): the units were not verified")
     units = sorted((DEPLOY / "systemd").glob("*.service"))
     assert {u.name for u in units} == {"fleetlink-agent.service", "fleetlink-uwb.service", "fleetlink-zenohd.service"}
     for unit in units:
