@@ -43,8 +43,8 @@ def screen(session: str) -> str:
     return tmux("capture-pane", "-t", session, "-p")
 
 
-def pose(session: str) -> tuple[float, float] | None:
-    m = POSE.search(screen(session))
+def pose(session: str, shown: str | None = None) -> tuple[float, float] | None:
+    m = POSE.search(screen(session) if shown is None else shown)
     return (float(m.group(2)), float(m.group(3))) if m else None
 
 
@@ -78,9 +78,7 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
         def still() -> bool:
             # Idle in the detail line (no command any more) and the same pose on two polls in a row.
             shown = screen(session)
-            m = POSE.search(shown)
-            p = (float(m.group(2)), float(m.group(3))) if m else None
-            p, before = (p if "uvc-1 idle pose" in shown else None), last[0]
+            p, before = (pose(session, shown) if "uvc-1 idle pose" in shown else None), last[0]
             last[0] = p
             return p is not None and p == before
 
