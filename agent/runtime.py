@@ -51,12 +51,14 @@ log = logging.getLogger(__name__)
 
 __all__ = ["POLL_RATES", "AgentRuntime"]
 
-POLL_RATES = PollRates(motion=10.0, motor=20.0, imu=20.0, sensors=20.0, bumpers=20.0, buttons=1.0)
+POLL_RATES = PollRates(motion=10.0, telemetry=20.0, motor=20.0, imu=20.0, sensors=20.0, bumpers=20.0, buttons=1.0)
 """The board poll rates the agent uses: wheel distances and the gyro at 20 Hz feed the odometry;
-range sensors, bumpers and cliffs at 20 Hz feed the guard. Motion (SET_V_AND_GET_DEADRECKON) is
+range sensors, bumpers and cliffs at 20 Hz feed the guard. A board with GET_TELEMETRY gives all
+four in one exchange at 20 Hz (a quarter of the exchanges, on both ends of the line); a plain
+SLAMTEC base is polled for each apart. Motion (SET_V_AND_GET_DEADRECKON) is
 only a 10 Hz refresh: every new velocity is sent at once (``BoardSession.set_velocity``), so while
 driving it goes out at the control rate anyway, and its dead reckoning is not what the odometry
-uses. Every poll feeds the board's 1 s watchdog (20 Hz in all). Buttons at 1 Hz: nothing reads
+uses. Every poll feeds the board's 1 s watchdog. Buttons at 1 Hz: nothing reads
 them but the pending base command (2 Hz) that the home button raises."""
 INPUTS = ("order", "actions", "teleop", LeaseRequest.TOPIC, UwbFix.TOPIC)
 

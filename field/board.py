@@ -25,6 +25,7 @@ __all__ = ["BoardConfig", "SimulatedBoard"]
 BUMPER_LEFT, BUMPER_RIGHT, CLIFF_LEFT, CLIFF_RIGHT = 0, 1, 2, 3
 ALL_CLEAR = 0xFFFF_FFFF
 _HOME_BUTTON = 0x02  # GET_BUTTONS bit 1
+_FIRST_EXTENSION = p.CtrlBus.SET_UV_LAMP  # fleetlink's extension commands are 0xA0 and up
 
 
 @dataclass(slots=True)
@@ -55,6 +56,9 @@ class BoardConfig:
     gyro_noise: float = 0.0  # rad/s, sd per control tick
     ultrasonic_noise: float = 0.005  # m, sd
     noise_seed: int = 0
+    extensions: bool = True
+    """Serve fleetlink's extension commands (0xA0-0xAB); False: a plain SLAMTEC-profile base,
+    which answers each of them NOT_SUPPORTED."""
 
 
 @dataclass(slots=True)
@@ -217,6 +221,15 @@ class SimulatedBoard:
 
     def _serve(self, req: p.Request) -> p.Reply:
         st, cfg = self.state, self.config
+        if req.CODE >= _FIRST_EXTENSION and not cfg.extensions:
+            raise _Refusal(p.ErrorCode.NOT_SUPPORTED)
+        if isinstance(req, p.GetTelemetry):  # first: the master's most frequent request
+            return p.Telemetry(
+                p.MotorData(st.dist_left, st.dist_right, p.MotorStatus.STALL if st.stalled else 0),
+                p.ImuData(st.gyro_rate, st.gyro_yaw, st.gyro_samples),
+                p.SensorData((self.ultrasonic(),)),
+                p.BumperData(self.bumper_bitmap(), 4),
+            )
         if isinstance(req, p.ConnectBase):
             if req.protocol_version != 1:
                 raise _Refusal(p.ErrorCode.NOT_SUPPORTED)

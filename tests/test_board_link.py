@@ -196,6 +196,11 @@ COMMANDS: dict[type, tuple[Any, type | int, Check]] = {
     ),
     p.GetButtons: (p.GetButtons(), p.Buttons, lambda r: r.bitmap == 0),
     p.GetImuData: (p.GetImuData(), p.ImuData, lambda r: r.yaw_rate == 0.0 and r.yaw == 0.0 and r.samples >= 0),
+    p.GetTelemetry: (
+        p.GetTelemetry(),
+        p.Telemetry,
+        lambda r: r.imu is not None and len(r.sensors.distances) == 1 and r.bumpers.bitmap == 0xFFFF_FFFF,
+    ),
     p.SetLeds: (p.SetLeds(1, 255, 0, 0), p.Empty, lambda r: True),
     p.Beep: (p.Beep(880, 0.1), p.Empty, lambda r: True),
 }

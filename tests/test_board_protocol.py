@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 
 from fleetlink.agent.board import protocol as p
 from fleetlink.agent.board.frames import Frame, FrameDecoder, checksum, encode_frame
-from fleetlink.field.board import SimulatedBoard
+from fleetlink.field.board import BoardConfig, SimulatedBoard
+from tests.test_board_link import COMMANDS
 
 PROPS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -59,6 +60,7 @@ REQUEST_STRATEGIES: dict[type, st.SearchStrategy[typing.Any]] = {
     p.GetPowerData: st.just(p.GetPowerData()),
     p.GetButtons: st.just(p.GetButtons()),
     p.GetImuData: st.just(p.GetImuData()),
+    p.GetTelemetry: st.just(p.GetTelemetry()),
     p.SetLeds: st.builds(p.SetLeds, st.integers(0, 3), u8, u8, u8),
     p.Beep: st.builds(p.Beep, u16, u16.map(mm)),
 }
@@ -196,6 +198,15 @@ def _conf_wire(t: tuple[int, int, int, list[tuple[int, int, int, int]], list[tup
     return out
 
 
+def _telemetry_wire(
+    left: int, right: int, status: int, imu: tuple[int, int, int] | None, bumpers: int, sensors: list[int]
+) -> bytes:
+    """A GET_TELEMETRY payload; a board without a gyro sends zeros in its place (flags bit 0 clear)."""
+    gyro = (1, *imu) if imu is not None else (0, 0, 0, 0)
+    head = struct.pack("<BiiBiiIIB", gyro[0], left, right, status, *gyro[1:], bumpers, len(sensors))
+    return head + struct.pack(f"<{len(sensors)}I", *sensors)
+
+
 def _asciiz(n: int) -> st.SearchStrategy[bytes]:
     return st.binary(max_size=n).map(lambda b: bytes(c for c in b if 0 < c < 0x80)).map(lambda b: b.ljust(n, b"\0"))
 
@@ -224,6 +235,9 @@ REPLY_WIRE: dict[type, st.SearchStrategy[bytes]] = {
     p.PowerData: st.tuples(u16, st.integers(-0x8000, 0x7FFF), u8, u8).map(lambda t: struct.pack("<HhBB", *t)),
     p.Buttons: st.binary(min_size=1, max_size=1),
     p.ImuData: st.tuples(s32, s32, u32).map(lambda t: struct.pack("<iiI", *t)),
+    p.Telemetry: st.tuples(
+        s32, s32, u8, st.one_of(st.just(None), st.tuples(s32, s32, u32)), u32, st.lists(u32, max_size=16)
+    ).map(lambda t: _telemetry_wire(*t)),
 }
 
 
@@ -336,6 +350,33 @@ def test_wrong_length_ok_payload_is_malformed() -> None:
     assert isinstance(p.decode_reply(Frame(0x42, b""), p.Empty), p.Malformed)
 
 
+def test_telemetry_example_and_its_checks() -> None:
+    # docs/protocols/control-bus.md's example, byte for byte: 1.5 m / 1.6 m on the wheels, the
+    # gyro at 90 degrees after 1000 samples, no bumper or cliff triggered, one sensor at 0.5 m.
+    assert p.encode_request(p.GetTelemetry()) == bytes.fromhex("10 02 F8 AB 41")
+    example = bytes.fromhex(
+        "50 20 00 02 01 DC 05 00 00 40 06 00 00 00 00 00 00 00 00 00 5A 00 E8 03 00 00 FF FF FF FF 01 00 00 F4 01 A9"
+    )
+    reply = p.Telemetry(
+        p.MotorData(1.5, 1.6, 0), p.ImuData(0.0, math.pi / 2, 1000), p.SensorData((0.5,)), p.BumperData(0xFFFF_FFFF)
+    )
+    assert p.encode_ok(reply) == example
+    frames = FrameDecoder(p.REPLY_CODES).feed(example)
+    assert p.decode_reply(frames[0], p.Telemetry) == reply
+    # Without a gyro the IMU fields are zero on the wire and None once decoded.
+    no_gyro = reply._replace(imu=None)
+    assert p.Telemetry.decode(no_gyro.encode()) == no_gyro
+    # Each field keeps its own reply type, so the snapshot stores them as the separate polls would.
+    assert type(reply.motor) is p.MotorData and type(reply.bumpers) is p.BumperData
+    # A count that does not match the length, or more than 16 sensors, is malformed.
+    payload = example[4:-1]
+    for bad in (payload[:-1], payload + bytes(4), payload[:-5] + b"\x11" + bytes(4 * 17)):
+        got = p.decode_reply(Frame(p.RESP_OK, bad, True), p.Telemetry)
+        assert isinstance(got, p.Malformed) and "Telemetry" in got.reason and "sensors" in got.reason
+    with pytest.raises(ValueError, match="at most 16"):
+        p.Telemetry(reply.motor, None, p.SensorData((1.0,) * 17), reply.bumpers).encode()
+
+
 def test_error_reply_decode() -> None:
     for code in p.ErrorCode:
         got = p.decode_reply(FrameDecoder(p.REPLY_CODES).feed(p.encode_error(code))[0], p.BaseStatus)
@@ -408,6 +449,18 @@ def test_board_answers_a_request() -> None:
     info = p.decode_reply(frames[0], p.BaseInfo)
     assert isinstance(info, p.BaseInfo) and info.model == board.config.model
     assert board.state.connected
+
+
+def test_a_board_without_the_extension_refuses_every_extension_command() -> None:
+    board = SimulatedBoard(BoardConfig(extensions=False))
+    extension = [c for c in p.REQUEST_TYPES if c.CODE >= p.CtrlBus.SET_UV_LAMP]
+    assert p.GetTelemetry in extension and p.GetImuData in extension and p.SetUvLamp in extension
+    for cls in extension:
+        req = COMMANDS[cls][0]  # a valid request of each kind
+        assert _error_of(board.receive(p.encode_request(req), 0.0)) == p.ErrorCode.NOT_SUPPORTED, cls.__name__
+    # The SLAMTEC commands are served as before.
+    frames = FrameDecoder(p.REPLY_CODES).feed(board.receive(p.encode_request(p.GetMotorData()), 0.0))
+    assert isinstance(p.decode_reply(frames[0], p.MotorData), p.MotorData)
 
 
 def test_board_error_codes() -> None:

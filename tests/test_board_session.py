@@ -14,9 +14,9 @@ import pytest
 
 from fleetlink.agent.board import protocol as p
 from fleetlink.agent.board.link import BoardRefused
-from fleetlink.agent.board.session import BoardSession, BoardSnapshot
+from fleetlink.agent.board.session import BoardSession, BoardSnapshot, PollRates
 from fleetlink.agent.board.transport import InProcessPort, SerialPort
-from fleetlink.field.board import SimulatedBoard
+from fleetlink.field.board import BoardConfig, SimulatedBoard
 from fleetlink.field.board_server import BoardServer
 from fleetlink.shared.clock import SimClock, SystemClock
 from tests.test_board_link import serve_board
@@ -121,12 +121,20 @@ def test_watchdog_stops_the_wheels_when_the_agent_goes_quiet(served_board: tuple
 class Lockstep:
     """A session and a board sharing a SimClock; the test decides when time moves."""
 
-    def __init__(self, board: SimulatedBoard | None = None) -> None:
+    def __init__(self, board: SimulatedBoard | None = None, rates: PollRates | None = None) -> None:
         self.clock = SimClock(start=10.0)
         self.board = board or SimulatedBoard(now=self.clock.now())
         self.board.start_clock(self.clock.now())
         self.ports: list[InProcessPort] = []
-        self.session = BoardSession(self._open, self.clock, seed=3)
+        self.session = BoardSession(self._open, self.clock, seed=3, rates=rates)
+        self.served: list[type] = []  # every Control Bus request the board answered, by type
+        serve = self.board._serve
+
+        def spy(req: p.Request) -> p.Reply:
+            self.served.append(type(req))
+            return serve(req)
+
+        self.board._serve = spy  # type: ignore[method-assign]
 
     def _open(self) -> InProcessPort:
         port = InProcessPort(lambda data: self.board.receive(data, self.clock.now()))
@@ -202,6 +210,52 @@ def test_lockstep_odometry_follows_an_arc() -> None:
     assert snap.odom[0] == pytest.approx(st.x, abs=1e-4)
     assert snap.odom[1] == pytest.approx(st.y, abs=1e-4)
     assert math.remainder(snap.odom[2] - st.theta, 2 * math.pi) == pytest.approx(0.0, abs=1e-4)
+    ls.session.stop()
+
+
+# ---------------------------------------------------------------------------------------------
+# GET_TELEMETRY, and the fallback for a plain SLAMTEC base
+# ---------------------------------------------------------------------------------------------
+
+TELEMETRY_RATES = PollRates(motion=10.0, telemetry=20.0, motor=20.0, imu=20.0, sensors=20.0, bumpers=20.0)
+SEPARATE_POLLS = (p.GetMotorData, p.GetImuData, p.GetSensorData, p.GetBumperData)
+
+
+def test_a_board_with_telemetry_is_polled_with_it_alone() -> None:
+    ls = Lockstep(SimulatedBoard(pose=(0.0, 0.0, 0.0)), rates=TELEMETRY_RATES)
+    ls.session.set_velocity(0.25, 0.5)
+    ls.run(2.0)
+    assert ls.session.telemetry_supported is True
+    assert not set(SEPARATE_POLLS) & set(ls.served), "the four separate polls must not run"
+    # 20 Hz for 2 s, plus the probe at connect.
+    assert 40 <= ls.served.count(p.GetTelemetry) <= 42
+    st, snap = ls.board.state, ls.session.snapshot
+    assert snap.motor is not None and snap.imu is not None and snap.sensors is not None and snap.bumpers is not None
+    # The last reading is at most one poll period old: the wheels moved at most 0.3 m/s x 50 ms since.
+    assert snap.motor.left == pytest.approx(st.dist_left, abs=0.02)
+    assert snap.motor.right == pytest.approx(st.dist_right, abs=0.02)
+    assert snap.motor.right > snap.motor.left > 0.2
+    assert math.remainder(snap.imu.yaw - st.gyro_yaw, 2 * math.pi) == pytest.approx(0.0, abs=0.05)
+    assert snap.imu.samples > 0
+    assert len(snap.sensors.distances) == 1 and snap.bumpers.bitmap == 0xFFFF_FFFF
+    ls.session.stop()
+
+
+def test_a_plain_slamtec_base_is_polled_command_by_command() -> None:
+    ls = Lockstep(SimulatedBoard(BoardConfig(extensions=False), pose=(0.0, 0.0, 0.0)), rates=TELEMETRY_RATES)
+    ls.session.set_velocity(0.25, 0.0)
+    ls.run(2.0)
+    assert ls.session.telemetry_supported is False
+    assert ls.served.count(p.GetTelemetry) == 1  # asked once, refused, never again
+    assert 39 <= ls.served.count(p.GetMotorData) <= 41
+    assert 39 <= ls.served.count(p.GetSensorData) <= 41
+    assert 39 <= ls.served.count(p.GetBumperData) <= 41
+    assert ls.served.count(p.GetImuData) == 1  # no gyro on this base either: dropped after one refusal
+    snap = ls.session.snapshot
+    assert snap.connected and snap.last_error == "" and snap.imu is None
+    assert snap.motor is not None and snap.motor.left == pytest.approx(ls.board.state.dist_left, abs=0.02)
+    assert snap.sensors is not None and len(snap.sensors.distances) == 16
+    assert snap.bumpers is not None and snap.bumpers.bitmap == 0xFFFF_FFFF
     ls.session.stop()
 
 

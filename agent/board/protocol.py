@@ -111,6 +111,7 @@ class CtrlBus(IntEnum):
     SET_LEDS = 0xA7
     BEEP = 0xA9
     GET_IMU_DATA = 0xAA
+    GET_TELEMETRY = 0xAB
 
 
 @dataclass(frozen=True, slots=True)
@@ -756,6 +757,73 @@ def _decode_imu(payload: bytes) -> ImuData:
     return _new(ImuData, (rate * _Q16_TO_RAD, yaw * _Q16_TO_RAD, samples))
 
 
+_TELEMETRY_HEAD = struct.Struct("<BiiBiiIIB")
+_TELEMETRY_GYRO = 0x01  # flags bit 0: a gyro is fitted (else the IMU fields are zero and mean nothing)
+_U32 = struct.Struct("<I")
+
+
+class Telemetry(NamedTuple):
+    """GET_TELEMETRY (extension): what the master polls at its sensor rate, in one exchange.
+
+    One reading of the wheels, the gyro, the range sensors and the bumper/cliff bitmap, sampled
+    together: the same fields as GET_BASE_MOTOR_DATA, GET_IMU_DATA, GET_BASE_SENSOR_DATA and
+    GET_BASE_BUMPER_DATA (u32 bitmap), each in its own reply type. Layout: flags u8 (bit 0 gyro
+    fitted), left mm s32, right mm s32, motor status u8, yaw rate deg Q16 s32, yaw deg Q16 s32,
+    gyro samples u32, bumper bitmap u32, sensor count u8 (0-16), count x distance mm Q16 u32.
+    ``imu`` is None for a board without a gyro; ``sensors`` holds only the fitted sensors.
+    """
+
+    motor: MotorData
+    imu: ImuData | None
+    sensors: SensorData
+    bumpers: BumperData
+
+    def encode(self) -> bytes:
+        m, imu, d = self.motor, self.imu, self.sensors.distances
+        if len(d) > 16:
+            raise ValueError(f"at most 16 range sensors, got {len(d)}")
+        gyro = imu or ImuData(0.0, 0.0, 0)
+        top = 0xFFFF_FFFF / Q16 / 1000
+        head = _TELEMETRY_HEAD.pack(
+            _TELEMETRY_GYRO if imu is not None else 0,
+            _wrap32(m.left * 1000),
+            _wrap32(m.right * 1000),
+            m.status,
+            _s32(math.degrees(gyro.yaw_rate) * Q16),
+            _s32(math.degrees(gyro.yaw) * Q16),
+            gyro.samples & 0xFFFF_FFFF,
+            self.bumpers.bitmap & 0xFFFF_FFFF,
+            len(d),
+        )
+        return head + b"".join(_U32.pack(_u32(min(x, top) * 1000 * Q16) if x > 0 else 0) for x in d)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> Telemetry:
+        return _decode_telemetry(payload)
+
+
+def _decode_telemetry(payload: bytes) -> Telemetry:
+    n = len(payload) - _TELEMETRY_HEAD.size
+    if n < 0:
+        raise BadPayload(f"expected at least {_TELEMETRY_HEAD.size} bytes, got {len(payload)}")
+    flags, left, right, status, rate, yaw, samples, bumpers, count = _TELEMETRY_HEAD.unpack_from(payload)
+    if count > 16:
+        raise BadPayload(f"{count} range sensors (at most 16)")
+    if n != 4 * count:
+        raise BadPayload(f"{count} range sensors need {_TELEMETRY_HEAD.size + 4 * count} bytes, got {len(payload)}")
+    s = _Q16_MM
+    distances = tuple(v / s for v in struct.unpack_from(f"<{count}I", payload, _TELEMETRY_HEAD.size))
+    return _new(
+        Telemetry,
+        (
+            _new(MotorData, (left / _MM, right / _MM, status)),
+            _new(ImuData, (rate * _Q16_TO_RAD, yaw * _Q16_TO_RAD, samples)) if flags & _TELEMETRY_GYRO else None,
+            _new(SensorData, (distances,)),
+            _new(BumperData, (bumpers, 4)),
+        ),
+    )
+
+
 Reply: TypeAlias = (
     Empty
     | BaseInfo
@@ -775,6 +843,7 @@ Reply: TypeAlias = (
     | PowerData
     | Buttons
     | ImuData
+    | Telemetry
 )
 
 # decode_reply's dispatch: reply type -> decoder of its OK payload.
@@ -797,6 +866,7 @@ _REPLY_DECODERS: dict[type[Reply] | None, Callable[[bytes], Reply]] = {
     PowerData: _decode_power_data,
     Buttons: _decode_buttons,
     ImuData: _decode_imu,
+    Telemetry: _decode_telemetry,
 }
 
 # Fixed payload sizes, for the message when a payload has the wrong size.
@@ -1227,6 +1297,20 @@ class GetImuData:
         return cls()
 
 
+@dataclass(frozen=True, slots=True)
+class GetTelemetry:
+    CODE: ClassVar[int] = CtrlBus.GET_TELEMETRY
+    REPLY: ClassVar[type[Reply]] = Telemetry
+
+    def encode_args(self) -> bytes:
+        return b""
+
+    @classmethod
+    def decode_args(cls, args: bytes) -> GetTelemetry:
+        _expect_empty(args)
+        return cls()
+
+
 _LEDS = struct.Struct("<BBBB")
 
 
@@ -1298,6 +1382,7 @@ Request: TypeAlias = (
     | GetPowerData
     | GetButtons
     | GetImuData
+    | GetTelemetry
     | SetLeds
     | Beep
 )
@@ -1327,6 +1412,7 @@ REQUEST_TYPES: tuple[type, ...] = (
     GetPowerData,
     GetButtons,
     GetImuData,
+    GetTelemetry,
     SetLeds,
     Beep,
 )

@@ -3,7 +3,9 @@
 ``PollSchedule`` is pure (what is due at time t). ``BoardSession`` owns one ``BoardClient`` and
 runs the schedule: motion (SET_V_AND_GET_DEADRECKON, which also feeds the board's watchdog) at
 50 Hz, wheel distances and range sensors at 20 Hz, bumpers and cliffs at 20 Hz, battery and power
-at 1 Hz, health at 2 Hz with the error list fetched when it changes. ``tick()`` runs one round
+at 1 Hz, health at 2 Hz with the error list fetched when it changes. With a ``telemetry`` rate, a
+board that has fleetlink's GET_TELEMETRY gives wheels, gyro, sensors and bumpers in one exchange
+instead of four (``PollRates``). ``tick()`` runs one round
 and returns when the next one is due; ``run_forever()`` loops it on the injected clock (in a thread
 for real time; the lockstep field calls ``tick`` itself).
 """
@@ -38,9 +40,16 @@ __all__ = ["BoardSession", "BoardSnapshot", "PollRates", "PollSchedule"]
 
 @dataclass(frozen=True, slots=True)
 class PollRates:
-    """Hz per poll task; 0 disables a task."""
+    """Hz per poll task; 0 disables a task.
+
+    ``telemetry`` (fleetlink's GET_TELEMETRY extension) reads the wheels, gyro, range sensors and
+    bumpers in one exchange. When it is above 0 the session asks for it once at connect: a board
+    that has it is polled with it alone, and ``motor``, ``imu``, ``sensors`` and ``bumpers`` are not
+    run; a board that answers NOT_SUPPORTED (a plain SLAMTEC base) gets those four polls instead.
+    """
 
     motion: float = 50.0
+    telemetry: float = 0.0
     motor: float = 20.0
     sensors: float = 20.0
     bumpers: float = 20.0
@@ -148,6 +157,8 @@ class BoardSession:
         self._retry_at = 0.0
         self._rng = random.Random(seed)
         self._thread: threading.Thread | None = None
+        self.telemetry_supported: bool | None = None
+        """Whether the board answered GET_TELEMETRY at the last connect (None: not asked)."""
 
     # -- thread-safe API -------------------------------------------------------------------
 
@@ -249,13 +260,42 @@ class BoardSession:
             self._schedule_retry(f"board handshake failed: {exc}")
             return False
         assert isinstance(conf, p.BaseConf)
+        try:
+            telemetry = self._probe_telemetry(client)
+        except BoardError as exc:
+            client.close()
+            self._schedule_retry(f"board handshake failed: {exc}")
+            return False
         self.client = client
         self._failures = 0
         self._backoff = 0.2
-        self._schedule = PollSchedule(self.rates, self.clock.now())
+        self._schedule = PollSchedule(self._rates_for(telemetry is not None), self.clock.now())
         log.info("board connected: %s firmware %s serial %s", info.model, info.firmware_text, info.serial_text)
         self._set(connected=True, info=info, conf=conf, connects=self._snap.connects + 1, last_error="")
+        if telemetry is not None:
+            self._store_telemetry(telemetry)
         return True
+
+    def _probe_telemetry(self, client: BoardClient) -> p.Telemetry | None:
+        """The first GET_TELEMETRY reading, or None when the board lacks it (or it is not wanted)."""
+        if self.rates.telemetry <= 0:
+            self.telemetry_supported = None
+            return None
+        try:
+            reply = client.request(p.GetTelemetry())
+        except BoardRefused as exc:
+            if self.telemetry_supported is not False:
+                log.info("board has no GET_TELEMETRY (%s): polling wheels, gyro, sensors, bumpers apart", exc)
+            self.telemetry_supported = False
+            return None
+        assert isinstance(reply, p.Telemetry)
+        self.telemetry_supported = True
+        return reply
+
+    def _rates_for(self, telemetry: bool) -> PollRates:
+        if telemetry:
+            return replace(self.rates, motor=0.0, imu=0.0, sensors=0.0, bumpers=0.0)
+        return replace(self.rates, telemetry=0.0)
 
     def _schedule_retry(self, reason: str) -> None:
         if self._snap.last_error != reason:
@@ -310,6 +350,14 @@ class BoardSession:
         c, s = math.cos(th), math.sin(th)
         odom = (x + c * dr.dx - s * dr.dy, y + s * dr.dx + c * dr.dy, _wrap(th + dr.dtheta))
         self._set(odom=odom, command=(vx, omega), updated=self.clock.now())
+
+    def _poll_telemetry(self) -> None:
+        reply = self._ask(p.GetTelemetry())
+        assert isinstance(reply, p.Telemetry)
+        self._store_telemetry(reply)
+
+    def _store_telemetry(self, t: p.Telemetry) -> None:
+        self._set(motor=t.motor, imu=t.imu, sensors=t.sensors, bumpers=t.bumpers, updated=self.clock.now())
 
     def _poll_motor(self) -> None:
         self._set(motor=self._ask(p.GetMotorData()), updated=self.clock.now())
