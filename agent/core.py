@@ -297,6 +297,18 @@ class AgentCore:
             self._publish_lease(now, out)
         return out
 
+    @property
+    def driving(self) -> bool:
+        """The robot is moving, or has a command that will move it (a go-to, teleop): the runtime
+        then ticks at the control rate. Otherwise nothing changes between two sensor readings, and
+        it ticks only when a pose is due (``next_pose_at``) or an input arrives."""
+        return self._velocity != (0.0, 0.0) or self.pilot.mode in (PilotMode.MANUAL, PilotMode.AUTOMATIC)
+
+    @property
+    def next_pose_at(self) -> float:
+        """When the next pose is due (clock time)."""
+        return self._next_pose
+
     # -- internals --------------------------------------------------------------------------------
 
     def _pose_link(self) -> LinkName | None:

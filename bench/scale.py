@@ -1,6 +1,7 @@
 """Benchmark: N robots on the real-time field, an agent process each, one headless console.
 
-    .venv/bin/python bench/scale.py [--robots 50] [--seconds 300] [--lidar-hz 0] [--no-mqtt] [--json FILE]
+    .venv/bin/python bench/scale.py [--robots 50] [--seconds 300] [--lidar-hz 0] [--lidar-samples 8000]
+                                    [--no-mqtt] [--json FILE]
 
 The site as docs/operations.md lays it out: the real-time field (``RealtimeField``, the hall-50
 scenario cut to N robots) serves every robot's simulated board (and lidar, at ``--lidar-hz``; 0:
@@ -22,8 +23,9 @@ been heard:
 
 Goals: >= 99.9 % delivered, staleness p99 <= 100 ms, agent RSS <= 80 MB. The table shows each
 figure beside its goal. With ``--lidar-hz`` > 0 every robot gets a simulated lidar at that rate and
-its agent reads it (``lidar =`` in its robot.toml; the runtime's lidar worker feeds its mapper);
-0 (the default) runs without lidars. The rate is reported.
+its agent reads it (``lidar =`` in its robot.toml; the runtime's lidar worker feeds its mapper),
+sending ``--lidar-samples`` measurements a second (the A1's 8000 by default; a turn has
+samples / rate of them); 0 (the default) runs without lidars. Both rates are reported.
 """
 
 from __future__ import annotations
@@ -132,7 +134,9 @@ state_hz = 1.0
     return text
 
 
-def run(n: int, seconds: float, lidar_hz: float, use_mqtt: bool, warmup_timeout: float) -> dict[str, Any]:
+def run(
+    n: int, seconds: float, lidar_hz: float, use_mqtt: bool, warmup_timeout: float, lidar_samples: float = 8000.0
+) -> dict[str, Any]:
     import zenoh
 
     from fleetlink.field.plans import load_plan
@@ -145,7 +149,8 @@ def run(n: int, seconds: float, lidar_hz: float, use_mqtt: bool, warmup_timeout:
     sc = load_scenario(ROOT / "field" / "scenarios" / "hall-50.toml")
     if n > len(sc.robots):
         raise SystemExit(f"the hall-50 scenario has {len(sc.robots)} robots; asked for {n}")
-    sc = replace(sc, robots=sc.robots[:n], lidar=LidarSettings(lidar_hz > 0, lidar_hz if lidar_hz > 0 else 10.0))
+    lidar = LidarSettings(lidar_hz > 0, lidar_hz if lidar_hz > 0 else 10.0, lidar_samples)
+    sc = replace(sc, robots=sc.robots[:n], lidar=lidar)
     tmp = Path(tempfile.mkdtemp(prefix="fleetlink-scale-"))
     router_ep = f"tcp/127.0.0.1:{free_port()}"
     procs: list[subprocess.Popen[bytes]] = []
@@ -215,6 +220,7 @@ def run(n: int, seconds: float, lidar_hz: float, use_mqtt: bool, warmup_timeout:
             "seconds_s": window,
             "startup_s": startup_s,
             "lidar_rate_hz": lidar_hz,
+            "lidar_samples_per_s": lidar_samples if lidar_hz > 0 else 0.0,
             "mqtt": use_mqtt,
             "poses_expected": expected,
             "poses_received": received,
@@ -286,7 +292,11 @@ def table(r: dict[str, Any]) -> str:
         ("router CPU", f"{r['router_cpu_ratio'] * 100:.1f} %", "", None),
         ("broker CPU", f"{r['broker_cpu_ratio'] * 100:.1f} %", "", None),
     ]
-    lidar = f"{r['lidar_rate_hz']:g} Hz, read by each agent" if r["lidar_rate_hz"] else "off"
+    lidar = (
+        f"{r['lidar_rate_hz']:g} Hz x {r['lidar_samples_per_s'] / r['lidar_rate_hz']:.0f} samples, mapped by each agent"
+        if r["lidar_rate_hz"]
+        else "off"
+    )
     head = (
         f"{r['robots']} robots, {r['seconds_s']:.0f} s measured, agents in separate processes, "
         f"lidar {lidar}, MQTT {'on' if r['mqtt'] else 'off'}, "
@@ -309,11 +319,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robots", type=int, default=50)
     ap.add_argument("--seconds", type=float, default=300.0)
     ap.add_argument("--lidar-hz", type=float, default=0.0, help="field lidar rate (0: no lidars)")
+    ap.add_argument("--lidar-samples", type=float, default=8000.0, help="lidar measurements per second")
     ap.add_argument("--no-mqtt", action="store_true", help="agents on Zenoh only (no broker)")
     ap.add_argument("--warmup-timeout", type=float, default=120.0)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
-    r = run(args.robots, args.seconds, args.lidar_hz, not args.no_mqtt, args.warmup_timeout)
+    r = run(args.robots, args.seconds, args.lidar_hz, not args.no_mqtt, args.warmup_timeout, args.lidar_samples)
     print(table(r))
     if args.json:
         args.json.write_text(json.dumps(r, indent=2) + "\n")

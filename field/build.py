@@ -55,6 +55,7 @@ def lidar_model(scenario: Scenario, spec: RobotSpec, index: int) -> LidarModel |
 
     config = LidarConfig(
         rate_hz=scenario.lidar.rate_hz,
+        samples_per_second=scenario.lidar.samples_per_second,
         range_noise_sd=scenario.noise.lidar_range_sd,
         dropout=scenario.noise.lidar_dropout,
     )

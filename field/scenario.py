@@ -52,6 +52,8 @@ class Noise:
 class LidarSettings:
     enabled: bool = True
     rate_hz: float = 10.0
+    samples_per_second: float = 8000.0
+    """Measurements a second (the RPLIDAR A1's 8000); a turn has ``samples_per_second / rate_hz``."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,9 +187,11 @@ def parse_scenario(data: Mapping[str, Any], source: str = "<memory>") -> Scenari
         raise r.fail("noise.lidar_dropout", "is a probability (0-1)")
 
     lt = r.table(data, "lidar")
-    r.keys(lt, "lidar", {"enabled", "rate_hz"})
+    r.keys(lt, "lidar", {"enabled", "rate_hz", "samples_per_second"})
     lidar = LidarSettings(
-        r.opt_flag(lt, "enabled", "lidar", True), r.opt_num(lt, "rate_hz", "lidar", 10.0, lo=1.0, hi=20.0)
+        r.opt_flag(lt, "enabled", "lidar", True),
+        r.opt_num(lt, "rate_hz", "lidar", 10.0, lo=1.0, hi=20.0),
+        r.opt_num(lt, "samples_per_second", "lidar", 8000.0, lo=100.0, hi=32000.0),
     )
 
     robots: list[RobotSpec] = []

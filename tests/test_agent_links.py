@@ -33,6 +33,7 @@ from fleetlink.shared.messages import (
     Lease,
     LinkName,
     Order,
+    Pose,
     State,
     Teleop,
 )
@@ -128,6 +129,7 @@ class Operator:
     acks: list[tuple[str, Ack]] = field(default_factory=list)
     states: list[tuple[str, State]] = field(default_factory=list)
     leases: list[tuple[str, Lease]] = field(default_factory=list)
+    poses: list[tuple[str, Pose]] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
     counter: wire.HeaderCounter = field(
         default_factory=lambda: wire.HeaderCounter(SystemClock(), robot="r1", sender="operator-1")
@@ -145,6 +147,8 @@ class Operator:
                 self.states.append((link, msg))
             elif isinstance(msg, Lease):
                 self.leases.append((link, msg))
+            elif isinstance(msg, Pose):
+                self.poses.append((link, msg))
 
     def send(self, msg: wire.Message, *, zenoh_: bool = True, mqtt_: bool = True) -> bytes:
         data = wire.encode(msg)

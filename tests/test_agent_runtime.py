@@ -3,9 +3,12 @@ UWB fixes over MQTT (native and PANS) localise it; the control lease and the ope
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
+import statistics
 import time
+from typing import Any
 
 import pytest
 
@@ -44,6 +47,50 @@ def test_teleop_moves_the_wheels_and_silence_stops_them(rig: Rig) -> None:  # no
     assert not board.state.watchdog_tripped
     assert agent.board.snapshot.command == (0.0, 0.0)
     wait_until(lambda: (s := op.last_state()) is not None and s.driveMode == "idle", message="idle in state")
+
+
+def test_an_idle_agent_ticks_per_pose_and_a_driving_one_at_the_control_rate(rig: Rig) -> None:  # noqa: F811
+    """Idle, the control loop wakes for each pose (20 Hz) instead of at 50 Hz, and no pose is lost;
+    a command wakes it at once and it steers at the control rate until the robot is idle again."""
+    op, agent = rig.op, rig.agent
+    ticks: list[float] = []
+    tick = agent.core.tick
+
+    def counted(now: float, board: Any) -> Any:
+        ticks.append(now)
+        return tick(now, board)
+
+    agent.core.tick = counted  # type: ignore[method-assign]
+
+    def median_gap(since: float) -> float:
+        t = [x for x in list(ticks) if x >= since]
+        assert len(t) >= 10, f"only {len(t)} ticks"
+        return statistics.median(b - a for a, b in itertools.pairwise(t))
+
+    def zenoh_pose_ids(since: float) -> list[int]:
+        with op.lock:
+            return [p.header.headerId for lk, p in op.poses if lk == "zenoh" and p.header.timestamp >= since]
+
+    start = time.time()
+    t0 = agent.clock.now()
+    time.sleep(1.5)
+    assert not agent.core.driving
+    assert median_gap(t0) == pytest.approx(0.05, abs=0.01)  # one tick per pose
+    ids = zenoh_pose_ids(start + 0.2)
+    assert len(ids) >= 20 and ids == list(range(ids[0], ids[0] + len(ids))), "poses lost while idle"
+
+    t1 = agent.clock.now()
+    end = t1 + 1.5
+    while agent.clock.now() < end:  # an operator holding a key
+        op.send(op.counter.make(Teleop, v=0.2, omega=0.0, ttl_s=0.5), mqtt_=False)
+        time.sleep(0.1)
+    assert agent.core.driving
+    assert median_gap(t1 + 0.2) == pytest.approx(0.02, abs=0.005)  # the control rate, 50 Hz
+
+    wait_until(lambda: not agent.core.driving, message="the teleop to lapse and the robot to stop")
+    t2 = agent.clock.now()
+    time.sleep(1.0)
+    assert median_gap(t2 + 0.1) == pytest.approx(0.05, abs=0.01)
 
 
 @pytest.mark.parametrize(

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import pytest
 
+from fleetlink.field.build import lidar_model
 from fleetlink.field.scenario import ScenarioError, load_scenario, parse_scenario
 
 MINIMAL = {"plan": "apartment", "robots": [{"name": "r1", "start": "dock"}]}
@@ -31,6 +32,7 @@ duration_s = 12.5
 gyro_bias_sd = 0.0
 [lidar]
 rate_hz = 5.5
+samples_per_second = 2000.0
 [[robots]]
 name = "a"
 pose = [1.0, 2.0, 90.0]
@@ -62,6 +64,9 @@ polygon = [[1, 1], [2, 1], [2, 2]]
     assert [e.kind for e in sc.events] == ["obstacle", "link_cut"]  # sorted by time
     assert sc.events[1].duration == 3.0  # the documented default for a link cut
     assert sc.lidar.rate_hz == 5.5 and sc.noise.gyro_bias_sd == 0.0
+    assert sc.lidar.samples_per_second == 2000.0
+    model = lidar_model(sc, sc.robots[0], 0)
+    assert model is not None and model.config.samples_per_revolution == pytest.approx(2000.0 / 5.5)
 
 
 @pytest.mark.parametrize(
@@ -82,6 +87,7 @@ polygon = [[1, 1], [2, 1], [2, 2]]
         ({"events": [{"at_s": 1.0, "kind": "obstacle", "polygon": [[0, 0], [1, 1]]}]}, "events[0].polygon"),
         ({"noise": {"lidar_dropout": 2.0}}, "probability"),
         ({"lidar": {"rate_hz": 100.0}}, "lidar.rate_hz"),
+        ({"lidar": {"samples_per_second": 10.0}}, "lidar.samples_per_second"),
     ],
 )
 def test_bad_scenarios_are_refused_with_the_key_and_reason(change: dict[str, object], message: str) -> None:
