@@ -1,7 +1,7 @@
 """Benchmark: N robots on the real-time field, an agent process each, one headless console.
 
     .venv/bin/python bench/scale.py [--robots 50] [--seconds 300] [--lidar-hz 0] [--lidar-samples 8000]
-                                    [--no-mqtt] [--json FILE]
+                                    [--drive] [--no-mqtt] [--json FILE]
 
 The site as docs/operations.md lays it out: the real-time field (``RealtimeField``, the hall-50
 scenario cut to N robots) serves every robot's simulated board (and lidar, at ``--lidar-hz``; 0:
@@ -20,6 +20,12 @@ been heard:
 * per agent: CPU % of one core and RSS (from /proc, sampled every second; max over the run);
   beside them the CPU of the agents together, of this process (field + console), the router and
   the broker, so one sees where the cores go.
+
+With ``--drive`` the console also drives every robot, as an operator holding a key would: a
+``Teleop`` to each robot 4 times a second (spinning in place at 0.3 rad/s, so fifty robots in
+their bays hit nothing), which keeps every agent's control loop at its full 50 Hz; the table then
+says how many robots were seen turning. Without it the fleet stands idle, and idle agents tick
+only once per pose.
 
 Goals: >= 99.9 % delivered, staleness p99 <= 100 ms, agent RSS <= 80 MB. The table shows each
 figure beside its goal. With ``--lidar-hz`` > 0 every robot gets a simulated lidar at that rate and
@@ -47,6 +53,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 POSE_HZ = 20.0
+TELEOP_HZ = 4.0  # per robot, with --drive
+DRIVE_OMEGA = 0.3  # rad/s, turning in place
 GOALS = {"delivered_ratio": 0.999, "staleness_p99_s": 0.100, "agent_rss_max_bytes": 80 * 1024 * 1024}
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 PAGE = os.sysconf("SC_PAGE_SIZE")
@@ -92,6 +100,7 @@ class Console:
     ids: dict[str, list[int]] = field(default_factory=dict)
     staleness: list[float] = field(default_factory=list)
     heard: set[str] = field(default_factory=set)
+    turning: set[str] = field(default_factory=set)
     bad: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -112,6 +121,25 @@ class Console:
                 self.counts[robot] = self.counts.get(robot, 0) + 1
                 self.ids.setdefault(robot, []).append(msg.header.headerId)
                 self.staleness.append(now - msg.header.timestamp)
+                if abs(msg.omega) > 0.1:  # type: ignore[attr-defined]
+                    self.turning.add(robot)
+
+
+def drive(session: Any, robots: list[str], stop: threading.Event, sent: list[int]) -> None:
+    """``--drive``: a Teleop to every robot ``TELEOP_HZ`` times a second until ``stop``."""
+    from fleetlink.shared import keys, wire
+    from fleetlink.shared.clock import SystemClock
+    from fleetlink.shared.messages import Teleop
+
+    counter = wire.HeaderCounter(SystemClock(), robot=robots[0], sender="console-bench")
+    next_t = time.perf_counter()
+    while not stop.is_set():
+        for r in robots:
+            msg = Teleop(header=counter.header(Teleop.TOPIC, robot=r), v=0.0, omega=DRIVE_OMEGA, ttl_s=0.6)
+            session.put(keys.key(r, Teleop.TOPIC), wire.encode(msg))
+            sent[0] += 1
+        next_t += 1.0 / TELEOP_HZ
+        stop.wait(max(0.0, next_t - time.perf_counter()))
 
 
 def robot_toml(name: str, board: str, lidar: str | None, router: str, mqtt_port: int | None) -> str:
@@ -135,7 +163,13 @@ state_hz = 1.0
 
 
 def run(
-    n: int, seconds: float, lidar_hz: float, use_mqtt: bool, warmup_timeout: float, lidar_samples: float = 8000.0
+    n: int,
+    seconds: float,
+    lidar_hz: float,
+    use_mqtt: bool,
+    warmup_timeout: float,
+    lidar_samples: float = 8000.0,
+    driving: bool = False,
 ) -> dict[str, Any]:
     import zenoh
 
@@ -158,6 +192,8 @@ def run(
     fld = RealtimeField(sc, load_plan(sc.plan), SystemClock())
     console = Console()
     session = None
+    stop_driving = threading.Event()
+    teleops = [0]
     try:
         router = subprocess.Popen(
             [sys.executable, "-c", ROUTER_SCRIPT, router_ep], stdin=subprocess.PIPE, stdout=subprocess.PIPE
@@ -180,6 +216,10 @@ def run(
                 [exe, "agent", "--config", str(cfg)], stdin=subprocess.DEVNULL, stdout=log, stderr=log
             )
         procs = list(agents.values())
+        if driving:
+            threading.Thread(
+                target=drive, args=(session, list(agents), stop_driving, teleops), name="drive", daemon=True
+            ).start()
         t_start = time.perf_counter()
         while len(console.heard) < n:
             dead = [k for k, p in agents.items() if p.poll() is not None]
@@ -231,6 +271,9 @@ def run(
             "staleness_p99_s": pct(console.staleness, 0.99),
             "staleness_max_s": max(console.staleness, default=float("nan")),
             "bad_poses": console.bad,
+            "driving": driving,
+            "teleops_sent": teleops[0],
+            "robots_turning": len(console.turning),
             "agent_cpu_mean_ratio": statistics.fmean(cpu.values()),
             "agent_cpu_max_ratio": max(cpu.values()),
             "agent_rss_mean_bytes": statistics.fmean(rss_max.values()),
@@ -243,6 +286,7 @@ def run(
             "agents_crashed": len(crashed),
         }
     finally:
+        stop_driving.set()
         for p in procs:
             if p.poll() is None:
                 p.terminate()
@@ -300,7 +344,12 @@ def table(r: dict[str, Any]) -> str:
     head = (
         f"{r['robots']} robots, {r['seconds_s']:.0f} s measured, agents in separate processes, "
         f"lidar {lidar}, MQTT {'on' if r['mqtt'] else 'off'}, "
-        f"{r['host_cpus']} CPUs; {r['agents_crashed']} agents crashed, {r['bad_poses']} undecodable poses"
+        + (
+            f"driven by teleop ({r['robots_turning']} of {r['robots']} robots seen turning), "
+            if r["driving"]
+            else "idle, "
+        )
+        + f"{r['host_cpus']} CPUs; {r['agents_crashed']} agents crashed, {r['bad_poses']} undecodable poses"
     )
     lines = [head, f"{'':34} {'ours':>16} {'goal':>10} {'ratio':>7}"]
     for name, ours, goal, ratio in rows:
@@ -320,11 +369,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=300.0)
     ap.add_argument("--lidar-hz", type=float, default=0.0, help="field lidar rate (0: no lidars)")
     ap.add_argument("--lidar-samples", type=float, default=8000.0, help="lidar measurements per second")
+    ap.add_argument("--drive", action="store_true", help="the console drives every robot (teleop, 4 Hz each)")
     ap.add_argument("--no-mqtt", action="store_true", help="agents on Zenoh only (no broker)")
     ap.add_argument("--warmup-timeout", type=float, default=120.0)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
-    r = run(args.robots, args.seconds, args.lidar_hz, not args.no_mqtt, args.warmup_timeout, args.lidar_samples)
+    r = run(
+        args.robots, args.seconds, args.lidar_hz, not args.no_mqtt, args.warmup_timeout, args.lidar_samples, args.drive
+    )
     print(table(r))
     if args.json:
         args.json.write_text(json.dumps(r, indent=2) + "\n")
