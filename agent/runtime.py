@@ -202,13 +202,16 @@ class AgentRuntime:
 
     def _on_input(self, link: LinkName, key: str, payload: bytes) -> None:
         with self._lock:
+            was_idle = not self.core.driving
             now = self.clock.now()
             if key == self.pans_topic:
                 out = self.core.on_pans(link, key, payload, now)
             else:
                 out = self.core.on_input(link, key, payload, now)
             self._apply(out)
-        self._wake.set()  # an idle control loop takes up the control rate at once
+            started = was_idle and self.core.driving
+        if started:  # an idle control loop takes up the control rate at once (a UWB fix does not wake it)
+            self._wake.set()
 
     # -- the control loop -------------------------------------------------------------------------
 
