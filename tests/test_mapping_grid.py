@@ -83,3 +83,39 @@ def test_grid_grows_and_keeps_what_it_knew() -> None:
     assert _p(g, 30.0, -17.98) > 0.6
     assert g.shape[0] % g.config.coarse == 0 and g.shape[1] % g.config.coarse == 0
     assert g.coarse_field.max() == pytest.approx(float(g.field.max())) and g.field.max() > 0.0
+
+
+def test_chunked_free_space_and_banded_occupancy_change_no_value(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``integrate`` traces free space in chunks and ``occupancy`` works in bands of rows, to bound
+    an agent's peak memory: any chunk or band size gives the same cells, box and map."""
+    from fleetlink.agent.mapping import grid as grid_module
+
+    rng = np.random.default_rng(7)
+    scans = []
+    for _ in range(12):
+        n = int(rng.integers(1, 400))
+        hit = rng.random(n) > 0.2
+        scans.append(
+            (
+                (float(rng.uniform(-3, 3)), float(rng.uniform(-3, 3)), float(rng.uniform(-3, 3))),
+                rng.uniform(0.16, 9.0, n),
+                np.sort(rng.uniform(-np.pi, np.pi, n)),
+                hit,
+            )
+        )
+
+    def build(chunk: int, band: int) -> tuple[list[object], LogOddsGrid, np.ndarray]:
+        monkeypatch.setattr(grid_module, "_FREE_CHUNK", chunk)
+        monkeypatch.setattr(grid_module, "_OCCUPANCY_BAND", band)
+        g = LogOddsGrid()
+        boxes: list[object] = [g.integrate(pose, r, a, hit) for pose, r, a, hit in scans]
+        return boxes, g, g.occupancy()
+
+    boxes, whole, occ = build(10**9, 10**9)  # one chunk, one band
+    for chunk, band in ((1, 1), (7, 333), (150, 5000)):
+        b, g, o = build(chunk, band)
+        assert b == boxes
+        assert np.array_equal(g.logodds, whole.logodds) and np.array_equal(g.seen, whole.seen)
+        assert np.array_equal(g.field, whole.field)
+        assert np.array_equal(o, occ)
+    assert (occ >= 0).any() and (occ == -1).any()

@@ -192,17 +192,8 @@ class LogOddsGrid:
         h, w = self.shape
         ox, oy = self.origin
         # Free samples: one per cell length along each beam, stopping short of the endpoint.
-        step = res
-        counts = np.maximum((ranges / step - 0.5).astype(np.int64), 0)
-        total = int(counts.sum())
-        beam = np.repeat(np.arange(ranges.size), counts)
-        starts = np.cumsum(counts) - counts
-        k = np.arange(total, dtype=np.float64) - np.repeat(starts, counts) + 0.5
-        fx = sx + k * step * cos_a[beam]
-        fy = sy + k * step * sin_a[beam]
-        fcol = ((fx - ox) / res).astype(np.int64)
-        frow = ((fy - oy) / res).astype(np.int64)
-        free_idx = frow * w + fcol
+        counts = np.maximum((ranges / res - 0.5).astype(np.int64), 0)
+        free_idx, box = _free_cells(sx, sy, cos_a, sin_a, counts, res, ox, oy, w)
         ocol = ((ex[hit] - ox) / res).astype(np.int64)
         orow = ((ey[hit] - oy) / res).astype(np.int64)
         occ_idx = orow * w + ocol
@@ -220,9 +211,11 @@ class LogOddsGrid:
         flat[cells] = new
         tag[cells] = 0
         self.seen.reshape(-1)[cells] = True
-        rows = np.concatenate((frow, orow))
-        cols = np.concatenate((fcol, ocol))
-        box = (int(rows.min()), int(cols.min()), int(rows.max()) + 1, int(cols.max()) + 1)
+        if orow.size:
+            hits = (int(orow.min()), int(ocol.min()), int(orow.max()) + 1, int(ocol.max()) + 1)
+            box = hits if box is None else _union(box, hits)
+        if box is None:  # no beam reached past half a cell and none hit: nothing changed
+            return None
         self._refresh_field(box)
         self.empty = False
         self.version += 1
@@ -275,14 +268,65 @@ class LogOddsGrid:
         return 1.0 - 1.0 / (1.0 + np.exp(self.logodds.astype(np.float64)))
 
     def occupancy(self) -> npt.NDArray[np.int8]:
-        """map_server-style cells: -1 unknown, else round(100 * p)."""
-        out = np.rint(100.0 * self.probability()).astype(np.int8)
+        """map_server-style cells: -1 unknown, else round(100 * p).
+
+        Computed in bands of rows: the float64 chain over a whole 650 x 650 grid held ~7 MB of
+        temporaries at once (an agent's peak memory); a band holds a few hundred kB."""
+        out = np.empty(self.shape, dtype=np.int8)
+        band = max(1, _OCCUPANCY_BAND // max(1, self.shape[1]))
+        for r0 in range(0, self.shape[0], band):
+            lo = self.logodds[r0 : r0 + band].astype(np.float64)
+            out[r0 : r0 + band] = np.rint(100.0 * (1.0 - 1.0 / (1.0 + np.exp(lo))))
         out[~self.seen] = -1
         return out
 
     def take_dirty(self) -> Box | None:
         box, self.dirty = self.dirty, None
         return box
+
+
+_OCCUPANCY_BAND = 32768
+"""Cells per band in ``occupancy``."""
+_FREE_CHUNK = 16384
+"""Free samples traced at once: bounds ``integrate``'s temporary arrays (a 720-beam turn in a 30 m
+hall has ~170k samples: ~10 MB of float64 temporaries at once, now ~1.5 MB) without changing a value."""
+
+
+def _free_cells(
+    sx: float,
+    sy: float,
+    cos_a: FloatArray,
+    sin_a: FloatArray,
+    counts: npt.NDArray[np.int64],
+    res: float,
+    ox: float,
+    oy: float,
+    w: int,
+) -> tuple[npt.NDArray[np.int64], Box | None]:
+    """Flat cell indices of every free sample (``counts[i]`` along beam i, at (k + 0.5) cells), and
+    their bounding box. Traced in chunks of whole beams, ``_FREE_CHUNK`` samples or so each."""
+    ends = np.cumsum(counts)
+    parts: list[npt.NDArray[np.int64]] = []
+    box: Box | None = None
+    b0 = 0
+    n = counts.size
+    while b0 < n:
+        base = int(ends[b0 - 1]) if b0 else 0
+        b1 = max(b0 + 1, int(np.searchsorted(ends, base + _FREE_CHUNK, side="right")))
+        c = counts[b0:b1]
+        total = int(ends[b1 - 1]) - base
+        if total:
+            beam = np.repeat(np.arange(b0, b1), c)
+            starts = ends[b0:b1] - c - base
+            k = np.arange(total, dtype=np.float64) - np.repeat(starts, c) + 0.5
+            fcol = ((sx + k * res * cos_a[beam] - ox) / res).astype(np.int64)
+            frow = ((sy + k * res * sin_a[beam] - oy) / res).astype(np.int64)
+            parts.append(frow * w + fcol)
+            chunk = (int(frow.min()), int(fcol.min()), int(frow.max()) + 1, int(fcol.max()) + 1)
+            box = chunk if box is None else _union(box, chunk)
+        b0 = b1
+    free = np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+    return free, box
 
 
 def _union(a: Box, b: Box) -> Box:
