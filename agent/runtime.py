@@ -51,11 +51,12 @@ IDLE_PERIOD = 0.1
 """Longest sleep of an idle control loop (it wakes earlier for every pose, at 20 Hz by default).
 Idle, a tick at the control rate (50 Hz) would compute the same zero velocity from the same
 sensor reading; each tick is a thread wake-up, which costs more than the tick itself on a VM."""
-LIDAR_READ_PERIOD = 0.05
-"""Seconds between reads of the lidar's stream. Bytes arrive every few milliseconds (an A1 sends
-40 kB/s); reading them as they came woke the lidar thread ~200 times a second and ran the decoder
-on a few dozen nodes each time. In 50 ms batches that is 20 wake-ups and decoder calls a second,
-and a finished turn reaches the mapper at most 50 ms late (a turn of the A1 takes 180 ms)."""
+LIDAR_READ_PERIOD = (0.05, 0.25)
+"""Seconds between reads of the lidar's stream: a quarter of a turn, within these bounds. Bytes
+arrive every few milliseconds (an A1 sends 40 kB/s); reading them as they came woke the lidar
+thread ~200 times a second and ran the decoder on a few dozen nodes each time. A turn of the A1
+at 5.5 Hz (180 ms) is now read in four batches, a slow 1 Hz turn in four too, and a finished turn
+reaches the mapper at most a quarter of a turn late."""
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +160,8 @@ class AgentRuntime:
         """Why the lidar is not delivering scans (None: it is, or there is none)."""
         self.scans = 0
         self.published = 0
+        self._turn_s = 0.2  # the lidar's turn, measured as turns arrive
+        self._last_turn_at: float | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -332,11 +335,17 @@ class AgentRuntime:
 
     def _lidar_revolutions(self, driver: Any) -> list[Any]:
         """The turns completed since the last call. In real time: everything that has arrived,
-        then a pause of ``LIDAR_READ_PERIOD`` before the next read (see there); else: wait for one."""
+        then a pause of a quarter turn before the next read (``LIDAR_READ_PERIOD``); else: wait for one."""
         if isinstance(self.clock, SystemClock):
             revs: list[Any] = driver.poll(self.clock.now())  # takes what is there, never waits
-            if not revs:
-                self._stop.wait(LIDAR_READ_PERIOD)
+            now = self.clock.now()
+            if revs:
+                if self._last_turn_at is not None:  # the turn's length, smoothed over a few turns
+                    self._turn_s += 0.25 * (min(2.0, (now - self._last_turn_at) / len(revs)) - self._turn_s)
+                self._last_turn_at = now
+            else:
+                lo, hi = LIDAR_READ_PERIOD
+                self._stop.wait(min(hi, max(lo, self._turn_s / 4.0)))
             return revs
         return list(driver.poll(self.clock.now() + 0.2))
 
