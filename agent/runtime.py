@@ -17,7 +17,8 @@ scans come back, and an error in ``State.errors`` while it lasts); driving goes 
 the guard reads the front ultrasonic, not the lidar.
 
 Planning: once the map has walls, the worker hands the core a planner over a copy of it
-(``AgentCore.use_map``), renewed every ``PLANNER_PERIOD`` seconds while the map changes, so go-to
+(``AgentCore.use_map``), renewed every ``PLANNER_PERIOD`` seconds while the robot drives and the
+map changes, so go-to
 and return home follow A* waypoints and re-plan when blocked. The copy belongs to the control
 thread alone: the worker keeps writing its own grid. Unknown cells count as free on an onboard map
 (a scout is sent into rooms it has not seen; the guard still stops it at anything real).
@@ -288,6 +289,7 @@ class AgentRuntime:
                         with self._lock:
                             p = self.core.fusion.map_pose()
                             placed = self.core.fusion.heading_initialized
+                            driving = self.core.driving
                         if placed and not in_uwb_frame:
                             # The fused pose just moved from the odometry frame to the UWB frame: a map
                             # begun in the old frame would be smeared across both. Start it again, once.
@@ -306,7 +308,11 @@ class AgentRuntime:
                         if share is not None:
                             share.publish(mapper)
                         now = self.clock.now()
-                        if now >= next_planner and not mapper.grid.empty and mapper.grid.version != planned_version:
+                        # The first planner as soon as the map has cells; then a fresh one every
+                        # PLANNER_PERIOD while the robot drives (standing still, its map changes only
+                        # by noise, and a rebuild costs tens of milliseconds).
+                        renew = planned_version < 0 or (driving and now >= next_planner)
+                        if renew and not mapper.grid.empty and mapper.grid.version != planned_version:
                             next_planner = now + PLANNER_PERIOD
                             planned_version = mapper.grid.version
                             planner = mapper.planner()  # built here, over a copy of the cells

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import zenoh
 
@@ -95,6 +96,24 @@ def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -
             x, y = pose.x, pose.y
             route = agent.core.pilot.path_provider((x, y), (x + 0.5, y))
         assert route and route[-1] == (x + 0.5, y)
+
+        # Standing still, the planner is not rebuilt although the map keeps changing (keyframes)...
+        def planner() -> object:
+            provider = agent.core.pilot.path_provider
+            return getattr(provider, "__self__", None)
+
+        first, version = planner(), agent.mapper.grid.version
+        wait_until(lambda: agent.mapper.grid.version > version, timeout=10.0, message="a new keyframe in the map")
+        time.sleep(0.3)
+        assert planner() is first
+        # ... while driving it is renewed (every PLANNER_PERIOD while the map changes).
+        op = wire.HeaderCounter(clock, robot="uvc-1", sender="op-test")
+
+        def spin() -> bool:
+            session.put(keys.key("uvc-1", "teleop"), wire.encode(op.make(Teleop, v=0.0, omega=0.6, ttl_s=0.5)))
+            return planner() is not first
+
+        wait_until(spin, timeout=10.0, interval=0.1, message="a new planner while the robot turns")
     finally:
         if agents is not None:
             agents.stop()
