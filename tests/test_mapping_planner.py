@@ -73,3 +73,23 @@ def test_unknown_cells_block_unless_configured() -> None:
     g[:, 38:42] = -1  # an unexplored band across the free corridor
     assert PathPlanner(g, RES)((0.5, 1.0), (3.5, 1.0)) is None
     assert PathPlanner(g, RES, config=PlannerConfig(unknown_is_blocked=False))((0.5, 1.0), (3.5, 1.0)) is not None
+
+
+def test_distance_field_matches_a_brute_force_one() -> None:
+    """The planner's distance to the nearest wall, ring by ring, against every (cell, wall) pair."""
+    from fleetlink.agent.mapping.planner import _distance
+
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        h, w = (int(v) for v in rng.integers(1, 25, 2))
+        blocked = rng.random((h, w)) < rng.uniform(0.0, 0.15)
+        res, reach = float(rng.choice([0.05, 0.1])), float(rng.uniform(0.05, 0.8))
+        walls = np.argwhere(blocked)
+        want = np.full((h, w), reach)
+        for r in range(h):
+            for c in range(w):
+                for wr, wc in walls:
+                    d = math.hypot(int(wr) - r, int(wc) - c) * res
+                    if d < want[r, c]:
+                        want[r, c] = d
+        assert np.array_equal(_distance(blocked, res, reach), want)

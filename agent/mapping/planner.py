@@ -417,22 +417,32 @@ _MARK_ECHO_M = 0.12  # a marked point (10 cm behind the echo the pilot met) echo
 
 
 def _distance(blocked: npt.NDArray[np.bool_], res: float, reach: float) -> npt.NDArray[np.float64]:
-    """Distance (m, between cell centres) to the nearest blocked cell, capped at ``reach``."""
+    """Distance (m, between cell centres) to the nearest blocked cell, capped at ``reach``.
+
+    Ring by ring outwards: the offsets at one distance are OR-ed as masks, and the cells they reach
+    for the first time get that distance. Per offset that is a byte-wide OR instead of a float
+    ``where`` and ``minimum`` over the grid, ~4x faster (a rebuild during a drive took ~15 ms)."""
     h, w = blocked.shape
     n = math.ceil(reach / res)
     dist = np.full((h, w), reach, dtype=np.float64)
     dist[blocked] = 0.0
     pad = np.zeros((h + 2 * n, w + 2 * n), dtype=bool)
     pad[n : n + h, n : n + w] = blocked
-    offsets = sorted(
-        (
-            (math.hypot(dr, dc) * res, dr, dc)
-            for dr in range(-n, n + 1)
-            for dc in range(-n, n + 1)
-            if 0 < math.hypot(dr, dc) * res < reach
-        ),
-    )
-    for d, dr, dc in offsets:
-        shifted = pad[n + dr : n + dr + h, n + dc : n + dc + w]
-        np.minimum(dist, np.where(shifted, d, reach), out=dist)
+    rings: dict[float, list[tuple[int, int]]] = {}
+    for dr in range(-n, n + 1):
+        for dc in range(-n, n + 1):
+            d = math.hypot(dr, dc) * res
+            if 0 < d < reach:
+                rings.setdefault(d, []).append((dr, dc))
+    unset = ~blocked  # cells whose nearest blocked cell is not found yet
+    hit = np.empty((h, w), dtype=bool)
+    for d in sorted(rings):
+        if not unset.any():
+            break
+        hit.fill(False)
+        for dr, dc in rings[d]:
+            np.logical_or(hit, pad[n + dr : n + dr + h, n + dc : n + dc + w], out=hit)
+        hit &= unset
+        dist[hit] = d
+        unset &= ~hit
     return dist
