@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 
 import zenoh
 
@@ -104,7 +103,8 @@ def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -
 
         first, version = planner(), agent.mapper.grid.version
         wait_until(lambda: agent.mapper.grid.version > version, timeout=10.0, message="a new keyframe in the map")
-        time.sleep(0.3)
+        scans = agent.scans
+        wait_until(lambda: agent.scans >= scans + 3, message="three more turns mapped")
         assert planner() is first
         # ... while driving it is renewed (every PLANNER_PERIOD while the map changes).
         op = wire.HeaderCounter(clock, robot="uvc-1", sender="op-test")

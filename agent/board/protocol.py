@@ -451,6 +451,14 @@ def _wrap32(x: float) -> int:
 _SENSORS = struct.Struct("<16I")
 
 
+_RANGE_TOP = 0xFFFF_FFFF / Q16 / 1000  # the largest u32 Q16 mm reading (65.536 m), in metres
+
+
+def _range_q16(d: float) -> int:
+    """A range reading (m) as mm Q16 u32, clamped to the field; 0 (no echo) for d <= 0."""
+    return _u32(min(d, _RANGE_TOP) * 1000 * Q16) if d > 0 else 0
+
+
 class SensorData(NamedTuple):
     """GET_BASE_SENSOR_DATA: 16 range readings in metres (configured order; unused = 0)."""
 
@@ -458,9 +466,7 @@ class SensorData(NamedTuple):
 
     def encode(self) -> bytes:
         vals = list(self.distances)[:16] + [0.0] * (16 - len(self.distances))
-        # Clamp to the largest u32 Q16 mm reading (65.536 m), in metres like ``d``.
-        top = 0xFFFF_FFFF / Q16 / 1000
-        return _SENSORS.pack(*(_u32(min(d, top) * 1000 * Q16) if d > 0 else 0 for d in vals))
+        return _SENSORS.pack(*map(_range_q16, vals))
 
     @classmethod
     def decode(cls, payload: bytes) -> SensorData:
@@ -759,7 +765,6 @@ def _decode_imu(payload: bytes) -> ImuData:
 
 _TELEMETRY_HEAD = struct.Struct("<BiiBiiIIB")
 _TELEMETRY_GYRO = 0x01  # flags bit 0: a gyro is fitted (else the IMU fields are zero and mean nothing)
-_U32 = struct.Struct("<I")
 
 
 class Telemetry(NamedTuple):
@@ -783,7 +788,6 @@ class Telemetry(NamedTuple):
         if len(d) > 16:
             raise ValueError(f"at most 16 range sensors, got {len(d)}")
         gyro = imu or ImuData(0.0, 0.0, 0)
-        top = 0xFFFF_FFFF / Q16 / 1000
         head = _TELEMETRY_HEAD.pack(
             _TELEMETRY_GYRO if imu is not None else 0,
             _wrap32(m.left * 1000),
@@ -795,7 +799,7 @@ class Telemetry(NamedTuple):
             self.bumpers.bitmap & 0xFFFF_FFFF,
             len(d),
         )
-        return head + b"".join(_U32.pack(_u32(min(x, top) * 1000 * Q16) if x > 0 else 0) for x in d)
+        return head + struct.pack(f"<{len(d)}I", *map(_range_q16, d))
 
     @classmethod
     def decode(cls, payload: bytes) -> Telemetry:

@@ -265,7 +265,7 @@ class LogOddsGrid:
 
     def probability(self) -> FloatArray:
         """p(occupied) per cell (0.5 where never seen)."""
-        return 1.0 - 1.0 / (1.0 + np.exp(self.logodds.astype(np.float64)))
+        return _p_occupied(self.logodds)
 
     def occupancy(self) -> npt.NDArray[np.int8]:
         """map_server-style cells: -1 unknown, else round(100 * p).
@@ -275,14 +275,19 @@ class LogOddsGrid:
         out = np.empty(self.shape, dtype=np.int8)
         band = max(1, _OCCUPANCY_BAND // max(1, self.shape[1]))
         for r0 in range(0, self.shape[0], band):
-            lo = self.logodds[r0 : r0 + band].astype(np.float64)
-            out[r0 : r0 + band] = np.rint(100.0 * (1.0 - 1.0 / (1.0 + np.exp(lo))))
+            out[r0 : r0 + band] = np.rint(100.0 * _p_occupied(self.logodds[r0 : r0 + band]))
         out[~self.seen] = -1
         return out
 
     def take_dirty(self) -> Box | None:
         box, self.dirty = self.dirty, None
         return box
+
+
+def _p_occupied(logodds: F32) -> FloatArray:
+    """p(occupied) from log-odds, in float64."""
+    p: FloatArray = 1.0 - 1.0 / (1.0 + np.exp(logodds.astype(np.float64)))
+    return p
 
 
 _OCCUPANCY_BAND = 32768
