@@ -13,6 +13,9 @@ from typing import Protocol, runtime_checkable
 
 __all__ = ["Clock", "SimClock", "SystemClock"]
 
+EVENT_POLL_S = 0.02
+"""How often (real seconds) a thread waiting on a ``SimClock`` re-checks its event."""
+
 
 @runtime_checkable
 class Clock(Protocol):
@@ -26,6 +29,14 @@ class Clock(Protocol):
 
     def sleep_until(self, deadline: float) -> None:
         """Return once ``now() >= deadline`` (at once if it already is)."""
+        ...
+
+    def wait(self, event: threading.Event, timeout: float | None) -> bool:
+        """Block until ``event`` is set or ``timeout`` seconds of this clock's time pass.
+
+        True if the event is set. The one interruptible wait: a worker sleeps here and wakes at
+        once when it is stopped or woken, in real time and in simulated time alike, so no adapter
+        asks which clock it has."""
         ...
 
 
@@ -45,6 +56,9 @@ class SystemClock:
 
     def sleep(self, seconds: float) -> None:
         self.sleep_until(self.now() + seconds)
+
+    def wait(self, event: threading.Event, timeout: float | None) -> bool:
+        return event.wait(None if timeout is None else max(0.0, timeout))
 
 
 class SimClock:
@@ -87,6 +101,21 @@ class SimClock:
 
     def sleep(self, seconds: float) -> None:
         self.sleep_until(self._now + seconds)
+
+    def wait(self, event: threading.Event, timeout: float | None) -> bool:
+        """Block until ``event`` is set or the owner advances time by ``timeout``.
+
+        The event is a plain ``threading.Event``, which cannot notify this clock's condition, so
+        the wait re-checks it every ``EVENT_POLL_S`` of real time; advancing time wakes it at once."""
+        if event.is_set():
+            return True
+        deadline = None if timeout is None else self._now + max(0.0, timeout)
+        with self._cond:
+            while not event.is_set():
+                if deadline is not None and self._now >= deadline:
+                    return False
+                self._cond.wait(EVENT_POLL_S)
+        return True
 
     def wait_until(self, deadline: float, timeout: float | None = None) -> bool:
         """Block a thread until another thread advances time to ``deadline``."""

@@ -1,0 +1,87 @@
+"""The link interface, its counters, and key-expression matching. Pure: no I/O.
+
+A link is one endpoint on one transport (``LinkName.ZENOH`` or ``LinkName.MQTT``). Keys are the
+wire contract's keys (shared/keys.py): the same string is a Zenoh key and an MQTT topic.
+Subscriptions take Zenoh-style expressions (``*`` one segment, ``**`` any number of segments);
+the MQTT endpoint translates them to ``+`` and ``#``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+from fleetlink.shared.messages import LinkName
+
+__all__ = ["Link", "LinkStats", "Receiver", "key_matches", "to_mqtt_filter"]
+
+Receiver = Callable[[str, bytes], None]
+"""Called with (key, payload) for every message that matches a subscription."""
+
+
+@dataclass(slots=True)
+class LinkStats:
+    """What an endpoint counts; read it for health, never reset it."""
+
+    sent: int = 0
+    received: int = 0
+    dropped: int = 0
+    """Publishes not sent (link down, queue full) and inbound messages not delivered."""
+    last_rx: float | None = None
+    """Clock time of the last message received (None: never)."""
+
+
+@runtime_checkable
+class Link(Protocol):
+    name: LinkName
+    stats: LinkStats
+
+    def start(self) -> None:
+        """Open the endpoint (idempotent); subscriptions made before start take effect now."""
+        ...
+
+    def publish(self, key: str, payload: bytes) -> bool:
+        """Send ``payload`` on ``key``; False if it was not sent (down, or dropped)."""
+        ...
+
+    def subscribe(self, key_expr: str, receiver: Receiver) -> None:
+        """Hand every message whose key matches ``key_expr`` to ``receiver(key, payload)``."""
+        ...
+
+    @property
+    def up(self) -> bool:
+        """The transport is connected (a broker session, or at least one Zenoh session)."""
+        ...
+
+    def close(self) -> None:
+        """Close the endpoint (idempotent); no receiver is called after it returns."""
+        ...
+
+
+def key_matches(key_expr: str, key: str) -> bool:
+    """Zenoh-style matching of one concrete ``key`` against ``key_expr``: ``*`` is one segment,
+    ``**`` is zero or more segments."""
+    return _match(key_expr.split("/"), key.split("/"))
+
+
+def _match(pat: list[str], segs: list[str]) -> bool:
+    if not pat:
+        return not segs
+    head = pat[0]
+    if head == "**":
+        return any(_match(pat[1:], segs[i:]) for i in range(len(segs) + 1))
+    if not segs:
+        return False
+    return (head == "*" or head == segs[0]) and _match(pat[1:], segs[1:])
+
+
+def to_mqtt_filter(key_expr: str) -> str:
+    """``fleetlink/v1/*/order`` -> ``fleetlink/v1/+/order``; a trailing ``**`` -> ``#``."""
+    parts = key_expr.split("/")
+    out = ["+" if p == "*" else p for p in parts]
+    if "**" in out:
+        if out.index("**") != len(out) - 1:
+            raise ValueError(f"MQTT can only match many segments at the end: {key_expr!r}")
+        out[-1] = "#"
+    return "/".join(out)

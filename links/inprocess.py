@@ -1,0 +1,144 @@
+"""An in-process link: the same wire bytes between endpoints of one process, for lockstep runs.
+
+``InProcessBus(LinkName.ZENOH)`` stands for one transport (a Zenoh network or an MQTT broker);
+``bus.endpoint("agent-r1")`` gives a ``Link`` to each party. A publish only queues the bytes;
+the owner of simulated time calls ``bus.deliver()`` between steps, which hands every queued
+message, in publish order, to every matching subscriber (including messages published while
+delivering, so a command and its ack cross in one call). Nothing runs on a thread of its own, so
+a run is deterministic.
+
+Faults: ``bus.cut("agent-r1")`` takes one endpoint off the network (its publishes and the messages
+meant for it vanish, counted in ``stats.dropped``; ``up`` is False) until ``bus.restore``.
+Queries (``serve``/``query``) answer synchronously, as a Zenoh queryable would on loopback.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+
+from fleetlink.links.base import LinkStats, Receiver, key_matches
+from fleetlink.shared.messages import LinkName
+
+__all__ = ["InProcessBus", "InProcessLink"]
+
+Answer = Callable[[str], list[tuple[str, bytes]]]
+
+MAX_DELIVERIES = 1_000_000
+"""A guard against two endpoints that answer each other forever within one ``deliver``."""
+
+
+class InProcessLink:
+    """One party's endpoint on an ``InProcessBus``; satisfies ``fleetlink.links.base.Link``."""
+
+    def __init__(self, bus: InProcessBus, client_id: str) -> None:
+        self.name = bus.name
+        self.client_id = client_id
+        self.stats = LinkStats()
+        self._bus = bus
+        self._subs: list[tuple[str, Receiver]] = []
+        self._served: list[tuple[str, Answer]] = []
+        self._open = False
+
+    def start(self) -> None:
+        self._open = True
+
+    def close(self) -> None:
+        self._open = False
+        self._subs.clear()
+        self._served.clear()
+
+    @property
+    def up(self) -> bool:
+        return self._open and self.client_id not in self._bus.cut_endpoints
+
+    def publish(self, key: str, payload: bytes) -> bool:
+        if not self.up:
+            self.stats.dropped += 1
+            return False
+        self._bus.queue.append((self, key, bytes(payload)))
+        self.stats.sent += 1
+        return True
+
+    def subscribe(self, key_expr: str, receiver: Receiver) -> None:
+        self._subs.append((key_expr, receiver))
+
+    def serve(self, key_expr: str, answer: Answer) -> None:
+        """Answer queries on ``key_expr``: ``answer(key_expr_asked)`` -> [(key, payload)]."""
+        self._served.append((key_expr, answer))
+
+    def query(self, key_expr: str, timeout: float = 0.0) -> list[tuple[str, bytes]]:
+        """Every reachable endpoint's answers to ``key_expr`` (``timeout`` is unused: in-process
+        queries answer at once)."""
+        if not self.up:
+            return []
+        replies: list[tuple[str, bytes]] = []
+        for peer in self._bus.endpoints:
+            if not peer.up:
+                continue
+            for expr, answer in peer._served:
+                if key_matches(expr, key_expr) or key_matches(key_expr, expr):
+                    replies.extend(answer(key_expr))
+        return replies
+
+    def _receive(self, key: str, payload: bytes, now: float | None) -> int:
+        delivered = 0
+        for expr, receiver in list(self._subs):
+            if key_matches(expr, key):
+                receiver(key, payload)
+                delivered += 1
+        if delivered:
+            self.stats.received += 1
+            self.stats.last_rx = now
+        return delivered
+
+
+class InProcessBus:
+    """One transport inside one process. See the module docstring."""
+
+    def __init__(self, name: LinkName, *, clock_now: Callable[[], float] | None = None) -> None:
+        self.name = name
+        self.endpoints: list[InProcessLink] = []
+        self.cut_endpoints: set[str] = set()
+        self.queue: deque[tuple[InProcessLink, str, bytes]] = deque()
+        self.delivered = 0
+        self._now = clock_now
+
+    def endpoint(self, client_id: str) -> InProcessLink:
+        if any(e.client_id == client_id for e in self.endpoints):
+            raise ValueError(f"{self.name.value}: endpoint {client_id!r} exists already")
+        link = InProcessLink(self, client_id)
+        self.endpoints.append(link)
+        return link
+
+    def cut(self, client_id: str) -> None:
+        self._known(client_id)
+        self.cut_endpoints.add(client_id)
+
+    def restore(self, client_id: str) -> None:
+        self._known(client_id)
+        self.cut_endpoints.discard(client_id)
+
+    def deliver(self) -> int:
+        """Hand every queued message to its subscribers, in order; returns how many were taken."""
+        n = 0
+        now = self._now() if self._now is not None else None
+        while self.queue:
+            sender, key, payload = self.queue.popleft()
+            n += 1
+            if n > MAX_DELIVERIES:
+                raise RuntimeError(f"{self.name.value}: more than {MAX_DELIVERIES} messages in one delivery")
+            for peer in self.endpoints:
+                if peer is sender:
+                    continue  # like a Zenoh session and an MQTT client without echo: no loopback
+                if not peer.up:
+                    if peer._open and any(key_matches(e, key) for e, _ in peer._subs):
+                        peer.stats.dropped += 1
+                    continue
+                peer._receive(key, payload, now)
+        self.delivered += n
+        return n
+
+    def _known(self, client_id: str) -> None:
+        if not any(e.client_id == client_id for e in self.endpoints):
+            raise KeyError(f"{self.name.value}: no endpoint {client_id!r}")
