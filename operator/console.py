@@ -1,9 +1,17 @@
 """The operator console (Textual): fleet table, map, direct drive, goals, marks, leases, notices.
 
 The app never opens a transport: it gets a ``ConsoleSource`` (in production ``OperatorLink``,
-which owns Zenoh + MQTT and the link manager) and a ``FleetModel`` fed by that source's sink.
-Network threads only touch the fleet model (under ``self.lock``) and queue notices; the app reads
-both from a 10 Hz timer on its own thread, so no widget is ever touched off the UI thread.
+which owns Zenoh + MQTT and the link manager) and shows a ``FleetModel``. What the network hears
+reaches the app as messages: the model's ``FleetFeed`` (operator/feed.py) keeps it in an inbox and
+posts the app a ``TelemetryArrived``; the app folds the inbox into the model on its own thread and
+redraws. A frame is drawn when something changed (telemetry, an operator action) and on a slow
+clock tick (ages, robots going quiet, lease renewal), at most ``refresh_hz`` times a second; no
+widget is ever touched off the UI thread, and no network thread ever waits for the UI.
+
+The parts: the fleet table (operator/fleet_table.py), the robot detail (operator/detail.py), the
+status line (operator/status.py), the map (operator/mapview.py); typed commands are parsed by
+operator/commands.py, marks named, saved and loaded by operator/marks.py, lease renewal timed by
+``LeaseRenewal`` (operator/fleet.py), drive keys by operator/teleop.py.
 
 Safety: when drive-key repeats stop arriving the console sends stop (see operator/teleop.py), Esc
 stops every robot, and quitting sends stop to every robot before the links close.
@@ -12,13 +20,10 @@ stops every robot, and quitting sends stop to every robot before the links close
 from __future__ import annotations
 
 import contextlib
-import json
-import logging
 import math
 import threading
-from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, ClassVar, Protocol
+from typing import ClassVar
 
 from rich.text import Text
 from textual import events
@@ -27,83 +32,43 @@ from textual.app import App, ComposeResult
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
 from textual.css.query import NoMatches
+from textual.message import Message
 from textual.screen import ModalScreen
+from textual.timer import Timer
 from textual.widgets import DataTable, Footer, Input, RichLog, Static
 
-from fleetlink.operator.fleet import FleetModel, Notice
-from fleetlink.operator.linkmanager import PRIMARY, Failed, LinkHealth, Switch
+from fleetlink.operator.commands import Command, CommandError, Goal, Home, MarkAt, Payload, StopAll, parse_command
+from fleetlink.operator.detail import RobotDetail, detail_text
+from fleetlink.operator.feed import ConsoleSource, FleetFeed, attach
+from fleetlink.operator.fleet import FleetModel, LeaseRenewal, Notice
+from fleetlink.operator.fleet_table import FleetTable, fleet_rows
 from fleetlink.operator.maps import MapFollower
 from fleetlink.operator.mapview import MapView
+from fleetlink.operator.marks import MarksStore
+from fleetlink.operator.status import StatusLine, status_text
 from fleetlink.operator.teleop import DriveKeys, Twist
 from fleetlink.shared import wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.messages import (
     Action,
     ActionType,
-    Goal,
     InstantActions,
     KeyValue,
     LeaseRequest,
-    MapUpdate,
     Mark,
     Order,
     Teleop,
 )
+from fleetlink.shared.messages import Goal as GoalField
 
-log = logging.getLogger(__name__)
-
-__all__ = ["ConsoleApp", "ConsoleSource", "attach"]
+__all__ = ["ConsoleApp", "ConsoleSource", "TelemetryArrived", "attach"]
 
 TELEOP_TTL_S = 0.5
 LEASE_S = 60.0
 
 
-class ConsoleSource(Protocol):
-    """What the console needs from the network side (``OperatorLink`` provides it)."""
-
-    sender: str
-
-    def send(self, cls: type[wire.Message], robot: str, *, expect_ack: bool = True, **fields: Any) -> wire.Message: ...
-
-    def publish(self, msg: wire.Message, *, links: Sequence[str] = ...) -> None: ...
-
-    def active(self, robot: str) -> str: ...
-
-    def health(self, robot: str) -> tuple[LinkHealth, ...]: ...
-
-    def add_listener(self, listener: Callable[[Switch | Failed], None]) -> None: ...
-
-    def add_sink(self, sink: Callable[[wire.Message, str, float], None]) -> None: ...
-
-
-def attach(source: ConsoleSource, fleet: FleetModel, lock: threading.Lock, maps: MapFollower | None = None) -> None:
-    """Feed ``fleet`` from ``source`` (messages, link switches, UWB anchors), under ``lock``; map
-    updates also go to ``maps``."""
-
-    def sink(msg: wire.Message, link: str, now: float) -> None:
-        with lock:
-            if fleet.apply(msg, link, now) and maps is not None and isinstance(msg, MapUpdate):
-                maps.on_update(msg)
-
-    def anchors(gateway: str, found: list[tuple[str, float, float, float]]) -> None:
-        with lock:
-            for name, x, y, _z in found:
-                fleet.add_anchor(name, x, y)
-
-    add_anchor_sink = getattr(source, "add_anchor_sink", None)
-    if add_anchor_sink is not None:
-        add_anchor_sink(anchors)
-
-    def listener(action: Switch | Failed) -> None:
-        with lock:
-            if isinstance(action, Switch):
-                sev = "warning" if action.to_link != PRIMARY else "info"
-                fleet.notify(action.at, sev, f"failover: {action.describe()}")
-            else:
-                fleet.notify(0.0, "error", f"{action.robot}: {action.topic} #{action.header_id} lost: {action.reason}")
-
-    source.add_sink(sink)
-    source.add_listener(listener)
+class TelemetryArrived(Message):
+    """The feed has items waiting (posted from a network thread, once per batch)."""
 
 
 class ConfirmClick(ModalScreen[str]):
@@ -129,18 +94,6 @@ class ConfirmClick(ModalScreen[str]):
 
     def action_choose(self, what: str) -> None:
         self.dismiss(what)
-
-
-COLUMNS = (
-    ("id", "robot"),
-    ("mode", "mode"),
-    ("batt", "battery"),
-    ("link", "link"),
-    ("health", "health"),
-    ("age", "age"),
-    ("uwb", "uwb"),
-    ("lease", "lease"),
-)
 
 
 class ConsoleApp(App[None]):
@@ -177,40 +130,50 @@ class ConsoleApp(App[None]):
         clock: Clock,
         *,
         lock: threading.Lock | None = None,
+        maps: MapFollower | None = None,
         read_only: bool = False,
         marks_file: Path | None = None,
         refresh_hz: float = 10.0,
+        clock_hz: float = 2.0,
         repeat_timeout_s: float = 0.6,
     ) -> None:
+        """``lock`` guards ``fleet`` against the other threads that use it (map fetcher, marks
+        queryable); if ``fleet`` was already attached to ``source`` (``attach``), that feed and its
+        lock are used."""
         super().__init__()
         self.source = source
         self.fleet = fleet
         self.clock = clock
-        self.lock = lock or threading.Lock()
+        self.feed: FleetFeed = attach(source, fleet, lock or threading.Lock(), maps)
+        self.lock = self.feed.lock
         self.read_only = read_only
         self.marks_file = marks_file
+        self.marks = MarksStore(marks_file)
         self.refresh_hz = refresh_hz
+        self.clock_hz = clock_hz
         self.drive = DriveKeys(repeat_timeout_s=repeat_timeout_s)
+        self.leases = LeaseRenewal(LEASE_S)
         self.selected: str | None = None
         self.filter_text = ""
-        self._mark_seq = 0
-        self._last_lease_renew = -1e9
-        self._saved_marks: set[str] = set()
         self.frame_times: list[float] = []
+        """How long each frame took to draw (the last 1000)."""
         self.sent_stop_on_quit = False
-        if marks_file is not None:
-            self._load_marks(marks_file)
+        self._last_frame = -math.inf
+        self._frame_timer: Timer | None = None
+        self._counter: wire.HeaderCounter | None = None
+        with self.lock:
+            for mark in self.marks.load():
+                self.fleet.marks[mark.markId] = mark
 
     # -- layout ---------------------------------------------------------------------------------
 
     def compose(self) -> ComposeResult:
-        # No markup: "[driving]" / "[READ-ONLY]" would be read as style tags and vanish.
-        yield Static(self._status_text(), id="status", markup=False)
+        yield StatusLine(self._status_text(), id="status")
         with Horizontal(id="main"):
             with Vertical(id="left"):
                 yield Input(placeholder="/ filter robots (id, mode, link)", id="filter")
-                yield DataTable(id="fleet", cursor_type="row", zebra_stripes=True)
-                yield Static("", id="detail")
+                yield FleetTable(id="fleet")
+                yield RobotDetail(id="detail")
             yield MapView(self.fleet, lambda: self.selected, id="map")
         yield RichLog(id="notices", max_lines=500, markup=False, wrap=True)
         yield Input(
@@ -219,114 +182,72 @@ class ConsoleApp(App[None]):
         yield Footer()
 
     def on_mount(self) -> None:
-        table = self.query_one("#fleet", DataTable)
-        for label, key in COLUMNS:
-            table.add_column(label, key=key)
         self.query_one(MapView).focus()
-        self.set_interval(1.0 / self.refresh_hz, self._refresh)
+        self.feed.bind(lambda: self.post_message(TelemetryArrived()))
+        self.feed.drain()
+        self.set_interval(1.0 / self.clock_hz, self._changed)
         self.set_interval(0.05, self._drive_tick)
         if self.read_only:
             self.notice("info", "read-only mode: this console watches, it does not command")
+        self._changed()
 
-    # -- periodic -------------------------------------------------------------------------------
+    def on_unmount(self) -> None:
+        self.feed.unbind()
 
-    def _refresh(self) -> None:
-        # A last timer tick can come while the app shuts down and its widgets are gone.
+    # -- frames ---------------------------------------------------------------------------------
+
+    def on_telemetry_arrived(self, _message: TelemetryArrived) -> None:
+        if self.feed.drain():
+            self._changed()
+
+    def _changed(self) -> None:
+        """Something on screen may have changed: draw a frame now, or when the last one is
+        1 / refresh_hz old."""
+        if self._frame_timer is not None:
+            return
+        wait = self._last_frame + 1.0 / self.refresh_hz - self.clock.now()
+        if wait <= 0:
+            self._frame()
+        else:
+            self._frame_timer = self.set_timer(wait, self._timed_frame)
+
+    def _timed_frame(self) -> None:
+        self._frame_timer = None
+        self._frame()
+
+    def _frame(self) -> None:
+        # A last timer can fire while the app shuts down and its widgets are gone.
         with contextlib.suppress(NoMatches):
-            self._refresh_once()
+            self._draw()
 
-    def _refresh_once(self) -> None:
-        t0 = self.clock.now()
-        now = t0
+    def _draw(self) -> None:
+        t0 = now = self.clock.now()
+        self._last_frame = now
+        source, fleet = self.source, self.fleet
         with self.lock:
-            self.fleet.tick(now)
-            notices = self.fleet.drain()
-            rows = self._rows(now)
-        for n in notices:
-            self._log_notice(n)
-        self._update_table(rows)
-        self.query_one(MapView).update_view()
-        self.query_one("#status", Static).update(self._status_text())
-        self.query_one("#detail", Static).update(self._detail_text(now))
-        self._renew_lease(now)
+            fleet.tick(now)
+            notices = fleet.drain()
+            rows = fleet_rows(fleet, source.active, source.health, source.sender, now, self.filter_text)
+            for n in notices:
+                self._log_notice(n)
+            self.query_one(FleetTable).show(rows)
+            if self.selected is None and rows:
+                self.selected = next(iter(rows))
+                self.query_one(MapView).fit()
+            self.query_one(MapView).update_view()
+            self.query_one(StatusLine).show(self._status_text())
+            selected = self.selected
+            health = source.health(selected) if selected is not None else ()
+            view = fleet.robots.get(selected) if selected is not None else None
+            self.query_one(RobotDetail).show(detail_text(selected, view, health))
+            renew = [] if self.read_only else self.leases.due(fleet, now)
+        for robot in renew:
+            self._request_lease(robot, release=False)
         self.frame_times.append(self.clock.now() - t0)
         del self.frame_times[:-1000]
 
-    def _rows(self, now: float) -> dict[str, tuple[str | Text, ...]]:
-        rows: dict[str, tuple[str | Text, ...]] = {}
-        for robot in sorted(self.fleet.robots):
-            view = self.fleet.robots[robot]
-            link = self.source.active(robot)
-            health = self.source.health(robot)
-            hp = next((h for h in health if h.link == PRIMARY), None)
-            if hp is None or hp.age_s is None:
-                htext = Text("-", style="dim")
-            elif hp.healthy:
-                rtt = f" {hp.rtt_s * 1000:.0f}ms" if hp.rtt_s is not None else ""
-                htext = Text(f"ok {hp.loss_pct:.0f}%{rtt}", style="green")
-            else:
-                htext = Text(f"DOWN {hp.loss_pct:.0f}%", style="bold red")
-            age = view.age(now)
-            uwb = self.fleet.uwb_ok(robot, now)
-            if view.lease_holder is None:
-                lease = "-"
-            elif not view.lease_holder:
-                lease = "free"
-            else:
-                lease = "you" if view.lease_holder == self.source.sender else view.lease_holder
-            cells: tuple[str | Text, ...] = (
-                Text(robot, style="bold red" if view.lost else ""),
-                view.mode if not view.estop else Text("ESTOP", style="bold red"),
-                "?" if view.battery is None else f"{view.battery:.0f}%",
-                Text(link, style="green" if link == PRIMARY else "bold yellow"),
-                htext,
-                "-" if age is None else (f"{age:.1f}s" if age >= 1 else f"{age * 1000:.0f}ms"),
-                Text("?", style="dim") if uwb is None else Text("ok", "green") if uwb else Text("stale", "bold yellow"),
-                lease,
-            )
-            text = " ".join(str(c) for c in cells).lower()
-            if self.filter_text and self.filter_text.lower() not in text:
-                continue
-            rows[robot] = cells
-        return rows
-
-    def _update_table(self, rows: dict[str, tuple[str | Text, ...]]) -> None:
-        table = self.query_one("#fleet", DataTable)
-        present = {str(k.value) for k in table.rows}
-        for robot in present - rows.keys():
-            table.remove_row(robot)
-        for robot, cells in rows.items():
-            if robot in present:
-                for (_, key), value in zip(COLUMNS, cells, strict=True):
-                    table.update_cell(robot, key, value)
-            else:
-                table.add_row(*cells, key=robot)
-        if self.selected is None and rows:
-            self.selected = next(iter(rows))
-            self.query_one(MapView).fit()
-
     def _status_text(self) -> str:
-        mode = "READ-ONLY" if self.read_only else "driving"
-        sel = self.selected or "-"
-        return (
-            f"fleetlink console  operator {self.source.sender}  [{mode}]  robot {sel}  "
-            f"speed {self.drive.speed:.2f} m/s turn {self.drive.turn:.2f} rad/s"
-        )
-
-    def _detail_text(self, now: float) -> str:
-        if self.selected is None:
-            return "no robot"
-        view = self.fleet.robots.get(self.selected)
-        if view is None:
-            return self.selected
-        pose = (
-            "pose ?"
-            if view.pose is None
-            else f"pose {view.pose[0]:+.2f} {view.pose[1]:+.2f} {math.degrees(view.pose[2]):+.0f}°"
-        )
-        goal = "" if view.goal is None else f"  goal {view.goal[0]:+.2f} {view.goal[1]:+.2f}"
-        links = "  ".join(h.describe() for h in self.source.health(self.selected))
-        return f"{view.robot} {view.drive_mode} {pose}{goal} payload {'on' if view.payload_on else 'off'}\n{links}"
+        return status_text(self.source.sender, self.read_only, self.selected, self.drive.speed, self.drive.turn)
 
     def notice(self, severity: str, text: str) -> None:
         self._log_notice(Notice(self.clock.now(), severity, text))
@@ -340,13 +261,14 @@ class ConsoleApp(App[None]):
     def on_data_table_row_highlighted(self, event: DataTable.RowHighlighted) -> None:
         if event.row_key.value is not None:
             self.selected = str(event.row_key.value)
+            self._changed()
 
     def action_next_robot(self) -> None:
         """Select the next row of the fleet table (wrapping); in an input or a dialog, tab keeps
         its usual meaning (focus next)."""
         if isinstance(self.focused, Input) or len(self.screen_stack) > 1:
             raise SkipAction()
-        table = self.query_one("#fleet", DataTable)
+        table = self.query_one(FleetTable)
         if table.row_count:
             table.move_cursor(row=(table.cursor_row + 1) % table.row_count)
 
@@ -394,7 +316,7 @@ class ConsoleApp(App[None]):
         twist = self.drive.press(key, now)
         if twist is not None:
             self.send_twist(twist)
-        self.query_one("#status", Static).update(self._status_text())
+        self.query_one(StatusLine).show(self._status_text())
 
     def _drive_tick(self) -> None:
         twist = self.drive.tick(self.clock.now())
@@ -428,7 +350,12 @@ class ConsoleApp(App[None]):
         assert robot is not None
         order_id = f"{self.source.sender}-{self.clock.wall():.3f}"
         self.source.send(
-            Order, robot, orderId=order_id[:64], orderUpdateId=0, goal=Goal(x=x, y=y, theta=theta), returnHome=False
+            Order,
+            robot,
+            orderId=order_id[:64],
+            orderUpdateId=0,
+            goal=GoalField(x=x, y=y, theta=theta),
+            returnHome=False,
         )
         self.notice("info", f"{robot}: goal ({x:.2f}, {y:.2f}) sent as order {order_id}")
         return True
@@ -459,6 +386,8 @@ class ConsoleApp(App[None]):
         self.source.send(InstantActions, robot, actions=(action,))
         self.notice("info", f"{robot}: payload {'on' if want else 'off'} sent")
 
+    # -- leases ---------------------------------------------------------------------------------
+
     def action_lease(self) -> None:
         robot = self.selected
         if not self._command_ok(robot, "lease request", needs_lease=False):
@@ -481,21 +410,12 @@ class ConsoleApp(App[None]):
             links=("zenoh", "mqtt"),
         )
 
-    def _renew_lease(self, now: float) -> None:
-        if self.read_only or now - self._last_lease_renew < LEASE_S / 3:
-            return
-        self._last_lease_renew = now
-        with self.lock:
-            mine = [r for r, v in self.fleet.robots.items() if v.lease_holder == self.source.sender]
-        for robot in mine:
-            self._request_lease(robot, release=False)
-
     def _header(self, topic: str, robot: str) -> wire.Header:
         counter: wire.HeaderCounter | None = getattr(self.source, "counter", None)
         if counter is None:
-            counter = self._counter = getattr(self, "_counter", None) or wire.HeaderCounter(
-                self.clock, robot=robot, sender=self.source.sender
-            )
+            if self._counter is None:
+                self._counter = wire.HeaderCounter(self.clock, robot=robot, sender=self.source.sender)
+            counter = self._counter
         return counter.header(topic, robot=robot)
 
     # -- marks ----------------------------------------------------------------------------------
@@ -509,71 +429,16 @@ class ConsoleApp(App[None]):
         if robot is None:
             self.notice("warning", "no robot known yet: a mark needs one to be published under")
             return None
-        self._mark_seq += 1
-        mark_id = f"{self.source.sender}-{int(self.clock.wall())}-{self._mark_seq}"[:64]
-        mark = Mark(
-            header=self._header(Mark.TOPIC, robot),
-            markId=mark_id,
-            x=x,
-            y=y,
-            label=label[:64] or kind,
-            kind=kind[:32],
-            removed=False,
-        )
+        mark = self.marks.new(self._header(Mark.TOPIC, robot), x, y, kind, label, self.clock.wall())
         with self.lock:
             self.fleet.apply(mark, "local", self.clock.now())
         self.source.publish(mark)
-        self._save_marks()
-        self.notice("info", f"mark {mark.kind} '{mark.label}' at ({x:.2f}, {y:.2f}) shared")
-        return mark
-
-    def _save_marks(self) -> None:
-        if self.marks_file is None:
-            return
         with self.lock:
-            marks = [
-                {
-                    "markId": m.markId,
-                    "x": m.x,
-                    "y": m.y,
-                    "label": m.label,
-                    "kind": m.kind,
-                    "by": m.header.sender,
-                    "robot": m.header.robot,
-                    "timestamp": m.header.timestamp,
-                }
-                for m in self.fleet.live_marks()
-            ]
-        tmp = self.marks_file.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"marks": marks}, indent=2) + "\n")
-        tmp.replace(self.marks_file)
-
-    def _load_marks(self, path: Path) -> None:
-        if not path.exists():
-            return
-        try:
-            data = json.loads(path.read_text())
-            for m in data.get("marks", []):
-                header = wire.Header(
-                    headerId=0,
-                    timestamp=float(m["timestamp"]),
-                    version=wire.WIRE_VERSION,
-                    robot=m["robot"],
-                    sender=m["by"],
-                )
-                mark = Mark(
-                    header=header,
-                    markId=m["markId"],
-                    x=float(m["x"]),
-                    y=float(m["y"]),
-                    label=m["label"],
-                    kind=m["kind"],
-                    removed=False,
-                )
-                wire.encode(mark)  # validates
-                self.fleet.marks[mark.markId] = mark
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            log.warning("marks file %s ignored: %s", path, exc)
+            live = self.fleet.live_marks()
+        self.marks.save(live)
+        self.notice("info", f"mark {mark.kind} '{mark.label}' at ({x:.2f}, {y:.2f}) shared")
+        self._changed()
+        return mark
 
     # -- map ------------------------------------------------------------------------------------
 
@@ -589,17 +454,20 @@ class ConsoleApp(App[None]):
         self.push_screen(ConfirmClick(self.selected, x, y), chosen)
 
     def action_fit(self) -> None:
-        self.query_one(MapView).fit()
+        with self.lock:
+            self.query_one(MapView).fit()
 
     def action_zoom(self, factor: float) -> None:
         m = self.query_one(MapView)
         m.geometry.zoom(factor)
-        m.update_view()
+        with self.lock:
+            m.update_view()
 
     def action_pan(self, dcols: float, drows: float) -> None:
         m = self.query_one(MapView)
         m.geometry.pan(dcols, drows)
-        m.update_view()
+        with self.lock:
+            m.update_view()
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -619,6 +487,7 @@ class ConsoleApp(App[None]):
     def on_input_changed(self, event: Input.Changed) -> None:
         if event.input.id == "filter":
             self.filter_text = event.value.strip()
+            self._changed()
 
     def on_input_submitted(self, event: Input.Submitted) -> None:
         if event.input.id == "command":
@@ -627,38 +496,29 @@ class ConsoleApp(App[None]):
         self.query_one(MapView).focus()
 
     def run_command(self, line: str) -> None:
-        """Typed commands: goal X Y [THETA_DEG], mark KIND X Y [LABEL], home, payload on|off, stop."""
-        words = line.split()
-        if not words:
+        """A typed command (operator/commands.py): run it, or say why not in the notices."""
+        command = parse_command(line)
+        if command is None:
             return
-        verb, args = words[0].lower(), words[1:]
+        if isinstance(command, CommandError):
+            self.notice("warning", command.text)
+            return
         try:
-            if verb in ("goal", "g") and len(args) in (2, 3):
-                nums = [float(a) for a in args]
-                if not all(math.isfinite(v) for v in nums):
-                    raise ValueError("coordinates must be finite numbers")
-                theta = math.radians(nums[2]) if len(nums) == 3 else None
-                if theta is not None:
-                    theta = math.atan2(math.sin(theta), math.cos(theta))
-                self.send_goal(nums[0], nums[1], theta)
-            elif verb == "mark" and len(args) >= 3:
-                x, y = float(args[1]), float(args[2])
-                if not (math.isfinite(x) and math.isfinite(y)):
-                    raise ValueError("coordinates must be finite numbers")
-                self.add_mark(x, y, args[0], " ".join(args[3:]))
-            elif verb == "home" and not args:
-                self.action_home()
-            elif verb == "payload" and args in (["on"], ["off"]):
-                self.action_payload(args[0] == "on")
-            elif verb == "stop" and not args:
-                self.action_stop_all()
-            else:
-                self.notice(
-                    "warning",
-                    f"unknown command {line!r}: goal X Y [THETA_DEG] | mark KIND X Y [LABEL] | home | payload on|off | stop",
-                )
-        except ValueError as exc:
+            self.execute(command)
+        except ValueError as exc:  # the wire refused what the command built (a size, a range)
             self.notice("warning", f"bad command {line!r}: {exc}")
+
+    def execute(self, command: Command) -> None:
+        if isinstance(command, Goal):
+            self.send_goal(command.x, command.y, command.theta)
+        elif isinstance(command, MarkAt):
+            self.add_mark(command.x, command.y, command.kind, command.label)
+        elif isinstance(command, Home):
+            self.action_home()
+        elif isinstance(command, Payload):
+            self.action_payload(command.on)
+        elif isinstance(command, StopAll):
+            self.action_stop_all()
 
     # -- quit -----------------------------------------------------------------------------------
 

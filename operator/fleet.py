@@ -27,7 +27,7 @@ from fleetlink.shared.messages import (
 )
 from fleetlink.shared.wire import Message
 
-__all__ = ["FleetModel", "Grid", "Notice", "RobotView"]
+__all__ = ["FleetModel", "Grid", "LeaseRenewal", "Notice", "RobotView"]
 
 TRAIL_POINTS = 200
 
@@ -234,3 +234,24 @@ class FleetModel:
         if view.lease_holder == self.operator or not view.lease_holder:
             return True, ""  # free: driving takes it for you (the agent claims it on your first command)
         return False, f"{robot}: control lease held by {view.lease_holder}: driving refused"
+
+    def leases_held(self) -> list[str]:
+        """The robots whose control lease this console holds, as the robots last said."""
+        return [r for r, v in self.robots.items() if v.lease_holder == self.operator]
+
+
+class LeaseRenewal:
+    """When to renew the leases this console holds: every ``lease_s / 3`` (a lease survives two
+    lost renewals). Pure: ``due(fleet, now)`` is called as often as the caller likes."""
+
+    def __init__(self, lease_s: float) -> None:
+        self.lease_s = lease_s
+        self.every_s = lease_s / 3
+        self._last = -math.inf
+
+    def due(self, fleet: FleetModel, now: float) -> list[str]:
+        """The robots whose lease to renew now ([] between renewals)."""
+        if now - self._last < self.every_s:
+            return []
+        self._last = now
+        return fleet.leases_held()

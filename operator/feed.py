@@ -1,0 +1,186 @@
+"""What the network tells the console, carried into the fleet model.
+
+``FleetFeed`` subscribes once to a console source (``OperatorLink``: decoded messages, link
+switches and lost commands, UWB gateways' anchors) and folds each into a ``FleetModel`` (and map
+updates into the ``MapFollower``). It works in one of two ways:
+
+* **bound to an app** (``bind(wake)``, what ``ConsoleApp`` does while it runs): a network thread
+  only appends what it heard to an inbox and, if no wake-up is pending yet, calls ``wake()``
+  (the app posts itself a Textual message). The app's own thread then calls ``drain()``, which
+  folds everything waiting into the model. A burst of hundreds of messages costs one wake-up, and
+  the model is only ever written on the UI thread by the network side.
+* **unbound** (headless, before the app starts, after it stops): each item is folded in at once
+  on the network thread.
+
+Either way under ``lock``: the fleet model is also read by the marks queryable and written by the
+map fetcher (operator/maps.py), each on its own thread.
+
+One feed per fleet model: ``attach`` for a model that already has one returns that one, so a
+caller that attached the model (cli, tests) and the app that shows it share it.
+"""
+
+from __future__ import annotations
+
+import threading
+import weakref
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from fleetlink.operator.fleet import FleetModel
+from fleetlink.operator.linkmanager import PRIMARY, Failed, LinkHealth, Switch
+from fleetlink.operator.maps import MapFollower
+from fleetlink.shared import wire
+from fleetlink.shared.messages import MapUpdate
+
+__all__ = ["AnchorsHeard", "ConsoleSource", "FleetFeed", "Heard", "LinkEvent", "attach"]
+
+
+class ConsoleSource(Protocol):
+    """What the console needs from the network side (``OperatorLink`` provides it)."""
+
+    sender: str
+
+    def send(self, cls: type[wire.Message], robot: str, *, expect_ack: bool = True, **fields: Any) -> wire.Message: ...
+
+    def publish(self, msg: wire.Message, *, links: Sequence[str] = ...) -> None: ...
+
+    def active(self, robot: str) -> str: ...
+
+    def health(self, robot: str) -> tuple[LinkHealth, ...]: ...
+
+    def add_listener(self, listener: Callable[[Switch | Failed], None]) -> None: ...
+
+    def add_sink(self, sink: Callable[[wire.Message, str, float], None]) -> None: ...
+
+
+@dataclass(frozen=True, slots=True)
+class Heard:
+    """A decoded message, the link it came on, and when (the link's clock)."""
+
+    msg: wire.Message
+    link: str
+    now: float
+
+
+@dataclass(frozen=True, slots=True)
+class LinkEvent:
+    """The link manager moved a robot's commands, or gave up on a command."""
+
+    action: Switch | Failed
+
+
+@dataclass(frozen=True, slots=True)
+class AnchorsHeard:
+    """A UWB gateway's status: its anchors (id, x, y, z)."""
+
+    gateway: str
+    anchors: tuple[tuple[str, float, float, float], ...]
+
+
+Item = Heard | LinkEvent | AnchorsHeard
+
+_feeds: weakref.WeakValueDictionary[int, FleetFeed] = weakref.WeakValueDictionary()
+"""id(fleet model) -> its feed. Weak: a feed lives as long as its source holds its callbacks."""
+_feeds_lock = threading.Lock()
+
+
+class FleetFeed:
+    def __init__(
+        self, source: ConsoleSource, fleet: FleetModel, lock: threading.Lock, maps: MapFollower | None = None
+    ) -> None:
+        self.source = source
+        self.fleet = fleet
+        self.lock = lock
+        self.maps = maps
+        self.applied = 0
+        """Items folded into the model so far (either way)."""
+        self._inbox: deque[Item] = deque()
+        self._wake: Callable[[], bool] | None = None
+        self._wake_pending = False
+        self._inbox_lock = threading.Lock()
+        """Guards the binding and the pending flag, never the model: network threads hold it for
+        an append, so they never wait on the UI."""
+        source.add_sink(lambda msg, link, now: self._put(Heard(msg, link, now)))
+        source.add_listener(lambda action: self._put(LinkEvent(action)))
+        add_anchor_sink = getattr(source, "add_anchor_sink", None)
+        if add_anchor_sink is not None:
+            add_anchor_sink(lambda gateway, found: self._put(AnchorsHeard(gateway, tuple(found))))
+
+    # -- the app's side -------------------------------------------------------------------------
+
+    def bind(self, wake: Callable[[], bool]) -> None:
+        """From now on items wait in the inbox; ``wake()`` is called (from a network thread) when
+        the first one arrives after a ``drain``. It returns False if the app can no longer take
+        messages (shutting down): the items then wait for ``unbind``."""
+        with self._inbox_lock:
+            self._wake = wake
+            self._wake_pending = False
+
+    def unbind(self) -> None:
+        """Back to folding items in at once; whatever waits in the inbox is folded in now."""
+        with self._inbox_lock:
+            self._wake = None
+        self.drain()
+
+    def drain(self) -> int:
+        """Fold everything waiting into the model (the app's thread). How many items."""
+        with self._inbox_lock:
+            self._wake_pending = False  # cleared first: an item that comes during the drain wakes again
+        n = 0
+        with self.lock:
+            while self._inbox:
+                self._apply(self._inbox.popleft())
+                n += 1
+        return n
+
+    # -- the network's side ---------------------------------------------------------------------
+
+    def _put(self, item: Item) -> None:
+        with self._inbox_lock:
+            wake = self._wake
+            if wake is not None:
+                self._inbox.append(item)
+                if self._wake_pending:
+                    return
+                self._wake_pending = True
+        if wake is None:
+            with self.lock:
+                self._apply(item)
+            return
+        if not wake():
+            with self._inbox_lock:
+                self._wake_pending = False
+
+    def _apply(self, item: Item) -> None:
+        """Fold one item into the model (the caller holds ``lock``)."""
+        self.applied += 1
+        fleet = self.fleet
+        if isinstance(item, Heard):
+            if fleet.apply(item.msg, item.link, item.now) and self.maps is not None and isinstance(item.msg, MapUpdate):
+                self.maps.on_update(item.msg)
+        elif isinstance(item, AnchorsHeard):
+            for name, x, y, _z in item.anchors:
+                fleet.add_anchor(name, x, y)
+        elif isinstance(item.action, Switch):
+            action = item.action
+            severity = "warning" if action.to_link != PRIMARY else "info"
+            fleet.notify(action.at, severity, f"failover: {action.describe()}")
+        else:
+            failed = item.action
+            fleet.notify(0.0, "error", f"{failed.robot}: {failed.topic} #{failed.header_id} lost: {failed.reason}")
+
+
+def attach(
+    source: ConsoleSource, fleet: FleetModel, lock: threading.Lock, maps: MapFollower | None = None
+) -> FleetFeed:
+    """The feed of ``fleet`` from ``source``: made (and subscribed) the first time, the same one
+    after that (``lock`` and ``maps`` are then the first call's)."""
+    with _feeds_lock:
+        feed = _feeds.get(id(fleet))
+        if feed is None or feed.fleet is not fleet or feed.source is not source:
+            feed = _feeds[id(fleet)] = FleetFeed(source, fleet, lock, maps)
+        elif maps is not None and feed.maps is None:
+            feed.maps = maps
+        return feed
