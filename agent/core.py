@@ -269,6 +269,16 @@ class AgentCore:
         exactly as without a map; [] when there is no path). None: no map, straight lines."""
         self.pilot.path_provider = plan
 
+    def lidar_status(self, fault: str | None, url: str) -> Output:
+        """The lidar stopped delivering scans (``fault``: why) or delivers again (None): an event
+        now; the fault is in ``State.errors`` while it lasts (the runtime adds it to the board view)."""
+        if fault is None:
+            ev = self._event("lidar_ok", "lidar scanning again", Severity.INFO)
+        else:
+            text = f"lidar not delivering scans: {fault}; driving on the ultrasonic guard"[:256]
+            ev = self._event("lidar_fault", text, Severity.ERROR, url=url[:256])
+        return Output(messages=[(ev, None)])
+
     # -- the control loop -------------------------------------------------------------------------
 
     def tick(self, now: float, board: BoardView) -> Output:

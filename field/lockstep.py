@@ -1,9 +1,20 @@
-"""Run a scenario in lockstep: simulated time as fast as the CPU allows, the same numbers for the same seed.
+"""Run the field in lockstep: simulated time as fast as the CPU allows, the same numbers for the same seed.
 
-Every robot's board is driven through real Control Bus bytes by an agent-side ``BoardSession``
-over an in-process port, on one ``SimClock``. The loop advances the world in control sub-steps,
-ticks each session when it is due, applies scripted events, casts lidar revolutions at their rate,
-and records ground truth.
+``FieldRun`` owns the world, the scripted events, the lidars and the ground truth, on one
+``SimClock``. ``step(t)`` advances everything to ``t``; ``run()`` loops it over the scenario.
+Who drives the robots is not the field's business:
+
+* **field only** (``FieldRun(scenario)``): each robot follows its scenario's open-loop motion
+  (field/open_loop.py) straight onto its board, and its lidar revolutions are cast as arrays (the
+  field's own benchmarks and plan checks);
+* **driven** (``FieldRun(scenario, open_loop=False)``): whoever drives opens each robot's ports,
+  ``board_port(i)`` (Control Bus bytes to the simulated board) and ``lidar_port(i)`` (RPLIDAR
+  bytes from the simulated device), and registers a ``controller(t)`` that ``step`` calls after
+  the physics. ``fleetlink.site.lockstep`` drives every robot with its whole agent this way.
+
+Scripted events change the world (doors, obstacles, slip, the home button, a severed board
+cable); events the field cannot carry out itself (operator commands, network links) go to
+``on_command(event, t)``.
 """
 
 from __future__ import annotations
@@ -17,53 +28,44 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.session import BoardSession, BoardSnapshot, PollRates
-from fleetlink.agent.board.transport import InProcessPort
 from fleetlink.field.build import build_world, lidar_model, robot_seed
-from fleetlink.field.drivers import Driver, driver_for
 from fleetlink.field.events import EventRunner
+from fleetlink.field.lidar import scan_source_for
 from fleetlink.field.lidar_worker import LidarWorker
+from fleetlink.field.open_loop import Motion, motion_for
 from fleetlink.field.plans import FloorPlan, load_plan
+from fleetlink.field.rplidar import InProcessLidarPort, SimulatedRplidar
 from fleetlink.field.scenario import RobotSpec, Scenario
 from fleetlink.field.world import WorldRobot
 from fleetlink.shared.clock import SimClock
 
 __all__ = ["FieldRun", "RunResult", "write_outputs"]
 
-# The lockstep field's agents poll less often than a real one: enough to drive, cheap enough for 50.
-LOCKSTEP_POLL = PollRates(
-    motion=20.0,
-    motor=5.0,
-    sensors=10.0,
-    bumpers=10.0,
-    status=0.5,
-    power=0.0,
-    health=1.0,
-    payload=0.0,
-    env=0.0,
-    buttons=0.0,
-    base_command=1.0,
-    imu=0.0,
-)
+Truth = tuple[float, float, float, float, float, float]
+"""t, x, y, theta, v, omega."""
+
+OPEN_LOOP_HZ = 20.0
+"""How often open-loop motion re-reads its board (a field-only run)."""
 
 
 @dataclass(slots=True)
 class Rig:
-    """One robot of the run: its body and board in the world, its link, its driver, its lidar."""
+    """One robot of the run: its body and board in the world, its lidar, its open-loop motion."""
 
     spec: RobotSpec
     robot: WorldRobot
-    drive: Driver
+    motion: Motion | None
     lidar: Any
-    session: BoardSession = field(init=False)
+    device: SimulatedRplidar | None = None  # the RPLIDAR the robot's driver reads (driven runs)
     remote_lidar: bool = False  # cast by the lidar worker process
     link_cut: bool = False
-    next_session: float = 0.0
+    lidar_cut: bool = False
+    lidar_ports: list[InProcessLidarPort] = field(default_factory=list)
+    next_motion: float = 0.0
     next_scan: float = 0.0
     scans: int = 0
     last_scan: object = None
-    truth: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
+    truth: list[Truth] = field(default_factory=list)
 
 
 @dataclass(slots=True)
@@ -71,7 +73,7 @@ class RunResult:
     scenario: Scenario
     sim_seconds: float
     wall_seconds: float
-    truth: dict[str, list[tuple[float, float, float, float, float, float]]]
+    truth: dict[str, list[Truth]]
     events: list[str]
     scans: int
     raycast_seconds: float
@@ -87,34 +89,39 @@ class FieldRun:
         self,
         scenario: Scenario,
         plan: FloorPlan | None = None,
-        poll: PollRates = LOCKSTEP_POLL,
-        board_links: bool = True,
+        *,
+        open_loop: bool = True,
         lidar_worker: bool = False,
         worker_share: float = 0.7,
+        on_command: Callable[[Any, float], None] | None = None,
+        clock: SimClock | None = None,
     ) -> None:
-        """``board_links=False`` lets the stand-in drivers command the boards directly instead of
-        through an agent-side board session (to measure the field alone). ``lidar_worker`` casts
-        ``worker_share`` of the robots' lidars in a second process while this one steps the physics
-        and casts the rest (same results; both cores busy); ``close()`` ends it."""
+        """``lidar_worker`` casts ``worker_share`` of a field-only run's lidars in a second process
+        while this one steps the physics and casts the rest (same results; both cores busy);
+        ``close()`` ends it."""
         self.scenario = scenario
-        self.board_links = board_links
+        self.open_loop = open_loop
         self.plan = plan or load_plan(scenario.plan)
-        self.clock = SimClock()
-        self.closed_doors: set[str] = set()
-        self.extra_obstacles: list[tuple[tuple[float, float], ...]] = []
+        self.clock = clock or SimClock()
         self.world = build_world(scenario, self.plan)
         self.rigs: list[Rig] = []
-        self.events = EventRunner(scenario.events, self.plan, self.world, self._cut_link)
+        self.controllers: list[Callable[[float], None]] = []
+        self.events = EventRunner(scenario.events, self.plan, self.world, self._cut_link, on_command=on_command)
         self.raycast_seconds = 0.0
+        self._truth_period = 1.0 / scenario.truth_rate_hz
+        self._next_truth = 0.0
         for i, (spec, robot) in enumerate(zip(scenario.robots, self.world.robots, strict=True)):
             seed = robot_seed(scenario, i)
             lidar = lidar_model(scenario, spec, i)
-            rig = Rig(spec, robot, driver_for(spec, seed), lidar)
-            rig.session = BoardSession(self._port_factory(rig), self.clock, rates=poll, seed=seed)
+            rig = Rig(spec, robot, motion_for(spec, seed) if open_loop else None, lidar)
+            robot.board.start_clock(0.0)
+            if lidar is not None and not open_loop:
+                rig.device = SimulatedRplidar(lidar.config, self._scan_source(rig))
+                rig.device.start_clock(0.0)
             self.rigs.append(rig)
         self.worker: LidarWorker | None = None
         self._worker_geometry = self.world.geometry_version
-        if lidar_worker and any(r.lidar is not None for r in self.rigs):
+        if open_loop and lidar_worker and any(r.lidar is not None for r in self.rigs):
             self.worker = LidarWorker(self.world.segments)
             for rig in self.rigs:
                 i = rig.robot.index
@@ -134,46 +141,79 @@ class FieldRun:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # -- running -------------------------------------------------------------------------------
+    # -- ports, for whoever drives the robots ---------------------------------------------------------
+
+    def board_peer(self, index: int) -> Callable[[bytes], bytes]:
+        """The robot's board as a byte peer: request bytes in, reply bytes out; nothing while its
+        cable is cut (a scenario's ``link_cut``)."""
+        rig = self.rigs[index]
+        board = rig.robot.board
+
+        def peer(data: bytes) -> bytes:
+            return b"" if rig.link_cut else board.receive(data, self.clock.now())
+
+        return peer
+
+    def lidar_port(self, index: int) -> InProcessLidarPort:
+        """A fresh in-process port onto the robot's RPLIDAR (driven runs with a lidar)."""
+        device = self.rigs[index].device
+        if device is None:
+            raise ValueError(f"robot {self.rigs[index].spec.name} has no lidar device in this run")
+        rig = self.rigs[index]
+        port = InProcessLidarPort(device, self.clock, advance_clock=False)
+        port.cut = rig.lidar_cut
+        rig.lidar_ports = [p for p in rig.lidar_ports if not p.closed] + [port]
+        return port
+
+    def cut_lidar(self, robot: str, cut: bool) -> None:
+        """Sever (or mend) the robot's lidar cable: its bytes stop, its driver times out."""
+        rig = next(r for r in self.rigs if r.spec.name == robot)
+        rig.lidar_cut = cut
+        for port in rig.lidar_ports:
+            port.cut = cut
+
+    # -- running ------------------------------------------------------------------------------------
 
     def run(self, duration: float | None = None) -> RunResult:
         end = self.scenario.duration if duration is None else duration
         dt = self.scenario.control_period
-        truth_period = 1.0 / self.scenario.truth_rate_hz
-        next_truth = 0.0
-        t = self.clock.now()
         wall0 = time.perf_counter()
-        self._record(t)
-        next_truth = t + truth_period
-        poll_hz = LOCKSTEP_POLL.motion
+        t = self.clock.now()
+        if not any(r.truth for r in self.rigs):
+            self._record(t)
+            self._next_truth = t + self._truth_period
         while t < end - 1e-12:
             t = min(end, t + dt)
-            self.events.advance(t)
-            self.world.step(t)
-            self.clock.set(t)
-            for rig in self.rigs:
-                if t >= rig.next_session:
-                    if self.board_links:
-                        rig.session.set_velocity(*rig.drive(rig.session.snapshot, t))
-                        rig.next_session = rig.session.tick()
-                    else:
-                        rig.robot.board.drive(*rig.drive(_direct_snapshot(rig.robot), t), t)
-                        rig.next_session = t + 1.0 / poll_hz
-                if rig.lidar is not None and t >= rig.next_scan:
-                    self._scan(rig)
-                    rig.next_scan += 1.0 / rig.lidar.config.rate_hz
-                    if rig.next_scan <= t:
-                        rig.next_scan = t + 1.0 / rig.lidar.config.rate_hz
-            if t >= next_truth - 1e-9:
-                self._record(t)
-                next_truth += truth_period
+            self.step(t)
+        return self.result(t, time.perf_counter() - wall0)
+
+    def step(self, t: float) -> None:
+        """Advance events, physics, open-loop motion, lidars and controllers to ``t``; record truth."""
+        self.events.advance(t)
+        self.world.step(t)
+        self.clock.set(t)
+        for rig in self.rigs:
+            if rig.motion is not None and t >= rig.next_motion:
+                rig.robot.board.drive(*rig.motion(rig.robot.board, t), t)
+                rig.next_motion = t + 1.0 / OPEN_LOOP_HZ
+            if self.open_loop and rig.lidar is not None and t >= rig.next_scan:
+                self._scan(rig)
+                rig.next_scan += 1.0 / rig.lidar.config.rate_hz
+                if rig.next_scan <= t:
+                    rig.next_scan = t + 1.0 / rig.lidar.config.rate_hz
+        for controller in self.controllers:
+            controller(t)
+        if t >= self._next_truth - 1e-9:
+            self._record(t)
+            self._next_truth += self._truth_period
+
+    def result(self, t: float, wall: float) -> RunResult:
         if self.worker is not None:
             results = list(self.worker.drain())
             self.worker.results.clear()
             self.raycast_seconds += sum(r.cast_seconds for r in results)
             for r in results:
                 self.rigs[r.robot].last_scan = (r.angles, r.distances, r.qualities)
-        wall = time.perf_counter() - wall0
         return RunResult(
             scenario=self.scenario,
             sim_seconds=t,
@@ -183,24 +223,9 @@ class FieldRun:
             scans=sum(r.scans for r in self.rigs),
             raycast_seconds=self.raycast_seconds,
             stats={
-                r.spec.name: {
-                    "connects": r.session.snapshot.connects,
-                    "requests": r.session.client.stats.requests if r.session.client else None,
-                    "watchdog_trips": r.robot.board.state.watchdog_trips,
-                    "scans": r.scans,
-                }
-                for r in self.rigs
+                r.spec.name: {"watchdog_trips": r.robot.board.state.watchdog_trips, "scans": r.scans} for r in self.rigs
             },
         )
-
-    def _port_factory(self, rig: Rig) -> Callable[[], InProcessPort]:
-        """Each (re)connect opens a fresh in-process port; while the link is cut, bytes vanish."""
-        board = rig.robot.board
-
-        def peer(data: bytes) -> bytes:
-            return b"" if rig.link_cut else board.receive(data, self.clock.now())
-
-        return lambda: InProcessPort(peer, wait_advances_clock=False)
 
     def _cut_link(self, robot: str, cut: bool) -> None:
         next(r for r in self.rigs if r.spec.name == robot).link_cut = cut
@@ -209,6 +234,22 @@ class FieldRun:
         for rig in self.rigs:
             st = rig.robot.board.state
             rig.truth.append((t, st.x, st.y, st.theta, st.true_v, st.true_w))
+
+    def _scan_source(self, rig: Rig) -> Callable[[float], Any]:
+        robot, model = rig.robot, rig.lidar
+
+        def circles(x: float, y: float) -> Any:
+            return self.world.other_bodies(robot.index, x, y, model.config.max_range)
+
+        def counted(now: float) -> Any:
+            rig.scans += 1
+            t0 = time.perf_counter()
+            turn = source(now)
+            self.raycast_seconds += time.perf_counter() - t0
+            return turn
+
+        source = scan_source_for(model, lambda now: robot.pose, lambda: self.world.raycaster, circles)
+        return counted
 
     def _scan(self, rig: Rig) -> None:
         assert rig.lidar is not None
@@ -225,16 +266,6 @@ class FieldRun:
         rig.last_scan = rig.lidar.revolution(x, y, th, self.world.raycaster, circles)
         self.raycast_seconds += time.perf_counter() - t0
         rig.scans += 1
-
-
-def _direct_snapshot(robot: WorldRobot) -> BoardSnapshot:
-    """What a board session would know, read straight off the board (no byte link)."""
-    board = robot.board
-    return BoardSnapshot(
-        connected=True,
-        sensors=p.SensorData((board.ultrasonic(),)),
-        bumpers=p.BumperData(board.bumper_bitmap(), 4),
-    )
 
 
 def write_outputs(result: RunResult, out_dir: str | Path) -> Path:

@@ -166,6 +166,11 @@ class BoardSession:
     def snapshot(self) -> BoardSnapshot:
         return self._snap
 
+    @property
+    def urgent(self) -> bool:
+        """A new velocity waits to be sent (a lockstep run ticks the session again at once)."""
+        return self._urgent
+
     def set_velocity(self, vx: float, omega: float) -> None:
         """Body velocity sent at the motion rate; non-finite values are refused."""
         if not (math.isfinite(vx) and math.isfinite(omega)):

@@ -1,0 +1,86 @@
+"""The map keeper: which map the agent builds, and when the pilot gets a fresh planner. Pure.
+
+The agent's lidar path hands every revolution to ``MapKeeper.add`` with the fused pose, whether
+the fusion has placed the robot in the UWB (site) frame, whether it is driving, and the time. The
+keeper decides:
+
+* **The frame.** A map begun in the odometry frame would be smeared across both frames once UWB
+  fixes place the robot, so the first revolution after the robot is placed restarts the map, once
+  (``Update.restarted``: the shell then serves the new map instead of the old one).
+* **Planner renewal.** The first planner as soon as the map has cells; then a fresh one every
+  ``planner_period`` seconds while the robot drives and the map changed (standing still, the map
+  changes only by noise, and building a planner costs tens of milliseconds).
+
+Time is an argument; the planner is built over a copy of the cells, so the control thread may own
+it while mapping goes on.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy.typing as npt
+
+from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
+from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig
+
+__all__ = ["PLANNER_PERIOD_S", "MapKeeper", "Update", "onboard_mapper_config"]
+
+PLANNER_PERIOD_S = 2.0
+"""Seconds between planners handed to the pilot while the robot drives and the map grows."""
+
+
+def onboard_mapper_config() -> MapperConfig:
+    """Unknown cells count as free on an onboard map: a scout is sent into rooms it has not seen
+    (the guard still stops it at anything real)."""
+    return MapperConfig(planner=PlannerConfig(unknown_is_blocked=False))
+
+
+@dataclass(frozen=True, slots=True)
+class Update:
+    restarted: bool = False
+    """The map started again (the robot was just placed in the site frame)."""
+    planner: PathPlanner | None = None
+    """A fresh planner for the pilot, or None (keep the one it has)."""
+
+
+class MapKeeper:
+    def __init__(self, config: MapperConfig | None = None, planner_period: float = PLANNER_PERIOD_S) -> None:
+        self.config = config or onboard_mapper_config()
+        self.planner_period = planner_period
+        self.mapper = OnboardMapper(self.config)
+        self.in_site_frame = False
+        self.restarts = 0
+        self._planned_version = -1
+        self._next_planner = -math.inf
+
+    def add(
+        self,
+        t: float,
+        distances_m: npt.ArrayLike,
+        angles_rad: npt.ArrayLike,
+        pose: tuple[float, float, float],
+        *,
+        placed: bool,
+        driving: bool,
+        now: float,
+    ) -> Update:
+        """One revolution (stamped ``t``) seen from ``pose`` (the fused map pose)."""
+        restarted = False
+        if placed and not self.in_site_frame:
+            self.in_site_frame = True
+            if not self.mapper.grid.empty:
+                self.mapper = OnboardMapper(self.config)
+                self._planned_version = -1
+                self.restarts += 1
+                restarted = True
+        self.mapper.add_scan(t, distances_m, angles_rad, pose)
+        grid = self.mapper.grid
+        renew = self._planned_version < 0 or (driving and now >= self._next_planner)
+        planner = None
+        if renew and not grid.empty and grid.version != self._planned_version:
+            self._next_planner = now + self.planner_period
+            self._planned_version = grid.version
+            planner = self.mapper.planner()
+        return Update(restarted=restarted, planner=planner)

@@ -1,0 +1,322 @@
+"""One robot's agent as steps, with no thread of its own: inputs, the control step, the lidar step.
+
+``AgentNode`` is the whole agent between its ports and its links: the core (gate -> operators ->
+lease -> pilot -> guard; odometry -> fusion; telemetry), the board session, the map keeper
+(mapping, frame restarts, planner renewal) and the map share. It moves bytes and time only:
+every decision is in a pure core (``AgentCore``, ``MapKeeper``) and every wait belongs to
+whoever calls it:
+
+* in real time, ``AgentRuntime`` (runtime.py) runs the board session, a control worker and a
+  lidar worker, and the links' delivery threads call ``on_input``;
+* in lockstep, the site's run (``fleetlink.site.lockstep``) calls ``on_input`` as the in-process
+  links deliver, ``board.tick()``, ``control(now)`` and ``lidar(now)`` in a fixed order under one
+  ``SimClock``, so a seeded mission gives the same bytes twice.
+
+One lock serialises every call into the core (link threads, control and lidar workers), so the
+core stays single-threaded; mapping runs outside it, so it never holds up the control loop.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from fleetlink.agent.board.session import BoardSession, PollRates
+from fleetlink.agent.config import AgentConfig
+from fleetlink.agent.core import AgentCore, Output, board_view
+from fleetlink.agent.fusion import Fusion
+from fleetlink.agent.mapping.keeper import MapKeeper
+from fleetlink.agent.odometry import Odometry
+from fleetlink.agent.pilot import Pilot, PilotConfig
+from fleetlink.links.base import Link
+from fleetlink.shared import keys, wire
+from fleetlink.shared.clock import Clock
+from fleetlink.shared.messages import Connection, ConnectionState, LeaseRequest, LinkName, LinkStatus, UwbFix
+
+__all__ = ["INPUTS", "LINK_STATUS_PERIOD_S", "POLL_RATES", "AgentNode", "pilot_config"]
+
+log = logging.getLogger(__name__)
+
+POLL_RATES = PollRates(motion=10.0, telemetry=20.0, motor=20.0, imu=20.0, sensors=20.0, bumpers=20.0, buttons=1.0)
+"""The board poll rates the agent uses: wheel distances and the gyro at 20 Hz feed the odometry;
+range sensors, bumpers and cliffs at 20 Hz feed the guard. A board with GET_TELEMETRY gives all
+four in one exchange at 20 Hz (a quarter of the exchanges, on both ends of the line); a plain
+SLAMTEC base is polled for each apart. Motion (SET_V_AND_GET_DEADRECKON) is
+only a 10 Hz refresh: every new velocity is sent at once (``BoardSession.set_velocity``), so while
+driving it goes out at the control rate anyway, and its dead reckoning is not what the odometry
+uses. Every poll feeds the board's 1 s watchdog. Buttons at 1 Hz: nothing reads
+them but the pending base command (2 Hz) that the home button raises."""
+
+INPUTS = ("order", "actions", "teleop", LeaseRequest.TOPIC, UwbFix.TOPIC)
+"""The agent's input topics, on every link."""
+
+IDLE_PERIOD_S = 0.1
+"""Longest gap between two ticks of an idle control loop (it ticks earlier for every pose, at
+20 Hz by default). Idle, a tick at the control rate (50 Hz) would compute the same zero velocity
+from the same sensor reading; each tick is a thread wake-up, which costs more than the tick itself
+on a VM."""
+LINK_STATUS_PERIOD_S = 0.2
+"""How often the control step tells the core which links are up."""
+
+
+def pilot_config(cfg: AgentConfig) -> PilotConfig:
+    from fleetlink.agent.guard import GuardConfig
+    from fleetlink.agent.motion import MotionLimits
+
+    lim = cfg.limits
+    return PilotConfig(
+        guard=GuardConfig(stop_distance_m=lim.stop_distance_m),
+        limits=MotionLimits(v_max=lim.v_max, omega_max=lim.omega_max, a_max=lim.a_max, alpha_max=lim.alpha_max),
+        teleop_ttl_s=lim.teleop_ttl_s,
+    )
+
+
+class AgentNode:
+    def __init__(
+        self,
+        config: AgentConfig,
+        clock: Clock,
+        board: BoardSession,
+        *,
+        links: Sequence[Link] = (),
+        map_link: Link | None = None,
+        scan_sink: Callable[[Any], None] | None = None,
+    ) -> None:
+        self.config = config
+        self.clock = clock
+        self.board = board
+        robot = self.robot = config.robot
+        self.core = AgentCore(
+            robot,
+            clock,
+            Pilot(pilot_config(config)),
+            odometry=Odometry(),
+            fusion=Fusion(),
+            map_id=config.map_id,
+            pose_hz=config.rates.pose_hz,
+            state_hz=config.rates.state_hz,
+            operators=config.operators,
+        )
+        self.links: list[Link] = list(links)
+        self.map_link = map_link
+        self.scan_sink = scan_sink
+        self.pans_topic = f"dwm/node/{config.tag or robot}/uplink/location"
+        self._keys = {topic: keys.key(robot, topic) for topic in _OUTPUT_TOPICS}
+        self._lock = threading.Lock()
+        self._conn_counter = wire.HeaderCounter(clock, robot=robot, sender=f"agent-{robot}")
+        self._motor: object = None
+        self._odom_t = 0.0
+        self._next_links = -float("inf")
+        self.keeper: MapKeeper | None = None
+        self.share: Any = None
+        self.lidar_fault: str | None = None
+        """Why the lidar is not delivering scans (None: it is, or there is none)."""
+        self.scans = 0
+        self.published = 0
+
+    # -- wiring -------------------------------------------------------------------------------------
+
+    def subscribe(self) -> None:
+        """Subscribe the agent's inputs on every link (PANS locations on MQTT too)."""
+        for link in self.links:
+            name = link.name
+
+            def receive(key: str, payload: bytes, name: LinkName = name) -> None:
+                self.on_input(name, key, payload)
+
+            for topic in INPUTS:
+                link.subscribe(keys.key(self.robot, topic), receive)
+            if name is LinkName.MQTT:
+                link.subscribe(self.pans_topic, receive)
+
+    def connection_payload(self, state: ConnectionState) -> bytes:
+        """The retained ``Connection`` message (and the MQTT last will) for ``state``."""
+        return wire.encode(self._conn_counter.make(Connection, connectionState=state))
+
+    def open_map(self) -> None:
+        """Start mapping (a lidar is configured): the keeper, and the share on ``map_link``."""
+        self.keeper = MapKeeper()
+        self._open_share()
+
+    def close(self) -> None:
+        if self.share is not None:
+            self.share.stop()
+            self.share = None
+
+    # -- inputs ---------------------------------------------------------------------------------------
+
+    def on_input(self, link: LinkName, key: str, payload: bytes) -> bool:
+        """One payload from a link. True if it set an idle robot moving (the control loop should
+        take up the control rate at once; a UWB fix never does)."""
+        with self._lock:
+            was_idle = not self.core.driving
+            now = self.clock.now()
+            if key == self.pans_topic:
+                out = self.core.on_pans(link, key, payload, now)
+            else:
+                out = self.core.on_input(link, key, payload, now)
+            self._apply(out)
+            return was_idle and self.core.driving
+
+    # -- the control step -------------------------------------------------------------------------
+
+    def control(self, now: float) -> float:
+        """One control tick: links, board reading -> core -> velocity and telemetry. Returns when
+        the next tick is due: a control period on while driving; idle, when the next pose is due."""
+        with self._lock:
+            if now >= self._next_links:
+                self._next_links = now + LINK_STATUS_PERIOD_S
+                self._apply(self.core.set_links(self._link_status(), now))
+            snap = self.board.snapshot
+            if snap.motor is not self._motor:  # a fresh wheel reading: its poll time
+                self._motor, self._odom_t = snap.motor, snap.updated
+            view = board_view(snap, odom_t=self._odom_t)
+            if self.lidar_fault is not None:  # reported in State.errors while it lasts
+                view = dataclasses.replace(view, errors=(*view.errors, f"lidar: {self.lidar_fault}"))
+            self._apply(self.core.tick(now, view))
+            next_t = now + 1.0 / self.config.rates.control_hz
+            if not self.core.driving:
+                next_t = max(next_t, min(self.core.next_pose_at, now + IDLE_PERIOD_S))
+            return next_t
+
+    def _link_status(self) -> LinkStatus:
+        def up(name: LinkName) -> bool:
+            return any(link.up for link in self.links if link.name is name)
+
+        return LinkStatus(zenoh=up(LinkName.ZENOH), mqtt=up(LinkName.MQTT))
+
+    # -- the lidar step -------------------------------------------------------------------------------
+
+    def add_revolution(self, rev: Any) -> None:
+        """One lidar turn: into the map at the fused pose; a fresh planner to the pilot when due."""
+        keeper = self.keeper
+        assert keeper is not None, "open_map() first"
+        if self.lidar_fault is not None:
+            self.lidar_report(None)
+        with self._lock:
+            p = self.core.fusion.map_pose()
+            placed = self.core.fusion.heading_initialized
+            driving = self.core.driving
+        now = self.clock.now()
+        t = rev.stamp if rev.stamp is not None else now
+        update = keeper.add(
+            t, rev.distances_m, rev.angles_rad, (p.x, p.y, p.theta), placed=placed, driving=driving, now=now
+        )
+        if update.restarted:
+            log.info("%s: UWB frame established; the map restarts in it", self.robot)
+            self._open_share()
+        self.scans += 1
+        if self.share is not None:
+            self.share.publish(keeper.mapper)
+        if update.planner is not None:
+            with self._lock:
+                self.core.use_map(update.planner.route)
+        if self.scan_sink is not None:
+            self.scan_sink(rev)
+
+    def lidar_report(self, fault: str | None) -> None:
+        """The lidar failed (``fault``) or delivers again (None)."""
+        with self._lock:
+            self.lidar_fault = fault
+            self._apply(self.core.lidar_status(fault, str(self.config.lidar)))
+
+    # -- outputs ----------------------------------------------------------------------------------------
+
+    def _apply(self, out: Output) -> None:
+        if out.velocity is not None:
+            self.board.set_velocity(*out.velocity)
+        for on in out.payload:
+            self._payload(on)
+        for line in out.logs:
+            log.warning("%s: %s", self.robot, line)
+        for msg, only in out.messages:
+            data = wire.encode(msg)
+            key = self._keys.get(msg.TOPIC) or keys.key(self.robot, msg.TOPIC)
+            for link in self.links:
+                if only is None or link.name is only:
+                    link.publish(key, data)
+            self.published += 1
+
+    def _payload(self, on: bool) -> None:
+        from fleetlink.agent.board import protocol as p
+
+        self.board.call(p.SetUvLamp(on))  # the disinfection payload: the UV-C lamp
+
+    def _open_share(self) -> None:
+        from fleetlink.agent.mapping.share import MapShare
+
+        if self.share is not None:
+            self.share.stop()
+            self.share = None
+        if self.map_link is not None:
+            self.share = MapShare(self.map_link, self.robot, self.clock)
+            self.share.start()
+
+
+_OUTPUT_TOPICS = ("pose", "state", "ack", "events", "lease", "connection", "rejects")
+
+
+LIDAR_READ_PERIOD_S = (0.05, 0.25)
+"""Seconds between reads of the lidar's stream: a quarter of a turn, within these bounds. Bytes
+arrive every few milliseconds (an A1 sends 40 kB/s); reading them as they came woke the lidar
+thread ~200 times a second and ran the decoder on a few dozen nodes each time. A turn of the A1
+at 5.5 Hz (180 ms) is read in four batches, a slow 1 Hz turn in four too, and a finished turn
+reaches the mapper at most a quarter of a turn late."""
+LIDAR_REOPEN_S = 1.0
+"""How long a failed lidar rests before it is opened again."""
+
+
+class LidarFeed:
+    """The agent's lidar: open, start, read a quarter turn at a time, into ``AgentNode.add_revolution``.
+
+    ``step(now)`` reads what has arrived and returns when to read next; a lidar that fails (unplugged,
+    garbage, stalled) is reported on the node, closed, and opened again ``LIDAR_REOPEN_S`` later,
+    while driving goes on (the guard reads the ultrasonic, not the lidar). The real-time runtime
+    calls ``step`` from its lidar worker; the lockstep site calls it when it is due.
+    """
+
+    def __init__(self, node: AgentNode, open_driver: Callable[[], Any]) -> None:
+        self.node = node
+        self.open_driver = open_driver
+        self.driver: Any = None
+        self.failures = 0
+        self.turn_s = 0.2
+        """The lidar's turn, measured as turns arrive."""
+        self._last_turn_at: float | None = None
+
+    def step(self, now: float) -> float:
+        try:
+            if self.driver is None:
+                self.driver = self.open_driver()
+                self.driver.start_motor()
+                self.driver.start_scan()
+            revs = self.driver.poll(now)  # what has arrived; never waits
+            for rev in revs:
+                self.node.add_revolution(rev)
+            self.failures = 0
+        except Exception as exc:  # a lidar unplugged or garbage: reopen, keep driving
+            self.failures += 1
+            if self.failures == 1:
+                log.warning("%s: lidar %s failed: %s; reopening", self.node.robot, self.node.config.lidar, exc)
+            if self.node.lidar_fault is None:
+                self.node.lidar_report(f"{type(exc).__name__}: {exc}"[:200] or "lidar failed")
+            self.close()
+            return now + LIDAR_REOPEN_S
+        now = self.node.clock.now()
+        if revs:
+            if self._last_turn_at is not None:  # the turn's length, smoothed over a few turns
+                self.turn_s += 0.25 * (min(2.0, (now - self._last_turn_at) / len(revs)) - self.turn_s)
+            self._last_turn_at = now
+        lo, hi = LIDAR_READ_PERIOD_S
+        return now + min(hi, max(lo, self.turn_s / 4.0))
+
+    def close(self) -> None:
+        if self.driver is not None:
+            try:
+                self.driver.close()
+            except Exception as exc:  # closing a dead port must not stop the reopen
+                log.debug("%s: closing the lidar: %s", self.node.robot, exc)
+            self.driver = None

@@ -1,0 +1,1 @@
+"""The composition root: what runs together on a site (the demo field, a secured site, a lockstep mission)."""

@@ -1,0 +1,441 @@
+"""Whole agents in lockstep: a scenario run with every robot's real agent, in simulated time.
+
+``MissionRun(scenario)`` composes, on one ``SimClock`` and one thread:
+
+* the field (``FieldRun`` with ``open_loop=False``): physics, scripted events, ground truth, each
+  robot's simulated board and RPLIDAR;
+* an agent per robot (``AgentNode``): its ``BoardSession`` speaks Control Bus bytes to the board
+  over an in-process port, its ``LidarFeed`` reads RPLIDAR bytes from the device, and its core,
+  pilot, fusion, guard, map keeper and planner run exactly as on a robot;
+* the UWB gateway's core (positioning/gateway.py), fed with the truth, publishing fixes;
+* two in-process links (``InProcessBus``), Zenoh and MQTT, carrying the same wire bytes as the real
+  ones, pumped between steps;
+* a scripted operator (``ScriptedOperator``) that sends what the scenario's events ask for
+  (teleop bursts, goals, instant actions, marks), turns a robot's ``script`` into teleop and sends a
+  wandering robot to its plan's named places one after another; it sends on Zenoh, and on MQTT
+  while its Zenoh link is cut (the fallback).
+
+Every step runs in a fixed order (events, physics, links, each agent: board, control, lidar;
+UWB; links; truth), every random stream is seeded from the scenario, and time comes only from the
+clock, so the same scenario and seed give byte-identical truth and agent logs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgpack
+
+from fleetlink.agent.board.session import BoardSession
+from fleetlink.agent.board.transport import InProcessPort
+from fleetlink.agent.config import AgentConfig
+from fleetlink.agent.lidar.driver import LidarDriver
+from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed
+from fleetlink.field.build import robot_seed
+from fleetlink.field.lockstep import FieldRun, RunResult, write_outputs
+from fleetlink.field.plans import FloorPlan, load_plan
+from fleetlink.field.scenario import Scenario
+from fleetlink.links.inprocess import InProcessBus, InProcessLink
+from fleetlink.shared import keys, wire
+from fleetlink.shared.messages import (
+    Action,
+    ActionType,
+    Event,
+    Goal,
+    InstantActions,
+    LinkName,
+    Mark,
+    Order,
+    Teleop,
+)
+
+__all__ = ["MissionResult", "MissionRun", "ScriptedOperator", "write_mission_outputs"]
+
+OPERATOR = "operator-1"
+TELEOP_PERIOD_S = 0.25
+"""An operator holding a key: one Teleop every quarter second (the console's key repeat)."""
+TELEOP_TTL_S = 0.5
+WANDER_GOAL_TIMEOUT_S = 60.0
+"""A wandering robot that has neither reached nor failed its goal by then gets the next one."""
+UWB_START_S = 0.0
+
+
+@dataclass(slots=True)
+class MissionResult:
+    field: RunResult
+    logs: dict[str, list[str]]
+    """Per robot: every message on either link about it, one line each (time, link, topic, body)."""
+    acks: list[Any]
+    events: list[Any]
+    poses: dict[str, Any]
+    """The last pose each robot published."""
+    commands: list[str]
+    """What the operator sent, one line each."""
+
+    @property
+    def real_time_factor(self) -> float:
+        return self.field.real_time_factor
+
+
+class ScriptedOperator:
+    """An operator without a screen: sends commands as wire messages, reads what the robots say."""
+
+    def __init__(self, name: str, zenoh: InProcessLink, mqtt: InProcessLink, now: Callable[[], float]) -> None:
+        self.name = name
+        self.zenoh, self.mqtt = zenoh, mqtt
+        self._now = now
+        self._counters: dict[str, wire.HeaderCounter] = {}
+        self.clock: Any = None
+        self.sent: list[str] = []
+        self.acks: list[Any] = []
+        self.events: list[Any] = []
+        self.poses: dict[str, Any] = {}
+        self.on_event: Callable[[Any], None] | None = None
+        for link in (zenoh, mqtt):
+            link.start()
+            link.subscribe(keys.zenoh_all_robots("ack"), self._ack)
+            link.subscribe(keys.zenoh_all_robots("events"), self._event)
+        zenoh.subscribe(keys.zenoh_all_robots("pose"), self._pose)
+        self._seen: set[tuple[str, str, int]] = set()
+
+    def counter(self, robot: str) -> wire.HeaderCounter:
+        if robot not in self._counters:
+            self._counters[robot] = wire.HeaderCounter(self.clock, robot=robot, sender=self.name)
+        return self._counters[robot]
+
+    def send(self, cls: type[wire.Message], robot: str, **fields: Any) -> wire.Message:
+        msg = self.counter(robot).make(cls, **fields)
+        data = wire.encode(msg)
+        link = self.zenoh if self.zenoh.up else self.mqtt
+        link.publish(keys.key(robot, msg.TOPIC), data)
+        self.sent.append(f"{self._now():.3f} {link.name.value} {robot} {msg.TOPIC} {_summary(msg)}")
+        return msg
+
+    def teleop(self, robot: str, v: float, omega: float) -> None:
+        self.send(Teleop, robot, v=v, omega=omega, ttl_s=TELEOP_TTL_S)
+
+    def goal(self, robot: str, x: float, y: float, theta: float | None, order_id: str) -> None:
+        self.send(Order, robot, orderId=order_id, orderUpdateId=0, goal=Goal(x=x, y=y, theta=theta), returnHome=False)
+
+    def action(self, robot: str, kind: str, action_id: str) -> None:
+        action = Action(actionId=action_id, actionType=ActionType(kind), actionParameters=())
+        self.send(InstantActions, robot, actions=(action,))
+
+    def mark(self, robot: str, x: float, y: float, kind: str, label: str, mark_id: str) -> None:
+        self.send(Mark, robot, markId=mark_id, x=x, y=y, label=label, kind=kind, removed=False)
+
+    # -- what the robots say (each message once, though it may come on both links) -------------------
+
+    def _fresh(self, msg: wire.Message) -> bool:
+        k = (msg.header.robot, msg.TOPIC, msg.header.headerId)
+        if k in self._seen:
+            return False
+        self._seen.add(k)
+        return True
+
+    def _ack(self, key: str, payload: bytes) -> None:
+        msg = wire.decode_key(key, payload)
+        if self._fresh(msg):
+            self.acks.append(msg)
+
+    def _event(self, key: str, payload: bytes) -> None:
+        msg = wire.decode_key(key, payload)
+        if self._fresh(msg):
+            self.events.append(msg)
+            if self.on_event is not None:
+                self.on_event(msg)
+
+    def _pose(self, key: str, payload: bytes) -> None:
+        msg = wire.decode_key(key, payload)
+        self.poses[msg.header.robot] = msg
+
+
+@dataclass(slots=True)
+class _Robot:
+    name: str
+    index: int
+    node: AgentNode
+    lidar: LidarFeed | None
+    next_session: float = 0.0
+    next_control: float = 0.0
+    next_lidar: float = 0.0
+    teleop: tuple[float, float] | None = None
+    teleop_until: float = -math.inf
+    next_teleop: float = 0.0
+    script: tuple[tuple[float, float, float], ...] = ()
+    wander: bool = False
+    wander_goal_at: float = -math.inf
+    log: list[str] = field(default_factory=list)
+
+
+class MissionRun:
+    def __init__(
+        self,
+        scenario: Scenario,
+        plan: FloorPlan | None = None,
+        *,
+        mapping: bool = True,
+        record: bool = True,
+    ) -> None:
+        """``mapping``: agents with a lidar build and share their onboard maps (as on a robot);
+        ``record``: keep every message about each robot for the agent logs."""
+        self.scenario = scenario
+        self.plan = plan or load_plan(scenario.plan)
+        self.field = FieldRun(scenario, self.plan, open_loop=False, on_command=self._command)
+        self.clock = self.field.clock
+        self.zenoh = InProcessBus(LinkName.ZENOH, clock_now=self.clock.now)
+        self.mqtt = InProcessBus(LinkName.MQTT, clock_now=self.clock.now)
+        self.record = record
+        self.operator = ScriptedOperator(
+            OPERATOR, self.zenoh.endpoint(OPERATOR), self.mqtt.endpoint(OPERATOR), self.clock.now
+        )
+        self.operator.clock = self.clock
+        self.operator.on_event = self._robot_event
+        self.robots: list[_Robot] = []
+        self._rng = random.Random(scenario.seed)
+        self._places = sorted(self.plan.starts.items())
+        self._ids = 0
+        for rig in self.field.rigs:
+            self.robots.append(self._agent(rig.robot.index, mapping))
+        self.uwb = self._uwb_gateway()
+        self._next_uwb = UWB_START_S
+        if record:
+            for bus in (self.zenoh, self.mqtt):
+                tap = bus.endpoint(f"recorder-{bus.name.value}")
+                tap.start()
+                tap.subscribe("fleetlink/v1/**", self._recorder(bus.name))
+        self.field.controllers.append(self._step_agents)
+
+    # -- composition --------------------------------------------------------------------------------
+
+    def _agent(self, index: int, mapping: bool) -> _Robot:
+        rig = self.field.rigs[index]
+        spec = rig.spec
+        name = spec.name
+        lidar_url = f"inprocess://{name}/lidar" if rig.device is not None else None
+        config = AgentConfig(robot=name, board=f"inprocess://{name}/board", lidar=lidar_url, tag=name)
+        peer = self.field.board_peer(index)
+        session = BoardSession(
+            lambda: InProcessPort(peer, wait_advances_clock=False),
+            self.clock,
+            rates=POLL_RATES,
+            seed=robot_seed(self.scenario, index),
+        )
+        zenoh = self.zenoh.endpoint(f"agent-{name}")
+        mqtt = self.mqtt.endpoint(f"agent-{name}")
+        node = AgentNode(config, self.clock, session, links=[zenoh, mqtt], map_link=zenoh if mapping else None)
+        node.subscribe()
+        zenoh.start()
+        mqtt.start()
+        feed = None
+        if rig.device is not None and mapping:
+            node.open_map()
+
+            def open_driver(index: int = index) -> LidarDriver:
+                return LidarDriver(self.field.lidar_port(index), self.clock, pwm_motor_control=True)
+
+            feed = LidarFeed(node, open_driver)
+        robot = _Robot(name, index, node, feed)
+        if spec.drive == "script":
+            robot.script = tuple(spec.script)
+        robot.wander = spec.drive == "wander" and bool(self._places)
+        return robot
+
+    def _uwb_gateway(self) -> Any:
+        from fleetlink.positioning.anchors import Anchor
+        from fleetlink.positioning.config import GatewayConfig
+        from fleetlink.positioning.gateway import GatewayCore
+
+        sc, plan = self.scenario, self.plan
+        anchors = tuple(Anchor(*a) for a in sc.anchors) or tuple(Anchor(a.id, a.x, a.y, a.z) for a in plan.anchors)
+        if len(anchors) < 3:
+            return None
+        config = GatewayConfig(
+            anchors=anchors, auto_tags=True, walls=plan.segments(), gateway_id="field-uwb", seed=sc.seed
+        )
+        self._uwb_link = self.mqtt.endpoint("field-uwb")
+        self._uwb_link.start()
+        return GatewayCore(config)
+
+    # -- running ------------------------------------------------------------------------------------------
+
+    def run(self, duration: float | None = None) -> MissionResult:
+        wall0 = time.perf_counter()
+        result = self.field.run(duration)
+        result.wall_seconds = time.perf_counter() - wall0
+        for r in self.robots:
+            result.stats[r.name].update(
+                {
+                    "agent_scans": r.node.scans,
+                    "published": r.node.published,
+                    "board_connects": r.node.board.snapshot.connects,
+                    "board_requests": r.node.board.client.stats.requests if r.node.board.client else None,
+                }
+            )
+        return MissionResult(
+            field=result,
+            logs={r.name: r.log for r in self.robots},
+            acks=self.operator.acks,
+            events=self.operator.events,
+            poses=dict(self.operator.poses),
+            commands=self.operator.sent,
+        )
+
+    def close(self) -> None:
+        for r in self.robots:
+            if r.lidar is not None:
+                r.lidar.close()
+            r.node.close()
+            r.node.board.stop()
+        self.field.close()
+
+    def __enter__(self) -> MissionRun:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _step_agents(self, t: float) -> None:
+        """After the physics at ``t``: links, every agent in order, UWB, the operator, links again."""
+        self._pump()
+        for r in self.robots:
+            node = r.node
+            if t >= r.next_session or node.board.urgent:
+                r.next_session = node.board.tick()
+            if t >= r.next_control:
+                r.next_control = node.control(t)
+                if node.board.urgent:  # a new velocity goes to the board in the same step
+                    r.next_session = node.board.tick()
+            if r.lidar is not None and t >= r.next_lidar:
+                r.next_lidar = r.lidar.step(t)
+        if self.uwb is not None and t >= self._next_uwb:
+            self._next_uwb += 1.0 / self.uwb.config.rate_hz
+            for rig in self.field.rigs:
+                st = rig.robot.board.state
+                self.uwb.on_truth(rig.spec.name, st.x, st.y, t, st.theta, st.true_v)
+            for pub in self.uwb.tick(t, self.clock.wall()):
+                self._uwb_link.publish(pub.topic, pub.payload)
+        self._operate(t)
+        self._pump()
+
+    def _pump(self) -> None:
+        # A command and its ack cross in one pump; telemetry published on both links interleaves
+        # deterministically: Zenoh first, then MQTT, until both are quiet.
+        while self.zenoh.deliver() + self.mqtt.deliver():
+            pass
+
+    # -- the scripted operator --------------------------------------------------------------------------
+
+    def _operate(self, t: float) -> None:
+        op = self.operator
+        for r in self.robots:
+            if t < r.next_teleop:
+                continue
+            command = None
+            if r.teleop is not None and t < r.teleop_until:
+                command = r.teleop
+            elif r.teleop is not None:
+                r.teleop = None
+                command = (0.0, 0.0)  # the burst ends: the key is released
+            elif r.script:
+                command = _scripted(r.script, t)
+            if command is not None:
+                r.next_teleop = t + TELEOP_PERIOD_S
+                op.teleop(r.name, *command)
+            if r.wander and t >= r.wander_goal_at:
+                self._next_wander_goal(r, t)
+
+    def _next_wander_goal(self, r: _Robot, t: float) -> None:
+        _, (x, y, _th) = self._places[self._rng.randrange(len(self._places))]
+        r.wander_goal_at = t + WANDER_GOAL_TIMEOUT_S
+        self.operator.goal(r.name, float(x), float(y), None, self._id("wander"))
+
+    def _robot_event(self, ev: Event) -> None:
+        if ev.kind in ("goal_reached", "goal_failed"):
+            r = next((r for r in self.robots if r.name == ev.header.robot), None)
+            if r is not None and r.wander:
+                r.wander_goal_at = self.clock.now()  # the next goal at the next step
+
+    def _command(self, event: Any, t: float) -> None:
+        """A scenario event the field hands on: operator commands and network links."""
+        kind, op = event.kind, self.operator
+        r = next((r for r in self.robots if r.name == getattr(event, "robot", None)), None)
+        if kind == "teleop" and r is not None:
+            r.teleop = (event.v, event.omega)
+            r.teleop_until = t + event.duration
+            r.next_teleop = t
+        elif kind == "goal":
+            op.goal(event.robot, event.x, event.y, event.theta, self._id("goal"))
+        elif kind == "action":
+            op.action(event.robot, event.action, self._id(event.action))
+        elif kind == "mark":
+            robot = event.robot or self.robots[0].name
+            op.mark(robot, event.x, event.y, event.mark_kind, event.label, self._id("mark"))
+        elif kind == "link":
+            self._link(event.robot, event.link, event.state == "cut")
+        else:
+            raise ValueError(f"event at {t:g} s: no way to carry out {kind!r} in a lockstep run")
+
+    def _link(self, robot: str, link: str, cut: bool) -> None:
+        who = robot if robot == OPERATOR else f"agent-{robot}"
+        if link == "board":
+            self.field._cut_link(robot, cut)
+            return
+        if link == "lidar":
+            self.field.cut_lidar(robot, cut)
+            return
+        bus = self.zenoh if link == "zenoh" else self.mqtt
+        (bus.cut if cut else bus.restore)(who)
+
+    def _id(self, prefix: str) -> str:
+        self._ids += 1
+        return f"{prefix}-{self._ids}"
+
+    # -- the agent logs -----------------------------------------------------------------------------------
+
+    def _recorder(self, link: LinkName) -> Callable[[str, bytes], None]:
+        by_name = {r.name: r for r in self.robots}
+
+        def record(key: str, payload: bytes) -> None:
+            parts = key.split("/")
+            r = by_name.get(parts[2]) if len(parts) > 3 else None
+            if r is None:
+                return
+            body = msgpack.unpackb(payload, raw=False)
+            r.log.append(
+                f"{self.clock.now():.3f} {link.value} {'/'.join(parts[3:])} {json.dumps(body, sort_keys=True)}"
+            )
+
+        return record
+
+
+def _scripted(script: tuple[tuple[float, float, float], ...], t: float) -> tuple[float, float]:
+    v = w = 0.0
+    for at, sv, sw in script:
+        if at > t:
+            break
+        v, w = sv, sw
+    return v, w
+
+
+def _summary(msg: wire.Message) -> str:
+    fields = {k: v for k, v in msgpack.unpackb(wire.encode(msg), raw=False).items() if k != "header"}
+    return json.dumps(fields, sort_keys=True, default=str)
+
+
+def write_mission_outputs(result: MissionResult, out_dir: str | Path) -> Path:
+    """The field's outputs (truth/, events.log, summary.json) plus agents/<robot>.log (every
+    message about the robot on either link) and operator.log (what the operator sent)."""
+    out = write_outputs(result.field, out_dir)
+    (out / "agents").mkdir(exist_ok=True)
+    for name, lines in result.logs.items():
+        (out / "agents" / f"{name}.log").write_text("".join(line + "\n" for line in lines))
+    (out / "operator.log").write_text("".join(line + "\n" for line in result.commands))
+    return out
