@@ -1,0 +1,217 @@
+"""How the network reaches the console (operator/feed.py), lease renewal (operator/fleet.py) and
+the fleet table (operator/fleet_table.py): headless, then in the app.
+
+The feed has two ways of folding what the network heard into the fleet model: at once on the
+network thread (no app), or as a wake-up posted to the app, which drains the inbox on its own
+thread. The app tests prove it draws what arrives without any polling timer.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from rich.text import Text
+
+from fleetlink.operator.console import ConsoleApp
+from fleetlink.operator.feed import FleetFeed, attach
+from fleetlink.operator.fleet import FleetModel, LeaseRenewal
+from fleetlink.operator.fleet_table import COLUMNS, FleetTable, fleet_rows, row_cells
+from fleetlink.operator.linkmanager import Failed, LinkHealth, Switch
+from fleetlink.shared import wire
+from fleetlink.shared.clock import SimClock
+from fleetlink.shared.messages import Lease, Pose
+from tests.test_console import ME, Rig, run_async, settle, with_robots
+
+
+class FakeSource:
+    """Just the subscription side of a console source."""
+
+    sender = ME
+
+    def __init__(self) -> None:
+        self.sinks: list[Callable[[wire.Message, str, float], None]] = []
+        self.listeners: list[Callable[[Switch | Failed], None]] = []
+        self.anchor_sinks: list[Callable[[str, list[tuple[str, float, float, float]]], None]] = []
+
+    def add_sink(self, sink: Callable[[wire.Message, str, float], None]) -> None:
+        self.sinks.append(sink)
+
+    def add_listener(self, listener: Callable[[Switch | Failed], None]) -> None:
+        self.listeners.append(listener)
+
+    def add_anchor_sink(self, sink: Callable[[str, list[tuple[str, float, float, float]]], None]) -> None:
+        self.anchor_sinks.append(sink)
+
+    def hear(self, msg: wire.Message, link: str = "zenoh", now: float = 1.0) -> None:
+        for sink in self.sinks:
+            sink(msg, link, now)
+
+
+def pose(counter: wire.HeaderCounter, x: float) -> Pose:
+    return counter.make(
+        Pose, x=x, y=0.0, theta=0.0, sd_x_m=0.1, sd_y_m=0.1, sd_theta_rad=0.1, odom_x=x, odom_y=0.0,
+        odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=False,
+    )  # fmt: skip
+
+
+def feed_rig() -> tuple[FakeSource, FleetModel, FleetFeed, wire.HeaderCounter]:
+    source, fleet = FakeSource(), FleetModel(ME)
+    feed = attach(source, fleet, threading.Lock())  # type: ignore[arg-type]
+    return source, fleet, feed, wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
+
+
+def test_unbound_the_feed_folds_messages_in_at_once() -> None:
+    source, fleet, feed, agent = feed_rig()
+    source.hear(pose(agent, 1.0))
+    assert fleet.robots["r1"].pose == (1.0, 0.0, 0.0)
+    source.anchor_sinks[0]("g1", [("a1", 0.0, 1.0, 2.0)])
+    assert fleet.anchors == {"a1": (0.0, 1.0)}
+    health = (LinkHealth("zenoh", False, 0.5, 0.0, None, "silent"),)
+    source.listeners[0](Switch("r1", "zenoh", "mqtt", "silent", 2.0, health))
+    source.listeners[0](Failed("r1", "order", 7, "no ack"))
+    texts = [n.text for n in fleet.drain()]
+    assert texts[0].startswith("failover: r1: commands zenoh -> mqtt") and texts[1] == "r1: order #7 lost: no ack"
+    assert feed.applied == 4
+
+
+def test_bound_the_network_only_queues_and_wakes_the_app_once_per_batch() -> None:
+    source, fleet, feed, agent = feed_rig()
+    wakes: list[int] = []
+    feed.bind(lambda: wakes.append(1) is None)
+    for k in range(5):
+        source.hear(pose(agent, float(k)))
+    assert wakes == [1] and "r1" not in fleet.robots  # nothing touched the model yet
+    assert feed.drain() == 5
+    assert fleet.robots["r1"].pose == (4.0, 0.0, 0.0)  # in order: the last one wins
+    source.hear(pose(agent, 9.0))
+    assert wakes == [1, 1]  # the next batch wakes again
+    feed.unbind()  # what still waits is folded in, and from now on at once
+    assert fleet.robots["r1"].pose == (9.0, 0.0, 0.0)
+    source.hear(pose(agent, 10.0))
+    assert fleet.robots["r1"].pose == (10.0, 0.0, 0.0) and wakes == [1, 1]
+
+
+def test_an_app_that_cannot_take_the_wake_up_is_woken_again_later() -> None:
+    source, _fleet, feed, agent = feed_rig()
+    answers = [False, True]
+    feed.bind(lambda: answers.pop(0))
+    source.hear(pose(agent, 1.0))  # refused (the app is shutting down, say)
+    source.hear(pose(agent, 2.0))  # so this one wakes again
+    assert answers == [] and feed.drain() == 2
+
+
+def test_one_feed_per_fleet_model() -> None:
+    source, fleet, feed, agent = feed_rig()
+    assert attach(source, fleet, threading.Lock()) is feed  # type: ignore[arg-type]
+    source.hear(pose(agent, 1.0))
+    assert len(source.sinks) == 1 and feed.applied == 1  # subscribed once: folded in once
+    app = ConsoleApp(source, fleet, SimClock())  # type: ignore[arg-type]
+    assert app.feed is feed and app.lock is feed.lock and len(source.sinks) == 1  # the app shares it
+    other = FleetModel(ME)
+    assert attach(source, other, threading.Lock()) is not feed  # type: ignore[arg-type]
+
+
+def test_lease_renewal_every_third_of_the_lease_for_the_leases_held() -> None:
+    fleet = FleetModel(ME)
+    agent = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
+    other = wire.HeaderCounter(SimClock(), robot="r2", sender="agent-r2")
+    renewal = LeaseRenewal(60.0)
+    assert renewal.due(fleet, 0.0) == []  # nothing held
+    fleet.apply(agent.make(Lease, holder=ME, until=100.0), "zenoh", 1.0)
+    fleet.apply(other.make(Lease, holder="operator-2", until=100.0), "zenoh", 1.0)
+    assert renewal.due(fleet, 1.0) == []  # 20 s have not passed since the last look
+    assert renewal.due(fleet, 20.0) == ["r1"]  # ours only
+    assert renewal.due(fleet, 39.9) == []
+    assert renewal.due(fleet, 40.0) == ["r1"]
+
+
+def test_row_cells_say_and_colour_what_matters() -> None:
+    fleet = FleetModel(ME)
+    agent = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
+    fleet.apply(pose(agent, 1.0), "zenoh", 10.0)
+    view = fleet.robots["r1"]
+    up = (LinkHealth("zenoh", True, 0.1, 0.0, 0.0042, ""), LinkHealth("mqtt", True, 0.1, 0.0, None, ""))
+    cells = row_cells(view, "zenoh", up, True, ME, 10.25)
+    assert [str(c) for c in cells] == ["r1", "?", "?", "zenoh", "ok 0% 4ms", "250ms", "ok", "-"]
+    assert isinstance(cells[3], Text) and cells[3].style == "green"
+    down = (LinkHealth("zenoh", False, 2.0, 50.0, None, "silent"),)
+    view.lost, view.estop, view.lease_holder = True, True, ME
+    cells = row_cells(view, "mqtt", down, False, ME, 12.5)
+    assert [str(c) for c in cells] == ["r1", "ESTOP", "?", "mqtt", "DOWN 50%", "2.5s", "stale", "you"]
+    styles = [c.style for c in cells if isinstance(c, Text)]
+    assert styles == ["bold red", "bold red", "bold yellow", "bold red", "bold yellow"]
+    rows = fleet_rows(fleet, lambda r: "zenoh", lambda r: up, ME, 10.5, filter_text="MQTT")
+    assert rows == {}  # the filter keeps only rows whose text contains it
+
+
+@run_async
+async def test_the_table_touches_only_cells_that_changed(tmp_path: Path) -> None:
+    rig = Rig(tmp_path)
+    rig.start()
+    updates: list[tuple[str, str]] = []
+    try:
+        async with rig.app.run_test(size=(140, 44)) as pilot:
+            table = rig.app.query_one(FleetTable)
+            real = table.update_cell
+
+            def counting(row: Any, column: Any, value: Any, **kw: Any) -> None:
+                updates.append((str(row), str(column)))
+                real(row, column, value, **kw)
+
+            table.update_cell = counting  # type: ignore[method-assign]
+            await with_robots(rig, pilot, "r1")
+            rig.zenoh.inject(rig.counter("r1").make(Lease, holder="", until=0.0))
+            await settle(pilot)
+            columns = {c for _, c in updates}
+            assert "lease" in columns and "age" in columns
+            assert not columns & {"robot", "battery", "mode"}  # never changed: never redrawn
+            assert table.get_cell("r1", "lease") == "free"
+            assert [k for _, k in COLUMNS] == [str(c.key.value) for c in table.columns.values()]
+    finally:
+        rig.close()
+
+
+@run_async
+async def test_telemetry_is_drawn_as_it_arrives_without_a_polling_timer(tmp_path: Path) -> None:
+    """The clock tick is set to once a minute: what the robots say still shows at once, because
+    the feed posts it to the app."""
+    rig = Rig(tmp_path)
+    rig.app = ConsoleApp(rig.link, rig.fleet, rig.clock, lock=rig.lock, clock_hz=1 / 60)
+    rig.start()
+    try:
+        async with rig.app.run_test(size=(140, 44)) as pilot:
+            await settle(pilot)
+            frames = len(rig.app.frame_times)
+            rig.pose("r7", 1.0, 2.0)  # from this (the test's) thread, as a transport would
+            threading.Thread(target=rig.pose, args=("r8", 3.0, 4.0)).start()  # and from another
+            await settle(pilot, 0.3)
+            table = rig.app.query_one(FleetTable)
+            assert [str(k.value) for k in table.rows] == ["r7", "r8"]
+            assert len(rig.app.frame_times) > frames
+            assert rig.app.feed.applied >= 2
+    finally:
+        rig.close()
+
+
+@run_async
+async def test_the_network_never_waits_for_the_ui(tmp_path: Path) -> None:
+    """While the app is busy (here: holding the model's lock), a transport's callback returns at
+    once; the message is folded in when the app gets to it."""
+    rig = Rig(tmp_path)
+    rig.start()
+    try:
+        async with rig.app.run_test(size=(140, 44)) as pilot:
+            await settle(pilot)
+            done = threading.Event()
+            with rig.lock:
+                t = threading.Thread(target=lambda: (rig.pose("r1", 1.0, 1.0), done.set()))
+                t.start()
+                assert done.wait(2.0), "the transport's thread was blocked by the UI"
+                assert "r1" not in rig.fleet.robots
+            await settle(pilot)
+            assert "r1" in rig.fleet.robots
+    finally:
+        rig.close()
