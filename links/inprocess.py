@@ -37,6 +37,7 @@ class InProcessLink:
         self.stats = LinkStats()
         self._bus = bus
         self._subs: list[tuple[str, Receiver]] = []
+        self._routes: dict[str, list[Receiver]] = {}  # key -> its receivers, as subscriptions stand
         self._served: list[tuple[str, Answer]] = []
         self._open = False
 
@@ -46,6 +47,7 @@ class InProcessLink:
     def close(self) -> None:
         self._open = False
         self._subs.clear()
+        self._routes.clear()
         self._served.clear()
 
     @property
@@ -62,6 +64,7 @@ class InProcessLink:
 
     def subscribe(self, key_expr: str, receiver: Receiver) -> None:
         self._subs.append((key_expr, receiver))
+        self._routes.clear()
 
     def serve(self, key_expr: str, answer: Answer) -> None:
         """Answer queries on ``key_expr``: ``answer(key_expr_asked)`` -> [(key, payload)]."""
@@ -81,16 +84,20 @@ class InProcessLink:
                     replies.extend(answer(key_expr))
         return replies
 
+    def _receivers(self, key: str) -> list[Receiver]:
+        receivers = self._routes.get(key)
+        if receivers is None:
+            receivers = self._routes[key] = [r for expr, r in self._subs if key_matches(expr, key)]
+        return receivers
+
     def _receive(self, key: str, payload: bytes, now: float | None) -> int:
-        delivered = 0
-        for expr, receiver in list(self._subs):
-            if key_matches(expr, key):
-                receiver(key, payload)
-                delivered += 1
-        if delivered:
+        receivers = self._receivers(key)
+        for receiver in receivers:
+            receiver(key, payload)
+        if receivers:
             self.stats.received += 1
             self.stats.last_rx = now
-        return delivered
+        return len(receivers)
 
 
 class InProcessBus:
@@ -132,7 +139,7 @@ class InProcessBus:
                 if peer is sender:
                     continue  # like a Zenoh session and an MQTT client without echo: no loopback
                 if not peer.up:
-                    if peer._open and any(key_matches(e, key) for e, _ in peer._subs):
+                    if peer._open and peer._receivers(key):
                         peer.stats.dropped += 1
                     continue
                 peer._receive(key, payload, now)

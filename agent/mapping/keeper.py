@@ -7,6 +7,12 @@ keeper decides:
 * **The frame.** A map begun in the odometry frame would be smeared across both frames once UWB
   fixes place the robot, so the first revolution after the robot is placed restarts the map, once
   (``Update.restarted``: the shell then serves the new map instead of the old one).
+* **Which turns to map.** A turn seen from where the last mapped turn was seen adds nothing the
+  map lacks, yet matching it costs milliseconds; so a turn is mapped only once the fused pose has
+  moved ``min_move_m`` or turned ``min_turn_rad`` since the last mapped turn, or ``max_gap_s`` has
+  passed (a robot standing still still sees a door close), as Cartographer's motion filter does.
+  The mapper integrates keyframes at these same spacings, so the map loses nothing; a robot
+  driving at 0.35 m/s maps three or four turns a second instead of ten.
 * **Planner renewal.** The first planner as soon as the map has cells; then a fresh one every
   ``planner_period`` seconds while the robot drives and the map changed (standing still, the map
   changes only by noise, and building a planner costs tens of milliseconds).
@@ -46,9 +52,21 @@ class Update:
 
 
 class MapKeeper:
-    def __init__(self, config: MapperConfig | None = None, planner_period: float = PLANNER_PERIOD_S) -> None:
+    def __init__(
+        self,
+        config: MapperConfig | None = None,
+        planner_period: float = PLANNER_PERIOD_S,
+        *,
+        max_gap_s: float = 1.0,
+    ) -> None:
         self.config = config or onboard_mapper_config()
         self.planner_period = planner_period
+        self.min_move_m = self.config.keyframe_distance
+        self.min_turn_rad = self.config.keyframe_angle
+        self.max_gap_s = max_gap_s
+        self.skipped = 0
+        """Turns left out by the motion filter."""
+        self._last: tuple[float, float, float, float] | None = None  # t, x, y, theta of the last mapped turn
         self.mapper = OnboardMapper(self.config)
         self.in_site_frame = False
         self.restarts = 0
@@ -70,11 +88,16 @@ class MapKeeper:
         restarted = False
         if placed and not self.in_site_frame:
             self.in_site_frame = True
+            self._last = None
             if not self.mapper.grid.empty:
                 self.mapper = OnboardMapper(self.config)
                 self._planned_version = -1
                 self.restarts += 1
                 restarted = True
+        if not self._due(t, pose):
+            self.skipped += 1
+            return Update(restarted=restarted)
+        self._last = (t, *pose)
         self.mapper.add_scan(t, distances_m, angles_rad, pose)
         grid = self.mapper.grid
         renew = self._planned_version < 0 or (driving and now >= self._next_planner)
@@ -84,3 +107,11 @@ class MapKeeper:
             self._planned_version = grid.version
             planner = self.mapper.planner()
         return Update(restarted=restarted, planner=planner)
+
+    def _due(self, t: float, pose: tuple[float, float, float]) -> bool:
+        if self._last is None:
+            return True
+        t0, x0, y0, th0 = self._last
+        turned = abs(math.remainder(pose[2] - th0, math.tau))
+        moved = math.hypot(pose[0] - x0, pose[1] - y0)
+        return moved >= self.min_move_m or turned >= self.min_turn_rad or t - t0 >= self.max_gap_s
