@@ -22,6 +22,7 @@ clock, so the same scenario and seed give byte-identical truth and agent logs.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import random
@@ -124,8 +125,8 @@ class ScriptedOperator:
     def goal(self, robot: str, x: float, y: float, theta: float | None, order_id: str) -> None:
         self.send(Order, robot, orderId=order_id, orderUpdateId=0, goal=Goal(x=x, y=y, theta=theta), returnHome=False)
 
-    def action(self, robot: str, kind: str, action_id: str) -> None:
-        action = Action(actionId=action_id, actionType=ActionType(kind), actionParameters=())
+    def action(self, robot: str, kind: ActionType, action_id: str) -> None:
+        action = Action(actionId=action_id, actionType=kind, actionParameters=())
         self.send(InstantActions, robot, actions=(action,))
 
     def mark(self, robot: str, x: float, y: float, kind: str, label: str, mark_id: str) -> None:
@@ -374,7 +375,7 @@ class MissionRun:
         elif kind == "goal":
             op.goal(event.robot, event.x, event.y, event.theta, self._id("goal"))
         elif kind == "action":
-            op.action(event.robot, event.action, self._id(event.action))
+            op.action(event.robot, event.action_type, self._id(event.action))
         elif kind == "mark":
             robot = event.robot or self.robots[0].name
             op.mark(robot, event.x, event.y, event.mark_kind, event.label, self._id("mark"))
@@ -409,9 +410,8 @@ class MissionRun:
             if r is None:
                 return
             body = msgpack.unpackb(payload, raw=False)
-            r.log.append(
-                f"{self.clock.now():.3f} {link.value} {'/'.join(parts[3:])} {json.dumps(body, sort_keys=True)}"
-            )
+            text = json.dumps(body, sort_keys=True, default=_blob)
+            r.log.append(f"{self.clock.now():.3f} {link.value} {'/'.join(parts[3:])} {text}")
 
         return record
 
@@ -425,9 +425,16 @@ def _scripted(script: tuple[tuple[float, float, float], ...], t: float) -> tuple
     return v, w
 
 
+def _blob(value: object) -> str:
+    """Bytes in a log line (compressed map cells): their length and digest, not the bytes."""
+    if isinstance(value, bytes | bytearray):
+        return f"<{len(value)} bytes sha256:{hashlib.sha256(value).hexdigest()[:16]}>"
+    raise TypeError(f"cannot log a {type(value).__name__}")
+
+
 def _summary(msg: wire.Message) -> str:
     fields = {k: v for k, v in msgpack.unpackb(wire.encode(msg), raw=False).items() if k != "header"}
-    return json.dumps(fields, sort_keys=True, default=str)
+    return json.dumps(fields, sort_keys=True, default=_blob)
 
 
 def write_mission_outputs(result: MissionResult, out_dir: str | Path) -> Path:

@@ -57,15 +57,26 @@ class MapShare:
     def start(self) -> None:
         if self._queryable is not None:
             return
+        if hasattr(self.session, "serve"):  # a link (fleetlink.links): serve() and publish()
+            link = self.session
+            link.serve(self.map_key, self._answer)
+            self._queryable = link
+            self._publisher = _LinkPublisher(link, self.updates_key)
+            return
         self._queryable = self.session.declare_queryable(self.map_key, self._on_query, complete=True)
         self._publisher = self.session.declare_publisher(self.updates_key)
+
+    def _answer(self, asked: str) -> list[tuple[str, bytes]]:
+        self.queries += 1
+        data = self._snapshot
+        return [] if data is None or self._queryable is None else [(self.map_key, data)]
 
     def stop(self) -> None:
         """Undeclare (idempotent); the session stays open (its owner closes it)."""
         q, p = self._queryable, self._publisher
         self._queryable = self._publisher = None
         for d in (q, p):
-            if d is not None:
+            if d is not None and hasattr(d, "undeclare"):
                 try:
                     d.undeclare()
                 except Exception as exc:  # a closed session: nothing left to undeclare
@@ -112,6 +123,14 @@ class MapShare:
             self._last_geometry = geometry
             self._next = now + self.period
         return True
+
+
+class _LinkPublisher:
+    def __init__(self, link: Any, key: str) -> None:
+        self.link, self.key = link, key
+
+    def put(self, data: bytes) -> None:
+        self.link.publish(self.key, data)
 
 
 def fetch_map(session: Any, robot: str, timeout: float = 5.0) -> MapSnapshot | None:
