@@ -31,8 +31,8 @@ sys.path.insert(0, str(ROOT))
 from fleetlink.operator.linkmanager import FALLBACK, PRIMARY, LinkPolicy  # noqa: E402
 from fleetlink.shared.clock import SystemClock  # noqa: E402
 from fleetlink.shared.messages import Order  # noqa: E402
+from fleetlink.site.brokers import MosquittoBroker  # noqa: E402
 from tests.harness import wait_until  # noqa: E402
-from tests.harness.mosquitto import MosquittoBroker  # noqa: E402
 from tests.test_operator_links import LinkRobot, goal, open_operator  # noqa: E402
 
 

@@ -41,7 +41,7 @@ from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Action, ActionType, InstantActions, Teleop
 from fleetlink.shared.zenoh_config import peer_config
-from tests.harness.mosquitto import MosquittoBroker, free_port
+from fleetlink.site.brokers import MosquittoBroker, free_port
 
 GOALS_P99_S = {"zenoh": 0.005, "mqtt": 0.010}
 

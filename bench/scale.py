@@ -181,7 +181,7 @@ def run(
     from fleetlink.field.scenario import LidarSettings, load_scenario
     from fleetlink.shared.clock import SystemClock
     from fleetlink.shared.zenoh_config import peer_config
-    from tests.harness.mosquitto import MosquittoBroker, free_port
+    from fleetlink.site.brokers import MosquittoBroker, free_port
 
     sc = load_scenario(ROOT / "field" / "scenarios" / "hall-50.toml")
     if n > len(sc.robots):

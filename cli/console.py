@@ -34,7 +34,6 @@ Config file (TOML), every key optional; command-line options win:
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
 import socket
 import sys
@@ -159,8 +158,8 @@ def mqtt_client_settings(s: ConsoleSettings) -> Any:
 
 
 def open_link(settings: ConsoleSettings, clock: Any) -> Any:
-    """The console's OperatorLink (Zenoh + MQTT), started."""
-    from fleetlink.operator.links import MqttTransport, OperatorLink, ZenohTransport
+    """The console's OperatorLink (Zenoh + MQTT) from its settings, started (fleetlink.site.operator)."""
+    from fleetlink.site.operator import open_operator_link
 
     auth: dict[str, Any] = {}
     if settings.user is not None:
@@ -169,17 +168,16 @@ def open_link(settings: ConsoleSettings, clock: Any) -> Any:
             auth["mode"] = "client"  # a client of the site's router
     if settings.ca_file is not None:
         auth["root_ca"] = settings.ca_file
-    primary = ZenohTransport.open(settings.zenoh_listen, settings.zenoh_connect, **auth)
-    try:
-        fallback = MqttTransport(
-            settings.mqtt_url,
-            client_id=f"{settings.operator}-{socket.gethostname()}"[:64],
-            settings=mqtt_client_settings(settings),
-        )
-    except Exception:
-        primary.close()
-        raise
-    return OperatorLink(clock, settings.operator, primary, fallback).start()
+    return open_operator_link(
+        clock,
+        settings.operator,
+        mqtt_url=settings.mqtt_url,
+        mqtt=mqtt_client_settings(settings),
+        zenoh_listen=settings.zenoh_listen,
+        zenoh_connect=settings.zenoh_connect,
+        zenoh_auth=auth,
+        client_id=f"{settings.operator}-{socket.gethostname()}"[:64],
+    ).start()
 
 
 def run_console(settings: ConsoleSettings, link: Any = None) -> int:
@@ -257,238 +255,3 @@ def run(args: argparse.Namespace) -> int:
     except Exception as exc:  # zenoh raises its own ZError for bad endpoints
         print(f"error: cannot start the console: {exc}", file=sys.stderr)
         return 1
-
-
-class EmbeddedBroker:
-    """A private mosquitto on a free loopback port, for `fleetlink field` when no broker is configured."""
-
-    def __init__(self) -> None:
-        import shutil
-        import tempfile
-
-        self.binary = shutil.which("mosquitto") or (
-            "/usr/sbin/mosquitto" if Path("/usr/sbin/mosquitto").exists() else None
-        )
-        self.dir = Path(tempfile.mkdtemp(prefix="fleetlink-broker-"))
-        self.proc: Any = None
-        self.port = 0
-
-    def start(self) -> str | None:
-        """The broker's url, or None if no mosquitto binary is installed."""
-        import getpass
-        import subprocess
-        import time
-
-        if self.binary is None:
-            return None
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            self.port = s.getsockname()[1]
-        conf = self.dir / "mosquitto.conf"
-        conf.write_text(
-            f"user {getpass.getuser()}\nlistener {self.port} 127.0.0.1\nallow_anonymous true\n"
-            f"set_tcp_nodelay true\npersistence false\nlog_dest file {self.dir / 'mosquitto.log'}\n"
-        )
-        self.proc = subprocess.Popen(
-            [self.binary, "-c", str(conf)],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            preexec_fn=_die_with_parent,  # a killed terminal must not leave the broker running
-        )
-        for _ in range(200):
-            try:
-                with socket.create_connection(("127.0.0.1", self.port), timeout=0.1):
-                    return f"mqtt://127.0.0.1:{self.port}"
-            except OSError:
-                time.sleep(0.02)
-        self.stop()
-        return None
-
-    def stop(self) -> None:
-        import shutil
-
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            self.proc.wait(5)
-        self.proc = None
-        shutil.rmtree(self.dir, ignore_errors=True)
-
-
-def _die_with_parent() -> None:
-    """In the child before exec: ask Linux to SIGTERM it when its parent dies (no-op elsewhere)."""
-    import ctypes
-    import signal
-
-    with contextlib.suppress(OSError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-
-
-class PythonBroker:
-    """A pure-Python MQTT broker (amqtt) on a free loopback port, in a thread of this process.
-
-    The fallback when no mosquitto binary is installed, so a fresh machine still has the MQTT
-    fallback link (retained messages, QoS 1). Slower than mosquitto, fine for a demo field.
-    """
-
-    def __init__(self) -> None:
-        self.port = 0
-        self._loop: Any = None
-        self._broker: Any = None
-        self._thread: Any = None
-
-    def start(self) -> str | None:
-        """The broker's url, or None if amqtt is not installed or did not start."""
-        import asyncio
-        import threading
-
-        try:
-            from amqtt.broker import Broker
-        except ImportError:
-            return None
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            self.port = s.getsockname()[1]
-        config = {
-            "listeners": {"default": {"type": "tcp", "bind": f"127.0.0.1:{self.port}"}},
-            "plugins": {"amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}},
-        }
-        self._loop = loop = asyncio.new_event_loop()
-        started = threading.Event()
-        failed: list[BaseException] = []
-
-        def run() -> None:
-            asyncio.set_event_loop(loop)
-            try:
-                self._broker = Broker(config, loop=loop)
-                loop.run_until_complete(self._broker.start())
-            except BaseException as exc:  # reported below, the field goes on without MQTT
-                failed.append(exc)
-                started.set()
-                return
-            started.set()
-            loop.run_forever()
-
-        self._thread = threading.Thread(target=run, name="amqtt-broker", daemon=True)
-        self._thread.start()
-        if not started.wait(15.0) or failed:
-            log.warning("the embedded amqtt broker did not start: %s", failed[0] if failed else "timeout")
-            return None
-        return f"mqtt://127.0.0.1:{self.port}"
-
-    def stop(self) -> None:
-        import asyncio
-
-        loop, broker = self._loop, self._broker
-        self._loop = self._broker = None
-        if loop is None:
-            return
-        if broker is not None and loop.is_running():
-            with contextlib.suppress(Exception):
-                asyncio.run_coroutine_threadsafe(broker.shutdown(), loop).result(5.0)
-        if loop.is_running():
-            loop.call_soon_threadsafe(loop.stop)
-        if self._thread is not None:
-            self._thread.join(5.0)
-
-
-def start_broker() -> tuple[Any, str | None, str]:
-    """An embedded broker: mosquitto if installed, else amqtt. (broker, url or None, what it is)."""
-    broker: Any = EmbeddedBroker()
-    url = broker.start()
-    if url is not None:
-        return broker, url, "embedded mosquitto"
-    broker.stop()
-    broker = PythonBroker()
-    url = broker.start()
-    if url is not None:
-        return broker, url, "embedded amqtt (no mosquitto binary)"
-    broker.stop()
-    return None, None, "none"
-
-
-def field_gateway(scenario: Any, plan: Any, mqtt_url: str, clock: Any) -> Any:
-    """The UWB simulator for the field: the scenario's anchors (else its plan's), a tag per robot."""
-    from fleetlink.positioning.anchors import Anchor
-    from fleetlink.positioning.config import GatewayConfig
-    from fleetlink.positioning.publisher import UwbGateway
-    from fleetlink.shared.mqtt import MqttSettings
-
-    anchors = tuple(Anchor(*a) for a in scenario.anchors) or tuple(Anchor(a.id, a.x, a.y, a.z) for a in plan.anchors)
-    if len(anchors) < 3:
-        return None
-    config = GatewayConfig(
-        anchors=anchors,
-        auto_tags=True,
-        walls=plan.segments(),
-        mqtt=MqttSettings.from_url(mqtt_url),
-        gateway_id="field-uwb",
-    )
-    return UwbGateway(config, clock, subscribe_truth=False)
-
-
-def run_field_console(
-    endpoints: Any,
-    clock: Any,
-    mqtt_url: str | None,
-    operator: str = "operator-1",
-    *,
-    scenario: Any = None,
-    plan: Any = None,
-    add_truth_sink: Any = None,
-) -> int:
-    """`fleetlink field` with the console: a broker (unless given), the UWB simulator, an agent per
-    robot, the console on top.
-
-    The console's Zenoh peer listens on a free loopback port and every agent connects to it. The
-    UWB gateway is fed from the field's truth sink (``add_truth_sink``) and publishes fixes on MQTT.
-    """
-    from fleetlink.field.agents import FieldAgents
-    from fleetlink.operator.links import MqttTransport, OperatorLink, ZenohTransport
-
-    broker = None
-    agents = None
-    link = None
-    gateway = None
-    mqtt_ok = True
-    try:
-        if mqtt_url is None:
-            broker, mqtt_url, what = start_broker()
-            if mqtt_url is None:
-                print(
-                    "warning: no MQTT broker: no mosquitto binary (.ci/install-mosquitto) and the amqtt "
-                    "package did not start: running without the MQTT fallback and without UWB",
-                    file=sys.stderr,
-                )
-                mqtt_url = "mqtt://127.0.0.1:1"
-                mqtt_ok = False
-            else:
-                print(f"fleetlink field: MQTT on {mqtt_url} ({what})", file=sys.stderr)
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
-        settings = ConsoleSettings(operator=operator, zenoh_listen=(endpoint,), mqtt_url=mqtt_url)
-        # From here on logs would scribble over the console: they go to field.log.
-        logging.getLogger().handlers.clear()
-        logging.basicConfig(
-            filename="field.log", level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-        )
-        if mqtt_ok and scenario is not None and plan is not None and add_truth_sink is not None:
-            gateway = field_gateway(scenario, plan, mqtt_url, clock)
-            if gateway is not None:
-                gateway.start()
-                add_truth_sink(gateway.on_truth_sample)
-        primary = ZenohTransport.open(settings.zenoh_listen, ())
-        link = OperatorLink(clock, operator, primary, MqttTransport(mqtt_url, client_id=operator)).start()
-        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[endpoint], mqtt_url=mqtt_url)
-        agents.start()
-        link, owned = None, link  # run_console closes it from here on
-        return run_console(settings, owned)
-    finally:
-        if link is not None:
-            link.close()
-        if agents is not None:
-            agents.stop()
-        if gateway is not None:
-            gateway.stop()
-        if broker is not None:
-            broker.stop()

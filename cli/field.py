@@ -6,10 +6,12 @@ per robot talking to its board through real bytes, ground truth published on Zen
 fleetlink/v1/sim/<robot>/truth, and each robot's live board status on the terminal. Stop with
 Ctrl-C, or give --duration.
 
-`fleetlink field --secure` runs it all as a secured site would (field/secure.py): deploy/'s
+`fleetlink field --secure` runs it all as a secured site would (fleetlink.site.security): deploy/'s
 Mosquitto and Zenoh router with generated passwords and ACLs (TLS with a throwaway CA when openssl
 is there), agents logged in as their robot ids, the UWB gateway as uwb-gateway, ground truth as
 sim, the console as the operator; it prints where the credentials are so another console can join.
+The demo and the secured site are one composition, fleetlink.site.field.FieldSite: this module
+only parses the arguments and presents.
 
 `fleetlink field run SCENARIO --lockstep --out DIR` runs a scenario in simulated time, as fast as
 the CPU allows, and writes the robots' true trajectories (see docs/field-scenarios.md).
@@ -20,14 +22,13 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
-from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from fleetlink.agent.board.transport import Port
     from fleetlink.field.plans import FloorPlan
     from fleetlink.field.scenario import Scenario
+    from fleetlink.site.field import FieldSite
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "field" / "scenarios"
 
@@ -117,8 +118,6 @@ def run(args: argparse.Namespace) -> int:
     if args.field_command == "run" and args.lockstep:
         return _run_lockstep(scenario, plan, args.out)
     duration = scenario.duration if args.field_command == "run" else args.duration
-    if getattr(args, "secure", False):
-        return _run_secure(scenario, plan, duration, args)
     return _run_realtime(scenario, plan, duration, args)
 
 
@@ -148,154 +147,118 @@ def _run_lockstep(scenario: Scenario, plan: FloorPlan, out: Path | None) -> int:
 
 
 def _run_realtime(scenario: Scenario, plan: FloorPlan, duration: float, args: argparse.Namespace) -> int:
-    from fleetlink.agent.board.session import BoardSession
-    from fleetlink.field.drivers import Driver, driver_for
-    from fleetlink.field.realtime import RealtimeField
-    from fleetlink.field.truth import TruthPublisher
-    from fleetlink.operator.board_status import render
+    """The field in real time as one site (fleetlink.site.field): the demo, or with --secure a
+    secured site; the console on it, or the boards' live status (demo) without one."""
     from fleetlink.shared.clock import SystemClock
+    from fleetlink.site.brokers import SiteError
+    from fleetlink.site.field import FieldSite, Security
+    from fleetlink.site.security import missing_tools
 
-    clock = SystemClock()
-    publisher = None
-    if args.zenoh_listen != "none":
-        try:
-            publisher = TruthPublisher.open(args.zenoh_listen, clock)
-        except Exception as exc:  # zenoh raises its own ZError
+    security = None
+    if args.secure:
+        if args.mqtt_url:
+            print("error: --secure runs its own broker (deploy/'s configuration); leave out --mqtt", file=sys.stderr)
+            return 2
+        missing = missing_tools()
+        if missing:
             print(
-                f"warning: cannot publish ground truth on {args.zenoh_listen}: {exc}; continuing without",
+                f"error: --secure needs {', '.join(missing)}: the embedded amqtt fallback has no password file "
+                "and no ACL, so it cannot run a secured site (install with .ci/install-mosquitto, or "
+                "apt-get install mosquitto)",
                 file=sys.stderr,
             )
-    # Ground truth fans out to Zenoh and, with the console, to the UWB simulator (added later).
-    sinks: list[Callable[[Any], None]] = [publisher.publish] if publisher is not None else []
-
-    def truth_sink(sample: Any) -> None:
-        for sink in list(sinks):
-            sink(sample)
-
-    field = RealtimeField(scenario, plan, clock, truth_sink=truth_sink, pty=args.pty)
-    sessions: list[tuple[str, BoardSession, Driver]] = []
+            return 2
+        security = Security(operators=tuple(args.operator or ["op-operator-1"]))
     console = args.console == "on" or (args.console == "auto" and sys.stdin.isatty() and sys.stdout.isatty())
-    try:
-        endpoints = field.start()
-        if console:  # agents drive the boards and the console drives the agents (cli/console.py)
-            from fleetlink.cli.console import run_field_console
-
-            return run_field_console(
-                endpoints, clock, args.mqtt_url, scenario=field.scenario, plan=field.plan, add_truth_sink=sinks.append
-            )
-        for i, spec in enumerate(field.scenario.robots):
-            url = endpoints[spec.name].board
-            session = BoardSession(_opener(url), clock, seed=i)
-            session.start()
-            sessions.append((spec.name, session, driver_for(spec, i)))
-        stop = threading.Event()
-        start = clock.now()
-        tty = sys.stdout.isatty()
-        while not stop.wait(1.0 / args.refresh):
-            now = clock.now()
-            t = now - start
-            for _, session, driver in sessions:
-                session.set_velocity(*driver(session.snapshot, t))
-            lines = [
-                f"fleetlink field: {field.scenario.name} on {field.plan.name}, {len(sessions)} robot(s), t = {t:6.1f} s   (Ctrl-C to stop)"
-            ]
-            if publisher is not None:
-                lines.append(f"ground truth on Zenoh {args.zenoh_listen}: fleetlink/v1/sim/<robot>/truth")
-            lines.append("")
-            for name, session, _ in sessions:
-                ep = endpoints[name]
-                lines += [*render(f"{name} (board {ep.board}, lidar {ep.lidar or 'none'})", session.snapshot, now), ""]
-            for line in field.events.log[-5:]:
-                lines.append(f"event: {line}")
-            out = "\n".join(lines) + "\n"
-            sys.stdout.write(("\x1b[H\x1b[2J" + out) if tty else out)
-            sys.stdout.flush()
-            if duration and t >= duration:
-                break
-    except KeyboardInterrupt:
-        pass
-    finally:
-        for _, session, _ in sessions:
-            session.set_velocity(0.0, 0.0)
-        for _, session, _ in sessions:
-            session.stop()
-        field.stop()
-        if publisher is not None:
-            publisher.close()
-    return 0
-
-
-def _opener(url: str) -> Callable[[], Port]:
-    from fleetlink.agent.board.transport import SerialPort
-
-    return lambda: SerialPort(url)
-
-
-def _run_secure(scenario: Scenario, plan: FloorPlan, duration: float, args: argparse.Namespace) -> int:
-    """The field as a secured site (field/secure.py): agents, UWB gateway, truth and console log in."""
-    import logging
-
-    from fleetlink.field.realtime import RealtimeField
-    from fleetlink.field.secure import SecureField, SecureSite, SiteError, missing_tools
-    from fleetlink.shared.clock import SystemClock
-
-    if args.mqtt_url:
-        print("error: --secure runs its own broker (deploy/'s configuration); leave out --mqtt", file=sys.stderr)
-        return 2
-    missing = missing_tools()
-    if missing:
-        print(
-            f"error: --secure needs {', '.join(missing)}: the embedded amqtt fallback has no password file "
-            "and no ACL, so it cannot run a secured site (install with .ci/install-mosquitto, or "
-            "apt-get install mosquitto)",
-            file=sys.stderr,
-        )
-        return 2
-    operators = args.operator or ["op-operator-1"]
+    operator = security.operators[0] if security is not None else "operator-1"
+    if console:
+        _log_to_file("field.log")  # from here on logs would scribble over the console
     clock = SystemClock()
     try:
-        site = SecureSite([r.name for r in scenario.robots], operators).start()
+        site = FieldSite(
+            scenario,
+            plan,
+            clock,
+            pty=args.pty,
+            agents=console or security is not None,  # agents drive the boards; else the demo's open loop
+            operator=operator if console else None,
+            mqtt_url=args.mqtt_url,
+            truth_listen=None if args.zenoh_listen == "none" or security is not None else args.zenoh_listen,
+            security=security,
+        ).start()
     except (SiteError, ValueError) as exc:
-        print(f"error: cannot start the secured site: {exc}", file=sys.stderr)
+        what = "the secured site" if security is not None else "the field"
+        print(f"error: cannot start {what}: {exc}", file=sys.stderr)
         return 2
-    sinks: list[Callable[[Any], None]] = []
-
-    def truth_sink(sample: Any) -> None:
-        for sink in list(sinks):
-            sink(sample)
-
-    field = RealtimeField(scenario, plan, clock, truth_sink=truth_sink, pty=args.pty)
-    secure: SecureField | None = None
-    console = args.console == "on" or (args.console == "auto" and sys.stdin.isatty() and sys.stdout.isatty())
     try:
-        endpoints = field.start()
-        secure = SecureField(site, endpoints, clock, scenario=field.scenario, plan=field.plan).start()
-        sinks.append(secure.truth_sink)
         for line in site.describe():
             print(line, file=sys.stderr)
         if console:
             from fleetlink.cli.console import ConsoleSettings, run_console
 
-            logging.getLogger().handlers.clear()  # logs would scribble over the console
-            logging.basicConfig(
-                filename="field.log", level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-            )
-            link = secure.operator_link(operators[0]).start()
             settings = ConsoleSettings(
-                operator=operators[0], zenoh_connect=(site.zenoh_endpoint,), mqtt_url=site.mqtt_url
+                operator=operator,
+                zenoh_listen=(site.zenoh_endpoint,) if security is None and site.zenoh_endpoint else (),
+                zenoh_connect=(site.zenoh_endpoint,) if security is not None and site.zenoh_endpoint else (),
+                mqtt_url=site.mqtt_url or ConsoleSettings.mqtt_url,
             )
-            return run_console(settings, link)
-        stop = threading.Event()
-        start = clock.now()
-        print(f"fleetlink field --secure: {field.scenario.name}, {len(endpoints)} robot(s); Ctrl-C to stop")
-        while not stop.wait(1.0):
-            if duration and clock.now() - start >= duration:
-                break
+            return run_console(settings, site.take_link())
+        if site.boards is not None:
+            _show_boards(site, duration, args)
+        else:
+            _wait(site, duration)
     except KeyboardInterrupt:
         pass
     finally:
-        if secure is not None:
-            secure.stop()
-        field.stop()
         site.stop()
     return 0
+
+
+def _log_to_file(path: str) -> None:
+    import logging
+
+    logging.getLogger().handlers.clear()
+    logging.basicConfig(filename=path, level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def _show_boards(site: FieldSite, duration: float, args: argparse.Namespace) -> None:
+    """The demo without a console: the robots driven open-loop, each board's live status on the terminal."""
+    from fleetlink.operator.board_status import render
+
+    assert site.boards is not None
+    clock, field = site.clock, site.field
+    stop = threading.Event()
+    start = clock.now()
+    tty = sys.stdout.isatty()
+    while not stop.wait(1.0 / args.refresh):
+        now = clock.now()
+        t = now - start
+        site.boards.step(t)
+        lines = [
+            f"fleetlink field: {field.scenario.name} on {field.plan.name}, {len(site.boards.sessions)} robot(s), "
+            f"t = {t:6.1f} s   (Ctrl-C to stop)"
+        ]
+        if site.truth is not None:
+            lines.append(f"ground truth on Zenoh {args.zenoh_listen}: fleetlink/v1/sim/<robot>/truth")
+        lines.append("")
+        for name, session, _ in site.boards.sessions:
+            ep = site.endpoints[name]
+            lines += [*render(f"{name} (board {ep.board}, lidar {ep.lidar or 'none'})", session.snapshot, now), ""]
+        for line in field.events.log[-5:]:
+            lines.append(f"event: {line}")
+        out = "\n".join(lines) + "\n"
+        sys.stdout.write(("\x1b[H\x1b[2J" + out) if tty else out)
+        sys.stdout.flush()
+        if duration and t >= duration:
+            break
+
+
+def _wait(site: FieldSite, duration: float) -> None:
+    """A headless secured site: its agents run until Ctrl-C or ``duration``."""
+    clock = site.clock
+    stop = threading.Event()
+    start = clock.now()
+    print(f"fleetlink field --secure: {site.scenario.name}, {len(site.endpoints)} robot(s); Ctrl-C to stop")
+    while not stop.wait(1.0):
+        if duration and clock.now() - start >= duration:
+            break

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from fleetlink.agent.mapping.codec import patch_fields, snapshot_fields
-from fleetlink.cli.console import PythonBroker, share_marks
+from fleetlink.cli.console import share_marks
 from fleetlink.operator.console import ConsoleApp, attach
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.links import MqttTransport, OperatorLink, ZenohTransport
@@ -25,6 +25,7 @@ from fleetlink.operator.mapview import MapView
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import MapSnapshot, MapUpdate, Mark, Pose
+from fleetlink.site.brokers import AmqttBroker
 from tests.harness import wait_until
 from tests.test_console import run_async
 
@@ -205,9 +206,8 @@ def test_a_console_that_starts_late_gets_the_marks_placed_before(zenoh_peers: An
 
 
 def test_the_embedded_python_broker_carries_the_consoles_mqtt() -> None:
-    broker = PythonBroker()
-    url = broker.start()
-    assert url is not None, "amqtt did not start"
+    broker = AmqttBroker()
+    url = broker.start().url  # raises if amqtt did not start
     got: list[tuple[str, bytes]] = []
     sub = MqttTransport(url, client_id="sub")
     pub = MqttTransport(url, client_id="pub")

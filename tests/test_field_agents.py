@@ -6,11 +6,11 @@ import math
 
 import zenoh
 
-from fleetlink.field.agents import FieldAgents
 from fleetlink.field.realtime import RealtimeField
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Teleop
+from fleetlink.site.agents import FieldAgents
 from tests.harness import wait_until
 from tests.harness.mosquitto import free_port
 from tests.harness.zenoh_peers import zenoh_config

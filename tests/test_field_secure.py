@@ -1,4 +1,5 @@
-"""`fleetlink field --secure`, headless: a secured site (deploy/'s Mosquitto with a generated
+"""`fleetlink field --secure`, headless: the field as one site (``fleetlink.site.field.FieldSite``)
+with ``security``: a secured site (deploy/'s Mosquitto with a generated
 password file and ACL, a Zenoh router on deploy/zenohd.json5 with usrpwd and default-deny access
 control, TLS from a throwaway CA when openssl is there), the field's agents logged in as their
 robot ids, the UWB gateway as uwb-gateway, ground truth as sim, the console's link as the operator.
@@ -20,12 +21,13 @@ import pytest
 import zenoh
 
 from fleetlink.field.realtime import RealtimeField
-from fleetlink.field.secure import SecureField, SecureSite
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Ack, AckResult, FixStatus, Teleop, UwbFix
 from fleetlink.shared.mqtt import MqttSettings, connect_client
 from fleetlink.shared.zenoh_config import peer_config
+from fleetlink.site.field import FieldSite, Security
+from fleetlink.site.security import SiteSecurity
 from tests.harness import wait_until
 from tests.test_field_realtime import quiet_scenario
 
@@ -37,9 +39,9 @@ FORGED = 42.0  # a fix no gateway would report here
 
 @dataclass
 class Secured:
-    site: SecureSite
+    site: SiteSecurity
     field: RealtimeField
-    sf: SecureField
+    fs: FieldSite
     link: Any
     acks: list[Ack]
     uwb_in: list[tuple[str, str, bytes]]  # (link, key, payload) of every uwb message reaching uvc-1's agent
@@ -63,18 +65,15 @@ def secured() -> Iterator[Secured]:
         ],
         lidar={"enabled": False},
     )
-    site = SecureSite(["uvc-1", "uvc-2"], [OPERATOR, SECOND_OPERATOR, THIRD_OPERATOR]).start()
-    sinks: list[Any] = []
-    field = RealtimeField(scenario, clock=clock, truth_sink=lambda s: [f(s) for f in sinks])
-    sf = None
+    fs = FieldSite(scenario, clock=clock, security=Security((OPERATOR, SECOND_OPERATOR, THIRD_OPERATOR))).start()
     link = None
     try:
-        endpoints = field.start()
-        sf = SecureField(site, endpoints, clock, scenario=field.scenario, plan=field.plan).start()
-        sinks.append(sf.truth_sink)
+        assert fs.security is not None and fs.agents is not None and fs.gateway is not None and fs.truth is not None
+        assert fs.link is None and fs.boards is None  # no operator asked for: no console link; agents drive
         lock = threading.Lock()
         uwb_in: list[tuple[str, str, bytes]] = []
-        agent = sf.agents.agents["uvc-1"]
+        agents = fs.agents
+        agent = agents.agents["uvc-1"]
         for lk in agent.links:  # tap what reaches the agent from each link (looked up per message)
             inner = lk.on_input
 
@@ -86,25 +85,21 @@ def secured() -> Iterator[Secured]:
 
             lk.on_input = tap
         acks: list[Ack] = []
-        link = sf.operator_link()
+        link = fs.operator_link(OPERATOR)
         link.add_sink(lambda m, _l, _t: acks.append(m) if isinstance(m, Ack) else None)
         link.start()
         wait_until(
             lambda: all(
-                a.zenoh is not None and a.zenoh.up and a.mqtt is not None and a.mqtt.up
-                for a in sf.agents.agents.values()
+                a.zenoh is not None and a.zenoh.up and a.mqtt is not None and a.mqtt.up for a in agents.agents.values()
             ),
             timeout=15,
             message="every agent logged in on both links",
         )
-        yield Secured(site, field, sf, link, acks, uwb_in, lock)
+        yield Secured(fs.security, fs.field, fs, link, acks, uwb_in, lock)
     finally:
         if link is not None:
             link.close()
-        if sf is not None:
-            sf.stop()
-        field.stop()
-        site.stop()
+        fs.stop()
 
 
 def test_the_operators_console_link_drives_a_robot(secured: Secured) -> None:
@@ -166,7 +161,7 @@ def test_no_credentials_no_connection_on_either_link(secured: Secured) -> None:
 
 def test_another_robot_cannot_drive_a_robot(secured: Secured) -> None:
     s = secured
-    wait_until(lambda: s.sf.agents.agents["uvc-1"].board.snapshot.connected)
+    wait_until(lambda: s.fs.agents.agents["uvc-1"].board.snapshot.connected)
     start = s.pose("uvc-1")
     clock = SystemClock()
     forger = wire.HeaderCounter(clock, robot="uvc-1", sender=OPERATOR)  # even claiming the operator's id
@@ -267,8 +262,8 @@ def test_a_late_console_gets_the_marks_another_console_holds(secured: Secured) -
     from fleetlink.shared.messages import Mark
 
     s = secured
-    holder = s.sf.operator_link(SECOND_OPERATOR)
-    late = s.sf.operator_link(THIRD_OPERATOR)
+    holder = s.fs.operator_link(SECOND_OPERATOR)
+    late = s.fs.operator_link(THIRD_OPERATOR)
     try:
         holder.start()
         mark = Mark(

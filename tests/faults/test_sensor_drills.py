@@ -138,9 +138,9 @@ def test_lidar_unplugged_agent_reports_keeps_driving_and_maps_again() -> None:
 
     import zenoh
 
-    from fleetlink.field.agents import FieldAgents
     from fleetlink.field.realtime import RealtimeField
     from fleetlink.shared.messages import Event, Teleop
+    from fleetlink.site.agents import FieldAgents
     from tests.harness.mosquitto import free_port
     from tests.harness.zenoh_peers import zenoh_config
     from tests.test_field_realtime import quiet_scenario

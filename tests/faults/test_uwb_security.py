@@ -228,16 +228,16 @@ def test_gateway_with_a_wrong_password_is_refused_and_publishes_nothing(
 
 def test_zenoh_forged_fixes_through_the_secured_router_never_reach_the_agent(tmp_path: Path) -> None:
     """The drill on the Zenoh side: a real agent logged in to a router with deploy/'s usrpwd and
-    access control (field/secure.py's site); robots, operators and the simulator put forged fixes on
+    access control (fleetlink.site.security's site); robots, operators and the simulator put forged fixes on
     fleetlink/v1/r1/uwb; only the gateway's login gets a fix to the agent (the sentinel)."""
     from fleetlink.agent.config import AgentConfig, Rates, ZenohSettings
     from fleetlink.agent.runtime import AgentRuntime
     from fleetlink.field.board import SimulatedBoard
     from fleetlink.field.board_server import BoardServer
-    from fleetlink.field.secure import SecureSite
+    from fleetlink.site.security import SiteSecurity
 
     clock = SystemClock()
-    site = SecureSite(["r1", "r2"], ["op-alice"], tls=False, folder=tmp_path).start()
+    site = SiteSecurity(["r1", "r2"], ["op-alice"], tls=False, folder=tmp_path).start()
     server = BoardServer(SimulatedBoard(), clock)
     agent = None
     try:

@@ -1,5 +1,8 @@
 """One robot agent per simulated robot, in-process, against the real-time field's boards over TCP.
 
+Here, in the site, because an agent and the field meet only at the site: field/ never imports
+agent/ (the agents talk to the field's boards and lidars through their bytes, like hardware).
+
 ``FieldAgents(field.endpoints, zenoh_connect=[...], mqtt_url=...)``: ``start()`` builds an
 ``AgentRuntime`` per robot (its own Zenoh session connecting to ``zenoh_connect``, the shared
 broker for MQTT, which also carries the UWB fixes: tag id = robot name) and ``stop()`` stops
