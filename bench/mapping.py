@@ -347,7 +347,7 @@ def throughput(drive: dict, beams: int, limit: int) -> dict[str, float]:  # type
 
 
 def cpu_share(drive: dict, seconds: float) -> dict[str, float]:  # type: ignore[type-arg]
-    from fleetlink.agent.mapping.codec import snapshot_fields
+    from fleetlink.shared.map_codec import snapshot_fields
     from fleetlink.agent.mapping.mapper import OnboardMapper
     from fleetlink.shared import wire
     from fleetlink.shared.clock import SimClock

@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:  # pragma: no cover - argparse always 
 def run_save(args: argparse.Namespace) -> int:
     import zenoh
 
-    from fleetlink.agent.mapping.codec import decode_cells
+    from fleetlink.shared.map_codec import decode_cells
     from fleetlink.agent.mapping.share import fetch_map
     from fleetlink.field.mapserver import write_map
     from fleetlink.shared import keys

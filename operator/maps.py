@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from fleetlink.agent.mapping.codec import SharedMap
+from fleetlink.shared.map_codec import SharedMap
 from fleetlink.operator.fleet import FleetModel, Grid
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.messages import MapSnapshot, MapUpdate

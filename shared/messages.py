@@ -570,7 +570,7 @@ class MapUpdate(Message):
     Apply it to a copy at ``base_version`` with the same ``resolution``/``origin``/size to get
     ``version``; otherwise (a gap, or the map grew) fetch a ``MapSnapshot`` from the queryable.
     Cross-field rules (the patch inside the map, the cells' size) are checked where the cells are
-    decoded (``agent/mapping/codec.py``).
+    decoded (``shared/map_codec.py``).
     """
 
     TOPIC: ClassVar[str] = "map/updates"

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from textual.widgets import Input, Static
 
-from fleetlink.agent.mapping.codec import snapshot_fields
+from fleetlink.shared.map_codec import snapshot_fields
 from fleetlink.operator.console import ConsoleApp, attach
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.linkmanager import LinkPolicy

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping.codec import patch_fields, snapshot_fields
+from fleetlink.shared.map_codec import patch_fields, snapshot_fields
 from fleetlink.cli.console import share_marks
 from fleetlink.operator.console import ConsoleApp, attach
 from fleetlink.operator.fleet import FleetModel

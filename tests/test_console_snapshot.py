@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping.codec import snapshot_fields
+from fleetlink.shared.map_codec import snapshot_fields
 from fleetlink.operator.maps import MapFollower
 from fleetlink.shared import wire
 from fleetlink.shared.clock import SimClock

@@ -64,7 +64,7 @@ def test_field_agents_drive_the_field_robots_over_zenoh() -> None:
 
 
 def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -> None:
-    from fleetlink.agent.mapping.codec import decode_cells
+    from fleetlink.shared.map_codec import decode_cells
     from fleetlink.agent.mapping.share import fetch_map
 
     clock = SystemClock()

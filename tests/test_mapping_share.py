@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping.codec import SharedMap, decode_cells
+from fleetlink.shared.map_codec import SharedMap, decode_cells
 from fleetlink.agent.mapping.mapper import OnboardMapper
 from fleetlink.agent.mapping.share import MapShare, fetch_map
 from fleetlink.cli.main import main

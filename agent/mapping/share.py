@@ -20,7 +20,7 @@ import logging
 import threading
 from typing import Any
 
-from fleetlink.agent.mapping.codec import patch_fields, snapshot_fields
+from fleetlink.shared.map_codec import patch_fields, snapshot_fields
 from fleetlink.agent.mapping.mapper import OnboardMapper
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
