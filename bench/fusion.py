@@ -108,7 +108,7 @@ class Record:
 def record(duration: float, seed: int = SEED) -> tuple[list[Record], float]:
     """Run the field in lockstep and record, per robot: truth, encoder/gyro readings, fixes."""
     from fleetlink.field.lockstep import LOCKSTEP_POLL, FieldRun
-    from fleetlink.field.scenario import Event, LidarSettings, RobotSpec, Scenario
+    from fleetlink.field.scenario import LidarSettings, RobotSpec, Scenario, WheelSlip
     from fleetlink.positioning.anchors import Anchor
     from fleetlink.positioning.ranging import NoiseProfile, RangingModel
     from fleetlink.positioning.solver import solve
@@ -116,7 +116,7 @@ def record(duration: float, seed: int = SEED) -> tuple[list[Record], float]:
     plan_routes = routes()
     names = [f"r{i + 1}" for i in range(len(plan_routes))]
     slips = tuple(
-        Event(at=40.0 + 100.0 * k + 13.0 * i, kind="wheel_slip", robot=n, duration=2.0, wheel="left", fraction=0.3)
+        WheelSlip(at=40.0 + 100.0 * k + 13.0 * i, robot=n, duration=2.0, wheel="left", fraction=0.3)
         for i, n in enumerate(names)
         for k in range(int(duration // 100.0) + 1)
         if 40.0 + 100.0 * k + 13.0 * i < duration

@@ -17,14 +17,14 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, NamedTuple
+from typing import Annotated, Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
 from fleetlink.field.floor import Floor, Point, Segment, point_in_polygon
 from fleetlink.field.mapserver import MapError, OccupancyMap, image_from_grid, read_map
-from fleetlink.shared.config import TomlReader, read_toml
+from fleetlink.shared.config import ConfigError, Invalid, Setting, parse, read_toml
 
 __all__ = [
     "BUILTIN_PLANS",
@@ -32,7 +32,9 @@ __all__ = [
     "ROBOT_RADIUS",
     "Anchor",
     "FloorPlan",
+    "MapSidecar",
     "PlanError",
+    "PlanFile",
     "Polygon",
     "Pose",
     "builtin_plans",
@@ -53,13 +55,9 @@ Bounds = tuple[float, float, float, float]
 
 _EPS = 1e-6  # m: tolerance for "inside the bounds" and the shortest segment
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
-_TOP_KEYS = frozenset(
-    {"name", "description", "bounds", "walls", "obstacles", "cliffs", "doors", "starts", "start_grid", "anchors"}
-)
-_SIDECAR_KEYS = (_TOP_KEYS - {"bounds"}) | {"unknown_is_wall"}
 
 
-class PlanError(ValueError):
+class PlanError(ConfigError):
     """A floor plan that cannot be used, with the place and the reason."""
 
 
@@ -347,94 +345,113 @@ def _inside(px: npt.NDArray[np.float64], py: npt.NDArray[np.float64], poly: Poly
 
 
 # -- TOML ------------------------------------------------------------------------------------------
+# The file format as schemas for shared/config.py; geometry is checked by FloorPlan itself.
+
+Segment4 = Annotated[tuple[float, float, float, float], Setting(what="[x1, y1, x2, y2]")]
+PointXY = Annotated[tuple[float, float], Setting(what="[x, y]")]
 
 
-class _Reader(TomlReader):
-    def __init__(self, source: str) -> None:
-        super().__init__(source, PlanError)
+@dataclass(frozen=True)
+class _Area:
+    polygon: Annotated[tuple[PointXY, ...], Setting(min_len=3, what="a polygon of [x, y] points")]
+    name: str = ""
 
 
-def _parse_parts(r: _Reader, data: Mapping[str, Any]) -> dict[str, Any]:
-    """Everything but ``name`` and ``bounds``, type-checked (geometry is checked by FloorPlan)."""
-    parts: dict[str, Any] = {}
-    if "description" in data:
-        parts["description"] = r.text(data["description"], "description")
-    walls_value = data.get("walls", [])
-    if not isinstance(walls_value, list):
-        raise r.fail("walls", "expected a list of [x1, y1, x2, y2] segments")
-    parts["walls"] = tuple(r.numbers(w, f"walls[{i}]", 4, "[x1, y1, x2, y2]") for i, w in enumerate(walls_value))
-    for key in ("obstacles", "cliffs"):
-        polys = []
-        for i, t in enumerate(r.tables(data, key)):
-            r.keys(t, f"{key}[{i}]", {"name", "polygon"}, {"polygon"})
-            if "name" in t:
-                r.text(t["name"], f"{key}[{i}].name")
-            polys.append(r.polygon(t["polygon"], f"{key}[{i}].polygon"))
-        parts[key] = tuple(polys)
-    doors = {}
-    for k, v in r.table(data, "doors").items():
-        doors[k] = r.numbers(v, f"doors.{k}", 4, "[x1, y1, x2, y2]")
-    parts["doors"] = doors
-    starts: dict[str, Pose] = {}
-    for k, v in r.table(data, "starts").items():
-        where = f"starts.{k}"
-        if not isinstance(v, dict):
-            raise r.fail(where, "expected a table { x = ..., y = ..., theta_deg = ... }")
-        r.keys(v, where, {"x", "y", "theta_deg"}, {"x", "y", "theta_deg"})
-        starts[k] = Pose(
-            r.number(v["x"], f"{where}.x"),
-            r.number(v["y"], f"{where}.y"),
-            math.radians(r.number(v["theta_deg"], f"{where}.theta_deg")),
-        )
-    for i, t in enumerate(r.tables(data, "start_grid")):
-        where = f"start_grid[{i}]"
-        r.keys(
-            t,
-            where,
-            {"prefix", "x0", "y0", "dx", "dy", "nx", "ny", "theta_deg"},
-            {"prefix", "x0", "y0", "dx", "dy", "nx", "ny", "theta_deg"},
-        )
-        prefix = r.text(t["prefix"], f"{where}.prefix")
-        nx = r.integer(t["nx"], f"{where}.nx", 1, MAX_GRID_STARTS)
-        ny = r.integer(t["ny"], f"{where}.ny", 1, MAX_GRID_STARTS)
-        if nx * ny > MAX_GRID_STARTS:
-            raise r.fail(where, f"nx * ny must be at most {MAX_GRID_STARTS}, got {nx * ny}")
-        x0, y0 = r.number(t["x0"], f"{where}.x0"), r.number(t["y0"], f"{where}.y0")
-        dx, dy = r.number(t["dx"], f"{where}.dx"), r.number(t["dy"], f"{where}.dy")
-        for key, value in (("dx", dx), ("dy", dy)):
+@dataclass(frozen=True)
+class _Start:
+    x: float
+    y: float
+    theta_deg: float
+
+
+@dataclass(frozen=True)
+class _StartGrid:
+    prefix: str
+    x0: float
+    y0: float
+    dx: float
+    dy: float
+    nx: Annotated[int, Setting(lo=1, hi=MAX_GRID_STARTS)]
+    ny: Annotated[int, Setting(lo=1, hi=MAX_GRID_STARTS)]
+    theta_deg: float
+
+    def validate(self) -> None:
+        if self.nx * self.ny > MAX_GRID_STARTS:
+            raise Invalid("", f"nx * ny must be at most {MAX_GRID_STARTS}, got {self.nx * self.ny}")
+        for key, value in (("dx", self.dx), ("dy", self.dy)):
             if value < 2 * ROBOT_RADIUS:
-                raise r.fail(
-                    f"{where}.{key}", f"must be at least {2 * ROBOT_RADIUS:g} m (two robot radii), got {value:g}"
-                )
-        theta = math.radians(r.number(t["theta_deg"], f"{where}.theta_deg"))
-        width = max(2, len(str(nx * ny)))
+                raise Invalid(key, f"must be at least {2 * ROBOT_RADIUS:g} m (two robot radii), got {value:g}")
+
+
+@dataclass(frozen=True)
+class _PlanAnchor:
+    id: str
+    x: float
+    y: float
+    z: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class _PlanParts:
+    """Every key but ``bounds``: a plan file's and a map sidecar's common part."""
+
+    name: str | None = None
+    description: str = ""
+    walls: Annotated[tuple[Segment4, ...], Setting(what="a list of [x1, y1, x2, y2] segments")] = ()
+    obstacles: tuple[_Area, ...] = ()
+    cliffs: tuple[_Area, ...] = ()
+    doors: dict[str, Segment4] = field(default_factory=dict)
+    starts: dict[str, Annotated[_Start, Setting(what="a table { x = ..., y = ..., theta_deg = ... }")]] = field(
+        default_factory=dict
+    )
+    start_grid: tuple[_StartGrid, ...] = ()
+    anchors: tuple[_PlanAnchor, ...] = ()
+
+
+@dataclass(frozen=True, kw_only=True)
+class PlanFile(_PlanParts):
+    """A plan TOML file (docs/field-plans.md)."""
+
+    bounds: Annotated[tuple[float, float, float, float], Setting(what="[xmin, ymin, xmax, ymax]")]
+    walls: Annotated[tuple[Segment4, ...], Setting(required=True, what="a list of [x1, y1, x2, y2] segments")] = ()
+
+
+@dataclass(frozen=True, kw_only=True)
+class MapSidecar(_PlanParts):
+    """``<map>.plan.toml`` beside a ROS map: a plan file without ``bounds``, plus ``unknown_is_wall``."""
+
+    unknown_is_wall: bool = True
+
+
+def _parts(f: _PlanParts, source: str) -> dict[str, Any]:
+    """FloorPlan keyword arguments from a parsed file (grid starts written out one by one)."""
+    starts = {k: Pose(v.x, v.y, math.radians(v.theta_deg)) for k, v in f.starts.items()}
+    for i, g in enumerate(f.start_grid):
+        theta = math.radians(g.theta_deg)
+        width = max(2, len(str(g.nx * g.ny)))
         index = 0
-        for row in range(ny):
-            for col in range(nx):
+        for row in range(g.ny):
+            for col in range(g.nx):
                 index += 1
-                name = f"{prefix}{index:0{width}d}"
+                name = f"{g.prefix}{index:0{width}d}"
                 if name in starts:
-                    raise r.fail(where, f"start {name!r} already exists")
-                starts[name] = Pose(x0 + col * dx, y0 + row * dy, theta)
-    parts["starts"] = starts
-    anchors = []
-    for i, t in enumerate(r.tables(data, "anchors")):
-        where = f"anchors[{i}]"
-        r.keys(t, where, {"id", "x", "y", "z"}, {"id", "x", "y", "z"})
-        aid = r.text(t["id"], f"{where}.id")
-        anchors.append(Anchor(aid, *(r.number(t[c], f"{where}.{c}") for c in "xyz")))
-    parts["anchors"] = tuple(anchors)
-    return parts
+                    raise PlanError.at(source, f"start_grid[{i}]", f"start {name!r} already exists")
+                starts[name] = Pose(g.x0 + col * g.dx, g.y0 + row * g.dy, theta)
+    return {
+        "description": f.description,
+        "walls": f.walls,
+        "obstacles": tuple(a.polygon for a in f.obstacles),
+        "cliffs": tuple(a.polygon for a in f.cliffs),
+        "doors": dict(f.doors),
+        "starts": starts,
+        "anchors": tuple(Anchor(a.id, a.x, a.y, a.z) for a in f.anchors),
+    }
 
 
 def parse_plan(data: Mapping[str, Any], source: str = "<memory>", default_name: str = "plan") -> FloorPlan:
     """A plan from decoded TOML (a dict); raises PlanError naming ``source``, the key and the problem."""
-    r = _Reader(source)
-    r.keys(data, "top level", _TOP_KEYS, {"bounds", "walls"})
-    name = r.text(data["name"], "name") if "name" in data else default_name
-    b = r.numbers(data["bounds"], "bounds", 4, "[xmin, ymin, xmax, ymax]")
-    parts = _parse_parts(r, data)
-    return FloorPlan(name=name, bounds=(b[0], b[1], b[2], b[3]), source=source, **parts)
+    f = parse(data, PlanFile, source=source, error=PlanError)
+    return FloorPlan(name=f.name or default_name, bounds=f.bounds, source=source, **_parts(f, source))
 
 
 def _read_toml(path: Path) -> dict[str, Any]:
@@ -498,16 +515,11 @@ def plan_from_map(
     ``extras`` is a decoded sidecar TOML (every plan key but ``bounds``). Bounds are the grid's extent.
     """
     src = source or occ.source
-    r = _Reader(src)
-    data = dict(extras or {})
-    r.keys(data, "top level", _SIDECAR_KEYS)
-    if "unknown_is_wall" in data:
-        flag = data.pop("unknown_is_wall")
-        if not isinstance(flag, bool):
-            raise r.fail("unknown_is_wall", f"expected true or false, got {flag!r}")
-        unknown_is_wall = flag
-    plan_name = r.text(data["name"], "name") if "name" in data else name
-    parts = _parse_parts(r, data)
+    sidecar = parse(extras or {}, MapSidecar, source=src, error=PlanError)
+    if extras and "unknown_is_wall" in extras:
+        unknown_is_wall = sidecar.unknown_is_wall
+    plan_name = sidecar.name or name
+    parts = _parts(sidecar, src)
     segs = occ.segments(unknown_is_wall)
     map_walls = tuple((float(a), float(b), float(c), float(d)) for a, b, c, d in segs)
     parts["walls"] = map_walls + parts["walls"]

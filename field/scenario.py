@@ -1,47 +1,79 @@
 """Scenario files: which plan, which robots where, how noisy, which seed, how long, and what happens.
 
-A scenario is TOML (docs/field-scenarios.md). ``load_scenario`` validates it and reports problems
-with the file, the key and the reason; nothing is half-loaded.
+A scenario is TOML (docs/field-scenarios.md), declared here as dataclasses and read by the one
+configuration mechanism (``shared/config.py``): ``load_scenario`` validates it and reports problems
+with the file, the dotted key and the reason; nothing is half-loaded.
+
+Events are a small family of frozen dataclasses told apart by ``kind``: world events the field
+applies itself (doors, obstacles, board link cuts, wheel slip, the home button) and operator
+commands (teleop bursts, goals, instant actions, marks) and network link cuts that a run hands to
+its operator side (``field/events.py``).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+import typing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Annotated, ClassVar, Literal
 
-from fleetlink.shared.config import TomlReader, read_toml
+from fleetlink.shared.config import ConfigError, Invalid, Setting, parse, read_toml
+from fleetlink.shared.messages import MAX_MARK_LABEL, ActionType
 
 __all__ = [
+    "COMMAND_KINDS",
+    "DRIVES",
+    "EVENT_KINDS",
+    "TELEOP_PERIOD_S",
+    "ActionOrder",
+    "DoorClose",
+    "DoorOpen",
     "Event",
+    "GoalOrder",
     "LidarSettings",
+    "LinkCut",
+    "LinkState",
+    "MarkPlaced",
     "Noise",
+    "Obstacle",
+    "PressHome",
     "RobotSpec",
     "Scenario",
     "ScenarioError",
+    "TeleopBurst",
+    "WheelSlip",
     "load_scenario",
     "parse_scenario",
 ]
 
-EVENT_KINDS = ("door_close", "door_open", "link_cut", "wheel_slip", "obstacle", "press_home")
-DRIVES = ("wander", "script", "idle")
+Drive = Literal["wander", "script", "idle", "agent"]
+DRIVES: tuple[str, ...] = typing.get_args(Drive)
+"""wander | script | idle: stand-in drivers; agent: a real agent drives the robot (lockstep runs)."""
+
+TELEOP_PERIOD_S = 0.25
+"""A teleop burst is one Teleop message every this many seconds for its duration."""
 
 
-class ScenarioError(ValueError):
+class ScenarioError(ConfigError):
     """A scenario file that cannot be used, with the place and the reason."""
+
+
+def _sd(doc: str) -> Setting:
+    return Setting(lo=0.0, doc=doc)
 
 
 @dataclass(frozen=True, slots=True)
 class Noise:
-    wheel_scale_sd: float = 0.01  # sd of each wheel's true/nominal radius ratio, drawn once per robot
-    gyro_bias_sd: float = 0.002  # rad/s, drawn once per robot
-    gyro_noise_sd: float = 0.005  # rad/s per control tick
-    ultrasonic_sd: float = 0.005  # m
-    lidar_range_sd: float = 0.01  # m
-    lidar_dropout: float = 0.01  # probability a lidar sample returns nothing
-    uwb_range_sd: float = 0.10  # m (for the positioning system)
+    wheel_scale_sd: Annotated[float, _sd("sd of each wheel's true/nominal radius ratio, drawn once per robot")] = 0.01
+    gyro_bias_sd: Annotated[float, _sd("rad/s, drawn once per robot")] = 0.002
+    gyro_noise_sd: Annotated[float, _sd("rad/s per control tick")] = 0.005
+    ultrasonic_sd: Annotated[float, _sd("m")] = 0.005
+    lidar_range_sd: Annotated[float, _sd("m")] = 0.01
+    lidar_dropout: Annotated[
+        float, Setting(lo=0.0, hi=1.0, what="a probability (0-1)", doc="probability a lidar sample returns nothing")
+    ] = 0.01
+    uwb_range_sd: Annotated[float, _sd("m (for the positioning system)")] = 0.10
 
     @classmethod
     def none(cls) -> Noise:
@@ -51,60 +83,283 @@ class Noise:
 @dataclass(frozen=True, slots=True)
 class LidarSettings:
     enabled: bool = True
-    rate_hz: float = 10.0
-    samples_per_second: float = 8000.0
+    rate_hz: Annotated[float, Setting(lo=1.0, hi=20.0, doc="revolutions per second")] = 10.0
+    samples_per_second: Annotated[float, Setting(lo=100.0, hi=32000.0, doc="measurements a second")] = 8000.0
     """Measurements a second (the RPLIDAR A1's 8000); a turn has ``samples_per_second / rate_hz``."""
+
+
+def _pose_from_degrees(p: tuple[float, float, float]) -> tuple[float, float, float]:
+    return (p[0], p[1], math.radians(p[2]))
+
+
+Name = Annotated[str, Setting(min_len=1)]
+ScriptRow = Annotated[tuple[float, float, float], Setting(what="[t_s, v_m_per_s, omega_rad_per_s]")]
+Point = Annotated[tuple[float, float], Setting(what="[x, y]")]
 
 
 @dataclass(frozen=True, slots=True)
 class RobotSpec:
-    name: str
-    pose: tuple[float, float, float] | None = None  # x, y, theta (rad); None: use ``start``
-    start: str | None = None  # a named start pose of the plan
-    drive: str = "wander"  # wander | script | idle
-    script: tuple[tuple[float, float, float], ...] = ()  # (t_s, v m/s, omega rad/s), held until the next
-    speed: float = 0.25  # cruise speed for wander, m/s
-    wheel_track: float = 0.22
+    name: Name
+    pose: Annotated[
+        tuple[float, float, float] | None,
+        Setting(what="[x_m, y_m, theta_deg]", convert=_pose_from_degrees, doc="x m, y m, heading in degrees"),
+    ] = None  # x, y, theta (rad); None: use ``start``
+    start: Annotated[str | None, Setting(min_len=1, doc="a named start pose of the plan")] = None
+    drive: Annotated[Drive, Setting(doc="wander | script | idle (stand-ins) | agent (a real agent)")] = "wander"
+    script: tuple[ScriptRow, ...] = ()  # (t_s, v m/s, omega rad/s), held until the next
+    speed: Annotated[float, Setting(lo=0.0, hi=1.0, doc="cruise speed for wander, m/s")] = 0.25
+    wheel_track: Annotated[float, Setting(lo=0.05, hi=1.0, doc="m")] = 0.22
     lidar: bool = True
+
+    def validate(self) -> None:
+        if (self.pose is None) == (self.start is None):
+            raise Invalid("", "give exactly one of start (a named start of the plan) or pose")
+        for j in range(1, len(self.script)):
+            if self.script[j][0] < self.script[j - 1][0]:
+                raise Invalid(f"script[{j}]", "times must not go backwards")
+        if self.drive == "script" and not self.script:
+            raise Invalid("script", 'drive = "script" needs a script')
 
 
 @dataclass(frozen=True, slots=True)
-class Event:
-    at: float  # s
-    kind: str
-    robot: str | None = None
-    door: str | None = None
-    duration: float = 0.0
-    wheel: str = "left"
-    fraction: float = 0.5
-    polygon: tuple[tuple[float, float], ...] = ()
+class AnchorSpec:
+    id: Name
+    x: float
+    y: float
+    z: Annotated[float, Setting(doc="m above the floor")] = 2.4
+
+
+def _anchor_rows(anchors: tuple[AnchorSpec, ...]) -> tuple[tuple[str, float, float, float], ...]:
+    return tuple((a.id, a.x, a.y, a.z) for a in anchors)
+
+
+# -- events ----------------------------------------------------------------------------------------
+
+At = Annotated[float, Setting(key="at_s", lo=0.0, doc="s from the start")]
+Seconds = Annotated[float, Setting(key="duration_s", lo=0.0, doc="s")]
+
+
+@dataclass(frozen=True, slots=True)
+class DoorClose:
+    kind: ClassVar[str] = "door_close"
+    at: At
+    door: Name
 
     def describe(self) -> str:
-        what = {
-            "door_close": f"door {self.door} closes",
-            "door_open": f"door {self.door} opens",
-            "link_cut": f"board link of {self.robot} cut for {self.duration:g} s",
-            "wheel_slip": f"{self.wheel} wheel of {self.robot} slips {self.fraction:.0%} for {self.duration:g} s",
-            "obstacle": f"an obstacle appears ({len(self.polygon)} corners)",
-            "press_home": f"someone presses the home button on {self.robot}",
-        }[self.kind]
-        return f"t={self.at:g} s: {what}"
+        return f"t={self.at:g} s: door {self.door} closes"
+
+
+@dataclass(frozen=True, slots=True)
+class DoorOpen:
+    kind: ClassVar[str] = "door_open"
+    at: At
+    door: Name
+
+    def describe(self) -> str:
+        return f"t={self.at:g} s: door {self.door} opens"
+
+
+@dataclass(frozen=True, slots=True)
+class Obstacle:
+    kind: ClassVar[str] = "obstacle"
+    at: At
+    polygon: Annotated[tuple[Point, ...], Setting(min_len=3, what="at least 3 [x, y] points")]
+
+    def describe(self) -> str:
+        return f"t={self.at:g} s: an obstacle appears ({len(self.polygon)} corners)"
+
+
+@dataclass(frozen=True, slots=True)
+class LinkCut:
+    """The robot's board link is cut, and restored ``duration`` later."""
+
+    kind: ClassVar[str] = "link_cut"
+    at: At
+    robot: Name
+    duration: Seconds = 3.0
+
+    def describe(self) -> str:
+        return f"t={self.at:g} s: board link of {self.robot} cut for {self.duration:g} s"
+
+
+@dataclass(frozen=True, slots=True)
+class WheelSlip:
+    kind: ClassVar[str] = "wheel_slip"
+    at: At
+    robot: Name
+    duration: Seconds = 3.0
+    wheel: Literal["left", "right"] = "left"
+    fraction: Annotated[float, Setting(lo=0.0, hi=1.0, doc="share of the wheel's turn lost")] = 0.5
+
+    def describe(self) -> str:
+        return f"t={self.at:g} s: {self.wheel} wheel of {self.robot} slips {self.fraction:.0%} for {self.duration:g} s"
+
+
+@dataclass(frozen=True, slots=True)
+class PressHome:
+    kind: ClassVar[str] = "press_home"
+    at: At
+    robot: Name
+
+    def describe(self) -> str:
+        return f"t={self.at:g} s: someone presses the home button on {self.robot}"
+
+
+@dataclass(frozen=True, slots=True)
+class TeleopBurst:
+    """An operator drives ``robot`` at (v, omega): one Teleop every ``TELEOP_PERIOD_S`` for ``duration``."""
+
+    kind: ClassVar[str] = "teleop"
+    at: At
+    robot: Name
+    duration: Annotated[float, Setting(key="duration_s", lo=0.0, required=True, doc="s")]
+    v: Annotated[float, Setting(lo=-5.0, hi=5.0, doc="m/s, forward")] = 0.0
+    omega: Annotated[float, Setting(lo=-20.0, hi=20.0, doc="rad/s, counter-clockwise")] = 0.0
+
+    def describe(self) -> str:
+        return f"t={self.at:g} s: operator drives {self.robot} at {self.v:g} m/s, {self.omega:g} rad/s for {self.duration:g} s"
+
+
+def _radians(deg: float) -> float:
+    return math.radians(deg)
+
+
+@dataclass(frozen=True, slots=True)
+class GoalOrder:
+    """An operator sends ``robot`` to (x, y), facing ``theta`` (radians; None: any heading)."""
+
+    kind: ClassVar[str] = "goal"
+    at: At
+    robot: Name
+    x: Annotated[float, Setting(doc="m, map frame")]
+    y: Annotated[float, Setting(doc="m, map frame")]
+    theta: Annotated[float | None, Setting(key="theta_deg", convert=_radians, doc="final heading, degrees")] = None
+
+    def describe(self) -> str:
+        facing = "" if self.theta is None else f" facing {math.degrees(self.theta):g} deg"
+        return f"t={self.at:g} s: operator sends {self.robot} to ({self.x:g}, {self.y:g}){facing}"
+
+
+Action = Literal["stop", "pause", "resume", "cancel", "estop", "estop_release", "return_home"]
+_ACTION_TYPES = {
+    "stop": ActionType.STOP,
+    "pause": ActionType.PAUSE,
+    "resume": ActionType.RESUME,
+    "cancel": ActionType.CANCEL,
+    "estop": ActionType.ESTOP,
+    "estop_release": ActionType.ESTOP_RELEASE,
+    "return_home": ActionType.RETURN_HOME,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class ActionOrder:
+    """An operator's instant action to ``robot``."""
+
+    kind: ClassVar[str] = "action"
+    at: At
+    robot: Name
+    action: Action
+
+    @property
+    def action_type(self) -> ActionType:
+        """The wire contract's name for it (``estop_release`` is ``estopRelease``)."""
+        return _ACTION_TYPES[self.action]
+
+    def describe(self) -> str:
+        return f"t={self.at:g} s: operator sends {self.action} to {self.robot}"
+
+
+@dataclass(frozen=True, slots=True)
+class MarkPlaced:
+    """An operator marks a point of interest (``mark_kind``: casualty, hazard, note, ...)."""
+
+    kind: ClassVar[str] = "mark"
+    at: At
+    x: Annotated[float, Setting(doc="m, map frame")]
+    y: Annotated[float, Setting(doc="m, map frame")]
+    mark_kind: Annotated[str, Setting(min_len=1, max_len=32, doc="casualty, hazard, note, ...")] = "casualty"
+    label: Annotated[str, Setting(max_len=MAX_MARK_LABEL)] = ""
+    robot: Annotated[str | None, Setting(min_len=1, doc="the robot the operator works with")] = None
+
+    def describe(self) -> str:
+        label = f" {self.label!r}" if self.label else ""
+        return f"t={self.at:g} s: operator marks a {self.mark_kind}{label} at ({self.x:g}, {self.y:g})"
+
+
+@dataclass(frozen=True, slots=True)
+class LinkState:
+    """One of ``robot``'s links goes down (``cut``) or comes back (``restore``).
+
+    ``board`` is the robot's control-board link (as ``link_cut``, without the automatic restore);
+    ``zenoh``, ``mqtt`` and ``lidar`` are for the run's link layer to cut.
+    """
+
+    kind: ClassVar[str] = "link"
+    at: At
+    robot: Name
+    link: Literal["zenoh", "mqtt", "board", "lidar"]
+    state: Literal["cut", "restore"]
+
+    def describe(self) -> str:
+        return f"t={self.at:g} s: {self.link} link of {self.robot} {'cut' if self.state == 'cut' else 'restored'}"
+
+
+Event = (
+    DoorClose
+    | DoorOpen
+    | Obstacle
+    | LinkCut
+    | WheelSlip
+    | PressHome
+    | TeleopBurst
+    | GoalOrder
+    | ActionOrder
+    | MarkPlaced
+    | LinkState
+)
+EVENT_KINDS: tuple[str, ...] = tuple(c.kind for c in typing.get_args(Event))
+COMMAND_KINDS = ("teleop", "goal", "action", "mark")
+"""Operator commands: a run hands them to its operator side (``EventRunner(on_command=...)``)."""
+
+
+# -- the file --------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True, slots=True)
 class Scenario:
     name: str
-    plan: str  # a built-in plan name, or a path (resolved against the scenario's folder)
-    seed: int = 0
-    duration: float = 60.0
-    robots: tuple[RobotSpec, ...] = ()
-    anchors: tuple[tuple[str, float, float, float], ...] = ()  # overrides the plan's when given
+    plan: Annotated[str, Setting(min_len=1, required=True, doc="a built-in plan name, or a path")]
+    seed: Annotated[int, Setting(lo=0, hi=2**63 - 1, doc="every random draw derives from it")] = 0
+    duration: Annotated[float, Setting(key="duration_s", lo=0.0, doc="s")] = 60.0
+    robots: Annotated[tuple[RobotSpec, ...], Setting(min_len=1, required=True)] = ()
+    anchors: Annotated[
+        tuple[tuple[str, float, float, float], ...],
+        Setting(read_as=tuple[AnchorSpec, ...], convert=_anchor_rows, doc="replaces the plan's UWB anchors"),
+    ] = ()  # (id, x, y, z); overrides the plan's when given
     noise: Noise = field(default_factory=Noise)
     lidar: LidarSettings = field(default_factory=LidarSettings)
     events: tuple[Event, ...] = ()
-    truth_rate_hz: float = 20.0
-    control_period: float = 0.01
-    source: str = "<memory>"
+    truth_rate_hz: Annotated[float, Setting(lo=0.1, hi=1000.0, doc="ground-truth samples a second")] = 20.0
+    control_period: Annotated[float, Setting(key="control_period_s", lo=0.001, hi=0.05, doc="physics sub-step, s")] = (
+        0.01
+    )
+    description: str = ""
+    source: Annotated[str, Setting(read=False)] = "<memory>"
+
+    def validate(self) -> None:
+        names: set[str] = set()
+        for i, rb in enumerate(self.robots):
+            if rb.name in names:
+                raise Invalid(f"robots[{i}].name", f"robot {rb.name!r} appears twice")
+            names.add(rb.name)
+        for i, a in enumerate(self.anchors):
+            if any(b[0] == a[0] for b in self.anchors[:i]):
+                raise Invalid(f"anchors[{i}].id", f"anchor {a[0]!r} appears twice")
+        for i, ev in enumerate(self.events):
+            robot = getattr(ev, "robot", None)
+            if robot is not None and robot not in names:
+                raise Invalid(f"events[{i}].robot", f"no robot named {robot!r} in this scenario")
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -116,206 +371,15 @@ def load_scenario(path: str | Path) -> Scenario:
     return replace(scenario, plan=plan)
 
 
-class _Reader(TomlReader):
-    """Scenario-flavoured helpers on the shared TOML reader: optional keys with defaults."""
+def parse_scenario(data: typing.Mapping[str, typing.Any], source: str = "<memory>") -> Scenario:
+    """A scenario from decoded TOML; ``ScenarioError`` naming ``source``, the key and the problem.
 
-    def __init__(self, source: str) -> None:
-        super().__init__(source, ScenarioError)
-
-    def opt_num(
-        self,
-        table: Mapping[str, Any],
-        key: str,
-        where: str,
-        default: float,
-        lo: float | None = None,
-        hi: float | None = None,
-    ) -> float:
-        return default if key not in table else self.number(table[key], f"{where}.{key}", lo, hi)
-
-    def req_num(self, table: Mapping[str, Any], key: str, where: str, lo: float | None = None) -> float:
-        if key not in table:
-            raise self.fail(where, f"missing key {key}")
-        return self.number(table[key], f"{where}.{key}", lo)
-
-    def opt_text(self, table: Mapping[str, Any], key: str, where: str, default: str) -> str:
-        return default if key not in table else self.text(table[key], f"{where}.{key}", nonempty=True)
-
-    def req_text(self, table: Mapping[str, Any], key: str, where: str) -> str:
-        if key not in table:
-            raise self.fail(where, f"missing key {key}")
-        return self.text(table[key], f"{where}.{key}", nonempty=True)
-
-    def opt_flag(self, table: Mapping[str, Any], key: str, where: str, default: bool) -> bool:
-        return default if key not in table else self.flag(table[key], f"{where}.{key}")
-
-
-def parse_scenario(data: Mapping[str, Any], source: str = "<memory>") -> Scenario:
-    r = _Reader(source)
-    r.keys(
-        data,
-        "top level",
-        {
-            "name",
-            "plan",
-            "seed",
-            "duration_s",
-            "robots",
-            "anchors",
-            "noise",
-            "lidar",
-            "events",
-            "truth_rate_hz",
-            "control_period_s",
-            "description",
-        },
-        {"plan", "robots"},
-    )
-    name = r.opt_text(data, "name", "top level", Path(source).stem)
-    plan = r.req_text(data, "plan", "top level")
-    seed = data.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise r.fail("seed", f"expected a non-negative integer, got {seed!r}")
-    duration = r.opt_num(data, "duration_s", "top level", 60.0, lo=0.0)
-    truth_rate = r.opt_num(data, "truth_rate_hz", "top level", 20.0, lo=0.1, hi=1000.0)
-    control = r.opt_num(data, "control_period_s", "top level", 0.01, lo=0.001, hi=0.05)
-
-    nt = r.table(data, "noise")
-    r.keys(nt, "noise", set(Noise.__dataclass_fields__))
-    noise = Noise(**{k: r.opt_num(nt, k, "noise", getattr(Noise(), k), lo=0.0) for k in Noise.__dataclass_fields__})
-    if noise.lidar_dropout > 1.0:
-        raise r.fail("noise.lidar_dropout", "is a probability (0-1)")
-
-    lt = r.table(data, "lidar")
-    r.keys(lt, "lidar", {"enabled", "rate_hz", "samples_per_second"})
-    lidar = LidarSettings(
-        r.opt_flag(lt, "enabled", "lidar", True),
-        r.opt_num(lt, "rate_hz", "lidar", 10.0, lo=1.0, hi=20.0),
-        r.opt_num(lt, "samples_per_second", "lidar", 8000.0, lo=100.0, hi=32000.0),
-    )
-
-    robots: list[RobotSpec] = []
-    for i, t in enumerate(r.tables(data, "robots")):
-        where = f"robots[{i}]"
-        r.keys(t, where, {"name", "start", "pose", "drive", "script", "speed", "wheel_track", "lidar"}, {"name"})
-        rname = r.req_text(t, "name", where)
-        if any(x.name == rname for x in robots):
-            raise r.fail(f"{where}.name", f"robot {rname!r} appears twice")
-        pose = None
-        if "pose" in t:
-            pv = t["pose"]
-            if not (
-                isinstance(pv, list)
-                and len(pv) == 3
-                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pv)
-            ):
-                raise r.fail(f"{where}.pose", "expected [x_m, y_m, theta_deg]")
-            if not all(math.isfinite(v) for v in pv):
-                raise r.fail(f"{where}.pose", "values must be finite")
-            pose = (float(pv[0]), float(pv[1]), math.radians(float(pv[2])))
-        start = t.get("start")
-        if start is not None and not isinstance(start, str):
-            raise r.fail(f"{where}.start", "expected the name of a start pose of the plan")
-        if (pose is None) == (start is None):
-            raise r.fail(where, "give exactly one of start (a named start of the plan) or pose")
-        drive = r.opt_text(t, "drive", where, "wander")
-        if drive not in DRIVES:
-            raise r.fail(f"{where}.drive", f"expected one of {', '.join(DRIVES)}, got {drive!r}")
-        script: list[tuple[float, float, float]] = []
-        for j, row in enumerate(t.get("script", [])):
-            if not (
-                isinstance(row, list)
-                and len(row) == 3
-                and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in row)
-            ):
-                raise r.fail(f"{where}.script[{j}]", "expected [t_s, v_m_per_s, omega_rad_per_s] with finite numbers")
-            if script and row[0] < script[-1][0]:
-                raise r.fail(f"{where}.script[{j}]", "times must not go backwards")
-            script.append((float(row[0]), float(row[1]), float(row[2])))
-        if drive == "script" and not script:
-            raise r.fail(f"{where}.script", 'drive = "script" needs a script')
-        robots.append(
-            RobotSpec(
-                rname,
-                pose,
-                start,
-                drive,
-                tuple(script),
-                r.opt_num(t, "speed", where, 0.25, lo=0.0, hi=1.0),
-                r.opt_num(t, "wheel_track", where, 0.22, lo=0.05, hi=1.0),
-                r.opt_flag(t, "lidar", where, True),
-            )
-        )
-    if not robots:
-        raise r.fail("robots", "a scenario needs at least one robot")
-
-    anchors: list[tuple[str, float, float, float]] = []
-    for i, t in enumerate(r.tables(data, "anchors")):
-        where = f"anchors[{i}]"
-        r.keys(t, where, {"id", "x", "y", "z"}, {"id", "x", "y"})
-        aid = r.req_text(t, "id", where)
-        if any(a[0] == aid for a in anchors):
-            raise r.fail(f"{where}.id", f"anchor {aid!r} appears twice")
-        anchors.append((aid, r.req_num(t, "x", where), r.req_num(t, "y", where), r.opt_num(t, "z", where, 2.4)))
-
-    names = {rb.name for rb in robots}
-    events: list[Event] = []
-    for i, t in enumerate(r.tables(data, "events")):
-        where = f"events[{i}]"
-        r.keys(
-            t, where, {"at_s", "kind", "robot", "door", "duration_s", "wheel", "fraction", "polygon"}, {"at_s", "kind"}
-        )
-        kind = r.req_text(t, "kind", where)
-        if kind not in EVENT_KINDS:
-            raise r.fail(f"{where}.kind", f"expected one of {', '.join(EVENT_KINDS)}, got {kind!r}")
-        robot = t.get("robot")
-        if kind in ("link_cut", "wheel_slip", "press_home"):
-            robot = r.req_text(t, "robot", where)
-            if robot not in names:
-                raise r.fail(f"{where}.robot", f"no robot named {robot!r} in this scenario")
-        door = r.req_text(t, "door", where) if kind in ("door_close", "door_open") else None
-        polygon: list[tuple[float, float]] = []
-        if kind == "obstacle":
-            pts = t.get("polygon")
-            if not (
-                isinstance(pts, list)
-                and len(pts) >= 3
-                and all(
-                    isinstance(q, list)
-                    and len(q) == 2
-                    and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in q)
-                    for q in pts
-                )
-            ):
-                raise r.fail(f"{where}.polygon", "expected at least 3 [x, y] points with finite numbers")
-            polygon = [(float(q[0]), float(q[1])) for q in pts]
-        wheel = r.opt_text(t, "wheel", where, "left")
-        if wheel not in ("left", "right"):
-            raise r.fail(f"{where}.wheel", "expected left or right")
-        events.append(
-            Event(
-                r.req_num(t, "at_s", where, lo=0.0),
-                kind,
-                robot,
-                door,
-                r.opt_num(t, "duration_s", where, 0.0 if kind not in ("link_cut", "wheel_slip") else 3.0, lo=0.0),
-                wheel,
-                r.opt_num(t, "fraction", where, 0.5, lo=0.0, hi=1.0),
-                tuple(polygon),
-            )
-        )
-    events.sort(key=lambda e: e.at)
-    return Scenario(
-        name=name,
-        plan=plan,
-        seed=seed,
-        duration=duration,
-        robots=tuple(robots),
-        anchors=tuple(anchors),
-        noise=noise,
-        lidar=lidar,
-        events=tuple(events),
-        truth_rate_hz=truth_rate,
-        control_period=control,
+    ``name`` defaults to the file's stem; events come out sorted by time (stable).
+    """
+    sc = parse({"name": "", **data}, Scenario, source=source, error=ScenarioError)
+    return replace(
+        sc,
+        name=sc.name or Path(source).stem,
+        events=tuple(sorted(sc.events, key=lambda e: e.at)),
         source=source,
     )

@@ -107,7 +107,8 @@ class Setting:
     ``Invalid``) whose text becomes the problem. ``read_as``: the type the file holds when it differs
     from the attribute's (``convert`` turns one into the other). ``what``: how to describe the
     expected value in a message (``"[x1, y1, x2, y2]"``). ``read``: False for fields the program
-    fills in (never a key of the file). ``doc``: one line for ``describe``.
+    fills in (never a key of the file). ``required``: the file must give it even though the
+    dataclass has a default (for code that builds one by hand). ``doc``: one line for ``describe``.
     """
 
     key: str | None = None
@@ -120,6 +121,7 @@ class Setting:
     read_as: Any = None
     what: str | None = None
     read: bool = True
+    required: bool = False
     doc: str = ""
 
     def over(self, inner: Setting) -> Setting:
@@ -197,7 +199,7 @@ def _got(value: object) -> str:
     shown = repr(value)
     if len(shown) > _MAX_SHOWN:
         shown = shown[: _MAX_SHOWN - 3] + "..."
-    return f"{type(value).__name__} {shown}"
+    return shown if isinstance(value, list) else f"{type(value).__name__} {shown}"
 
 
 def _num(v: float) -> str:
@@ -232,9 +234,9 @@ def _read(tp: Any, setting: Setting, value: Any, path: str) -> Any:
     out = _read_type(tp, setting, value, path)
     if isinstance(out, (int, float)):
         if setting.lo is not None and out < setting.lo:
-            raise Invalid(path, f"must be >= {_num(setting.lo)}, got {_num(out)}")
+            raise Invalid(path, f"must be >= {_num(setting.lo)}, got {_num(out)}{_expected(setting)}")
         if setting.hi is not None and out > setting.hi:
-            raise Invalid(path, f"must be <= {_num(setting.hi)}, got {_num(out)}")
+            raise Invalid(path, f"must be <= {_num(setting.hi)}, got {_num(out)}{_expected(setting)}")
     if setting.choices is not None and out not in setting.choices:
         raise _not_a_choice(path, out, setting.choices)
     if setting.convert is not None:
@@ -306,10 +308,16 @@ def _read_type(tp: Any, setting: Setting, value: Any, path: str) -> Any:
 
 
 def _check_len(n: int, setting: Setting, path: str, noun: str) -> None:
+    nouns = "entries" if noun == "entry" else f"{noun}s"
     if setting.min_len is not None and n < setting.min_len:
-        raise Invalid(path, f"needs at least {setting.min_len} {noun}, got {n}")
+        many = noun if setting.min_len == 1 else nouns
+        raise Invalid(path, f"needs at least {setting.min_len} {many}, got {n}{_expected(setting)}")
     if setting.max_len is not None and n > setting.max_len:
-        raise Invalid(path, f"takes at most {setting.max_len} {noun}, got {n}")
+        raise Invalid(path, f"takes at most {setting.max_len} {nouns}, got {n}{_expected(setting)}")
+
+
+def _expected(setting: Setting) -> str:
+    return f"; expected {setting.what}" if setting.what else ""
 
 
 def _read_array(tp: Any, origin: Any, setting: Setting, value: Any, path: str) -> Any:
@@ -325,7 +333,7 @@ def _read_array(tp: Any, origin: Any, setting: Setting, value: Any, path: str) -
         item_tp, _ = _unwrap(item, _NO_SETTING)
         shape = "an array of tables" if _is_table_type(item_tp) else "a list"
         raise Invalid(path, f"expected {setting.what or shape}, got {_got(value)}")
-    _check_len(len(value), setting, path, "items")
+    _check_len(len(value), setting, path, "item")
     items = [_read(item, _NO_SETTING, v, f"{path}[{i}]") for i, v in enumerate(value)]
     return tuple(items) if origin is tuple else items
 
@@ -344,7 +352,7 @@ def _read_named(tp: Any, setting: Setting, value: Any, path: str) -> dict[str, A
     item = args[1] if len(args) == 2 else Any
     if not isinstance(value, dict):
         raise Invalid(path, f"expected {setting.what or 'a table'}, got {_got(value)}")
-    _check_len(len(value), setting, path, "entries")
+    _check_len(len(value), setting, path, "entry")
     return {k: _read(item, _NO_SETTING, v, _join(path, k)) for k, v in value.items()}
 
 
@@ -373,7 +381,7 @@ def _fields_of(cls: type[Any]) -> tuple[_Field, ...]:
         _, setting = _unwrap(hints[f.name], _NO_SETTING)
         if not setting.read:
             continue
-        required = f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+        required = setting.required or (f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING)
         default = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
         out.append(_Field(f.name, setting.key or f.name, hints[f.name], setting, required, default))
     _FIELDS[cls] = tuple(out)

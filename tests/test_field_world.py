@@ -12,7 +12,7 @@ import pytest
 from fleetlink.field.board import BoardConfig
 from fleetlink.field.lockstep import FieldRun, write_outputs
 from fleetlink.field.plans import load_plan
-from fleetlink.field.scenario import Event, LidarSettings, Noise, RobotSpec, Scenario, parse_scenario
+from fleetlink.field.scenario import DoorClose, LidarSettings, Noise, RobotSpec, Scenario, parse_scenario
 from fleetlink.field.world import World
 
 ROOM = np.array([(0, 0, 10, 0), (10, 0, 10, 10), (10, 10, 0, 10), (0, 10, 0, 0)], dtype=float)
@@ -195,7 +195,7 @@ def test_robot_spec_and_unknown_start_are_reported() -> None:
     sc = Scenario(name="x", plan="office", robots=(RobotSpec("r", start="nowhere"),), lidar=LidarSettings(False))
     with pytest.raises(ValueError, match="no start 'nowhere'"):
         FieldRun(sc)
-    sc = replace(sc, robots=(RobotSpec("r", start="entrance"),), events=(Event(1.0, "door_close", door="x"),))
+    sc = replace(sc, robots=(RobotSpec("r", start="entrance"),), events=(DoorClose(1.0, "x"),))
     with pytest.raises(ValueError, match="no door 'x'"):
         FieldRun(sc)
 

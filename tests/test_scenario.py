@@ -72,11 +72,11 @@ polygon = [[1, 1], [2, 1], [2, 2]]
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"plan": None}, "missing key(s) plan"),
-        ({"colour": "red"}, "unknown key(s) colour"),
+        ({"plan": None}, "bad.toml: plan: missing required key"),
+        ({"colour": "red"}, "bad.toml: colour: unknown key; allowed: anchors,"),
         ({"seed": -1}, "seed"),
         ({"duration_s": float("nan")}, "duration_s: must be finite"),
-        ({"robots": []}, "at least one robot"),
+        ({"robots": []}, "bad.toml: robots: needs at least 1 item, got 0"),
         ({"robots": [{"name": "r1"}]}, "exactly one of start"),
         ({"robots": [{"name": "r1", "start": "dock"}, {"name": "r1", "start": "dock"}]}, "appears twice"),
         ({"robots": [{"name": "r1", "pose": [0, 0]}]}, "robots[0].pose"),
