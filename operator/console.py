@@ -174,7 +174,7 @@ class ConsoleApp(App[None]):
                 yield Input(placeholder="/ filter robots (id, mode, link)", id="filter")
                 yield FleetTable(id="fleet")
                 yield RobotDetail(id="detail")
-            yield MapView(self.fleet, lambda: self.selected, id="map")
+            yield MapView(self.fleet, lambda: self.selected, lock=self.lock, id="map")
         yield RichLog(id="notices", max_lines=500, markup=False, wrap=True)
         yield Input(
             placeholder=": goal X Y [THETA] | mark KIND X Y [LABEL] | home | payload on|off | stop", id="command"

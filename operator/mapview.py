@@ -8,7 +8,9 @@ model's version or the view changed.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -86,10 +88,20 @@ class MapView(Widget, can_focus=True):
             self.x = x
             self.y = y
 
-    def __init__(self, fleet: FleetModel, selected: Callable[[], str | None], **kwargs: object) -> None:
+    def __init__(
+        self,
+        fleet: FleetModel,
+        selected: Callable[[], str | None],
+        *,
+        lock: threading.Lock | None = None,
+        **kwargs: object,
+    ) -> None:
+        """``lock`` guards ``fleet`` when the widget redraws on its own (resize, wheel); the app
+        holds it when it calls ``update_view`` or ``fit``."""
         super().__init__(**kwargs)  # type: ignore[arg-type]
         self.fleet = fleet
         self.selected = selected
+        self._lock: contextlib.AbstractContextManager[object] = lock if lock is not None else contextlib.nullcontext()
         self.geometry = MapGeometry(80, 24)
         self._cells: dict[tuple[int, int], Cell] = {}
         self._drawn: tuple[object, ...] = ()
@@ -97,7 +109,8 @@ class MapView(Widget, can_focus=True):
 
     def on_resize(self, event: events.Resize) -> None:
         self._sync_size()
-        self.update_view()
+        with self._lock:
+            self.update_view()
 
     def _sync_size(self) -> None:
         size = self.content_size
@@ -114,7 +127,7 @@ class MapView(Widget, can_focus=True):
         self.refresh()
 
     def update_view(self) -> None:
-        """Redraw if anything the picture depends on changed (called by the app's timer)."""
+        """Redraw if anything the picture depends on changed (called on every frame of the app)."""
         self._sync_size()
         g = self.geometry
         key = (self.fleet.version, g.width, g.height, g.center_x, g.center_y, g.scale, self.selected())
@@ -220,8 +233,10 @@ class MapView(Widget, can_focus=True):
 
     def on_mouse_scroll_up(self, event: events.MouseScrollUp) -> None:
         self.geometry.zoom(1 / 1.25)
-        self.update_view()
+        with self._lock:
+            self.update_view()
 
     def on_mouse_scroll_down(self, event: events.MouseScrollDown) -> None:
         self.geometry.zoom(1.25)
-        self.update_view()
+        with self._lock:
+            self.update_view()
