@@ -32,7 +32,6 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from fleetlink.agent.board.session import BoardSnapshot
 from fleetlink.agent.fusion import Fusion
 from fleetlink.agent.guard import GuardInputs
 from fleetlink.agent.lease import ALWAYS_ALLOWED_ACTIONS, DRIVE_LEASE_S, LeaseKeeper
@@ -41,6 +40,7 @@ from fleetlink.agent.odometry import Odometry, OdomPose
 from fleetlink.agent.pilot import ActionKind, CommandResult, CommandStatus, PathProvider, Pilot, PilotEvent, PilotOutput
 from fleetlink.agent.pilot import OperatingMode as PilotMode
 from fleetlink.agent.uwb_input import FixObservation, fix_from_pans, fix_from_uwb
+from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 from fleetlink.shared import wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.messages import (

@@ -241,7 +241,7 @@ class AgentNode:
             self.published += 1
 
     def _payload(self, on: bool) -> None:
-        from fleetlink.agent.board import protocol as p
+        from fleetlink.devices.controlbus import protocol as p
 
         self.board.call(p.SetUvLamp(on))  # the disinfection payload: the UV-C lamp
 

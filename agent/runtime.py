@@ -34,7 +34,6 @@ from collections.abc import Callable
 from typing import Any
 
 from fleetlink.agent.board.session import BoardSession, PollRates
-from fleetlink.agent.board.transport import Port
 from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.core import AgentCore, Output, board_view
 from fleetlink.agent.fusion import Fusion
@@ -42,6 +41,7 @@ from fleetlink.agent.links.mqtt_link import MqttLink
 from fleetlink.agent.links.zenoh_link import ZenohLink
 from fleetlink.agent.odometry import Odometry
 from fleetlink.agent.pilot import Pilot, PilotConfig
+from fleetlink.devices.ports import Port
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock, SystemClock
 from fleetlink.shared.messages import Connection, ConnectionState, LeaseRequest, LinkName, LinkStatus, UwbFix
@@ -390,7 +390,7 @@ class AgentRuntime:
             self.published += 1
 
     def _payload(self, on: bool) -> None:
-        from fleetlink.agent.board import protocol as p
+        from fleetlink.devices.controlbus import protocol as p
 
         self.board.call(p.SetUvLamp(on))  # the disinfection payload: the UV-C lamp
 
@@ -403,6 +403,6 @@ class AgentRuntime:
 
 
 def _serial_opener(url: str) -> Callable[[], Port]:
-    from fleetlink.agent.board.transport import SerialPort
+    from fleetlink.devices.ports import SerialPort
 
     return lambda: SerialPort(url)

@@ -12,7 +12,7 @@ Three measurements, each with a baseline taken in the same run:
    no resync, no typing), printed beside the typed figure with their ratio; their runs are
    interleaved (best of N each) so that both see the same machine load. Also reported: the
    frame decoder alone (frames, not typed) and decode_reply alone, per reply type.
-2. Request round trip over TCP to the simulated board (``BoardServer`` + ``BoardClient`` over
+2. Request round trip over TCP to the simulated board (``DeviceServer`` + ``BoardClient`` over
    pyserial's ``socket://``): GetBaseStatus and SetVelocity. Baseline: a raw TCP ping-pong of the
    same request bytes with a trivial echo server.
 3. Recovery: the reply stream with 10 % of its bytes replaced at random (seeded). Ratio of the
@@ -42,12 +42,12 @@ import timeit
 from collections.abc import Callable
 from typing import Any
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.frames import Frame, FrameDecoder, checksum
-from fleetlink.agent.board.link import BoardClient
-from fleetlink.agent.board.transport import InProcessPort, SerialPort
+from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.controlbus.client import BoardClient
+from fleetlink.devices.controlbus.frames import Frame, FrameDecoder, checksum
+from fleetlink.devices.ports import InProcessPort, SerialPort
 from fleetlink.field.board import SimulatedBoard
-from fleetlink.field.board_server import BoardServer
+from fleetlink.field.device_server import DeviceServer
 from fleetlink.shared.clock import SystemClock
 
 CHUNK = 4096
@@ -275,8 +275,8 @@ def bench_rtt(quick: bool) -> dict[str, Any]:
     requests: list[p.Request] = [p.GetBaseStatus(), p.SetVelocity(0.0)]
     clock = SystemClock()
 
-    # The link: BoardClient -> pyserial socket:// -> BoardServer -> SimulatedBoard.
-    server = BoardServer(SimulatedBoard(), clock)
+    # The link: BoardClient -> pyserial socket:// -> DeviceServer -> SimulatedBoard.
+    server = DeviceServer(SimulatedBoard(), clock, name="board")
     port = server.serve_tcp()
     client = BoardClient(SerialPort(f"socket://127.0.0.1:{port}"), clock, timeout=0.5)
     per_type: dict[str, list[float]] = {type(r).__name__: [] for r in requests}

@@ -38,10 +38,11 @@ from typing import Any
 
 import numpy as np
 
-from fleetlink.agent.board.session import BoardSnapshot, PollRates
+from fleetlink.agent.board.session import PollRates
 from fleetlink.agent.fusion import Fusion, FusionConfig, SeedReset
 from fleetlink.agent.odometry import Odometry, OdomPose, wrap_angle
 from fleetlink.agent.uwb_input import FixObservation
+from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 
 SEED = 5
 TAG_Z = 0.3

@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fleetlink.agent.board.session import BoardSnapshot, PollRates
+from fleetlink.agent.board.session import PollRates
 from fleetlink.agent.fusion import Fusion
 from fleetlink.agent.guard import GuardInputs
 from fleetlink.agent.mapping.planner import PathPlanner
@@ -52,6 +52,7 @@ from fleetlink.agent.motion import wrap_angle
 from fleetlink.agent.odometry import Odometry
 from fleetlink.agent.pilot import EventKind, Pilot
 from fleetlink.agent.uwb_input import FixObservation
+from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 from fleetlink.field.lockstep import FieldRun
 from fleetlink.field.plans import FloorPlan, load_plan
 from fleetlink.field.scenario import LidarSettings, RobotSpec, Scenario

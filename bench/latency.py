@@ -3,7 +3,7 @@
     .venv/bin/python bench/latency.py [--trials N] [--json FILE]
 
 Everything on loopback in this process: a private Mosquitto (tests/harness), a simulated board
-served on TCP exactly as hardware would be (``BoardServer``), one ``AgentRuntime`` with both
+served on TCP exactly as hardware would be (``DeviceServer``), one ``AgentRuntime`` with both
 links, and an operator (a Zenoh peer + a paho client with TCP_NODELAY). Each trial publishes a
 teleop command (v = 0.2 m/s) on one link and timestamps, in the board server's reader thread,
 the arrival of the first SET_VELOCITY frame that asks for forward motion; then a stop action
@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from fleetlink.agent.config import AgentConfig, Rates, ZenohSettings, mqtt_settings
 from fleetlink.agent.runtime import AgentRuntime
 from fleetlink.field.board import SimulatedBoard
-from fleetlink.field.board_server import BoardServer
+from fleetlink.field.device_server import DeviceServer
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Action, ActionType, InstantActions, Teleop
@@ -187,7 +187,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         broker = MosquittoBroker(Path(tmp) / "mosquitto").start()
         timed = TimedBoard(SimulatedBoard())
-        server = BoardServer(timed, clock)  # type: ignore[arg-type]
+        server = DeviceServer(timed, clock, name="board")  # type: ignore[arg-type]
         port = server.serve_tcp()
         ep = f"tcp/127.0.0.1:{free_port()}"
         cfg = AgentConfig(

@@ -26,7 +26,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from fleetlink.agent.lidar import protocol as lp
+from fleetlink.devices.rplidar import protocol as lp
 from fleetlink.field.lidar import LidarConfig, LidarModel
 from fleetlink.field.raycast import Raycaster
 

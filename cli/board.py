@@ -62,9 +62,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_serve(args: argparse.Namespace) -> int:
-    from fleetlink.agent.board.protocol import Profile
+    from fleetlink.devices.controlbus.protocol import Profile
     from fleetlink.field.board import BoardConfig, SimulatedBoard
-    from fleetlink.field.board_server import BoardServer
+    from fleetlink.field.device_server import DeviceServer
     from fleetlink.field.floor import Floor
     from fleetlink.shared.clock import SystemClock
 
@@ -75,7 +75,7 @@ def run_serve(args: argparse.Namespace) -> int:
         Profile(ctrl_bus_cmd=args.ctrl_bus_cmd),
         pose=(w / 2, h / 2, 0.0),
     )
-    server = BoardServer(board, SystemClock())
+    server = DeviceServer(board, SystemClock(), name="board")
     if args.pty:
         where = server.serve_pty()
         print(f"simulated board on {where}  (connect with: fleetlink board probe {where})", flush=True)
@@ -97,9 +97,9 @@ def run_serve(args: argparse.Namespace) -> int:
 
 
 def run_probe(args: argparse.Namespace) -> int:
-    from fleetlink.agent.board import protocol as p
-    from fleetlink.agent.board.link import BoardClient, BoardError, BoardRefused
-    from fleetlink.agent.board.transport import PortClosed, SerialPort
+    from fleetlink.devices.controlbus import protocol as p
+    from fleetlink.devices.controlbus.client import BoardClient, BoardError, BoardRefused
+    from fleetlink.devices.ports import PortClosed, SerialPort
     from fleetlink.shared.clock import SystemClock
 
     clock = SystemClock()
@@ -149,8 +149,8 @@ def run_probe(args: argparse.Namespace) -> int:
 
 
 def _drive(client: object, clock: object, vx: float, omega: float, seconds: float) -> None:
-    from fleetlink.agent.board import protocol as p
-    from fleetlink.agent.board.link import BoardClient
+    from fleetlink.devices.controlbus import protocol as p
+    from fleetlink.devices.controlbus.client import BoardClient
     from fleetlink.shared.clock import SystemClock
 
     assert isinstance(client, BoardClient) and isinstance(clock, SystemClock)
@@ -175,7 +175,7 @@ def _drive(client: object, clock: object, vx: float, omega: float, seconds: floa
 
 
 def _describe(reply: object) -> str:
-    from fleetlink.agent.board import protocol as p
+    from fleetlink.devices.controlbus import protocol as p
 
     if isinstance(reply, p.BaseConf):
         return f"{'round' if reply.base_type == 0 else 'square'} base r={reply.radius:.3f} m, {len(reply.sensors)} range sensors, {len(reply.bumpers)} bumpers"

@@ -2,7 +2,7 @@
 
 Sans-I/O: ``receive(data, now)`` takes request bytes and returns reply bytes; ``step(now)``
 advances the firmware (wheel PID, encoders, battery, payload, link watchdog) and the robot's
-motion on a minimal floor. ``field.board_server`` serves it on TCP and on a pty; the lockstep
+motion on a minimal floor. ``field.device_server.DeviceServer`` serves it on TCP and on a pty; the lockstep
 field calls it in-process through the same bytes.
 """
 
@@ -13,8 +13,8 @@ import math
 import random
 from dataclasses import dataclass, field
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.frames import BOARD_BUFFER, Frame, FrameDecoder
+from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.controlbus.frames import BOARD_BUFFER, Frame, FrameDecoder
 from fleetlink.field.floor import Floor
 
 log = logging.getLogger(__name__)

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fleetlink.field.board_server import BoardServer
 from fleetlink.field.build import build_world, lidar_model
 from fleetlink.field.device_server import DeviceServer, Reactor
 from fleetlink.field.events import EventRunner
@@ -70,7 +69,7 @@ class RealtimeField:
         self.pty = pty
         self.lock = threading.Lock()
         self.world: World = build_world(scenario, self.plan)
-        self.boards: dict[str, BoardServer] = {}
+        self.boards: dict[str, DeviceServer] = {}
         self.lidars: dict[str, tuple[SimulatedRplidar, DeviceServer]] = {}
         self.endpoints: dict[str, Endpoints] = {}
         self._reactor: Reactor | None = None  # one selector thread serves every device's TCP socket
@@ -89,8 +88,8 @@ class RealtimeField:
             self._reactor = Reactor("field-devices")
         for i, (spec, robot) in enumerate(zip(self.scenario.robots, self.world.robots, strict=True)):
             robot.board.start_clock(0.0)
-            board_server = BoardServer(
-                robot.board, _Offset(self.clock, now), step_hz=None, lock=self.lock, reactor=self._reactor
+            board_server = DeviceServer(
+                robot.board, _Offset(self.clock, now), step_hz=None, lock=self.lock, name="board", reactor=self._reactor
             )
             board_url = self._serve(board_server)
             self.boards[spec.name] = board_server

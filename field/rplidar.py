@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from fleetlink.agent.board.transport import PortClosed
-from fleetlink.agent.lidar.protocol import (
+from fleetlink.devices.ports import PortClosed
+from fleetlink.devices.rplidar.protocol import (
     ANGLE_Q,
     HEALTH_ERROR,
     HEALTH_GOOD,

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import math
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.session import BoardSnapshot
+from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 
 
 def render(robot: str, snap: BoardSnapshot, now: float) -> list[str]:

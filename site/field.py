@@ -318,7 +318,7 @@ class OpenLoopBoards:
 
     def start(self) -> OpenLoopBoards:
         from fleetlink.agent.board.session import BoardSession
-        from fleetlink.agent.board.transport import SerialPort
+        from fleetlink.devices.ports import SerialPort
         from fleetlink.field.open_loop import motion_for
 
         for i, spec in enumerate(self.field.scenario.robots):

@@ -35,10 +35,10 @@ from typing import Any
 import msgpack
 
 from fleetlink.agent.board.session import BoardSession
-from fleetlink.agent.board.transport import InProcessPort
 from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.lidar.driver import LidarDriver
 from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed
+from fleetlink.devices.ports import InProcessPort
 from fleetlink.field.build import robot_seed
 from fleetlink.field.lockstep import FieldRun, RunResult, write_outputs
 from fleetlink.field.plans import FloorPlan, load_plan

@@ -20,7 +20,7 @@ from fleetlink.agent.config import AgentConfig, Rates, ZenohSettings, mqtt_setti
 from fleetlink.agent.links.gate import Accepted, CommandGate, Duplicate, Rejected
 from fleetlink.agent.runtime import AgentRuntime
 from fleetlink.field.board import SimulatedBoard
-from fleetlink.field.board_server import BoardServer
+from fleetlink.field.device_server import DeviceServer
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SimClock, SystemClock
 from fleetlink.shared.messages import (
@@ -190,7 +190,7 @@ def make_rig(mosquitto: MosquittoBroker, **overrides: Any) -> Iterator[Rig]:
     """An agent (config fields overridden by ``overrides``) on a simulated board, an operator on both links."""
     clock = SystemClock()
     board = SimulatedBoard()
-    server = BoardServer(board, clock)
+    server = DeviceServer(board, clock, name="board")
     port = server.serve_tcp()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     cfg = AgentConfig(

@@ -18,7 +18,7 @@ import zenoh
 from fleetlink.agent.config import AgentConfig, Rates, ZenohSettings, mqtt_settings
 from fleetlink.agent.runtime import AgentRuntime
 from fleetlink.field.board import SimulatedBoard
-from fleetlink.field.board_server import BoardServer
+from fleetlink.field.device_server import DeviceServer
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Ack, AckResult, State, Teleop
@@ -72,7 +72,7 @@ def test_agent_logs_in_to_the_secured_site_and_only_credentialed_operators_reach
     broker, router = site
     clock = SystemClock()
     board = SimulatedBoard()
-    server = BoardServer(board, clock)
+    server = DeviceServer(board, clock, name="board")
     port = server.serve_tcp()
     cfg = AgentConfig(
         robot="r1",

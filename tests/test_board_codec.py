@@ -1,4 +1,4 @@
-"""Inter-chip framing (agent/board/frames.py): reference frames, splits, resync, properties."""
+"""Inter-chip framing (devices/controlbus/frames.py): reference frames, splits, resync, properties."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.frames import (
+from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.controlbus.frames import (
     BOARD_BUFFER,
     FLAG_LONG,
     FLAG_STANDARD,

@@ -1,7 +1,7 @@
 """The master's Control Bus client against the simulated board, over real bytes.
 
 One suite, three transports: a real TCP socket and a pty (both through pyserial's
-``serial_for_url``, the board served by ``BoardServer`` in real time) and the in-process port under
+``serial_for_url``, the board served by ``DeviceServer`` in real time) and the in-process port under
 a ``SimClock`` (lockstep: simulated time moves only while the client waits).
 """
 
@@ -19,21 +19,28 @@ from typing import Any, ClassVar
 
 import pytest
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.frames import BOARD_BUFFER, FLAG_LONG, FLAG_STANDARD, Frame, FrameDecoder, encode_frame
-from fleetlink.agent.board.link import BoardClient, BoardProtocolError, BoardRefused
-from fleetlink.agent.board.transport import InProcessPort, Port, PortClosed, SerialPort
+from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.controlbus.client import BoardClient, BoardProtocolError, BoardRefused
+from fleetlink.devices.controlbus.frames import (
+    BOARD_BUFFER,
+    FLAG_LONG,
+    FLAG_STANDARD,
+    Frame,
+    FrameDecoder,
+    encode_frame,
+)
+from fleetlink.devices.ports import InProcessPort, Port, PortClosed, SerialPort
 from fleetlink.field.board import SimulatedBoard
-from fleetlink.field.board_server import BoardServer
+from fleetlink.field.device_server import DeviceServer
 from fleetlink.shared.clock import Clock, SimClock, SystemClock
 
 TRANSPORTS = ["tcp", "pty", "inproc"]
 
 
 @contextlib.contextmanager
-def serve_board(kind: str, board: SimulatedBoard | None = None) -> Iterator[tuple[BoardServer, str]]:
+def serve_board(kind: str, board: SimulatedBoard | None = None) -> Iterator[tuple[DeviceServer, str]]:
     """A simulated board served in real time on TCP or a pty: yields (server, url); stops it after."""
-    server = BoardServer(board or SimulatedBoard(), SystemClock())
+    server = DeviceServer(board or SimulatedBoard(), SystemClock(), name="board")
     try:
         url = f"socket://127.0.0.1:{server.serve_tcp()}" if kind == "tcp" else server.serve_pty()
         yield server, url
@@ -42,7 +49,7 @@ def serve_board(kind: str, board: SimulatedBoard | None = None) -> Iterator[tupl
 
 
 @pytest.fixture(params=["tcp", "pty"])
-def served_board(request: pytest.FixtureRequest) -> Iterator[tuple[BoardServer, str]]:
+def served_board(request: pytest.FixtureRequest) -> Iterator[tuple[DeviceServer, str]]:
     with serve_board(request.param) as served:
         yield served
 
@@ -73,7 +80,7 @@ class Rig:
     clock: Clock
     port: Tamper
     client: BoardClient
-    server: BoardServer | None = None
+    server: DeviceServer | None = None
 
     def locked(self) -> contextlib.AbstractContextManager[Any]:
         """Hold the server's lock while touching the board from the test thread."""
@@ -121,7 +128,7 @@ def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
         port = Tamper(SerialPort(url))
         client = BoardClient(port, clock, timeout=0.2)
         try:
-            yield Rig(kind, server.board, clock, port, client, server)
+            yield Rig(kind, server.device, clock, port, client, server)
         finally:
             client.close()
 
@@ -131,7 +138,7 @@ def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
 # ---------------------------------------------------------------------------------------------
 
 
-def test_served_board_fixture_gives_a_reachable_url(served_board: tuple[BoardServer, str]) -> None:
+def test_served_board_fixture_gives_a_reachable_url(served_board: tuple[DeviceServer, str]) -> None:
     server, url = served_board
     client = BoardClient(SerialPort(url), SystemClock(), timeout=0.2)
     try:
@@ -139,7 +146,7 @@ def test_served_board_fixture_gives_a_reachable_url(served_board: tuple[BoardSer
         assert info.model == "FLK-UVC-01"
         assert client.echo(b"hello") == b"hello"
         with server.lock:
-            assert server.board.state.connected
+            assert server.device.state.connected
     finally:
         client.close()
 

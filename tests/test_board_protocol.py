@@ -1,4 +1,4 @@
-"""Typed Control Bus messages (agent/board/protocol.py) and the simulated board's answers."""
+"""Typed Control Bus messages (devices/controlbus/protocol.py) and the simulated board's answers."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.frames import Frame, FrameDecoder, checksum, encode_frame
+from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.controlbus.frames import Frame, FrameDecoder, checksum, encode_frame
 from fleetlink.field.board import BoardConfig, SimulatedBoard
 from tests.test_board_link import COMMANDS
 

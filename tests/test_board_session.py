@@ -1,6 +1,6 @@
 """BoardSession against the simulated board: the link watchdog, reconnection and the snapshot.
 
-Real-time tests serve the board on TCP and on a pty (``BoardServer``) and poll with deadlines;
+Real-time tests serve the board on TCP and on a pty (``DeviceServer``) and poll with deadlines;
 the lockstep tests run the same session on a ``SimClock`` through an ``InProcessPort``, stepping
 the board by hand, so their timings are exact.
 """
@@ -12,12 +12,13 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.link import BoardRefused
-from fleetlink.agent.board.session import BoardSession, BoardSnapshot, PollRates
-from fleetlink.agent.board.transport import InProcessPort, SerialPort
+from fleetlink.agent.board.session import BoardSession, PollRates
+from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.controlbus.client import BoardRefused
+from fleetlink.devices.controlbus.snapshot import BoardSnapshot
+from fleetlink.devices.ports import InProcessPort, SerialPort
 from fleetlink.field.board import BoardConfig, SimulatedBoard
-from fleetlink.field.board_server import BoardServer
+from fleetlink.field.device_server import DeviceServer
 from fleetlink.shared.clock import SimClock, SystemClock
 from tests.test_board_link import serve_board
 
@@ -42,7 +43,7 @@ def wait_for(predicate: Callable[[], object], timeout: float, what: str, interva
 
 
 @pytest.fixture(params=["tcp", "pty"])
-def served_board(request: pytest.FixtureRequest) -> Iterator[tuple[BoardServer, str]]:
+def served_board(request: pytest.FixtureRequest) -> Iterator[tuple[DeviceServer, str]]:
     with serve_board(request.param) as served:
         yield served
 
@@ -51,8 +52,8 @@ def session_for(url: str, **kwargs: object) -> BoardSession:
     return BoardSession(lambda: SerialPort(url), CLOCK, seed=1, **kwargs)
 
 
-def wheels(server: BoardServer) -> tuple[float, float]:
-    st = server.board.state
+def wheels(server: DeviceServer) -> tuple[float, float]:
+    st = server.device.state
     return st.v_left, st.v_right
 
 
@@ -61,9 +62,9 @@ def wheels(server: BoardServer) -> tuple[float, float]:
 # ---------------------------------------------------------------------------------------------
 
 
-def test_watchdog_stops_the_wheels_when_the_agent_goes_quiet(served_board: tuple[BoardServer, str]) -> None:
+def test_watchdog_stops_the_wheels_when_the_agent_goes_quiet(served_board: tuple[DeviceServer, str]) -> None:
     server, url = served_board
-    board = server.board
+    board = server.device
     session = session_for(url)
     try:
         session.start()
@@ -265,18 +266,18 @@ def test_a_plain_slamtec_base_is_polled_command_by_command() -> None:
 
 
 def test_session_reconnects_after_the_board_restarts() -> None:
-    first = BoardServer(SimulatedBoard(), CLOCK)
+    first = DeviceServer(SimulatedBoard(), CLOCK, name="board")
     tcp_port = first.serve_tcp()
-    second: BoardServer | None = None
+    second: DeviceServer | None = None
     try:
         with session_for(f"socket://127.0.0.1:{tcp_port}") as session:
             wait_for(lambda: session.snapshot.connected, 3.0, "the first connection")
             assert session.snapshot.connects == 1
             session.set_velocity(0.2, 0.0)
-            wait_for(lambda: first.board.state.v_left > 0.15, 2.0, "driving on the first board")
+            wait_for(lambda: first.device.state.v_left > 0.15, 2.0, "driving on the first board")
 
             first.stop()  # the board restarts: the socket closes and the port is gone for a moment
-            second = BoardServer(SimulatedBoard(), CLOCK)
+            second = DeviceServer(SimulatedBoard(), CLOCK, name="board")
             assert second.serve_tcp(port=tcp_port) == tcp_port
             restarted_at = CLOCK.now()
 
@@ -289,9 +290,9 @@ def test_session_reconnects_after_the_board_restarts() -> None:
             assert reconnect_s < 3.0
             snap = session.snapshot
             assert snap.info is not None and snap.info.model == "FLK-UVC-01"
-            assert second.board.state.connected
+            assert second.device.state.connected
             # The new board drives on the command the agent still holds.
-            wait_for(lambda: second.board.state.v_left > 0.15, 2.0, "driving on the restarted board")
+            wait_for(lambda: second.device.state.v_left > 0.15, 2.0, "driving on the restarted board")
             assert session.snapshot.last_error == ""
     finally:
         first.stop()
@@ -309,9 +310,9 @@ def _filled(s: BoardSnapshot) -> bool:
     return s.connected and all(f is not None for f in fields)
 
 
-def test_snapshot_fills_in_and_odometry_tracks_the_board(served_board: tuple[BoardServer, str]) -> None:
+def test_snapshot_fills_in_and_odometry_tracks_the_board(served_board: tuple[DeviceServer, str]) -> None:
     server, url = served_board
-    board = server.board
+    board = server.device
     updates: list[BoardSnapshot] = []
     with session_for(url, on_update=updates.append) as session:
         wait_for(lambda: _filled(session.snapshot), 3.0, "every part of the snapshot")

@@ -8,8 +8,8 @@ import math
 
 import pytest
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.frames import Frame, FrameDecoder
+from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.controlbus.frames import Frame, FrameDecoder
 from fleetlink.field.board import (
     BUMPER_LEFT,
     BUMPER_RIGHT,

@@ -8,10 +8,10 @@ import threading
 import numpy as np
 import pytest
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.link import BoardClient
-from fleetlink.agent.board.transport import SerialPort
 from fleetlink.agent.lidar.driver import LidarDriver
+from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.controlbus.client import BoardClient
+from fleetlink.devices.ports import SerialPort
 from fleetlink.field.realtime import RealtimeField
 from fleetlink.field.scenario import parse_scenario
 from fleetlink.field.truth import TruthPublisher

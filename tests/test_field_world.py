@@ -201,8 +201,8 @@ def test_robot_spec_and_unknown_start_are_reported() -> None:
 
 
 def test_the_gyro_reports_turn_rate_with_its_bias_over_the_control_bus() -> None:
-    from fleetlink.agent.board import protocol as p
-    from fleetlink.agent.board.frames import FrameDecoder
+    from fleetlink.devices.controlbus import protocol as p
+    from fleetlink.devices.controlbus.frames import FrameDecoder
 
     world = World(ROOM)
     robot = world.add_robot("r", (5.0, 5.0, 0.0), BoardConfig(gyro_bias=0.01, gyro_noise=0.0))

@@ -11,10 +11,10 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from fleetlink.agent.board.session import BoardSnapshot
 from fleetlink.agent.guard import GuardInputs
 from fleetlink.agent.motion import wrap_angle
 from fleetlink.agent.pilot import ActionKind, EventKind, Pilot, PilotEvent
+from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 from fleetlink.field.board import BUMPER_LEFT, BUMPER_RIGHT, CLIFF_LEFT, CLIFF_RIGHT
 from fleetlink.field.lockstep import FieldRun
 from fleetlink.field.scenario import Event, LidarSettings, Noise, RobotSpec, Scenario

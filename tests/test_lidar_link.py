@@ -16,8 +16,6 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from fleetlink.agent.board.transport import InProcessPort, SerialPort
-from fleetlink.agent.lidar import protocol as lp
 from fleetlink.agent.lidar.driver import (
     LidarDisconnected,
     LidarDriver,
@@ -25,6 +23,8 @@ from fleetlink.agent.lidar.driver import (
     LidarProtocolError,
     LidarTimeout,
 )
+from fleetlink.devices.ports import InProcessPort, SerialPort
+from fleetlink.devices.rplidar import protocol as lp
 from fleetlink.field.device_server import DeviceServer
 from fleetlink.field.lidar import LidarConfig, LidarModel, scan_source_for
 from fleetlink.field.raycast import Raycaster

@@ -1,4 +1,4 @@
-"""The RPLIDAR codec (agent.lidar.protocol): encoders, the master's decoder, revolutions, requests.
+"""The RPLIDAR codec (devices.rplidar.protocol): encoders, the master's decoder, revolutions, requests.
 
 Every stream is fed three ways (h11's habit): whole, one byte at a time, and with trailing bytes
 that must stay buffered. Hypothesis checks the decoder never raises and resynchronises.
@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fleetlink.agent.lidar import protocol as lp
+from fleetlink.devices.rplidar import protocol as lp
 
 # -- helpers ------------------------------------------------------------------------------------
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from fleetlink.agent.lidar import protocol as lp
+from fleetlink.devices.rplidar import protocol as lp
 from fleetlink.field.lidar import LidarConfig
 from fleetlink.field.rplidar import FixedScan, RplidarConfig, SimulatedRplidar
 

@@ -22,20 +22,21 @@ from dataclasses import dataclass, field, replace
 from queue import Empty as QueueEmpty
 from queue import SimpleQueue
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.link import (
+from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.controlbus.client import (
     BoardClient,
     BoardDisconnected,
     BoardError,
     BoardRefused,
     BoardTimeout,
 )
-from fleetlink.agent.board.transport import Port, PortClosed
+from fleetlink.devices.controlbus.snapshot import BoardSnapshot
+from fleetlink.devices.ports import Port, PortClosed
 from fleetlink.shared.clock import Clock, SystemClock
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BoardSession", "BoardSnapshot", "PollRates", "PollSchedule"]
+__all__ = ["BoardSession", "PollRates", "PollSchedule"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,32 +86,6 @@ class PollSchedule:
 
 def _fields(rates: PollRates) -> list[tuple[str, float]]:
     return [(name, getattr(rates, name)) for name in rates.__dataclass_fields__]
-
-
-@dataclass(frozen=True, slots=True)
-class BoardSnapshot:
-    """Everything known about the board; replaced whole on every change (safe to share)."""
-
-    connected: bool = False
-    info: p.BaseInfo | None = None
-    conf: p.BaseConf | None = None
-    status: p.BaseStatus | None = None
-    power: p.PowerData | None = None
-    motor: p.MotorData | None = None
-    sensors: p.SensorData | None = None
-    bumpers: p.BumperData | None = None
-    health: p.Health | None = None
-    errors: tuple[p.HealthError, ...] = ()
-    payload: p.PayloadStatus | None = None
-    env: p.EnvData | None = None
-    buttons: p.Buttons | None = None
-    imu: p.ImuData | None = None
-    # Dead reckoning integrated from SET_V_AND_GET_DEADRECKON deltas (odometry frame).
-    odom: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    command: tuple[float, float] = (0.0, 0.0)  # vx m/s, omega rad/s being sent
-    updated: float = 0.0  # clock time of the last successful poll
-    connects: int = 0
-    last_error: str = ""
 
 
 @dataclass(slots=True)

@@ -1,1 +1,2 @@
-"""The RPLIDAR A1 link: ``protocol`` (sans-I/O codec, both roles) and ``driver`` (master over a port)."""
+"""The agent's RPLIDAR A1 master: ``driver`` (over a ``fleetlink.devices.ports`` port; the codec is
+``fleetlink.devices.rplidar.protocol``)."""

@@ -1,6 +1,6 @@
 """The master side of the RPLIDAR A1 link over a port: requests, the motor, the scan stream.
 
-``LidarDriver(port, clock)`` talks through any ``agent.board.transport`` port (``SerialPort`` by URL:
+``LidarDriver(port, clock)`` talks through any ``devices.ports`` port (``SerialPort`` by URL:
 ``/dev/ttyUSB0``, a pty, ``socket://host:port``; ``InProcessPort``; ``field.rplidar``'s
 ``InProcessLidarPort``). It is thread-free and not thread-safe: one caller at a time (the agent
 runs it in a thread of its own). Failures raise one small tree:
@@ -33,8 +33,8 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import TypeVar
 
-from fleetlink.agent.board.transport import Port, PortClosed
-from fleetlink.agent.lidar import protocol as lp
+from fleetlink.devices.ports import Port, PortClosed
+from fleetlink.devices.rplidar import protocol as lp
 from fleetlink.shared.clock import Clock
 
 log = logging.getLogger(__name__)
@@ -124,7 +124,7 @@ class LidarDriver:
     @classmethod
     def open(cls, url: str, clock: Clock, baudrate: int = 115200, **kwargs: object) -> LidarDriver:
         """Open a port by URL (pyserial's ``serial_for_url``); ``reconnect()`` reopens the same URL."""
-        from fleetlink.agent.board.transport import SerialPort
+        from fleetlink.devices.ports import SerialPort
 
         def opener() -> Port:
             return SerialPort(url, baudrate)

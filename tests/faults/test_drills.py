@@ -25,7 +25,7 @@ import zenoh
 from fleetlink.agent.config import AgentConfig, Rates, ZenohSettings, mqtt_settings
 from fleetlink.agent.runtime import AgentRuntime
 from fleetlink.field.board import SimulatedBoard
-from fleetlink.field.board_server import BoardServer
+from fleetlink.field.device_server import DeviceServer
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Ack, AckResult, Teleop
@@ -80,7 +80,7 @@ class Driver:
 def drill() -> Iterator[Drill]:
     clock = SystemClock()
     board = SimulatedBoard()
-    server = BoardServer(board, clock)
+    server = DeviceServer(board, clock, name="board")
     relay = TcpRelay(server.serve_tcp())
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     cfg = AgentConfig(
@@ -230,7 +230,7 @@ def test_unauthorised_clients_cannot_drive_over_mqtt(tmp_path: Path) -> None:
     broker.start()
     clock = SystemClock()
     board = SimulatedBoard()
-    server = BoardServer(board, clock)
+    server = DeviceServer(board, clock, name="board")
     port = server.serve_tcp()
     cfg = AgentConfig(
         robot="r1",

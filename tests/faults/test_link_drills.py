@@ -21,7 +21,7 @@ import zenoh
 from fleetlink.agent.config import AgentConfig, Rates, ZenohSettings, mqtt_settings
 from fleetlink.agent.runtime import AgentRuntime
 from fleetlink.field.board import SimulatedBoard
-from fleetlink.field.board_server import BoardServer
+from fleetlink.field.device_server import DeviceServer
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import AckResult, Connection, ConnectionState, Teleop
@@ -95,7 +95,7 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
     clock = SystemClock()
     broker = MosquittoBroker(tmp_path / "broker").start()
     board = SimulatedBoard()
-    server = BoardServer(board, clock)
+    server = DeviceServer(board, clock, name="board")
     board_port = server.serve_tcp()
     endpoint_port = free_port()
     zenoh_relay = TcpRelay(endpoint_port)  # the operator reaches the agent's Zenoh listener through it

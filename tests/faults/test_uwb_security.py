@@ -233,12 +233,12 @@ def test_zenoh_forged_fixes_through_the_secured_router_never_reach_the_agent(tmp
     from fleetlink.agent.config import AgentConfig, Rates, ZenohSettings
     from fleetlink.agent.runtime import AgentRuntime
     from fleetlink.field.board import SimulatedBoard
-    from fleetlink.field.board_server import BoardServer
+    from fleetlink.field.device_server import DeviceServer
     from fleetlink.site.security import SiteSecurity
 
     clock = SystemClock()
     site = SiteSecurity(["r1", "r2"], ["op-alice"], tls=False, folder=tmp_path).start()
-    server = BoardServer(SimulatedBoard(), clock)
+    server = DeviceServer(SimulatedBoard(), clock, name="board")
     agent = None
     try:
         auth = site.zenoh_auth("r1")

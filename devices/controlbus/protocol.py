@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 from typing import Any, ClassVar, NamedTuple, Protocol, TypeAlias, TypeVar, cast
 
-from fleetlink.agent.board.frames import Frame, encode_frame
+from fleetlink.devices.controlbus.frames import Frame, encode_frame
 
 __all__ = [
     "CMD_BASE",

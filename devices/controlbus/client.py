@@ -21,9 +21,9 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import TypeVar
 
-from fleetlink.agent.board import protocol as p
-from fleetlink.agent.board.frames import Frame, FrameDecoder
-from fleetlink.agent.board.transport import Port, PortClosed
+from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.controlbus.frames import Frame, FrameDecoder
+from fleetlink.devices.ports import Port, PortClosed
 from fleetlink.shared.clock import Clock
 
 log = logging.getLogger(__name__)
