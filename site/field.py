@@ -15,8 +15,8 @@
    its robot on a secured site). Without agents: a board link per robot driven open-loop
    (``site.boards``), what ``fleetlink field --console off`` shows.
 
-``stop()`` stops whatever started, in reverse. ``operator_link(operator)`` gives any further
-console its ``OperatorLink`` on this site (not started).
+``stop()`` stops whatever started, in reverse. ``operator_link(operator)`` gives a further console
+on a secured site its ``OperatorLink`` (not started).
 """
 
 from __future__ import annotations
@@ -114,7 +114,7 @@ class FieldSite:
         self.boards: OpenLoopBoards | None = None
         self.link: OperatorLink | None = None
         self._hub: Any = None  # the demo's Zenoh meeting point when no operator link listens there
-        self._links_opened = 0
+        self._hub_taken = False  # the demo's endpoint has its listener (the console's peer, or _hub)
         self._folder: Path | None = None
         self._truth_sinks: list[Callable[[TruthSample], None]] = []
 
@@ -139,7 +139,7 @@ class FieldSite:
     def _start_secured(self, options: Security) -> None:
         import zenoh
 
-        from fleetlink.shared.zenoh_config import peer_config
+        from fleetlink.links.zenoh import peer_config
 
         robots = [r.name for r in self.scenario.robots]
         self.security = SiteSecurity(robots, options.operators, tls=options.tls).start()
@@ -192,7 +192,7 @@ class FieldSite:
         elif self.security is None:
             import zenoh
 
-            from fleetlink.shared.zenoh_config import peer_config
+            from fleetlink.links.zenoh import peer_config
 
             self._hub = zenoh.open(peer_config([self.zenoh_endpoint], ()))
         s = self.security
@@ -253,7 +253,8 @@ class FieldSite:
 
     def operator_link(self, operator: str) -> OperatorLink:
         """An ``OperatorLink`` (not started) on this site as ``operator``: logged in on a secured
-        site; in the demo the first one listens where the agents connect, later ones connect there."""
+        site (any number of them, through its router). The demo has no router: the one operator
+        link's Zenoh peer listens where the agents connect, so a second one would hear nothing."""
         if self.zenoh_endpoint is None or self.mqtt_url is None:
             raise RuntimeError("the site has no links: start it with agents first")
         if self.security is not None:
@@ -267,16 +268,10 @@ class FieldSite:
                 zenoh_connect=connect,
                 zenoh_auth=auth,
             )
-        first = self._links_opened == 0 and self._hub is None
-        self._links_opened += 1
-        endpoint = (self.zenoh_endpoint,)
-        return open_operator_link(
-            self.clock,
-            operator,
-            mqtt_url=self.mqtt_url,
-            zenoh_listen=endpoint if first else (),
-            zenoh_connect=() if first else endpoint,
-        )
+        if self._hub_taken:
+            raise RuntimeError("the demo field has one console (its Zenoh peer is the agents' meeting point)")
+        self._hub_taken = True
+        return open_operator_link(self.clock, operator, mqtt_url=self.mqtt_url, zenoh_listen=(self.zenoh_endpoint,))
 
     def take_link(self) -> OperatorLink:
         """The started operator's link; the caller closes it from now on."""
