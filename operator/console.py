@@ -10,8 +10,9 @@ widget is ever touched off the UI thread, and no network thread ever waits for t
 
 The parts: the fleet table (operator/fleet_table.py), the robot detail (operator/detail.py), the
 status line (operator/status.py), the map (operator/mapview.py); typed commands are parsed by
-operator/commands.py, marks named, saved and loaded by operator/marks.py, lease renewal timed by
-``LeaseRenewal`` (operator/fleet.py), drive keys by operator/teleop.py.
+operator/commands.py, outgoing messages built by operator/commander.py, marks named, saved and
+loaded by operator/marks.py, lease renewal timed by ``LeaseRenewal`` (operator/fleet.py), drive
+keys by operator/teleop.py. The app itself decides what may be sent and tells the operator.
 
 Safety: when drive-key repeats stop arriving the console sends stop (see operator/teleop.py), Esc
 stops every robot, and quitting sends stop to every robot before the links close.
@@ -37,6 +38,7 @@ from textual.screen import ModalScreen
 from textual.timer import Timer
 from textual.widgets import DataTable, Footer, Input, RichLog, Static
 
+from fleetlink.operator.commander import LEASE_S, Commander
 from fleetlink.operator.commands import Command, CommandError, Goal, Home, MarkAt, Payload, StopAll, parse_command
 from fleetlink.operator.detail import RobotDetail, detail_text
 from fleetlink.operator.feed import ConsoleSource, FleetFeed, attach
@@ -47,24 +49,10 @@ from fleetlink.operator.mapview import MapView
 from fleetlink.operator.marks import MarksStore
 from fleetlink.operator.status import StatusLine, status_text
 from fleetlink.operator.teleop import DriveKeys, Twist
-from fleetlink.shared import wire
 from fleetlink.shared.clock import Clock
-from fleetlink.shared.messages import (
-    Action,
-    ActionType,
-    InstantActions,
-    KeyValue,
-    LeaseRequest,
-    Mark,
-    Order,
-    Teleop,
-)
-from fleetlink.shared.messages import Goal as GoalField
+from fleetlink.shared.messages import Mark
 
 __all__ = ["ConsoleApp", "ConsoleSource", "TelemetryArrived", "attach"]
-
-TELEOP_TTL_S = 0.5
-LEASE_S = 60.0
 
 
 class TelemetryArrived(Message):
@@ -152,6 +140,7 @@ class ConsoleApp(App[None]):
         self.refresh_hz = refresh_hz
         self.clock_hz = clock_hz
         self.drive = DriveKeys(repeat_timeout_s=repeat_timeout_s)
+        self.commander = Commander(source, clock)
         self.leases = LeaseRenewal(LEASE_S)
         self.selected: str | None = None
         self.filter_text = ""
@@ -160,7 +149,6 @@ class ConsoleApp(App[None]):
         self.sent_stop_on_quit = False
         self._last_frame = -math.inf
         self._frame_timer: Timer | None = None
-        self._counter: wire.HeaderCounter | None = None
         with self.lock:
             for mark in self.marks.load():
                 self.fleet.marks[mark.markId] = mark
@@ -242,7 +230,7 @@ class ConsoleApp(App[None]):
             self.query_one(RobotDetail).show(detail_text(selected, view, health))
             renew = [] if self.read_only else self.leases.due(fleet, now)
         for robot in renew:
-            self._request_lease(robot, release=False)
+            self.commander.lease(robot)
         self.frame_times.append(self.clock.now() - t0)
         del self.frame_times[:-1000]
 
@@ -293,7 +281,7 @@ class ConsoleApp(App[None]):
         robot = self.selected
         if robot is None or self.read_only:
             return
-        self.source.send(Teleop, robot, expect_ack=False, v=twist.v, omega=twist.omega, ttl_s=TELEOP_TTL_S)
+        self.commander.teleop(robot, twist)
 
     def on_key(self, event: events.Key) -> None:
         if isinstance(self.focused, Input) or len(self.screen_stack) > 1:
@@ -329,11 +317,7 @@ class ConsoleApp(App[None]):
         with self.lock:
             robots = list(self.fleet.robots)
         for robot in robots:
-            self.source.send(
-                InstantActions,
-                robot,
-                actions=(Action(actionId="stop-all", actionType=ActionType.STOP, actionParameters=()),),
-            )
+            self.commander.stop(robot)
         return robots
 
     def action_stop_all(self) -> None:
@@ -348,15 +332,7 @@ class ConsoleApp(App[None]):
         if not self._command_ok(robot, "goal"):
             return False
         assert robot is not None
-        order_id = f"{self.source.sender}-{self.clock.wall():.3f}"
-        self.source.send(
-            Order,
-            robot,
-            orderId=order_id[:64],
-            orderUpdateId=0,
-            goal=GoalField(x=x, y=y, theta=theta),
-            returnHome=False,
-        )
+        order_id = self.commander.goal(robot, x, y, theta)
         self.notice("info", f"{robot}: goal ({x:.2f}, {y:.2f}) sent as order {order_id}")
         return True
 
@@ -365,8 +341,7 @@ class ConsoleApp(App[None]):
         if not self._command_ok(robot, "return home"):
             return
         assert robot is not None
-        order_id = f"{self.source.sender}-home-{self.clock.wall():.3f}"
-        self.source.send(Order, robot, orderId=order_id[:64], orderUpdateId=0, goal=None, returnHome=True)
+        self.commander.home(robot)
         self.notice("info", f"{robot}: return home sent")
 
     def action_payload(self, on: bool | None = None) -> None:
@@ -378,12 +353,7 @@ class ConsoleApp(App[None]):
             view = self.fleet.robots.get(robot)
             current = view.payload_on if view else False
         want = (not current) if on is None else on
-        action = Action(
-            actionId=f"payload-{self.clock.wall():.3f}",
-            actionType=ActionType.PAYLOAD,
-            actionParameters=(KeyValue(key="on", value="true" if want else "false"),),
-        )
-        self.source.send(InstantActions, robot, actions=(action,))
+        self.commander.payload(robot, want)
         self.notice("info", f"{robot}: payload {'on' if want else 'off'} sent")
 
     # -- leases ---------------------------------------------------------------------------------
@@ -393,7 +363,7 @@ class ConsoleApp(App[None]):
         if not self._command_ok(robot, "lease request", needs_lease=False):
             return
         assert robot is not None
-        self._request_lease(robot, release=False)
+        self.commander.lease(robot)
         self.notice("info", f"{robot}: control lease requested")
 
     def action_release_lease(self) -> None:
@@ -401,22 +371,7 @@ class ConsoleApp(App[None]):
         if not self._command_ok(robot, "lease release", needs_lease=False):
             return
         assert robot is not None
-        self._request_lease(robot, release=True)
-
-    def _request_lease(self, robot: str, *, release: bool) -> None:
-        header = self._header(LeaseRequest.TOPIC, robot)
-        self.source.publish(
-            LeaseRequest(header=header, duration_s=0.0 if release else LEASE_S, release=release),
-            links=("zenoh", "mqtt"),
-        )
-
-    def _header(self, topic: str, robot: str) -> wire.Header:
-        counter: wire.HeaderCounter | None = getattr(self.source, "counter", None)
-        if counter is None:
-            if self._counter is None:
-                self._counter = wire.HeaderCounter(self.clock, robot=robot, sender=self.source.sender)
-            counter = self._counter
-        return counter.header(topic, robot=robot)
+        self.commander.lease(robot, release=True)
 
     # -- marks ----------------------------------------------------------------------------------
 
@@ -429,7 +384,7 @@ class ConsoleApp(App[None]):
         if robot is None:
             self.notice("warning", "no robot known yet: a mark needs one to be published under")
             return None
-        mark = self.marks.new(self._header(Mark.TOPIC, robot), x, y, kind, label, self.clock.wall())
+        mark = self.marks.new(self.commander.header(Mark.TOPIC, robot), x, y, kind, label, self.clock.wall())
         with self.lock:
             self.fleet.apply(mark, "local", self.clock.now())
         self.source.publish(mark)
