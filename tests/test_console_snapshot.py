@@ -150,8 +150,8 @@ def event(rig: Rig, robot: str, kind: str, text: str, severity: Severity) -> Eve
 
 def two_robots(rig: Rig) -> None:
     """r1 idle by the left wall, r2 on an order towards the door; anchors, the room map, a mark
-    from another console and three notices. All synchronous: the console's 10 Hz refresh sees
-    either nothing or all of it, so the first fit of the map is always the same."""
+    from another console and three notices. All synchronous: the console's feed folds it all in as
+    one batch before the next frame, so the first fit of the map is always the same."""
     clock = rig.clock
     assert isinstance(clock, SimClock)
     status = {"gateway": "g1", "anchors": [list(a) for a in ANCHORS]}
@@ -194,8 +194,9 @@ def two_robots(rig: Rig) -> None:
 
 
 async def settle(pilot: Any) -> None:
-    """Wait until the console's 10 Hz refresh has run twice since the last step, so the table,
-    notices and map show what was injected (the simulated clock does not move meanwhile)."""
+    """Wait until the console has drawn two frames since the last step (one for what the step
+    changed, one on the clock tick), so the table, notices and map show what was injected (the
+    simulated clock does not move meanwhile)."""
     frames = pilot.app.frame_times
     seen = len(frames)
     for _ in range(200):
