@@ -41,12 +41,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from fleetlink.shared import keys
-from fleetlink.shared.config import ConfigError, TomlReader, read_toml
+from fleetlink.shared.config import ConfigError, Invalid, Setting, parse, read_toml
+from fleetlink.shared.link_tables import MqttTable, ZenohTable, zenoh_auth
+from fleetlink.shared.link_tables import mqtt_settings as _mqtt_from_table
 from fleetlink.shared.mqtt import MqttSettings
-from fleetlink.shared.zenoh_config import read_zenoh_auth
 
 __all__ = [
     "AgentConfig",
@@ -54,9 +55,11 @@ __all__ = [
     "Limits",
     "MqttSettings",
     "Rates",
+    "RobotFile",
     "ZenohSettings",
     "load_agent_config",
     "mqtt_settings",
+    "parse_agent_config",
 ]
 
 
@@ -77,21 +80,25 @@ class ZenohSettings:
     tls_key: str | None = None
 
 
+Limit = Annotated[float, Setting(lo=1e-6, hi=100.0)]
+Rate = Annotated[float, Setting(lo=0.1, hi=1000.0)]
+
+
 @dataclass(frozen=True, slots=True)
 class Limits:
-    v_max: float = 0.5
-    omega_max: float = 1.5
-    a_max: float = 1.0
-    alpha_max: float = 6.0
-    teleop_ttl_s: float = 0.5
-    stop_distance_m: float = 0.4
+    v_max: Annotated[Limit, Setting(doc="m/s")] = 0.5
+    omega_max: Annotated[Limit, Setting(doc="rad/s")] = 1.5
+    a_max: Annotated[Limit, Setting(doc="m/s^2")] = 1.0
+    alpha_max: Annotated[Limit, Setting(doc="rad/s^2")] = 6.0
+    teleop_ttl_s: Annotated[Limit, Setting(doc="a teleop lapses after this long")] = 0.5
+    stop_distance_m: Annotated[Limit, Setting(doc="the guard stops the robot this close to something")] = 0.4
 
 
 @dataclass(frozen=True, slots=True)
 class Rates:
-    control_hz: float = 50.0
-    pose_hz: float = 20.0
-    state_hz: float = 1.0
+    control_hz: Annotated[Rate, Setting(doc="the control loop while driving")] = 50.0
+    pose_hz: Annotated[Rate, Setting(doc="pose telemetry")] = 20.0
+    state_hz: Annotated[Rate, Setting(doc="state telemetry")] = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,6 +116,34 @@ class AgentConfig:
     """Operator ids (header sender) whose commands are accepted; empty: anyone's."""
 
 
+def _robot_id(robot: str) -> str:
+    keys.check_robot_id(robot)
+    return robot
+
+
+@dataclass(frozen=True, slots=True)
+class RobotFile:
+    """robot.toml as written (the schema); ``parse_agent_config`` turns it into an ``AgentConfig``."""
+
+    robot: Annotated[str, Setting(convert=_robot_id, doc="robot id (wire-contract rule)")]
+    board: Annotated[str, Setting(min_len=1, doc="socket://host:port or /dev/ttyUSB0")]
+    lidar: Annotated[str | None, Setting(doc="optional, as board")] = None
+    tag: Annotated[str | None, Setting(min_len=1, doc="UWB tag / PANS node id (default: the robot id)")] = None
+    map_id: Annotated[str, Setting(max_len=64)] = ""
+    operators: Annotated[
+        tuple[Annotated[str, Setting(min_len=1, max_len=64)], ...],
+        Setting(what="a list of operator ids", doc="who may command this robot; [] = anyone"),
+    ] = ()
+    zenoh: ZenohTable | None = None
+    mqtt: MqttTable | None = None
+    limits: Limits = field(default_factory=Limits)
+    rates: Rates = field(default_factory=Rates)
+
+    def validate(self) -> None:
+        if self.zenoh is None and self.mqtt is None:
+            raise Invalid("", "needs a [zenoh] or an [mqtt] table (or both): the agent must hear its operator")
+
+
 def load_agent_config(path: str | Path) -> AgentConfig:
     return parse_agent_config(read_toml(path), str(path), base_dir=Path(path).resolve().parent)
 
@@ -116,78 +151,21 @@ def load_agent_config(path: str | Path) -> AgentConfig:
 def parse_agent_config(
     data: dict[str, Any], source: str = "robot.toml", base_dir: str | Path | None = None
 ) -> AgentConfig:
-    r = TomlReader(source)
-    top = ("robot", "board", "lidar", "tag", "map_id", "operators", "zenoh", "mqtt", "limits", "rates")
-    r.keys(data, "top level", top, required=("robot", "board"))
-    robot = r.text(data["robot"], "robot", nonempty=True)
-    try:
-        keys.check_robot_id(robot)
-    except ValueError as exc:
-        raise r.fail("robot", str(exc)) from None
-    board = r.text(data["board"], "board", nonempty=True)
-    lidar = r.text(data["lidar"], "lidar") if "lidar" in data else None
-    tag = r.text(data.get("tag", robot), "tag", nonempty=True)
-    map_id = r.text(data.get("map_id", ""), "map_id")
-    if len(map_id) > 64:
-        raise r.fail("map_id", "at most 64 characters")
-    ops = data.get("operators", [])
-    if not isinstance(ops, list) or not all(isinstance(o, str) and 0 < len(o) <= 64 for o in ops):
-        raise r.fail("operators", f"expected a list of operator ids (1-64 characters each), got {ops!r}")
-    operators = tuple(ops)
-
+    f = parse(data, RobotFile, source=source)
     zenoh: ZenohSettings | None = None
-    if "zenoh" in data:
-        z = r.table(data, "zenoh")
-        zenoh = _zenoh(r, z, base_dir)
-
-    mqtt: MqttSettings | None = None
-    if "mqtt" in data:
-        mqtt = MqttSettings.from_table(data["mqtt"], source=source, where="mqtt", base_dir=base_dir)
-    if zenoh is None and mqtt is None:
-        raise r.fail("top level", "needs a [zenoh] or an [mqtt] table (or both): the agent must hear its operator")
-
-    lim = r.table(data, "limits")
-    r.keys(lim, "limits", Limits.__dataclass_fields__)
-    d = Limits()
-    limits = Limits(
-        **{
-            name: r.number(lim.get(name, getattr(d, name)), f"limits.{name}", lo=1e-6, hi=100.0)
-            for name in Limits.__dataclass_fields__
-        }
+    if f.zenoh is not None:
+        auth = zenoh_auth(f.zenoh, source=source, base_dir=base_dir)
+        zenoh = ZenohSettings(
+            f.zenoh.listen,
+            f.zenoh.connect,
+            auth.mode,
+            auth.username,
+            auth.password,
+            auth.root_ca,
+            auth.tls_cert,
+            auth.tls_key,
+        )
+    mqtt = None if f.mqtt is None else _mqtt_from_table(f.mqtt, source=source, base_dir=base_dir)
+    return AgentConfig(
+        f.robot, f.board, f.lidar or None, f.tag or f.robot, f.map_id, zenoh, mqtt, f.limits, f.rates, f.operators
     )
-    rt = r.table(data, "rates")
-    r.keys(rt, "rates", Rates.__dataclass_fields__)
-    dr = Rates()
-    rates = Rates(
-        **{
-            name: r.number(rt.get(name, getattr(dr, name)), f"rates.{name}", lo=0.1, hi=1000.0)
-            for name in Rates.__dataclass_fields__
-        }
-    )
-    return AgentConfig(robot, board, lidar or None, tag, map_id, zenoh, mqtt, limits, rates, operators)
-
-
-def _zenoh(r: TomlReader, z: Any, base_dir: str | Path | None) -> ZenohSettings:
-    r.keys(
-        z,
-        "zenoh",
-        ("listen", "connect", "mode", "username", "password", "password_file", "root_ca", "tls_cert", "tls_key"),
-    )
-    auth = read_zenoh_auth(r, z, base_dir)
-    return ZenohSettings(
-        _endpoints(r, z, "listen"),
-        _endpoints(r, z, "connect"),
-        auth.mode,
-        auth.username,
-        auth.password,
-        auth.root_ca,
-        auth.tls_cert,
-        auth.tls_key,
-    )
-
-
-def _endpoints(r: TomlReader, table: Any, name: str) -> tuple[str, ...]:
-    v = table.get(name, [])
-    if not isinstance(v, list) or not all(isinstance(e, str) and "/" in e for e in v):
-        raise r.fail(f"zenoh.{name}", f"expected a list of endpoints like 'tcp/127.0.0.1:7447', got {v!r}")
-    return tuple(v)

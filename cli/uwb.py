@@ -25,12 +25,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from fleetlink.field.scenario import site_geometry
     from fleetlink.positioning.config import ConfigError, load_config
     from fleetlink.positioning.publisher import UwbGateway
     from fleetlink.shared.clock import SystemClock
 
     try:
-        config = load_config(args.config)
+        config = load_config(args.config, site=site_geometry)
     except (ConfigError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

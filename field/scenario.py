@@ -18,6 +18,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, ClassVar, Literal
 
+import numpy as np
+import numpy.typing as npt
+
 from fleetlink.shared.config import ConfigError, Invalid, Setting, parse, read_toml
 from fleetlink.shared.messages import MAX_MARK_LABEL, ActionType
 
@@ -45,7 +48,10 @@ __all__ = [
     "WheelSlip",
     "load_scenario",
     "parse_scenario",
+    "site_geometry",
 ]
+
+SCENARIOS_DIR = Path(__file__).resolve().parent / "scenarios"
 
 Drive = Literal["wander", "script", "idle", "agent"]
 DRIVES: tuple[str, ...] = typing.get_args(Drive)
@@ -383,3 +389,42 @@ def parse_scenario(data: typing.Mapping[str, typing.Any], source: str = "<memory
         events=tuple(sorted(sc.events, key=lambda e: e.at)),
         source=source,
     )
+
+
+def _resolve(name: str, base: Path | None, builtin_dir: Path | None = None) -> str | Path:
+    """A built-in name stays a name (plans) or maps into ``builtin_dir``; a path is made absolute."""
+    if builtin_dir is not None and "/" not in name and not name.endswith(".toml"):
+        return builtin_dir / f"{name}.toml"
+    if "/" in name or name.endswith((".toml", ".yaml", ".yml")):
+        p = Path(name)
+        return p if p.is_absolute() or base is None else (base / p).resolve()
+    return name
+
+
+AnchorRow = tuple[str, float, float, float]
+
+
+def site_geometry(
+    plan: str | None, scenario: str | None, base: Path | None = None
+) -> tuple[tuple[AnchorRow, ...], npt.NDArray[np.float64] | None]:
+    """Anchors and walls for a UWB gateway whose uwb.toml names a ``plan`` and/or a ``scenario``
+    (built-in names or paths relative to ``base``): the scenario's anchors, else the plan's; the
+    plan (``plan`` if given, else the scenario's) gives the walls. ValueError when either fails to load.
+
+    It is ``positioning.config.SiteLoader``: positioning does not read field files itself.
+    """
+    from fleetlink.field.plans import load_plan
+
+    anchors: tuple[AnchorRow, ...] = ()
+    floor = None
+    if scenario is not None:
+        sc = load_scenario(_resolve(scenario, base, SCENARIOS_DIR))
+        floor = load_plan(sc.plan)
+        anchors = sc.anchors
+    if plan is not None:
+        floor = load_plan(_resolve(plan, base))
+    if floor is None:
+        return anchors, None
+    if not anchors:
+        anchors = tuple((a.id, a.x, a.y, a.z) for a in floor.anchors)
+    return anchors, floor.segments()

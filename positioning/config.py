@@ -7,29 +7,50 @@ plan's), else from ``plan``; the plan also gives the walls for ``noise.use_walls
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+import dataclasses
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 from urllib.parse import unquote, urlsplit, urlunsplit
 
 import numpy as np
 import numpy.typing as npt
 
 from fleetlink.shared import keys
-from fleetlink.shared.config import ConfigError, TomlReader, read_toml
-from fleetlink.shared.mqtt import KEYS as MQTT_KEYS
+from fleetlink.shared.config import ConfigError, Invalid, Setting, parse, read_toml
+from fleetlink.shared.link_tables import MqttTable, ZenohTable, mqtt_settings, zenoh_auth
 from fleetlink.shared.mqtt import MqttSettings
-from fleetlink.shared.zenoh_config import read_zenoh_auth
 
 from .anchors import Anchor
 from .ranging import NoiseProfile
 
-__all__ = ["ConfigError", "GatewayConfig", "MqttSettings", "TagSpec", "ZenohAuth", "load_config", "parse_config"]
+__all__ = [
+    "ConfigError",
+    "GatewayConfig",
+    "MqttSettings",
+    "SiteGeometry",
+    "SiteLoader",
+    "TagSpec",
+    "UwbFile",
+    "ZenohAuth",
+    "load_config",
+    "parse_config",
+]
 
 PROFILES = {"none": NoiseProfile.none, "los": NoiseProfile.los, "realistic": NoiseProfile.realistic}
-SCENARIOS_DIR = Path(__file__).resolve().parent.parent / "field" / "scenarios"
 DEFAULT_TAG_Z = 0.3
+
+
+AnchorRow = tuple[str, float, float, float]
+SiteGeometry = tuple[tuple[AnchorRow, ...], npt.NDArray[np.float64] | None]
+"""What the gateway takes from a plan or scenario: anchors (id, x, y, z) and walls (N x 4) or None."""
+
+SiteLoader = Callable[[str | None, str | None, Path | None], SiteGeometry]
+"""``site(plan, scenario, base_dir)``: the geometry a ``plan = ...``/``scenario = ...`` names.
+
+positioning does not read plans or scenarios itself (they belong to the field): the program that
+loads a uwb.toml passes one, ``fleetlink.field.scenario.site_geometry``. It raises ValueError."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,189 +101,194 @@ class GatewayConfig:
     source: str = "<memory>"
 
 
-_TOP = {"gateway", "plan", "scenario", "anchors", "tags", "noise", "mqtt", "zenoh"}
-_GATEWAY = {
-    "id",
-    "rate_hz",
-    "seed",
-    "auto_tags",
-    "tag_z",
-    "truth_timeout_s",
-    "publish_ranges",
-    "pans",
-    "pans_prefix",
-    "solver",
-}
-_NOISE_NUMBERS = {f.name for f in fields(NoiseProfile)} - {"nlos_zones", "use_walls"}
+# -- the file, as schemas for shared/config.py -----------------------------------------------------
 
 
-def load_config(path: str | Path) -> GatewayConfig:
+def _node_id(v: str) -> str:
+    if not keys.is_valid_id(v):
+        raise ValueError(f"{v!r} must be 1-64 characters from [A-Za-z0-9_-]")
+    return v
+
+
+def _robot_id(v: str) -> str:
+    keys.check_robot_id(v)
+    return v
+
+
+def _topic_prefix(v: str) -> str:
+    if any(c in v for c in "#+\0") or v.startswith("/") or v.endswith("/"):
+        raise ValueError(f"{v!r} is not a valid MQTT topic prefix")
+    return v
+
+
+Height = Annotated[float, Setting(lo=-10.0, hi=50.0, doc="m above the floor")]
+
+
+@dataclass(frozen=True, slots=True)
+class GatewayTable:
+    id: Annotated[str, Setting(convert=_node_id, doc="the gateway's id (status topic)")] = "uwb"
+    rate_hz: Annotated[float, Setting(lo=0.1, hi=100.0, doc="fixes a second per tag")] = 10.0
+    seed: Annotated[int, Setting(lo=0, hi=2**63 - 1)] = 0
+    auto_tags: Annotated[bool, Setting(doc="a robot without a [[tags]] entry gets tag id = robot id")] = False
+    tag_z: Annotated[Height, Setting(doc="height of auto tags, m")] = DEFAULT_TAG_Z
+    truth_timeout_s: Annotated[float, Setting(lo=0.01, hi=3600.0, doc="no fix from older truth")] = 1.0
+    publish_ranges: bool = True
+    pans: Annotated[bool, Setting(doc="PANS JSON on <pans_prefix>/node/<tag>/uplink/location")] = True
+    pans_prefix: Annotated[str, Setting(min_len=1, convert=_topic_prefix)] = "dwm"
+    solver: Literal["robust", "linear"] = "robust"
+
+
+@dataclass(frozen=True, slots=True)
+class AnchorTable:
+    id: Annotated[str, Setting(min_len=1)]
+    x: float
+    y: float
+    z: float
+
+
+@dataclass(frozen=True, slots=True)
+class TagTable:
+    id: Annotated[str, Setting(convert=_node_id, doc="the tag's node id (PANS topic)")]
+    robot: Annotated[str, Setting(convert=_robot_id, doc="the robot it rides on")]
+    z: Height | None = None  # default: gateway.tag_z
+
+
+Ratio = Annotated[float | None, Setting(lo=0.0, hi=1.0, what="a probability (0-1)")]
+Length = Annotated[float | None, Setting(lo=0.0, doc="m")]
+Zone = Annotated[
+    tuple[Annotated[tuple[float, float], Setting(what="[x, y]")], ...],
+    Setting(min_len=3, what="a polygon of [x, y] points"),
+]
+
+
+@dataclass(frozen=True, slots=True)
+class NoiseTable:
+    """``[noise]``: a profile, and any of its numbers overridden."""
+
+    profile: Literal["none", "los", "realistic"] = "realistic"
+    sigma_m: Length = None
+    nlos_ratio: Ratio = None
+    nlos_mean_bias_m: Length = None
+    outlier_ratio: Ratio = None
+    outlier_min_m: Length = None
+    outlier_max_m: Length = None
+    dropout_ratio: Ratio = None
+    antenna_delay_m: Annotated[float | None, Setting(doc="m, may be negative")] = None
+    max_range_m: Length = None
+    use_walls: Annotated[bool | None, Setting(doc="walls of the plan or scenario cause NLOS")] = None
+    nlos_zones: Annotated[tuple[Zone, ...], Setting(what="a list of polygons ([[x, y], ...])")] = ()
+
+    def profile_of(self) -> NoiseProfile:
+        over: dict[str, Any] = {
+            f.name: getattr(self, f.name)
+            for f in dataclasses.fields(self)
+            if f.name != "profile" and getattr(self, f.name) not in (None, ())
+        }
+        try:
+            return dataclasses.replace(PROFILES[self.profile](), **over)
+        except ValueError as exc:
+            raise Invalid("", str(exc)) from None
+
+
+@dataclass(frozen=True, slots=True)
+class UwbFile:
+    """uwb.toml as written (docs/protocols/uwb.md)."""
+
+    gateway: GatewayTable = field(default_factory=GatewayTable)
+    plan: Annotated[str | None, Setting(min_len=1, doc="a built-in plan or a path: anchors and walls")] = None
+    scenario: Annotated[str | None, Setting(min_len=1, doc="a built-in scenario or a path: anchors and walls")] = None
+    anchors: tuple[AnchorTable, ...] = ()
+    tags: tuple[TagTable, ...] = ()
+    noise: NoiseTable = field(default_factory=NoiseTable)
+    mqtt: MqttTable | None = None
+    zenoh: ZenohTable = field(default_factory=ZenohTable)
+
+    def validate(self) -> None:
+        for i, a in enumerate(self.anchors):
+            if any(b.id == a.id for b in self.anchors[:i]):
+                raise Invalid(f"anchors[{i}].id", f"anchor {a.id!r} appears twice")
+        for i, t in enumerate(self.tags):
+            if any(x.id == t.id for x in self.tags[:i]):
+                raise Invalid(f"tags[{i}].id", f"tag {t.id!r} appears twice")
+            if any(x.robot == t.robot for x in self.tags[:i]):
+                raise Invalid(f"tags[{i}].robot", f"robot {t.robot!r} already has a tag")
+        if not self.tags and not self.gateway.auto_tags:
+            raise Invalid("tags", "no [[tags]] (id, robot) and gateway.auto_tags is off: nothing to locate")
+        self.noise.profile_of()
+        if self.noise.use_walls and self.plan is None and self.scenario is None:
+            raise Invalid("noise.use_walls", "needs a plan or scenario to take the walls from")
+        if self.zenoh.tls_cert is not None or self.zenoh.tls_key is not None:
+            raise Invalid("zenoh.tls_cert", "the UWB gateway does not present a client certificate")
+
+
+def load_config(path: str | Path, site: SiteLoader | None = None) -> GatewayConfig:
     p = Path(path)
-    return parse_config(read_toml(p), source=str(p), base=p.parent)
+    return parse_config(read_toml(p), source=str(p), base=p.parent, site=site)
 
 
-def _resolve(name: str, base: Path | None, builtin_dir: Path | None = None) -> str | Path:
-    """A built-in name stays a name (plans) or maps into ``builtin_dir``; a path is made absolute."""
-    if builtin_dir is not None and "/" not in name and not name.endswith(".toml"):
-        return builtin_dir / f"{name}.toml"
-    if "/" in name or name.endswith((".toml", ".yaml", ".yml")):
-        p = Path(name)
-        return p if p.is_absolute() or base is None else (base / p).resolve()
-    return name
+def parse_config(
+    data: Mapping[str, Any], source: str = "<memory>", base: Path | None = None, site: SiteLoader | None = None
+) -> GatewayConfig:
+    """A gateway configuration from decoded TOML; ``ConfigError`` naming ``source``, the key and the problem.
 
+    ``site`` reads what ``plan``/``scenario`` name (see ``SiteLoader``); without one, a file that
+    names either is refused.
+    """
+    data = dict(data)
+    if isinstance(data.get("mqtt"), dict):
+        data["mqtt"] = _legacy_mqtt(data["mqtt"])
+    f = parse(data, UwbFile, source=source)
+    g = f.gateway
 
-def parse_config(data: Mapping[str, Any], source: str = "<memory>", base: Path | None = None) -> GatewayConfig:
-    from fleetlink.field.plans import FloorPlan, PlanError, load_plan
-    from fleetlink.field.scenario import ScenarioError, load_scenario
-
-    r = TomlReader(source)
-    r.keys(data, "top level", _TOP)
-
-    g = r.table(data, "gateway")
-    r.keys(g, "gateway", _GATEWAY)
-    gid = r.text(g.get("id", "uwb"), "gateway.id", nonempty=True)
-    if not keys.is_valid_id(gid):
-        raise r.fail("gateway.id", f"{gid!r} must be 1-64 characters from [A-Za-z0-9_-]")
-    rate = r.number(g.get("rate_hz", 10.0), "gateway.rate_hz", lo=0.1, hi=100.0)
-    seed = r.integer(g.get("seed", 0), "gateway.seed", lo=0, hi=2**63 - 1)
-    auto = r.flag(g.get("auto_tags", False), "gateway.auto_tags")
-    tag_z = r.number(g.get("tag_z", DEFAULT_TAG_Z), "gateway.tag_z", lo=-10.0, hi=50.0)
-    timeout = r.number(g.get("truth_timeout_s", 1.0), "gateway.truth_timeout_s", lo=0.01, hi=3600.0)
-    pub_ranges = r.flag(g.get("publish_ranges", True), "gateway.publish_ranges")
-    pans = r.flag(g.get("pans", True), "gateway.pans")
-    prefix = r.text(g.get("pans_prefix", "dwm"), "gateway.pans_prefix", nonempty=True)
-    if any(c in prefix for c in "#+\0") or prefix.startswith("/") or prefix.endswith("/"):
-        raise r.fail("gateway.pans_prefix", f"{prefix!r} is not a valid MQTT topic prefix")
-    solver = r.text(g.get("solver", "robust"), "gateway.solver")
-    if solver not in ("robust", "linear"):
-        raise r.fail("gateway.solver", f"must be 'robust' or 'linear', got {solver!r}")
-
-    plan: FloorPlan | None = None
-    anchors: tuple[Anchor, ...] = ()
-    try:
-        if "scenario" in data:
-            sc_name = r.text(data["scenario"], "scenario", nonempty=True)
-            sc = load_scenario(_resolve(sc_name, base, SCENARIOS_DIR))
-            plan = load_plan(sc.plan)
-            anchors = tuple(Anchor(*a) for a in sc.anchors)
-        if "plan" in data:
-            plan = load_plan(_resolve(r.text(data["plan"], "plan", nonempty=True), base))
-    except (PlanError, ScenarioError, ConfigError) as exc:
-        raise r.fail("plan" if "plan" in data else "scenario", str(exc)) from None
-    if plan is not None and not anchors:
-        anchors = tuple(Anchor(a.id, a.x, a.y, a.z) for a in plan.anchors)
-    listed = r.tables(data, "anchors")
-    if listed:
-        out: list[Anchor] = []
-        for i, t in enumerate(listed):
-            where = f"anchors[{i}]"
-            r.keys(t, where, {"id", "x", "y", "z"}, {"id", "x", "y", "z"})
-            aid = r.text(t["id"], f"{where}.id", nonempty=True)
-            if any(a.id == aid for a in out):
-                raise r.fail(f"{where}.id", f"anchor {aid!r} appears twice")
-            out.append(Anchor(aid, *(r.number(t[c], f"{where}.{c}") for c in "xyz")))
-        anchors = tuple(out)
+    geometry: SiteGeometry = ((), None)
+    if f.plan is not None or f.scenario is not None:
+        key = "plan" if f.plan is not None else "scenario"
+        if site is None:
+            raise ConfigError.at(source, key, "this program reads no plans or scenarios (give [[anchors]])")
+        try:
+            geometry = site(f.plan, f.scenario, base)
+        except ValueError as exc:
+            raise ConfigError.at(source, key, str(exc)) from None
+    anchors = tuple(Anchor(*a) for a in geometry[0])
+    if f.anchors:
+        anchors = tuple(Anchor(a.id, a.x, a.y, a.z) for a in f.anchors)
     if len(anchors) < 3:
-        raise r.fail(
+        raise ConfigError.at(
+            source,
             "anchors",
             f"need at least 3 anchors, got {len(anchors)} (give [[anchors]], or a plan/scenario that has them)",
         )
-
-    tags: list[TagSpec] = []
-    for i, t in enumerate(r.tables(data, "tags")):
-        where = f"tags[{i}]"
-        r.keys(t, where, {"id", "robot", "z"}, {"id", "robot"})
-        tid = r.text(t["id"], f"{where}.id", nonempty=True)
-        robot = r.text(t["robot"], f"{where}.robot", nonempty=True)
-        if not keys.is_valid_id(tid):
-            raise r.fail(f"{where}.id", f"{tid!r} must be 1-64 characters from [A-Za-z0-9_-]")
-        try:
-            keys.check_robot_id(robot)
-        except ValueError as exc:
-            raise r.fail(f"{where}.robot", str(exc)) from None
-        if any(x.id == tid for x in tags):
-            raise r.fail(f"{where}.id", f"tag {tid!r} appears twice")
-        if any(x.robot == robot for x in tags):
-            raise r.fail(f"{where}.robot", f"robot {robot!r} already has a tag")
-        tags.append(TagSpec(tid, robot, r.number(t.get("z", tag_z), f"{where}.z", lo=-10.0, hi=50.0)))
-    if not tags and not auto:
-        raise r.fail("tags", "no [[tags]] (id, robot) and gateway.auto_tags is off: nothing to locate")
-
-    n = r.table(data, "noise")
-    r.keys(n, "noise", {"profile", "use_walls", "nlos_zones"} | _NOISE_NUMBERS)
-    pname = r.text(n.get("profile", "realistic"), "noise.profile")
-    if pname not in PROFILES:
-        raise r.fail("noise.profile", f"must be one of {', '.join(PROFILES)}, got {pname!r}")
-    profile = PROFILES[pname]()
-    over: dict[str, Any] = {
-        k: r.number(n[k], f"noise.{k}", lo=None if k == "antenna_delay_m" else 0.0) for k in n if k in _NOISE_NUMBERS
-    }
-    for k in ("nlos_ratio", "outlier_ratio", "dropout_ratio"):
-        if k in over and over[k] > 1.0:
-            raise r.fail(f"noise.{k}", f"is a probability (0-1), got {over[k]}")
-    if "use_walls" in n:
-        over["use_walls"] = r.flag(n["use_walls"], "noise.use_walls")
-        if over["use_walls"] and plan is None:
-            raise r.fail("noise.use_walls", "needs a plan or scenario to take the walls from")
-    zones = n.get("nlos_zones", [])
-    if not isinstance(zones, list):
-        raise r.fail("noise.nlos_zones", "expected a list of polygons ([[x, y], ...])")
-    if zones:
-        over["nlos_zones"] = tuple(r.polygon(z, f"noise.nlos_zones[{i}]") for i, z in enumerate(zones))
-    try:
-        profile = replace(profile, **over)
-    except ValueError as exc:
-        raise r.fail("noise", str(exc)) from None
-
-    mqtt = _mqtt(r, data, source, base)
-
-    z = r.table(data, "zenoh")
-    r.keys(z, "zenoh", {"connect", "listen", "mode", "username", "password", "password_file", "root_ca"})
-    endpoints: dict[str, tuple[str, ...]] = {}
-    for k in ("connect", "listen"):
-        v = z.get(k, [])
-        if not isinstance(v, list):
-            raise r.fail(f"zenoh.{k}", f"expected a list of endpoints like 'tcp/127.0.0.1:7447', got {v!r}")
-        for i, e in enumerate(v):
-            e = r.text(e, f"zenoh.{k}[{i}]", nonempty=True)
-            if "/" not in e:
-                raise r.fail(f"zenoh.{k}[{i}]", f"{e!r} is not an endpoint like 'tcp/127.0.0.1:7447'")
-        endpoints[k] = tuple(v)
-    zenoh_auth = _zenoh_auth(r, z, base)
-
+    tags = tuple(TagSpec(t.id, t.robot, g.tag_z if t.z is None else t.z) for t in f.tags)
+    mqtt = default_mqtt() if f.mqtt is None else mqtt_settings(f.mqtt, source=source, base_dir=base)
+    auth = zenoh_auth(f.zenoh, source=source, base_dir=base)
     return GatewayConfig(
         anchors=anchors,
-        tags=tuple(tags),
-        profile=profile,
-        gateway_id=gid,
-        rate_hz=rate,
-        seed=seed,
-        auto_tags=auto,
-        tag_z=tag_z,
-        truth_timeout_s=timeout,
-        publish_ranges=pub_ranges,
-        pans=pans,
-        pans_prefix=prefix,
-        solver=solver,
-        walls=plan.segments() if plan is not None else None,
+        tags=tags,
+        profile=f.noise.profile_of(),
+        gateway_id=g.id,
+        rate_hz=g.rate_hz,
+        seed=g.seed,
+        auto_tags=g.auto_tags,
+        tag_z=g.tag_z,
+        truth_timeout_s=g.truth_timeout_s,
+        publish_ranges=g.publish_ranges,
+        pans=g.pans,
+        pans_prefix=g.pans_prefix,
+        solver=g.solver,
+        walls=geometry[1],
         mqtt=mqtt,
-        zenoh_connect=endpoints["connect"],
-        zenoh_listen=endpoints["listen"],
-        zenoh_auth=zenoh_auth,
+        zenoh_connect=f.zenoh.connect,
+        zenoh_listen=f.zenoh.listen,
+        zenoh_auth=ZenohAuth(auth.username, auth.password, auth.root_ca, auth.mode),
         source=source,
     )
 
 
-def _mqtt(r: TomlReader, data: Mapping[str, Any], source: str, base: Path | None) -> MqttSettings:
-    """``[mqtt]`` through shared/mqtt.py (credentials, TLS, backoff); keepalive defaults to 10 s.
-
-    For older files, ``mqtt://user:password@host`` is still read: the credentials move to
-    ``username``/``password`` (prefer ``password_file`` in production).
-    """
-    if "mqtt" not in data:
-        return default_mqtt()
-    m = dict(r.table(data, "mqtt"))
-    r.keys(m, "mqtt", set(MQTT_KEYS))
+def _legacy_mqtt(table: dict[str, Any]) -> dict[str, Any]:
+    """``[mqtt]`` defaults for the gateway (keepalive 10 s, the local broker), and for older files
+    ``mqtt://user:password@host``: the credentials move to ``username``/``password`` (prefer
+    ``password_file`` in production)."""
+    m = dict(table)
     m.setdefault("url", "mqtt://127.0.0.1:1883")
     m.setdefault("keepalive_s", DEFAULT_MQTT_KEEPALIVE_S)
     url = m["url"]
@@ -279,9 +305,4 @@ def _mqtt(r: TomlReader, data: Mapping[str, Any], source: str, base: Path | None
                 m["password"] = unquote(parts.password)
             netloc = parts.netloc.rpartition("@")[2]
             m["url"] = urlunsplit((parts.scheme, netloc, parts.path, parts.query, parts.fragment))
-    return MqttSettings.from_table(m, source=source, where="mqtt", base_dir=base)
-
-
-def _zenoh_auth(r: TomlReader, z: Mapping[str, Any], base: Path | None) -> ZenohAuth:
-    auth = read_zenoh_auth(r, z, base)  # one reader for every process (shared/zenoh_config.py)
-    return ZenohAuth(auth.username, auth.password, auth.root_ca, auth.mode)
+    return m

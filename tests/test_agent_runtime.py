@@ -103,13 +103,13 @@ def test_an_idle_agent_ticks_per_pose_and_a_driving_one_at_the_control_rate(rig:
 @pytest.mark.parametrize(
     ("data", "fragment"),
     [
-        ({"board": "socket://x:1", "zenoh": {}}, "missing key(s) robot"),
+        ({"board": "socket://x:1", "zenoh": {}}, "robot.toml: robot: missing required key"),
         ({"robot": "sim", "board": "x", "zenoh": {}}, "reserved"),
         ({"robot": "r1", "board": "x"}, "needs a [zenoh] or an [mqtt]"),
         ({"robot": "r1", "board": "x", "mqtt": {"url": "http://h"}}, "mqtt.url"),
         ({"robot": "r1", "board": "x", "zenoh": {"connect": "tcp/1.2.3.4:1"}}, "zenoh.connect"),
         ({"robot": "r1", "board": "x", "zenoh": {}, "limits": {"v_max": -1}}, "limits.v_max"),
-        ({"robot": "r1", "board": "x", "zenoh": {}, "bogus": 1}, "unknown key(s) bogus"),
+        ({"robot": "r1", "board": "x", "zenoh": {}, "bogus": 1}, "bogus: unknown key; allowed: board,"),
         ({"robot": "r1", "board": "x", "zenoh": {}, "operators": "op-alice"}, "operators"),
         ({"robot": "r1", "board": "x", "zenoh": {"username": "r1"}}, "go together"),
         ({"robot": "r1", "board": "x", "zenoh": {"root_ca": "/nonexistent/ca.crt"}}, "zenoh.root_ca"),

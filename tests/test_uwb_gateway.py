@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from fleetlink.cli.main import main
+from fleetlink.field.scenario import site_geometry
 from fleetlink.positioning.anchors import Anchor
 from fleetlink.positioning.config import ConfigError, GatewayConfig, TagSpec, load_config, parse_config
 from fleetlink.positioning.gateway import GatewayCore, pans_location, pans_topic, status_topic
@@ -144,7 +145,7 @@ def test_status_payload() -> None:
 
 
 def test_config_from_plan_and_from_file(tmp_path: Path) -> None:
-    cfg = parse_config({"plan": "office", "gateway": {"auto_tags": True}})
+    cfg = parse_config({"plan": "office", "gateway": {"auto_tags": True}}, site=site_geometry)
     assert len(cfg.anchors) == 10 and cfg.anchors[0] == Anchor("A1", 0.2, 0.2, 2.7)
     assert cfg.profile == NoiseProfile.realistic() and cfg.rate_hz == 10.0
     path = tmp_path / "uwb.toml"
@@ -168,7 +169,7 @@ url = "mqtt://user:secret@127.0.0.1:18830"
 connect = ["tcp/127.0.0.1:7447"]
 """
     )
-    cfg = load_config(path)
+    cfg = load_config(path, site=site_geometry)
     assert cfg.gateway_id == "gw-a" and cfg.rate_hz == 5.0 and cfg.tags == (TagSpec("0d7f", "r1", 0.25),)
     assert cfg.profile.antenna_delay_m == 0.2 and cfg.profile.use_walls and cfg.walls is not None
     assert (cfg.mqtt.host, cfg.mqtt.port, cfg.mqtt.username, cfg.mqtt.password) == (
@@ -188,7 +189,10 @@ connect = ["tcp/127.0.0.1:7447"]
         ({"tags": [{"id": "t", "robot": "r1"}]}, "anchors: need at least 3 anchors, got 0"),
         ({"plan": "nowhere", "gateway": {"auto_tags": True}}, "plan: "),
         ({"plan": "office", "gateway": {"auto_tags": True, "rate_hz": 0}}, r"gateway.rate_hz: must be >= 0.1"),
-        ({"plan": "office", "gateway": {"auto_tags": True, "bogus": 1}}, "gateway: unknown key"),
+        (
+            {"plan": "office", "gateway": {"auto_tags": True, "bogus": 1}},
+            r"gateway\.bogus: unknown key; allowed: auto_tags",
+        ),
         ({"plan": "office", "tags": [{"id": "a/b", "robot": "r1"}]}, r"tags\[0\].id"),
         ({"plan": "office", "tags": [{"id": "t", "robot": "sim"}]}, r"tags\[0\].robot: .*reserved"),
         (
@@ -218,7 +222,7 @@ connect = ["tcp/127.0.0.1:7447"]
 )
 def test_bad_config_gets_a_clear_error(data, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
-        parse_config(data, source="uwb.toml")
+        parse_config(data, source="uwb.toml", site=site_geometry)
 
 
 def test_cli_reports_bad_config_and_checks_a_good_one(tmp_path: Path, capsys) -> None:
@@ -233,3 +237,22 @@ def test_cli_reports_bad_config_and_checks_a_good_one(tmp_path: Path, capsys) ->
     good.write_text('plan = "office"\n[gateway]\nauto_tags = true\n')
     assert main(["uwb", "--config", str(good), "--check"]) == 0
     assert "10 anchors" in capsys.readouterr().out
+
+
+def test_positioning_reads_no_field_files_itself() -> None:
+    """No positioning -> field import: the caller passes the plan/scenario reader in."""
+    import subprocess
+    import sys
+
+    code = "import sys, fleetlink.positioning.config, fleetlink.positioning.gateway; print(sorted(m for m in sys.modules if m.startswith('fleetlink.field')))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+    with pytest.raises(ConfigError, match=r"^uwb\.toml: plan: this program reads no plans or scenarios"):
+        parse_config({"plan": "office", "gateway": {"auto_tags": True}}, source="uwb.toml")
+
+
+def test_a_bad_key_in_uwb_toml_names_the_file_and_the_key(tmp_path: Path) -> None:
+    path = tmp_path / "uwb.toml"
+    path.write_text('plan = "office"\n[gateway]\nauto_tags = true\n[noise]\nsigma = 0.2\n')
+    with pytest.raises(ConfigError, match=r"uwb\.toml: noise\.sigma: unknown key \(did you mean sigma_m\?\)"):
+        load_config(path, site=site_geometry)

@@ -13,6 +13,7 @@ from typing import Any
 import paho.mqtt.client as mqtt
 
 from fleetlink.field.realtime import TruthSample
+from fleetlink.field.scenario import site_geometry
 from fleetlink.field.truth import TruthPublisher
 from fleetlink.positioning.config import MqttSettings, parse_config
 from fleetlink.positioning.publisher import UwbGateway
@@ -76,7 +77,8 @@ def test_fixes_and_pans_over_real_mosquitto_from_zenoh_truth(mosquitto, zenoh_pe
             "gateway": {"id": "gw-test", "rate_hz": RATE_HZ},
             "tags": [{"id": "0d7f", "robot": "r1", "z": 0.3}],
             "noise": {"profile": "los"},
-        }
+        },
+        site=site_geometry,
     )
     config = replace(config, mqtt=MqttSettings("127.0.0.1", mosquitto.port, keepalive_s=2))
     listener = Listener(mosquitto.port, ["fleetlink/v1/+/uwb", "dwm/node/+/uplink/location", "fleetlink/uwb/#"])

@@ -16,6 +16,7 @@ import pytest
 import zenoh
 
 from fleetlink.field.realtime import TruthSample
+from fleetlink.field.scenario import site_geometry
 from fleetlink.field.truth import TruthPublisher
 from fleetlink.positioning.config import parse_config
 from fleetlink.positioning.publisher import UwbGateway
@@ -111,7 +112,7 @@ def test_gateway_publishes_through_the_secured_site_and_nobody_else_forges_fixes
 ) -> None:
     broker, endpoint, folder = site
     clock = SystemClock()
-    cfg = parse_config(_gateway_config(broker, endpoint, folder), source="uwb.toml", base=folder)
+    cfg = parse_config(_gateway_config(broker, endpoint, folder), source="uwb.toml", base=folder, site=site_geometry)
     assert cfg.mqtt.username == "uwb-gateway" and cfg.zenoh_auth.username == "uwb-gateway"
     sim = zenoh.open(peer_config(connect=[endpoint], mode="client", username="sim", password=ZUSERS["sim"]))
     truth = TruthPublisher(sim, clock, sender="field")
@@ -184,7 +185,9 @@ def test_gateway_with_a_wrong_password_is_refused_and_publishes_nothing(
     site: tuple[DeployBroker, str, Path],
 ) -> None:
     broker, endpoint, folder = site
-    cfg = parse_config(_gateway_config(broker, endpoint, folder, password="wrong"), source="uwb.toml", base=folder)
+    cfg = parse_config(
+        _gateway_config(broker, endpoint, folder, password="wrong"), source="uwb.toml", base=folder, site=site_geometry
+    )
     agent = Listener(broker)
     gateway = UwbGateway(cfg, SystemClock(), subscribe_truth=False)
     try:
