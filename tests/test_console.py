@@ -23,7 +23,6 @@ import numpy as np
 import pytest
 from textual.widgets import Input, Static
 
-from fleetlink.shared.map_codec import snapshot_fields
 from fleetlink.operator.console import ConsoleApp, attach
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.linkmanager import LinkPolicy
@@ -32,6 +31,7 @@ from fleetlink.operator.maps import MapFollower
 from fleetlink.operator.mapview import ASPECT, MapView
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.map_codec import snapshot_fields
 from fleetlink.shared.messages import (
     Ack,
     AckResult,

@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from fleetlink.shared.map_codec import patch_fields, snapshot_fields
 from fleetlink.cli.console import share_marks
 from fleetlink.operator.console import ConsoleApp, attach
 from fleetlink.operator.fleet import FleetModel
@@ -24,6 +23,7 @@ from fleetlink.operator.maps import MapFetcher, MapFollower
 from fleetlink.operator.mapview import MapView
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
+from fleetlink.shared.map_codec import patch_fields, snapshot_fields
 from fleetlink.shared.messages import MapSnapshot, MapUpdate, Mark, Pose
 from fleetlink.site.brokers import AmqttBroker
 from tests.harness import wait_until

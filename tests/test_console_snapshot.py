@@ -22,10 +22,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from fleetlink.shared.map_codec import snapshot_fields
 from fleetlink.operator.maps import MapFollower
 from fleetlink.shared import wire
 from fleetlink.shared.clock import SimClock
+from fleetlink.shared.map_codec import snapshot_fields
 from fleetlink.shared.messages import (
     AgvPosition,
     BatteryState,
