@@ -39,7 +39,10 @@ import socket
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
+
+from fleetlink.shared.config import Setting
+from fleetlink.shared.worker import Worker
 
 log = logging.getLogger(__name__)
 
@@ -70,44 +73,61 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ca-file", help="the site CA for tls/ Zenoh endpoints and mqtts:// urls")
 
 
+@dataclass(frozen=True, slots=True)
+class ConsoleZenohTable:
+    connect: tuple[Annotated[str, Setting(min_len=1)], ...] = ()
+    listen: tuple[Annotated[str, Setting(min_len=1)], ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class ConsoleMqttTable:
+    url: Annotated[str, Setting(min_len=1, doc="mqtt://host[:1883] or mqtts://host[:8883]")]
+
+
+NonEmpty = Annotated[str | None, Setting(min_len=1)]
+
+
+@dataclass(frozen=True, slots=True)
+class ConsoleFile:
+    """console.toml (see the module docstring); every key optional, command-line options win."""
+
+    operator: Annotated[str | None, Setting(min_len=1, doc="this console's sender id")] = None
+    read_only: Annotated[bool | None, Setting(doc="watch only: send no command")] = None
+    marks_file: Annotated[str | None, Setting(min_len=1, doc="where marks are saved")] = None
+    user: Annotated[str | None, Setting(min_len=1, doc="a secured site: the login on both links")] = None
+    password_file: NonEmpty = None
+    ca_file: Annotated[str | None, Setting(min_len=1, doc="the site CA, for tls/ and mqtts://")] = None
+    zenoh: ConsoleZenohTable | None = None
+    mqtt: ConsoleMqttTable | None = None
+
+
 def load_settings(args: argparse.Namespace) -> ConsoleSettings:
     """Defaults, then the config file, then command-line options. ConfigError/ValueError with reasons."""
     from fleetlink.operator.links import parse_mqtt_url
     from fleetlink.shared import keys
-    from fleetlink.shared.config import TomlReader, read_toml
+    from fleetlink.shared.config import load
 
     s = ConsoleSettings()
     operator_given = bool(args.operator)
     if args.config is not None:
-        data = read_toml(args.config)
-        r = TomlReader(str(args.config))
-        r.keys(data, "", ("operator", "read_only", "marks_file", "zenoh", "mqtt", "user", "password_file", "ca_file"))
-        if "user" in data:
-            s.user = r.text(data["user"], "user", nonempty=True)
-        if "password_file" in data:
-            s.password = _read_password(Path(r.text(data["password_file"], "password_file", nonempty=True)))
-        if "ca_file" in data:
-            s.ca_file = r.text(data["ca_file"], "ca_file", nonempty=True)
-        if "operator" in data:
+        f = load(args.config, ConsoleFile)
+        if f.user is not None:
+            s.user = f.user
+        if f.password_file is not None:
+            s.password = _read_password(Path(f.password_file))
+        if f.ca_file is not None:
+            s.ca_file = f.ca_file
+        if f.operator is not None:
             operator_given = True
-            s.operator = r.text(data["operator"], "operator", nonempty=True)
-        if "read_only" in data:
-            s.read_only = r.flag(data["read_only"], "read_only")
-        if "marks_file" in data:
-            s.marks_file = Path(r.text(data["marks_file"], "marks_file", nonempty=True))
-        if "zenoh" in data:
-            z = r.table(data, "zenoh")
-            r.keys(z, "zenoh", ("connect", "listen"))
-            s.zenoh_connect = tuple(
-                r.text(e, f"zenoh.connect[{i}]", nonempty=True) for i, e in enumerate(z.get("connect", []))
-            )
-            s.zenoh_listen = tuple(
-                r.text(e, f"zenoh.listen[{i}]", nonempty=True) for i, e in enumerate(z.get("listen", []))
-            )
-        if "mqtt" in data:
-            m = r.table(data, "mqtt")
-            r.keys(m, "mqtt", ("url",), ("url",))
-            s.mqtt_url = r.text(m["url"], "mqtt.url", nonempty=True)
+            s.operator = f.operator
+        if f.read_only is not None:
+            s.read_only = f.read_only
+        if f.marks_file is not None:
+            s.marks_file = Path(f.marks_file)
+        if f.zenoh is not None:
+            s.zenoh_connect, s.zenoh_listen = f.zenoh.connect, f.zenoh.listen
+        if f.mqtt is not None:
+            s.mqtt_url = f.mqtt.url
     if getattr(args, "user", None):
         s.user = args.user
     if getattr(args, "password_file", None):
@@ -198,22 +218,21 @@ def run_console(settings: ConsoleSettings, link: Any = None) -> int:
     attach(link, fleet, lock, maps)
     app = ConsoleApp(link, fleet, clock, lock=lock, read_only=settings.read_only, marks_file=settings.marks_file)
     fetcher = MapFetcher(maps, link.fetch_map, clock, lock).start()
-    stop = threading.Event()
-    share_marks(link, fleet, lock, stop)
+    marks = share_marks(link, fleet, lock)
     try:
         app.run()
     finally:
         app.send_stop_to_all()  # also after a crash or Ctrl-C: safety before features
-        stop.set()
+        marks.stop()
         fetcher.stop()
         link.close()
     return 0
 
 
-def share_marks(link: Any, fleet: Any, lock: Any, stop: Any, asks: tuple[float, ...] = (0.5, 2.0, 6.0)) -> Any:
+def share_marks(link: Any, fleet: Any, lock: Any, asks: tuple[float, ...] = (0.5, 2.0, 6.0)) -> Worker:
     """Answer other consoles' marks queries, and ask theirs (a few times: peers take a moment to
-    find each other), so a console that starts late still gets the marks placed before it."""
-    import threading
+    find each other), so a console that starts late still gets the marks placed before it.
+    Returns the (started) worker that asks; ``stop()`` it on the way out."""
 
     def held() -> list[Any]:
         with lock:
@@ -221,10 +240,11 @@ def share_marks(link: Any, fleet: Any, lock: Any, stop: Any, asks: tuple[float, 
 
     link.serve_marks(held)
 
-    def ask() -> None:
+    def ask(worker: Worker) -> None:
         waited = 0.0
         for at in asks:
-            if stop.wait(at - waited):
+            worker.wait(at - waited)
+            if worker.stopping:
                 return
             waited = at
             try:
@@ -232,9 +252,7 @@ def share_marks(link: Any, fleet: Any, lock: Any, stop: Any, asks: tuple[float, 
             except Exception as exc:  # closed on the way out: nothing to ask any more
                 log.debug("asking for marks: %s", exc)
 
-    thread = threading.Thread(target=ask, name="console-marks", daemon=True)
-    thread.start()
-    return thread
+    return Worker("console-marks", target=ask).start()
 
 
 def run(args: argparse.Namespace) -> int:

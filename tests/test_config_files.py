@@ -1,0 +1,73 @@
+"""Every kind of configuration file goes through shared/config.py: a bad key is reported with the
+file and the dotted key (uwb.toml: tests/test_uwb_gateway.py)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import pytest
+
+from fleetlink.agent.config import load_agent_config
+from fleetlink.cli.console import add_arguments, load_settings
+from fleetlink.field.plans import PlanError, load_plan
+from fleetlink.field.scenario import ScenarioError, load_scenario
+from fleetlink.shared.config import ConfigError
+
+
+def console_args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    return parser.parse_args(list(argv))
+
+
+def test_robot_toml(tmp_path: Path) -> None:
+    path = tmp_path / "robot.toml"
+    path.write_text('robot = "r1"\nboard = "socket://h:1"\n[zenoh]\nconnect = ["tcp/h:7447"]\n[limits]\nv_mx = 0.3\n')
+    with pytest.raises(ConfigError, match=r"robot\.toml: limits\.v_mx: unknown key \(did you mean v_max\?\)"):
+        load_agent_config(path)
+    path.write_text('robot = "r1"\nboard = "socket://h:1"\n[mqtt]\nurl = "mqtt://h"\nkeepalive_s = 0\n')
+    with pytest.raises(ConfigError, match=r"robot\.toml: mqtt\.keepalive_s: must be >= 1, got 0"):
+        load_agent_config(path)
+
+
+def test_scenario_toml(tmp_path: Path) -> None:
+    path = tmp_path / "drill.toml"
+    path.write_text(
+        'plan = "office"\n[[robots]]\nname = "a"\nstart = "entrance"\n[[robots]]\nname = "b"\nstrat = "x"\n'
+    )
+    with pytest.raises(ScenarioError, match=r"drill\.toml: robots\[1\]\.strat: unknown key \(did you mean start\?\)"):
+        load_scenario(path)
+
+
+def test_plan_toml(tmp_path: Path) -> None:
+    path = tmp_path / "lab.toml"
+    path.write_text("bounds = [0, 0, 5, 5]\nwalls = []\n[starts]\nhome = { x = 1, y = 1, theta = 0 }\n")
+    with pytest.raises(PlanError, match=r"lab\.toml: starts\.home\.theta: unknown key \(did you mean theta_deg\?\)"):
+        load_plan(path)
+
+
+def test_console_toml(tmp_path: Path) -> None:
+    path = tmp_path / "console.toml"
+    path.write_text('operator = "op-a"\n[zenoh]\nconect = ["tcp/h:7447"]\n')
+    with pytest.raises(ConfigError, match=r"console\.toml: zenoh\.conect: unknown key \(did you mean connect\?\)"):
+        load_settings(console_args("--config", str(path)))
+    path.write_text('read_only = "yes"\n')
+    with pytest.raises(ConfigError, match=r"console\.toml: read_only: expected true or false, got str 'yes'"):
+        load_settings(console_args("--config", str(path)))
+    path.write_text("[mqtt]\nport = 1883\n")
+    with pytest.raises(ConfigError, match=r"console\.toml: mqtt\.port: unknown key; allowed: url"):
+        load_settings(console_args("--config", str(path)))
+
+
+def test_console_toml_then_the_command_line(tmp_path: Path) -> None:
+    path = tmp_path / "console.toml"
+    path.write_text(
+        'operator = "op-a"\nread_only = true\nmarks_file = "m.json"\n'
+        '[zenoh]\nconnect = ["tcp/h:7447"]\n[mqtt]\nurl = "mqtt://h:1884"\n'
+    )
+    s = load_settings(console_args("--config", str(path)))
+    assert (s.operator, s.read_only, s.marks_file) == ("op-a", True, Path("m.json"))
+    assert (s.zenoh_connect, s.zenoh_listen, s.mqtt_url) == (("tcp/h:7447",), (), "mqtt://h:1884")
+    s = load_settings(console_args("--config", str(path), "--operator", "op-b", "--mqtt", "mqtt://k"))
+    assert (s.operator, s.mqtt_url, s.zenoh_connect) == ("op-b", "mqtt://k", ("tcp/h:7447",))
