@@ -1,0 +1,155 @@
+"""The one site (fleetlink.site): the demo field composed headless, its broker launcher, the open-loop mode.
+
+The secured site is tests/test_field_secure.py (the same ``FieldSite`` with ``security``); the
+console on the demo site is the tmux e2e test (tests/e2e).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from fleetlink.shared.clock import SystemClock
+from fleetlink.shared.messages import Ack, AckResult, Pose, Teleop, UwbFix
+from fleetlink.site import brokers
+from fleetlink.site.brokers import AmqttBroker, MosquittoBroker, start_demo_broker
+from fleetlink.site.field import FieldSite
+from tests.harness import wait_until
+from tests.test_field_realtime import quiet_scenario
+
+
+def test_demo_site_runs_agents_uwb_and_the_operator_link_on_one_broker() -> None:
+    scenario = quiet_scenario(
+        robots=[
+            {"name": "uvc-1", "start": "living", "drive": "idle"},
+            {"name": "uvc-2", "start": "bedroom", "drive": "idle"},
+        ],
+        lidar={"enabled": False},
+    )
+    said: list[str] = []
+    site = FieldSite(scenario, clock=SystemClock(), operator="operator-1", say=said.append)
+    got: list[tuple[Any, str]] = []
+    lock = threading.Lock()
+    try:
+        site.start()
+        # The tests' MQTT path runs on real mosquitto, never on the demo's amqtt fallback.
+        assert isinstance(site.broker, MosquittoBroker) and site.broker.running
+        assert said == [f"fleetlink field: MQTT on {site.mqtt_url} (embedded mosquitto)"]
+        assert site.gateway is not None and site.agents is not None and site.boards is None
+        link = site.link
+        assert link is not None
+
+        def sink(msg: Any, on: str, _t: float) -> None:
+            with lock:
+                got.append((msg, on))
+
+        link.add_sink(sink)
+
+        def heard(cls: type, on: str) -> bool:
+            with lock:
+                return any(isinstance(m, cls) and lk == on for m, lk in got)
+
+        wait_until(lambda: heard(Pose, "zenoh") and heard(Pose, "mqtt"), timeout=15, message="poses on both links")
+        wait_until(lambda: heard(UwbFix, "mqtt"), timeout=15, message="the site's UWB gateway's fixes")
+        robots = {r.name: r for r in site.field.world.robots}
+        start = {n: r.pose for n, r in robots.items()}
+
+        def moved(name: str) -> float:
+            a, b = start[name], robots[name].pose
+            return math.hypot(b[0] - a[0], b[1] - a[1])
+
+        sent: list[int] = []
+
+        def drive() -> bool:
+            sent.append(link.send(Teleop, "uvc-1", v=0.2, omega=0.0, ttl_s=0.5).header.headerId)
+            return moved("uvc-1") > 0.05
+
+        wait_until(drive, interval=0.1, timeout=15, message="uvc-1 moving under the operator's teleop")
+        with lock:
+            acks = [m for m, _ in got if isinstance(m, Ack)]
+        assert any(a.commandHeaderId in sent and a.result is AckResult.ACCEPTED for a in acks)
+        assert moved("uvc-2") < 0.01
+        # The demo has no router: its one console's peer is where the agents connect.
+        with pytest.raises(RuntimeError, match="one console"):
+            site.operator_link("operator-2")
+        folder = site.broker.workdir
+    finally:
+        site.stop()
+    assert site.broker is None and not folder.exists()  # the demo broker and its folder are gone
+
+
+def test_take_link_hands_the_operators_link_over() -> None:
+    site = FieldSite(quiet_scenario(lidar={"enabled": False}), clock=SystemClock(), operator="operator-1", say=print)
+    closed: list[bool] = []
+    try:
+        site.start()
+        link = site.take_link()
+        close = link.close
+        link.close = lambda: closed.append(True)  # type: ignore[method-assign]
+        with pytest.raises(RuntimeError):
+            site.take_link()
+    finally:
+        site.stop()
+    assert closed == []  # the console closes it, not the site
+    close()
+
+
+def test_without_agents_the_boards_are_driven_open_loop_and_no_broker_starts() -> None:
+    scenario = quiet_scenario(
+        robots=[{"name": "uvc-1", "start": "living", "drive": "wander"}], lidar={"enabled": False}
+    )
+    clock = SystemClock()
+    site = FieldSite(scenario, clock=clock, agents=False, say=print).start()
+    try:
+        assert site.broker is None and site.agents is None and site.gateway is None and site.link is None
+        assert site.boards is not None
+        robot = site.field.world.robots[0]
+        start = robot.pose
+        t0 = clock.now()
+
+        def moved() -> bool:
+            assert site.boards is not None
+            site.boards.step(clock.now() - t0)
+            return math.hypot(robot.pose[0] - start[0], robot.pose[1] - start[1]) > 0.05
+
+        wait_until(moved, interval=0.05, timeout=15, message="the wanderer moving over its board link")
+    finally:
+        site.stop()
+    assert site.boards is None
+
+
+def test_a_secured_site_refuses_a_broker_url_and_unknown_operators() -> None:
+    from fleetlink.site.field import Security
+
+    scenario = quiet_scenario()
+    with pytest.raises(ValueError, match="own broker"):
+        FieldSite(scenario, security=Security(), mqtt_url="mqtt://127.0.0.1:1883")
+    with pytest.raises(ValueError, match="no account"):
+        FieldSite(scenario, security=Security(("op-alice",)), operator="op-bob")
+
+
+def test_demo_broker_is_amqtt_only_without_mosquitto(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setattr(brokers, "which_mosquitto", lambda fallback=brokers.FALLBACK_BINARY: None)
+    broker, what = start_demo_broker(tmp_path / "broker")
+    try:
+        assert isinstance(broker, AmqttBroker) and "amqtt" in what
+        assert broker.url == f"mqtt://127.0.0.1:{broker.port}"
+    finally:
+        if broker is not None:
+            broker.stop()
+
+
+def test_mosquitto_restarts_on_its_port(tmp_path: Path) -> None:
+    broker = MosquittoBroker(tmp_path).start()
+    try:
+        pid, port = broker.pid, broker.port
+        broker.restart()
+        assert broker.running and broker.pid != pid and broker.port == port
+        assert broker.url == f"mqtt://127.0.0.1:{port}"
+    finally:
+        broker.stop()
+    assert not broker.running
