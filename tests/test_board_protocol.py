@@ -71,6 +71,65 @@ def test_every_request_type_has_a_strategy() -> None:
     assert len(p.REQUEST_TYPES) == len(set(p.REQUEST_TYPES))
 
 
+# --------------------------------------------------------------------------------------------
+# The command table
+# --------------------------------------------------------------------------------------------
+
+
+def test_command_table_is_complete_and_consistent() -> None:
+    rows = p.COMMANDS
+    # Every Control Bus code has a row; a code shared by several requests tells them apart by a
+    # sub-command byte, so (code, sub) is unique.
+    assert {c.code for c in rows} == set(p.CtrlBus)
+    keys = [(c.code, c.args.sub) for c in rows]
+    assert len(set(keys)) == len(keys)
+    assert all(c.args.sub is not None for c in rows if [r.code for r in rows].count(c.code) > 1)
+    # The static unions (for the type checker) hold exactly the table's types.
+    assert len(set(p.REQUEST_TYPES)) == len(rows)
+    assert set(typing.get_args(p.Request)) == set(p.REQUEST_TYPES)
+    assert set(REPLY_TYPES) == set(p.REPLY_TYPES) == {c.reply for c in rows}
+    assert len(p.REPLIES) == len(set(p.REPLY_TYPES))
+    for c in rows:
+        cls = c.request
+        assert (cls.CODE, cls.REPLY, cls.COMMAND) == (c.code, c.reply, c)
+        # A valid request of each kind encodes with its code (and sub-command) and decodes back.
+        req = COMMANDS[cls][0]
+        frame = _via_wire(p.encode_request(req), p.DEFAULT_PROFILE)
+        assert frame.payload[0] == c.code
+        assert len(frame.payload) == 1 + c.args.size
+        if c.args.sub is not None:
+            assert frame.payload[1] == c.args.sub
+        got = p.decode_request(frame)
+        assert got == req and type(got) is cls
+    # Every fixed-size reply decodes a payload of its size (zeros) and encodes it back.
+    for layout in p.REPLIES:
+        if layout.size is not None:
+            reply = p.decode_reply(Frame(p.RESP_OK, bytes(layout.size), True), layout.type)
+            assert type(reply) is layout.type, reply
+            assert reply.encode() == bytes(layout.size)
+
+
+def test_a_layout_that_does_not_fit_its_request_is_refused() -> None:
+    with pytest.raises(TypeError, match="Beep"):
+        p.Command(p.CtrlBus.BEEP, p.Beep, p.Args(p.U16), p.Empty)
+    with pytest.raises(TypeError, match="GetBaseStatus"):
+        p.Command(p.CtrlBus.GET_BASE_STATUS, p.GetBaseStatus, p.Args(p.U8), p.BaseStatus)
+
+
+def test_requests_without_arguments_are_distinct_values() -> None:
+    assert p.GetBaseStatus() == p.GetBaseStatus() and hash(p.GetBaseStatus()) == hash(p.GetBaseStatus())
+    assert p.GetBaseStatus() != p.GetMotorData()  # declared once, yet each its own type
+    assert repr(p.GetTelemetry()) == "GetTelemetry()"
+    assert p.decode_request(Frame(p.DEFAULT_CTRL_BUS, b"\xab")) == p.GetTelemetry()
+
+
+def test_error_codes_classify_once() -> None:
+    """Below 0x8000 the exchange broke; from 0x8000 the board refused (known codes or not)."""
+    for code in p.ErrorCode:
+        assert p.ErrorReply(code).is_protocol_error == code.is_protocol_error == (code < 0x8000)
+    assert p.ErrorReply(0x0001).is_protocol_error and not p.ErrorReply(0x9000).is_protocol_error
+
+
 def _via_wire(data: bytes, profile: p.Profile) -> Frame:
     frames = FrameDecoder(valid_codes=profile.request_codes).feed(data)
     assert len(frames) == 1 and isinstance(frames[0], Frame)

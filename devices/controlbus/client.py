@@ -191,11 +191,11 @@ class BoardClient:
             self.stats.replies += 1
             self.stats.rtt_s.append(self.clock.now() - start)
             if isinstance(reply, p.ErrorReply):
-                if reply.code >= 0x8000:
-                    self.stats.refusals += 1
-                    raise BoardRefused(req, reply.code)
-                self.stats.protocol_errors += 1
-                raise BoardProtocolError(f"{type(req).__name__}: board answered {reply}")
+                if reply.is_protocol_error:
+                    self.stats.protocol_errors += 1
+                    raise BoardProtocolError(f"{type(req).__name__}: board answered {reply}")
+                self.stats.refusals += 1
+                raise BoardRefused(req, reply.code)
             if isinstance(reply, (p.Malformed, p.InvalidReply)):
                 self.stats.protocol_errors += 1
                 raise BoardProtocolError(f"{type(req).__name__}: {reply}")

@@ -14,9 +14,10 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from enum import IntEnum, IntFlag
-from typing import Any, ClassVar, NamedTuple, Protocol, TypeAlias, TypeVar, cast
+from operator import attrgetter
+from typing import Any, ClassVar, NamedTuple, Protocol, TypeAlias, TypeVar, cast, get_args
 
 from fleetlink.devices.controlbus.frames import Frame, encode_frame
 
@@ -73,7 +74,7 @@ class ErrorCode(IntEnum):
     @property
     def is_protocol_error(self) -> bool:
         """Codes below 0x8000 say the channel broke (we or the line), not that a command was refused."""
-        return self.value < 0x8000
+        return is_protocol_error(self.value)
 
     @classmethod
     def describe(cls, code: int) -> str:
@@ -81,6 +82,11 @@ class ErrorCode(IntEnum):
             return f"0x{code:04X} {cls(code).name.lower().replace('_', ' ')}"
         except ValueError:
             return f"0x{code:04X} unknown error"
+
+
+def is_protocol_error(code: int) -> bool:
+    """An ERROR code below 0x8000 (known or not) says the exchange broke; 0x8000 and up, a refusal."""
+    return code < 0x8000
 
 
 class CtrlBus(IntEnum):
@@ -145,18 +151,6 @@ def _u32(x: float) -> int:
     if not 0 <= v <= 0xFFFF_FFFF:
         raise ValueError(f"{x} does not fit an unsigned 32-bit field")
     return v
-
-
-def _finite(name: str, *values: float) -> None:
-    for v in values:
-        if not math.isfinite(v):
-            raise ValueError(f"{name} must be finite, got {v}")
-
-
-def _unpack(st: struct.Struct, payload: bytes) -> tuple[int, ...]:
-    if len(payload) != st.size:
-        raise BadPayload(f"expected {st.size} bytes, got {len(payload)}")
-    return st.unpack(payload)
 
 
 # --------------------------------------------------------------------------------------------
@@ -234,7 +228,7 @@ def _checked(decode: Callable[[bytes], _T], cls: type, payload: bytes) -> _T:
 
 
 def _size_problem(cls: type | None, payload: bytes) -> str:
-    size = _REPLY_SIZES.get(cls) if cls is not None else None
+    size = _PAYLOAD_SIZES.get(cls) if cls is not None else None
     if size is None:
         return f"payload of {len(payload)} bytes does not fit"
     return f"expected {size} byte{'s' if size != 1 else ''}, got {len(payload)}"
@@ -850,207 +844,224 @@ Reply: TypeAlias = (
     | Telemetry
 )
 
-# decode_reply's dispatch: reply type -> decoder of its OK payload.
-_REPLY_DECODERS: dict[type[Reply] | None, Callable[[bytes], Reply]] = {
-    Empty: _decode_empty,
-    BaseInfo: _decode_base_info,
-    BaseConf: _decode_base_conf,
-    BinaryConf: _decode_binary_conf,
-    BaseStatus: _decode_base_status,
-    MotorData: _decode_motor_data,
-    SensorData: _decode_sensor_data,
-    BumperData: _decode_bumper_data,
-    AutoHomeData: _decode_auto_home_data,
-    DeadReckon: _decode_dead_reckon,
-    PendingBaseCommand: _decode_pending_base_command,
-    Health: _decode_health_reply,
-    HealthError: _decode_health_error,
-    PayloadStatus: _decode_payload_status,
-    EnvData: _decode_env_data,
-    PowerData: _decode_power_data,
-    Buttons: _decode_buttons,
-    ImuData: _decode_imu,
-    Telemetry: _decode_telemetry,
-}
-
-# Fixed payload sizes, for the message when a payload has the wrong size.
-_REPLY_SIZES: dict[type, int] = {
-    BaseInfo: _BASE_INFO.size,
-    MountPose: _POSE.size,
-    BaseConf: _CONF_SIZE,
-    BaseStatus: _STATUS.size,
-    MotorData: _MOTOR.size,
-    SensorData: _SENSORS.size,
-    DeadReckon: _DEADRECKON.size,
-    Health: _HEALTH.size,
-    HealthError: _HEALTH_ERROR.size,
-    PayloadStatus: _PAYLOAD_STATUS.size,
-    EnvData: _ENV.size,
-    PowerData: _POWER.size,
-    Buttons: _BUTTONS.size,
-    ImuData: _IMU.size,
-}
-
 
 # --------------------------------------------------------------------------------------------
-# Requests (a CTRL_BUS frame's payload: command code, then arguments)
+# Request arguments: a few field kinds, from which each command's layout is composed
 # --------------------------------------------------------------------------------------------
+
+_INT_RANGE = {"B": (0, 0xFF), "H": (0, 0xFFFF), "I": (0, 0xFFFF_FFFF), "i": (-0x8000_0000, 0x7FFF_FFFF)}
 
 
 @dataclass(frozen=True, slots=True)
-class ConnectBase:
+class Field:
+    """One request argument: a little-endian integer on the wire (``fmt``, a ``struct`` code).
+
+    ``scale``: the SI value times ``scale``, rounded, is the wire integer (and the value must be
+    finite); ``high``: the largest value allowed, checked in both directions; ``flag``: a bool
+    carried as 0 or 1; ``count``: the argument is a tuple of that many values. ``what`` names it
+    in error messages.
+    """
+
+    fmt: str
+    scale: float | None = None
+    high: int | None = None
+    flag: bool = False
+    count: int = 1
+    what: str = "argument"
+
+    def to_wire(self, value: Any) -> int:
+        if self.scale is not None:
+            if not math.isfinite(value):
+                raise ValueError(f"{self.what} must be finite, got {value}")
+            v: int = round(value * self.scale)
+        else:
+            v = int(value)
+        low, high = _INT_RANGE[self.fmt]
+        if self.high is not None:
+            high = self.high
+        if not low <= v <= high:
+            raise ValueError(f"{self.what} {value} does not fit its field ({low}-{high} on the wire)")
+        return v
+
+    def from_wire(self, v: int) -> Any:
+        if self.high is not None and v > self.high:
+            raise BadPayload(f"{self.what} {v} is not 0-{self.high}")
+        if self.flag:
+            if v > 1:
+                raise BadPayload(f"{self.what} must be 0 (off) or 1 (on), got {v}")
+            return v == 1
+        return v if self.scale is None else v / self.scale
+
+
+U8 = Field("B")
+U16 = Field("H")
+U32 = Field("I")
+ON_OFF = Field("B", flag=True, what="on/off flag")
+
+
+class Args:
+    """A request's argument layout: an optional sub-command byte, then ``fields`` in the order of
+    the request's dataclass fields."""
+
+    __slots__ = ("fields", "prefix", "size", "struct")
+
+    def __init__(self, *fields: Field, sub: int | None = None) -> None:
+        self.fields = fields
+        self.prefix = b"" if sub is None else bytes((sub,))
+        self.struct = struct.Struct("<" + "".join(f"{f.count}{f.fmt}" if f.count > 1 else f.fmt for f in fields))
+        self.size = len(self.prefix) + self.struct.size
+
+    @property
+    def sub(self) -> int | None:
+        return self.prefix[0] if self.prefix else None
+
+    def encode(self, values: tuple[Any, ...]) -> bytes:
+        if not self.fields:
+            return self.prefix
+        wire: list[int] = []
+        for f, value in zip(self.fields, values, strict=True):
+            if f.count == 1:
+                wire.append(f.to_wire(value))
+            elif len(value) != f.count:
+                raise ValueError(f"{f.what}: {f.count} values expected, got {len(value)}")
+            else:
+                wire += map(f.to_wire, value)
+        return self.prefix + self.struct.pack(*wire)
+
+    def decode(self, args: bytes) -> list[Any]:
+        n = len(self.prefix)
+        if len(args) != self.size or args[:n] != self.prefix:
+            if not self.fields:
+                raise BadPayload(f"expected no arguments, got {_bytes(len(args) - n)}")
+            raise BadPayload(f"expected {_bytes(self.struct.size)} of arguments, got {len(args) - n}")
+        wire = self.struct.unpack_from(args, n)
+        values: list[Any] = []
+        i = 0
+        for f in self.fields:
+            if f.count == 1:
+                values.append(f.from_wire(wire[i]))
+            else:
+                values.append(tuple(map(f.from_wire, wire[i : i + f.count])))
+            i += f.count
+        return values
+
+
+NO_ARGS = Args()
+
+_Req = TypeVar("_Req", bound="_Request")
+
+
+class _Request:
+    """What every request has; ``COMMANDS`` fills in each class's row (code, reply type, layout)."""
+
+    __slots__ = ()
+    CODE: ClassVar[int]
+    REPLY: ClassVar[type[Reply]]
+    COMMAND: ClassVar[Command]
+
+    def encode_args(self) -> bytes:
+        return self.COMMAND.args.encode(self.COMMAND.values(self))
+
+    @classmethod
+    def decode_args(cls: type[_Req], args: bytes) -> _Req:
+        return cls(*cls.COMMAND.args.decode(args))
+
+
+# --------------------------------------------------------------------------------------------
+# Requests (a CTRL_BUS frame's payload: command code, then arguments). Their codes, layouts and
+# replies are in the command table below.
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)  # no slots: a frozen slotted dataclass's __setattr__ breaks in subclasses
+class _NoArgs(_Request):
+    """A request without arguments: one declaration for all of them (each subclass is its own
+    type, equal only to itself)."""
+
+
+class GetBaseConf(_NoArgs):
+    """GET_BASE_CONF: the base's shape and sensor poses."""
+
+
+class GetBinaryConf(_NoArgs):
+    """GET_BINARY_CONF: an opaque configuration blob."""
+
+
+class GetBaseStatus(_NoArgs):
+    """GET_BASE_STATUS: battery and power flags."""
+
+
+class GetMotorData(_NoArgs):
+    """GET_BASE_MOTOR_DATA: cumulative wheel distances."""
+
+
+class GetSensorData(_NoArgs):
+    """GET_BASE_SENSOR_DATA: range sensors."""
+
+
+class GetBumperData(_NoArgs):
+    """GET_BASE_BUMPER_DATA: bumper and cliff bitmap."""
+
+
+class PollBaseCommand(_NoArgs):
+    """POLL_BASE_CMD: a command the base asks the master to run (go home)."""
+
+
+class AnswerBaseCommand(_NoArgs):
+    """POLL_BASE_ANS_CMD: clears the pending base command."""
+
+
+class GetHealth(_NoArgs):
+    """HEALTH_MGMT sub-command 1: flags and error count."""
+
+
+class GetPayloadStatus(_NoArgs):
+    """GET_PAYLOAD_STATUS (extension): lamp, atomiser, fan, tank."""
+
+
+class GetEnvData(_NoArgs):
+    """GET_ENV_DATA (extension): disinfectant, temperature, humidity, air."""
+
+
+class GetPowerData(_NoArgs):
+    """GET_POWER_DATA (extension): battery voltage and current."""
+
+
+class GetButtons(_NoArgs):
+    """GET_BUTTONS (extension): the buttons, the emergency stop among them."""
+
+
+class GetImuData(_NoArgs):
+    """GET_IMU_DATA (extension): the gyro."""
+
+
+class GetTelemetry(_NoArgs):
+    """GET_TELEMETRY (extension): wheels, gyro, range sensors and bumpers in one exchange."""
+
+
+@dataclass(frozen=True, slots=True)
+class ConnectBase(_Request):
     protocol_version: int = 1
 
-    CODE: ClassVar[int] = CtrlBus.CONNECT_BASE
-    REPLY: ClassVar[type[Reply]] = BaseInfo
-
-    def encode_args(self) -> bytes:
-        return bytes((self.protocol_version,))
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> ConnectBase:
-        if len(args) != 1:
-            raise BadPayload(f"expected protocol version u8, got {len(args)} bytes")
-        return cls(args[0])
-
 
 @dataclass(frozen=True, slots=True)
-class GetBaseConf:
-    CODE: ClassVar[int] = CtrlBus.GET_BASE_CONF
-    REPLY: ClassVar[type[Reply]] = BaseConf
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetBaseConf:
-        _expect_empty(args)
-        return cls()
-
-
-def _expect_empty(args: bytes) -> None:
-    if args:
-        raise BadPayload(f"expected no arguments, got {len(args)} bytes")
-
-
-@dataclass(frozen=True, slots=True)
-class GetBinaryConf:
-    CODE: ClassVar[int] = CtrlBus.GET_BINARY_CONF
-    REPLY: ClassVar[type[Reply]] = BinaryConf
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetBinaryConf:
-        _expect_empty(args)
-        return cls()
-
-
-@dataclass(frozen=True, slots=True)
-class GetBaseStatus:
-    CODE: ClassVar[int] = CtrlBus.GET_BASE_STATUS
-    REPLY: ClassVar[type[Reply]] = BaseStatus
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetBaseStatus:
-        _expect_empty(args)
-        return cls()
-
-
-@dataclass(frozen=True, slots=True)
-class GetMotorData:
-    CODE: ClassVar[int] = CtrlBus.GET_BASE_MOTOR_DATA
-    REPLY: ClassVar[type[Reply]] = MotorData
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetMotorData:
-        _expect_empty(args)
-        return cls()
-
-
-@dataclass(frozen=True, slots=True)
-class GetSensorData:
-    CODE: ClassVar[int] = CtrlBus.GET_BASE_SENSOR_DATA
-    REPLY: ClassVar[type[Reply]] = SensorData
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetSensorData:
-        _expect_empty(args)
-        return cls()
-
-
-@dataclass(frozen=True, slots=True)
-class GetBumperData:
-    CODE: ClassVar[int] = CtrlBus.GET_BASE_BUMPER_DATA
-    REPLY: ClassVar[type[Reply]] = BumperData
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetBumperData:
-        _expect_empty(args)
-        return cls()
-
-
-@dataclass(frozen=True, slots=True)
-class GetAutoHomeData:
+class GetAutoHomeData(_Request):
     data_type: int = 0  # 0 beacon
 
-    CODE: ClassVar[int] = CtrlBus.GET_AUTO_HOME_DATA
-    REPLY: ClassVar[type[Reply]] = AutoHomeData
-
-    def encode_args(self) -> bytes:
-        return bytes((self.data_type,))
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetAutoHomeData:
-        if len(args) != 1:
-            raise BadPayload(f"expected data_type u8, got {len(args)} bytes")
-        return cls(args[0])
-
-
-_WHEELS = struct.Struct("<4i")
-
 
 @dataclass(frozen=True, slots=True)
-class SetBaseMotor:
+class SetBaseMotor(_Request):
     """Wheel speeds in m/s (mm/s s32 on the wire): [0] left, [1] right, [2], [3] unused here."""
 
     speeds: tuple[float, float, float, float]
-
-    CODE: ClassVar[int] = CtrlBus.SET_BASE_MOTOR
-    REPLY: ClassVar[type[Reply]] = Empty
 
     @classmethod
     def wheels(cls, left: float, right: float) -> SetBaseMotor:
         return cls((left, right, 0.0, 0.0))
 
-    def encode_args(self) -> bytes:
-        _finite("wheel speed", *self.speeds)
-        return _WHEELS.pack(*(_s32(s * 1000) for s in self.speeds))
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> SetBaseMotor:
-        a, b, c, d = _unpack(_WHEELS, args)
-        return cls((a / 1000, b / 1000, c / 1000, d / 1000))
-
-
-_VELOCITY = struct.Struct("<iii")
-
 
 @dataclass(frozen=True, slots=True)
-class SetVelocity:
+class SetVelocity(_Request):
     """SET_V_AND_GET_DEADRECKON: body velocity in, motion since the last call out.
 
     vx, vy in m/s and omega in rad/s (Q16 s32 on the wire). The master sends this every motion
@@ -1061,48 +1072,6 @@ class SetVelocity:
     vy: float = 0.0
     omega: float = 0.0
 
-    CODE: ClassVar[int] = CtrlBus.SET_V_AND_GET_DEADRECKON
-    REPLY: ClassVar[type[Reply]] = DeadReckon
-
-    def encode_args(self) -> bytes:
-        _finite("velocity", self.vx, self.vy, self.omega)
-        return _VELOCITY.pack(_s32(self.vx * Q16), _s32(self.vy * Q16), _s32(self.omega * Q16))
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> SetVelocity:
-        vx, vy, w = _unpack(_VELOCITY, args)
-        return cls(vx / Q16, vy / Q16, w / Q16)
-
-
-@dataclass(frozen=True, slots=True)
-class PollBaseCommand:
-    CODE: ClassVar[int] = CtrlBus.POLL_BASE_CMD
-    REPLY: ClassVar[type[Reply]] = PendingBaseCommand
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> PollBaseCommand:
-        _expect_empty(args)
-        return cls()
-
-
-@dataclass(frozen=True, slots=True)
-class AnswerBaseCommand:
-    """POLL_BASE_ANS_CMD: clears the pending base command."""
-
-    CODE: ClassVar[int] = CtrlBus.POLL_BASE_ANS_CMD
-    REPLY: ClassVar[type[Reply]] = Empty
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> AnswerBaseCommand:
-        _expect_empty(args)
-        return cls()
-
 
 class BaseEvent(IntEnum):
     LIDAR_CONNECT_FAILED = 0x61
@@ -1111,215 +1080,43 @@ class BaseEvent(IntEnum):
 
 
 @dataclass(frozen=True, slots=True)
-class SendEvent:
-    event: int
-
-    CODE: ClassVar[int] = CtrlBus.SEND_EVENT
-    REPLY: ClassVar[type[Reply]] = Empty
-
-    def encode_args(self) -> bytes:
-        return bytes((self.event,))
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> SendEvent:
-        if len(args) != 1:
-            raise BadPayload(f"expected event u8, got {len(args)} bytes")
-        return cls(args[0])
+class SendEvent(_Request):
+    event: int  # ``BaseEvent``
 
 
 @dataclass(frozen=True, slots=True)
-class GetHealth:
-    """HEALTH_MGMT sub-command 1."""
-
-    CODE: ClassVar[int] = CtrlBus.HEALTH_MGMT
-    REPLY: ClassVar[type[Reply]] = Health
-
-    def encode_args(self) -> bytes:
-        return b"\x01"
-
-
-@dataclass(frozen=True, slots=True)
-class GetHealthError:
+class GetHealthError(_Request):
     """HEALTH_MGMT sub-command 2: the error at ``index``."""
 
     index: int
 
-    CODE: ClassVar[int] = CtrlBus.HEALTH_MGMT
-    REPLY: ClassVar[type[Reply]] = HealthError
-
-    def encode_args(self) -> bytes:
-        return bytes((2, self.index))
-
 
 @dataclass(frozen=True, slots=True)
-class ClearHealthError:
+class ClearHealthError(_Request):
     """HEALTH_MGMT sub-command 3: clear the error with ``code``."""
 
     code: int
 
-    CODE: ClassVar[int] = CtrlBus.HEALTH_MGMT
-    REPLY: ClassVar[type[Reply]] = Empty
-
-    def encode_args(self) -> bytes:
-        return b"\x03" + struct.pack("<I", self.code)
-
-
-def _decode_health(args: bytes) -> GetHealth | GetHealthError | ClearHealthError:
-    if args == b"\x01":
-        return GetHealth()
-    if len(args) == 2 and args[0] == 2:
-        return GetHealthError(args[1])
-    if len(args) == 5 and args[0] == 3:
-        return ClearHealthError(struct.unpack_from("<I", args, 1)[0])
-    raise BadPayload("HEALTH_MGMT expects 01, 02 index, or 03 code")
-
 
 @dataclass(frozen=True, slots=True)
-class SetUvLamp:
+class SetUvLamp(_Request):
     on: bool
 
-    CODE: ClassVar[int] = CtrlBus.SET_UV_LAMP
-    REPLY: ClassVar[type[Reply]] = Empty
-
-    def encode_args(self) -> bytes:
-        return bytes((int(self.on),))
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> SetUvLamp:
-        return cls(_flag(args))
-
-
-def _flag(args: bytes) -> bool:
-    if len(args) != 1 or args[0] > 1:
-        raise BadPayload("expected one byte, 0 (off) or 1 (on)")
-    return bool(args[0])
-
 
 @dataclass(frozen=True, slots=True)
-class SetAtomiser:
+class SetAtomiser(_Request):
     """Atomiser level 0 (off) to 3; the board refuses levels above 0 with an empty tank."""
 
     level: int
 
-    CODE: ClassVar[int] = CtrlBus.SET_ATOMISER
-    REPLY: ClassVar[type[Reply]] = Empty
-
-    def encode_args(self) -> bytes:
-        if not 0 <= self.level <= 3:
-            raise ValueError(f"atomiser level {self.level} is not 0-3")
-        return bytes((self.level,))
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> SetAtomiser:
-        if len(args) != 1 or args[0] > 3:
-            raise BadPayload("expected atomiser level 0-3")
-        return cls(args[0])
-
 
 @dataclass(frozen=True, slots=True)
-class SetFan:
+class SetFan(_Request):
     on: bool
 
-    CODE: ClassVar[int] = CtrlBus.SET_FAN
-    REPLY: ClassVar[type[Reply]] = Empty
-
-    def encode_args(self) -> bytes:
-        return bytes((int(self.on),))
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> SetFan:
-        return cls(_flag(args))
-
 
 @dataclass(frozen=True, slots=True)
-class GetPayloadStatus:
-    CODE: ClassVar[int] = CtrlBus.GET_PAYLOAD_STATUS
-    REPLY: ClassVar[type[Reply]] = PayloadStatus
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetPayloadStatus:
-        _expect_empty(args)
-        return cls()
-
-
-@dataclass(frozen=True, slots=True)
-class GetEnvData:
-    CODE: ClassVar[int] = CtrlBus.GET_ENV_DATA
-    REPLY: ClassVar[type[Reply]] = EnvData
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetEnvData:
-        _expect_empty(args)
-        return cls()
-
-
-@dataclass(frozen=True, slots=True)
-class GetPowerData:
-    CODE: ClassVar[int] = CtrlBus.GET_POWER_DATA
-    REPLY: ClassVar[type[Reply]] = PowerData
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetPowerData:
-        _expect_empty(args)
-        return cls()
-
-
-@dataclass(frozen=True, slots=True)
-class GetButtons:
-    CODE: ClassVar[int] = CtrlBus.GET_BUTTONS
-    REPLY: ClassVar[type[Reply]] = Buttons
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetButtons:
-        _expect_empty(args)
-        return cls()
-
-
-@dataclass(frozen=True, slots=True)
-class GetImuData:
-    CODE: ClassVar[int] = CtrlBus.GET_IMU_DATA
-    REPLY: ClassVar[type[Reply]] = ImuData
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetImuData:
-        _expect_empty(args)
-        return cls()
-
-
-@dataclass(frozen=True, slots=True)
-class GetTelemetry:
-    CODE: ClassVar[int] = CtrlBus.GET_TELEMETRY
-    REPLY: ClassVar[type[Reply]] = Telemetry
-
-    def encode_args(self) -> bytes:
-        return b""
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> GetTelemetry:
-        _expect_empty(args)
-        return cls()
-
-
-_LEDS = struct.Struct("<BBBB")
-
-
-@dataclass(frozen=True, slots=True)
-class SetLeds:
+class SetLeds(_Request):
     """mode 0 off, 1 solid, 2 blink, 3 breathe; colour as 8-bit RGB."""
 
     mode: int
@@ -1327,38 +1124,11 @@ class SetLeds:
     green: int = 0
     blue: int = 0
 
-    CODE: ClassVar[int] = CtrlBus.SET_LEDS
-    REPLY: ClassVar[type[Reply]] = Empty
-
-    def encode_args(self) -> bytes:
-        return _LEDS.pack(self.mode, self.red, self.green, self.blue)
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> SetLeds:
-        mode, r, g, b = _unpack(_LEDS, args)
-        if mode > 3:
-            raise BadPayload(f"LED mode {mode} is not 0-3")
-        return cls(mode, r, g, b)
-
-
-_BEEP = struct.Struct("<HH")
-
 
 @dataclass(frozen=True, slots=True)
-class Beep:
+class Beep(_Request):
     frequency_hz: int
     duration_s: float  # ms on the wire
-
-    CODE: ClassVar[int] = CtrlBus.BEEP
-    REPLY: ClassVar[type[Reply]] = Empty
-
-    def encode_args(self) -> bytes:
-        return _BEEP.pack(self.frequency_hz, round(self.duration_s * 1000))
-
-    @classmethod
-    def decode_args(cls, args: bytes) -> Beep:
-        f, ms = _unpack(_BEEP, args)
-        return cls(f, ms / 1000)
 
 
 Request: TypeAlias = (
@@ -1391,42 +1161,157 @@ Request: TypeAlias = (
     | Beep
 )
 
-REQUEST_TYPES: tuple[type, ...] = (
-    ConnectBase,
-    GetBaseConf,
-    GetBinaryConf,
-    GetBaseStatus,
-    GetMotorData,
-    GetSensorData,
-    GetBumperData,
-    GetAutoHomeData,
-    SetBaseMotor,
-    SetVelocity,
-    PollBaseCommand,
-    AnswerBaseCommand,
-    SendEvent,
-    GetHealth,
-    GetHealthError,
-    ClearHealthError,
-    SetUvLamp,
-    SetAtomiser,
-    SetFan,
-    GetPayloadStatus,
-    GetEnvData,
-    GetPowerData,
-    GetButtons,
-    GetImuData,
-    GetTelemetry,
-    SetLeds,
-    Beep,
+
+# --------------------------------------------------------------------------------------------
+# The command table: every Control Bus command, once
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    """One Control Bus command: its code, its request type and argument layout, its reply type."""
+
+    code: CtrlBus
+    request: type[Request]
+    args: Args
+    reply: type[Reply]
+    values: Callable[[Any], tuple[Any, ...]] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        names = [f.name for f in fields(self.request)]
+        if len(names) != len(self.args.fields):
+            raise TypeError(f"{self.request.__name__}: {len(names)} fields, {len(self.args.fields)} in its layout")
+        # A request's field values as a tuple, in layout order (C-level, for the encoder).
+        getter = attrgetter(*names) if names else (lambda req: ())
+        values = (lambda req: (getter(req),)) if len(names) == 1 else getter
+        object.__setattr__(self, "values", values)
+
+
+class ReplyLayout(NamedTuple):
+    """A reply type, the decoder of its OK payload (plain function: the master's hot path) and
+    its fixed payload size (None when it varies)."""
+
+    type: type[Reply]
+    decode: Callable[[bytes], Reply]
+    size: int | None
+
+
+_VELOCITY = Field("i", scale=Q16, what="velocity")  # m/s or rad/s, Q16
+
+#: Every command of the profile and fleetlink's extension, in protocol order.
+COMMANDS: tuple[Command, ...] = (
+    Command(CtrlBus.CONNECT_BASE, ConnectBase, Args(U8), BaseInfo),
+    Command(CtrlBus.GET_BASE_CONF, GetBaseConf, NO_ARGS, BaseConf),
+    Command(CtrlBus.GET_BINARY_CONF, GetBinaryConf, NO_ARGS, BinaryConf),
+    Command(CtrlBus.GET_BASE_STATUS, GetBaseStatus, NO_ARGS, BaseStatus),
+    Command(CtrlBus.GET_BASE_MOTOR_DATA, GetMotorData, NO_ARGS, MotorData),
+    Command(CtrlBus.GET_BASE_SENSOR_DATA, GetSensorData, NO_ARGS, SensorData),
+    Command(CtrlBus.GET_BASE_BUMPER_DATA, GetBumperData, NO_ARGS, BumperData),
+    Command(CtrlBus.GET_AUTO_HOME_DATA, GetAutoHomeData, Args(U8), AutoHomeData),
+    Command(CtrlBus.SET_BASE_MOTOR, SetBaseMotor, Args(Field("i", scale=1000, count=4, what="wheel speed")), Empty),
+    Command(CtrlBus.SET_V_AND_GET_DEADRECKON, SetVelocity, Args(_VELOCITY, _VELOCITY, _VELOCITY), DeadReckon),
+    Command(CtrlBus.POLL_BASE_CMD, PollBaseCommand, NO_ARGS, PendingBaseCommand),
+    Command(CtrlBus.POLL_BASE_ANS_CMD, AnswerBaseCommand, NO_ARGS, Empty),
+    Command(CtrlBus.SEND_EVENT, SendEvent, Args(U8), Empty),
+    Command(CtrlBus.HEALTH_MGMT, GetHealth, Args(sub=1), Health),
+    Command(CtrlBus.HEALTH_MGMT, GetHealthError, Args(U8, sub=2), HealthError),
+    Command(CtrlBus.HEALTH_MGMT, ClearHealthError, Args(U32, sub=3), Empty),
+    Command(CtrlBus.SET_UV_LAMP, SetUvLamp, Args(ON_OFF), Empty),
+    Command(CtrlBus.SET_ATOMISER, SetAtomiser, Args(Field("B", high=3, what="atomiser level")), Empty),
+    Command(CtrlBus.SET_FAN, SetFan, Args(ON_OFF), Empty),
+    Command(CtrlBus.GET_PAYLOAD_STATUS, GetPayloadStatus, NO_ARGS, PayloadStatus),
+    Command(CtrlBus.GET_ENV_DATA, GetEnvData, NO_ARGS, EnvData),
+    Command(CtrlBus.GET_POWER_DATA, GetPowerData, NO_ARGS, PowerData),
+    Command(CtrlBus.GET_BUTTONS, GetButtons, NO_ARGS, Buttons),
+    Command(CtrlBus.GET_IMU_DATA, GetImuData, NO_ARGS, ImuData),
+    Command(CtrlBus.GET_TELEMETRY, GetTelemetry, NO_ARGS, Telemetry),
+    Command(CtrlBus.SET_LEDS, SetLeds, Args(Field("B", high=3, what="LED mode"), U8, U8, U8), Empty),
+    Command(CtrlBus.BEEP, Beep, Args(U16, Field("H", scale=1000, what="beep duration")), Empty),
 )
 
-_DECODERS: dict[int, Callable[[bytes], IncomingRequest]] = {
-    cls.CODE: cls.decode_args  # type: ignore[attr-defined]
-    for cls in REQUEST_TYPES
-    if hasattr(cls, "decode_args")
-}
-_DECODERS[CtrlBus.HEALTH_MGMT] = _decode_health
+#: Every reply type: how its OK payload decodes, and its size.
+REPLIES: tuple[ReplyLayout, ...] = (
+    ReplyLayout(Empty, _decode_empty, 0),
+    ReplyLayout(BaseInfo, _decode_base_info, _BASE_INFO.size),
+    ReplyLayout(BaseConf, _decode_base_conf, _CONF_SIZE),
+    ReplyLayout(BinaryConf, _decode_binary_conf, None),
+    ReplyLayout(BaseStatus, _decode_base_status, _STATUS.size),
+    ReplyLayout(MotorData, _decode_motor_data, _MOTOR.size),
+    ReplyLayout(SensorData, _decode_sensor_data, _SENSORS.size),
+    ReplyLayout(BumperData, _decode_bumper_data, None),  # u8 or u32
+    ReplyLayout(AutoHomeData, _decode_auto_home_data, None),
+    ReplyLayout(DeadReckon, _decode_dead_reckon, _DEADRECKON.size),
+    ReplyLayout(PendingBaseCommand, _decode_pending_base_command, None),  # empty or one byte
+    ReplyLayout(Health, _decode_health_reply, _HEALTH.size),
+    ReplyLayout(HealthError, _decode_health_error, _HEALTH_ERROR.size),
+    ReplyLayout(PayloadStatus, _decode_payload_status, _PAYLOAD_STATUS.size),
+    ReplyLayout(EnvData, _decode_env_data, _ENV.size),
+    ReplyLayout(PowerData, _decode_power_data, _POWER.size),
+    ReplyLayout(Buttons, _decode_buttons, _BUTTONS.size),
+    ReplyLayout(ImuData, _decode_imu, _IMU.size),
+    ReplyLayout(Telemetry, _decode_telemetry, None),
+)
+
+
+# -- derived from the table -------------------------------------------------------------------
+
+REQUEST_TYPES: tuple[type[Request], ...] = tuple(c.request for c in COMMANDS)
+REPLY_TYPES: tuple[type[Reply], ...] = tuple(r.type for r in REPLIES)
+
+# decode_reply's dispatch: reply type -> decoder of its OK payload.
+_REPLY_DECODERS: dict[type[Reply] | None, Callable[[bytes], Reply]] = {r.type: r.decode for r in REPLIES}
+
+# Fixed payload sizes, for the message when a payload has the wrong size (a MountPose is part of
+# BaseConf and decodes on its own too).
+_PAYLOAD_SIZES: dict[type, int] = {r.type: r.size for r in REPLIES if r.size is not None} | {MountPose: _POSE.size}
+
+
+def _bind_and_check() -> dict[int, Callable[[bytes], IncomingRequest]]:
+    """Give each request class its row, check the table against the unions, and build the board's
+    request decoders by command code (HEALTH_MGMT dispatches on its sub-command byte)."""
+    if len(set(REQUEST_TYPES)) != len(REQUEST_TYPES):
+        raise TypeError("a request type appears twice in COMMANDS")
+    if set(REQUEST_TYPES) != set(get_args(Request)):
+        raise TypeError(f"COMMANDS and the Request union differ: {set(REQUEST_TYPES) ^ set(get_args(Request))}")
+    if set(REPLY_TYPES) != set(get_args(Reply)) or len(REPLY_TYPES) != len(REPLIES):
+        raise TypeError(f"REPLIES and the Reply union differ: {set(REPLY_TYPES) ^ set(get_args(Reply))}")
+    if not {c.reply for c in COMMANDS} <= set(REPLY_TYPES):
+        raise TypeError("a command's reply type has no layout in REPLIES")
+    by_code: dict[int, list[Command]] = {}
+    for c in COMMANDS:
+        c.request.CODE = c.code
+        c.request.REPLY = c.reply
+        c.request.COMMAND = c
+        by_code.setdefault(c.code, []).append(c)
+    decoders: dict[int, Callable[[bytes], IncomingRequest]] = {}
+    for code, rows in by_code.items():
+        subs = [c.args.sub for c in rows]
+        if len(rows) == 1 and subs[0] is None:
+            decoders[code] = rows[0].request.decode_args
+        elif None in subs or len(set(subs)) != len(subs):
+            raise TypeError(f"{CtrlBus(code).name}: commands sharing a code need distinct sub-command bytes")
+        else:
+            decoders[code] = _sub_command_decoder({c.args.sub: c.request for c in rows if c.args.sub is not None})
+    return decoders
+
+
+def _sub_command_decoder(by_sub: dict[int, type[Request]]) -> Callable[[bytes], IncomingRequest]:
+    expected = ", ".join(f"{s:02X}" for s in by_sub)
+
+    def decode(args: bytes) -> IncomingRequest:
+        cls = by_sub.get(args[0]) if args else None
+        if cls is None:
+            raise BadPayload(f"expected sub-command {expected}")
+        return cls.decode_args(args)
+
+    return decode
+
+
+_DECODERS = _bind_and_check()
+
+
+def _bytes(n: int) -> str:
+    return f"{n} byte{'s' if n != 1 else ''}"
 
 
 # --------------------------------------------------------------------------------------------
@@ -1471,6 +1356,10 @@ class ErrorReply:
 
     def __str__(self) -> str:
         return ErrorCode.describe(self.code)
+
+    @property
+    def is_protocol_error(self) -> bool:
+        return is_protocol_error(self.code)
 
 
 @dataclass(frozen=True, slots=True)
