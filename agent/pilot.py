@@ -5,28 +5,45 @@ and ``tick`` every control period *and* right after every command, so commands t
 arrival. ``tick`` is idempotent in time: calling it again at the same ``now`` changes nothing but
 delivers the events queued by the commands in between.
 
-Modes (``OperatingMode``): IDLE (still), MANUAL (teleop; stops when no fresh command arrives
-within its time-to-live), AUTOMATIC (go-to), PAUSED (go-to held), ESTOP (latched until
-released). Orders are idempotent on (order_id, order_update_id): the same pair again is a
-duplicate, a higher update replaces the goal, a lower one is rejected. Order of precedence:
-e-stop > guard > the latest command (teleop overrides a go-to, a new order overrides teleop).
+The modes are one state machine, declared in ``agent/pilot_machine.py`` (``PilotState`` x
+``Trigger`` -> a transition and its effects, or a refusal with a reason): IDLE, MANUAL (teleop;
+stops when no fresh command arrives within its time-to-live), GOTO / HOMING (a go-to to an order's
+goal or home), GOTO_PAUSED / HOMING_PAUSED (held), ESTOP (latched until released). They are
+reported as ``OperatingMode``. Orders are idempotent on (order_id, order_update_id): the same pair
+again is a duplicate, a higher update replaces the goal, a lower one is rejected. Order of
+precedence: e-stop > guard > the latest command (teleop overrides a go-to, a new order overrides
+teleop).
 
-With a path provider (the A* planner over the map) a go-to or return home follows the planned
-waypoints, and re-plans from where it stands when the guard bars the way (or it makes no progress),
-handing the provider the points where the way was barred; after ``max_replans`` it fails (blocked).
+A go-to is a ``Route`` (``agent/route.py``): with a path provider (the A* planner over the map) it
+follows the planned waypoints and re-plans from where it stands when the guard bars the way (or it
+makes no progress); after ``max_replans`` it fails (blocked).
 """
 
 from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Protocol
 
 from fleetlink.agent.guard import CollisionGuard, GuardConfig, GuardInputs, RefusalReason
-from fleetlink.agent.motion import GoToConfig, GoToController, GoToPhase, MotionLimits, RateLimiter
+from fleetlink.agent.motion import GoToConfig, GoToController, MotionLimits, RateLimiter
+from fleetlink.agent.pilot_machine import (
+    Announce,
+    Cancel,
+    CommandResult,
+    CommandStatus,
+    Do,
+    Effect,
+    EventKind,
+    OperatingMode,
+    PilotState,
+    Refused,
+    Transition,
+    Trigger,
+    next_state,
+)
+from fleetlink.agent.route import Destination, Drive, PathProvider, Route, RouteConfig, RouteEnd
 
 __all__ = [
     "ActionKind",
@@ -40,44 +57,10 @@ __all__ = [
     "PilotConfig",
     "PilotEvent",
     "PilotOutput",
+    "PilotState",
 ]
 
 Pose = tuple[float, float, float]
-Point = tuple[float, float]
-
-
-class PathProvider(Protocol):
-    """(start, goal, blocked) -> waypoints ending at the goal; ``[]``: no path (the goal fails);
-    ``None``: no map (the pilot drives straight, as without a provider). ``blocked`` are points where
-    the robot found its way barred during this go-to (to be planned around)."""
-
-    def __call__(self, start: Point, goal: Point, /, blocked: Sequence[Point] = ()) -> Sequence[Point] | None: ...
-
-
-class OperatingMode(StrEnum):
-    IDLE = "IDLE"
-    MANUAL = "MANUAL"
-    AUTOMATIC = "AUTOMATIC"
-    PAUSED = "PAUSED"
-    ESTOP = "ESTOP"
-
-
-class EventKind(StrEnum):
-    GUARD_REFUSAL = "GUARD_REFUSAL"
-    CLIFF = "CLIFF"
-    BUMP = "BUMP"
-    GOAL_REACHED = "GOAL_REACHED"
-    GOAL_CANCELLED = "GOAL_CANCELLED"
-    GOAL_FAILED = "GOAL_FAILED"
-    DEADMAN_STOP = "DEADMAN_STOP"
-    ESTOP_LATCHED = "ESTOP_LATCHED"
-    ESTOP_RELEASED = "ESTOP_RELEASED"
-    PAUSED = "PAUSED"
-    RESUMED = "RESUMED"
-    STOPPED = "STOPPED"
-    FAULT = "FAULT"
-    PATH_PLANNED = "PATH_PLANNED"  # a go-to follows a planned path (``waypoints``: how many)
-    REPLANNED = "REPLANNED"  # the way was barred (or no progress): a new path from here
 
 
 class ActionKind(StrEnum):
@@ -92,21 +75,7 @@ class ActionKind(StrEnum):
     PAYLOAD_OFF = "payload_off"
 
 
-class CommandStatus(StrEnum):
-    ACCEPTED = "accepted"
-    DUPLICATE = "duplicate"
-    REJECTED = "rejected"
-
-
-@dataclass(frozen=True, slots=True)
-class CommandResult:
-    status: CommandStatus
-    reason: str = ""
-
-    @property
-    def accepted(self) -> bool:
-        return self.status is CommandStatus.ACCEPTED
-
+_ACTION_TRIGGER: dict[ActionKind, Trigger] = {kind: Trigger(kind.value) for kind in ActionKind}
 
 _OK = CommandResult(CommandStatus.ACCEPTED)
 
@@ -174,8 +143,26 @@ class PilotConfig:
     creep_margin_m: float = 0.1
     creep_min_m: float = 0.2
 
+    @property
+    def route(self) -> RouteConfig:
+        return RouteConfig(
+            blocked_timeout_s=self.blocked_timeout_s,
+            max_replans=self.max_replans,
+            replan_hold_s=self.replan_hold_s,
+            no_progress_s=self.no_progress_s,
+            progress_m=self.progress_m,
+            sensor_offset_m=self.sensor_offset_m,
+            backoff_m=self.backoff_m,
+            backoff_speed=self.backoff_speed,
+            mark_depth_m=self.mark_depth_m,
+            retreat_m=self.retreat_m,
+            creep_margin_m=self.creep_margin_m,
+            creep_min_m=self.creep_min_m,
+            stop_distance_m=self.guard.stop_distance_m,
+        )
 
-@dataclass(slots=True)
+
+@dataclass(frozen=True, slots=True)
 class _Teleop:
     v: float
     omega: float
@@ -183,28 +170,28 @@ class _Teleop:
     ttl: float
     sender: str
 
+    def lapsed(self, now: float) -> bool:
+        return now >= self.t + self.ttl
+
+
+@dataclass(frozen=True, slots=True)
+class _Command:
+    """What a trigger's effects need: who sent it and what it carries."""
+
+    sender: str = ""
+    teleop: _Teleop | None = None
+    dest: Destination | None = None
+    payload: PayloadRequest | None = None
+    ending: tuple[EventKind, str, str] | None = None  # ROUTE_ENDED / HAZARD: (kind, reason, text)
+
 
 @dataclass(slots=True)
-class _Order:
-    order_id: str | None  # None: return home
-    update_id: int
-    x: float
-    y: float
-    theta: float | None
-    sender: str
-    planned: bool = False
-    path: bool = False  # following a provider's path (re-plannable)
-    replans: int = 0
-    blocked: list[Point] = field(default_factory=list)
-    backoff: Pose | None = None  # backing away from (x, y, since) before a re-plan
-    progress: tuple[int, float, float] = (-1, math.inf, 0.0)  # (waypoint index, best distance, since)
-    leg: int | None = None  # the waypoint index whose leg the trail's last point began
-    trail: list[Point] = field(default_factory=list)  # where the robot stood as each leg began (free)
-    failing: tuple[str, str] | None = None  # (reason, text): retreating before GOAL_FAILED
+class _Edges:
+    """Rising edges of the safety inputs: each is reported once, not every tick."""
 
-    @property
-    def label(self) -> str:
-        return "return home" if self.order_id is None else f"order {self.order_id}/{self.update_id}"
+    cliff: bool = False
+    bump: bool = False
+    pose_fault: bool = False
 
 
 def _finite(*vals: float) -> bool:
@@ -221,33 +208,32 @@ class Pilot:
         self.config = config or PilotConfig()
         c = self.config
         self.guard = CollisionGuard(c.guard)
-        self.goto = GoToController(c.limits, c.goto)
+        self.goto = GoToController(c.limits, c.goto)  # lent to each route in turn
         self.limiter = RateLimiter(c.limits)
         self.path_provider = path_provider
         self._home: Pose = home
-        self._mode = OperatingMode.IDLE
-        self._resume_mode = OperatingMode.IDLE
-        self._teleop: _Teleop | None = None
-        self._order: _Order | None = None
+        self._state = PilotState.IDLE
+        self._teleop: _Teleop | None = None  # set exactly in MANUAL
+        self._route: Route | None = None  # set exactly in the go-to states (driving or paused)
         self._seen: OrderedDict[str, int] = OrderedDict()
         self._events: list[PilotEvent] = []
         self._payload: list[PayloadRequest] = []
-        self._refusal: RefusalReason | None = None
-        self._blocked_since: float | None = None
-        self._cliff = False
-        self._bump = False
-        self._pose_fault = False
-        self._now = 0.0
+        self._refusal: RefusalReason | None = None  # the guard refusal episode under way
+        self._edges = _Edges()
 
     # -- what the runtime reads ------------------------------------------------------------------
 
     @property
+    def state(self) -> PilotState:
+        return self._state
+
+    @property
     def mode(self) -> OperatingMode:
-        return self._mode
+        return self._state.mode
 
     @property
     def estop(self) -> bool:
-        return self._mode is OperatingMode.ESTOP
+        return self._state is PilotState.ESTOP
 
     @property
     def home(self) -> Pose:
@@ -260,24 +246,24 @@ class Pilot:
 
     @property
     def goal(self) -> Pose | None:
-        o = self._order
-        if o is None:
+        if self._route is None:
             return None
-        return (o.x, o.y, math.nan if o.theta is None else o.theta)
+        d = self._route.dest
+        return (d.x, d.y, math.nan if d.theta is None else d.theta)
 
     @property
     def order_id(self) -> str | None:
-        return self._order.order_id if self._order else None
+        return self._route.dest.order_id if self._route else None
 
     @property
     def order_update_id(self) -> int:
         """The active order's orderUpdateId (0 without one): what ``state.orderUpdateId`` carries."""
-        return self._order.update_id if self._order else 0
+        return self._route.dest.update_id if self._route else 0
 
     def next_deadline(self) -> float | None:
         """When the teleop command lapses: tick at this time to stop exactly on time."""
         t = self._teleop
-        return t.t + t.ttl if t is not None and self._mode is OperatingMode.MANUAL else None
+        return t.t + t.ttl if t is not None else None
 
     # -- commands (called on arrival) ------------------------------------------------------------
 
@@ -288,32 +274,24 @@ class Pilot:
         ttl = c.teleop_ttl_s if ttl_s is None else ttl_s
         if not _finite(ttl) or ttl <= 0:
             return _rejected(f"teleop ttl must be > 0 s, got {ttl_s}")
-        if self._mode is OperatingMode.ESTOP:
-            return _rejected("e-stop latched")
         cur = self._teleop
         if (
-            self._mode is OperatingMode.MANUAL
-            and cur is not None
+            cur is not None
             and cur.sender != sender
-            and now < cur.t + cur.ttl
+            and not cur.lapsed(now)
             and (cur.v != 0.0 or cur.omega != 0.0)
             and (v != 0.0 or omega != 0.0)  # anyone may stop the robot
         ):
             return _rejected(f"robot is being driven by {cur.sender}")
-        if self._mode in (OperatingMode.AUTOMATIC, OperatingMode.PAUSED):
-            self._end_order(
-                now, EventKind.GOAL_CANCELLED, "teleop_override", f"cancelled: {sender} took manual control"
-            )
         lim = c.limits
-        self._teleop = _Teleop(
+        cmd = _Teleop(
             max(-lim.v_max, min(lim.v_max, v)),
             max(-lim.omega_max, min(lim.omega_max, omega)),
             now,
             min(ttl, c.teleop_max_ttl_s),
             sender,
         )
-        self._mode = OperatingMode.MANUAL
-        return _OK
+        return self._fire(now, Trigger.TELEOP, _Command(sender, teleop=cmd))
 
     def order(
         self,
@@ -336,360 +314,169 @@ class Pilot:
             return CommandResult(CommandStatus.DUPLICATE, f"order {order_id}/{order_update_id} already received")
         if seen is not None and order_update_id < seen:
             return _rejected(f"order {order_id}: update {order_update_id} is older than {seen}")
-        if self._mode is OperatingMode.ESTOP:
-            return _rejected("e-stop latched")
-        self._seen[order_id] = order_update_id
-        self._seen.move_to_end(order_id)
-        while len(self._seen) > self.config.remembered_orders:
-            self._seen.popitem(last=False)
-        cur = self._order
-        if cur is not None and cur.order_id != order_id:
-            self._end_order(now, EventKind.GOAL_CANCELLED, "replaced", f"replaced by order {order_id}")
-        keep_paused = self._mode is OperatingMode.PAUSED and cur is not None and cur.order_id == order_id
-        self._start_order(now, _Order(order_id, order_update_id, x, y, theta, sender), keep_paused)
-        return _OK
+        held = self._route is not None and self._route.dest.order_id == order_id
+        trigger = Trigger.ORDER_UPDATE if held else Trigger.ORDER_NEW
+        dest = Destination(order_id, order_update_id, x, y, theta, sender)
+        result = self._fire(now, trigger, _Command(sender, dest=dest))
+        if result.accepted:
+            self._seen[order_id] = order_update_id
+            self._seen.move_to_end(order_id)
+            while len(self._seen) > self.config.remembered_orders:
+                self._seen.popitem(last=False)
+        return result
 
     def action(self, now: float, kind: ActionKind | str, sender: str, **params: object) -> CommandResult:
         try:
             kind = ActionKind(kind)
         except ValueError:
             return _rejected(f"unknown action {kind!r}")
-        estop = self._mode is OperatingMode.ESTOP
-        if kind is ActionKind.ESTOP:
-            if estop:
-                return CommandResult(CommandStatus.DUPLICATE, "e-stop already latched")
-            self._end_order(now, EventKind.GOAL_CANCELLED, "estop", "cancelled by e-stop")
-            self._teleop = None
-            self._mode = OperatingMode.ESTOP
-            self._emit(now, EventKind.ESTOP_LATCHED, f"e-stop latched by {sender}", "estop")
-            return _OK
-        if kind is ActionKind.ESTOP_RELEASE:
-            if not estop:
-                return _rejected("e-stop is not latched")
-            self._mode = OperatingMode.IDLE
-            self._emit(now, EventKind.ESTOP_RELEASED, f"e-stop released by {sender}", "estop_release")
-            return _OK
-        if kind is ActionKind.PAYLOAD_OFF:
-            self._payload.append(PayloadRequest(False, None, sender))
-            return _OK
-        if kind is ActionKind.STOP:
-            self._end_order(now, EventKind.GOAL_CANCELLED, "stop", f"stopped by {sender}")
-            self._teleop = None
-            if not estop:
-                self._mode = OperatingMode.IDLE
-            self._emit(now, EventKind.STOPPED, f"stopped by {sender}", "stop")
-            return _OK
-        if estop:
-            return _rejected("e-stop latched")
+        outcome = next_state(self._state, _ACTION_TRIGGER[kind])
+        if isinstance(outcome, Refused):
+            return outcome.result
+        cmd = _Command(sender)
         if kind is ActionKind.PAYLOAD_ON:
             level = params.get("level")
             if level is not None and (isinstance(level, bool) or not isinstance(level, int) or level < 0):
                 return _rejected(f"payload level must be an integer >= 0, got {level!r}")
-            self._payload.append(PayloadRequest(True, level, sender))
-            return _OK
-        if kind is ActionKind.PAUSE:
-            if self._mode is not OperatingMode.AUTOMATIC:
-                return _rejected(f"nothing to pause in mode {self._mode.value}")
-            self._mode = OperatingMode.PAUSED
-            self._emit(now, EventKind.PAUSED, f"go-to paused by {sender}", "pause")
-            return _OK
-        if kind is ActionKind.RESUME:
-            if self._mode is not OperatingMode.PAUSED:
-                return _rejected(f"nothing to resume in mode {self._mode.value}")
-            self._mode = OperatingMode.AUTOMATIC
-            self.goto.resume()
-            self._blocked_since = None
-            if self._order is not None:
-                self._order.progress = (-1, math.inf, now)  # a pause is not a lack of progress
-            self._emit(now, EventKind.RESUMED, f"go-to resumed by {sender}", "resume")
-            return _OK
-        if kind is ActionKind.CANCEL:
-            if self._order is None:
-                return _rejected("no order to cancel")
-            self._end_order(now, EventKind.GOAL_CANCELLED, "cancel", f"cancelled by {sender}")
-            return _OK
-        # RETURN_HOME
-        if self._order is not None and self._order.order_id is not None:
-            self._end_order(now, EventKind.GOAL_CANCELLED, "replaced", "replaced by return home")
-        hx, hy, hth = self._home
-        self._start_order(now, _Order(None, 0, hx, hy, hth, sender), keep_paused=False)
+            cmd = _Command(sender, payload=PayloadRequest(True, level, sender))
+        elif kind is ActionKind.PAYLOAD_OFF:
+            cmd = _Command(sender, payload=PayloadRequest(False, None, sender))
+        elif kind is ActionKind.RETURN_HOME:
+            hx, hy, hth = self._home
+            cmd = _Command(sender, dest=Destination(None, 0, hx, hy, hth, sender))
+        self._enter(now, outcome, cmd)
         return _OK
 
     # -- the control tick ------------------------------------------------------------------------
 
     def tick(self, now: float, pose: Pose, inputs: GuardInputs) -> PilotOutput:
-        self._now = now
-        # Safety edges first: cliff and bump are events, and they end a go-to.
-        if inputs.cliff and not self._cliff:
+        pose_ok = self._read_inputs(now, pose, inputs)
+        t = self._teleop
+        if t is not None and t.lapsed(now):
+            self._fire(now, Trigger.TELEOP_LAPSED, _Command(t.sender, teleop=t))
+        drive = self._behave(now, pose, inputs, pose_ok)
+        return self._guarded(now, pose, inputs, drive)
+
+    # -- the machine -----------------------------------------------------------------------------
+
+    def _fire(self, now: float, trigger: Trigger, cmd: _Command) -> CommandResult:
+        outcome = next_state(self._state, trigger)
+        if isinstance(outcome, Refused):
+            return outcome.result
+        self._enter(now, outcome, cmd)
+        return _OK
+
+    def _enter(self, now: float, transition: Transition, cmd: _Command) -> None:
+        for effect in transition.effects:
+            self._apply(now, effect, cmd)
+        self._state = transition.target
+        # What each state carries (a teleop command in MANUAL, a route in the go-to states) and nothing else.
+        assert (self._teleop is not None) == (self._state is PilotState.MANUAL), (self._state, self._teleop)
+        assert (self._route is not None) == self._state.has_route, (self._state, self._route)
+
+    def _apply(self, now: float, effect: Effect, cmd: _Command) -> None:
+        if isinstance(effect, Cancel):
+            order_id = cmd.dest.order_id if cmd.dest is not None else None
+            self._drop_route(
+                now, EventKind.GOAL_CANCELLED, effect.reason, effect.text.format(sender=cmd.sender, order_id=order_id)
+            )
+        elif isinstance(effect, Announce):
+            ttl = cmd.teleop.ttl if cmd.teleop is not None else 0.0
+            self._emit(now, effect.kind, effect.text.format(sender=cmd.sender, ttl=ttl), effect.reason)
+        elif effect is Do.TAKE_TELEOP:
+            assert cmd.teleop is not None
+            self._teleop = cmd.teleop
+        elif effect is Do.DROP_TELEOP:
+            self._teleop = None
+        elif effect is Do.START_ROUTE:
+            assert cmd.dest is not None
+            self._route = Route(cmd.dest, self.goto, self.config.route)
+            self._teleop = None
+            self._refusal = None
+            self.goto.cancel()
+        elif effect is Do.RESUME_ROUTE:
+            assert self._route is not None
+            self._route.resume(now)
+        elif effect is Do.END_ROUTE:
+            assert cmd.ending is not None
+            self._drop_route(now, *cmd.ending)
+        elif effect is Do.PASS_PAYLOAD:
+            assert cmd.payload is not None
+            self._payload.append(cmd.payload)
+
+    def _drop_route(self, now: float, kind: EventKind, reason: str, text: str) -> None:
+        r = self._route
+        assert r is not None
+        self._emit(now, kind, f"{r.dest.label}: {text}", reason, r.dest.order_id)
+        self._route = None
+        self.goto.cancel()
+
+    # -- the tick's parts ------------------------------------------------------------------------
+
+    def _read_inputs(self, now: float, pose: Pose, inputs: GuardInputs) -> bool:
+        """Safety edges first: cliff and bump are events, and they end a go-to. True: the pose is usable."""
+        e = self._edges
+        if inputs.cliff and not e.cliff:
             self._emit(now, EventKind.CLIFF, "cliff detected: stopped", "cliff")
-            self._fail_if_moving(now, "cliff", "cliff detected")
-        if inputs.bumped and not self._bump:
+            self._fire(now, Trigger.HAZARD, _Command(ending=(EventKind.GOAL_FAILED, "cliff", "cliff detected")))
+        if inputs.bumped and not e.bump:
             self._emit(now, EventKind.BUMP, "bumper pressed: stopped", "bump")
-            self._fail_if_moving(now, "bump", "bumper pressed")
-        self._cliff, self._bump = inputs.cliff, inputs.bumped
-
+            self._fire(now, Trigger.HAZARD, _Command(ending=(EventKind.GOAL_FAILED, "bump", "bumper pressed")))
         pose_ok = _finite(*pose)
-        if not pose_ok and not self._pose_fault:
+        if not pose_ok and not e.pose_fault:
             self._emit(now, EventKind.FAULT, f"pose is not finite ({pose}): holding still", "pose_invalid")
-        self._pose_fault = not pose_ok
+        e.cliff, e.bump, e.pose_fault = inputs.cliff, inputs.bumped, not pose_ok
+        return pose_ok
 
-        v = omega = 0.0
-        drive_distance: float | None = None
-        mode = self._mode
-        if mode is OperatingMode.MANUAL:
-            t = self._teleop
-            if t is None or now >= t.t + t.ttl:
-                if t is not None:
-                    self._emit(
-                        now,
-                        EventKind.DEADMAN_STOP,
-                        f"no teleop command from {t.sender} for {t.ttl:.2f} s: stopped",
-                        "deadman",
-                    )
-                self._teleop = None
-                self._mode = OperatingMode.IDLE
-            else:
-                v, omega = t.v, t.omega
-        elif mode is OperatingMode.AUTOMATIC and pose_ok:
-            v, omega, drive_distance = self._goto_step(now, pose)
-            if drive_distance is not None and v > 0.0:
-                drive_distance = self._cut_short(pose, inputs, drive_distance)
+    def _behave(self, now: float, pose: Pose, inputs: GuardInputs, pose_ok: bool) -> Drive:
+        """What the state wants: teleop's velocity, the route's step, or stillness."""
+        if self._teleop is not None:
+            return Drive(self._teleop.v, self._teleop.omega)
+        r = self._route
+        if r is None or not self._state.driving_route or not pose_ok:
+            return Drive()
+        drive = r.step(now, pose, self.path_provider)
+        self._settle_route(now, r)
+        if drive.distance_m is not None and drive.v > 0.0:
+            drive = Drive(drive.v, drive.omega, r.cut_short(pose, self.guard.obstacle_m(inputs), drive.distance_m))
+        return drive
 
-        if v == 0.0 and omega == 0.0:
+    def _guarded(self, now: float, pose: Pose, inputs: GuardInputs, drive: Drive) -> PilotOutput:
+        """The guard in front of the motors; a refusal is one event per episode and the route's to handle."""
+        r = self._route if self._state.driving_route else None
+        if drive.v == 0.0 and drive.omega == 0.0:
             self.limiter.reset(now)
-            if self._blocked_since is None or self._mode is not OperatingMode.AUTOMATIC:
+            if r is None or r.held_since is None:
                 self._refusal = None  # (a held go-to re-aiming between refusals is the same episode)
             return self._output(0.0, 0.0, refusing=False)
-
         # The drive-start check sees the wanted speed (the limiter may still be at zero).
-        decision = self.guard.filter(v, omega, inputs, goto_drive_distance_m=drive_distance)
+        decision = self.guard.filter(drive.v, drive.omega, inputs, goto_drive_distance_m=drive.distance_m)
         if decision.refusal is None:
-            lv, lw = self.limiter.step(now, v, omega)
+            lv, lw = self.limiter.step(now, drive.v, drive.omega)
             decision = self.guard.filter(lv, lw, inputs)
-        if decision.refusal is not None:
-            r = decision.refusal
-            if r.reason is not self._refusal:
-                self._emit(now, EventKind.GUARD_REFUSAL, r.text, r.reason.value)
-            self._refusal = r.reason
-            self.limiter.reset(now)
-            if self._mode is OperatingMode.AUTOMATIC:
-                o = self._order
-                barred = r.reason in (RefusalReason.OBSTACLE_IN_PATH, RefusalReason.OBSTACLE_AHEAD)
-                if o is not None and o.failing is not None:
-                    # Backing off a failed go-to was refused too: stop here.
-                    self._end_order(now, EventKind.GOAL_FAILED, o.failing[0], f"{o.failing[1]} ({r.text})")
-                    return self._output(0.0, 0.0, refusing=True)
-                if o is not None and o.path and barred:
-                    # On a planned path: plan around it (at once when the drive start is refused,
-                    # after ``replan_hold_s`` when something stands in front: it may go away).
-                    held = 0.0 if self._blocked_since is None else now - self._blocked_since
-                    if r.reason is RefusalReason.OBSTACLE_IN_PATH or held >= self.config.replan_hold_s:
-                        self._barred(now, pose, o, r.distance_m, r.reason is RefusalReason.OBSTACLE_AHEAD, r.text)
-                        return self._output(0.0, 0.0, refusing=True)
-                elif r.reason is RefusalReason.OBSTACLE_IN_PATH:
-                    self._end_order(now, EventKind.GOAL_FAILED, r.reason.value, f"refused: {r.text}")
-                    return self._output(0.0, 0.0, refusing=True)
-                # Held: when the way clears, the leg starts afresh (turn, then the drive-start check).
-                self.goto.resume()
-                if self._blocked_since is None:
-                    self._blocked_since = now
-                elif now - self._blocked_since >= self.config.blocked_timeout_s:
-                    self._end_order(
-                        now,
-                        EventKind.GOAL_FAILED,
-                        "blocked",
-                        f"blocked for {self.config.blocked_timeout_s:g} s: {r.text}",
-                    )
-            return self._output(0.0, 0.0, refusing=True)
-        self._refusal = None
-        self._blocked_since = None
-        return self._output(decision.v, decision.omega, refusing=False)
+        refusal = decision.refusal
+        if refusal is None:
+            self._refusal = None
+            if r is not None:
+                r.held_since = None
+            return self._output(decision.v, decision.omega, refusing=False)
+        if refusal.reason is not self._refusal:
+            self._emit(now, EventKind.GUARD_REFUSAL, refusal.text, refusal.reason.value)
+        self._refusal = refusal.reason
+        self.limiter.reset(now)
+        if r is not None:
+            r.refused(now, pose, refusal, self.path_provider)
+            self._settle_route(now, r)
+        return self._output(0.0, 0.0, refusing=True)
 
-    # -- internals -------------------------------------------------------------------------------
-
-    def _goto_step(self, now: float, pose: Pose) -> tuple[float, float, float | None]:
-        o = self._order
-        assert o is not None
-        c = self.config
-        if o.backoff is not None:
-            # Backing away from an obstacle ahead (the guard refuses turning near it), then re-plan.
-            bx, by, since = o.backoff
-            if (
-                math.hypot(pose[0] - bx, pose[1] - by) < c.backoff_m
-                and now - since < 3.0 * c.backoff_m / c.backoff_speed
-            ):
-                return -c.backoff_speed, 0.0, None
-            o.backoff = None
-            if o.failing is not None:
-                if not self._retreat(now, pose, o):
-                    return 0.0, 0.0, None
-            elif not self._replan(now, pose, o, "blocked"):
-                return 0.0, 0.0, None
-        if not o.planned and not self._plan(now, pose, o):
-            return 0.0, 0.0, None
-        cmd = self.goto.step(now, pose)
-        if cmd.phase is GoToPhase.DONE:
-            if o.failing is not None:
-                reason, text = o.failing
-                self._end_order(
-                    now, EventKind.GOAL_FAILED, reason, f"{text}; backed off to ({pose[0]:.2f}, {pose[1]:.2f})"
-                )
-                return 0.0, 0.0, None
-            self._end_order(now, EventKind.GOAL_REACHED, "reached", f"reached ({cmd.distance_m * 100:.1f} cm off)")
-            return 0.0, 0.0, None
-        if o.failing is not None:
-            return cmd.v, cmd.omega, cmd.drive_distance_m
-        if o.leg != cmd.waypoint_index:
-            o.leg = cmd.waypoint_index
-            if not o.trail or math.hypot(o.trail[-1][0] - pose[0], o.trail[-1][1] - pose[1]) > 0.05:
-                o.trail.append((pose[0], pose[1]))
-                del o.trail[:-8]
-        if o.path and cmd.phase is not GoToPhase.FINAL_HEADING and self._stalled(now, pose, o, cmd.waypoint_index):
-            if not self._replan(now, pose, o, "no_progress"):
-                return 0.0, 0.0, None
-            cmd = self.goto.step(now, pose)
-        return cmd.v, cmd.omega, cmd.drive_distance_m
-
-    def _cut_short(self, pose: Pose, inputs: GuardInputs, leg: float) -> float:
-        """A drive start on a planned path with an echo nearer than ``leg`` + the stop distance: ask
-        for the part of the leg the echo leaves clear (a waypoint on the way), the guard checks
-        that. The rest of the leg gets its own drive-start check from nearer, where a door frame
-        at the cone's edge has dropped out of the cone and an obstacle really ahead still bars it."""
-        o, c = self._order, self.config
-        if o is None or not o.path or o.failing is not None:
-            return leg
-        seen = self.guard.obstacle_m(inputs)
-        if seen is None or seen >= leg + c.guard.stop_distance_m:
-            return leg
-        short = seen - c.guard.stop_distance_m - c.creep_margin_m
-        if short < c.creep_min_m or short > leg - c.goto.waypoint_tol_m:
-            return leg
-        wx, wy = self.goto.waypoints[self.goto.index]
-        d = math.hypot(wx - pose[0], wy - pose[1])
-        if d <= short:
-            return leg
-        k = short / d
-        self.goto.insert_waypoint((pose[0] + k * (wx - pose[0]), pose[1] + k * (wy - pose[1])))
-        return short
-
-    def _plan(self, now: float, pose: Pose, o: _Order) -> bool:
-        o.planned = True
-        if self.path_provider is None:
-            self.goto.start([(o.x, o.y)], o.theta)
-            return True
-        return self._follow(now, pose, o, self.path_provider((pose[0], pose[1]), (o.x, o.y)), None)
-
-    def _follow(self, now: float, pose: Pose, o: _Order, path: Sequence[Point] | None, why: str | None) -> bool:
-        """Start the go-to along ``path`` (None: no map, straight line); False when it failed."""
-        goal = (o.x, o.y)
-        if path is None:
-            o.path = False
-            self.goto.start([goal], o.theta)
-            return True
-        if len(path) == 0:
-            if why is None:
-                self._end_order(now, EventKind.GOAL_FAILED, "no_path", f"no path to ({o.x:.2f}, {o.y:.2f})")
-            else:
-                self._fail(now, pose, o, "blocked", f"blocked ({why}) and no way around")
-            return False
-        pts = [(float(px), float(py)) for px, py in path]
-        # Drop waypoints at the start; make sure the goal itself ends the list.
-        while pts and math.hypot(pts[0][0] - pose[0], pts[0][1] - pose[1]) < 0.05:
-            pts.pop(0)
-        if not pts or math.hypot(pts[-1][0] - o.x, pts[-1][1] - o.y) > 1e-6:
-            pts.append(goal)
-        self.goto.start(pts, o.theta)
-        o.path = True
-        o.progress = (-1, math.inf, now)
-        o.leg = None
-        self._blocked_since = None
-        n = len(pts)
-        if why is None:
-            self._emit(now, EventKind.PATH_PLANNED, f"{o.label}: planned path, {n} waypoints", "planned", o.order_id, n)
-        else:
-            text = f"{o.label}: re-planned ({why}, {o.replans}/{self.config.max_replans}), {n} waypoints"
-            self._emit(now, EventKind.REPLANNED, text, why, o.order_id, n)
-        return True
-
-    def _replan(self, now: float, pose: Pose, o: _Order, why: str) -> bool:
-        if o.replans >= self.config.max_replans:
-            self._fail(now, pose, o, "blocked", f"still blocked ({why}) after {o.replans} re-plans")
-            return False
-        assert self.path_provider is not None
-        o.replans += 1
-        path = self.path_provider((pose[0], pose[1]), (o.x, o.y), blocked=tuple(o.blocked))
-        return self._follow(now, pose, o, path, why)
-
-    def _barred(self, now: float, pose: Pose, o: _Order, seen_m: float | None, ahead: bool, text: str) -> None:
-        """The guard barred the way on a planned path: mark where, then back off (if near) and re-plan."""
-        c = self.config
-        # The echo is the obstacle's near face: mark a point a little behind it.
-        reach = c.sensor_offset_m + (seen_m if seen_m is not None else c.guard.stop_distance_m) + c.mark_depth_m
-        o.blocked.append((pose[0] + reach * math.cos(pose[2]), pose[1] + reach * math.sin(pose[2])))
-        self._blocked_since = None
-        if o.replans >= c.max_replans:
-            self._fail(now, pose, o, "blocked", f"still blocked after {o.replans} re-plans: {text}", ahead)
-        elif ahead:
-            o.backoff = (pose[0], pose[1], now)
-        else:
-            self._replan(now, pose, o, "blocked")
-
-    def _fail(self, now: float, pose: Pose, o: _Order, reason: str, text: str, ahead: bool = False) -> None:
-        """A planned go-to fails: first back off the spot (back along the leg the robot drove to get
-        there, so the next go-to does not start facing what barred this one), then GOAL_FAILED."""
-        o.failing = (reason, text)
-        o.path = False  # no more re-planning
-        if ahead:
-            o.backoff = (pose[0], pose[1], now)  # turning is refused there: straight back first
-        else:
-            self._retreat(now, pose, o)
-
-    def _retreat(self, now: float, pose: Pose, o: _Order) -> bool:
-        """Start the go-to back along the current leg (False: the order ended here instead)."""
-        assert o.failing is not None
-        c = self.config
-        # The latest point the robot drove on from that is not where it stands (a re-plan starts a
-        # leg in place): the straight line back to it is the way it came.
-        back = next((p for p in reversed(o.trail) if math.hypot(p[0] - pose[0], p[1] - pose[1]) > 0.1), None)
-        if back is None or c.retreat_m <= 0.0:
-            self._end_order(now, EventKind.GOAL_FAILED, *o.failing)
-            return False
-        k = min(1.0, c.retreat_m / math.hypot(back[0] - pose[0], back[1] - pose[1]))
-        self.goto.start([(pose[0] + k * (back[0] - pose[0]), pose[1] + k * (back[1] - pose[1]))], None)
-        return True
-
-    def _stalled(self, now: float, pose: Pose, o: _Order, index: int) -> bool:
-        """No waypoint passed and no closer to the current one by ``progress_m`` for ``no_progress_s``."""
-        wx, wy = self.goto.waypoints[index]
-        d = math.hypot(wx - pose[0], wy - pose[1])
-        i, best, since = o.progress
-        if index != i or d < best - self.config.progress_m:
-            o.progress = (index, d, now)
-            return False
-        return now - since >= self.config.no_progress_s
-
-    def _start_order(self, now: float, o: _Order, keep_paused: bool) -> None:
-        self._order = o
-        self._teleop = None
-        self._blocked_since = None
-        self._refusal = None
-        self.goto.cancel()
-        self._mode = OperatingMode.PAUSED if keep_paused else OperatingMode.AUTOMATIC
-
-    def _end_order(self, now: float, kind: EventKind, reason: str, text: str) -> None:
-        o = self._order
-        if o is None:
-            return
-        self._emit(now, kind, f"{o.label}: {text}", reason, o.order_id)
-        self._order = None
-        self._blocked_since = None
-        self.goto.cancel()
-        if self._mode in (OperatingMode.AUTOMATIC, OperatingMode.PAUSED):
-            self._mode = OperatingMode.IDLE
-
-    def _fail_if_moving(self, now: float, reason: str, text: str) -> None:
-        if self._mode is OperatingMode.AUTOMATIC:
-            self._end_order(now, EventKind.GOAL_FAILED, reason, text)
+    def _settle_route(self, now: float, r: Route) -> None:
+        """Report what the route noted, and end it if it ended."""
+        for note in r.notes:
+            kind = EventKind.REPLANNED if note.replanned else EventKind.PATH_PLANNED
+            self._emit(now, kind, note.text, note.reason, r.dest.order_id, note.waypoints)
+        r.notes.clear()
+        if r.end is not None:
+            self._fire(now, Trigger.ROUTE_ENDED, _Command(ending=_ending(r.end)))
 
     def _emit(
         self,
@@ -708,11 +495,15 @@ class Pilot:
         return PilotOutput(
             v,
             omega,
-            self._mode,
+            self.mode,
             events,
             payload,
-            estop=self._mode is OperatingMode.ESTOP,
+            estop=self.estop,
             field_violation=refusing,
             goal=self.goal,
             order_id=self.order_id,
         )
+
+
+def _ending(end: RouteEnd) -> tuple[EventKind, str, str]:
+    return (EventKind.GOAL_REACHED if end.reached else EventKind.GOAL_FAILED, end.reason, end.text)

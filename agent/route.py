@@ -1,0 +1,374 @@
+"""One go-to's route: plan, follow, re-plan around what bars the way, back off and fail (pure).
+
+A ``Route`` is made for each go-to (an order or a return home) and steers the pilot's
+``GoToController`` (lent to it: the pilot keeps one controller for every go-to). The pilot calls
+``step`` every control tick while the go-to runs, ``cut_short`` on a drive start, ``refused`` when
+the guard refuses what the route asked for, and ``resume`` after a pause. Time, the pose and the
+path provider are passed in (the provider can change between calls: the agent renews its planner
+as the map grows). The route never emits events itself: it leaves ``notes`` (a path was planned or
+re-planned) and, once, an ``end`` (reached or failed) for the pilot to report.
+
+Phases (``RoutePhase``)::
+
+    UNPLANNED --first step--> STRAIGHT (no provider, or it has no map)
+              \\-------------> FOLLOWING (a provider's path)
+                               --barred by something ahead--> BACKING_OFF --> re-plan: FOLLOWING
+                               --drive start refused / no progress--> re-plan: FOLLOWING
+                               --re-plans used up / no way around--> [FAILING_BACKOFF -->] RETREATING
+    RETREATING --back where it came from, or refused--> end (failed)
+    STRAIGHT / FOLLOWING --arrived--> end (reached)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Protocol
+
+from fleetlink.agent.guard import Refusal, RefusalReason
+from fleetlink.agent.motion import GoToController, GoToPhase
+
+__all__ = [
+    "Destination",
+    "Drive",
+    "PathProvider",
+    "Route",
+    "RouteConfig",
+    "RouteEnd",
+    "RouteNote",
+    "RoutePhase",
+]
+
+Pose = tuple[float, float, float]
+Point = tuple[float, float]
+
+
+class PathProvider(Protocol):
+    """(start, goal, blocked) -> waypoints ending at the goal; ``[]``: no path (the goal fails);
+    ``None``: no map (the pilot drives straight, as without a provider). ``blocked`` are points where
+    the robot found its way barred during this go-to (to be planned around)."""
+
+    def __call__(self, start: Point, goal: Point, /, blocked: Sequence[Point] = ()) -> Sequence[Point] | None: ...
+
+
+@dataclass(frozen=True, slots=True)
+class RouteConfig:
+    """What a route needs of ``PilotConfig`` (see there for the meaning of each)."""
+
+    blocked_timeout_s: float = 10.0
+    max_replans: int = 3
+    replan_hold_s: float = 2.0
+    no_progress_s: float = 8.0
+    progress_m: float = 0.05
+    sensor_offset_m: float = 0.17
+    backoff_m: float = 0.15
+    backoff_speed: float = 0.1
+    mark_depth_m: float = 0.1
+    retreat_m: float = 0.5
+    creep_margin_m: float = 0.1
+    creep_min_m: float = 0.2
+    stop_distance_m: float = 0.4  # the guard's
+
+
+@dataclass(frozen=True, slots=True)
+class Destination:
+    order_id: str | None  # None: return home
+    update_id: int
+    x: float
+    y: float
+    theta: float | None
+    sender: str
+
+    @property
+    def label(self) -> str:
+        return "return home" if self.order_id is None else f"order {self.order_id}/{self.update_id}"
+
+
+@dataclass(frozen=True, slots=True)
+class Drive:
+    """What the route asks for: a velocity and, on a drive start, the distance it means to drive."""
+
+    v: float = 0.0
+    omega: float = 0.0
+    distance_m: float | None = None
+
+
+_STILL = Drive()
+
+
+@dataclass(frozen=True, slots=True)
+class RouteNote:
+    """A path was planned (``replanned`` False, reason "planned") or re-planned (reason: why)."""
+
+    replanned: bool
+    text: str
+    reason: str
+    waypoints: int
+
+
+@dataclass(frozen=True, slots=True)
+class RouteEnd:
+    reached: bool
+    reason: str  # "reached", "no_path", "blocked", "obstacle_in_path", ...
+    text: str  # without the destination's label (the pilot adds it)
+
+
+class RoutePhase(StrEnum):
+    UNPLANNED = "unplanned"  # planned at the first step
+    STRAIGHT = "straight"  # straight to the goal (no map); a refused drive start fails the go-to
+    FOLLOWING = "following"  # a provider's path; re-plannable
+    BACKING_OFF = "backing_off"  # straight back from an obstacle ahead (turning is refused there), then re-plan
+    FAILING_BACKOFF = "failing_backoff"  # failed facing an obstacle: straight back first, then retreat
+    RETREATING = "retreating"  # failed: back along the way it came, then the end (failed)
+
+    @property
+    def replannable(self) -> bool:
+        return self in (RoutePhase.FOLLOWING, RoutePhase.BACKING_OFF)
+
+    @property
+    def failing(self) -> bool:
+        return self in (RoutePhase.FAILING_BACKOFF, RoutePhase.RETREATING)
+
+
+@dataclass(slots=True)
+class _Backoff:
+    x: float
+    y: float
+    since: float
+
+
+@dataclass(slots=True)
+class _Progress:
+    index: int = -1  # the waypoint being approached
+    best: float = math.inf  # the nearest the robot came to it
+    since: float = 0.0  # when it last passed a waypoint or came ``progress_m`` closer
+
+
+@dataclass(slots=True)
+class Route:
+    dest: Destination
+    goto: GoToController
+    config: RouteConfig
+    phase: RoutePhase = RoutePhase.UNPLANNED
+    replans: int = 0
+    blocked: list[Point] = field(default_factory=list)  # where the way was barred (for the provider)
+    held_since: float | None = None  # held by a guard refusal since (None: not held)
+    notes: list[RouteNote] = field(default_factory=list)  # for the pilot to report and clear
+    end: RouteEnd | None = None
+    _backoff: _Backoff | None = None
+    _progress: _Progress = field(default_factory=_Progress)
+    _leg: int | None = None  # the waypoint index whose leg the trail's last point began
+    _trail: list[Point] = field(default_factory=list)  # where the robot stood as each leg began (free)
+    _failure: tuple[str, str] | None = None  # (reason, text) reported when the retreat ends
+
+    # -- what the pilot calls --------------------------------------------------------------------
+
+    def step(self, now: float, pose: Pose, provider: PathProvider | None) -> Drive:
+        c = self.config
+        if self._backoff is not None:
+            b = self._backoff
+            if (
+                math.hypot(pose[0] - b.x, pose[1] - b.y) < c.backoff_m
+                and now - b.since < 3.0 * c.backoff_m / c.backoff_speed
+            ):
+                return Drive(-c.backoff_speed, 0.0)
+            self._backoff = None
+            if self.phase is RoutePhase.FAILING_BACKOFF:
+                self.phase = RoutePhase.RETREATING
+                if not self._retreat(pose):
+                    return _STILL
+            else:
+                self.phase = RoutePhase.FOLLOWING
+                if not self._replan(now, pose, provider, "blocked"):
+                    return _STILL
+        if self.phase is RoutePhase.UNPLANNED and not self._plan(now, pose, provider):
+            return _STILL
+        cmd = self.goto.step(now, pose)
+        if cmd.phase is GoToPhase.DONE:
+            if self._failure is not None:
+                reason, text = self._failure
+                self._finish(False, reason, f"{text}; backed off to ({pose[0]:.2f}, {pose[1]:.2f})")
+            else:
+                self._finish(True, "reached", f"reached ({cmd.distance_m * 100:.1f} cm off)")
+            return _STILL
+        if self.phase is RoutePhase.RETREATING:
+            return Drive(cmd.v, cmd.omega, cmd.drive_distance_m)
+        if self._leg != cmd.waypoint_index:
+            self._leg = cmd.waypoint_index
+            if not self._trail or math.hypot(self._trail[-1][0] - pose[0], self._trail[-1][1] - pose[1]) > 0.05:
+                self._trail.append((pose[0], pose[1]))
+                del self._trail[:-8]
+        if (
+            self.phase is RoutePhase.FOLLOWING
+            and cmd.phase is not GoToPhase.FINAL_HEADING
+            and self._stalled(now, pose, cmd.waypoint_index)
+        ):
+            if not self._replan(now, pose, provider, "no_progress"):
+                return _STILL
+            cmd = self.goto.step(now, pose)
+        return Drive(cmd.v, cmd.omega, cmd.drive_distance_m)
+
+    def cut_short(self, pose: Pose, seen_m: float | None, leg: float) -> float:
+        """A drive start on a planned path with an echo (``seen_m``) nearer than ``leg`` + the stop
+        distance: ask for the part of the leg the echo leaves clear (a waypoint on the way), the
+        guard checks that. The rest of the leg gets its own drive-start check from nearer, where a
+        door frame at the cone's edge has dropped out of the cone and an obstacle really ahead
+        still bars it."""
+        c = self.config
+        if self.phase is not RoutePhase.FOLLOWING:
+            return leg
+        if seen_m is None or seen_m >= leg + c.stop_distance_m:
+            return leg
+        short = seen_m - c.stop_distance_m - c.creep_margin_m
+        if short < c.creep_min_m or short > leg - self.goto.config.waypoint_tol_m:
+            return leg
+        wx, wy = self.goto.waypoints[self.goto.index]
+        d = math.hypot(wx - pose[0], wy - pose[1])
+        if d <= short:
+            return leg
+        k = short / d
+        self.goto.insert_waypoint((pose[0] + k * (wx - pose[0]), pose[1] + k * (wy - pose[1])))
+        return short
+
+    def refused(self, now: float, pose: Pose, refusal: Refusal, provider: PathProvider | None) -> None:
+        """The guard refused what the route asked for: fail, plan around it, or hold and wait."""
+        c = self.config
+        if self._failure is not None:
+            # Backing off a failed go-to was refused too: stop here.
+            self._finish(False, self._failure[0], f"{self._failure[1]} ({refusal.text})")
+            return
+        reason = refusal.reason
+        barred = reason in (RefusalReason.OBSTACLE_IN_PATH, RefusalReason.OBSTACLE_AHEAD)
+        if self.phase.replannable and barred:
+            # Plan around it: at once when the drive start is refused, after ``replan_hold_s``
+            # when something stands in front (it may go away).
+            held = 0.0 if self.held_since is None else now - self.held_since
+            if reason is RefusalReason.OBSTACLE_IN_PATH or held >= c.replan_hold_s:
+                ahead = reason is RefusalReason.OBSTACLE_AHEAD
+                self._barred(now, pose, provider, refusal.distance_m, ahead, refusal.text)
+                return
+        elif reason is RefusalReason.OBSTACLE_IN_PATH:
+            self._finish(False, reason.value, f"refused: {refusal.text}")
+            return
+        # Held: when the way clears, the leg starts afresh (turn, then the drive-start check).
+        self.goto.resume()
+        if self.held_since is None:
+            self.held_since = now
+        elif now - self.held_since >= c.blocked_timeout_s:
+            self._finish(False, "blocked", f"blocked for {c.blocked_timeout_s:g} s: {refusal.text}")
+
+    def resume(self, now: float) -> None:
+        """After a pause: the leg starts afresh, and a pause is not a lack of progress."""
+        self.goto.resume()
+        self.held_since = None
+        self._progress = _Progress(since=now)
+
+    # -- internals -------------------------------------------------------------------------------
+
+    def _finish(self, reached: bool, reason: str, text: str) -> None:
+        self.end = RouteEnd(reached, reason, text)
+
+    def _plan(self, now: float, pose: Pose, provider: PathProvider | None) -> bool:
+        d = self.dest
+        self.phase = RoutePhase.STRAIGHT
+        if provider is None:
+            self.goto.start([(d.x, d.y)], d.theta)
+            return True
+        return self._follow(now, pose, provider((pose[0], pose[1]), (d.x, d.y)), None)
+
+    def _follow(self, now: float, pose: Pose, path: Sequence[Point] | None, why: str | None) -> bool:
+        """Start the go-to along ``path`` (None: no map, straight line); False when it failed."""
+        d = self.dest
+        goal = (d.x, d.y)
+        if path is None:
+            self.phase = RoutePhase.STRAIGHT
+            self.goto.start([goal], d.theta)
+            return True
+        if len(path) == 0:
+            if why is None:
+                self._finish(False, "no_path", f"no path to ({d.x:.2f}, {d.y:.2f})")
+            else:
+                self._fail(now, pose, "blocked", f"blocked ({why}) and no way around")
+            return False
+        pts = [(float(px), float(py)) for px, py in path]
+        # Drop waypoints at the start; make sure the goal itself ends the list.
+        while pts and math.hypot(pts[0][0] - pose[0], pts[0][1] - pose[1]) < 0.05:
+            pts.pop(0)
+        if not pts or math.hypot(pts[-1][0] - d.x, pts[-1][1] - d.y) > 1e-6:
+            pts.append(goal)
+        self.goto.start(pts, d.theta)
+        self.phase = RoutePhase.FOLLOWING
+        self._progress = _Progress(since=now)
+        self._leg = None
+        self.held_since = None
+        n = len(pts)
+        if why is None:
+            self.notes.append(RouteNote(False, f"{d.label}: planned path, {n} waypoints", "planned", n))
+        else:
+            text = f"{d.label}: re-planned ({why}, {self.replans}/{self.config.max_replans}), {n} waypoints"
+            self.notes.append(RouteNote(True, text, why, n))
+        return True
+
+    def _replan(self, now: float, pose: Pose, provider: PathProvider | None, why: str) -> bool:
+        if self.replans >= self.config.max_replans:
+            self._fail(now, pose, "blocked", f"still blocked ({why}) after {self.replans} re-plans")
+            return False
+        self.replans += 1
+        d = self.dest
+        # A provider withdrawn mid-route (the map was dropped) means no map: straight from here.
+        path = None if provider is None else provider((pose[0], pose[1]), (d.x, d.y), blocked=tuple(self.blocked))
+        return self._follow(now, pose, path, why)
+
+    def _barred(
+        self, now: float, pose: Pose, provider: PathProvider | None, seen_m: float | None, ahead: bool, text: str
+    ) -> None:
+        """The guard barred the way on a planned path: mark where, then back off (if near) and re-plan."""
+        c = self.config
+        # The echo is the obstacle's near face: mark a point a little behind it.
+        reach = c.sensor_offset_m + (seen_m if seen_m is not None else c.stop_distance_m) + c.mark_depth_m
+        self.blocked.append((pose[0] + reach * math.cos(pose[2]), pose[1] + reach * math.sin(pose[2])))
+        self.held_since = None
+        if self.replans >= c.max_replans:
+            self._fail(now, pose, "blocked", f"still blocked after {self.replans} re-plans: {text}", ahead)
+        elif ahead:
+            self._backoff = _Backoff(pose[0], pose[1], now)
+            self.phase = RoutePhase.BACKING_OFF
+        else:
+            self._replan(now, pose, provider, "blocked")
+
+    def _fail(self, now: float, pose: Pose, reason: str, text: str, ahead: bool = False) -> None:
+        """A planned go-to fails: first back off the spot (back along the leg the robot drove to get
+        there, so the next go-to does not start facing what barred this one), then the end."""
+        self._failure = (reason, text)
+        if ahead:
+            self._backoff = _Backoff(pose[0], pose[1], now)  # turning is refused there: straight back first
+            self.phase = RoutePhase.FAILING_BACKOFF
+        else:
+            self.phase = RoutePhase.RETREATING
+            self._retreat(pose)
+
+    def _retreat(self, pose: Pose) -> bool:
+        """Start the go-to back along the current leg (False: the route ended here instead)."""
+        assert self._failure is not None
+        c = self.config
+        # The latest point the robot drove on from that is not where it stands (a re-plan starts a
+        # leg in place): the straight line back to it is the way it came.
+        back = next((p for p in reversed(self._trail) if math.hypot(p[0] - pose[0], p[1] - pose[1]) > 0.1), None)
+        if back is None or c.retreat_m <= 0.0:
+            self._finish(False, *self._failure)
+            return False
+        k = min(1.0, c.retreat_m / math.hypot(back[0] - pose[0], back[1] - pose[1]))
+        self.goto.start([(pose[0] + k * (back[0] - pose[0]), pose[1] + k * (back[1] - pose[1]))], None)
+        return True
+
+    def _stalled(self, now: float, pose: Pose, index: int) -> bool:
+        """No waypoint passed and no closer to the current one by ``progress_m`` for ``no_progress_s``."""
+        wx, wy = self.goto.waypoints[index]
+        d = math.hypot(wx - pose[0], wy - pose[1])
+        p = self._progress
+        if index != p.index or d < p.best - self.config.progress_m:
+            self._progress = _Progress(index, d, now)
+            return False
+        return now - p.since >= self.config.no_progress_s
