@@ -37,11 +37,13 @@ from fleetlink.agent.board.session import BoardSession, PollRates
 from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.core import AgentCore, Output, board_view
 from fleetlink.agent.fusion import Fusion
-from fleetlink.agent.links.mqtt_link import MqttLink
-from fleetlink.agent.links.zenoh_link import ZenohLink
+from fleetlink.agent.links.mqtt_link import agent_mqtt_link
+from fleetlink.agent.links.zenoh_link import agent_zenoh_link
 from fleetlink.agent.odometry import Odometry
 from fleetlink.agent.pilot import Pilot, PilotConfig
 from fleetlink.devices.ports import Port
+from fleetlink.links.mqtt import MqttEndpoint
+from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock, SystemClock
 from fleetlink.shared.messages import Connection, ConnectionState, LeaseRequest, LinkName, LinkStatus, UwbFix
@@ -119,32 +121,21 @@ class AgentRuntime:
         self._odom_t = 0.0
         self._lock = threading.Lock()
         self._conn_counter = wire.HeaderCounter(self.clock, robot=robot, sender=f"agent-{robot}")
-        self.links: list[ZenohLink | MqttLink] = []
+        self.links: list[ZenohEndpoint | MqttEndpoint] = []
         self.pans_topic = f"dwm/node/{config.tag or robot}/uplink/location"
         if config.zenoh is not None:
-            z = config.zenoh
-            self.zenoh: ZenohLink | None = ZenohLink(
-                robot,
-                self._on_input,
-                listen=z.listen,
-                connect=z.connect,
-                mode=z.mode,
-                inputs=INPUTS,
-                username=z.username,
-                password=z.password,
-                root_ca=z.root_ca,
-                tls_cert=z.tls_cert,
-                tls_key=z.tls_key,
+            self.zenoh: ZenohEndpoint | None = agent_zenoh_link(
+                robot, config.zenoh, on_input=self._on_input, inputs=INPUTS
             )
             self.links.append(self.zenoh)
         else:
             self.zenoh = None
         if config.mqtt is not None:
-            self.mqtt: MqttLink | None = MqttLink(
+            self.mqtt: MqttEndpoint | None = agent_mqtt_link(
                 robot,
-                self._on_input,
                 config.mqtt,
                 self._connection_payload,
+                on_input=self._on_input,
                 inputs=INPUTS,
                 extra_topics=(self.pans_topic,),
                 seed=seed,
@@ -193,7 +184,7 @@ class AgentRuntime:
             self._lidar_thread = None
         self.board.set_velocity(0.0, 0.0)
         for link in reversed(self.links):
-            link.stop()
+            link.close()
         self.board.stop()
 
     def __enter__(self) -> AgentRuntime:
@@ -270,9 +261,8 @@ class AgentRuntime:
         planned_version = -1
         next_planner = self.clock.now()
         share = None
-        session = self.zenoh.session if self.zenoh is not None else None
-        if session is not None:
-            share = MapShare(session, self.config.robot, self.clock)
+        if self.zenoh is not None:
+            share = MapShare(self.zenoh, self.config.robot, self.clock)
             share.start()
         driver = None
         failures = 0
@@ -300,7 +290,7 @@ class AgentRuntime:
                                 planned_version = -1
                                 if share is not None:
                                     share.stop()
-                                    share = MapShare(session, self.config.robot, self.clock)
+                                    share = MapShare(share.link, self.config.robot, self.clock)
                                     share.start()
                         t = rev.stamp if rev.stamp is not None else self.clock.now()
                         mapper.add_scan(t, rev.distances_m, rev.angles_rad, (p.x, p.y, p.theta))
@@ -386,7 +376,7 @@ class AgentRuntime:
             data = wire.encode(msg)
             for link in self.links:
                 if only is None or link.name is only:
-                    link.publish(msg.TOPIC, data)
+                    link.publish(keys.key(self.config.robot, msg.TOPIC), data)
             self.published += 1
 
     def _payload(self, on: bool) -> None:

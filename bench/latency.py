@@ -37,10 +37,10 @@ from fleetlink.agent.config import AgentConfig, Rates, ZenohSettings, mqtt_setti
 from fleetlink.agent.runtime import AgentRuntime
 from fleetlink.field.board import SimulatedBoard
 from fleetlink.field.device_server import DeviceServer
+from fleetlink.links.zenoh import peer_config
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Action, ActionType, InstantActions, Teleop
-from fleetlink.shared.zenoh_config import peer_config
 from fleetlink.site.brokers import MosquittoBroker, free_port
 
 GOALS_P99_S = {"zenoh": 0.005, "mqtt": 0.010}

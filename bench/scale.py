@@ -179,8 +179,8 @@ def run(
     from fleetlink.field.plans import load_plan
     from fleetlink.field.realtime import RealtimeField
     from fleetlink.field.scenario import LidarSettings, load_scenario
+    from fleetlink.links.zenoh import peer_config
     from fleetlink.shared.clock import SystemClock
-    from fleetlink.shared.zenoh_config import peer_config
     from fleetlink.site.brokers import MosquittoBroker, free_port
 
     sc = load_scenario(ROOT / "field" / "scenarios" / "hall-50.toml")

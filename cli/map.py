@@ -49,21 +49,19 @@ def run(args: argparse.Namespace) -> int:  # pragma: no cover - argparse always 
 
 
 def run_save(args: argparse.Namespace) -> int:
-    import zenoh
-
-    from fleetlink.shared.map_codec import decode_cells
     from fleetlink.agent.mapping.share import fetch_map
     from fleetlink.field.mapserver import write_map
+    from fleetlink.links.zenoh import ZenohEndpoint
     from fleetlink.shared import keys
-    from fleetlink.shared.zenoh_config import peer_config
+    from fleetlink.shared.map_codec import decode_cells
 
     try:
         keys.check_robot_id(args.robot)
     except ValueError as exc:
         print(f"fleetlink map save: {exc}", file=sys.stderr)
         return 2
-    with zenoh.open(peer_config(connect=args.connect)) as session:
-        snap = fetch_map(session, args.robot, timeout=args.timeout)
+    with ZenohEndpoint(connect=args.connect, label="zenoh-map-save") as link:
+        snap = fetch_map(link, args.robot, timeout=args.timeout)
     if snap is None:
         print(f"fleetlink map save: no map from robot {args.robot!r} within {args.timeout:g} s", file=sys.stderr)
         return 1

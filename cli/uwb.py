@@ -52,6 +52,6 @@ def run(args: argparse.Namespace) -> int:
                 next_report += 5.0
                 with gw._lock:
                     counts = dict(sorted(gw.core.counts.items()))
-                state = "connected" if gw.connected.is_set() else "NOT connected to MQTT"
+                state = "connected" if gw.up else "NOT connected to MQTT"
                 print(f"{state}; {counts}", flush=True)
     return 0

@@ -6,10 +6,10 @@ import logging
 from typing import Any
 
 from fleetlink.field.realtime import TruthSample
+from fleetlink.links.zenoh import peer_config
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.messages import Truth
-from fleetlink.shared.zenoh_config import peer_config
 
 log = logging.getLogger(__name__)
 

@@ -1,133 +1,48 @@
 """The operator's two links (Zenoh primary, MQTT fallback) around the pure link manager.
 
 ``OperatorLink`` is the console's data source for the network: it subscribes to every fleetlink
-key on both transports, decodes (bad input is counted and logged once per reason), feeds health
-and acks into ``LinkManager``, hands good messages to a sink, and sends commands where the link
-manager says, re-sending unacked ones on a switch. A poll thread (``poll_hz``) drives the
-manager's clock-based decisions. The same bytes travel on both transports.
+key on both links (``fleetlink.links`` endpoints, keyed by ``LinkName``), decodes (bad input is
+counted and logged once per reason), feeds health and acks into ``LinkManager``, hands good
+messages to a sink, and sends commands where the link manager says, re-sending unacked ones on a
+switch. A poll worker (``poll_hz``) drives the manager's clock-based decisions. The same bytes
+travel on both links; map and marks queries go over the primary when it can answer queries.
 """
 
 from __future__ import annotations
 
-import contextlib
-import functools
 import json
 import logging
 import math
-import socket
 import threading
 from collections import Counter
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any
 from urllib.parse import urlparse
 
+from fleetlink.links.base import Link
 from fleetlink.operator.linkmanager import FALLBACK, PRIMARY, Failed, LinkHealth, LinkManager, LinkPolicy, Send, Switch
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
-from fleetlink.shared.messages import Ack, MapSnapshot, Mark
-
-if TYPE_CHECKING:
-    from fleetlink.shared.mqtt import MqttSettings
+from fleetlink.shared.messages import Ack, LinkName, MapSnapshot, Mark
+from fleetlink.shared.mqtt import MqttSettings
+from fleetlink.shared.worker import Worker
 
 log = logging.getLogger(__name__)
 
-__all__ = [
-    "ROBOT_TOPICS",
-    "MqttTransport",
-    "OperatorLink",
-    "Transport",
-    "ZenohTransport",
-    "parse_mqtt_url",
-]
+__all__ = ["ROBOT_TOPICS", "OperatorLink", "mqtt_settings_for", "parse_mqtt_url"]
 
 # Topics only a robot's agent publishes: hearing one on a link proves the robot <-> operator path
 # on that link works. (UWB fixes come from the gateway, marks from other consoles: they prove nothing.)
 ROBOT_TOPICS = frozenset({"state", "pose", "ack", "events", "connection", "board", "lease", "map/updates"})
 
-Receiver = Callable[[str, bytes], None]
-
-UWB_STATUS = "fleetlink/uwb/+/status"
+UWB_STATUS = "fleetlink/uwb/*/status"
 """The UWB gateways' retained status (JSON, positioning/gateway.py), with their anchors."""
 MARKS_QUERY = f"{keys.PREFIX}/*/marks"
 """Every console answers this with the marks it holds: a console that starts late asks it."""
 AnchorSink = Callable[[str, list[tuple[str, float, float, float]]], None]
 
-
-class Transport(Protocol):
-    name: str
-
-    def start(self, on_message: Receiver) -> None: ...
-
-    def publish(self, key: str, payload: bytes) -> None: ...
-
-    def close(self) -> None: ...
-
-
-class ZenohTransport:
-    """A Zenoh session subscribed to ``fleetlink/v1/**``."""
-
-    name = PRIMARY
-
-    def __init__(self, session: Any, *, owns_session: bool = False) -> None:
-        self.session = session
-        self._owns = owns_session
-        self._sub: Any = None
-        self._queryables: list[Any] = []
-        self._lock = threading.Lock()
-        self._closed = False
-
-    @classmethod
-    def open(cls, listen: Sequence[str] = (), connect: Sequence[str] = (), **auth: Any) -> ZenohTransport:
-        """``auth``: ``peer_config``'s ``mode``, ``username``, ``password``, ``root_ca`` (a secured router)."""
-        import zenoh
-
-        from fleetlink.shared.zenoh_config import peer_config
-
-        return cls(zenoh.open(peer_config(listen, connect, **auth)), owns_session=True)
-
-    def start(self, on_message: Receiver) -> None:
-        def callback(sample: Any) -> None:
-            on_message(str(sample.key_expr), sample.payload.to_bytes())
-
-        self._sub = self.session.declare_subscriber(keys.ZENOH_ALL, callback)
-
-    def publish(self, key: str, payload: bytes) -> None:
-        with self._lock:
-            if not self._closed:
-                self.session.put(key, payload)
-
-    def query(self, key_expr: str, timeout: float) -> list[tuple[str, bytes]]:
-        """Ask the queryables on ``key_expr``: their good replies as (key, payload)."""
-        out: list[tuple[str, bytes]] = []
-        for reply in self.session.get(key_expr, timeout=timeout):
-            if reply.ok is not None:
-                out.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
-        return out
-
-    def serve(self, key_expr: str, answer: Callable[[str], list[tuple[str, bytes]]]) -> None:
-        """A queryable on ``key_expr``: ``answer(query key)`` gives the replies (key, payload)."""
-
-        def on_query(query: Any) -> None:
-            try:
-                for key, payload in answer(str(query.key_expr)):
-                    query.reply(key, payload)
-            except Exception as exc:  # the querier went away, or a bad answer: keep serving
-                log.debug("answering %s: %s", key_expr, exc)
-
-        self._queryables.append(self.session.declare_queryable(key_expr, on_query))
-
-    def close(self) -> None:
-        with self._lock:
-            if self._closed:
-                return
-            self._closed = True
-        for q in self._queryables:
-            with contextlib.suppress(Exception):
-                q.undeclare()
-        if self._sub is not None:
-            self._sub.undeclare()
-        if self._owns:
-            self.session.close()
+CONSOLE_RECONNECT_MAX_S = 4.0
+"""A console's broker reconnect backoff ceiling (an operator waits; a fleet's agents spread out)."""
 
 
 def parse_mqtt_url(url: str) -> tuple[str, int]:
@@ -144,60 +59,10 @@ def parse_mqtt_url(url: str) -> tuple[str, int]:
     return parsed.hostname, port
 
 
-class MqttTransport:
-    """A paho client subscribed to ``fleetlink/v1/#`` (QoS 1, TCP_NODELAY, reconnecting)."""
-
-    name = FALLBACK
-
-    def __init__(self, url: str, client_id: str, *, settings: MqttSettings | None = None) -> None:
-        """``settings`` (credentials, TLS: a secured broker) win over ``url``."""
-        import paho.mqtt.client as mqtt
-
-        if settings is not None:
-            from fleetlink.shared.mqtt import connect_client
-
-            self.host, self.port = settings.host, settings.port
-            self.client = connect_client(settings, client_id=client_id, start=False)
-        else:
-            self.host, self.port = parse_mqtt_url(url)
-            self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
-        self.client.reconnect_delay_set(min_delay=1, max_delay=4)
-        self.connected = threading.Event()
-        self._on_message: Receiver | None = None
-
-        def on_socket_open(client: Any, userdata: Any, sock: Any) -> None:
-            # Nagle against delayed ACK costs ~40 ms per QoS 1 message (GUIDE section 7).
-            with contextlib.suppress(OSError):
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-
-        def on_connect(client: Any, userdata: Any, flags: Any, reason: Any, props: Any) -> None:
-            if not reason.is_failure:
-                client.subscribe([(keys.MQTT_ALL, 1), (UWB_STATUS, 1)])
-                self.connected.set()
-
-        def on_disconnect(client: Any, userdata: Any, flags: Any, reason: Any, props: Any) -> None:
-            self.connected.clear()
-
-        def on_message(client: Any, userdata: Any, message: Any) -> None:
-            if self._on_message is not None:
-                self._on_message(message.topic, bytes(message.payload))
-
-        self.client.on_socket_open = on_socket_open
-        self.client.on_connect = on_connect
-        self.client.on_disconnect = on_disconnect
-        self.client.on_message = on_message
-
-    def start(self, on_message: Receiver) -> None:
-        self._on_message = on_message
-        self.client.connect_async(self.host, self.port, keepalive=5)
-        self.client.loop_start()
-
-    def publish(self, key: str, payload: bytes) -> None:
-        self.client.publish(key, payload, qos=1)
-
-    def close(self) -> None:
-        self.client.disconnect()
-        self.client.loop_stop()
+def mqtt_settings_for(url: str) -> MqttSettings:
+    """Settings for a plain (no login, no TLS) broker at ``url``, as ``parse_mqtt_url`` reads it."""
+    host, port = parse_mqtt_url(url)
+    return MqttSettings(host=host, port=port, reconnect_max_s=CONSOLE_RECONNECT_MAX_S)
 
 
 Sink = Callable[[wire.Message, str, float], None]
@@ -211,15 +76,17 @@ class OperatorLink:
         self,
         clock: Clock,
         sender: str,
-        primary: Transport,
-        fallback: Transport,
+        primary: Link,
+        fallback: Link,
         *,
         policy: LinkPolicy | None = None,
         poll_hz: float = 50.0,
     ) -> None:
         self.clock = clock
         self.sender = keys.check_id(sender, "sender id")
-        self.transports = {PRIMARY: primary, FALLBACK: fallback}
+        if primary.name is not LinkName(PRIMARY) or fallback.name is not LinkName(FALLBACK):
+            raise ValueError(f"links must be {PRIMARY} then {FALLBACK}, got {primary.name} and {fallback.name}")
+        self.links: dict[LinkName, Link] = {primary.name: primary, fallback.name: fallback}
         self.manager = LinkManager(policy)
         self.counter = wire.HeaderCounter(clock, robot="operator", sender=sender)
         self.rejected: Counter[str] = Counter()
@@ -228,9 +95,8 @@ class OperatorLink:
         self._sinks: list[Sink] = []
         self._anchor_sinks: list[AnchorSink] = []
         self._listeners: list[Listener] = []
+        self._poller = Worker("operator-link-poll", target=self._poll_loop)
         self._poll_interval = 1.0 / poll_hz
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self.delivered: Counter[str] = Counter()
         """Messages accepted per link (for the console's status line and tests)."""
 
@@ -247,21 +113,24 @@ class OperatorLink:
         self._anchor_sinks.append(sink)
 
     def start(self) -> OperatorLink:
-        for name, transport in self.transports.items():
-            transport.start(functools.partial(self._receive, name))
-        self._thread = threading.Thread(target=self._poll_loop, name="operator-link-poll", daemon=True)
-        self._thread.start()
+        for name, link in self.links.items():
+
+            def receive(key: str, payload: bytes, name: LinkName = name) -> None:
+                self._receive(name, key, payload)
+
+            link.subscribe(keys.ZENOH_ALL, receive)
+            link.subscribe(UWB_STATUS, receive)
+            link.start()
+        self._poller.start()
         return self
 
     def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(2.0)
-        for transport in self.transports.values():
+        self._poller.stop()
+        for link in self.links.values():
             try:
-                transport.close()
-            except Exception as exc:  # closing must go on for the other transport
-                log.warning("closing %s: %s", transport.name, exc)
+                link.close()
+            except Exception as exc:  # closing must go on for the other link
+                log.warning("closing %s: %s", link.name.value, exc)
 
     def __enter__(self) -> OperatorLink:
         return self.start()
@@ -339,7 +208,7 @@ class OperatorLink:
 
     def _put(self, link: str, key: str, payload: bytes) -> None:
         try:
-            self.transports[link].publish(key, payload)
+            self.links[LinkName(link)].publish(key, payload)
         except Exception as exc:  # a dead transport must not take the console down; health shows it
             log.debug("publish on %s failed: %s", link, exc)
 
@@ -360,19 +229,26 @@ class OperatorLink:
             actions = self.manager.poll(self.clock.now())
         self._dispatch(actions)
 
-    def _poll_loop(self) -> None:
-        while not self._stop.wait(self._poll_interval):
+    def _poll_loop(self, worker: Worker) -> None:
+        while not worker.stopping:
+            worker.wait(self._poll_interval)
+            if worker.stopping:
+                return
             try:
                 self.poll()
             except Exception:  # keep serving: one bad poll must not stop failover for good
                 log.exception("link poll failed")
 
-    # -- queries (Zenoh) ------------------------------------------------------------------------
+    # -- queries (over the primary, when it answers queries: Zenoh, in-process) ------------------
+
+    def _queries(self) -> Any:
+        primary = self.links[LinkName.ZENOH]
+        return primary if hasattr(primary, "query") and hasattr(primary, "serve") else None
 
     def fetch_map(self, robot: str, timeout: float = 3.0) -> MapSnapshot | None:
         """Ask the robot's map queryable (``fleetlink/v1/<robot>/map``); None if no good answer."""
-        primary = self.transports[PRIMARY]
-        if not isinstance(primary, ZenohTransport):
+        primary = self._queries()
+        if primary is None:
             return None
         for key, payload in primary.query(keys.key(robot, MapSnapshot.TOPIC), timeout):
             try:
@@ -386,16 +262,16 @@ class OperatorLink:
 
     def serve_marks(self, marks: Callable[[], Sequence[Mark]]) -> None:
         """Answer ``fleetlink/v1/*/marks`` queries with ``marks()`` (each under its robot's key)."""
-        primary = self.transports[PRIMARY]
-        if isinstance(primary, ZenohTransport):
+        primary = self._queries()
+        if primary is not None:
             primary.serve(
                 MARKS_QUERY, lambda _key: [(keys.key(m.header.robot, Mark.TOPIC), wire.encode(m)) for m in marks()]
             )
 
     def fetch_marks(self, timeout: float = 2.0) -> int:
         """Ask every other console for its marks; they go to the sinks like published ones."""
-        primary = self.transports[PRIMARY]
-        if not isinstance(primary, ZenohTransport):
+        primary = self._queries()
+        if primary is None:
             return 0
         replies = primary.query(MARKS_QUERY, timeout)
         for key, payload in replies:

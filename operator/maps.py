@@ -3,7 +3,7 @@ its ``map/updates`` patches; a copy that misses a patch (or sees the map grow) i
 
 ``MapFollower`` is pure (time passed in): it says which robots' maps to fetch (``wanted``), takes
 snapshots and updates, and hands each changed map to the fleet model as a drawable grid.
-``MapFetcher`` is the thin adapter: a thread that asks ``fetch(robot)`` (``OperatorLink.fetch_map``)
+``MapFetcher`` is the thin adapter: a worker thread that asks ``fetch(robot)`` (``OperatorLink.fetch_map``)
 for the robots the follower wants. Map updates reach the follower through ``attach`` in
 operator/console.py, like every other message.
 """
@@ -16,10 +16,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from fleetlink.shared.map_codec import SharedMap
 from fleetlink.operator.fleet import FleetModel, Grid
 from fleetlink.shared.clock import Clock
+from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.messages import MapSnapshot, MapUpdate
+from fleetlink.shared.worker import Worker
 
 __all__ = ["MapFetcher", "MapFollower", "to_grid"]
 
@@ -115,19 +116,14 @@ class MapFetcher:
         self.lock = lock
         self.period_s = period_s
         self.fetched = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._worker = Worker("console-maps", target=self._run)
 
     def start(self) -> MapFetcher:
-        self._thread = threading.Thread(target=self._run, name="console-maps", daemon=True)
-        self._thread.start()
+        self._worker.start()
         return self
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5.0)
-            self._thread = None
+        self._worker.stop()
 
     def poll(self) -> int:
         """One round: fetch what is wanted now. How many snapshots were taken."""
@@ -135,7 +131,7 @@ class MapFetcher:
             robots = self.follower.wanted(self.clock.now())
         taken = 0
         for robot in robots:
-            if self._stop.is_set():
+            if self._worker.stopping:
                 break
             try:
                 snap = self.fetch(robot)
@@ -150,8 +146,11 @@ class MapFetcher:
         self.fetched += taken
         return taken
 
-    def _run(self) -> None:
-        while not self._stop.wait(self.period_s):
+    def _run(self, worker: Worker) -> None:
+        while not worker.stopping:
+            worker.wait(self.period_s)
+            if worker.stopping:
+                return
             try:
                 self.poll()
             except Exception:  # keep following

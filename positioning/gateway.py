@@ -3,7 +3,7 @@
 ``GatewayCore.on_truth`` records where each robot really is (and when, on the caller's monotonic
 clock). ``GatewayCore.tick(now, wall)`` is one ranging round: for every tag whose robot has a fresh
 truth pose it simulates ranges (``RangingModel``), solves (``solver.solve``) and returns
-``Publication``s (MQTT topic, payload bytes, QoS, retain):
+``MqttMessage``s (MQTT topic, payload bytes, QoS, retain):
 
 * the native ``UwbFix`` (msgpack, wire contract) on ``fleetlink/v1/<robot>/uwb``, QoS 0;
 * the raw ``UwbRanges`` on ``fleetlink/v1/<robot>/uwb/ranges``, QoS 0 (optional);
@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from fleetlink.links.mqtt import MqttMessage
 from fleetlink.shared import keys, wire
 from fleetlink.shared.messages import FixStatus, UwbFix, UwbRange, UwbRanges
 
@@ -33,19 +34,11 @@ from .config import GatewayConfig, TagSpec
 from .ranging import RangingModel
 from .solver import Solution, solve, solve_linear
 
-__all__ = ["GatewayCore", "Publication", "pans_location", "pans_topic", "status_payload", "status_topic"]
+__all__ = ["GatewayCore", "pans_location", "pans_topic", "status_payload", "status_topic"]
 
 log = logging.getLogger(__name__)
 
 SUPERFRAME_MODULO = 65_536
-
-
-@dataclass(frozen=True, slots=True)
-class Publication:
-    topic: str
-    payload: bytes
-    qos: int = 0
-    retain: bool = False
 
 
 def pans_topic(prefix: str, tag: str) -> str:
@@ -169,10 +162,10 @@ class GatewayCore:
         dt = max(0.0, age)
         return t.x + t.v * math.cos(t.theta) * dt, t.y + t.v * math.sin(t.theta) * dt
 
-    def tick(self, now: float, wall: float) -> list[Publication]:
+    def tick(self, now: float, wall: float) -> list[MqttMessage]:
         """One ranging round for every tag with a fresh truth pose."""
         self._superframe = (self._superframe + 1) % SUPERFRAME_MODULO
-        out: list[Publication] = []
+        out: list[MqttMessage] = []
         for robot, tag in self._tags.items():
             pos = self.where(robot, now)
             if pos is None:
@@ -182,11 +175,11 @@ class GatewayCore:
             out.extend(self.locate(tag, pos[0], pos[1], wall))
         return out
 
-    def locate(self, tag: _Tag, x: float, y: float, wall: float) -> list[Publication]:
+    def locate(self, tag: _Tag, x: float, y: float, wall: float) -> list[MqttMessage]:
         spec = tag.spec
         ranges = tag.model.measure(x, y, spec.z)
         sol = self._solve(self._by_id, ranges, spec.z, tag.previous, sigma_m=max(self.config.profile.sigma_m, 0.05))
-        out: list[Publication] = []
+        out: list[MqttMessage] = []
         if self.config.publish_ranges:
             rmsg = UwbRanges(
                 header=self._header(spec.robot, UwbRanges.TOPIC, wall),
@@ -194,7 +187,7 @@ class GatewayCore:
                 ranges=tuple(UwbRange(anchor=r.anchor_id, distance_m=r.distance_m) for r in ranges),
                 measured_at=wall,
             )
-            out.append(Publication(keys.key(spec.robot, UwbRanges.TOPIC), wire.encode(rmsg)))
+            out.append(MqttMessage(keys.key(spec.robot, UwbRanges.TOPIC), wire.encode(rmsg)))
         if sol.status is not FixStatus.OK:
             tag.previous = None
             self.counts[f"fix_{sol.status.value}"] += 1
@@ -215,13 +208,13 @@ class GatewayCore:
             residual_rms_m=sol.residual_rms_m,
             measured_at=wall,
         )
-        out.append(Publication(keys.key(spec.robot, UwbFix.TOPIC), wire.encode(fix)))
+        out.append(MqttMessage(keys.key(spec.robot, UwbFix.TOPIC), wire.encode(fix)))
         if self.config.pans:
             payload = pans_location(sol.x, sol.y, sol.z, sol.quality, self._superframe, wall)
-            out.append(Publication(pans_topic(self.config.pans_prefix, spec.id), payload, 0, True))
+            out.append(MqttMessage(pans_topic(self.config.pans_prefix, spec.id), payload, 0, True))
         return out
 
-    def status(self, state: str, wall: float) -> Publication:
+    def status(self, state: str, wall: float) -> MqttMessage:
         extra: dict[str, Any] = {
             "rate_hz": self.config.rate_hz,
             "tags": {t.spec.id: t.spec.robot for t in self._tags.values()},
@@ -229,7 +222,7 @@ class GatewayCore:
             # Consoles draw the anchors from this retained status (docs/wire-contract.md).
             "anchors": [[a.id, a.x, a.y, a.z] for a in self.config.anchors],
         }
-        return Publication(
+        return MqttMessage(
             status_topic(self.config.gateway_id), status_payload(self.config.gateway_id, state, wall, extra), 1, True
         )
 

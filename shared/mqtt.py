@@ -1,8 +1,9 @@
-"""MQTT connection settings and one way to open a paho client with them.
+"""MQTT connection settings. Pure: parsing only (the client is made in fleetlink.links.mqtt).
 
 Every fleetlink process that speaks MQTT (agent, UWB gateway, console, field) reads a ``[mqtt]``
-table into ``MqttSettings`` and opens its client with ``connect_client``, so credentials, TLS,
-TCP_NODELAY and the reconnect backoff are the same everywhere::
+table into ``MqttSettings`` and opens its endpoint with ``links.mqtt.MqttEndpoint`` (or a bare
+client with ``links.mqtt.connect_client``), so credentials, TLS, TCP_NODELAY and the reconnect
+backoff are the same everywhere::
 
     [mqtt]
     url = "mqtts://broker.site-a.example:8883"   # mqtt://host[:1883] or mqtts://host[:8883]
@@ -22,21 +23,14 @@ reported with the configuration's other errors, not on the first reconnect.
 
 from __future__ import annotations
 
-import contextlib
-import random
-import socket
-import ssl
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 from urllib.parse import urlsplit
 
 from fleetlink.shared.config import ConfigError, TomlReader
 
-if TYPE_CHECKING:
-    import paho.mqtt.client as mqtt
-
-__all__ = ["ConfigError", "MqttSettings", "MqttWill", "connect_client", "nodelay_enabled", "parse_url"]
+__all__ = ["ConfigError", "MqttSettings", "parse_url"]
 
 DEFAULT_PORTS = {"mqtt": 1883, "mqtts": 8883}
 KEYS = (
@@ -52,16 +46,6 @@ KEYS = (
     "reconnect_min_s",
     "reconnect_max_s",
 )
-
-
-@dataclass(frozen=True, slots=True)
-class MqttWill:
-    """A last will: published by the broker when the client vanishes without a DISCONNECT."""
-
-    topic: str
-    payload: bytes
-    qos: int = 1
-    retain: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -173,77 +157,3 @@ def parse_url(url: str, r: TomlReader, where: str) -> tuple[str, int, bool]:
     if parts.path not in ("", "/") or parts.query or parts.fragment:
         raise r.fail(where, f"invalid url {url!r}: expected mqtt[s]://host[:port] and nothing after")
     return parts.hostname, port if port is not None else DEFAULT_PORTS[parts.scheme], parts.scheme == "mqtts"
-
-
-def _set_nodelay(sock: Any) -> None:
-    # TLS sockets forward setsockopt to the TCP socket underneath.
-    with contextlib.suppress(OSError, AttributeError):  # not a TCP socket: nothing to do
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-
-
-def nodelay_enabled(client: mqtt.Client) -> bool:
-    """True if the client's current socket has TCP_NODELAY on (False when not connected)."""
-    sock: Any = client.socket()
-    if sock is None:
-        return False
-    try:
-        return bool(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY))
-    except (OSError, AttributeError):
-        return False
-
-
-def connect_client(
-    settings: MqttSettings,
-    *,
-    client_id: str | None = None,
-    will: MqttWill | None = None,
-    clean_session: bool = True,
-    start: bool = True,
-    rng: random.Random | None = None,
-) -> mqtt.Client:
-    """A paho 2.x client (MQTT 3.1.1, callback API v2) set up from ``settings``.
-
-    Sets the username/password, TLS (site CA or the system's, optional client certificate),
-    TCP_NODELAY on every socket it opens (``on_socket_open``, so reconnects get it too), the last
-    will, and a reconnect backoff from ``reconnect_min_s`` doubling to ``reconnect_max_s`` whose
-    bounds are jittered per client (x1-2 and x0.5-1) so a fleet does not reconnect in lockstep
-    after a broker restart. ``settings.client_id`` wins over ``client_id``.
-
-    With ``start`` (the default) it calls ``connect_async`` and ``loop_start``: the client keeps
-    trying in the background until it connects and reconnects after every loss. Set the
-    ``on_connect``/``on_message`` callbacks first or pass ``start=False`` and start it yourself.
-    Stop it with ``client.disconnect(); client.loop_stop()``.
-    """
-    import paho.mqtt.client as mqtt
-
-    rng = rng if rng is not None else random.Random()
-    cid = settings.client_id or client_id or ""
-    from paho.mqtt.enums import CallbackAPIVersion
-
-    client = mqtt.Client(
-        CallbackAPIVersion.VERSION2,
-        client_id=cid,
-        clean_session=clean_session,
-        protocol=mqtt.MQTTv311,
-    )
-    if settings.username is not None:
-        client.username_pw_set(settings.username, settings.password)
-    if settings.tls:
-        client.tls_set(
-            ca_certs=settings.ca_file,
-            certfile=settings.cert_file,
-            keyfile=settings.key_file,
-            cert_reqs=ssl.CERT_REQUIRED,
-            tls_version=ssl.PROTOCOL_TLS_CLIENT,
-        )
-    if will is not None:
-        client.will_set(will.topic, will.payload, qos=will.qos, retain=will.retain)
-    client.on_socket_open = lambda _client, _userdata, sock: _set_nodelay(sock)
-    lo = settings.reconnect_min_s * rng.uniform(1.0, 2.0)
-    hi = max(lo, settings.reconnect_max_s * rng.uniform(0.5, 1.0))
-    # paho's signature says int; it only ever multiplies and compares them.
-    client.reconnect_delay_set(lo, hi)  # type: ignore[arg-type]
-    if start:
-        client.connect_async(settings.host, settings.port, keepalive=settings.keepalive_s)
-        client.loop_start()
-    return client

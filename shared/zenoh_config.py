@@ -1,16 +1,16 @@
-"""Zenoh session configuration, built in one place so every process opens sessions the same way."""
+"""Zenoh login settings read from a ``[zenoh]`` table, one way for every process. Pure: no I/O
+beyond reading a password file; sessions are opened in fleetlink.links.zenoh (``peer_config``)."""
 
 from __future__ import annotations
 
-import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from .config import TomlReader
 
-__all__ = ["ZenohAuth", "peer_config", "read_zenoh_auth"]
+__all__ = ["ZenohAuth", "read_zenoh_auth"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,46 +71,3 @@ def read_zenoh_auth(r: TomlReader, z: Mapping[str, Any], base_dir: str | Path | 
     if (cert is None) != (key is None):
         raise r.fail("zenoh", "tls_cert and tls_key go together (both or neither)")
     return ZenohAuth(mode, user, password, path("root_ca"), cert, key)
-
-
-def peer_config(
-    listen: Sequence[str] = (),
-    connect: Sequence[str] = (),
-    *,
-    mode: str = "peer",
-    multicast_scouting: bool = False,
-    username: str | None = None,
-    password: str | None = None,
-    root_ca: str | None = None,
-    tls_cert: str | None = None,
-    tls_key: str | None = None,
-) -> Any:
-    """A ``zenoh.Config``: explicit endpoints, multicast scouting off unless asked for.
-
-    With no ``listen`` endpoints the session listens nowhere (zenoh's default would be every
-    interface). Sites link sessions by listing routers or peers explicitly (docs/operations.md).
-
-    Security (a site router with deploy/zenohd.json5): ``username``/``password`` log in
-    (``transport/auth/usrpwd``; the router's ACL knows agents by robot id, operators as
-    ``op-<name>``); ``root_ca`` is the site CA that ``tls/<host>:<port>`` endpoints are verified
-    against (the router's certificate must name ``<host>``); ``tls_cert``/``tls_key`` present a
-    client certificate for mutual TLS.
-    """
-    import zenoh  # imported here so modules that only build configs stay importable without it
-
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps(mode))
-    conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
-    conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    if (username is None) != (password is None):
-        raise ValueError("zenoh username and password go together (both or neither)")
-    if username is not None:
-        conf.insert_json5("transport/auth/usrpwd", json.dumps({"user": username, "password": password}))
-    if (tls_cert is None) != (tls_key is None):
-        raise ValueError("zenoh tls_cert and tls_key go together (both or neither)")
-    tls = {"root_ca_certificate": root_ca, "connect_certificate": tls_cert, "connect_private_key": tls_key}
-    for name, value in tls.items():
-        if value is not None:
-            conf.insert_json5(f"transport/link/tls/{name}", json.dumps(value))
-    return conf

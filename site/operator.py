@@ -35,12 +35,10 @@ def open_operator_link(
     router). ``mqtt``: credentials and TLS for the broker, winning over ``mqtt_url``. ``client_id``
     (default: the operator id) must be unique on the broker.
     """
-    from fleetlink.operator.links import MqttTransport, OperatorLink, ZenohTransport
+    from fleetlink.links.mqtt import MqttEndpoint
+    from fleetlink.links.zenoh import ZenohEndpoint
+    from fleetlink.operator.links import OperatorLink, mqtt_settings_for
 
-    primary = ZenohTransport.open(tuple(zenoh_listen), tuple(zenoh_connect), **dict(zenoh_auth or {}))
-    try:
-        fallback = MqttTransport(mqtt_url, client_id=client_id or operator, settings=mqtt)
-    except BaseException:
-        primary.close()
-        raise
+    primary = ZenohEndpoint(listen=zenoh_listen, connect=zenoh_connect, label="zenoh-console", **dict(zenoh_auth or {}))
+    fallback = MqttEndpoint(mqtt or mqtt_settings_for(mqtt_url), client_id=client_id or operator, label="mqtt-console")
     return OperatorLink(clock, operator, primary, fallback)

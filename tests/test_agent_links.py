@@ -314,7 +314,7 @@ def test_malformed_payloads_on_every_input_topic_are_rejected_and_counted(rig: R
 def test_zenoh_link_delivers_samples_on_different_keys_in_the_order_sent(zenoh_peers: Any) -> None:
     """A teleop then a lease release must reach the agent in that order: zenoh-python would run
     each subscriber's callback on a thread of its own, so the link queues them on one."""
-    from fleetlink.agent.links.zenoh_link import ZenohLink
+    from fleetlink.agent.links.zenoh_link import agent_zenoh_link
 
     peers = zenoh_peers(1)
     operator = peers[0]
@@ -333,7 +333,7 @@ def test_zenoh_link_delivers_samples_on_different_keys_in_the_order_sent(zenoh_p
             done.set()
 
     inputs = ("order", "actions", "teleop", "lease/request")
-    link = ZenohLink("r1", on_input, connect=peers.endpoints, inputs=inputs)
+    link = agent_zenoh_link("r1", ZenohSettings(connect=tuple(peers.endpoints)), on_input=on_input, inputs=inputs)
     link.start()
     try:
         wait_until(lambda: link.up, message="the agent's zenoh link to the operator")
@@ -350,4 +350,4 @@ def test_zenoh_link_delivers_samples_on_different_keys_in_the_order_sent(zenoh_p
         assert done.wait(10.0), f"only {len(got)} of {n} samples arrived"
         assert got == sent
     finally:
-        link.stop()
+        link.close()

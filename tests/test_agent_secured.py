@@ -19,10 +19,11 @@ from fleetlink.agent.config import AgentConfig, Rates, ZenohSettings, mqtt_setti
 from fleetlink.agent.runtime import AgentRuntime
 from fleetlink.field.board import SimulatedBoard
 from fleetlink.field.device_server import DeviceServer
+from fleetlink.links.mqtt import connect_client
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Ack, AckResult, State, Teleop
-from fleetlink.shared.mqtt import MqttSettings, connect_client
+from fleetlink.shared.mqtt import MqttSettings
 from tests.harness import wait_until
 from tests.harness.deploy import DeployBroker, mosquitto_passwd
 from tests.test_deploy import USERS, ZUSERS, Router

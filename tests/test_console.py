@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 from textual.widgets import Input, Static
 
+from fleetlink.links.base import LinkStats, key_matches
 from fleetlink.operator.console import ConsoleApp, attach
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.linkmanager import LinkPolicy
@@ -60,28 +61,41 @@ def run_async(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 class MemoryTransport:
+    """A ``fleetlink.links.base.Link`` that records what is published and injects what arrives."""
+
     def __init__(self, name: str) -> None:
-        self.name = name
+        self.name = LinkName(name)
+        self.stats = LinkStats()
+        self.up = True
         self.sent: list[tuple[str, bytes]] = []
-        self._receive: Callable[[str, bytes], None] | None = None
+        self._receivers: list[tuple[str, Callable[[str, bytes], None]]] = []
         self.lock = threading.Lock()
         self.responder: Callable[[MemoryTransport, str, bytes], None] | None = None
 
-    def start(self, on_message: Callable[[str, bytes], None]) -> None:
-        self._receive = on_message
+    def start(self) -> None:
+        pass
 
-    def publish(self, key: str, payload: bytes) -> None:
+    def subscribe(self, key_expr: str, receiver: Callable[[str, bytes], None]) -> None:
+        self._receivers.append((key_expr, receiver))
+
+    def publish(self, key: str, payload: bytes) -> bool:
         with self.lock:
             self.sent.append((key, payload))
         if self.responder is not None:
             self.responder(self, key, payload)
+        return True
 
     def close(self) -> None:
-        self._receive = None
+        self._receivers.clear()
 
     def inject(self, msg: wire.Message) -> None:
-        assert self._receive is not None
-        self._receive(keys.key(msg.header.robot, type(msg).TOPIC), wire.encode(msg))
+        self.inject_raw(keys.key(msg.header.robot, type(msg).TOPIC), wire.encode(msg))
+
+    def inject_raw(self, key: str, payload: bytes) -> None:
+        receivers = [r for expr, r in self._receivers if key_matches(expr, key)]
+        assert receivers, "not started, or closed"
+        for receiver in receivers:
+            receiver(key, payload)
 
     def messages(self, cls: type[wire.Message] | None = None) -> list[Any]:
         with self.lock:

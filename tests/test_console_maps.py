@@ -16,9 +16,11 @@ import numpy as np
 import pytest
 
 from fleetlink.cli.console import share_marks
+from fleetlink.links.mqtt import MqttEndpoint
+from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.operator.console import ConsoleApp, attach
 from fleetlink.operator.fleet import FleetModel
-from fleetlink.operator.links import MqttTransport, OperatorLink, ZenohTransport
+from fleetlink.operator.links import OperatorLink, mqtt_settings_for
 from fleetlink.operator.maps import MapFetcher, MapFollower
 from fleetlink.operator.mapview import MapView
 from fleetlink.shared import keys, wire
@@ -95,8 +97,8 @@ def console(zenoh_peers: Any, mosquitto: Any) -> Any:
     link = OperatorLink(
         clock,
         "op-maps",
-        ZenohTransport(console_session),
-        MqttTransport(f"mqtt://127.0.0.1:{mosquitto.port}", client_id="op-maps"),
+        ZenohEndpoint(session=console_session),
+        MqttEndpoint(mqtt_settings_for(f"mqtt://127.0.0.1:{mosquitto.port}"), client_id="op-maps"),
     ).start()
     fleet = FleetModel("op-maps")
     lock = threading.Lock()
@@ -171,10 +173,10 @@ def test_a_console_that_starts_late_gets_the_marks_placed_before(zenoh_peers: An
     clock = SystemClock()
     a_session, b_session = zenoh_peers(2)
     url = f"mqtt://127.0.0.1:{mosquitto.port}"
-    link_a = OperatorLink(clock, "op-a", ZenohTransport(a_session), MqttTransport(url, client_id="op-a")).start()
-    fleet_a, lock_a, stop = FleetModel("op-a"), threading.Lock(), threading.Event()
+    link_a = OperatorLink(clock, "op-a", ZenohEndpoint(session=a_session), _mqtt(url, "op-a")).start()
+    fleet_a, lock_a = FleetModel("op-a"), threading.Lock()
     attach(link_a, fleet_a, lock_a)
-    threads = [share_marks(link_a, fleet_a, lock_a, stop, asks=())]
+    workers = [share_marks(link_a, fleet_a, lock_a, asks=())]
     link_b = None
     try:
         counter = wire.HeaderCounter(clock, robot="r1", sender="op-a")
@@ -183,10 +185,10 @@ def test_a_console_that_starts_late_gets_the_marks_placed_before(zenoh_peers: An
             fleet_a.apply(mark, "local", clock.now())
         link_a.publish(mark)  # nobody else listens yet
         # Console B starts afterwards: it asks, A answers.
-        link_b = OperatorLink(clock, "op-b", ZenohTransport(b_session), MqttTransport(url, client_id="op-b")).start()
+        link_b = OperatorLink(clock, "op-b", ZenohEndpoint(session=b_session), _mqtt(url, "op-b")).start()
         fleet_b, lock_b = FleetModel("op-b"), threading.Lock()
         attach(link_b, fleet_b, lock_b)
-        threads.append(share_marks(link_b, fleet_b, lock_b, stop, asks=(0.1, 0.5, 1.0, 2.0, 4.0)))
+        workers.append(share_marks(link_b, fleet_b, lock_b, asks=(0.1, 0.5, 1.0, 2.0, 4.0)))
 
         def got() -> bool:
             with lock_b:
@@ -197,25 +199,34 @@ def test_a_console_that_starts_late_gets_the_marks_placed_before(zenoh_peers: An
             held = fleet_b.marks["op-a-1"]
         assert (held.x, held.y, held.kind, held.header.sender) == (3.0, 4.0, "casualty", "op-a")
     finally:
-        stop.set()
-        for t in threads:
-            t.join(5)
+        for w in workers:
+            w.stop()
         link_a.close()
         if link_b is not None:
             link_b.close()
+
+
+def _mqtt(url: str, client_id: str) -> MqttEndpoint:
+    return MqttEndpoint(mqtt_settings_for(url), client_id=client_id)
+
+
+def _listening(url: str, client_id: str, got: list[tuple[str, bytes]]) -> MqttEndpoint:
+    """An endpoint subscribed as a console is: every fleetlink key and the UWB gateways' status."""
+    ep = _mqtt(url, client_id)
+    for expr in (keys.ZENOH_ALL, "fleetlink/uwb/*/status"):
+        ep.subscribe(expr, lambda k, p: got.append((k, p)))
+    return ep.start()
 
 
 def test_the_embedded_python_broker_carries_the_consoles_mqtt() -> None:
     broker = AmqttBroker()
     url = broker.start().url  # raises if amqtt did not start
     got: list[tuple[str, bytes]] = []
-    sub = MqttTransport(url, client_id="sub")
-    pub = MqttTransport(url, client_id="pub")
+    sub = _listening(url, "sub", got)
+    pub = _mqtt(url, "pub").start()
     try:
-        sub.start(lambda k, p: got.append((k, p)))
-        pub.start(lambda k, p: None)
-        wait_until(lambda: sub.connected.is_set() and pub.connected.is_set(), timeout=10, message="both connected")
-        pub.client.publish("fleetlink/uwb/g1/status", b'{"gateway":"g1"}', qos=1, retain=True)
+        wait_until(lambda: sub.up and pub.up, timeout=10, message="both connected")
+        assert pub.publish("fleetlink/uwb/g1/status", b'{"gateway":"g1"}', qos=1, retain=True)
 
         def arrived() -> bool:
             pub.publish("fleetlink/v1/r1/pose", b"x")
@@ -226,8 +237,7 @@ def test_the_embedded_python_broker_carries_the_consoles_mqtt() -> None:
             lambda: ("fleetlink/uwb/g1/status", b'{"gateway":"g1"}') in got, timeout=10, message="the gateway status"
         )
         late: list[tuple[str, bytes]] = []
-        late_client = MqttTransport(url, client_id="late")
-        late_client.start(lambda k, p: late.append((k, p)))
+        late_client = _listening(url, "late", late)
         try:
             wait_until(lambda: any(k == "fleetlink/uwb/g1/status" for k, _ in late), timeout=10, message="retained")
         finally:

@@ -155,9 +155,8 @@ def two_robots(rig: Rig) -> None:
     clock = rig.clock
     assert isinstance(clock, SimClock)
     status = {"gateway": "g1", "anchors": [list(a) for a in ANCHORS]}
-    receive = rig.mqtt._receive  # the gateway's retained status, as MQTT delivers it
-    assert receive is not None
-    receive("fleetlink/uwb/g1/status", json.dumps(status).encode())
+    # the gateway's retained status, as MQTT delivers it
+    rig.mqtt.inject_raw("fleetlink/uwb/g1/status", json.dumps(status).encode())
     follower = MapFollower(rig.fleet)
     snap = rig.counter("r1").make(MapSnapshot, **snapshot_fields(room(), RES, ORIGIN, 7))
     with rig.lock:

@@ -20,9 +20,10 @@ import paho.mqtt.client as mqtt
 import pytest
 import zenoh
 
+from fleetlink.links.mqtt import connect_client, nodelay_enabled
+from fleetlink.links.zenoh import peer_config
 from fleetlink.shared.access import mosquitto_acl, zenoh_access_control
-from fleetlink.shared.mqtt import MqttSettings, connect_client, nodelay_enabled
-from fleetlink.shared.zenoh_config import peer_config
+from fleetlink.shared.mqtt import MqttSettings
 from tests.harness import wait_until
 from tests.harness.deploy import DEPLOY, DeployBroker, SiteCA, make_site_ca, mosquitto_passwd, zenoh_router_config
 from tests.harness.mosquitto import free_port
@@ -183,10 +184,12 @@ def test_unauthenticated_clients_are_refused(
 
 def test_last_will_reaches_operators(broker: DeployBroker, clients: list[Client], tmp_path: Path) -> None:
     op = _client(clients, broker, "op-alice", ["fleetlink/v1/+/connection"]).ready()
-    from fleetlink.shared.mqtt import MqttWill
+    from fleetlink.links.mqtt import MqttMessage
 
     settings = MqttSettings(host=broker.host, port=broker.port, username="r1", password=USERS["r1"], keepalive_s=1)
-    agent = connect_client(settings, client_id="agent-r1", will=MqttWill("fleetlink/v1/r1/connection", b"BROKEN"))
+    agent = connect_client(
+        settings, client_id="agent-r1", will=MqttMessage("fleetlink/v1/r1/connection", b"BROKEN", 1, True)
+    )
     try:
         wait_until(agent.is_connected)
         assert nodelay_enabled(agent)

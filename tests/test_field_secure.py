@@ -21,11 +21,12 @@ import pytest
 import zenoh
 
 from fleetlink.field.realtime import RealtimeField
+from fleetlink.links.mqtt import connect_client
+from fleetlink.links.zenoh import peer_config
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Ack, AckResult, FixStatus, Teleop, UwbFix
-from fleetlink.shared.mqtt import MqttSettings, connect_client
-from fleetlink.shared.zenoh_config import peer_config
+from fleetlink.shared.mqtt import MqttSettings
 from fleetlink.site.field import FieldSite, Security
 from fleetlink.site.security import SiteSecurity
 from tests.harness import wait_until

@@ -11,14 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleetlink.shared.map_codec import SharedMap, decode_cells
 from fleetlink.agent.mapping.mapper import OnboardMapper
 from fleetlink.agent.mapping.share import MapShare, fetch_map
 from fleetlink.cli.main import main
 from fleetlink.field.mapserver import read_map
 from fleetlink.field.raycast import Raycaster
+from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SimClock
+from fleetlink.shared.map_codec import SharedMap, decode_cells
 from fleetlink.shared.messages import MapSnapshot, MapUpdate
 
 ROOM = np.array([[0.0, 0.0, 6.0, 0.0], [6.0, 0.0, 6.0, 4.0], [6.0, 4.0, 0.0, 4.0], [0.0, 4.0, 0.0, 0.0]])
@@ -42,18 +43,18 @@ def _until(cond, timeout: float = 5.0):  # type: ignore[no-untyped-def]
 
 def test_queryable_serves_the_map_and_updates_patch_a_copy(zenoh_peers, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     peers = zenoh_peers(2)
-    agent, other = peers
+    agent, other = (ZenohEndpoint(session=s).start() for s in peers)
     clock = SimClock()
     mapper = OnboardMapper()
     mapper.add_scan(0.0, _scan((1.0, 1.0, 0.0)), ANGLES, (1.0, 1.0, 0.0))
     updates: list[bytes] = []
     lock = threading.Lock()
 
-    def on_update(sample) -> None:  # type: ignore[no-untyped-def]
+    def on_update(_key: str, payload: bytes) -> None:
         with lock:
-            updates.append(sample.payload.to_bytes())
+            updates.append(payload)
 
-    sub = other.declare_subscriber(keys.key("r1", MapUpdate.TOPIC), on_update)
+    other.subscribe(keys.key("r1", MapUpdate.TOPIC), on_update)
     try:
         with MapShare(agent, "r1", clock, period=1.0) as share:
             assert share.publish(mapper)
@@ -88,21 +89,25 @@ def test_queryable_serves_the_map_and_updates_patch_a_copy(zenoh_peers, tmp_path
             assert not bad.any(), (cells[bad][:10], saved.grid[bad][:10])
             assert share.queries >= 2
     finally:
-        sub.undeclare()
+        other.close()
+        agent.close()
 
 
 def test_no_map_yet_and_bad_replies_give_none(zenoh_peers) -> None:  # type: ignore[no-untyped-def]
-    agent, other = zenoh_peers(2)
-    with MapShare(agent, "r2", SimClock()):
-        time.sleep(0.2)
-        assert fetch_map(other, "r2", timeout=1.0) is None  # replies with an error: no map yet
-    # A peer answering with garbage on the map key is rejected, not crashed on.
-    q = agent.declare_queryable(keys.key("r3", "map"), lambda query: query.reply(keys.key("r3", "map"), b"\xc1junk"))
+    agent, other = (ZenohEndpoint(session=s).start() for s in zenoh_peers(2))
     try:
+        with MapShare(agent, "r2", SimClock()) as share:
+            time.sleep(0.2)
+            assert fetch_map(other, "r2", timeout=1.0) is None  # no map yet: no answer
+            assert share.queries == 1
+        assert fetch_map(other, "r2", timeout=0.5) is None and share.queries == 1  # stopped: silent
+        # A peer answering with garbage on the map key is rejected, not crashed on.
+        agent.serve(keys.key("r3", "map"), lambda asked: [(keys.key("r3", "map"), b"\xc1junk")])
         time.sleep(0.2)
         assert fetch_map(other, "r3", timeout=1.0) is None
     finally:
-        q.undeclare()
+        other.close()
+        agent.close()
 
 
 def test_codec_rejects_bad_cells() -> None:

@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from fleetlink.links.mqtt import connect_client, nodelay_enabled
+from fleetlink.links.zenoh import peer_config
 from fleetlink.shared.config import ConfigError
-from fleetlink.shared.mqtt import MqttSettings, connect_client, nodelay_enabled
-from fleetlink.shared.zenoh_config import peer_config
+from fleetlink.shared.mqtt import MqttSettings
 from tests.harness import wait_until
 from tests.harness.deploy import DeployBroker, mosquitto_passwd
 

@@ -18,8 +18,10 @@ import pytest
 import zenoh
 
 from fleetlink.agent.links.gate import Accepted, CommandGate, Duplicate
+from fleetlink.links.mqtt import MqttEndpoint
+from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.operator.linkmanager import FALLBACK, PRIMARY, LinkPolicy, Switch
-from fleetlink.operator.links import MqttTransport, OperatorLink, ZenohTransport
+from fleetlink.operator.links import OperatorLink, mqtt_settings_for
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Ack, AckResult, Goal, LinkName, Order, Pose
@@ -141,11 +143,11 @@ class LinkRobot:
 def open_operator(mqtt_port: int, policy: LinkPolicy, sender: str = "operator-1") -> tuple[OperatorLink, str]:
     """An operator link listening on a fresh loopback Zenoh endpoint (robots connect to it)."""
     endpoint = loopback_endpoint()
-    primary = ZenohTransport(zenoh.open(zenoh_config(listen=[endpoint], scouting_delay_ms=0)), owns_session=True)
-    fallback = MqttTransport(f"mqtt://127.0.0.1:{mqtt_port}", client_id=sender)
+    primary = ZenohEndpoint(listen=[endpoint])
+    fallback = MqttEndpoint(mqtt_settings_for(f"mqtt://127.0.0.1:{mqtt_port}"), client_id=sender)
     link = OperatorLink(SystemClock(), sender, primary, fallback, policy=policy, poll_hz=50.0)
     link.start()
-    assert fallback.connected.wait(5.0), "operator MQTT client did not connect"
+    wait_until(lambda: fallback.up, timeout=5.0, message="operator MQTT client to connect")
     return link, endpoint
 
 

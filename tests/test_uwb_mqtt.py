@@ -147,7 +147,7 @@ def test_fixes_and_pans_over_real_mosquitto_from_zenoh_truth(mosquitto, zenoh_pe
 
         # The last will: the connection dies without a DISCONNECT -> the broker says "offline";
         # the gateway reconnects and says "online" again.
-        gw._client.socket().close()
+        gw.mqtt.client.socket().close()  # type: ignore[union-attr]
         status = "fleetlink/uwb/gw-test/status"
 
         def states() -> list[str]:

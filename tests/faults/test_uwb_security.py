@@ -18,14 +18,15 @@ import zenoh
 from fleetlink.field.realtime import TruthSample
 from fleetlink.field.scenario import site_geometry
 from fleetlink.field.truth import TruthPublisher
+from fleetlink.links.mqtt import connect_client
+from fleetlink.links.zenoh import peer_config
 from fleetlink.positioning.config import parse_config
 from fleetlink.positioning.publisher import UwbGateway
 from fleetlink.shared import keys, wire
 from fleetlink.shared.access import zenoh_access_control
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import FixStatus, UwbFix
-from fleetlink.shared.mqtt import MqttSettings, connect_client
-from fleetlink.shared.zenoh_config import peer_config
+from fleetlink.shared.mqtt import MqttSettings
 from tests.harness import wait_until
 from tests.harness.deploy import DeployBroker, mosquitto_passwd, zenoh_router_config
 from tests.harness.mosquitto import free_port
@@ -196,7 +197,7 @@ def test_gateway_with_a_wrong_password_is_refused_and_publishes_nothing(
         wait_until(lambda: gateway.refused >= 1, timeout=15, message="the broker refusing the gateway")
         for _ in range(20):
             gateway.on_truth("r1", TRUE_X, TRUE_Y)
-        assert not gateway.connected.is_set()
+        assert not gateway.up
         # A sentinel the real gateway account may send (over a second, good login) arrives; no fix before it.
         s = MqttSettings(host=broker.host, port=broker.port, username="uwb-gateway", password=USERS["uwb-gateway"])
         good = connect_client(s, client_id="sentinel")

@@ -1,0 +1,366 @@
+"""The MQTT endpoint, and the one place a paho client is made.
+
+``connect_client(settings, ...)`` is every fleetlink paho client: MQTT 3.1.1, callback API v2,
+credentials, TLS, TCP_NODELAY on every socket it opens (QoS 1 with Nagle against delayed ACKs
+costs ~40 ms per message, GUIDE.md), the last will, and a jittered reconnect backoff.
+
+``MqttEndpoint`` is a ``fleetlink.links.base.Link`` over one such client:
+
+* subscriptions take Zenoh-style key expressions (translated with ``to_mqtt_filter``), are made
+  again after every reconnect (the session is clean), and hand (topic, payload) to their receiver;
+* ``publish(key, payload, qos=None, retain=False)``: QoS 1 for the keys whose topic is in
+  ``QOS1_TOPICS`` (commands, acks, the lease, the connection, marks), QoS 0 for telemetry, unless
+  asked otherwise; False (counted as dropped) while disconnected;
+* a last will (``MqttMessage``), an ``on_connect(endpoint)`` hook run after every (re)connect
+  (the agent re-publishes its retained ``Connection``, the UWB gateway its ``online`` status) and
+  an ``on_close(endpoint)`` hook run while still connected on a clean close (their ``OFFLINE``).
+
+The network loop is the endpoint's own ``Worker`` rather than paho's ``loop_start``, so that
+reconnects use jittered exponential backoff (a fleet whose broker restarts must not reconnect in
+lockstep) and so that a publish from any thread is written at once (paho writes directly when it
+runs no loop thread of its own) instead of waiting for the loop to wake. Receivers run on that
+loop thread, in the order the broker delivered.
+
+With overlapping subscriptions a broker may deliver a message once per matching filter (Mosquitto
+2 does): each delivery goes to every matching receiver. Fleetlink's subscriptions do not overlap.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import random
+import socket
+import ssl
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Self
+
+from fleetlink.links.base import LinkStats, Receiver, key_matches, to_mqtt_filter
+from fleetlink.links.zenoh import topic_of
+from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.messages import LinkName
+from fleetlink.shared.mqtt import MqttSettings
+from fleetlink.shared.worker import Worker
+
+if TYPE_CHECKING:
+    import paho.mqtt.client as mqtt
+
+__all__ = ["QOS1_TOPICS", "MqttEndpoint", "MqttMessage", "connect_client", "nodelay_enabled"]
+
+log = logging.getLogger(__name__)
+
+QOS1_TOPICS = frozenset({"order", "actions", "teleop", "connection", "ack", "lease", "lease/request", "marks"})
+"""Published at QoS 1; every other topic at QoS 0 (a late pose is worthless, a lost command is not)."""
+
+LOOP_TIMEOUT_S = 0.25
+"""The loop's idle wake-up: inbound bytes and every publish (paho pokes its socket pair) wake it
+at once, so this only paces keepalives when nothing else happens."""
+
+MAX_QUEUED = 256
+"""QoS 1 messages paho keeps while disconnected; QoS 0 ones are not sent at all then."""
+
+
+@dataclass(frozen=True, slots=True)
+class MqttMessage:
+    """One MQTT publication: a last will, a gateway's fix, a retained status."""
+
+    topic: str
+    payload: bytes
+    qos: int = 0
+    retain: bool = False
+
+
+def _set_nodelay(sock: Any) -> None:
+    # TLS sockets forward setsockopt to the TCP socket underneath.
+    with contextlib.suppress(OSError, AttributeError):  # not a TCP socket: nothing to do
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+def nodelay_enabled(client: mqtt.Client) -> bool:
+    """True if the client's current socket has TCP_NODELAY on (False when not connected)."""
+    sock: Any = client.socket()
+    if sock is None:
+        return False
+    try:
+        return bool(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY))
+    except (OSError, AttributeError):
+        return False
+
+
+def connect_client(
+    settings: MqttSettings,
+    *,
+    client_id: str | None = None,
+    will: MqttMessage | None = None,
+    clean_session: bool = True,
+    start: bool = True,
+    rng: random.Random | None = None,
+) -> mqtt.Client:
+    """A paho 2.x client (MQTT 3.1.1, callback API v2) set up from ``settings``.
+
+    Sets the username/password, TLS (site CA or the system's, optional client certificate),
+    TCP_NODELAY on every socket it opens (``on_socket_open``, so reconnects get it too), the last
+    will, and a reconnect backoff from ``reconnect_min_s`` doubling to ``reconnect_max_s`` whose
+    bounds are jittered per client (x1-2 and x0.5-1) so a fleet does not reconnect in lockstep
+    after a broker restart. ``settings.client_id`` wins over ``client_id``.
+
+    With ``start`` (the default) it calls ``connect_async`` and ``loop_start``: the client keeps
+    trying in the background until it connects and reconnects after every loss. Set the
+    ``on_connect``/``on_message`` callbacks first or pass ``start=False`` and start it yourself.
+    Stop it with ``client.disconnect(); client.loop_stop()``. ``MqttEndpoint`` is the usual way in.
+    """
+    import paho.mqtt.client as mqtt
+    from paho.mqtt.enums import CallbackAPIVersion
+
+    rng = rng if rng is not None else random.Random()
+    cid = settings.client_id or client_id or ""
+    client = mqtt.Client(
+        CallbackAPIVersion.VERSION2,
+        client_id=cid,
+        clean_session=clean_session,
+        protocol=mqtt.MQTTv311,
+    )
+    if settings.username is not None:
+        client.username_pw_set(settings.username, settings.password)
+    if settings.tls:
+        client.tls_set(
+            ca_certs=settings.ca_file,
+            certfile=settings.cert_file,
+            keyfile=settings.key_file,
+            cert_reqs=ssl.CERT_REQUIRED,
+            tls_version=ssl.PROTOCOL_TLS_CLIENT,
+        )
+    if will is not None:
+        client.will_set(will.topic, will.payload, qos=will.qos, retain=will.retain)
+    client.on_socket_open = lambda _client, _userdata, sock: _set_nodelay(sock)
+    lo = settings.reconnect_min_s * rng.uniform(1.0, 2.0)
+    hi = max(lo, settings.reconnect_max_s * rng.uniform(0.5, 1.0))
+    # paho's signature says int; it only ever multiplies and compares them.
+    client.reconnect_delay_set(lo, hi)  # type: ignore[arg-type]
+    if start:
+        client.connect_async(settings.host, settings.port, keepalive=settings.keepalive_s)
+        client.loop_start()
+    return client
+
+
+Hook = Callable[["MqttEndpoint"], None]
+
+
+@dataclass(slots=True)
+class _Subscription:
+    key_expr: str
+    filter: str
+    qos: int
+    receiver: Receiver
+
+
+class MqttEndpoint:
+    """A ``Link`` on one broker connection. See the module docstring."""
+
+    name = LinkName.MQTT
+
+    def __init__(
+        self,
+        settings: MqttSettings,
+        *,
+        client_id: str | None = None,
+        will: MqttMessage | None = None,
+        on_connect: Hook | None = None,
+        on_close: Hook | None = None,
+        qos1_topics: frozenset[str] = QOS1_TOPICS,
+        clock: Clock | None = None,
+        seed: int | None = None,
+        label: str = "mqtt",
+    ) -> None:
+        self.settings = settings
+        self.client_id = settings.client_id or client_id or ""
+        self.will = will
+        self.on_connect = on_connect
+        self.on_close = on_close
+        self.qos1_topics = qos1_topics
+        self.clock: Clock = clock or SystemClock()
+        self.label = label
+        self.stats = LinkStats()
+        self.connects = 0
+        """Successful connections so far (reconnects included)."""
+        self.refused = 0
+        """CONNACKs that refused us (credentials, ACL)."""
+        self._rng = random.Random(seed)
+        self._subs: list[_Subscription] = []
+        self._lock = threading.Lock()
+        self._client: Any = None
+        self._connected = False
+        self._closing = False
+        self._loop: Worker | None = None
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def start(self) -> Self:
+        with self._lock:
+            if self._client is not None:
+                return self
+            c = connect_client(self.settings, client_id=self.client_id, will=self.will, start=False, rng=self._rng)
+            c.max_queued_messages_set(MAX_QUEUED)
+            c.on_connect = self._on_connect
+            c.on_disconnect = self._on_disconnect
+            c.on_message = self._on_message
+            self._client = c
+            self._closing = False
+            self._loop = Worker(f"{self.label}-loop", target=self._run).start()
+        return self
+
+    def close(self) -> None:
+        """Run ``on_close`` if connected, disconnect cleanly (no last will), end the loop (idempotent)."""
+        if self._client is None:
+            return
+        if self._connected and self.on_close is not None:
+            try:
+                self.on_close(self)  # its publishes are written at once, from this thread
+            except Exception:  # best effort on the way out
+                log.exception("%s: on_close failed", self.label)
+        with self._lock:
+            c, self._client = self._client, None
+            loop, self._loop = self._loop, None
+        if c is None:
+            return
+        self._closing = True  # the loop must not take the DISCONNECT for a loss and reconnect
+        with contextlib.suppress(Exception):
+            c.disconnect()  # written at once (or queued, waking the loop out of its select)
+        if loop is not None:
+            loop.stop()
+        with contextlib.suppress(Exception):
+            c.loop_write()  # what was queued while the loop ran a callback, DISCONNECT last
+        self._connected = False
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def up(self) -> bool:
+        return self._connected
+
+    @property
+    def client(self) -> Any:
+        """The paho client (None before ``start`` and after ``close``)."""
+        return self._client
+
+    # -- data -----------------------------------------------------------------------------------
+
+    def qos_of(self, key: str) -> int:
+        return 1 if topic_of(key) in self.qos1_topics else 0
+
+    def publish(self, key: str, payload: bytes, *, qos: int | None = None, retain: bool = False) -> bool:
+        c = self._client
+        if c is None or not self._connected:
+            self.stats.dropped += 1
+            return False
+        try:
+            info = c.publish(key, payload, qos=self.qos_of(key) if qos is None else qos, retain=retain)
+        except Exception as exc:
+            self.stats.dropped += 1
+            log.warning("%s: publish on %s failed: %s", self.label, key, exc)
+            return False
+        if info.rc != 0:
+            self.stats.dropped += 1
+            return False
+        self.stats.sent += 1
+        return True
+
+    def send(self, message: MqttMessage) -> bool:
+        """Publish ``message`` with its own QoS and retain flag."""
+        return self.publish(message.topic, message.payload, qos=message.qos, retain=message.retain)
+
+    def subscribe(self, key_expr: str, receiver: Receiver, *, qos: int = 1) -> None:
+        """``qos`` is the most the broker may deliver at; each message keeps its publisher's QoS
+        up to that, so the default (1) downgrades nothing."""
+        sub = _Subscription(key_expr, to_mqtt_filter(key_expr), qos, receiver)
+        with self._lock:
+            self._subs.append(sub)
+            c = self._client if self._connected else None
+        if c is not None:
+            c.subscribe(sub.filter, sub.qos)
+
+    # -- the loop (a Worker) --------------------------------------------------------------------
+
+    def _run(self, worker: Worker) -> None:
+        import paho.mqtt.client as mqtt
+
+        c = self._client
+        s = self.settings
+        backoff = s.reconnect_min_s
+        first = True
+        need_connect = True
+        while not worker.stopping and not self._closing:
+            if need_connect:
+                try:
+                    if first:
+                        c.connect(s.host, s.port, keepalive=s.keepalive_s)
+                        first = False
+                    else:
+                        c.reconnect()
+                    backoff = s.reconnect_min_s
+                    need_connect = False
+                except (OSError, ssl.SSLError) as exc:
+                    delay = backoff * (0.5 + self._rng.random())  # jitter: 0.5x-1.5x
+                    backoff = min(s.reconnect_max_s, backoff * 2)
+                    if self.connects == 0 or backoff >= s.reconnect_max_s:
+                        log.info(
+                            "%s: %s:%d unreachable (%s); retrying in %.2f s", self.label, s.host, s.port, exc, delay
+                        )
+                    worker.wait(delay)
+                    continue
+            rc = c.loop(timeout=LOOP_TIMEOUT_S)
+            if rc != mqtt.MQTT_ERR_SUCCESS and not worker.stopping and not self._closing:
+                self._connected = False
+                need_connect = True
+                delay = backoff * (0.5 + self._rng.random())
+                backoff = min(s.reconnect_max_s, backoff * 2)
+                worker.wait(delay)
+
+    # -- paho callbacks (on the loop thread) ----------------------------------------------------
+
+    def _on_connect(self, client: Any, userdata: Any, flags: Any, reason_code: Any, properties: Any) -> None:
+        if reason_code.is_failure:
+            self.refused += 1
+            if self.refused == 1:
+                log.warning("%s: %s refused the connection: %s", self.label, self.settings.url, reason_code)
+            return
+        with self._lock:
+            subs = list(self._subs)
+            self._connected = True
+            self.connects += 1
+        filters: dict[str, int] = {}
+        for sub in subs:  # one SUBSCRIBE per distinct filter, at the highest QoS asked
+            filters[sub.filter] = max(sub.qos, filters.get(sub.filter, 0))
+        if filters:
+            client.subscribe(list(filters.items()))
+        if self.on_connect is not None:
+            try:
+                self.on_connect(self)
+            except Exception:
+                log.exception("%s: on_connect failed", self.label)
+        log.info("%s: up (%s, connect #%d)", self.label, self.settings.url, self.connects)
+
+    def _on_disconnect(self, client: Any, userdata: Any, flags: Any, reason_code: Any, properties: Any) -> None:
+        if self._connected:
+            log.warning("%s: down (%s); reconnecting", self.label, reason_code)
+        self._connected = False
+
+    def _on_message(self, client: Any, userdata: Any, msg: Any) -> None:
+        topic, payload = msg.topic, bytes(msg.payload)
+        delivered = False
+        for sub in self._subs:
+            if key_matches(sub.key_expr, topic):
+                delivered = True
+                try:
+                    sub.receiver(topic, payload)
+                except Exception:  # a receiver's bug must not kill the loop thread
+                    log.exception("%s: receiver for %s failed", self.label, topic)
+        if delivered:
+            self.stats.received += 1
+            self.stats.last_rx = self.clock.now()

@@ -1,0 +1,336 @@
+"""The Zenoh endpoint, and the one place a Zenoh session is configured.
+
+``peer_config``/``open_session`` build every fleetlink session the same way: explicit listen and
+connect endpoints, multicast scouting off, peer or client mode, a login and TLS files for a
+secured site router. ``ZenohEndpoint`` is a ``fleetlink.links.base.Link`` over one session (its
+own, or one it is given), plus queries (``serve``/``query``, as ``InProcessLink``) and an optional
+liveliness token (the agent's presence on ``fleetlink/v1/<robot>/alive``).
+
+Quality of service per key: a key whose topic is in ``URGENT_TOPICS`` (commands, acks, events,
+the lease, the connection) goes express with INTERACTIVE_HIGH priority and congestion control
+BLOCK; everything else (telemetry, maps) with DROP, so a slow subscriber never stalls the
+publisher. Plain ``session.put``, not declared publishers: behind a router with access control, a
+publisher declared before a subscriber appears never learns of it and silently drops every sample.
+
+Order: zenoh-python runs a plain Python callback on a thread of its own per subscriber, so
+samples on different keys (a teleop, then a lease release) could reach the receiver out of the
+order they were sent in. Each subscriber's callback therefore runs on zenoh's network thread
+(``indirect=False``) and only queues the sample in a bounded inbox; one delivery thread (a
+``Worker``) hands them to the receivers in arrival order, so the network thread never waits on
+the application. Beyond ``inbox_size`` waiting samples (a receiver stalled for seconds) new ones
+are dropped and counted.
+
+The session is closed explicitly in ``close()`` when the endpoint opened it: zenoh runs
+callbacks on non-daemon threads that would keep the process alive.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import queue
+import threading
+from collections.abc import Callable, Sequence
+from typing import Any, Self
+
+from fleetlink.links.base import LinkStats, Receiver
+from fleetlink.shared import keys
+from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.messages import LinkName
+from fleetlink.shared.worker import Worker
+
+__all__ = ["INBOX_SIZE", "URGENT_TOPICS", "Answer", "ZenohEndpoint", "open_session", "peer_config", "topic_of"]
+
+log = logging.getLogger(__name__)
+
+URGENT_TOPICS = frozenset({"ack", "events", "order", "actions", "teleop", "connection", "lease"})
+"""Published express with INTERACTIVE_HIGH priority and congestion control BLOCK; the rest DROP."""
+
+INBOX_SIZE = 1024
+"""Samples waiting for the receivers; beyond this new ones are dropped and counted."""
+
+Answer = Callable[[str], list[tuple[str, bytes]]]
+"""``answer(key_expr asked)`` -> the replies, as (key, payload)."""
+
+
+def topic_of(key: str) -> str:
+    """The topic of ``fleetlink/v1/<robot>/<topic>`` ("" for any other key)."""
+    parts = key.split("/", 3)
+    return parts[3] if len(parts) == 4 and key.startswith(keys.PREFIX + "/") else ""
+
+
+def peer_config(
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    *,
+    mode: str = "peer",
+    multicast_scouting: bool = False,
+    username: str | None = None,
+    password: str | None = None,
+    root_ca: str | None = None,
+    tls_cert: str | None = None,
+    tls_key: str | None = None,
+) -> Any:
+    """A ``zenoh.Config``: explicit endpoints, multicast scouting off unless asked for.
+
+    With no ``listen`` endpoints the session listens nowhere (zenoh's default would be every
+    interface). Sites link sessions by listing routers or peers explicitly (docs/operations.md).
+
+    Security (a site router with deploy/zenohd.json5): ``username``/``password`` log in
+    (``transport/auth/usrpwd``; the router's ACL knows agents by robot id, operators as
+    ``op-<name>``); ``root_ca`` is the site CA that ``tls/<host>:<port>`` endpoints are verified
+    against (the router's certificate must name ``<host>``); ``tls_cert``/``tls_key`` present a
+    client certificate for mutual TLS.
+    """
+    import zenoh  # imported here so modules that only build configs stay importable without it
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
+    conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if (username is None) != (password is None):
+        raise ValueError("zenoh username and password go together (both or neither)")
+    if username is not None:
+        conf.insert_json5("transport/auth/usrpwd", json.dumps({"user": username, "password": password}))
+    if (tls_cert is None) != (tls_key is None):
+        raise ValueError("zenoh tls_cert and tls_key go together (both or neither)")
+    tls = {"root_ca_certificate": root_ca, "connect_certificate": tls_cert, "connect_private_key": tls_key}
+    for name, value in tls.items():
+        if value is not None:
+            conf.insert_json5(f"transport/link/tls/{name}", json.dumps(value))
+    return conf
+
+
+def open_session(listen: Sequence[str] = (), connect: Sequence[str] = (), **auth: Any) -> Any:
+    """A ``zenoh.Session`` opened on ``peer_config(listen, connect, **auth)``."""
+    import zenoh
+
+    return zenoh.open(peer_config(listen, connect, **auth))
+
+
+class _Delivery(Worker):
+    """The one thread that hands queued samples to their receivers, in arrival order."""
+
+    def __init__(self, name: str, inbox: queue.Queue[tuple[Receiver, str, bytes] | None]) -> None:
+        super().__init__(name)
+        self.inbox = inbox
+
+    def run(self) -> None:
+        while (item := self.inbox.get()) is not None:
+            receiver, key, payload = item
+            try:
+                receiver(key, payload)
+            except Exception:  # a receiver's bug must not stop delivery
+                log.exception("zenoh receiver for %s failed", key)
+
+    def stop(self, timeout: float = 2.0) -> None:
+        if self.running:
+            with contextlib.suppress(queue.Full):
+                self.inbox.put(None, timeout=1.0)  # after what is already queued
+        super().stop(timeout)
+
+
+class ZenohEndpoint:
+    """A ``Link`` on one Zenoh session. See the module docstring.
+
+    ``session``: use this open session instead of opening one (it is not closed by ``close``).
+    Otherwise ``listen``, ``connect`` and ``auth`` (``peer_config``'s keywords: mode, username,
+    password, root_ca, tls_cert, tls_key) say how to open it in ``start``. ``alive_key``: a
+    liveliness token declared while the endpoint is open.
+    """
+
+    name = LinkName.ZENOH
+
+    def __init__(
+        self,
+        *,
+        listen: Sequence[str] = (),
+        connect: Sequence[str] = (),
+        session: Any = None,
+        alive_key: str | None = None,
+        clock: Clock | None = None,
+        inbox_size: int = INBOX_SIZE,
+        label: str = "zenoh",
+        **auth: Any,
+    ) -> None:
+        self.listen = tuple(listen)
+        self.connect = tuple(connect)
+        self.auth = auth
+        self.alive_key = alive_key
+        self.clock: Clock = clock or SystemClock()
+        self.label = label
+        self.stats = LinkStats()
+        self._given = session
+        self._session: Any = None
+        self._subs: list[tuple[str, Receiver]] = []
+        self._served: list[tuple[str, Answer]] = []
+        self._declared: list[Any] = []
+        self._token: Any = None
+        self._opts: dict[str, dict[str, Any]] = {}
+        self._lock = threading.Lock()
+        self._inbox: queue.Queue[tuple[Receiver, str, bytes] | None] = queue.Queue(inbox_size)
+        self._delivery: _Delivery | None = None
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def start(self) -> Self:
+        with self._lock:
+            if self._session is not None:
+                return self
+            self._delivery = _Delivery(f"{self.label}-in", self._inbox).start()
+            try:
+                session = (
+                    self._given if self._given is not None else open_session(self.listen, self.connect, **self.auth)
+                )
+            except BaseException:
+                self._delivery.stop()
+                self._delivery = None
+                raise
+            self._session = session
+            for key_expr, receiver in self._subs:
+                self._declare_subscriber(key_expr, receiver)
+            for key_expr, answer in self._served:
+                self._declare_queryable(key_expr, answer)
+            if self.alive_key is not None:
+                self._token = session.liveliness().declare_token(self.alive_key)
+        log.info("%s: listen %s connect %s", self.label, list(self.listen), list(self.connect))
+        return self
+
+    def close(self) -> None:
+        with self._lock:
+            session, self._session = self._session, None
+            delivery, self._delivery = self._delivery, None
+            declared, self._declared = self._declared, []
+            token, self._token = self._token, None
+        if session is None:
+            return
+        for d in [*declared, token]:
+            if d is not None:
+                with contextlib.suppress(Exception):  # already gone with the session
+                    d.undeclare()
+        if delivery is not None:
+            delivery.stop()  # what was queued before is still delivered; nothing after
+        if self._given is None:
+            session.close()
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def session(self) -> Any:
+        """The open zenoh session (None before ``start`` and after ``close``)."""
+        return self._session
+
+    @property
+    def up(self) -> bool:
+        """The session is open and linked to at least one peer or router."""
+        s = self._session
+        if s is None or s.is_closed():
+            return False
+        try:
+            return any(True for _ in s.info.peers_zid()) or any(True for _ in s.info.routers_zid())
+        except Exception:  # a session closing under us
+            return False
+
+    # -- data -----------------------------------------------------------------------------------
+
+    def publish(self, key: str, payload: bytes) -> bool:
+        """Put ``payload`` on ``key`` (True once zenoh took it: it cannot say whether anyone listened)."""
+        session = self._session
+        if session is None:
+            self.stats.dropped += 1
+            return False
+        try:
+            session.put(key, payload, **self._options(key))
+        except Exception as exc:  # zenoh.ZError, or closed under us; the other link still carries it
+            self.stats.dropped += 1
+            if self.stats.dropped == 1:
+                log.warning("%s: publish on %s failed: %s", self.label, key, exc)
+            return False
+        self.stats.sent += 1
+        return True
+
+    def subscribe(self, key_expr: str, receiver: Receiver) -> None:
+        with self._lock:
+            self._subs.append((key_expr, receiver))
+            if self._session is not None:
+                self._declare_subscriber(key_expr, receiver)
+
+    def serve(self, key_expr: str, answer: Answer) -> None:
+        """A queryable on ``key_expr``: ``answer(key_expr asked)`` gives the replies (key, payload)."""
+        with self._lock:
+            self._served.append((key_expr, answer))
+            if self._session is not None:
+                self._declare_queryable(key_expr, answer)
+
+    def query(self, key_expr: str, timeout: float = 1.0) -> list[tuple[str, bytes]]:
+        """Ask the queryables on ``key_expr`` (waiting up to ``timeout`` s): their good replies."""
+        session = self._session
+        if session is None:
+            return []
+        out: list[tuple[str, bytes]] = []
+        for reply in session.get(key_expr, timeout=timeout):
+            if reply.ok is not None:
+                out.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+            else:
+                log.debug("%s: query %s: error reply: %s", self.label, key_expr, reply.err.payload.to_string())
+        return out
+
+    # -- internals (under self._lock) ---------------------------------------------------------
+
+    def _declare_subscriber(self, key_expr: str, receiver: Receiver) -> None:
+        import zenoh
+
+        def on_sample(sample: Any) -> None:
+            # On zenoh's network thread: queue and return at once.
+            try:
+                self._inbox.put_nowait((receiver, str(sample.key_expr), sample.payload.to_bytes()))
+            except queue.Full:
+                self.stats.dropped += 1
+                if self.stats.dropped == 1:
+                    log.warning(
+                        "%s: inbox full (%d samples): receivers not keeping up; dropping",
+                        self.label,
+                        self._inbox.maxsize,
+                    )
+                return
+            except Exception:  # never let a bug kill zenoh's network thread
+                log.exception("%s: sample callback failed", self.label)
+                return
+            self.stats.received += 1
+            self.stats.last_rx = self.clock.now()
+
+        handler = zenoh.handlers.Callback(on_sample, indirect=False)
+        self._declared.append(self._session.declare_subscriber(key_expr, handler))
+
+    def _declare_queryable(self, key_expr: str, answer: Answer) -> None:
+        def on_query(query: Any) -> None:
+            try:
+                for key, payload in answer(str(query.key_expr)):
+                    query.reply(key, payload)
+            except Exception as exc:  # the querier went away, or a bad answer: keep serving
+                log.debug("%s: answering %s: %s", self.label, key_expr, exc)
+
+        self._declared.append(self._session.declare_queryable(key_expr, on_query))
+
+    def _options(self, key: str) -> dict[str, Any]:
+        opts = self._opts.get(key)
+        if opts is None:
+            import zenoh
+
+            if topic_of(key) in URGENT_TOPICS:
+                opts = {
+                    "congestion_control": zenoh.CongestionControl.BLOCK,
+                    "priority": zenoh.Priority.INTERACTIVE_HIGH,
+                    "express": True,
+                }
+            else:
+                opts = {"congestion_control": zenoh.CongestionControl.DROP, "priority": zenoh.Priority.DATA}
+            if len(self._opts) < 4096:  # keys are a bounded set (robots x topics); a cache, not a leak
+                self._opts[key] = opts
+        return opts
