@@ -91,7 +91,7 @@ def test_command_table_is_complete_and_consistent() -> None:
     assert len(p.REPLIES) == len(set(p.REPLY_TYPES))
     for c in rows:
         cls = c.request
-        assert (cls.CODE, cls.REPLY, cls.COMMAND) == (c.code, c.reply, c)
+        assert (c.code, c.reply, c) == (cls.CODE, cls.REPLY, cls.COMMAND)
         # A valid request of each kind encodes with its code (and sub-command) and decodes back.
         req = COMMANDS[cls][0]
         frame = _via_wire(p.encode_request(req), p.DEFAULT_PROFILE)
