@@ -1,0 +1,193 @@
+"""The route follower alone: planning, re-planning on refusals and lack of progress, backing off, failing.
+
+Pure: a ``Route`` with a fresh ``GoToController``, scripted path providers and guard refusals,
+times passed in; no pilot, no guard.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import pytest
+
+from fleetlink.agent.guard import Refusal, RefusalReason
+from fleetlink.agent.motion import GoToController
+from fleetlink.agent.route import Destination, Route, RouteConfig, RoutePhase
+from tests.test_motion import Unicycle
+
+Point = tuple[float, float]
+DEST = Destination("o1", 0, 4.0, 0.0, None, "op")
+IN_PATH = Refusal(RefusalReason.OBSTACLE_IN_PATH, "something in the way", 0.8)
+AHEAD = Refusal(RefusalReason.OBSTACLE_AHEAD, "something in front", 0.3)
+
+
+class Provider:
+    """Answers with scripted paths in turn (the last one repeats) and records each call."""
+
+    def __init__(self, *answers: Sequence[Point] | None) -> None:
+        self.answers = list(answers)
+        self.calls: list[tuple[Point, Point, tuple[Point, ...]]] = []
+
+    def __call__(self, start: Point, goal: Point, /, blocked: Sequence[Point] = ()) -> Sequence[Point] | None:
+        self.calls.append((start, goal, tuple(blocked)))
+        return self.answers.pop(0) if len(self.answers) > 1 else self.answers[0]
+
+
+def route(config: RouteConfig | None = None) -> Route:
+    return Route(DEST, GoToController(), config or RouteConfig())
+
+
+def test_without_a_provider_it_drives_straight_and_reaches_the_goal() -> None:
+    r, body, t = route(), Unicycle(), 0.0
+    first = r.step(t, body.pose, None)
+    assert r.phase is RoutePhase.STRAIGHT and r.notes == [] and r.goto.waypoints == [(4.0, 0.0)]
+    assert first.distance_m is None or first.distance_m > 0  # turning or starting the drive
+    while r.end is None and t < 30.0:
+        d = r.step(t, body.pose, None)
+        body.step(d.v, d.omega, 0.02)
+        t += 0.02
+    assert r.end is not None and r.end.reached and r.end.reason == "reached"
+    assert math.hypot(body.x - 4.0, body.y) < 0.01
+
+
+def test_a_provider_without_a_map_means_straight_and_an_empty_path_fails() -> None:
+    r = route()
+    r.step(0.0, (0.0, 0.0, 0.0), Provider(None))
+    assert r.phase is RoutePhase.STRAIGHT and r.end is None and r.notes == []
+    r = route()
+    d = r.step(0.0, (0.0, 0.0, 0.0), Provider([]))
+    assert (d.v, d.omega) == (0.0, 0.0)
+    assert r.end is not None and not r.end.reached and r.end.reason == "no_path" and "(4.00, 0.00)" in r.end.text
+
+
+def test_a_planned_path_drops_the_start_and_ends_at_the_goal() -> None:
+    r = route()
+    r.step(0.0, (0.0, 0.0, 0.0), Provider([(0.01, 0.0), (2.0, 1.0), (4.0, 0.02)]))
+    assert r.phase is RoutePhase.FOLLOWING
+    assert r.goto.waypoints == [(2.0, 1.0), (4.0, 0.02), (4.0, 0.0)]
+    [note] = r.notes
+    assert (note.replanned, note.reason, note.waypoints) == (False, "planned", 3)
+    assert note.text.startswith("order o1/0: planned path")
+
+
+def test_a_refused_drive_start_marks_the_echo_and_replans_around_it() -> None:
+    provider = Provider([(2.0, 0.0), (4.0, 0.0)], [(2.0, 1.0), (4.0, 0.0)])
+    r = route()
+    r.step(0.0, (0.0, 0.0, 0.0), provider)
+    r.notes.clear()
+    r.refused(1.0, (0.5, 0.0, 0.0), IN_PATH, provider)
+    c = r.config
+    assert r.replans == 1 and r.phase is RoutePhase.FOLLOWING and r.end is None
+    assert r.blocked == [(pytest.approx(0.5 + c.sensor_offset_m + 0.8 + c.mark_depth_m), 0.0)]
+    assert provider.calls[-1] == ((0.5, 0.0), (4.0, 0.0), tuple(r.blocked))
+    [note] = r.notes
+    assert (note.replanned, note.reason, note.waypoints) == (True, "blocked", 2)
+    assert "re-planned (blocked, 1/3)" in note.text
+
+
+def test_on_a_straight_route_a_refused_drive_start_fails_it() -> None:
+    r = route()
+    r.step(0.0, (0.0, 0.0, 0.0), None)
+    r.refused(0.5, (0.0, 0.0, 0.0), IN_PATH, None)
+    assert r.end is not None and (r.end.reached, r.end.reason) == (False, "obstacle_in_path")
+
+
+def test_held_by_something_in_front_waits_then_backs_off_and_replans() -> None:
+    provider = Provider([(4.0, 0.0)])
+    r = route()
+    pose = (1.0, 0.0, 0.0)
+    r.step(0.0, pose, provider)
+    r.refused(1.0, pose, AHEAD, provider)
+    assert r.held_since == 1.0 and r.phase is RoutePhase.FOLLOWING  # it may go away
+    r.refused(1.0 + r.config.replan_hold_s - 0.01, pose, AHEAD, provider)
+    assert r.phase is RoutePhase.FOLLOWING and r.blocked == []
+    r.refused(1.0 + r.config.replan_hold_s, pose, AHEAD, provider)
+    assert r.phase is RoutePhase.BACKING_OFF and len(r.blocked) == 1 and r.held_since is None
+    t = 3.1
+    d = r.step(t, pose, provider)
+    assert (d.v, d.omega) == (-r.config.backoff_speed, 0.0)  # straight back: turning is refused there
+    backed = (pose[0] - r.config.backoff_m, 0.0, 0.0)
+    r.step(t + 1.5, backed, provider)
+    assert r.phase is RoutePhase.FOLLOWING and r.replans == 1 and r.notes[-1].replanned
+    assert provider.calls[-1][2] == tuple(r.blocked)
+
+
+def test_held_past_the_blocked_timeout_fails_a_straight_route() -> None:
+    r = route(RouteConfig(blocked_timeout_s=5.0))
+    r.step(0.0, (0.0, 0.0, 0.0), None)
+    r.refused(1.0, (0.0, 0.0, 0.0), AHEAD, None)
+    r.refused(5.9, (0.0, 0.0, 0.0), AHEAD, None)
+    assert r.end is None
+    r.refused(6.0, (0.0, 0.0, 0.0), AHEAD, None)
+    assert r.end is not None and r.end.reason == "blocked" and "blocked for 5 s" in r.end.text
+
+
+def test_resume_ends_the_hold_and_restarts_the_progress_clock() -> None:
+    r = route()
+    r.step(0.0, (0.0, 0.0, 0.0), Provider([(4.0, 0.0)]))
+    r.refused(1.0, (0.0, 0.0, 0.0), AHEAD, None)
+    r.resume(50.0)
+    assert r.held_since is None
+    r.step(50.0, (0.0, 0.0, 0.0), None)
+    assert r.replans == 0  # 50 s without progress, but paused: not stalled
+
+
+def test_no_progress_replans_and_the_bound_ends_in_a_failure_after_retreating() -> None:
+    c = RouteConfig(no_progress_s=1.0, max_replans=1)
+    provider = Provider([(2.0, 0.0), (4.0, 0.0)])
+    r = route(c)
+    t = 0.0
+    pose = (0.0, 0.0, 0.0)
+    while r.replans == 0 and t < 5.0:
+        r.step(t, pose, provider)  # the robot never moves: no progress
+        t += 0.02
+    assert r.replans == 1 and r.notes[-1].reason == "no_progress" and t < 1.2
+    # It drives on and gets stuck past x = 1 m: stalled again, the bound is reached, so it backs
+    # off along the way it came (the trail holds where the legs began), then fails.
+    body = Unicycle(*pose)
+    while r.phase is not RoutePhase.RETREATING and t < 30.0:
+        d = r.step(t, body.pose, provider)
+        if body.x < 1.0:
+            body.step(d.v, d.omega, 0.02)
+        t += 0.02
+    assert r.phase is RoutePhase.RETREATING
+    while r.end is None and t < 60.0:
+        d = r.step(t, body.pose, provider)
+        body.step(d.v, d.omega, 0.02)
+        t += 0.02
+    assert r.end is not None and not r.end.reached and r.end.reason == "blocked"
+    assert "after 1 re-plans" in r.end.text and "backed off to" in r.end.text
+    assert body.x < 1.0  # back along the way it came
+
+
+def test_a_refusal_while_retreating_ends_it_there() -> None:
+    r = route(RouteConfig(max_replans=0))
+    provider = Provider([(4.0, 0.0)])
+    r.step(0.0, (0.0, 0.0, 0.0), provider)
+    r._trail.append((-1.0, 0.0))  # a leg began 1 m behind
+    r.refused(1.0, (0.0, 0.0, 0.0), IN_PATH, provider)
+    assert r.phase is RoutePhase.RETREATING and r.end is None and r.goto.waypoints == [(-0.5, 0.0)]
+    r.refused(1.5, (0.0, 0.0, 0.0), AHEAD, provider)
+    assert r.end is not None and r.end.reason == "blocked" and "(something in front)" in r.end.text
+
+
+def test_a_provider_withdrawn_mid_route_means_straight_from_here() -> None:
+    r = route()
+    r.step(0.0, (0.0, 0.0, 0.0), Provider([(2.0, 0.0), (4.0, 0.0)]))
+    r.refused(1.0, (0.5, 0.0, 0.0), IN_PATH, None)  # the map was dropped meanwhile
+    assert r.phase is RoutePhase.STRAIGHT and r.goto.waypoints == [(4.0, 0.0)] and r.end is None
+
+
+def test_cut_short_asks_for_what_the_echo_leaves_clear_on_a_path_only() -> None:
+    r = route()
+    r.step(0.0, (0.0, 0.0, 0.0), Provider([(4.0, 0.0)]))
+    c = r.config
+    short = r.cut_short((0.0, 0.0, 0.0), 2.0, 4.0)
+    assert short == 2.0 - c.stop_distance_m - c.creep_margin_m
+    assert r.goto.waypoints[0] == (short, 0.0)
+    assert r.cut_short((0.0, 0.0, 0.0), None, 4.0) == 4.0  # nothing seen
+    assert r.cut_short((0.0, 0.0, 0.0), 0.6, 4.0) == 4.0  # too short to creep: the guard decides
+    straight = route()
+    straight.step(0.0, (0.0, 0.0, 0.0), None)
+    assert straight.cut_short((0.0, 0.0, 0.0), 2.0, 4.0) == 4.0
