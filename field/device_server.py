@@ -29,6 +29,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from fleetlink.shared.clock import Clock
+from fleetlink.shared.worker import Worker
 
 log = logging.getLogger(__name__)
 
@@ -54,9 +55,8 @@ class Reactor:
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._sel.register(self._wake_r, selectors.EVENT_READ, None)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
+        self._closing = False
+        self._worker = Worker(name, target=self._run).start()
 
     def register(self, sock: socket.socket, callback: Callable[[], None]) -> None:
         with self._lock:
@@ -69,9 +69,9 @@ class Reactor:
         self._wake()
 
     def stop(self) -> None:
-        self._stop.set()
+        self._closing = True  # seen by the loop as soon as the wake-up below ends its select
         self._wake()
-        self._thread.join(2.0)
+        self._worker.stop(2.0)
         self._sel.close()
         self._wake_r.close()
         self._wake_w.close()
@@ -80,14 +80,14 @@ class Reactor:
         with contextlib.suppress(OSError):
             self._wake_w.send(b"\0")
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
+    def _run(self, worker: Worker) -> None:
+        while not (self._closing or worker.stopping):
             with self._lock:
                 pass  # let a pending register/unregister in before blocking
             try:
                 events = self._sel.select(1.0)
             except (OSError, ValueError):
-                if self._stop.is_set():
+                if self._closing:
                     return
                 continue
             for key, _ in events:
@@ -118,8 +118,8 @@ class DeviceServer:
         self.name = name
         self._period = 1.0 / step_hz if step_hz else None
         self._write_lock = threading.Lock()
-        self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
+        self._stop = threading.Event()  # closing: every loop and reactor callback sees it at once
+        self._workers: list[Worker] = []
         self._listener: socket.socket | None = None
         self._conn: socket.socket | None = None
         self._pty_fds: tuple[int, int] | None = None
@@ -164,9 +164,9 @@ class DeviceServer:
                 self.reactor.unregister(self._conn)
         if self._conn is not None:
             _close(self._conn)
-        for t in self._threads:
-            t.join(2.0)
-        self._threads.clear()
+        for w in self._workers:
+            w.stop(2.0)
+        self._workers.clear()
         if self._listener is not None:
             self._listener.close()
             self._listener = None
@@ -197,19 +197,18 @@ class DeviceServer:
 
     # -- internals -------------------------------------------------------------------------
 
-    def _spawn(self, target: object, name: str) -> None:
-        t = threading.Thread(target=target, name=name, daemon=True)  # type: ignore[arg-type]
-        t.start()
-        self._threads.append(t)
+    def _spawn(self, target: Callable[[Worker], None], name: str, clock: Clock | None = None) -> None:
+        """A worker; ``clock`` None: real time (waits for bytes and retries are real-time waits)."""
+        self._workers.append(Worker(name, clock=clock, target=target).start())
 
     def _ensure_stepper(self) -> None:
-        if self._period is None or any(t.name == f"{self.name}-step" for t in self._threads):
+        if self._period is None or any(w.name == f"{self.name}-step" for w in self._workers):
             return
         with self.lock:
             self.device.start_clock(self.clock.now())
-        self._spawn(self._step_loop, f"{self.name}-step")
+        self._spawn(self._step_loop, f"{self.name}-step", self.clock)
 
-    def _step_loop(self) -> None:
+    def _step_loop(self, worker: Worker) -> None:
         assert self._period is not None
         nxt = self.clock.now()
         while not self._stop.is_set():
@@ -218,9 +217,10 @@ class DeviceServer:
             if out:
                 self.emit(out)
             nxt += self._period
-            if nxt < self.clock.now():
-                nxt = self.clock.now()
-            self.clock.sleep_until(nxt)
+            now = self.clock.now()
+            if nxt < now:
+                nxt = now
+            worker.wait(nxt - now)
 
     def _handle(self, data: bytes) -> bytes:
         if self.paused:
@@ -228,7 +228,7 @@ class DeviceServer:
         with self.lock:
             return self.device.receive(data, self.clock.now())
 
-    def _accept_loop(self) -> None:
+    def _accept_loop(self, _worker: Worker) -> None:
         assert self._listener is not None
         while not self._stop.is_set():
             try:
@@ -304,7 +304,7 @@ class DeviceServer:
         if not self._stop.is_set() and self._listener is not None:
             reactor.register(self._listener, self._on_accept)
 
-    def _pty_loop(self) -> None:
+    def _pty_loop(self, worker: Worker) -> None:
         assert self._pty_fds is not None
         master = self._pty_fds[0]
         while not self._stop.is_set():
@@ -315,7 +315,8 @@ class DeviceServer:
                 data = os.read(master, 4096)
             except OSError:
                 # No reader on the slave side yet (EIO), or closed: keep serving.
-                if self._stop.wait(0.05):
+                worker.wait(0.05)
+                if self._stop.is_set():
                     return
                 continue
             with self._write_lock:

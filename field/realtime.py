@@ -23,6 +23,7 @@ from fleetlink.field.rplidar import SimulatedRplidar
 from fleetlink.field.scenario import Scenario
 from fleetlink.field.world import World, WorldRobot
 from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.worker import Worker
 
 log = logging.getLogger(__name__)
 
@@ -74,8 +75,7 @@ class RealtimeField:
         self.endpoints: dict[str, Endpoints] = {}
         self._reactor: Reactor | None = None  # one selector thread serves every device's TCP socket
         self.events = EventRunner(scenario.events, self.plan, self.world, self._cut_link)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._physics: Worker | None = None
         self._start_time = 0.0
 
     # -- lifecycle -------------------------------------------------------------------------------
@@ -104,8 +104,7 @@ class RealtimeField:
                 lidar_url = self._serve(server)
                 self.lidars[spec.name] = (device, server)
             self.endpoints[spec.name] = Endpoints(board_url, lidar_url)
-        self._thread = threading.Thread(target=self._run, name="field-physics", daemon=True)
-        self._thread.start()
+        self._physics = Worker("field-physics", clock=self.clock, target=self._run).start()
         return self.endpoints
 
     def _serve(self, server: DeviceServer) -> str:
@@ -114,10 +113,9 @@ class RealtimeField:
         return f"socket://{self.host}:{server.serve_tcp(self.host, 0)}"
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5.0)
-            self._thread = None
+        physics, self._physics = self._physics, None
+        if physics is not None:
+            physics.stop(5.0)
         for server in self.boards.values():
             server.stop()
         for _, lidar_server in self.lidars.values():
@@ -139,10 +137,10 @@ class RealtimeField:
 
     # -- the physics loop ------------------------------------------------------------------------
 
-    def _run(self) -> None:
+    def _run(self, worker: Worker) -> None:
         next_step = self.clock.now()
         next_truth = next_step
-        while not self._stop.is_set():
+        while not worker.stopping:
             t = self.sim_time
             outputs: list[tuple[DeviceServer, bytes]] = []
             with self.lock:
@@ -161,7 +159,7 @@ class RealtimeField:
             next_step += self.step_period
             if next_step < now:
                 next_step = now
-            self.clock.sleep_until(next_step)
+            worker.wait(next_step - now)
 
     def _cut_link(self, robot: str, cut: bool) -> None:
         self.boards[robot].paused = cut
@@ -204,3 +202,6 @@ class _Offset:
 
     def sleep_until(self, deadline: float) -> None:
         self._clock.sleep_until(deadline + self._start)
+
+    def wait(self, event: threading.Event, timeout: float | None) -> bool:
+        return self._clock.wait(event, timeout)  # a duration: the offset does not change it

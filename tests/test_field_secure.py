@@ -75,16 +75,13 @@ def secured() -> Iterator[Secured]:
         uwb_in: list[tuple[str, str, bytes]] = []
         agents = fs.agents
         agent = agents.agents["uvc-1"]
-        for lk in agent.links:  # tap what reaches the agent from each link (looked up per message)
-            inner = lk.on_input
+        for lk in agent.links:  # tap what reaches the agent from each link: a second receiver on its endpoint
 
-            def tap(name: Any, key: str, payload: bytes, inner: Any = inner) -> None:
-                if key.endswith("/uwb"):
-                    with lock:
-                        uwb_in.append((name.value, key, payload))
-                inner(name, key, payload)
+            def tap(key: str, payload: bytes, name: Any = lk.name) -> None:
+                with lock:
+                    uwb_in.append((name.value, key, payload))
 
-            lk.on_input = tap
+            lk.subscribe(keys.key("uvc-1", "uwb"), tap)
         acks: list[Ack] = []
         link = fs.operator_link(OPERATOR)
         link.add_sink(lambda m, _l, _t: acks.append(m) if isinstance(m, Ack) else None)

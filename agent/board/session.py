@@ -32,7 +32,8 @@ from fleetlink.devices.controlbus.client import (
 )
 from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 from fleetlink.devices.ports import Port, PortClosed
-from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.clock import Clock
+from fleetlink.shared.worker import Worker
 
 log = logging.getLogger(__name__)
 
@@ -122,16 +123,14 @@ class BoardSession:
         self._lock = threading.Lock()
         self._calls: SimpleQueue[_Call] = SimpleQueue()
         self._command = (0.0, 0.0)
-        self._stop = threading.Event()
-        # A new velocity is sent at once, not at the next 50 Hz slot: the loop waits on this.
-        self._wake = threading.Event()
+        # A new velocity is sent at once, not at the next 50 Hz slot: set_velocity wakes the worker.
+        self._worker = Worker("board-session", clock=clock, target=lambda _w: self.run_forever())
         self._urgent = False
         self._failures = 0
         self._schedule: PollSchedule | None = None
         self._backoff = 0.2
         self._retry_at = 0.0
         self._rng = random.Random(seed)
-        self._thread: threading.Thread | None = None
         self.telemetry_supported: bool | None = None
         """Whether the board answered GET_TELEMETRY at the last connect (None: not asked)."""
 
@@ -153,7 +152,7 @@ class BoardSession:
         if (vx, omega) != self._command:
             self._command = (vx, omega)
             self._urgent = True
-            self._wake.set()
+            self._worker.wake()
 
     def call(self, request: p.Request) -> Future[p.Reply]:
         """Queue a one-off request (payload, LEDs, ...), sent between polls."""
@@ -162,16 +161,11 @@ class BoardSession:
         return item.future
 
     def start(self) -> None:
-        if self._thread is None:
-            self._thread = threading.Thread(target=self.run_forever, name="board-session", daemon=True)
-            self._thread.start()
+        if not self._worker.running:
+            self._worker.start()
 
     def stop(self, timeout: float = 2.0) -> None:
-        self._stop.set()
-        self._wake.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
+        self._worker.stop(timeout)
         if self.client is not None:
             self.client.close()
             self.client = None
@@ -187,14 +181,11 @@ class BoardSession:
     # -- the loop ---------------------------------------------------------------------------
 
     def run_forever(self) -> None:
-        while not self._stop.is_set():
+        """The worker's loop: tick, then wait on the clock until the next poll or a new velocity."""
+        worker = self._worker
+        while not worker.stopping:
             nxt = min(self.tick(), self.clock.now() + 0.05)
-            if isinstance(self.clock, SystemClock):
-                # Real time: sleep until the next poll, or until a new velocity arrives.
-                self._wake.wait(max(0.0, nxt - self.clock.now()))
-                self._wake.clear()
-            else:
-                self.clock.sleep_until(nxt)
+            worker.wait(max(0.0, nxt - self.clock.now()))
 
     def tick(self) -> float:
         """One round: connect if needed, run what is due, serve queued calls. Returns the next due time."""
