@@ -1,8 +1,8 @@
-"""Byte transports for the board and the lidar: opened by URL, or an in-process pair for lockstep.
+"""The one Port family for the board and the lidar: opened by URL, or an in-process pair for lockstep.
 
 * ``/dev/ttyUSB0``, a pty path, ``socket://host:port``, ``loop://``: pyserial's ``serial_for_url``.
-* ``InProcessPort``: a callable that turns request bytes into reply bytes (the simulated board
-  in the same process), for lockstep runs where simulated time only moves when we move it.
+* ``InProcessPort``: a simulated device in the same process (its ``receive``, and for a device
+  that streams, its ``step``), for lockstep runs where simulated time only moves when we move it.
 
 Ports expose ``write(data)``, ``read_some(clock, deadline) -> bytes`` (whatever arrives before the
 deadline; ``b""`` on timeout) and ``close()``. A port that has failed raises ``PortClosed``.
@@ -130,17 +130,33 @@ class SerialPort:
 
 
 class InProcessPort:
-    """One end of an in-process byte pair: ``peer`` answers every write synchronously.
+    """The master's end of an in-process byte pair with a simulated device (a board, a lidar).
 
-    ``cut`` models a severed cable: writes vanish and nothing comes back. Waiting for a reply that
-    never comes either advances the clock to the deadline (one actor owns time, as in a unit test),
-    or, with ``wait_advances_clock=False``, times out at once without moving time (the lockstep
-    field, where one robot's dead link must not move everybody's clock).
+    ``peer(data)`` answers each write at once (the device's ``receive``, with the time bound in).
+    ``stream(now)``, for a device that talks on its own (a lidar's scan), is asked on every read
+    for the bytes due by ``now``. ``dtr(level)`` is the DTR line (the RPLIDAR A1's motor).
+
+    Waiting for bytes that do not come advances the clock to the deadline (one actor owns time, as
+    in a unit test: a ``SimClock`` moves, a ``SystemClock`` sleeps), in ``tick`` steps when there
+    is a stream so that it can produce on the way; with ``advance_clock=False`` the read returns at
+    once without moving time (the lockstep field, where one robot's dead link must not move
+    everybody's clock). ``cut`` models a severed cable: writes vanish and nothing comes back.
     """
 
-    def __init__(self, peer: Callable[[bytes], bytes], wait_advances_clock: bool = True) -> None:
+    def __init__(
+        self,
+        peer: Callable[[bytes], bytes],
+        *,
+        stream: Callable[[float], bytes | None] | None = None,
+        dtr: Callable[[bool], None] | None = None,
+        advance_clock: bool = True,
+        tick: float = 0.005,
+    ) -> None:
         self._peer = peer
-        self._wait_advances_clock = wait_advances_clock
+        self._stream = stream
+        self._dtr = dtr
+        self.advance_clock = advance_clock
+        self.tick = tick
         self._inbox = bytearray()
         self.cut = False
         self.closed = False
@@ -148,9 +164,8 @@ class InProcessPort:
     def write(self, data: bytes) -> None:
         if self.closed:
             raise PortClosed("in-process port is closed")
-        if self.cut:
-            return
-        self._inbox += self._peer(bytes(data))
+        if not self.cut:
+            self._inbox += self._peer(bytes(data))
 
     def inject(self, data: bytes) -> None:
         """Bytes that arrive without being asked for (line noise in tests)."""
@@ -159,13 +174,23 @@ class InProcessPort:
     def read_some(self, clock: Clock, deadline: float) -> bytes:
         if self.closed:
             raise PortClosed("in-process port is closed")
-        if self._inbox:
-            data = bytes(self._inbox)
-            self._inbox.clear()
-            return data
-        if self._wait_advances_clock:
-            clock.sleep_until(deadline)
-        return b""
+        while True:
+            if self._stream is not None:
+                out = self._stream(clock.now())
+                if out and not self.cut:
+                    self._inbox += out
+            if self._inbox:
+                data = bytes(self._inbox)
+                self._inbox.clear()
+                return data
+            now = clock.now()
+            if now >= deadline or not self.advance_clock:
+                return b""
+            clock.sleep_until(deadline if self._stream is None else min(deadline, now + self.tick))
+
+    def set_dtr(self, level: bool) -> None:
+        if self._dtr is not None and not self.closed and not self.cut:
+            self._dtr(level)
 
     def close(self) -> None:
         self.closed = True

@@ -15,7 +15,9 @@ from dataclasses import dataclass, field
 
 from fleetlink.devices.controlbus import protocol as p
 from fleetlink.devices.controlbus.frames import BOARD_BUFFER, Frame, FrameDecoder
+from fleetlink.devices.ports import InProcessPort
 from fleetlink.field.floor import Floor
+from fleetlink.shared.clock import Clock
 
 log = logging.getLogger(__name__)
 
@@ -156,6 +158,11 @@ class SimulatedBoard:
     # ---------------------------------------------------------------------------------------
     # Bytes in, bytes out
     # ---------------------------------------------------------------------------------------
+
+    def in_process_port(self, clock: Clock, *, advance_clock: bool = True) -> InProcessPort:
+        """A master's port onto this board in the same process: each request answered at once at
+        ``clock``'s time. The board's firmware is stepped by its owner, not by the port."""
+        return InProcessPort(lambda data: self.receive(data, clock.now()), advance_clock=advance_clock)
 
     def receive(self, data: bytes, now: float) -> bytes:
         """Handle request bytes (any split); return the reply bytes to send back."""

@@ -28,13 +28,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from fleetlink.devices.ports import InProcessPort
 from fleetlink.field.build import build_world, lidar_model, robot_seed
 from fleetlink.field.events import EventRunner
 from fleetlink.field.lidar import scan_source_for
 from fleetlink.field.lidar_worker import LidarWorker
 from fleetlink.field.open_loop import Motion, motion_for
 from fleetlink.field.plans import FloorPlan, load_plan
-from fleetlink.field.rplidar import InProcessLidarPort, SimulatedRplidar
+from fleetlink.field.rplidar import SimulatedRplidar
 from fleetlink.field.scenario import RobotSpec, Scenario
 from fleetlink.field.world import WorldRobot
 from fleetlink.shared.clock import SimClock
@@ -60,7 +61,7 @@ class Rig:
     remote_lidar: bool = False  # cast by the lidar worker process
     link_cut: bool = False
     lidar_cut: bool = False
-    lidar_ports: list[InProcessLidarPort] = field(default_factory=list)
+    lidar_ports: list[InProcessPort] = field(default_factory=list)
     next_motion: float = 0.0
     next_scan: float = 0.0
     scans: int = 0
@@ -154,13 +155,13 @@ class FieldRun:
 
         return peer
 
-    def lidar_port(self, index: int) -> InProcessLidarPort:
+    def lidar_port(self, index: int) -> InProcessPort:
         """A fresh in-process port onto the robot's RPLIDAR (driven runs with a lidar)."""
         device = self.rigs[index].device
         if device is None:
             raise ValueError(f"robot {self.rigs[index].spec.name} has no lidar device in this run")
         rig = self.rigs[index]
-        port = InProcessLidarPort(device, self.clock, advance_clock=False)
+        port = device.in_process_port(self.clock, advance_clock=False)
         port.cut = rig.lidar_cut
         rig.lidar_ports = [p for p in rig.lidar_ports if not p.closed] + [port]
         return port

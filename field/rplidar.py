@@ -4,7 +4,7 @@
 returns the answer bytes; while it scans, ``step(now)`` returns the measurement nodes due since the
 last call, paced at the ``LidarConfig``'s ``samples_per_second``. It plugs into
 ``field.device_server.DeviceServer`` (TCP or a pty, in real time) or, in one process, into
-``InProcessLidarPort`` (lockstep under a ``SimClock``).
+``fleetlink.devices.ports.InProcessPort`` (``in_process_port``: lockstep under a ``SimClock``).
 
 Each revolution's data comes from ``scan_source(t)``, called when a turn begins at simulated time
 ``t`` and returning ``(angles_rad, distances_m, qualities)`` in the sensor frame (radians
@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from fleetlink.devices.ports import PortClosed
+from fleetlink.devices.ports import InProcessPort
 from fleetlink.devices.rplidar.protocol import (
     ANGLE_Q,
     HEALTH_ERROR,
@@ -65,7 +65,7 @@ from fleetlink.devices.rplidar.protocol import (
 from fleetlink.field.lidar import LidarConfig
 from fleetlink.shared.clock import Clock
 
-__all__ = ["DeviceStats", "FixedScan", "InProcessLidarPort", "RplidarConfig", "ScanSource", "SimulatedRplidar"]
+__all__ = ["DeviceStats", "FixedScan", "RplidarConfig", "ScanSource", "SimulatedRplidar"]
 
 ScanSource = Callable[[float], tuple[npt.ArrayLike, npt.ArrayLike, npt.ArrayLike]]
 
@@ -165,6 +165,17 @@ class SimulatedRplidar:
     def info(self) -> DeviceInfo:
         cfg = self.config
         return DeviceInfo(cfg.model, cfg.firmware, cfg.hardware, bytes(cfg.serial[:16]).ljust(16, b"\x00"))
+
+    def in_process_port(self, clock: Clock, *, advance_clock: bool = True, tick: float = 0.005) -> InProcessPort:
+        """A master's port onto this device in the same process: requests answered at once, the
+        scan stream stepped on every read, DTR forwarded (see ``InProcessPort``)."""
+        return InProcessPort(
+            lambda data: self.receive(data, clock.now()),
+            stream=self.step,
+            dtr=self.set_dtr,
+            advance_clock=advance_clock,
+            tick=tick,
+        )
 
     def samplerate(self) -> SampleRate:
         us = max(1, round(1e6 / self._sps))
@@ -278,58 +289,6 @@ class SimulatedRplidar:
         order = np.argsort(q6, kind="stable")
         self.stats.revolutions += 1
         return encode_nodes(q6[order] / ANGLE_Q, d[order], q[order], start_first=True)
-
-
-class InProcessLidarPort:
-    """A ``Port`` onto a ``SimulatedRplidar`` in the same process (lockstep, no threads).
-
-    ``write`` hands requests to the device; ``read_some`` steps it and returns what it produced. If
-    nothing is due, it advances the clock in ``tick`` steps up to the deadline (one actor owns time,
-    as in a unit test), or with ``advance_clock=False`` returns at once (the lockstep field, which
-    moves time itself). ``cut`` models a severed cable.
-    """
-
-    def __init__(self, device: SimulatedRplidar, clock: Clock, tick: float = 0.005, advance_clock: bool = True) -> None:
-        self.device = device
-        self.clock = clock
-        self.tick = tick
-        self.advance_clock = advance_clock
-        self.cut = False
-        self.closed = False
-        self._inbox = bytearray()
-
-    def write(self, data: bytes) -> None:
-        if self.closed:
-            raise PortClosed("in-process lidar port is closed")
-        if not self.cut:
-            self._inbox += self.device.receive(bytes(data), self.clock.now())
-
-    def read_some(self, clock: Clock, deadline: float) -> bytes:
-        if self.closed:
-            raise PortClosed("in-process lidar port is closed")
-        while True:
-            out = self.device.step(clock.now())
-            if out and not self.cut:
-                self._inbox += out
-            if self._inbox:
-                data = bytes(self._inbox)
-                self._inbox.clear()
-                return data
-            now = clock.now()
-            if now >= deadline or not self.advance_clock:
-                return b""
-            clock.sleep_until(min(deadline, now + self.tick))
-
-    def set_dtr(self, level: bool) -> None:
-        if not self.closed and not self.cut:
-            self.device.set_dtr(level)
-
-    def inject(self, data: bytes) -> None:
-        """Bytes that arrive without being asked for (line noise in tests)."""
-        self._inbox += data
-
-    def close(self) -> None:
-        self.closed = True
 
 
 @dataclass(slots=True)

@@ -224,7 +224,7 @@ class MissionRun:
         config = AgentConfig(robot=name, board=f"inprocess://{name}/board", lidar=lidar_url, tag=name)
         peer = self.field.board_peer(index)
         session = BoardSession(
-            lambda: InProcessPort(peer, wait_advances_clock=False),
+            lambda: InProcessPort(peer, advance_clock=False),
             self.clock,
             rates=POLL_RATES,
             seed=robot_seed(self.scenario, index),

@@ -29,7 +29,7 @@ from fleetlink.devices.controlbus.frames import (
     FrameDecoder,
     encode_frame,
 )
-from fleetlink.devices.ports import InProcessPort, Port, PortClosed, SerialPort
+from fleetlink.devices.ports import Port, PortClosed, SerialPort
 from fleetlink.field.board import SimulatedBoard
 from fleetlink.field.device_server import DeviceServer
 from fleetlink.shared.clock import Clock, SimClock, SystemClock
@@ -118,7 +118,7 @@ def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
     if kind == "inproc":
         clock = SimClock(start=100.0)
         board = SimulatedBoard(now=clock.now())
-        port = Tamper(InProcessPort(lambda data: board.receive(data, clock.now())))
+        port = Tamper(board.in_process_port(clock))
         client = BoardClient(port, clock)
         yield Rig(kind, board, clock, port, client)
         client.close()

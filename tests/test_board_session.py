@@ -138,7 +138,7 @@ class Lockstep:
         self.board._serve = spy  # type: ignore[method-assign]
 
     def _open(self) -> InProcessPort:
-        port = InProcessPort(lambda data: self.board.receive(data, self.clock.now()))
+        port = self.board.in_process_port(self.clock)
         self.ports.append(port)
         return port
 

@@ -1,7 +1,7 @@
 """The agent's lidar driver against the simulated RPLIDAR, over real bytes.
 
 One suite, three transports: a real TCP socket and a pty (pyserial's ``serial_for_url``; the lidar
-served by ``DeviceServer`` in real time, stepped at 100 Hz) and ``InProcessLidarPort`` under a
+served by ``DeviceServer`` in real time, stepped at 100 Hz) and ``InProcessPort`` under a
 ``SimClock`` (lockstep: simulated time moves only while the driver waits).
 """
 
@@ -28,7 +28,7 @@ from fleetlink.devices.rplidar import protocol as lp
 from fleetlink.field.device_server import DeviceServer
 from fleetlink.field.lidar import LidarConfig, LidarModel, scan_source_for
 from fleetlink.field.raycast import Raycaster
-from fleetlink.field.rplidar import InProcessLidarPort, SimulatedRplidar
+from fleetlink.field.rplidar import SimulatedRplidar
 from fleetlink.shared.clock import Clock, SimClock, SystemClock
 
 W, H = 6.0, 4.0
@@ -83,7 +83,7 @@ def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
     if kind == "inproc":
         clock = SimClock(start=100.0)
         lidar = make_lidar(now=clock.now())
-        driver = LidarDriver(InProcessLidarPort(lidar, clock), clock)
+        driver = LidarDriver(lidar.in_process_port(clock), clock)
         yield Rig(kind, lidar, clock, driver)
         driver.close()
         return
@@ -152,7 +152,7 @@ def test_restart_scan_and_requests_stop_it(rig: Rig) -> None:
 def test_inproc_slow_rate_matches_the_a1() -> None:
     clock = SimClock(start=5.0)
     lidar = make_lidar(rate_hz=5.5, now=clock.now())
-    with LidarDriver(InProcessLidarPort(lidar, clock), clock) as drv:
+    with LidarDriver(lidar.in_process_port(clock), clock) as drv:
         drv.start_scan()
         revs = drv.read_revolutions(3, timeout=2.0)
         assert [len(r) for r in revs] == [1455] * 3  # 8000 / 5.5 = 1454.5, phase 0
@@ -164,7 +164,7 @@ def test_inproc_slow_rate_matches_the_a1() -> None:
 def test_inproc_line_noise_is_survived() -> None:
     clock = SimClock()
     lidar = make_lidar(now=clock.now())
-    port = InProcessLidarPort(lidar, clock)
+    port = lidar.in_process_port(clock)
     drv = LidarDriver(port, clock)
     drv.start_scan()
     drv.read_revolutions(1, timeout=1.0)
@@ -178,7 +178,7 @@ def test_inproc_line_noise_is_survived() -> None:
 def test_inproc_timeouts_and_stall() -> None:
     clock = SimClock()
     lidar = make_lidar(now=clock.now())
-    port = InProcessLidarPort(lidar, clock)
+    port = lidar.in_process_port(clock)
     drv = LidarDriver(port, clock, timeout=0.3, stall_timeout=0.5)
     port.cut = True
     t0 = clock.now()
@@ -217,10 +217,10 @@ def test_protocol_errors() -> None:
 def test_inproc_disconnect_and_reconnect() -> None:
     clock = SimClock()
     lidar = make_lidar(now=clock.now())
-    ports: list[InProcessLidarPort] = []
+    ports: list[InProcessPort] = []
 
-    def opener() -> InProcessLidarPort:
-        ports.append(InProcessLidarPort(lidar, clock))
+    def opener() -> InProcessPort:
+        ports.append(lidar.in_process_port(clock))
         return ports[-1]
 
     drv = LidarDriver(opener(), clock, opener=opener)
@@ -266,7 +266,7 @@ def test_angles_are_counter_clockwise_in_the_sensor_frame() -> None:
     model = LidarModel(LidarConfig(rate_hz=RATE_HZ).noiseless(), np.random.default_rng(0))
     source = scan_source_for(model, lambda t: (0.0, 0.0, 0.0), Raycaster(segment))
     lidar = SimulatedRplidar(model.config, source, now=0.0)
-    with LidarDriver(InProcessLidarPort(lidar, clock), clock) as drv:
+    with LidarDriver(lidar.in_process_port(clock), clock) as drv:
         drv.start_scan()
         rev = drv.read_revolutions(1, timeout=1.0)[0]
     left = int(np.argmin(np.abs(rev.angles_rad - math.pi / 2)))

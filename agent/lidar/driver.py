@@ -1,9 +1,9 @@
 """The master side of the RPLIDAR A1 link over a port: requests, the motor, the scan stream.
 
-``LidarDriver(port, clock)`` talks through any ``devices.ports`` port (``SerialPort`` by URL:
-``/dev/ttyUSB0``, a pty, ``socket://host:port``; ``InProcessPort``; ``field.rplidar``'s
-``InProcessLidarPort``). It is thread-free and not thread-safe: one caller at a time (the agent
-runs it in a thread of its own). Failures raise one small tree:
+``LidarDriver(port, clock)`` talks through any ``fleetlink.devices.ports`` port (``SerialPort`` by
+URL: ``/dev/ttyUSB0``, a pty, ``socket://host:port``; an ``InProcessPort``, such as
+``field.rplidar.SimulatedRplidar.in_process_port``). It is thread-free and not thread-safe: one
+caller at a time (the agent runs it in a thread of its own). Failures raise one small tree:
 
     LidarError
     ├── LidarTimeout        no answer in time, or a scan that stopped delivering (also TimeoutError)
