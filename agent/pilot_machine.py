@@ -203,8 +203,7 @@ def _to(target: PilotState, *effects: Effect) -> Transition:
     return Transition(target, effects)
 
 
-def _stay(state: PilotState, *effects: Effect) -> Transition:
-    return Transition(state, effects)
+_stay = _to  # (reads better where the state does not change)
 
 
 def _nothing_to(verb: str, state: PilotState) -> Refused:
@@ -213,10 +212,6 @@ def _nothing_to(verb: str, state: PilotState) -> Refused:
 
 def _no(reason: str) -> Refused:
     return Refused(CommandStatus.REJECTED, reason)
-
-
-def _cancel(reason: str, text: str) -> Cancel:
-    return Cancel(reason, text)
 
 
 _STOPPED = Announce(EventKind.STOPPED, "stop", "stopped by {sender}")
@@ -230,7 +225,7 @@ _ROWS: Final[Mapping[Trigger, Mapping[PilotState, Outcome]]] = {
         S.IDLE: _to(S.MANUAL, Do.TAKE_TELEOP),
         S.MANUAL: _stay(S.MANUAL, Do.TAKE_TELEOP),
         **{
-            s: _to(S.MANUAL, _cancel("teleop_override", "cancelled: {sender} took manual control"), Do.TAKE_TELEOP)
+            s: _to(S.MANUAL, Cancel("teleop_override", "cancelled: {sender} took manual control"), Do.TAKE_TELEOP)
             for s in _ROUTES
         },
         S.ESTOP: _LATCHED,
@@ -238,7 +233,7 @@ _ROWS: Final[Mapping[Trigger, Mapping[PilotState, Outcome]]] = {
     Trigger.ORDER_NEW: {
         S.IDLE: _to(S.GOTO, Do.START_ROUTE),
         S.MANUAL: _to(S.GOTO, Do.DROP_TELEOP, Do.START_ROUTE),
-        **{s: _to(S.GOTO, _cancel("replaced", "replaced by order {order_id}"), Do.START_ROUTE) for s in _ROUTES},
+        **{s: _to(S.GOTO, Cancel("replaced", "replaced by order {order_id}"), Do.START_ROUTE) for s in _ROUTES},
         S.ESTOP: _LATCHED,
     },
     # A higher update of the order held replaces its goal; a paused order stays paused.
@@ -253,7 +248,7 @@ _ROWS: Final[Mapping[Trigger, Mapping[PilotState, Outcome]]] = {
     Trigger.RETURN_HOME: {
         S.IDLE: _to(S.HOMING, Do.START_ROUTE),
         S.MANUAL: _to(S.HOMING, Do.DROP_TELEOP, Do.START_ROUTE),
-        **{s: _to(S.HOMING, _cancel("replaced", "replaced by return home"), Do.START_ROUTE) for s in _ORDERS},
+        **{s: _to(S.HOMING, Cancel("replaced", "replaced by return home"), Do.START_ROUTE) for s in _ORDERS},
         **{s: _to(S.HOMING, Do.START_ROUTE) for s in _HOMES},  # home again: afresh, nothing cancelled
         S.ESTOP: _LATCHED,
     },
@@ -272,20 +267,20 @@ _ROWS: Final[Mapping[Trigger, Mapping[PilotState, Outcome]]] = {
     Trigger.CANCEL: {
         S.IDLE: _no("no order to cancel"),
         S.MANUAL: _no("no order to cancel"),
-        **{s: _to(S.IDLE, _cancel("cancel", "cancelled by {sender}")) for s in _ROUTES},
+        **{s: _to(S.IDLE, Cancel("cancel", "cancelled by {sender}")) for s in _ROUTES},
         S.ESTOP: _LATCHED,
     },
     # Anyone may stop the robot, in every state; under e-stop it stays latched.
     Trigger.STOP: {
         S.IDLE: _stay(S.IDLE, _STOPPED),
         S.MANUAL: _to(S.IDLE, Do.DROP_TELEOP, _STOPPED),
-        **{s: _to(S.IDLE, _cancel("stop", "stopped by {sender}"), _STOPPED) for s in _ROUTES},
+        **{s: _to(S.IDLE, Cancel("stop", "stopped by {sender}"), _STOPPED) for s in _ROUTES},
         S.ESTOP: _stay(S.ESTOP, _STOPPED),
     },
     Trigger.ESTOP: {
         S.IDLE: _to(S.ESTOP, _LATCH),
         S.MANUAL: _to(S.ESTOP, Do.DROP_TELEOP, _LATCH),
-        **{s: _to(S.ESTOP, _cancel("estop", "cancelled by e-stop"), _LATCH) for s in _ROUTES},
+        **{s: _to(S.ESTOP, Cancel("estop", "cancelled by e-stop"), _LATCH) for s in _ROUTES},
         S.ESTOP: Refused(CommandStatus.DUPLICATE, "e-stop already latched"),
     },
     # Released is not moving: nothing resumes by itself.
