@@ -347,7 +347,7 @@ class MqttEndpoint:
         log.info("%s: up (%s, connect #%d)", self.label, self.settings.url, self.connects)
 
     def _on_disconnect(self, client: Any, userdata: Any, flags: Any, reason_code: Any, properties: Any) -> None:
-        if self._connected:
+        if self._connected and not self._closing:
             log.warning("%s: down (%s); reconnecting", self.label, reason_code)
         self._connected = False
 

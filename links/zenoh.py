@@ -44,8 +44,10 @@ __all__ = ["INBOX_SIZE", "URGENT_TOPICS", "Answer", "ZenohEndpoint", "open_sessi
 
 log = logging.getLogger(__name__)
 
-URGENT_TOPICS = frozenset({"ack", "events", "order", "actions", "teleop", "connection", "lease"})
-"""Published express with INTERACTIVE_HIGH priority and congestion control BLOCK; the rest DROP."""
+URGENT_TOPICS = frozenset({"ack", "events", "order", "actions", "teleop", "connection", "lease", "lease/request"})
+"""Published express with INTERACTIVE_HIGH priority and congestion control BLOCK; the rest DROP.
+Zenoh keeps order within a priority only: every operator command (lease requests too) is here,
+so a lease request and the teleop after it arrive in the order they were sent."""
 
 INBOX_SIZE = 1024
 """Samples waiting for the receivers; beyond this new ones are dropped and counted."""
