@@ -145,7 +145,7 @@ def connect_client(
     return client
 
 
-Hook = Callable[["MqttEndpoint"], None]
+Hook = Callable[["MqttEndpoint"], object]
 
 
 @dataclass(slots=True)
@@ -197,10 +197,10 @@ class MqttEndpoint:
 
     # -- lifecycle ------------------------------------------------------------------------------
 
-    def start(self) -> Self:
+    def start(self) -> None:
         with self._lock:
             if self._client is not None:
-                return self
+                return
             c = connect_client(self.settings, client_id=self.client_id, will=self.will, start=False, rng=self._rng)
             c.max_queued_messages_set(MAX_QUEUED)
             c.on_connect = self._on_connect
@@ -209,7 +209,6 @@ class MqttEndpoint:
             self._client = c
             self._closing = False
             self._loop = Worker(f"{self.label}-loop", target=self._run).start()
-        return self
 
     def close(self) -> None:
         """Run ``on_close`` if connected, disconnect cleanly (no last will), end the loop (idempotent)."""
@@ -235,7 +234,8 @@ class MqttEndpoint:
         self._connected = False
 
     def __enter__(self) -> Self:
-        return self.start()
+        self.start()
+        return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()

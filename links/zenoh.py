@@ -177,10 +177,10 @@ class ZenohEndpoint:
 
     # -- lifecycle ------------------------------------------------------------------------------
 
-    def start(self) -> Self:
+    def start(self) -> None:
         with self._lock:
             if self._session is not None:
-                return self
+                return
             self._delivery = _Delivery(f"{self.label}-in", self._inbox).start()
             try:
                 session = (
@@ -198,7 +198,6 @@ class ZenohEndpoint:
             if self.alive_key is not None:
                 self._token = session.liveliness().declare_token(self.alive_key)
         log.info("%s: listen %s connect %s", self.label, list(self.listen), list(self.connect))
-        return self
 
     def close(self) -> None:
         with self._lock:
@@ -218,7 +217,8 @@ class ZenohEndpoint:
             session.close()
 
     def __enter__(self) -> Self:
-        return self.start()
+        self.start()
+        return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()

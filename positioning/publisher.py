@@ -72,7 +72,8 @@ class UwbGateway:
             on_close=lambda ep: ep.send(self._status("offline")),
             clock=self.clock,
             label=f"mqtt-{self.config.gateway_id}",
-        ).start()
+        )
+        self.mqtt.start()
         if self._subscribe_truth:
             self._start_zenoh()
         self._ticker = Worker(f"uwb-{self.config.gateway_id}", clock=self.clock, target=self._run).start()
@@ -149,7 +150,8 @@ class UwbGateway:
                 root_ca=a.root_ca,
             )
         z.subscribe(keys.ZENOH_ALL_TRUTH, self._on_truth_bytes)
-        self.zenoh = z.start()
+        z.start()
+        self.zenoh = z
 
     def _on_truth_bytes(self, key: str, payload: bytes) -> None:
         try:

@@ -215,7 +215,8 @@ def _listening(url: str, client_id: str, got: list[tuple[str, bytes]]) -> MqttEn
     ep = _mqtt(url, client_id)
     for expr in (keys.ZENOH_ALL, "fleetlink/uwb/*/status"):
         ep.subscribe(expr, lambda k, p: got.append((k, p)))
-    return ep.start()
+    ep.start()
+    return ep
 
 
 def test_the_embedded_python_broker_carries_the_consoles_mqtt() -> None:
@@ -223,7 +224,8 @@ def test_the_embedded_python_broker_carries_the_consoles_mqtt() -> None:
     url = broker.start().url  # raises if amqtt did not start
     got: list[tuple[str, bytes]] = []
     sub = _listening(url, "sub", got)
-    pub = _mqtt(url, "pub").start()
+    pub = _mqtt(url, "pub")
+    pub.start()
     try:
         wait_until(lambda: sub.up and pub.up, timeout=10, message="both connected")
         assert pub.publish("fleetlink/uwb/g1/status", b'{"gateway":"g1"}', qos=1, retain=True)

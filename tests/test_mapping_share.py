@@ -43,7 +43,9 @@ def _until(cond, timeout: float = 5.0):  # type: ignore[no-untyped-def]
 
 def test_queryable_serves_the_map_and_updates_patch_a_copy(zenoh_peers, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     peers = zenoh_peers(2)
-    agent, other = (ZenohEndpoint(session=s).start() for s in peers)
+    agent, other = (ZenohEndpoint(session=s) for s in peers)
+    agent.start()
+    other.start()
     clock = SimClock()
     mapper = OnboardMapper()
     mapper.add_scan(0.0, _scan((1.0, 1.0, 0.0)), ANGLES, (1.0, 1.0, 0.0))
@@ -94,7 +96,9 @@ def test_queryable_serves_the_map_and_updates_patch_a_copy(zenoh_peers, tmp_path
 
 
 def test_no_map_yet_and_bad_replies_give_none(zenoh_peers) -> None:  # type: ignore[no-untyped-def]
-    agent, other = (ZenohEndpoint(session=s).start() for s in zenoh_peers(2))
+    agent, other = (ZenohEndpoint(session=s) for s in zenoh_peers(2))
+    agent.start()
+    other.start()
     try:
         with MapShare(agent, "r2", SimClock()) as share:
             time.sleep(0.2)
