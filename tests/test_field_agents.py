@@ -64,13 +64,15 @@ def test_field_agents_drive_the_field_robots_over_zenoh() -> None:
 
 
 def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -> None:
-    from fleetlink.shared.map_codec import decode_cells
     from fleetlink.agent.mapping.share import fetch_map
+    from fleetlink.links.zenoh import ZenohEndpoint
+    from fleetlink.shared.map_codec import decode_cells
 
     clock = SystemClock()
     field = RealtimeField(quiet_scenario(), clock=clock)  # one robot, its lidar at 10 Hz over TCP
     listen = f"tcp/127.0.0.1:{free_port()}"
     session = None
+    asker: ZenohEndpoint | None = None
     agents = None
     try:
         endpoints = field.start()
@@ -80,8 +82,11 @@ def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -
         agent = agents.start()["uvc-1"]
         wait_until(lambda: agent.scans >= 15, timeout=20.0, message="lidar scans into the mapper")
 
+        asker = ZenohEndpoint(session=session)  # fetch_map asks through a link (the session stays ours)
+        asker.start()
+
         def occupied() -> int:
-            snap = fetch_map(session, "uvc-1", timeout=2.0)
+            snap = fetch_map(asker, "uvc-1", timeout=2.0)
             if snap is None:
                 return 0
             cells = decode_cells(snap.cells, snap.width, snap.height)
@@ -117,6 +122,8 @@ def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -
     finally:
         if agents is not None:
             agents.stop()
+        if asker is not None:
+            asker.close()
         if session is not None:
             session.close()
         field.stop()

@@ -258,14 +258,8 @@ def test_zenoh_forged_fixes_through_the_secured_router_never_reach_the_agent(tmp
         agent = AgentRuntime(cfg, clock, seed=1).start()
         assert agent.zenoh is not None
         got: list[bytes] = []
-        inner = agent.zenoh.on_input
-
-        def tap(link: object, key: str, payload: bytes) -> None:
-            if key == keys.key("r1", "uwb"):
-                got.append(payload)
-            inner(link, key, payload)  # type: ignore[arg-type]
-
-        agent.zenoh.on_input = tap
+        # What reaches the agent's Zenoh endpoint on its uwb key: a second receiver beside the agent's.
+        agent.zenoh.subscribe(keys.key("r1", "uwb"), lambda _key, payload: got.append(payload))
         wait_until(lambda: agent.zenoh is not None and agent.zenoh.up, message="the agent on the router")
 
         def fix(x: float, sender: str) -> bytes:
