@@ -116,6 +116,9 @@ class AgentNode:
         """Why the lidar is not delivering scans (None: it is, or there is none)."""
         self.scans = 0
         self.published = 0
+        self.on_started: Callable[[], None] | None = None
+        """Called (outside the lock) when an input sets an idle robot moving: a real-time control
+        loop sleeping until its next pose takes up the control rate at once."""
 
     # -- wiring -------------------------------------------------------------------------------------
 
@@ -159,7 +162,10 @@ class AgentNode:
             else:
                 out = self.core.on_input(link, key, payload, now)
             self._apply(out)
-            return was_idle and self.core.driving
+            started = was_idle and self.core.driving
+        if started and self.on_started is not None:
+            self.on_started()
+        return started
 
     # -- the control step -------------------------------------------------------------------------
 

@@ -32,13 +32,12 @@ import json
 import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from fleetlink.agent.board.session import PollRates
 from fleetlink.agent.fusion import Fusion, FusionConfig, SeedReset
 from fleetlink.agent.odometry import Odometry, OdomPose, wrap_angle
 from fleetlink.agent.uwb_input import FixObservation
@@ -108,11 +107,12 @@ class Record:
 
 def record(duration: float, seed: int = SEED) -> tuple[list[Record], float]:
     """Run the field in lockstep and record, per robot: truth, encoder/gyro readings, fixes."""
-    from fleetlink.field.lockstep import LOCKSTEP_POLL, FieldRun
+    from fleetlink.field.lockstep import FieldRun
     from fleetlink.field.scenario import LidarSettings, RobotSpec, Scenario, WheelSlip
     from fleetlink.positioning.anchors import Anchor
     from fleetlink.positioning.ranging import NoiseProfile, RangingModel
     from fleetlink.positioning.solver import solve
+    from fleetlink.site.lockstep import SESSION_POLL, drive_by_session
 
     plan_routes = routes()
     names = [f"r{i + 1}" for i in range(len(plan_routes))]
@@ -133,18 +133,16 @@ def record(duration: float, seed: int = SEED) -> tuple[list[Record], float]:
         lidar=LidarSettings(enabled=False),
         events=slips,
     )
-    poll = PollRates(
-        **{**{f: getattr(LOCKSTEP_POLL, f) for f in LOCKSTEP_POLL.__dataclass_fields__}, "motor": 20.0, "imu": 20.0}
-    )
+    poll = replace(SESSION_POLL, motor=20.0, imu=20.0)
     wall0 = time.perf_counter()
     records: list[Record] = []
-    with FieldRun(scenario, poll=poll) as run:
+    with FieldRun(scenario, open_loop=False) as run:
         anchors = tuple(Anchor(a.id, a.x, a.y, a.z) for a in run.plan.anchors)
         for i, rig in enumerate(run.rigs):
             rec = Record(rig.spec.name, plan_routes[i][0])
             rec.slips = [(ev.at, ev.at + ev.duration) for ev in slips if ev.robot == rig.spec.name]
             records.append(rec)
-            rig.drive = _driver(
+            drive = _driver(
                 rig.robot.board,
                 Follower(plan_routes[i][1]),
                 rec,
@@ -152,6 +150,7 @@ def record(duration: float, seed: int = SEED) -> tuple[list[Record], float]:
                 RangingModel(anchors, NoiseProfile.realistic(), np.random.default_rng(seed * 1000 + 100 + i)),
                 solve,
             )
+            drive_by_session(run, i, drive, poll)
         run.run()
     return records, time.perf_counter() - wall0
 

@@ -59,6 +59,7 @@ from fleetlink.field.scenario import LidarSettings, RobotSpec, Scenario
 from fleetlink.positioning.anchors import anchors_from
 from fleetlink.positioning.ranging import NoiseProfile, RangingModel
 from fleetlink.positioning.solver import Solution, solve
+from fleetlink.site.lockstep import drive_by_session
 
 POLL = PollRates(
     motion=50.0, motor=50.0, sensors=20.0, bumpers=20.0, status=0.5, power=0.0, health=1.0,
@@ -147,9 +148,9 @@ class Bench:
             robots=(RobotSpec("r1", pose=start, drive="idle", lidar=False),),
             lidar=LidarSettings(enabled=False),
         )
-        self.run = FieldRun(scenario, self.plan, poll=POLL)
+        self.run = FieldRun(scenario, self.plan, open_loop=False)
         self.rig = self.run.rigs[0]
-        self.rig.drive = self.drive
+        drive_by_session(self.run, 0, self.drive, POLL)
         self.board = self.rig.robot.board
         self.anchors = anchors_from(self.plan.anchors)
         self.ranging = RangingModel(

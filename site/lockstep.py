@@ -34,10 +34,11 @@ from typing import Any
 
 import msgpack
 
-from fleetlink.agent.board.session import BoardSession
+from fleetlink.agent.board.session import BoardSession, PollRates
 from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.lidar.driver import LidarDriver
 from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed
+from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 from fleetlink.devices.ports import InProcessPort
 from fleetlink.field.build import robot_seed
 from fleetlink.field.lockstep import FieldRun, RunResult, write_outputs
@@ -57,7 +58,14 @@ from fleetlink.shared.messages import (
     Teleop,
 )
 
-__all__ = ["MissionResult", "MissionRun", "ScriptedOperator", "write_mission_outputs"]
+__all__ = [
+    "SESSION_POLL",
+    "MissionResult",
+    "MissionRun",
+    "ScriptedOperator",
+    "drive_by_session",
+    "write_mission_outputs",
+]
 
 OPERATOR = "operator-1"
 TELEOP_PERIOD_S = 0.25
@@ -414,6 +422,46 @@ class MissionRun:
             r.log.append(f"{self.clock.now():.3f} {link.value} {'/'.join(parts[3:])} {text}")
 
         return record
+
+
+SESSION_POLL = PollRates(
+    motion=20.0,
+    motor=5.0,
+    sensors=10.0,
+    bumpers=10.0,
+    status=0.5,
+    power=0.0,
+    health=1.0,
+    payload=0.0,
+    env=0.0,
+    buttons=0.0,
+    base_command=1.0,
+    imu=0.0,
+)
+"""A hand-assembled driver's board polls: enough to drive, cheap enough for 50 robots."""
+
+Drive = Callable[[BoardSnapshot, float], tuple[float, float]]
+
+
+def drive_by_session(run: FieldRun, index: int, drive: Drive, rates: PollRates = SESSION_POLL) -> BoardSession:
+    """Drive robot ``index`` of a driven ``FieldRun`` (``open_loop=False``) through Control Bus bytes
+    with a board session alone: ``drive(snapshot, t)`` gives the velocity at each session round.
+
+    For benches and tests that assemble agent parts by hand (a pilot, a fusion); a whole agent is
+    ``MissionRun``."""
+    peer = run.board_peer(index)
+    session = BoardSession(
+        lambda: InProcessPort(peer, advance_clock=False), run.clock, rates=rates, seed=robot_seed(run.scenario, index)
+    )
+    due = [0.0]
+
+    def controller(t: float) -> None:
+        if t >= due[0]:
+            session.set_velocity(*drive(session.snapshot, t))
+            due[0] = session.tick()
+
+    run.controllers.append(controller)
+    return session
 
 
 def _scripted(script: tuple[tuple[float, float, float], ...], t: float) -> tuple[float, float]:

@@ -158,14 +158,18 @@ def test_same_scenario_and_seed_give_identical_truth(tmp_path: Path) -> None:
 
 
 def test_scripted_events_happen_and_a_cut_link_trips_the_watchdog() -> None:
-    result = FieldRun(scenario()).run()
+    from fleetlink.site.lockstep import MissionRun
+
+    # Whole agents: the board's watchdog only trips when its master, an agent, goes quiet.
+    with MissionRun(scenario()) as run:
+        result = run.run().field
     text = "\n".join(result.events)
     assert "board link of s1 cut for 2 s" in text
     assert "board link of s1 restored" in text
     assert "door room-3 closes" in text
     assert "left wheel of s2 slips 50%" in text
     assert result.stats["s1"]["watchdog_trips"] == 1  # 2 s without a request: the board stopped
-    assert result.stats["s1"]["connects"] == 2  # and the session reconnected afterwards
+    assert result.stats["s1"]["board_connects"] == 2  # and the session reconnected afterwards
     assert result.scans == 2 * 6 * 10
 
 

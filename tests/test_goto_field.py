@@ -17,7 +17,8 @@ from fleetlink.agent.pilot import ActionKind, EventKind, Pilot, PilotEvent
 from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 from fleetlink.field.board import BUMPER_LEFT, BUMPER_RIGHT, CLIFF_LEFT, CLIFF_RIGHT
 from fleetlink.field.lockstep import FieldRun
-from fleetlink.field.scenario import Event, LidarSettings, Noise, RobotSpec, Scenario
+from fleetlink.field.scenario import LidarSettings, LinkCut, Noise, RobotSpec, Scenario
+from fleetlink.site.lockstep import drive_by_session
 
 Pose = tuple[float, float, float]
 
@@ -76,8 +77,8 @@ def run(
         events=kw.pop("events", ()),  # type: ignore[arg-type]
     )
     agent = Agent(start, Pilot(home=start), sorted(agent_script, key=lambda s: s[0]))
-    fr = FieldRun(scenario)
-    fr.rigs[0].drive = agent.drive
+    fr = FieldRun(scenario, open_loop=False)
+    drive_by_session(fr, 0, agent.drive)
     result = fr.run()
     return agent, fr, result.truth["r1"]
 
@@ -143,7 +144,7 @@ def test_board_watchdog_stops_the_wheels_when_the_agent_goes_quiet() -> None:
     start = (10.0, 10.0, 0.0)
     # The operator keeps driving, but the agent's board link is cut at t = 2 s for 3 s.
     script = [(0.5 + 0.2 * k, lambda p, t: p.teleop(t, 0.3, 0.0, 0.5, "op")) for k in range(40)]
-    cut = Event(at=2.0, kind="link_cut", robot="r1", duration=3.0)
+    cut = LinkCut(at=2.0, robot="r1", duration=3.0)
     agent, fr, truth = run(start, script, 4.0, events=(cut,))
     board = fr.rigs[0].robot.board
     assert board.state.watchdog_trips == 1

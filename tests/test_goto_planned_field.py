@@ -17,6 +17,7 @@ from fleetlink.agent.pilot import ActionKind, EventKind, Pilot
 from fleetlink.field.lockstep import FieldRun
 from fleetlink.field.plans import load_plan
 from fleetlink.field.scenario import LidarSettings, Noise, RobotSpec, Scenario
+from fleetlink.site.lockstep import drive_by_session
 from tests.test_goto_field import Agent
 
 Pose = tuple[float, float, float]
@@ -39,8 +40,8 @@ def run(start: Pose, script: list[tuple[float, Callable[[Pilot, float], object]]
         lidar=LidarSettings(enabled=False),
     )
     agent = Agent(start, pilot, sorted(script, key=lambda s: s[0]))
-    fr = FieldRun(scenario)
-    fr.rigs[0].drive = agent.drive
+    fr = FieldRun(scenario, open_loop=False)
+    drive_by_session(fr, 0, agent.drive)
     return agent, fr, fr.run().truth["r1"]
 
 

@@ -114,14 +114,17 @@ def test_pans_topic_must_be_a_location(topic: str) -> None:
 def test_fusion_in_a_lockstep_field_run() -> None:
     """One robot driving in the office, odometry from its simulated board over Control Bus bytes,
     realistic UWB fixes through the PANS JSON path: the fused pose tracks the truth."""
+    from dataclasses import replace
+
     from fleetlink.agent.fusion import Fusion
     from fleetlink.agent.odometry import Odometry
-    from fleetlink.field.lockstep import LOCKSTEP_POLL, FieldRun
+    from fleetlink.field.lockstep import FieldRun
     from fleetlink.field.scenario import LidarSettings, RobotSpec, Scenario
     from fleetlink.positioning.anchors import Anchor
     from fleetlink.positioning.gateway import pans_location
     from fleetlink.positioning.ranging import NoiseProfile, RangingModel
     from fleetlink.positioning.solver import solve
+    from fleetlink.site.lockstep import SESSION_POLL, drive_by_session
 
     script = ((0.0, 0.5, 0.0), (8.0, 0.0, 0.8), (10.0, 0.4, 0.0), (16.0, 0.3, -0.2))
     scenario = Scenario(
@@ -132,13 +135,11 @@ def test_fusion_in_a_lockstep_field_run() -> None:
         robots=(RobotSpec("r1", pose=(8.0, 9.75, 0.0), drive="idle", lidar=False),),
         lidar=LidarSettings(enabled=False),
     )
-    poll = LOCKSTEP_POLL.__class__(
-        **{**{k: getattr(LOCKSTEP_POLL, k) for k in LOCKSTEP_POLL.__dataclass_fields__}, "motor": 20.0, "imu": 20.0}
-    )
+    poll = replace(SESSION_POLL, motor=20.0, imu=20.0)
     odo, fusion = Odometry(), Fusion()
     errors: list[float] = []
     rejected_reasons: list[str] = []
-    with FieldRun(scenario, poll=poll) as run:
+    with FieldRun(scenario, open_loop=False) as run:
         anchors = tuple(Anchor(a.id, a.x, a.y, a.z) for a in run.plan.anchors)
         ranging = RangingModel(anchors, NoiseProfile.realistic(), np.random.default_rng(3))
         board = run.rigs[0].robot.board
@@ -165,7 +166,7 @@ def test_fusion_in_a_lockstep_field_run() -> None:
                         rejected_reasons.append(v.reason)
             return next(((v, w) for at, v, w in reversed(script) if at <= t), (0.0, 0.0))
 
-        run.rigs[0].drive = drive
+        drive_by_session(run, 0, drive, poll)
         run.run()
     assert len(errors) > 200
     rmse = math.sqrt(sum(e * e for e in errors) / len(errors))
