@@ -31,7 +31,7 @@ from fleetlink.agent.fusion import Fusion
 from fleetlink.agent.mapping.keeper import MapKeeper
 from fleetlink.agent.odometry import Odometry
 from fleetlink.agent.pilot import Pilot, PilotConfig
-from fleetlink.links.base import Link
+from fleetlink.links.base import Link, QueryLink
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.messages import Connection, ConnectionState, LeaseRequest, LinkName, LinkStatus, UwbFix
@@ -82,7 +82,7 @@ class AgentNode:
         board: BoardSession,
         *,
         links: Sequence[Link] = (),
-        map_link: Link | None = None,
+        map_link: QueryLink | None = None,
         scan_sink: Callable[[Any], None] | None = None,
     ) -> None:
         self.config = config

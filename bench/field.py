@@ -174,7 +174,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"goal >=  2x for 50 robots: {goal50:.1f}x {'met' if goal50 >= 2 else 'NOT met'}")
     print()
     print(f"lockstep with whole agents, office plan, lidar at 10 Hz, mapping on, {duration:g} s simulated per run")
-    print(f"{'robots':>6} {'samples/s':>9} {'real-time factor':>17} {'wall s':>7} {'turns mapped':>13} {'goals reached':>14}")
+    print(
+        f"{'robots':>6} {'samples/s':>9} {'real-time factor':>17} {'wall s':>7} {'turns mapped':>13} {'goals reached':>14}"
+    )
     for r in agent_runs:
         print(
             f"{r['robots']:>6} {r['lidar_samples_per_s']:>9.0f} {r['real_time_factor_ratio']:>16.2f}x {r['wall_s']:>7.2f}"
@@ -196,7 +198,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nmachine calibration: sum(range(100000)) takes {calib * 1e3:.2f} ms")
     if args.json:
         args.json.write_text(
-            json.dumps({"lockstep": runs + agent_runs, "raycast": casts, "calibration_sum_range_100k_s": calib}, indent=2) + "\n"
+            json.dumps(
+                {"lockstep": runs + agent_runs, "raycast": casts, "calibration_sum_range_100k_s": calib}, indent=2
+            )
+            + "\n"
         )
     return 0
 

@@ -347,10 +347,10 @@ def throughput(drive: dict, beams: int, limit: int) -> dict[str, float]:  # type
 
 
 def cpu_share(drive: dict, seconds: float) -> dict[str, float]:  # type: ignore[type-arg]
-    from fleetlink.shared.map_codec import snapshot_fields
     from fleetlink.agent.mapping.mapper import OnboardMapper
     from fleetlink.shared import wire
     from fleetlink.shared.clock import SimClock
+    from fleetlink.shared.map_codec import snapshot_fields
     from fleetlink.shared.messages import MapSnapshot
 
     n = min(len(drive["times"]), int(seconds * 10))

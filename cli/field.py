@@ -14,7 +14,8 @@ The demo and the secured site are one composition, fleetlink.site.field.FieldSit
 only parses the arguments and presents.
 
 `fleetlink field run SCENARIO --lockstep --out DIR` runs a scenario in simulated time, as fast as
-the CPU allows, and writes the robots' true trajectories (see docs/field-scenarios.md).
+the CPU allows, with every robot's whole agent, and writes the robots' true trajectories and the
+agents' logs (see docs/field-scenarios.md); ``--field-only`` runs the field alone.
 """
 
 from __future__ import annotations
@@ -81,6 +82,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run.add_argument("--lockstep", action="store_true", help="simulated time, as fast as possible, deterministic")
     run.add_argument("--out", type=Path, help="output folder (required with --lockstep)")
     run.add_argument(
+        "--field-only",
+        action="store_true",
+        help="with --lockstep: the field alone, robots moving open-loop (no agents; for benchmarks of the field)",
+    )
+    run.add_argument(
         "--duration", dest="run_duration", type=float, default=None, help="override the scenario's duration (s)"
     )
     run.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
@@ -116,33 +122,45 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.field_command == "run" and args.lockstep:
-        return _run_lockstep(scenario, plan, args.out)
+        return _run_lockstep(scenario, plan, args.out, args.field_only)
     duration = scenario.duration if args.field_command == "run" else args.duration
     return _run_realtime(scenario, plan, duration, args)
 
 
-def _run_lockstep(scenario: Scenario, plan: FloorPlan, out: Path | None) -> int:
+def _run_lockstep(scenario: Scenario, plan: FloorPlan, out: Path | None, field_only: bool = False) -> int:
+    """Whole agents in simulated time (fleetlink.site.lockstep), or with ``field_only`` the field
+    alone with its open-loop motion."""
     from fleetlink.field.lockstep import FieldRun, write_outputs
+    from fleetlink.site.lockstep import MissionRun, write_mission_outputs
 
     if out is None:
         print("error: --lockstep needs --out DIR", file=sys.stderr)
         return 2
     try:
-        # Four or more lidars: cast most of them in a second process (same results, both cores).
-        lidars = sum(1 for r in scenario.robots if r.lidar) if scenario.lidar.enabled else 0
-        with FieldRun(scenario, plan, lidar_worker=lidars >= 4) as field_run:
-            result = field_run.run()
+        if field_only:
+            # Four or more lidars: cast most of them in a second process (same results, both cores).
+            lidars = sum(1 for r in scenario.robots if r.lidar) if scenario.lidar.enabled else 0
+            with FieldRun(scenario, plan, lidar_worker=lidars >= 4) as field_run:
+                result = field_run.run()
+            write_outputs(result, out)
+            written = "truth/*.csv, events.log, summary.json"
+        else:
+            with MissionRun(scenario, plan) as mission:
+                mission_result = mission.run()
+            result = mission_result.field
+            write_mission_outputs(mission_result, out)
+            written = "truth/*.csv, agents/*.log, operator.log, events.log, summary.json"
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    write_outputs(result, out)
+    who = "the field alone" if field_only else "whole agents"
     print(
         f"{result.scenario.name}: {result.sim_seconds:.1f} s simulated in {result.wall_seconds:.1f} s "
-        f"({result.real_time_factor:.1f}x real time), {len(result.truth)} robot(s), {result.scans} lidar scans"
+        f"({result.real_time_factor:.1f}x real time), {len(result.truth)} robot(s), {who}, {result.scans} lidar turns"
     )
     for line in result.events:
         print(f"  {line}")
-    print(f"wrote {out}/truth/*.csv, {out}/events.log, {out}/summary.json")
+    print(f"wrote {out}: {written}")
     return 0
 
 

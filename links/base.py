@@ -14,7 +14,7 @@ from typing import Protocol, runtime_checkable
 
 from fleetlink.shared.messages import LinkName
 
-__all__ = ["Link", "LinkStats", "Receiver", "key_matches", "to_mqtt_filter"]
+__all__ = ["Link", "LinkStats", "QueryLink", "Receiver", "key_matches", "to_mqtt_filter"]
 
 Receiver = Callable[[str, bytes], None]
 """Called with (key, payload) for every message that matches a subscription."""
@@ -56,6 +56,19 @@ class Link(Protocol):
 
     def close(self) -> None:
         """Close the endpoint (idempotent); no receiver is called after it returns."""
+        ...
+
+
+@runtime_checkable
+class QueryLink(Link, Protocol):
+    """A link that also answers queries and asks them (``ZenohEndpoint``, ``InProcessLink``)."""
+
+    def serve(self, key_expr: str, answer: Callable[[str], list[tuple[str, bytes]]]) -> None:
+        """Answer queries matching ``key_expr``: ``answer(key_expr_asked)`` -> [(key, payload)]."""
+        ...
+
+    def query(self, key_expr: str, timeout: float = ...) -> list[tuple[str, bytes]]:
+        """Every reachable answer to ``key_expr``."""
         ...
 
 

@@ -22,28 +22,17 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable
-from typing import Protocol
 
 from fleetlink.agent.mapping.mapper import OnboardMapper
+from fleetlink.links.base import QueryLink
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.map_codec import patch_fields, snapshot_fields
 from fleetlink.shared.messages import MapSnapshot, MapUpdate
 
-__all__ = ["MapShare", "QueryLink", "fetch_map"]
+__all__ = ["MapShare", "fetch_map"]
 
 log = logging.getLogger(__name__)
-
-
-class QueryLink(Protocol):
-    """A link that can publish, answer queries and ask them (``ZenohEndpoint``, ``InProcessLink``)."""
-
-    def publish(self, key: str, payload: bytes) -> bool: ...
-
-    def serve(self, key_expr: str, answer: Callable[[str], list[tuple[str, bytes]]]) -> None: ...
-
-    def query(self, key_expr: str, timeout: float = ...) -> list[tuple[str, bytes]]: ...
 
 
 class MapShare:
