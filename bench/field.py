@@ -175,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(f"lockstep with whole agents, office plan, lidar at 10 Hz, mapping on, {duration:g} s simulated per run")
     print(
-        f"{'robots':>6} {'samples/s':>9} {'real-time factor':>17} {'wall s':>7} {'turns mapped':>13} {'goals reached':>14}"
+        f"{'robots':>6} {'samples/s':>9} {'real-time factor':>17} {'wall s':>7} {'turns read':>13} {'goals reached':>14}"
     )
     for r in agent_runs:
         print(
