@@ -28,7 +28,8 @@ from fleetlink.agent.board.session import BoardSession, PollRates
 from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.core import AgentCore, Output, board_view
 from fleetlink.agent.fusion import Fusion
-from fleetlink.agent.mapping.keeper import MapKeeper
+from fleetlink.agent.mapping.keeper import MapKeeper, Update
+from fleetlink.agent.mapping.worker import KeeperHost
 from fleetlink.agent.odometry import Odometry
 from fleetlink.agent.pilot import Pilot, PilotConfig
 from fleetlink.links.base import Link, QueryLink
@@ -110,7 +111,7 @@ class AgentNode:
         self._motor: object = None
         self._odom_t = 0.0
         self._next_links = -float("inf")
-        self.keeper: MapKeeper | None = None
+        self.keeper: KeeperHost | None = None
         self.share: Any = None
         self.lidar_fault: str | None = None
         """Why the lidar is not delivering scans (None: it is, or there is none)."""
@@ -139,9 +140,10 @@ class AgentNode:
         """The retained ``Connection`` message (and the MQTT last will) for ``state``."""
         return wire.encode(self._conn_counter.make(Connection, connectionState=state))
 
-    def open_map(self) -> None:
-        """Start mapping (a lidar is configured): the keeper, and the share on ``map_link``."""
-        self.keeper = MapKeeper()
+    def open_map(self, keeper: KeeperHost | None = None) -> None:
+        """Start mapping (a lidar is configured): the keeper (in line unless ``keeper`` says where
+        it runs: agent/mapping/worker.py), and the share on ``map_link``."""
+        self.keeper = keeper if keeper is not None else MapKeeper()
         self._open_share()
 
     def close(self) -> None:
@@ -211,17 +213,21 @@ class AgentNode:
         update = keeper.add(
             t, rev.distances_m, rev.angles_rad, (p.x, p.y, p.theta), placed=placed, driving=driving, now=now
         )
+        self.scans += 1
+        if update is not None:
+            self._use_map(update)
+        if self.scan_sink is not None:
+            self.scan_sink(rev)
+
+    def _use_map(self, update: Update) -> None:
         if update.restarted:
             log.info("%s: UWB frame established; the map restarts in it", self.robot)
             self._open_share()
-        self.scans += 1
-        if self.share is not None:
-            self.share.publish(keeper.mapper)
+        if self.share is not None and update.publication is not None:
+            self.share.publish(update.publication)
         if update.planner is not None:
             with self._lock:
                 self.core.use_map(update.planner.route)
-        if self.scan_sink is not None:
-            self.scan_sink(rev)
 
     def lidar_report(self, fault: str | None) -> None:
         """The lidar failed (``fault``) or delivers again (None)."""

@@ -29,6 +29,7 @@ from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.core import AgentCore
 from fleetlink.agent.links.mqtt_link import agent_mqtt_link
 from fleetlink.agent.links.zenoh_link import agent_zenoh_link
+from fleetlink.agent.mapping.keeper import MapKeeper
 from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed
 from fleetlink.devices.ports import Port
 from fleetlink.links.mqtt import MqttEndpoint
@@ -134,7 +135,8 @@ class AgentRuntime:
 
     @property
     def mapper(self) -> Any:
-        return self.node.keeper.mapper if self.node.keeper is not None else None
+        keeper = self.node.keeper  # the runtime maps in line (AgentNode.open_map's default)
+        return keeper.mapper if isinstance(keeper, MapKeeper) else None
 
     @property
     def lidar_fault(self) -> str | None:

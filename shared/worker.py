@@ -1,4 +1,6 @@
-"""One way to own a thread: start, stop, wake, error logging and join.
+"""One way to own a thread (``Worker``) or a second process (``ProcessWorker``).
+
+``Worker``: start, stop, wake, error logging and join.
 
 Every adapter that needs a thread (a board session's poll loop, an agent's control loop, a link's
 delivery thread, a gateway's tick) subclasses ``Worker`` and writes only ``run``: a loop that
@@ -12,18 +14,32 @@ alike. An exception that escapes ``run`` is logged once with its traceback and k
             while not self.stopping:
                 tick()
                 self.wait(0.05)
+
+``ProcessWorker``: a child process that owns a handler object and answers requests in the order
+they were sent, so a lockstep run can use a second core and stay deterministic (the field's ray
+casting, the agents' mapping). ``tell`` sends without a reply; ``call`` expects one, taken in order
+with ``reply()``; nothing waits until a reply is needed. An exception in the handler comes back
+as ``RuntimeError`` at its ``reply()``; the child goes on serving.
+
+    worker = ProcessWorker("fleetlink-map", make_handler)   # make_handler() runs in the child
+    worker.call(("add", ...)); ...; result = worker.reply()
+    worker.close()
 """
 
 from __future__ import annotations
 
 import logging
+import multiprocessing as mp
 import threading
+import traceback
+from collections import deque
 from collections.abc import Callable
-from typing import Self
+from multiprocessing.connection import Connection
+from typing import Any, Self
 
 from fleetlink.shared.clock import Clock, SystemClock
 
-__all__ = ["Worker"]
+__all__ = ["ProcessWorker", "Worker"]
 
 log = logging.getLogger(__name__)
 
@@ -110,3 +126,103 @@ class Worker:
         except BaseException as exc:  # the thread ends; the process and the other workers go on
             self.error = exc
             log.exception("worker %s failed: %s", self.name, exc)
+
+
+_READY, _REPLY, _FAILED, _STOP = "ready", "reply", "failed", "stop"
+
+
+def _serve(conn: Connection, make_handler: Callable[[], Callable[[Any], Any]]) -> None:
+    """The child's loop: (wants_reply, request) in order; a reply for each call."""
+    handler = make_handler()
+    conn.send((_READY, None))
+    while True:
+        wants_reply, request = conn.recv()
+        if wants_reply is None:  # stop
+            conn.send((_STOP, None))
+            return
+        try:
+            result = handler(request)
+        except Exception:  # reported at the caller's reply(); the child serves on
+            if wants_reply:
+                conn.send((_FAILED, traceback.format_exc()))
+            continue
+        if wants_reply:
+            conn.send((_REPLY, result))
+
+
+class ProcessWorker:
+    """A second process serving requests in order. See the module docstring."""
+
+    def __init__(self, name: str, make_handler: Callable[[], Callable[[Any], Any]]) -> None:
+        # fork: the child needs only numpy, our pure cores and the pipe, and spawn would re-run the
+        # parent's main module (and need a picklable ``make_handler``). Platforms without fork spawn.
+        ctx: Any = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+        self.name = name
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_serve, args=(child, make_handler), name=name, daemon=True)
+        self._proc.start()
+        child.close()
+        if self._conn.recv()[0] != _READY:
+            raise RuntimeError(f"{name}: the worker process failed to start")
+        self._replies: deque[tuple[str, Any]] = deque()
+        self.pending = 0
+        """Calls sent whose replies have not been taken by ``reply()``."""
+        self._unread = 0  # replies still in the pipe
+
+    def tell(self, request: Any) -> None:
+        """Send a request that has no reply."""
+        self._conn.send((False, request))
+        self._read_ready()
+
+    def call(self, request: Any) -> None:
+        """Send a request; its reply comes, in order, from ``reply()``."""
+        self._conn.send((True, request))
+        self.pending += 1
+        self._unread += 1
+        self._read_ready()
+
+    def reply(self) -> Any:
+        """The oldest call's reply, waiting for it if need be."""
+        if not self.pending:
+            raise RuntimeError(f"{self.name}: no call is waiting for a reply")
+        if not self._replies:
+            self._read()
+        kind, value = self._replies.popleft()
+        self.pending -= 1
+        if kind == _FAILED:
+            raise RuntimeError(f"{self.name}: the request failed in the worker:\n{value}")
+        return value
+
+    def close(self) -> None:
+        """Stop the child (after it has served what was sent) and join it; idempotent."""
+        if self._proc.is_alive():
+            try:
+                self._conn.send((None, None))
+                while True:
+                    kind, _ = self._conn.recv()
+                    if kind == _STOP:
+                        break
+            except (EOFError, OSError):
+                pass
+            self._proc.join(5.0)
+            if self._proc.is_alive():
+                self._proc.kill()
+        self._conn.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _read_ready(self) -> None:
+        # Keep the pipe from filling up (both ends would block): take what has come, without waiting.
+        while self._unread and self._conn.poll():
+            self._read()
+
+    def _read(self) -> None:
+        msg = self._conn.recv()
+        if msg[0] not in (_REPLY, _FAILED):
+            raise RuntimeError(f"{self.name}: unexpected message from the worker: {msg[0]!r}")
+        self._replies.append(msg)
+        self._unread -= 1

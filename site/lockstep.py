@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import random
 import time
 from collections.abc import Callable
@@ -37,6 +38,7 @@ import msgpack
 from fleetlink.agent.board.session import BoardSession, PollRates
 from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.lidar.driver import LidarDriver
+from fleetlink.agent.mapping.worker import DeferredKeeper, MapWorker
 from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed
 from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 from fleetlink.devices.ports import InProcessPort
@@ -192,9 +194,13 @@ class MissionRun:
         *,
         mapping: bool = True,
         record: bool = True,
+        map_worker: bool | None = None,
     ) -> None:
         """``mapping``: agents with a lidar build and share their onboard maps (as on a robot);
-        ``record``: keep every message about each robot for the agent logs."""
+        ``record``: keep every message about each robot for the agent logs; ``map_worker``: the
+        keepers run in a second process (None: when there are two cores and two robots mapping).
+        Either way a turn's map update reaches its agent with the next turn (agent/mapping/worker.py),
+        so the outputs do not depend on ``map_worker``."""
         self.scenario = scenario
         self.plan = plan or load_plan(scenario.plan)
         self.field = FieldRun(scenario, self.plan, open_loop=False, on_command=self._command)
@@ -211,6 +217,10 @@ class MissionRun:
         self._rng = random.Random(scenario.seed)
         self._places = sorted(self.plan.starts.items())
         self._ids = 0
+        mappers = sum(1 for rig in self.field.rigs if rig.device is not None) if mapping else 0
+        if map_worker is None:
+            map_worker = (os.cpu_count() or 1) > 1 and mappers > 1
+        self.map_worker = MapWorker() if map_worker and mappers else None
         for rig in self.field.rigs:
             self.robots.append(self._agent(rig.robot.index, mapping))
         self.uwb = self._uwb_gateway()
@@ -245,7 +255,7 @@ class MissionRun:
         mqtt.start()
         feed = None
         if rig.device is not None and mapping:
-            node.open_map()
+            node.open_map(self.map_worker.keeper(name) if self.map_worker is not None else DeferredKeeper())
 
             def open_driver(index: int = index) -> LidarDriver:
                 return LidarDriver(self.field.lidar_port(index), self.clock, pwm_motor_control=True)
@@ -303,6 +313,9 @@ class MissionRun:
                 r.lidar.close()
             r.node.close()
             r.node.board.stop()
+        if self.map_worker is not None:
+            self.map_worker.close()
+            self.map_worker = None
         self.field.close()
 
     def __enter__(self) -> MissionRun:

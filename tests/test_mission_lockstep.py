@@ -3,8 +3,8 @@
 Two scouts in the office, each with its whole agent (board session over Control Bus bytes, lidar
 over RPLIDAR bytes, fusion with the UWB gateway's fixes, guard, pilot, mapping, planner), a goal
 each and a teleop burst sent by a scripted operator over the in-process Zenoh link: the same seed
-twice gives byte-identical truth and agent logs, and the go-to reaches its goal as the go-to
-bench demands of it.
+twice gives byte-identical truth and agent logs, whether the map keepers run in a second process
+or in line, and the go-to reaches its goal as the go-to bench demands of it.
 """
 
 from __future__ import annotations
@@ -75,17 +75,19 @@ def _scenario(seed: int = 11) -> tuple[object, tuple[float, float], tuple[float,
     return parse_scenario(tomllib.loads(text)), goal, goal2
 
 
-def _run(tmp: Path, seed: int = 11) -> tuple[object, Path]:
+def _run(tmp: Path, seed: int = 11, *, map_worker: bool = True) -> tuple[object, Path]:
     scenario, _, _ = _scenario(seed)
-    with MissionRun(scenario) as run:
+    with MissionRun(scenario, map_worker=map_worker) as run:
+        assert (run.map_worker is not None) == map_worker
         result = run.run()
     return result, write_mission_outputs(result, tmp)
 
 
 @pytest.fixture(scope="module")
 def twice(tmp_path_factory: pytest.TempPathFactory) -> tuple[object, Path, Path]:
-    first, a = _run(tmp_path_factory.mktemp("a"))
-    _, b = _run(tmp_path_factory.mktemp("b"))
+    """The same seed twice: the map keepers in a worker process, then in line."""
+    first, a = _run(tmp_path_factory.mktemp("a"), map_worker=True)
+    _, b = _run(tmp_path_factory.mktemp("b"), map_worker=False)
     return first, a, b
 
 
@@ -104,7 +106,7 @@ def test_same_seed_gives_byte_identical_truth_and_agent_logs(twice: tuple[object
         assert (a / f).read_bytes() == (b / f).read_bytes(), f"{f} differs between two runs of one seed"
     log = (a / "agents" / "scout-1.log").read_text()
     # The whole agent ran: poses, state, acks of the operator's order, the goal reached.
-    for topic in (" pose ", " state ", " ack ", " events "):
+    for topic in (" pose ", " state ", " ack ", " events ", " map/updates "):
         assert topic in log, topic
     assert "goal_reached" in log
 

@@ -16,9 +16,13 @@ keeper decides:
 * **Planner renewal.** The first planner as soon as the map has cells; then a fresh one every
   ``planner_period`` seconds while the robot drives and the map changed (standing still, the map
   changes only by noise, and building a planner costs tens of milliseconds).
+* **What to share.** Every ``share_period`` seconds, if the map changed, a ``MapPublication``: the
+  cells copied at one version and the box changed since the last one, for the shell's ``MapShare``
+  to serve and patch.
 
-Time is an argument; the planner is built over a copy of the cells, so the control thread may own
-it while mapping goes on.
+Time is an argument. What the keeper hands out (planner, publication) is built over copies of
+the cells, so it may be used on another thread, or in another process than the keeper's
+(agent/mapping/worker.py), while mapping goes on.
 """
 
 from __future__ import annotations
@@ -26,15 +30,26 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import numpy.typing as npt
 
+from fleetlink.agent.mapping.grid import Box
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig
 
-__all__ = ["PLANNER_PERIOD_S", "MapKeeper", "Update", "onboard_mapper_config"]
+__all__ = [
+    "PLANNER_PERIOD_S",
+    "SHARE_PERIOD_S",
+    "MapKeeper",
+    "MapPublication",
+    "Update",
+    "onboard_mapper_config",
+]
 
 PLANNER_PERIOD_S = 2.0
 """Seconds between planners handed to the pilot while the robot drives and the map grows."""
+SHARE_PERIOD_S = 1.0
+"""Seconds between map publications (a snapshot to serve, a patch to send) while the map changes."""
 
 
 def onboard_mapper_config() -> MapperConfig:
@@ -44,11 +59,31 @@ def onboard_mapper_config() -> MapperConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class MapPublication:
+    """The map as the share sends it: map_server cells copied at ``version``, and the box of cells
+    (row0, col0, row1, col1) changed since the previous publication (None: nothing known)."""
+
+    version: int
+    cells: npt.NDArray[np.int8]
+    resolution: float
+    origin: tuple[float, float]
+    changed: Box | None
+
+    @classmethod
+    def of(cls, mapper: OnboardMapper) -> MapPublication:
+        """The mapper's map now; takes (clears) its changed box."""
+        cells, res, origin = mapper.occupancy()
+        return cls(mapper.version, cells, res, origin, mapper.grid.take_dirty())
+
+
+@dataclass(frozen=True, slots=True)
 class Update:
     restarted: bool = False
     """The map started again (the robot was just placed in the site frame)."""
     planner: PathPlanner | None = None
     """A fresh planner for the pilot, or None (keep the one it has)."""
+    publication: MapPublication | None = None
+    """The map to share now, or None (nothing new, or not yet time)."""
 
 
 class MapKeeper:
@@ -57,10 +92,12 @@ class MapKeeper:
         config: MapperConfig | None = None,
         planner_period: float = PLANNER_PERIOD_S,
         *,
+        share_period: float = SHARE_PERIOD_S,
         max_gap_s: float = 1.0,
     ) -> None:
         self.config = config or onboard_mapper_config()
         self.planner_period = planner_period
+        self.share_period = share_period
         self.min_move_m = self.config.keyframe_distance
         self.min_turn_rad = self.config.keyframe_angle
         self.max_gap_s = max_gap_s
@@ -72,6 +109,8 @@ class MapKeeper:
         self.restarts = 0
         self._planned_version = -1
         self._next_planner = -math.inf
+        self._shared_version = -1
+        self._next_share = -math.inf
 
     def add(
         self,
@@ -92,11 +131,12 @@ class MapKeeper:
             if not self.mapper.grid.empty:
                 self.mapper = OnboardMapper(self.config)
                 self._planned_version = -1
+                self._shared_version, self._next_share = -1, -math.inf
                 self.restarts += 1
                 restarted = True
         if not self._due(t, pose):
             self.skipped += 1
-            return Update(restarted=restarted)
+            return Update(restarted=restarted, publication=self._publication(now))
         self._last = (t, *pose)
         self.mapper.add_scan(t, distances_m, angles_rad, pose)
         grid = self.mapper.grid
@@ -106,7 +146,15 @@ class MapKeeper:
             self._next_planner = now + self.planner_period
             self._planned_version = grid.version
             planner = self.mapper.planner()
-        return Update(restarted=restarted, planner=planner)
+        return Update(restarted=restarted, planner=planner, publication=self._publication(now))
+
+    def _publication(self, now: float) -> MapPublication | None:
+        mapper = self.mapper
+        if now < self._next_share or mapper.version == self._shared_version or mapper.grid.empty:
+            return None
+        self._shared_version = mapper.version
+        self._next_share = now + self.share_period
+        return MapPublication.of(mapper)
 
     def _due(self, t: float, pose: tuple[float, float, float]) -> bool:
         if self._last is None:

@@ -115,7 +115,14 @@ class PathPlanner:
         h, w = -(-g.shape[0] // f), -(-g.shape[1] // f)
         pad = np.zeros((h * f, w * f), dtype=bool)
         pad[: g.shape[0], : g.shape[1]] = blocked
-        self.blocked: npt.NDArray[np.bool_] = np.asarray(pad.reshape(h, f, w, f).any(axis=(1, 3)), dtype=bool)
+        # Any blocked cell blocks its plan cell: an OR of strided views (numpy's reshape(...).any(axis=(1, 3))
+        # reduces along short strided axes, ~10x slower on an office map).
+        cols = pad[:, 0::f].copy()
+        for i in range(1, f):
+            cols |= pad[:, i::f]
+        self.blocked: npt.NDArray[np.bool_] = cols[0::f].copy()
+        for i in range(1, f):
+            self.blocked |= cols[i::f]
         reach = cfg.inflation + cfg.cost_radius + res
         self.distance = _distance(self.blocked, res, reach)
         self.free = self.distance - res / 2.0 >= cfg.inflation

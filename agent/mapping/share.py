@@ -1,16 +1,18 @@
-"""Map sharing on a link: the adapter around ``OnboardMapper`` (the only module here that does I/O).
+"""Map sharing on a link: the adapter that serves the agent's map and sends its patches.
 
     share = MapShare(link, "r1", clock)   # link: a started Link with serve()/query() (Zenoh, in-process)
     share.start()                      # answers fleetlink/v1/r1/map, publishes fleetlink/v1/r1/map/updates
-    ... share.publish(mapper)          # from the thread that owns the mapper, after add_scan (rate-limited)
+    ... share.publish(update.publication)   # what the map keeper hands out (agent/mapping/keeper.py)
     share.stop()
 
-The query answer is a cached, already encoded ``MapSnapshot`` that ``publish`` refreshes (at most
-every ``period`` seconds, when the map changed), so the link's query thread never touches the
-mapper; before the first snapshot, and after ``stop``, it answers nothing. ``publish`` also sends a
-``MapUpdate`` with the rectangle that changed since the last one; a receiver that missed one
-(``base_version`` mismatch) or sees the map grow asks for a snapshot (``codec.SharedMap.apply``
-returns False).
+When to publish is the keeper's decision (every ``SHARE_PERIOD_S`` while the map changes); the
+share only moves bytes. The query answer is a ``MapSnapshot`` of the last publication's cells (a
+copy, so the link's query thread never touches the mapper), compressed when first asked for and
+kept until the next publication: most are never asked for, and compressing a whole map is the
+costliest step. Before the first publication, and after ``stop``, it answers nothing. ``publish``
+also sends a ``MapUpdate`` with the rectangle that changed since the previous one; a receiver
+that missed one (``base_version`` mismatch) or sees the map grow asks for a snapshot
+(``codec.SharedMap.apply`` returns False).
 
 A link cannot withdraw what it serves, so a stopped share keeps its (silent) answer registered
 until the link closes: a map restarted in a new frame costs one idle queryable.
@@ -23,11 +25,11 @@ from __future__ import annotations
 import logging
 import threading
 
-from fleetlink.agent.mapping.mapper import OnboardMapper
+from fleetlink.agent.mapping.keeper import MapPublication
 from fleetlink.links.base import QueryLink
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
-from fleetlink.shared.map_codec import patch_fields, snapshot_fields
+from fleetlink.shared.map_codec import fits_whole, patch_fields, snapshot_fields
 from fleetlink.shared.messages import MapSnapshot, MapUpdate
 
 __all__ = ["MapShare", "fetch_map"]
@@ -36,23 +38,18 @@ log = logging.getLogger(__name__)
 
 
 class MapShare:
-    def __init__(
-        self, link: QueryLink, robot: str, clock: Clock, *, sender: str | None = None, period: float = 1.0
-    ) -> None:
+    def __init__(self, link: QueryLink, robot: str, clock: Clock, *, sender: str | None = None) -> None:
         keys.check_robot_id(robot)
         self.link = link
         self.robot = robot
         self.clock = clock
-        self.period = period
         self.counter = wire.HeaderCounter(clock, robot=robot, sender=sender or f"agent-{robot}")
         self.map_key = keys.key(robot, MapSnapshot.TOPIC)
         self.updates_key = keys.key(robot, MapUpdate.TOPIC)
-        self._snapshot: bytes | None = None  # swapped atomically; read by the link's query thread
+        self._last: MapPublication | None = None
+        self._snapshot: bytes | None = None  # its encoded MapSnapshot, built on the first query
         self._serving = False
         self._started = False
-        self._last_version = -1
-        self._last_geometry: tuple[float, float, float, int, int] | None = None
-        self._next = -float("inf")
         self._lock = threading.Lock()
         self.queries = 0
         self.updates = 0
@@ -76,35 +73,31 @@ class MapShare:
         self.stop()
 
     def _answer(self, _key_expr: str) -> list[tuple[str, bytes]]:
-        data = self._snapshot
         if not self._serving:
             return []
-        self.queries += 1
+        with self._lock:
+            self.queries += 1
+            last = self._last
+            if self._snapshot is None and last is not None:
+                fields = snapshot_fields(last.cells, last.resolution, last.origin, last.version)
+                snap = self.counter.make(MapSnapshot, **fields)
+                self._snapshot = wire.encode(snap)
+                self.snapshots += 1
+            data = self._snapshot
         return [] if data is None else [(self.map_key, data)]
 
-    def publish(self, mapper: OnboardMapper, force: bool = False) -> bool:
-        """Refresh the snapshot and publish an update if the map changed and ``period`` has passed."""
-        now = self.clock.now()
-        if not force and (now < self._next or mapper.version == self._last_version):
-            return False
+    def publish(self, pub: MapPublication) -> None:
+        """Serve ``pub`` from now on; send the patch of what changed since the previous one."""
         with self._lock:
-            cells, res, origin = mapper.occupancy()
-            version = mapper.version
-            snap = self.counter.make(MapSnapshot, **snapshot_fields(cells, res, origin, version))
-            self._snapshot = wire.encode(snap)
-            self.snapshots += 1
-            box = mapper.grid.take_dirty()
-            geometry = (res, origin[0], origin[1], int(cells.shape[0]), int(cells.shape[1]))
-            if self._serving and box is not None and self._last_version >= 0:
-                fields = patch_fields(cells, res, origin, box, version, self._last_version)
-                if fields is not None and snap.resolution == res:
-                    upd = self.counter.make(MapUpdate, **fields)
-                    self.link.publish(self.updates_key, wire.encode(upd))
-                    self.updates += 1
-            self._last_version = version
-            self._last_geometry = geometry
-            self._next = now + self.period
-        return True
+            prev, self._last, self._snapshot = self._last, pub, None
+            if not self._serving or prev is None or pub.changed is None:
+                return
+            if not fits_whole(pub.cells):  # receivers hold a coarser copy: the patch would not apply
+                return
+            fields = patch_fields(pub.cells, pub.resolution, pub.origin, pub.changed, pub.version, prev.version)
+            if fields is not None:
+                self.link.publish(self.updates_key, wire.encode(self.counter.make(MapUpdate, **fields)))
+                self.updates += 1
 
 
 def fetch_map(link: QueryLink, robot: str, timeout: float = 5.0) -> MapSnapshot | None:

@@ -1,0 +1,186 @@
+"""The map keeper (agent/mapping/keeper.py) under simulated time, and where it runs
+(agent/mapping/worker.py): in line, one turn behind, or one turn behind in a second process."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fleetlink.agent.mapping.keeper import MapKeeper, Update
+from fleetlink.agent.mapping.worker import DeferredKeeper, MapWorker
+from fleetlink.field.raycast import Raycaster
+from fleetlink.shared.worker import ProcessWorker
+
+ROOM = np.array([[0.0, 0.0, 6.0, 0.0], [6.0, 0.0, 6.0, 4.0], [6.0, 4.0, 0.0, 4.0], [0.0, 4.0, 0.0, 0.0]])
+ANGLES = np.linspace(0.0, 2 * math.pi, 360, endpoint=False)
+CASTER = Raycaster(ROOM)
+
+
+def _scan(pose: tuple[float, float, float]) -> np.ndarray:
+    r = CASTER.cast_fan(pose[0], pose[1], pose[2], 2 * math.pi / 360, 360, 12.0)
+    return np.where(np.isfinite(r), r, 0.0)
+
+
+def _turn(
+    keeper: MapKeeper, t: float, pose: tuple[float, float, float], *, placed: bool = True, driving: bool = True
+) -> Update:
+    return keeper.add(t, _scan(pose), ANGLES, pose, placed=placed, driving=driving, now=t)
+
+
+def test_the_first_turn_gives_a_planner_and_a_publication() -> None:
+    keeper = MapKeeper()
+    up = _turn(keeper, 0.0, (1.0, 1.0, 0.0))
+    assert up.planner is not None and up.publication is not None and not up.restarted
+    pub = up.publication
+    assert pub.version == keeper.mapper.version == 1
+    assert pub.changed is not None and pub.cells.dtype == np.int8
+    assert ((pub.cells >= 0) & (pub.cells < 50)).sum() > 1000  # free floor seen
+    assert up.planner.route((1.0, 1.0), (2.0, 1.5))  # a route across the room it has seen
+
+
+def test_the_motion_filter_skips_turns_seen_from_the_same_place() -> None:
+    keeper = MapKeeper()
+    _turn(keeper, 0.0, (1.0, 1.0, 0.0))
+    for i in range(1, 5):  # standing still for 0.4 s: nothing new to map
+        up = _turn(keeper, 0.1 * i, (1.0, 1.0, 0.0))
+        assert up == Update()
+    assert keeper.skipped == 4 and keeper.mapper.scans == 1
+    _turn(keeper, 0.5, (1.0 + keeper.min_move_m, 1.0, 0.0))  # moved: mapped
+    _turn(keeper, 0.6, (1.0 + keeper.min_move_m, 1.0, keeper.min_turn_rad))  # turned: mapped
+    assert keeper.mapper.scans == 3
+    _turn(keeper, 0.6 + keeper.max_gap_s, (1.0 + keeper.min_move_m, 1.0, keeper.min_turn_rad))  # a while later
+    assert keeper.mapper.scans == 4 and keeper.skipped == 4
+
+
+def test_the_map_restarts_once_when_the_robot_is_placed_in_the_site_frame() -> None:
+    keeper = MapKeeper()
+    _turn(keeper, 0.0, (1.0, 1.0, 0.0), placed=False)
+    first = keeper.mapper
+    up = _turn(keeper, 0.1, (1.2, 1.0, 0.0), placed=True)
+    assert up.restarted and keeper.restarts == 1 and keeper.mapper is not first
+    # The new map is shared and planned at once, though the old one was shared a moment ago.
+    assert up.planner is not None and up.publication is not None and up.publication.version == 1
+    up = _turn(keeper, 0.5, (1.6, 1.0, 0.0), placed=True)
+    assert not up.restarted and keeper.restarts == 1
+
+
+def test_planners_are_renewed_while_driving_at_the_planner_period() -> None:
+    keeper = MapKeeper(planner_period=2.0)
+    t, x, planners = 0.0, 1.0, []
+    while t < 6.0:
+        up = _turn(keeper, t, (x, 1.0, 0.0))
+        if up.planner is not None:
+            planners.append(t)
+        t, x = round(t + 0.1, 6), x + 0.02  # 0.2 m/s: a new keyframe every half second
+    assert planners == [0.0, 2.0, 4.0]
+    # Standing still, the map changes only by noise: no new planner however long it waits.
+    for i in range(30):
+        up = _turn(keeper, 6.0 + i, (x, 1.0, 0.0), driving=False)
+        assert up.planner is None
+
+
+def test_publications_come_at_the_share_period_while_the_map_changes() -> None:
+    keeper = MapKeeper(share_period=1.0)
+    t, x, shared = 0.0, 1.0, []
+    while t < 3.05:
+        up = _turn(keeper, t, (x, 1.0, 0.0))
+        if up.publication is not None:
+            shared.append((t, up.publication.version))
+        t, x = round(t + 0.1, 6), x + 0.02
+    assert [s[0] for s in shared] == [0.0, 1.0, 2.0, 3.0]
+    versions = [s[1] for s in shared]
+    assert versions == sorted(versions) and len(set(versions)) == len(versions)
+    assert versions[-1] == keeper.mapper.version
+
+
+def _same(a: Update | None, b: Update | None) -> bool:
+    if a is None or b is None:
+        return a is b
+    if a.restarted != b.restarted or (a.planner is None) != (b.planner is None):
+        return False
+    pa_, pb_ = a.planner, b.planner
+    if (
+        pa_ is not None
+        and pb_ is not None
+        and not (np.array_equal(pa_.blocked, pb_.blocked) and pa_.origin == pb_.origin)
+    ):
+        return False
+    if (a.publication is None) != (b.publication is None):
+        return False
+    if a.publication is not None and b.publication is not None:
+        pa, pb = a.publication, b.publication
+        return (pa.version, pa.changed, pa.origin) == (pb.version, pb.changed, pb.origin) and np.array_equal(
+            pa.cells, pb.cells
+        )
+    return True
+
+
+def test_a_keeper_in_the_map_worker_gives_what_one_in_line_gives_one_turn_late() -> None:
+    robots = ("r1", "r2")
+    inline = {r: DeferredKeeper() for r in robots}
+    direct = {r: MapKeeper() for r in robots}
+    with MapWorker() as worker:
+        remote = {r: worker.keeper(r) for r in robots}
+        with pytest.raises(ValueError):
+            worker.keeper("r1")
+        previous: dict[str, Update | None] = {r: None for r in robots}
+        came: list[Update] = []
+        for k in range(25):
+            t = 0.1 * k
+            for j, r in enumerate(robots):  # interleaved, as a lockstep run steps its robots
+                pose = (1.0 + 0.03 * k, 1.0 + j, 0.02 * k)
+                args = (t, _scan(pose), ANGLES, pose)
+                kw = {"placed": k >= 5, "driving": True, "now": t}
+                now_update = direct[r].add(*args, **kw)
+                a, b = inline[r].add(*args, **kw), remote[r].add(*args, **kw)
+                assert _same(a, previous[r]) and _same(b, previous[r]), (r, k)
+                previous[r] = now_update
+                if b is not None:
+                    came.append(b)
+        # What came through the process: restarts (placed at k = 5), planners and publications.
+        assert sum(u.restarted for u in came) == 2
+        assert sum(u.planner is not None for u in came) >= 4
+        assert sum(u.publication is not None for u in came) >= 4
+
+
+class _Echo:
+    def __init__(self) -> None:
+        self.told: list[object] = []
+
+    def __call__(self, request: object) -> object:
+        if isinstance(request, np.ndarray):
+            return ("echo", request)
+        if request == "boom":
+            raise ValueError("boom")
+        if request == "told?":
+            return list(self.told)
+        if isinstance(request, tuple) and request[0] == "tell":
+            self.told.append(request[1])
+            return None
+        return ("echo", request)
+
+
+def test_the_process_worker_replies_in_order_and_survives_a_failing_request() -> None:
+    worker = ProcessWorker("test-echo", _Echo)
+    try:
+        with pytest.raises(RuntimeError):
+            worker.reply()  # nothing asked
+        for i in range(200):  # more than a pipe's buffer holds before anyone reads
+            worker.call(np.full(100, i))
+        worker.tell(("tell", "a"))
+        worker.call("boom")
+        worker.tell(("tell", "b"))
+        worker.call("told?")
+        assert worker.pending == 202
+        for i in range(200):
+            kind, arr = worker.reply()
+            assert kind == "echo" and int(arr[0]) == i
+        with pytest.raises(RuntimeError, match="ValueError: boom"):
+            worker.reply()
+        assert worker.reply() == ["a", "b"]  # the worker served on after the failure
+        assert worker.pending == 0
+    finally:
+        worker.close()
+    worker.close()  # idempotent
