@@ -41,7 +41,7 @@ from fleetlink.shared.messages import (  # noqa: E402
     Teleop,
     Velocity,
 )
-from tests.test_console import Rig  # noqa: E402
+from tests.harness.console_rig import Rig  # noqa: E402
 
 
 def pct(values: list[float], q: float) -> float:

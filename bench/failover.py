@@ -33,7 +33,7 @@ from fleetlink.shared.clock import SystemClock  # noqa: E402
 from fleetlink.shared.messages import Order  # noqa: E402
 from fleetlink.site.brokers import MosquittoBroker  # noqa: E402
 from tests.harness import wait_until  # noqa: E402
-from tests.test_operator_links import LinkRobot, goal, open_operator  # noqa: E402
+from tests.harness.link_robot import LinkRobot, goal, open_operator  # noqa: E402
 
 
 def pct(values: list[float], q: float) -> float:

@@ -1,4 +1,4 @@
-"""Ground truth on Zenoh: the field publishes each robot's true pose under the simulation namespace."""
+"""Ground truth on a link: the field publishes each robot's true pose under the simulation namespace."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import logging
 from typing import Any
 
 from fleetlink.field.realtime import TruthSample
-from fleetlink.links.zenoh import peer_config
+from fleetlink.links.base import Link
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.messages import Truth
@@ -17,20 +17,24 @@ __all__ = ["TruthPublisher"]
 
 
 class TruthPublisher:
-    """Encodes ``TruthSample``s as wire-contract ``Truth`` messages and puts them on ``fleetlink/v1/sim/<robot>/truth``."""
+    """Encodes ``TruthSample``s as wire-contract ``Truth`` messages and publishes them on
+    ``fleetlink/v1/sim/<robot>/truth`` through ``link`` (a Zenoh endpoint: a peer that listens, or
+    the ``sim`` user of a secured site's router; started here if it is not). ``owns_link``: ``close``
+    closes it."""
 
-    def __init__(self, session: Any, clock: Clock, sender: str = "field", owns_session: bool = False) -> None:
-        self.session = session
+    def __init__(self, link: Link, clock: Clock, sender: str = "field", *, owns_link: bool = False) -> None:
+        link.start()  # idempotent
+        self.link = link
         self.counter = wire.HeaderCounter(clock, robot="field", sender=sender)
-        self._owns = owns_session
-        self._publishers: dict[str, Any] = {}
+        self._owns = owns_link
 
     @classmethod
-    def open(cls, listen: str, clock: Clock, connect: tuple[str, ...] = ()) -> TruthPublisher:
-        import zenoh
+    def open(cls, clock: Clock, *, listen: str = "", connect: tuple[str, ...] = (), **auth: Any) -> TruthPublisher:
+        """On a Zenoh endpoint of its own (``ZenohEndpoint``'s keywords), closed with the publisher."""
+        from fleetlink.links.zenoh import ZenohEndpoint
 
-        session = zenoh.open(peer_config([listen] if listen else [], connect))
-        return cls(session, clock, owns_session=True)
+        link = ZenohEndpoint(listen=[listen] if listen else [], connect=connect, label="zenoh-truth", **auth)
+        return cls(link, clock, owns_link=True)
 
     def publish(self, sample: TruthSample) -> None:
         header = self.counter.header(Truth.TOPIC, robot=sample.robot)
@@ -44,15 +48,8 @@ class TruthPublisher:
             omega=sample.omega,
             bumped=sample.bumped,
         )
-        pub = self._publishers.get(sample.robot)
-        if pub is None:
-            pub = self.session.declare_publisher(keys.truth_key(sample.robot))
-            self._publishers[sample.robot] = pub
-        pub.put(wire.encode(msg))
+        self.link.publish(keys.truth_key(sample.robot), wire.encode(msg))
 
     def close(self) -> None:
-        for pub in self._publishers.values():
-            pub.undeclare()
-        self._publishers.clear()
         if self._owns:
-            self.session.close()
+            self.link.close()

@@ -67,6 +67,10 @@ class QueryLink(Link, Protocol):
         """Answer queries matching ``key_expr``: ``answer(key_expr_asked)`` -> [(key, payload)]."""
         ...
 
+    def unserve(self, key_expr: str) -> None:
+        """Stop answering on ``key_expr`` (what ``serve`` registered on exactly that expression)."""
+        ...
+
     def query(self, key_expr: str, timeout: float = ...) -> list[tuple[str, bytes]]:
         """Every reachable answer to ``key_expr``."""
         ...

@@ -70,6 +70,9 @@ class InProcessLink:
         """Answer queries on ``key_expr``: ``answer(key_expr_asked)`` -> [(key, payload)]."""
         self._served.append((key_expr, answer))
 
+    def unserve(self, key_expr: str) -> None:
+        self._served = [(expr, answer) for expr, answer in self._served if expr != key_expr]
+
     def query(self, key_expr: str, timeout: float = 0.0) -> list[tuple[str, bytes]]:
         """Every reachable endpoint's answers to ``key_expr`` (``timeout`` is unused: in-process
         queries answer at once)."""

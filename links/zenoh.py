@@ -92,6 +92,10 @@ def peer_config(
     conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
     conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    # Zenoh 1.x maps a 16 MB shared-memory pool into every process that sends a message over 3 kB
+    # (a map patch) to a peer on the same host: +16 MB RSS per agent in bench/scale.py. Robots talk
+    # across hosts, where it cannot help; the fleet's large messages are a few maps a second.
+    conf.insert_json5("transport/shared_memory/enabled", "false")
     if (username is None) != (password is None):
         raise ValueError("zenoh username and password go together (both or neither)")
     if username is not None:
@@ -168,7 +172,8 @@ class ZenohEndpoint:
         self._session: Any = None
         self._subs: list[tuple[str, Receiver]] = []
         self._served: list[tuple[str, Answer]] = []
-        self._declared: list[Any] = []
+        self._declared: list[Any] = []  # subscribers
+        self._queryables: list[tuple[str, Any]] = []
         self._token: Any = None
         self._opts: dict[str, dict[str, Any]] = {}
         self._lock = threading.Lock()
@@ -204,6 +209,8 @@ class ZenohEndpoint:
             session, self._session = self._session, None
             delivery, self._delivery = self._delivery, None
             declared, self._declared = self._declared, []
+            declared += [q for _, q in self._queryables]
+            self._queryables = []
             token, self._token = self._token, None
         if session is None:
             return
@@ -270,6 +277,16 @@ class ZenohEndpoint:
             if self._session is not None:
                 self._declare_queryable(key_expr, answer)
 
+    def unserve(self, key_expr: str) -> None:
+        """Undeclare the queryables on exactly ``key_expr``; a restart will not declare them again."""
+        with self._lock:
+            self._served = [(k, a) for k, a in self._served if k != key_expr]
+            gone = [q for k, q in self._queryables if k == key_expr]
+            self._queryables = [(k, q) for k, q in self._queryables if k != key_expr]
+        for q in gone:
+            with contextlib.suppress(Exception):  # the session is closing
+                q.undeclare()
+
     def query(self, key_expr: str, timeout: float = 1.0) -> list[tuple[str, bytes]]:
         """Ask the queryables on ``key_expr`` (waiting up to ``timeout`` s): their good replies."""
         session = self._session
@@ -318,7 +335,7 @@ class ZenohEndpoint:
             except Exception as exc:  # the querier went away, or a bad answer: keep serving
                 log.debug("%s: answering %s: %s", self.label, key_expr, exc)
 
-        self._declared.append(self._session.declare_queryable(key_expr, on_query))
+        self._queryables.append((key_expr, self._session.declare_queryable(key_expr, on_query)))
 
     def _options(self, key: str) -> dict[str, Any]:
         opts = self._opts.get(key)

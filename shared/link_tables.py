@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 from fleetlink.shared.config import ConfigError, Invalid, Setting
-from fleetlink.shared.mqtt import MqttSettings
+from fleetlink.shared.mqtt import MqttSettings, parse_url
 from fleetlink.shared.zenoh_config import ZenohAuth
 
 __all__ = ["Endpoint", "MqttTable", "ZenohTable", "check_endpoint", "mqtt_settings", "zenoh_auth"]
@@ -22,21 +22,7 @@ Text = Annotated[str, Setting(min_len=1)]
 
 
 def _check_mqtt_url(url: str) -> str:
-    from urllib.parse import urlsplit
-
-    try:
-        parts = urlsplit(url)
-        parts.port  # noqa: B018 - raises on a bad port
-    except ValueError as exc:
-        raise ValueError(f"invalid url {url!r}: {exc}") from None
-    if parts.scheme not in ("mqtt", "mqtts"):
-        raise ValueError(f"invalid url {url!r}: scheme must be mqtt:// or mqtts://")
-    if not parts.hostname:
-        raise ValueError(f"invalid url {url!r}: no host")
-    if parts.username or parts.password:
-        raise ValueError(f"invalid url {url!r}: put credentials in username/password_file, not the url")
-    if parts.path not in ("", "/") or parts.query or parts.fragment:
-        raise ValueError(f"invalid url {url!r}: expected mqtt[s]://host[:port] and nothing after")
+    parse_url(url)  # ValueError saying what is wrong
     return url
 
 

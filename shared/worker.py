@@ -28,8 +28,10 @@ as ``RuntimeError`` at its ``reply()``; the child goes on serving.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing as mp
+import pickle
 import threading
 import traceback
 from collections import deque
@@ -147,7 +149,10 @@ def _serve(conn: Connection, make_handler: Callable[[], Callable[[Any], Any]]) -
                 conn.send((_FAILED, traceback.format_exc()))
             continue
         if wants_reply:
-            conn.send((_REPLY, result))
+            try:
+                conn.send((_REPLY, result))
+            except (pickle.PicklingError, TypeError, AttributeError) as exc:  # a reply that cannot travel
+                conn.send((_FAILED, f"the reply cannot be sent: {exc!r}"))
 
 
 class ProcessWorker:
@@ -164,30 +169,34 @@ class ProcessWorker:
         child.close()
         if self._conn.recv()[0] != _READY:
             raise RuntimeError(f"{name}: the worker process failed to start")
-        self._replies: deque[tuple[str, Any]] = deque()
         self.pending = 0
         """Calls sent whose replies have not been taken by ``reply()``."""
-        self._unread = 0  # replies still in the pipe
+        # Replies are read as they come by a thread of ours: a child writing a large reply must
+        # never wait for us while we wait to write it a request (both ends would block for good).
+        self._replies: deque[tuple[str, Any]] = deque()
+        self._arrived = threading.Condition()
+        self._reader = threading.Thread(target=self._read_replies, name=f"{name}-replies", daemon=True)
+        self._reader.start()
 
     def tell(self, request: Any) -> None:
         """Send a request that has no reply."""
         self._conn.send((False, request))
-        self._read_ready()
 
     def call(self, request: Any) -> None:
         """Send a request; its reply comes, in order, from ``reply()``."""
-        self._conn.send((True, request))
+        self._conn.send((True, request))  # a request that cannot be pickled raises here, nothing sent
         self.pending += 1
-        self._unread += 1
-        self._read_ready()
 
     def reply(self) -> Any:
         """The oldest call's reply, waiting for it if need be."""
         if not self.pending:
             raise RuntimeError(f"{self.name}: no call is waiting for a reply")
-        if not self._replies:
-            self._read()
-        kind, value = self._replies.popleft()
+        with self._arrived:
+            while not self._replies:
+                if not self._reader.is_alive():
+                    raise RuntimeError(f"{self.name}: the worker process is gone")
+                self._arrived.wait(1.0)
+            kind, value = self._replies.popleft()
         self.pending -= 1
         if kind == _FAILED:
             raise RuntimeError(f"{self.name}: the request failed in the worker:\n{value}")
@@ -196,17 +205,13 @@ class ProcessWorker:
     def close(self) -> None:
         """Stop the child (after it has served what was sent) and join it; idempotent."""
         if self._proc.is_alive():
-            try:
+            with contextlib.suppress(EOFError, OSError):
                 self._conn.send((None, None))
-                while True:
-                    kind, _ = self._conn.recv()
-                    if kind == _STOP:
-                        break
-            except (EOFError, OSError):
-                pass
+            self._reader.join(10.0)  # it ends at the child's last word
             self._proc.join(5.0)
             if self._proc.is_alive():
                 self._proc.kill()
+                self._proc.join(1.0)
         self._conn.close()
 
     def __enter__(self) -> Self:
@@ -215,14 +220,17 @@ class ProcessWorker:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _read_ready(self) -> None:
-        # Keep the pipe from filling up (both ends would block): take what has come, without waiting.
-        while self._unread and self._conn.poll():
-            self._read()
-
-    def _read(self) -> None:
-        msg = self._conn.recv()
-        if msg[0] not in (_REPLY, _FAILED):
-            raise RuntimeError(f"{self.name}: unexpected message from the worker: {msg[0]!r}")
-        self._replies.append(msg)
-        self._unread -= 1
+    def _read_replies(self) -> None:
+        try:
+            while True:
+                kind, value = self._conn.recv()
+                if kind == _STOP:
+                    return
+                with self._arrived:
+                    self._replies.append((kind, value))
+                    self._arrived.notify()
+        except (EOFError, OSError):  # the child died, or we closed
+            pass
+        finally:
+            with self._arrived:
+                self._arrived.notify_all()

@@ -108,7 +108,7 @@ class FieldSite:
         self.mqtt_ok = True
         self.zenoh_endpoint: str | None = None  # where agents and operators meet on Zenoh
         self.endpoints: dict[str, Endpoints] = {}
-        self.truth: Any = None  # TruthPublisher (demo) or RoutedTruth (secured)
+        self.truth: Any = None  # TruthPublisher: a listening peer (demo), user sim of the router (secured)
         self.gateway: UwbGateway | None = None
         self.agents: FieldAgents | None = None
         self.boards: OpenLoopBoards | None = None
@@ -137,15 +137,13 @@ class FieldSite:
         return self
 
     def _start_secured(self, options: Security) -> None:
-        import zenoh
-
-        from fleetlink.links.zenoh import peer_config
+        from fleetlink.field.truth import TruthPublisher
 
         robots = [r.name for r in self.scenario.robots]
         self.security = SiteSecurity(robots, options.operators, tls=options.tls).start()
         self.mqtt_url = self.security.mqtt_url
         self.zenoh_endpoint = self.security.zenoh_endpoint
-        self.truth = RoutedTruth(zenoh.open(peer_config(**self.security.zenoh_auth(SIM_USER))), self.clock)
+        self.truth = TruthPublisher.open(self.clock, **self.security.zenoh_auth(SIM_USER))
         self._truth_sinks.append(self.truth.publish)
 
     def _start_demo(self) -> None:
@@ -153,7 +151,7 @@ class FieldSite:
             from fleetlink.field.truth import TruthPublisher
 
             try:
-                self.truth = TruthPublisher.open(self.truth_listen, self.clock)
+                self.truth = TruthPublisher.open(self.clock, listen=self.truth_listen)
                 self._truth_sinks.append(self.truth.publish)
             except Exception as exc:  # zenoh raises its own ZError
                 self.say(f"warning: cannot publish ground truth on {self.truth_listen}: {exc}; continuing without")
@@ -190,11 +188,10 @@ class FieldSite:
         if self.operator is not None:
             self.link = self.operator_link(self.operator).start()
         elif self.security is None:
-            import zenoh
+            from fleetlink.links.zenoh import ZenohEndpoint
 
-            from fleetlink.links.zenoh import peer_config
-
-            self._hub = zenoh.open(peer_config([self.zenoh_endpoint], ()))
+            self._hub = ZenohEndpoint(listen=[self.zenoh_endpoint], label="zenoh-hub")
+            self._hub.start()
         s = self.security
         self.agents = FieldAgents(
             self.endpoints,
@@ -337,44 +334,3 @@ class OpenLoopBoards:
         for _, session, _ in self.sessions:
             session.stop()
         self.sessions.clear()
-
-
-class RoutedTruth:
-    """Ground truth as ``sim`` through a router. ``session.put`` per sample: behind a router, a
-    publisher declared before the subscriber appears would drop every sample (docs/operations.md
-    section 3)."""
-
-    def __init__(self, session: Any, clock: Clock) -> None:
-        from fleetlink.field.truth import TruthPublisher
-
-        self.session = session
-        self._encoder = TruthPublisher(_PutOnly(session), clock)  # its encoding, our puts
-
-    def publish(self, sample: TruthSample) -> None:
-        self._encoder.publish(sample)
-
-    def close(self) -> None:
-        self._encoder.close()
-        self.session.close()
-
-
-class _PutOnly:
-    """Stands in for a session: ``declare_publisher`` gives a putter that puts on the session."""
-
-    def __init__(self, session: Any) -> None:
-        self._session = session
-
-    def declare_publisher(self, key: str) -> _Putter:
-        return _Putter(self._session, key)
-
-
-@dataclass(frozen=True)
-class _Putter:
-    session: Any
-    key: str
-
-    def put(self, payload: bytes) -> None:
-        self.session.put(self.key, payload)
-
-    def undeclare(self) -> None:
-        pass

@@ -15,6 +15,7 @@ from fleetlink.devices.ports import SerialPort
 from fleetlink.field.realtime import RealtimeField
 from fleetlink.field.scenario import parse_scenario
 from fleetlink.field.truth import TruthPublisher
+from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Truth
@@ -55,7 +56,7 @@ def test_board_and_lidar_are_served_like_hardware_and_truth_goes_out_on_zenoh(ze
             truths.append(msg)  # type: ignore[arg-type]
 
     sub = listener.declare_subscriber(keys.ZENOH_ALL_TRUTH, on_truth)
-    publisher = TruthPublisher(field_session, clock)
+    publisher = TruthPublisher(ZenohEndpoint(session=field_session), clock)
     field = RealtimeField(quiet_scenario(), clock=clock, truth_sink=publisher.publish)
     try:
         endpoints = field.start()

@@ -205,10 +205,31 @@ def test_zenoh_serve_and_query_and_the_alive_token() -> None:
         assert b.query(keys.key("r2", "map"), 0.3) == []
         tokens = lambda: [str(r.ok.key_expr) for r in b.session.liveliness().get(keys.zenoh_all_robots("alive"))]  # noqa: E731
         wait_until(lambda: tokens() == [alive], message="the alive token")
+        a.unserve(keys.key("r1", "map"))  # withdrawn: nobody answers any more
+        wait_until(lambda: b.query(keys.key("r1", "map"), 0.3) == [], message="the queryable withdrawn")
+        a.serve(keys.key("r1", "map"), lambda asked: [(keys.key("r1", "map"), b"again")])
+        wait_until(lambda: b.query(keys.key("r1", "map"), 0.5), message="served again")
+        assert b.query(keys.key("r1", "map"), 1.0) == [(keys.key("r1", "map"), b"again")]
     finally:
         b.close()
         a.close()
     assert b.query(keys.key("r1", "map"), 0.1) == []  # closed: nobody to ask
+
+
+def test_inprocess_serve_query_and_unserve() -> None:
+    bus = InProcessBus(LinkName.ZENOH)
+    a, b = bus.endpoint("a"), bus.endpoint("b")
+    a.start()
+    b.start()
+    key = keys.key("r1", "map")
+    a.serve(key, lambda asked: [(key, b"for " + asked.encode())])
+    a.serve(keys.key("r2", "map"), lambda asked: [(keys.key("r2", "map"), b"r2")])
+    assert b.query(key) == [(key, b"for fleetlink/v1/r1/map")]
+    assert b.query(keys.zenoh_all_robots("map")) == [(key, b"for fleetlink/v1/*/map"), (keys.key("r2", "map"), b"r2")]
+    a.unserve(key)
+    assert b.query(key) == [] and b.query(keys.key("r2", "map")) == [(keys.key("r2", "map"), b"r2")]
+    a.close()
+    assert b.query(keys.key("r2", "map")) == []  # down: nobody to ask
 
 
 def test_mqtt_will_on_connect_hook_and_resubscribe_after_a_broker_restart(mosquitto: Any) -> None:

@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import math
+import pickle
+import threading
 
 import numpy as np
 import pytest
@@ -156,30 +158,36 @@ class _Echo:
             raise ValueError("boom")
         if request == "told?":
             return list(self.told)
+        if request == "lambda":
+            return lambda: None  # cannot be pickled back
         if isinstance(request, tuple) and request[0] == "tell":
             self.told.append(request[1])
-            return None
-        return ("echo", request)
+        return None
 
 
-def test_the_process_worker_replies_in_order_and_survives_a_failing_request() -> None:
+def test_the_process_worker_replies_in_order_and_survives_bad_requests() -> None:
     worker = ProcessWorker("test-echo", _Echo)
     try:
         with pytest.raises(RuntimeError):
             worker.reply()  # nothing asked
-        for i in range(200):  # more than a pipe's buffer holds before anyone reads
-            worker.call(np.full(100, i))
+        for i in range(100):  # large both ways: far more than a pipe holds before anyone reads
+            worker.call(np.full(10_000, i))
         worker.tell(("tell", "a"))
         worker.call("boom")
+        worker.call("lambda")
+        with pytest.raises((TypeError, AttributeError, pickle.PicklingError)):
+            worker.call(threading.Lock())  # cannot be sent: refused here, nothing pending
         worker.tell(("tell", "b"))
         worker.call("told?")
-        assert worker.pending == 202
-        for i in range(200):
+        assert worker.pending == 103
+        for i in range(100):
             kind, arr = worker.reply()
-            assert kind == "echo" and int(arr[0]) == i
+            assert kind == "echo" and int(arr[0]) == i and arr.shape == (10_000,)
         with pytest.raises(RuntimeError, match="ValueError: boom"):
             worker.reply()
-        assert worker.reply() == ["a", "b"]  # the worker served on after the failure
+        with pytest.raises(RuntimeError, match="cannot be sent"):
+            worker.reply()
+        assert worker.reply() == ["a", "b"]  # the worker served on after each failure
         assert worker.pending == 0
     finally:
         worker.close()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import random
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -13,13 +14,17 @@ import pytest
 from fleetlink.links.mqtt import connect_client, nodelay_enabled
 from fleetlink.links.zenoh import peer_config
 from fleetlink.shared.config import ConfigError
+from fleetlink.shared.config import parse as parse_config
+from fleetlink.shared.link_tables import MqttTable, mqtt_settings
 from fleetlink.shared.mqtt import MqttSettings
 from tests.harness import wait_until
 from tests.harness.deploy import DeployBroker, mosquitto_passwd
 
 
 def parse(text: str, base_dir: Path | None = None) -> MqttSettings:
-    return MqttSettings.from_table(tomllib.loads(text)["mqtt"], source="robot.toml", base_dir=base_dir)
+    """A ``[mqtt]`` table as every configuration file reads it: the schema, then its files."""
+    table = parse_config(tomllib.loads(text)["mqtt"], MqttTable, source="robot.toml", where="mqtt")
+    return mqtt_settings(table, source="robot.toml", base_dir=base_dir)
 
 
 def test_full_table(tmp_path: Path) -> None:
@@ -70,17 +75,17 @@ def test_default_ports(url: str, host: str, port: int, tls: bool) -> None:
         ('url = "mqtt://u:p@h"', "put credentials in username/password_file"),
         ('url = "mqtt://h:99999"', "invalid url"),
         ('url = "mqtt://h/x"', "nothing after"),
-        ('url = "mqtt://h"\nbogus = 1', "unknown key(s) bogus"),
-        ('username = "r1"', "missing key(s) url"),
+        ('url = "mqtt://h"\nbogus = 1', "mqtt.bogus: unknown key; allowed: ca_file"),
+        ('username = "r1"', "mqtt.url: missing required key"),
         ('url = "mqtt://h"\npassword = "p"', "a password needs a username"),
         ('url = "mqtt://h"\nusername = "r1"\npassword = "p"\npassword_file = "pw"', "not both"),
         ('url = "mqtt://h"\npassword_file = "nope"', "mqtt.password_file: no such file"),
         ('url = "mqtt://h"\nusername = "r1"\npassword_file = "empty"', "is empty"),
         ('url = "mqtt://h"\nca_file = "pw"', "need an mqtts:// url"),
         ('url = "mqtts://h"\ncert_file = "pw"', "both or neither"),
-        ('url = "mqtt://h"\nkeepalive_s = 0', "mqtt.keepalive_s: must be between 1 and 3600"),
+        ('url = "mqtt://h"\nkeepalive_s = 0', "mqtt.keepalive_s: must be >= 1, got 0"),
         ('url = "mqtt://h"\nreconnect_min_s = 5\nreconnect_max_s = 1', "must be >= reconnect_min_s"),
-        ('url = "mqtt://h"\nusername = 3', "mqtt.username: expected a non-empty string"),
+        ('url = "mqtt://h"\nusername = 3', "mqtt.username: expected a string, got int 3"),
     ],
 )
 def test_errors_name_the_key(tmp_path: Path, body: str, problem: str) -> None:
@@ -92,9 +97,14 @@ def test_errors_name_the_key(tmp_path: Path, body: str, problem: str) -> None:
     assert problem in str(err.value)
 
 
+@dataclass(frozen=True)
+class _File:
+    mqtt: MqttTable | None = None
+
+
 def test_not_a_table() -> None:
     with pytest.raises(ConfigError, match="expected a table"):
-        MqttSettings.from_table("mqtt://h", source="robot.toml")
+        parse_config({"mqtt": "mqtt://h"}, _File, source="robot.toml")
 
 
 def test_client_logs_in_sets_nodelay_and_reconnects(tmp_path: Path) -> None:

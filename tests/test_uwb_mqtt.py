@@ -15,6 +15,7 @@ import paho.mqtt.client as mqtt
 from fleetlink.field.realtime import TruthSample
 from fleetlink.field.scenario import site_geometry
 from fleetlink.field.truth import TruthPublisher
+from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.positioning.config import MqttSettings, parse_config
 from fleetlink.positioning.publisher import UwbGateway
 from fleetlink.shared import keys, wire
@@ -83,7 +84,7 @@ def test_fixes_and_pans_over_real_mosquitto_from_zenoh_truth(mosquitto, zenoh_pe
     config = replace(config, mqtt=MqttSettings("127.0.0.1", mosquitto.port, keepalive_s=2))
     listener = Listener(mosquitto.port, ["fleetlink/v1/+/uwb", "dwm/node/+/uplink/location", "fleetlink/uwb/#"])
     clock = SystemClock()
-    truth = TruthPublisher(field_session, clock)
+    truth = TruthPublisher(ZenohEndpoint(session=field_session), clock)
     stop = threading.Event()
 
     def field() -> None:  # r1 stands in the corridor; 20 Hz truth like the real field
@@ -187,7 +188,7 @@ connect = ["{peers.endpoints[0]}"]
 """
     )
     listener = Listener(mosquitto.port, ["fleetlink/v1/+/uwb", "fleetlink/uwb/#"])
-    truth = TruthPublisher(field_session, SystemClock())
+    truth = TruthPublisher(ZenohEndpoint(session=field_session), SystemClock())
     proc = subprocess.Popen(
         [sys.executable, "-m", "fleetlink.cli.main", "uwb", "--config", str(cfg), "--seconds", "30"],
         stdout=subprocess.PIPE,

@@ -14,8 +14,8 @@ also sends a ``MapUpdate`` with the rectangle that changed since the previous on
 that missed one (``base_version`` mismatch) or sees the map grow asks for a snapshot
 (``codec.SharedMap.apply`` returns False).
 
-A link cannot withdraw what it serves, so a stopped share keeps its (silent) answer registered
-until the link closes: a map restarted in a new frame costs one idle queryable.
+``stop`` withdraws the answer from the link (a map restarted in a new frame is served by a new
+share on the same key).
 
 ``fetch_map(link, robot)`` is the asking side (used by ``fleetlink map save``).
 """
@@ -63,7 +63,9 @@ class MapShare:
 
     def stop(self) -> None:
         """Stop answering and publishing (idempotent); the link stays open (its owner closes it)."""
-        self._serving = False
+        if self._serving:
+            self._serving = False  # a query already in flight on the link's thread answers nothing
+            self.link.unserve(self.map_key)
 
     def __enter__(self) -> MapShare:
         self.start()

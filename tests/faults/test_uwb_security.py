@@ -115,8 +115,7 @@ def test_gateway_publishes_through_the_secured_site_and_nobody_else_forges_fixes
     clock = SystemClock()
     cfg = parse_config(_gateway_config(broker, endpoint, folder), source="uwb.toml", base=folder, site=site_geometry)
     assert cfg.mqtt.username == "uwb-gateway" and cfg.zenoh_auth.username == "uwb-gateway"
-    sim = zenoh.open(peer_config(connect=[endpoint], mode="client", username="sim", password=ZUSERS["sim"]))
-    truth = TruthPublisher(sim, clock, sender="field")
+    truth = TruthPublisher.open(clock, connect=(endpoint,), mode="client", username="sim", password=ZUSERS["sim"])
     stop = threading.Event()
 
     def feed() -> None:  # the field's ground truth, over the router, as user sim
@@ -179,7 +178,6 @@ def test_gateway_publishes_through_the_secured_site_and_nobody_else_forges_fixes
         gateway.stop()
         agent.close()
         truth.close()
-        sim.close()
 
 
 def test_gateway_with_a_wrong_password_is_refused_and_publishes_nothing(

@@ -1,0 +1,135 @@
+"""The console on the real OperatorLink over in-memory links, with a fake robot voice.
+
+Used by tests/test_console*.py and bench/console.py: the console sees exactly the bytes that would
+go on Zenoh or MQTT, and the rig injects what a robot would say.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from fleetlink.links.base import LinkStats, key_matches
+from fleetlink.operator.console import ConsoleApp, attach
+from fleetlink.operator.fleet import FleetModel
+from fleetlink.operator.linkmanager import LinkPolicy
+from fleetlink.operator.links import OperatorLink
+from fleetlink.shared import keys, wire
+from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.messages import Ack, AckResult, InstantActions, LinkName, Order, Pose
+
+__all__ = ["ME", "MemoryTransport", "Rig"]
+
+ME = "operator-1"
+
+
+class MemoryTransport:
+    """A ``fleetlink.links.base.Link`` that records what is published and injects what arrives."""
+
+    def __init__(self, name: str) -> None:
+        self.name = LinkName(name)
+        self.stats = LinkStats()
+        self.up = True
+        self.sent: list[tuple[str, bytes]] = []
+        self._receivers: list[tuple[str, Callable[[str, bytes], None]]] = []
+        self.lock = threading.Lock()
+        self.responder: Callable[[MemoryTransport, str, bytes], None] | None = None
+
+    def start(self) -> None:
+        pass
+
+    def subscribe(self, key_expr: str, receiver: Callable[[str, bytes], None]) -> None:
+        self._receivers.append((key_expr, receiver))
+
+    def publish(self, key: str, payload: bytes) -> bool:
+        with self.lock:
+            self.sent.append((key, payload))
+        if self.responder is not None:
+            self.responder(self, key, payload)
+        return True
+
+    def close(self) -> None:
+        self._receivers.clear()
+
+    def inject(self, msg: wire.Message) -> None:
+        self.inject_raw(keys.key(msg.header.robot, type(msg).TOPIC), wire.encode(msg))
+
+    def inject_raw(self, key: str, payload: bytes) -> None:
+        receivers = [r for expr, r in self._receivers if key_matches(expr, key)]
+        assert receivers, "not started, or closed"
+        for receiver in receivers:
+            receiver(key, payload)
+
+    def messages(self, cls: type[wire.Message] | None = None) -> list[Any]:
+        with self.lock:
+            out = [wire.decode_key(k, p) for k, p in self.sent]
+        return [m for m in out if cls is None or isinstance(m, cls)]
+
+
+class Rig:
+    """Console + OperatorLink over memory transports + a fake robot voice."""
+
+    def __init__(self, tmp_path: Path, read_only: bool = False, clock: Clock | None = None) -> None:
+        self.clock = clock if clock is not None else SystemClock()
+        self.zenoh = MemoryTransport("zenoh")
+        self.mqtt = MemoryTransport("mqtt")
+        policy = LinkPolicy(state_window_s=0.35, ack_timeout_s=0.25, holdoff_s=1.0)
+        self.link = OperatorLink(self.clock, ME, self.zenoh, self.mqtt, policy=policy, poll_hz=50.0)
+        self.fleet = FleetModel(ME)
+        self.lock = threading.Lock()
+        attach(self.link, self.fleet, self.lock)
+        self.marks_file = tmp_path / "marks.json"
+        self.app = ConsoleApp(
+            self.link, self.fleet, self.clock, lock=self.lock, read_only=read_only,
+            marks_file=self.marks_file, repeat_timeout_s=0.8,
+        )  # fmt: skip
+        self.agents: dict[str, wire.HeaderCounter] = {}
+        self.zenoh.responder = self.mqtt.responder = self._ack
+        self.voices: dict[str, tuple[float, float]] = {}
+        """Robots that keep talking (pose at 20 Hz) on ``self.up`` links, like a live agent."""
+        self.up: tuple[str, ...] = ("zenoh", "mqtt")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._talk, daemon=True)
+
+    def start(self) -> None:
+        self.link.start()
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.link.close()
+
+    def _ack(self, transport: MemoryTransport, key: str, payload: bytes) -> None:
+        """Like an agent: ack every order and instant action on the link it came on."""
+        msg = wire.decode_key(key, payload)
+        if not isinstance(msg, Order | InstantActions):
+            return
+        fields = {
+            "commandTopic": msg.TOPIC, "commandSender": msg.header.sender, "commandHeaderId": msg.header.headerId,
+            "orderId": None, "orderUpdateId": None, "result": AckResult.ACCEPTED, "reason": "",
+            "link": LinkName(transport.name),
+        }  # fmt: skip
+        transport.inject(self.counter(msg.header.robot).make(Ack, **fields))
+
+    def _talk(self) -> None:
+        while not self._stop.wait(0.05):
+            for robot, (x, y) in list(self.voices.items()):
+                self.pose(robot, x, y, links=self.up)
+
+    def counter(self, robot: str) -> wire.HeaderCounter:
+        if robot not in self.agents:
+            self.agents[robot] = wire.HeaderCounter(self.clock, robot=robot, sender=f"agent-{robot}")
+        return self.agents[robot]
+
+    def pose(
+        self, robot: str, x: float, y: float, theta: float = 0.0, links: tuple[str, ...] = ("zenoh", "mqtt")
+    ) -> None:
+        msg = self.counter(robot).make(
+            Pose, x=x, y=y, theta=theta, sd_x_m=0.05, sd_y_m=0.05, sd_theta_rad=0.01, odom_x=x, odom_y=y,
+            odom_theta=theta, vx=0.0, omega=0.0, uwbStale=False,
+        )  # fmt: skip
+        for link in links:
+            (self.zenoh if link == "zenoh" else self.mqtt).inject(msg)
