@@ -10,7 +10,8 @@ Lockstep with whole agents (``"agents": true``; fleetlink.site.lockstep.MissionR
 plan, 10 and 50 robots, each with its real agent (board session over Control Bus bytes, lidar
 over RPLIDAR bytes at 10 Hz, fusion with the UWB gateway's fixes, guard, pilot, mapping on,
 planner), wandering from named place to named place by goals a scripted operator sends over the
-in-process Zenoh link. Lidar samples per second: 8000 (the model's A1) and 2000 (what a real A1's
+in-process Zenoh link; their map keepers run in a second process (agent/mapping/worker.py). Lidar
+samples per second: 8000 (the model's A1) and 2000 (what a real A1's
 standard SCAN delivers at 115200 baud, the node format the simulator speaks).
 The real-time factor is simulated seconds per wall second: the baseline is real time (1x).
 
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import sys
 import time
@@ -74,13 +76,21 @@ def agents(n: int, duration: float, samples_per_second: float) -> dict[str, floa
         robots=robots,
         lidar=LidarSettings(True, 10.0, samples_per_second),
     )
-    with MissionRun(sc, plan, mapping=True, record=False) as run:
-        result = run.run()
+    quiet = logging.getLogger("fleetlink")
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)  # each agent logs its links coming up: noise in the table
+    try:
+        with MissionRun(sc, plan, mapping=True, record=False) as run:
+            map_worker = run.map_worker is not None
+            result = run.run()
+    finally:
+        quiet.setLevel(level)
     stats = result.field.stats
     return {
         "robots": n,
         "agents": True,
         "mapping": True,
+        "map_worker": map_worker,
         "lidar_samples_per_s": samples_per_second,
         "sim_s": result.field.sim_seconds,
         "wall_s": result.field.wall_seconds,
