@@ -76,6 +76,8 @@ COMMAND_TOPICS = (Order.TOPIC, InstantActions.TOPIC, Teleop.TOPIC)
 INPUT_TOPICS = (*COMMAND_TOPICS, LeaseRequest.TOPIC, UwbFix.TOPIC)
 UNKNOWN_SD = 1000.0
 """What ``pose.sd_*`` say before the fusion knows the position or heading (the wire has no inf)."""
+_MAX_FAILURE_KINDS = 64
+"""Distinct (topic, exception type) pairs logged when a command handler fails; later ones are only counted."""
 
 _ACTION_KIND = {
     ActionType.STOP: ActionKind.STOP,
@@ -174,6 +176,9 @@ class AgentCore:
         self.refused_operators = 0
         """Commands and lease requests refused because the sender is not in ``operators``."""
         self.refused_lease = 0
+        self.handler_failures = 0
+        """Commands whose handling raised (a value every check let through): refused, robot stopped."""
+        self._failures_logged: set[tuple[str, str]] = set()
         """Motion commands refused because another operator holds the lease."""
         self.fixes_rejected = 0
         self._last_lease: tuple[str, float] | None = None
@@ -230,7 +235,10 @@ class AgentCore:
             self.refused_lease += 1
             out.messages.append((self._ack(self.gate.ack(msg, link, AckResult.REJECTED, refusal)), link))
             return out
-        result = self._run(msg, now, out)
+        try:
+            result = self._run(msg, now, out)
+        except Exception as exc:  # never a crash, never a false success: refuse it and stop
+            result = self._failed(msg, now, exc, out)
         if isinstance(msg, Order) and result.status is CommandStatus.ACCEPTED:
             self.gate.executed_order(msg)
         ack = self.gate.ack(msg, link, AckResult(result.status.value), result.reason)
@@ -306,6 +314,11 @@ class AgentCore:
         else:
             self._publish_lease(now, out)
         return out
+
+    @property
+    def velocity(self) -> tuple[float, float]:
+        """The last (v, omega) sent towards the board, m/s and rad/s."""
+        return self._velocity
 
     @property
     def driving(self) -> bool:
@@ -421,6 +434,20 @@ class AgentCore:
             if r.reason:
                 results.append(f"{a.actionId}: {r.reason}")
         return CommandResult(status, "; ".join(results))
+
+    def _failed(self, msg: Order | InstantActions | Teleop, now: float, exc: Exception, out: Output) -> CommandResult:
+        """A command whose handling raised: whatever it started is stopped, and it is refused."""
+        self.handler_failures += 1
+        what = f"{type(exc).__name__}: {exc}"[:120]
+        key = (msg.TOPIC, type(exc).__name__)
+        if key not in self._failures_logged and len(self._failures_logged) < _MAX_FAILURE_KINDS:
+            self._failures_logged.add(key)
+            out.logs.append(f"{msg.TOPIC} from {msg.header.sender} could not be carried out ({what}); stopped")
+        try:
+            self.pilot.action(now, ActionKind.STOP, msg.header.sender)
+        except Exception:  # the stop itself failed: the velocity below is zero regardless
+            self._velocity = (0.0, 0.0)
+        return CommandResult(CommandStatus.REJECTED, f"could not be carried out ({what}); the robot stopped")
 
     def _fix(self, link: LinkName, topic: str, msg: UwbFix, out: Output) -> None:
         try:

@@ -44,6 +44,7 @@ from fleetlink.agent.pilot_machine import (
     next_state,
 )
 from fleetlink.agent.route import Destination, Drive, PathProvider, Route, RouteConfig, RouteEnd
+from fleetlink.shared.messages import MAX_COORDINATE_M
 
 __all__ = [
     "ActionKind",
@@ -121,6 +122,7 @@ class PilotConfig:
     guard: GuardConfig = field(default_factory=GuardConfig)
     limits: MotionLimits = field(default_factory=MotionLimits)
     goto: GoToConfig = field(default_factory=GoToConfig)
+    extent_m: float = MAX_COORDINATE_M  # goals (and home) farther from the origin are refused
     teleop_ttl_s: float = 0.5  # default time-to-live of a teleop command
     teleop_max_ttl_s: float = 2.0  # longer ones are clamped: a lost link must stop the robot soon
     blocked_timeout_s: float = 10.0  # a go-to held by an obstacle this long fails
@@ -309,6 +311,9 @@ class Pilot:
             return _rejected(f"order update id must be an integer >= 0, got {order_update_id!r}")
         if not _finite(x, y) or (theta is not None and not _finite(theta)):
             return _rejected(f"goal must be finite, got x={x} y={y} theta={theta}")
+        extent = self.config.extent_m
+        if abs(x) > extent or abs(y) > extent:
+            return _rejected(f"goal ({x:.4g}, {y:.4g}) is outside the site's extent (|x|, |y| <= {extent:g} m)")
         seen = self._seen.get(order_id)
         if seen is not None and order_update_id == seen:
             return CommandResult(CommandStatus.DUPLICATE, f"order {order_id}/{order_update_id} already received")

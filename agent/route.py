@@ -276,7 +276,22 @@ class Route:
         if provider is None:
             self.goto.start([(d.x, d.y)], d.theta)
             return True
-        return self._follow(now, pose, provider((pose[0], pose[1]), (d.x, d.y)), None)
+        planned = self._ask(provider, pose)
+        if isinstance(planned, str):
+            self._finish(False, "planner_failed", f"the planner failed ({planned})")
+            return False
+        return self._follow(now, pose, planned, None)
+
+    def _ask(self, provider: PathProvider, pose: Pose, blocked: tuple[Point, ...] = ()) -> Sequence[Point] | str | None:
+        """The provider's path, or why it raised: a planner that fails on some input ends the
+        route with a reason instead of taking the control loop down with it."""
+        d = self.dest
+        try:
+            if blocked:
+                return provider((pose[0], pose[1]), (d.x, d.y), blocked=blocked)
+            return provider((pose[0], pose[1]), (d.x, d.y))
+        except Exception as exc:
+            return f"{type(exc).__name__}: {exc}"[:120]
 
     def _follow(self, now: float, pose: Pose, path: Sequence[Point] | None, why: str | None) -> bool:
         """Start the go-to along ``path`` (None: no map, straight line); False when it failed."""
@@ -316,9 +331,11 @@ class Route:
             self._fail(now, pose, "blocked", f"still blocked ({why}) after {self.replans} re-plans")
             return False
         self.replans += 1
-        d = self.dest
         # A provider withdrawn mid-route (the map was dropped) means no map: straight from here.
-        path = None if provider is None else provider((pose[0], pose[1]), (d.x, d.y), blocked=tuple(self.blocked))
+        path = None if provider is None else self._ask(provider, pose, tuple(self.blocked))
+        if isinstance(path, str):
+            self._fail(now, pose, "planner_failed", f"the planner failed ({path})")
+            return False
         return self._follow(now, pose, path, why)
 
     def _barred(

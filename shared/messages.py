@@ -16,6 +16,12 @@ from typing import Annotated, ClassVar
 
 from .wire import Message, bounded, register, sized
 
+MAX_COORDINATE_M = 100_000.0
+"""Every position on the wire (goals, marks, fixes, poses, map origins) lies within this many
+metres of its frame's origin: any site fits, and no value that passes decoding can overflow the
+planner's or the controller's arithmetic (a goal at 1e308 m used to)."""
+Coordinate = Annotated[float, bounded(-MAX_COORDINATE_M, MAX_COORDINATE_M)]
+
 __all__ = [
     "MAX_ACTIONS",
     "MAX_BOARD_ERRORS",
@@ -112,9 +118,9 @@ class Truth(Message):
 
     sim_time_s: Annotated[float, bounded(0.0)]
     """Simulated seconds since the field started."""
-    x: float
+    x: Coordinate
     """Metres, in the plan's frame (the UWB frame)."""
-    y: float
+    y: Coordinate
     theta: Annotated[float, bounded(-3.2, 3.2)]
     """Heading, radians, counter-clockwise from +x, in [-pi, pi]."""
     v: float
@@ -205,9 +211,9 @@ class KeyValue:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class AgvPosition:
-    x: float
+    x: Coordinate
     """Metres, map (UWB) frame."""
-    y: float
+    y: Coordinate
     theta: Annotated[float, bounded(-3.2, 3.2)]
     mapId: Annotated[str, sized(64)]
     positionInitialized: bool
@@ -253,8 +259,8 @@ class LinkStatus:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Goal:
-    x: float
-    y: float
+    x: Coordinate
+    y: Coordinate
     theta: Annotated[float, bounded(-3.2, 3.2)] | None
     """Final heading in radians, or nil to keep the arrival heading."""
 
@@ -295,16 +301,16 @@ class Pose(Message):
 
     TOPIC: ClassVar[str] = "pose"
 
-    x: float
+    x: Coordinate
     """Metres, map (UWB) frame; absorbs UWB corrections."""
-    y: float
+    y: Coordinate
     theta: Annotated[float, bounded(-3.2, 3.2)]
     sd_x_m: Annotated[float, bounded(0.0)]
     sd_y_m: Annotated[float, bounded(0.0)]
     sd_theta_rad: Annotated[float, bounded(0.0)]
-    odom_x: float
+    odom_x: Coordinate
     """Metres, odometry frame: continuous, never jumps."""
-    odom_y: float
+    odom_y: Coordinate
     odom_theta: Annotated[float, bounded(-3.2, 3.2)]
     vx: float
     omega: float
@@ -431,9 +437,9 @@ class UwbFix(Message):
     TOPIC: ClassVar[str] = "uwb"
 
     tag: Annotated[str, sized(64)]
-    x: float
-    y: float
-    z: float
+    x: Coordinate
+    y: Coordinate
+    z: Coordinate
     sd_x: Annotated[float, bounded(0.0)]
     """Standard deviation of x, metres (from the solver's covariance)."""
     sd_y: Annotated[float, bounded(0.0)]
@@ -516,9 +522,9 @@ class Mark(Message):
     TOPIC: ClassVar[str] = "marks"
 
     markId: Annotated[str, sized(64)]
-    x: float
+    x: Coordinate
     """Metres, map (UWB) frame."""
-    y: float
+    y: Coordinate
     label: Annotated[str, sized(MAX_MARK_LABEL)]
     kind: Annotated[str, sized(32)]
     """casualty, hazard, note, ..."""
@@ -553,9 +559,9 @@ class MapSnapshot(Message):
     """+1 per scan integrated into the map; a restarted agent starts again from 0."""
     resolution: Annotated[float, bounded(0.001, 10.0)]
     """Metres per cell."""
-    origin_x: float
+    origin_x: Coordinate
     """Metres, map (UWB) frame: the lower-left corner of cell (0, 0); the map is not rotated."""
-    origin_y: float
+    origin_y: Coordinate
     width: Annotated[int, bounded(0, 65_535)]
     height: Annotated[int, bounded(0, 65_535)]
     encoding: MapEncoding
@@ -578,8 +584,8 @@ class MapUpdate(Message):
     version: Annotated[int, bounded(0)]
     base_version: Annotated[int, bounded(0)]
     resolution: Annotated[float, bounded(0.001, 10.0)]
-    origin_x: float
-    origin_y: float
+    origin_x: Coordinate
+    origin_y: Coordinate
     width: Annotated[int, bounded(0, 65_535)]
     """Size of the whole map after the update."""
     height: Annotated[int, bounded(0, 65_535)]

@@ -28,6 +28,7 @@ from fleetlink.shared.messages import (
     AckResult,
     Action,
     ActionType,
+    Event,
     Goal,
     InstantActions,
     Lease,
@@ -130,6 +131,7 @@ class Operator:
     states: list[tuple[str, State]] = field(default_factory=list)
     leases: list[tuple[str, Lease]] = field(default_factory=list)
     poses: list[tuple[str, Pose]] = field(default_factory=list)
+    events: list[tuple[str, Event]] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
     counter: wire.HeaderCounter = field(
         default_factory=lambda: wire.HeaderCounter(SystemClock(), robot="r1", sender="operator-1")
@@ -149,6 +151,8 @@ class Operator:
                 self.leases.append((link, msg))
             elif isinstance(msg, Pose):
                 self.poses.append((link, msg))
+            elif isinstance(msg, Event):
+                self.events.append((link, msg))
 
     def send(self, msg: wire.Message, *, zenoh_: bool = True, mqtt_: bool = True) -> bytes:
         data = wire.encode(msg)

@@ -94,6 +94,16 @@ class PlannerConfig:
         return self.robot_radius + self.margin
 
 
+_FAR = 1 << 40
+"""A cell index no grid reaches: where a point far off the map falls."""
+
+
+def _index(v: float) -> int:
+    if v != v:  # NaN
+        return -_FAR
+    return math.floor(v) if -_FAR < v < _FAR else (_FAR if v > 0 else -_FAR)
+
+
 class PathPlanner:
     def __init__(
         self,
@@ -134,11 +144,9 @@ class PathPlanner:
         self.echo_resolution = float(resolution)
 
     def cell(self, p: Point) -> tuple[int, int]:
-        """(row, col) of a world point."""
-        return (
-            math.floor((p[1] - self.origin[1]) / self.resolution),
-            math.floor((p[0] - self.origin[0]) / self.resolution),
-        )
+        """(row, col) of a world point; one far outside the grid for a point far off it (a huge or
+        non-finite coordinate gives no cell, never an OverflowError)."""
+        return (_index((p[1] - self.origin[1]) / self.resolution), _index((p[0] - self.origin[0]) / self.resolution))
 
     def center(self, rc: tuple[int, int]) -> Point:
         return (self.origin[0] + (rc[1] + 0.5) * self.resolution, self.origin[1] + (rc[0] + 0.5) * self.resolution)
