@@ -17,9 +17,13 @@ costs ~40 ms per message, GUIDE.md), the last will, and a jittered reconnect bac
 
 The network loop is the endpoint's own ``Worker`` rather than paho's ``loop_start``, so that
 reconnects use jittered exponential backoff (a fleet whose broker restarts must not reconnect in
-lockstep) and so that a publish from any thread is written at once (paho writes directly when it
-runs no loop thread of its own) instead of waiting for the loop to wake. Receivers run on that
-loop thread, in the order the broker delivered.
+lockstep). Every socket operation happens on that thread: a publish from any other thread only
+queues its packet and wakes the loop through paho's socket pair, which writes it at once. (Paho
+writes directly from the publishing thread when it runs no loop of its own and no socket callback
+is registered: over TLS that let two threads use one SSL connection at the same time, and the
+broker dropped it with "decryption failed or bad record mac" several times a minute; once the
+process died in glibc's ``free()``. tests/faults/test_tls_drill.py.) Receivers run on the loop
+thread, in the order the broker delivered.
 
 With overlapping subscriptions a broker may deliver a message once per matching filter (Mosquitto
 2 does): each delivery goes to every matching receiver. Fleetlink's subscriptions do not overlap.
@@ -156,6 +160,10 @@ class _Subscription:
     receiver: Receiver
 
 
+def _write_wanted(client: Any, userdata: Any, sock: Any) -> None:
+    """Paho's write-interest callback: nothing to do, the loop thread writes (see ``MqttEndpoint``)."""
+
+
 class MqttEndpoint:
     """A ``Link`` on one broker connection. See the module docstring."""
 
@@ -206,6 +214,10 @@ class MqttEndpoint:
             c.on_connect = self._on_connect
             c.on_disconnect = self._on_disconnect
             c.on_message = self._on_message
+            # Registering for write interest makes paho queue every packet for the loop thread
+            # instead of writing from the caller's (see the module docstring); the loop's select
+            # already watches the socket whenever something is queued.
+            c.on_socket_register_write = _write_wanted
             self._client = c
             self._closing = False
             self._loop = Worker(f"{self.label}-loop", target=self._run).start()
@@ -216,7 +228,7 @@ class MqttEndpoint:
             return
         if self._connected and self.on_close is not None:
             try:
-                self.on_close(self)  # its publishes are written at once, from this thread
+                self.on_close(self)  # its publishes are queued; the loop writes them before it ends
             except Exception:  # best effort on the way out
                 log.exception("%s: on_close failed", self.label)
         with self._lock:
@@ -226,11 +238,11 @@ class MqttEndpoint:
             return
         self._closing = True  # the loop must not take the DISCONNECT for a loss and reconnect
         with contextlib.suppress(Exception):
-            c.disconnect()  # written at once (or queued, waking the loop out of its select)
+            c.disconnect()  # queued, waking the loop out of its select
         if loop is not None:
             loop.stop()
         with contextlib.suppress(Exception):
-            c.loop_write()  # what was queued while the loop ran a callback, DISCONNECT last
+            c.loop_write()  # the loop has ended: what it had not written yet, DISCONNECT last
         self._connected = False
 
     def __enter__(self) -> Self:
