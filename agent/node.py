@@ -75,6 +75,11 @@ def pilot_config(cfg: AgentConfig) -> PilotConfig:
     )
 
 
+HALT_TIMEOUT_S = 0.5
+"""How long a shutting-down agent waits for the board to confirm the halt (zero velocity, payload
+off); the board's watchdog stops the wheels 1 s after the agent goes quiet in any case."""
+
+
 class AgentNode:
     def __init__(
         self,
@@ -117,6 +122,8 @@ class AgentNode:
         """Why the lidar is not delivering scans (None: it is, or there is none)."""
         self.scans = 0
         self.published = 0
+        self.halted = False
+        """Set by ``halt``: inputs are dropped and nothing moves the robot any more (shutting down)."""
         self.on_started: Callable[[], None] | None = None
         """Called (outside the lock) when an input sets an idle robot moving: a real-time control
         loop sleeping until its next pose takes up the control rate at once."""
@@ -157,6 +164,8 @@ class AgentNode:
         """One payload from a link. True if it set an idle robot moving (the control loop should
         take up the control rate at once; a UWB fix never does)."""
         with self._lock:
+            if self.halted:
+                return False
             was_idle = not self.core.driving
             now = self.clock.now()
             if key == self.pans_topic:
@@ -237,7 +246,26 @@ class AgentNode:
 
     # -- outputs ----------------------------------------------------------------------------------------
 
+    def halt(self, timeout: float = HALT_TIMEOUT_S) -> bool:
+        """Stop the robot for good (shutting down): inputs dropped from now on, zero velocity and
+        the payload off sent to the board; True once the board has answered (within ``timeout``)."""
+        from fleetlink.devices.controlbus import protocol as p
+
+        with self._lock:
+            self.halted = True
+        self.board.set_velocity(0.0, 0.0)
+        # Queued after the zero velocity, which the session sends first: its answer means both went.
+        done = self.board.call(p.SetUvLamp(False))
+        try:
+            done.result(timeout)
+        except Exception as exc:  # no board, or it refused: the board's own watchdog still stops the wheels
+            log.warning("%s: halting: the board did not confirm (%s)", self.robot, exc or type(exc).__name__)
+            return False
+        return True
+
     def _apply(self, out: Output) -> None:
+        if self.halted:
+            return
         if out.velocity is not None:
             self.board.set_velocity(*out.velocity)
         for on in out.payload:

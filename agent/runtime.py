@@ -91,11 +91,15 @@ class AgentRuntime:
         return self
 
     def stop(self) -> None:
+        """The shutdown contract (Ctrl-C and SIGTERM alike, cli/main.py): no more control, the
+        robot halted (zero velocity and the payload off, confirmed by the board), then the links
+        closed (the retained ``Connection`` says OFFLINE), then the board session."""
         self._control.stop()
         if self._lidar is not None:
             self._lidar.stop()
             self._lidar = None
-        self.board.set_velocity(0.0, 0.0)
+        if self.board.snapshot.connected:
+            self.node.halt()
         self.node.close()
         for link in reversed(self.links):
             link.close()

@@ -7,10 +7,12 @@ missing optional dependency of one tool cannot break the others.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
+import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 # name -> (module, one-line help). Each module has add_arguments(parser) and run(args) -> int.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -54,10 +56,31 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=getattr(logging, str(args.log_level).upper(), logging.INFO),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    with _sigterm_as_interrupt():
+        try:
+            return int(args._run(args) or 0)
+        except KeyboardInterrupt:
+            return 130
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM (``systemctl stop``, ``kill``) takes Ctrl-C's way out while a command runs: its
+    clean shutdown runs (the agent halts the robot and says OFFLINE, the field removes a secured
+    site's secrets, the console sends stop). Python's default ends the process without unwinding."""
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
     try:
-        return int(args._run(args) or 0)
-    except KeyboardInterrupt:
-        return 130
+        previous = signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:  # not the main thread (main() called from a test's thread): leave it be
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -394,6 +394,9 @@ def test_systemd_units_verify(tmp_path: Path) -> None:
     agent = (DEPLOY / "systemd" / "fleetlink-agent.service").read_text()
     assert "ExecStart=/opt/fleetlink/bin/fleetlink agent --config /etc/fleetlink/robot.toml" in agent
     assert "SupplementaryGroups=dialout" in agent and "Restart=always" in agent
+    for unit in ("fleetlink-agent.service", "fleetlink-uwb.service"):  # the shutdown contract (cli/main.py)
+        text = (DEPLOY / "systemd" / unit).read_text()
+        assert "KillSignal=SIGTERM" in text and "TimeoutStopSec=5s" in text, unit
 
 
 def test_udev_rules_name_board_and_lidar() -> None:

@@ -1,0 +1,139 @@
+"""Drills: SIGTERM, what ``systemctl stop`` sends, takes the same clean way out as Ctrl-C (issue 14).
+
+* A driving agent (a real ``fleetlink agent`` process on a simulated board over TCP, commanded by
+  teleop over MQTT): its wheels' set-points are zero within 0.1 s of the signal, its UV lamp is off,
+  and the retained ``Connection`` says OFFLINE (before, Python died at once: the robot kept driving
+  until the board's 1 s watchdog, and the broker published the will, CONNECTIONBROKEN).
+* A secured field (``fleetlink field --secure``): its temporary folder with the passwords and the
+  CA key is gone after the signal.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import paho.mqtt.client as mqtt
+
+from fleetlink.field.board import SimulatedBoard
+from fleetlink.field.device_server import DeviceServer
+from fleetlink.shared import keys, wire
+from fleetlink.shared.clock import SystemClock
+from fleetlink.shared.messages import Connection, ConnectionState, Teleop
+from tests.harness import MosquittoBroker, wait_until
+from tests.harness.mosquitto import free_port
+
+
+def _retained_connection(port: int) -> list[ConnectionState]:
+    got: list[ConnectionState] = []
+    c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=f"probe-{time.monotonic_ns()}")
+    c.on_message = lambda _c, _u, m: got.append(wire.decode_key(m.topic, bytes(m.payload)).connectionState)
+    c.connect("127.0.0.1", port)
+    c.subscribe(keys.key("r1", Connection.TOPIC), qos=1)
+    c.loop_start()
+    try:
+        wait_until(lambda: got, timeout=5, message="the retained connection state")
+    finally:
+        c.loop_stop()
+        c.disconnect()
+    return got
+
+
+def test_sigterm_on_a_driving_agent_halts_the_robot_and_says_offline(
+    tmp_path: Path, mosquitto: MosquittoBroker
+) -> None:
+    clock = SystemClock()
+    board = SimulatedBoard()
+    server = DeviceServer(board, clock, name="board")
+    port = server.serve_tcp()
+    cfg = tmp_path / "robot.toml"
+    cfg.write_text(
+        f'robot = "r1"\nboard = "socket://127.0.0.1:{port}"\n'
+        f'[zenoh]\nlisten = ["tcp/127.0.0.1:{free_port()}"]\n'
+        f'[mqtt]\nurl = "mqtt://127.0.0.1:{mosquitto.port}"\n'
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fleetlink.cli.main", "agent", "--config", str(cfg)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    op = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="operator-1")
+    op.connect("127.0.0.1", mosquitto.port)
+    op.loop_start()
+    counter = wire.HeaderCounter(clock, robot="r1", sender="operator-1")
+    stop_driving = threading.Event()
+
+    def drive() -> None:  # an operator holding the key: teleop every 0.1 s
+        while not stop_driving.wait(0.1):
+            op.publish(
+                keys.key("r1", Teleop.TOPIC), wire.encode(counter.make(Teleop, v=0.2, omega=0.5, ttl_s=0.5)), qos=1
+            )
+
+    driver = threading.Thread(target=drive, daemon=True)
+    try:
+        wait_until(
+            lambda: _retained_connection(mosquitto.port) == [ConnectionState.ONLINE], timeout=20, message="ONLINE"
+        )
+        wait_until(lambda: board.state is not None and board.state.connected, message="the agent on its board")
+        driver.start()
+        wait_until(lambda: board.state.set_left != 0.0 or board.state.set_right != 0.0, message="the robot driving")
+        board.state.uv_lamp = True  # the payload on, as during a disinfection round
+        os.kill(proc.pid, signal.SIGTERM)
+        t0 = time.monotonic()
+        wait_until(
+            lambda: board.state.set_left == 0.0 and board.state.set_right == 0.0, timeout=2, interval=0.002,
+            message="zero wheel set-points",
+        )  # fmt: skip
+        halted_after = time.monotonic() - t0
+        stop_driving.set()  # the operator lets go (commands after the signal are refused anyway)
+        out, _ = proc.communicate(timeout=10)
+        assert halted_after < 0.1, f"wheels zero {halted_after * 1e3:.0f} ms after SIGTERM"
+        assert not board.state.uv_lamp
+        assert proc.returncode == 0, out.decode(errors="replace")  # a clean stop
+        assert _retained_connection(mosquitto.port) == [ConnectionState.OFFLINE]
+    finally:
+        stop_driving.set()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+        op.loop_stop()
+        op.disconnect()
+        server.stop()
+
+
+def test_sigterm_on_a_secured_field_leaves_no_secrets(tmp_path: Path) -> None:
+    env = dict(os.environ, TMPDIR=str(tmp_path))  # the site's folder goes under tmp_path
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fleetlink.cli.main", "field", "--secure", "--console", "off", "--duration", "60"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        env=env,
+    )
+    lines: list[str] = []
+
+    def read() -> None:
+        assert proc.stdout is not None
+        for raw in proc.stdout:
+            lines.append(raw.decode(errors="replace"))
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        wait_until(lambda: any("credentials in" in line for line in lines), timeout=60, message="the secured site up")
+        folder = Path(re.search(r"credentials in (\S+)", "".join(lines)).group(1))  # type: ignore[union-attr]
+        assert folder.exists() and any(folder.iterdir())
+        os.kill(proc.pid, signal.SIGTERM)
+        proc.wait(20)
+        reader.join(5)
+        assert not folder.exists(), f"{folder} left behind: {sorted(p.name for p in folder.rglob('*'))}"
+        assert not any(tmp_path.rglob("*.password")) and not any(tmp_path.rglob("ca.key"))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
