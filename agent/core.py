@@ -176,6 +176,7 @@ class AgentCore:
         self.refused_operators = 0
         """Commands and lease requests refused because the sender is not in ``operators``."""
         self.refused_lease = 0
+        self._board_sessions = 0
         self.handler_failures = 0
         """Commands whose handling raised (a value every check let through): refused, robot stopped."""
         self._failures_logged: set[tuple[str, str]] = set()
@@ -300,6 +301,7 @@ class AgentCore:
             self.fusion.predict(self._odom)
         if board.connected != self.board.connected:
             self._next_state = now
+            self._board_change(board, out)
         self.board = board
         self._control(now, out)
         if now >= self._next_pose:
@@ -474,6 +476,19 @@ class AgentCore:
         from fleetlink.shared.messages import Ack
 
         return self.counter.make(Ack, **fields)
+
+    def _board_change(self, board: BoardView, out: Output) -> None:
+        """The board went away (an error: the robot cannot be driven) or came back (its first
+        connection, or a recovery): an event each way, and a log line."""
+        if board.connected:
+            self._board_sessions += 1
+            kind, text, sev = "board_connected", "board connected", Severity.INFO
+            if self._board_sessions > 1:
+                kind, text = "board_recovered", f"board back (session {self._board_sessions})"
+        else:
+            kind, text, sev = "board_lost", "board link lost: the robot cannot move", Severity.ERROR
+        out.messages.append((self._event(kind, text, sev), None))
+        out.logs.append(text)
 
     def _event(self, kind: str, text: str, severity: Severity, **data: str) -> Event:
         kvs = tuple(KeyValue(key=k[:32], value=str(v)[:256]) for k, v in list(data.items())[:16])

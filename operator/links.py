@@ -69,6 +69,11 @@ Sink = Callable[[wire.Message, str, float], None]
 Listener = Callable[[Switch | Failed], None]
 
 
+MAX_REJECT_REASONS = 256
+"""Distinct rejection reasons counted (and logged once) apiece; the rest count as ``OTHER_REASONS``."""
+OTHER_REASONS = "(other reasons)"
+
+
 class OperatorLink:
     """Commands out over the healthy link, messages in from both. Thread-safe."""
 
@@ -141,10 +146,14 @@ class OperatorLink:
     # -- inbound --------------------------------------------------------------------------------
 
     def _reject(self, link: str, key: str, reason: str) -> None:
+        # Reasons quote what the sender sent: their number is capped (memory bounded by
+        # construction); beyond the cap they are counted as one, and never logged.
         with self._lock:
-            self.rejected[reason] += 1
-            first = reason not in self._seen_reasons
-            self._seen_reasons.add(reason)
+            known = reason in self.rejected or len(self.rejected) < MAX_REJECT_REASONS
+            self.rejected[reason if known else OTHER_REASONS] += 1
+            first = known and reason not in self._seen_reasons
+            if first:
+                self._seen_reasons.add(reason)
         if first:  # once per reason, or a flood of garbage floods the log
             log.warning("rejected a message on %s (%s): %s", link, key[:120], reason)
 

@@ -397,7 +397,7 @@ class Ack(Message):
 class Event(Message):
     """Something the operator should see: ``fleetlink/v1/<robot>/events``.
 
-    kinds: guard_refusal, cliff, bump, fault, goal_reached, link_change, order, estop, ...
+    kinds: guard_refusal, cliff, bump, fault, goal_reached, link_change, board_lost, order, estop, ...
     """
 
     TOPIC: ClassVar[str] = "events"

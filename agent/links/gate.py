@@ -57,6 +57,11 @@ class Rejected:
 Verdict = Accepted | Duplicate | Rejected
 
 
+MAX_LOGGED_TAGS = 256
+"""Distinct rejection kinds (link, topic, field or reason) logged and published once each; beyond
+them rejections are only counted."""
+
+
 @dataclass(slots=True)
 class GateStats:
     accepted: int = 0
@@ -136,9 +141,12 @@ class CommandGate:
         slot = (link.value, topic)
         self.stats.rejected[slot] = self.stats.rejected.get(slot, 0) + 1
         self.stats.last_reason = reason
+        # The tag may hold a name the sender chose (an unknown field's): the set of tags is capped
+        # and, once full, stays silent, so no sender can make every rejection a "first" one (each
+        # logged and published) by varying it. Counting goes on regardless.
         tag = (link.value, topic, what or reason.partition(":")[0])
-        first = tag not in self._logged
-        if first and len(self._logged) < 1024:
+        first = tag not in self._logged and len(self._logged) < MAX_LOGGED_TAGS
+        if first:
             self._logged.add(tag)
         return Rejected(link, topic, reason, first)
 
