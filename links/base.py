@@ -30,6 +30,8 @@ class LinkStats:
     """Publishes not sent (link down, queue full) and inbound messages not delivered."""
     last_rx: float | None = None
     """Clock time of the last message received (None: never)."""
+    oversized: int = 0
+    """Inbound messages over ``wire.MAX_PAYLOAD`` refused before they were copied or decoded."""
 
 
 @runtime_checkable

@@ -38,6 +38,7 @@ from fleetlink.links.base import LinkStats, Receiver
 from fleetlink.shared import keys
 from fleetlink.shared.clock import Clock, SystemClock
 from fleetlink.shared.messages import LinkName
+from fleetlink.shared.wire import MAX_PAYLOAD
 from fleetlink.shared.worker import Worker
 
 __all__ = ["INBOX_SIZE", "URGENT_TOPICS", "Answer", "ZenohEndpoint", "open_session", "peer_config", "topic_of"]
@@ -60,6 +61,11 @@ def topic_of(key: str) -> str:
     """The topic of ``fleetlink/v1/<robot>/<topic>`` ("" for any other key)."""
     parts = key.split("/", 3)
     return parts[3] if len(parts) == 4 and key.startswith(keys.PREFIX + "/") else ""
+
+
+MAX_MESSAGE_BYTES = MAX_PAYLOAD + 16 * 1024
+"""What a Zenoh session reassembles at most: the largest wire payload plus room for the key and
+zenoh's own framing."""
 
 
 def peer_config(
@@ -96,6 +102,9 @@ def peer_config(
     # (a map patch) to a peer on the same host: +16 MB RSS per agent in bench/scale.py. Robots talk
     # across hosts, where it cannot help; the fleet's large messages are a few maps a second.
     conf.insert_json5("transport/shared_memory/enabled", "false")
+    # No message larger than the wire contract's is even reassembled (zenoh's default is 1 GiB):
+    # ten 10 MB puts grew an agent by 16 MB before its own size check could refuse them.
+    conf.insert_json5("transport/link/rx/max_message_size", json.dumps(MAX_MESSAGE_BYTES))
     if (username is None) != (password is None):
         raise ValueError("zenoh username and password go together (both or neither)")
     if username is not None:
@@ -308,6 +317,9 @@ class ZenohEndpoint:
         def on_sample(sample: Any) -> None:
             # On zenoh's network thread: queue and return at once.
             try:
+                if len(sample.payload) > MAX_PAYLOAD:  # refused before it is copied into Python
+                    self._oversized(str(sample.key_expr), len(sample.payload))
+                    return
                 self._inbox.put_nowait((receiver, str(sample.key_expr), sample.payload.to_bytes()))
             except queue.Full:
                 self.stats.dropped += 1
@@ -326,6 +338,13 @@ class ZenohEndpoint:
 
         handler = zenoh.handlers.Callback(on_sample, indirect=False)
         self._declared.append(self._session.declare_subscriber(key_expr, handler))
+
+    def _oversized(self, key: str, size: int) -> None:
+        self.stats.oversized += 1
+        if self.stats.oversized == 1:
+            log.warning(
+                "%s: refused %d bytes on %s (limit %d); counting the rest", self.label, size, key[:120], MAX_PAYLOAD
+            )
 
     def _declare_queryable(self, key_expr: str, answer: Answer) -> None:
         def on_query(query: Any) -> None:

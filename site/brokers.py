@@ -209,6 +209,7 @@ class MosquittoBroker:
                 f"listener {self.port} {self.host}",
                 "allow_anonymous true",
                 "set_tcp_nodelay true",  # Nagle against delayed ACK: ~40 ms per QoS 1 message
+                "max_packet_size 270000",  # as deploy/mosquitto.conf: the wire's 256 KiB plus headers
                 "persistence false",
                 f"log_dest file {self.log_path}",
                 *(f"log_type {t}" for t in self.log_types),

@@ -8,6 +8,7 @@ send (a sentinel); once the sentinel has arrived, anything sent before it would 
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -409,3 +410,16 @@ def test_udev_rules_name_board_and_lidar() -> None:
     assert links == {"fleetlink-board", "fleetlink-lidar"}
     for r in rules:
         assert 'SUBSYSTEM=="tty"' in r and 'GROUP="dialout"' in r and 'ENV{ID_MM_DEVICE_IGNORE}="1"' in r
+
+
+def test_every_zenoh_session_and_the_router_refuse_messages_over_the_wire_limit(tmp_path: Path) -> None:
+    """No Zenoh node reassembles a message larger than the wire contract allows (issue 14)."""
+    from fleetlink.links.zenoh import MAX_MESSAGE_BYTES, peer_config
+    from fleetlink.shared.wire import MAX_PAYLOAD
+
+    users = tmp_path / "users.txt"
+    users.write_text("r1:pw\n")
+    router = zenoh_router_config(users, "tcp/127.0.0.1:0")
+    for conf in (router, peer_config()):
+        assert json.loads(conf.get_json("transport/link/rx/max_message_size")) == MAX_MESSAGE_BYTES
+    assert MAX_PAYLOAD < MAX_MESSAGE_BYTES < 2 * MAX_PAYLOAD

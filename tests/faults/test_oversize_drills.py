@@ -1,0 +1,121 @@
+"""Drill: 10 MB payloads on both links to a running agent process (issue 14).
+
+A real ``fleetlink agent`` on a simulated board; a raw Zenoh peer puts 10 MB on its command keys
+(twenty times), and a paho client publishes 10 MB on them through a private Mosquitto. Every one
+is refused before it is copied or decoded: the agent's RSS grows by less than 5 MB (it used to
+copy each into Python and queue it: 85 -> 115 MB for one, ~200 MB repeated), the broker refuses
+the packet at its edge (``max_packet_size``, the wire's 256 KiB plus headers), and a teleop sent
+afterwards is acknowledged on each link.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import paho.mqtt.client as mqtt
+import zenoh
+
+from fleetlink.field.board import SimulatedBoard
+from fleetlink.field.device_server import DeviceServer
+from fleetlink.shared import keys, wire
+from fleetlink.shared.clock import SystemClock
+from fleetlink.shared.messages import Ack, AckResult, Teleop
+from tests.harness import MosquittoBroker, wait_until
+from tests.harness.mosquitto import free_port
+from tests.harness.zenoh_peers import zenoh_config
+
+BIG = b"\x00" * (10 * 1024 * 1024)
+
+
+def _rss_bytes(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    raise AssertionError("no VmRSS")
+
+
+def test_ten_megabyte_payloads_on_both_links_are_refused_before_decoding(
+    tmp_path: Path, mosquitto: MosquittoBroker
+) -> None:
+    clock = SystemClock()
+    board = SimulatedBoard()
+    server = DeviceServer(board, clock, name="board")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    cfg = tmp_path / "robot.toml"
+    cfg.write_text(
+        f'robot = "r1"\nboard = "socket://127.0.0.1:{server.serve_tcp()}"\n'
+        f'[zenoh]\nlisten = ["{endpoint}"]\n[mqtt]\nurl = "mqtt://127.0.0.1:{mosquitto.port}"\n'
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fleetlink.cli.main", "agent", "--config", str(cfg)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    session = zenoh.open(zenoh_config(connect=[endpoint]))
+    acks: list[tuple[str, Ack]] = []
+    lock = threading.Lock()
+
+    def on_ack(link: str, key: str, payload: bytes) -> None:
+        msg = wire.decode_key(key, payload)
+        with lock:
+            acks.append((link, msg))  # type: ignore[arg-type]
+
+    sub = session.declare_subscriber(
+        keys.key("r1", "ack"), lambda s: on_ack("zenoh", str(s.key_expr), s.payload.to_bytes())
+    )
+    op = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="operator-1")
+    op.on_message = lambda _c, _u, m: on_ack("mqtt", m.topic, bytes(m.payload))
+    op.connect("127.0.0.1", mosquitto.port)
+    op.subscribe(keys.key("r1", "ack"), qos=1)
+    op.loop_start()
+    counter = wire.HeaderCounter(clock, robot="r1", sender="operator-1")
+
+    def acked(header_id: int, link: str) -> bool:
+        with lock:
+            return any(lk == link and a.commandHeaderId == header_id for lk, a in acks)
+
+    def teleop_acked(link: str) -> None:
+        msg = counter.make(Teleop, v=0.0, omega=0.0, ttl_s=0.5)
+        data = wire.encode(msg)
+        if link == "zenoh":
+            session.put(keys.key("r1", "teleop"), data)
+        else:
+            op.publish(keys.key("r1", "teleop"), data, qos=1)
+        wait_until(lambda: acked(msg.header.headerId, link), timeout=10, message=f"a teleop acked on {link}")
+
+    try:
+        wait_until(lambda: board.state is not None and board.state.connected, timeout=20, message="the agent up")
+        time.sleep(1.0)  # let the agent settle (its links, first telemetry)
+        teleop_acked("zenoh")
+        teleop_acked("mqtt")
+        before = _rss_bytes(proc.pid)
+        for _ in range(20):
+            session.put(keys.key("r1", "teleop"), BIG)
+            session.put(keys.key("r1", "order"), BIG)
+        big = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="flooder")
+        big.connect("127.0.0.1", mosquitto.port)
+        big.loop_start()
+        for _ in range(3):
+            big.publish(keys.key("r1", "teleop"), BIG, qos=0)
+        time.sleep(1.0)
+        big.loop_stop()
+        big.disconnect()
+        teleop_acked("zenoh")
+        teleop_acked("mqtt")
+        grown = _rss_bytes(proc.pid) - before
+        assert grown < 5 * 1024 * 1024, f"agent RSS grew by {grown / 1e6:.1f} MB"
+        with lock:
+            assert all(a.result is AckResult.ACCEPTED for _, a in acks)
+        assert proc.poll() is None
+    finally:
+        op.loop_stop()
+        op.disconnect()
+        sub.undeclare()
+        session.close()
+        proc.terminate()
+        proc.wait(10)
+        server.stop()
