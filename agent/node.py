@@ -28,7 +28,7 @@ from fleetlink.agent.board.session import BoardSession, PollRates
 from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.core import AgentCore, Output, board_view
 from fleetlink.agent.fusion import Fusion
-from fleetlink.agent.mapping.keeper import MapKeeper, Update
+from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update
 from fleetlink.agent.mapping.worker import KeeperHost
 from fleetlink.agent.odometry import Odometry
 from fleetlink.agent.pilot import Pilot, PilotConfig
@@ -220,7 +220,7 @@ class AgentNode:
         now = self.clock.now()
         t = rev.stamp if rev.stamp is not None else now
         update = keeper.add(
-            t, rev.distances_m, rev.angles_rad, (p.x, p.y, p.theta), placed=placed, driving=driving, now=now
+            Turn(t, rev.distances_m, rev.angles_rad, (p.x, p.y, p.theta), placed=placed, driving=driving, now=now)
         )
         self.scans += 1
         if update is not None:

@@ -10,7 +10,7 @@ import threading
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping.keeper import MapKeeper, Update
+from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update
 from fleetlink.agent.mapping.worker import DeferredKeeper, MapWorker
 from fleetlink.field.raycast import Raycaster
 from fleetlink.shared.worker import ProcessWorker
@@ -28,7 +28,7 @@ def _scan(pose: tuple[float, float, float]) -> np.ndarray:
 def _turn(
     keeper: MapKeeper, t: float, pose: tuple[float, float, float], *, placed: bool = True, driving: bool = True
 ) -> Update:
-    return keeper.add(t, _scan(pose), ANGLES, pose, placed=placed, driving=driving, now=t)
+    return keeper.add(Turn(t, _scan(pose), ANGLES, pose, placed=placed, driving=driving, now=t))
 
 
 def test_the_first_turn_gives_a_planner_and_a_publication() -> None:
@@ -133,10 +133,9 @@ def test_a_keeper_in_the_map_worker_gives_what_one_in_line_gives_one_turn_late()
             t = 0.1 * k
             for j, r in enumerate(robots):  # interleaved, as a lockstep run steps its robots
                 pose = (1.0 + 0.03 * k, 1.0 + j, 0.02 * k)
-                args = (t, _scan(pose), ANGLES, pose)
-                kw = {"placed": k >= 5, "driving": True, "now": t}
-                now_update = direct[r].add(*args, **kw)
-                a, b = inline[r].add(*args, **kw), remote[r].add(*args, **kw)
+                turn = Turn(t, _scan(pose), ANGLES, pose, placed=k >= 5, driving=True, now=t)
+                now_update = direct[r].add(turn)
+                a, b = inline[r].add(turn), remote[r].add(turn)
                 assert _same(a, previous[r]) and _same(b, previous[r]), (r, k)
                 previous[r] = now_update
                 if b is not None:

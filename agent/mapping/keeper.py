@@ -42,6 +42,7 @@ __all__ = [
     "SHARE_PERIOD_S",
     "MapKeeper",
     "MapPublication",
+    "Turn",
     "Update",
     "onboard_mapper_config",
 ]
@@ -56,6 +57,22 @@ def onboard_mapper_config() -> MapperConfig:
     """Unknown cells count as free on an onboard map: a scout is sent into rooms it has not seen
     (the guard still stops it at anything real)."""
     return MapperConfig(planner=PlannerConfig(unknown_is_blocked=False))
+
+
+@dataclass(frozen=True, slots=True)
+class Turn:
+    """One lidar turn as the keeper takes it."""
+
+    t: float
+    """When the turn was taken (its stamp)."""
+    distances_m: npt.ArrayLike
+    angles_rad: npt.ArrayLike
+    pose: tuple[float, float, float]
+    """The fused map pose (x, y, theta) it was seen from."""
+    placed: bool
+    """The fusion has placed the robot in the UWB (site) frame."""
+    driving: bool
+    now: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -112,18 +129,9 @@ class MapKeeper:
         self._shared_version = -1
         self._next_share = -math.inf
 
-    def add(
-        self,
-        t: float,
-        distances_m: npt.ArrayLike,
-        angles_rad: npt.ArrayLike,
-        pose: tuple[float, float, float],
-        *,
-        placed: bool,
-        driving: bool,
-        now: float,
-    ) -> Update:
-        """One revolution (stamped ``t``) seen from ``pose`` (the fused map pose)."""
+    def add(self, turn: Turn) -> Update:
+        """One revolution, seen from ``turn.pose`` (the fused map pose)."""
+        t, pose, placed, driving, now = turn.t, turn.pose, turn.placed, turn.driving, turn.now
         restarted = False
         if placed and not self.in_site_frame:
             self.in_site_frame = True
@@ -138,7 +146,7 @@ class MapKeeper:
             self.skipped += 1
             return Update(restarted=restarted, publication=self._publication(now))
         self._last = (t, *pose)
-        self.mapper.add_scan(t, distances_m, angles_rad, pose)
+        self.mapper.add_scan(t, turn.distances_m, turn.angles_rad, pose)
         grid = self.mapper.grid
         renew = self._planned_version < 0 or (driving and now >= self._next_planner)
         planner = None

@@ -20,29 +20,17 @@ is being read. The keeper is deterministic and each robot's turns reach it in or
 from __future__ import annotations
 
 from collections import deque
-from typing import Any, Protocol
+from typing import Protocol
 
-import numpy.typing as npt
-
-from fleetlink.agent.mapping.keeper import MapKeeper, Update
+from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update
 from fleetlink.shared.worker import ProcessWorker
 
 __all__ = ["DeferredKeeper", "KeeperHost", "MapWorker", "RemoteKeeper"]
 
 
 class KeeperHost(Protocol):
-    def add(
-        self,
-        t: float,
-        distances_m: npt.ArrayLike,
-        angles_rad: npt.ArrayLike,
-        pose: tuple[float, float, float],
-        *,
-        placed: bool,
-        driving: bool,
-        now: float,
-    ) -> Update | None:
-        """One turn in (``MapKeeper.add``'s arguments); an update out, or None (none yet)."""
+    def add(self, turn: Turn) -> Update | None:
+        """One turn in; an update out, or None (none yet)."""
         ...
 
 
@@ -53,19 +41,8 @@ class DeferredKeeper:
         self.keeper = keeper or MapKeeper()
         self._held: Update | None = None
 
-    def add(
-        self,
-        t: float,
-        distances_m: npt.ArrayLike,
-        angles_rad: npt.ArrayLike,
-        pose: tuple[float, float, float],
-        *,
-        placed: bool,
-        driving: bool,
-        now: float,
-    ) -> Update | None:
-        update = self.keeper.add(t, distances_m, angles_rad, pose, placed=placed, driving=driving, now=now)
-        held, self._held = self._held, update
+    def add(self, turn: Turn) -> Update | None:
+        held, self._held = self._held, self.keeper.add(turn)
         return held
 
 
@@ -75,13 +52,13 @@ class _Keepers:
     def __init__(self) -> None:
         self.keepers: dict[str, MapKeeper] = {}
 
-    def __call__(self, request: tuple[Any, ...]) -> Update | None:
-        kind, robot = request[0], request[1]
+    def __call__(self, request: tuple[str, str, Turn | None]) -> Update | None:
+        kind, robot, turn = request
         if kind == "open":
             self.keepers[robot] = MapKeeper()
             return None
-        _, _, t, distances, angles, pose, placed, driving, now = request
-        return self.keepers[robot].add(t, distances, angles, pose, placed=placed, driving=driving, now=now)
+        assert turn is not None
+        return self.keepers[robot].add(turn)
 
 
 class MapWorker:
@@ -96,12 +73,12 @@ class MapWorker:
     def keeper(self, robot: str) -> RemoteKeeper:
         if robot in self._waiting:
             raise ValueError(f"the map worker holds {robot!r}'s keeper already")
-        self._worker.tell(("open", robot))
+        self._worker.tell(("open", robot, None))
         self._waiting[robot] = 0
         self._replies[robot] = []
         return RemoteKeeper(self, robot)
 
-    def _submit(self, robot: str, request: tuple[Any, ...]) -> None:
+    def _submit(self, robot: str, request: tuple[str, str, Turn | None]) -> None:
         self._worker.call(request)
         self._order.append(robot)
         self._waiting[robot] += 1
@@ -131,18 +108,8 @@ class RemoteKeeper:
         self.worker = worker
         self.robot = robot
 
-    def add(
-        self,
-        t: float,
-        distances_m: npt.ArrayLike,
-        angles_rad: npt.ArrayLike,
-        pose: tuple[float, float, float],
-        *,
-        placed: bool,
-        driving: bool,
-        now: float,
-    ) -> Update | None:
+    def add(self, turn: Turn) -> Update | None:
         w = self.worker
-        w._submit(self.robot, ("add", self.robot, t, distances_m, angles_rad, pose, placed, driving, now))
+        w._submit(self.robot, ("add", self.robot, turn))
         # The reply to this robot's previous turn, if there was one (this turn's is the newest).
         return w._take(self.robot) if w._waiting[self.robot] > 1 else None

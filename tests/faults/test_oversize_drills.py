@@ -10,8 +10,6 @@ afterwards is acknowledged on each link.
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -19,13 +17,11 @@ from pathlib import Path
 import paho.mqtt.client as mqtt
 import zenoh
 
-from fleetlink.field.board import SimulatedBoard
-from fleetlink.field.device_server import DeviceServer
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Ack, AckResult, Teleop
 from tests.harness import MosquittoBroker, wait_until
-from tests.harness.mosquitto import free_port
+from tests.harness.agent_process import AgentProcess, agent_process
 from tests.harness.zenoh_peers import zenoh_config
 
 BIG = b"\x00" * (10 * 1024 * 1024)
@@ -42,19 +38,12 @@ def test_ten_megabyte_payloads_on_both_links_are_refused_before_decoding(
     tmp_path: Path, mosquitto: MosquittoBroker
 ) -> None:
     clock = SystemClock()
-    board = SimulatedBoard()
-    server = DeviceServer(board, clock, name="board")
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    cfg = tmp_path / "robot.toml"
-    cfg.write_text(
-        f'robot = "r1"\nboard = "socket://127.0.0.1:{server.serve_tcp()}"\n'
-        f'[zenoh]\nlisten = ["{endpoint}"]\n[mqtt]\nurl = "mqtt://127.0.0.1:{mosquitto.port}"\n'
-    )
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "fleetlink.cli.main", "agent", "--config", str(cfg)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    with agent_process(tmp_path, mosquitto.port) as agent:
+        _flood(agent, clock, mosquitto)
+
+
+def _flood(agent: AgentProcess, clock: SystemClock, mosquitto: MosquittoBroker) -> None:
+    proc, board, endpoint = agent.proc, agent.board, agent.zenoh_endpoint
     session = zenoh.open(zenoh_config(connect=[endpoint]))
     acks: list[tuple[str, Ack]] = []
     lock = threading.Lock()
@@ -116,6 +105,3 @@ def test_ten_megabyte_payloads_on_both_links_are_refused_before_decoding(
         op.disconnect()
         sub.undeclare()
         session.close()
-        proc.terminate()
-        proc.wait(10)
-        server.stop()

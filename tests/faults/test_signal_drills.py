@@ -21,13 +21,11 @@ from pathlib import Path
 
 import paho.mqtt.client as mqtt
 
-from fleetlink.field.board import SimulatedBoard
-from fleetlink.field.device_server import DeviceServer
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Connection, ConnectionState, Teleop
 from tests.harness import MosquittoBroker, wait_until
-from tests.harness.mosquitto import free_port
+from tests.harness.agent_process import AgentProcess, agent_process
 
 
 def _retained_connection(port: int) -> list[ConnectionState]:
@@ -49,20 +47,12 @@ def test_sigterm_on_a_driving_agent_halts_the_robot_and_says_offline(
     tmp_path: Path, mosquitto: MosquittoBroker
 ) -> None:
     clock = SystemClock()
-    board = SimulatedBoard()
-    server = DeviceServer(board, clock, name="board")
-    port = server.serve_tcp()
-    cfg = tmp_path / "robot.toml"
-    cfg.write_text(
-        f'robot = "r1"\nboard = "socket://127.0.0.1:{port}"\n'
-        f'[zenoh]\nlisten = ["tcp/127.0.0.1:{free_port()}"]\n'
-        f'[mqtt]\nurl = "mqtt://127.0.0.1:{mosquitto.port}"\n'
-    )
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "fleetlink.cli.main", "agent", "--config", str(cfg)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
+    with agent_process(tmp_path, mosquitto.port, output=subprocess.PIPE) as agent:
+        _drive_and_terminate(agent, clock, mosquitto)
+
+
+def _drive_and_terminate(agent: AgentProcess, clock: SystemClock, mosquitto: MosquittoBroker) -> None:
+    proc, board = agent.proc, agent.board
     op = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="operator-1")
     op.connect("127.0.0.1", mosquitto.port)
     op.loop_start()
@@ -99,12 +89,8 @@ def test_sigterm_on_a_driving_agent_halts_the_robot_and_says_offline(
         assert _retained_connection(mosquitto.port) == [ConnectionState.OFFLINE]
     finally:
         stop_driving.set()
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
         op.loop_stop()
         op.disconnect()
-        server.stop()
 
 
 def test_sigterm_on_a_secured_field_leaves_no_secrets(tmp_path: Path) -> None:
