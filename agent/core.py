@@ -29,6 +29,7 @@ at the state rate.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -44,10 +45,13 @@ from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 from fleetlink.shared import wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.messages import (
+    MAX_DIAGNOSTIC_COUNTS,
     AckResult,
     ActionType,
     AgvPosition,
     BatteryState,
+    Count,
+    Diagnostics,
     ErrorLevel,
     EStop,
     Event,
@@ -76,6 +80,8 @@ COMMAND_TOPICS = (Order.TOPIC, InstantActions.TOPIC, Teleop.TOPIC)
 INPUT_TOPICS = (*COMMAND_TOPICS, LeaseRequest.TOPIC, UwbFix.TOPIC)
 UNKNOWN_SD = 1000.0
 """What ``pose.sd_*`` say before the fusion knows the position or heading (the wire has no inf)."""
+DIAGNOSTICS_PERIOD_S = 5.0
+"""At most one ``Diagnostics`` message this often, and only when a count moved."""
 _MAX_FAILURE_KINDS = 64
 """Distinct (topic, exception type) pairs logged when a command handler fails; later ones are only counted."""
 
@@ -177,6 +183,8 @@ class AgentCore:
         """Commands and lease requests refused because the sender is not in ``operators``."""
         self.refused_lease = 0
         self._board_sessions = 0
+        self._next_diagnostics = -math.inf
+        self._last_diagnostics: object = None
         self.handler_failures = 0
         """Commands whose handling raised (a value every check let through): refused, robot stopped."""
         self._failures_logged: set[tuple[str, str]] = set()
@@ -257,6 +265,34 @@ class AgentCore:
             self._rejected(self.gate.reject(link, "pans", f"pans: {exc}"), out)
             return out
         self._add_fix(obs, out)
+        return out
+
+    def diagnostics(self, now: float, links: Mapping[str, tuple[int, int]]) -> Output:
+        """Every ``DIAGNOSTICS_PERIOD_S``, if any count moved: a ``Diagnostics`` message with what the
+        gate refused, the duplicates, the handler failures and, per link, (oversized, dropped)."""
+        out = Output()
+        stats = self.gate.stats
+        counts = (
+            tuple(sorted(stats.rejected.items())),
+            stats.duplicates,
+            self.handler_failures,
+            tuple(sorted(links.items())),
+        )
+        if now < self._next_diagnostics or counts == self._last_diagnostics:
+            return out
+        self._next_diagnostics = now + DIAGNOSTICS_PERIOD_S
+        self._last_diagnostics = counts
+        rejected = [Count(key=f"{lk}/{topic}"[:64], count=n) for (lk, topic), n in sorted(stats.rejected.items())]
+        msg = self.counter.make(
+            Diagnostics,
+            rejected=tuple(rejected[:MAX_DIAGNOSTIC_COUNTS]),
+            duplicates=stats.duplicates,
+            handler_failures=self.handler_failures,
+            oversized=tuple(Count(key=lk[:64], count=o) for lk, (o, _) in sorted(links.items())),
+            dropped=tuple(Count(key=lk[:64], count=d) for lk, (_, d) in sorted(links.items())),
+            last_reason=stats.last_reason[:256],
+        )
+        out.messages.append((msg, None))
         return out
 
     def set_links(self, links: LinkStatus, now: float) -> Output:

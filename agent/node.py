@@ -187,6 +187,8 @@ class AgentNode:
             if now >= self._next_links:
                 self._next_links = now + LINK_STATUS_PERIOD_S
                 self._apply(self.core.set_links(self._link_status(), now))
+                counts = {link.name.value: (link.stats.oversized, link.stats.dropped) for link in self.links}
+                self._apply(self.core.diagnostics(now, counts))
             snap = self.board.snapshot
             if snap.motor is not self._motor:  # a fresh wheel reading: its poll time
                 self._motor, self._odom_t = snap.motor, snap.updated
@@ -296,7 +298,7 @@ class AgentNode:
             self.share.start()
 
 
-_OUTPUT_TOPICS = ("pose", "state", "ack", "events", "lease", "connection", "rejects")
+_OUTPUT_TOPICS = ("pose", "state", "ack", "events", "lease", "connection", "diagnostics")
 
 
 LIDAR_READ_PERIOD_S = (0.05, 0.25)

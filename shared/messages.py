@@ -408,6 +408,40 @@ class Event(Message):
     data: Annotated[tuple[KeyValue, ...], sized(MAX_EVENT_DATA)]
 
 
+MAX_DIAGNOSTIC_COUNTS = 32
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Count:
+    """One counter: what (``<link>/<topic>`` or ``<link>``) and how many so far."""
+
+    key: Annotated[str, sized(64)]
+    count: Annotated[int, bounded(0)]
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Diagnostics(Message):
+    """What the agent refused or lost, so far, every ``DIAGNOSTICS_PERIOD_S`` (the agent) while
+    anything counts: ``fleetlink/v1/<robot>/diagnostics``. Counts only grow (since the process
+    started); a reader diffs two of them for a rate."""
+
+    TOPIC: ClassVar[str] = "diagnostics"
+
+    rejected: Annotated[tuple[Count, ...], sized(MAX_DIAGNOSTIC_COUNTS)]
+    """Inputs refused, per ``<link>/<topic>`` (malformed, out of range, not an input, ...)."""
+    duplicates: Annotated[int, bounded(0)]
+    """Commands that came again (the other link, a retry): answered, not run twice."""
+    handler_failures: Annotated[int, bounded(0)]
+    """Commands whose handling raised: refused and the robot stopped."""
+    oversized: Annotated[tuple[Count, ...], sized(MAX_DIAGNOSTIC_COUNTS)]
+    """Per link: messages over the wire limit, refused before they were read."""
+    dropped: Annotated[tuple[Count, ...], sized(MAX_DIAGNOSTIC_COUNTS)]
+    """Per link: messages not delivered (inbox full) or not sent (link down)."""
+    last_reason: Annotated[str, sized(256)]
+    """Why the latest input was refused."""
+
+
 # --------------------------------------------------------------------------------------------------
 # Issue 4: UWB positioning. The gateway (``fleetlink uwb``) publishes these over MQTT (and they are
 # valid on Zenoh too): one fix per tag per update, and optionally the raw ranges behind it.

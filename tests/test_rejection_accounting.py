@@ -79,3 +79,31 @@ def test_board_loss_and_return_are_events() -> None:
         seen += [m for m, _ in out.messages if isinstance(m, Event)]
     assert [e.kind for e in seen] == ["board_connected", "board_lost", "board_recovered"]
     assert seen[1].severity is Severity.ERROR and "lost" in seen[1].text
+
+
+def test_rejection_counts_are_published_at_a_low_rate_while_they_move() -> None:
+    from fleetlink.agent.core import DIAGNOSTICS_PERIOD_S
+    from fleetlink.shared.messages import Diagnostics
+
+    clock = SimClock()
+    core = AgentCore("r1", clock, Pilot())
+    links = {"zenoh": (0, 0), "mqtt": (0, 0)}
+
+    def diagnostics(now: float) -> list[Diagnostics]:
+        return [m for m, _ in core.diagnostics(now, links).messages if isinstance(m, Diagnostics)]
+
+    first = diagnostics(0.0)  # everything zero: one message says so
+    assert len(first) == 1 and first[0].rejected == () and first[0].handler_failures == 0
+    for i in range(1000):  # a flood of garbage on one link
+        core.on_input(LinkName.MQTT, keys.key("r1", "teleop"), b"\xc1" * (i % 7 + 1), 0.1)
+    assert diagnostics(1.0) == []  # not before the period
+    links["zenoh"] = (3, 12)  # the Zenoh endpoint refused three oversized messages, dropped twelve
+    msgs = diagnostics(DIAGNOSTICS_PERIOD_S)
+    assert len(msgs) == 1
+    d = wire.decode_key(keys.key("r1", "diagnostics"), wire.encode(msgs[0]))  # it travels
+    assert isinstance(d, Diagnostics)
+    assert [(c.key, c.count) for c in d.rejected] == [("mqtt/teleop", 1000)]
+    assert {c.key: c.count for c in d.oversized} == {"zenoh": 3, "mqtt": 0}
+    assert {c.key: c.count for c in d.dropped} == {"zenoh": 12, "mqtt": 0}
+    assert "msgpack" in d.last_reason
+    assert diagnostics(3 * DIAGNOSTICS_PERIOD_S) == []  # nothing moved: nothing sent
