@@ -46,7 +46,7 @@ class Duplicate:
 
 @dataclass(frozen=True, slots=True)
 class Rejected:
-    """Malformed or unwanted input. ``log`` is true the first time this (link, topic, field) is seen."""
+    """Malformed or unwanted input. ``log`` is true the first time this (link, topic) is refused."""
 
     link: LinkName
     topic: str
@@ -58,7 +58,7 @@ Verdict = Accepted | Duplicate | Rejected
 
 
 MAX_LOGGED_TAGS = 256
-"""Distinct rejection kinds (link, topic, field or reason) logged and published once each; beyond
+"""Distinct (link, topic) pairs whose first rejection is logged and published; beyond
 them rejections are only counted."""
 
 
@@ -92,7 +92,7 @@ class CommandGate:
         # (topic, sender, headerId, timestamp) -> (time seen, link it first came on)
         self._seen: OrderedDict[tuple[str, str, int, float], tuple[float, LinkName]] = OrderedDict()
         self._orders: dict[str, int] = {}  # orderId -> highest executed orderUpdateId
-        self._logged: set[tuple[str, str, str]] = set()
+        self._logged: set[tuple[str, str]] = set()
 
     # -- inbound -----------------------------------------------------------------------------
 
@@ -141,10 +141,12 @@ class CommandGate:
         slot = (link.value, topic)
         self.stats.rejected[slot] = self.stats.rejected.get(slot, 0) + 1
         self.stats.last_reason = reason
-        # The tag may hold a name the sender chose (an unknown field's): the set of tags is capped
-        # and, once full, stays silent, so no sender can make every rejection a "first" one (each
-        # logged and published) by varying it. Counting goes on regardless.
-        tag = (link.value, topic, what or reason.partition(":")[0])
+        # Logged (and published) once per link and topic: a reason or a field name may be the
+        # sender's own words (an unknown field's name, an out-of-range value), so they are not part
+        # of the tag, or a sender could make every rejection a "first" one by varying them. The set
+        # is capped all the same (topics may be unknown ones) and silent when full. Counting and
+        # the last reason (Diagnostics) go on regardless.
+        tag = (link.value, topic)
         first = tag not in self._logged and len(self._logged) < MAX_LOGGED_TAGS
         if first:
             self._logged.add(tag)
