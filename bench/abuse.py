@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -37,12 +36,12 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from fleetlink.shared import keys, wire  # noqa: E402
-from fleetlink.shared.clock import SystemClock  # noqa: E402
-from fleetlink.shared.messages import Ack, Teleop  # noqa: E402
-from fleetlink.site.brokers import MosquittoBroker  # noqa: E402
-from tests.harness.agent_process import agent_process  # noqa: E402
-from tests.harness.zenoh_peers import zenoh_config  # noqa: E402
+from fleetlink.shared import keys, wire
+from fleetlink.shared.clock import SystemClock
+from fleetlink.shared.messages import Ack, Teleop
+from fleetlink.site.brokers import MosquittoBroker
+from tests.harness.agent_process import agent_process
+from tests.harness.zenoh_peers import zenoh_config
 
 TTL_S = 0.5
 GOALS = {"delivered_ratio": 1.0, "added_p99_s": 0.050, "rss_growth_bytes": 5 * 1024 * 1024, "log_lines": 100}
