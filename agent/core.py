@@ -35,8 +35,8 @@ from typing import Any
 
 from fleetlink.agent.fusion import Fusion
 from fleetlink.agent.guard import GuardInputs
-from fleetlink.agent.lease import ALWAYS_ALLOWED_ACTIONS, DRIVE_LEASE_S, LeaseKeeper
-from fleetlink.agent.links.gate import Accepted, CommandGate, Duplicate, Rejected
+from fleetlink.agent.lease import DRIVE_LEASE_S, LeaseKeeper
+from fleetlink.agent.links.gate import Accepted, CommandGate, Duplicate, Rejected, always_allowed
 from fleetlink.agent.odometry import Odometry, OdomPose
 from fleetlink.agent.pilot import ActionKind, CommandResult, CommandStatus, PathProvider, Pilot, PilotEvent, PilotOutput
 from fleetlink.agent.pilot import OperatingMode as PilotMode
@@ -394,9 +394,7 @@ class AgentCore:
     def _lease_refusal(self, msg: Order | InstantActions | Teleop, now: float, out: Output) -> str:
         """Why ``msg`` may not run under the lease ('' = it may). Driving takes the lease when it is
         free and renews it for its holder (agent/lease.py), so nobody drives without holding it."""
-        if isinstance(msg, InstantActions) and all(
-            a.actionType.value.lower() in ALWAYS_ALLOWED_ACTIONS for a in msg.actions
-        ):
+        if always_allowed(msg):
             return ""  # stopping the robot is everyone's right
         if isinstance(msg, Teleop) and msg.v == 0.0 and msg.omega == 0.0:
             return ""  # so is a zero twist

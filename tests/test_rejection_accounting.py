@@ -107,3 +107,38 @@ def test_rejection_counts_are_published_at_a_low_rate_while_they_move() -> None:
     assert {c.key: c.count for c in d.dropped} == {"zenoh": 12, "mqtt": 0}
     assert "msgpack" in d.last_reason
     assert diagnostics(3 * DIAGNOSTICS_PERIOD_S) == []  # nothing moved: nothing sent
+
+
+def test_a_sender_over_its_rate_is_refused_before_any_work_and_stops_never_are() -> None:
+    from fleetlink.agent.links.gate import RateLimit
+    from fleetlink.shared.messages import Action, ActionType, InstantActions
+
+    limit = RateLimit(rate=50.0, burst=100.0, max_senders=4)
+    assert all(limit.allow("bob", 0.0) for _ in range(100))  # the burst
+    assert not limit.allow("bob", 0.0)
+    assert limit.allow("bob", 0.05)  # 2.5 tokens back after 50 ms
+    for i in range(10):  # invented senders: at most four remembered
+        limit.allow(f"s{i}", 1.0)
+    assert len(limit._buckets) == 4
+
+    gate = CommandGate("r1")
+    clock = SimClock()
+    bob = wire.HeaderCounter(clock, robot="r1", sender="op-bob")
+    alice = wire.HeaderCounter(clock, robot="r1", sender="operator-1")
+    key = keys.key("r1", "teleop")
+    verdicts = [
+        gate.receive(LinkName.ZENOH, key, wire.encode(bob.make(Teleop, v=0.0, omega=0.0, ttl_s=0.5)), 0.0)
+        for _ in range(1000)
+    ]
+    assert sum(1 for v in verdicts if type(v).__name__ == "Accepted") == 100
+    assert "over 50 commands/s" in gate.stats.last_reason
+    assert len(gate._seen) == 100  # the refused ones are not remembered
+    # The lease holder's stream is untouched, and bob's stop always passes.
+    assert (
+        type(
+            gate.receive(LinkName.ZENOH, key, wire.encode(alice.make(Teleop, v=0.1, omega=0.0, ttl_s=0.5)), 0.0)
+        ).__name__
+        == "Accepted"
+    )
+    stop = bob.make(InstantActions, actions=(Action(actionId="s", actionType=ActionType.STOP, actionParameters=()),))
+    assert type(gate.receive(LinkName.MQTT, keys.key("r1", "actions"), wire.encode(stop), 0.0)).__name__ == "Accepted"

@@ -18,6 +18,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
+from fleetlink.agent.lease import ALWAYS_ALLOWED_ACTIONS
 from fleetlink.shared import keys, wire
 from fleetlink.shared.messages import Ack, AckResult, InstantActions, LinkName, Order, Teleop
 
@@ -75,6 +76,35 @@ class GateStats:
         return sum(self.rejected.values())
 
 
+def always_allowed(msg: Command) -> bool:
+    """A stop, an e-stop or a pause: nobody may be kept from stopping the robot."""
+    return isinstance(msg, InstantActions) and all(
+        a.actionType.value.lower() in ALWAYS_ALLOWED_ACTIONS for a in msg.actions
+    )
+
+
+class RateLimit:
+    """A token bucket per sender: ``rate`` commands a second on average, ``burst`` at once. Pure;
+    at most ``max_senders`` are remembered (the one unheard from longest is forgotten first), so a
+    flood of invented sender names costs no memory."""
+
+    def __init__(self, rate: float = 50.0, burst: float = 100.0, max_senders: int = 256) -> None:
+        self.rate, self.burst, self.max_senders = rate, burst, max_senders
+        self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()  # sender -> (tokens, at)
+        self.limited = 0
+
+    def allow(self, sender: str, now: float) -> bool:
+        tokens, at = self._buckets.pop(sender, (self.burst, now))
+        tokens = min(self.burst, tokens + (now - at) * self.rate)
+        ok = tokens >= 1.0
+        self._buckets[sender] = (tokens - 1.0 if ok else tokens, now)
+        while len(self._buckets) > self.max_senders:
+            self._buckets.popitem(last=False)
+        if not ok:
+            self.limited += 1
+        return ok
+
+
 class CommandGate:
     def __init__(
         self,
@@ -93,6 +123,8 @@ class CommandGate:
         self._seen: OrderedDict[tuple[str, str, int, float], tuple[float, LinkName]] = OrderedDict()
         self._orders: dict[str, int] = {}  # orderId -> highest executed orderUpdateId
         self._logged: set[tuple[str, str]] = set()
+        self.limit = RateLimit()
+        """Commands per sender and second: a flood from one sender costs a decode and a count."""
 
     # -- inbound -----------------------------------------------------------------------------
 
@@ -110,6 +142,11 @@ class CommandGate:
         if not isinstance(msg, Order | InstantActions | Teleop):
             self.stats.accepted += 1
             return Accepted(msg, link)
+        if not always_allowed(msg) and not self.limit.allow(msg.header.sender, now):
+            # Over its rate: refused before any work (not remembered, no ack, no lease check),
+            # counted, logged once per link and topic. The lease holder's teleops (10 Hz) are far
+            # below the rate; stops are never limited.
+            return self.reject(link, topic, f"sender {msg.header.sender!r}: over {self.limit.rate:g} commands/s")
         self._expire(now)
         h = msg.header
         ident = (topic, h.sender, h.headerId, h.timestamp)
