@@ -215,6 +215,7 @@ class AgentCore:
 
     def on_input(self, link: LinkName, key: str, payload: bytes, now: float) -> Output:
         out = Output()
+        self.gate.priority_sender = self.lease.view(now).holder
         verdict = self.gate.receive(link, key, payload, now)
         if isinstance(verdict, Rejected):
             self._rejected(verdict, out)

@@ -3,7 +3,7 @@
     .venv/bin/python bench/abuse.py [--seconds 10] [--rate 10000] [--json FILE]
 
 A real ``fleetlink agent`` process (tests/harness/agent_process.py: a simulated board over TCP,
-Zenoh listening on loopback, a private Mosquitto). The operator ``operator-1`` holds the robot
+Zenoh listening on loopback, a private Mosquitto). The operator ``operator-1`` takes the lease
 and sends a teleop every 100 ms on Zenoh, timing each until its ack comes back. Three phases of
 ``--seconds`` each:
 
@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
-from fleetlink.shared.messages import Ack, Teleop
+from fleetlink.shared.messages import Ack, LeaseRequest, Teleop
 from fleetlink.site.brokers import MosquittoBroker
 from tests.harness.agent_process import agent_process
 from tests.harness.zenoh_peers import zenoh_config
@@ -148,6 +148,9 @@ def main(argv: list[str] | None = None) -> int:
                         raise SystemExit("the agent did not come up")
                     time.sleep(0.1)
                 time.sleep(1.5)
+                # The holder takes the lease, as an operator driving the robot does.
+                lease = holder.counter.make(LeaseRequest, duration_s=300.0, release=False)
+                session.put(keys.key("r1", LeaseRequest.TOPIC), wire.encode(lease))
                 rss0, lines0 = _rss(agent.proc.pid), len(log_path.read_bytes().splitlines())
                 rows["baseline"] = holder.figures(holder.run(args.seconds))
 

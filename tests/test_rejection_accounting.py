@@ -131,7 +131,7 @@ def test_a_sender_over_its_rate_is_refused_before_any_work_and_stops_never_are()
         for _ in range(1000)
     ]
     assert sum(1 for v in verdicts if type(v).__name__ == "Accepted") == 100
-    assert "over 50 commands/s" in gate.stats.last_reason
+    assert "over its rate (50 commands/s)" in gate.stats.last_reason
     assert len(gate._seen) == 100  # the refused ones are not remembered
     # The lease holder's stream is untouched, and bob's stop always passes.
     assert (
@@ -142,3 +142,20 @@ def test_a_sender_over_its_rate_is_refused_before_any_work_and_stops_never_are()
     )
     stop = bob.make(InstantActions, actions=(Action(actionId="s", actionType=ActionType.STOP, actionParameters=()),))
     assert type(gate.receive(LinkName.MQTT, keys.key("r1", "actions"), wire.encode(stop), 0.0)).__name__ == "Accepted"
+
+
+def test_a_flood_under_invented_names_shares_one_bucket_and_the_lease_holder_is_not_in_it() -> None:
+    gate = CommandGate("r1")
+    gate.priority_sender = "operator-1"
+    clock = SimClock()
+    key = keys.key("r1", "teleop")
+    admitted = 0
+    for i in range(2000):  # each name new, each with a fresh bucket of its own
+        c = wire.HeaderCounter(clock, robot="r1", sender=f"fake-{i}")
+        v = gate.receive(LinkName.MQTT, key, wire.encode(c.make(Teleop, v=0.0, omega=0.0, ttl_s=0.5)), 0.0)
+        admitted += type(v).__name__ == "Accepted"
+    assert admitted == gate.limit.shared_burst  # the shared bucket, not 2000 x 100
+    holder = wire.HeaderCounter(clock, robot="r1", sender="operator-1")
+    for k in range(50):  # the holder at 10 Hz meanwhile: every one admitted
+        v = gate.receive(LinkName.ZENOH, key, wire.encode(holder.make(Teleop, v=0.1, omega=0.0, ttl_s=0.5)), 0.1 * k)
+        assert type(v).__name__ == "Accepted", v

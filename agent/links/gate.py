@@ -84,19 +84,38 @@ def always_allowed(msg: Command) -> bool:
 
 
 class RateLimit:
-    """A token bucket per sender: ``rate`` commands a second on average, ``burst`` at once. Pure;
-    at most ``max_senders`` are remembered (the one unheard from longest is forgotten first), so a
-    flood of invented sender names costs no memory."""
+    """Token buckets: one per sender (``rate`` commands a second on average, ``burst`` at once) and
+    one that every sender but the priority one (the lease holder) shares (``shared_rate``,
+    ``shared_burst``). Sender names are the sender's to choose until the transport vouches for them:
+    the shared bucket keeps a flood under invented names from crowding out the holder. Pure; at most
+    ``max_senders`` buckets are remembered (the one unheard from longest is forgotten first)."""
 
-    def __init__(self, rate: float = 50.0, burst: float = 100.0, max_senders: int = 256) -> None:
+    def __init__(
+        self,
+        rate: float = 50.0,
+        burst: float = 100.0,
+        *,
+        shared_rate: float = 100.0,
+        shared_burst: float = 200.0,
+        max_senders: int = 256,
+    ) -> None:
         self.rate, self.burst, self.max_senders = rate, burst, max_senders
+        self.shared_rate, self.shared_burst = shared_rate, shared_burst
         self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()  # sender -> (tokens, at)
+        self._shared: tuple[float, float | None] = (shared_burst, None)  # (tokens, at)
         self.limited = 0
 
-    def allow(self, sender: str, now: float) -> bool:
+    def allow(self, sender: str, now: float, *, priority: bool = False) -> bool:
+        """Take one command from ``sender``; ``priority``: it is the lease holder (no shared bucket)."""
         tokens, at = self._buckets.pop(sender, (self.burst, now))
         tokens = min(self.burst, tokens + (now - at) * self.rate)
         ok = tokens >= 1.0
+        if ok and not priority:
+            shared, shared_at = self._shared
+            if shared_at is not None:
+                shared = min(self.shared_burst, shared + (now - shared_at) * self.shared_rate)
+            ok = shared >= 1.0
+            self._shared = (shared - 1.0 if ok else shared, now)
         self._buckets[sender] = (tokens - 1.0 if ok else tokens, now)
         while len(self._buckets) > self.max_senders:
             self._buckets.popitem(last=False)
@@ -125,6 +144,8 @@ class CommandGate:
         self._logged: set[tuple[str, str]] = set()
         self.limit = RateLimit()
         """Commands per sender and second: a flood from one sender costs a decode and a count."""
+        self.priority_sender = ""
+        """The lease holder (the agent's core keeps it current): only its own bucket limits it."""
 
     # -- inbound -----------------------------------------------------------------------------
 
@@ -142,11 +163,12 @@ class CommandGate:
         if not isinstance(msg, Order | InstantActions | Teleop):
             self.stats.accepted += 1
             return Accepted(msg, link)
-        if not always_allowed(msg) and not self.limit.allow(msg.header.sender, now):
+        sender = msg.header.sender
+        if not always_allowed(msg) and not self.limit.allow(sender, now, priority=sender == self.priority_sender):
             # Over its rate: refused before any work (not remembered, no ack, no lease check),
             # counted, logged once per link and topic. The lease holder's teleops (10 Hz) are far
             # below the rate; stops are never limited.
-            return self.reject(link, topic, f"sender {msg.header.sender!r}: over {self.limit.rate:g} commands/s")
+            return self.reject(link, topic, f"sender {sender!r}: over its rate ({self.limit.rate:g} commands/s)")
         self._expire(now)
         h = msg.header
         ident = (topic, h.sender, h.headerId, h.timestamp)

@@ -22,7 +22,7 @@ import zenoh
 
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
-from fleetlink.shared.messages import Ack, Teleop
+from fleetlink.shared.messages import Ack, LeaseRequest, Teleop
 from tests.harness import MosquittoBroker, wait_until
 from tests.harness.agent_process import agent_process
 from tests.harness.zenoh_peers import zenoh_config
@@ -98,6 +98,9 @@ def test_the_lease_holder_drives_through_garbage_and_valid_floods(tmp_path: Path
             wait_until(lambda: agent.board.state is not None and agent.board.state.connected, timeout=30)
             # The holder's session and the agent find each other: teleops until one is acked.
             wait_until(lambda: any(i in acked for i in drive(0.3)), timeout=15, message="a first ack")
+            # The holder takes the lease, as an operator driving the robot does.
+            lease = holder.make(LeaseRequest, duration_s=300.0, release=False)
+            session.put(keys.key("r1", LeaseRequest.TOPIC), wire.encode(lease))
             ids = drive(1.0)
             wait_until(lambda: all(i in acked for i in ids), timeout=5, message="the holder's acks before the floods")
             rss0, lines0 = _rss(agent.proc.pid), len(log_path.read_bytes().splitlines())
