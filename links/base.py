@@ -8,11 +8,15 @@ the MQTT endpoint translates them to ``+`` and ``#``.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 from fleetlink.shared.messages import LinkName
+from fleetlink.shared.wire import MAX_PAYLOAD
+
+log = logging.getLogger(__name__)
 
 __all__ = ["Link", "LinkStats", "QueryLink", "Receiver", "key_matches", "to_mqtt_filter"]
 
@@ -32,6 +36,16 @@ class LinkStats:
     """Clock time of the last message received (None: never)."""
     oversized: int = 0
     """Inbound messages over ``wire.MAX_PAYLOAD`` refused before they were copied or decoded."""
+
+    def admit(self, label: str, key: str, size: int) -> bool:
+        """Whether an inbound message of ``size`` bytes may be read; one over the wire's limit is
+        counted (the first one logged) and must be dropped before it is copied."""
+        if size <= MAX_PAYLOAD:
+            return True
+        self.oversized += 1
+        if self.oversized == 1:
+            log.warning("%s: refused %d bytes on %s (limit %d); counting the rest", label, size, key[:120], MAX_PAYLOAD)
+        return False
 
 
 @runtime_checkable

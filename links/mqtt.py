@@ -46,7 +46,6 @@ from fleetlink.links.zenoh import topic_of
 from fleetlink.shared.clock import Clock, SystemClock
 from fleetlink.shared.messages import LinkName
 from fleetlink.shared.mqtt import MqttSettings
-from fleetlink.shared.wire import MAX_PAYLOAD
 from fleetlink.shared.worker import Worker
 
 if TYPE_CHECKING:
@@ -365,12 +364,7 @@ class MqttEndpoint:
         self._connected = False
 
     def _on_message(self, client: Any, userdata: Any, msg: Any) -> None:
-        if len(msg.payload) > MAX_PAYLOAD:  # the broker's message_size_limit should have stopped it
-            self.stats.oversized += 1
-            if self.stats.oversized == 1:
-                log.warning(
-                    "%s: refused %d bytes on %s (limit %d)", self.label, len(msg.payload), msg.topic[:120], MAX_PAYLOAD
-                )
+        if not self.stats.admit(self.label, msg.topic, len(msg.payload)):  # the broker should have refused it
             return
         topic, payload = msg.topic, bytes(msg.payload)
         delivered = False

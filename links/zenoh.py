@@ -317,9 +317,8 @@ class ZenohEndpoint:
         def on_sample(sample: Any) -> None:
             # On zenoh's network thread: queue and return at once.
             try:
-                if len(sample.payload) > MAX_PAYLOAD:  # refused before it is copied into Python
-                    self._oversized(str(sample.key_expr), len(sample.payload))
-                    return
+                if not self.stats.admit(self.label, str(sample.key_expr), len(sample.payload)):
+                    return  # refused before it is copied into Python
                 self._inbox.put_nowait((receiver, str(sample.key_expr), sample.payload.to_bytes()))
             except queue.Full:
                 self.stats.dropped += 1
@@ -338,13 +337,6 @@ class ZenohEndpoint:
 
         handler = zenoh.handlers.Callback(on_sample, indirect=False)
         self._declared.append(self._session.declare_subscriber(key_expr, handler))
-
-    def _oversized(self, key: str, size: int) -> None:
-        self.stats.oversized += 1
-        if self.stats.oversized == 1:
-            log.warning(
-                "%s: refused %d bytes on %s (limit %d); counting the rest", self.label, size, key[:120], MAX_PAYLOAD
-            )
 
     def _declare_queryable(self, key_expr: str, answer: Answer) -> None:
         def on_query(query: Any) -> None:

@@ -10,8 +10,8 @@ afterwards is acknowledged on each link.
 
 from __future__ import annotations
 
+import contextlib
 import threading
-import time
 from pathlib import Path
 
 import paho.mqtt.client as mqtt
@@ -68,17 +68,25 @@ def _flood(agent: AgentProcess, clock: SystemClock, mosquitto: MosquittoBroker) 
             return any(lk == link and a.commandHeaderId == header_id for lk, a in acks)
 
     def teleop_acked(link: str) -> None:
-        msg = counter.make(Teleop, v=0.0, omega=0.0, ttl_s=0.5)
-        data = wire.encode(msg)
-        if link == "zenoh":
-            session.put(keys.key("r1", "teleop"), data)
-        else:
-            op.publish(keys.key("r1", "teleop"), data, qos=1)
-        wait_until(lambda: acked(msg.header.headerId, link), timeout=10, message=f"a teleop acked on {link}")
+        """A teleop on ``link``, sent again every 0.2 s until one is acked (the links may be joining)."""
+        sent: list[int] = []
+
+        def send_and_check() -> bool:
+            if any(acked(h, link) for h in sent):
+                return True
+            msg = counter.make(Teleop, v=0.0, omega=0.0, ttl_s=0.5)
+            data = wire.encode(msg)
+            if link == "zenoh":
+                session.put(keys.key("r1", "teleop"), data)
+            else:
+                op.publish(keys.key("r1", "teleop"), data, qos=1)
+            sent.append(msg.header.headerId)
+            return False
+
+        wait_until(send_and_check, timeout=10, interval=0.2, message=f"a teleop acked on {link}")
 
     try:
         wait_until(lambda: board.state is not None and board.state.connected, timeout=20, message="the agent up")
-        time.sleep(1.0)  # let the agent settle (its links, first telemetry)
         teleop_acked("zenoh")
         teleop_acked("mqtt")
         before = _rss_bytes(proc.pid)
@@ -89,8 +97,9 @@ def _flood(agent: AgentProcess, clock: SystemClock, mosquitto: MosquittoBroker) 
         big.connect("127.0.0.1", mosquitto.port)
         big.loop_start()
         for _ in range(3):
-            big.publish(keys.key("r1", "teleop"), BIG, qos=0)
-        time.sleep(1.0)
+            info = big.publish(keys.key("r1", "teleop"), BIG, qos=0)
+        with contextlib.suppress(RuntimeError, ValueError):  # the broker may drop it mid-way
+            info.wait_for_publish(10)  # written to the broker (which refuses it at its edge)
         big.loop_stop()
         big.disconnect()
         teleop_acked("zenoh")

@@ -73,7 +73,17 @@ def test_tls_endpoint_under_concurrent_publishing_never_disconnects(tmp_path: Pa
         robot.start()
         operator.start()
         wait_until(lambda: robot.up and operator.up, timeout=15, message="both TLS clients connected")
-        time.sleep(0.3)  # the subscriptions reach the broker
+
+        def probed() -> bool:  # both subscriptions are in place once a probe each way arrives
+            robot.publish(keys.key("r1", "pose"), b"probe")
+            operator.publish(keys.key("r1", "teleop"), b"probe")
+            with lock:
+                return bool(heard) and bool(commands)
+
+        wait_until(probed, timeout=10, interval=0.1, message="the subscriptions in place")
+        with lock:
+            heard.clear()
+            commands.clear()
         for t in threads:
             t.start()
         end = time.monotonic() + SECONDS
