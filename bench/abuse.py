@@ -3,15 +3,16 @@
     .venv/bin/python bench/abuse.py [--seconds 10] [--rate 10000] [--json FILE]
 
 A real ``fleetlink agent`` process (tests/harness/agent_process.py: a simulated board over TCP,
-Zenoh listening on loopback, a private Mosquitto). The operator ``operator-1`` takes the lease
-and sends a teleop every 100 ms on Zenoh, timing each until its ack comes back. Three phases of
-``--seconds`` each:
+Zenoh listening on loopback, a private Mosquitto) with a site's allowlist, ``operator-1`` and
+``op-bob``. The operator ``operator-1`` takes the lease and sends a teleop every 100 ms on Zenoh,
+timing each until its ack comes back. Three phases of ``--seconds`` each:
 
 * baseline: nothing else (the figure every other phase is compared with, in the same run);
-* garbage: ``--rate`` messages a second the agent must refuse, half on Zenoh, half on MQTT, on its
-  command keys (undecodable bytes, and decodable teleops with an unknown field named differently
-  each time);
-* valid flood: ``--rate`` valid zero teleops a second from another operator, half on each link.
+* garbage: ``--rate`` messages a second the agent must refuse, half on Zenoh, half on MQTT, on
+  op-bob's command keys -- an operator's login gone rogue: on a secured site nobody else can write
+  to the agent's keys, and what a login off the allowlist sends never reaches the agent
+  (undecodable bytes, and decodable teleops with an unknown field named differently each time);
+* valid flood: ``--rate`` valid zero teleops a second from op-bob, half on each link.
 
 Per phase: the holder's teleops acked (ratio), ack latency p50/p99 and p99 added over the
 baseline, the number acked later than their 0.5 s TTL; the agent's RSS growth and the lines it
@@ -81,7 +82,7 @@ class Holder:
             msg = self.counter.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S)
             with self.lock:
                 self.sent[msg.header.headerId] = time.monotonic()
-            self.session.put(keys.key("r1", Teleop.TOPIC), wire.encode(msg))
+            self.session.put(wire.key_of(msg), wire.encode(msg))
             ids.append(msg.header.headerId)
             time.sleep(0.1)
         time.sleep(1.0)  # late acks still count (as late)
@@ -134,7 +135,10 @@ def main(argv: list[str] | None = None) -> int:
     rows: dict[str, dict[str, float]] = {}
     with tempfile.TemporaryDirectory() as tmp, MosquittoBroker(Path(tmp) / "broker") as broker:
         log_path = Path(tmp) / "agent.log"
-        with log_path.open("wb") as log, agent_process(Path(tmp), broker.port, output=log.fileno()) as agent:
+        with (
+            log_path.open("wb") as log,
+            agent_process(Path(tmp), broker.port, output=log.fileno(), operators=("operator-1", "op-bob")) as agent,
+        ):
             session = zenoh.open(zenoh_config(connect=[agent.zenoh_endpoint]))
             mc = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="flooder")
             mc.max_queued_messages_set(0)
@@ -150,26 +154,27 @@ def main(argv: list[str] | None = None) -> int:
                 time.sleep(1.5)
                 # The holder takes the lease, as an operator driving the robot does.
                 lease = holder.counter.make(LeaseRequest, duration_s=300.0, release=False)
-                session.put(keys.key("r1", LeaseRequest.TOPIC), wire.encode(lease))
+                session.put(wire.key_of(lease), wire.encode(lease))
                 rss0, lines0 = _rss(agent.proc.pid), len(log_path.read_bytes().splitlines())
                 rows["baseline"] = holder.figures(holder.run(args.seconds))
 
-                garbage_counter = wire.HeaderCounter(clock, robot="r1", sender="flooder")
+                garbage_counter = wire.HeaderCounter(clock, robot="r1", sender="op-bob")
                 template = msgpack.unpackb(
                     wire.encode(garbage_counter.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S)), raw=False
                 )
 
                 def garbage(i: int) -> tuple[str, bytes]:
                     if i % 4 == 0:
-                        return keys.key("r1", "order"), b"\xc1garbage"
+                        return keys.sender_key("r1", "order", "op-bob"), b"\xc1garbage"
                     body = dict(template)
                     body[f"field{i}"] = i  # an unknown field, named differently every time
-                    return keys.key("r1", "teleop"), msgpack.packb(body, use_bin_type=True)
+                    return keys.sender_key("r1", "teleop", "op-bob"), msgpack.packb(body, use_bin_type=True)
 
                 bob = wire.HeaderCounter(clock, robot="r1", sender="op-bob")
 
                 def valid(i: int) -> tuple[str, bytes]:
-                    return keys.key("r1", "teleop"), wire.encode(bob.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S))
+                    msg = bob.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S)
+                    return wire.key_of(msg), wire.encode(msg)
 
                 for name, make in (("garbage", garbage), ("valid flood", valid)):
                     box: dict[str, int] = {}

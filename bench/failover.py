@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fleetlink.operator.linkmanager import FALLBACK, PRIMARY, LinkPolicy  # noqa: E402
+from fleetlink.shared import keys  # noqa: E402
 from fleetlink.shared.clock import SystemClock  # noqa: E402
 from fleetlink.shared.messages import Order  # noqa: E402
 from fleetlink.site.brokers import MosquittoBroker  # noqa: E402
@@ -59,7 +60,7 @@ def main() -> int:
             for _ in range(50):
                 n = len(robot.executed)
                 t0 = clock.now()
-                op._put(FALLBACK, f"fleetlink/v1/r1/{Order.TOPIC}", _encoded_goal(op, sent))
+                op._put(FALLBACK, keys.sender_key("r1", Order.TOPIC, op.sender), _encoded_goal(op, sent))
                 sent += 1
                 wait_until(lambda n=n: len(robot.executed) > n, interval=0.0005, message="baseline goal")
                 base.append(robot.executed[-1].at - t0)

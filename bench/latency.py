@@ -204,7 +204,9 @@ def main() -> int:
             agent.start()
             zs = zenoh.open(peer_config(connect=[ep]))
             pubs = {
-                t: zs.declare_publisher(keys.key("r1", t), express=True, priority=zenoh.Priority.INTERACTIVE_HIGH)
+                t: zs.declare_publisher(
+                    keys.sender_key("r1", t, "operator-1"), express=True, priority=zenoh.Priority.INTERACTIVE_HIGH
+                )
                 for t in ("teleop", "actions")
             }
             mc = mqtt_client(broker.port, "operator-1")
@@ -219,7 +221,12 @@ def main() -> int:
             results = {
                 "zenoh": command_latency(args.trials, "zenoh", lambda t, d: pubs[t].put(d), timed, op, rng),
                 "mqtt": command_latency(
-                    args.trials, "mqtt", lambda t, d: mc.publish(keys.key("r1", t), d, qos=1), timed, op, rng
+                    args.trials,
+                    "mqtt",
+                    lambda t, d: mc.publish(keys.sender_key("r1", t, "operator-1"), d, qos=1),
+                    timed,
+                    op,
+                    rng,
                 ),
             }
             for p in pubs.values():

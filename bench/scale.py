@@ -130,7 +130,7 @@ class Console:
 
 def drive(session: Any, robots: list[str], stop: threading.Event, sent: list[int]) -> None:
     """``--drive``: a Teleop to every robot ``TELEOP_HZ`` times a second until ``stop``."""
-    from fleetlink.shared import keys, wire
+    from fleetlink.shared import wire
     from fleetlink.shared.clock import SystemClock
     from fleetlink.shared.messages import Teleop
 
@@ -139,7 +139,7 @@ def drive(session: Any, robots: list[str], stop: threading.Event, sent: list[int
     while not stop.is_set():
         for r in robots:
             msg = Teleop(header=counter.header(Teleop.TOPIC, robot=r), v=0.0, omega=DRIVE_OMEGA, ttl_s=0.6)
-            session.put(keys.key(r, Teleop.TOPIC), wire.encode(msg))
+            session.put(wire.key_of(msg), wire.encode(msg))
             sent[0] += 1
         next_t += 1.0 / TELEOP_HZ
         stop.wait(max(0.0, next_t - time.perf_counter()))

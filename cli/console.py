@@ -7,8 +7,9 @@
         --zenoh-connect tls/router.site-a.example:7447 --mqtt mqtts://broker.site-a.example:8883
 
 On a secured site (docs/operations.md) the console logs in to the router and the broker as
-``--user`` (``op-<name>``, also its sender id unless --operator says otherwise) with the password
-in ``--password-file``; ``--ca-file`` is the site CA for tls/ and mqtts:// endpoints.
+``--user`` (``op-<name>``) with the password in ``--password-file``; ``--ca-file`` is the site CA
+for tls/ and mqtts:// endpoints. The login is the console's sender id: the broker and the router
+let it publish commands only under that name (docs/operations.md, "Identity").
 
 Keys: u i o / j k l / m , . (teleop_twist_keyboard), arrows and w a s d drive the selected robot;
 space or k stops it; Esc stops every robot; q/z, W/x, e/c change speeds; t takes the control
@@ -134,10 +135,16 @@ def load_settings(args: argparse.Namespace) -> ConsoleSettings:
         s.password = _read_password(args.password_file)
     if getattr(args, "ca_file", None):
         s.ca_file = args.ca_file
-    if s.user is not None and not operator_given:
-        s.operator = s.user  # the login name is the sender id (docs/operations.md section 8)
     if args.operator:
         s.operator = args.operator
+        operator_given = True
+    if s.user is not None:
+        if operator_given and s.operator != s.user:
+            raise ValueError(
+                f"operator {s.operator!r} differs from the login {s.user!r}: on a secured site the login is "
+                "the sender id (the broker and the router accept commands only under it); drop --operator"
+            )
+        s.operator = s.user
     if args.zenoh_connect:
         s.zenoh_connect = tuple(args.zenoh_connect)
     if args.zenoh_listen:

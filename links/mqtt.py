@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Self
 
 from fleetlink.links.base import LinkStats, Receiver, key_matches, to_mqtt_filter
-from fleetlink.links.zenoh import topic_of
+from fleetlink.shared import keys
 from fleetlink.shared.clock import Clock, SystemClock
 from fleetlink.shared.messages import LinkName
 from fleetlink.shared.mqtt import MqttSettings
@@ -54,6 +54,9 @@ if TYPE_CHECKING:
 __all__ = ["QOS1_TOPICS", "MqttEndpoint", "MqttMessage", "connect_client", "nodelay_enabled"]
 
 log = logging.getLogger(__name__)
+
+MAX_ROUTES = 1024
+"""Topics whose receivers an endpoint remembers."""
 
 QOS1_TOPICS = frozenset({"order", "actions", "teleop", "connection", "ack", "lease", "lease/request", "marks"})
 """Published at QoS 1; every other topic at QoS 0 (a late pose is worthless, a lost command is not)."""
@@ -197,6 +200,9 @@ class MqttEndpoint:
         """CONNACKs that refused us (credentials, ACL)."""
         self._rng = random.Random(seed)
         self._subs: list[_Subscription] = []
+        self._routes: dict[str, list[Receiver]] = {}
+        """topic -> its receivers: matching every subscription costs a few microseconds apiece per
+        message, which a flood multiplies. Bounded (cleared when full: topics may be anyone's)."""
         self._lock = threading.Lock()
         self._client: Any = None
         self._connected = False
@@ -264,7 +270,7 @@ class MqttEndpoint:
     # -- data -----------------------------------------------------------------------------------
 
     def qos_of(self, key: str) -> int:
-        return 1 if topic_of(key) in self.qos1_topics else 0
+        return 1 if keys.topic_of(key) in self.qos1_topics else 0
 
     def publish(self, key: str, payload: bytes, *, qos: int | None = None, retain: bool = False) -> bool:
         c = self._client
@@ -293,6 +299,7 @@ class MqttEndpoint:
         sub = _Subscription(key_expr, to_mqtt_filter(key_expr), qos, receiver)
         with self._lock:
             self._subs.append(sub)
+            self._routes = {}
             c = self._client if self._connected else None
         if c is not None:
             c.subscribe(sub.filter, sub.qos)
@@ -367,14 +374,18 @@ class MqttEndpoint:
         if not self.stats.admit(self.label, msg.topic, len(msg.payload)):  # the broker should have refused it
             return
         topic, payload = msg.topic, bytes(msg.payload)
-        delivered = False
-        for sub in self._subs:
-            if key_matches(sub.key_expr, topic):
-                delivered = True
-                try:
-                    sub.receiver(topic, payload)
-                except Exception:  # a receiver's bug must not kill the loop thread
-                    log.exception("%s: receiver for %s failed", self.label, topic)
-        if delivered:
+        routes = self._routes
+        receivers = routes.get(topic)
+        if receivers is None:
+            receivers = [sub.receiver for sub in self._subs if key_matches(sub.key_expr, topic)]
+            if len(routes) >= MAX_ROUTES:
+                routes.clear()
+            routes[topic] = receivers
+        for receiver in receivers:
+            try:
+                receiver(topic, payload)
+            except Exception:  # a receiver's bug must not kill the loop thread
+                log.exception("%s: receiver for %s failed", self.label, topic)
+        if receivers:
             self.stats.received += 1
             self.stats.last_rx = self.clock.now()

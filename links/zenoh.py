@@ -41,7 +41,7 @@ from fleetlink.shared.messages import LinkName
 from fleetlink.shared.wire import MAX_PAYLOAD
 from fleetlink.shared.worker import Worker
 
-__all__ = ["INBOX_SIZE", "URGENT_TOPICS", "Answer", "ZenohEndpoint", "open_session", "peer_config", "topic_of"]
+__all__ = ["INBOX_SIZE", "URGENT_TOPICS", "Answer", "ZenohEndpoint", "open_session", "peer_config"]
 
 log = logging.getLogger(__name__)
 
@@ -55,12 +55,6 @@ INBOX_SIZE = 1024
 
 Answer = Callable[[str], list[tuple[str, bytes]]]
 """``answer(key_expr asked)`` -> the replies, as (key, payload)."""
-
-
-def topic_of(key: str) -> str:
-    """The topic of ``fleetlink/v1/<robot>/<topic>`` ("" for any other key)."""
-    parts = key.split("/", 3)
-    return parts[3] if len(parts) == 4 and key.startswith(keys.PREFIX + "/") else ""
 
 
 MAX_MESSAGE_BYTES = MAX_PAYLOAD + 16 * 1024
@@ -353,7 +347,7 @@ class ZenohEndpoint:
         if opts is None:
             import zenoh
 
-            if topic_of(key) in URGENT_TOPICS:
+            if keys.topic_of(key) in URGENT_TOPICS:
                 opts = {
                     "congestion_control": zenoh.CongestionControl.BLOCK,
                     "priority": zenoh.Priority.INTERACTIVE_HIGH,

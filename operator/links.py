@@ -37,8 +37,9 @@ ROBOT_TOPICS = frozenset({"state", "pose", "ack", "events", "connection", "board
 
 UWB_STATUS = "fleetlink/uwb/*/status"
 """The UWB gateways' retained status (JSON, positioning/gateway.py), with their anchors."""
-MARKS_QUERY = f"{keys.PREFIX}/*/marks"
-"""Every console answers this with the marks it holds: a console that starts late asks it."""
+MARKS_QUERY = keys.sender_filter("*", Mark.TOPIC)
+"""``fleetlink/v1/*/marks/*``: every console answers it with the marks it made (under its own
+name, as it published them); a console that starts late asks it."""
 AnchorSink = Callable[[str, list[tuple[str, float, float, float]]], None]
 
 CONSOLE_RECONNECT_MAX_S = 4.0
@@ -211,7 +212,7 @@ class OperatorLink:
     def publish(self, msg: wire.Message, *, links: Sequence[str] = (PRIMARY,)) -> None:
         """Publish a non-command message (marks, lease requests) as is, on the given links."""
         payload = wire.encode(msg)
-        k = keys.key(msg.header.robot, type(msg).TOPIC)
+        k = wire.key_of(msg)
         for link in links:
             self._put(link, k, payload)
 
@@ -224,7 +225,7 @@ class OperatorLink:
     def _dispatch(self, actions: Sequence[Send | Switch | Failed]) -> None:
         for action in actions:
             if isinstance(action, Send):
-                self._put(action.link, keys.key(action.robot, action.topic), action.payload)
+                self._put(action.link, keys.sender_key(action.robot, action.topic, self.sender), action.payload)
                 continue
             if isinstance(action, Switch):
                 log.warning("link switch: %s", action.describe())
@@ -270,12 +271,16 @@ class OperatorLink:
         return None
 
     def serve_marks(self, marks: Callable[[], Sequence[Mark]]) -> None:
-        """Answer ``fleetlink/v1/*/marks`` queries with ``marks()`` (each under its robot's key)."""
+        """Answer ``MARKS_QUERY`` with this console's own marks in ``marks()``: a console speaks
+        only under its own name (the router lets it reply nowhere else), so each author answers
+        for its marks."""
         primary = self._queries()
         if primary is not None:
-            primary.serve(
-                MARKS_QUERY, lambda _key: [(keys.key(m.header.robot, Mark.TOPIC), wire.encode(m)) for m in marks()]
-            )
+
+            def answer(_key: str) -> list[tuple[str, bytes]]:
+                return [(wire.key_of(m), wire.encode(m)) for m in marks() if m.header.sender == self.sender]
+
+            primary.serve(keys.sender_filter("*", Mark.TOPIC, self.sender), answer)
 
     def fetch_marks(self, timeout: float = 2.0) -> int:
         """Ask every other console for its marks; they go to the sinks like published ones."""

@@ -4,8 +4,11 @@ Usernames (the same on both links, docs/operations.md):
 
 * an agent logs in as its robot id (``r1``); it writes only its own telemetry and reads only its
   own commands and UWB fixes;
-* an operator logs in as ``op-<name>``; it reads everything and writes commands to any robot
-  (whether a robot *obeys* is the agent's business: allowed operators, the control lease);
+* an operator logs in as ``op-<name>``; it reads everything and writes commands to any robot, but
+  only under its own name: ``fleetlink/v1/<robot>/<command>/op-<name>`` (``keys.SENDER_TOPICS``),
+  and the agent refuses a command whose ``header.sender`` is not that name. So the agent knows who
+  sent a command from the login, not from the payload (whether a robot *obeys* is the agent's
+  business: allowed operators, the control lease);
 * the positioning system logs in as ``uwb-gateway`` and writes only fixes;
 * the simulated field logs in as ``sim`` and writes only ground truth (test sites only);
 * another site's router logs in as ``router-<site>`` (Zenoh only) and may exchange everything.
@@ -25,7 +28,7 @@ import json
 from collections.abc import Iterable, Sequence
 from typing import Any
 
-from fleetlink.shared.keys import PREFIX, check_id, check_robot_id
+from fleetlink.shared.keys import PREFIX, SENDER_TOPICS, check_id, check_robot_id
 
 __all__ = [
     "AGENT_READS",
@@ -52,10 +55,12 @@ AGENT_WRITES: tuple[str, ...] = ("state", "pose", "connection", "ack", "events",
 """Topics an agent publishes about itself (``map`` includes everything below it, e.g. ``map/updates``)."""
 
 COMMAND_TOPICS: tuple[str, ...] = ("order", "actions", "teleop", "lease/request")
-"""Topics operators publish to a robot; the robot reads only its own."""
+"""Topics operators publish to a robot, each under the operator's name; the robot reads only its own."""
 
 OPERATOR_WRITES: tuple[str, ...] = (*COMMAND_TOPICS, "marks")
-"""Commands, and the marks operators share with each other (``fleetlink/v1/<robot>/marks``)."""
+"""Commands, and the marks operators share with each other (``fleetlink/v1/<robot>/marks/<op>``)."""
+
+assert set(OPERATOR_WRITES) == SENDER_TOPICS  # what people write is keyed by their name
 
 FIX_TOPICS: tuple[str, ...] = ("uwb", "uwb/ranges")
 """UWB fixes: written only by the positioning system, read by the robot they are about."""
@@ -95,11 +100,15 @@ def check_operator_username(name: str) -> str:
     return name
 
 
-def _mqtt(robot: str, topic: str) -> str:
+def _mqtt(robot: str, topic: str, sender: str = "+") -> str:
+    if topic in SENDER_TOPICS:
+        return f"{PREFIX}/{robot}/{topic}/{sender}"
     return f"{PREFIX}/{robot}/{topic}/#" if topic in _SUBTREE else f"{PREFIX}/{robot}/{topic}"
 
 
-def _zenoh(robot: str, topic: str) -> str:
+def _zenoh(robot: str, topic: str, sender: str = "*") -> str:
+    if topic in SENDER_TOPICS:
+        return f"{PREFIX}/{robot}/{topic}/{sender}"
     return f"{PREFIX}/{robot}/{topic}/**" if topic in _SUBTREE else f"{PREFIX}/{robot}/{topic}"
 
 
@@ -128,10 +137,14 @@ def mosquitto_acl(operators: Iterable[str] = ()) -> str:
     lines += [f"topic read {PREFIX}/{SIM_USER}/+/truth", "topic read dwm/#"]
     lines += ["", "# The simulated field (test sites only) writes ground truth."]
     lines += [f"user {SIM_USER}", f"topic write {PREFIX}/{SIM_USER}/+/truth"]
-    lines += ["", "# Operators: read everything, write commands to any robot. One block per operator."]
+    lines += [
+        "",
+        "# Operators: read everything, write commands to any robot, each only under its own name (the",
+        "# last segment), which the agent checks against header.sender. One block per operator.",
+    ]
     for op in ops:
         lines += [f"user {op}"]
-        lines += [f"topic write {PREFIX}/+/{t}" for t in OPERATOR_WRITES]
+        lines += [f"topic write {_mqtt('+', t, op)}" for t in OPERATOR_WRITES]
         lines += [f"topic read {PREFIX}/#", f"topic read {GATEWAY_STATUS_MQTT}", "topic read dwm/#"]
     return "\n".join(lines) + "\n"
 
@@ -178,12 +191,16 @@ def zenoh_access_control(
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
 
-    def grant(subject: str, usernames: list[str], subject_rules: list[dict[str, Any]]) -> None:
+    def grant(
+        subject: str, usernames: list[str], subject_rules: list[dict[str, Any]], shared: Sequence[str] = ()
+    ) -> None:
+        """``subject_rules`` are new rules; ``shared`` names rules granted already (to another subject)."""
         if not usernames:
             return
         rules.extend(subject_rules)
         subjects.append({"id": subject, "usernames": usernames})
-        policies.append({"id": subject, "rules": [r["id"] for r in subject_rules], "subjects": [subject]})
+        ids = [*shared, *(r["id"] for r in subject_rules if r["id"] not in shared)]
+        policies.append({"id": subject, "rules": ids, "subjects": [subject]})
 
     for robot in robot_ids:
         writes = [_zenoh(robot, t) for t in AGENT_WRITES]
@@ -217,29 +234,30 @@ def zenoh_access_control(
     if simulator:
         grant("simulator", [SIM_USER], [_rule("sim-truth", ["ingress"], ["put"], truth)])
     everything = [f"{PREFIX}/**"]
-    grant(
-        "operators",
-        ops,
-        [
-            _rule("operator-commands", ["ingress"], ["put"], [f"{PREFIX}/*/{t}" for t in OPERATOR_WRITES]),
-            _rule(
-                "operator-watch",
-                ["ingress"],
-                ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"],
-                [*everything, "fleetlink/uwb/*/status"],
-            ),
-            _rule(
-                "operator-watch-in",
-                ["egress"],
-                ["put", "delete", "reply", "liveliness_token"],
-                [*everything, "fleetlink/uwb/*/status"],
-            ),
-            # Each console answers queries for the marks it holds, so a console that joins late
-            # catches up (operator/links.py MARKS_QUERY).
-            _rule("operator-serve-marks", ["ingress"], ["declare_queryable", "reply"], [f"{PREFIX}/*/marks"]),
-            _rule("operator-marks-queries", ["egress"], ["query"], [f"{PREFIX}/*/marks"]),
-        ],
-    )
+    watch = [
+        _rule(
+            "operator-watch",
+            ["ingress"],
+            ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"],
+            [*everything, "fleetlink/uwb/*/status"],
+        ),
+        _rule(
+            "operator-watch-in",
+            ["egress"],
+            ["put", "delete", "reply", "liveliness_token"],
+            [*everything, "fleetlink/uwb/*/status"],
+        ),
+        # Consoles that start late ask every console for its marks (operator/links.py MARKS_QUERY).
+        _rule("operator-marks-queries", ["egress"], ["query"], [_zenoh("*", "marks")]),
+    ]
+    for i, op in enumerate(ops):
+        # One subject per operator: it writes commands and marks only under its own name, and
+        # answers marks queries only with its own marks.
+        mine = [
+            _rule(f"{op}-commands", ["ingress"], ["put"], [_zenoh("*", t, op) for t in OPERATOR_WRITES]),
+            _rule(f"{op}-serve-marks", ["ingress"], ["declare_queryable", "reply"], [_zenoh("*", "marks", op)]),
+        ]
+        grant(f"operator-{op}", [op], (watch if i == 0 else []) + mine, shared=[r["id"] for r in watch])
     grant("routers", peers, [_rule("router-link", ["ingress", "egress"], _ALL_MESSAGES, everything)])
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 

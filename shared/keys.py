@@ -7,6 +7,11 @@ and an MQTT topic, so a bridge between the two never rewrites names.
   character with a meaning in either system (``/``, ``*``, ``#``, ``+``, ``$``, ``?``).
 * ``<topic>`` is one or more ``/``-separated segments, each following the same rule as a robot
   id (e.g. ``board``, ``map/updates``), at most ``MAX_TOPIC_SEGMENTS`` of them.
+* What people publish -- commands and marks (``SENDER_TOPICS``) -- carries one more segment, the
+  sender's login: ``fleetlink/v1/<robot>/<topic>/<sender>`` (``sender_key``). A broker or router
+  lets each login write only under its own name (shared/access.py), so on a secured site the key
+  says who sent a command and the payload cannot claim otherwise (``wire.decode_key`` refuses a
+  ``header.sender`` that differs). Receivers subscribe ``sender_filter(robot, topic)``.
 * The robot id ``sim`` is reserved: ``fleetlink/v1/sim/<robot>/truth`` carries the simulator's
   ground truth about ``<robot>``. So that the all-robots wildcards never match a truth key, no
   ordinary topic may end in the segment ``truth``.
@@ -26,6 +31,7 @@ __all__ = [
     "MQTT_ALL_TRUTH",
     "PREFIX",
     "RESERVED_ROBOT_IDS",
+    "SENDER_TOPICS",
     "SIM",
     "TRUTH_TOPIC",
     "ZENOH_ALL",
@@ -40,6 +46,10 @@ __all__ = [
     "mqtt_robot",
     "parse_key",
     "parse_truth_key",
+    "sender_filter",
+    "sender_key",
+    "split_sender",
+    "topic_of",
     "truth_key",
     "zenoh_all_robots",
     "zenoh_robot",
@@ -60,6 +70,10 @@ TRUTH_TOPIC = "truth"
 RESERVED_ROBOT_IDS = frozenset({SIM})
 
 MAX_TOPIC_SEGMENTS = 8
+
+SENDER_TOPICS = frozenset({"order", "actions", "teleop", "lease/request", "marks"})
+"""Topics people publish (commands, lease requests, marks): their keys end in the sender's login,
+``fleetlink/v1/<robot>/<topic>/<sender>``, so the transport's access control vouches for it."""
 
 ZENOH_ALL = f"{PREFIX}/**"
 """Zenoh key expression matching every fleetlink key (including the sim namespace)."""
@@ -159,6 +173,44 @@ def _parse_key(key_expr: str) -> tuple[str, str]:
     except ValueError as exc:
         raise ValueError(f"invalid key {_show(key_expr)}: {exc}") from None
     return robot, topic
+
+
+def sender_key(robot: str, topic: str, sender: str) -> str:
+    """``fleetlink/v1/<robot>/<topic>/<sender>``: where ``sender`` publishes a ``SENDER_TOPICS`` message."""
+    if topic not in SENDER_TOPICS:
+        raise ValueError(f"topic {_show(topic)} is not published under its sender's name")
+    return f"{key(robot, topic)}/{check_id(sender, 'sender id')}"
+
+
+def sender_filter(robot: str, topic: str, sender: str = "*") -> str:
+    """``fleetlink/v1/<robot>/<topic>/<sender>`` as a key expression: ``robot`` and ``sender`` may
+    be ``*`` (any one); Zenoh syntax, which the MQTT link translates (``+``)."""
+    if topic not in SENDER_TOPICS:
+        raise ValueError(f"topic {_show(topic)} is not published under its sender's name")
+    robot_part = robot if robot == "*" else check_robot_id(robot)
+    sender_part = sender if sender == "*" else check_id(sender, "sender id")
+    return f"{_PREFIX_SLASH}{robot_part}/{topic}/{sender_part}"
+
+
+def split_sender(topic: str) -> tuple[str, str | None]:
+    """A parsed key's topic as (message topic, sender): ``teleop/op-a`` -> (``teleop``, ``op-a``).
+
+    Topics outside ``SENDER_TOPICS`` come back whole with sender None -- and so does a
+    ``SENDER_TOPICS`` topic that lacks its sender segment (the caller refuses it).
+    """
+    head, sep, tail = topic.rpartition("/")
+    if sep and head in SENDER_TOPICS:
+        return head, tail
+    return topic, None
+
+
+def topic_of(key_expr: str) -> str:
+    """The message topic of ``fleetlink/v1/<robot>/<topic>[/<sender>]`` ("" for any other key);
+    cheap (no validation): the links pick a quality of service by it for every message."""
+    parts = key_expr.split("/", 3)
+    if len(parts) != 4 or not key_expr.startswith(_PREFIX_SLASH):
+        return ""
+    return split_sender(parts[3])[0]
 
 
 def truth_key(robot: str) -> str:

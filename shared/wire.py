@@ -682,9 +682,12 @@ def schema(cls: type[Any]) -> tuple[FieldSpec, ...]:
 
 
 def key_of(msg: Message) -> str:
-    """Where ``msg`` is published: ``fleetlink/v1/<header.robot>/<TOPIC>`` (or its truth key)."""
+    """Where ``msg`` is published: ``fleetlink/v1/<header.robot>/<TOPIC>``, followed by
+    ``/<header.sender>`` for what people publish (``keys.SENDER_TOPICS``), or its truth key."""
     if msg.TOPIC == keys.TRUTH_TOPIC:
         return keys.truth_key(msg.header.robot)
+    if msg.TOPIC in keys.SENDER_TOPICS:
+        return keys.sender_key(msg.header.robot, msg.TOPIC, msg.header.sender)
     return keys.key(msg.header.robot, msg.TOPIC)
 
 
@@ -769,20 +772,34 @@ def decode_any(topic: str, data: bytes, *, max_payload: int = MAX_PAYLOAD) -> Me
 
 
 def decode_key(key_expr: str, data: bytes, *, max_payload: int = MAX_PAYLOAD) -> Message:
-    """Decode a message received on ``key_expr`` and check ``header.robot`` matches the key.
+    """Decode a message received on ``key_expr`` and check that its header agrees with the key:
+    ``header.robot`` with the robot, and for ``keys.SENDER_TOPICS`` ``header.sender`` with the
+    sender segment (which the transport's access control ties to the login; a key without one is
+    refused).
 
     Accepts ordinary keys and truth keys. Raises only WireError.
     """
+    sender: str | None = None
     try:
         if keys.is_truth_key(key_expr):
             robot, topic = keys.parse_truth_key(key_expr), keys.TRUTH_TOPIC
         else:
             robot, topic = keys.parse_key(key_expr)
+            topic, sender = keys.split_sender(topic)
     except ValueError as exc:
         raise WireError(str(exc), "key") from None
+    if sender is None and topic in keys.SENDER_TOPICS:
+        raise WireError(
+            f"a {topic!r} message must be published on {keys.PREFIX}/<robot>/{topic}/<sender>, not {_show(key_expr)}",
+            "key",
+        )
     msg = decode_any(topic, data, max_payload=max_payload)
     if msg.header.robot != robot:
         raise WireError(f"{msg.header.robot!r} does not match the key's robot {robot!r}", "header.robot")
+    if sender is not None and msg.header.sender != sender:
+        raise WireError(
+            f"{msg.header.sender!r} does not match the key's sender {sender!r} (who published it)", "header.sender"
+        )
     return msg
 
 

@@ -125,7 +125,7 @@ class ScriptedOperator:
         msg = self.counter(robot).make(cls, **fields)
         data = wire.encode(msg)
         link = self.zenoh if self.zenoh.up else self.mqtt
-        link.publish(keys.key(robot, msg.TOPIC), data)
+        link.publish(wire.key_of(msg), data)
         self.sent.append(f"{self._now():.3f} {link.name.value} {robot} {msg.TOPIC} {_summary(msg)}")
         return msg
 

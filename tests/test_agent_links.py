@@ -18,6 +18,7 @@ import zenoh
 
 from fleetlink.agent.config import AgentConfig, Rates, ZenohSettings, mqtt_settings
 from fleetlink.agent.links.gate import Accepted, CommandGate, Duplicate, Rejected
+from fleetlink.agent.node import input_keys
 from fleetlink.agent.runtime import AgentRuntime
 from fleetlink.field.board import SimulatedBoard
 from fleetlink.field.device_server import DeviceServer
@@ -43,7 +44,10 @@ from tests.harness.mosquitto import free_port
 from tests.harness.zenoh_peers import zenoh_config
 
 OP = wire.HeaderCounter(SimClock(), robot="r1", sender="operator-1")
-K = {t: keys.key("r1", t) for t in ("order", "actions", "teleop", "ack", "state", "uwb")}
+K = {
+    t: keys.sender_key("r1", t, "operator-1") if t in keys.SENDER_TOPICS else keys.key("r1", t)
+    for t in ("order", "actions", "teleop", "ack", "state", "uwb")
+}
 
 # --------------------------------------------------------------------------------------------------
 # The gate (pure)
@@ -103,7 +107,11 @@ def test_gate_restarted_sender_is_not_a_replay() -> None:
         (K["order"], wire.encode(OP.make(Teleop, v=0.1, omega=0.0, ttl_s=0.5)), "missing field"),
         (K["actions"], b"\x93\x01\x02\x03", "payload: expected a map"),
         (K["uwb"], b"", "payload"),
-        (keys.key("r2", "teleop"), wire.encode(OP.make(Teleop, v=0.1, omega=0.0, ttl_s=0.5)), "not an input"),
+        (
+            keys.sender_key("r2", "teleop", "operator-1"),
+            wire.encode(OP.make(Teleop, v=0.1, omega=0.0, ttl_s=0.5)),
+            "not an input",
+        ),
         ("nonsense", b"x", "key"),
     ],
 )
@@ -156,11 +164,16 @@ class Operator:
 
     def send(self, msg: wire.Message, *, zenoh_: bool = True, mqtt_: bool = True) -> bytes:
         data = wire.encode(msg)
-        self.send_raw(keys.key("r1", msg.TOPIC), data, zenoh_=zenoh_, mqtt_=mqtt_)
+        self.send_raw(wire.key_of(msg), data, zenoh_=zenoh_, mqtt_=mqtt_)
         return data
 
     def send_raw(self, topic: str, data: bytes, *, zenoh_: bool = True, mqtt_: bool = True) -> None:
-        k = keys.key("r1", topic) if "/" not in topic else topic
+        if "/" in topic:
+            k = topic
+        elif topic in keys.SENDER_TOPICS:
+            k = keys.sender_key("r1", topic, self.counter.sender)
+        else:
+            k = keys.key("r1", topic)
         if zenoh_:
             self.zsession.put(k, data)
         if mqtt_:
@@ -328,7 +341,7 @@ def test_zenoh_link_delivers_samples_on_different_keys_in_the_order_sent(zenoh_p
 
     probed: set[str] = set()
 
-    def on_input(link: LinkName, key: str, payload: bytes) -> None:
+    def on_input(key: str, payload: bytes) -> None:
         if payload == b"probe":
             probed.add(key)
             return
@@ -337,18 +350,22 @@ def test_zenoh_link_delivers_samples_on_different_keys_in_the_order_sent(zenoh_p
             done.set()
 
     inputs = ("order", "actions", "teleop", "lease/request")
-    link = agent_zenoh_link("r1", ZenohSettings(connect=tuple(peers.endpoints)), on_input=on_input, inputs=inputs)
+    link = agent_zenoh_link("r1", ZenohSettings(connect=tuple(peers.endpoints)))
+    for t in inputs:
+        for k in input_keys("r1", t):
+            link.subscribe(k, on_input)
     link.start()
     try:
         wait_until(lambda: link.up, message="the agent's zenoh link to the operator")
         # Declarations take a moment to propagate: probe until a sample on each key gets through.
-        for t in inputs:
+        sent_keys = [keys.sender_key("r1", t, "op-a") for t in inputs]
+        for k in sent_keys:
             wait_until(
-                lambda t=t: operator.put(keys.key("r1", t), b"probe") is None and keys.key("r1", t) in probed,
+                lambda k=k: operator.put(k, b"probe") is None and k in probed,
                 interval=0.05,
-                message=f"the subscription on {t}",
+                message=f"the subscription on {k}",
             )
-        sent = [(keys.key("r1", inputs[i % len(inputs)]), i.to_bytes(4, "big")) for i in range(n)]
+        sent = [(sent_keys[i % len(inputs)], i.to_bytes(4, "big")) for i in range(n)]
         for k, payload in sent:
             operator.put(k, payload)
         assert done.wait(10.0), f"only {len(got)} of {n} samples arrived"

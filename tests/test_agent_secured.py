@@ -118,9 +118,9 @@ def test_agent_logs_in_to_the_secured_site_and_only_credentialed_operators_reach
                 sent.append(m.header.headerId)
                 data = wire.encode(m)
                 if link == "zenoh":
-                    op_z.put(keys.key("r1", "teleop"), data)
+                    op_z.put(wire.key_of(m), data)
                 else:
-                    mc.publish(keys.key("r1", "teleop"), data, qos=1)
+                    mc.publish(wire.key_of(m), data, qos=1)
                 a = seen.ack(link, sent[0])
                 return a is not None and board.state.v_left > 0.1
 

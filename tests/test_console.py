@@ -117,6 +117,8 @@ async def test_keys_produce_drive_commands(rig: Rig) -> None:
 
 @run_async
 async def test_drive_repeats_at_10hz_then_auto_stop(rig: Rig) -> None:
+    # The rig's repeat timeout is 2 s: a held key's repeats may come far apart on a loaded machine,
+    # and a slow repeat must not read as a release.
     async with rig.app.run_test(size=(140, 44)) as pilot:
         await with_robots(rig, pilot, "r1")
         for _ in range(20):  # a held key: a stream of repeats
@@ -125,7 +127,7 @@ async def test_drive_repeats_at_10hz_then_auto_stop(rig: Rig) -> None:
         assert len(held) >= 2 and all(t.v > 0 for t in held)
         gaps = [b.header.timestamp - a.header.timestamp for a, b in itertools.pairwise(held)]
         assert min(gaps) >= 0.09  # never faster than 10 Hz, however fast the repeats
-        await settle(pilot, 1.1)  # repeats stopped: the console sends stop by itself
+        await settle(pilot, 2.3)  # repeats stopped: the console sends stop by itself
         after = rig.zenoh.messages(Teleop)
         assert after[-1].v == 0 and after[-1].omega == 0
         assert sum(1 for t in after if t.v == 0 and t.omega == 0) == 1  # once, not forever
@@ -246,7 +248,10 @@ async def test_link_indicator_changes_on_failover(rig: Rig) -> None:
         await with_robots(rig, pilot, "r1")
         assert rig.app.query_one("#fleet").get_cell("r1", "link").plain == "zenoh"
         rig.up = ("mqtt",)  # the robot is heard on MQTT only now
-        await settle(pilot, 0.7)
+        for _ in range(50):  # the state window (0.35 s), however slow the machine
+            await settle(pilot, 0.1)
+            if rig.app.query_one("#fleet").get_cell("r1", "link").plain == "mqtt":
+                break
         assert rig.app.query_one("#fleet").get_cell("r1", "link").plain == "mqtt"
         assert "failover" in screen_text(rig.app)
         await pilot.press("i")

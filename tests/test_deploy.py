@@ -29,7 +29,7 @@ from tests.harness import wait_until
 from tests.harness.deploy import DEPLOY, DeployBroker, SiteCA, make_site_ca, mosquitto_passwd, zenoh_router_config
 from tests.harness.mosquitto import free_port
 
-USERS = {"r1": "pw-r1", "r2": "pw-r2", "op-alice": "pw-alice", "uwb-gateway": "pw-gw"}
+USERS = {"r1": "pw-r1", "r2": "pw-r2", "op-alice": "pw-alice", "op-bob": "pw-bob", "uwb-gateway": "pw-gw"}
 
 
 class Client:
@@ -118,10 +118,10 @@ def test_agent_writes_only_its_own_telemetry(broker: DeployBroker, clients: list
     r1 = _client(clients, broker, "r1").ready()
     for forbidden in (
         "fleetlink/v1/r2/state",  # another robot's state
-        "fleetlink/v1/r1/teleop",  # a command, even to itself
-        "fleetlink/v1/r1/lease/request",  # asking itself for control
-        "fleetlink/v1/r2/teleop",
-        "fleetlink/v1/r2/order",
+        "fleetlink/v1/r1/teleop/r1",  # a command, even to itself under its own name
+        "fleetlink/v1/r1/lease/request/r1",  # asking itself for control
+        "fleetlink/v1/r2/teleop/op-alice",
+        "fleetlink/v1/r2/order/r1",
         "fleetlink/v1/r1/uwb",  # forging its own fix
         "dwm/node/1234/uplink/location",
         "fleetlink/v1/sim/r1/truth",
@@ -138,14 +138,31 @@ def test_operator_drives_and_robots_hear_only_their_own_commands(broker: DeployB
     r1 = _client(clients, broker, "r1", ["fleetlink/v1/r1/#"]).ready()
     r2 = _client(clients, broker, "r2", ["fleetlink/v1/r1/#", "fleetlink/v1/r2/#"]).ready()
     op = _client(clients, broker, "op-alice").ready()
-    op.publish("fleetlink/v1/r1/teleop", b"drive-r1")
-    op.publish("fleetlink/v1/r1/order", b"order-r1")
-    op.publish("fleetlink/v1/r2/teleop", b"drive-r2")
-    wait_until(lambda: ("fleetlink/v1/r2/teleop", b"drive-r2") in r2.got)
+    op.publish("fleetlink/v1/r1/teleop/op-alice", b"drive-r1")
+    op.publish("fleetlink/v1/r1/order/op-alice", b"order-r1")
+    op.publish("fleetlink/v1/r2/teleop/op-alice", b"drive-r2")
+    wait_until(lambda: ("fleetlink/v1/r2/teleop/op-alice", b"drive-r2") in r2.got)
     wait_until(lambda: len(r1.got) == 2)
-    assert r1.got == [("fleetlink/v1/r1/teleop", b"drive-r1"), ("fleetlink/v1/r1/order", b"order-r1")]
+    assert r1.got == [("fleetlink/v1/r1/teleop/op-alice", b"drive-r1"), ("fleetlink/v1/r1/order/op-alice", b"order-r1")]
     # r2 asked for r1's commands too; the broker gave it only its own.
-    assert r2.topics_got() == ["fleetlink/v1/r2/teleop"]
+    assert r2.topics_got() == ["fleetlink/v1/r2/teleop/op-alice"]
+
+
+def test_an_operator_commands_only_under_its_own_name(broker: DeployBroker, clients: list[Client]) -> None:
+    """The last segment of a command's topic is the sender's login: op-bob cannot write under
+    op-alice's name (nor under none), so the agent can trust the segment (issue 14)."""
+    r1 = _client(clients, broker, "r1", ["fleetlink/v1/r1/#"]).ready()
+    watcher = _client(clients, broker, "op-alice", ["fleetlink/v1/+/marks/#"]).ready()
+    bob = _client(clients, broker, "op-bob").ready()
+    for topic in ("teleop", "order", "actions", "lease/request"):
+        bob.publish(f"fleetlink/v1/r1/{topic}/op-alice", b"forged")
+        bob.publish(f"fleetlink/v1/r1/{topic}", b"forged")  # the old, nameless key
+    bob.publish("fleetlink/v1/r1/marks/op-alice", b"forged")
+    bob.publish("fleetlink/v1/r1/teleop/op-bob", b"sentinel")
+    bob.publish("fleetlink/v1/r1/marks/op-bob", b"sentinel")
+    wait_until(lambda: ("fleetlink/v1/r1/teleop/op-bob", b"sentinel") in r1.got, message="bob's own command")
+    wait_until(lambda: ("fleetlink/v1/r1/marks/op-bob", b"sentinel") in watcher.got, message="bob's own mark")
+    assert all(p != b"forged" for _, p in r1.got + watcher.got), (r1.got, watcher.got)
 
 
 def test_only_the_gateway_publishes_fixes(broker: DeployBroker, clients: list[Client]) -> None:
@@ -168,7 +185,7 @@ def test_only_the_gateway_publishes_fixes(broker: DeployBroker, clients: list[Cl
         ("fleetlink/uwb/gw1/status", b"online"),
     ]
     # The gateway may not drive.
-    gw.publish("fleetlink/v1/r1/teleop", b"forbidden")
+    gw.publish("fleetlink/v1/r1/teleop/op-alice", b"forbidden")
     gw.publish("fleetlink/v1/r1/uwb", b"sentinel")
     wait_until(lambda: ("fleetlink/v1/r1/uwb", b"sentinel") in r1.got)
     assert all(p != b"forbidden" for _, p in r1.got)
@@ -233,7 +250,7 @@ def test_tls_listener_with_site_ca(tmp_path: Path, site_ca: SiteCA, clients: lis
 # ------------------------------------------------------------------------------------------------
 # Zenoh: the router's own authentication and access control, in a real session in router mode.
 
-ZUSERS = {"r1": "zpw-r1", "r2": "zpw-r2", "op-alice": "zpw-alice", "uwb-gateway": "zpw-gw"}
+ZUSERS = {"r1": "zpw-r1", "r2": "zpw-r2", "op-alice": "zpw-alice", "op-bob": "zpw-bob", "uwb-gateway": "zpw-gw"}
 
 
 class Router:
@@ -305,8 +322,8 @@ def test_zenoh_agent_publishes_only_its_own_telemetry(router: Router) -> None:
     _until_delivered(r1, "fleetlink/v1/r1/state", got)
     for forbidden in (
         "fleetlink/v1/r2/state",
-        "fleetlink/v1/r1/teleop",
-        "fleetlink/v1/r2/order",
+        "fleetlink/v1/r1/teleop/r1",
+        "fleetlink/v1/r2/order/op-alice",
         "fleetlink/v1/r1/uwb",
     ):
         r1.put(forbidden, b"forbidden")
@@ -322,14 +339,32 @@ def test_zenoh_operator_drives_only_the_addressed_robot(router: Router) -> None:
     got2 = _collect(r2, "fleetlink/v1/r2/**")
     spy = _collect(r2, "fleetlink/v1/r1/**")  # r2 asks for r1's commands: the router never sends them
     op = router.client("op-alice")
-    _until_delivered(op, "fleetlink/v1/r1/teleop", got1)
-    _until_delivered(op, "fleetlink/v1/r2/teleop", got2)
-    op.put("fleetlink/v1/r1/order", b"order-r1")
-    op.put("fleetlink/v1/r2/order", b"order-r2")
-    wait_until(lambda: ("fleetlink/v1/r2/order", b"order-r2") in got2)
-    wait_until(lambda: ("fleetlink/v1/r1/order", b"order-r1") in got1)
-    assert {k for k, _ in got2} == {"fleetlink/v1/r2/teleop", "fleetlink/v1/r2/order"}
+    _until_delivered(op, "fleetlink/v1/r1/teleop/op-alice", got1)
+    _until_delivered(op, "fleetlink/v1/r2/teleop/op-alice", got2)
+    op.put("fleetlink/v1/r1/order/op-alice", b"order-r1")
+    op.put("fleetlink/v1/r2/order/op-alice", b"order-r2")
+    wait_until(lambda: ("fleetlink/v1/r2/order/op-alice", b"order-r2") in got2)
+    wait_until(lambda: ("fleetlink/v1/r1/order/op-alice", b"order-r1") in got1)
+    assert {k for k, _ in got2} == {"fleetlink/v1/r2/teleop/op-alice", "fleetlink/v1/r2/order/op-alice"}
     assert spy == []
+
+
+def test_zenoh_operator_commands_only_under_its_own_name(router: Router) -> None:
+    r1 = router.client("r1")
+    got = _collect(r1, "fleetlink/v1/r1/**")
+    alice = router.client("op-alice")
+    marks = _collect(alice, "fleetlink/v1/*/marks/*")
+    bob = router.client("op-bob")
+    _until_delivered(bob, "fleetlink/v1/r1/teleop/op-bob", got)
+    _until_delivered(bob, "fleetlink/v1/r1/marks/op-bob", marks)
+    for topic in ("teleop", "order", "actions", "lease/request", "marks"):
+        bob.put(f"fleetlink/v1/r1/{topic}/op-alice", b"forged")
+        bob.put(f"fleetlink/v1/r1/{topic}", b"forged")
+    bob.put("fleetlink/v1/r1/teleop/op-bob", b"after")
+    bob.put("fleetlink/v1/r1/marks/op-bob", b"after")
+    wait_until(lambda: ("fleetlink/v1/r1/teleop/op-bob", b"after") in got)
+    wait_until(lambda: ("fleetlink/v1/r1/marks/op-bob", b"after") in marks)
+    assert all(p != b"forged" for _, p in got + marks), (got, marks)
 
 
 def test_zenoh_fixes_only_from_the_gateway(router: Router) -> None:
@@ -341,11 +376,13 @@ def test_zenoh_fixes_only_from_the_gateway(router: Router) -> None:
     op = router.client("op-alice")
     r2.put("fleetlink/v1/r1/uwb", b"forged")
     op.put("fleetlink/v1/r1/uwb", b"forged")
-    gw.put("fleetlink/v1/r1/teleop", b"forged")
+    gw.put("fleetlink/v1/r1/teleop/op-alice", b"forged")
     # Sentinels from each forger, on keys they may write and r1 may read.
-    op.put("fleetlink/v1/r1/teleop", b"op-after")
+    op.put("fleetlink/v1/r1/teleop/op-alice", b"op-after")
     gw.put("fleetlink/v1/r1/uwb", b"gw-after")
-    wait_until(lambda: ("fleetlink/v1/r1/teleop", b"op-after") in got and ("fleetlink/v1/r1/uwb", b"gw-after") in got)
+    wait_until(
+        lambda: ("fleetlink/v1/r1/teleop/op-alice", b"op-after") in got and ("fleetlink/v1/r1/uwb", b"gw-after") in got
+    )
     # r2 has no sentinel it could send to r1; its forged fix was sent before op's and gw's ones
     # left the router, and the router drops it on ingress (the same rule the other tests show).
     assert all(p != b"forged" for _, p in got), got

@@ -86,7 +86,7 @@ def _order(core: AgentCore, clock: SimClock, x: float, y: float, theta: float | 
     payload = _raw(msg, goal__x=x, goal__y=y, goal__theta=theta)
     seen: list[wire.Message] = []
     for link in (LinkName.ZENOH, LinkName.MQTT):  # the same bytes on both links: handled once
-        seen += _messages(core.on_input(link, keys.key("r1", Order.TOPIC), payload, clock.now()))
+        seen += _messages(core.on_input(link, keys.sender_key("r1", Order.TOPIC, "op"), payload, clock.now()))
     return seen
 
 
@@ -137,7 +137,9 @@ def test_any_finite_teleop_is_clamped_or_refused(v: float, omega: float, ttl: fl
     core, clock = _core()
     counter = wire.HeaderCounter(clock, robot="r1", sender="op")
     msg = counter.make(Teleop, v=0.0, omega=0.0, ttl_s=0.5)
-    out = core.on_input(LinkName.ZENOH, keys.key("r1", Teleop.TOPIC), _raw(msg, v=v, omega=omega, ttl_s=ttl), 0.0)
+    out = core.on_input(
+        LinkName.ZENOH, keys.sender_key("r1", Teleop.TOPIC, "op"), _raw(msg, v=v, omega=omega, ttl_s=ttl), 0.0
+    )
     _drive(core, clock, 0.3)
     limits = core.pilot.config.limits
     cmd_v, cmd_w = core.velocity
@@ -153,7 +155,7 @@ def test_a_mark_beyond_the_extent_is_refused_at_decode() -> None:
     mark = counter.make(Mark, markId="m1", x=1.0, y=1.0, label="", kind="note", removed=False)
     for x in (1e308, -1e6):
         try:
-            wire.decode_key(keys.key("r1", Mark.TOPIC), _raw(mark, x=x))
+            wire.decode_key(keys.sender_key("r1", Mark.TOPIC, "op"), _raw(mark, x=x))
         except wire.WireError as exc:
             assert "out of range" in exc.reason
         else:
@@ -163,7 +165,7 @@ def test_a_mark_beyond_the_extent_is_refused_at_decode() -> None:
 def _driving(core: AgentCore, clock: SimClock) -> wire.HeaderCounter:
     counter = wire.HeaderCounter(clock, robot="r1", sender="op")
     teleop = counter.make(Teleop, v=0.2, omega=0.0, ttl_s=1.0)
-    core.on_input(LinkName.ZENOH, keys.key("r1", Teleop.TOPIC), wire.encode(teleop), clock.now())
+    core.on_input(LinkName.ZENOH, keys.sender_key("r1", Teleop.TOPIC, "op"), wire.encode(teleop), clock.now())
     assert core.velocity[0] > 0.0
     return counter
 
@@ -177,7 +179,7 @@ def test_a_planner_that_raises_fails_the_goal_with_the_reason_and_the_robot_stop
     core.use_map(broken)
     counter = _driving(core, clock)
     order = counter.make(Order, orderId="o1", orderUpdateId=0, goal=Goal(x=1.0, y=0.5, theta=None), returnHome=False)
-    out = core.on_input(LinkName.ZENOH, keys.key("r1", Order.TOPIC), wire.encode(order), clock.now())
+    out = core.on_input(LinkName.ZENOH, keys.sender_key("r1", Order.TOPIC, "op"), wire.encode(order), clock.now())
     msgs = _messages(out) + _drive(core, clock, 0.5)
     events = [m for m in msgs if isinstance(m, Event)]
     failed = [e for e in events if e.kind == "goal_failed"]
@@ -195,7 +197,7 @@ def test_a_handler_that_raises_refuses_the_command_and_stops_the_robot() -> None
 
     core.pilot.order = broken  # type: ignore[method-assign]
     order = counter.make(Order, orderId="o1", orderUpdateId=0, goal=Goal(x=1.0, y=0.5, theta=None), returnHome=False)
-    out = core.on_input(LinkName.ZENOH, keys.key("r1", Order.TOPIC), wire.encode(order), clock.now())
+    out = core.on_input(LinkName.ZENOH, keys.sender_key("r1", Order.TOPIC, "op"), wire.encode(order), clock.now())
     msgs = _messages(out) + _drive(core, clock, 0.5)
     acks = [m for m in msgs if isinstance(m, Ack)]
     assert acks and acks[0].result is AckResult.REJECTED and "ArithmeticError" in acks[0].reason, acks
@@ -205,7 +207,7 @@ def test_a_handler_that_raises_refuses_the_command_and_stops_the_robot() -> None
     assert any("could not be carried out" in line for line in out.logs)
     # Logged once: the same failure again is counted, not logged.
     again = counter.make(Order, orderId="o2", orderUpdateId=0, goal=Goal(x=1.0, y=0.5, theta=None), returnHome=False)
-    out = core.on_input(LinkName.ZENOH, keys.key("r1", Order.TOPIC), wire.encode(again), clock.now())
+    out = core.on_input(LinkName.ZENOH, keys.sender_key("r1", Order.TOPIC, "op"), wire.encode(again), clock.now())
     assert core.handler_failures == 2 and not out.logs
 
 

@@ -50,7 +50,9 @@ def test_field_agents_drive_the_field_robots_over_zenoh() -> None:
             return math.hypot(b[0] - a[0], b[1] - a[1])
 
         def drive() -> bool:
-            session.put(keys.key("uvc-1", "teleop"), wire.encode(op.make(Teleop, v=0.2, omega=0.0, ttl_s=0.5)))
+            session.put(
+                keys.sender_key("uvc-1", "teleop", "op-test"), wire.encode(op.make(Teleop, v=0.2, omega=0.0, ttl_s=0.5))
+            )
             return moved("uvc-1") > 0.1
 
         wait_until(drive, interval=0.1, message="uvc-1 to move under teleop over zenoh")
@@ -115,7 +117,9 @@ def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -
         op = wire.HeaderCounter(clock, robot="uvc-1", sender="op-test")
 
         def spin() -> bool:
-            session.put(keys.key("uvc-1", "teleop"), wire.encode(op.make(Teleop, v=0.0, omega=0.6, ttl_s=0.5)))
+            session.put(
+                keys.sender_key("uvc-1", "teleop", "op-test"), wire.encode(op.make(Teleop, v=0.0, omega=0.6, ttl_s=0.5))
+            )
             return planner() is not first
 
         wait_until(spin, timeout=10.0, interval=0.1, message="a new planner while the robot turns")

@@ -169,9 +169,9 @@ def test_another_robot_cannot_drive_a_robot(secured: Secured) -> None:
         wait_until(m.is_connected, message="uvc-2's MQTT login")
         for _ in range(10):
             msg = forger.make(Teleop, v=0.3, omega=0.0, ttl_s=1.0)
-            z.put(keys.key("uvc-1", "teleop"), wire.encode(msg))
+            z.put(wire.key_of(msg), wire.encode(msg))  # under the operator's name
             # QoS 1: acknowledged by the broker once handled (dropped, by the ACL).
-            m.publish(keys.key("uvc-1", "teleop"), wire.encode(msg), qos=1).wait_for_publish(5)
+            m.publish(wire.key_of(msg), wire.encode(msg), qos=1).wait_for_publish(5)
         # Sentinel: the operator's own command after the forgeries reaches the agent and is acked.
         sentinel = s.link.send(Teleop, "uvc-1", v=0.0, omega=0.0, ttl_s=0.2).header.headerId
         wait_until(lambda: any(a.commandHeaderId == sentinel for a in list(s.acks)), message="the sentinel's ack")

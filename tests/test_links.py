@@ -121,9 +121,9 @@ def test_messages_on_different_keys_arrive_in_the_order_sent(pair: Pair) -> None
     topics = ("order", "actions", "teleop", "lease/request")
     inbox = Inbox()
     for t in topics:
-        pair.b.subscribe(keys.key("r1", t), inbox)
+        pair.b.subscribe(keys.sender_filter("r1", t), inbox)
     pair.ready()
-    sent = [(keys.key("r1", topics[i % len(topics)]), i.to_bytes(4, "big")) for i in range(200)]
+    sent = [(keys.sender_key("r1", topics[i % len(topics)], "op-a"), i.to_bytes(4, "big")) for i in range(200)]
     for k, v in sent:
         assert pair.a.publish(k, v)
     pair.settle(lambda: len(inbox.snapshot()) >= len(sent), f"{len(sent)} messages")
@@ -278,12 +278,12 @@ def test_per_key_quality_of_service() -> None:
     import zenoh
 
     mqtt = MqttEndpoint(MqttSettings("127.0.0.1", 1))
-    assert [mqtt.qos_of(keys.key("r1", t)) for t in ("teleop", "lease/request", "ack", "pose", "map/updates")] == [
-        1, 1, 1, 0, 0,
-    ]  # fmt: skip
+    commands = [keys.sender_key("r1", t, "op-a") for t in ("teleop", "lease/request", "marks")]
+    telemetry_keys = [keys.key("r1", t) for t in ("ack", "pose", "map/updates")]
+    assert [mqtt.qos_of(k) for k in commands + telemetry_keys] == [1, 1, 1, 1, 0, 0]
     assert mqtt.qos_of("dwm/node/0d7f/uplink/location") == 0
     z = ZenohEndpoint()
-    urgent, telemetry = z._options(keys.key("r1", "teleop")), z._options(keys.key("r1", "pose"))
+    urgent, telemetry = z._options(keys.sender_key("r1", "teleop", "op-a")), z._options(keys.key("r1", "pose"))
     assert urgent["express"] and urgent["congestion_control"] == zenoh.CongestionControl.BLOCK
     assert urgent["priority"] == zenoh.Priority.INTERACTIVE_HIGH
     assert telemetry["congestion_control"] == zenoh.CongestionControl.DROP and "express" not in telemetry

@@ -7,7 +7,7 @@ from typing import Any
 import msgpack
 import pytest
 
-from fleetlink.shared import keys, wire
+from fleetlink.shared import wire
 from fleetlink.shared.messages import (
     Ack,
     AckResult,
@@ -119,7 +119,7 @@ EXAMPLES = [
 def test_round_trip(msg: wire.Message) -> None:
     raw = encode(msg)
     assert decode(type(msg), raw) == msg
-    assert decode_key(keys.key("r1", msg.TOPIC), raw) == msg
+    assert decode_key(wire.key_of(msg), raw) == msg
 
 
 def test_topics_and_vda_names_on_the_wire() -> None:

@@ -29,20 +29,27 @@ def _teleop_with_field(counter: wire.HeaderCounter, name: str) -> bytes:
     return msgpack.packb(body, use_bin_type=True)
 
 
+def _receive(gate: CommandGate, link: LinkName, msg: wire.Message, now: float) -> object:
+    """``msg`` through the gate on the key its sender publishes it on."""
+    return gate.receive(link, wire.key_of(msg), wire.encode(msg), now)
+
+
 def test_the_gate_logs_a_bounded_number_of_rejection_kinds_and_counts_them_all() -> None:
     gate = CommandGate("r1")
     counter = wire.HeaderCounter(SimClock(), robot="r1", sender="flooder")
     firsts = 0
     n = 4 * MAX_LOGGED_TAGS
     for i in range(n):
-        verdict = gate.receive(LinkName.MQTT, keys.key("r1", "teleop"), _teleop_with_field(counter, f"f{i}"), 0.0)
+        verdict = gate.receive(
+            LinkName.MQTT, keys.sender_key("r1", "teleop", "flooder"), _teleop_with_field(counter, f"f{i}"), 0.0
+        )
         firsts += verdict.log  # type: ignore[union-attr]
     assert firsts == 1  # one log line for the link and topic, whatever names the sender invents
     assert gate.stats.rejected_total == n
     assert len(gate._logged) == 1 <= MAX_LOGGED_TAGS
     # Another link or topic is another first; its repeats are not.
-    assert gate.receive(LinkName.ZENOH, keys.key("r1", "order"), b"\xc1", 0.0).log  # type: ignore[union-attr]
-    assert not gate.receive(LinkName.ZENOH, keys.key("r1", "order"), b"\xc2", 0.0).log  # type: ignore[union-attr]
+    assert gate.receive(LinkName.ZENOH, keys.sender_key("r1", "order", "flooder"), b"\xc1", 0.0).log  # type: ignore[union-attr]
+    assert not gate.receive(LinkName.ZENOH, keys.sender_key("r1", "order", "flooder"), b"\xc2", 0.0).log  # type: ignore[union-attr]
 
 
 def test_the_agent_core_publishes_a_bounded_number_of_rejection_events() -> None:
@@ -51,7 +58,9 @@ def test_the_agent_core_publishes_a_bounded_number_of_rejection_events() -> None
     counter = wire.HeaderCounter(clock, robot="r1", sender="flooder")
     events = 0
     for i in range(3 * MAX_LOGGED_TAGS):
-        out = core.on_input(LinkName.MQTT, keys.key("r1", "teleop"), _teleop_with_field(counter, f"g{i}"), 0.0)
+        out = core.on_input(
+            LinkName.MQTT, keys.sender_key("r1", "teleop", "flooder"), _teleop_with_field(counter, f"g{i}"), 0.0
+        )
         events += sum(1 for m, _ in out.messages if isinstance(m, Event))
     assert events == 1
 
@@ -95,7 +104,7 @@ def test_rejection_counts_are_published_at_a_low_rate_while_they_move() -> None:
     first = diagnostics(0.0)  # everything zero: one message says so
     assert len(first) == 1 and first[0].rejected == () and first[0].handler_failures == 0
     for i in range(1000):  # a flood of garbage on one link
-        core.on_input(LinkName.MQTT, keys.key("r1", "teleop"), b"\xc1" * (i % 7 + 1), 0.1)
+        core.on_input(LinkName.MQTT, keys.sender_key("r1", "teleop", "flooder"), b"\xc1" * (i % 7 + 1), 0.1)
     assert diagnostics(1.0) == []  # not before the period
     links["zenoh"] = (3, 12)  # the Zenoh endpoint refused three oversized messages, dropped twelve
     msgs = diagnostics(DIAGNOSTICS_PERIOD_S)
@@ -125,37 +134,30 @@ def test_a_sender_over_its_rate_is_refused_before_any_work_and_stops_never_are()
     clock = SimClock()
     bob = wire.HeaderCounter(clock, robot="r1", sender="op-bob")
     alice = wire.HeaderCounter(clock, robot="r1", sender="operator-1")
-    key = keys.key("r1", "teleop")
-    verdicts = [
-        gate.receive(LinkName.ZENOH, key, wire.encode(bob.make(Teleop, v=0.0, omega=0.0, ttl_s=0.5)), 0.0)
-        for _ in range(1000)
-    ]
+    verdicts = [_receive(gate, LinkName.ZENOH, bob.make(Teleop, v=0.0, omega=0.0, ttl_s=0.5), 0.0) for _ in range(1000)]
     assert sum(1 for v in verdicts if type(v).__name__ == "Accepted") == 100
     assert "over its rate (50 commands/s)" in gate.stats.last_reason
     assert len(gate._seen) == 100  # the refused ones are not remembered
     # The lease holder's stream is untouched, and bob's stop always passes.
     assert (
-        type(
-            gate.receive(LinkName.ZENOH, key, wire.encode(alice.make(Teleop, v=0.1, omega=0.0, ttl_s=0.5)), 0.0)
-        ).__name__
+        type(_receive(gate, LinkName.ZENOH, alice.make(Teleop, v=0.1, omega=0.0, ttl_s=0.5), 0.0)).__name__
         == "Accepted"
     )
     stop = bob.make(InstantActions, actions=(Action(actionId="s", actionType=ActionType.STOP, actionParameters=()),))
-    assert type(gate.receive(LinkName.MQTT, keys.key("r1", "actions"), wire.encode(stop), 0.0)).__name__ == "Accepted"
+    assert type(gate.receive(LinkName.MQTT, wire.key_of(stop), wire.encode(stop), 0.0)).__name__ == "Accepted"
 
 
 def test_a_flood_under_invented_names_shares_one_bucket_and_the_lease_holder_is_not_in_it() -> None:
     gate = CommandGate("r1")
     gate.priority_sender = "operator-1"
     clock = SimClock()
-    key = keys.key("r1", "teleop")
     admitted = 0
     for i in range(2000):  # each name new, each with a fresh bucket of its own
         c = wire.HeaderCounter(clock, robot="r1", sender=f"fake-{i}")
-        v = gate.receive(LinkName.MQTT, key, wire.encode(c.make(Teleop, v=0.0, omega=0.0, ttl_s=0.5)), 0.0)
+        v = _receive(gate, LinkName.MQTT, c.make(Teleop, v=0.0, omega=0.0, ttl_s=0.5), 0.0)
         admitted += type(v).__name__ == "Accepted"
     assert admitted == gate.limit.shared_burst  # the shared bucket, not 2000 x 100
     holder = wire.HeaderCounter(clock, robot="r1", sender="operator-1")
     for k in range(50):  # the holder at 10 Hz meanwhile: every one admitted
-        v = gate.receive(LinkName.ZENOH, key, wire.encode(holder.make(Teleop, v=0.1, omega=0.0, ttl_s=0.5)), 0.1 * k)
+        v = _receive(gate, LinkName.ZENOH, holder.make(Teleop, v=0.1, omega=0.0, ttl_s=0.5), 0.1 * k)
         assert type(v).__name__ == "Accepted", v

@@ -1,6 +1,8 @@
 """The command gate: every inbound payload passes here, from either link. Pure: no I/O, time passed in.
 
-* decodes and validates (``wire.decode_key``: the header's robot must match the key);
+* decodes and validates (``wire.decode_key``: the header's robot must match the key, and a
+  command's ``header.sender`` the login its key names -- on a secured site only that login may
+  publish there, so the sender is the transport's word, not the payload's);
 * drops a command already executed: same (topic, sender, headerId, timestamp) -- an operator
   may send the same bytes on both links, and re-sends are byte-identical -- or an order whose
   (orderId, orderUpdateId) was already executed; an order update older than the last one is stale;
@@ -47,7 +49,8 @@ class Duplicate:
 
 @dataclass(frozen=True, slots=True)
 class Rejected:
-    """Malformed or unwanted input. ``log`` is true the first time this (link, topic) is refused."""
+    """Malformed or unwanted input. ``log`` is true the first time this (link, topic) is refused
+    -- or, apart, the first time a sender is (someone claiming another's name, or not allowed)."""
 
     link: LinkName
     topic: str
@@ -57,6 +60,9 @@ class Rejected:
 
 Verdict = Accepted | Duplicate | Rejected
 
+
+SENDER_FIELDS = frozenset({"header.sender", "sender"})
+"""Rejections of who sent a command (a name the key does not vouch for, an operator not allowed)."""
 
 MAX_LOGGED_TAGS = 256
 """Distinct (link, topic) pairs whose first rejection is logged and published; beyond
@@ -86,8 +92,8 @@ def always_allowed(msg: Command) -> bool:
 class RateLimit:
     """Token buckets: one per sender (``rate`` commands a second on average, ``burst`` at once) and
     one that every sender but the priority one (the lease holder) shares (``shared_rate``,
-    ``shared_burst``). Sender names are the sender's to choose until the transport vouches for them:
-    the shared bucket keeps a flood under invented names from crowding out the holder. Pure; at most
+    ``shared_burst``). On an open site (no logins) sender names are the sender's to choose: the
+    shared bucket keeps a flood under invented names from crowding out the holder. Pure; at most
     ``max_senders`` buckets are remembered (the one unheard from longest is forgotten first)."""
 
     def __init__(
@@ -141,7 +147,7 @@ class CommandGate:
         # (topic, sender, headerId, timestamp) -> (time seen, link it first came on)
         self._seen: OrderedDict[tuple[str, str, int, float], tuple[float, LinkName]] = OrderedDict()
         self._orders: dict[str, int] = {}  # orderId -> highest executed orderUpdateId
-        self._logged: set[tuple[str, str]] = set()
+        self._logged: set[tuple[str, str, bool]] = set()
         self.limit = RateLimit()
         """Commands per sender and second: a flood from one sender costs a decode and a count."""
         self.priority_sender = ""
@@ -154,6 +160,7 @@ class CommandGate:
             robot, topic = keys.parse_key(key)
         except ValueError as exc:
             return self.reject(link, "?", f"key: {exc}")
+        topic = keys.split_sender(topic)[0]  # counted per topic, whoever the key names
         if robot != self.robot or topic not in self.topics:
             return self.reject(link, topic, f"key: not an input of agent {self.robot}: {key}")
         try:
@@ -202,10 +209,11 @@ class CommandGate:
         self.stats.last_reason = reason
         # Logged (and published) once per link and topic: a reason or a field name may be the
         # sender's own words (an unknown field's name, an out-of-range value), so they are not part
-        # of the tag, or a sender could make every rejection a "first" one by varying them. The set
-        # is capped all the same (topics may be unknown ones) and silent when full. Counting and
-        # the last reason (Diagnostics) go on regardless.
-        tag = (link.value, topic)
+        # of the tag, or a sender could make every rejection a "first" one by varying them. Only
+        # whether the sender itself was refused is (an impersonation or a stranger, which garbage
+        # seen earlier must not hide from the log). The set is capped all the same and silent when
+        # full. Counting and the last reason (Diagnostics) go on regardless.
+        tag = (link.value, topic, what in SENDER_FIELDS)
         first = tag not in self._logged and len(self._logged) < MAX_LOGGED_TAGS
         if first:
             self._logged.add(tag)

@@ -4,24 +4,21 @@
 (credentials, TLS, jittered backoff: links/mqtt.py) with the retained ``Connection`` at QoS 1 on
 ``fleetlink/v1/<robot>/connection`` as its voice: CONNECTIONBROKEN is the last will, ONLINE is
 published after every (re)connect (the broker forgets nothing retained, but a will may have
-replaced it while we were away), OFFLINE on a clean close. Given ``on_input``, it subscribes the
-agent's input topics and ``extra_topics`` (e.g. the PANS location) and hands every message to
-``on_input(LinkName.MQTT, topic, payload)``. Commands, acks, the lease and the connection travel at
-QoS 1, telemetry at QoS 0 (the endpoint's ``QOS1_TOPICS``).
+replaced it while we were away), OFFLINE on a clean close. The node subscribes its inputs
+(``AgentNode.subscribe``). Commands, acks, the lease and the connection travel at QoS 1,
+telemetry at QoS 0 (the endpoint's ``QOS1_TOPICS``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 from fleetlink.links.mqtt import QOS1_TOPICS, MqttEndpoint, MqttMessage
 from fleetlink.shared import keys
-from fleetlink.shared.messages import ConnectionState, LinkName
+from fleetlink.shared.messages import ConnectionState
 from fleetlink.shared.mqtt import MqttSettings
 
 __all__ = ["QOS1_TOPICS", "agent_mqtt_link"]
-
-OnInput = Callable[[LinkName, str, bytes], None]
 
 
 def agent_mqtt_link(
@@ -29,9 +26,6 @@ def agent_mqtt_link(
     settings: MqttSettings,
     connection_payload: Callable[[ConnectionState], bytes],
     *,
-    on_input: OnInput | None = None,
-    inputs: Sequence[str] = ("order", "actions", "teleop"),
-    extra_topics: Sequence[str] = (),
     client_id: str | None = None,
     seed: int | None = None,
 ) -> MqttEndpoint:
@@ -44,7 +38,7 @@ def agent_mqtt_link(
 
         return publish
 
-    link = MqttEndpoint(
+    return MqttEndpoint(
         settings,
         client_id=client_id or f"agent-{robot}",
         will=MqttMessage(connection, connection_payload(ConnectionState.CONNECTIONBROKEN), qos=1, retain=True),
@@ -53,11 +47,3 @@ def agent_mqtt_link(
         seed=seed,
         label=f"mqtt-{robot}",
     )
-    if on_input is not None:
-
-        def receive(topic: str, payload: bytes) -> None:
-            on_input(LinkName.MQTT, topic, payload)
-
-        for t in [keys.key(robot, t) for t in inputs] + list(extra_topics):
-            link.subscribe(t, receive)
-    return link

@@ -151,8 +151,7 @@ def test_malformed_and_oversized_on_every_topic_while_driving(drill: Drill) -> N
     driver = Driver(drill.op)
     try:
         wait_until(drill.moving, message="driving")
-        for t in topics:
-            k = f"fleetlink/v1/r1/{t}"
+        for k in [f"fleetlink/v1/r1/{t}{sender}" for t in topics for sender in ("", "/operator-1")]:
             for data in (
                 b"",
                 b"\xc1",
@@ -182,7 +181,7 @@ c.insert_json5("listen/endpoints", "[]")
 c.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
 s = zenoh.open(c)
 counter = wire.HeaderCounter(SystemClock(), robot="r1", sender="operator-1")
-k = keys.key("r1", "teleop")
+k = keys.sender_key("r1", "teleop", "operator-1")
 while True:
     s.put(k, wire.encode(counter.make(Teleop, v=0.3, omega=0.0, ttl_s=0.3)))
     time.sleep(0.05)
@@ -266,14 +265,15 @@ def test_unauthorised_clients_cannot_drive_over_mqtt(tmp_path: Path) -> None:
         wait_until(op.is_connected)
         attackers = [client("r2", "pw-r2"), client(None, None), client("r1", "wrong")]
         wait_until(lambda: attackers[0].is_connected())
-        k = keys.key("r1", "teleop")
         for i, a in enumerate(attackers):
             counter = wire.HeaderCounter(clock, robot="r1", sender=f"operator-{i}")
+            k = keys.sender_key("r1", "teleop", f"operator-{i}")
             for _ in range(20):
                 info = a.publish(k, wire.encode(counter.make(Teleop, v=0.5, omega=0.0, ttl_s=5.0)), qos=1)
                 if a.is_connected():
                     info.wait_for_publish(5)  # the broker has dealt with it before op-alice starts
         counter = wire.HeaderCounter(clock, robot="r1", sender="op-alice")
+        k = keys.sender_key("r1", "teleop", "op-alice")
 
         def drive() -> bool:
             op.publish(k, wire.encode(counter.make(Teleop, v=0.2, omega=0.0, ttl_s=0.3)), qos=1)

@@ -54,7 +54,10 @@ def _flood(session: Any, mclient: Any, make: Any, stop: threading.Event) -> None
 def test_the_lease_holder_drives_through_garbage_and_valid_floods(tmp_path: Path, mosquitto: MosquittoBroker) -> None:
     clock = SystemClock()
     log_path = tmp_path / "agent.log"
-    with log_path.open("wb") as log, agent_process(tmp_path, mosquitto.port, output=log.fileno()) as agent:
+    with (
+        log_path.open("wb") as log,
+        agent_process(tmp_path, mosquitto.port, output=log.fileno(), operators=("operator-1", "op-bob")) as agent,
+    ):
         session = zenoh.open(zenoh_config(connect=[agent.zenoh_endpoint]))
         flooder = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="flooder")
         flooder.connect("127.0.0.1", mosquitto.port)
@@ -76,11 +79,14 @@ def test_the_lease_holder_drives_through_garbage_and_valid_floods(tmp_path: Path
 
         def garbage(i: int) -> tuple[str, bytes]:
             if i % 4 == 0:
-                return keys.key("r1", "order"), b"\xc1garbage"
-            return keys.key("r1", "teleop"), msgpack.packb({**junk, f"field{i}": i}, use_bin_type=True)
+                return keys.sender_key("r1", "order", "op-bob"), b"\xc1garbage"
+            return keys.sender_key("r1", "teleop", "operator-1"), msgpack.packb(
+                {**junk, f"field{i}": i}, use_bin_type=True
+            )
 
         def valid(i: int) -> tuple[str, bytes]:
-            return keys.key("r1", "teleop"), wire.encode(bob.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S))
+            msg = bob.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S)
+            return wire.key_of(msg), wire.encode(msg)
 
         def drive(seconds: float) -> list[int]:
             ids = []
@@ -89,7 +95,7 @@ def test_the_lease_holder_drives_through_garbage_and_valid_floods(tmp_path: Path
                 msg = holder.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S)
                 with lock:
                     sent[msg.header.headerId] = time.monotonic()
-                session.put(keys.key("r1", Teleop.TOPIC), wire.encode(msg))
+                session.put(wire.key_of(msg), wire.encode(msg))
                 ids.append(msg.header.headerId)
                 time.sleep(0.1)
             return ids
@@ -100,7 +106,7 @@ def test_the_lease_holder_drives_through_garbage_and_valid_floods(tmp_path: Path
             wait_until(lambda: any(i in acked for i in drive(0.3)), timeout=15, message="a first ack")
             # The holder takes the lease, as an operator driving the robot does.
             lease = holder.make(LeaseRequest, duration_s=300.0, release=False)
-            session.put(keys.key("r1", LeaseRequest.TOPIC), wire.encode(lease))
+            session.put(wire.key_of(lease), wire.encode(lease))
             ids = drive(1.0)
             wait_until(lambda: all(i in acked for i in ids), timeout=5, message="the holder's acks before the floods")
             rss0, lines0 = _rss(agent.proc.pid), len(log_path.read_bytes().splitlines())

@@ -77,9 +77,9 @@ def _flood(agent: AgentProcess, clock: SystemClock, mosquitto: MosquittoBroker) 
             msg = counter.make(Teleop, v=0.0, omega=0.0, ttl_s=0.5)
             data = wire.encode(msg)
             if link == "zenoh":
-                session.put(keys.key("r1", "teleop"), data)
+                session.put(keys.sender_key("r1", "teleop", "operator-1"), data)
             else:
-                op.publish(keys.key("r1", "teleop"), data, qos=1)
+                op.publish(keys.sender_key("r1", "teleop", "operator-1"), data, qos=1)
             sent.append(msg.header.headerId)
             return False
 
@@ -91,13 +91,13 @@ def _flood(agent: AgentProcess, clock: SystemClock, mosquitto: MosquittoBroker) 
         teleop_acked("mqtt")
         before = _rss_bytes(proc.pid)
         for _ in range(20):
-            session.put(keys.key("r1", "teleop"), BIG)
-            session.put(keys.key("r1", "order"), BIG)
+            session.put(keys.sender_key("r1", "teleop", "operator-1"), BIG)
+            session.put(keys.sender_key("r1", "order", "operator-1"), BIG)
         big = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="flooder")
         big.connect("127.0.0.1", mosquitto.port)
         big.loop_start()
         for _ in range(3):
-            info = big.publish(keys.key("r1", "teleop"), BIG, qos=0)
+            info = big.publish(keys.sender_key("r1", "teleop", "operator-1"), BIG, qos=0)
         with contextlib.suppress(RuntimeError, ValueError):  # the broker may drop it mid-way
             info.wait_for_publish(10)  # written to the broker (which refuses it at its edge)
         big.loop_stop()

@@ -192,7 +192,8 @@ def test_lidar_unplugged_agent_reports_keeps_driving_and_maps_again() -> None:
         x0, y0, _ = robot.pose
 
         def drive() -> bool:
-            session.put(keys.key("uvc-1", "teleop"), wire.encode(op.make(Teleop, v=0.2, omega=0.0, ttl_s=0.4)))
+            msg = op.make(Teleop, v=0.2, omega=0.0, ttl_s=0.4)
+            session.put(wire.key_of(msg), wire.encode(msg))
             x, y, _ = robot.pose
             return math.hypot(x - x0, y - y0) > 0.1
 

@@ -61,9 +61,8 @@ def _drive_and_terminate(agent: AgentProcess, clock: SystemClock, mosquitto: Mos
 
     def drive() -> None:  # an operator holding the key: teleop every 0.1 s
         while not stop_driving.wait(0.1):
-            op.publish(
-                keys.key("r1", Teleop.TOPIC), wire.encode(counter.make(Teleop, v=0.2, omega=0.5, ttl_s=0.5)), qos=1
-            )
+            msg = counter.make(Teleop, v=0.2, omega=0.5, ttl_s=0.5)
+            op.publish(wire.key_of(msg), wire.encode(msg), qos=1)
 
     driver = threading.Thread(target=drive, daemon=True)
     try:

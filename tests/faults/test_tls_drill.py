@@ -54,7 +54,7 @@ def test_tls_endpoint_under_concurrent_publishing_never_disconnects(tmp_path: Pa
         with lock:
             heard.append(payload)
 
-    robot.subscribe(keys.key("r1", "teleop"), on_command)
+    robot.subscribe(keys.sender_filter("r1", "teleop"), on_command)
     operator.subscribe(keys.key("r1", "pose"), on_pose)
     stop = threading.Event()
     sent = [0] * PUBLISHERS
@@ -76,7 +76,7 @@ def test_tls_endpoint_under_concurrent_publishing_never_disconnects(tmp_path: Pa
 
         def probed() -> bool:  # both subscriptions are in place once a probe each way arrives
             robot.publish(keys.key("r1", "pose"), b"probe")
-            operator.publish(keys.key("r1", "teleop"), b"probe")
+            operator.publish(keys.sender_key("r1", "teleop", "op-alice"), b"probe")
             with lock:
                 return bool(heard) and bool(commands)
 
@@ -89,7 +89,7 @@ def test_tls_endpoint_under_concurrent_publishing_never_disconnects(tmp_path: Pa
         end = time.monotonic() + SECONDS
         n = 0
         while time.monotonic() < end:
-            operator.publish(keys.key("r1", "teleop"), n.to_bytes(4, "big"))
+            operator.publish(keys.sender_key("r1", "teleop", "op-alice"), n.to_bytes(4, "big"))
             n += 1
             time.sleep(1.0 / 50.0)
         stop.set()

@@ -4,9 +4,10 @@ flood or measure the process itself."""
 from __future__ import annotations
 
 import contextlib
+import json
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,16 +28,18 @@ class AgentProcess:
 
 
 @contextlib.contextmanager
-def agent_process(folder: Path, mqtt_port: int, *, output: int | None = subprocess.DEVNULL) -> Iterator[AgentProcess]:
+def agent_process(
+    folder: Path, mqtt_port: int, *, output: int | None = subprocess.DEVNULL, operators: Sequence[str] = ()
+) -> Iterator[AgentProcess]:
     """Robot ``r1``: its board served on a free TCP port, Zenoh listening on another, MQTT on the
     given broker. ``output``: where the process's stdout and stderr go (``subprocess.PIPE`` to read
-    them). Killed on the way out if it is still running."""
+    them); ``operators``: its allowlist (empty: anyone). Killed on the way out if it is still running."""
     board = SimulatedBoard()
     server = DeviceServer(board, SystemClock(), name="board")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     cfg = folder / "robot.toml"
     cfg.write_text(
-        f'robot = "r1"\nboard = "socket://127.0.0.1:{server.serve_tcp()}"\n'
+        f'robot = "r1"\nboard = "socket://127.0.0.1:{server.serve_tcp()}"\noperators = {json.dumps(list(operators))}\n'
         f'[zenoh]\nlisten = ["{endpoint}"]\n[mqtt]\nurl = "mqtt://127.0.0.1:{mqtt_port}"\n'
     )
     proc = subprocess.Popen(

@@ -16,7 +16,7 @@ from fleetlink.operator.console import ConsoleApp, attach
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.linkmanager import LinkPolicy
 from fleetlink.operator.links import OperatorLink
-from fleetlink.shared import keys, wire
+from fleetlink.shared import wire
 from fleetlink.shared.clock import Clock, SystemClock
 from fleetlink.shared.messages import Ack, AckResult, InstantActions, LinkName, Order, Pose
 
@@ -54,7 +54,7 @@ class MemoryTransport:
         self._receivers.clear()
 
     def inject(self, msg: wire.Message) -> None:
-        self.inject_raw(keys.key(msg.header.robot, type(msg).TOPIC), wire.encode(msg))
+        self.inject_raw(wire.key_of(msg), wire.encode(msg))
 
     def inject_raw(self, key: str, payload: bytes) -> None:
         receivers = [r for expr, r in self._receivers if key_matches(expr, key)]
@@ -71,7 +71,9 @@ class MemoryTransport:
 class Rig:
     """Console + OperatorLink over memory transports + a fake robot voice."""
 
-    def __init__(self, tmp_path: Path, read_only: bool = False, clock: Clock | None = None) -> None:
+    def __init__(
+        self, tmp_path: Path, read_only: bool = False, clock: Clock | None = None, repeat_timeout_s: float = 2.0
+    ) -> None:
         self.clock = clock if clock is not None else SystemClock()
         self.zenoh = MemoryTransport("zenoh")
         self.mqtt = MemoryTransport("mqtt")
@@ -83,7 +85,7 @@ class Rig:
         self.marks_file = tmp_path / "marks.json"
         self.app = ConsoleApp(
             self.link, self.fleet, self.clock, lock=self.lock, read_only=read_only,
-            marks_file=self.marks_file, repeat_timeout_s=0.8,
+            marks_file=self.marks_file, repeat_timeout_s=repeat_timeout_s,
         )  # fmt: skip
         self.agents: dict[str, wire.HeaderCounter] = {}
         self.zenoh.responder = self.mqtt.responder = self._ack

@@ -16,6 +16,7 @@ import paho.mqtt.client as mqtt
 import zenoh
 
 from fleetlink.agent.links.gate import Accepted, CommandGate, Duplicate
+from fleetlink.links.base import to_mqtt_filter
 from fleetlink.links.mqtt import MqttEndpoint
 from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.operator.linkmanager import LinkPolicy
@@ -55,7 +56,9 @@ class LinkRobot:
         self.session: Any = None
         self._subs: list[Any] = []
         self.mqtt = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=f"agent-{robot}")
-        self.mqtt.on_connect = lambda c, *_: [c.subscribe(keys.key(robot, t), qos=1) for t in COMMANDS]
+        self.mqtt.on_connect = lambda c, *_: [
+            c.subscribe(to_mqtt_filter(keys.sender_filter(robot, t)), qos=1) for t in COMMANDS
+        ]
         self.mqtt.on_message = lambda c, u, m: self._on_input(LinkName.MQTT, m.topic, bytes(m.payload))
         self.mqtt.connect("127.0.0.1", mqtt_port)
         self.mqtt.loop_start()
@@ -68,7 +71,7 @@ class LinkRobot:
         session = zenoh.open(zenoh_config(connect=[self.zenoh_connect], scouting_delay_ms=0))
         subs = [
             session.declare_subscriber(
-                keys.key(self.robot, t),
+                keys.sender_filter(self.robot, t),
                 lambda s: self._on_input(LinkName.ZENOH, str(s.key_expr), s.payload.to_bytes()),
             )
             for t in COMMANDS
