@@ -53,6 +53,7 @@ them but the pending base command (2 Hz) that the home button raises."""
 
 INPUTS = ("order", "actions", "teleop", LeaseRequest.TOPIC, UwbFix.TOPIC)
 """The agent's input topics, on every link."""
+_COMMANDS = tuple(t for t in INPUTS if t in keys.SENDER_TOPICS)
 
 
 def input_keys(robot: str, topic: str, operators: Sequence[str] = ()) -> list[str]:
@@ -133,6 +134,7 @@ class AgentNode:
         self._motor: object = None
         self._odom_t = 0.0
         self._next_links = -float("inf")
+        self._holder = ""
         self.keeper: KeeperHost | None = None
         self.share: Any = None
         self.lidar_fault: str | None = None
@@ -191,6 +193,7 @@ class AgentNode:
             else:
                 out = self.core.on_input(link, key, payload, now)
             self._apply(out)
+            self._prioritise_holder(now)
             started = was_idle and self.core.driving
         if started and self.on_started is not None:
             self.on_started()
@@ -207,6 +210,7 @@ class AgentNode:
                 self._apply(self.core.set_links(self._link_status(), now))
                 counts = {link.name.value: (link.stats.oversized, link.stats.dropped) for link in self.links}
                 self._apply(self.core.diagnostics(now, counts))
+                self._prioritise_holder(now)  # a lease that ran out
             snap = self.board.snapshot
             if snap.motor is not self._motor:  # a fresh wheel reading: its poll time
                 self._motor, self._odom_t = snap.motor, snap.updated
@@ -218,6 +222,17 @@ class AgentNode:
             if not self.core.driving:
                 next_t = max(next_t, min(self.core.next_pose_at, now + IDLE_PERIOD_S))
             return next_t
+
+    def _prioritise_holder(self, now: float) -> None:
+        """The lease holder's commands jump every link's queue (links/zenoh.py: priority lane): a
+        flood from anyone else waits behind them. The key names the sender, so no decoding."""
+        holder = self.core.lease.view(now).holder
+        if holder == self._holder:
+            return
+        self._holder = holder
+        lane = frozenset(keys.sender_key(self.robot, t, holder) for t in _COMMANDS) if holder else frozenset()
+        for link in self.links:
+            link.prioritise(lane)
 
     def _link_status(self) -> LinkStatus:
         def up(name: LinkName) -> bool:

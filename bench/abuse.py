@@ -22,7 +22,9 @@ logged. Goals (issue 14): 100 % delivered, p99 <= 50 ms added, RSS growth < 5 MB
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import json
+import multiprocessing
 import statistics
 import sys
 import tempfile
@@ -105,23 +107,52 @@ class Holder:
         }
 
 
-def flood(session: Any, mclient: Any, rate: float, seconds: float, make: Any) -> int:
-    """``rate`` messages a second for ``seconds``, alternating Zenoh and MQTT; returns how many."""
+def flood(kind: str, zenoh_endpoint: str, mqtt_port: int, rate: float, seconds: float) -> int:
+    """In a process of its own (an attacker is not the measuring operator; in one process the two
+    would share a GIL, and the holder's acks would wait on the flood's own loop): ``rate``
+    messages a second for ``seconds``, alternating Zenoh and MQTT, from op-bob's login; returns how
+    many. ``kind``: ``garbage`` or ``valid``."""
+    clock = SystemClock()
+    session = zenoh.open(zenoh_config(connect=[zenoh_endpoint]))
+    mclient = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="flooder")
+    mclient.max_queued_messages_set(0)
+    mclient.connect("127.0.0.1", mqtt_port)
+    mclient.loop_start()
+    bob = wire.HeaderCounter(clock, robot="r1", sender="op-bob")
+    template = msgpack.unpackb(wire.encode(bob.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S)), raw=False)
+
+    def garbage(i: int) -> tuple[str, bytes]:
+        if i % 4 == 0:
+            return keys.sender_key("r1", "order", "op-bob"), b"\xc1garbage"
+        body = dict(template)
+        body[f"field{i}"] = i  # an unknown field, named differently every time
+        return keys.sender_key("r1", "teleop", "op-bob"), msgpack.packb(body, use_bin_type=True)
+
+    def valid(i: int) -> tuple[str, bytes]:
+        msg = bob.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S)
+        return wire.key_of(msg), wire.encode(msg)
+
+    make = garbage if kind == "garbage" else valid
+    time.sleep(1.0)  # the session finds the agent
     n = 0
     end = time.monotonic() + seconds
     start = time.monotonic()
-    while time.monotonic() < end:
-        batch = 100
-        for _ in range(batch):
-            key, payload = make(n)
-            if n % 2:
-                mclient.publish(key, payload, qos=0)
-            else:
-                session.put(key, payload)
-            n += 1
-        ahead = n / rate - (time.monotonic() - start)
-        if ahead > 0:
-            time.sleep(ahead)
+    try:
+        while time.monotonic() < end:
+            for _ in range(100):
+                key, payload = make(n)
+                if n % 2:
+                    mclient.publish(key, payload, qos=0)
+                else:
+                    session.put(key, payload)
+                n += 1
+            ahead = n / rate - (time.monotonic() - start)
+            if ahead > 0:
+                time.sleep(ahead)
+    finally:
+        mclient.loop_stop()
+        mclient.disconnect()
+        session.close()
     return n
 
 
@@ -140,10 +171,6 @@ def main(argv: list[str] | None = None) -> int:
             agent_process(Path(tmp), broker.port, output=log.fileno(), operators=("operator-1", "op-bob")) as agent,
         ):
             session = zenoh.open(zenoh_config(connect=[agent.zenoh_endpoint]))
-            mc = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="flooder")
-            mc.max_queued_messages_set(0)
-            mc.connect("127.0.0.1", broker.port)
-            mc.loop_start()
             holder = Holder(session, clock)
             try:
                 deadline = time.monotonic() + 30
@@ -158,38 +185,14 @@ def main(argv: list[str] | None = None) -> int:
                 rss0, lines0 = _rss(agent.proc.pid), len(log_path.read_bytes().splitlines())
                 rows["baseline"] = holder.figures(holder.run(args.seconds))
 
-                garbage_counter = wire.HeaderCounter(clock, robot="r1", sender="op-bob")
-                template = msgpack.unpackb(
-                    wire.encode(garbage_counter.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S)), raw=False
-                )
-
-                def garbage(i: int) -> tuple[str, bytes]:
-                    if i % 4 == 0:
-                        return keys.sender_key("r1", "order", "op-bob"), b"\xc1garbage"
-                    body = dict(template)
-                    body[f"field{i}"] = i  # an unknown field, named differently every time
-                    return keys.sender_key("r1", "teleop", "op-bob"), msgpack.packb(body, use_bin_type=True)
-
-                bob = wire.HeaderCounter(clock, robot="r1", sender="op-bob")
-
-                def valid(i: int) -> tuple[str, bytes]:
-                    msg = bob.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S)
-                    return wire.key_of(msg), wire.encode(msg)
-
-                for name, make in (("garbage", garbage), ("valid flood", valid)):
-                    box: dict[str, int] = {}
-                    t = threading.Thread(
-                        target=lambda m=make, b=box: b.update(n=flood(session, mc, args.rate, args.seconds, m)),
-                        daemon=True,
-                    )
-                    t.start()
-                    rows[name] = holder.figures(holder.run(args.seconds))
-                    t.join()
-                    rows[name]["flood_sent"] = box.get("n", 0)
+                with concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+                    for name, kind in (("garbage", "garbage"), ("valid flood", "valid")):
+                        job = pool.submit(flood, kind, agent.zenoh_endpoint, broker.port, args.rate, args.seconds + 3.0)
+                        time.sleep(3.0)  # the process up (a second to start, a second for its links) and flooding
+                        rows[name] = holder.figures(holder.run(args.seconds))
+                        rows[name]["flood_sent"] = job.result()
                 rss1, lines1 = _rss(agent.proc.pid), len(log_path.read_bytes().splitlines())
             finally:
-                mc.loop_stop()
-                mc.disconnect()
                 holder.sub.undeclare()
                 session.close()
     base99 = rows["baseline"]["p99_s"]

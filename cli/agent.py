@@ -12,6 +12,8 @@ import sys
 import threading
 from pathlib import Path
 
+AGENT_SWITCH_INTERVAL_S = 0.001
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, required=True, help="the robot's TOML configuration")
@@ -27,6 +29,11 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    # The agent is one robot's real-time process: its link threads, control loop and command
+    # delivery share the GIL. Python hands it over every 5 ms by default, so under a flood a lease
+    # holder's teleop waited 5 ms per hand-over behind busy link threads (bench/abuse.py); 1 ms
+    # keeps the command lane and the control loop prompt for a little throughput.
+    sys.setswitchinterval(AGENT_SWITCH_INTERVAL_S)
     agent = AgentRuntime(config)
     stop = threading.Event()
     try:

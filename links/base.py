@@ -65,6 +65,12 @@ class Link(Protocol):
         """Hand every message whose key matches ``key_expr`` to ``receiver(key, payload)``."""
         ...
 
+    def prioritise(self, priority_keys: frozenset[str]) -> None:
+        """Hand messages on exactly these keys on before any waiting for receivers (the agent's lease
+        holder's commands). A no-op where messages do not wait (in-process; MQTT, whose one loop
+        thread hands each on as it reads it)."""
+        ...
+
     @property
     def up(self) -> bool:
         """The transport is connected (a broker session, or at least one Zenoh session)."""

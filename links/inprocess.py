@@ -66,6 +66,9 @@ class InProcessLink:
         self._subs.append((key_expr, receiver))
         self._routes.clear()
 
+    def prioritise(self, priority_keys: frozenset[str]) -> None:
+        """Nothing waits here: ``deliver`` hands every message on as the owner of time pumps it."""
+
     def serve(self, key_expr: str, answer: Answer) -> None:
         """Answer queries on ``key_expr``: ``answer(key_expr_asked)`` -> [(key, payload)]."""
         self._served.append((key_expr, answer))

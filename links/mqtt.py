@@ -293,6 +293,9 @@ class MqttEndpoint:
         """Publish ``message`` with its own QoS and retain flag."""
         return self.publish(message.topic, message.payload, qos=message.qos, retain=message.retain)
 
+    def prioritise(self, priority_keys: frozenset[str]) -> None:
+        """Nothing waits here: the loop thread hands each message on as it reads it."""
+
     def subscribe(self, key_expr: str, receiver: Receiver, *, qos: int = 1) -> None:
         """``qos`` is the most the broker may deliver at; each message keeps its publisher's QoS
         up to that, so the default (1) downgrades nothing."""

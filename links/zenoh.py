@@ -20,6 +20,12 @@ order they were sent in. Each subscriber's callback therefore runs on zenoh's ne
 the application. Beyond ``inbox_size`` waiting samples (a receiver stalled for seconds) new ones
 are dropped and counted.
 
+Priority lane: samples on the keys given to ``prioritise`` (the agent gives its lease holder's
+command keys: the key names the sender, so this needs no decoding) wait in a lane of their own
+that the delivery thread empties first. A flood -- garbage or valid, any number of names -- queues
+behind the holder, never in front of it. Each key stays in one lane while it is prioritised, so a
+sender's own order holds.
+
 The session is closed explicitly in ``close()`` when the endpoint opened it: zenoh runs
 callbacks on non-daemon threads that would keep the process alive.
 """
@@ -29,8 +35,8 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import queue
 import threading
+from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any, Self
 
@@ -52,6 +58,8 @@ so a lease request and the teleop after it arrive in the order they were sent.""
 
 INBOX_SIZE = 1024
 """Samples waiting for the receivers; beyond this new ones are dropped and counted."""
+PRIORITY_INBOX_SIZE = 256
+"""Samples on prioritised keys waiting (``ZenohEndpoint.prioritise``), in a lane of their own."""
 
 Answer = Callable[[str], list[tuple[str, bytes]]]
 """``answer(key_expr asked)`` -> the replies, as (key, payload)."""
@@ -119,10 +127,45 @@ def open_session(listen: Sequence[str] = (), connect: Sequence[str] = (), **auth
     return zenoh.open(peer_config(listen, connect, **auth))
 
 
-class _Delivery(Worker):
-    """The one thread that hands queued samples to their receivers, in arrival order."""
+Item = tuple[Receiver, str, bytes]
 
-    def __init__(self, name: str, inbox: queue.Queue[tuple[Receiver, str, bytes] | None]) -> None:
+
+class _Inbox:
+    """Two bounded FIFO lanes, the first always served first. Thread-safe."""
+
+    def __init__(self, size: int, priority_size: int = PRIORITY_INBOX_SIZE) -> None:
+        self._cond = threading.Condition()
+        self._lanes: tuple[deque[Item | None], deque[Item | None]] = (deque(), deque())
+        self._sizes = (priority_size, size)
+        self.maxsize = size
+
+    def put(self, item: Item, *, priority: bool = False) -> bool:
+        """Queue ``item``; False (and nothing queued) if its lane is full."""
+        lane = 0 if priority else 1
+        with self._cond:
+            if len(self._lanes[lane]) >= self._sizes[lane]:
+                return False
+            self._lanes[lane].append(item)
+            self._cond.notify()
+        return True
+
+    def close(self) -> None:
+        """The delivery thread ends after what is already queued."""
+        with self._cond:
+            self._lanes[1].append(None)
+            self._cond.notify()
+
+    def get(self) -> Item | None:
+        with self._cond:
+            while not (self._lanes[0] or self._lanes[1]):
+                self._cond.wait()
+            return (self._lanes[0] or self._lanes[1]).popleft()
+
+
+class _Delivery(Worker):
+    """The one thread that hands queued samples to their receivers, priority lane first."""
+
+    def __init__(self, name: str, inbox: _Inbox) -> None:
         super().__init__(name)
         self.inbox = inbox
 
@@ -136,8 +179,7 @@ class _Delivery(Worker):
 
     def stop(self, timeout: float = 2.0) -> None:
         if self.running:
-            with contextlib.suppress(queue.Full):
-                self.inbox.put(None, timeout=1.0)  # after what is already queued
+            self.inbox.close()
         super().stop(timeout)
 
 
@@ -180,7 +222,8 @@ class ZenohEndpoint:
         self._token: Any = None
         self._opts: dict[str, dict[str, Any]] = {}
         self._lock = threading.Lock()
-        self._inbox: queue.Queue[tuple[Receiver, str, bytes] | None] = queue.Queue(inbox_size)
+        self._inbox = _Inbox(inbox_size)
+        self._priority: frozenset[str] = frozenset()
         self._delivery: _Delivery | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -267,6 +310,10 @@ class ZenohEndpoint:
         self.stats.sent += 1
         return True
 
+    def prioritise(self, priority_keys: frozenset[str]) -> None:
+        """Samples on exactly these keys jump the queue (the module docstring: priority lane)."""
+        self._priority = priority_keys
+
     def subscribe(self, key_expr: str, receiver: Receiver) -> None:
         with self._lock:
             self._subs.append((key_expr, receiver))
@@ -311,10 +358,14 @@ class ZenohEndpoint:
         def on_sample(sample: Any) -> None:
             # On zenoh's network thread: queue and return at once.
             try:
-                if not self.stats.admit(self.label, str(sample.key_expr), len(sample.payload)):
+                key = str(sample.key_expr)
+                if not self.stats.admit(self.label, key, len(sample.payload)):
                     return  # refused before it is copied into Python
-                self._inbox.put_nowait((receiver, str(sample.key_expr), sample.payload.to_bytes()))
-            except queue.Full:
+                queued = self._inbox.put((receiver, key, sample.payload.to_bytes()), priority=key in self._priority)
+            except Exception:  # never let a bug kill zenoh's network thread
+                log.exception("%s: sample callback failed", self.label)
+                return
+            if not queued:
                 self.stats.dropped += 1
                 if self.stats.dropped == 1:
                     log.warning(
@@ -322,9 +373,6 @@ class ZenohEndpoint:
                         self.label,
                         self._inbox.maxsize,
                     )
-                return
-            except Exception:  # never let a bug kill zenoh's network thread
-                log.exception("%s: sample callback failed", self.label)
                 return
             self.stats.received += 1
             self.stats.last_rx = self.clock.now()

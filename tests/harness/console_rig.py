@@ -40,6 +40,9 @@ class MemoryTransport:
     def start(self) -> None:
         pass
 
+    def prioritise(self, priority_keys: frozenset[str]) -> None:
+        pass
+
     def subscribe(self, key_expr: str, receiver: Callable[[str, bytes], None]) -> None:
         self._receivers.append((key_expr, receiver))
 
