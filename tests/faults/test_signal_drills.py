@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -122,3 +123,96 @@ def test_sigterm_on_a_secured_field_leaves_no_secrets(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait(5)
+
+
+def test_sigterm_on_a_console_in_a_terminal_sends_stop(tmp_path: Path) -> None:
+    """The real console in tmux, joined to a secured field as op-alice, driving uvc-1: SIGTERM and
+    its stop reaches the site at once (op-bob's login watches her commands through the router),
+    not the robot's teleop deadman 0.5 s later; the console process ends."""
+    from tests.e2e.test_console_field import TMUX, pose, screen, tmux
+
+    if TMUX is None and not os.environ.get("CI"):
+        import pytest
+
+        pytest.skip("tmux not installed (./dev test installs it with apt-get)")
+    import uuid
+
+    import zenoh
+
+    from fleetlink.links.zenoh import peer_config
+    from fleetlink.shared.messages import ActionType, InstantActions
+
+    env = dict(os.environ, TMPDIR=str(tmp_path))
+    field = subprocess.Popen(
+        [sys.executable, "-m", "fleetlink.cli.main", "field", "--secure", "--console", "off", "--duration", "180",
+         "--operator", "op-alice", "--operator", "op-bob"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
+    )  # fmt: skip
+    lines: list[str] = []
+    threading.Thread(target=lambda: lines.extend(r.decode(errors="replace") for r in field.stdout), daemon=True).start()  # type: ignore[union-attr]
+    session = f"fl-sigterm-{uuid.uuid4().hex[:8]}"
+    watcher = None
+    try:
+        wait_until(lambda: any("fleetlink console --user" in line for line in lines), timeout=60, message="the site up")
+        text = "".join(lines)
+        join = next(line.strip() for line in lines if "fleetlink console --user" in line)
+        folder = Path(re.search(r"credentials in (\S+)", text).group(1))  # type: ignore[union-attr]
+        connect = re.search(r"--zenoh-connect (\S+)", join).group(1)  # type: ignore[union-attr]
+        ca = re.search(r"--ca-file (\S+)", join)
+        seen: list[tuple[float, object]] = []
+        watcher = zenoh.open(
+            peer_config(
+                connect=[connect], mode="client", username="op-bob",
+                password=(folder / "op-bob.password").read_text().strip(), root_ca=ca.group(1) if ca else None,
+            )
+        )  # fmt: skip
+        for topic in ("actions", "teleop"):
+            watcher.declare_subscriber(
+                keys.sender_filter("*", topic, "op-alice"),
+                lambda s: seen.append((time.monotonic(), wire.decode_key(str(s.key_expr), s.payload.to_bytes()))),
+            )
+        fleetlink = Path(sys.executable).parent / "fleetlink"
+        tmux("new-session", "-d", "-s", session, "-x", "160", "-y", "48", f"exec {fleetlink}{join[len('fleetlink') :]}")
+        pane_pid = int(tmux("list-panes", "-t", session, "-F", "#{pane_pid}").split()[0])
+        wait_until(lambda: pose(session) is not None, timeout=60, message="the console showing uvc-1's pose")
+
+        def driving() -> bool:
+            tmux("send-keys", "-t", session, "i")
+            return any(isinstance(m, Teleop) and m.v > 0 for _, m in list(seen))
+
+        wait_until(driving, interval=0.05, timeout=30, message="op-alice's teleops on the site")
+        tmux("send-keys", "-t", session, "i")  # still holding the key when the signal comes
+        signalled = time.monotonic()
+        os.kill(pane_pid, signal.SIGTERM)
+
+        def stopped() -> bool:
+            return any(
+                at >= signalled
+                and isinstance(m, InstantActions)
+                and m.header.robot == "uvc-1"
+                and any(a.actionType is ActionType.STOP for a in m.actions)
+                for at, m in list(seen)
+            )
+
+        wait_until(stopped, timeout=5, message=f"a stop after SIGTERM (screen: {screen(session)[-400:]!r})")
+        at = min(t for t, m in list(seen) if t >= signalled and isinstance(m, InstantActions))
+        assert at - signalled < 0.5, f"the stop came {at - signalled:.2f} s after the signal"
+
+        def gone() -> bool:
+            try:
+                os.kill(pane_pid, 0)
+            except ProcessLookupError:
+                return True
+            return False
+
+        wait_until(gone, timeout=10, message="the console process ended")
+    finally:
+        with contextlib.suppress(subprocess.CalledProcessError):
+            tmux("kill-session", "-t", session)
+        if watcher is not None:
+            watcher.close()
+        os.kill(field.pid, signal.SIGTERM)
+        try:
+            field.wait(20)
+        except subprocess.TimeoutExpired:
+            field.kill()
