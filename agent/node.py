@@ -54,6 +54,8 @@ them but the pending base command (2 Hz) that the home button raises."""
 INPUTS = ("order", "actions", "teleop", LeaseRequest.TOPIC, UwbFix.TOPIC)
 """The agent's input topics, on every link."""
 _COMMANDS = tuple(t for t in INPUTS if t in keys.SENDER_TOPICS)
+STOP_TOPICS = frozenset({"actions"})
+"""Where anyone's stop, pause and e-stop travel (instant actions): after the holder, before the rest."""
 
 
 def input_keys(robot: str, topic: str, operators: Sequence[str] = ()) -> list[str]:
@@ -134,7 +136,7 @@ class AgentNode:
         self._motor: object = None
         self._odom_t = 0.0
         self._next_links = -float("inf")
-        self._holder = ""
+        self._holder: str | None = None  # none told to the links yet
         self.keeper: KeeperHost | None = None
         self.share: Any = None
         self.lidar_fault: str | None = None
@@ -232,7 +234,7 @@ class AgentNode:
         self._holder = holder
         lane = frozenset(keys.sender_key(self.robot, t, holder) for t in _COMMANDS) if holder else frozenset()
         for link in self.links:
-            link.prioritise(lane)
+            link.prioritise(lane, then_topics=STOP_TOPICS)
 
     def _link_status(self) -> LinkStatus:
         def up(name: LinkName) -> bool:

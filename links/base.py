@@ -65,7 +65,7 @@ class Link(Protocol):
         """Hand every message whose key matches ``key_expr`` to ``receiver(key, payload)``."""
         ...
 
-    def prioritise(self, priority_keys: frozenset[str]) -> None:
+    def prioritise(self, priority_keys: frozenset[str], *, then_topics: frozenset[str] = frozenset()) -> None:
         """Hand messages on exactly these keys on before any waiting for receivers (the agent's lease
         holder's commands). A no-op where messages do not wait (in-process; MQTT, whose one loop
         thread hands each on as it reads it)."""

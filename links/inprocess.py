@@ -66,7 +66,7 @@ class InProcessLink:
         self._subs.append((key_expr, receiver))
         self._routes.clear()
 
-    def prioritise(self, priority_keys: frozenset[str]) -> None:
+    def prioritise(self, priority_keys: frozenset[str], *, then_topics: frozenset[str] = frozenset()) -> None:
         """Nothing waits here: ``deliver`` hands every message on as the owner of time pumps it."""
 
     def serve(self, key_expr: str, answer: Answer) -> None:

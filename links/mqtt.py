@@ -293,7 +293,7 @@ class MqttEndpoint:
         """Publish ``message`` with its own QoS and retain flag."""
         return self.publish(message.topic, message.payload, qos=message.qos, retain=message.retain)
 
-    def prioritise(self, priority_keys: frozenset[str]) -> None:
+    def prioritise(self, priority_keys: frozenset[str], *, then_topics: frozenset[str] = frozenset()) -> None:
         """Nothing waits here: the loop thread hands each message on as it reads it."""
 
     def subscribe(self, key_expr: str, receiver: Receiver, *, qos: int = 1) -> None:

@@ -22,9 +22,10 @@ are dropped and counted.
 
 Priority lane: samples on the keys given to ``prioritise`` (the agent gives its lease holder's
 command keys: the key names the sender, so this needs no decoding) wait in a lane of their own
-that the delivery thread empties first. A flood -- garbage or valid, any number of names -- queues
-behind the holder, never in front of it. Each key stays in one lane while it is prioritised, so a
-sender's own order holds.
+that the delivery thread empties first; then a second lane for the topics it names (the agent:
+instant actions, so anyone's stop passes a flood of other commands); then the rest. A flood --
+garbage or valid, any number of names -- queues behind the holder, never in front of it. Each key
+stays in one lane while it is prioritised, so a sender's own order holds on each topic.
 
 The session is closed explicitly in ``close()`` when the endpoint opened it: zenoh runs
 callbacks on non-daemon threads that would keep the process alive.
@@ -131,17 +132,20 @@ Item = tuple[Receiver, str, bytes]
 
 
 class _Inbox:
-    """Two bounded FIFO lanes, the first always served first. Thread-safe."""
+    """Bounded FIFO lanes: the priority lane, the second lane, the rest; a lane is served only
+    while every one before it is empty. Thread-safe."""
 
     def __init__(self, size: int, priority_size: int = PRIORITY_INBOX_SIZE) -> None:
         self._cond = threading.Condition()
-        self._lanes: tuple[deque[Item | None], deque[Item | None]] = (deque(), deque())
-        self._sizes = (priority_size, size)
+        self._lanes: tuple[deque[Item | None], ...] = (deque(), deque(), deque())
+        self._sizes = (priority_size, priority_size, size)
         self.maxsize = size
 
-    def put(self, item: Item, *, priority: bool = False) -> bool:
-        """Queue ``item``; False (and nothing queued) if its lane is full."""
-        lane = 0 if priority else 1
+    def put(self, item: Item, *, priority: bool = False, lane: int | None = None) -> bool:
+        """Queue ``item`` in ``lane`` (0 with ``priority``, else the last); False (and nothing
+        queued) if that lane is full."""
+        if lane is None:
+            lane = 0 if priority else len(self._lanes) - 1
         with self._cond:
             if len(self._lanes[lane]) >= self._sizes[lane]:
                 return False
@@ -152,14 +156,16 @@ class _Inbox:
     def close(self) -> None:
         """The delivery thread ends after what is already queued."""
         with self._cond:
-            self._lanes[1].append(None)
+            self._lanes[-1].append(None)
             self._cond.notify()
 
     def get(self) -> Item | None:
         with self._cond:
-            while not (self._lanes[0] or self._lanes[1]):
+            while True:
+                for lane in self._lanes:
+                    if lane:
+                        return lane.popleft()
                 self._cond.wait()
-            return (self._lanes[0] or self._lanes[1]).popleft()
 
 
 class _Delivery(Worker):
@@ -224,6 +230,7 @@ class ZenohEndpoint:
         self._lock = threading.Lock()
         self._inbox = _Inbox(inbox_size)
         self._priority: frozenset[str] = frozenset()
+        self._second: frozenset[str] = frozenset()
         self._delivery: _Delivery | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -310,9 +317,17 @@ class ZenohEndpoint:
         self.stats.sent += 1
         return True
 
-    def prioritise(self, priority_keys: frozenset[str]) -> None:
-        """Samples on exactly these keys jump the queue (the module docstring: priority lane)."""
+    def prioritise(self, priority_keys: frozenset[str], *, then_topics: frozenset[str] = frozenset()) -> None:
+        """Samples on exactly ``priority_keys`` jump the queue (the module docstring: priority
+        lane); then those whose message topic is in ``then_topics``, from anyone (the agent: instant
+        actions, which carry stop, pause and e-stop); then the rest."""
         self._priority = priority_keys
+        self._second = then_topics
+
+    def _lane(self, key: str) -> int:
+        if key in self._priority:
+            return 0
+        return 1 if self._second and keys.topic_of(key) in self._second else 2
 
     def subscribe(self, key_expr: str, receiver: Receiver) -> None:
         with self._lock:
@@ -361,7 +376,7 @@ class ZenohEndpoint:
                 key = str(sample.key_expr)
                 if not self.stats.admit(self.label, key, len(sample.payload)):
                     return  # refused before it is copied into Python
-                queued = self._inbox.put((receiver, key, sample.payload.to_bytes()), priority=key in self._priority)
+                queued = self._inbox.put((receiver, key, sample.payload.to_bytes()), lane=self._lane(key))
             except Exception:  # never let a bug kill zenoh's network thread
                 log.exception("%s: sample callback failed", self.label)
                 return

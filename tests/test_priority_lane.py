@@ -33,6 +33,20 @@ def test_the_priority_lane_is_served_first_and_bounded_apart() -> None:
     assert not inbox.put((_noop, "holder", b""), priority=True)
 
 
+def test_the_second_lane_comes_after_the_holder_and_before_the_rest() -> None:
+    inbox = _Inbox(size=8)
+    assert inbox.put((_noop, "teleop/op-bob", b""))
+    assert inbox.put((_noop, "actions/op-carol", b""), lane=1)
+    assert inbox.put((_noop, "teleop/op-alice", b""), priority=True)
+    got = [item[1] for item in (inbox.get(), inbox.get(), inbox.get()) if item is not None]
+    assert got == ["teleop/op-alice", "actions/op-carol", "teleop/op-bob"]
+    endpoint = ZenohEndpoint()
+    endpoint.prioritise(frozenset({keys.sender_key("r1", "teleop", "op-alice")}), then_topics=frozenset({"actions"}))
+    assert endpoint._lane(keys.sender_key("r1", "teleop", "op-alice")) == 0
+    assert endpoint._lane(keys.sender_key("r1", "actions", "op-carol")) == 1  # anyone's stop
+    assert endpoint._lane(keys.sender_key("r1", "teleop", "op-bob")) == 2
+
+
 def test_a_prioritised_key_overtakes_a_backlog_on_a_real_session() -> None:
     endpoint = loopback_endpoint()
     receiver_side, sender_side = ZenohEndpoint(listen=[endpoint]), ZenohEndpoint(connect=[endpoint])
@@ -79,6 +93,7 @@ def test_a_prioritised_key_overtakes_a_backlog_on_a_real_session() -> None:
 def test_the_agent_prioritises_its_lease_holder(rig: Rig) -> None:  # noqa: F811
     zenoh_link = rig.agent.zenoh
     assert zenoh_link is not None and zenoh_link._priority == frozenset()
+    wait_until(lambda: zenoh_link._second == frozenset({"actions"}), message="anyone's stops in the second lane")
     holder = wire.HeaderCounter(SystemClock(), robot="r1", sender="operator-1")
     take = holder.make(LeaseRequest, duration_s=30.0, release=False)
     rig.op.send(take, mqtt_=False)

@@ -7,10 +7,14 @@ passwords and ACL. An SSL connection must never be written by one thread while a
 when the endpoint let paho write from the publishing thread, the broker logged "decryption failed
 or bad record mac" and dropped the connection within seconds (14 disconnects a minute at 50 Hz),
 and once the process died in glibc's ``free()``.
+
+CI holds it 20 s; ``FLEETLINK_TLS_DRILL_S=300`` holds it the five minutes issue 14 asks for
+(docs/operations.md section 10 gives the last such run).
 """
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from pathlib import Path
@@ -22,7 +26,7 @@ from tests.harness import wait_until
 from tests.harness.deploy import DeployBroker, make_site_ca, mosquitto_passwd
 
 USERS = {"r1": "pw-r1", "op-alice": "pw-alice"}
-SECONDS = 20.0
+SECONDS = float(os.environ.get("FLEETLINK_TLS_DRILL_S", "20"))
 PUBLISHERS = 3
 RATE_HZ = 200.0
 

@@ -40,7 +40,7 @@ class MemoryTransport:
     def start(self) -> None:
         pass
 
-    def prioritise(self, priority_keys: frozenset[str]) -> None:
+    def prioritise(self, priority_keys: frozenset[str], *, then_topics: frozenset[str] = frozenset()) -> None:
         pass
 
     def subscribe(self, key_expr: str, receiver: Callable[[str, bytes], None]) -> None:
