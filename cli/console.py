@@ -35,9 +35,13 @@ Config file (TOML), every key optional; command-line options win:
 from __future__ import annotations
 
 import argparse
+import asyncio
+import contextlib
 import logging
+import signal
 import socket
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -227,13 +231,38 @@ def run_console(settings: ConsoleSettings, link: Any = None) -> int:
     fetcher = MapFetcher(maps, link.fetch_map, clock, lock).start()
     marks = share_marks(link, fleet, lock)
     try:
-        app.run()
+        with _sigterm_ends(app):
+            app.run()
     finally:
         app.send_stop_to_all()  # also after a crash or Ctrl-C: safety before features
         marks.stop()
         fetcher.stop()
         link.close()
     return 0
+
+
+@contextlib.contextmanager
+def _sigterm_ends(app: Any) -> Iterator[None]:
+    """While the app runs, SIGTERM asks it to exit like ctrl+q: Textual then stops its terminal
+    threads and restores the terminal. (The CLI's SIGTERM-as-Ctrl-C, raised inside Textual's
+    event loop, skipped that: the console sent its stop but hung on exit, its threads alive.)"""
+
+    def end(signum: int, frame: object) -> None:
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:  # not in the app's loop (starting or ending): Ctrl-C's way out
+            raise KeyboardInterrupt(f"signal {signum}") from None
+        loop.call_soon_threadsafe(app.exit)
+
+    try:
+        previous = signal.signal(signal.SIGTERM, end)
+    except ValueError:  # not the main thread (a test's): leave it be
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def share_marks(link: Any, fleet: Any, lock: Any, asks: tuple[float, ...] = (0.5, 2.0, 6.0)) -> Worker:
