@@ -28,7 +28,12 @@ def detail_text(selected: str | None, view: RobotView | None, health: Sequence[L
     )
     goal = "" if view.goal is None else f"  goal {view.goal[0]:+.2f} {view.goal[1]:+.2f}"
     links = "  ".join(h.describe() for h in health)
-    return f"{view.robot} {view.drive_mode} {pose}{goal} payload {'on' if view.payload_on else 'off'}\n{links}"
+    refused = ""
+    if view.refused:  # someone is sending it garbage, too much, or under another's name
+        refused = f"\nrefused {view.refused} inputs" + (
+            f" (last: {view.refused_reason[:80]})" if view.refused_reason else ""
+        )
+    return f"{view.robot} {view.drive_mode} {pose}{goal} payload {'on' if view.payload_on else 'off'}\n{links}{refused}"
 
 
 class RobotDetail(Static):

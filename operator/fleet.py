@@ -17,6 +17,7 @@ from fleetlink.shared.messages import (
     AckResult,
     Connection,
     ConnectionState,
+    Diagnostics,
     Event,
     Lease,
     Mark,
@@ -66,6 +67,10 @@ class RobotView:
     """None: the robot never announced a lease (an agent without leases); '' free."""
     lease_until: float = 0.0
     lost: bool = False
+    refused: int = 0
+    """Inputs the robot's agent refused (its ``Diagnostics``: malformed, oversized, over a rate, a
+    claimed sender, a command whose handling failed), with the last reason."""
+    refused_reason: str = ""
 
     def age(self, now: float) -> float | None:
         return None if self.last_heard is None else max(0.0, now - self.last_heard)
@@ -133,6 +138,10 @@ class FleetModel:
         elif isinstance(msg, Ack):
             if msg.result is AckResult.REJECTED and msg.commandSender == self.operator:
                 self.notify(now, "warning", f"{h.robot} refused {msg.commandTopic}: {msg.reason}")
+        elif isinstance(msg, Diagnostics):
+            # Totals since the agent started (a restarted agent starts again from 0).
+            view.refused = sum(c.count for c in (*msg.rejected, *msg.oversized)) + msg.handler_failures
+            view.refused_reason = msg.last_reason
         elif isinstance(msg, Connection):
             view.connection = msg.connectionState.value
             if msg.connectionState is not ConnectionState.ONLINE:

@@ -215,3 +215,28 @@ async def test_the_network_never_waits_for_the_ui(tmp_path: Path) -> None:
             assert "r1" in rig.fleet.robots
     finally:
         rig.close()
+
+
+def test_the_detail_shows_what_the_robots_agent_refused() -> None:
+    """The agent's ``Diagnostics`` (issue 14) reach the operator: refused inputs and the last reason."""
+    from fleetlink.operator.detail import detail_text
+    from fleetlink.shared.messages import Count, Diagnostics
+
+    fleet = FleetModel(ME)
+    agent = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
+    fleet.apply(agent.make(Pose, x=0.0, y=0.0, theta=0.0, sd_x_m=0.1, sd_y_m=0.1, sd_theta_rad=0.1,
+                           odom_x=0.0, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=False), "zenoh", 0.0)  # fmt: skip
+    assert "refused" not in detail_text("r1", fleet.robots["r1"], ())
+    reason = "header.sender: 'op-alice' does not match the key's sender 'op-bob' (who published it)"
+    diag = agent.make(
+        Diagnostics,
+        rejected=(Count(key="zenoh/teleop", count=7), Count(key="mqtt/teleop", count=2)),
+        duplicates=3,
+        handler_failures=1,
+        oversized=(Count(key="zenoh", count=1),),
+        dropped=(Count(key="mqtt", count=5),),
+        last_reason=reason,
+    )
+    assert fleet.apply(diag, "zenoh", 1.0)
+    text = detail_text("r1", fleet.robots["r1"], ())
+    assert "refused 11 inputs" in text and "does not match the key's sender 'op-bob'" in text
