@@ -38,14 +38,13 @@ import argparse
 import asyncio
 import contextlib
 import logging
-import signal
 import socket
 import sys
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 
+from fleetlink.cli.main import on_sigterm
 from fleetlink.shared.config import Setting
 from fleetlink.shared.worker import Worker
 
@@ -241,8 +240,7 @@ def run_console(settings: ConsoleSettings, link: Any = None) -> int:
     return 0
 
 
-@contextlib.contextmanager
-def _sigterm_ends(app: Any) -> Iterator[None]:
+def _sigterm_ends(app: Any) -> contextlib.AbstractContextManager[None]:
     """While the app runs, SIGTERM asks it to exit like ctrl+q: Textual then stops its terminal
     threads and restores the terminal. (The CLI's SIGTERM-as-Ctrl-C, raised inside Textual's
     event loop, skipped that: the console sent its stop but hung on exit, its threads alive.)"""
@@ -254,15 +252,7 @@ def _sigterm_ends(app: Any) -> Iterator[None]:
             raise KeyboardInterrupt(f"signal {signum}") from None
         loop.call_soon_threadsafe(app.exit)
 
-    try:
-        previous = signal.signal(signal.SIGTERM, end)
-    except ValueError:  # not the main thread (a test's): leave it be
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    return on_sigterm(end)
 
 
 def share_marks(link: Any, fleet: Any, lock: Any, asks: tuple[float, ...] = (0.5, 2.0, 6.0)) -> Worker:

@@ -12,7 +12,7 @@ import importlib
 import logging
 import signal
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 # name -> (module, one-line help). Each module has add_arguments(parser) and run(args) -> int.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -64,7 +64,21 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 @contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
+def on_sigterm(handler: Callable[[int, object], None]) -> Iterator[None]:
+    """``handler`` takes SIGTERM while the block runs, the previous one after it. Outside the
+    main thread (a command run from a test's thread) signals cannot be handled: left be."""
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _sigterm_as_interrupt() -> contextlib.AbstractContextManager[None]:
     """SIGTERM (``systemctl stop``, ``kill``) takes Ctrl-C's way out while a command runs: its
     clean shutdown runs (the agent halts the robot and says OFFLINE, the field removes a secured
     site's secrets, the console sends stop). Python's default ends the process without unwinding."""
@@ -72,15 +86,7 @@ def _sigterm_as_interrupt() -> Iterator[None]:
     def interrupt(signum: int, frame: object) -> None:
         raise KeyboardInterrupt(f"signal {signum}")
 
-    try:
-        previous = signal.signal(signal.SIGTERM, interrupt)
-    except ValueError:  # not the main thread (main() called from a test's thread): leave it be
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    return on_sigterm(interrupt)
 
 
 if __name__ == "__main__":
