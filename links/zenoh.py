@@ -141,11 +141,9 @@ class _Inbox:
         self._sizes = (priority_size, priority_size, size)
         self.maxsize = size
 
-    def put(self, item: Item, *, priority: bool = False, lane: int | None = None) -> bool:
-        """Queue ``item`` in ``lane`` (0 with ``priority``, else the last); False (and nothing
-        queued) if that lane is full."""
-        if lane is None:
-            lane = 0 if priority else len(self._lanes) - 1
+    def put(self, item: Item, lane: int = 2) -> bool:
+        """Queue ``item`` in ``lane`` (0 the priority lane, 1 the second, 2 the rest); False (and
+        nothing queued) if that lane is full."""
         with self._cond:
             if len(self._lanes[lane]) >= self._sizes[lane]:
                 return False
@@ -376,7 +374,7 @@ class ZenohEndpoint:
                 key = str(sample.key_expr)
                 if not self.stats.admit(self.label, key, len(sample.payload)):
                     return  # refused before it is copied into Python
-                queued = self._inbox.put((receiver, key, sample.payload.to_bytes()), lane=self._lane(key))
+                queued = self._inbox.put((receiver, key, sample.payload.to_bytes()), self._lane(key))
             except Exception:  # never let a bug kill zenoh's network thread
                 log.exception("%s: sample callback failed", self.label)
                 return

@@ -24,20 +24,20 @@ def test_the_priority_lane_is_served_first_and_bounded_apart() -> None:
     for i in range(3):
         assert inbox.put((_noop, f"flood/{i}", b""))
     assert not inbox.put((_noop, "flood/3", b""))  # the ordinary lane is full...
-    assert inbox.put((_noop, "holder/0", b""), priority=True)  # ...the holder's is not
-    assert inbox.put((_noop, "holder/1", b""), priority=True)
+    assert inbox.put((_noop, "holder/0", b""), lane=0)  # ...the holder's is not
+    assert inbox.put((_noop, "holder/1", b""), lane=0)
     got = [item[1] for item in (inbox.get(), inbox.get(), inbox.get()) if item is not None]
     assert got == ["holder/0", "holder/1", "flood/0"]  # in order within each lane
     for _ in range(PRIORITY_INBOX_SIZE):
-        assert inbox.put((_noop, "holder", b""), priority=True)
-    assert not inbox.put((_noop, "holder", b""), priority=True)
+        assert inbox.put((_noop, "holder", b""), lane=0)
+    assert not inbox.put((_noop, "holder", b""), lane=0)
 
 
 def test_the_second_lane_comes_after_the_holder_and_before_the_rest() -> None:
     inbox = _Inbox(size=8)
     assert inbox.put((_noop, "teleop/op-bob", b""))
     assert inbox.put((_noop, "actions/op-carol", b""), lane=1)
-    assert inbox.put((_noop, "teleop/op-alice", b""), priority=True)
+    assert inbox.put((_noop, "teleop/op-alice", b""), lane=0)
     got = [item[1] for item in (inbox.get(), inbox.get(), inbox.get()) if item is not None]
     assert got == ["teleop/op-alice", "actions/op-carol", "teleop/op-bob"]
     endpoint = ZenohEndpoint()
