@@ -34,6 +34,13 @@ stop_distance_m = 0.4
 control_hz = 50.0
 pose_hz = 20.0
 state_hz = 1.0
+
+[uv]                                        # optional: the UV-C lamp, for the dose layer (docs/payload.md)
+uvc_power_w = 10.0                          # UV-C optical output (the datasheet's, derated), not electrical W
+height_m = 0.6                              # lamp centre above the floor
+tube_length_m = 0.0                         # 0: point source; else a vertical tube this long
+target_dose_mj_cm2 = 10.0                   # the target dose (10 mJ/cm² = 100 J/m²)
+dose_resolution_m = 0.1                     # cells of the dose layer
 ```
 """
 
@@ -43,19 +50,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 
+from fleetlink.agent.contact import DEFAULT_TIMEOUT_S
 from fleetlink.shared import keys
 from fleetlink.shared.config import ConfigError, Invalid, Setting, parse, read_toml
+from fleetlink.shared.dose import J_M2_PER_MJ_CM2, Lamp
 from fleetlink.shared.link_tables import MqttTable, ZenohTable, zenoh_auth
 from fleetlink.shared.link_tables import mqtt_settings as _mqtt_from_table
+from fleetlink.shared.messages import MAX_COORDINATE_M, CommsPolicy
 from fleetlink.shared.mqtt import MqttSettings
 
 __all__ = [
     "AgentConfig",
+    "Comms",
     "ConfigError",
+    "HomeTable",
     "Limits",
     "MqttSettings",
     "Rates",
     "RobotFile",
+    "UvTable",
     "ZenohSettings",
     "load_agent_config",
     "mqtt_settings",
@@ -102,6 +115,54 @@ class Rates:
 
 
 @dataclass(frozen=True, slots=True)
+class HomeTable:
+    """``[home]``: the robot's dock, its home from the start (docs/motion.md, "Home")."""
+
+    x: Annotated[float, Setting(lo=-MAX_COORDINATE_M, hi=MAX_COORDINATE_M, doc="m, site frame")]
+    y: Annotated[float, Setting(lo=-MAX_COORDINATE_M, hi=MAX_COORDINATE_M, doc="m, site frame")]
+    theta_deg: Annotated[float | None, Setting(lo=-360.0, hi=360.0, doc="heading at home; absent: any")] = None
+
+
+@dataclass(frozen=True, slots=True)
+class Comms:
+    """``[comms]``: what the robot does when it stops hearing its operators (docs/motion.md)."""
+
+    policy: Annotated[
+        CommsPolicy, Setting(read_as=str, convert=CommsPolicy, choices=tuple(p.value for p in CommsPolicy))
+    ] = CommsPolicy.STOP
+    timeout_s: Annotated[float, Setting(lo=1.0, hi=600.0, doc="silence that counts as out of contact")] = (
+        DEFAULT_TIMEOUT_S
+    )
+    payload_on_loss: Annotated[bool, Setting(doc="keep the payload on while out of contact")] = False
+
+
+@dataclass(frozen=True, slots=True)
+class UvTable:
+    """``[uv]``: the robot's UV-C lamp, which the agent's dose layer accumulates (docs/payload.md,
+    "The lamp" and "Dose layer"); a robot without it keeps no dose layer."""
+
+    uvc_power_w: Annotated[float, Setting(lo=1e-3, hi=10_000.0, doc="UV-C optical output, W (not electrical W)")]
+    height_m: Annotated[float, Setting(lo=0.01, hi=10.0, doc="lamp centre above the floor, m")]
+    tube_length_m: Annotated[float, Setting(lo=0.0, hi=5.0, doc="0: point source; else a vertical tube, m")] = 0.0
+    min_distance_m: Annotated[float, Setting(lo=0.01, hi=5.0, doc="the model holds beyond this distance, m")] = 0.3
+    target_dose_mj_cm2: Annotated[
+        float, Setting(lo=1e-4, hi=100_000.0, doc="the dose every cell should get, mJ/cm² (10 = 100 J/m²)")
+    ] = 10.0
+    dose_resolution_m: Annotated[float, Setting(lo=0.02, hi=1.0, doc="cell size of the dose layer, m")] = 0.1
+
+    def validate(self) -> None:
+        self.lamp.validate()  # the lamp model's own checks (the floor beyond min_distance_m), with their keys
+
+    @property
+    def lamp(self) -> Lamp:
+        return Lamp(self.uvc_power_w, self.height_m, self.tube_length_m, self.min_distance_m)
+
+    @property
+    def target_j_m2(self) -> float:
+        return self.target_dose_mj_cm2 * J_M2_PER_MJ_CM2
+
+
+@dataclass(frozen=True, slots=True)
 class AgentConfig:
     robot: str
     board: str
@@ -114,6 +175,10 @@ class AgentConfig:
     rates: Rates = field(default_factory=Rates)
     operators: tuple[str, ...] = ()
     """Operator ids (header sender) whose commands are accepted; empty: anyone's."""
+    home: HomeTable | None = None
+    comms: Comms = field(default_factory=Comms)
+    uv: UvTable | None = None
+    """The UV-C lamp (None: no lamp, no dose layer)."""
 
 
 def _robot_id(robot: str) -> str:
@@ -138,6 +203,9 @@ class RobotFile:
     mqtt: MqttTable | None = None
     limits: Limits = field(default_factory=Limits)
     rates: Rates = field(default_factory=Rates)
+    home: HomeTable | None = None
+    comms: Comms = field(default_factory=Comms)
+    uv: UvTable | None = None
 
     def validate(self) -> None:
         if self.zenoh is None and self.mqtt is None:
@@ -167,5 +235,17 @@ def parse_agent_config(
         )
     mqtt = None if f.mqtt is None else _mqtt_from_table(f.mqtt, source=source, base_dir=base_dir)
     return AgentConfig(
-        f.robot, f.board, f.lidar or None, f.tag or f.robot, f.map_id, zenoh, mqtt, f.limits, f.rates, f.operators
+        f.robot,
+        f.board,
+        f.lidar or None,
+        f.tag or f.robot,
+        f.map_id,
+        zenoh,
+        mqtt,
+        f.limits,
+        f.rates,
+        f.operators,
+        f.home,
+        f.comms,
+        f.uv,
     )

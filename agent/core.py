@@ -33,12 +33,26 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from fleetlink.agent.contact import ContactKeeper
 from fleetlink.agent.fusion import Fusion
 from fleetlink.agent.guard import GuardInputs
+from fleetlink.agent.home import HomeKeeper
+from fleetlink.agent.interlocks import LampSituation, PeopleZone, lamp_interlock
+from fleetlink.agent.itinerary import Finished, GoTo, Itinerary, ItineraryError, RunAction, Stop, StopAction
 from fleetlink.agent.lease import DRIVE_LEASE_S, LeaseKeeper
 from fleetlink.agent.links.gate import Accepted, CommandGate, Duplicate, Rejected, always_allowed
 from fleetlink.agent.odometry import Odometry, OdomPose
-from fleetlink.agent.pilot import ActionKind, CommandResult, CommandStatus, PathProvider, Pilot, PilotEvent, PilotOutput
+from fleetlink.agent.pilot import (
+    ActionKind,
+    CommandResult,
+    CommandStatus,
+    EventKind,
+    PathProvider,
+    PayloadRequest,
+    Pilot,
+    PilotEvent,
+    PilotOutput,
+)
 from fleetlink.agent.pilot import OperatingMode as PilotMode
 from fleetlink.agent.uwb_input import FixObservation, fix_from_pans, fix_from_uwb
 from fleetlink.devices.controlbus.snapshot import BoardSnapshot
@@ -50,12 +64,17 @@ from fleetlink.shared.messages import (
     ActionType,
     AgvPosition,
     BatteryState,
+    BoardFault,
+    BoardStatus,
+    CommsPolicy,
+    Contact,
     Count,
     Diagnostics,
     ErrorLevel,
     EStop,
     Event,
     Goal,
+    Home,
     InstantActions,
     KeyValue,
     Lease,
@@ -64,6 +83,8 @@ from fleetlink.shared.messages import (
     LinkStatus,
     OperatingMode,
     Order,
+    OrderProgress,
+    PeopleZones,
     Pose,
     SafetyState,
     Severity,
@@ -77,7 +98,7 @@ from fleetlink.shared.messages import (
 __all__ = ["AgentCore", "BoardView", "Output", "board_view"]
 
 COMMAND_TOPICS = (Order.TOPIC, InstantActions.TOPIC, Teleop.TOPIC)
-INPUT_TOPICS = (*COMMAND_TOPICS, LeaseRequest.TOPIC, UwbFix.TOPIC)
+INPUT_TOPICS = (*COMMAND_TOPICS, LeaseRequest.TOPIC, PeopleZones.TOPIC, UwbFix.TOPIC)
 UNKNOWN_SD = 1000.0
 """What ``pose.sd_*`` say before the fusion knows the position or heading (the wire has no inf)."""
 DIAGNOSTICS_PERIOD_S = 5.0
@@ -94,6 +115,15 @@ _ACTION_KIND = {
     ActionType.ESTOP_RELEASE: ActionKind.ESTOP_RELEASE,
     ActionType.RETURN_HOME: ActionKind.RETURN_HOME,
 }
+_ITINERARY_ACTIONS = (ActionType.STOP, ActionType.PAUSE, ActionType.RESUME, ActionType.CANCEL, ActionType.ESTOP)
+"""Instant actions that also act on a running order with nodes (``AgentCore._itinerary_action``)."""
+NODE_NEAR_M = 0.3
+"""An order's node the go-to ends short of (blocked) within this distance counts as reached."""
+NODE_PASS_M = 0.5
+"""The same for a node with no actions (a waypoint: a sweep's lane end by a wall, where the
+guard stops the robot its 0.40 m stopping distance short)."""
+_HAZARDS = ("cliff", "bump")
+"""Go-to endings that hold an order with nodes (the operator looks first) instead of skipping the node."""
 _MODE = {
     PilotMode.IDLE: OperatingMode.SEMIAUTOMATIC,
     PilotMode.MANUAL: OperatingMode.MANUAL,
@@ -123,12 +153,39 @@ class BoardView:
     """When the wheel/gyro readings were polled (clock time); odometry advances when it changes."""
     connects: int = 0
     """Board sessions so far: a change means a new session, so new counter baselines."""
+    estop_button: bool = False
+    """The emergency-stop button on the robot is pressed."""
+    home_requests: int = 0
+    """Go-home requests the board raised so far (its home button): a change starts return home."""
+    faults: tuple[tuple[int, str], ...] = ()
+    """The board's active faults (code, text)."""
+    model: str = ""
+    firmware: str = ""
+    voltage_v: float | None = None
+    current_a: float | None = None
+    on_dock: bool = False
+    temperature_c: float | None = None
+    humidity_percent: float | None = None
+    pm2_5: float | None = None
+    tvoc_ppb: int | None = None
+    atomiser_level: int = 0
+    fan_level: int = 0
+    tank_percent: float | None = None
+    has_payload: bool = False
+    """The board answers for a payload (lamp, atomiser, fan, tank): a plain base does not."""
+    health_flags: int = 0
+    bumper_bits: int = 0
+    """Bit i set while bumper/cliff i is triggered."""
+    sensors_m: tuple[float, ...] = ()
+    battery_known: bool = False
+    """The board has reported its battery (its first status poll is in)."""
 
 
 def board_view(snap: BoardSnapshot, odom_t: float | None = None) -> BoardView:
     """``odom_t``: when ``snap.motor`` was polled (the runtime tracks it); default ``snap.updated``."""
     b = snap.bumpers
     front = snap.sensors.distances[0] if snap.sensors and snap.sensors.distances else None
+    env, pay, pw = snap.env, snap.payload, snap.power
     return BoardView(
         connected=snap.connected,
         left_m=snap.motor.left if snap.motor else None,
@@ -143,15 +200,56 @@ def board_view(snap: BoardSnapshot, odom_t: float | None = None) -> BoardView:
         errors=tuple(f"0x{e.code:04X} {e.message}" for e in snap.errors),
         odom_t=snap.updated if odom_t is None else odom_t,
         connects=snap.connects,
+        estop_button=bool(snap.buttons.bitmap & _ESTOP_BUTTON) if snap.buttons else False,
+        home_requests=snap.home_requests,
+        faults=tuple((e.code, e.message) for e in snap.errors),
+        model=snap.info.model if snap.info else "",
+        firmware=f"{snap.info.firmware >> 8}.{snap.info.firmware & 0xFF}" if snap.info else "",
+        voltage_v=pw.voltage if pw else None,
+        current_a=pw.current if pw else None,
+        on_dock=bool(snap.status.power_flags & _ON_DOCK) if snap.status else False,
+        temperature_c=env.temperature_c if env else None,
+        humidity_percent=env.humidity_percent if env else None,
+        pm2_5=env.pm2_5 if env else None,
+        tvoc_ppb=env.tvoc_ppb if env else None,
+        atomiser_level=pay.atomiser_level if pay else 0,
+        fan_level=pay.fan_level if pay else 0,
+        has_payload=pay is not None,
+        tank_percent=float(pay.tank_percent) if pay else None,
+        health_flags=snap.health.flags if snap.health else 0,
+        bumper_bits=sum(1 << i for i in range(8 * b.width) if b.triggered(i)) if b else 0,
+        sensors_m=tuple(d for d in snap.sensors.distances if d > 0)[:16] if snap.sensors else (),
+        battery_known=snap.status is not None,
     )
+
+
+_ESTOP_BUTTON = 0x08  # devices/controlbus/protocol.py Button.ESTOP
+_ON_DOCK = 0x04  # PowerFlag: on dock
+LAMP_RADIUS_M = 3.0
+"""How far from the robot a UV-C lamp's light is taken to be dangerous (people-present zones)."""
+LAMP_RECUT_S = 1.0
+"""While the board still reports the lamp on after an interlock switched it off, ask again this often."""
+ARRIVED_M = 0.3
+"""A retrace or a return home under the comms-loss policy that ended this near its target arrived."""
+FAULT_RETRY_S = 5.0
+"""A fault the agent asked the board to clear and still listed is asked again after this long."""
+BOARD_STATUS_PERIOD_S = 1.0
+"""``BoardStatus`` at this period, and at once when something an operator acts on changes."""
+_CLEARABLE = {0x0001, 0x0003, 0x0004}
+"""Board faults (HealthErrorCode) the agent clears once it sees their condition is over: the link
+watchdog (it is talking to the board again; the trip is counted), tank empty (refilled), battery
+low (charged). Anything else (a motor stall) stays until someone looks at the robot."""
 
 
 @dataclass(slots=True)
 class Output:
     velocity: tuple[float, float] | None = None
     messages: list[tuple[wire.Message, LinkName | None]] = field(default_factory=list)
-    payload: list[bool] = field(default_factory=list)
+    payload: list[PayloadRequest] = field(default_factory=list)
+    """Payload requests for the board (device, on, level; device "all" off = every payload off)."""
     logs: list[str] = field(default_factory=list)
+    clear_faults: list[int] = field(default_factory=list)
+    """Board faults (codes) to clear with the board's clear_error handshake."""
 
 
 class AgentCore:
@@ -170,6 +268,9 @@ class AgentCore:
         operators: tuple[str, ...] = (),
         lease: LeaseKeeper | None = None,
         fallback_pose_every: int = 2,
+        home: HomeKeeper | None = None,
+        contact: ContactKeeper | None = None,
+        lamp_radius_m: float = LAMP_RADIUS_M,
     ) -> None:
         self.robot = robot
         self.clock = clock
@@ -179,6 +280,32 @@ class AgentCore:
         self.map_id = map_id
         self.operators = frozenset(operators)
         self.lease = lease or LeaseKeeper()
+        self.home = home or HomeKeeper()
+        self.contact = contact or ContactKeeper()
+        if self.home.home is not None:
+            h = self.home.home
+            self.pilot.set_home((h.x, h.y, h.theta))
+        self.estop_source = EStop.NONE
+        """Who latched the e-stop: REMOTE (an operator), MANUAL (the button on the robot)."""
+        self.watchdog_trips = 0
+        self._estop_button = False
+        self._home_requests: int | None = None
+        self._clearing: dict[int, float] = {}
+        """Faults asked to be cleared, and when (asked again after ``FAULT_RETRY_S``)."""
+        self._renewing = ""
+        """The operator whose lease request holds the lease (consoles renew it: contact)."""
+        self.lamp_radius_m = lamp_radius_m
+        self.zones: tuple[PeopleZone, ...] = ()
+        self._zones_by: dict[str, tuple[PeopleZone, ...]] = {}
+        """Areas operators declared "people present": the lamp's radius may not reach into them."""
+        self._lamp_operator = ""
+        """Who switched the lamp on last (its lease must hold while it is on)."""
+        self._lamp_cut: str | None = None
+        self._lamp_cut_at = -math.inf
+        self._engaged = False
+        """That operator held the lease when last looked (a lease running out keeps it so)."""
+        self._next_board = -math.inf
+        self._last_board_key: tuple[Any, ...] | None = None
         self.refused_operators = 0
         """Commands and lease requests refused because the sender is not in ``operators``."""
         self.refused_lease = 0
@@ -210,6 +337,8 @@ class AgentCore:
         self._last_state_key: tuple[Any, ...] | None = None
         self._last_out: PilotOutput | None = None
         self._velocity = (0.0, 0.0)
+        self.itinerary: Itinerary | None = None
+        """The order with nodes being run (agent/itinerary.py), None without one."""
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -222,6 +351,8 @@ class AgentCore:
             return out
         if isinstance(verdict, Duplicate):
             out.messages.append((self._ack(verdict.ack), link))
+            if not self.operators or verdict.msg.header.sender in self.operators:
+                self._heard(now, out)  # (a copy of a refused command is no contact)
             return out
         assert isinstance(verdict, Accepted)
         msg = verdict.msg
@@ -235,6 +366,10 @@ class AgentCore:
             self._rejected(self.gate.reject(link, msg.TOPIC, f"sender: {reason}", "sender"), out)
             if isinstance(msg, Order | InstantActions | Teleop | LeaseRequest):
                 out.messages.append((self._ack(self._ack_fields(msg, link, AckResult.REJECTED, reason)), link))
+            return out
+        self._heard(now, out)
+        if isinstance(msg, PeopleZones):
+            self._people_zones(msg, link, out)
             return out
         if isinstance(msg, LeaseRequest):
             self._lease_request(msg, link, now, out)
@@ -340,7 +475,10 @@ class AgentCore:
             self._next_state = now
             self._board_change(board, out)
         self.board = board
+        self._board_inputs(now, board, out)
+        self._contact_tick(now, out)
         self._control(now, out)
+        self._interlock_tick(now, out)
         if now >= self._next_pose:
             self._next_pose = max(self._next_pose + self.pose_period, now)
             out.messages.append((self._pose(now), self._pose_link()))
@@ -352,6 +490,7 @@ class AgentCore:
             self._publish_lease(now, out, force=True)
         else:
             self._publish_lease(now, out)
+        self._board_status(now, out)
         return out
 
     @property
@@ -406,6 +545,9 @@ class AgentCore:
 
     def _lease_request(self, msg: LeaseRequest, link: LinkName, now: float, out: Output) -> None:
         ok, reason = self.lease.request(msg.header.sender, msg.duration_s, msg.release, now, self.clock.wall())
+        if ok:  # a console that asks for the lease renews it: its silence means lost contact
+            self._renewing = "" if msg.release else msg.header.sender
+            self._engaged = bool(self._renewing)
         result = AckResult.ACCEPTED if ok else AckResult.REJECTED
         out.messages.append((self._ack(self._ack_fields(msg, link, result, reason)), link))
         self._publish_lease(now, out, force=True)
@@ -432,6 +574,10 @@ class AgentCore:
         }
 
     def _control(self, now: float, out: Output) -> None:
+        self._itinerary_steps(now, out)
+        if self.itinerary is not None and self.itinerary.driving:
+            x, y, _ = self._map_pose()
+            self.itinerary.approach(x, y)
         inputs = GuardInputs(ultrasonic_m=self.board.ultrasonic_m, cliff=self.board.cliff, bumped=self.board.bumped)
         p = self.pilot.tick(now, self._map_pose(), inputs)
         self._last_out = p
@@ -439,16 +585,27 @@ class AgentCore:
         out.velocity = (p.v, p.omega)
         for ev in p.events:
             out.messages.append((self._pilot_event(ev), None))
+            self._itinerary_event(ev, now, out)
         for req in p.payload_requests:
-            out.payload.append(req.on)
+            out.payload.append(req)
+            if req.device == "uv" and req.on:
+                self._lamp_operator = req.sender
+                self._lamp_cut = None
 
     def _run(self, msg: Order | InstantActions | Teleop, now: float, out: Output) -> CommandResult:
         sender = msg.header.sender
         if isinstance(msg, Teleop):
-            return self.pilot.teleop(now, msg.v, msg.omega, msg.ttl_s, sender)
+            r = self.pilot.teleop(now, msg.v, msg.omega, msg.ttl_s, sender)
+            it = self.itinerary
+            if r.accepted and it is not None and not it.waiting and (msg.v != 0.0 or msg.omega != 0.0):
+                it.moved(now, "teleop")  # driven by hand: the round waits, then comes back here
+                self._itinerary_note(it, f"waits: {sender} drives it by hand; resume goes on", out)
+            return r
         if isinstance(msg, Order):
+            if msg.nodes or msg.edges:
+                return self._order_with_nodes(msg, now, out)
             if msg.returnHome:
-                return self.pilot.action(now, ActionKind.RETURN_HOME, sender)
+                return self._return_home(now, sender)
             if msg.goal is None:
                 return CommandResult(CommandStatus.REJECTED, "order has neither a goal nor returnHome")
             g = msg.goal
@@ -456,21 +613,470 @@ class AgentCore:
         results: list[str] = []
         status = CommandStatus.ACCEPTED
         for a in msg.actions:
-            if a.actionType is ActionType.PAYLOAD:
-                params = {kv.key: kv.value for kv in a.actionParameters}
-                on = params.get("on", "").lower()
-                if on not in ("true", "false"):
-                    r = CommandResult(CommandStatus.REJECTED, "payload needs parameter on=true|false")
-                else:
-                    kind = ActionKind.PAYLOAD_ON if on == "true" else ActionKind.PAYLOAD_OFF
-                    r = self.pilot.action(now, kind, sender)
+            if a.actionType in (ActionType.SET_HOME, ActionType.SET_COMMS_POLICY):
+                r = self._setting(a.actionType, {kv.key: kv.value for kv in a.actionParameters}, out)
+            elif a.actionType is ActionType.ESTOP_RELEASE and self._estop_button:
+                r = CommandResult(CommandStatus.REJECTED, "the e-stop button on the robot is pressed: release it first")
+            elif a.actionType is ActionType.PAYLOAD:
+                r = self._payload_action({kv.key: kv.value for kv in a.actionParameters}, now, sender)
+            elif a.actionType is ActionType.RETURN_HOME:
+                r = self._return_home(now, sender)
+            elif a.actionType is ActionType.DWELL:
+                r = CommandResult(
+                    CommandStatus.REJECTED, "dwell is a node action (in an order's node), not an instant one"
+                )
+            elif self.itinerary is not None and a.actionType in _ITINERARY_ACTIONS:
+                r = self._itinerary_action(a.actionType, now, sender, out)
             else:
+                was_estop = self.pilot.estop
                 r = self.pilot.action(now, _ACTION_KIND[a.actionType], sender)
+                if self.pilot.estop and not was_estop:
+                    self.estop_source = EStop.REMOTE
             if r.status is CommandStatus.REJECTED:
                 status = CommandStatus.REJECTED
             if r.reason:
                 results.append(f"{a.actionId}: {r.reason}")
         return CommandResult(status, "; ".join(results))
+
+    def _setting(self, kind: ActionType, params: dict[str, str], out: Output) -> CommandResult:
+        """setHome (x, y [, theta_deg]; none: here) and setCommsPolicy (policy)."""
+        try:
+            if kind is ActionType.SET_COMMS_POLICY:
+                policy = self.contact.set_policy(params.get("policy", ""))
+                self._next_state = -math.inf  # tell everyone at once
+                return CommandResult(CommandStatus.ACCEPTED, f"comms-loss policy: {policy.value}")
+            if params.keys() - {"x", "y", "theta_deg"} or ("x" in params) != ("y" in params):
+                raise ValueError("setHome takes x and y (metres) and optionally theta_deg, or nothing for here")
+            if "x" in params:
+                theta = math.radians(float(params["theta_deg"])) if "theta_deg" in params else math.nan
+                home = self.home.set(float(params["x"]), float(params["y"]), theta)
+            else:
+                if not self.fusion.position_initialized:
+                    raise ValueError("the robot is not localised yet: give x and y")
+                x, y, _ = self._map_pose()
+                home = self.home.set(x, y)
+        except ValueError as exc:
+            return CommandResult(CommandStatus.REJECTED, str(exc)[:200])
+        self.pilot.set_home((home.x, home.y, home.theta))
+        self._next_state = -math.inf
+        text = f"home set at ({home.x:.2f}, {home.y:.2f})"
+        out.messages.append((self._event("home_set", text, Severity.INFO, source=home.source.value), None))
+        return CommandResult(CommandStatus.ACCEPTED, text)
+
+    def _people_zones(self, msg: PeopleZones, link: LinkName, out: Output) -> None:
+        """An operator's people-present zones (its whole list): the lamp keeps out of them."""
+        sender = msg.header.sender
+        zones: list[PeopleZone] = []
+        for z in msg.zones:
+            if len(z.polygon) < 3:
+                reason = f"zones: {z.name!r} has {len(z.polygon)} corners, a zone needs at least 3"
+                self._rejected(self.gate.reject(link, msg.TOPIC, reason), out)
+                return  # nothing of a bad list is taken: the previous one stands
+            zones.append(PeopleZone(z.name, tuple((p.x, p.y) for p in z.polygon)))
+        if zones:
+            self._zones_by[sender] = tuple(zones)
+        else:
+            self._zones_by.pop(sender, None)
+        self.zones = tuple(z for who in sorted(self._zones_by) for z in self._zones_by[who])
+        names = ", ".join(z.name for z in zones) or "none"
+        text = f"people-present zones from {sender}: {names}"
+        out.messages.append((self._event("zones", text, Severity.INFO, sender=sender), None))
+
+    def _payload_action(self, params: Mapping[str, str], now: float, sender: str) -> CommandResult:
+        """``payload``: ``device`` uv (default), atomiser or fan; ``on`` true|false; ``level``
+        0-3 (atomiser and fan; on without a level is level 1)."""
+        try:
+            device, on, level = _payload_params(params)
+        except ValueError as exc:
+            return CommandResult(CommandStatus.REJECTED, str(exc))
+        if not on or level == 0:
+            return self.pilot.action(now, ActionKind.PAYLOAD_OFF, sender, device=device)
+        b = self.board
+        if b.connected and not b.has_payload:
+            return CommandResult(CommandStatus.REJECTED, "this robot has no payload (its board has none)")
+        if device == "atomiser" and b.tank_percent is not None and b.tank_percent <= 0.0:
+            return CommandResult(CommandStatus.REJECTED, "the disinfectant tank is empty: refill it first")
+        if device == "uv":
+            why = lamp_interlock(self._lamp_situation(now, sender))
+            if why is not None:
+                return CommandResult(CommandStatus.REJECTED, f"UV lamp interlock: {why}")
+        return self.pilot.action(now, ActionKind.PAYLOAD_ON, sender, device=device, level=level or 1)
+
+    def _lamp_situation(self, now: float, operator: str) -> LampSituation:
+        b = self.board
+        x, y, _ = self._map_pose()
+        return LampSituation(
+            estop=self.pilot.estop,
+            comms_lost=self.contact.lost and not self.contact.payload_on_loss,
+            bumped=b.bumped,
+            cliff=b.cliff,
+            lease_held=not operator or self.lease.view(now).holder == operator,
+            board_connected=b.connected,
+            has_lamp=b.has_payload or not b.connected,
+            position=(x, y) if self.fusion.position_initialized else None,
+            lamp_radius_m=self.lamp_radius_m,
+            zones=self.zones,
+        )
+
+    def _interlock_tick(self, now: float, out: Output) -> None:
+        """The lamp on while an interlock holds: off now, with the reason, once per episode."""
+        if not self.board.payload_on:
+            self._lamp_cut = None
+            return
+        why = lamp_interlock(self._lamp_situation(now, self._lamp_operator))
+        if why is None:
+            return
+        if why != self._lamp_cut:
+            text = f"UV lamp switched off: {why}"
+            out.messages.append((self._event("interlock", text, Severity.WARNING, reason=why), None))
+            out.logs.append(text)
+        elif now - self._lamp_cut_at < LAMP_RECUT_S:
+            return  # asked already; the board's next payload poll will say
+        self._lamp_cut, self._lamp_cut_at = why, now
+        out.payload.append(PayloadRequest(False, None, "interlock", "uv"))
+
+    # -- orders with nodes (agent/itinerary.py) ---------------------------------------------------
+
+    def _order_with_nodes(self, msg: Order, now: float, out: Output) -> CommandResult:
+        refused = self.pilot.admit(msg.orderId, msg.orderUpdateId)
+        if refused is not None:
+            return refused
+        if msg.goal is not None or msg.returnHome:
+            return CommandResult(CommandStatus.REJECTED, "an order has nodes, a goal or returnHome: one of them")
+        if self.pilot.estop:
+            return CommandResult(CommandStatus.REJECTED, "e-stop latched: release it first")
+        try:
+            it = Itinerary.of(
+                msg.orderId,
+                msg.orderUpdateId,
+                msg.header.sender,
+                _stops(msg),
+                extent_m=self.pilot.config.extent_m,
+                check_action=self._check_node_payload,
+            )
+        except ItineraryError as exc:
+            return CommandResult(CommandStatus.REJECTED, str(exc)[:250])
+        old = self.itinerary
+        if old is not None and old.order_id == msg.orderId:
+            it = old.updated(it)
+            text = f"order {it.order_id} updated ({it.update_id}): {len(it.stops) - it.index} nodes to go"
+        else:
+            if old is not None:
+                self._end_itinerary(now, out, f"replaced by order {msg.orderId}")
+            text = f"order {it.order_id}: {len(it.stops)} nodes from {it.sender}"
+        self.itinerary = it
+        self.pilot.remember(msg.orderId, msg.orderUpdateId)
+        out.messages.append((self._event("order", text, Severity.INFO, order=it.order_id), None))
+        return CommandResult(CommandStatus.ACCEPTED, text)
+
+    def _check_node_payload(self, a: StopAction) -> None:
+        try:
+            _, on, _ = _payload_params(a.params)
+        except ValueError as exc:
+            raise ItineraryError(f"action {a.action_id!r}: {exc}") from None
+        if on and self.board.connected and not self.board.has_payload:
+            raise ItineraryError(f"action {a.action_id!r}: this robot has no payload (its board has none)")
+
+    def _itinerary_steps(self, now: float, out: Output) -> None:
+        """Do what the order with nodes asks for now: a go-to, a node action, its end."""
+        for _ in range(2 * 16 + 2):  # a node's actions, at most, then a go-to or the end
+            it = self.itinerary
+            if it is None:
+                return
+            step = it.step(now)
+            if step is None:
+                return
+            if isinstance(step, Finished):
+                skipped = f", {len(step.skipped)} skipped ({', '.join(step.skipped[:5])})" if step.skipped else ""
+                self._end_itinerary(now, out, f"finished: {step.nodes} nodes{skipped}", done=True)
+                return
+            if isinstance(step, GoTo):
+                st = step.stop
+                r = self.pilot.order(
+                    now, it.order_id, it.update_id, st.x, st.y, st.theta, it.sender, admitted=True, max_v=st.max_v
+                )
+                if not r.accepted:
+                    it.interrupted(now, r.reason[:64] or "refused")
+                    self._itinerary_note(it, f"node {st.node_id}: {r.reason}; resume tries again", out)
+                continue
+            if isinstance(step, RunAction):
+                a = step.action
+                r = self._payload_action(a.params, now, it.sender)
+                device, on, _ = _payload_params(a.params)
+                if device == "uv":
+                    it.lamp = on and r.accepted
+                if not r.accepted:
+                    if device == "uv" and on:  # no dose without the lamp: wait for the operator
+                        it.hold(now, "lamp refused")
+                        it.lamp = True  # a resume tries again
+                    self._itinerary_note(it, f"node {step.stop.node_id}, action {a.action_id}: {r.reason}", out)
+
+    def _itinerary_event(self, ev: PilotEvent, now: float, out: Output) -> None:
+        """The pilot's go-to to the current node ended: reached, failed (skip, or hold on a hazard),
+        cancelled (hold: a stop, an e-stop, a teleop, the comms-loss policy took over)."""
+        it = self.itinerary
+        if it is None or not it.driving or ev.order_id != it.order_id:
+            if it is not None and it.driving and ev.kind is EventKind.GOAL_CANCELLED:
+                it.interrupted(now, ev.reason or "cancelled")  # replaced by return home or a retrace
+            return
+        if ev.kind is EventKind.GOAL_REACHED:
+            it.arrived(now)
+        elif ev.kind is EventKind.GOAL_FAILED and ev.reason not in _HAZARDS:
+            cur = it.current
+            near = NODE_NEAR_M if cur is None or cur.actions else NODE_PASS_M
+            if cur is not None and it.closest_m <= near:
+                # The guard keeps its stopping distance from what is ahead: a node by a wall is
+                # reached as near as that allows, and its actions (a dwell) run from where it stopped.
+                gap = it.closest_m
+                it.arrived(now)
+                self._itinerary_note(
+                    it, f"node {cur.node_id}: came within {gap:.2f} m (as near as the guard allows)", out
+                )
+                return
+            stop = it.failed(now)
+            if stop is not None:
+                self._itinerary_note(it, f"node {stop.node_id} skipped: {ev.text}", out, Severity.WARNING)
+                # Its payload switches still apply (not its dwell): the route after it expects the
+                # lamp as they leave it, and a skipped "lamp on" would run the rest of a round dark.
+                for a in stop.actions:
+                    if a.kind == "payload":
+                        r = self._payload_action(a.params, now, it.sender)
+                        device, on, _ = _payload_params(a.params)
+                        if device == "uv":
+                            it.lamp = on and r.accepted
+        elif ev.kind in (EventKind.GOAL_FAILED, EventKind.GOAL_CANCELLED):
+            it.interrupted(now, ev.reason or "cancelled")
+
+    def _itinerary_action(self, kind: ActionType, now: float, sender: str, out: Output) -> CommandResult:
+        """stop, cancel, pause, resume and e-stop while an order with nodes runs."""
+        it = self.itinerary
+        assert it is not None
+        if kind in (ActionType.STOP, ActionType.CANCEL):
+            r = self.pilot.action(now, _ACTION_KIND[kind], sender)
+            self._end_itinerary(now, out, f"{'stopped' if kind is ActionType.STOP else 'cancelled'} by {sender}")
+            return CommandResult(CommandStatus.ACCEPTED, r.reason)
+        if kind is ActionType.ESTOP:
+            r = self.pilot.action(now, ActionKind.ESTOP, sender)
+            if r.accepted:
+                self.estop_source = EStop.REMOTE
+            it.interrupted(now, "e-stop")
+            return r
+        if kind is ActionType.PAUSE:
+            if it.waiting == "paused":
+                return CommandResult(CommandStatus.ACCEPTED, "already paused")
+            if it.driving:
+                self.pilot.action(now, ActionKind.PAUSE, sender)
+            it.hold(now, "paused")
+            if it.lamp:  # people may come near a paused round: the lamp goes off, resume brings it back
+                out.payload.append(PayloadRequest(False, None, sender, "uv"))
+            self._itinerary_note(it, f"paused by {sender}", out)
+            return CommandResult(CommandStatus.ACCEPTED, f"order {it.order_id} paused")
+        # resume
+        if self.pilot.estop:
+            return CommandResult(CommandStatus.REJECTED, "e-stop latched: release it first")
+        if not it.waiting:
+            return CommandResult(CommandStatus.ACCEPTED, "not waiting")
+        if it.driving and self.pilot.mode is PilotMode.PAUSED:
+            self.pilot.action(now, ActionKind.RESUME, sender)
+        it.release(now)
+        if it.lamp:
+            r = self._payload_action({"device": "uv", "on": "true"}, now, it.sender)
+            if not r.accepted:
+                it.hold(now, "lamp refused")
+                return CommandResult(CommandStatus.REJECTED, f"order {it.order_id} still waits: {r.reason}")
+        self._itinerary_note(it, f"resumed by {sender}", out)
+        return CommandResult(CommandStatus.ACCEPTED, f"order {it.order_id} resumed")
+
+    def _end_itinerary(self, now: float, out: Output, why: str, *, done: bool = False) -> None:
+        it = self.itinerary
+        if it is None:
+            return
+        self.itinerary = None
+        if it.lamp:
+            out.payload.append(PayloadRequest(False, None, it.sender, "uv"))
+        if it.driving and self.pilot.order_id == it.order_id:
+            self.pilot.action(now, ActionKind.CANCEL, it.sender)
+        sev = Severity.INFO if done and not it.skipped else Severity.WARNING
+        out.messages.append((self._event("order", f"order {it.order_id} {why}", sev, order=it.order_id), None))
+        self._next_state = -math.inf
+
+    def _itinerary_note(self, it: Itinerary, text: str, out: Output, severity: Severity = Severity.INFO) -> None:
+        out.messages.append(
+            (self._event("order", f"order {it.order_id}: {text}"[:256], severity, order=it.order_id), None)
+        )
+        self._next_state = -math.inf
+
+    def _itinerary_key(self) -> tuple[Any, ...] | None:
+        it = self.itinerary
+        return None if it is None else (it.index, len(it.skipped), it.waiting)
+
+    def _progress(self) -> OrderProgress | None:
+        it = self.itinerary
+        if it is None:
+            return None
+        return OrderProgress(
+            nodesTotal=len(it.stops),
+            nodesDone=min(it.index, len(it.stops)),
+            skipped=len(it.skipped),
+            lastNodeId=it.last.node_id if it.last is not None else "",
+            lastNodeSequenceId=it.last.sequence_id if it.last is not None else 0,
+            dwellLeft_s=it.dwell_left_s,
+            waiting=it.waiting,
+        )
+
+    def _return_home(self, now: float, sender: str) -> CommandResult:
+        if self.home.home is None:
+            return CommandResult(
+                CommandStatus.REJECTED, "no home yet: the robot has not localised and has no dock (setHome sets one)"
+            )
+        return self.pilot.action(now, ActionKind.RETURN_HOME, sender)
+
+    def _heard(self, now: float, out: Output) -> None:
+        """An allowed operator's message arrived: the robot is in contact."""
+        x, y, _ = self._map_pose()
+        regained = self.contact.heard(now, x, y)
+        if regained is None:
+            return
+        if self.pilot.retracing:
+            self.pilot.halt(now, "comms")  # retraced far enough: the operator is back in charge
+        out.messages.append(
+            (self._event("contact_regained", regained.text, Severity.INFO, out_s=f"{regained.out_s:.1f}"), None)
+        )
+        out.logs.append(regained.text)
+        self._next_state = now
+
+    def _contact_tick(self, now: float, out: Output) -> None:
+        """The comms-loss policy: lost contact starts it; how its drive ended is noted."""
+        c = self.contact
+        x, y, _ = self._map_pose()
+        c.moved(x, y)
+        if c.action in ("retracing", "homing") and not self.pilot.state.has_route:
+            arrived = c.target is not None and math.dist((x, y), c.target) <= ARRIVED_M
+            c.action = ("waiting" if c.action == "retracing" else "home") if arrived else "stopped"
+            self._next_state = now
+        # Engaged: the lease is held by an operator who asked for it (a console, which renews it
+        # every couple of seconds; a script that only sends orders never heartbeats). A lease that
+        # runs out during the silence leaves it engaged: running out is what silence does.
+        holder = self.lease.view(now).holder
+        if holder:
+            self._engaged = holder == self._renewing
+        lost = c.tick(now, engaged=self._engaged)
+        if lost is None:
+            return
+        self._next_state = now
+        text = f"no operator heard for {lost.silent_s:.1f} s: "
+        home = self.home.home
+        if self.pilot.estop:
+            c.action, text = "stopped", text + "e-stop latched, staying put"
+        elif self.pilot.state.has_route and not self.pilot.retracing and self.pilot.order_id is None:
+            c.action, c.target = "homing", (home.x, home.y) if home else None  # already on its way home
+            text += "already returning home: going on"
+        elif lost.policy is CommsPolicy.RETRACE and len(lost.path) > 0:
+            r = self.pilot.retrace(now, lost.path, "comms")
+            c.action, c.target = ("retracing" if r.accepted else "stopped"), lost.path[-1]
+            text += f"retracing {len(lost.path)} waypoints to ({lost.path[-1][0]:.2f}, {lost.path[-1][1]:.2f})"
+        elif lost.policy is CommsPolicy.HOME and home is not None:
+            r = self.pilot.action(now, ActionKind.RETURN_HOME, "comms")
+            c.action, c.target = ("homing" if r.accepted else "stopped"), (home.x, home.y)
+            text += "returning home"
+        else:
+            self.pilot.halt(now, "comms")
+            c.action, text = "stopped", text + "stopped"
+        if not c.payload_on_loss:
+            self.pilot.action(now, ActionKind.PAYLOAD_OFF, "comms")
+        out.messages.append((self._event("contact_lost", text, Severity.ERROR, policy=lost.policy.value), None))
+        out.logs.append(text)
+
+    def _board_inputs(self, now: float, board: BoardView, out: Output) -> None:
+        """The robot's own buttons, the home it localised at, and the faults to clear."""
+        if board.estop_button and not self._estop_button:
+            was = self.pilot.estop
+            self.pilot.action(now, ActionKind.ESTOP, "button")
+            if not was:
+                self.estop_source = EStop.MANUAL
+            out.logs.append("e-stop button pressed on the robot: latched")
+        self._estop_button = board.estop_button
+        if self._home_requests is not None and board.home_requests > self._home_requests:
+            r = self._return_home(now, "button")
+            text = "home button pressed: returning home" if r.accepted else f"home button pressed: {r.reason}"
+            out.messages.append((self._event("home_button", text, Severity.INFO), None))
+        self._home_requests = board.home_requests
+        if self.fusion.position_initialized and self.home.home is None:
+            x, y, _ = self._map_pose()
+            home = self.home.localised(x, y)
+            if home is not None:
+                self.pilot.set_home((home.x, home.y, home.theta))
+                self._next_state = now
+                text = f"home set at ({home.x:.2f}, {home.y:.2f}), where the robot first localised"
+                out.messages.append((self._event("home_set", text, Severity.INFO, source=home.source.value), None))
+        if board.connected:
+            codes = {code for code, _ in board.faults}
+            self._clearing = {c: t for c, t in self._clearing.items() if c in codes}
+            for code in sorted(codes):
+                asked = self._clearing.get(code)
+                if (asked is None or now - asked >= FAULT_RETRY_S) and self._fault_over(code, board):
+                    if code == 0x0001 and asked is None:
+                        self.watchdog_trips += 1
+                    self._clearing[code] = now
+                    out.clear_faults.append(code)
+
+    @staticmethod
+    def _fault_over(code: int, board: BoardView) -> bool:
+        if code not in _CLEARABLE:
+            return False
+        if code == 0x0003:  # tank empty
+            return board.tank_percent is not None and board.tank_percent > 0
+        if code == 0x0004:  # battery low
+            return board.battery_percent >= 15.0
+        return True  # the link watchdog: the agent is talking to the board again
+
+    def _board_status(self, now: float, out: Output) -> None:
+        b = self.board
+        if b.connected and not b.battery_known:
+            return  # connected, its first readings not in yet: no report of a battery at 0 %
+        key = (
+            b.connected,
+            b.faults,
+            b.payload_on,
+            b.atomiser_level,
+            b.fan_level,
+            b.charging,
+            b.on_dock,
+            b.estop_button,
+            None if b.tank_percent is None else int(b.tank_percent // 5),
+            self.watchdog_trips,
+        )
+        if now < self._next_board and key == self._last_board_key:
+            return
+        self._next_board = now + BOARD_STATUS_PERIOD_S
+        self._last_board_key = key
+        msg = self.counter.make(
+            BoardStatus,
+            connected=b.connected,
+            model=b.model[:64],
+            firmware=b.firmware[:64],
+            battery_percent=min(100.0, max(0.0, b.battery_percent)),
+            battery_voltage_v=_within(b.voltage_v, 0.0, 1000.0),
+            battery_current_a=_within(b.current_a, -1000.0, 1000.0),
+            charging=b.charging,
+            on_dock=b.on_dock,
+            temperature_c=_within(b.temperature_c, -100.0, 200.0),
+            humidity_percent=_within(b.humidity_percent, 0.0, 100.0),
+            pm2_5_ug_m3=_within(b.pm2_5, 0.0, 1e9),
+            tvoc_ppb=b.tvoc_ppb if b.tvoc_ppb is not None and b.tvoc_ppb >= 0 else None,
+            uv_lamp=b.payload_on,
+            atomiser_level=min(3, max(0, b.atomiser_level)),
+            fan_level=min(3, max(0, b.fan_level)),
+            has_payload=b.has_payload,
+            tank_percent=_within(b.tank_percent, 0.0, 100.0),
+            estop_button=b.estop_button,
+            health_flags=b.health_flags & 0xFF,
+            faults=tuple(BoardFault(code=c & 0xFFFF, text=t[:64]) for c, t in b.faults[:16]),
+            bumpers=b.bumper_bits,
+            sensors_m=tuple(max(0.0, d) for d in b.sensors_m[:16] if math.isfinite(d)),
+            watchdog_trips=self.watchdog_trips,
+        )
+        out.messages.append((msg, None))
 
     def _failed(self, msg: Order | InstantActions | Teleop, now: float, exc: Exception, out: Output) -> CommandResult:
         """A command whose handling raised: whatever it started is stopped, and it is refused."""
@@ -592,7 +1198,9 @@ class AgentCore:
             if self.board.connected
             else OperatingMode.SERVICE,
             safetyState=SafetyState(
-                eStop=EStop.REMOTE if self.pilot.estop else EStop.NONE,
+                eStop=(self.estop_source if self.estop_source is not EStop.NONE else EStop.REMOTE)
+                if self.pilot.estop
+                else EStop.NONE,
                 fieldViolation=bool(p.field_violation) if p else False,
             ),
             driveMode=mode.value.lower(),
@@ -600,12 +1208,27 @@ class AgentCore:
             uwbStale=stale,
             payloadOn=self.board.payload_on,
             boardConnected=self.board.connected,
-            orderId=(p.order_id or "") if p else "",
-            orderUpdateId=self.pilot.order_update_id,
+            orderId=self.itinerary.order_id if self.itinerary is not None else ((p.order_id or "") if p else ""),
+            orderUpdateId=self.itinerary.update_id if self.itinerary is not None else self.pilot.order_update_id,
             goal=goal,
             driving=abs(self._velocity[0]) > 1e-3 or abs(self._velocity[1]) > 1e-3,
-            paused=mode is PilotMode.PAUSED,
+            paused=mode is PilotMode.PAUSED or (self.itinerary is not None and self.itinerary.waiting == "paused"),
+            home=self._home_msg(),
+            contact=Contact(
+                policy=self.contact.policy,
+                lost=self.contact.lost,
+                action=self.contact.action,
+                silent_s=self.contact.silent_s(now),
+            ),
+            progress=self._progress(),
         )
+
+    def _home_msg(self) -> Home | None:
+        h = self.home.home
+        if h is None:
+            return None
+        theta = None if math.isnan(h.theta) else _clamp_angle(h.theta)
+        return Home(x=h.x, y=h.y, theta=theta, source=h.source)
 
     def _change_key(self, now: float) -> tuple[Any, ...]:
         """``_state_key(self._state(now))`` without building the message (every tick; the State and
@@ -627,6 +1250,11 @@ class AgentCore:
             goal,
             self.board.errors[:15],
             self.fusion.position_initialized,
+            self.home.home,
+            self.contact.policy,
+            self.contact.lost,
+            self.contact.action,
+            self._itinerary_key(),
         )
 
     @staticmethod
@@ -645,7 +1273,77 @@ class AgentCore:
             s.paused,
             s.errors,
             s.agvPosition.positionInitialized,
+            s.home,
+            (s.contact.policy, s.contact.lost, s.contact.action),
+            None if s.progress is None else (s.progress.nodesDone, s.progress.skipped, s.progress.waiting),
         )
+
+
+def _payload_params(params: Mapping[str, str]) -> tuple[str, bool, int | None]:
+    """(device, on, level) of a ``payload`` action's parameters; ValueError says what is wrong."""
+    device = params.get("device", "uv").lower()
+    on = params.get("on", "").lower()
+    if on not in ("true", "false"):
+        raise ValueError("payload needs parameter on=true|false")
+    if device not in ("uv", "atomiser", "fan"):
+        raise ValueError(f"unknown payload device {device[:32]!r} (uv, atomiser, fan)")
+    level: int | None = None
+    if "level" in params:
+        try:
+            level = int(params["level"])
+        except ValueError:
+            level = -1
+        if not 0 <= level <= 3 or device == "uv":
+            what = "the lamp has no level" if device == "uv" else f"got {params['level'][:16]!r}"
+            raise ValueError(f"{device} level must be 0-3 ({what})")
+    return device, on == "true", level
+
+
+def _stops(msg: Order) -> list[Stop]:
+    """An order's nodes as itinerary stops; ItineraryError if the nodes and edges do not form one
+    route (VDA 5050: node sequence ids even and consecutive, an edge between each two nodes)."""
+    nodes, edges = msg.nodes, msg.edges
+    if not nodes:
+        raise ItineraryError("an order with edges needs nodes")
+    if len(edges) != len(nodes) - 1:
+        raise ItineraryError(f"{len(nodes)} nodes need {len(nodes) - 1} edges between them, got {len(edges)}")
+    first = nodes[0].sequenceId
+    if first % 2:
+        raise ItineraryError(f"node {nodes[0].nodeId!r}: node sequence ids are even, got {first}")
+    for i, n in enumerate(nodes):
+        if n.sequenceId != first + 2 * i:
+            raise ItineraryError(f"node {n.nodeId!r}: sequence id {n.sequenceId}, expected {first + 2 * i}")
+    for i, e in enumerate(edges):
+        a, b = nodes[i], nodes[i + 1]
+        if e.sequenceId != a.sequenceId + 1 or e.startNodeId != a.nodeId or e.endNodeId != b.nodeId:
+            raise ItineraryError(
+                f"edge {e.edgeId!r} must lead from {a.nodeId!r} to {b.nodeId!r} with sequence id {a.sequenceId + 1}"
+            )
+        if e.actions:
+            raise ItineraryError(f"edge {e.edgeId!r}: edge actions are not supported (put them on its start node)")
+        if e.released and not b.released:
+            raise ItineraryError(f"edge {e.edgeId!r} is released but leads to a horizon node")
+    return [
+        Stop(
+            n.nodeId,
+            n.sequenceId,
+            n.x,
+            n.y,
+            n.theta,
+            n.released,
+            edges[i - 1].maxSpeed if i > 0 else None,
+            tuple(
+                StopAction(a.actionId, a.actionType.value, {kv.key: kv.value for kv in a.actionParameters})
+                for a in n.actions
+            ),
+        )
+        for i, n in enumerate(nodes)
+    ]
+
+
+def _within(v: float | None, lo: float, hi: float) -> float | None:
+    """A board reading the wire can carry, or nil (a NaN or an impossible value is no reading)."""
+    return v if v is not None and math.isfinite(v) and lo <= v <= hi else None
 
 
 def _sd(v: float) -> float:

@@ -18,44 +18,57 @@ core stays single-threaded; mapping runs outside it, so it never holds up the co
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
+import math
 import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
 from fleetlink.agent.board.session import BoardSession, PollRates
 from fleetlink.agent.config import AgentConfig
+from fleetlink.agent.contact import ContactKeeper
 from fleetlink.agent.core import AgentCore, Output, board_view
+from fleetlink.agent.dose_layer import DoseKeeper, DosePublication, DoseSample
 from fleetlink.agent.fusion import Fusion
+from fleetlink.agent.home import HomeKeeper
 from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update
 from fleetlink.agent.mapping.worker import KeeperHost
 from fleetlink.agent.odometry import Odometry
-from fleetlink.agent.pilot import Pilot, PilotConfig
+from fleetlink.agent.pilot import PayloadRequest, Pilot, PilotConfig
 from fleetlink.links.base import Link, QueryLink
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
+from fleetlink.shared.dose import FloorMask
 from fleetlink.shared.messages import Connection, ConnectionState, LeaseRequest, LinkName, LinkStatus, UwbFix
 
 __all__ = ["INPUTS", "LINK_STATUS_PERIOD_S", "POLL_RATES", "AgentNode", "input_keys", "pilot_config"]
 
 log = logging.getLogger(__name__)
 
-POLL_RATES = PollRates(motion=10.0, telemetry=20.0, motor=20.0, imu=20.0, sensors=20.0, bumpers=20.0, buttons=1.0)
+POLL_RATES = PollRates(motion=10.0, telemetry=20.0, motor=20.0, imu=20.0, sensors=20.0, bumpers=20.0, buttons=5.0)
 """The board poll rates the agent uses: wheel distances and the gyro at 20 Hz feed the odometry;
 range sensors, bumpers and cliffs at 20 Hz feed the guard. A board with GET_TELEMETRY gives all
 four in one exchange at 20 Hz (a quarter of the exchanges, on both ends of the line); a plain
 SLAMTEC base is polled for each apart. Motion (SET_V_AND_GET_DEADRECKON) is
 only a 10 Hz refresh: every new velocity is sent at once (``BoardSession.set_velocity``), so while
 driving it goes out at the control rate anyway, and its dead reckoning is not what the odometry
-uses. Every poll feeds the board's 1 s watchdog. Buttons at 1 Hz: nothing reads
-them but the pending base command (2 Hz) that the home button raises."""
+uses. Every poll feeds the board's 1 s watchdog. Buttons at 5 Hz: the e-stop button latches the
+e-stop (an e-stop button stays down until it is twisted free, and the board cuts the motors in
+hardware meanwhile; the agent's latch and its report follow within 0.2 s); the home button raises
+the pending base command (2 Hz)."""
 
-INPUTS = ("order", "actions", "teleop", LeaseRequest.TOPIC, UwbFix.TOPIC)
+INPUTS = ("order", "actions", "teleop", LeaseRequest.TOPIC, "zones", UwbFix.TOPIC)
 """The agent's input topics, on every link."""
-_COMMANDS = tuple(t for t in INPUTS if t in keys.SENDER_TOPICS)
+_COMMANDS = ("order", "actions", "teleop", LeaseRequest.TOPIC)
+"""The holder's commands, which jump the queue (its zones are no command: they wait their turn)."""
 STOP_TOPICS = frozenset({"actions"})
 """Where anyone's stop, pause and e-stop travel (instant actions): after the holder, before the rest."""
+
+
+PLACE_SD_THETA_RAD = math.radians(2.0)
+"""The fused heading's standard deviation at which the onboard map starts in the site frame."""
 
 
 def input_keys(robot: str, topic: str, operators: Sequence[str] = ()) -> list[str]:
@@ -81,6 +94,14 @@ from the same sensor reading; each tick is a thread wake-up, which costs more th
 on a VM."""
 LINK_STATUS_PERIOD_S = 0.2
 """How often the control step tells the core which links are up."""
+
+
+def home_keeper(cfg: AgentConfig) -> HomeKeeper:
+    """The robot's home keeper: its dock from the configuration, if it has one."""
+    h = cfg.home
+    if h is None:
+        return HomeKeeper()
+    return HomeKeeper((h.x, h.y, math.nan if h.theta_deg is None else math.radians(h.theta_deg)))
 
 
 def pilot_config(cfg: AgentConfig) -> PilotConfig:
@@ -125,6 +146,10 @@ class AgentNode:
             pose_hz=config.rates.pose_hz,
             state_hz=config.rates.state_hz,
             operators=config.operators,
+            home=home_keeper(config),
+            contact=ContactKeeper(
+                config.comms.policy, config.comms.timeout_s, payload_on_loss=config.comms.payload_on_loss
+            ),
         )
         self.links: list[Link] = list(links)
         self.map_link = map_link
@@ -139,6 +164,15 @@ class AgentNode:
         self._holder: str | None = None  # none told to the links yet
         self.keeper: KeeperHost | None = None
         self.share: Any = None
+        uv = config.uv
+        self.dose: DoseKeeper | None = (
+            DoseKeeper(uv.lamp, uv.target_j_m2, uv.dose_resolution_m) if uv is not None else None
+        )
+        """The UV dose layer (``[uv]`` configured): fed by the control step, its floor by the map."""
+        self.dose_share: Any = None
+        """Serves the dose layer on ``map_link`` (agent/dose_share.py), from its first publication."""
+        self._lamp_unmodelled = False
+        self._closed = False
         self.lidar_fault: str | None = None
         """Why the lidar is not delivering scans (None: it is, or there is none)."""
         self.scans = 0
@@ -176,9 +210,13 @@ class AgentNode:
         self._open_share()
 
     def close(self) -> None:
+        self._closed = True
         if self.share is not None:
             self.share.stop()
             self.share = None
+        if self.dose_share is not None:
+            self.dose_share.stop()
+            self.dose_share = None
 
     # -- inputs ---------------------------------------------------------------------------------------
 
@@ -223,7 +261,33 @@ class AgentNode:
             next_t = now + 1.0 / self.config.rates.control_hz
             if not self.core.driving:
                 next_t = max(next_t, min(self.core.next_pose_at, now + IDLE_PERIOD_S))
-            return next_t
+            sample = self._dose_sample(now)
+        if sample is not None and self.dose is not None:  # outside the lock: a footprint takes milliseconds
+            pub = self.dose.step(sample)
+            if pub is not None:
+                self._publish_dose(pub)
+        return next_t
+
+    def _dose_sample(self, now: float) -> DoseSample | None:
+        """What the dose keeper needs from this tick: the board's own report of the lamp, the fused
+        pose, whether the robot is placed in the site frame (under the lock)."""
+        lamp_on = self.core.board.payload_on
+        if self.dose is None:
+            if lamp_on and not self._lamp_unmodelled:
+                self._lamp_unmodelled = True
+                log.warning("%s: the UV lamp is on but robot.toml has no [uv] table: no dose layer is kept", self.robot)
+            return None
+        p = self.core.fusion.map_pose()
+        return DoseSample(now, p.x, p.y, lamp_on, self.core.fusion.position_initialized)
+
+    def _publish_dose(self, pub: DosePublication) -> None:
+        if self.dose_share is None and self.map_link is not None and not self._closed:
+            from fleetlink.agent.dose_share import DoseShare
+
+            self.dose_share = DoseShare(self.map_link, self.robot, self.clock)
+            self.dose_share.start()
+        if self.dose_share is not None:
+            self.dose_share.publish(pub)
 
     def _prioritise_holder(self, now: float) -> None:
         """The lease holder's commands jump every link's queue (links/zenoh.py: priority lane): a
@@ -252,7 +316,10 @@ class AgentNode:
             self.lidar_report(None)
         with self._lock:
             p = self.core.fusion.map_pose()
-            placed = self.core.fusion.heading_initialized
+            # The map starts in the site frame once the heading is known to PLACE_SD_THETA_RAD: a map
+            # started at the first heading fix (sd ~5 deg, errors to 10 deg measured) keeps its walls
+            # that far askew, and a round planned on it sends the robot into them.
+            placed = self.core.fusion.heading_initialized and p.sd_theta <= PLACE_SD_THETA_RAD
             driving = self.core.driving
         now = self.clock.now()
         t = rev.stamp if rev.stamp is not None else now
@@ -269,8 +336,13 @@ class AgentNode:
         if update.restarted:
             log.info("%s: UWB frame established; the map restarts in it", self.robot)
             self._open_share()
-        if self.share is not None and update.publication is not None:
-            self.share.publish(update.publication)
+            if self.dose is not None:
+                self.dose.set_floor(None, -1)
+        pub = update.publication
+        if self.share is not None and pub is not None:
+            self.share.publish(pub)
+        if self.dose is not None and pub is not None and pub.site_frame:
+            self.dose.set_floor(FloorMask.from_occupancy(pub.cells, pub.resolution, pub.origin), pub.version)
         if update.planner is not None:
             with self._lock:
                 self.core.use_map(update.planner.route)
@@ -286,18 +358,19 @@ class AgentNode:
     def halt(self, timeout: float = HALT_TIMEOUT_S) -> bool:
         """Stop the robot for good (shutting down): inputs dropped from now on, zero velocity and
         the payload off sent to the board; True once the board has answered (within ``timeout``)."""
-        from fleetlink.devices.controlbus import protocol as p
-
         with self._lock:
             self.halted = True
         self.board.set_velocity(0.0, 0.0)
-        # Queued after the zero velocity, which the session sends first: its answer means both went.
-        done = self.board.call(p.SetUvLamp(False))
+        # Queued after the zero velocity, which the session sends first: the lamp's answer means both went.
+        lamp, *others = [self.board.call(req) for req in PAYLOAD_OFF]
         try:
-            done.result(timeout)
+            lamp.result(timeout)
         except Exception as exc:  # no board, or it refused: the board's own watchdog still stops the wheels
             log.warning("%s: halting: the board did not confirm (%s)", self.robot, exc or type(exc).__name__)
             return False
+        for done in others:  # a board without an atomiser or a fan refuses them: nothing to switch off
+            with contextlib.suppress(Exception):
+                done.result(timeout)
         return True
 
     def _apply(self, out: Output) -> None:
@@ -305,8 +378,10 @@ class AgentNode:
             return
         if out.velocity is not None:
             self.board.set_velocity(*out.velocity)
-        for on in out.payload:
-            self._payload(on)
+        for req in out.payload:
+            self._payload(req)
+        for code in out.clear_faults:
+            self.board.clear_error(code)
         for line in out.logs:
             log.warning("%s: %s", self.robot, line)
         for msg, only in out.messages:
@@ -317,10 +392,21 @@ class AgentNode:
                     link.publish(key, data)
             self.published += 1
 
-    def _payload(self, on: bool) -> None:
+    def _payload(self, req: PayloadRequest) -> None:
+        """One payload request to the board: the UV-C lamp on or off, the atomiser or the fan at a
+        level (0 off), or every payload off (an e-stop, a stop, the deadman, a lost link)."""
         from fleetlink.devices.controlbus import protocol as p
 
-        self.board.call(p.SetUvLamp(on))  # the disinfection payload: the UV-C lamp
+        level = (req.level or 1) if req.on else 0
+        if req.device == "uv":
+            self.board.call(p.SetUvLamp(req.on))
+        elif req.device == "atomiser":
+            self.board.call(p.SetAtomiser(level))
+        elif req.device == "fan":
+            self.board.call(p.SetFan(level))
+        elif not req.on:  # "all"
+            for off in PAYLOAD_OFF:
+                self.board.call(off)
 
     def _open_share(self) -> None:
         from fleetlink.agent.mapping.share import MapShare
@@ -333,7 +419,17 @@ class AgentNode:
             self.share.start()
 
 
-_OUTPUT_TOPICS = ("pose", "state", "ack", "events", "lease", "connection", "diagnostics")
+_OUTPUT_TOPICS = ("pose", "state", "ack", "events", "lease", "connection", "diagnostics", "board")
+
+
+def _payload_off() -> tuple[Any, ...]:
+    from fleetlink.devices.controlbus import protocol as p
+
+    return (p.SetUvLamp(False), p.SetAtomiser(0), p.SetFan(0))
+
+
+PAYLOAD_OFF = _payload_off()
+"""Every payload off, lamp first (the one that harms people)."""
 
 
 LIDAR_READ_PERIOD_S = (0.05, 0.25)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -43,10 +44,11 @@ from fleetlink.agent.pilot_machine import (
     Trigger,
     next_state,
 )
-from fleetlink.agent.route import Destination, Drive, PathProvider, Route, RouteConfig, RouteEnd
+from fleetlink.agent.route import Destination, Drive, PathProvider, Point, Route, RouteConfig, RouteEnd
 from fleetlink.shared.messages import MAX_COORDINATE_M
 
 __all__ = [
+    "PAYLOAD_DEVICES",
     "ActionKind",
     "CommandResult",
     "CommandStatus",
@@ -62,6 +64,9 @@ __all__ = [
 ]
 
 Pose = tuple[float, float, float]
+
+PAYLOAD_DEVICES = ("uv", "atomiser", "fan", "all")
+"""What a payload request switches: the UV-C lamp, the atomiser, the HEPA fan, or every one (off)."""
 
 
 class ActionKind(StrEnum):
@@ -102,6 +107,8 @@ class PayloadRequest:
     on: bool
     level: int | None = None
     sender: str = ""
+    device: str = "uv"
+    """``PAYLOAD_DEVICES``: uv (the lamp), atomiser, fan; "all" (every payload; off only)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -242,7 +249,8 @@ class Pilot:
         return self._home
 
     def set_home(self, pose: Pose) -> None:
-        if not _finite(*pose):
+        """Where return home goes; a NaN heading: arrive with any heading."""
+        if not _finite(pose[0], pose[1]) or math.isinf(pose[2]):
             raise ValueError(f"home pose must be finite, got {pose}")
         self._home = pose
 
@@ -304,31 +312,52 @@ class Pilot:
         y: float,
         theta: float | None,
         sender: str,
+        *,
+        admitted: bool = False,
+        max_v: float | None = None,
     ) -> CommandResult:
+        """Go to (x, y[, theta]). ``admitted``: a node of an order ``admit`` has let in already (the
+        agent's itinerary drives an order's nodes one by one under its id). ``max_v``: a speed cap
+        for this go-to (m/s; an order edge's maxSpeed)."""
+        if not admitted:
+            refused = self.admit(order_id, order_update_id)
+            if refused is not None:
+                return refused
+        if not _finite(x, y) or (theta is not None and not _finite(theta)):
+            return _rejected(f"goal must be finite, got x={x} y={y} theta={theta}")
+        if max_v is not None and not (_finite(max_v) and max_v > 0.0):
+            return _rejected(f"speed cap must be a positive number, got {max_v!r}")
+        extent = self.config.extent_m
+        if abs(x) > extent or abs(y) > extent:
+            return _rejected(f"goal ({x:.4g}, {y:.4g}) is outside the site's extent (|x|, |y| <= {extent:g} m)")
+        held = self._route is not None and self._route.dest.order_id == order_id
+        trigger = Trigger.ORDER_UPDATE if held else Trigger.ORDER_NEW
+        dest = Destination(order_id, order_update_id, x, y, theta, sender, max_v=max_v)
+        result = self._fire(now, trigger, _Command(sender, dest=dest))
+        if result.accepted:
+            self.remember(order_id, order_update_id)
+        return result
+
+    def remember(self, order_id: str, order_update_id: int) -> None:
+        """(order_id, order_update_id) was accepted: the same again is a duplicate, an older one refused."""
+        self._seen[order_id] = order_update_id
+        self._seen.move_to_end(order_id)
+        while len(self._seen) > self.config.remembered_orders:
+            self._seen.popitem(last=False)
+
+    def admit(self, order_id: str, order_update_id: int) -> CommandResult | None:
+        """None if (order_id, order_update_id) is a new order or a newer update of one; else the
+        answer: rejected (no id, a bad or older update) or a duplicate (already received)."""
         if not order_id:
             return _rejected("order id must not be empty")
         if isinstance(order_update_id, bool) or not isinstance(order_update_id, int) or order_update_id < 0:
             return _rejected(f"order update id must be an integer >= 0, got {order_update_id!r}")
-        if not _finite(x, y) or (theta is not None and not _finite(theta)):
-            return _rejected(f"goal must be finite, got x={x} y={y} theta={theta}")
-        extent = self.config.extent_m
-        if abs(x) > extent or abs(y) > extent:
-            return _rejected(f"goal ({x:.4g}, {y:.4g}) is outside the site's extent (|x|, |y| <= {extent:g} m)")
         seen = self._seen.get(order_id)
         if seen is not None and order_update_id == seen:
             return CommandResult(CommandStatus.DUPLICATE, f"order {order_id}/{order_update_id} already received")
         if seen is not None and order_update_id < seen:
             return _rejected(f"order {order_id}: update {order_update_id} is older than {seen}")
-        held = self._route is not None and self._route.dest.order_id == order_id
-        trigger = Trigger.ORDER_UPDATE if held else Trigger.ORDER_NEW
-        dest = Destination(order_id, order_update_id, x, y, theta, sender)
-        result = self._fire(now, trigger, _Command(sender, dest=dest))
-        if result.accepted:
-            self._seen[order_id] = order_update_id
-            self._seen.move_to_end(order_id)
-            while len(self._seen) > self.config.remembered_orders:
-                self._seen.popitem(last=False)
-        return result
+        return None
 
     def action(self, now: float, kind: ActionKind | str, sender: str, **params: object) -> CommandResult:
         try:
@@ -339,17 +368,41 @@ class Pilot:
         if isinstance(outcome, Refused):
             return outcome.result
         cmd = _Command(sender)
-        if kind is ActionKind.PAYLOAD_ON:
+        if kind in (ActionKind.PAYLOAD_ON, ActionKind.PAYLOAD_OFF):
+            device = params.get("device", "uv" if kind is ActionKind.PAYLOAD_ON else "all")
+            if device not in PAYLOAD_DEVICES or (device == "all" and kind is ActionKind.PAYLOAD_ON):
+                return _rejected(f"unknown payload device {device!r} (one of: uv, atomiser, fan)")
             level = params.get("level")
-            if level is not None and (isinstance(level, bool) or not isinstance(level, int) or level < 0):
-                return _rejected(f"payload level must be an integer >= 0, got {level!r}")
-            cmd = _Command(sender, payload=PayloadRequest(True, level, sender))
-        elif kind is ActionKind.PAYLOAD_OFF:
-            cmd = _Command(sender, payload=PayloadRequest(False, None, sender))
+            if level is not None and (isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= 3):
+                return _rejected(f"payload level must be an integer 0-3, got {level!r}")
+            on = kind is ActionKind.PAYLOAD_ON
+            cmd = _Command(sender, payload=PayloadRequest(on, level if on else None, sender, str(device)))
         elif kind is ActionKind.RETURN_HOME:
             hx, hy, hth = self._home
-            cmd = _Command(sender, dest=Destination(None, 0, hx, hy, hth, sender))
+            cmd = _Command(sender, dest=Destination(None, 0, hx, hy, None if math.isnan(hth) else hth, sender))
         self._enter(now, outcome, cmd)
+        return _OK
+
+    def halt(self, now: float, sender: str) -> CommandResult:
+        """Stop as ``stop`` does, leaving the payload as it is (the comms-loss policy's own stops)."""
+        return self._fire(now, Trigger.HALT, _Command(sender))
+
+    @property
+    def retracing(self) -> bool:
+        """The go-to held is a retrace (the comms-loss policy's way back), not an order or home."""
+        return self._route is not None and bool(self._route.dest.via)
+
+    def retrace(self, now: float, path: Sequence[Point], sender: str) -> CommandResult:
+        """Drive back along ``path`` (the robot's own, newest first, ending where it last heard an
+        operator): the comms-loss policy's retrace. A go-to of its own kind (reported as homing)."""
+        if not path or not all(_finite(x, y) for x, y in path):
+            return _rejected("retrace needs a finite path")
+        outcome = next_state(self._state, Trigger.RETRACE)
+        if isinstance(outcome, Refused):
+            return outcome.result
+        gx, gy = path[-1]
+        dest = Destination(None, 0, gx, gy, None, sender, via=tuple((float(x), float(y)) for x, y in path))
+        self._enter(now, outcome, _Command(sender, dest=dest))
         return _OK
 
     # -- the control tick ------------------------------------------------------------------------
@@ -408,6 +461,10 @@ class Pilot:
         elif effect is Do.PASS_PAYLOAD:
             assert cmd.payload is not None
             self._payload.append(cmd.payload)
+        elif effect is Do.CUT_PAYLOAD:
+            t = cmd.teleop
+            if t is None or t.v != 0.0 or t.omega != 0.0:  # a zero twist lapsing is not a lost link
+                self._payload.append(PayloadRequest(False, None, cmd.sender, "all"))
 
     def _drop_route(self, now: float, kind: EventKind, reason: str, text: str) -> None:
         r = self._route
@@ -442,6 +499,9 @@ class Pilot:
             return Drive()
         drive = r.step(now, pose, self.path_provider)
         self._settle_route(now, r)
+        cap = r.dest.max_v
+        if cap is not None and abs(drive.v) > cap:
+            drive = Drive(math.copysign(cap, drive.v), drive.omega, drive.distance_m)
         if drive.distance_m is not None and drive.v > 0.0:
             drive = Drive(drive.v, drive.omega, r.cut_short(pose, self.guard.obstacle_m(inputs), drive.distance_m))
         return drive

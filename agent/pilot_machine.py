@@ -123,10 +123,12 @@ class Trigger(StrEnum):
     ORDER_NEW = "order_new"  # an order other than the one held (or none held)
     ORDER_UPDATE = "order_update"  # a higher update of the order held
     RETURN_HOME = "return_home"
+    RETRACE = "retrace"  # out of contact (comms-loss policy): back along its own path, as return home
     PAUSE = "pause"
     RESUME = "resume"
     CANCEL = "cancel"
     STOP = "stop"
+    HALT = "halt"  # a stop that leaves the payload as it is (the comms-loss policy, when configured so)
     ESTOP = "estop"
     ESTOP_RELEASE = "estop_release"
     PAYLOAD_ON = "payload_on"
@@ -146,6 +148,7 @@ class Do(StrEnum):
     RESUME_ROUTE = "resume_route"  # the held leg starts afresh; a pause is not a lack of progress
     END_ROUTE = "end_route"  # report how the route ended (GOAL_REACHED / GOAL_FAILED) and drop it
     PASS_PAYLOAD = "pass_payload"  # a payload request for the runtime to send to the board
+    CUT_PAYLOAD = "cut_payload"  # every payload off (e-stop, stop, the deadman of a moving robot)
 
 
 @dataclass(frozen=True, slots=True)
@@ -252,6 +255,17 @@ _ROWS: Final[Mapping[Trigger, Mapping[PilotState, Outcome]]] = {
         **{s: _to(S.HOMING, Do.START_ROUTE) for s in _HOMES},  # home again: afresh, nothing cancelled
         S.ESTOP: _LATCHED,
     },
+    # Retracing is a way home of another kind (to where the robot last heard an operator).
+    Trigger.RETRACE: {
+        S.IDLE: _to(S.HOMING, Do.START_ROUTE),
+        S.MANUAL: _to(S.HOMING, Do.DROP_TELEOP, Do.START_ROUTE),
+        **{
+            s: _to(S.HOMING, Cancel("comms_lost", "cancelled: out of contact, retracing"), Do.START_ROUTE)
+            for s in _ORDERS
+        },
+        **{s: _to(S.HOMING, Do.START_ROUTE) for s in _HOMES},
+        S.ESTOP: _LATCHED,
+    },
     Trigger.PAUSE: {
         S.GOTO: _to(S.GOTO_PAUSED, _PAUSE),
         S.HOMING: _to(S.HOMING_PAUSED, _PAUSE),
@@ -271,16 +285,23 @@ _ROWS: Final[Mapping[Trigger, Mapping[PilotState, Outcome]]] = {
         S.ESTOP: _LATCHED,
     },
     # Anyone may stop the robot, in every state; under e-stop it stays latched.
+    # Stop and e-stop also switch every payload off (a UV lamp must not stay on over a stopped robot).
     Trigger.STOP: {
+        S.IDLE: _stay(S.IDLE, Do.CUT_PAYLOAD, _STOPPED),
+        S.MANUAL: _to(S.IDLE, Do.DROP_TELEOP, Do.CUT_PAYLOAD, _STOPPED),
+        **{s: _to(S.IDLE, Cancel("stop", "stopped by {sender}"), Do.CUT_PAYLOAD, _STOPPED) for s in _ROUTES},
+        S.ESTOP: _stay(S.ESTOP, Do.CUT_PAYLOAD, _STOPPED),
+    },
+    Trigger.HALT: {
         S.IDLE: _stay(S.IDLE, _STOPPED),
         S.MANUAL: _to(S.IDLE, Do.DROP_TELEOP, _STOPPED),
         **{s: _to(S.IDLE, Cancel("stop", "stopped by {sender}"), _STOPPED) for s in _ROUTES},
         S.ESTOP: _stay(S.ESTOP, _STOPPED),
     },
     Trigger.ESTOP: {
-        S.IDLE: _to(S.ESTOP, _LATCH),
-        S.MANUAL: _to(S.ESTOP, Do.DROP_TELEOP, _LATCH),
-        **{s: _to(S.ESTOP, Cancel("estop", "cancelled by e-stop"), _LATCH) for s in _ROUTES},
+        S.IDLE: _to(S.ESTOP, Do.CUT_PAYLOAD, _LATCH),
+        S.MANUAL: _to(S.ESTOP, Do.DROP_TELEOP, Do.CUT_PAYLOAD, _LATCH),
+        **{s: _to(S.ESTOP, Cancel("estop", "cancelled by e-stop"), Do.CUT_PAYLOAD, _LATCH) for s in _ROUTES},
         S.ESTOP: Refused(CommandStatus.DUPLICATE, "e-stop already latched"),
     },
     # Released is not moving: nothing resumes by itself.
@@ -296,9 +317,12 @@ _ROWS: Final[Mapping[Trigger, Mapping[PilotState, Outcome]]] = {
     Trigger.PAYLOAD_OFF: {s: _stay(s, Do.PASS_PAYLOAD) for s in _ALL},
     Trigger.TELEOP_LAPSED: {
         **{s: _no("no teleop command to lapse") for s in _ALL if s is not S.MANUAL},
+        # The payload goes off only if the lapsed command was moving the robot (the pilot checks):
+        # a zero twist running out is an operator who stopped driving, not a lost link.
         S.MANUAL: _to(
             S.IDLE,
             Announce(EventKind.DEADMAN_STOP, "deadman", "no teleop command from {sender} for {ttl:.2f} s: stopped"),
+            Do.CUT_PAYLOAD,
             Do.DROP_TELEOP,
         ),
     },

@@ -74,16 +74,23 @@ class RouteConfig:
 
 @dataclass(frozen=True, slots=True)
 class Destination:
-    order_id: str | None  # None: return home
+    order_id: str | None  # None: return home, or a retrace (``via`` given)
     update_id: int
     x: float
     y: float
     theta: float | None
     sender: str
+    via: tuple[Point, ...] = ()
+    """A path that comes with the destination (a retrace: the robot's own way back, free since it
+    just drove it): followed instead of planning one; the planner is asked only if it is barred."""
+    max_v: float | None = None
+    """A speed cap for this go-to (m/s): an order edge's maxSpeed."""
 
     @property
     def label(self) -> str:
-        return "return home" if self.order_id is None else f"order {self.order_id}/{self.update_id}"
+        if self.order_id is not None:
+            return f"order {self.order_id}/{self.update_id}"
+        return "retrace" if self.via else "return home"
 
 
 @dataclass(frozen=True, slots=True)
@@ -273,6 +280,8 @@ class Route:
     def _plan(self, now: float, pose: Pose, provider: PathProvider | None) -> bool:
         d = self.dest
         self.phase = RoutePhase.STRAIGHT
+        if d.via:
+            return self._follow(now, pose, d.via, None)
         if provider is None:
             self.goto.start([(d.x, d.y)], d.theta)
             return True

@@ -32,10 +32,12 @@ from fleetlink.agent.links.zenoh_link import agent_zenoh_link
 from fleetlink.agent.mapping.keeper import MapKeeper
 from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed
 from fleetlink.devices.ports import Port
+from fleetlink.links.gated import GatedLink
 from fleetlink.links.mqtt import MqttEndpoint
 from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.shared import keys
 from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.messages import LinkName
 from fleetlink.shared.worker import Worker
 
 log = logging.getLogger(__name__)
@@ -54,7 +56,11 @@ class AgentRuntime:
         open_port: Callable[[], Port] | None = None,
         seed: int | None = None,
         scan_sink: Callable[[Any], None] | None = None,
+        reachable: Callable[[LinkName], bool] | None = None,
     ) -> None:
+        """``reachable``: the simulated field's radio (site/agents.py): while it says False for a
+        link, that link passes nothing either way and reads down (``links.gated.GatedLink``);
+        ``zenoh`` and ``mqtt`` stay the endpoints themselves."""
         self.config = config
         self.clock = clock or SystemClock()
         robot = config.robot
@@ -64,11 +70,12 @@ class AgentRuntime:
         self.mqtt: MqttEndpoint | None = None
         if config.zenoh is not None:
             self.zenoh = agent_zenoh_link(robot, config.zenoh)
-            node.links.append(self.zenoh)
-            node.map_link = self.zenoh
+            zenoh = _gated(self.zenoh, reachable)
+            node.links.append(zenoh)
+            node.map_link = zenoh
         if config.mqtt is not None:
             self.mqtt = agent_mqtt_link(robot, config.mqtt, node.connection_payload, seed=seed)
-            node.links.append(self.mqtt)
+            node.links.append(_gated(self.mqtt, reachable))
         node.subscribe()
         self.links = node.links
         self._control = Worker(f"agent-{robot}", clock=self.clock, target=self._control_loop)
@@ -169,6 +176,14 @@ class AgentRuntime:
     @property
     def key_prefix(self) -> str:
         return keys.key(self.config.robot, "state").rsplit("/", 1)[0]
+
+
+def _gated(link: Any, reachable: Callable[[LinkName], bool] | None) -> Any:
+    """The link itself, or behind the radio's gate for its name."""
+    if reachable is None:
+        return link
+    name = link.name
+    return GatedLink(link, lambda: reachable(name))
 
 
 def _serial_opener(url: str) -> Callable[[], Port]:

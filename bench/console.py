@@ -34,6 +34,8 @@ from textual import events  # noqa: E402
 from fleetlink.shared.messages import (  # noqa: E402
     AgvPosition,
     BatteryState,
+    CommsPolicy,
+    Contact,
     LinkStatus,
     OperatingMode,
     SafetyState,
@@ -67,7 +69,8 @@ def feed(rig: Rig, n: int, stop: threading.Event) -> None:
                     errors=(), operatingMode=OperatingMode.AUTOMATIC,
                     safetyState=SafetyState(eStop="NONE", fieldViolation=False), driveMode="goto",  # type: ignore[arg-type]
                     links=LinkStatus(zenoh=True, mqtt=True), uwbStale=False, payloadOn=False, boardConnected=True,
-                    orderId="", orderUpdateId=0, goal=None, driving=True, paused=False,
+                    orderId="", orderUpdateId=0, goal=None, driving=True, paused=False, home=None,
+                    contact=Contact(policy=CommsPolicy.STOP, lost=False, action="", silent_s=0.0),
                 )  # fmt: skip
                 rig.zenoh.inject(st)
         tick += 1

@@ -206,7 +206,7 @@ def _describe(reply: object) -> str:
     if isinstance(reply, p.PowerData):
         return f"{reply.voltage:.2f} V, {reply.current:+.2f} A, {reply.battery_percent} %"
     if isinstance(reply, p.PayloadStatus):
-        return f"UV-C {'on' if reply.uv_lamp else 'off'}, atomiser {reply.atomiser_level}, fan {'on' if reply.fan else 'off'}, tank {reply.tank_percent} %"
+        return f"UV-C {'on' if reply.uv_lamp else 'off'}, atomiser {reply.atomiser_level}, fan {reply.fan_level}, tank {reply.tank_percent} %"
     if isinstance(reply, p.EnvData):
         return f"{reply.temperature_c:.1f} °C, {reply.humidity_percent:.0f} % RH, PM2.5 {reply.pm2_5:.1f} µg/m³, TVOC {reply.tvoc_ppb} ppb"
     if isinstance(reply, p.Buttons):

@@ -13,8 +13,10 @@ let it publish commands only under that name (docs/operations.md, "Identity").
 
 Keys: u i o / j k l / m , . (teleop_twist_keyboard), arrows and w a s d drive the selected robot;
 space or k stops it; Esc stops every robot; q/z, W/x, e/c change speeds; t takes the control
-lease; h returns home; p toggles the payload; ':' types a goal or a mark; '/' filters; a click on
-the map sends a goal (after confirmation) or places a mark; ctrl+q quits (and stops every robot).
+lease; h returns home; p toggles the payload; P pauses or resumes a round; M (shift-m) marks a
+casualty, hazard or note at the selected robot's pose; ':' types a goal, a mark or a round
+(':disinfect room X Y'); '/' filters; a click on the map sends a
+goal (after confirmation) or places a mark; ctrl+q quits (and stops every robot).
 See docs/console.md.
 
 Config file (TOML), every key optional; command-line options win:
@@ -22,6 +24,7 @@ Config file (TOML), every key optional; command-line options win:
     operator = "operator-1"
     read_only = false
     marks_file = "marks.json"
+    audit_log = "alarms.jsonl"            # the alarm audit log (default: next to the marks file)
     user = "op-alice"                    # a secured site: the login on both links (or --user)
     password_file = "op-alice.password"
     ca_file = "ca.crt"                   # the site CA, for tls/ and mqtts://
@@ -30,6 +33,10 @@ Config file (TOML), every key optional; command-line options win:
     listen = []
     [mqtt]
     url = "mqtts://broker.site-a.example:8883"
+    [uv]                                 # the lamp UV rounds are planned for (the agent's [uv] keys)
+    uvc_power_w = 10.0
+    height_m = 0.6
+    target_dose_mj_cm2 = 10.0            # :disinfect's default (dose MJ_CM2 overrides it)
 """
 
 from __future__ import annotations
@@ -46,7 +53,6 @@ from typing import Annotated, Any
 
 from fleetlink.cli.main import on_sigterm
 from fleetlink.shared.config import Setting
-from fleetlink.shared.worker import Worker
 
 log = logging.getLogger(__name__)
 
@@ -59,9 +65,13 @@ class ConsoleSettings:
     mqtt_url: str = "mqtt://127.0.0.1:1883"
     read_only: bool = False
     marks_file: Path | None = field(default_factory=lambda: Path("marks.json"))
+    audit_log: Path | None = None
+    """The alarm audit log (JSON lines, appended); None: ``alarms.jsonl`` next to the marks file."""
     user: str | None = None
     password: str | None = field(default=None, repr=False)
     ca_file: str | None = None
+    uv: ConsoleUvTable | None = None
+    """The lamp and target dose rounds are planned for (``[uv]``); None: the agent's defaults."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -72,6 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mqtt", dest="mqtt_url", help="MQTT broker url (default mqtt://127.0.0.1:1883)")
     parser.add_argument("--read-only", action="store_true", default=None, help="watch only: send no command")
     parser.add_argument("--marks", type=Path, dest="marks_file", help="where marks are saved (default marks.json)")
+    parser.add_argument(
+        "--audit-log", type=Path, help="the alarm audit log, JSON lines (default alarms.jsonl next to the marks file)"
+    )
     parser.add_argument("--user", help="log in to the router and the broker as this user (op-<name>)")
     parser.add_argument("--password-file", type=Path, help="the --user's password (one line)")
     parser.add_argument("--ca-file", help="the site CA for tls/ Zenoh endpoints and mqtts:// urls")
@@ -92,17 +105,42 @@ NonEmpty = Annotated[str | None, Setting(min_len=1)]
 
 
 @dataclass(frozen=True, slots=True)
+class ConsoleUvTable:
+    """``[uv]``: the lamp a UV round (``:disinfect``) is planned for and its default target dose;
+    the same keys and defaults as the agent's ``[uv]`` (agent/config.py, deploy/robot.example.toml)."""
+
+    uvc_power_w: Annotated[float, Setting(lo=1e-3, hi=10_000.0, doc="UV-C optical output, W (not electrical W)")] = 10.0
+    height_m: Annotated[float, Setting(lo=0.01, hi=10.0, doc="lamp centre above the floor, m")] = 0.6
+    tube_length_m: Annotated[float, Setting(lo=0.0, hi=5.0, doc="0: point source; else a vertical tube, m")] = 0.0
+    min_distance_m: Annotated[float, Setting(lo=0.01, hi=5.0, doc="the model holds beyond this distance, m")] = 0.3
+    target_dose_mj_cm2: Annotated[
+        float, Setting(lo=1e-4, hi=100_000.0, doc="the dose every cell should get, mJ/cm² (10 = 100 J/m²)")
+    ] = 10.0
+
+    def validate(self) -> None:
+        self.lamp()  # the lamp model's own checks (the floor beyond min_distance_m)
+
+    def lamp(self) -> Any:
+        """The ``shared.dose.Lamp``."""
+        from fleetlink.shared.dose import Lamp
+
+        return Lamp(self.uvc_power_w, self.height_m, self.tube_length_m, self.min_distance_m)
+
+
+@dataclass(frozen=True, slots=True)
 class ConsoleFile:
     """console.toml (see the module docstring); every key optional, command-line options win."""
 
     operator: Annotated[str | None, Setting(min_len=1, doc="this console's sender id")] = None
     read_only: Annotated[bool | None, Setting(doc="watch only: send no command")] = None
     marks_file: Annotated[str | None, Setting(min_len=1, doc="where marks are saved")] = None
+    audit_log: Annotated[str | None, Setting(min_len=1, doc="the alarm audit log (JSON lines)")] = None
     user: Annotated[str | None, Setting(min_len=1, doc="a secured site: the login on both links")] = None
     password_file: NonEmpty = None
     ca_file: Annotated[str | None, Setting(min_len=1, doc="the site CA, for tls/ and mqtts://")] = None
     zenoh: ConsoleZenohTable | None = None
     mqtt: ConsoleMqttTable | None = None
+    uv: ConsoleUvTable | None = None
 
 
 def load_settings(args: argparse.Namespace) -> ConsoleSettings:
@@ -128,10 +166,13 @@ def load_settings(args: argparse.Namespace) -> ConsoleSettings:
             s.read_only = f.read_only
         if f.marks_file is not None:
             s.marks_file = Path(f.marks_file)
+        if f.audit_log is not None:
+            s.audit_log = Path(f.audit_log)
         if f.zenoh is not None:
             s.zenoh_connect, s.zenoh_listen = f.zenoh.connect, f.zenoh.listen
         if f.mqtt is not None:
             s.mqtt_url = f.mqtt.url
+        s.uv = f.uv
     if getattr(args, "user", None):
         s.user = args.user
     if getattr(args, "password_file", None):
@@ -158,6 +199,8 @@ def load_settings(args: argparse.Namespace) -> ConsoleSettings:
         s.read_only = True
     if args.marks_file:
         s.marks_file = args.marks_file
+    if getattr(args, "audit_log", None):
+        s.audit_log = args.audit_log
     keys.check_id(s.operator, "operator id")
     if (s.user is None) != (s.password is None):
         raise ValueError("--user and --password-file go together (both or neither)")
@@ -187,8 +230,9 @@ def mqtt_client_settings(s: ConsoleSettings) -> Any:
     return MqttSettings.from_url(s.mqtt_url, username=s.user, password=s.password, ca_file=s.ca_file)
 
 
-def open_link(settings: ConsoleSettings, clock: Any) -> Any:
-    """The console's OperatorLink (Zenoh + MQTT) from its settings, started (fleetlink.site.operator)."""
+def open_link(settings: ConsoleSettings, clock: Any, client_id: str | None = None) -> Any:
+    """The console's OperatorLink (Zenoh + MQTT) from its settings, started (fleetlink.site.operator).
+    ``client_id``: the broker's client id (default ``<operator>-<host>``; unique on the broker)."""
     from fleetlink.site.operator import open_operator_link
 
     auth: dict[str, Any] = {}
@@ -206,7 +250,7 @@ def open_link(settings: ConsoleSettings, clock: Any) -> Any:
         zenoh_listen=settings.zenoh_listen,
         zenoh_connect=settings.zenoh_connect,
         zenoh_auth=auth,
-        client_id=f"{settings.operator}-{socket.gethostname()}"[:64],
+        client_id=client_id or f"{settings.operator}-{socket.gethostname()}"[:64],
     ).start()
 
 
@@ -215,6 +259,7 @@ def run_console(settings: ConsoleSettings, link: Any = None) -> int:
     import threading
 
     from fleetlink.operator.console import ConsoleApp, attach
+    from fleetlink.operator.dose import DoseFetcher, DoseFollower
     from fleetlink.operator.fleet import FleetModel
     from fleetlink.operator.maps import MapFetcher, MapFollower
     from fleetlink.shared.clock import SystemClock
@@ -225,10 +270,15 @@ def run_console(settings: ConsoleSettings, link: Any = None) -> int:
     fleet = FleetModel(settings.operator)
     lock = threading.Lock()
     maps = MapFollower(fleet)
-    attach(link, fleet, lock, maps)
-    app = ConsoleApp(link, fleet, clock, lock=lock, read_only=settings.read_only, marks_file=settings.marks_file)
+    doses = DoseFollower(fleet)
+    attach(link, fleet, lock, maps, doses)
+    app = ConsoleApp(
+        link, fleet, clock, lock=lock, doses=doses, read_only=settings.read_only, marks_file=settings.marks_file,
+        audit_log=audit_log_path(settings), **round_options(settings),
+    )  # fmt: skip
     fetcher = MapFetcher(maps, link.fetch_map, clock, lock).start()
-    marks = share_marks(link, fleet, lock)
+    dose_fetcher = DoseFetcher(doses, link.fetch_dose, clock, lock).start()  # merges the layers off the UI thread
+    marks = share_marks(link, fleet, lock, clock=clock, publish=not settings.read_only)
     try:
         with _sigterm_ends(app):
             app.run()
@@ -236,8 +286,26 @@ def run_console(settings: ConsoleSettings, link: Any = None) -> int:
         app.send_stop_to_all()  # also after a crash or Ctrl-C: safety before features
         marks.stop()
         fetcher.stop()
+        dose_fetcher.stop()
         link.close()
     return 0
+
+
+def round_options(settings: ConsoleSettings) -> dict[str, Any]:
+    """What the console plans rounds with: the planner (fleetlink.site.rounds, over the agent's
+    coverage planner), the lamp and the default target dose (``[uv]``, else the agent's defaults)."""
+    from fleetlink.shared.dose import j_m2
+    from fleetlink.site.rounds import plan_round
+
+    uv = settings.uv or ConsoleUvTable()
+    return {"planner": plan_round, "lamp": uv.lamp(), "target_j_m2": j_m2(uv.target_dose_mj_cm2)}
+
+
+def audit_log_path(settings: ConsoleSettings) -> Path:
+    """Where the alarm audit log goes: as set, else ``alarms.jsonl`` next to the marks file."""
+    if settings.audit_log is not None:
+        return settings.audit_log
+    return (settings.marks_file.parent if settings.marks_file is not None else Path(".")) / "alarms.jsonl"
 
 
 def _sigterm_ends(app: Any) -> contextlib.AbstractContextManager[None]:
@@ -255,30 +323,14 @@ def _sigterm_ends(app: Any) -> contextlib.AbstractContextManager[None]:
     return on_sigterm(end)
 
 
-def share_marks(link: Any, fleet: Any, lock: Any, asks: tuple[float, ...] = (0.5, 2.0, 6.0)) -> Worker:
-    """Answer other consoles' marks queries, and ask theirs (a few times: peers take a moment to
-    find each other), so a console that starts late still gets the marks placed before it.
-    Returns the (started) worker that asks; ``stop()`` it on the way out."""
+def share_marks(link: Any, fleet: Any, lock: Any, **options: Any) -> Any:
+    """Share marks with the other consoles (operator/marksync.py ``MarkSharing``, started): this
+    console's retained sets on MQTT, answers to their Zenoh marks queries, and its own queries
+    (``asks``: seconds after start), so a console that starts late or restarts gets every mark.
+    ``stop()`` it on the way out."""
+    from fleetlink.operator.marksync import MarkSharing
 
-    def held() -> list[Any]:
-        with lock:
-            return fleet.live_marks()
-
-    link.serve_marks(held)
-
-    def ask(worker: Worker) -> None:
-        waited = 0.0
-        for at in asks:
-            worker.wait(at - waited)
-            if worker.stopping:
-                return
-            waited = at
-            try:
-                link.fetch_marks()
-            except Exception as exc:  # closed on the way out: nothing to ask any more
-                log.debug("asking for marks: %s", exc)
-
-    return Worker("console-marks", target=ask).start()
+    return MarkSharing(link, fleet, lock, **options).start()
 
 
 def run(args: argparse.Namespace) -> int:

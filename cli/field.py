@@ -144,12 +144,20 @@ def _run_lockstep(scenario: Scenario, plan: FloorPlan, out: Path | None, field_o
                 result = field_run.run()
             write_outputs(result, out)
             written = "truth/*.csv, events.log, summary.json"
+        elif scenario.casualties:  # a rescue sortie: its scripted operator (fleetlink.site.sortie)
+            from fleetlink.site.sortie import SortieRun, write_sortie_outputs
+
+            with SortieRun(scenario, plan, record=True) as sortie_run:
+                sortie = sortie_run.run()
+            result = sortie.mission.field
+            write_sortie_outputs(sortie, out)
+            written = "truth/*.csv, agents/*.log, operator.log, events.log, contact.csv, marks.csv, sortie.log, sortie.json, summary.json"
         else:
             with MissionRun(scenario, plan) as mission:
                 mission_result = mission.run()
             result = mission_result.field
             write_mission_outputs(mission_result, out)
-            written = "truth/*.csv, agents/*.log, operator.log, events.log, summary.json"
+            written = "truth/*.csv, agents/*.log, operator.log, events.log, contact.csv, summary.json"
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

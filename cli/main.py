@@ -21,7 +21,12 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "agent": ("fleetlink.cli.agent", "run one robot's agent (board link, Zenoh + MQTT command links)"),
     "uwb": ("fleetlink.cli.uwb", "the UWB gateway: fixes from the field's true poses, over MQTT (PANS too)"),
     "map": ("fleetlink.cli.map", "maps: fetch a robot's map, read a map_server map, build one from a CARMEN log"),
+    "dose": (
+        "fleetlink.cli.dose",
+        "UV dose: fetch robots' dose layers and write the dose report (PGM, PNG, CSV, summary)",
+    ),
     "console": ("fleetlink.cli.console", "the operator console: join a fleet over Zenoh (primary) and MQTT (fallback)"),
+    "marks": ("fleetlink.cli.marks", "marks: export every console's marks (CSV, GeoJSON) for the incident report"),
 }
 
 

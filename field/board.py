@@ -107,7 +107,7 @@ class BoardState:
     stalled: bool = False
     uv_lamp: bool = False
     atomiser: int = 0
-    fan: bool = False
+    fan: int = 0  # level 0 (off) - 3
     tank_ml: float = 500.0
     leds: tuple[int, int, int, int] = (1, 0, 64, 0)
     buttons: int = 0
@@ -305,7 +305,7 @@ class SimulatedBoard:
             st.atomiser = req.level
             return p.Empty()
         if isinstance(req, p.SetFan):
-            st.fan = req.on
+            st.fan = req.level
             return p.Empty()
         if isinstance(req, p.GetPayloadStatus):
             return p.PayloadStatus(st.uv_lamp, st.atomiser, st.fan, self.tank_percent)
@@ -361,6 +361,9 @@ class SimulatedBoard:
             self.events.append(f"link watchdog: no request for {cfg.watchdog:.1f} s, wheels stopped")
         if st.watchdog_tripped:
             st.set_left = st.set_right = 0.0
+        if st.buttons & p.Button.ESTOP:  # the button cuts the motors and the payload in hardware
+            st.set_left = st.set_right = 0.0
+            st.uv_lamp, st.atomiser, st.fan = False, 0, 0
 
         if st.v_left == 0.0 and st.v_right == 0.0 and st.set_left == 0.0 and st.set_right == 0.0:
             # Standing still with nothing to do: only the slow housekeeping runs (and the gyro,
@@ -463,7 +466,7 @@ class SimulatedBoard:
         if st.charging:
             return cfg.charge_current
         load = (abs(st.v_left) + abs(st.v_right)) / (2 * cfg.max_wheel_speed)
-        payload = 0.8 * st.uv_lamp + 0.3 * st.atomiser + 0.4 * st.fan
+        payload = 0.8 * st.uv_lamp + 0.3 * st.atomiser + 0.15 * st.fan
         return -(cfg.idle_current + cfg.drive_current * load + payload)
 
     def _battery(self, dt: float, load: float) -> None:
@@ -488,8 +491,8 @@ class SimulatedBoard:
                 self.events.append("tank empty: atomiser switched off")
         else:
             st.humidity = max(35.0, st.humidity - 0.005 * dt)
-        if st.fan:
-            st.pm2_5 = max(2.0, st.pm2_5 - 0.05 * dt)
+        if st.fan:  # the HEPA filter clears the air faster at a higher level
+            st.pm2_5 = max(2.0, st.pm2_5 - 0.025 * st.fan * dt)
 
     # ---------------------------------------------------------------------------------------
     # Readings

@@ -11,8 +11,9 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
-Point = tuple[float, float]
-Segment = tuple[float, float, float, float]  # x1, y1, x2, y2
+from fleetlink.shared.geometry import Point, Segment, point_in_polygon, point_segment_distance
+
+__all__ = ["Floor", "Point", "Rect", "Segment", "cone_range", "ray_cast"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,18 +58,6 @@ class Floor:
         return any(r.contains(x, y) for r in self.cliffs) or any(point_in_polygon(x, y, p) for p in self.cliff_polygons)
 
 
-def point_in_polygon(x: float, y: float, polygon: Sequence[Point]) -> bool:
-    """Even-odd test: is (x, y) inside a simple polygon given by its corners (either winding)?"""
-    inside = False
-    n = len(polygon)
-    for i in range(n):
-        x1, y1 = polygon[i]
-        x2, y2 = polygon[(i + 1) % n]
-        if (y1 > y) != (y2 > y) and x < x1 + (y - y1) * (x2 - x1) / (y2 - y1):
-            inside = not inside
-    return inside
-
-
 def ray_cast(walls: Iterable[Segment], x: float, y: float, angle: float, max_range: float) -> float:
     dx, dy = math.cos(angle), math.sin(angle)
     best = math.inf
@@ -83,14 +72,6 @@ def ray_cast(walls: Iterable[Segment], x: float, y: float, angle: float, max_ran
         if 0.0 <= u <= 1.0 and 0.0 <= t < best:
             best = t
     return best if best <= max_range else math.inf
-
-
-def point_segment_distance(px: float, py: float, seg: Segment) -> float:
-    x1, y1, x2, y2 = seg
-    ex, ey = x2 - x1, y2 - y1
-    n2 = ex * ex + ey * ey
-    t = 0.0 if n2 == 0 else max(0.0, min(1.0, ((px - x1) * ex + (py - y1) * ey) / n2))
-    return math.hypot(px - (x1 + t * ex), py - (y1 + t * ey))
 
 
 def cone_range(

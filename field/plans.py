@@ -22,14 +22,18 @@ from typing import Annotated, Any, NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from fleetlink.field.floor import Floor, Point, Segment, point_in_polygon
+from fleetlink.field.floor import Floor
 from fleetlink.field.mapserver import MapError, OccupancyMap, image_from_grid, read_map
+from fleetlink.field.radio import AccessPoint, RadioSettings
 from fleetlink.shared.config import ConfigError, Invalid, Setting, parse, read_toml
+from fleetlink.shared.geometry import Point, Segment, point_in_polygon, points_in_polygon
+from fleetlink.shared.messages import LinkName
 
 __all__ = [
     "BUILTIN_PLANS",
     "PLANS_DIR",
     "ROBOT_RADIUS",
+    "AccessPoint",
     "Anchor",
     "FloorPlan",
     "MapSidecar",
@@ -37,6 +41,7 @@ __all__ = [
     "PlanFile",
     "Polygon",
     "Pose",
+    "RadioSettings",
     "builtin_plans",
     "dump_plan",
     "load_plan",
@@ -93,6 +98,9 @@ class FloorPlan:
     anchors: tuple[Anchor, ...] = ()
     description: str = ""
     source: str = "<memory>"
+    access_points: tuple[AccessPoint, ...] = ()  # the radio (field/radio.py): none = reachable everywhere
+    dead_zones: tuple[Polygon, ...] = ()  # where no link gets through
+    radio: RadioSettings = field(default_factory=RadioSettings)
     _base: npt.NDArray[np.float64] = field(init=False, repr=False, compare=False)
     _labels: tuple[str, ...] = field(init=False, repr=False, compare=False)
 
@@ -166,6 +174,25 @@ class FloorPlan:
                 raise fail(f"anchors[{i}].id", f"anchor {aid!r} appears twice")
             x, y, z = (number(c, f"anchors[{i}].{k}") for c, k in zip(a[1:], "xyz", strict=True))
             anchors.append(Anchor(aid, x, y, z))
+        dead_zones = tuple(polygon(p, f"dead_zones[{i}]") for i, p in enumerate(self.dead_zones))
+        access_points: list[AccessPoint] = []
+        for i, ap in enumerate(self.access_points):
+            where = f"access_points[{i}]"
+            if not isinstance(ap, AccessPoint):
+                raise fail(where, f"expected an AccessPoint, got {ap!r}")
+            apn = name_ok(ap.name, f"{where}.name")
+            if any(b.name == apn for b in access_points):
+                raise fail(f"{where}.name", f"access point {apn!r} appears twice")
+            x, y = number(ap.x, f"{where}.x"), number(ap.y, f"{where}.y")
+            tx = number(ap.tx_power_dbm, f"{where}.tx_power_dbm")
+            links = tuple(ap.links)
+            if not links or len(set(links)) != len(links) or not all(isinstance(k, LinkName) for k in links):
+                raise fail(f"{where}.links", f"expected one or both of zenoh, mqtt, each once, got {list(ap.links)!r}")
+            access_points.append(AccessPoint(apn, x, y, links, tx))
+        if not isinstance(self.radio, RadioSettings):
+            raise fail("radio", f"expected RadioSettings, got {self.radio!r}")
+        for key, problem in self.radio.problems():
+            raise fail(f"radio.{key}", problem)
         set_ = object.__setattr__
         set_(self, "bounds", (xmin, ymin, xmax, ymax))
         set_(self, "walls", walls)
@@ -173,6 +200,8 @@ class FloorPlan:
         set_(self, "cliffs", cliffs)
         set_(self, "doors", MappingProxyType(doors))
         set_(self, "anchors", tuple(anchors))
+        set_(self, "dead_zones", dead_zones)
+        set_(self, "access_points", tuple(access_points))
         rows: list[Segment] = list(walls)
         labels = [f"walls[{i}]" for i in range(len(walls))]
         for i, poly in enumerate(obstacles):
@@ -221,6 +250,9 @@ class FloorPlan:
                 tuple(self.doors.items()),
                 tuple(self.starts.items()),
                 self.anchors,
+                self.access_points,
+                self.dead_zones,
+                self.radio,
             )
         )
 
@@ -302,7 +334,7 @@ class FloorPlan:
             r0, r1 = np.searchsorted(cy, min(ys)), np.searchsorted(cy, max(ys), side="right")
             if c0 < c1 and r0 < r1:
                 px, py = np.meshgrid(cx[c0:c1], cy[r0:r1])
-                inside = _inside(px, py, poly)
+                inside = points_in_polygon(px, py, poly)
                 grid[r0:r1, c0:c1][inside] = 100
         for x1, y1, x2, y2 in self.segments(closed_doors):
             n = max(2, math.ceil(math.hypot(x2 - x1, y2 - y1) / (resolution / 4)) + 1)
@@ -328,20 +360,6 @@ def _distances(segs: npt.NDArray[np.float64], x: float, y: float) -> npt.NDArray
         t = np.where(n2 > 0, ((x - x1) * ex + (y - y1) * ey) / n2, 0.0)
     t = np.clip(t, 0.0, 1.0)
     return np.asarray(np.hypot(x - (x1 + t * ex), y - (y1 + t * ey)), dtype=np.float64)
-
-
-def _inside(px: npt.NDArray[np.float64], py: npt.NDArray[np.float64], poly: Polygon) -> npt.NDArray[np.bool_]:
-    """Even-odd point-in-polygon for arrays of points."""
-    inside = np.zeros(px.shape, dtype=bool)
-    n = len(poly)
-    for k in range(n):
-        (x1, y1), (x2, y2) = poly[k], poly[(k + 1) % n]
-        if y1 == y2:
-            continue
-        crosses = (y1 > py) != (y2 > py)
-        xs = x1 + (py - y1) * (x2 - x1) / (y2 - y1)
-        inside ^= crosses & (px < xs)
-    return inside
 
 
 # -- TOML ------------------------------------------------------------------------------------------
@@ -406,6 +424,9 @@ class _PlanParts:
     )
     start_grid: tuple[_StartGrid, ...] = ()
     anchors: tuple[_PlanAnchor, ...] = ()
+    access_points: tuple[AccessPoint, ...] = ()
+    dead_zones: tuple[_Area, ...] = ()
+    radio: RadioSettings = field(default_factory=RadioSettings)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -445,6 +466,9 @@ def _parts(f: _PlanParts, source: str) -> dict[str, Any]:
         "doors": dict(f.doors),
         "starts": starts,
         "anchors": tuple(Anchor(a.id, a.x, a.y, a.z) for a in f.anchors),
+        "access_points": f.access_points,
+        "dead_zones": tuple(a.polygon for a in f.dead_zones),
+        "radio": f.radio,
     }
 
 
@@ -602,6 +626,21 @@ def dump_plan(plan: FloorPlan) -> str:
             f"y = {_num(a.y)}",
             f"z = {_num(a.z)}",
         ]
+    if plan.radio != RadioSettings():
+        lines += ["", "[radio]"]
+        lines.extend(f"{k} = {_num(getattr(plan.radio, k))}" for k in RadioSettings.__dataclass_fields__)
+    for ap in plan.access_points:
+        lines += [
+            "",
+            "[[access_points]]",
+            f"name = {_toml_str(ap.name)}",
+            f"x = {_num(ap.x)}",
+            f"y = {_num(ap.y)}",
+            "links = [" + ", ".join(_toml_str(k.value) for k in ap.links) + "]",
+            f"tx_power_dbm = {_num(ap.tx_power_dbm)}",
+        ]
+    for poly in plan.dead_zones:
+        lines += ["", "[[dead_zones]]", "polygon = [" + ", ".join(f"[{_num(x)}, {_num(y)}]" for x, y in poly) + "]"]
     return "\n".join(lines) + "\n"
 
 

@@ -30,6 +30,7 @@ __all__ = [
     "EVENT_KINDS",
     "TELEOP_PERIOD_S",
     "ActionOrder",
+    "Casualty",
     "DoorClose",
     "DoorOpen",
     "Event",
@@ -333,6 +334,18 @@ COMMAND_KINDS = ("teleop", "goal", "action", "mark")
 
 
 @dataclass(frozen=True, slots=True)
+class Casualty:
+    """Someone lying in the building (``[[casualties]]``): ground truth that a run's operator looks
+    for and that its marks are scored against (site/sortie.py). Not a body in the world: the robots'
+    sensors do not see it, only the operator's camera does."""
+
+    name: Name
+    x: Annotated[float, Setting(doc="m, plan frame")]
+    y: Annotated[float, Setting(doc="m, plan frame")]
+    label: Annotated[str, Setting(max_len=MAX_MARK_LABEL, doc="what the operator writes on the mark")] = ""
+
+
+@dataclass(frozen=True, slots=True)
 class Scenario:
     name: str
     plan: Annotated[str, Setting(min_len=1, required=True, doc="a built-in plan name, or a path")]
@@ -346,6 +359,7 @@ class Scenario:
     noise: Noise = field(default_factory=Noise)
     lidar: LidarSettings = field(default_factory=LidarSettings)
     events: tuple[Event, ...] = ()
+    casualties: tuple[Casualty, ...] = ()
     truth_rate_hz: Annotated[float, Setting(lo=0.1, hi=1000.0, doc="ground-truth samples a second")] = 20.0
     control_period: Annotated[float, Setting(key="control_period_s", lo=0.001, hi=0.05, doc="physics sub-step, s")] = (
         0.01
@@ -362,6 +376,9 @@ class Scenario:
         for i, a in enumerate(self.anchors):
             if any(b[0] == a[0] for b in self.anchors[:i]):
                 raise Invalid(f"anchors[{i}].id", f"anchor {a[0]!r} appears twice")
+        for i, c in enumerate(self.casualties):
+            if any(b.name == c.name for b in self.casualties[:i]):
+                raise Invalid(f"casualties[{i}].name", f"casualty {c.name!r} appears twice")
         for i, ev in enumerate(self.events):
             robot = getattr(ev, "robot", None)
             if robot is not None and robot not in names:

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fleetlink.field.board import BoardConfig, SimulatedBoard
-from fleetlink.field.floor import point_segment_distance
 from fleetlink.field.raycast import Raycaster
+from fleetlink.shared.geometry import point_segment_distance
 
 __all__ = ["Pose", "RobotView", "World", "WorldRobot"]
 

@@ -18,7 +18,7 @@ from fleetlink.shared.wire import MAX_PAYLOAD
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Link", "LinkStats", "QueryLink", "Receiver", "key_matches", "to_mqtt_filter"]
+__all__ = ["Link", "LinkStats", "QueryLink", "Receiver", "RetainLink", "key_matches", "to_mqtt_filter"]
 
 Receiver = Callable[[str, bytes], None]
 """Called with (key, payload) for every message that matches a subscription."""
@@ -95,6 +95,21 @@ class QueryLink(Link, Protocol):
 
     def query(self, key_expr: str, timeout: float = ...) -> list[tuple[str, bytes]]:
         """Every reachable answer to ``key_expr``."""
+        ...
+
+
+@runtime_checkable
+class RetainLink(Link, Protocol):
+    """A link whose broker keeps the last message on a key for whoever subscribes later (MQTT
+    retained messages: ``MqttEndpoint``). Consoles keep their marks there (operator/marksync.py)."""
+
+    def publish_retained(self, key: str, payload: bytes) -> bool:
+        """``publish``, and the broker keeps ``payload`` as the key's last message; False if not sent."""
+        ...
+
+    def add_connect_hook(self, hook: Callable[[], object]) -> None:
+        """Call ``hook()`` after every (re)connect, once the subscriptions are renewed (on the
+        link's own thread): what was not sent while down can go now."""
         ...
 
 

@@ -8,8 +8,14 @@ delivering, so a command and its ack cross in one call). Nothing runs on a threa
 a run is deterministic.
 
 Faults: ``bus.cut("agent-r1")`` takes one endpoint off the network (its publishes and the messages
-meant for it vanish, counted in ``stats.dropped``; ``up`` is False) until ``bus.restore``.
+meant for it vanish, counted in ``stats.dropped``; ``up`` is False) until ``bus.restore``. A cut
+has a reason (``"scenario"`` by default; the lockstep run's radio model uses ``"radio"``): the
+endpoint is back only once every reason is restored, so a scripted cut and a robot out of radio
+reach stay separate causes (``bus.cut_reasons(client_id)``).
 Queries (``serve``/``query``) answer synchronously, as a Zenoh queryable would on loopback.
+Liveliness, as on Zenoh: an endpoint's ``alive_key`` is its token while it is up (started, not
+cut, not closed); ``watch_liveliness(key_expr, on_change)`` reports tokens appearing and going,
+at the start of each ``deliver`` (a cut watcher sees none).
 """
 
 from __future__ import annotations
@@ -20,7 +26,10 @@ from collections.abc import Callable
 from fleetlink.links.base import LinkStats, Receiver, key_matches
 from fleetlink.shared.messages import LinkName
 
-__all__ = ["InProcessBus", "InProcessLink"]
+__all__ = ["SCENARIO_CUT", "InProcessBus", "InProcessLink"]
+
+SCENARIO_CUT = "scenario"
+"""The reason of a cut that names none (a scenario's ``link`` event, a test)."""
 
 Answer = Callable[[str], list[tuple[str, bytes]]]
 
@@ -40,6 +49,10 @@ class InProcessLink:
         self._routes: dict[str, list[Receiver]] = {}  # key -> its receivers, as subscriptions stand
         self._served: list[tuple[str, Answer]] = []
         self._open = False
+        self.alive_key: str | None = None
+        """This endpoint's liveliness token (set it before the run), present while it is up."""
+        self._watches: list[tuple[str, Callable[[str, bool], None]]] = []
+        self._alive_seen: set[str] = set()
 
     def start(self) -> None:
         self._open = True
@@ -49,6 +62,13 @@ class InProcessLink:
         self._subs.clear()
         self._routes.clear()
         self._served.clear()
+        self._watches.clear()
+
+    def watch_liveliness(self, key_expr: str, on_change: Callable[[str, bool], None]) -> None:
+        """``on_change(token key, alive)`` when an endpoint's token matching ``key_expr`` appears or
+        goes (reported at the start of the bus's next ``deliver``, the present ones included)."""
+        self._watches.append((key_expr, on_change))
+        self._alive_seen.clear()
 
     @property
     def up(self) -> bool:
@@ -113,6 +133,8 @@ class InProcessBus:
         self.name = name
         self.endpoints: list[InProcessLink] = []
         self.cut_endpoints: set[str] = set()
+        """Endpoints cut for at least one reason."""
+        self._reasons: dict[str, set[str]] = {}
         self.queue: deque[tuple[InProcessLink, str, bytes]] = deque()
         self.delivered = 0
         self._now = clock_now
@@ -124,18 +146,32 @@ class InProcessBus:
         self.endpoints.append(link)
         return link
 
-    def cut(self, client_id: str) -> None:
+    def cut(self, client_id: str, reason: str = SCENARIO_CUT) -> None:
+        """Take the endpoint off the network for ``reason`` (idempotent)."""
         self._known(client_id)
+        self._reasons.setdefault(client_id, set()).add(reason)
         self.cut_endpoints.add(client_id)
 
-    def restore(self, client_id: str) -> None:
+    def restore(self, client_id: str, reason: str = SCENARIO_CUT) -> None:
+        """Lift the cut for ``reason``; the endpoint is back once no reason is left."""
         self._known(client_id)
+        reasons = self._reasons.get(client_id)
+        if reasons is not None:
+            reasons.discard(reason)
+            if reasons:
+                return
+            del self._reasons[client_id]
         self.cut_endpoints.discard(client_id)
+
+    def cut_reasons(self, client_id: str) -> frozenset[str]:
+        """Why the endpoint is cut (empty: it is not)."""
+        return frozenset(self._reasons.get(client_id, ()))
 
     def deliver(self) -> int:
         """Hand every queued message to its subscribers, in order; returns how many were taken."""
         n = 0
         now = self._now() if self._now is not None else None
+        self._liveliness()
         while self.queue:
             sender, key, payload = self.queue.popleft()
             n += 1
@@ -151,6 +187,19 @@ class InProcessBus:
                 peer._receive(key, payload, now)
         self.delivered += n
         return n
+
+    def _liveliness(self) -> None:
+        watchers = [e for e in self.endpoints if e._watches and e._open]
+        if not watchers:
+            return
+        tokens = {e.alive_key for e in self.endpoints if e.alive_key is not None and e.up}
+        for watcher in watchers:
+            visible = tokens if watcher.up else set()
+            for key in sorted(visible ^ watcher._alive_seen):
+                for expr, on_change in list(watcher._watches):
+                    if key_matches(expr, key):
+                        on_change(key, key in visible)
+            watcher._alive_seen = set(visible)
 
     def _known(self, client_id: str) -> None:
         if not any(e.client_id == client_id for e in self.endpoints):

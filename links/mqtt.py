@@ -10,7 +10,8 @@ costs ~40 ms per message, GUIDE.md), the last will, and a jittered reconnect bac
   again after every reconnect (the session is clean), and hand (topic, payload) to their receiver;
 * ``publish(key, payload, qos=None, retain=False)``: QoS 1 for the keys whose topic is in
   ``QOS1_TOPICS`` (commands, acks, the lease, the connection, marks), QoS 0 for telemetry, unless
-  asked otherwise; False (counted as dropped) while disconnected;
+  asked otherwise; False (counted as dropped) while disconnected; ``publish_retained`` (the
+  consoles' mark sets) and ``add_connect_hook`` make it a ``links.base.RetainLink``;
 * a last will (``MqttMessage``), an ``on_connect(endpoint)`` hook run after every (re)connect
   (the agent re-publishes its retained ``Connection``, the UWB gateway its ``online`` status) and
   an ``on_close(endpoint)`` hook run while still connected on a clean close (their ``OFFLINE``).
@@ -58,7 +59,21 @@ log = logging.getLogger(__name__)
 MAX_ROUTES = 1024
 """Topics whose receivers an endpoint remembers."""
 
-QOS1_TOPICS = frozenset({"order", "actions", "teleop", "connection", "ack", "lease", "lease/request", "marks"})
+QOS1_TOPICS = frozenset(
+    {
+        "order",
+        "actions",
+        "teleop",
+        "connection",
+        "ack",
+        "lease",
+        "lease/request",
+        "marks",
+        "marks/set",
+        "alarms/ack",
+        "zones",
+    }
+)
 """Published at QoS 1; every other topic at QoS 0 (a late pose is worthless, a lost command is not)."""
 
 LOOP_TIMEOUT_S = 0.25
@@ -208,6 +223,7 @@ class MqttEndpoint:
         self._connected = False
         self._closing = False
         self._loop: Worker | None = None
+        self._connect_hooks: list[Callable[[], object]] = []
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -293,6 +309,15 @@ class MqttEndpoint:
         """Publish ``message`` with its own QoS and retain flag."""
         return self.publish(message.topic, message.payload, qos=message.qos, retain=message.retain)
 
+    def publish_retained(self, key: str, payload: bytes) -> bool:
+        """Publish at the key's QoS, retained: the broker hands it to every later subscriber."""
+        return self.publish(key, payload, retain=True)
+
+    def add_connect_hook(self, hook: Callable[[], object]) -> None:
+        """Call ``hook()`` after every (re)connect, after ``on_connect`` (on the loop thread)."""
+        with self._lock:
+            self._connect_hooks.append(hook)
+
     def prioritise(self, priority_keys: frozenset[str], *, then_topics: frozenset[str] = frozenset()) -> None:
         """Nothing waits here: the loop thread hands each message on as it reads it."""
 
@@ -366,6 +391,13 @@ class MqttEndpoint:
                 self.on_connect(self)
             except Exception:
                 log.exception("%s: on_connect failed", self.label)
+        with self._lock:
+            hooks = list(self._connect_hooks)
+        for hook in hooks:
+            try:
+                hook()
+            except Exception:
+                log.exception("%s: a connect hook failed", self.label)
         log.info("%s: up (%s, connect #%d)", self.label, self.settings.url, self.connects)
 
     def _on_disconnect(self, client: Any, userdata: Any, flags: Any, reason_code: Any, properties: Any) -> None:

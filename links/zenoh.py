@@ -3,8 +3,10 @@
 ``peer_config``/``open_session`` build every fleetlink session the same way: explicit listen and
 connect endpoints, multicast scouting off, peer or client mode, a login and TLS files for a
 secured site router. ``ZenohEndpoint`` is a ``fleetlink.links.base.Link`` over one session (its
-own, or one it is given), plus queries (``serve``/``query``, as ``InProcessLink``) and an optional
-liveliness token (the agent's presence on ``fleetlink/v1/<robot>/alive``).
+own, or one it is given), plus queries (``serve``/``query``, as ``InProcessLink``), an optional
+liveliness token (the agent's presence on ``fleetlink/v1/<robot>/alive``) and liveliness watches
+(``watch_liveliness``: the console learns which robots' tokens come and go, those present when
+it starts included; the changes reach it through the same inbox as samples, in arrival order).
 
 Quality of service per key: a key whose topic is in ``URGENT_TOPICS`` (commands, acks, events,
 the lease, the connection) goes express with INTERACTIVE_HIGH priority and congestion control
@@ -48,11 +50,21 @@ from fleetlink.shared.messages import LinkName
 from fleetlink.shared.wire import MAX_PAYLOAD
 from fleetlink.shared.worker import Worker
 
-__all__ = ["INBOX_SIZE", "URGENT_TOPICS", "Answer", "ZenohEndpoint", "open_session", "peer_config"]
+__all__ = [
+    "INBOX_SIZE",
+    "URGENT_TOPICS",
+    "Answer",
+    "LivelinessReceiver",
+    "ZenohEndpoint",
+    "open_session",
+    "peer_config",
+]
 
 log = logging.getLogger(__name__)
 
-URGENT_TOPICS = frozenset({"ack", "events", "order", "actions", "teleop", "connection", "lease", "lease/request"})
+URGENT_TOPICS = frozenset(
+    {"ack", "events", "order", "actions", "teleop", "connection", "lease", "lease/request", "alarms/ack"}
+)
 """Published express with INTERACTIVE_HIGH priority and congestion control BLOCK; the rest DROP.
 Zenoh keeps order within a priority only: every operator command (lease requests too) is here,
 so a lease request and the teleop after it arrive in the order they were sent."""
@@ -64,6 +76,8 @@ PRIORITY_INBOX_SIZE = 256
 
 Answer = Callable[[str], list[tuple[str, bytes]]]
 """``answer(key_expr asked)`` -> the replies, as (key, payload)."""
+LivelinessReceiver = Callable[[str, bool], None]
+"""``on_change(token key, alive)`` (``ZenohEndpoint.watch_liveliness``)."""
 
 
 MAX_MESSAGE_BYTES = MAX_PAYLOAD + 16 * 1024
@@ -223,6 +237,7 @@ class ZenohEndpoint:
         self._served: list[tuple[str, Answer]] = []
         self._declared: list[Any] = []  # subscribers
         self._queryables: list[tuple[str, Any]] = []
+        self._watches: list[tuple[str, LivelinessReceiver]] = []
         self._token: Any = None
         self._opts: dict[str, dict[str, Any]] = {}
         self._lock = threading.Lock()
@@ -251,6 +266,8 @@ class ZenohEndpoint:
                 self._declare_subscriber(key_expr, receiver)
             for key_expr, answer in self._served:
                 self._declare_queryable(key_expr, answer)
+            for key_expr, on_change in self._watches:
+                self._declare_liveliness(key_expr, on_change)
             if self.alive_key is not None:
                 self._token = session.liveliness().declare_token(self.alive_key)
         log.info("%s: listen %s connect %s", self.label, list(self.listen), list(self.connect))
@@ -333,6 +350,15 @@ class ZenohEndpoint:
             if self._session is not None:
                 self._declare_subscriber(key_expr, receiver)
 
+    def watch_liveliness(self, key_expr: str, on_change: LivelinessReceiver) -> None:
+        """``on_change(key, alive)`` whenever a liveliness token matching ``key_expr`` appears
+        (True) or goes (False: undeclared, or its session gone or cut off from this one); the tokens
+        already there are reported when the watch is declared (at ``start``, or at once)."""
+        with self._lock:
+            self._watches.append((key_expr, on_change))
+            if self._session is not None:
+                self._declare_liveliness(key_expr, on_change)
+
     def serve(self, key_expr: str, answer: Answer) -> None:
         """A queryable on ``key_expr``: ``answer(key_expr asked)`` gives the replies (key, payload)."""
         with self._lock:
@@ -392,6 +418,27 @@ class ZenohEndpoint:
 
         handler = zenoh.handlers.Callback(on_sample, indirect=False)
         self._declared.append(self._session.declare_subscriber(key_expr, handler))
+
+    def _declare_liveliness(self, key_expr: str, on_change: LivelinessReceiver) -> None:
+        import zenoh
+
+        def deliver(key: str, payload: bytes) -> None:
+            on_change(key, payload == b"1")
+
+        def on_sample(sample: Any) -> None:
+            # On zenoh's network thread. In the second lane (with the stops): a presence change is
+            # rare and small, and a flood in the bulk lane must not drop a robot's going or coming.
+            try:
+                alive = b"0" if sample.kind == zenoh.SampleKind.DELETE else b"1"
+                queued = self._inbox.put((deliver, str(sample.key_expr), alive), lane=1)
+            except Exception:  # never let a bug kill zenoh's network thread
+                log.exception("%s: liveliness callback failed", self.label)
+                return
+            if not queued:
+                self.stats.dropped += 1
+
+        handler = zenoh.handlers.Callback(on_sample, indirect=False)
+        self._declared.append(self._session.liveliness().declare_subscriber(key_expr, handler, history=True))
 
     def _declare_queryable(self, key_expr: str, answer: Answer) -> None:
         def on_query(query: Any) -> None:

@@ -47,7 +47,7 @@ def render(robot: str, snap: BoardSnapshot, now: float) -> list[str]:
     if snap.payload:
         pl = snap.payload
         lines.append(
-            f"  payload    UV-C {'ON' if pl.uv_lamp else 'off'}  atomiser {pl.atomiser_level}  fan {'on' if pl.fan else 'off'}  tank {pl.tank_percent} %"
+            f"  payload    UV-C {'ON' if pl.uv_lamp else 'off'}  atomiser {pl.atomiser_level}  fan {pl.fan_level}  tank {pl.tank_percent} %"
         )
     if snap.env:
         e = snap.env

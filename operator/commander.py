@@ -3,10 +3,13 @@
 The app decides whether a command may go (read-only, a robot selected, the lease) and tells the
 operator; ``Commander`` only builds each message the same way every time and sends it: drive
 commands once (a newer one supersedes them), orders and instant actions acked and re-sent by the
-link manager, lease requests on both links.
+link manager (rounds too: orders with nodes), lease requests on both links.
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
 
 from fleetlink.operator.feed import ConsoleSource
 from fleetlink.operator.teleop import Twist
@@ -53,17 +56,49 @@ class Commander:
         self.source.send(Order, robot, orderId=order_id[:MAX_ORDER_ID], orderUpdateId=0, goal=goal, returnHome=False)
         return order_id
 
+    def order(self, robot: str, fields: Mapping[str, Any]) -> str:
+        """An order with nodes (a round: operator/rounds.py, ``RobotRound.order``): the Order's
+        fields as the planner gives them; acked and re-sent as goals are. Returns its order id."""
+        self.source.send(Order, robot, **fields)
+        return str(fields["orderId"])
+
     def home(self, robot: str) -> None:
         order_id = f"{self.source.sender}-home-{self.clock.wall():.3f}"
         self.source.send(Order, robot, orderId=order_id[:MAX_ORDER_ID], orderUpdateId=0, goal=None, returnHome=True)
 
-    def payload(self, robot: str, on: bool) -> None:
+    def action(self, robot: str, kind: ActionType, **params: str) -> None:
+        """One instant action (acked, re-sent on failover); parameters as VDA 5050 key/values."""
         action = Action(
-            actionId=f"payload-{self.clock.wall():.3f}",
-            actionType=ActionType.PAYLOAD,
-            actionParameters=(KeyValue(key="on", value="true" if on else "false"),),
+            actionId=f"{kind.value}-{self.clock.wall():.3f}"[:64],
+            actionType=kind,
+            actionParameters=tuple(KeyValue(key=k, value=v) for k, v in params.items()),
         )
         self.source.send(InstantActions, robot, actions=(action,))
+
+    def estop(self, robot: str) -> None:
+        """Latch the robot's e-stop: nothing moves until an authorised release."""
+        self.action(robot, ActionType.ESTOP)
+
+    def estop_release(self, robot: str) -> None:
+        self.action(robot, ActionType.ESTOP_RELEASE)
+
+    def set_home(self, robot: str, at: tuple[float, float] | None = None) -> None:
+        """The robot's home here (None: where it stands) or at (x, y) m."""
+        if at is None:
+            self.action(robot, ActionType.SET_HOME)
+        else:
+            self.action(robot, ActionType.SET_HOME, x=repr(at[0]), y=repr(at[1]))
+
+    def comms_policy(self, robot: str, policy: str) -> None:
+        self.action(robot, ActionType.SET_COMMS_POLICY, policy=policy)
+
+    def payload(self, robot: str, on: bool, device: str = "uv", level: int | None = None) -> None:
+        """A payload instant action: the lamp (``uv``), the ``atomiser`` or the ``fan`` on or off,
+        the last two at a level 0-3."""
+        params = {"device": device, "on": "true" if on else "false"}
+        if level is not None:
+            params["level"] = str(level)
+        self.action(robot, ActionType.PAYLOAD, **params)
 
     def lease(self, robot: str, *, release: bool = False) -> None:
         """Request (or renew) the robot's control lease for ``LEASE_S``, or release it; on both

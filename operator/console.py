@@ -12,7 +12,9 @@ The parts: the fleet table (operator/fleet_table.py), the robot detail (operator
 status line (operator/status.py), the map (operator/mapview.py); typed commands are parsed by
 operator/commands.py, outgoing messages built by operator/commander.py, marks named, saved and
 loaded by operator/marks.py, lease renewal timed by ``LeaseRenewal`` (operator/fleet.py), drive
-keys by operator/teleop.py. The app itself decides what may be sent and tells the operator.
+keys by operator/teleop.py, rounds (``:disinfect``, ``:sweep``) planned in a worker thread by the
+planner the app is given (operator/rounds.py). The app itself decides what may be sent and tells
+the operator.
 
 Safety: when drive-key repeats stop arriving the console sends stop (see operator/teleop.py), Esc
 stops every robot, and quitting sends stop to every robot before the links close.
@@ -21,6 +23,7 @@ stops every robot, and quitting sends stop to every robot before the links close
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import threading
 from pathlib import Path
@@ -38,25 +41,81 @@ from textual.screen import ModalScreen
 from textual.timer import Timer
 from textual.widgets import DataTable, Footer, Input, RichLog, Static
 
+from fleetlink.operator.alarm_panel import AlarmKeeper, AlarmPanel, Said, alarm_lines
+from fleetlink.operator.alarms import AckEntry, AlarmKind
+from fleetlink.operator.audit import AuditLog
 from fleetlink.operator.commander import LEASE_S, Commander
-from fleetlink.operator.commands import Command, CommandError, Goal, Home, MarkAt, Payload, StopAll, parse_command
+from fleetlink.operator.commands import (
+    AckAlarm,
+    Command,
+    CommandError,
+    CommsPolicySet,
+    Dose,
+    DoseSave,
+    EStop,
+    EStopRelease,
+    Goal,
+    Home,
+    HomeSet,
+    MarkAt,
+    MarkEdit,
+    MarkHere,
+    MarkRemove,
+    MarksExport,
+    MarksList,
+    Payload,
+    RoundAction,
+    StartRound,
+    StopAll,
+    ZoneAdd,
+    ZoneRemove,
+    ZonesList,
+    parse_command,
+)
 from fleetlink.operator.detail import RobotDetail, detail_text
+from fleetlink.operator.dose import DoseFollower, dose_report, save_report
 from fleetlink.operator.feed import ConsoleSource, FleetFeed, attach
 from fleetlink.operator.fleet import FleetModel, LeaseRenewal, Notice
 from fleetlink.operator.fleet_table import FleetTable, fleet_rows
 from fleetlink.operator.maps import MapFollower
 from fleetlink.operator.mapview import MapView
-from fleetlink.operator.marks import MarksStore
+from fleetlink.operator.marks import DEFAULT_KIND, MARK_KINDS, MAX_LABEL, MarksStore, export_marks, find_mark, revised
+from fleetlink.operator.rounds import (
+    DEFAULT_LAMP,
+    DEFAULT_TARGET_J_M2,
+    RoundError,
+    RoundIds,
+    RoundPlan,
+    RoundPlanner,
+    RoundRequest,
+    check_request,
+    describe_area,
+    floor_of,
+)
 from fleetlink.operator.status import StatusLine, status_text
 from fleetlink.operator.teleop import DriveKeys, Twist
+from fleetlink.shared import wire
 from fleetlink.shared.clock import Clock
-from fleetlink.shared.messages import Mark
+from fleetlink.shared.dose import Lamp, j_m2
+from fleetlink.shared.map_codec import SharedMap
+from fleetlink.shared.messages import ActionType, Mark, PeopleZones, Zone, ZonePoint
 
-__all__ = ["ConsoleApp", "ConsoleSource", "TelemetryArrived", "attach"]
+__all__ = ["ConsoleApp", "ConsoleSource", "RoundPlanned", "TelemetryArrived", "attach"]
+
+log = logging.getLogger(__name__)
 
 
 class TelemetryArrived(Message):
     """The feed has items waiting (posted from a network thread, once per batch)."""
+
+
+class RoundPlanned(Message):
+    """A round's planning worker is done: the plan, or why there is none (posted from its thread)."""
+
+    def __init__(self, request: RoundRequest, result: RoundPlan | str) -> None:
+        super().__init__()
+        self.request = request
+        self.result = result
 
 
 class ConfirmClick(ModalScreen[str]):
@@ -84,6 +143,73 @@ class ConfirmClick(ModalScreen[str]):
         self.dismiss(what)
 
 
+class MarkDialog(ModalScreen[tuple[str, str] | None]):
+    """Mark here: the kind (up/down: casualty, hazard, note) and a label; Enter places the mark,
+    ctrl+c cancels (letters are typed into the label, and Esc stays STOP ALL)."""
+
+    BINDINGS: ClassVar = [
+        Binding("up", "kind(-1)", "kind", show=False),
+        Binding("down", "kind(1)", "kind", show=False),
+        Binding("ctrl+c", "cancel", "cancel", priority=True),
+    ]
+
+    def __init__(self, robot: str, x: float, y: float, sd_m: float) -> None:
+        super().__init__()
+        self.robot, self.x, self.y, self.sd_m = robot, x, y, sd_m
+        self.kind = DEFAULT_KIND
+
+    def compose(self) -> ComposeResult:
+        with Vertical(id="mark-dialog"):
+            yield Static(
+                f"mark at {self.robot}: ({self.x:.2f}, {self.y:.2f}) m \u00b1{self.sd_m:.2f} m", id="mark-where"
+            )
+            yield Static(self._kinds(), id="mark-kind")
+            yield Input(
+                placeholder="label (Enter: place the mark, ctrl+c: cancel)", max_length=MAX_LABEL, id="mark-label"
+            )
+
+    def on_mount(self) -> None:
+        self.set_focus(self.query_one("#mark-label", Input))
+
+    def _kinds(self) -> str:
+        return "kind (up/down): " + "  ".join(f"[b reverse]{k}[/]" if k == self.kind else k for k in MARK_KINDS)
+
+    def action_kind(self, step: int) -> None:
+        self.kind = MARK_KINDS[(MARK_KINDS.index(self.kind) + step) % len(MARK_KINDS)]
+        self.query_one("#mark-kind", Static).update(self._kinds())
+
+    def action_cancel(self) -> None:
+        self.dismiss(None)
+
+    def on_input_submitted(self, event: Input.Submitted) -> None:
+        event.stop()
+        self.dismiss((self.kind, event.value.strip()))
+
+
+class ConfirmRelease(ModalScreen[bool]):
+    """Releasing an e-stop lets the robot move again: y releases, n keeps it latched (Esc is STOP
+    ALL, as everywhere, and keeps it latched too)."""
+
+    BINDINGS: ClassVar = [
+        Binding("y", "choose(True)", "release"),
+        Binding("n", "choose(False)", "keep"),
+    ]
+
+    def __init__(self, robot: str) -> None:
+        super().__init__()
+        self.robot = robot
+
+    def compose(self) -> ComposeResult:
+        yield Static(
+            f"Release the e-stop on {self.robot}? It may move again.\n\n[b]y[/b] release   [b]n[/b] keep it latched"
+            "   [b]Esc[/b] STOP ALL",
+            id="confirm",
+        )
+
+    def action_choose(self, release: bool) -> None:
+        self.dismiss(release)
+
+
 class ConsoleApp(App[None]):
     CSS_PATH = "console.tcss"
     TITLE = "fleetlink console"
@@ -99,7 +225,15 @@ class ConsoleApp(App[None]):
         Binding("T", "release_lease", "release"),
         Binding("h", "home", "home"),
         Binding("p", "payload", "payload"),
+        Binding("M", "mark_here", "mark here", show=False),  # shift-m: m drives back-right
+        # E-stop: latched on the robot until an authorised release (R, with a confirmation).
+        Binding("E", "estop", "E-STOP", priority=True),
+        Binding("ctrl+e", "estop_all", "E-STOP ALL", priority=True),
+        Binding("R", "release_estop", "release e-stop", show=False),
+        Binding("A", "acknowledge", "ack alarm", show=False),  # shift-a: a drives (WASD)
         Binding("f", "fit", "fit map"),
+        Binding("P", "pause_resume", "pause/resume", show=False),  # shift-p: p is the lamp
+        Binding("D", "dose_layer", "dose layer", show=False),  # shift-d: d drives (WASD)
         Binding("plus", "zoom(0.8)", "zoom in", show=False),
         Binding("minus", "zoom(1.25)", "zoom out", show=False),
         Binding("shift+up", "pan(0, -4)", show=False),
@@ -119,30 +253,57 @@ class ConsoleApp(App[None]):
         *,
         lock: threading.Lock | None = None,
         maps: MapFollower | None = None,
+        doses: DoseFollower | None = None,
         read_only: bool = False,
         marks_file: Path | None = None,
+        audit_log: Path | None = None,
         refresh_hz: float = 10.0,
         clock_hz: float = 2.0,
         repeat_timeout_s: float = 0.6,
+        planner: RoundPlanner | None = None,
+        lamp: Lamp = DEFAULT_LAMP,
+        target_j_m2: float = DEFAULT_TARGET_J_M2,
     ) -> None:
         """``lock`` guards ``fleet`` against the other threads that use it (map fetcher, marks
         queryable); if ``fleet`` was already attached to ``source`` (``attach``), that feed and its
-        lock are used."""
+        lock are used. ``planner`` plans the rounds of ``:disinfect`` and ``:sweep``
+        (``fleetlink.site.rounds.plan_round``; None: this console plans none) for ``lamp`` and a
+        target dose of ``target_j_m2`` unless the command gives one."""
         super().__init__()
         self.source = source
         self.fleet = fleet
         self.clock = clock
-        self.feed: FleetFeed = attach(source, fleet, lock or threading.Lock(), maps)
+        self.feed: FleetFeed = attach(source, fleet, lock or threading.Lock(), maps, doses or DoseFollower(fleet))
         self.lock = self.feed.lock
+        assert self.feed.doses is not None
+        self.doses: DoseFollower = self.feed.doses
+        """The robots' UV dose layers and the fleet's (operator/dose.py; a ``DoseFetcher`` keeps them)."""
+        self.show_dose = False
+        """The map draws the fleet's dose layer (``D``)."""
         self.read_only = read_only
         self.marks_file = marks_file
         self.marks = MarksStore(marks_file)
+        self.alarm_keeper = AlarmKeeper(source, fleet.alarms, AuditLog(audit_log, source.sender))
+        """Alarms (operator/alarm_panel.py): the panel's rows, acknowledgements, the audit log."""
         self.refresh_hz = refresh_hz
         self.clock_hz = clock_hz
         self.drive = DriveKeys(repeat_timeout_s=repeat_timeout_s)
         self.commander = Commander(source, clock)
         self.leases = LeaseRenewal(LEASE_S)
         self.selected: str | None = None
+        self.zones: dict[str, tuple[tuple[float, float], ...]] = {}
+        """People-present zones this console declared, by name (sent to every robot)."""
+        self._zones_sent: set[str] = set()
+        self._zones_sent_empty = False
+        """A withdrawal (the empty list) is still owed to robots that had zones."""
+        self.planner = planner
+        self.lamp = lamp
+        self.target_j_m2 = target_j_m2
+        self.round_ids = RoundIds()
+        self.planning: RoundRequest | None = None
+        """The round being planned in a worker thread (one at a time)."""
+        self._plan_dropped = False
+        """``:cancel`` came while it was being planned: nothing is sent when it is ready."""
         self.filter_text = ""
         self.frame_times: list[float] = []
         """How long each frame took to draw (the last 1000)."""
@@ -151,7 +312,8 @@ class ConsoleApp(App[None]):
         self._frame_timer: Timer | None = None
         with self.lock:
             for mark in self.marks.load():
-                self.fleet.marks[mark.markId] = mark
+                self.fleet.apply(mark, "file", self.clock.now())
+            self._saved_marks = self.fleet.marks_version
 
     # -- layout ---------------------------------------------------------------------------------
 
@@ -162,10 +324,15 @@ class ConsoleApp(App[None]):
                 yield Input(placeholder="/ filter robots (id, mode, link)", id="filter")
                 yield FleetTable(id="fleet")
                 yield RobotDetail(id="detail")
+                yield AlarmPanel(id="alarms")
             yield MapView(self.fleet, lambda: self.selected, lock=self.lock, id="map")
         yield RichLog(id="notices", max_lines=500, markup=False, wrap=True)
         yield Input(
-            placeholder=": goal X Y [THETA] | mark KIND X Y [LABEL] | home | payload on|off | stop", id="command"
+            placeholder=(
+                ": goal X Y [THETA] | mark here|KIND X Y | home [set|X Y] | estop [all] | release"
+                " | policy stop|retrace|home | ack | marks export PATH | payload on|off | stop"
+            ),
+            id="command",
         )
         yield Footer()
 
@@ -181,6 +348,10 @@ class ConsoleApp(App[None]):
 
     def on_unmount(self) -> None:
         self.feed.unbind()
+        with self.lock:
+            self.alarm_keeper.close()  # the last audit lines
+        with contextlib.suppress(NoMatches):
+            self._save_if_changed()
 
     # -- frames ---------------------------------------------------------------------------------
 
@@ -222,15 +393,26 @@ class ConsoleApp(App[None]):
             if self.selected is None and rows:
                 self.selected = next(iter(rows))
                 self.query_one(MapView).fit()
-            self.query_one(MapView).update_view()
+            mapview = self.query_one(MapView)
+            mapview.dose = self.doses.layer if self.show_dose else None
+            mapview.update_view()
             self.query_one(StatusLine).show(self._status_text())
             selected = self.selected
             health = source.health(selected) if selected is not None else ()
             view = fleet.robots.get(selected) if selected is not None else None
             self.query_one(RobotDetail).show(detail_text(selected, view, health))
+            wall = self.clock.wall()
+            said, acks = self.alarm_keeper.frame(wall, list(fleet.robots), source.health)
+            alarms = fleet.alarms.rows()
+            self.query_one(AlarmPanel).show(alarm_lines(alarms, wall, source.sender, selected), bool(alarms))
             renew = [] if self.read_only else self.leases.due(fleet, now)
+            new_robots = bool(self.zones) and any(r not in self._zones_sent for r in fleet.robots)
+        self._alarms_said(said, acks)
         for robot in renew:
             self.commander.lease(robot)
+        if new_robots:
+            self.share_zones()
+        self._save_if_changed()
         self.frame_times.append(self.clock.now() - t0)
         del self.frame_times[:-1000]
 
@@ -321,6 +503,12 @@ class ConsoleApp(App[None]):
         return robots
 
     def action_stop_all(self) -> None:
+        # Esc is STOP ALL everywhere (a priority binding): it also closes a confirmation, which
+        # then does nothing (the e-stop stays latched, no goal goes out).
+        if isinstance(self.screen, ConfirmRelease):
+            self.screen.dismiss(False)
+        elif isinstance(self.screen, ConfirmClick):
+            self.screen.dismiss("")
         if self.read_only:
             self.notice("warning", "read-only console: stop not sent")
             return
@@ -332,6 +520,7 @@ class ConsoleApp(App[None]):
         if not self._command_ok(robot, "goal"):
             return False
         assert robot is not None
+        self.drive.stop(self.clock.now())  # the order replaces driving: no auto-stop may cancel it later
         order_id = self.commander.goal(robot, x, y, theta)
         self.notice("info", f"{robot}: goal ({x:.2f}, {y:.2f}) sent as order {order_id}")
         return True
@@ -341,10 +530,12 @@ class ConsoleApp(App[None]):
         if not self._command_ok(robot, "return home"):
             return
         assert robot is not None
+        self.drive.stop(self.clock.now())  # (as a goal: a late auto-stop would cancel the way home)
         self.commander.home(robot)
         self.notice("info", f"{robot}: return home sent")
 
-    def action_payload(self, on: bool | None = None) -> None:
+    def action_payload(self, on: bool | None = None, device: str = "uv", level: int | None = None) -> None:
+        """``p`` toggles the UV lamp; ``:payload DEVICE on|off|LEVEL`` sets one payload."""
         robot = self.selected
         if not self._command_ok(robot, "payload"):
             return
@@ -353,8 +544,126 @@ class ConsoleApp(App[None]):
             view = self.fleet.robots.get(robot)
             current = view.payload_on if view else False
         want = (not current) if on is None else on
-        self.commander.payload(robot, want)
-        self.notice("info", f"{robot}: payload {'on' if want else 'off'} sent")
+        self.commander.payload(robot, want, device, level)
+        what = {"uv": "UV lamp"}.get(device, device) + (f" level {level}" if level is not None else "")
+        self.notice("info", f"{robot}: {what} {'on' if want else 'off'} sent")
+
+    # -- people-present zones -----------------------------------------------------------------
+
+    def share_zones(self) -> None:
+        """This console's zones to every robot it knows that has not had them yet: on Zenoh, and
+        retained on MQTT (a robot that starts later gets them from the broker)."""
+        if self.read_only or (not self.zones and not self._zones_sent_empty):
+            return
+        with self.lock:
+            robots = [r for r in self.fleet.robots if r not in self._zones_sent]
+        zones = tuple(
+            Zone(name=name, polygon=tuple(ZonePoint(x=x, y=y) for x, y in corners))
+            for name, corners in self.zones.items()
+        )
+        for robot in robots:
+            msg = PeopleZones(header=self.commander.header(PeopleZones.TOPIC, robot), zones=zones)
+            self.source.publish(msg, links=("zenoh",))
+            retained = getattr(self.source, "publish_retained", None)  # (an OperatorLink has it)
+            if retained is None or not retained(msg):  # no broker keeps it: send it plain
+                self.source.publish(msg, links=("mqtt",))
+            self._zones_sent.add(robot)
+        self._zones_sent_empty = bool(self.zones)
+
+    # -- e-stop, home, comms-loss policy ----------------------------------------------------------
+
+    def action_estop(self) -> None:
+        if isinstance(self.focused, Input):
+            raise SkipAction()  # an E typed into an input (the command line, a mark's label) is a letter
+        self.estop_selected()
+
+    def estop_selected(self) -> None:
+        """Latch the selected robot's e-stop (anyone may: no lease needed)."""
+        robot = self.selected
+        if not self._command_ok(robot, "e-stop", needs_lease=False):
+            return
+        assert robot is not None
+        self.drive.stop(self.clock.now())
+        self.commander.estop(robot)
+        self.notice("error", f"{robot}: E-STOP sent (latched until released: R)")
+
+    def action_estop_all(self) -> None:
+        if self.read_only:
+            self.notice("warning", "read-only console: e-stop not sent")
+            return
+        self.drive.stop(self.clock.now())
+        with self.lock:
+            robots = list(self.fleet.robots)
+        for robot in robots:
+            self.commander.estop(robot)
+        self.notice("error", f"E-STOP sent to every robot ({len(robots)})")
+
+    def action_release_estop(self) -> None:
+        """Release the selected robot's e-stop, once the operator confirms (y)."""
+        robot = self.selected
+        if not self._command_ok(robot, "e-stop release"):
+            return
+        assert robot is not None
+
+        def confirmed(yes: bool | None) -> None:
+            if yes:
+                self.commander.estop_release(robot)
+                self.notice("warning", f"{robot}: e-stop release sent")
+            else:
+                self.notice("info", f"{robot}: e-stop stays latched")
+
+        self.push_screen(ConfirmRelease(robot), confirmed)
+
+    def set_home(self, at: tuple[float, float] | None) -> None:
+        robot = self.selected
+        if not self._command_ok(robot, "set home"):
+            return
+        assert robot is not None
+        self.commander.set_home(robot, at)
+        where = "where it stands" if at is None else f"({at[0]:.2f}, {at[1]:.2f})"
+        self.notice("info", f"{robot}: home set {where} sent")
+
+    def set_comms_policy(self, policy: str) -> None:
+        robot = self.selected
+        if not self._command_ok(robot, "comms-loss policy"):
+            return
+        assert robot is not None
+        self.commander.comms_policy(robot, policy)
+        self.notice("info", f"{robot}: comms-loss policy {policy} sent")
+
+    # -- alarms ---------------------------------------------------------------------------------
+
+    def action_acknowledge(self) -> None:
+        """A: acknowledge the selected robot's most severe unacknowledged alarm."""
+        self.acknowledge(None, None)
+
+    def acknowledge(self, robot: str | None, kind: AlarmKind | None, *, every: bool = False) -> None:
+        """Acknowledge ``robot``'s (None: the selected robot's) alarm of ``kind`` (None: its most
+        severe unacknowledged one; ``every``: all of them), shared with every console."""
+        if self.read_only:
+            self.notice("warning", "read-only console: acknowledgement not sent")
+            return
+        robot = robot or self.selected
+        if robot is None:
+            self.notice("warning", "no robot selected: nothing acknowledged")
+            return
+        with self.lock:
+            outcome = self.alarm_keeper.acknowledge(robot, kind, self.clock.wall(), every=every)
+            acks = self.fleet.alarms.outgoing()
+        if outcome.reason:
+            self.notice("warning", f"nothing acknowledged: {outcome.reason}")
+        for alarm in outcome.acked:
+            self.notice("info", f"{alarm.robot}: {alarm.label} acknowledged ({alarm.text})")
+        self._alarms_said([], acks)
+        self._changed()
+
+    def _alarms_said(self, said: list[Said], acks: list[tuple[str, tuple[AckEntry, ...]]]) -> None:
+        for s in said:
+            self.notice(s.severity, s.text)
+        if any(s.bell for s in said):
+            self.bell()
+        if acks and not self.read_only:
+            self.alarm_keeper.publish(self.commander.header, acks)
 
     # -- leases ---------------------------------------------------------------------------------
 
@@ -375,25 +684,168 @@ class ConsoleApp(App[None]):
 
     # -- marks ----------------------------------------------------------------------------------
 
-    def add_mark(self, x: float, y: float, kind: str = "casualty", label: str = "") -> Mark | None:
+    def _save_if_changed(self) -> None:
+        """Every mark this console holds, removed ones too (operator/marks.py), to the marks file
+        when they changed since the last save (marks placed here or heard from other consoles)."""
+        with self.lock:
+            if self.fleet.marks_version == self._saved_marks:
+                return
+            self._saved_marks = self.fleet.marks_version
+            marks = list(self.fleet.marks.values())
+        try:
+            self.marks.save(marks)
+        except OSError as exc:
+            self.notice("error", f"marks file {self.marks.path}: not saved: {exc}")
+
+    def _share(self, mark: Mark) -> bool:
+        """Check ``mark`` as the wire would, fold it into the model and publish it on both links
+        (QoS 1 on MQTT); the retained set follows (operator/marksync.py). False if refused."""
+        try:
+            wire.encode(mark)
+        except wire.WireError as exc:
+            self.notice("warning", f"mark refused: {exc.reason}")
+            return False
+        with self.lock:
+            self.fleet.apply(mark, "local", self.clock.now())
+        self.source.publish(mark, links=("zenoh", "mqtt"))
+        self._save_if_changed()  # now: the file is what a restarted console starts from
+        self._changed()
+        return True
+
+    def _refuse_read_only(self) -> bool:
         if self.read_only:
             self.notice("warning", "read-only console: mark not shared")
-            return None
+        return self.read_only
+
+    def _marking_robot(self) -> str | None:
         with self.lock:
             robot = self.selected or next(iter(self.fleet.robots), None)
         if robot is None:
             self.notice("warning", "no robot known yet: a mark needs one to be published under")
+        return robot
+
+    def add_mark(
+        self,
+        x: float,
+        y: float,
+        kind: str = DEFAULT_KIND,
+        label: str = "",
+        *,
+        sd_m: float = 0.0,
+        robot: str | None = None,
+    ) -> Mark | None:
+        """A new mark at (x, y) with uncertainty ``sd_m``, published under ``robot`` (default: the
+        selected one)."""
+        if self._refuse_read_only():
             return None
-        mark = self.marks.new(self.commander.header(Mark.TOPIC, robot), x, y, kind, label, self.clock.wall())
-        with self.lock:
-            self.fleet.apply(mark, "local", self.clock.now())
-        self.source.publish(mark)
-        with self.lock:
-            live = self.fleet.live_marks()
-        self.marks.save(live)
-        self.notice("info", f"mark {mark.kind} '{mark.label}' at ({x:.2f}, {y:.2f}) shared")
-        self._changed()
+        robot = robot or self._marking_robot()
+        if robot is None:
+            return None
+        mark = self.marks.new(self.commander.header(Mark.TOPIC, robot), x, y, kind, label, self.clock.wall(), sd_m)
+        if not self._share(mark):
+            return None
+        sd = f" \u00b1{mark.sd_m:.2f} m" if mark.sd_m else ""
+        self.notice("info", f"mark {mark.markId}: {mark.kind} '{mark.label}' at ({x:.2f}, {y:.2f}){sd} shared")
         return mark
+
+    def action_mark_here(self) -> None:
+        """``M``: ask for a kind and a label, then mark at the selected robot's fused pose."""
+        if len(self.screen_stack) > 1 or isinstance(self.focused, Input):
+            raise SkipAction()
+        if self._refuse_read_only():
+            return
+        place = self._pose_to_mark()
+        if place is None:
+            return
+        robot, x, y, sd = place
+
+        def chosen(answer: tuple[str, str] | None) -> None:
+            # Where the robot was when M was pressed (what the dialog showed), not where it
+            # has drifted while the label was typed.
+            if answer is not None:
+                self.add_mark(x, y, answer[0], answer[1], sd_m=sd, robot=robot)
+
+        self.push_screen(MarkDialog(robot, x, y, sd), chosen)
+
+    def _pose_to_mark(self, robot: str | None = None) -> tuple[str, float, float, float] | None:
+        robot = robot or self._marking_robot()
+        if robot is None:
+            return None
+        with self.lock:
+            view = self.fleet.robots.get(robot)
+            pose = view.pose if view is not None else None
+            sd = view.pose_sd_m if view is not None else None
+            lost = view.lost if view is not None else False
+        if pose is None or sd is None:
+            self.notice("warning", f"{robot}: no fused pose yet: mark refused (type ':mark KIND X Y' instead)")
+            return None
+        if lost:
+            self.notice("warning", f"{robot}: lost, its last pose is stale: mark refused (type ':mark KIND X Y')")
+            return None
+        return robot, pose[0], pose[1], sd
+
+    def mark_here(self, kind: str = DEFAULT_KIND, label: str = "", *, robot: str | None = None) -> Mark | None:
+        """A mark at ``robot``'s (default: the selected robot's) current fused pose, carrying the
+        pose's uncertainty (the larger of its x and y standard deviations)."""
+        if self._refuse_read_only():
+            return None
+        place = self._pose_to_mark(robot)
+        if place is None:
+            return None
+        robot, x, y, sd = place
+        return self.add_mark(x, y, kind, label, sd_m=sd, robot=robot)
+
+    def revise_mark(
+        self, ref: str, *, label: str | None = None, kind: str | None = None, removed: bool | None = None
+    ) -> Mark | None:
+        """A new version of the mark ``ref`` names (its id or a unique tail): a new label or kind,
+        or removed. Any console may edit any mark; the editor is the new version's author."""
+        what = "removal" if removed else "edit"
+        if self.read_only:
+            self.notice("warning", f"read-only console: mark {what} not shared")
+            return None
+        with self.lock:
+            found = find_mark(self.fleet.marks, ref)
+        if isinstance(found, str):
+            self.notice("warning", f"mark {what} refused: {found}")
+            return None
+        header = self.commander.header(Mark.TOPIC, found.header.robot)
+        mark = revised(found, header, label=label, kind=kind, removed=removed)
+        if not self._share(mark):
+            return None
+        if removed:
+            self.notice("info", f"mark {mark.markId} removed")
+        else:
+            self.notice("info", f"mark {mark.markId} now {mark.kind} '{mark.label}'")
+        return mark
+
+    def list_marks(self, limit: int = 20) -> None:
+        with self.lock:
+            live = sorted(self.fleet.live_marks(), key=lambda m: m.header.timestamp)
+        if not live:
+            self.notice("info", "no marks")
+            return
+        now = self.clock.wall()
+        for m in live[-limit:]:
+            age = max(0.0, now - m.header.timestamp)
+            self.notice(
+                "info",
+                f"{m.markId}  {m.kind} '{m.label}' ({m.x:.2f}, {m.y:.2f}) \u00b1{m.sd_m:.2f} m  "
+                f"{m.header.robot} by {m.header.sender}, {age:.0f} s ago",
+            )
+        if len(live) > limit:
+            self.notice("info", f"... and {len(live) - limit} older marks (':marks export PATH' writes them all)")
+
+    def export(self, path: Path) -> int | None:
+        with self.lock:
+            marks = list(self.fleet.marks.values())
+        try:
+            n = export_marks(marks, path)
+        except (OSError, ValueError) as exc:
+            self.notice("warning", f"marks export refused: {exc}")
+            return None
+        self.notice("info", f"{n} marks written to {path}")
+        return n
 
     # -- map ------------------------------------------------------------------------------------
 
@@ -411,6 +863,53 @@ class ConsoleApp(App[None]):
     def action_fit(self) -> None:
         with self.lock:
             self.query_one(MapView).fit()
+
+    # -- the UV dose layer ----------------------------------------------------------------------
+
+    def action_dose_layer(self) -> None:
+        """``D``: show or hide the fleet's UV dose layer on the map."""
+        self.show_dose = not self.show_dose
+        with self.lock:
+            layer = self.doses.layer
+        if not self.show_dose:
+            self.notice("info", "dose layer hidden")
+        elif layer is None:
+            self.notice("info", "dose layer shown: none yet (no robot has shared one)")
+        else:
+            self.notice(
+                "info",
+                f"dose layer shown: {', '.join(layer.robots)}; target {layer.target_j_m2:g} J/m²; ':dose' summarises",
+            )
+        self._changed()
+
+    def dose_summary(self, box: tuple[float, float, float, float] | None = None, save: Path | None = None) -> bool:
+        """``:dose`` (and ``:dose save DIR``): the report on the fleet's dose layer over the robots'
+        mapped floor (or ``box``), worked out on a thread (a large layer takes longer than a frame);
+        its lines, or the files written, come back as notices. False if there is nothing to report."""
+        with self.lock:
+            layers = self.doses.copies()
+            maps_of = self.feed.maps.maps if self.feed.maps is not None else {}
+            maps = [SharedMap(m.cells.copy(), m.resolution, m.origin, m.version) for m in maps_of.values()]
+        if not layers:
+            self.notice("warning", "no dose layer yet: no robot has shared one")
+            return False
+
+        def work() -> None:
+            try:
+                report = dose_report(layers, maps, box)
+                written = save_report(report, save) if save is not None else []
+            except (OSError, ValueError) as exc:
+                self.call_from_thread(self.notice, "warning", f"dose report refused: {exc}")
+                return
+            if save is not None:
+                names = ", ".join(p.name for p in written)
+                self.call_from_thread(self.notice, "info", f"dose report written to {save}: {names}")
+                return
+            for line in report.text().splitlines():
+                self.call_from_thread(self.notice, "info", f"dose: {line}")
+
+        self.run_worker(work, thread=True, group="dose", exit_on_error=False)
+        return True
 
     def action_zoom(self, factor: float) -> None:
         m = self.query_one(MapView)
@@ -468,12 +967,211 @@ class ConsoleApp(App[None]):
             self.send_goal(command.x, command.y, command.theta)
         elif isinstance(command, MarkAt):
             self.add_mark(command.x, command.y, command.kind, command.label)
+        elif isinstance(command, MarkHere):
+            self.mark_here(command.kind, command.label)
+        elif isinstance(command, MarkEdit):
+            self.revise_mark(command.ref, label=command.label, kind=command.kind)
+        elif isinstance(command, MarkRemove):
+            self.revise_mark(command.ref, removed=True)
+        elif isinstance(command, MarksList):
+            self.list_marks()
+        elif isinstance(command, MarksExport):
+            self.export(Path(command.path).expanduser())
         elif isinstance(command, Home):
             self.action_home()
+        elif isinstance(command, HomeSet):
+            self.set_home(command.at)
+        elif isinstance(command, EStop):
+            self.action_estop_all() if command.every_robot else self.estop_selected()
+        elif isinstance(command, EStopRelease):
+            self.action_release_estop()
+        elif isinstance(command, CommsPolicySet):
+            self.set_comms_policy(command.policy)
         elif isinstance(command, Payload):
-            self.action_payload(command.on)
+            self.action_payload(command.on, command.device, command.level)
         elif isinstance(command, StopAll):
             self.action_stop_all()
+        elif isinstance(command, StartRound):
+            self.start_round(command)
+        elif isinstance(command, RoundAction):
+            self.round_action(command.action)
+        elif isinstance(command, ZoneAdd):
+            self.zones[command.name] = command.corners
+            self._zones_sent.clear()
+            self.share_zones()
+            self._draw_zones()
+            self.notice("info", f"people-present zone {command.name!r} ({len(command.corners)} corners) sent")
+        elif isinstance(command, ZoneRemove):
+            if self.zones.pop(command.name, None) is None:
+                self.notice("warning", f"no zone {command.name!r} (:zones lists them)")
+                return
+            self._zones_sent.clear()
+            self.share_zones()
+            self._draw_zones()
+            self.notice("info", f"people-present zone {command.name!r} removed")
+        elif isinstance(command, ZonesList):
+            shown = "; ".join(f"{n}: {len(c)} corners" for n, c in self.zones.items()) or "none"
+            self.notice("info", f"people-present zones: {shown}")
+        elif isinstance(command, AckAlarm):
+            self.acknowledge(command.robot, command.kind, every=command.every)
+        elif isinstance(command, Dose):
+            self.dose_summary(command.box)
+        elif isinstance(command, DoseSave):
+            self.dose_summary(command.box, Path(command.path).expanduser())
+
+    # -- rounds: disinfection and sweeping (operator/rounds.py, docs/payload.md) ------------------
+
+    def start_round(self, command: StartRound) -> bool:
+        """``:disinfect`` / ``:sweep``: check what can be checked at once (a warning notice and
+        nothing else when it is wrong), then plan in a worker thread; the orders go out when the
+        plan is ready (``on_round_planned``). False if refused at once."""
+        what = "UV round" if command.kind == "uv" else "sweep"
+        if self.read_only:
+            self.notice("warning", f"read-only console: {what} not planned")
+            return False
+        robots = command.robots or ((self.selected,) if self.selected is not None else ())
+        if not robots:
+            self.notice("warning", f"no robot selected: {what} not planned")
+            return False
+        if self.planner is None:
+            self.notice("warning", f"this console has no round planner: {what} not planned")
+            return False
+        if self.planning is not None:
+            self.notice("warning", f"still planning {describe_area(self.planning.area)}: {what} not planned")
+            return False
+        starts: dict[str, tuple[float, float]] = {}
+        grids = []
+        problem = ""
+        with self.lock:
+            target = self.target_for(robots) if command.target_mj_cm2 is None else j_m2(command.target_mj_cm2)
+            for robot in robots:
+                view = self.fleet.robots.get(robot)
+                if view is None:
+                    known = ", ".join(sorted(self.fleet.robots)) or "none yet"
+                    problem = f"unknown robot {robot!r} (known: {known})"
+                    break
+                ok, reason = self.fleet.may_drive(robot)
+                if not ok:
+                    problem = reason
+                    break
+                if view.lost or view.pose is None:
+                    problem = f"{robot}: {'lost, its last pose is stale' if view.lost else 'no fused pose yet'}"
+                    break
+                starts[robot] = (view.pose[0], view.pose[1])
+                if robot in self.fleet.grids:
+                    grids.append(self.fleet.grids[robot])
+        request = RoundRequest("uv" if command.kind == "uv" else "sweep", command.area, robots, target)
+        if not problem:
+            try:
+                check_request(request)
+            except RoundError as exc:
+                problem = str(exc)
+        if problem:
+            self.notice("warning", f"{what} not planned: {problem}")
+            return False
+        wall = self.clock.wall()
+        ids = {robot: self.round_ids.next(request.kind, robot, wall) for robot in robots}
+        planner, lamp = self.planner, self.lamp_for(robots)
+        # A UV round tops up the dose the floor has had already (the fleet's layer as it stands).
+        layer = self.doses.layer if request.kind == "uv" else None
+        prior = layer.grid if layer is not None else None
+        self.planning, self._plan_dropped = request, False
+        self.notice("info", f"planning the {what} of {describe_area(request.area)} for {', '.join(robots)} ...")
+
+        def plan() -> None:  # in a worker thread: only the message goes back to the app
+            result: RoundPlan | str
+            try:
+                cells, resolution, origin = floor_of(grids)
+                result = planner(request, cells, resolution, origin, starts, lamp, ids, prior)
+            except ValueError as exc:  # RoundError, or the planner's own reasons
+                result = str(exc)
+            except Exception as exc:  # a planner bug must not leave the console planning forever
+                log.exception("planning a round failed")
+                result = f"the planner failed: {exc!r}"
+            self.post_message(RoundPlanned(request, result))
+
+        self.run_worker(plan, name="round planner", group="rounds", thread=True, exit_on_error=False)
+        return True
+
+    def target_for(self, robots: tuple[str, ...]) -> float:
+        """The target dose of a round whose command names none: each robot's as its dose layer
+        advertises it (its ``[uv] target_dose_mj_cm2``), the console's for a robot without one; the
+        highest of them (the strictest). Under the lock."""
+        layers = self.doses.layers
+        return max(
+            (layers[r].target_j_m2 if r in layers else self.target_j_m2 for r in robots), default=self.target_j_m2
+        )
+
+    def lamp_for(self, robots: tuple[str, ...]) -> Lamp:
+        """The lamp a UV round is planned for: the first robot's own, as its dose layer advertises
+        it (``DoseSnapshot.lamp``), else the console's (``[uv]`` in console.toml, the agent's defaults)."""
+        for robot in robots:
+            layer = self.doses.layers.get(robot)
+            if layer is not None and layer.lamp is not None:
+                return layer.lamp
+        return self.lamp
+
+    def on_round_planned(self, message: RoundPlanned) -> None:
+        request, result = message.request, message.result
+        self.planning = None
+        what = "UV round" if request.kind == "uv" else "sweep"
+        if self._plan_dropped:
+            self.notice("info", f"{what} of {describe_area(request.area)}: cancelled while planned, not sent")
+            return
+        if isinstance(result, str):
+            self.notice("warning", f"{what} not sent: {result}")
+            return
+        if self.read_only:
+            return
+        with self.lock:  # the lease may have moved while it was planned
+            refusals = [why for ok, why in (self.fleet.may_drive(r.robot) for r in result.rounds) if not ok]
+        if refusals:
+            self.notice("warning", f"{what} not sent: {refusals[0]}")
+            return
+        self.drive.stop(self.clock.now())  # the orders replace driving: no late auto-stop may cancel them
+        self.notice("info", result.summary())
+        for r in result.rounds:
+            try:
+                self.commander.order(r.robot, r.order)
+            except ValueError as exc:  # the wire refused it (a size, a range)
+                self.notice("warning", f"{r.robot}: {what} not sent: {exc}")
+                continue
+            with self.lock:
+                self.fleet.set_route(r.robot, (r.order_id, tuple((n.x, n.y, n.dwell_s) for n in r.route)))
+            self.notice("info", f"{r.robot}: {what} sent as order {r.order_id} ({len(r.route) - 1} nodes)")
+        self._changed()
+
+    def round_action(self, action: str) -> None:
+        """``:pause`` / ``:resume`` / ``:cancel`` the selected robot's round (or goal): instant
+        actions. Anyone may pause or cancel (they stop the robot); resuming needs the lease."""
+        robot = self.selected
+        if not self._command_ok(robot, action, needs_lease=action == "resume"):
+            return
+        assert robot is not None
+        if action == "cancel" and self.planning is not None and robot in self.planning.robots:
+            self._plan_dropped = True
+        if action in ("pause", "cancel"):
+            self.drive.stop(self.clock.now())
+        kind = {"pause": ActionType.PAUSE, "resume": ActionType.RESUME, "cancel": ActionType.CANCEL}[action]
+        self.commander.action(robot, kind)
+        self.notice("info", f"{robot}: {action} sent")
+
+    def action_pause_resume(self) -> None:
+        """``P``: pause the selected robot's round, or resume it when it is paused."""
+        if isinstance(self.focused, Input) or len(self.screen_stack) > 1:
+            raise SkipAction()
+        robot = self.selected
+        with self.lock:
+            view = self.fleet.robots.get(robot) if robot is not None else None
+            paused = view is not None and (
+                view.paused or (view.progress is not None and view.progress.waiting == "paused")
+            )
+        self.round_action("resume" if paused else "pause")
+
+    def _draw_zones(self) -> None:
+        with self.lock:
+            self.fleet.set_zones(self.zones)
+        self._changed()
 
     # -- quit -----------------------------------------------------------------------------------
 
@@ -489,3 +1187,9 @@ class ConsoleApp(App[None]):
         if self.selected is not None:
             self.send_twist(Twist(0.0, 0.0))
         self.stop_all()
+        # Then give back the leases we hold: a console that leaves on purpose is not a lost link,
+        # so no robot acts on its comms-loss policy (a console that crashes leaves them held).
+        with self.lock:
+            held = [r for r, v in self.fleet.robots.items() if v.lease_holder == self.source.sender]
+        for robot in held:
+            self.commander.lease(robot, release=True)

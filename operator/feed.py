@@ -1,8 +1,10 @@
 """What the network tells the console, carried into the fleet model.
 
 ``FleetFeed`` subscribes once to a console source (``OperatorLink``: decoded messages, link
-switches and lost commands, UWB gateways' anchors) and folds each into a ``FleetModel`` (and map
-updates into the ``MapFollower``). It works in one of two ways:
+switches and lost commands, UWB gateways' anchors, robots' liveliness tokens coming and going)
+and folds each into a ``FleetModel`` (and map updates into the ``MapFollower``, dose updates into the
+``DoseFollower``, and what shows or
+acknowledges an alarm into the model's ``AlarmDesk``, operator/alarms.py). It works in one of two ways:
 
 * **bound to an app** (``bind(wake)``, what ``ConsoleApp`` does while it runs): a network thread
   only appends what it heard to an inbox and, if no wake-up is pending yet, calls ``wake()``
@@ -21,6 +23,7 @@ caller that attached the model (cli, tests) and the app that shows it share it.
 
 from __future__ import annotations
 
+import logging
 import threading
 import weakref
 from collections import deque
@@ -28,13 +31,16 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from fleetlink.operator.dose import DoseFollower
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.linkmanager import PRIMARY, Failed, LinkHealth, Switch
 from fleetlink.operator.maps import MapFollower
 from fleetlink.shared import wire
-from fleetlink.shared.messages import MapUpdate
+from fleetlink.shared.messages import AlarmAck, Connection, DoseUpdate, MapUpdate
 
-__all__ = ["AnchorsHeard", "ConsoleSource", "FleetFeed", "Heard", "LinkEvent", "attach"]
+__all__ = ["AnchorsHeard", "ConsoleSource", "FleetFeed", "Heard", "LinkEvent", "PresenceHeard", "attach"]
+
+log = logging.getLogger(__name__)
 
 
 class ConsoleSource(Protocol):
@@ -79,7 +85,17 @@ class AnchorsHeard:
     anchors: tuple[tuple[str, float, float, float], ...]
 
 
-Item = Heard | LinkEvent | AnchorsHeard
+@dataclass(frozen=True, slots=True)
+class PresenceHeard:
+    """A robot's liveliness token appeared (``alive``) or went, on ``link``, at ``wall``."""
+
+    robot: str
+    link: str
+    alive: bool
+    wall: float
+
+
+Item = Heard | LinkEvent | AnchorsHeard | PresenceHeard
 
 _feeds: weakref.WeakValueDictionary[int, FleetFeed] = weakref.WeakValueDictionary()
 """id(fleet model) -> its feed. Weak: a feed lives as long as its source holds its callbacks."""
@@ -88,12 +104,18 @@ _feeds_lock = threading.Lock()
 
 class FleetFeed:
     def __init__(
-        self, source: ConsoleSource, fleet: FleetModel, lock: threading.Lock, maps: MapFollower | None = None
+        self,
+        source: ConsoleSource,
+        fleet: FleetModel,
+        lock: threading.Lock,
+        maps: MapFollower | None = None,
+        doses: DoseFollower | None = None,
     ) -> None:
         self.source = source
         self.fleet = fleet
         self.lock = lock
         self.maps = maps
+        self.doses = doses
         self.applied = 0
         """Items folded into the model so far (either way)."""
         self._inbox: deque[Item] = deque()
@@ -107,6 +129,11 @@ class FleetFeed:
         add_anchor_sink = getattr(source, "add_anchor_sink", None)
         if add_anchor_sink is not None:
             add_anchor_sink(lambda gateway, found: self._put(AnchorsHeard(gateway, tuple(found))))
+        add_presence_sink = getattr(source, "add_presence_sink", None)
+        if add_presence_sink is not None:
+            add_presence_sink(lambda robot, link, alive, wall: self._put(PresenceHeard(robot, link, alive, wall)))
+        clock = getattr(source, "clock", None)
+        self._wall: Callable[[], float] | None = getattr(clock, "wall", None)
 
     # -- the app's side -------------------------------------------------------------------------
 
@@ -158,8 +185,21 @@ class FleetFeed:
         self.applied += 1
         fleet = self.fleet
         if isinstance(item, Heard):
-            if fleet.apply(item.msg, item.link, item.now) and self.maps is not None and isinstance(item.msg, MapUpdate):
-                self.maps.on_update(item.msg)
+            msg = item.msg
+            wall = self._wall() if self._wall is not None else msg.header.timestamp
+            if isinstance(msg, AlarmAck):
+                self._refused(fleet.alarms.receive_ack(msg, wall), msg)
+            elif fleet.apply(msg, item.link, item.now):
+                if self.maps is not None and isinstance(msg, MapUpdate):
+                    self.maps.on_update(msg)
+                elif self.doses is not None and isinstance(msg, DoseUpdate):
+                    self.doses.on_update(msg)
+                fleet.alarms.observe(msg, wall)
+                if isinstance(msg, Connection):
+                    fleet.presence(msg.header.robot, fleet.alarms.present(msg.header.robot))
+        elif isinstance(item, PresenceHeard):
+            fleet.alarms.presence(item.robot, item.link, item.alive, item.wall)
+            fleet.presence(item.robot, fleet.alarms.present(item.robot))
         elif isinstance(item, AnchorsHeard):
             for name, x, y, _z in item.anchors:
                 fleet.add_anchor(name, x, y)
@@ -171,16 +211,29 @@ class FleetFeed:
             failed = item.action
             fleet.notify(0.0, "error", f"{failed.robot}: {failed.topic} #{failed.header_id} lost: {failed.reason}")
 
+    def _refused(self, reason: str | None, msg: AlarmAck) -> None:
+        if reason is not None and self.fleet.alarms.refused[reason] == 1:  # once per reason
+            log.warning(
+                "refused an alarm acknowledgement from %s on %s: %s", msg.header.sender, msg.header.robot, reason
+            )
+
 
 def attach(
-    source: ConsoleSource, fleet: FleetModel, lock: threading.Lock, maps: MapFollower | None = None
+    source: ConsoleSource,
+    fleet: FleetModel,
+    lock: threading.Lock,
+    maps: MapFollower | None = None,
+    doses: DoseFollower | None = None,
 ) -> FleetFeed:
     """The feed of ``fleet`` from ``source``: made (and subscribed) the first time, the same one
-    after that (``lock`` and ``maps`` are then the first call's)."""
+    after that (``lock`` is then the first call's; ``maps`` and ``doses`` the first given)."""
     with _feeds_lock:
         feed = _feeds.get(id(fleet))
         if feed is None or feed.fleet is not fleet or feed.source is not source:
-            feed = _feeds[id(fleet)] = FleetFeed(source, fleet, lock, maps)
-        elif maps is not None and feed.maps is None:
-            feed.maps = maps
+            feed = _feeds[id(fleet)] = FleetFeed(source, fleet, lock, maps, doses)
+        else:
+            if maps is not None and feed.maps is None:
+                feed.maps = maps
+            if doses is not None and feed.doses is None:
+                feed.doses = doses
         return feed

@@ -12,15 +12,21 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
+from fleetlink.operator.alarms import AlarmDesk
+from fleetlink.operator.marks import marks_of_set, supersedes
 from fleetlink.shared.messages import (
     Ack,
     AckResult,
+    AlarmAck,
+    BoardStatus,
     Connection,
     ConnectionState,
     Diagnostics,
     Event,
     Lease,
     Mark,
+    MarkSet,
+    OrderProgress,
     Pose,
     Severity,
     State,
@@ -28,7 +34,7 @@ from fleetlink.shared.messages import (
 )
 from fleetlink.shared.wire import Message
 
-__all__ = ["FleetModel", "Grid", "LeaseRenewal", "Notice", "RobotView"]
+__all__ = ["CONTACT_RENEW_S", "FleetModel", "Grid", "LeaseRenewal", "Notice", "RobotView", "Route"]
 
 TRAIL_POINTS = 200
 
@@ -36,6 +42,9 @@ Grid = tuple[float, float, float, int, int, bytes]
 """(origin_x, origin_y, resolution, width, height, cells row by row from origin_y up: 0 free,
 100 occupied, 255 unknown)."""
 TRAIL_MIN_STEP_M = 0.05
+
+Route = tuple[str, tuple[tuple[float, float, float], ...]]
+"""A round this console sent a robot: its order id and its nodes' (x, y, dwell_s), in order."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,6 +63,9 @@ class RobotView:
     battery: float | None = None
     charging: bool = False
     pose: tuple[float, float, float] | None = None
+    pose_sd_m: float | None = None
+    """The fused pose's position uncertainty: the larger of its x and y standard deviations,
+    metres (None until a ``Pose`` said; a ``State`` carries none)."""
     trail: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=TRAIL_POINTS))
     last_heard: float | None = None
     uwb_stale: bool | None = None
@@ -67,10 +79,29 @@ class RobotView:
     """None: the robot never announced a lease (an agent without leases); '' free."""
     lease_until: float = 0.0
     lost: bool = False
+    present: bool | None = None
+    """Presence (its Zenoh liveliness token, its retained MQTT ``Connection``): True while some
+    link says the robot is there, False once one says it is gone and none that it is there, None
+    until one says (``AlarmDesk.present``)."""
     refused: int = 0
     """Inputs the robot's agent refused (its ``Diagnostics``: malformed, oversized, over a rate, a
     claimed sender, a command whose handling failed), with the last reason."""
     refused_reason: str = ""
+    estop_source: str = ""
+    """REMOTE (an operator) or MANUAL (the button on the robot) while latched."""
+    home: tuple[float, float] | None = None
+    home_source: str = ""
+    comms_policy: str = ""
+    contact_lost: bool = False
+    contact_action: str = ""
+    board: BoardStatus | None = None
+    """The robot's latest board status (power, environment, payload, tank, faults)."""
+    order_id: str = ""
+    """The robot's current (or last) order, "" if none."""
+    progress: OrderProgress | None = None
+    """Along its current order with nodes (a round): nodes done, skipped, dwell left, why it waits;
+    None without one."""
+    paused: bool = False
 
     def age(self, now: float) -> float | None:
         return None if self.last_heard is None else max(0.0, now - self.last_heard)
@@ -83,13 +114,28 @@ class FleetModel:
         self.uwb_timeout_s = uwb_timeout_s
         self.robots: dict[str, RobotView] = {}
         self.marks: dict[str, Mark] = {}
+        """markId -> its newest version (removed ones kept: a tombstone must win over an older
+        version heard later)."""
+        self.marks_version = 0
+        """Bumped whenever ``marks`` or ``mark_sets`` changes (the marks file and this console's
+        retained sets follow it)."""
+        self.mark_sets: dict[tuple[str, str], tuple[Mark, ...]] = {}
+        """(robot, sender) -> the last ``MarkSet`` heard from that console for that robot: what the
+        broker holds (operator/marksync.py compares this console's own with what it should be)."""
         self.anchors: dict[str, tuple[float, float]] = {}
         self.grids: dict[str, Grid] = {}
         """robot -> its onboard map, drawn merged under the poses."""
+        self.routes: dict[str, Route] = {}
+        """robot -> the round this console last sent it (drawn while the robot runs that order)."""
+        self.zones: dict[str, tuple[tuple[float, float], ...]] = {}
+        """People-present zones this console declared, by name (drawn on the map)."""
         self.version = 0
         """Bumped on every change: views redraw only when it moved."""
         self._last: dict[tuple[str, str, str], tuple[int, float]] = {}
         self._notices: deque[Notice] = deque(maxlen=500)
+        self.alarms = AlarmDesk(operator)
+        """This console's alarms (operator/alarms.py), fed with the messages and presence the
+        feed folds in."""
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -108,6 +154,14 @@ class FleetModel:
         topic = type(msg).TOPIC
         if isinstance(msg, Mark):  # by markId: late joiners get old marks in any order
             return self._mark(msg)
+        if isinstance(msg, MarkSet):  # a console's retained set: each entry as its Mark
+            marks = tuple(marks_of_set(msg))
+            if self.mark_sets.get((h.robot, h.sender)) != marks:
+                self.mark_sets[(h.robot, h.sender)] = marks
+                self.marks_version += 1
+            return sum(self._mark(m) for m in marks) > 0
+        if isinstance(msg, AlarmAck):  # another console's acknowledgements: the feed gives them to alarms
+            return False
         slot = (h.robot, h.sender, topic)
         last = self._last.get(slot)
         if last is not None and h.headerId <= last[0] and h.timestamp <= last[1]:
@@ -127,11 +181,14 @@ class FleetModel:
             self.notify(now, "info", f"{h.robot}: back (heard on {link})")
         if isinstance(msg, Pose):
             self._pose(view, msg.x, msg.y, msg.theta)
+            view.pose_sd_m = max(msg.sd_x_m, msg.sd_y_m)
             view.uwb_stale = msg.uwbStale
         elif isinstance(msg, State):
             self._state(view, msg, now)
         elif isinstance(msg, Lease):
             self._lease(view, msg, now)
+        elif isinstance(msg, BoardStatus):
+            view.board = msg
         elif isinstance(msg, Event):
             sev = {Severity.INFO: "info", Severity.WARNING: "warning", Severity.ERROR: "error"}[msg.severity]
             self.notify(now, sev, f"{h.robot}: {msg.kind}: {msg.text}")
@@ -163,13 +220,23 @@ class FleetModel:
         view.charging = msg.batteryState.charging
         view.uwb_stale = msg.uwbStale
         view.payload_on = msg.payloadOn
+        view.order_id = msg.orderId
+        view.progress = msg.progress
+        view.paused = msg.paused
         estop = msg.safetyState.eStop.value != "NONE"
         if estop and not view.estop:
             self.notify(now, "error", f"{view.robot}: e-stop ({msg.safetyState.eStop.value})")
         view.estop = estop
+        view.estop_source = msg.safetyState.eStop.value if estop else ""
+        view.home = None if msg.home is None else (msg.home.x, msg.home.y)
+        view.home_source = "" if msg.home is None else msg.home.source.value
+        view.comms_policy = msg.contact.policy.value
+        view.contact_lost = msg.contact.lost
+        view.contact_action = msg.contact.action
         had_goal = view.goal is not None
         view.goal = (msg.goal.x, msg.goal.y) if msg.goal is not None else None
-        if had_goal and view.goal is None and msg.orderId:
+        # (A round's goal is each node in turn, none between two: its end is the agent's ``order`` event.)
+        if had_goal and view.goal is None and msg.orderId and msg.progress is None:
             self.notify(now, "info", f"{view.robot}: order {msg.orderId} finished")
         errors = tuple(f"{e.errorType}: {e.errorDescription}" for e in msg.errors)
         for e in errors:
@@ -185,20 +252,43 @@ class FleetModel:
         view.lease_until = msg.until
 
     def _mark(self, msg: Mark) -> bool:
-        old = self.marks.get(msg.markId)
-        if old is not None and (old.header.timestamp, old.header.headerId) >= (
-            msg.header.timestamp,
-            msg.header.headerId,
-        ):
-            return False  # the same mark again (both links, or a late joiner's query), or older
+        if not supersedes(msg, self.marks.get(msg.markId)):
+            return False  # the same version again (both links, a set, a query), or an older one
         self.marks[msg.markId] = msg
         self.version += 1
+        self.marks_version += 1
         return True
+
+    def presence(self, robot: str, present: bool | None) -> None:
+        """The robot's presence as its links tell it (``RobotView.present``)."""
+        view = self.robot(robot)
+        if view.present != present:
+            view.present = present
+            self.version += 1
 
     def add_anchor(self, name: str, x: float, y: float) -> None:
         if self.anchors.get(name) != (x, y):
             self.anchors[name] = (x, y)
             self.version += 1
+
+    def set_route(self, robot: str, route: Route) -> None:
+        """The round this console sent ``robot`` (the map draws it while the robot runs it)."""
+        self.routes[robot] = route
+        self.version += 1
+
+    def set_zones(self, zones: dict[str, tuple[tuple[float, float], ...]]) -> None:
+        """This console's people-present zones (the map draws them)."""
+        if zones != self.zones:
+            self.zones = dict(zones)
+            self.version += 1
+
+    def running_route(self, robot: str) -> Route | None:
+        """``robot``'s round while it runs it: the order it reports is the one sent, with progress."""
+        view = self.robots.get(robot)
+        route = self.routes.get(robot)
+        if view is None or route is None or view.progress is None or view.order_id != route[0]:
+            return None
+        return route
 
     def set_grid(self, robot: str, grid: Grid) -> None:
         """A robot's occupancy grid for the map (``operator/maps.py`` keeps them current)."""
@@ -249,13 +339,18 @@ class FleetModel:
         return [r for r, v in self.robots.items() if v.lease_holder == self.operator]
 
 
+CONTACT_RENEW_S = 2.0
+"""A held lease is renewed at least this often: the robot counts it as hearing its operator."""
+
+
 class LeaseRenewal:
     """When to renew the leases this console holds: every ``lease_s / 3`` (a lease survives two
     lost renewals). Pure: ``due(fleet, now)`` is called as often as the caller likes."""
 
     def __init__(self, lease_s: float) -> None:
         self.lease_s = lease_s
-        self.every_s = lease_s / 3
+        # Often enough to be the robot's sign of contact too (agent/contact.py: three missed = lost).
+        self.every_s = min(lease_s / 3, CONTACT_RENEW_S)
         self._last = -math.inf
 
     def due(self, fleet: FleetModel, now: float) -> list[str]:

@@ -15,7 +15,7 @@ from textual.widgets import DataTable
 from fleetlink.operator.fleet import FleetModel, RobotView
 from fleetlink.operator.linkmanager import PRIMARY, LinkHealth
 
-__all__ = ["COLUMNS", "Cell", "FleetTable", "Row", "fleet_rows", "row_cells"]
+__all__ = ["COLUMNS", "Cell", "FleetTable", "Row", "fleet_rows", "id_cell", "row_cells"]
 
 COLUMNS = (
     ("id", "robot"),
@@ -63,12 +63,20 @@ def lease_cell(holder: str | None, me: str) -> str:
     return "you" if holder == me else holder
 
 
+def id_cell(view: RobotView) -> Text:
+    """The robot's id, red while lost (silent); with a cross when its presence is gone (its Zenoh
+    liveliness token and its MQTT connection, operator/alarms.py: robot lost)."""
+    if view.present is False:
+        return Text(f"{view.robot} ✗", style="bold red")
+    return Text(view.robot, style="bold red" if view.lost else "")
+
+
 def row_cells(
     view: RobotView, link: str, health: Sequence[LinkHealth], uwb_ok: bool | None, me: str, now: float
 ) -> Row:
     """One robot's cells, in ``COLUMNS`` order."""
     return (
-        Text(view.robot, style="bold red" if view.lost else ""),
+        id_cell(view),
         view.mode if not view.estop else Text("ESTOP", style="bold red"),
         "?" if view.battery is None else f"{view.battery:.0f}%",
         Text(link, style="green" if link == PRIMARY else "bold yellow"),

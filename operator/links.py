@@ -5,7 +5,8 @@ key on both links (``fleetlink.links`` endpoints, keyed by ``LinkName``), decode
 counted and logged once per reason), feeds health and acks into ``LinkManager``, hands good
 messages to a sink, and sends commands where the link manager says, re-sending unacked ones on a
 switch. A poll worker (``poll_hz``) drives the manager's clock-based decisions. The same bytes
-travel on both links; map and marks queries go over the primary when it can answer queries.
+travel on both links; map and marks queries go over the primary when it can answer queries, and
+retained messages (the consoles' mark sets) over the links whose broker keeps them (MQTT).
 """
 
 from __future__ import annotations
@@ -14,16 +15,16 @@ import json
 import logging
 import math
 import threading
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from typing import Any
 from urllib.parse import urlparse
 
-from fleetlink.links.base import Link
+from fleetlink.links.base import Link, RetainLink
 from fleetlink.operator.linkmanager import FALLBACK, PRIMARY, Failed, LinkHealth, LinkManager, LinkPolicy, Send, Switch
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
-from fleetlink.shared.messages import Ack, LinkName, MapSnapshot, Mark
+from fleetlink.shared.messages import Ack, AlarmAck, DoseSnapshot, LinkName, MapSnapshot, Mark, MarkSet
 from fleetlink.shared.mqtt import MqttSettings
 from fleetlink.shared.worker import Worker
 
@@ -33,7 +34,9 @@ __all__ = ["ROBOT_TOPICS", "OperatorLink", "mqtt_settings_for", "parse_mqtt_url"
 
 # Topics only a robot's agent publishes: hearing one on a link proves the robot <-> operator path
 # on that link works. (UWB fixes come from the gateway, marks from other consoles: they prove nothing.)
-ROBOT_TOPICS = frozenset({"state", "pose", "ack", "events", "connection", "board", "lease", "map/updates"})
+ROBOT_TOPICS = frozenset(
+    {"state", "pose", "ack", "events", "connection", "board", "lease", "map/updates", "dose/updates"}
+)
 
 UWB_STATUS = "fleetlink/uwb/*/status"
 """The UWB gateways' retained status (JSON, positioning/gateway.py), with their anchors."""
@@ -41,6 +44,11 @@ MARKS_QUERY = keys.sender_filter("*", Mark.TOPIC)
 """``fleetlink/v1/*/marks/*``: every console answers it with the marks it made (under its own
 name, as it published them); a console that starts late asks it."""
 AnchorSink = Callable[[str, list[tuple[str, float, float, float]]], None]
+ALIVE_TOKENS = keys.zenoh_all_robots("alive")
+"""``fleetlink/v1/*/alive``: the agents' liveliness tokens (agent/links/zenoh_link.py), watched on
+every link that can (``watch_liveliness``: Zenoh, in-process)."""
+PresenceSink = Callable[[str, str, bool, float], None]
+"""``sink(robot, link, alive, wall time)``: a robot's token appeared (True) or went (False)."""
 
 CONSOLE_RECONNECT_MAX_S = 4.0
 """A console's broker reconnect backoff ceiling (an operator waits; a fleet's agents spread out)."""
@@ -69,6 +77,9 @@ def mqtt_settings_for(url: str) -> MqttSettings:
 Sink = Callable[[wire.Message, str, float], None]
 Listener = Callable[[Switch | Failed], None]
 
+
+MAX_EARLY = 4096
+"""Messages kept for the first sink while none is added (the oldest dropped beyond)."""
 
 MAX_REJECT_REASONS = 256
 """Distinct rejection reasons counted (and logged once) apiece; the rest count as ``OTHER_REASONS``."""
@@ -99,7 +110,12 @@ class OperatorLink:
         self._seen_reasons: set[str] = set()
         self._lock = threading.Lock()
         self._sinks: list[Sink] = []
+        self._early: deque[tuple[wire.Message, str, float]] | None = deque(maxlen=MAX_EARLY)
+        """What arrived before the first sink was added (None after): the retained messages a
+        broker sends right after connecting (consoles' mark sets, robots' connections)."""
+        self._replay: list[tuple[wire.Message, str, float]] = []
         self._anchor_sinks: list[AnchorSink] = []
+        self._presence_sinks: list[PresenceSink] = []
         self._listeners: list[Listener] = []
         self._poller = Worker("operator-link-poll", target=self._poll_loop)
         self._poll_interval = 1.0 / poll_hz
@@ -109,7 +125,13 @@ class OperatorLink:
     # -- wiring ---------------------------------------------------------------------------------
 
     def add_sink(self, sink: Sink) -> None:
-        self._sinks.append(sink)
+        """``sink(msg, link, now)`` for every good message (on a link's thread). What arrived
+        before the first sink was added (a link started before the console attached its model)
+        follows from the poll worker, within a poll period."""
+        with self._lock:
+            if self._early is not None:
+                self._replay, self._early = list(self._early), None
+            self._sinks.append(sink)
 
     def add_listener(self, listener: Listener) -> None:
         self._listeners.append(listener)
@@ -117,6 +139,10 @@ class OperatorLink:
     def add_anchor_sink(self, sink: AnchorSink) -> None:
         """``sink(gateway, [(id, x, y, z), ...])`` for each UWB gateway status heard."""
         self._anchor_sinks.append(sink)
+
+    def add_presence_sink(self, sink: PresenceSink) -> None:
+        """``sink(robot, link, alive, wall)`` whenever a robot's liveliness token comes or goes."""
+        self._presence_sinks.append(sink)
 
     def start(self) -> OperatorLink:
         for name, link in self.links.items():
@@ -126,6 +152,13 @@ class OperatorLink:
 
             link.subscribe(keys.ZENOH_ALL, receive)
             link.subscribe(UWB_STATUS, receive)
+            watch = getattr(link, "watch_liveliness", None)
+            if watch is not None:
+
+                def token(key: str, alive: bool, name: LinkName = name) -> None:
+                    self._token(name, key, alive)
+
+                watch(ALIVE_TOKENS, token)
             link.start()
         self._poller.start()
         return self
@@ -171,6 +204,19 @@ class OperatorLink:
         for sink in self._anchor_sinks:
             sink(gateway, anchors)
 
+    def _token(self, link: str, key: str, alive: bool) -> None:
+        try:
+            robot, topic = keys.parse_key(key)
+        except ValueError as exc:
+            self._reject(link, key, f"bad liveliness token: {exc}")
+            return
+        if topic != "alive":
+            self._reject(link, key, f"bad liveliness token: topic {topic!r} is not 'alive'")
+            return
+        wall = self.clock.wall()
+        for sink in self._presence_sinks:
+            sink(robot, link, alive, wall)
+
     def _receive(self, link: str, key: str, payload: bytes) -> None:
         if key.startswith("fleetlink/uwb/"):
             self._gateway_status(link, key, payload)
@@ -180,8 +226,11 @@ class OperatorLink:
         except wire.WireError as exc:
             self._reject(link, key, exc.reason if hasattr(exc, "reason") else str(exc))
             return
-        if msg.header.sender == self.sender:
-            return  # our own command, echoed by the broker or the local Zenoh session
+        if msg.header.sender == self.sender and not isinstance(msg, Mark | MarkSet | AlarmAck):
+            # Our own command, echoed by the broker or the local Zenoh session. Our own marks do
+            # go on: a console restarted without its marks file gets them back from its retained
+            # sets (merging a mark already held changes nothing); so do our alarm acknowledgements.
+            return
         now = self.clock.now()
         topic = type(msg).TOPIC
         robot = msg.header.robot
@@ -192,6 +241,9 @@ class OperatorLink:
                     self.manager.acked(robot, link, msg.commandTopic, msg.commandHeaderId, now)
         with self._lock:
             self.delivered[link] += 1
+            if self._early is not None:
+                self._early.append((msg, link, now))
+                return
         for sink in self._sinks:
             sink(msg, link, now)
 
@@ -216,6 +268,28 @@ class OperatorLink:
         for link in links:
             self._put(link, k, payload)
 
+    def publish_retained(self, msg: wire.Message) -> bool:
+        """Publish ``msg`` retained on every link whose broker keeps messages (MQTT; a consoles'
+        ``MarkSet``); False if it was sent on none (down: ``add_connect_listener`` says when to
+        try again)."""
+        payload = wire.encode(msg)
+        k = wire.key_of(msg)
+        sent = False
+        for link in self.links.values():
+            if isinstance(link, RetainLink):
+                try:
+                    sent = link.publish_retained(k, payload) or sent
+                except Exception as exc:  # a dead transport must not take the console down
+                    log.debug("retained publish on %s failed: %s", link.name.value, exc)
+        return sent
+
+    def add_connect_listener(self, listener: Callable[[], object]) -> None:
+        """``listener()`` after every (re)connect of a link whose broker keeps messages (on that
+        link's thread), once its subscriptions are renewed."""
+        for link in self.links.values():
+            if isinstance(link, RetainLink):
+                link.add_connect_hook(listener)
+
     def _put(self, link: str, key: str, payload: bytes) -> None:
         try:
             self.links[LinkName(link)].publish(key, payload)
@@ -237,6 +311,10 @@ class OperatorLink:
     def poll(self) -> None:
         with self._lock:
             actions = self.manager.poll(self.clock.now())
+            early, self._replay = self._replay, []
+        for msg, link, now in early:
+            for sink in self._sinks:
+                sink(msg, link, now)
         self._dispatch(actions)
 
     def _poll_loop(self, worker: Worker) -> None:
@@ -270,10 +348,25 @@ class OperatorLink:
                 return msg
         return None
 
+    def fetch_dose(self, robot: str, timeout: float = 3.0) -> DoseSnapshot | None:
+        """Ask the robot's dose queryable (``fleetlink/v1/<robot>/dose``); None if no good answer."""
+        primary = self._queries()
+        if primary is None:
+            return None
+        for key, payload in primary.query(keys.key(robot, DoseSnapshot.TOPIC), timeout):
+            try:
+                msg = wire.decode_key(key, payload)
+            except wire.WireError as exc:
+                self._reject(PRIMARY, key, exc.reason)
+                continue
+            if isinstance(msg, DoseSnapshot):
+                return msg
+        return None
+
     def serve_marks(self, marks: Callable[[], Sequence[Mark]]) -> None:
-        """Answer ``MARKS_QUERY`` with this console's own marks in ``marks()``: a console speaks
-        only under its own name (the router lets it reply nowhere else), so each author answers
-        for its marks."""
+        """Answer ``MARKS_QUERY`` with this console's own marks in ``marks()`` (removed ones too,
+        so a late console learns of the removal): a console speaks only under its own name (the
+        router lets it reply nowhere else), so each author answers for its marks."""
         primary = self._queries()
         if primary is not None:
 

@@ -1,4 +1,6 @@
-"""The map widget: occupancy grids, robots (pose, heading, trail), anchors, goals and marks.
+"""The map widget: occupancy grids, robots (pose, heading, trail), anchors, homes (H), goals, marks,
+people-present zones (░) and the selected robot's running round (dwell points o, lane ends +), and
+(``D``) the fleet's UV dose layer as cell backgrounds, with its legend on the bottom line.
 
 The geometry (``MapGeometry``) is pure and tested on its own: one terminal cell is ``scale`` metres
 wide and ``2 * scale`` metres tall (terminal cells are about twice as tall as wide), world +y is up.
@@ -15,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 from rich.segment import Segment
 from rich.style import Style
 from textual import events
@@ -22,7 +25,9 @@ from textual.message import Message
 from textual.strip import Strip
 from textual.widget import Widget
 
+from fleetlink.operator.dose import AT_TARGET, BELOW, FleetDose
 from fleetlink.operator.fleet import FleetModel
+from fleetlink.shared.geometry import points_in_polygon
 
 __all__ = ["MapGeometry", "MapView"]
 
@@ -72,9 +77,15 @@ TRAIL_STYLE = Style(color="green", dim=True)
 GOAL_STYLE = Style(color="yellow", bold=True)
 MARK_STYLE = Style(color="magenta", bold=True)
 ANCHOR_STYLE = Style(color="cyan", bold=True)
+ZONE_STYLE = Style(color="red")
+ROUTE_STYLE = Style(color="bright_cyan", bold=True)
+ROUTE_DONE_STYLE = Style(color="cyan", dim=True)
 WALL_STYLE = Style(color="white")
 FREE_STYLE = Style(color="grey30")
 EMPTY = Style()
+DOSE_BG = {AT_TARGET: Style(bgcolor="dark_green"), BELOW: Style(bgcolor="dark_orange3")}
+"""The dose layer's cell backgrounds: at or over the target, under it (no dose: none)."""
+LEGEND_STYLE = Style(color="white", bgcolor="grey15")
 
 Cell = tuple[str, Style]
 
@@ -106,6 +117,9 @@ class MapView(Widget, can_focus=True):
         self._cells: dict[tuple[int, int], Cell] = {}
         self._drawn: tuple[object, ...] = ()
         self.frames = 0
+        self.dose: FleetDose | None = None
+        """The fleet's dose layer to draw (None: hidden); the app sets it under ``lock``."""
+        self._dose_styles: dict[tuple[Style, int], Style] = {}
 
     def on_resize(self, event: events.Resize) -> None:
         self._sync_size()
@@ -130,7 +144,8 @@ class MapView(Widget, can_focus=True):
         """Redraw if anything the picture depends on changed (called on every frame of the app)."""
         self._sync_size()
         g = self.geometry
-        key = (self.fleet.version, g.width, g.height, g.center_x, g.center_y, g.scale, self.selected())
+        dose = None if self.dose is None else (id(self.dose), self.dose.version)
+        key = (self.fleet.version, g.width, g.height, g.center_x, g.center_y, g.scale, self.selected(), dose)
         if key != self._drawn:
             self._drawn = key
             self._rebuild()
@@ -177,6 +192,14 @@ class MapView(Widget, can_focus=True):
             cells[(int(col), int(row))] = ("█", WALL_STYLE)
         for row, col in zip(*np.nonzero(merged == 0), strict=True):
             cells[(int(col), int(row))] = ("·", FREE_STYLE)
+        if self.fleet.zones:  # people-present zones: a fill over everything but walls, under the rest
+            gx, gy = np.meshgrid(xs, ys)
+            for corners in self.fleet.zones.values():
+                inside = points_in_polygon(gx, gy, corners) & (merged != 100)
+                for row, col in zip(*np.nonzero(inside), strict=True):
+                    cells[(int(col), int(row))] = ("░", ZONE_STYLE)
+                for x, y in corners:  # a zone smaller than a terminal cell still shows
+                    put(x, y, "░", ZONE_STYLE, protect=False)
         for name, (x, y) in self.fleet.anchors.items():
             put(x, y, "A", ANCHOR_STYLE)
             del name
@@ -184,9 +207,12 @@ class MapView(Widget, can_focus=True):
         for view in self.fleet.robots.values():
             for x, y in view.trail:
                 put(x, y, "∙", TRAIL_STYLE, protect=False)
+        self._draw_round(selected, put)
         for mark in self.fleet.live_marks():
             put(mark.x, mark.y, "✚" if mark.kind == "casualty" else "*", MARK_STYLE)
         for view in self.fleet.robots.values():
+            if view.home is not None:  # every robot's home, where return home goes
+                put(view.home[0], view.home[1], "H", GOAL_STYLE)
             if view.goal is not None:
                 put(view.goal[0], view.goal[1], "G", GOAL_STYLE)
         labels: list[tuple[int, int, str, Style]] = []
@@ -203,8 +229,65 @@ class MapView(Widget, can_focus=True):
                 c = (col + 2 + k, row)
                 if g.inside(*c) and c not in protected:
                     cells[c] = (ch, style)
+        if self.dose is not None:
+            self._draw_dose(cells, self.dose, np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64))
         self._cells = cells
         self.frames += 1
+
+    def _draw_round(self, robot: str | None, put: Callable[..., None]) -> None:
+        """The selected robot's round while it runs it (``FleetModel.running_route``): the way still
+        ahead as dots, dwell points ``o`` (other nodes, a sweep's lane ends, ``+``), the nodes
+        already done dimmed."""
+        route = self.fleet.running_route(robot) if robot is not None else None
+        view = self.fleet.robots.get(robot) if robot is not None else None
+        if route is None or view is None or view.progress is None:
+            return
+        nodes = route[1]
+        done = view.progress.nodesDone
+        step = self.geometry.scale / 2
+        for k in range(max(1, done), len(nodes)):  # the legs still to drive
+            (ax, ay, _), (bx, by, _) = nodes[k - 1], nodes[k]
+            n = max(1, math.ceil(math.hypot(bx - ax, by - ay) / step))
+            for i in range(1, n):
+                put(ax + (bx - ax) * i / n, ay + (by - ay) * i / n, "∙", ROUTE_STYLE, protect=False)
+        for k, (x, y, dwell) in enumerate(nodes[1:], start=1):
+            put(x, y, "o" if dwell > 0 else "+", ROUTE_DONE_STYLE if k < done else ROUTE_STYLE, protect=False)
+
+    def _draw_dose(
+        self,
+        cells: dict[tuple[int, int], Cell],
+        dose: FleetDose,
+        xs: npt.NDArray[np.float64],
+        ys: npt.NDArray[np.float64],
+    ) -> None:
+        """The dose at each terminal cell's centre as its background (whatever is drawn there
+        stays), and the legend on the bottom line."""
+        classes = dose.classes(xs, ys)
+        styles = self._dose_styles
+        for row, col in zip(*np.nonzero(classes), strict=True):
+            c = (int(col), int(row))
+            char, style = cells.get(c, (" ", EMPTY))
+            k = int(classes[row, col])
+            lit = styles.get((style, k))
+            if lit is None:
+                lit = styles[(style, k)] = style + DOSE_BG[k]
+            cells[c] = (char, lit)
+        t = dose.target_j_m2
+        parts = [
+            (" dose ", LEGEND_STYLE),
+            ("  ", DOSE_BG[AT_TARGET]),
+            (f" at/over {t:g} J/m² ", LEGEND_STYLE),
+            ("  ", DOSE_BG[BELOW]),
+            (f" under {t:g} ", LEGEND_STYLE),
+            ("  ", EMPTY),
+            (" none ", LEGEND_STYLE),
+        ]
+        row, col = self.geometry.height - 1, 0
+        for text, style in parts:
+            for ch in text:
+                if col < self.geometry.width:
+                    cells[(col, row)] = (ch, style)
+                col += 1
 
     def render_line(self, y: int) -> Strip:
         width = self.content_size.width

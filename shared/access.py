@@ -51,14 +51,20 @@ ROUTER_PREFIX = "router-"
 GATEWAY_USER = "uwb-gateway"
 SIM_USER = "sim"
 
-AGENT_WRITES: tuple[str, ...] = ("state", "pose", "connection", "ack", "events", "board", "lease", "map")
-"""Topics an agent publishes about itself (``map`` includes everything below it, e.g. ``map/updates``)."""
+AGENT_WRITES: tuple[str, ...] = ("state", "pose", "connection", "ack", "events", "board", "lease", "map", "dose")
+"""Topics an agent publishes about itself (``map`` and ``dose`` include everything below them, e.g.
+``map/updates``, ``dose/updates``)."""
 
-COMMAND_TOPICS: tuple[str, ...] = ("order", "actions", "teleop", "lease/request")
+SERVED: tuple[str, ...] = ("map", "dose")
+"""What an agent answers queries on (Zenoh queryables): its map and its UV dose layer."""
+
+COMMAND_TOPICS: tuple[str, ...] = ("order", "actions", "teleop", "lease/request", "zones")
 """Topics operators publish to a robot, each under the operator's name; the robot reads only its own."""
 
-OPERATOR_WRITES: tuple[str, ...] = (*COMMAND_TOPICS, "marks")
-"""Commands, and the marks operators share with each other (``fleetlink/v1/<robot>/marks/<op>``)."""
+OPERATOR_WRITES: tuple[str, ...] = (*COMMAND_TOPICS, "marks", "marks/set", "alarms/ack")
+"""Commands, and the marks operators share with each other (``fleetlink/v1/<robot>/marks/<op>``,
+and each console's retained set ``fleetlink/v1/<robot>/marks/set/<op>``), and each console's
+retained alarm acknowledgements (``fleetlink/v1/<robot>/alarms/ack/<op>``; agents never read them)."""
 
 assert set(OPERATOR_WRITES) == SENDER_TOPICS  # what people write is keyed by their name
 
@@ -79,7 +85,7 @@ GATEWAY_WRITES_MQTT: tuple[str, ...] = (
     GATEWAY_STATUS_MQTT,
 )
 
-_SUBTREE = frozenset({"map"})  # topics that own a subtree of keys
+_SUBTREE = frozenset({"map", "dose"})  # topics that own a subtree of keys
 
 
 def check_robot_username(robot: str) -> str:
@@ -216,8 +222,10 @@ def zenoh_access_control(
                 _rule(f"{robot}-subscribe", ["ingress"], ["declare_subscriber"], [own]),
                 _rule(f"{robot}-commands-in", ["egress"], ["put", "delete"], reads),
                 _rule(f"{robot}-presence", ["ingress"], ["liveliness_token"], [own]),
-                _rule(f"{robot}-serve-map", ["ingress"], ["declare_queryable", "reply"], [_zenoh(robot, "map")]),
-                _rule(f"{robot}-map-queries", ["egress"], ["query"], [_zenoh(robot, "map")]),
+                _rule(
+                    f"{robot}-serve", ["ingress"], ["declare_queryable", "reply"], [_zenoh(robot, t) for t in SERVED]
+                ),
+                _rule(f"{robot}-queries", ["egress"], ["query"], [_zenoh(robot, t) for t in SERVED]),
             ],
         )
     fixes = [f"{PREFIX}/*/{t}" for t in FIX_TOPICS]

@@ -71,9 +71,10 @@ RESERVED_ROBOT_IDS = frozenset({SIM})
 
 MAX_TOPIC_SEGMENTS = 8
 
-SENDER_TOPICS = frozenset({"order", "actions", "teleop", "lease/request", "marks"})
-"""Topics people publish (commands, lease requests, marks): their keys end in the sender's login,
-``fleetlink/v1/<robot>/<topic>/<sender>``, so the transport's access control vouches for it."""
+SENDER_TOPICS = frozenset({"order", "actions", "teleop", "lease/request", "zones", "marks", "marks/set", "alarms/ack"})
+"""Topics people publish (commands, lease requests, marks and each console's retained set of
+marks, alarm acknowledgements): their keys end in the sender's login, ``fleetlink/v1/<robot>/<topic>/<sender>``, so the
+transport's access control vouches for it."""
 
 ZENOH_ALL = f"{PREFIX}/**"
 """Zenoh key expression matching every fleetlink key (including the sim namespace)."""

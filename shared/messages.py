@@ -24,29 +24,47 @@ Coordinate = Annotated[float, bounded(-MAX_COORDINATE_M, MAX_COORDINATE_M)]
 
 __all__ = [
     "MAX_ACTIONS",
+    "MAX_ALARM_ACKS",
     "MAX_BOARD_ERRORS",
     "MAX_BOARD_SENSORS",
+    "MAX_DOSE_CELLS",
+    "MAX_DOSE_DATA",
+    "MAX_DOSE_J_M2",
     "MAX_EVENT_DATA",
     "MAX_MAP_CELLS",
     "MAX_MAP_DATA",
     "MAX_MARK_LABEL",
+    "MAX_MARK_SET",
+    "MAX_ORDER_NODES",
     "MAX_PARAMS",
     "MAX_STATE_ERRORS",
     "MAX_UWB_ANCHORS",
     "Ack",
     "AckResult",
+    "AckedAlarm",
     "Action",
     "ActionType",
     "AgvPosition",
+    "AlarmAck",
     "BatteryState",
+    "BlockingType",
+    "BoardFault",
     "BoardStatus",
+    "CommsPolicy",
     "Connection",
     "ConnectionState",
+    "Contact",
+    "DoseEncoding",
+    "DoseLamp",
+    "DoseSnapshot",
+    "DoseUpdate",
     "EStop",
     "ErrorLevel",
     "Event",
     "FixStatus",
     "Goal",
+    "Home",
+    "HomeSource",
     "InstantActions",
     "KeyValue",
     "Lease",
@@ -57,8 +75,14 @@ __all__ = [
     "MapSnapshot",
     "MapUpdate",
     "Mark",
+    "MarkEntry",
+    "MarkSet",
     "OperatingMode",
     "Order",
+    "OrderEdge",
+    "OrderNode",
+    "OrderProgress",
+    "PeopleZones",
     "Pose",
     "SafetyState",
     "Severity",
@@ -70,16 +94,29 @@ __all__ = [
     "UwbRange",
     "UwbRanges",
     "Velocity",
+    "Zone",
+    "ZonePoint",
 ]
 
 MAX_BOARD_ERRORS = 16
 MAX_BOARD_SENSORS = 16
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class BoardFault:
+    """One active board fault: the firmware's code and its text."""
+
+    code: Annotated[int, bounded(0, 65_535)]
+    text: Annotated[str, sized(64)]
+
+
 @register
 @dataclass(frozen=True, slots=True, kw_only=True)
 class BoardStatus(Message):
-    """The robot agent's view of its control board, published on ``fleetlink/v1/<robot>/board``."""
+    """The robot agent's view of its control board, published on ``fleetlink/v1/<robot>/board`` at
+    1 Hz and at once when something an operator acts on changes (a fault, the payload, the tank,
+    charging, the e-stop button, the link to the board). A reading the board does not give (a
+    plain SLAMTEC base has no environment sensors) is nil."""
 
     TOPIC: ClassVar[str] = "board"
 
@@ -88,22 +125,35 @@ class BoardStatus(Message):
     model: Annotated[str, sized(64)]
     firmware: Annotated[str, sized(64)]
     battery_percent: Annotated[float, bounded(0.0, 100.0)]
+    battery_voltage_v: Annotated[float, bounded(0.0, 1000.0)] | None
+    battery_current_a: Annotated[float, bounded(-1000.0, 1000.0)] | None
+    """Positive while charging."""
     charging: bool
     on_dock: bool
+    temperature_c: Annotated[float, bounded(-100.0, 200.0)] | None
+    humidity_percent: Annotated[float, bounded(0.0, 100.0)] | None
+    pm2_5_ug_m3: Annotated[float, bounded(0.0)] | None
+    tvoc_ppb: Annotated[int, bounded(0)] | None
+    uv_lamp: bool
+    atomiser_level: Annotated[int, bounded(0, 3)]
+    fan_level: Annotated[int, bounded(0, 3)]
+    """The HEPA fan, 0 (off) - 3."""
+    has_payload: bool
+    """The board has the disinfection payload (lamp, atomiser, fan, tank): a plain base has not."""
+    tank_percent: Annotated[float, bounded(0.0, 100.0)] | None
+    """Disinfectant left in the tank, nil for a board without one."""
+    estop_button: bool
+    """The emergency-stop button on the robot is pressed."""
     health_flags: Annotated[int, bounded(0, 255)]
     """Board health bitmap as reported by the firmware (one byte)."""
-    errors: Annotated[tuple[str, ...], sized(MAX_BOARD_ERRORS, item=sized(256))]
-    """Active error descriptions, at most 16 of at most 256 characters."""
-    left_mm: float
-    """Cumulative left wheel distance since board start, millimetres (signed)."""
-    right_mm: float
-    """Cumulative right wheel distance since board start, millimetres (signed)."""
+    faults: Annotated[tuple[BoardFault, ...], sized(MAX_BOARD_ERRORS)]
+    """The board's active faults; a fault the agent cleared (``clear_error``) leaves the list."""
     bumpers: Annotated[int, bounded(0)]
-    """Bumper bitmap, bit i set while bumper i is pressed."""
+    """Bumper and cliff bitmap (bits 0-1 bumpers, 2-3 cliffs), bit set while triggered."""
     sensors_m: Annotated[tuple[float, ...], sized(MAX_BOARD_SENSORS, item=bounded(0.0))]
     """Range sensor readings in metres, at most 16, each >= 0."""
-    watchdog_tripped: bool
-    """The board's motor watchdog has stopped the motors."""
+    watchdog_trips: Annotated[int, bounded(0)]
+    """Times the board's link watchdog stopped the motors since the agent started."""
 
 
 @register
@@ -140,6 +190,9 @@ class Truth(Message):
 MAX_STATE_ERRORS = 16
 MAX_ACTIONS = 16
 MAX_PARAMS = 8
+MAX_ORDER_NODES = 256
+"""Nodes (and edges) in one order: a coverage round of a large room is a few dozen dwell points or
+a hundred sweep lanes."""
 MAX_EVENT_DATA = 16
 
 
@@ -182,6 +235,19 @@ class ActionType(enum.StrEnum):
     ESTOP_RELEASE = "estopRelease"
     RETURN_HOME = "returnHome"
     PAYLOAD = "payload"  # parameter on = "true" | "false"
+    SET_HOME = "setHome"  # parameters x, y [, theta_deg] (metres, site frame); none: the current pose
+    SET_COMMS_POLICY = "setCommsPolicy"  # parameter policy = "stop" | "retrace" | "home"
+    DWELL = "dwell"  # a node action only: stand at the node for parameter duration (seconds)
+
+
+class BlockingType(enum.StrEnum):
+    """VDA 5050 blockingType of an action at a node: NONE runs while the robot drives on, SOFT
+    lets other actions run but not driving, HARD runs alone (fleetlink runs a node's actions one
+    after another and drives on when the last has finished, so SOFT and HARD behave alike)."""
+
+    NONE = "NONE"
+    SOFT = "SOFT"
+    HARD = "HARD"
 
 
 class AckResult(enum.StrEnum):
@@ -265,6 +331,64 @@ class Goal:
     """Final heading in radians, or nil to keep the arrival heading."""
 
 
+class HomeSource(enum.StrEnum):
+    """Where a robot's home came from (docs/motion.md, "Home")."""
+
+    LOCALISED = "localised"  # where it first localised in the site frame
+    DOCK = "dock"  # the dock pose in its configuration
+    OPERATOR = "operator"  # set by an operator (setHome)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Home:
+    x: Coordinate
+    """Metres, site (UWB) frame."""
+    y: Coordinate
+    theta: Annotated[float, bounded(-3.2, 3.2)] | None
+    """Radians, or nil: arrive with any heading."""
+    source: HomeSource
+
+
+class CommsPolicy(enum.StrEnum):
+    """What a robot does when it stops hearing its operators (docs/motion.md, "Comms loss")."""
+
+    STOP = "stop"  # stop where it is
+    RETRACE = "retrace"  # drive back along its own path to where it last heard an operator, and wait
+    HOME = "home"  # return home
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Contact:
+    """The robot's contact with its operators."""
+
+    policy: CommsPolicy
+    lost: bool
+    """No operator heard within the comms timeout while someone held the lease."""
+    action: Annotated[str, sized(32)]
+    """What the policy is doing: "" in contact, then stopped, retracing, waiting or homing."""
+    silent_s: Annotated[float, bounded(0.0)]
+    """Seconds since the robot last heard an operator (0 when it never has)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class OrderProgress:
+    """How far the robot is along an order with nodes (VDA 5050 lastNodeId/lastNodeSequenceId, and
+    what an operator asks: how many nodes are left, how long the dwell still runs)."""
+
+    nodesTotal: Annotated[int, bounded(0)]
+    nodesDone: Annotated[int, bounded(0)]
+    """Nodes reached (their actions done) or skipped."""
+    skipped: Annotated[int, bounded(0)]
+    """Nodes the robot could not reach (no way there): passed over, named in an ``order`` event."""
+    lastNodeId: Annotated[str, sized(64)]
+    """The last node reached, "" before the first."""
+    lastNodeSequenceId: Annotated[int, bounded(0)]
+    dwellLeft_s: Annotated[float, bounded(0.0)]
+    """Seconds the robot will still stand at the current node (0 while driving)."""
+    waiting: Annotated[str, sized(64)]
+    """"" while the order runs; else why it waits for a resume: paused, e-stop, stopped, teleop."""
+
+
 @register
 @dataclass(frozen=True, slots=True, kw_only=True)
 class State(Message):
@@ -292,6 +416,11 @@ class State(Message):
     """Where the current order is going, nil when no order is active."""
     driving: bool
     paused: bool
+    home: Home | None
+    """The robot's home (where return home goes), nil until it is known."""
+    contact: Contact
+    progress: OrderProgress | None = None
+    """Along the current order with nodes; nil without one."""
 
 
 @register
@@ -327,6 +456,45 @@ class Connection(Message):
     connectionState: ConnectionState
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Action:
+    actionId: Annotated[str, sized(64)]
+    actionType: ActionType
+    actionParameters: Annotated[tuple[KeyValue, ...], sized(MAX_PARAMS)]
+    blockingType: BlockingType = BlockingType.HARD
+    """At a node: whether the robot may drive on while it runs (instant actions run at once)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class OrderNode:
+    """A VDA 5050 node: a place the robot drives to, and the actions it runs there in order."""
+
+    nodeId: Annotated[str, sized(64)]
+    sequenceId: Annotated[int, bounded(0)]
+    """Even, from 0, +2 from one node to the next (edges take the odd numbers between)."""
+    released: bool
+    """Base (true) or horizon (false): the robot drives to released nodes only."""
+    x: Coordinate
+    y: Coordinate
+    theta: Annotated[float, bounded(-3.2, 3.2)] | None
+    """Heading to arrive with, radians; nil: any."""
+    actions: Annotated[tuple[Action, ...], sized(MAX_ACTIONS)] = ()
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class OrderEdge:
+    """A VDA 5050 edge between two consecutive nodes; the agent plans its own way along it."""
+
+    edgeId: Annotated[str, sized(64)]
+    sequenceId: Annotated[int, bounded(0)]
+    startNodeId: Annotated[str, sized(64)]
+    endNodeId: Annotated[str, sized(64)]
+    released: bool
+    maxSpeed: Annotated[float, bounded(0.01, 5.0)] | None = None
+    """m/s on this edge (a sweep lane, a lamp pass at constant speed); nil: the robot's own limit."""
+    actions: Annotated[tuple[Action, ...], sized(MAX_ACTIONS)] = ()
+
+
 @register
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Order(Message):
@@ -340,13 +508,10 @@ class Order(Message):
     """Where to go; nil only with returnHome."""
     returnHome: bool
     """Go back to where the robot started (goal ignored)."""
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class Action:
-    actionId: Annotated[str, sized(64)]
-    actionType: ActionType
-    actionParameters: Annotated[tuple[KeyValue, ...], sized(MAX_PARAMS)]
+    nodes: Annotated[tuple[OrderNode, ...], sized(MAX_ORDER_NODES)] = ()
+    """A route (VDA 5050 nodes, goal nil): driven node by node, each node's actions run there."""
+    edges: Annotated[tuple[OrderEdge, ...], sized(MAX_ORDER_NODES)] = ()
+    """One edge between each two consecutive nodes."""
 
 
 @register
@@ -512,6 +677,9 @@ class UwbRanges(Message):
 # authority, see agent/lease.py) and marks shared between consoles.
 
 MAX_MARK_LABEL = 64
+MAX_MARK_SET = 256
+"""Marks in one ``MarkSet`` (worst case, every text at its limit in 4-byte characters: 183 KiB
+encoded, under ``wire.MAX_PAYLOAD``)."""
 
 
 @register
@@ -562,7 +730,109 @@ class Mark(Message):
     label: Annotated[str, sized(MAX_MARK_LABEL)]
     kind: Annotated[str, sized(32)]
     """casualty, hazard, note, ..."""
+    sd_m: Annotated[float, bounded(0.0, 1000.0)]
+    """The position's uncertainty (one standard deviation, metres): the robot's fused pose
+    uncertainty for a mark placed at a robot, 0 for typed coordinates."""
     removed: bool
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MarkEntry:
+    """One mark in a ``MarkSet``: a ``Mark``'s fields and its version's ``header.timestamp``; the
+    author and the robot are the set's ``header.sender`` and ``header.robot``."""
+
+    markId: Annotated[str, sized(64)]
+    x: Coordinate
+    y: Coordinate
+    label: Annotated[str, sized(MAX_MARK_LABEL)]
+    kind: Annotated[str, sized(32)]
+    sd_m: Annotated[float, bounded(0.0, 1000.0)]
+    removed: bool
+    timestamp: Annotated[float, bounded(0.0)]
+    """Seconds since the Unix epoch: the ``header.timestamp`` of the ``Mark`` this entry is."""
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MarkSet(Message):
+    """Every mark whose latest version ``header.sender`` wrote under ``header.robot``, removed
+    ones (tombstones) included: ``fleetlink/v1/<robot>/marks/set/<sender>``, published by each
+    console retained on MQTT (QoS 1) whenever that set changes and after every connect, so a
+    console that starts late -- or restarts -- gets every mark from the broker even with Zenoh
+    down. Receivers merge each entry like a ``Mark`` (by ``markId``, newest timestamp wins). At
+    ``MAX_MARK_SET`` the publisher leaves out the oldest tombstones first, then the oldest marks."""
+
+    TOPIC: ClassVar[str] = "marks/set"
+
+    marks: Annotated[tuple[MarkEntry, ...], sized(MAX_MARK_SET)]
+
+
+MAX_ALARM_ACKS = 16
+"""Acknowledgements in one ``AlarmAck``: at most one per alarm kind (docs/console.md, "Alarms")."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class AckedAlarm:
+    """One acknowledged alarm episode: the alarm ``kind`` on the message's robot, the episode that
+    began at ``since``, acknowledged at ``at``."""
+
+    kind: Annotated[str, sized(32)]
+    """low_battery, robot_lost, board_fault, cliff, bump, estop, link_lost, tank_low, localisation
+    (operator/alarms.py ``AlarmKind``); a console refuses a kind it does not know."""
+    since: Annotated[float, bounded(0.0)]
+    """When the episode began, seconds since the Unix epoch: the ``header.timestamp`` of the robot's
+    message that first showed it, or the acknowledging console's clock for what only a console sees
+    (robot_lost, its own link_lost). A console applies it to its current episode of the alarm if
+    ``since`` is later than the last time it saw the alarm off."""
+    at: Annotated[float, bounded(0.0)]
+    """When the operator acknowledged it, seconds since the Unix epoch (the console's clock)."""
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class AlarmAck(Message):
+    """Every alarm on ``header.robot`` that ``header.sender`` acknowledged and whose episode is still
+    on at that console: ``fleetlink/v1/<robot>/alarms/ack/<sender>``, published by the acknowledging
+    console on both links whenever that list changes, retained on MQTT (QoS 1), so a console that
+    starts late learns earlier acknowledgements from the broker even with Zenoh down. Retained per
+    (robot, login), each message carries the whole list; an empty list withdraws them all."""
+
+    TOPIC: ClassVar[str] = "alarms/ack"
+
+    acks: Annotated[tuple[AckedAlarm, ...], sized(MAX_ALARM_ACKS)]
+    """At most one per kind (a console refuses a list that names a kind twice)."""
+
+
+# -- people-present zones (issue 16, docs/payload.md) ------------------------------------------
+
+MAX_ZONES = 16
+MAX_ZONE_VERTICES = 32
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ZonePoint:
+    x: Coordinate
+    """Metres, site (UWB) frame."""
+    y: Coordinate
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Zone:
+    name: Annotated[str, sized(32)]
+    polygon: Annotated[tuple[ZonePoint, ...], sized(MAX_ZONE_VERTICES)]
+    """At least three corners (the agent refuses fewer), in order around the zone."""
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PeopleZones(Message):
+    """The areas an operator declared "people present" (no UV light may reach into them), sent by
+    the console to every robot: ``fleetlink/v1/<robot>/zones/<sender>``, on both links, retained on
+    MQTT (QoS 1). Each message carries that operator's whole list; an empty one withdraws them."""
+
+    TOPIC: ClassVar[str] = "zones"
+
+    zones: Annotated[tuple[Zone, ...], sized(MAX_ZONES)]
 
 
 # -- onboard maps (docs/mapping.md) ------------------------------------------------------------
@@ -630,3 +900,101 @@ class MapUpdate(Message):
     patch_height: Annotated[int, bounded(0, 65_535)]
     encoding: MapEncoding
     cells: Annotated[bytes, sized(MAX_MAP_DATA)]
+
+
+# -- UV dose layers (docs/payload.md, "Dose layer") --------------------------------------------
+
+MAX_DOSE_DATA = 240 * 1024
+"""Compressed cells per message, bytes (as ``MAX_MAP_DATA``: room for the fields under wire.MAX_PAYLOAD)."""
+MAX_DOSE_CELLS = 4_000_000
+"""width * height of a whole dose layer (200 m x 200 m at 0.1 m; 16 MB once inflated)."""
+MAX_DOSE_J_M2 = 1.0e9
+"""The largest dose a cell may carry, J/m² (a 10 W lamp 0.3 m above a cell for 30 years)."""
+DoseSeconds = Annotated[float, bounded(0.0, 1.0e9)]
+
+
+class DoseEncoding(enum.StrEnum):
+    ZLIB_F32LE = "zlib-f32le"
+    """zlib (RFC 1950) over the cells as float32 little-endian (J/m², finite, >= 0), row-major, row 0
+    at the bottom; each value rounded *down* from the agent's float64, never up."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DoseLamp:
+    """The robot's UV-C lamp as its ``[uv]`` configures it (``shared.dose.Lamp``): what a console
+    plans a round for, so the plan and the dose the robot counts use the same lamp."""
+
+    uvc_power_w: Annotated[float, bounded(0.001, 10_000.0)]
+    height_m: Annotated[float, bounded(0.01, 10.0)]
+    tube_length_m: Annotated[float, bounded(0.0, 5.0)]
+    min_distance_m: Annotated[float, bounded(0.01, 5.0)]
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DoseSnapshot(Message):
+    """A robot's whole UV dose layer, the reply of the queryable ``fleetlink/v1/<robot>/dose``.
+
+    Dose (J/m²) received by each floor cell from this robot's lamp since its agent started, in the
+    site frame, on the lattice of cell centres at multiples of ``resolution`` (so the layers of
+    several robots add cell by cell). Cross-field rules (the cells' size and values) are checked
+    where the cells are decoded (``shared/dose_codec.py``), which raises ``WireError``.
+    """
+
+    TOPIC: ClassVar[str] = "dose"
+
+    version: Annotated[int, bounded(0)]
+    """+1 per exposure added to the layer; a restarted agent starts again from 0."""
+    resolution: Annotated[float, bounded(0.001, 10.0)]
+    """Metres per cell."""
+    origin_x: Coordinate
+    """Metres, site (map, UWB) frame: the lower-left corner of cell (0, 0); not rotated."""
+    origin_y: Coordinate
+    width: Annotated[int, bounded(0, 65_535)]
+    height: Annotated[int, bounded(0, 65_535)]
+    target_j_m2: Annotated[float, bounded(0.001, 1.0e6)]
+    """The robot's configured target dose, J/m² (10 mJ/cm² = 100 J/m²)."""
+    lamp_on_s: DoseSeconds
+    """Seconds the lamp was on and counted into the layer."""
+    unplaced_s: DoseSeconds
+    """Seconds the lamp was on while the robot was not placed in the site frame (no UWB position,
+    or no map in the site frame yet): counted nowhere in the cells."""
+    mantissa_bits: Annotated[int, bounded(0, 23)]
+    """Mantissa bits kept in the cells: 23 is float32 itself; fewer (a layer too large for one
+    message otherwise) means each value was cut *down* to that many, relative error < 2^-bits."""
+    lamp: DoseLamp
+    """The lamp that gave the dose."""
+    encoding: DoseEncoding
+    cells: Annotated[bytes, sized(MAX_DOSE_DATA)]
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DoseUpdate(Message):
+    """What changed in a robot's dose layer, on ``fleetlink/v1/<robot>/dose/updates``: one
+    rectangle of cells (float32, 23 mantissa bits), about once a second while the lamp adds dose.
+
+    Apply it to a copy at ``base_version`` with the same ``resolution``/``origin``/size to get
+    ``version``; otherwise (a gap, or the layer grew) fetch a ``DoseSnapshot``.
+    """
+
+    TOPIC: ClassVar[str] = "dose/updates"
+
+    version: Annotated[int, bounded(0)]
+    base_version: Annotated[int, bounded(0)]
+    resolution: Annotated[float, bounded(0.001, 10.0)]
+    origin_x: Coordinate
+    origin_y: Coordinate
+    width: Annotated[int, bounded(0, 65_535)]
+    """Size of the whole layer after the update."""
+    height: Annotated[int, bounded(0, 65_535)]
+    col: Annotated[int, bounded(0, 65_535)]
+    """The patch: lower-left cell (col, row) and its size."""
+    row: Annotated[int, bounded(0, 65_535)]
+    patch_width: Annotated[int, bounded(0, 65_535)]
+    patch_height: Annotated[int, bounded(0, 65_535)]
+    target_j_m2: Annotated[float, bounded(0.001, 1.0e6)]
+    lamp_on_s: DoseSeconds
+    unplaced_s: DoseSeconds
+    encoding: DoseEncoding
+    cells: Annotated[bytes, sized(MAX_DOSE_DATA)]

@@ -13,22 +13,41 @@ Security (issue 8) can be switched on as on a real site: ``mqtt`` (a ``shared.mq
 instead of ``mqtt_url``: TLS, CA) with ``mqtt_passwords`` (robot -> password, username = robot id),
 ``zenoh_passwords`` likewise for a router's usrpwd (``zenoh_root_ca`` for tls/ endpoints), and
 ``operators``: the operator ids every agent accepts commands from (empty: anyone).
+
+The field's radio (field/radio.py): ``reachable(robot, link)`` says whether a robot's link reaches
+it now (``FieldSite`` gives one when its plan has access points or dead zones); each agent's
+links then pass nothing while it says False (``AgentRuntime(reachable=...)``).
+
+The disinfection robots (named ``uvc-*``) carry ``FIELD_LAMP`` (``field_uv``), so their agents keep
+a UV dose layer, here and in lockstep runs (site/lockstep.py).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
-from fleetlink.agent.config import AgentConfig, MqttSettings, Rates, ZenohSettings, mqtt_settings
+from fleetlink.agent.config import AgentConfig, MqttSettings, Rates, UvTable, ZenohSettings, mqtt_settings
 from fleetlink.agent.runtime import AgentRuntime
 from fleetlink.field.realtime import Endpoints
 from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.messages import LinkName
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FieldAgents"]
+__all__ = ["FIELD_LAMP", "FieldAgents", "field_uv"]
+
+FIELD_LAMP = UvTable(uvc_power_w=40.0, height_m=0.6, dose_resolution_m=0.05)
+"""The simulated disinfection robots' lamp: 40 W of UV-C (four 36 W low-pressure tubes, ~10 W of
+UV-C each, derated) at 0.6 m, a point source; the default target (10 mJ/cm²) and 0.1 m dose cells
+(docs/payload.md). With one tube a room's round takes four times as long (bench/coverage.py)."""
+
+
+def field_uv(robot: str) -> UvTable | None:
+    """The lamp of a simulated robot: the disinfection robots (``uvc-*``) have ``FIELD_LAMP``."""
+    return FIELD_LAMP if robot.startswith("uvc-") else None
 
 
 class FieldAgents:
@@ -48,8 +67,10 @@ class FieldAgents:
         operators: Sequence[str] = (),
         map_id: str = "",
         rates: Rates | None = None,
+        reachable: Callable[[str, LinkName], bool] | None = None,
     ) -> None:
         self.clock = clock or SystemClock()
+        self.reachable = reachable
         base_mqtt = mqtt if mqtt is not None else (mqtt_settings(mqtt_url) if mqtt_url else None)
         self.configs: list[AgentConfig] = []
         for name, ep in endpoints.items():
@@ -75,13 +96,15 @@ class FieldAgents:
                     mqtt=m,
                     rates=rates or Rates(),
                     operators=tuple(operators),
+                    uv=field_uv(name),
                 )
             )
         self.agents: dict[str, AgentRuntime] = {}
 
     def start(self) -> dict[str, AgentRuntime]:
         for i, cfg in enumerate(self.configs):
-            agent = AgentRuntime(cfg, self.clock, seed=i)
+            radio = functools.partial(self.reachable, cfg.robot) if self.reachable is not None else None
+            agent = AgentRuntime(cfg, self.clock, seed=i, reachable=radio)
             agent.start()
             self.agents[cfg.robot] = agent
         return self.agents

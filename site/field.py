@@ -13,7 +13,9 @@
    fixes on MQTT; ``uwb-gateway`` on a secured site), the operator's link (``operator``: started,
    ``site.take_link()`` hands it over) and an agent per robot (``site.agents``, logged in as
    its robot on a secured site). Without agents: a board link per robot driven open-loop
-   (``site.boards``), what ``fleetlink field --console off`` shows.
+   (``site.boards``), what ``fleetlink field --console off`` shows. When the plan has access
+   points or dead zones, the field's radio (``site.radio``, field/radio.py) follows every robot's
+   true pose and its agent's links pass nothing while out of reach (docs/field-scenarios.md).
 
 ``stop()`` stops whatever started, in reverse. ``operator_link(operator)`` gives a further console
 on a secured site its ``OperatorLink`` (not started).
@@ -32,9 +34,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from fleetlink.field.radio import FleetRadio, RadioModel
 from fleetlink.field.realtime import Endpoints, RealtimeField, TruthSample
 from fleetlink.shared.access import GATEWAY_USER, SIM_USER
 from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.messages import LinkName
 from fleetlink.shared.mqtt import MqttSettings
 from fleetlink.site.brokers import AmqttBroker, MosquittoBroker, free_port, start_demo_broker
 from fleetlink.site.operator import open_operator_link
@@ -113,6 +117,7 @@ class FieldSite:
         self.agents: FieldAgents | None = None
         self.boards: OpenLoopBoards | None = None
         self.link: OperatorLink | None = None
+        self.radio: FleetRadio | None = None  # with agents, on a plan with a radio model
         self._hub: Any = None  # the demo's Zenoh meeting point when no operator link listens there
         self._hub_taken = False  # the demo's endpoint has its listener (the console's peer, or _hub)
         self._folder: Path | None = None
@@ -205,6 +210,7 @@ class FieldSite:
             mqtt_passwords={r: s.passwords[r] for r in self.endpoints} if s is not None else None,
             operators=s.operators if s is not None else (),
             rates=self.rates,
+            reachable=self._radio(),
         )
         self.agents.start()
 
@@ -280,6 +286,24 @@ class FieldSite:
     def describe(self) -> list[str]:
         """How to join this site (a secured site's credentials), for the terminal."""
         return self.security.describe() if self.security is not None else []
+
+    def _radio(self) -> Callable[[str, LinkName], bool] | None:
+        """The radio's ``reachable(robot, link)``, kept up to date from the truth (None: the plan
+        has no radio model: every link reaches everywhere)."""
+        model = RadioModel.from_plan(self.plan)
+        if not model.enabled:
+            return None
+        with self.field.lock:
+            poses = {r.name: (r.board.state.x, r.board.state.y) for r in self.field.world.robots}
+        radio = self.radio = FleetRadio(model, poses)
+
+        def follow(sample: TruthSample) -> None:
+            for link in radio.update(sample.robot, sample.x, sample.y):
+                reach = "in reach" if radio.reachable(sample.robot, link) else "out of reach"
+                log.info("%s: %s %s at (%.2f, %.2f)", sample.robot, link.value, reach, sample.x, sample.y)
+
+        self._truth_sinks.append(follow)
+        return radio.reachable
 
     def _truth_sample(self, sample: TruthSample) -> None:
         for sink in list(self._truth_sinks):

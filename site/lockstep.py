@@ -15,13 +15,21 @@
   wandering robot to its plan's named places one after another; it sends on Zenoh, and on MQTT
   while its Zenoh link is cut (the fallback).
 
-Every step runs in a fixed order (events, physics, links, each agent: board, control, lidar;
+Every step runs in a fixed order (events, physics, radio, links, each agent: board, control, lidar;
 UWB; links; truth), every random stream is seeded from the scenario, and time comes only from the
 clock, so the same scenario and seed give byte-identical truth and agent logs.
+
+The radio (field/radio.py): when the plan has access points or dead zones, every step takes each
+robot's true pose and cuts its agent's endpoint on a bus (reason ``"radio"``) while that link does
+not reach it, restoring it when it does again; a scenario's own ``link`` cuts are another reason on
+the same endpoint, so either keeps it cut. ``contact[robot]`` lists the (t_lost, t_regained) spans
+in which neither of the robot's links was up, for whatever reason (t_regained None: still lost);
+``write_mission_outputs`` writes them to ``contact.csv``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -45,6 +53,7 @@ from fleetlink.devices.ports import InProcessPort
 from fleetlink.field.build import robot_seed
 from fleetlink.field.lockstep import FieldRun, RunResult, write_outputs
 from fleetlink.field.plans import FloorPlan, load_plan
+from fleetlink.field.radio import LINKS, ContactLog, FleetRadio, RadioModel
 from fleetlink.field.scenario import Scenario
 from fleetlink.links.inprocess import InProcessBus, InProcessLink
 from fleetlink.shared import keys, wire
@@ -59,6 +68,7 @@ from fleetlink.shared.messages import (
     Order,
     Teleop,
 )
+from fleetlink.site.agents import field_uv
 
 __all__ = [
     "SESSION_POLL",
@@ -76,6 +86,8 @@ TELEOP_TTL_S = 0.5
 WANDER_GOAL_TIMEOUT_S = 60.0
 """A wandering robot that has neither reached nor failed its goal by then gets the next one."""
 UWB_START_S = 0.0
+RADIO_CUT = "radio"
+"""The reason the radio cuts an agent's endpoint on a bus (a scenario's cuts are another)."""
 
 
 @dataclass(slots=True)
@@ -89,6 +101,8 @@ class MissionResult:
     """The last pose each robot published."""
     commands: list[str]
     """What the operator sent, one line each."""
+    contact: dict[str, list[tuple[float, float | None]]] = dataclasses.field(default_factory=dict)
+    """Per robot: (t_lost, t_regained) while neither link reached it (t_regained None: lost at the end)."""
 
     @property
     def real_time_factor(self) -> float:
@@ -140,7 +154,7 @@ class ScriptedOperator:
         self.send(InstantActions, robot, actions=(action,))
 
     def mark(self, robot: str, x: float, y: float, kind: str, label: str, mark_id: str) -> None:
-        self.send(Mark, robot, markId=mark_id, x=x, y=y, label=label, kind=kind, removed=False)
+        self.send(Mark, robot, markId=mark_id, x=x, y=y, label=label, kind=kind, sd_m=0.0, removed=False)
 
     # -- what the robots say (each message once, though it may come on both links) -------------------
 
@@ -223,6 +237,16 @@ class MissionRun:
         self.map_worker = MapWorker() if map_worker and mappers else None
         for rig in self.field.rigs:
             self.robots.append(self._agent(rig.robot.index, mapping))
+        model = RadioModel.from_plan(self.plan)
+        self.radio: FleetRadio | None = None
+        """Each robot's links under the plan's radio model (None: the plan has none; reachable everywhere)."""
+        if model.enabled:
+            self.radio = FleetRadio(model, {r.name: self._true_xy(r) for r in self.robots})
+            for r in self.robots:
+                for link in LINKS:
+                    self._radio_link(r.name, link)
+        self.contact_log = ContactLog(r.name for r in self.robots)
+        self._radio_step(self.clock.now(), update_radio=False)
         self.uwb = self._uwb_gateway()
         self._next_uwb = UWB_START_S
         if record:
@@ -239,7 +263,9 @@ class MissionRun:
         spec = rig.spec
         name = spec.name
         lidar_url = f"inprocess://{name}/lidar" if rig.device is not None else None
-        config = AgentConfig(robot=name, board=f"inprocess://{name}/board", lidar=lidar_url, tag=name)
+        config = AgentConfig(
+            robot=name, board=f"inprocess://{name}/board", lidar=lidar_url, tag=name, uv=field_uv(name)
+        )
         peer = self.field.board_peer(index)
         session = BoardSession(
             lambda: InProcessPort(peer, advance_clock=False),
@@ -298,6 +324,7 @@ class MissionRun:
                     "board_requests": r.node.board.client.stats.requests if r.node.board.client else None,
                 }
             )
+            result.stats[r.name]["out_of_contact_s"] = self.contact_log.lost_seconds(r.name, result.sim_seconds)
         return MissionResult(
             field=result,
             logs={r.name: r.log for r in self.robots},
@@ -305,6 +332,7 @@ class MissionRun:
             events=self.operator.events,
             poses=dict(self.operator.poses),
             commands=self.operator.sent,
+            contact=self.contact,
         )
 
     def close(self) -> None:
@@ -324,8 +352,42 @@ class MissionRun:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    # -- the radio and contact ----------------------------------------------------------------------
+
+    @property
+    def contact(self) -> dict[str, list[tuple[float, float | None]]]:
+        """Per robot: (t_lost, t_regained) spans with neither link up (t_regained None: still lost)."""
+        return self.contact_log.intervals
+
+    def reachable(self, robot: str, link: LinkName) -> bool:
+        """Is the robot's agent on ``link`` now (neither the radio nor the scenario cuts it)?"""
+        bus = self.zenoh if link is LinkName.ZENOH else self.mqtt
+        return f"agent-{robot}" not in bus.cut_endpoints
+
+    def _true_xy(self, r: _Robot) -> tuple[float, float]:
+        st = self.field.rigs[r.index].robot.board.state
+        return st.x, st.y
+
+    def _radio_link(self, robot: str, link: LinkName) -> None:
+        assert self.radio is not None
+        bus = self.zenoh if link is LinkName.ZENOH else self.mqtt
+        (bus.restore if self.radio.reachable(robot, link) else bus.cut)(f"agent-{robot}", RADIO_CUT)
+
+    def _radio_step(self, t: float, update_radio: bool = True) -> None:
+        """Each robot's links at its true pose; its contact (a link up, whatever cut the others)."""
+        for r in self.robots:
+            if self.radio is not None and update_radio:
+                x, y = self._true_xy(r)
+                for link in self.radio.update(r.name, x, y):
+                    self._radio_link(r.name, link)
+                    reach = "in radio reach" if self.radio.reachable(r.name, link) else "out of radio reach"
+                    self.field.events.log.append(f"t={t:.3f} s: {r.name} {link.value} {reach} at ({x:.2f}, {y:.2f})")
+            in_contact = self.reachable(r.name, LinkName.ZENOH) or self.reachable(r.name, LinkName.MQTT)
+            self.contact_log.update(r.name, t, in_contact)
+
     def _step_agents(self, t: float) -> None:
-        """After the physics at ``t``: links, every agent in order, UWB, the operator, links again."""
+        """After the physics at ``t``: the radio, links, every agent in order, UWB, the operator, links again."""
+        self._radio_step(t)
         self._pump()
         for r in self.robots:
             node = r.node
@@ -500,10 +562,17 @@ def _summary(msg: wire.Message) -> str:
 
 def write_mission_outputs(result: MissionResult, out_dir: str | Path) -> Path:
     """The field's outputs (truth/, events.log, summary.json) plus agents/<robot>.log (every
-    message about the robot on either link) and operator.log (what the operator sent)."""
+    message about the robot on either link), operator.log (what the operator sent) and contact.csv
+    (robot, t_lost_s, t_regained_s: each span out of contact; t_regained_s empty if still lost)."""
     out = write_outputs(result.field, out_dir)
     (out / "agents").mkdir(exist_ok=True)
     for name, lines in result.logs.items():
         (out / "agents" / f"{name}.log").write_text("".join(line + "\n" for line in lines))
     (out / "operator.log").write_text("".join(line + "\n" for line in result.commands))
+    rows = [
+        f"{name},{lost:.3f},{'' if back is None else f'{back:.3f}'}\n"
+        for name, spans in result.contact.items()
+        for lost, back in spans
+    ]
+    (out / "contact.csv").write_text("robot,t_lost_s,t_regained_s\n" + "".join(rows))
     return out

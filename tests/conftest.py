@@ -4,6 +4,7 @@ Fixtures:
   mosquitto                      a started private broker (MosquittoBroker), stopped at teardown
   mosquitto_factory(extra_conf)  -> started MosquittoBroker with extra config lines
   zenoh_peers(n=2)               -> ZenohPeers: n connected loopback zenoh sessions, closed at teardown
+  rig                            a started console rig (tests/harness/console_rig.py), closed at teardown
   _no_thread_leaks (autouse)     fails a test that leaves a non-daemon thread running
 """
 
@@ -15,10 +16,11 @@ from collections.abc import Iterator
 import pytest
 
 from tests.harness import leaked_threads
+from tests.harness.console_rig import rig
 from tests.harness.mosquitto import mosquitto, mosquitto_factory
 from tests.harness.zenoh_peers import zenoh_peers
 
-__all__ = ["mosquitto", "mosquitto_factory", "zenoh_peers"]
+__all__ = ["mosquitto", "mosquitto_factory", "rig", "zenoh_peers"]
 
 THREAD_GRACE_S = 2.0
 

@@ -131,6 +131,26 @@ def test_example_config_loads() -> None:
     cfg = load_agent_config(Path(__file__).resolve().parent.parent / "deploy" / "robot.example.toml")
     assert cfg.robot == "r1" and cfg.zenoh is not None and cfg.mqtt is not None
     assert cfg.operators == ("op-alice", "op-bob")
+    assert cfg.comms.policy.value == "retrace" and cfg.home is None  # a rescue robot retraces
+
+
+def test_home_and_comms_tables_are_validated_with_clear_messages() -> None:
+    import pytest
+
+    from fleetlink.agent.config import ConfigError, parse_agent_config
+
+    base = {"robot": "r1", "board": "socket://h:1", "mqtt": {"url": "mqtt://h:1"}}
+    cfg = parse_agent_config({**base, "home": {"x": 1.0, "y": -2.0, "theta_deg": 90}, "comms": {"timeout_s": 4}})
+    assert cfg.home is not None and (cfg.home.x, cfg.home.y, cfg.home.theta_deg) == (1.0, -2.0, 90.0)
+    assert cfg.comms.timeout_s == 4.0 and cfg.comms.policy.value == "stop"
+    for bad, where in (
+        ({"comms": {"policy": "fly"}}, "comms.policy"),
+        ({"comms": {"timeout_s": 0}}, "comms.timeout_s"),
+        ({"home": {"x": 1.0}}, "home.y"),
+        ({"home": {"x": float("nan"), "y": 0.0}}, "home.x"),
+    ):
+        with pytest.raises(ConfigError, match=where):
+            parse_agent_config({**base, **bad})
 
 
 # --------------------------------------------------------------------------------------------------

@@ -189,11 +189,11 @@ COMMANDS: dict[type, tuple[Any, type | int, Check]] = {
     p.ClearHealthError: (p.ClearHealthError(0x7777), p.ErrorCode.BAD_ARGUMENTS, lambda r: True),
     p.SetUvLamp: (p.SetUvLamp(True), p.Empty, lambda r: True),
     p.SetAtomiser: (p.SetAtomiser(1), p.Empty, lambda r: True),
-    p.SetFan: (p.SetFan(True), p.Empty, lambda r: True),
+    p.SetFan: (p.SetFan(2), p.Empty, lambda r: True),
     p.GetPayloadStatus: (
         p.GetPayloadStatus(),
         p.PayloadStatus,
-        lambda r: r.uv_lamp and r.atomiser_level == 1 and r.fan and r.tank_percent == 100,
+        lambda r: r.uv_lamp and r.atomiser_level == 1 and r.fan_level == 2 and r.tank_percent == 100,
     ),
     p.GetEnvData: (p.GetEnvData(), p.EnvData, lambda r: r.disinfectant_percent == 100 and r.humidity_percent > 0),
     p.GetPowerData: (

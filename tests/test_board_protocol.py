@@ -54,7 +54,7 @@ REQUEST_STRATEGIES: dict[type, st.SearchStrategy[typing.Any]] = {
     p.ClearHealthError: st.builds(p.ClearHealthError, u32),
     p.SetUvLamp: st.builds(p.SetUvLamp, st.booleans()),
     p.SetAtomiser: st.builds(p.SetAtomiser, st.integers(0, 3)),
-    p.SetFan: st.builds(p.SetFan, st.booleans()),
+    p.SetFan: st.builds(p.SetFan, st.integers(0, 3)),
     p.GetPayloadStatus: st.just(p.GetPayloadStatus()),
     p.GetEnvData: st.just(p.GetEnvData()),
     p.GetPowerData: st.just(p.GetPowerData()),

@@ -324,7 +324,7 @@ def test_snapshot_fills_in_and_odometry_tracks_the_board(served_board: tuple[Dev
         assert snap.power is not None and snap.power.voltage == pytest.approx(16.8, abs=0.05)
         assert snap.bumpers is not None and snap.bumpers.bitmap == 0xFFFF_FFFF
         assert snap.health == p.Health(0, 0) and snap.errors == ()
-        assert snap.payload == p.PayloadStatus(False, 0, False, 100)
+        assert snap.payload == p.PayloadStatus(False, 0, 0, 100)
         assert snap.env is not None and snap.env.disinfectant_percent == 100
         assert snap.sensors is not None and len(snap.sensors.distances) == 16
         assert updates and updates[-1].connected

@@ -49,16 +49,6 @@ def run_async(fn: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
-@pytest.fixture
-def rig(tmp_path: Path) -> Any:
-    r = Rig(tmp_path)
-    r.start()
-    try:
-        yield r
-    finally:
-        r.close()
-
-
 async def settle(pilot: Any, seconds: float = 0.25) -> None:
     await asyncio.sleep(seconds)
     await pilot.pause()
@@ -184,7 +174,15 @@ async def test_typed_goal_home_and_payload(rig: Rig) -> None:
         home = rig.zenoh.messages(Order)[-1]
         assert home.returnHome and home.goal is None
         action = rig.zenoh.messages(InstantActions)[-1].actions[0]
-        assert action.actionType is ActionType.PAYLOAD and action.actionParameters[0].value == "true"
+        params = {kv.key: kv.value for kv in action.actionParameters}
+        assert action.actionType is ActionType.PAYLOAD and params == {"device": "uv", "on": "true"}
+        await pilot.press("colon")
+        await type_text(pilot, "payload atomiser 2")
+        await pilot.press("enter")
+        await pilot.pause()
+        action = rig.zenoh.messages(InstantActions)[-1].actions[0]
+        params = {kv.key: kv.value for kv in action.actionParameters}
+        assert params == {"device": "atomiser", "on": "true", "level": "2"}
         await pilot.press("colon")
         await type_text(pilot, "goal nan 1")
         await pilot.press("enter")
@@ -238,7 +236,9 @@ async def test_mark_flow_shared_and_saved(rig: Rig, tmp_path: Path) -> None:
         assert {m["markId"] for m in saved} == {m.markId for m in marks}
         # A mark from another console arrives over Zenoh and shows up.
         other = wire.HeaderCounter(rig.clock, robot="r1", sender="operator-2")
-        rig.zenoh.inject(other.make(Mark, markId="op2-1", x=4.0, y=4.0, label="victim", kind="casualty", removed=False))
+        rig.zenoh.inject(
+            other.make(Mark, markId="op2-1", x=4.0, y=4.0, label="victim", kind="casualty", sd_m=0.0, removed=False)
+        )
         await settle(pilot)
         assert "op2-1" in rig.fleet.marks
     # A new console loads the saved marks.

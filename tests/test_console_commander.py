@@ -79,9 +79,8 @@ def test_payload_and_stop_are_acked_instant_actions(on: bool) -> None:
     (cls1, _, acked1, f1), (cls2, _, acked2, f2) = s.sent
     assert cls1 is cls2 is InstantActions and acked1 and acked2
     p = f1["actions"][0]
-    assert p.actionType is ActionType.PAYLOAD and (p.actionParameters[0].key, p.actionParameters[0].value) == (
-        "on", "true" if on else "false",
-    )  # fmt: skip
+    params = {kv.key: kv.value for kv in p.actionParameters}
+    assert p.actionType is ActionType.PAYLOAD and params == {"device": "uv", "on": "true" if on else "false"}
     assert f2["actions"][0].actionType is ActionType.STOP
 
 

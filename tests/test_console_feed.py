@@ -114,7 +114,8 @@ def test_one_feed_per_fleet_model() -> None:
     assert attach(source, other, threading.Lock()) is not feed  # type: ignore[arg-type]
 
 
-def test_lease_renewal_every_third_of_the_lease_for_the_leases_held() -> None:
+def test_lease_renewal_every_2_s_for_the_leases_held() -> None:
+    """A third of the lease at most, and every ``CONTACT_RENEW_S`` (2 s): the robot's sign of contact."""
     fleet = FleetModel(ME)
     agent = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
     other = wire.HeaderCounter(SimClock(), robot="r2", sender="agent-r2")
@@ -122,10 +123,10 @@ def test_lease_renewal_every_third_of_the_lease_for_the_leases_held() -> None:
     assert renewal.due(fleet, 0.0) == []  # nothing held
     fleet.apply(agent.make(Lease, holder=ME, until=100.0), "zenoh", 1.0)
     fleet.apply(other.make(Lease, holder="operator-2", until=100.0), "zenoh", 1.0)
-    assert renewal.due(fleet, 1.0) == []  # 20 s have not passed since the last look
-    assert renewal.due(fleet, 20.0) == ["r1"]  # ours only
-    assert renewal.due(fleet, 39.9) == []
-    assert renewal.due(fleet, 40.0) == ["r1"]
+    assert renewal.due(fleet, 1.0) == []  # 2 s have not passed since the last look
+    assert renewal.due(fleet, 2.0) == ["r1"]  # ours only
+    assert renewal.due(fleet, 3.9) == []
+    assert renewal.due(fleet, 4.0) == ["r1"]
 
 
 def test_row_cells_say_and_colour_what_matters() -> None:

@@ -180,7 +180,9 @@ def test_a_console_that_starts_late_gets_the_marks_placed_before(zenoh_peers: An
     link_b = None
     try:
         counter = wire.HeaderCounter(clock, robot="r1", sender="op-a")
-        mark = counter.make(Mark, markId="op-a-1", x=3.0, y=4.0, label="casualty", kind="casualty", removed=False)
+        mark = counter.make(
+            Mark, markId="op-a-1", x=3.0, y=4.0, label="casualty", kind="casualty", sd_m=0.0, removed=False
+        )
         with lock_a:
             fleet_a.apply(mark, "local", clock.now())
         link_a.publish(mark)  # nobody else listens yet

@@ -29,24 +29,22 @@ from fleetlink.shared.map_codec import snapshot_fields
 from fleetlink.shared.messages import (
     AgvPosition,
     BatteryState,
-    EStop,
     Event,
     FixStatus,
     Goal,
     Lease,
-    LinkStatus,
     MapSnapshot,
     Mark,
     OperatingMode,
     Order,
     Pose,
-    SafetyState,
     Severity,
     State,
     Teleop,
     UwbFix,
     Velocity,
 )
+from tests.harness.messages import state as harness_state
 from tests.test_console import ME, Rig
 
 SIZE = (140, 45)
@@ -105,28 +103,8 @@ ANCHORS = [("a1", -1.0, -1.0, 2.0), ("a2", 7.0, -1.0, 2.0), ("a3", 7.0, 4.0, 2.0
 
 
 def state(rig: Rig, robot: str, x: float, y: float, theta: float, **over: Any) -> State:
-    fields: dict[str, Any] = {
-        "agvPosition": AgvPosition(
-            x=x, y=y, theta=theta, mapId="office", positionInitialized=True, localizationScore=0.9
-        ),
-        "velocity": Velocity(vx=0.0, omega=0.0),
-        "batteryState": BatteryState(batteryCharge=80.0, charging=False),
-        "errors": (),
-        "operatingMode": OperatingMode.SEMIAUTOMATIC,
-        "safetyState": SafetyState(eStop=EStop.NONE, fieldViolation=False),
-        "driveMode": "idle",
-        "links": LinkStatus(zenoh=True, mqtt=True),
-        "uwbStale": False,
-        "payloadOn": False,
-        "boardConnected": True,
-        "orderId": "",
-        "orderUpdateId": 0,
-        "goal": None,
-        "driving": False,
-        "paused": False,
-    }
-    fields.update(over)
-    return rig.counter(robot).make(State, **fields)
+    position = AgvPosition(x=x, y=y, theta=theta, mapId="office", positionInitialized=True, localizationScore=0.9)
+    return harness_state(rig.counter(robot), agvPosition=position, **over)
 
 
 def say(rig: Rig, msg: wire.Message) -> None:
@@ -188,7 +166,9 @@ def two_robots(rig: Rig) -> None:
         pose(rig, "r2", x, -0.25 + 0.125 * k, math.pi / 4, uwb_stale=True)
     say(rig, event(rig, "r2", "guard_refusal", "obstacle 0.35 m ahead: forward refused", Severity.WARNING))
     other = wire.HeaderCounter(clock, robot="r1", sender="operator-2")
-    rig.zenoh.inject(other.make(Mark, markId="op2-1", x=5.5, y=3.0, label="victim", kind="casualty", removed=False))
+    rig.zenoh.inject(
+        other.make(Mark, markId="op2-1", x=5.5, y=3.0, label="victim", kind="casualty", sd_m=0.0, removed=False)
+    )
     clock.advance(0.1)  # on screen: r1 last heard 300 ms ago, r2 100 ms ago (both links still healthy)
 
 

@@ -152,7 +152,7 @@ def test_any_finite_teleop_is_clamped_or_refused(v: float, omega: float, ttl: fl
 def test_a_mark_beyond_the_extent_is_refused_at_decode() -> None:
     clock = SimClock()
     counter = wire.HeaderCounter(clock, robot="r1", sender="op")
-    mark = counter.make(Mark, markId="m1", x=1.0, y=1.0, label="", kind="note", removed=False)
+    mark = counter.make(Mark, markId="m1", x=1.0, y=1.0, label="", kind="note", sd_m=0.0, removed=False)
     for x in (1e308, -1e6):
         try:
             wire.decode_key(keys.sender_key("r1", Mark.TOPIC, "op"), _raw(mark, x=x))

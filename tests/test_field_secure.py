@@ -271,6 +271,7 @@ def test_a_late_console_gets_the_marks_another_console_holds(secured: Secured) -
             y=2.5,
             label="under the stairs",
             kind="casualty",
+            sd_m=0.0,
             removed=False,
         )
         holder.serve_marks(lambda: [mark])

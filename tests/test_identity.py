@@ -41,7 +41,7 @@ def _commands(counter: wire.HeaderCounter) -> list[wire.Message]:
         counter.make(Order, orderId="o1", orderUpdateId=0, goal=Goal(x=1.0, y=2.0, theta=None), returnHome=False),
         counter.make(InstantActions, actions=(stop,)),
         counter.make(LeaseRequest, duration_s=60.0, release=False),
-        counter.make(Mark, markId="m1", x=1.0, y=1.0, label="door", kind="note", removed=False),
+        counter.make(Mark, markId="m1", x=1.0, y=1.0, label="door", kind="note", sd_m=0.0, removed=False),
     ]
 
 

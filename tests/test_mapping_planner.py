@@ -93,3 +93,52 @@ def test_distance_field_matches_a_brute_force_one() -> None:
                     if d < want[r, c]:
                         want[r, c] = d
         assert np.array_equal(_distance(blocked, res, reach), want)
+
+
+def test_a_goal_beyond_the_map_is_planned_to_the_nearest_reachable_cell_then_straight_on() -> None:
+    """A scout sent to coordinates it has not mapped yet heads there (issue 15): through the gap to
+    the map's east edge, then on into the unknown. A goal in a known wall still has no path."""
+    g = _room_with_gap()
+    g[1:-1, -1] = -1  # the east wall not seen yet: the map ends in unknown there
+    g[:, 150:] = -1
+    planner = PathPlanner(g, RES, (0.0, 0.0))
+    goal = (14.0, 2.0)  # 4 m beyond the map's east edge
+    path = planner((1.0, 1.0), goal)
+    assert path is not None and path[-1] == goal
+    edge = path[-2]
+    assert 6.5 < edge[0] < 7.5  # the reachable cell nearest the goal, just short of the unknown
+    assert _crosses_gap([(1.0, 1.0), *path[:-1]])  # the mapped part keeps to the map (the gap)
+    unknown_inside = (8.5, 2.0)  # inside the grid, unknown, no wall near it
+    inner = planner((1.0, 1.0), unknown_inside)
+    assert inner is not None and inner[-1] == unknown_inside
+    assert planner((1.0, 1.0), (5.0, 1.0)) is None  # in the known wall across x = 5 m
+    assert planner((1.0, 1.0), (math.inf, 1.0)) is None
+
+
+def test_a_goal_in_known_space_or_behind_a_known_wall_has_no_way_round_through_the_unknown() -> None:
+    g = _room_with_gap()
+    planner = PathPlanner(g, RES, (0.0, 0.0), PlannerConfig(unknown_is_blocked=False))
+    assert planner((1.0, 1.0), (6.0, 2.0)) is not None  # through the gap, as before
+    assert planner((1.0, 1.0), (5.3, 2.0)) is None  # known, too near the wall to stand: not "unexplored"
+    g[70:90, 100] = 100  # the gap closed: the east half is known, free, and cut off
+    closed = PathPlanner(g, RES, (0.0, 0.0), PlannerConfig(unknown_is_blocked=False))
+    assert closed((1.0, 1.0), (6.0, 2.0)) is None  # known space it cannot reach: not "unexplored"
+    assert closed((1.0, 1.0), (14.0, 2.0)) is None  # beyond the known outer wall: no frontier
+    assert closed((1.0, 1.0), (-3.0, 2.0)) is None
+
+
+def test_the_frontier_is_one_a_star_can_reach() -> None:
+    """Two rooms touching only at a corner: A* does not cut corners, so neither does the search for
+    the frontier (it once picked the other room's edge, nearer the goal, which A* could not reach,
+    and planned nothing)."""
+    g = np.full((40, 40), 100, dtype=np.int8)
+    g[2:20, 2:20] = 0  # the robot's room
+    g[0:20, 20:] = -1  # unseen to its east (planned as blocked here)
+    g[20:38, 20:38] = 0  # a room touching it at one corner only, unseen to its east too
+    g[20:38, 38:] = -1
+    cfg = PlannerConfig(robot_radius=0.01, margin=0.0, sensor=None)
+    planner = PathPlanner(g, RES, (0.0, 0.0), cfg)
+    goal = (3.0, 1.5)  # off the map, east: the other room's edge is nearer it
+    path = planner((0.5, 0.5), goal)
+    assert path is not None and path[-1] == goal
+    assert all(x < 1.0 and y < 1.0 for x, y in path[:-1])  # from its own room's eastern edge

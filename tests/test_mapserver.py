@@ -363,7 +363,7 @@ def test_map_plan_sidecar_adds_starts_doors_and_anchors(tmp_path: Path) -> None:
     assert ray_cast(plan.segments(), 2.5, 4.9, 0.0, 20.0) > 5.0
     assert ray_cast(plan.segments(["east"]), 2.5, 4.9, 0.0, 20.0) == pytest.approx(2.5)
     sidecar.write_text("bounds = [0, 0, 1, 1]\n")
-    with pytest.raises(PlanError, match=r"lab\.plan\.toml: bounds: unknown key; allowed: anchors"):
+    with pytest.raises(PlanError, match=r"lab\.plan\.toml: bounds: unknown key; allowed: access_points, anchors"):
         load_plan(yaml)
     sidecar.write_text("[starts]\nwall = { x = 0.55, y = 2.5, theta_deg = 0.0 }\n")
     with pytest.raises(PlanError, match=r"starts\.wall: \(0\.55, 2\.5\) is 0\.050 m from walls\["):

@@ -15,12 +15,16 @@ from fleetlink.shared.messages import (
     ActionType,
     AgvPosition,
     BatteryState,
+    CommsPolicy,
     Connection,
     ConnectionState,
+    Contact,
     ErrorLevel,
     EStop,
     Event,
     Goal,
+    Home,
+    HomeSource,
     InstantActions,
     KeyValue,
     LinkName,
@@ -61,6 +65,8 @@ def state(**over: Any) -> State:
         "goal": Goal(x=3.0, y=4.0, theta=None),
         "driving": True,
         "paused": False,
+        "home": Home(x=0.5, y=-1.0, theta=0.0, source=HomeSource.LOCALISED),
+        "contact": Contact(policy=CommsPolicy.RETRACE, lost=False, action="", silent_s=1.5),
     }
     fields.update(over)
     return State(**fields)

@@ -63,7 +63,7 @@ def test_every_refusal_has_a_reason_and_only_estop_twice_is_a_duplicate() -> Non
 
 
 def test_estop_refuses_every_command_but_stop_release_and_payload_off() -> None:
-    allowed = {Trigger.STOP, Trigger.ESTOP_RELEASE, Trigger.PAYLOAD_OFF}
+    allowed = {Trigger.STOP, Trigger.HALT, Trigger.ESTOP_RELEASE, Trigger.PAYLOAD_OFF}
     for t in COMMANDS:
         outcome = next_state(S.ESTOP, t)
         assert isinstance(outcome, Transition) == (t in allowed), t
@@ -100,7 +100,7 @@ def test_effects_keep_what_each_state_carries() -> None:
         if starts:
             assert target.has_route, (s, t)
         if s.has_route and target.has_route and s.driving_route != target.driving_route:
-            assert t in (Trigger.PAUSE, Trigger.RESUME, Trigger.ORDER_NEW, Trigger.RETURN_HOME), (s, t)
+            assert t in (Trigger.PAUSE, Trigger.RESUME, Trigger.ORDER_NEW, Trigger.RETURN_HOME, Trigger.RETRACE), (s, t)
         # The teleop command.
         if Do.TAKE_TELEOP in fx:
             assert target is S.MANUAL, (s, t)
@@ -154,6 +154,8 @@ SEND: dict[Trigger, Callable[[Pilot, float], CommandResult]] = {
     Trigger.ORDER_NEW: lambda p, t: p.order(t, "o2", 0, 1.0, 1.0, None, "op"),
     Trigger.ORDER_UPDATE: lambda p, t: p.order(t, "o1", 1, 3.0, 0.0, None, "op"),
     **{Trigger(k.value): functools.partial(lambda k, p, t: p.action(t, k, "op"), k) for k in ActionKind},
+    Trigger.RETRACE: lambda p, t: p.retrace(t, [(0.5, 0.0), (0.0, 0.0)], "comms"),
+    Trigger.HALT: lambda p, t: p.halt(t, "comms"),
 }
 # An update needs the order held; elsewhere the same command is ORDER_NEW (the table refuses the rest).
 CASES = [(s, t) for s in PilotState for t in COMMANDS if t is not Trigger.ORDER_UPDATE or s in (S.GOTO, S.GOTO_PAUSED)]
@@ -179,8 +181,12 @@ def test_the_pilot_does_what_the_table_declares(state: PilotState, trigger: Trig
             expected.append((EventKind.GOAL_CANCELLED, e.reason))
         elif isinstance(e, Announce):
             expected.append((e.kind, e.reason))
-    assert [(e.kind, e.reason) for e in out.events] == expected
-    assert len(out.payload_requests) == (Do.PASS_PAYLOAD in outcome.effects)
+    # (A retrace brings its path along: its first step reports it, as a planned go-to would.)
+    assert [(e.kind, e.reason) for e in out.events if e.kind is not EventKind.PATH_PLANNED] == expected
+    # CUT_PAYLOAD: every payload off (the deadman only for a moving teleop, as this one is).
+    assert len(out.payload_requests) == (Do.PASS_PAYLOAD in outcome.effects) + (Do.CUT_PAYLOAD in outcome.effects)
+    if Do.CUT_PAYLOAD in outcome.effects:
+        assert out.payload_requests[-1].on is False
     assert (p.goal is not None) == outcome.target.has_route
     assert (p.next_deadline() is not None) == (outcome.target is S.MANUAL)
 

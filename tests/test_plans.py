@@ -175,7 +175,7 @@ def test_base_plan_is_valid() -> None:
         (_with(walls=None), "t.toml: walls: missing required key"),
         (
             _with(wall=[]),
-            "t.toml: wall: unknown key (did you mean walls?); allowed: anchors, bounds, cliffs, description, doors",
+            "t.toml: wall: unknown key (did you mean walls?); allowed: access_points, anchors, bounds, cliffs, dead_zones",
         ),
         (_with(bounds="big"), "bounds: expected [xmin, ymin, xmax, ymax], got str 'big'"),
         (_with(bounds=[0, 0, 6]), "bounds: expected [xmin, ymin, xmax, ymax]"),

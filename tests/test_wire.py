@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SimClock
-from fleetlink.shared.messages import BoardStatus
+from fleetlink.shared.messages import BoardFault, BoardStatus
 from fleetlink.shared.wire import (
     WIRE,
     Header,
@@ -47,15 +47,25 @@ def board(**overrides: Any) -> BoardStatus:
         "model": "mbot-2",
         "firmware": "1.4.2",
         "battery_percent": 87.5,
+        "battery_voltage_v": 12.1,
+        "battery_current_a": -0.8,
         "charging": False,
         "on_dock": False,
+        "temperature_c": 24.5,
+        "humidity_percent": 41.0,
+        "pm2_5_ug_m3": 8.5,
+        "tvoc_ppb": 120,
+        "uv_lamp": True,
+        "atomiser_level": 2,
+        "fan_level": 2,
+        "has_payload": True,
+        "tank_percent": 55.0,
+        "estop_button": False,
         "health_flags": 0x21,
-        "errors": ("motor L overcurrent", "imu stale"),
-        "left_mm": 1234.5,
-        "right_mm": -12.0,
+        "faults": (BoardFault(code=2, text="motor L overcurrent"), BoardFault(code=4, text="battery below 10 %")),
         "bumpers": 0b101,
         "sensors_m": (0.5, 1.25, 0.0),
-        "watchdog_tripped": False,
+        "watchdog_trips": 0,
     }
     fields.update(overrides)
     return BoardStatus(**fields)
@@ -300,7 +310,7 @@ def test_board_round_trip_and_layout() -> None:
         "robot": "r1",
         "sender": "agent-r1",
     }
-    assert obj["errors"] == ["motor L overcurrent", "imu stale"]
+    assert obj["faults"] == [{"code": 2, "text": "motor L overcurrent"}, {"code": 4, "text": "battery below 10 %"}]
     assert wire.key_of(msg) == "fleetlink/v1/r1/board"
 
 
@@ -315,7 +325,8 @@ def test_board_decode_normalises() -> None:
 
 
 def test_encode_accepts_lists_for_tuples() -> None:
-    assert decode(BoardStatus, encode(board(errors=["x"], sensors_m=[1.0]))) == board(errors=("x",), sensors_m=(1.0,))
+    f = BoardFault(code=1, text="x")
+    assert decode(BoardStatus, encode(board(faults=[f], sensors_m=[1.0]))) == board(faults=(f,), sensors_m=(1.0,))
 
 
 def test_sample_round_trip() -> None:
@@ -378,7 +389,7 @@ def test_version_checked_before_shape() -> None:
     rejects(BoardStatus, pack(obj), "header.version", "major")
 
 
-@pytest.mark.parametrize("path", ["battery_percent", "header", "header.headerId", "header.sender", "errors"])
+@pytest.mark.parametrize("path", ["battery_percent", "header", "header.headerId", "header.sender", "faults"])
 def test_rejects_missing_field(path: str) -> None:
     rejects(BoardStatus, without(path), path, "missing field")
 
@@ -395,9 +406,9 @@ def test_rejects_missing_field(path: str) -> None:
         ("health_flags", True),
         ("model", b"mbot"),
         ("model", 5),
-        ("errors", "motor"),
-        ("errors", {"a": 1}),
-        ("errors.1", 5),
+        ("faults", "motor"),
+        ("faults", {"a": 1}),
+        ("faults.1", 5),
         ("sensors_m.0", "far"),
         ("header.headerId", "7"),
         ("header.timestamp", "now"),
@@ -413,7 +424,7 @@ def test_rejects_wrong_type(path: str, value: Any) -> None:
 
 
 @pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
-@pytest.mark.parametrize("path", ["left_mm", "battery_percent", "sensors_m.2", "header.timestamp"])
+@pytest.mark.parametrize("path", ["temperature_c", "battery_percent", "sensors_m.2", "header.timestamp"])
 def test_rejects_non_finite(path: str, value: float) -> None:
     shown = path.replace(".2", "[2]")
     rejects(BoardStatus, mutated(path, value), shown, "non-finite")
@@ -453,10 +464,10 @@ def test_rejects_bad_ids(path: str, value: str, fragment: str) -> None:
 @pytest.mark.parametrize(
     ("path", "value", "field"),
     [
-        ("errors", ["e"] * 17, "errors"),
+        ("faults", [{"code": 1, "text": "e"}] * 17, "faults"),
         ("sensors_m", [1.0] * 17, "sensors_m"),
         ("model", "m" * 65, "model"),
-        ("errors.0", "e" * 257, "errors[0]"),
+        ("faults.0.text", "e" * 65, "faults[0].text"),
     ],
 )
 def test_rejects_oversized_values(path: str, value: Any, field: str) -> None:
@@ -465,7 +476,7 @@ def test_rejects_oversized_values(path: str, value: Any, field: str) -> None:
 
 def test_limits_at_the_edge_are_accepted() -> None:
     msg = board(
-        errors=("e" * 256,) * 16,
+        faults=(BoardFault(code=65_535, text="e" * 64),) * 16,
         sensors_m=(0.0,) * 16,
         model="m" * 64,
         battery_percent=100.0,
@@ -591,8 +602,8 @@ def test_encode_validates() -> None:
         encode(board(header=dataclasses.replace(HEADER, robot="sim")))
     with pytest.raises(WireError, match=r"^mode: expected Mode"):
         encode(sample(mode="turbo"))
-    with pytest.raises(WireError, match=r"^left_mm: integer .* too large"):
-        encode(board(left_mm=10**400))
+    with pytest.raises(WireError, match=r"^pm2_5_ug_m3: integer .* too large"):
+        encode(board(pm2_5_ug_m3=10**400))
     with pytest.raises(WireError, match=r"^bumpers: .* out of range"):
         encode(board(bumpers=2**64))
     with pytest.raises(WireError, match="payload: expected a Message"):

@@ -363,6 +363,8 @@ class BoardSession:
         if pending.command is not None:
             log.info("base asks for command 0x%02X", pending.command)
             self._ask(p.AnswerBaseCommand())
+            if pending.command == p.PendingCommandCode.GO_HOME:
+                self._set(home_requests=self._snap.home_requests + 1)
 
     def _poll_health(self) -> None:
         health = self._ask(p.GetHealth())

@@ -85,12 +85,15 @@ class MapPublication:
     resolution: float
     origin: tuple[float, float]
     changed: Box | None
+    site_frame: bool = False
+    """The map is in the site (UWB) frame: the robot was placed before it began (the dose layer
+    takes its floor only from such a map)."""
 
     @classmethod
-    def of(cls, mapper: OnboardMapper) -> MapPublication:
+    def of(cls, mapper: OnboardMapper, *, site_frame: bool = False) -> MapPublication:
         """The mapper's map now; takes (clears) its changed box."""
         cells, res, origin = mapper.occupancy()
-        return cls(mapper.version, cells, res, origin, mapper.grid.take_dirty())
+        return cls(mapper.version, cells, res, origin, mapper.grid.take_dirty(), site_frame)
 
 
 @dataclass(frozen=True, slots=True)
@@ -162,7 +165,7 @@ class MapKeeper:
             return None
         self._shared_version = mapper.version
         self._next_share = now + self.share_period
-        return MapPublication.of(mapper)
+        return MapPublication.of(mapper, site_frame=self.in_site_frame)
 
     def _due(self, t: float, pose: tuple[float, float, float]) -> bool:
         if self._last is None:

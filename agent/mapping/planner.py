@@ -30,6 +30,11 @@ within ``known_tolerance`` of a wall already on the map is that wall, seen by th
 
 A start inside the inflated zone (a robot parked near a wall) is moved to the nearest traversable
 cell within ``escape`` metres, which becomes the first waypoint; a goal there is refused (None).
+A goal beyond what the robot has mapped (off the map, or in a plan cell it has seen nothing of) is
+planned to the reachable edge of the known (a frontier cell) nearest it with no known wall on the
+straight line to it, and that last leg goes on into the unknown: a scout sent to coordinates it has
+not seen yet heads there, the guard watching that leg, and re-plans as the map grows. No such
+frontier: no path.
 
 Pure numpy + heapq; no I/O.
 """
@@ -44,11 +49,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["PathPlanner", "PlannerConfig", "SensorCone"]
+__all__ = ["MOVES8", "PathPlanner", "PlannerConfig", "SensorCone"]
 
 Point = tuple[float, float]
 _SQRT2 = math.sqrt(2.0)
-_MOVES = (
+MOVES8 = (
     (1, 0, 1.0),
     (-1, 0, 1.0),
     (0, 1, 1.0),
@@ -58,6 +63,7 @@ _MOVES = (
     (-1, 1, _SQRT2),
     (-1, -1, _SQRT2),
 )
+"""The 8 grid moves (row, column, length in cells) the planners step by."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,7 +122,8 @@ class PathPlanner:
         g = np.asarray(cells)
         if g.ndim != 2 or g.size == 0:
             raise ValueError(f"cells: expected a non-empty 2-D grid, got shape {g.shape}")
-        blocked = g >= cfg.occupied_threshold
+        walls = g >= cfg.occupied_threshold
+        blocked = walls.copy()
         if cfg.unknown_is_blocked:
             blocked |= g < 0
         f = max(1, round(cfg.plan_resolution / resolution))
@@ -133,6 +140,10 @@ class PathPlanner:
         self.blocked: npt.NDArray[np.bool_] = cols[0::f].copy()
         for i in range(1, f):
             self.blocked |= cols[i::f]
+        self.walls = self._coarse(walls, f, h, w)
+        """Plan cells holding a known wall (occupied, not merely unknown)."""
+        self.known = self._coarse(g >= 0, f, h, w)
+        """Plan cells holding anything the robot has seen (free or occupied)."""
         reach = cfg.inflation + cfg.cost_radius + res
         self.distance = _distance(self.blocked, res, reach)
         self.free = self.distance - res / 2.0 >= cfg.inflation
@@ -142,6 +153,17 @@ class PathPlanner:
         # What the ultrasonic echoes from, at the map's own resolution (the plan grid is coarser).
         self.echo: npt.NDArray[np.bool_] = np.asarray(blocked, dtype=bool)
         self.echo_resolution = float(resolution)
+
+    @staticmethod
+    def _coarse(fine: npt.NDArray[np.bool_], f: int, h: int, w: int) -> npt.NDArray[np.bool_]:
+        """Plan cells (``f`` x ``f`` map cells each) holding any true map cell."""
+        pad = np.zeros((h * f, w * f), dtype=bool)
+        pad[: fine.shape[0], : fine.shape[1]] = fine
+        out = np.zeros((h, w), dtype=bool)
+        for i in range(f):
+            for j in range(f):
+                out |= pad[i::f, j::f]
+        return out
 
     def cell(self, p: Point) -> tuple[int, int]:
         """(row, col) of a world point; one far outside the grid for a point far off it (a huge or
@@ -164,18 +186,84 @@ class PathPlanner:
         marks = self.unknown_marks(blocked)
         free, cost, dist = self._with_blocked(marks)
         goal = self.cell(goal_xy)
-        if not self._inside(goal) or not free[goal]:
-            return None
         first = self.cell(start_xy)
         start = self._escape(first, free)
         if start is None:
             return None
-        cells = self._astar(start, goal, free, cost)
-        if cells is None:
-            return None
         s = (float(start_xy[0]), float(start_xy[1]))
         g = (float(goal_xy[0]), float(goal_xy[1]))
-        return self._lay(s, g, cells, free, dist, marks, escaped=start != first)
+        if self._inside(goal) and free[goal]:
+            cells = self._astar(start, goal, free, cost)
+            return None if cells is None else self._lay(s, g, cells, free, dist, marks, escaped=start != first)
+        if not self.unexplored(goal_xy):
+            return None  # a wall, or too near one, or known space the robot cannot stand in
+        # Beyond what the robot has mapped: to the reachable edge of the known (a frontier cell)
+        # nearest the goal with nothing known in the way, then straight on into the unknown (the
+        # guard watches that leg; the map grows and re-planning follows).
+        edge = self._frontier_toward(start, g, free)
+        if edge is None:
+            return None
+        cells = self._astar(start, edge, free, cost)
+        if cells is None:
+            return None
+        path = self._lay(s, self.center(edge), cells, free, dist, marks, escaped=start != first)
+        return [*path, g] if math.dist(path[-1], g) > 1e-6 else path
+
+    def unexplored(self, p: Point) -> bool:
+        """``p`` lies off the map, or in a plan cell the robot has not seen any of."""
+        rc = self.cell(p)
+        if not self._inside(rc):
+            return math.isfinite(p[0]) and math.isfinite(p[1])
+        return not bool(self.known[rc])
+
+    def _frontier_toward(
+        self, start: tuple[int, int], goal: Point, free: npt.NDArray[np.bool_], tries: int = 64
+    ) -> tuple[int, int] | None:
+        """A traversable cell reachable from ``start`` (4-connected, as A* moves without cutting
+        corners) at the edge of the known (next to unseen space or the map's border), nearest
+        ``goal`` among those with no known wall on the straight line to it."""
+        seen = np.zeros_like(free)
+        seen[start] = True
+        while True:  # flood fill, ~20 ms on an office-sized map
+            grow = seen.copy()
+            grow[1:, :] |= seen[:-1, :]
+            grow[:-1, :] |= seen[1:, :]
+            grow[:, 1:] |= seen[:, :-1]
+            grow[:, :-1] |= seen[:, 1:]
+            grow &= free
+            if np.array_equal(grow, seen):
+                break
+            seen = grow
+        # Next to unseen space (off the map counts), or as near it as the inflation lets a robot
+        # stand when unseen space is planned as blocked.
+        reach = 1 + (math.ceil(self.config.inflation / self.resolution) if self.config.unknown_is_blocked else 0)
+        edge = np.pad(~self.known, reach, constant_values=True)
+        for _ in range(reach):
+            grown = edge.copy()
+            grown[1:, :] |= edge[:-1, :]
+            grown[:-1, :] |= edge[1:, :]
+            grown[:, 1:] |= edge[:, :-1]
+            grown[:, :-1] |= edge[:, 1:]
+            edge = grown
+        edge = edge[reach:-reach, reach:-reach]
+        rows, cols = np.nonzero(seen & edge)
+        if rows.size == 0:
+            return None
+        xs = self.origin[0] + (cols + 0.5) * self.resolution
+        ys = self.origin[1] + (rows + 0.5) * self.resolution
+        for k in np.argsort(np.hypot(xs - goal[0], ys - goal[1]))[:tries]:
+            if self._clear_of_walls((float(xs[k]), float(ys[k])), goal):
+                return int(rows[k]), int(cols[k])
+        return None
+
+    def _clear_of_walls(self, a: Point, b: Point) -> bool:
+        """No known wall on the segment a-b (sampled at half a plan cell; off the map is clear)."""
+        n = max(2, math.ceil(math.dist(a, b) / (self.resolution / 2)) + 1)
+        t = np.linspace(0.0, 1.0, n)
+        r = np.floor((a[1] + (b[1] - a[1]) * t - self.origin[1]) / self.resolution).astype(np.int64)
+        c = np.floor((a[0] + (b[0] - a[0]) * t - self.origin[0]) / self.resolution).astype(np.int64)
+        inside = (r >= 0) & (r < self.walls.shape[0]) & (c >= 0) & (c < self.walls.shape[1])
+        return not bool(self.walls[r[inside], c[inside]].any())
 
     def route(self, start_xy: Point, goal_xy: Point, blocked: Sequence[Point] = ()) -> list[Point]:
         """The pilot's path provider form: waypoints, or [] when there is no path."""
@@ -390,7 +478,7 @@ class PathPlanner:
             if expansions > self.config.max_expansions:
                 return None
             ur, uc = divmod(u, w)
-            for dr, dc, step in _MOVES:
+            for dr, dc, step in MOVES8:
                 r, c = ur + dr, uc + dc
                 if r < 0 or r >= h or c < 0 or c >= w:
                     continue

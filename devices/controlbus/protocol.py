@@ -626,15 +626,15 @@ _PAYLOAD_STATUS = struct.Struct("<BBBB")
 
 
 class PayloadStatus(NamedTuple):
-    """GET_PAYLOAD_STATUS (extension): UV-C lamp, atomiser level, fan, tank level %."""
+    """GET_PAYLOAD_STATUS (extension): UV-C lamp, atomiser level, fan level, tank level %."""
 
     uv_lamp: bool
     atomiser_level: int  # 0-3
-    fan: bool
+    fan_level: int  # 0 (off) - 3
     tank_percent: int
 
     def encode(self) -> bytes:
-        return _PAYLOAD_STATUS.pack(int(self.uv_lamp), self.atomiser_level, int(self.fan), self.tank_percent)
+        return _PAYLOAD_STATUS.pack(int(self.uv_lamp), self.atomiser_level, self.fan_level, self.tank_percent)
 
     @classmethod
     def decode(cls, payload: bytes) -> PayloadStatus:
@@ -643,9 +643,9 @@ class PayloadStatus(NamedTuple):
 
 def _decode_payload_status(payload: bytes) -> PayloadStatus:
     uv, level, fan, tank = _PAYLOAD_STATUS.unpack(payload)
-    if level > 3 or tank > 100 or uv > 1 or fan > 1:
+    if level > 3 or tank > 100 or uv > 1 or fan > 3:
         raise BadPayload(f"payload status out of range: uv={uv} level={level} fan={fan} tank={tank}")
-    return _new(PayloadStatus, (uv == 1, level, fan == 1, tank))
+    return _new(PayloadStatus, (uv == 1, level, fan, tank))
 
 
 _ENV = struct.Struct("<BhHHH")
@@ -1112,7 +1112,9 @@ class SetAtomiser(_Request):
 
 @dataclass(frozen=True, slots=True)
 class SetFan(_Request):
-    on: bool
+    """HEPA fan level 0 (off) to 3 (a first-generation board took 0/1: the same bytes)."""
+
+    level: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -1218,7 +1220,7 @@ COMMANDS: tuple[Command, ...] = (
     Command(CtrlBus.HEALTH_MGMT, ClearHealthError, Args(U32, sub=3), Empty),
     Command(CtrlBus.SET_UV_LAMP, SetUvLamp, Args(ON_OFF), Empty),
     Command(CtrlBus.SET_ATOMISER, SetAtomiser, Args(Field("B", high=3, what="atomiser level")), Empty),
-    Command(CtrlBus.SET_FAN, SetFan, Args(ON_OFF), Empty),
+    Command(CtrlBus.SET_FAN, SetFan, Args(Field("B", high=3, what="fan level")), Empty),
     Command(CtrlBus.GET_PAYLOAD_STATUS, GetPayloadStatus, NO_ARGS, PayloadStatus),
     Command(CtrlBus.GET_ENV_DATA, GetEnvData, NO_ARGS, EnvData),
     Command(CtrlBus.GET_POWER_DATA, GetPowerData, NO_ARGS, PowerData),

@@ -37,3 +37,4 @@ class BoardSnapshot:
     updated: float = 0.0  # clock time of the last successful poll
     connects: int = 0
     last_error: str = ""
+    home_requests: int = 0  # go-home base commands the board raised (its home button), so far

@@ -3,8 +3,13 @@
 ``fleetlink field --console on`` starts the demo field (simulated boards on TCP), an embedded
 mosquitto, an agent per robot and the console. The test types into the terminal like a person:
 the fleet table shows UWB ok (the UWB
-simulator runs in the field); hold ``i`` and the selected robot's position on screen moves; type a goal and it arrives; quit
-with ctrl+q and the process ends.
+simulator runs in the field); hold ``i`` and the selected robot's position on screen moves; type a
+goal and it arrives; mark a casualty where it stands (M, a label, Enter); latch its e-stop (E) and
+the drive keys do nothing; release it (R, y); press h and it returns to within 0.2 m of where it
+started; start a UV round of a small square around it (``:disinfect rect ... dose 2``), see its
+progress in the detail, e-stop it (the lamp off at once, the round held), release, ``:resume``:
+the round finishes and the dose layer (``:dose`` over the square) has the target; quit with ctrl+q and the process
+ends.
 """
 
 from __future__ import annotations
@@ -31,8 +36,9 @@ pytestmark = pytest.mark.skipif(
     TMUX is None and not os.environ.get("CI"), reason="tmux not installed (./dev test installs it with apt-get)"
 )
 
-POSE = re.compile(r"(uvc-1) \S* ?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
+POSE = re.compile(r"(uvc-1) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
 UWB_OK = re.compile(r"uvc-1 .* ok +\S+ *│")  # the uwb column (health says "ok N%" then more)
+ROUND = re.compile(r"round uv-uvc-1-\d+: \d+/\d+ nodes done")  # the detail's progress line
 
 
 def tmux(*args: str) -> str:
@@ -83,6 +89,12 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
             return p is not None and p == before
 
         wait_until(still, timeout=30, interval=0.25, message="uvc-1 stopping after the key was released")
+
+        def still_latched() -> bool:
+            p, before = pose(session), last[0]
+            last[0] = p
+            return p is not None and p == before
+
         moved = pose(session)
         assert moved is not None
         # A typed goal half a metre further on; it must arrive (position on screen near it).
@@ -94,6 +106,102 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
             lambda: (p := pose(session)) is not None and math.dist(p, (gx, gy)) < 0.2,
             timeout=90,
             message=f"uvc-1 arriving at the goal ({gx}, {gy})",
+        )
+        # Mark a casualty where the robot stands: M asks for the kind (casualty first) and a label.
+        tmux("send-keys", "-t", session, "M")
+        wait_until(lambda: "label (Enter" in screen(session), timeout=10, message="the mark dialog")
+        tmux("send-keys", "-t", session, "-l", "victim-1")
+        tmux("send-keys", "-t", session, "Enter")
+        wait_until(
+            # The notice, not the label being typed: "casualty 'victim-1' at ..." once it is shared.
+            lambda: "'victim-1'" in (shown := screen(session)) and "mark at uvc-1" not in shown,
+            timeout=10,
+            message="the mark shared and its dialog closed",
+        )
+        # The lamp on (p), then E while it drives: it stops, the lamp goes off, and the detail says so.
+        tmux("send-keys", "-t", session, "p")
+        wait_until(lambda: "lamp on" in screen(session), timeout=10, message="uvc-1's lamp on")
+        for _ in range(10):
+            tmux("send-keys", "-t", session, "i")
+            time.sleep(0.05)
+        tmux("send-keys", "-t", session, "E")
+        wait_until(lambda: "E-STOP (remote)" in screen(session), timeout=10, message="uvc-1's e-stop latched")
+        last[0] = None
+        wait_until(
+            lambda: still_latched() and "lamp off" in screen(session),
+            timeout=30,
+            interval=0.25,
+            message="uvc-1 standing still with its lamp off under e-stop",
+        )
+        held = pose(session)
+
+        def refused() -> bool:
+            for _ in range(10):
+                tmux("send-keys", "-t", session, "i")
+                time.sleep(0.05)
+            return "refused teleop: e-stop latched" in screen(session)
+
+        wait_until(refused, timeout=20, message="uvc-1 refusing the drive keys under e-stop")
+        after = pose(session)
+        assert held is not None and after is not None and math.dist(held, after) < 0.05, (held, after)
+        # R asks; y releases.
+        tmux("send-keys", "-t", session, "R")
+        wait_until(lambda: "Release the e-stop" in screen(session), timeout=10, message="the release confirmation")
+        tmux("send-keys", "-t", session, "y")
+        wait_until(lambda: "E-STOP" not in screen(session), timeout=10, message="uvc-1's e-stop released")
+        # h: back home, where it first localised (where it stood when the test began).
+        tmux("send-keys", "-t", session, "h")
+        wait_until(
+            lambda: (p := pose(session)) is not None and math.dist(p, start) < 0.2 and "uvc-1 idle" in screen(session),
+            timeout=120,
+            message=f"uvc-1 back home at {start}",
+        )
+        # A UV round of a small square around where it stands, at a low dose: planned in the console,
+        # sent as an order with nodes, under way (the detail shows its progress); then cancelled.
+        here = pose(session)
+        assert here is not None
+        x, y = here
+        tmux("send-keys", "-t", session, ":")
+        area = f"rect {x - 0.6:.2f} {y - 0.6:.2f} {x + 0.6:.2f} {y + 0.6:.2f}"
+        tmux("send-keys", "-t", session, "-l", f"disinfect {area} dose 2")
+        tmux("send-keys", "-t", session, "Enter")
+        wait_until(
+            lambda: ROUND.search(screen(session)) is not None,
+            timeout=60,
+            message="uvc-1's round planned, sent and under way (its progress in the detail)",
+        )
+        # The round switches the lamp on at its first dwell point; E cuts it at once and holds the
+        # round; after the release, :resume brings the lamp back and the round finishes.
+        wait_until(lambda: "lamp on" in screen(session), timeout=60, message="the round's lamp on")
+        tmux("send-keys", "-t", session, "E")
+        wait_until(
+            lambda: "E-STOP (remote)" in (shown := screen(session)) and "lamp off" in shown,
+            timeout=10,
+            message="the e-stop latched and the lamp off",
+        )
+        wait_until(lambda: "WAITING: e-stop" in screen(session), timeout=10, message="the round held by the e-stop")
+        tmux("send-keys", "-t", session, "R")
+        wait_until(lambda: "Release the e-stop" in screen(session), timeout=10, message="the release confirmation")
+        tmux("send-keys", "-t", session, "y")
+        wait_until(lambda: "E-STOP" not in screen(session), timeout=10, message="uvc-1's e-stop released")
+        tmux("send-keys", "-t", session, ":")
+        tmux("send-keys", "-t", session, "-l", "resume")
+        tmux("send-keys", "-t", session, "Enter")
+        wait_until(
+            lambda: ROUND.search(shown := screen(session)) is None and "finished:" in shown and "lamp off" in shown,
+            timeout=180,
+            interval=0.5,
+            message="uvc-1's round resumed and finished, its lamp off",
+        )
+        # The dose layer filled where the round stood: the console's summary says how much is at the dose.
+        tmux("send-keys", "-t", session, ":")
+        tmux("send-keys", "-t", session, "-l", f"dose {x - 0.6:.2f} {y - 0.6:.2f} {x + 0.6:.2f} {y + 0.6:.2f}")
+        tmux("send-keys", "-t", session, "Enter")
+        at_target = re.compile(r"at or above target: (\d+\.\d+) m²")
+        wait_until(
+            lambda: (m := at_target.search(screen(session))) is not None and float(m.group(1)) > 0.3,
+            timeout=30,
+            message="the dose layer at the target over the round's square",
         )
         tmux("send-keys", "-t", session, "C-q")
         wait_until(

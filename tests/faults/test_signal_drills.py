@@ -157,12 +157,24 @@ def test_sigterm_on_a_console_in_a_terminal_sends_stop(tmp_path: Path) -> None:
         connect = re.search(r"--zenoh-connect (\S+)", join).group(1)  # type: ignore[union-attr]
         ca = re.search(r"--ca-file (\S+)", join)
         seen: list[tuple[float, object]] = []
-        watcher = zenoh.open(
-            peer_config(
-                connect=[connect], mode="client", username="op-bob",
-                password=(folder / "op-bob.password").read_text().strip(), root_ca=ca.group(1) if ca else None,
-            )
-        )  # fmt: skip
+        password = (folder / "op-bob.password").read_text().strip()
+        sessions: list[zenoh.Session] = []
+
+        def joined() -> bool:
+            # A client tries its endpoint once; a TLS handshake with a router busy starting the
+            # site's agents can miss that try under CI load (seen once), so the watcher tries again.
+            try:
+                config = peer_config(
+                    connect=[connect], mode="client", username="op-bob", password=password,
+                    root_ca=ca.group(1) if ca else None,
+                )  # fmt: skip
+                sessions.append(zenoh.open(config))
+            except zenoh.ZError:
+                return False
+            return True
+
+        wait_until(joined, interval=0.5, timeout=30, message="op-bob's watcher on the router")
+        watcher = sessions[0]
         for topic in ("actions", "teleop"):
             watcher.declare_subscriber(
                 keys.sender_filter("*", topic, "op-alice"),

@@ -7,9 +7,11 @@ go on Zenoh or MQTT, and the rig injects what a robot would say.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+
+import pytest
 
 from fleetlink.links.base import LinkStats, key_matches
 from fleetlink.operator.console import ConsoleApp, attach
@@ -19,6 +21,7 @@ from fleetlink.operator.links import OperatorLink
 from fleetlink.shared import wire
 from fleetlink.shared.clock import Clock, SystemClock
 from fleetlink.shared.messages import Ack, AckResult, InstantActions, LinkName, Order, Pose
+from fleetlink.site.rounds import plan_round
 
 __all__ = ["ME", "MemoryTransport", "Rig"]
 
@@ -88,7 +91,7 @@ class Rig:
         self.marks_file = tmp_path / "marks.json"
         self.app = ConsoleApp(
             self.link, self.fleet, self.clock, lock=self.lock, read_only=read_only,
-            marks_file=self.marks_file, repeat_timeout_s=repeat_timeout_s,
+            marks_file=self.marks_file, repeat_timeout_s=repeat_timeout_s, planner=plan_round,
         )  # fmt: skip
         self.agents: dict[str, wire.HeaderCounter] = {}
         self.zenoh.responder = self.mqtt.responder = self._ack
@@ -138,3 +141,14 @@ class Rig:
         )  # fmt: skip
         for link in links:
             (self.zenoh if link == "zenoh" else self.mqtt).inject(msg)
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[Rig]:
+    """A started console rig (``Rig``), closed at teardown."""
+    r = Rig(tmp_path)
+    r.start()
+    try:
+        yield r
+    finally:
+        r.close()

@@ -1,0 +1,177 @@
+"""The console's alarms on screen and on the wire: the alarm panel and ``AlarmKeeper``.
+
+``alarm_lines`` (pure) renders the active alarms, one line each (severity, robot, alarm, first and
+last seen as ages, count, who acknowledged); ``AlarmPanel`` shows them under the robot detail and
+hides itself while there are none. ``AlarmKeeper`` is the console's side of its ``AlarmDesk``
+(operator/alarms.py): once per frame it tells the desk which robots went quiet on every link,
+collects the renotifications, writes the audit log (operator/audit.py) and publishes this
+console's acknowledgements (``AlarmAck``: on Zenoh, and retained on MQTT when the source can); it
+publishes them all again after every broker (re)connect, so a broker that lost its retained
+messages gets them back.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from rich.text import Text
+from textual.widgets import Static
+
+from fleetlink.operator.alarms import (
+    AckEntry,
+    AckOutcome,
+    Alarm,
+    AlarmDesk,
+    AlarmKind,
+    AlarmSeverity,
+    AuditEvent,
+    links_quiet,
+)
+from fleetlink.operator.audit import AuditLog
+from fleetlink.operator.feed import ConsoleSource
+from fleetlink.operator.linkmanager import FALLBACK, PRIMARY, LinkHealth
+from fleetlink.shared import wire
+from fleetlink.shared.messages import AlarmAck
+
+__all__ = ["MAX_LINES", "AlarmKeeper", "AlarmPanel", "Said", "ago", "alarm_lines"]
+
+log = logging.getLogger(__name__)
+
+MAX_LINES = 5
+"""Alarm lines shown; the rest are counted on the last line."""
+
+QUIET_CHECK_S = 0.5
+"""How often the robots' link ages are looked at for ``link_lost`` (as the console's clock tick)."""
+
+SEVERITY_STYLE = {
+    AlarmSeverity.CRITICAL: ("CRIT", "bold white on red"),
+    AlarmSeverity.WARNING: ("WARN", "bold yellow"),
+    AlarmSeverity.INFO: ("INFO", "cyan"),
+}
+
+
+def ago(seconds: float) -> str:
+    """``4s``, ``2m05``, ``1h07``: compact ages."""
+    s = max(0, int(seconds))
+    if s < 60:
+        return f"{s}s"
+    if s < 3600:
+        return f"{s // 60}m{s % 60:02d}"
+    return f"{s // 3600}h{s // 60 % 60:02d}"
+
+
+def alarm_lines(alarms: Sequence[Alarm], now: float, me: str, selected: str | None = None) -> Text:
+    """The panel's text: a title, then one line per alarm (unacknowledged first); the selected
+    robot's in bold."""
+    out = Text("alarms  (A acknowledges; :ack ROBOT KIND|all)", style="dim")
+    for alarm in alarms[:MAX_LINES]:
+        tag, style = SEVERITY_STYLE[alarm.severity]
+        who = "" if alarm.acked_by is None else f"ack {'you' if alarm.acked_by == me else alarm.acked_by}"
+        line = Text("\n")
+        line.append(tag, style=style if alarm.acked_by is None else "dim")
+        rest = (
+            f" {alarm.robot[:10]:<10} {alarm.label[:13]:<13} {ago(now - alarm.first_seen):>5} "
+            f"{ago(now - alarm.last_seen):>5} x{alarm.count:<3} {who[:14]}"
+        )
+        line.append(rest.rstrip(), style="bold" if alarm.robot == selected else "")
+        out.append_text(line)
+    if len(alarms) > MAX_LINES:
+        out.append(f"\n... {len(alarms) - MAX_LINES} more", style="dim")
+    return out
+
+
+class AlarmPanel(Static):
+    """``alarm_lines`` on screen; hidden while no alarm is active."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("", **kwargs)
+        self._shown: tuple[str, tuple[Any, ...]] | None = None
+
+    def show(self, text: Text, any_alarm: bool) -> None:
+        key = (text.plain, tuple(text.spans))
+        if key != self._shown:
+            self._shown = key
+            self.update(text)
+        self.display = any_alarm
+
+
+@dataclass(frozen=True, slots=True)
+class Said:
+    """What the console should tell the operator after a frame: a notice, and whether to ring."""
+
+    severity: str
+    text: str
+    bell: bool = False
+
+
+class AlarmKeeper:
+    """See the module docstring. ``frame`` and ``acknowledge`` are called with the fleet model's
+    lock held (the desk is part of the model); they hand back what to publish, which
+    ``publish`` sends outside the lock."""
+
+    def __init__(self, source: ConsoleSource, desk: AlarmDesk, audit: AuditLog) -> None:
+        self.source = source
+        self.desk = desk
+        self.audit = audit
+        self._republish = threading.Event()
+        self._quiet_checked = -math.inf
+        listen = getattr(source, "add_connect_listener", None)
+        if listen is not None:
+            listen(self._republish.set)  # on the broker's thread: only a flag
+
+    def frame(
+        self, wall: float, robots: Iterable[str], health: Callable[[str], Sequence[LinkHealth]]
+    ) -> tuple[list[Said], list[tuple[str, tuple[AckEntry, ...]]]]:
+        """Once per frame (``wall``: the console's wall clock): link quiet, renotifications, the
+        audit log. Returns what to tell the operator and the acknowledgement lists to publish."""
+        desk = self.desk
+        if wall - self._quiet_checked >= QUIET_CHECK_S:  # not every frame: health costs per robot
+            self._quiet_checked = wall
+            for robot in robots:
+                desk.link_quiet(robot, links_quiet([h.age_s for h in health(robot)]), wall)
+        desk.tick(wall)
+        records = desk.drain_audit()
+        self.audit.write(records)
+        said: list[Said] = []
+        for r in records:
+            if r.event is AuditEvent.RENOTIFIED:
+                said.append(Said("error", f"ALARM {r.robot}: {r.text} ({r.kind}) still unacknowledged", bell=True))
+            elif r.event in (AuditEvent.RAISED, AuditEvent.ESCALATED) and r.severity == AlarmSeverity.CRITICAL:
+                said.append(Said("error", f"ALARM {r.robot}: {r.text} ({r.kind})", bell=True))
+            elif r.event is AuditEvent.ACKNOWLEDGED and r.by != desk.operator:
+                said.append(Said("info", f"{r.robot}: {r.kind} acknowledged by {r.by}"))
+        outgoing = desk.outgoing()
+        if self._republish.is_set():
+            self._republish.clear()
+            outgoing = desk.published()
+        return said, outgoing
+
+    def acknowledge(self, robot: str, kind: AlarmKind | None, wall: float, *, every: bool = False) -> AckOutcome:
+        """This operator acknowledges (see ``AlarmDesk.acknowledge``)."""
+        return self.desk.acknowledge(robot, kind, wall, every=every)
+
+    def publish(
+        self, header: Callable[[str, str], wire.Header], lists: Sequence[tuple[str, tuple[AckEntry, ...]]]
+    ) -> None:
+        """Publish each (robot, acknowledgements) as an ``AlarmAck``: on Zenoh, and retained on MQTT
+        when the source can (else on both links as is)."""
+        retained = getattr(self.source, "publish_retained", None)
+        for robot, entries in lists:
+            msg = AlarmAck(header=header(AlarmAck.TOPIC, robot), acks=tuple(e.wire() for e in entries))
+            try:
+                if retained is not None:
+                    self.source.publish(msg, links=(PRIMARY,))
+                    retained(msg)
+                else:
+                    self.source.publish(msg, links=(PRIMARY, FALLBACK))
+            except Exception as exc:  # a dead transport must not take the console down
+                log.warning("publishing the acknowledgements of %s failed: %s", robot, exc)
+
+    def close(self) -> None:
+        self.audit.write(self.desk.drain_audit())
+        self.audit.close()

@@ -1,0 +1,62 @@
+"""Plane geometry every layer uses: points in polygons, distances to segments (pure).
+
+The field (plans, the radio's dead zones, cliffs), the agent's lamp interlocks (people-present
+zones) and its coverage planner (a chosen area) all ask the same questions of the same polygons;
+they ask them here.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["Point", "Segment", "point_in_polygon", "point_segment_distance", "points_in_polygon", "polygon_distance"]
+
+Point = tuple[float, float]
+Segment = tuple[float, float, float, float]
+"""x1, y1, x2, y2."""
+
+
+def point_in_polygon(x: float, y: float, polygon: Sequence[Point]) -> bool:
+    """Even-odd test: is (x, y) inside a simple polygon given by its corners (either winding)?"""
+    inside = False
+    n = len(polygon)
+    for i in range(n):
+        x1, y1 = polygon[i]
+        x2, y2 = polygon[(i + 1) % n]
+        if (y1 > y) != (y2 > y) and x < x1 + (y - y1) * (x2 - x1) / (y2 - y1):
+            inside = not inside
+    return inside
+
+
+def points_in_polygon(
+    xs: npt.NDArray[np.float64], ys: npt.NDArray[np.float64], polygon: Sequence[Point]
+) -> npt.NDArray[np.bool_]:
+    """``point_in_polygon`` for arrays of points (the same even-odd rule, element by element)."""
+    inside = np.zeros(np.broadcast(xs, ys).shape, dtype=bool)
+    n = len(polygon)
+    for i in range(n):
+        (x1, y1), (x2, y2) = polygon[i], polygon[(i + 1) % n]
+        if y1 == y2:
+            continue
+        crosses = (y1 > ys) != (y2 > ys)
+        inside ^= crosses & (xs < x1 + (ys - y1) * (x2 - x1) / (y2 - y1))
+    return inside
+
+
+def point_segment_distance(px: float, py: float, seg: Segment) -> float:
+    x1, y1, x2, y2 = seg
+    ex, ey = x2 - x1, y2 - y1
+    n2 = ex * ex + ey * ey
+    t = 0.0 if n2 == 0 else max(0.0, min(1.0, ((px - x1) * ex + (py - y1) * ey) / n2))
+    return math.hypot(px - (x1 + t * ex), py - (y1 + t * ey))
+
+
+def polygon_distance(x: float, y: float, polygon: Sequence[Point]) -> float:
+    """Distance from (x, y) to the polygon's outline (0 on it; the inside is not 0: see
+    ``point_in_polygon``)."""
+    n = len(polygon)
+    return min((point_segment_distance(x, y, (*polygon[i], *polygon[(i + 1) % n])) for i in range(n)), default=math.inf)

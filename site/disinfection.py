@@ -1,0 +1,494 @@
+"""The disinfection round (issue 16): whole agents in lockstep, an operator who plans a round on
+the robots' own maps as the console does, sends it as orders, and a score against the truth.
+
+``RoundRun(setup)`` runs one round as a ``MissionRun`` (every robot's real agent: board, lidar,
+UWB fixes, onboard map, pilot, dose layer; in-process Zenoh and MQTT) and adds an operator who,
+in simulated time:
+
+* takes each robot's lease and renews it every 2 s on both links (as the console does);
+* drives each robot 2.4 m into the room by teleop (``DRIVE_IN_S``): the fusion finds the
+  robot's heading from UWB over its first half metre, and the map is started in the site frame;
+* after ``PLAN_AT_S`` fetches each robot's map over the link (the queryable the console asks),
+  merges them as the console does (``operator/rounds.py`` ``floor_of``) and plans:
+  - ``uv``: the console's own planner (``site/rounds.py`` ``plan_round``: dwell points, the split
+    between robots, the orders);
+  - ``park`` (baseline a, the common practice): drive to the room's middle and dwell until the
+    farthest floor in line of sight has the dose (``coverage.park_in_middle``);
+  - ``lawnmower`` (baseline b): lanes ``LAWNMOWER_LANE_M`` apart over the room with the lamp on, at
+    the one constant speed that brings the dose to as much of the reachable floor as ``uv`` plans
+    for (the dose along a pass scales as 1/speed: computed once at 1 m/s);
+  - ``sweep``: the console's boustrophedon floor-coverage route (``plan_round`` kind ``sweep``);
+* sends every order (VDA 5050 nodes, edges, payload and dwell actions) and waits for each robot's
+  ``order ... finished`` event.
+
+Truth: each robot's true pose and its board's lamp every ``SAMPLE_S`` give the dose the floor
+really got (``shared/dose.py`` on the plan's own floor at 5 cm, walls and furniture casting
+shadows), the time the lamp was on outside the room, the path each robot really drove and, for
+a sweep, the floor its brush (a disc of the robot's diameter) passed over. The score is taken on
+the floor the lamp (or brush) can reach from where the robot can stand in the room, on the plan's
+true floor (``coverage.reachable``/``sweepable``): what the operator's certificate claims.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fleetlink.agent import coverage as cv
+from fleetlink.agent.dose_share import fetch_dose
+from fleetlink.agent.mapping.share import fetch_map
+from fleetlink.field.plans import FloorPlan, load_plan
+from fleetlink.field.scenario import LidarSettings, RobotSpec, Scenario
+from fleetlink.operator.maps import to_grid
+from fleetlink.operator.rounds import RectArea, RoundError, RoundRequest, floor_of
+from fleetlink.shared import wire
+from fleetlink.shared.dose import DoseGrid, FloorMask, Lamp, irradiance_window
+from fleetlink.shared.dose_codec import SharedDose
+from fleetlink.shared.map_codec import SharedMap
+from fleetlink.shared.messages import AckResult, Event, LeaseRequest, Order, Pose, Teleop
+from fleetlink.site.agents import FIELD_LAMP
+from fleetlink.site.lockstep import MissionRun
+from fleetlink.site.rounds import ROUND_CONFIG, plan_round
+
+__all__ = ["MODES", "RoundResult", "RoundRun", "RoundSetup"]
+
+MODES = ("uv", "park", "lawnmower", "sweep")
+LEASE_S = 60.0
+RENEW_S = 2.0
+DRIVE_IN_S = (0.5, 8.5)
+"""The operator drives each robot in at ``DRIVE_SPEED`` in this window: 2.4 m, over which the
+fusion finds its heading from UWB to 2 degrees and the map starts in the site frame."""
+DRIVE_SPEED = 0.3
+PLAN_AT_S = 11.0
+"""When the operator plans (the map has settled after the drive in)."""
+SAMPLE_S = 0.2
+"""Truth sampling period: the lamp's dose, the path, the brush."""
+STILL_M = 0.01
+"""A robot that moved less than this since the last footprint is standing: the footprint is reused."""
+LAWNMOWER_LANE_M = 0.6
+TRUTH_RES = 0.05
+SETTLE_S = 2.0
+MAX_PASSES = 2
+"""A UV round is planned again on what the robots' own dose layers say is still short (a top-up,
+as an operator does with a second ``:disinfect``), at most this many passes in all."""
+
+
+@dataclass(frozen=True, slots=True)
+class RoundSetup:
+    plan: str
+    room: str
+    rect: tuple[float, float, float, float]
+    """The room as the operator gives it (``:disinfect rect X0 Y0 X1 Y1``, from the facility's
+    plan): the same area for every pass, whatever the robots' maps show through its doors."""
+    robots: tuple[tuple[str, float, float, float], ...]
+    """(name, x, y, heading in degrees) where each robot is put down; it drives in along its heading."""
+    mode: str = "uv"
+    target_j_m2: float = 100.0
+    seed: int = 16
+    deadline_s: float = 7200.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
+        if self.mode != "uv" and len(self.robots) != 1:
+            raise ValueError(f"{self.mode}: one robot")
+
+
+@dataclass
+class RoundResult:
+    setup: RoundSetup
+    coverage: float
+    """Share of the reachable floor (true) at the target dose (UV) or passed by the brush (sweep)."""
+    reachable_m2: float
+    time_s: float | None
+    """From the orders sent to the last robot's order finished (None: not finished by the deadline)."""
+    predicted_s: float
+    lamp_on_s: float
+    lamp_outside_s: float
+    """Lamp-on seconds with the robot's centre outside the room (true)."""
+    path_m: float
+    """The path the robots really drove while their orders ran (for a sweep: from the first lane)."""
+    ideal_path_m: float | None = None
+    """Sweep: the reachable floor / the tool's width."""
+    plan_wall_s: float = 0.0
+    wall_s: float = 0.0
+    sim_s: float = 0.0
+    skipped_nodes: int = 0
+    bumps: int = 0
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def finished(self) -> bool:
+        return self.time_s is not None
+
+    def figures(self) -> dict[str, Any]:
+        s = self.setup
+        return {
+            "plan": s.plan,
+            "room": s.room,
+            "mode": s.mode,
+            "robots": len(s.robots),
+            "coverage_ratio": round(self.coverage, 5),
+            "reachable_m2": round(self.reachable_m2, 3),
+            "time_s": None if self.time_s is None else round(self.time_s, 2),
+            "predicted_s": round(self.predicted_s, 2),
+            "lamp_on_s": round(self.lamp_on_s, 2),
+            "lamp_outside_s": round(self.lamp_outside_s, 2),
+            "path_m": round(self.path_m, 3),
+            "ideal_path_m": None if self.ideal_path_m is None else round(self.ideal_path_m, 3),
+            "skipped_nodes": self.skipped_nodes,
+            "bumps": self.bumps,
+            "plan_wall_s": round(self.plan_wall_s, 3),
+            "wall_s": round(self.wall_s, 2),
+            "sim_s": round(self.sim_s, 2),
+        }
+
+
+@dataclass
+class _Crew:
+    name: str
+    order_id: str = ""
+    sent_at: float | None = None
+    done_at: float | None = None
+    last: tuple[float, float] | None = None
+    footprint: tuple[int, int, np.ndarray[Any, np.dtype[np.float64]]] | None = None
+    fp_at: tuple[float, float] | None = None
+    first_lane_at: tuple[float, float] | None = None
+    bumped: bool = False
+
+
+class RoundRun:
+    """One round: ``run()`` until every robot's order has finished (or the deadline)."""
+
+    def __init__(self, setup: RoundSetup, plan: FloorPlan | None = None, *, lamp: Lamp | None = None) -> None:
+        self.setup = setup
+        self.plan = plan or load_plan(setup.plan)
+        self.lamp = lamp or FIELD_LAMP.lamp
+        robots = tuple(RobotSpec(name=n, pose=(x, y, math.radians(th)), drive="agent") for n, x, y, th in setup.robots)
+        scenario = Scenario(
+            name=f"round-{setup.plan}-{setup.room}-{setup.mode}",
+            plan=setup.plan,
+            seed=setup.seed,
+            duration=setup.deadline_s,
+            robots=robots,
+            lidar=LidarSettings(rate_hz=5.0, samples_per_second=2000.0),
+        )
+        self.mission = MissionRun(scenario, self.plan, record=False)
+        self.clock = self.mission.clock
+        self.op = self.mission.operator
+        self.crews = {r.name: _Crew(r.name) for r in self.mission.robots}
+        self.notes: list[str] = []
+        # The truth: the plan's floor, the room on it, the floor a round can reach there.
+        grid = self.plan.to_grid(TRUTH_RES)
+        self.truth_mask = FloorMask.from_occupancy(grid.grid, grid.resolution, (grid.origin[0], grid.origin[1]))
+        self.truth_fm = cv.FloorMap.from_mask(self.truth_mask, ROUND_CONFIG)
+        self.room = cv.rectangle(self.truth_fm, *setup.rect)
+        start = (setup.robots[0][1], setup.robots[0][2])
+        if setup.mode == "sweep":
+            self.reach = cv.sweepable(self.truth_fm, self.room, start)
+        else:
+            self.reach = cv.reachable(self.truth_fm, self.room, self.lamp, target_dose=setup.target_j_m2)
+        self.dose = np.zeros(self.truth_fm.shape)
+        """J/m² the true floor got, on the truth grid's own cells."""
+        self.swept = np.zeros(self.truth_fm.shape, dtype=bool)
+        self.lamp_on_s = self.lamp_outside_s = self.path_m = 0.0
+        self.predicted_s = 0.0
+        self.ideal_path_m: float | None = None
+        self.plan_wall_s = 0.0
+        self.skipped = 0
+        self.bumps = 0
+        self._next_renew = 0.2
+        self._next_sample = 0.0
+        self._next_teleop = 0.0
+        self._planned = False
+        self.passes = 0
+        self._events = 0
+        self._acks = 0
+        self._finished_at: float | None = None
+        self.mission.field.controllers.append(self._step)
+
+    def close(self) -> None:
+        self.mission.close()
+
+    def __enter__(self) -> RoundRun:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- running ---------------------------------------------------------------------------------
+
+    def run(self, chunk_s: float = 5.0) -> RoundResult:
+        wall0 = time.perf_counter()
+        end = self.setup.deadline_s
+        t = self.clock.now()
+        while t < end - 1e-9:
+            stop = end if self._finished_at is None else min(end, self._finished_at + SETTLE_S)
+            if t >= stop - 1e-9:
+                break
+            self.mission.run(min(stop, t + chunk_s))
+            t = self.clock.now()
+        return self._score(time.perf_counter() - wall0)
+
+    def _step(self, t: float) -> None:
+        if t >= self._next_renew:
+            self._next_renew = t + RENEW_S
+            for name in self.crews:
+                self._send_both(name, LeaseRequest, duration_s=LEASE_S, release=False)
+        if DRIVE_IN_S[0] <= t < DRIVE_IN_S[1] and t >= self._next_teleop:
+            self._next_teleop = t + 0.1  # a held key: 10 a second, as the console sends them
+            for name in self.crews:
+                self._send(name, Teleop, v=DRIVE_SPEED, omega=0.0, ttl_s=0.5)
+        if not self._planned and t >= PLAN_AT_S:
+            self._planned = True
+            self._plan_and_send(t)
+        self._read(t)
+        if t >= self._next_sample:
+            self._next_sample = t + SAMPLE_S
+            self._sample()
+        all_done = self._planned and all(c.done_at is not None for c in self.crews.values())
+        if self._finished_at is None and all_done and not self._top_up(t):
+            self._finished_at = t
+        while self.mission.zenoh.deliver() + self.mission.mqtt.deliver():
+            pass
+
+    # -- the operator ------------------------------------------------------------------------------
+
+    def _send(self, robot: str, cls: type[wire.Message], **fields: Any) -> wire.Message:
+        msg = self.op.counter(robot).make(cls, **fields)
+        self.op.zenoh.publish(wire.key_of(msg), wire.encode(msg))
+        return msg
+
+    def _send_both(self, robot: str, cls: type[wire.Message], **fields: Any) -> None:
+        msg = self.op.counter(robot).make(cls, **fields)
+        data, key = wire.encode(msg), wire.key_of(msg)
+        for endpoint in (self.op.zenoh, self.op.mqtt):
+            endpoint.publish(key, data)
+
+    def _top_up(self, t: float) -> bool:
+        """Another UV pass on what the robots' dose layers still lack; False when there is none."""
+        if (
+            self.setup.mode != "uv"
+            or self.passes >= MAX_PASSES
+            or any(c.done_at is None or not math.isfinite(c.done_at) for c in self.crews.values())
+        ):
+            return False
+        return self._plan_and_send(t)
+
+    def _plan_and_send(self, t: float) -> bool:
+        s = self.setup
+        names = [n for n, *_ in s.robots]
+        grids = []
+        for name in names:
+            snap = fetch_map(self.op.zenoh, name)
+            if snap is None:
+                self.notes.append(f"t={t:.1f}: {name} has no map to plan on")
+                return False
+            grids.append(to_grid(SharedMap.from_snapshot(snap)))  # as the console keeps and merges them
+        cells, res, origin = floor_of(grids)
+        starts = {}
+        for name in names:
+            pose = self.op.poses.get(name)
+            if not isinstance(pose, Pose):
+                self.notes.append(f"t={t:.1f}: no pose from {name}")
+                return False
+            starts[name] = (pose.x, pose.y)
+        prior = None
+        if self.passes:  # what the robots' own layers say the floor has had (as the console sums them)
+            layers = [fetch_dose(self.op.zenoh, name) for name in names]
+            dose_grids = [SharedDose.from_snapshot(d).grid() for d in layers if d is not None]
+            prior = DoseGrid.merged(dose_grids) if dose_grids else None
+        wall0 = time.perf_counter()
+        try:
+            orders = self._orders(cells, res, origin, starts, prior)
+        except RoundError as exc:
+            self.notes.append(f"t={t:.1f}: pass {self.passes + 1}: {exc}")
+            return False
+        finally:
+            self.plan_wall_s += time.perf_counter() - wall0
+        self.passes += 1
+        self.notes.append(f"t={t:.1f}: pass {self.passes} sent: {self.predicted_s:.0f} s predicted so far")
+        for name, fields in orders.items():
+            crew = self.crews[name]
+            crew.order_id = fields["orderId"]
+            crew.sent_at = t if crew.sent_at is None else crew.sent_at
+            crew.done_at = None
+            self._send(name, Order, **fields)
+        return True
+
+    def _orders(
+        self,
+        cells: np.ndarray[Any, np.dtype[np.int8]],
+        res: float,
+        origin: tuple[float, float],
+        starts: dict[str, tuple[float, float]],
+        prior: DoseGrid | None = None,
+    ) -> dict[str, dict[str, Any]]:
+        s = self.setup
+        names = tuple(starts)
+        seed = RectArea(*s.rect)
+        if s.mode in ("uv", "sweep"):
+            request = RoundRequest(kind=s.mode, area=seed, robots=names, target_j_m2=s.target_j_m2)  # type: ignore[arg-type]
+            ids = {n: f"{s.mode}-{n}-{self.passes + 1}" for n in names}
+            result = plan_round(request, cells, res, origin, starts, self.lamp, ids, prior)
+            self.predicted_s += max(r.total_s for r in result.rounds)
+            if s.mode == "sweep":  # the boustrophedon ideal over the true reachable floor
+                self.ideal_path_m = (
+                    float(self.reach.sum()) * self.truth_fm.cell_area / self.truth_fm.config.tool_width_m
+                )
+            return {r.robot: dict(r.order) for r in result.rounds}
+        name = names[0]
+        start = starts[name]
+        fm = cv.FloorMap.from_cells(cells, res, origin, ROUND_CONFIG)  # the floor a round counts as reachable
+        area = cv.rectangle(fm, *s.rect)
+        reach = cv.reachable(fm, area, self.lamp, start, target_dose=s.target_j_m2)
+        if s.mode == "park":
+            plan = cv.park_in_middle(fm, area, self.lamp, s.target_j_m2, start, robot=name, within=reach)
+            self.predicted_s = plan.predicted.total_s
+            return {name: cv.plan_order(plan, f"park-{name}-1")}
+        # lawnmower: lanes with the lamp on at the one speed that doses as much as a round plans for
+        sweep = cv.plan_sweep(fm, area, start, tool_width_m=LAWNMOWER_LANE_M, robot=name)
+        lit = cv.CoveragePlan(
+            "lawnmower",
+            sweep.nodes,
+            tuple(dataclasses.replace(e, lamp=i > 0) for i, e in enumerate(sweep.edges)),
+            s.target_j_m2,
+            sweep.predicted,
+            name,
+        )
+        per_mps = cv.dose_map(fm, [lit], self.lamp, travel=True, speed_mps=1.0)
+        goal = 1.0 - (1.0 - 0.995)  # as much as a round plans for (site/rounds.py ROUND_CONFIG)
+        speeds = np.sort(per_mps[reach] / s.target_j_m2)
+        k = min(len(speeds) - 1, max(0, math.floor((1.0 - goal) * len(speeds))))
+        speed = float(min(0.5, max(0.01, speeds[k]))) if len(speeds) else 0.3
+        path = sweep.predicted.path_m + sum(e.length_m for e in sweep.edges[:1])
+        self.predicted_s = path / speed
+        self.notes.append(f"lawnmower: lanes {LAWNMOWER_LANE_M} m apart at {speed:.3f} m/s")
+        return {name: cv.plan_order(lit, f"lawnmower-{name}-1", max_speed_mps=speed)}
+
+    def _read(self, t: float) -> None:
+        acks = self.op.acks
+        while self._acks < len(acks):
+            ack = acks[self._acks]
+            self._acks += 1
+            crew = self.crews.get(ack.header.robot)
+            if crew is not None and ack.commandTopic == Order.TOPIC and ack.result is AckResult.REJECTED:
+                self.notes.append(f"t={t:.1f}: {crew.name} refused the order: {ack.reason}")
+                crew.done_at = math.inf
+        events = self.op.events
+        while self._events < len(events):
+            ev: Event = events[self._events]
+            self._events += 1
+            crew = self.crews.get(ev.header.robot)
+            if crew is None or ev.kind != "order" or not crew.order_id:
+                continue
+            if f"order {crew.order_id} finished" in ev.text:
+                crew.done_at = t
+                if "skipped" in ev.text:
+                    self.notes.append(f"t={t:.1f}: {crew.name}: {ev.text}")
+                    found = re.search(r"(\d+) skipped", ev.text)
+                    self.skipped += int(found.group(1)) if found else 0
+            elif ev.severity.value != "info":
+                self.notes.append(f"t={t:.1f}: {crew.name}: {ev.text}")
+
+    # -- the truth ---------------------------------------------------------------------------------
+
+    def _sample(self) -> None:
+        for r in self.mission.robots:
+            crew = self.crews[r.name]
+            st = self.mission.field.rigs[r.index].robot.board.state
+            x, y = float(st.x), float(st.y)
+            bumped = bool(st.bumped_left or st.bumped_right)
+            if bumped and not crew.bumped:
+                self.bumps += 1
+            crew.bumped = bumped
+            running = crew.sent_at is not None and crew.done_at is None
+            if running and crew.last is not None:
+                step = math.dist(crew.last, (x, y))
+                if self.setup.mode != "sweep" or crew.first_lane_at is not None:
+                    self.path_m += step
+            crew.last = (x, y)
+            if running and self.setup.mode == "sweep":
+                self._brush(crew, x, y)
+            if st.uv_lamp:
+                self.lamp_on_s += SAMPLE_S
+                if not self._in_room(x, y):
+                    self.lamp_outside_s += SAMPLE_S
+                if crew.footprint is None or crew.fp_at is None or math.dist(crew.fp_at, (x, y)) > STILL_M:
+                    m = self.truth_mask
+                    crew.footprint = irradiance_window(self.lamp, x, y, m.free, m.resolution, m.origin)
+                    crew.fp_at = (x, y)
+                r0, c0, e = crew.footprint
+                self.dose[r0 : r0 + e.shape[0], c0 : c0 + e.shape[1]] += e * SAMPLE_S
+
+    def _in_room(self, x: float, y: float) -> bool:
+        fm = self.truth_fm
+        c = math.floor((x - fm.origin[0]) / fm.resolution)
+        r = math.floor((y - fm.origin[1]) / fm.resolution)
+        h, w = fm.shape
+        return 0 <= r < h and 0 <= c < w and bool(self.room.target[r, c])
+
+    def _brush(self, crew: _Crew, x: float, y: float) -> None:
+        fm = self.truth_fm
+        if crew.first_lane_at is None:
+            if not self._in_room(x, y):
+                return
+            crew.first_lane_at = (x, y)
+        rad = fm.config.tool_width_m / 2.0
+        h, w = fm.shape
+        r0 = max(0, math.floor((y - rad - fm.origin[1]) / fm.resolution))
+        r1 = min(h, math.ceil((y + rad - fm.origin[1]) / fm.resolution) + 1)
+        c0 = max(0, math.floor((x - rad - fm.origin[0]) / fm.resolution))
+        c1 = min(w, math.ceil((x + rad - fm.origin[0]) / fm.resolution) + 1)
+        if r0 >= r1 or c0 >= c1:
+            return
+        ys = fm.origin[1] + (np.arange(r0, r1) + 0.5) * fm.resolution
+        xs = fm.origin[0] + (np.arange(c0, c1) + 0.5) * fm.resolution
+        near = (xs[None, :] - x) ** 2 + (ys[:, None] - y) ** 2 <= rad * rad
+        self.swept[r0:r1, c0:c1] |= near
+
+    def _score(self, wall: float) -> RoundResult:
+        s = self.setup
+        cells = int(self.reach.sum())
+        if s.mode == "sweep":
+            got = int((self.swept & self.reach).sum())
+        else:
+            dose = self.dose
+            got = int((dose[self.reach] >= s.target_j_m2 * (1.0 - 1e-6)).sum())
+        sent = [c.sent_at for c in self.crews.values() if c.sent_at is not None]
+        done = [c.done_at for c in self.crews.values()]
+        time_s = None
+        if sent and all(d is not None and math.isfinite(d) for d in done):
+            time_s = max(d for d in done if d is not None) - min(sent)
+        return RoundResult(
+            setup=s,
+            coverage=got / max(1, cells),
+            reachable_m2=cells * self.truth_fm.cell_area,
+            time_s=time_s,
+            predicted_s=self.predicted_s,
+            lamp_on_s=self.lamp_on_s,
+            lamp_outside_s=self.lamp_outside_s,
+            path_m=self.path_m,
+            ideal_path_m=self.ideal_path_m,
+            plan_wall_s=self.plan_wall_s,
+            wall_s=wall,
+            sim_s=self.clock.now(),
+            skipped_nodes=self.skipped,
+            bumps=self.bumps,
+            notes=self.notes,
+        )
+
+
+def summary_line(r: RoundResult) -> str:
+    f = r.figures()
+    t = "not finished" if f["time_s"] is None else f"{f['time_s']:.0f} s"
+    return (
+        f"{f['plan']}/{f['room']} {f['mode']} x{f['robots']}: coverage {100 * f['coverage_ratio']:.2f} % of "
+        f"{f['reachable_m2']:.1f} m², {t} (predicted {f['predicted_s']:.0f} s), lamp outside {f['lamp_outside_s']:.0f} s"
+    )

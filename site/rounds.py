@@ -1,0 +1,173 @@
+"""A round planned: the operator's request (operator/rounds.py) through the agent's coverage
+planner (agent/coverage.py) to one order per robot. Pure numpy, no I/O.
+
+The console is handed ``plan_round`` (``RoundPlanner``) by whoever starts it (cli/console.py, the
+tests' console rig): the operator side may not import the agent's packages, and this is where the
+two meet, as the rest of ``site/`` composes them. It runs in a worker thread of the console (a
+room takes ~0.1-2 s), never in the UI thread.
+
+    plan = plan_round(request, cells, resolution, origin, {"uvc-1": (x, y)}, lamp, {"uvc-1": "uv-uvc-1-7"})
+
+* UV, one robot: ``plan_uv`` on the area from where it stands;
+* UV, several: ``plan_uv`` from the first robot's position, then ``split_plan`` shares the dwell
+  points between them (each robot's own tour from where it stands; the doses add up to the plan's);
+* sweep (one robot): ``plan_sweep``;
+then ``plan_order`` for each robot's plan. Everything that is wrong comes back as a ``RoundError``
+saying what and where: a polygon that self-intersects or lies outside the map, a room seed in a
+wall, an area with no floor the robot can reach, a robot with no known position or standing
+nowhere it could start from, a route with more nodes than an order carries.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+import numpy.typing as npt
+
+from fleetlink.agent import coverage as cv
+from fleetlink.operator.rounds import (
+    PolyArea,
+    RectArea,
+    RobotRound,
+    RoomArea,
+    RoundError,
+    RoundPlan,
+    RoundRequest,
+    RouteNode,
+    check_request,
+    describe_area,
+)
+from fleetlink.shared.dose import DoseGrid, Lamp
+
+__all__ = ["ROUND_CONFIG", "SWEEP_OVERLAP", "plan_round"]
+
+SWEEP_OVERLAP = 0.8
+"""A sweep's lanes are this share of the brush apart (0.27 m for the 0.34 m brush): a fifth
+overlapping, so the robot's few centimetres off its lane (localisation, the controller) leave no
+strip unswept."""
+
+ROUND_CONFIG = cv.CoverageConfig(
+    coverage_goal=0.995,
+    dose_margin=0.1,
+    lamp_while_driving=True,
+    dwell_clearance_m=0.35,
+    max_cell_dwell_s=600.0,
+    lane_end_clearance_m=0.3,
+)
+"""How a round is planned: 99.5 % of the floor the lamp can reach (the worst-lit 0.5 % cost most
+of the time: the certificate asks for 99 %), 10 % more dose than the target (the robot stands a
+few centimetres from where it was planned, and irradiance falls with the cube of the distance),
+the lamp on between dwell points (a low-pressure lamp is not switched on and off; the dose on
+the way is a bonus the plan does not count on), and dwell points 0.57 m from walls (the robot's
+radius, the planner's 0.05 m and 0.35 m: nearer, the collision guard refuses to drive up to them
+head-on; paths may pass nearer, through doorways); floor that would need more than 10 minutes
+under the lamp from the best place to stand is out of its reach (reported as unlit: grazing light
+behind furniture and along a lidar map's thick walls cost hours of dwell for a few cm²)."""
+
+Point = tuple[float, float]
+
+
+def plan_round(
+    request: RoundRequest,
+    cells: npt.NDArray[np.int8],
+    resolution: float,
+    origin: Point,
+    starts: Mapping[str, Point],
+    lamp: Lamp,
+    order_ids: Mapping[str, str] | None = None,
+    prior: DoseGrid | None = None,
+    *,
+    config: cv.CoverageConfig | None = None,
+) -> RoundPlan:
+    """The round ``request`` planned on the map ``cells`` (int8, -1 unknown, 0-100, row 0 at
+    ``origin``'s y) for robots standing at ``starts``: a ``RoundPlan`` with each robot's order
+    (``order_ids[robot]``, default ``<kind>-<robot>-1``), or RoundError with the reason."""
+    check_request(request)
+    for robot in request.robots:
+        p = starts.get(robot)
+        if p is None or not all(math.isfinite(v) for v in p):
+            raise RoundError(f"{robot}: no known position (no fused pose yet): the round needs where it stands")
+    ids = {r: (order_ids or {}).get(r) or f"{request.kind}-{r}-1" for r in request.robots}
+    where = describe_area(request.area)
+    try:
+        fm = cv.FloorMap.from_cells(cells, resolution, origin, config or ROUND_CONFIG)
+    except ValueError as exc:
+        raise RoundError(f"the map cannot be planned on: {exc}") from None
+    try:
+        area = _area(fm, request)
+    except ValueError as exc:  # "polygon: ...": the area is named already
+        raise RoundError(
+            f"{where}: {str(exc).removeprefix('polygon: ').removeprefix('rectangle: ').removeprefix('room: ')}"
+        ) from None
+    if area.cells == 0:
+        raise RoundError(f"{where}: no reachable floor in it")
+    robots = list(request.robots)
+    points = [starts[r] for r in robots]
+    for robot, p in zip(robots, points, strict=True):
+        cell = fm.escape(p)
+        if cell is None:
+            raise RoundError(f"{robot} stands at ({p[0]:.2f}, {p[1]:.2f}), not on floor it can start from")
+        if not (np.isfinite(fm.geodesic(cell)) & area.stand).any():
+            raise RoundError(f"{where}: {robot} cannot get there from ({p[0]:.2f}, {p[1]:.2f})")
+    try:
+        if request.kind == "sweep":
+            plans: tuple[cv.CoveragePlan, ...] = (
+                cv.plan_sweep(
+                    fm, area, points[0], tool_width_m=fm.config.tool_width_m * SWEEP_OVERLAP, robot=robots[0]
+                ),
+            )
+            coverage = plans[0].predicted.coverage
+        else:
+            had = None
+            if prior is not None:  # the dose so far, on this map's cells
+                h, w = fm.shape
+                xs = fm.origin[0] + (np.arange(w, dtype=np.float64) + 0.5) * fm.resolution
+                ys = fm.origin[1] + (np.arange(h, dtype=np.float64) + 0.5) * fm.resolution
+                had = prior.dose_at(xs, ys)
+            plan = cv.plan_uv(fm, area, lamp, request.target_j_m2, points[0], robot=robots[0], prior=had)
+            if len(robots) == 1 or not plan.dwell_points:
+                plans, coverage = (plan,), plan.predicted.coverage
+            else:
+                fleet = cv.split_plan(fm, plan, points, robots)
+                plans, coverage = fleet.plans, fleet.coverage
+    except ValueError as exc:  # start off the floor, the area out of reach from it
+        raise RoundError(f"{where}: {exc}") from None
+    if not plans or not any(len(p.nodes) > 1 for p in plans):
+        if prior is not None and request.kind == "uv" and coverage > 0:
+            raise RoundError(f"{where}: {100 * coverage:.1f} % of it has the dose already: nothing to top up")
+        raise RoundError(f"{where}: nothing to do there (no floor the lamp or the tool reaches)")
+    rounds = []
+    for share in plans:
+        robot = share.robot or robots[0]
+        try:
+            fields = cv.plan_order(share, ids[robot])
+        except ValueError as exc:  # more nodes than one order carries
+            raise RoundError(f"{robot}: {exc}") from None
+        route = tuple(RouteNode(n.node_id, n.x, n.y, n.dwell_s) for n in share.nodes)
+        pred = share.predicted
+        rounds.append(RobotRound(robot, ids[robot], fields, route, pred.total_s, pred.dwell_s, pred.path_m))
+    return RoundPlan(request, area.area_m2, coverage, area_unlit(plans), tuple(rounds))
+
+
+def area_unlit(plans: tuple[cv.CoveragePlan, ...]) -> float:
+    """UV: floor no stand point lights (the same for every share of a split plan)."""
+    return max((p.predicted.unlit_m2 for p in plans), default=0.0)
+
+
+def _area(fm: cv.FloorMap, request: RoundRequest) -> cv.Area:
+    a = request.area
+    if isinstance(a, RoomArea):
+        return cv.room(fm, (a.x, a.y))
+    if isinstance(a, RectArea):
+        x0, y0, x1, y1 = fm.bounds
+        outside = [
+            (x, y) for x, y in ((a.x0, a.y0), (a.x1, a.y1)) if not (x0 <= x <= x1 and y0 <= y <= y1)
+        ]  # a rectangle is a polygon: a corner off the map is refused as a polygon's vertex is
+        if outside:
+            x, y = outside[0]
+            raise ValueError(f"corner ({x:g}, {y:g}) lies outside the map [{x0:g}, {x1:g}] x [{y0:g}, {y1:g}]")
+        return cv.rectangle(fm, a.x0, a.y0, a.x1, a.y1)
+    assert isinstance(a, PolyArea)
+    return cv.polygon(fm, a.corners)

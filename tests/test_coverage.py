@@ -1,0 +1,380 @@
+"""Coverage planning (agent/coverage.py) on synthetic rooms, with the real dose model (shared/dose.py):
+UV dwell plans checked by evaluating them with the dose model (>= 99 % of the target cells at the
+target dose), their time against the park-in-the-middle baseline (<= 0.5x), two robots against one
+(<= 0.6x), the boustrophedon sweep (>= 95 % of the sweepable floor, <= 1.2x the ideal length), room
+segmentation, polygon validation, bad input, determinism and the plan as plain data.
+
+Rooms (0.1 m cells, walls 0.1 m thick): an empty 5 x 4 m room; an L (6 x 5 m less its 3 x 2.5 m
+top-right quarter); the 5 x 4 m room with a 0.4 x 0.6 m pillar in the middle, which shadows the
+baseline's lamp; two 4 x 4 m rooms joined by a 0.9 m door, treated as one rectangle (the robot
+drives through the door)."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pytest
+
+from fleetlink.agent import coverage as cv
+from fleetlink.shared.dose import Lamp, irradiance
+
+RES = 0.1
+LAMP = Lamp(10.0, 0.6)  # 10 W of UV-C, 0.6 m above the floor
+TARGET = 100.0  # J/m² = 10 mJ/cm²
+START = (0.5, 0.5)
+
+
+def _box(w: float, h: float, res: float = RES, wall: float = 0.1) -> tuple[np.ndarray, tuple[float, float]]:
+    """A w x h m floor (its inner corner at the origin) inside walls ``wall`` thick."""
+    k = round(wall / res)
+    free = np.zeros((round(h / res) + 2 * k, round(w / res) + 2 * k), dtype=bool)
+    free[k:-k, k:-k] = True
+    return free, (-wall, -wall)
+
+
+def _fill(
+    free: np.ndarray,
+    origin: tuple[float, float],
+    x0: float,
+    y0: float,
+    x1: float,
+    y1: float,
+    value: bool,
+    res: float = RES,
+) -> None:
+    c0, c1 = round((x0 - origin[0]) / res), round((x1 - origin[0]) / res)
+    r0, r1 = round((y0 - origin[1]) / res), round((y1 - origin[1]) / res)
+    free[r0:r1, c0:c1] = value
+
+
+def empty_room(res: float = RES) -> tuple[np.ndarray, tuple[float, float]]:
+    return _box(5.0, 4.0, res)
+
+
+def l_room(res: float = RES) -> tuple[np.ndarray, tuple[float, float]]:
+    free, org = _box(6.0, 5.0, res)
+    _fill(free, org, 3.0, 2.5, 6.1, 5.1, False, res)
+    return free, org
+
+
+def pillar_room(res: float = RES) -> tuple[np.ndarray, tuple[float, float]]:
+    free, org = _box(5.0, 4.0, res)
+    _fill(free, org, 2.3, 1.7, 2.7, 2.3, False, res)
+    return free, org
+
+
+def two_rooms(res: float = RES) -> tuple[np.ndarray, tuple[float, float]]:
+    """Rooms x 0..4 and 4.1..8.1, y 0..4; the wall between them (x 4.0..4.1) has a door at y 1.6..2.5."""
+    free, org = _box(8.1, 4.0, res)
+    _fill(free, org, 4.0, -0.1, 4.1, 4.1, False, res)
+    _fill(free, org, 4.0, 1.6, 4.1, 2.5, True, res)
+    return free, org
+
+
+@dataclass
+class Case:
+    fm: cv.FloorMap
+    area: cv.Area
+    plan: cv.CoveragePlan
+    base: cv.CoveragePlan
+
+
+def _area(name: str, fm: cv.FloorMap) -> cv.Area:
+    if name == "two_rooms":
+        return cv.rectangle(fm, 0.0, 0.0, 8.1, 4.0)
+    return cv.room(fm, (1.0, 1.0))
+
+
+ROOMS = {"empty": empty_room, "l_shape": l_room, "pillar": pillar_room, "two_rooms": two_rooms}
+_CASES: dict[str, Case] = {}
+
+
+def case(name: str) -> Case:
+    """Planned once per test module (the planner takes about a second a room)."""
+    if name not in _CASES:
+        free, org = ROOMS[name]()
+        fm = cv.FloorMap(free, RES, org)
+        area = _area(name, fm)
+        plan = cv.plan_uv(fm, area, LAMP, TARGET, START)
+        base = cv.park_in_middle(fm, area, LAMP, TARGET, START)
+        _CASES[name] = Case(fm, area, plan, base)
+    return _CASES[name]
+
+
+# -- UV dwell plans ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", list(ROOMS))
+def test_uv_plan_reaches_the_dose_in_half_the_baseline_time(name: str) -> None:
+    c = case(name)
+    dose = cv.dose_map(c.fm, [c.plan], LAMP)  # the dose model, independently of the planner's matrices
+    got = cv.coverage(dose, c.area, TARGET)
+    ratio = c.plan.predicted.total_s / c.base.predicted.total_s
+    figures = (
+        f"{name}: {c.area.area_m2:.1f} m², coverage {got:.4f} (predicted {c.plan.predicted.coverage:.4f}), "
+        f"{len(c.plan.dwell_points)} dwell points, {c.plan.predicted.total_s:.0f} s "
+        f"(dwell {c.plan.predicted.dwell_s:.0f} + travel {c.plan.predicted.travel_s:.0f}) vs baseline "
+        f"{c.base.predicted.total_s:.0f} s (covers {c.base.predicted.coverage:.3f}): {ratio:.3f}x"
+    )
+    assert got >= 0.99, figures
+    assert abs(got - c.plan.predicted.coverage) < 1e-9, figures  # the prediction is the dose model's
+    assert c.plan.predicted.unlit_m2 == 0.0, figures
+    assert ratio <= 0.5, figures
+    for n in c.plan.nodes[1:]:
+        assert n.lamp and n.dwell_s > 0
+        assert c.fm.planner.is_free((n.x, n.y)), f"{n} is not a goal the pilot's planner accepts"
+        assert c.area.stand[c.fm.plan_cell((n.x, n.y))]
+
+
+def test_the_pillar_shadows_the_baseline_not_the_plan() -> None:
+    c = case("pillar")
+    base_dose = cv.dose_map(c.fm, [c.base], LAMP)
+    dark = c.area.target & (base_dose == 0.0)
+    assert dark.sum() * c.fm.cell_area > 1.0  # over a square metre behind the pillar sees no lamp
+    assert c.base.predicted.coverage < 0.8
+    assert cv.coverage(base_dose, c.area, TARGET) == pytest.approx(c.base.predicted.coverage)
+    dose = cv.dose_map(c.fm, [c.plan], LAMP)
+    assert (dose[dark] >= TARGET * (1 - 1e-6)).all()
+
+
+def test_baseline_parks_nearest_the_centroid_and_waits_for_the_farthest_lit_cell() -> None:
+    c = case("empty")
+    ((x, y, dwell),) = c.base.dwell_points
+    assert math.hypot(x - 2.5, y - 2.0) <= RES  # the room's middle
+    e = irradiance(LAMP, x, y, c.fm.free, RES, c.fm.origin)[c.area.target]
+    assert dwell == pytest.approx(TARGET / e[e > 0].min(), rel=1e-6)
+    assert c.base.predicted.coverage == 1.0  # an empty room has no shadow
+
+
+@pytest.mark.parametrize("name", list(ROOMS))
+def test_two_robots_share_the_dwell_points_and_finish_in_under_0_6x(name: str) -> None:
+    c = case(name)
+    starts = [START, (0.9, 0.5)]
+    fleet = cv.split_plan(c.fm, c.plan, starts, ["uvc-1", "uvc-2"])
+    ratio = fleet.makespan_s / c.plan.predicted.total_s
+    spans = ", ".join(f"{p.robot} {p.predicted.total_s:.0f} s" for p in fleet.plans)
+    assert ratio <= 0.6, (
+        f"{name}: makespan {fleet.makespan_s:.0f} s ({spans}) vs one robot {c.plan.predicted.total_s:.0f} s: {ratio:.3f}x"
+    )
+    mine = sorted(p for plan in fleet.plans for p in plan.dwell_points)
+    assert mine == pytest.approx(sorted(c.plan.dwell_points))
+    assert [p.robot for p in fleet.plans] == ["uvc-1", "uvc-2"]
+    assert (fleet.plans[0].nodes[0].x, fleet.plans[0].nodes[0].y) == START
+    dose = cv.dose_map(c.fm, fleet.plans, LAMP)
+    assert cv.coverage(dose, c.area, TARGET) >= 0.99
+
+
+def test_a_single_robot_split_is_the_plan() -> None:
+    c = case("l_shape")
+    fleet = cv.split_plan(c.fm, c.plan, [START])
+    assert fleet.makespan_s == pytest.approx(c.plan.predicted.total_s, rel=0.01)  # the tour is a heuristic's
+    assert sorted(fleet.plans[0].dwell_points) == pytest.approx(sorted(c.plan.dwell_points))
+
+
+def test_dose_while_driving_is_optional_and_only_adds() -> None:
+    free, org = empty_room()
+    fm = cv.FloorMap(free, RES, org, cv.CoverageConfig(lamp_while_driving=True))
+    area = cv.room(fm, (1.0, 1.0))
+    plan = cv.plan_uv(fm, area, LAMP, TARGET, START)
+    assert not plan.edges[0].lamp  # not on the way to the first dwell point
+    assert all(e.lamp for e in plan.edges[1:])
+    still = cv.dose_map(fm, [plan], LAMP)
+    moving = cv.dose_map(fm, [plan], LAMP, travel=True)
+    assert (moving >= still).all() and (moving > still).any()
+    assert cv.coverage(still, area, TARGET) >= 0.99  # the plan does not count on it
+
+
+# -- sweeping ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", list(ROOMS))
+def test_boustrophedon_sweep_covers_95_percent_within_1_2x_the_ideal(name: str) -> None:
+    c = case(name)
+    sweep = cv.plan_sweep(c.fm, c.area, START)
+    p = sweep.predicted
+    assert p.ideal_path_m is not None and p.swept_m2 is not None
+    ratio = p.path_m / p.ideal_path_m
+    figures = f"{name}: swept {p.coverage:.3f} of {p.swept_m2:.1f} m², path {p.path_m:.1f} m vs ideal {p.ideal_path_m:.1f} m: {ratio:.3f}x"
+    assert p.coverage >= 0.95, figures
+    assert ratio <= 1.2, figures
+    assert sweep.kind == "sweep" and all(n.dwell_s == 0 and not n.lamp for n in sweep.nodes)
+    for e in sweep.edges[1:]:
+        for a, b in zip(e.waypoints, e.waypoints[1:], strict=False):
+            assert c.fm.clear_xy(a, b), f"{e.edge_id} leaves the robot's free space"
+    lanes = [e for e in sweep.edges if e.kind == "lane"]
+    assert sum(e.length_m for e in lanes) > 0.8 * p.path_m
+
+
+def test_sweep_lanes_are_at_most_a_tool_width_apart() -> None:
+    c = case("empty")
+    width = 0.3
+    sweep = cv.plan_sweep(c.fm, c.area, START, tool_width_m=width, axis=0)
+    ys = sorted({round(e.waypoints[0][1], 9) for e in sweep.edges if e.kind == "lane"})
+    assert len(ys) >= 2
+    assert max(np.diff(ys)) <= width + 1e-9
+    assert all(abs(e.waypoints[0][1] - e.waypoints[-1][1]) < 1e-9 for e in sweep.edges if e.kind == "lane")
+
+
+# -- areas ---------------------------------------------------------------------------------------
+
+
+def test_a_room_stops_at_its_door() -> None:
+    free, org = two_rooms()
+    fm = cv.FloorMap(free, RES, org)
+    a = cv.room(fm, (1.0, 1.0))
+    b = cv.room(fm, (6.0, 3.0))
+    gx, _ = fm.centres()
+    assert not (a.target & (gx > 4.2)).any()
+    assert not (b.target & (gx < 3.9)).any()
+    assert not (a.target & b.target).any()
+    assert a.area_m2 == pytest.approx(16.0, abs=0.3)
+    assert b.area_m2 == pytest.approx(16.0, abs=0.3)
+    # The doorway's floor is shared out, not lost: together the rooms are the flat's floor.
+    assert (a.target | b.target).sum() == pytest.approx(fm.free.sum(), abs=5)
+    # A door wider than door_width_m joins the rooms.
+    assert cv.room(fm, (1.0, 1.0), door_width_m=0.6).area_m2 == pytest.approx(32.0, abs=0.5)
+
+
+def test_reachable_floor_includes_cells_along_the_walls() -> None:
+    c = case("empty")
+    assert c.area.target.sum() == c.fm.free.sum()  # the lamp reaches floor the robot cannot stand on
+    assert not c.fm.stand_fine[c.fm.free].all()
+
+
+def test_rectangle_and_polygon_areas() -> None:
+    free, org = two_rooms()
+    fm = cv.FloorMap(free, RES, org)
+    rect = cv.rectangle(fm, 3.0, 3.0, 0.0, 0.0)  # any two opposite corners
+    assert rect.area_m2 == pytest.approx(9.0)
+    tri = cv.polygon(fm, [(0.0, 0.0), (3.0, 0.0), (0.0, 3.0), (0.0, 0.0)])  # a closing vertex is fine
+    assert tri.area_m2 == pytest.approx(4.5, rel=0.1)
+    assert tri.outline == ((0.0, 0.0), (3.0, 0.0), (0.0, 3.0))
+    plan = cv.plan_uv(fm, tri, LAMP, TARGET, START)
+    assert cv.coverage(cv.dose_map(fm, [plan], LAMP), tri, TARGET) >= 0.99
+    gx, gy = fm.centres()
+    assert not (tri.target & (gx + gy > 3.0 + RES)).any()
+    for n in plan.nodes[1:]:
+        assert n.x + n.y <= 3.0 + RES  # the robot stands inside the area
+
+
+BAD_POLYGONS: list[tuple[list[tuple[float, float]], str]] = [
+    ([(0.0, 0.0), (2.0, 2.0), (2.0, 0.0), (0.0, 2.0)], "self-intersecting, edges 0 and 2 cross"),
+    ([(0.0, 0.0), (2.0, 0.0), (1.0, 0.0), (1.0, 1.0)], "doubles back"),
+    ([(0.0, 0.0), (2.0, 0.0), (2.0, 2.0), (1.0, 0.0)], "self-intersecting"),  # a vertex on an edge
+    ([(0.0, 0.0), (1.0, 1.0), (2.0, 2.0)], "degenerate"),
+    ([(0.0, 0.0), (1.0, 1.0)], "at least 3 vertices"),
+    ([(0.0, 0.0), (1.0, 0.0), (1.0, 0.0), (0.0, 1.0)], "zero length"),
+    ([(0.0, 0.0), (math.nan, 0.0), (0.0, 1.0)], "not finite"),
+    ([(0.0, 0.0), (20.0, 0.0), (0.0, 1.0)], "vertex 1 (20, 0) lies outside the map"),
+]
+
+
+@pytest.mark.parametrize(("vertices", "reason"), BAD_POLYGONS)
+def test_bad_polygons_are_refused_with_a_reason(vertices: list[tuple[float, float]], reason: str) -> None:
+    free, org = empty_room()
+    fm = cv.FloorMap(free, RES, org)
+    with pytest.raises(ValueError, match=reason.replace("(", r"\(").replace(")", r"\)")):
+        cv.polygon(fm, vertices)
+
+
+def test_bad_areas_and_input_are_refused() -> None:
+    free, org = empty_room()
+    fm = cv.FloorMap(free, RES, org)
+    with pytest.raises(ValueError, match="degenerate"):
+        cv.rectangle(fm, 1.0, 1.0, 3.0, 1.0)
+    with pytest.raises(ValueError, match="finite"):
+        cv.rectangle(fm, 1.0, 1.0, math.inf, 2.0)
+    with pytest.raises(ValueError, match="stand nowhere"):
+        cv.rectangle(fm, 0.0, 0.0, 5.0, 0.15)  # a strip along the wall, narrower than the robot
+    with pytest.raises(ValueError, match="outside the map"):
+        cv.room(fm, (9.0, 1.0))
+    with pytest.raises(ValueError, match="in a wall"):
+        cv.room(fm, (-0.05, 1.0))
+    area = cv.room(fm, (1.0, 1.0))
+    for dose in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="target dose"):
+            cv.plan_uv(fm, area, LAMP, dose, START)
+        with pytest.raises(ValueError, match="target dose"):
+            cv.park_in_middle(fm, area, LAMP, dose, START)
+    with pytest.raises(ValueError, match="cannot stand there"):
+        cv.plan_uv(fm, area, LAMP, TARGET, (30.0, 30.0))
+    with pytest.raises(ValueError, match="tool width"):
+        cv.plan_sweep(fm, area, START, tool_width_m=0.0)
+    with pytest.raises(ValueError, match="at least one robot"):
+        cv.split_plan(fm, case("empty").plan, [])
+
+
+def test_the_other_room_is_out_of_reach_behind_a_closed_door() -> None:
+    free, org = two_rooms()
+    _fill(free, org, 4.0, 1.6, 4.1, 2.5, False)  # door closed
+    fm = cv.FloorMap(free, RES, org)
+    with pytest.raises(ValueError, match="cannot reach"):
+        cv.plan_uv(fm, cv.room(fm, (6.0, 2.0)), LAMP, TARGET, START)
+    with pytest.raises(ValueError, match="cannot reach"):
+        cv.plan_sweep(fm, cv.room(fm, (6.0, 2.0)), START)
+
+
+# -- determinism and plain data ------------------------------------------------------------------
+
+
+def test_same_input_same_plan() -> None:
+    free, org = pillar_room()
+    runs = []
+    for _ in range(2):
+        fm = cv.FloorMap(free.copy(), RES, org)
+        area = cv.room(fm, (1.0, 1.0))
+        plan = cv.plan_uv(fm, area, LAMP, TARGET, START)
+        runs.append(
+            (
+                plan.to_dict(),
+                cv.split_plan(fm, plan, [START, (0.9, 0.5)]).to_dict(),
+                cv.plan_sweep(fm, area, START).to_dict(),
+            )
+        )
+    assert runs[0] == runs[1]
+    assert runs[0][0] == case("pillar").plan.to_dict()
+
+
+def _json(d: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = json.loads(json.dumps(d))
+    return out
+
+
+def test_plans_are_plain_data_with_vda5050_style_nodes_and_edges() -> None:
+    c = case("l_shape")
+    plan = c.plan
+    assert cv.CoveragePlan.from_dict(_json(plan.to_dict())) == plan
+    fleet = cv.split_plan(c.fm, plan, [START, (0.9, 0.5)])
+    assert cv.FleetPlan.from_dict(_json(fleet.to_dict())) == fleet
+    sweep = cv.plan_sweep(c.fm, c.area, START)
+    assert cv.CoveragePlan.from_dict(_json(sweep.to_dict())) == sweep
+    d = plan.to_dict()
+    assert d["kind"] == "uv" and d["target_dose"] == TARGET
+    assert [n["sequenceId"] for n in d["nodes"]] == list(range(0, 2 * len(d["nodes"]), 2))
+    assert [e["sequenceId"] for e in d["edges"]] == list(range(1, 2 * len(d["edges"]), 2))
+    for e, a, b in zip(d["edges"], d["nodes"], d["nodes"][1:], strict=False):
+        assert (e["startNodeId"], e["endNodeId"]) == (a["nodeId"], b["nodeId"])
+        assert e["waypoints"][0] == [a["x"], a["y"]] and e["waypoints"][-1] == [b["x"], b["y"]]
+        legs = sum(math.dist(p, q) for p, q in zip(e["waypoints"], e["waypoints"][1:], strict=False))
+        assert e["length_m"] == pytest.approx(legs)
+    p = plan.predicted
+    assert p.total_s == pytest.approx(p.dwell_s + p.travel_s)
+    assert p.dwell_s == pytest.approx(sum(n.dwell_s for n in plan.nodes))
+    speed, stop = c.fm.config.speed_mps, c.fm.config.stop_overhead_s
+    assert p.travel_s == pytest.approx(p.path_m / speed + len(plan.dwell_points) * stop)
+
+
+def test_a_floor_map_from_map_cells_sees_the_dose_models_floor() -> None:
+    free, org = pillar_room()
+    cells = np.where(free, 0, 100).astype(np.int8)
+    cells[0, 0] = -1
+    cells[5, 5] = 40  # uncertain: not floor, as for FloorMask.from_occupancy
+    fm = cv.FloorMap.from_cells(cells, RES, org)
+    expect = free.copy()
+    expect[5, 5] = False
+    assert (fm.free == expect).all()
+    assert cv.FloorMap.from_cells(cells, RES, org, unknown_is_free=True).free[0, 0]

@@ -1,0 +1,433 @@
+"""Orders with nodes (issue 16): the itinerary alone (agent/itinerary.py), then in the agent's core
+with a robot that moves as it is told (a unicycle integrated tick by tick) and a board whose lamp
+follows the payload requests."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import pytest
+
+from fleetlink.agent.core import AgentCore, BoardView, Output
+from fleetlink.agent.itinerary import Finished, GoTo, Itinerary, ItineraryError, RunAction, Stop, StopAction
+from fleetlink.agent.pilot import Pilot
+from fleetlink.shared import wire
+from fleetlink.shared.clock import SimClock
+from fleetlink.shared.messages import (
+    Ack,
+    AckResult,
+    Action,
+    ActionType,
+    Event,
+    Goal,
+    InstantActions,
+    KeyValue,
+    LinkName,
+    Order,
+    OrderEdge,
+    OrderNode,
+    State,
+    Teleop,
+)
+
+
+def dwell(s: float, aid: str = "d") -> StopAction:
+    return StopAction(aid, "dwell", {"duration": str(s)})
+
+
+def lamp(on: bool, aid: str = "l") -> StopAction:
+    return StopAction(aid, "payload", {"device": "uv", "on": "true" if on else "false"})
+
+
+def stops(*specs: tuple[float, float, tuple[StopAction, ...]]) -> list[Stop]:
+    return [Stop(f"n{i}", 2 * i, x, y, None, True, None, acts) for i, (x, y, acts) in enumerate(specs)]
+
+
+# -- the itinerary alone -------------------------------------------------------------------------------
+
+
+def test_nodes_are_driven_in_order_and_each_nodes_actions_run_there_one_by_one() -> None:
+    it = Itinerary.of("o", 0, "op", stops((0, 0, ()), (1, 0, (lamp(True), dwell(5.0))), (2, 0, (lamp(False),))))
+    first = it.step(0.0)
+    assert isinstance(first, GoTo) and first.stop.node_id == "n0"
+    assert it.step(0.1) is None  # driving: nothing new until the go-to ends
+    it.arrived(0.5)
+    nxt = it.step(0.5)
+    assert isinstance(nxt, GoTo) and nxt.stop.node_id == "n1"
+    it.arrived(2.0)
+    on = it.step(2.0)
+    assert isinstance(on, RunAction) and on.action.params["on"] == "true"
+    assert it.step(2.0) is None and it.dwell_left_s == 5.0  # dwelling
+    assert it.step(6.0) is None and it.dwell_left_s == pytest.approx(1.0)
+    last = it.step(7.0)
+    assert isinstance(last, GoTo) and last.stop.node_id == "n2" and it.last is not None and it.last.node_id == "n1"
+    it.arrived(8.0)
+    off = it.step(8.0)
+    assert isinstance(off, RunAction) and off.action.params["on"] == "false"
+    done = it.step(8.0)
+    assert isinstance(done, Finished) and done.nodes == 3 and done.skipped == ()
+    assert it.progress()["nodesDone"] == 3
+
+
+def test_a_pause_freezes_the_dwell_and_a_resume_carries_on_where_it_was() -> None:
+    it = Itinerary.of("o", 0, "op", stops((0, 0, (dwell(10.0),))))
+    assert isinstance(it.step(0.0), GoTo)
+    it.arrived(0.0)
+    assert it.step(0.0) is None
+    it.step(4.0)
+    it.hold(4.0, "paused")
+    assert it.step(100.0) is None and it.dwell_left_s == pytest.approx(6.0) and it.waiting == "paused"
+    it.release(100.0)
+    assert it.step(105.0) is None and it.dwell_left_s == pytest.approx(1.0)
+    assert isinstance(it.step(106.0), Finished)
+
+
+def test_a_node_the_robot_cannot_reach_is_skipped_without_its_actions() -> None:
+    it = Itinerary.of("o", 0, "op", stops((0, 0, ()), (5, 5, (lamp(True),)), (1, 1, ())))
+    it.step(0.0)
+    it.arrived(0.0)
+    assert isinstance(it.step(0.0), GoTo)
+    skipped = it.failed(1.0)
+    assert skipped is not None and skipped.node_id == "n1"
+    nxt = it.step(1.0)
+    assert isinstance(nxt, GoTo) and nxt.stop.node_id == "n2"  # no lamp action: the node was not reached
+    it.arrived(2.0)
+    done = it.step(2.0)
+    assert isinstance(done, Finished) and done.skipped == ("n1",)
+
+
+def test_an_interrupted_go_to_is_asked_for_again_on_the_resume() -> None:
+    it = Itinerary.of("o", 0, "op", stops((3, 0, ())))
+    assert isinstance(it.step(0.0), GoTo)
+    it.interrupted(1.0, "e-stop")
+    assert it.step(2.0) is None and it.waiting == "e-stop"
+    it.release(3.0)
+    again = it.step(3.0)
+    assert isinstance(again, GoTo) and again.stop.node_id == "n0"
+
+
+def test_driven_away_by_hand_mid_dwell_it_drives_back_and_dwells_only_what_was_left() -> None:
+    it = Itinerary.of("o", 0, "op", stops((0, 0, (dwell(10.0), lamp(False)))))
+    it.step(0.0)
+    it.arrived(0.0)
+    it.step(0.0)
+    it.step(3.0)
+    it.moved(3.0, "teleop")
+    assert it.step(50.0) is None
+    it.release(50.0)
+    back = it.step(50.0)
+    assert isinstance(back, GoTo) and back.stop.node_id == "n0" and it.dwell_left_s == pytest.approx(7.0)
+    it.arrived(55.0)
+    assert it.step(55.0) is None
+    off = it.step(62.0)
+    assert isinstance(off, RunAction) and off.action.action_id == "l"  # the rest of the node's actions
+
+
+def test_an_update_carries_on_after_the_last_node_reached() -> None:
+    it = Itinerary.of(
+        "o", 0, "op", [Stop("a", 0, 0, 0, None), Stop("b", 2, 1, 0, None), Stop("c", 4, 2, 0, None, False)]
+    )
+    it.step(0.0)
+    it.arrived(0.0)
+    it.step(0.0)
+    it.arrived(1.0)
+    assert it.step(1.0) is None and it.waiting == "horizon"  # the base ends at b: wait for an update
+    newer = Itinerary.of("o", 1, "op", [Stop("b", 2, 1, 0, None), Stop("c", 4, 2, 0, None), Stop("d", 6, 3, 0, None)])
+    it = it.updated(newer)
+    nxt = it.step(2.0)
+    assert isinstance(nxt, GoTo) and nxt.stop.node_id == "c" and it.waiting == ""
+
+
+@pytest.mark.parametrize(
+    ("nodes", "why"),
+    [
+        ([], "at least one node"),
+        ([Stop("a", 0, math.nan, 0, None)], "finite"),
+        ([Stop("a", 0, 500.0, 0, None)], "extent"),
+        ([Stop("a", 0, 0, 0, None, False)], "first node"),
+        ([Stop("a", 0, 0, 0, None), Stop("b", 2, 0, 0, None, False), Stop("c", 4, 0, 0, None)], "after a horizon"),
+        ([Stop("a", 0, 0, 0, None, actions=(StopAction("x", "estop", {}),))], "not a node action"),
+        ([Stop("a", 0, 0, 0, None, actions=(StopAction("x", "dwell", {"duration": "nan"}),))], "dwell duration"),
+        ([Stop("a", 0, 0, 0, None, actions=(StopAction("x", "dwell", {"duration": "-1"}),))], "dwell duration"),
+        ([Stop("a", 0, 0, 0, None, actions=(StopAction("x", "dwell", {}),))], "one parameter"),
+    ],
+)
+def test_an_itinerary_it_cannot_run_is_refused_with_the_reason(nodes: list[Stop], why: str) -> None:
+    with pytest.raises(ItineraryError, match=why):
+        Itinerary.of("o", 0, "op", nodes, extent_m=100.0)
+
+
+# -- in the agent's core --------------------------------------------------------------------------------
+
+BOARD = BoardView(
+    connected=True,
+    left_m=0.0,
+    right_m=0.0,
+    gyro_yaw=0.0,
+    odom_t=0.0,
+    battery_percent=80.0,
+    battery_known=True,
+    has_payload=True,
+    ultrasonic_m=5.0,
+)
+
+
+class Robot:
+    """An agent core whose pose follows the velocity it commands and whose lamp follows its requests."""
+
+    def __init__(self, board: BoardView = BOARD) -> None:
+        self.clock = SimClock()
+        self.core = AgentCore("r1", self.clock, Pilot())
+        self.pose = [0.0, 0.0, 0.0]
+        self.core._map_pose = lambda: (self.pose[0], self.pose[1], self.pose[2])  # type: ignore[method-assign]
+        self.board = board
+        self.lamp = False
+        self.lamp_requests: list[bool] = []
+        self.top_speed = 0.0
+        self.events: list[Event] = []
+        self.counter = wire.HeaderCounter(self.clock, robot="r1", sender="op-a")
+
+    def _take(self, out: Output) -> Output:
+        for req in out.payload:
+            if req.device in ("uv", "all"):
+                self.lamp = req.on
+                self.lamp_requests.append(req.on)
+        self.events += [m for m, _ in out.messages if isinstance(m, Event)]
+        return out
+
+    def send(self, cls: type[wire.Message], **fields: Any) -> Ack:
+        msg = self.counter.make(cls, **fields)
+        out = self._take(self.core.on_input(LinkName.ZENOH, wire.key_of(msg), wire.encode(msg), self.clock.now()))
+        return next(m for m, _ in out.messages if isinstance(m, Ack))
+
+    def action(self, kind: ActionType, **params: str) -> Ack:
+        kvs = tuple(KeyValue(key=k, value=v) for k, v in params.items())
+        return self.send(InstantActions, actions=(Action(actionId="a", actionType=kind, actionParameters=kvs),))
+
+    def run(self, seconds: float, dt: float = 0.05) -> None:
+        for _ in range(round(seconds / dt)):
+            self.clock.advance(dt)
+            board = dataclasses.replace(self.board, payload_on=self.lamp, odom_t=self.clock.now())
+            out = self._take(self.core.tick(self.clock.now(), board))
+            v, w = out.velocity if out.velocity is not None else (0.0, 0.0)
+            self.top_speed = max(self.top_speed, abs(v))
+            x, y, th = self.pose
+            self.pose = [x + v * math.cos(th) * dt, y + v * math.sin(th) * dt, th + w * dt]
+
+    def state(self) -> State:
+        return self.core._state(self.clock.now())
+
+    def texts(self) -> list[str]:
+        return [e.text for e in self.events if e.kind == "order"]
+
+
+def node(i: int, x: float, y: float, *actions: Action, released: bool = True) -> OrderNode:
+    return OrderNode(nodeId=f"n{i}", sequenceId=2 * i, released=released, x=x, y=y, theta=None, actions=actions)
+
+
+def edge(i: int, max_speed: float | None = None) -> OrderEdge:
+    return OrderEdge(
+        edgeId=f"e{i}",
+        sequenceId=2 * i + 1,
+        startNodeId=f"n{i}",
+        endNodeId=f"n{i + 1}",
+        released=True,
+        maxSpeed=max_speed,
+    )
+
+
+def act(kind: ActionType, aid: str, **params: str) -> Action:
+    return Action(
+        actionId=aid, actionType=kind, actionParameters=tuple(KeyValue(key=k, value=v) for k, v in params.items())
+    )
+
+
+def uv(on: bool) -> Action:
+    return act(ActionType.PAYLOAD, f"uv-{on}", device="uv", on="true" if on else "false")
+
+
+def order(
+    nodes: tuple[OrderNode, ...], edges: tuple[OrderEdge, ...] | None = None, oid: str = "round-1", upd: int = 0
+) -> dict[str, Any]:
+    if edges is None:
+        edges = tuple(edge(i) for i in range(len(nodes) - 1))
+    return {"orderId": oid, "orderUpdateId": upd, "goal": None, "returnHome": False, "nodes": nodes, "edges": edges}
+
+
+ROUND = (
+    node(0, 0.0, 0.0),
+    node(1, 1.0, 0.0, uv(True), act(ActionType.DWELL, "d1", duration="4")),
+    node(2, 1.0, 1.0, act(ActionType.DWELL, "d2", duration="3"), uv(False)),
+)
+
+
+def test_an_order_with_nodes_drives_each_node_switches_the_lamp_and_dwells_then_reports_it_finished() -> None:
+    r = Robot()
+    ack = r.send(Order, **order(ROUND))
+    assert ack.result is AckResult.ACCEPTED, ack.reason
+    r.run(2.5)
+    s = r.state()
+    assert s.orderId == "round-1" and s.progress is not None and s.progress.nodesTotal == 3
+    r.run(30.0)
+    assert math.hypot(r.pose[0] - 1.0, r.pose[1] - 1.0) < 0.15
+    assert r.lamp_requests == [True, False] and not r.lamp
+    assert r.state().progress is None and any("finished: 3 nodes" in t for t in r.texts())
+
+
+def test_progress_says_which_node_was_reached_last_and_how_long_the_dwell_still_runs() -> None:
+    r = Robot()
+    r.send(Order, **order(ROUND))
+    for _ in range(400):
+        r.run(0.05)
+        p = r.state().progress
+        if p is not None and p.dwellLeft_s > 0:
+            break
+    p = r.state().progress
+    assert p is not None and p.lastNodeId == "n1" and p.lastNodeSequenceId == 2 and 0 < p.dwellLeft_s <= 4.0
+    assert (r.lamp and r.state().payloadOn is False) or r.lamp  # the board reports it on the next tick
+
+
+def test_an_estop_switches_the_lamp_off_at_once_and_a_resume_after_the_release_finishes_the_round() -> None:
+    r = Robot()
+    r.send(Order, **order(ROUND))
+    while not r.lamp:
+        r.run(0.05)
+    r.run(1.0)
+    assert r.action(ActionType.ESTOP).result is AckResult.ACCEPTED
+    assert not r.lamp  # at once, in the same input
+    p = r.state().progress
+    assert p is not None and p.waiting == "e-stop"
+    left = p.dwellLeft_s
+    r.run(10.0)
+    p = r.state().progress
+    assert p is not None and p.dwellLeft_s == pytest.approx(left) and not r.lamp  # frozen, dark
+    refused = r.action(ActionType.RESUME)
+    assert refused.result is AckResult.REJECTED and "e-stop" in refused.reason
+    assert r.action(ActionType.ESTOP_RELEASE).result is AckResult.ACCEPTED
+    assert r.action(ActionType.RESUME).result is AckResult.ACCEPTED
+    assert r.lamp  # the round's lamp comes back with the resume
+    r.run(30.0)
+    assert r.state().progress is None and any("finished" in t for t in r.texts()) and not r.lamp
+
+
+def test_a_pause_darkens_the_lamp_and_freezes_the_dwell_a_cancel_ends_the_round_with_the_lamp_off() -> None:
+    r = Robot()
+    r.send(Order, **order(ROUND))
+    while not r.lamp:
+        r.run(0.05)
+    assert r.action(ActionType.PAUSE).result is AckResult.ACCEPTED
+    assert not r.lamp and r.state().paused
+    r.run(10.0)
+    assert r.state().progress is not None
+    assert r.action(ActionType.RESUME).result is AckResult.ACCEPTED and r.lamp
+    assert r.action(ActionType.CANCEL).result is AckResult.ACCEPTED
+    assert not r.lamp and r.state().progress is None and r.core.itinerary is None
+    assert any("cancelled by op-a" in t for t in r.texts())
+
+
+def test_driving_by_hand_holds_the_round_and_the_resume_comes_back_to_the_node() -> None:
+    r = Robot()
+    r.send(Order, **order(ROUND))
+    while not r.lamp:
+        r.run(0.05)
+    assert r.send(Teleop, v=0.3, omega=0.0, ttl_s=0.5).result is AckResult.ACCEPTED
+    r.run(0.4)
+    p = r.state().progress
+    assert p is not None and p.waiting == "teleop"
+    r.run(2.0)
+    assert r.action(ActionType.RESUME).result is AckResult.ACCEPTED
+    r.run(40.0)
+    assert any("finished: 3 nodes" in t for t in r.texts())
+    assert math.hypot(r.pose[0] - 1.0, r.pose[1] - 1.0) < 0.15
+
+
+def test_an_edge_speed_cap_holds_the_robot_below_it() -> None:
+    r = Robot()
+    r.send(Order, **order((node(0, 0.0, 0.0), node(1, 3.0, 0.0)), (edge(0, max_speed=0.1),)))
+    r.run(10.0)
+    assert 0.05 < r.top_speed <= 0.1 + 1e-9
+
+
+def test_the_same_order_again_is_a_duplicate_and_an_older_update_is_refused() -> None:
+    r = Robot()
+    assert r.send(Order, **order(ROUND, upd=1)).result is AckResult.ACCEPTED
+    assert r.send(Order, **order(ROUND, upd=1)).result is AckResult.DUPLICATE
+    msg = r.counter.make(Order, **order(ROUND, upd=0))
+    out = r.core.on_input(LinkName.ZENOH, wire.key_of(msg), wire.encode(msg), r.clock.now())
+    assert any("older" in line for line in out.logs)  # refused at the gate, counted
+    assert r.core.itinerary is not None and r.core.itinerary.update_id == 1
+
+
+@pytest.mark.parametrize(
+    ("fields", "why"),
+    [
+        (order((node(0, 0, 0), node(2, 1, 0))), "sequence id"),
+        (order((node(0, 0, 0), node(1, 1, 0)), ()), "edges"),
+        (order((node(0, 0, 0), node(1, 1, 0)), (edge(3),)), "must lead"),
+        ({**order(ROUND), "goal": Goal(x=1.0, y=1.0, theta=None)}, "one of them"),
+        (order((node(0, 0, 0, act(ActionType.ESTOP, "x")),)), "not a node action"),
+        (order((node(0, 0, 0, act(ActionType.PAYLOAD, "x", device="atomiser", on="true", level="7")),)), "0-3"),
+        (order((node(0, 0, 0, act(ActionType.PAYLOAD, "x", device="laser", on="true")),)), "unknown payload device"),
+        (order((node(0, 0, 0, act(ActionType.DWELL, "x", duration="1e9")),)), "dwell duration"),
+    ],
+)
+def test_an_order_that_is_not_one_route_is_refused_with_the_reason_and_nothing_moves(
+    fields: dict[str, Any], why: str
+) -> None:
+    r = Robot()
+    ack = r.send(Order, **fields)
+    assert ack.result is AckResult.REJECTED and why in ack.reason, ack.reason
+    r.run(1.0)
+    assert r.core.itinerary is None and r.pose == [0.0, 0.0, 0.0]
+
+
+def test_a_lamp_order_to_a_robot_without_a_payload_is_refused() -> None:
+    r = Robot(dataclasses.replace(BOARD, has_payload=False))
+    r.run(0.05)
+    ack = r.send(Order, **order(ROUND))
+    assert ack.result is AckResult.REJECTED and "no payload" in ack.reason
+
+
+def test_dwell_as_an_instant_action_is_refused() -> None:
+    r = Robot()
+    ack = r.action(ActionType.DWELL, duration="3")
+    assert ack.result is AckResult.REJECTED and "node action" in ack.reason
+
+
+def test_a_skipped_nodes_lamp_switch_still_applies_so_the_rest_of_the_round_is_not_run_dark() -> None:
+    r = Robot()
+    far = node(1, 80.0, 0.0, uv(True), act(ActionType.DWELL, "d", duration="5"))  # off the map's reach
+    r.core.pilot.path_provider = lambda start, goal, blocked=(): [] if goal[0] > 50 else None  # type: ignore[assignment,misc]
+    assert r.send(Order, **order((node(0, 0.0, 0.0), far, node(2, 0.5, 0.0, uv(False))))).result is AckResult.ACCEPTED
+    for _ in range(200):
+        r.run(0.05)
+        if r.lamp_requests:
+            break
+    assert r.lamp_requests[:1] == [True] and any("n1 skipped" in t for t in r.texts())
+    r.run(20.0)
+    assert r.lamp_requests == [True, False] and any("finished: 3 nodes, 1 skipped" in t for t in r.texts()), r.texts()
+
+
+def test_a_dwell_longer_than_an_hour_goes_out_as_several_dwell_actions() -> None:
+    from fleetlink.agent.coverage import CoveragePlan, PlanEdge, PlanNode, Prediction, plan_order
+
+    pred = Prediction(coverage=1.0, dwell_s=7000.0, travel_s=0.0, total_s=7000.0, path_m=1.0, area_m2=1.0)
+    plan = CoveragePlan(
+        "park",
+        (PlanNode("n0", 0, 0.0, 0.0, 0.0, False), PlanNode("n1", 2, 1.0, 0.0, 7000.0, True)),
+        (PlanEdge("e1", 1, "n0", "n1", ((0.0, 0.0), (1.0, 0.0)), 1.0, False),),
+        100.0,
+        pred,
+    )
+    fields = plan_order(plan, "park-r1-1")
+    dwells = [
+        float(kv.value)
+        for a in fields["nodes"][1].actions
+        if a.actionType is ActionType.DWELL
+        for kv in a.actionParameters
+    ]
+    assert dwells == [3600.0, 3400.0]
+    r = Robot()
+    assert r.send(Order, **fields).result is AckResult.ACCEPTED

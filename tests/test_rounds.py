@@ -1,0 +1,201 @@
+"""Rounds planned from an operator's request (operator/rounds.py, site/rounds.py) on synthetic maps:
+a room from a seed, a rectangle, a polygon, two robots sharing a room, a sweep; every bad input
+refused with its reason; the maps merged as the console holds them."""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Any
+
+import numpy as np
+import pytest
+
+from fleetlink.agent.coverage import CoverageConfig
+from fleetlink.operator.rounds import (
+    DEFAULT_LAMP,
+    PolyArea,
+    RectArea,
+    RoomArea,
+    RoundError,
+    RoundIds,
+    RoundPlan,
+    RoundRequest,
+    check_request,
+    describe_time,
+    floor_of,
+)
+from fleetlink.shared import wire
+from fleetlink.shared.clock import SimClock
+from fleetlink.shared.geometry import point_in_polygon
+from fleetlink.shared.messages import MAX_ORDER_NODES, ActionType, Order
+from fleetlink.site.rounds import plan_round
+
+RES = 0.1
+DOOR_Y = (1.8, 2.7)
+
+
+def two_rooms() -> np.ndarray:
+    """8.9 x 4.1 m: a 4.9 x 3.9 m room (x 0.1-5.0) and a 3.8 x 3.9 m room (x 5.1-8.9) joined by a
+    0.9 m door in the wall at x 5.0-5.1; a sealed 1 x 1 m closet (walls all round) at x 2-3, y 2.8-3.8
+    of the left room has no way in."""
+    cells = np.zeros((42, 90), dtype=np.int8)
+    cells[0, :] = cells[-1, :] = 100
+    cells[:, 0] = cells[:, -1] = 100
+    cells[:, 50] = 100
+    cells[18:27, 50] = 0  # the door
+    cells[28, 20:31] = cells[38, 20:31] = 100  # the closet
+    cells[28:39, 20] = cells[28:39, 30] = 100
+    return cells
+
+
+CELLS = two_rooms()
+A, B = (1.0, 1.0), (4.0, 1.0)
+
+
+def plan(kind: str, area: Any, robots: dict[str, tuple[float, float]], **kw: Any) -> RoundPlan:
+    request = RoundRequest(kind, area, tuple(robots), kw.pop("target_j_m2", 100.0))  # type: ignore[arg-type]
+    return plan_round(request, CELLS, RES, (0.0, 0.0), robots, DEFAULT_LAMP, **kw)
+
+
+def as_order(fields: Any) -> Order:
+    """The fields as an Order on the wire (what the console sends), decoded again."""
+    counter = wire.HeaderCounter(SimClock(), robot="r1", sender="operator-1")
+    msg = counter.make(Order, **fields)
+    decoded = wire.decode(Order, wire.encode(msg))
+    assert isinstance(decoded, Order)
+    return decoded
+
+
+def action_types(order: Order) -> list[str]:
+    return [a.actionType.value for n in order.nodes for a in n.actions]
+
+
+def test_a_uv_round_of_a_room_from_a_seed_dwells_only_in_that_room_and_reaches_the_dose() -> None:
+    p = plan("uv", RoomArea(2.5, 1.0), {"r1": A}, order_ids={"r1": "uv-r1-7"})
+    assert len(p.rounds) == 1
+    r = p.rounds[0]
+    assert r.robot == "r1" and r.order_id == "uv-r1-7" and p.coverage >= 0.99
+    # The left room less the closet, its walls and what the lamp cannot reach: about 18 m².
+    assert 15.0 < p.area_m2 < 19.2
+    order = as_order(r.order)
+    assert order.orderId == "uv-r1-7" and order.goal is None and not order.returnHome
+    assert len(order.nodes) == len(r.route) and len(order.edges) == len(order.nodes) - 1
+    assert (order.nodes[0].x, order.nodes[0].y) == A and order.nodes[0].actions == ()  # it starts where it stands
+    dwell = [n for n in r.route if n.dwell_s > 0]
+    assert dwell and all(0.1 < n.x < 5.0 for n in dwell)  # never through the door
+    kinds = action_types(order)
+    assert kinds.count("dwell") == len(dwell) and kinds[0] == "payload" and kinds[-1] == "payload"
+    last = order.nodes[-1].actions[-1]
+    assert last.actionType is ActionType.PAYLOAD and {(k.key, k.value) for k in last.actionParameters} >= {
+        ("on", "false")
+    }  # the lamp off at the end
+    assert p.total_s == pytest.approx(r.total_s) and r.total_s > r.dwell_s > 0
+    text = p.summary()
+    assert "UV round of the room at (2.50, 1.00)" in text and "predicted" in text and "10 mJ/cm²" in text
+
+
+def test_a_rectangle_and_a_polygon_keep_their_dwell_points_inside() -> None:
+    rect = plan("uv", RectArea(0.5, 0.5, 3.0, 2.0), {"r1": A}, target_j_m2=20.0)
+    assert rect.coverage >= 0.99 and 3.0 < rect.area_m2 <= 2.5 * 1.5 + 0.01
+    assert all(0.5 <= n.x <= 3.0 and 0.5 <= n.y <= 2.0 for n in rect.rounds[0].route[1:])
+    tri = [(0.5, 0.5), (4.5, 0.5), (2.5, 2.5)]
+    poly = plan("uv", PolyArea(tuple(tri)), {"r1": A}, target_j_m2=20.0)
+    assert poly.coverage >= 0.99 and 2.0 < poly.area_m2 < 4.0
+    assert all(point_in_polygon(n.x, n.y, tri) for n in poly.rounds[0].route[1:])
+
+
+def test_two_robots_share_a_room_each_from_where_it_stands_and_finish_sooner() -> None:
+    area = RectArea(0.5, 0.5, 4.5, 2.5)
+    one = plan("uv", area, {"r1": A}, target_j_m2=20.0)
+    two = plan("uv", area, {"r1": A, "r2": B}, target_j_m2=20.0)
+    assert [r.robot for r in two.rounds] == ["r1", "r2"]
+    assert [r.order_id for r in two.rounds] == ["uv-r1-1", "uv-r2-1"]
+    assert [(r.route[0].x, r.route[0].y) for r in two.rounds] == [A, B]
+    assert all(r.dwell_points > 0 for r in two.rounds)
+    # The dwell times are shared, not changed: together the same dose.
+    assert sum(r.dwell_s for r in two.rounds) == pytest.approx(one.rounds[0].dwell_s, rel=1e-6)
+    assert two.coverage >= 0.99 and two.total_s < 0.8 * one.total_s
+    for r in two.rounds:
+        as_order(r.order)
+
+
+def test_a_sweep_drives_lanes_without_the_lamp() -> None:
+    p = plan("sweep", RoomArea(7.0, 2.0), {"r1": A}, order_ids={"r1": "sweep-r1-3"})
+    r = p.rounds[0]
+    # Lanes stop 0.3 m short of the walls they run into (the guard's stopping room): ~0.85 predicted.
+    assert r.order_id == "sweep-r1-3" and p.coverage >= 0.8 and r.dwell_s == 0.0
+    order = as_order(r.order)
+    assert action_types(order) == [] and len(order.nodes) > 10
+    assert all(n.x > 5.0 for n in r.route[2:])  # the lanes are in the right room (it got there by the door)
+    assert "sweep of the room at (7.00, 2.00)" in p.summary() and "swept" in p.summary()
+
+
+@pytest.mark.parametrize(
+    ("kind", "area", "robots", "target", "why"),
+    [
+        ("uv", PolyArea(((0.5, 0.5), (3.0, 2.0), (3.0, 0.5), (0.5, 2.0))), {"r1": A}, 100.0, "self-intersecting"),
+        ("uv", PolyArea(((0.5, 0.5), (12.0, 0.5), (3.0, 2.0))), {"r1": A}, 100.0, "outside the map"),
+        ("uv", RectArea(0.5, 0.5, 12.0, 2.0), {"r1": A}, 100.0, "outside the map"),
+        ("uv", RoomArea(0.5, 0.5), {"r1": A}, 0.0, "target dose must be a finite number > 0"),
+        ("uv", RoomArea(0.5, 0.5), {"r1": A}, math.nan, "target dose must be a finite number > 0"),
+        ("uv", RoomArea(0.5, 0.5), {"r1": A}, -10.0, "target dose must be a finite number > 0"),
+        ("uv", RoomArea(0.5, 0.5), {"r1": A}, math.inf, "target dose must be a finite number > 0"),
+        ("uv", RectArea(2.15, 2.95, 2.85, 3.65), {"r1": A}, 100.0, "cannot get there"),  # the sealed closet
+        ("uv", RectArea(4.85, 0.5, 5.25, 1.5), {"r1": A}, 100.0, "1.50): the robot can stand nowhere"),  # a wall
+        ("uv", RoomArea(5.05, 1.0), {"r1": A}, 100.0, "lies in a wall"),
+        ("uv", RoomArea(0.5, 0.5), {"r1": (20.0, 1.0), "r2": A}, 100.0, "r1 stands at (20.00, 1.00)"),
+        ("sweep", RoomArea(0.5, 0.5), {"r1": A, "r2": B}, 100.0, "a sweep is for one robot"),
+        ("uv", RoomArea(0.5, 0.5), {"r1": A, "bad id!": B}, 100.0, "is not a robot id"),
+        ("uv", PolyArea(((0.5, 0.5), (1.0, 0.5))), {"r1": A}, 100.0, "3 to 32 corners"),
+        ("uv", RoomArea(math.nan, 0.5), {"r1": A}, 100.0, "finite numbers"),
+    ],
+)
+def test_bad_input_is_refused_with_its_reason(kind: str, area: Any, robots: Any, target: float, why: str) -> None:
+    with pytest.raises(RoundError, match=re.escape(why)):
+        plan(kind, area, robots, target_j_m2=target)
+
+
+def test_a_robot_without_a_known_position_is_refused() -> None:
+    request = RoundRequest("uv", RoomArea(2.5, 1.0), ("r1", "r2"))
+    with pytest.raises(RoundError, match="r2: no known position"):
+        plan_round(request, CELLS, RES, (0.0, 0.0), {"r1": A}, DEFAULT_LAMP)
+    with pytest.raises(RoundError, match="a round needs a robot"):
+        check_request(RoundRequest("uv", RoomArea(2.5, 1.0), ()))
+
+
+def test_a_route_longer_than_one_order_is_refused_before_anything_is_sent() -> None:
+    narrow = CoverageConfig(tool_width_m=0.05)  # lanes every 5 cm: far more lane ends than one order carries
+    with pytest.raises(RoundError, match=f"one order carries {MAX_ORDER_NODES}"):
+        plan("sweep", RectArea(0.1, 0.1, 8.9, 4.0), {"r1": A}, config=narrow)
+
+
+def grid(ox: float, oy: float, cells: np.ndarray) -> tuple[float, float, float, int, int, bytes]:
+    h, w = cells.shape
+    return (ox, oy, RES, w, h, cells.astype(np.uint8).tobytes())
+
+
+def test_maps_are_merged_as_the_console_draws_them() -> None:
+    a = np.full((3, 4), 255, dtype=np.uint8)
+    a[0, :] = 0
+    a[1, 1] = 100
+    b = np.zeros((2, 2), dtype=np.uint8)
+    b[1, 1] = 100
+    cells, res, origin = floor_of([grid(0.0, 0.0, a), grid(0.2, 0.1, b)])
+    assert res == RES and origin == (0.0, 0.0) and cells.shape == (3, 4) and cells.dtype == np.int8
+    assert cells[0].tolist() == [0, 0, 0, 0]
+    assert cells[1].tolist() == [-1, 100, 0, 0]  # b's free cells fill a's unknown ones
+    assert cells[2].tolist() == [-1, -1, 0, 100]  # occupied wins
+    # Another lattice (half a cell off): the first map alone.
+    cells2, _, origin2 = floor_of([grid(0.0, 0.0, a), grid(0.25, 0.0, b)])
+    assert origin2 == (0.0, 0.0) and cells2.shape == (3, 4) and cells2[2].tolist() == [-1, -1, -1, -1]
+    with pytest.raises(RoundError, match="no map"):
+        floor_of([])
+
+
+def test_order_ids_stay_new_and_times_read_as_people_say_them() -> None:
+    ids = RoundIds()
+    first = ids.next("uv", "r1", 1000.2)
+    assert first == "uv-r1-1000" and ids.next("uv", "r2", 1000.5) == "uv-r2-1001"
+    assert ids.next("sweep", "r1", 5000.0) == "sweep-r1-5000"
+    assert [describe_time(s) for s in (4.4, 65, 3725)] == ["4 s", "1 min 5 s", "1 h 02 min"]
