@@ -13,6 +13,7 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -30,6 +31,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--box", type=float, nargs=4, metavar=("X1", "Y1", "X2", "Y2"), help="judge only the floor in this rectangle"
     )
     save.add_argument(
+        "--target",
+        type=float,
+        metavar="MJ_CM2",
+        help="judge against this dose in mJ/cm² (a round's own dose) instead of the robots' configured target",
+    )
+    save.add_argument(
         "--no-maps", action="store_true", help="judge the cells the lamps reached, not the robots' mapped floor"
     )
     save.set_defaults(_run=run_save)
@@ -45,6 +52,7 @@ def run_save(args: argparse.Namespace) -> int:
     from fleetlink.links.zenoh import ZenohEndpoint
     from fleetlink.operator.dose import dose_report, save_report
     from fleetlink.shared import keys
+    from fleetlink.shared.dose import j_m2
     from fleetlink.shared.dose_codec import SharedDose
     from fleetlink.shared.map_codec import SharedMap
     from fleetlink.shared.wire import WireError
@@ -60,6 +68,9 @@ def run_save(args: argparse.Namespace) -> int:
         box = (args.box[0], args.box[1], args.box[2], args.box[3])
     if box is not None and (box[0] == box[2] or box[1] == box[3]):
         print(f"{name}: --box: the rectangle's corners must differ in x and in y", file=sys.stderr)
+        return 2
+    if args.target is not None and not (math.isfinite(args.target) and args.target > 0):
+        print(f"{name}: --target: the dose must be a number above 0 mJ/cm², got {args.target}", file=sys.stderr)
         return 2
     layers: dict[str, SharedDose] = {}
     maps: list[SharedMap] = []
@@ -88,7 +99,7 @@ def run_save(args: argparse.Namespace) -> int:
         print(f"{name}: no dose layer to report on", file=sys.stderr)
         return 1
     try:
-        report = dose_report(layers, maps, box)
+        report = dose_report(layers, maps, box, target_j_m2=None if args.target is None else j_m2(args.target))
         paths = save_report(report, Path(args.out))
     except (OSError, ValueError) as exc:
         print(f"{name}: {exc}", file=sys.stderr)

@@ -19,8 +19,8 @@
     stop                     stop every robot
     zone add NAME X1 Y1 X2 Y2 X3 Y3 ...   a people-present zone: no robot's UV lamp may reach into it
     zone rm NAME, zones      remove one; list them
-    dose [X1 Y1 X2 Y2]       the fleet's UV dose: area at the target, below it, and where (on the
-                             robots' mapped floor, or within the rectangle)
+    dose [X1 Y1 X2 Y2] [target D]   the fleet's UV dose: area at the target (the robots', or D
+                             mJ/cm²), below it, and where (on the robots' mapped floor, or within the rectangle)
     dose save DIR [X1 Y1 X2 Y2]   the dose report files into DIR (docs/payload.md, "Dose layer")
     disinfect room X Y | rect X0 Y0 X1 Y1 | poly X1 Y1 X2 Y2 X3 Y3 ... [dose MJ_CM2] [with ROBOT,ROBOT]
                              a UV round of an area (the target dose in mJ/cm², default the console's)
@@ -213,6 +213,9 @@ class Dose:
     """Summarise the fleet's dose layer on the mapped floor (or within ``box``: x1, y1, x2, y2)."""
 
     box: tuple[float, float, float, float] | None = None
+    target_mj_cm2: float | None = None
+    """Judge against this dose (``target D``, mJ/cm², as ``:disinfect ... dose D``) instead of the
+    robots' configured target: the check after a round run at its own dose."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -221,6 +224,7 @@ class DoseSave:
 
     path: str
     box: tuple[float, float, float, float] | None = None
+    target_mj_cm2: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -389,7 +393,7 @@ def _mark_verb(line: str, sub: str, words: list[str]) -> Command | CommandError:
     return CommandError(line, f"bad command {line!r}: {MARK_USAGE}")
 
 
-DOSE_USAGE = "dose [X1 Y1 X2 Y2] | dose save DIR [X1 Y1 X2 Y2]"
+DOSE_USAGE = "dose [X1 Y1 X2 Y2] [target MJ_CM2] | dose save DIR [X1 Y1 X2 Y2] [target MJ_CM2]"
 
 
 def _dose(line: str, args: list[str]) -> Dose | DoseSave | CommandError:
@@ -398,6 +402,14 @@ def _dose(line: str, args: list[str]) -> Dose | DoseSave | CommandError:
         if len(args) < 2:
             return CommandError(line, f"bad command {line!r}: {DOSE_USAGE}")
         path, args = args[1], args[2:]
+    target = None
+    if len(args) >= 2 and args[-2].lower() == "target":
+        value = _numbers(line, args[-1:])
+        if isinstance(value, CommandError):
+            return value
+        if value[0] <= 0:
+            return CommandError(line, f"bad command {line!r}: the target dose must be above 0 mJ/cm²")
+        target, args = value[0], args[:-2]
     if len(args) not in (0, 4):
         return CommandError(line, f"bad command {line!r}: {DOSE_USAGE}")
     box = None
@@ -408,7 +420,7 @@ def _dose(line: str, args: list[str]) -> Dose | DoseSave | CommandError:
         if nums[0] == nums[2] or nums[1] == nums[3]:
             return CommandError(line, f"bad command {line!r}: the rectangle's corners must differ in x and in y")
         box = (nums[0], nums[1], nums[2], nums[3])
-    return Dose(box) if path is None else DoseSave(path, box)
+    return Dose(box, target) if path is None else DoseSave(path, box, target)
 
 
 ACK_USAGE = "ack [ROBOT] [KIND|all], KIND one of " + ", ".join(k.value for k in KINDS)

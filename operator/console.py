@@ -882,9 +882,15 @@ class ConsoleApp(App[None]):
             )
         self._changed()
 
-    def dose_summary(self, box: tuple[float, float, float, float] | None = None, save: Path | None = None) -> bool:
+    def dose_summary(
+        self,
+        box: tuple[float, float, float, float] | None = None,
+        save: Path | None = None,
+        *,
+        target_mj_cm2: float | None = None,
+    ) -> bool:
         """``:dose`` (and ``:dose save DIR``): the report on the fleet's dose layer over the robots'
-        mapped floor (or ``box``), worked out on a thread (a large layer takes longer than a frame);
+        mapped floor (or ``box``), against the robots' target or ``target_mj_cm2``, worked out on a thread (a large layer takes longer than a frame);
         its lines, or the files written, come back as notices. False if there is nothing to report."""
         with self.lock:
             layers = self.doses.copies()
@@ -896,7 +902,8 @@ class ConsoleApp(App[None]):
 
         def work() -> None:
             try:
-                report = dose_report(layers, maps, box)
+                target = None if target_mj_cm2 is None else j_m2(target_mj_cm2)
+                report = dose_report(layers, maps, box, target_j_m2=target)
                 written = save_report(report, save) if save is not None else []
             except (OSError, ValueError) as exc:
                 self.call_from_thread(self.notice, "warning", f"dose report refused: {exc}")
@@ -1015,9 +1022,9 @@ class ConsoleApp(App[None]):
         elif isinstance(command, AckAlarm):
             self.acknowledge(command.robot, command.kind, every=command.every)
         elif isinstance(command, Dose):
-            self.dose_summary(command.box)
+            self.dose_summary(command.box, target_mj_cm2=command.target_mj_cm2)
         elif isinstance(command, DoseSave):
-            self.dose_summary(command.box, Path(command.path).expanduser())
+            self.dose_summary(command.box, Path(command.path).expanduser(), target_mj_cm2=command.target_mj_cm2)
 
     # -- rounds: disinfection and sweeping (operator/rounds.py, docs/payload.md) ------------------
 

@@ -386,8 +386,10 @@ def dose_report(
     box: tuple[float, float, float, float] | None = None,
     *,
     layer: FleetDose | None = None,
+    target_j_m2: float | None = None,
 ) -> DoseReport:
-    """The report on ``layers`` (merged here unless ``layer`` is given) over the floor of ``maps``.
+    """The report on ``layers`` (merged here unless ``layer`` is given) over the floor of ``maps``,
+    judged against the layers' target or ``target_j_m2``.
 
     ValueError with the reason when there is nothing to report (no layer, no floor)."""
     lay = layer if layer is not None else merge_layers(layers)
@@ -408,6 +410,8 @@ def dose_report(
         }
         for r, d in sorted(layers.items())
     )
+    if target_j_m2 is not None:
+        lay = dataclasses.replace(lay, target_j_m2=target_j_m2)
     return DoseReport(lay, mask, source, summarise(lay.grid, lay.target_j_m2, mask), robots)
 
 

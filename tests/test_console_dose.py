@@ -150,6 +150,12 @@ async def test_dose_layer_drawn_summarised_and_saved(rig: Rig, tmp_path: Path) -
             assert any("below target:" in n and "region(s)" in n for n in said)
             rig.app.run_command("dose 1 1 3 3")
             await _until(pilot, lambda: any("within x 1..3, y 1..3" in n for n in notices(rig.app)))
+            # At a round's own dose (target D, mJ/cm²) instead of the robots' 100 J/m².
+            rig.app.run_command("dose 1 1 3 3 target 0.5")
+            await _until(pilot, lambda: any("target dose: 5 J/m² (0.5 mJ/cm²)" in n for n in notices(rig.app)))
+            rig.app.run_command("dose target 0")
+            await pilot.pause()
+            assert any("the target dose must be above 0" in n for n in notices(rig.app))
 
             out = tmp_path / "report"
             rig.app.run_command(f"dose save {out}")

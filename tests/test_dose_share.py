@@ -255,6 +255,9 @@ def test_dose_save_writes_the_report_files(zenoh_peers, tmp_path: Path) -> None:
             out = tmp_path / "report"
             args = ["dose", "save", "--robot", "uvc-1", "--out", str(out), "--connect", peers.endpoints[0]]
             assert main(args) == 0
+            low = tmp_path / "low"  # judged at a round's own, lower dose: more of the floor at it
+            assert main([*args[:5], str(low), *args[6:], "--target", "1"]) == 0
+            assert main([*args, "--target", "0"]) == 2
             assert main(["dose", "save", "--robot", "uvc-9", "--out", str(tmp_path / "x"), "--connect",
                          peers.endpoints[0], "--timeout", "1"]) == 1  # fmt: skip
             assert main(["dose", "save", "--robot", "no/such", "--out", str(tmp_path / "x")]) == 2
@@ -280,5 +283,7 @@ def test_dose_save_writes_the_report_files(zenoh_peers, tmp_path: Path) -> None:
     pgm = (out / "dose.pgm").read_bytes()
     assert pgm.startswith(b"P5\n")
     assert (out / "dose.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
+    at_one = json.loads((low / "summary.json").read_text())
+    assert at_one["target_j_m2"] == 10.0 and at_one["reached_m2"] > summary["reached_m2"]
     text = (out / "summary.txt").read_text()
     assert "at or above target" in text and "below target" in text and "robots: uvc-1" in text
