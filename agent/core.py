@@ -897,7 +897,9 @@ class AgentCore:
         if it.driving and self.pilot.order_id == it.order_id:
             self.pilot.action(now, ActionKind.CANCEL, it.sender)
         sev = Severity.INFO if done and not it.skipped else Severity.WARNING
-        out.messages.append((self._event("order", f"order {it.order_id} {why}", sev, order=it.order_id), None))
+        outcome = "finished" if done else "ended"  # for machines: the text is for people
+        event = self._event("order", f"order {it.order_id} {why}", sev, order=it.order_id, outcome=outcome)
+        out.messages.append((event, None))
         self._next_state = -math.inf
 
     def _itinerary_note(self, it: Itinerary, text: str, out: Output, severity: Severity = Severity.INFO) -> None:

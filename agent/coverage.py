@@ -7,6 +7,7 @@ robots share the work, and a boustrophedon route for the sweeping robot. Pure nu
     base = park_in_middle(fm, area, lamp, target_dose, start_xy)   # the common practice, a baseline
     fleet = split_plan(fm, plan, [start_a, start_b])        # the makespan balanced over N robots
     sweep = plan_sweep(fm, area, start_xy)                   # boustrophedon lanes one tool width apart
+    look = plan_survey(fm, unknown, area, start_xy)          # view points into what the map has not seen
     dose = dose_map(fm, [plan], lamp)                        # J/m² on every map cell, from the plan
     coverage(dose, area, target_dose)                        # share of the area's cells at the dose
     plan.to_dict() / CoveragePlan.from_dict(d)               # plain data: nodes, edges, prediction
@@ -57,7 +58,7 @@ import numpy.typing as npt
 from fleetlink.agent.mapping.planner import MOVES8, PathPlanner, PlannerConfig
 from fleetlink.shared import dose as _dose
 from fleetlink.shared.dose import Lamp
-from fleetlink.shared.geometry import points_in_polygon
+from fleetlink.shared.geometry import components, points_in_polygon
 from fleetlink.shared.messages import (
     MAX_ORDER_NODES,
     Action,
@@ -776,7 +777,8 @@ class Prediction:
 @dataclass(frozen=True, slots=True)
 class CoveragePlan:
     """One robot's plan: ``nodes[0]`` is where it starts (dwell 0, lamp off), each edge leads to the
-    next node. ``kind``: ``uv`` (dwell points), ``park`` (the park-in-the-middle baseline), ``sweep``."""
+    next node. ``kind``: ``uv`` (dwell points), ``park`` (the park-in-the-middle baseline), ``sweep``,
+    ``survey`` (view points, no lamp: ``plan_survey``)."""
 
     kind: str
     nodes: tuple[PlanNode, ...]
@@ -1476,8 +1478,9 @@ def _uv_plan(
     robot: str,
 ) -> CoveragePlan:
     """The plan value: the start node, then a node per dwell point in ``route`` order, each reached
-    by an edge along the shortest stand path."""
+    by an edge along the shortest stand path; the lamp on at every dwell point but a survey's."""
     cfg = fm.config
+    lit = kind != "survey"
     nodes = [PlanNode("n0", 0, float(start[0]), float(start[1]), 0.0, False)]
     edges: list[PlanEdge] = []
     prev_pt = (float(start[0]), float(start[1]))
@@ -1487,9 +1490,9 @@ def _uv_plan(
         way = fm.route(prev_pt, (x, y))
         seg = sum(math.dist(p, q) for p, q in itertools.pairwise(way))
         length += seg
-        lamp_edge = cfg.lamp_while_driving and i > 1
+        lamp_edge = lit and cfg.lamp_while_driving and i > 1
         edges.append(PlanEdge(f"e{i}", 2 * i - 1, nodes[-1].node_id, f"n{i}", tuple(way), seg, lamp_edge))
-        nodes.append(PlanNode(f"n{i}", 2 * i, x, y, dwell, True))
+        nodes.append(PlanNode(f"n{i}", 2 * i, x, y, dwell, lit))
         prev_pt = (x, y)
     dwell_s = sum(d for _, d in route)
     travel = length / cfg.speed_mps + len(route) * cfg.stop_overhead_s
@@ -1549,6 +1552,124 @@ def park_in_middle(
         target_dose,
         coverage=int(lit.sum()) / max(1, area.cells),
         area_m2=area.area_m2,
+        unlit_m2=0.0,
+        robot=robot,
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Surveying: look before planning
+
+
+SURVEY_DWELL_S = 1.0
+"""A survey stops this long at each view point: a few lidar revolutions standing still."""
+
+
+def unseen(fm: FloorMap, unknown: BoolGrid, area: Area, *, min_pocket_m2: float = 0.1) -> BoolGrid:
+    """The area's unseen floor, as far as a map can say: map cells never observed (``unknown``)
+    inside the area as drawn (its outline; a room's target grown by a metre) in pockets of at least
+    ``min_pocket_m2`` that border the area's floor. The lidar saw the room from where the robot came
+    in; what furniture hid from there is unknown and may be floor a round should dose."""
+    hid = np.asarray(unknown, dtype=bool)
+    if hid.shape != fm.shape:
+        raise ValueError(f"unknown: expected the map's shape {fm.shape}, got {hid.shape}")
+    if area.outline:
+        gx, gy = fm.centres()
+        region = points_in_polygon(gx, gy, list(area.outline))
+    else:
+        region = _dilate(area.target, 1.0 / fm.resolution)
+    hid = hid & region
+    edge = np.zeros(fm.shape, dtype=bool)
+    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        edge |= _shift(area.target, dr, dc)
+    out = np.zeros(fm.shape, dtype=bool)
+    least = max(1, math.ceil(min_pocket_m2 / fm.cell_area))
+    for cells in components(hid):
+        r, c = cells[:, 0], cells[:, 1]
+        if r.size >= least and edge[r, c].any():
+            out[r, c] = True
+    return out
+
+
+def plan_survey(
+    fm: FloorMap,
+    unknown: BoolGrid,
+    area: Area,
+    start: Point,
+    *,
+    view_range_m: float = 2.5,
+    min_pocket_m2: float = 0.1,
+    max_views: int = 8,
+    enough: float = 0.9,
+    robot: str = "",
+) -> CoveragePlan | None:
+    """View points from which the lidar sees into the area's ``unseen`` pockets, toured from
+    ``start`` (kind ``survey``: no lamp, ``SURVEY_DWELL_S`` at each); None when the area has no
+    unseen pocket a candidate stand point sees into.
+
+    A candidate sees an unseen cell within ``view_range_m`` (the range at which the lidar's beams
+    are still closer together than a map cell) when the straight line to it crosses no known
+    wall: through the known floor and into the unknown, optimistically (what hides the pocket
+    may stand in it; a second survey looks again). Cells the robot's start sees so already were
+    in its view, not hidden: not counted. Greedy set cover, most unseen cells first, until
+    ``enough`` of what any candidate sees is seen or ``max_views`` points."""
+    hid = unseen(fm, unknown, area, min_pocket_m2=min_pocket_m2)
+    if not hid.any():
+        return None
+    s_cell = _start_cell(fm, start)
+    fm.focus(area.stand, s_cell)
+    from_start = fm.geodesic(s_cell)
+    cands = [rc for rc in _candidates(fm, area.stand) if math.isfinite(from_start[rc])]
+    if not cands:
+        return None
+    rows, cols = np.nonzero(hid)
+    stride = max(1, math.ceil(rows.size / 600))  # a regular subsample bounds the rays cast
+    rows, cols = rows[::stride], cols[::stride]
+    tx = fm.origin[0] + (cols + 0.5) * fm.resolution
+    ty = fm.origin[1] + (rows + 0.5) * fm.resolution
+    wall = np.asarray(~fm.free & ~np.asarray(unknown, dtype=bool), dtype=bool)
+
+    def sees(p: Point) -> BoolGrid:
+        d = np.hypot(tx - p[0], ty - p[1])
+        near = d <= view_range_m
+        out = np.zeros(tx.size, dtype=bool)
+        if not near.any():
+            return out
+        idx = np.nonzero(near)[0]
+        n = max(2, math.ceil(float(d[idx].max()) / (fm.resolution / 2.0)) + 1)
+        t = np.linspace(0.0, 1.0, n)[None, :]
+        xs = p[0] + (tx[idx, None] - p[0]) * t
+        ys = p[1] + (ty[idx, None] - p[1]) * t
+        c = np.clip(np.floor((xs - fm.origin[0]) / fm.resolution).astype(np.intp), 0, fm.shape[1] - 1)
+        r = np.clip(np.floor((ys - fm.origin[1]) / fm.resolution).astype(np.intp), 0, fm.shape[0] - 1)
+        out[idx] = ~wall[r, c].any(axis=1)
+        return out
+
+    already = sees(start)
+    view = np.array([sees(fm.plan_centre(rc)) & ~already for rc in cands])
+    seeable = view.any(axis=0)
+    if not seeable.any():
+        return None
+    goal = enough * int(seeable.sum())
+    seen = np.zeros(tx.size, dtype=bool)
+    picked: list[int] = []
+    while int(seen.sum()) < goal and len(picked) < max_views:
+        gain = (view & ~seen).sum(axis=1)
+        j = int(np.argmax(gain - from_start[tuple(np.array(cands).T)] * 1e-6))  # ties: nearer the start
+        if gain[j] == 0:
+            break
+        picked.append(j)
+        seen |= view[j]
+    order, _ = _Tours(fm).tour(s_cell, [cands[j] for j in picked])
+    route = [(cands[picked[k]], SURVEY_DWELL_S) for k in order]
+    return _uv_plan(
+        fm,
+        "survey",
+        start,
+        route,
+        0.0,
+        coverage=float(seen.sum()) / float(seeable.sum()),
+        area_m2=float(hid.sum()) * fm.cell_area,
         unlit_m2=0.0,
         robot=robot,
     )
@@ -1781,25 +1902,25 @@ def plan_sweep(
         if best is None or length < best[0] - 1e-9:
             best = (length, ax, way)
     assert best is not None
-    _, _, way = best
+    _, ax, way = best
     # Swept floor: the target cells the tool can reach at all (within half its width of a stand cell's
     # centre, where lanes run).
     rad = width / 2.0
     can = _near_centres(fm, reach, rad) & area.target
-    route = [way[0]]
-    for p, kind in way[1:]:
-        if math.dist(p, route[-1][0]) > 1e-9:
-            route.append((p, kind))
     end = fm.config.lane_end_clearance_m
-    if end > 0:  # each lane ends that much short of where it meets a wall (the guard's stopping room)
-        for i in range(1, len(route)):
-            (a, _), (b, kind) = route[i - 1], route[i]
-            length = math.dist(a, b)
-            if kind != "lane" or length <= 2 * end + 0.1:
-                continue
-            ux, uy = (b[0] - a[0]) / length, (b[1] - a[1]) / length
-            route[i - 1] = ((a[0] + ux * end, a[1] + uy * end), route[i - 1][1])
-            route[i] = ((b[0] - ux * end, b[1] - uy * end), kind)
+    route = _lane_ends_short(_distinct(way), end)
+    if end > 0:
+        # The lanes stop short of the walls they run into: the floor there is swept by lanes across
+        # them (along those walls, where the guard does not stop the robot), as a robot vacuum's
+        # edge pass does.
+        missed = can & ~_swept(fm, [p for p, _ in route], rad)
+        if missed.sum() * fm.cell_area >= 0.1:
+            edge = _stand_near(fm, missed, rad) & reach
+            last = fm.escape(route[-1][0])
+            if edge.any() and last is not None:
+                more = _lane_ends_short(_distinct(_sweep_route(fm, edge, last, width, 1 - ax)), end)
+                link = fm.route(route[-1][0], more[0][0])[1:-1]
+                route = _distinct([*route, *((q, "transit") for q in link), (more[0][0], "transit"), *more[1:]])
     swept = _swept(fm, [p for p, _ in route], rad) & can
     s0 = (float(start[0]), float(start[1]))
     head = fm.route(s0, route[0][0])
@@ -1826,6 +1947,46 @@ def plan_sweep(
         swept_m2=swept_m2,
     )
     return CoveragePlan("sweep", tuple(nodes), tuple(edges), 0.0, pred, robot)
+
+
+def _distinct(way: Sequence[tuple[Point, str]]) -> list[tuple[Point, str]]:
+    """``way`` without a point that repeats the one before it."""
+    out = [way[0]]
+    for p, kind in way[1:]:
+        if math.dist(p, out[-1][0]) > 1e-9:
+            out.append((p, kind))
+    return out
+
+
+def _lane_ends_short(route: list[tuple[Point, str]], end: float) -> list[tuple[Point, str]]:
+    """Each lane of ``route`` ended ``end`` short of where it meets a wall (the guard's stopping room)."""
+    if end <= 0:
+        return route
+    out = list(route)
+    for i in range(1, len(out)):
+        (a, _), (b, kind) = out[i - 1], out[i]
+        length = math.dist(a, b)
+        if kind != "lane" or length <= 2 * end + 0.1:
+            continue
+        ux, uy = (b[0] - a[0]) / length, (b[1] - a[1]) / length
+        out[i - 1] = ((a[0] + ux * end, a[1] + uy * end), out[i - 1][1])
+        out[i] = ((b[0] - ux * end, b[1] - uy * end), kind)
+    return out
+
+
+def _stand_near(fm: FloorMap, cells: BoolGrid, radius: float) -> BoolGrid:
+    """Plan cells within ``radius`` of one of the map ``cells`` (where the tool sweeps them from)."""
+    grown = _dilate(cells, radius / fm.resolution)
+    f = fm.factor
+    ph, pw = fm.stand.shape
+    h, w = fm.shape
+    out = np.zeros((ph, pw), dtype=bool)
+    for dr in range(f):
+        for dc in range(f):
+            rr = np.minimum(np.arange(ph) * f + dr, h - 1)
+            cc = np.minimum(np.arange(pw) * f + dc, w - 1)
+            out |= grown[rr][:, cc]
+    return out
 
 
 def _near_centres(fm: FloorMap, cells: BoolGrid, radius: float) -> BoolGrid:

@@ -21,7 +21,7 @@ true dose comes from the robot's true pose and its board's lamp. Modes, each its
   (reachable floor / brush width).
 
 Scored on the floor a round can reach (``coverage.reachable``: floor some place the robot may
-stand in the room lights well enough to give the dose within 10 minutes, on the plan's true
+stand in the room lights well enough to give the dose within 2 minutes, on the plan's true
 floor; for a sweep ``coverage.sweepable``). Lamp-on time with the robot outside the room is
 reported. Goals (issue 16): >= 99 % of the reachable floor at the target dose in every room; time
 <= 0.5x baseline (a) on the apartment and the office; two robots <= 0.6x one robot's time; sweep

@@ -83,6 +83,7 @@ from fleetlink.operator.marks import DEFAULT_KIND, MARK_KINDS, MAX_LABEL, MarksS
 from fleetlink.operator.rounds import (
     DEFAULT_LAMP,
     DEFAULT_TARGET_J_M2,
+    MAX_SURVEYS,
     RoundError,
     RoundIds,
     RoundPlan,
@@ -91,6 +92,7 @@ from fleetlink.operator.rounds import (
     check_request,
     describe_area,
     floor_of,
+    mj_cm2,
 )
 from fleetlink.operator.status import StatusLine, status_text
 from fleetlink.operator.teleop import DriveKeys, Twist
@@ -304,6 +306,9 @@ class ConsoleApp(App[None]):
         """The round being planned in a worker thread (one at a time)."""
         self._plan_dropped = False
         """``:cancel`` came while it was being planned: nothing is sent when it is ready."""
+        self.survey: tuple[RoundRequest, dict[str, str]] | None = None
+        """A survey under way before a round: the request to plan again when every robot has
+        finished its survey order, and those orders' ids by robot."""
         self.filter_text = ""
         self.frame_times: list[float] = []
         """How long each frame took to draw (the last 1000)."""
@@ -385,6 +390,7 @@ class ConsoleApp(App[None]):
         source, fleet = self.source, self.fleet
         with self.lock:
             fleet.tick(now)
+            self._survey_done()
             notices = fleet.drain()
             rows = fleet_rows(fleet, source.active, source.health, source.sender, now, self.filter_text)
             for n in notices:
@@ -1028,10 +1034,12 @@ class ConsoleApp(App[None]):
 
     # -- rounds: disinfection and sweeping (operator/rounds.py, docs/payload.md) ------------------
 
-    def start_round(self, command: StartRound) -> bool:
+    def start_round(self, command: StartRound, surveys: int = MAX_SURVEYS) -> bool:
         """``:disinfect`` / ``:sweep``: check what can be checked at once (a warning notice and
         nothing else when it is wrong), then plan in a worker thread; the orders go out when the
-        plan is ready (``on_round_planned``). False if refused at once."""
+        plan is ready (``on_round_planned``). While the maps have not seen all of the area the plan
+        is a survey first (up to ``surveys`` of them), and the round is planned again when the
+        robots have looked (``_survey_done``). False if refused at once."""
         what = "UV round" if command.kind == "uv" else "sweep"
         if self.read_only:
             self.notice("warning", f"read-only console: {what} not planned")
@@ -1067,7 +1075,7 @@ class ConsoleApp(App[None]):
                 starts[robot] = (view.pose[0], view.pose[1])
                 if robot in self.fleet.grids:
                     grids.append(self.fleet.grids[robot])
-        request = RoundRequest("uv" if command.kind == "uv" else "sweep", command.area, robots, target)
+        request = RoundRequest("uv" if command.kind == "uv" else "sweep", command.area, robots, target, surveys)
         if not problem:
             try:
                 check_request(request)
@@ -1082,7 +1090,7 @@ class ConsoleApp(App[None]):
         # A UV round tops up the dose the floor has had already (the fleet's layer as it stands).
         layer = self.doses.layer if request.kind == "uv" else None
         prior = layer.grid if layer is not None else None
-        self.planning, self._plan_dropped = request, False
+        self.planning, self._plan_dropped, self.survey = request, False, None
         self.notice("info", f"planning the {what} of {describe_area(request.area)} for {', '.join(robots)} ...")
 
         def plan() -> None:  # in a worker thread: only the message goes back to the app
@@ -1146,7 +1154,30 @@ class ConsoleApp(App[None]):
             with self.lock:
                 self.fleet.set_route(r.robot, (r.order_id, tuple((n.x, n.y, n.dwell_s) for n in r.route)))
             self.notice("info", f"{r.robot}: {what} sent as order {r.order_id} ({len(r.route) - 1} nodes)")
+        if result.survey:
+            self.survey = (request, {r.robot: r.order_id for r in result.rounds})
+            self.notice("info", f"the {what} is planned when the survey is done (':cancel' drops both)")
         self._changed()
+
+    def _survey_done(self) -> None:
+        """Under the lock, each frame: the survey's orders all finished, plan the round again on
+        the maps as they are now (one survey fewer); one ended otherwise (cancelled, stopped,
+        replaced), drop the round."""
+        if self.survey is None:
+            return
+        request, orders = self.survey
+        ends = {r: v.order_end if (v := self.fleet.robots.get(r)) is not None else None for r in orders}
+        what = "UV round" if request.kind == "uv" else "sweep"
+        if any(e is not None and e[0] == orders[r] and e[1] != "finished" for r, e in ends.items()):
+            self.survey = None
+            self.notice(
+                "warning",
+                f"survey ended before it finished: the {what} of {describe_area(request.area)} is not planned",
+            )
+        elif all(e == (orders[r], "finished") for r, e in ends.items()):
+            self.survey = None
+            again = StartRound(request.kind, request.area, mj_cm2(request.target_j_m2), request.robots)
+            self.call_later(self.start_round, again, request.surveys - 1)
 
     def round_action(self, action: str) -> None:
         """``:pause`` / ``:resume`` / ``:cancel`` the selected robot's round (or goal): instant

@@ -102,6 +102,9 @@ class RobotView:
     """Along its current order with nodes (a round): nodes done, skipped, dwell left, why it waits;
     None without one."""
     paused: bool = False
+    order_end: tuple[str, str] | None = None
+    """(order id, outcome) of the last order with nodes it ended: ``finished`` (every node done
+    or skipped), ``ended`` (cancelled, stopped, replaced), as its ``order`` event says."""
 
     def age(self, now: float) -> float | None:
         return None if self.last_heard is None else max(0.0, now - self.last_heard)
@@ -192,6 +195,10 @@ class FleetModel:
         elif isinstance(msg, Event):
             sev = {Severity.INFO: "info", Severity.WARNING: "warning", Severity.ERROR: "error"}[msg.severity]
             self.notify(now, sev, f"{h.robot}: {msg.kind}: {msg.text}")
+            if msg.kind == "order":
+                data = {kv.key: kv.value for kv in msg.data}
+                if "order" in data and "outcome" in data:
+                    view.order_end = (data["order"], data["outcome"])
         elif isinstance(msg, Ack):
             if msg.result is AckResult.REJECTED and msg.commandSender == self.operator:
                 self.notify(now, "warning", f"{h.robot} refused {msg.commandTopic}: {msg.reason}")

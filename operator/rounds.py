@@ -37,6 +37,7 @@ __all__ = [
     "DEFAULT_LAMP",
     "DEFAULT_TARGET_J_M2",
     "MAX_AREA_CORNERS",
+    "MAX_SURVEYS",
     "AreaSpec",
     "PolyArea",
     "RectArea",
@@ -62,6 +63,9 @@ Grid = tuple[float, float, float, int, int, bytes]
 resolution, width, height, cells row by row from the bottom (0 free, 100 occupied, 255 unknown)."""
 
 RoundKind = Literal["uv", "sweep"]
+
+MAX_SURVEYS = 2
+"""Survey passes the console allows before a round (a pocket seen into may show another behind it)."""
 
 DEFAULT_LAMP = Lamp(uvc_power_w=10.0, height_m=0.6, tube_length_m=0.0, min_distance_m=0.3)
 """The lamp a round is planned for when the console knows no better: the agent's ``[uv]`` example
@@ -128,6 +132,11 @@ class RoundRequest:
     robots: tuple[str, ...]
     target_j_m2: float = DEFAULT_TARGET_J_M2
     """J/m² (10 mJ/cm² = 100 J/m²); a sweep ignores it."""
+    surveys: int = 0
+    """Survey passes still allowed before the round itself: while the maps show unseen pockets
+    beside the area's floor (what furniture hid from where the robots came in), the planner sends
+    the robots to look first (lamp off), and the console plans again when they are done
+    (``MAX_SURVEYS`` from the console; 0: plan on the map as it is)."""
 
 
 def _finite(values: Sequence[float]) -> bool:
@@ -210,6 +219,9 @@ class RoundPlan:
     unlit_m2: float
     """UV: floor inside the area that no place the robot may stand lights (not planned)."""
     rounds: tuple[RobotRound, ...]
+    survey: bool = False
+    """These orders only look (view points, lamp off) into what the maps have not seen: plan the
+    request again (one survey fewer) when every robot has finished its order."""
 
     @property
     def total_s(self) -> float:
@@ -224,6 +236,14 @@ class RoundPlan:
         """One line for the operator: area, predicted coverage, time, path, and each robot's share."""
         req = self.request
         what = "UV round" if req.kind == "uv" else "sweep"
+        if self.survey:
+            shares = "; ".join(
+                f"{r.robot} {describe_time(r.total_s)}, {r.dwell_points} view points" for r in self.rounds
+            )
+            return (
+                f"survey before the {what} of {describe_area(req.area)}: {self.area_m2:.1f} m² beside its floor"
+                f" not seen yet, {describe_time(self.total_s)}, path {self.path_m:.1f} m: {shares}"
+            )
         dose = f" at {mj_cm2(req.target_j_m2):g} mJ/cm²" if req.kind == "uv" else " swept"
         unlit = f" ({self.unlit_m2:.1f} m² no lamp reaches)" if self.unlit_m2 >= 0.05 else ""
         shares = "; ".join(

@@ -60,6 +60,7 @@ import numpy as np
 import numpy.typing as npt
 
 from fleetlink.shared.config import Invalid, Setting
+from fleetlink.shared.geometry import components
 
 __all__ = [
     "DEFAULT_TARGET_J_M2",
@@ -785,7 +786,7 @@ def summarise(grid: DoseGrid, target_j_m2: float, mask: FloorMask, *, max_region
     below = floor & (dose < target)
     cell_m2 = res * res
     regions = []
-    for cells in _components(below):
+    for cells in components(below):
         rows, cols = cells[:, 0], cells[:, 1]
         regions.append(
             UnderDosed(
@@ -811,51 +812,6 @@ def summarise(grid: DoseGrid, target_j_m2: float, mask: FloorMask, *, max_region
         regions=tuple(regions[:max_regions]),
         regions_total=len(regions),
     )
-
-
-def _components(mask: Bools) -> list[npt.NDArray[np.intp]]:
-    """8-connected components of ``mask``: each an (N, 2) array of (row, col). Union-find over row runs."""
-    runs: list[tuple[int, int, int]] = []  # row, first col, last col (inclusive)
-    row_runs: list[list[int]] = []
-    for r in range(mask.shape[0]):
-        line = np.concatenate(([False], mask[r], [False])).astype(np.int8)
-        edges = np.flatnonzero(np.diff(line))
-        ids = []
-        for a, b in zip(edges[0::2].tolist(), edges[1::2].tolist(), strict=True):
-            ids.append(len(runs))
-            runs.append((r, a, b - 1))
-        row_runs.append(ids)
-    parent = list(range(len(runs)))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for r in range(1, mask.shape[0]):
-        above, here = row_runs[r - 1], row_runs[r]
-        i = j = 0
-        while i < len(above) and j < len(here):
-            _, a0, a1 = runs[above[i]]
-            _, b0, b1 = runs[here[j]]
-            if a0 <= b1 + 1 and b0 <= a1 + 1:
-                pa, pb = find(above[i]), find(here[j])
-                if pa != pb:
-                    parent[max(pa, pb)] = min(pa, pb)
-            if a1 < b1:
-                i += 1
-            else:
-                j += 1
-    groups: dict[int, list[int]] = {}
-    for k in range(len(runs)):
-        groups.setdefault(find(k), []).append(k)
-    out = []
-    for ks in groups.values():
-        rows = np.concatenate([np.full(runs[k][2] - runs[k][1] + 1, runs[k][0], dtype=np.intp) for k in ks])
-        cols = np.concatenate([np.arange(runs[k][1], runs[k][2] + 1, dtype=np.intp) for k in ks])
-        out.append(np.column_stack((rows, cols)))
-    return out
 
 
 def _fraction(grid: DoseGrid, target_j_m2: float, mask: FloorMask | None) -> tuple[F64, Bools]:

@@ -1,4 +1,5 @@
-"""Plane geometry every layer uses: points in polygons, distances to segments (pure).
+"""Plane geometry every layer uses: points in polygons, distances to segments, connected regions
+of a grid (pure).
 
 The field (plans, the radio's dead zones, cliffs), the agent's lamp interlocks (people-present
 zones) and its coverage planner (a chosen area) all ask the same questions of the same polygons;
@@ -13,7 +14,15 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Point", "Segment", "point_in_polygon", "point_segment_distance", "points_in_polygon", "polygon_distance"]
+__all__ = [
+    "Point",
+    "Segment",
+    "components",
+    "point_in_polygon",
+    "point_segment_distance",
+    "points_in_polygon",
+    "polygon_distance",
+]
 
 Point = tuple[float, float]
 Segment = tuple[float, float, float, float]
@@ -60,3 +69,48 @@ def polygon_distance(x: float, y: float, polygon: Sequence[Point]) -> float:
     ``point_in_polygon``)."""
     n = len(polygon)
     return min((point_segment_distance(x, y, (*polygon[i], *polygon[(i + 1) % n])) for i in range(n)), default=math.inf)
+
+
+def components(mask: npt.NDArray[np.bool_]) -> list[npt.NDArray[np.intp]]:
+    """8-connected components of ``mask``: each an (N, 2) array of (row, col). Union-find over row runs."""
+    runs: list[tuple[int, int, int]] = []  # row, first col, last col (inclusive)
+    row_runs: list[list[int]] = []
+    for r in range(mask.shape[0]):
+        line = np.concatenate(([False], mask[r], [False])).astype(np.int8)
+        edges = np.flatnonzero(np.diff(line))
+        ids = []
+        for a, b in zip(edges[0::2].tolist(), edges[1::2].tolist(), strict=True):
+            ids.append(len(runs))
+            runs.append((r, a, b - 1))
+        row_runs.append(ids)
+    parent = list(range(len(runs)))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for r in range(1, mask.shape[0]):
+        above, here = row_runs[r - 1], row_runs[r]
+        i = j = 0
+        while i < len(above) and j < len(here):
+            _, a0, a1 = runs[above[i]]
+            _, b0, b1 = runs[here[j]]
+            if a0 <= b1 + 1 and b0 <= a1 + 1:
+                pa, pb = find(above[i]), find(here[j])
+                if pa != pb:
+                    parent[max(pa, pb)] = min(pa, pb)
+            if a1 < b1:
+                i += 1
+            else:
+                j += 1
+    groups: dict[int, list[int]] = {}
+    for k in range(len(runs)):
+        groups.setdefault(find(k), []).append(k)
+    out = []
+    for ks in groups.values():
+        rows = np.concatenate([np.full(runs[k][2] - runs[k][1] + 1, runs[k][0], dtype=np.intp) for k in ks])
+        cols = np.concatenate([np.arange(runs[k][1], runs[k][2] + 1, dtype=np.intp) for k in ks])
+        out.append(np.column_stack((rows, cols)))
+    return out

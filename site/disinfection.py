@@ -46,7 +46,7 @@ from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.field.plans import FloorPlan, load_plan
 from fleetlink.field.scenario import LidarSettings, RobotSpec, Scenario
 from fleetlink.operator.maps import to_grid
-from fleetlink.operator.rounds import RectArea, RoundError, RoundRequest, floor_of
+from fleetlink.operator.rounds import MAX_SURVEYS, RectArea, RoundError, RoundRequest, floor_of
 from fleetlink.shared import wire
 from fleetlink.shared.dose import DoseGrid, FloorMask, Lamp, irradiance_window
 from fleetlink.shared.dose_codec import SharedDose
@@ -122,6 +122,8 @@ class RoundResult:
     skipped_nodes: int = 0
     bumps: int = 0
     notes: list[str] = field(default_factory=list)
+    surveys: int = 0
+    """Survey passes before the round (the robots looked into what their maps had not seen)."""
 
     @property
     def finished(self) -> bool:
@@ -144,6 +146,7 @@ class RoundResult:
             "ideal_path_m": None if self.ideal_path_m is None else round(self.ideal_path_m, 3),
             "skipped_nodes": self.skipped_nodes,
             "bumps": self.bumps,
+            "surveys": self.surveys,
             "plan_wall_s": round(self.plan_wall_s, 3),
             "wall_s": round(self.wall_s, 2),
             "sim_s": round(self.sim_s, 2),
@@ -208,6 +211,9 @@ class RoundRun:
         self._next_teleop = 0.0
         self._planned = False
         self.passes = 0
+        self.surveys = 0
+        self.surveys_left = MAX_SURVEYS
+        self._surveying = False
         self._events = 0
         self._acks = 0
         self._finished_at: float | None = None
@@ -272,12 +278,15 @@ class RoundRun:
             endpoint.publish(key, data)
 
     def _top_up(self, t: float) -> bool:
-        """Another UV pass on what the robots' dose layers still lack; False when there is none."""
-        if (
-            self.setup.mode != "uv"
-            or self.passes >= MAX_PASSES
-            or any(c.done_at is None or not math.isfinite(c.done_at) for c in self.crews.values())
-        ):
+        """The round itself once a survey is done, or another UV pass on what the robots' dose
+        layers still lack; False when there is none."""
+        if any(c.done_at is None or not math.isfinite(c.done_at) for c in self.crews.values()):
+            return False
+        if self._surveying:
+            self._surveying = False
+            self.surveys_left -= 1
+            return self._plan_and_send(t)
+        if self.setup.mode != "uv" or self.passes >= MAX_PASSES:
             return False
         return self._plan_and_send(t)
 
@@ -306,14 +315,19 @@ class RoundRun:
             prior = DoseGrid.merged(dose_grids) if dose_grids else None
         wall0 = time.perf_counter()
         try:
-            orders = self._orders(cells, res, origin, starts, prior)
+            orders, survey = self._orders(cells, res, origin, starts, prior)
         except RoundError as exc:
             self.notes.append(f"t={t:.1f}: pass {self.passes + 1}: {exc}")
             return False
         finally:
             self.plan_wall_s += time.perf_counter() - wall0
-        self.passes += 1
-        self.notes.append(f"t={t:.1f}: pass {self.passes} sent: {self.predicted_s:.0f} s predicted so far")
+        if survey:
+            self._surveying = True
+            self.surveys += 1
+            self.notes.append(f"t={t:.1f}: survey {self.surveys} sent: {self.predicted_s:.0f} s predicted so far")
+        else:
+            self.passes += 1
+            self.notes.append(f"t={t:.1f}: pass {self.passes} sent: {self.predicted_s:.0f} s predicted so far")
         for name, fields in orders.items():
             crew = self.crews[name]
             crew.order_id = fields["orderId"]
@@ -329,20 +343,22 @@ class RoundRun:
         origin: tuple[float, float],
         starts: dict[str, tuple[float, float]],
         prior: DoseGrid | None = None,
-    ) -> dict[str, dict[str, Any]]:
+    ) -> tuple[dict[str, dict[str, Any]], bool]:
+        """Each robot's order, and whether they are a survey's (the round is planned after it)."""
         s = self.setup
         names = tuple(starts)
         seed = RectArea(*s.rect)
         if s.mode in ("uv", "sweep"):
-            request = RoundRequest(kind=s.mode, area=seed, robots=names, target_j_m2=s.target_j_m2)  # type: ignore[arg-type]
-            ids = {n: f"{s.mode}-{n}-{self.passes + 1}" for n in names}
+            surveys = self.surveys_left if self.passes == 0 else 0  # a top-up plans on what the round mapped
+            request = RoundRequest(s.mode, seed, names, s.target_j_m2, surveys)  # type: ignore[arg-type]
+            ids = {n: f"{s.mode}-{n}-{self.passes + self.surveys + 1}" for n in names}
             result = plan_round(request, cells, res, origin, starts, self.lamp, ids, prior)
             self.predicted_s += max(r.total_s for r in result.rounds)
             if s.mode == "sweep":  # the boustrophedon ideal over the true reachable floor
                 self.ideal_path_m = (
                     float(self.reach.sum()) * self.truth_fm.cell_area / self.truth_fm.config.tool_width_m
                 )
-            return {r.robot: dict(r.order) for r in result.rounds}
+            return {r.robot: dict(r.order) for r in result.rounds}, result.survey
         name = names[0]
         start = starts[name]
         fm = cv.FloorMap.from_cells(cells, res, origin, ROUND_CONFIG)  # the floor a round counts as reachable
@@ -351,7 +367,7 @@ class RoundRun:
         if s.mode == "park":
             plan = cv.park_in_middle(fm, area, self.lamp, s.target_j_m2, start, robot=name, within=reach)
             self.predicted_s = plan.predicted.total_s
-            return {name: cv.plan_order(plan, f"park-{name}-1")}
+            return {name: cv.plan_order(plan, f"park-{name}-1")}, False
         # lawnmower: lanes with the lamp on at the one speed that doses as much as a round plans for
         sweep = cv.plan_sweep(fm, area, start, tool_width_m=LAWNMOWER_LANE_M, robot=name)
         lit = cv.CoveragePlan(
@@ -370,7 +386,7 @@ class RoundRun:
         path = sweep.predicted.path_m + sum(e.length_m for e in sweep.edges[:1])
         self.predicted_s = path / speed
         self.notes.append(f"lawnmower: lanes {LAWNMOWER_LANE_M} m apart at {speed:.3f} m/s")
-        return {name: cv.plan_order(lit, f"lawnmower-{name}-1", max_speed_mps=speed)}
+        return {name: cv.plan_order(lit, f"lawnmower-{name}-1", max_speed_mps=speed)}, False
 
     def _read(self, t: float) -> None:
         acks = self.op.acks
@@ -482,6 +498,7 @@ class RoundRun:
             skipped_nodes=self.skipped,
             bumps=self.bumps,
             notes=self.notes,
+            surveys=self.surveys,
         )
 
 

@@ -53,7 +53,7 @@ ROUND_CONFIG = cv.CoverageConfig(
     dose_margin=0.1,
     lamp_while_driving=True,
     dwell_clearance_m=0.35,
-    max_cell_dwell_s=600.0,
+    max_cell_dwell_s=120.0,
     lane_end_clearance_m=0.3,
 )
 """How a round is planned: 99.5 % of the floor the lamp can reach (the worst-lit 0.5 % cost most
@@ -62,9 +62,10 @@ few centimetres from where it was planned, and irradiance falls with the cube of
 the lamp on between dwell points (a low-pressure lamp is not switched on and off; the dose on
 the way is a bonus the plan does not count on), and dwell points 0.57 m from walls (the robot's
 radius, the planner's 0.05 m and 0.35 m: nearer, the collision guard refuses to drive up to them
-head-on; paths may pass nearer, through doorways); floor that would need more than 10 minutes
+head-on; paths may pass nearer, through doorways); floor that would need more than 2 minutes
 under the lamp from the best place to stand is out of its reach (reported as unlit: grazing light
-behind furniture and along a lidar map's thick walls cost hours of dwell for a few cm²)."""
+behind furniture and along a lidar map's thick walls cost hours of dwell for a few cm²; in the
+benchmark's rooms the floor needing 2-10 minutes, 4 % of it, took two thirds of a round's time)."""
 
 Point = tuple[float, float]
 
@@ -111,6 +112,12 @@ def plan_round(
             raise RoundError(f"{robot} stands at ({p[0]:.2f}, {p[1]:.2f}), not on floor it can start from")
         if not (np.isfinite(fm.geodesic(cell)) & area.stand).any():
             raise RoundError(f"{where}: {robot} cannot get there from ({p[0]:.2f}, {p[1]:.2f})")
+    if request.surveys > 0:
+        survey = _survey(fm, cells, area, robots, points)
+        if survey is not None:
+            plans_, area_m2, seen = survey
+            looks = tuple(_robot_round(p, f"{ids[p.robot][:56]}-survey") for p in plans_ if len(p.nodes) > 1)
+            return RoundPlan(request, area_m2, seen, 0.0, looks, survey=True)
     try:
         if request.kind == "sweep":
             plans: tuple[cv.CoveragePlan, ...] = (
@@ -138,17 +145,41 @@ def plan_round(
         if prior is not None and request.kind == "uv" and coverage > 0:
             raise RoundError(f"{where}: {100 * coverage:.1f} % of it has the dose already: nothing to top up")
         raise RoundError(f"{where}: nothing to do there (no floor the lamp or the tool reaches)")
-    rounds = []
-    for share in plans:
-        robot = share.robot or robots[0]
-        try:
-            fields = cv.plan_order(share, ids[robot])
-        except ValueError as exc:  # more nodes than one order carries
-            raise RoundError(f"{robot}: {exc}") from None
-        route = tuple(RouteNode(n.node_id, n.x, n.y, n.dwell_s) for n in share.nodes)
-        pred = share.predicted
-        rounds.append(RobotRound(robot, ids[robot], fields, route, pred.total_s, pred.dwell_s, pred.path_m))
-    return RoundPlan(request, area.area_m2, coverage, area_unlit(plans), tuple(rounds))
+    rounds = tuple(_robot_round(share, ids[share.robot or robots[0]]) for share in plans)
+    return RoundPlan(request, area.area_m2, coverage, area_unlit(plans), rounds)
+
+
+SURVEY_WORTH_M2 = 0.3
+"""Unseen floor (beside the area's, in pockets a stand point sees into) worth a survey first."""
+
+
+def _survey(
+    fm: cv.FloorMap,
+    cells: npt.NDArray[np.int8],
+    area: cv.Area,
+    robots: list[str],
+    points: list[Point],
+) -> tuple[tuple[cv.CoveragePlan, ...], float, float] | None:
+    """The survey's plans (one per robot), the unseen m² and the share of it the views see; None
+    when nothing worth a look is hidden."""
+    unknown = np.asarray(cells, dtype=np.int8) < 0
+    look = cv.plan_survey(fm, unknown, area, points[0], robot=robots[0])
+    if look is None or look.predicted.area_m2 * look.predicted.coverage < SURVEY_WORTH_M2:
+        return None
+    if len(robots) == 1:
+        return (look,), look.predicted.area_m2, look.predicted.coverage
+    fleet = cv.split_plan(fm, look, points, robots)
+    return fleet.plans, look.predicted.area_m2, look.predicted.coverage
+
+
+def _robot_round(share: cv.CoveragePlan, order_id: str) -> RobotRound:
+    try:
+        fields = cv.plan_order(share, order_id)
+    except ValueError as exc:  # more nodes than one order carries
+        raise RoundError(f"{share.robot}: {exc}") from None
+    route = tuple(RouteNode(n.node_id, n.x, n.y, n.dwell_s) for n in share.nodes)
+    pred = share.predicted
+    return RobotRound(share.robot, order_id, fields, route, pred.total_s, pred.dwell_s, pred.path_m)
 
 
 def area_unlit(plans: tuple[cv.CoveragePlan, ...]) -> float:

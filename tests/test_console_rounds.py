@@ -339,3 +339,56 @@ def test_a_rounds_default_target_is_the_one_its_robots_advertise(rig: Rig) -> No
     assert rig.app.target_for(("r1",)) == 50.0
     assert rig.app.target_for(("r2",)) == rig.app.target_j_m2 == 100.0
     assert rig.app.target_for(("r1", "r2")) == 100.0  # the strictest
+
+
+def hidden_grid() -> tuple[float, float, float, int, int, bytes]:
+    """``room_grid`` with a cabinet (x 0.4..0.6, y -0.6..0.4) whose far side (x 0.6..1.4, y -0.6..0.4)
+    the robot at (0, 0) has not seen: unknown on its map."""
+    cells = np.frombuffer(room_grid()[5], dtype=np.uint8).reshape(26, 32).copy()
+    cells[4:14, 14:16] = 100
+    cells[4:14, 16:24] = 255
+    return (ORIGIN[0], ORIGIN[1], RES, 32, 26, cells.tobytes())
+
+
+@run_async
+async def test_a_round_over_floor_the_map_has_not_seen_surveys_first_then_plans_on_what_was_seen(rig: Rig) -> None:
+    from fleetlink.shared.messages import Event, KeyValue, Severity
+
+    def ended(order_id: str, outcome: str) -> None:
+        data = (KeyValue(key="order", value=order_id), KeyValue(key="outcome", value=outcome))
+        text = f"order {order_id} {outcome}"
+        rig.zenoh.inject(rig.counter("r1").make(Event, kind="order", text=text, severity=Severity.INFO, data=data))
+
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await mapped(rig, pilot, "r1")
+        with rig.lock:
+            rig.fleet.set_grid("r1", hidden_grid())
+        await command(pilot, "disinfect rect -0.9 -0.9 1.9 1.3 dose 2")
+        (look,) = await until(pilot, lambda: orders(rig))
+        assert look.orderId.startswith("uv-r1-") and look.orderId.endswith("-survey")
+        assert {a.actionType for n in look.nodes for a in n.actions} == {ActionType.DWELL}  # lamp off throughout
+        assert all(n.x > 0.5 for n in look.nodes[1:])  # looking past the cabinet
+        said = notices(rig)
+        assert "survey before the UV round of the rectangle" in said and "view points" in said
+        # The robot looked: its map now has the floor behind the cabinet. The survey's order
+        # finishes, and the round is planned on that map and sent, with the lamp this time.
+        with rig.lock:
+            rig.fleet.set_grid("r1", room_grid())
+        ended(look.orderId, "finished")
+        assert await until(pilot, lambda: len(orders(rig)) == 2)
+        uv = orders(rig)[1]
+        assert uv.orderId.startswith("uv-r1-") and not uv.orderId.endswith("-survey")
+        assert ActionType.PAYLOAD in {a.actionType for n in uv.nodes for a in n.actions}
+        assert "at 2 mJ/cm²" in notices(rig)
+
+        # A survey cancelled (or stopped, or replaced) drops its round: nothing more is sent.
+        with rig.lock:
+            rig.fleet.set_grid("r1", hidden_grid())
+        await command(pilot, "disinfect rect -0.9 -0.9 1.9 1.3 dose 2")
+        assert await until(pilot, lambda: len(orders(rig)) == 3)
+        again = orders(rig)[2]
+        assert again.orderId.endswith("-survey")
+        ended(again.orderId, "ended")
+        assert await until(pilot, lambda: "survey ended before it finished" in notices(rig))
+        await settle(pilot, 0.3)
+        assert len(orders(rig)) == 3

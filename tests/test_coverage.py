@@ -378,3 +378,59 @@ def test_a_floor_map_from_map_cells_sees_the_dose_models_floor() -> None:
     expect[5, 5] = False
     assert (fm.free == expect).all()
     assert cv.FloorMap.from_cells(cells, RES, org, unknown_is_free=True).free[0, 0]
+
+
+# -- surveying: look before planning ------------------------------------------------------------------
+
+
+def _half_seen_room() -> tuple[cv.FloorMap, np.ndarray, cv.Area]:
+    """The 5 x 4 m room as a robot at the left end maps it: a 0.6 x 1.6 m cabinet at x 2.0..2.6
+    hides the floor behind it (x 2.6..3.8, y 1.2..2.8 unknown), the rest is seen. The survey must
+    look from beside the cabinet."""
+    free, org = _box(5.0, 4.0)
+    _fill(free, org, 2.0, 1.2, 2.6, 2.8, False)
+    cells = np.where(free, 0, 100).astype(np.int8)
+    unknown = np.zeros(free.shape, dtype=bool)
+    c0, c1 = round((2.6 - org[0]) / RES), round((3.8 - org[0]) / RES)
+    r0, r1 = round((1.2 - org[1]) / RES), round((2.8 - org[1]) / RES)
+    unknown[r0:r1, c0:c1] = True
+    cells[unknown] = -1
+    fm = cv.FloorMap.from_cells(cells, RES, org, cv.CoverageConfig())
+    return fm, cells < 0, cv.rectangle(fm, 0.0, 0.0, 5.0, 4.0)
+
+
+def test_a_survey_looks_into_the_pocket_the_robot_did_not_see() -> None:
+    fm, unknown, area = _half_seen_room()
+    hidden = cv.unseen(fm, unknown, area)
+    assert hidden.sum() * fm.cell_area == pytest.approx(1.2 * 1.6, rel=0.01)
+    look = cv.plan_survey(fm, unknown, area, (0.5, 2.0), robot="r1")
+    assert look is not None and look.kind == "survey" and look.robot == "r1"
+    views = [(n.x, n.y) for n in look.nodes[1:]]
+    assert views and all(n.dwell_s == cv.SURVEY_DWELL_S and not n.lamp for n in look.nodes[1:])
+    assert not any(e.lamp for e in look.edges)
+    # Each view point lies past the cabinet's front (x > 2.0): from where the robot stands, nothing
+    # of the pocket is in sight, so looking from there again would show nothing new.
+    assert all(x > 2.0 for x, _ in views), views
+    assert look.predicted.coverage >= 0.9
+    order = cv.plan_order(look, "survey-1")
+    kinds = {a.actionType.value for n in order["nodes"] for a in n.actions}
+    assert kinds == {"dwell"}  # no lamp switched anywhere
+
+
+def test_no_survey_when_the_map_has_seen_the_area_or_the_unknown_is_behind_walls() -> None:
+    free, org = _box(5.0, 4.0)
+    cells = np.where(free, 0, 100).astype(np.int8)
+    grown = np.full((cells.shape[0] + 20, cells.shape[1] + 20), -1, dtype=np.int8)  # unknown beyond the walls
+    grown[10:-10, 10:-10] = cells
+    org2 = (org[0] - 1.0, org[1] - 1.0)
+    fm = cv.FloorMap.from_cells(grown, RES, org2, cv.CoverageConfig())
+    area = cv.rectangle(fm, -0.9, -0.9, 5.9, 4.9)  # drawn over the walls into the unknown outside
+    assert not cv.unseen(fm, grown < 0, area).any()
+    assert cv.plan_survey(fm, grown < 0, area, (0.5, 0.5)) is None
+    # Speckles smaller than a pocket (a chair leg's shadow) are not worth a look.
+    speckled = grown.copy()
+    speckled[30, 30:32] = -1
+    fm2 = cv.FloorMap.from_cells(speckled, RES, org2, cv.CoverageConfig())
+    assert cv.plan_survey(fm2, speckled < 0, cv.rectangle(fm2, 0, 0, 5, 4), (0.5, 0.5)) is None
+    with pytest.raises(ValueError, match="unknown: expected the map's shape"):
+        cv.unseen(fm, np.zeros((3, 3), dtype=bool), area)

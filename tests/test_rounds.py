@@ -199,3 +199,31 @@ def test_order_ids_stay_new_and_times_read_as_people_say_them() -> None:
     assert first == "uv-r1-1000" and ids.next("uv", "r2", 1000.5) == "uv-r2-1001"
     assert ids.next("sweep", "r1", 5000.0) == "sweep-r1-5000"
     assert [describe_time(s) for s in (4.4, 65, 3725)] == ["4 s", "1 min 5 s", "1 h 02 min"]
+
+
+def test_a_round_over_a_pocket_the_map_has_not_seen_is_a_survey_first() -> None:
+    """An unknown 1.2 x 1.2 m pocket behind a wall stub in the left room: a request that allows a
+    survey gets one (view points, lamp off, the orders' ids marked); with none left it plans the
+    round on the map as it is; two robots share the looking."""
+    cells = CELLS.copy()
+    cells[5:18, 30] = 100  # a stub wall x 3.0, y 0.5..1.8
+    cells[5:17, 31:43] = -1  # what it hid from a robot at (1, 1): x 3.1..4.3, y 0.5..1.7
+    area = RectArea(0.1, 0.1, 5.0, 4.0)
+    request = RoundRequest("uv", area, ("r1",), 100.0, surveys=1)
+    look = plan_round(request, cells, RES, (0.0, 0.0), {"r1": A}, DEFAULT_LAMP, {"r1": "uv-r1-3"})
+    assert look.survey and look.area_m2 == pytest.approx(1.44, rel=0.05) and look.coverage >= 0.9
+    (r,) = look.rounds
+    assert r.order_id == "uv-r1-3-survey" and r.dwell_points >= 1
+    assert all(n.x > 3.0 for n in r.route[1:]), r.route  # past the stub
+    assert set(action_types(as_order(r.order))) == {"dwell"}
+    assert "survey before the UV round of the rectangle" in look.summary() and "view points" in look.summary()
+    # No survey left: the round itself, on the map as it is (the pocket is not floor on it).
+    uv = plan_round(RoundRequest("uv", area, ("r1",), 100.0), cells, RES, (0.0, 0.0), {"r1": A}, DEFAULT_LAMP)
+    assert not uv.survey and "payload" in action_types(as_order(uv.rounds[0].order))
+    # Two robots: the view points shared between them.
+    both = RoundRequest("uv", area, ("r1", "r2"), 100.0, surveys=1)
+    shared = plan_round(both, cells, RES, (0.0, 0.0), {"r1": A, "r2": B}, DEFAULT_LAMP)
+    assert shared.survey and {r.robot for r in shared.rounds} <= {"r1", "r2"}
+    # The same map fully seen: no survey, whatever is allowed.
+    seen = plan_round(request, CELLS, RES, (0.0, 0.0), {"r1": A}, DEFAULT_LAMP)
+    assert not seen.survey
