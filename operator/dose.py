@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from fleetlink.operator.fetcher import SnapshotFetcher
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.dose import (
@@ -50,7 +51,6 @@ from fleetlink.shared.dose_codec import FULL_BITS, SharedDose
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.messages import DoseSnapshot, DoseUpdate
 from fleetlink.shared.wire import WireError
-from fleetlink.shared.worker import Worker
 
 __all__ = [
     "AT_TARGET",
@@ -204,7 +204,7 @@ class DoseFollower:
         return {r: dataclasses.replace(d, cells=d.cells.copy()) for r, d in self.layers.items()}
 
 
-class DoseFetcher:
+class DoseFetcher(SnapshotFetcher[DoseSnapshot]):
     """A thread fetching the snapshots ``follower`` wants through ``fetch(robot)``, and merging the
     layers into ``follower.layer`` when they changed (at most every ``merge_s``). ``on_merged()``
     (optional) is called after a merge, outside the lock (the console redraws)."""
@@ -220,46 +220,15 @@ class DoseFetcher:
         merge_s: float = 1.0,
         on_merged: Callable[[], object] | None = None,
     ) -> None:
-        self.follower = follower
-        self.fetch = fetch
-        self.clock = clock
-        self.lock = lock
-        self.period_s = period_s
+        super().__init__("dose layer", follower, fetch, clock, lock, period_s=period_s)
+        self.doses = follower
         self.merge_s = merge_s
         self.on_merged = on_merged
-        self.fetched = 0
         self.merges = 0
         self._next_merge = -math.inf
-        self._worker = Worker("console-dose", target=self._run)
 
-    def start(self) -> DoseFetcher:
-        self._worker.start()
-        return self
-
-    def stop(self) -> None:
-        self._worker.stop()
-
-    def poll(self) -> int:
-        """One round: fetch what is wanted now, then merge if due. How many snapshots were taken."""
-        with self.lock:
-            robots = self.follower.wanted(self.clock.now())
-        taken = 0
-        for robot in robots:
-            if self._worker.stopping:
-                break
-            try:
-                snap = self.fetch(robot)
-            except Exception as exc:  # a closed session on the way out, a zenoh error: try later
-                log.debug("fetching %s's dose layer: %s", robot, exc)
-                continue
-            if snap is None:
-                continue
-            with self.lock:
-                if self.follower.on_snapshot(robot, snap):
-                    taken += 1
-        self.fetched += taken
+    def after_poll(self) -> None:
         self.merge()
-        return taken
 
     def merge(self, *, force: bool = False) -> bool:
         """Sum the layers into ``follower.layer`` if they changed since the last merge (and
@@ -268,7 +237,7 @@ class DoseFetcher:
         if not force and now < self._next_merge:
             return False
         with self.lock:
-            f = self.follower
+            f = self.doses
             if not f.layers or (f.layer is not None and f.layer.version == f.version):
                 return False
             version, copies = f.version, f.copies()
@@ -281,16 +250,6 @@ class DoseFetcher:
         if self.on_merged is not None:
             self.on_merged()
         return True
-
-    def _run(self, worker: Worker) -> None:
-        while not worker.stopping:
-            worker.wait(self.period_s)
-            if worker.stopping:
-                return
-            try:
-                self.poll()
-            except Exception:  # keep following
-                log.exception("dose fetch round failed")
 
 
 # -- the report ----------------------------------------------------------------------------------

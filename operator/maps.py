@@ -16,11 +16,11 @@ from collections.abc import Callable
 
 import numpy as np
 
+from fleetlink.operator.fetcher import SnapshotFetcher
 from fleetlink.operator.fleet import FleetModel, Grid
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.messages import MapSnapshot, MapUpdate
-from fleetlink.shared.worker import Worker
 
 __all__ = ["MapFetcher", "MapFollower", "to_grid"]
 
@@ -98,7 +98,7 @@ class MapFollower:
         return out
 
 
-class MapFetcher:
+class MapFetcher(SnapshotFetcher[MapSnapshot]):
     """A thread fetching the snapshots ``follower`` wants, through ``fetch(robot)``."""
 
     def __init__(
@@ -110,48 +110,4 @@ class MapFetcher:
         *,
         period_s: float = 0.5,
     ) -> None:
-        self.follower = follower
-        self.fetch = fetch
-        self.clock = clock
-        self.lock = lock
-        self.period_s = period_s
-        self.fetched = 0
-        self._worker = Worker("console-maps", target=self._run)
-
-    def start(self) -> MapFetcher:
-        self._worker.start()
-        return self
-
-    def stop(self) -> None:
-        self._worker.stop()
-
-    def poll(self) -> int:
-        """One round: fetch what is wanted now. How many snapshots were taken."""
-        with self.lock:
-            robots = self.follower.wanted(self.clock.now())
-        taken = 0
-        for robot in robots:
-            if self._worker.stopping:
-                break
-            try:
-                snap = self.fetch(robot)
-            except Exception as exc:  # a closed session on the way out, a zenoh error: try later
-                log.debug("fetching %s's map: %s", robot, exc)
-                continue
-            if snap is None:
-                continue
-            with self.lock:
-                if self.follower.on_snapshot(robot, snap):
-                    taken += 1
-        self.fetched += taken
-        return taken
-
-    def _run(self, worker: Worker) -> None:
-        while not worker.stopping:
-            worker.wait(self.period_s)
-            if worker.stopping:
-                return
-            try:
-                self.poll()
-            except Exception:  # keep following
-                log.exception("map fetch round failed")
+        super().__init__("map", follower, fetch, clock, lock, period_s=period_s)
