@@ -222,6 +222,11 @@ class Robot:
     def texts(self) -> list[str]:
         return [e.text for e in self.events if e.kind == "order"]
 
+    def outcomes(self) -> list[tuple[str, str]]:
+        """(order, outcome) of each order event that ended one, for machines (the console's survey)."""
+        found = [{kv.key: kv.value for kv in e.data} for e in self.events if e.kind == "order"]
+        return [(d["order"], d["outcome"]) for d in found if "outcome" in d]
+
 
 def node(i: int, x: float, y: float, *actions: Action, released: bool = True) -> OrderNode:
     return OrderNode(nodeId=f"n{i}", sequenceId=2 * i, released=released, x=x, y=y, theta=None, actions=actions)
@@ -274,6 +279,7 @@ def test_an_order_with_nodes_drives_each_node_switches_the_lamp_and_dwells_then_
     assert math.hypot(r.pose[0] - 1.0, r.pose[1] - 1.0) < 0.15
     assert r.lamp_requests == [True, False] and not r.lamp
     assert r.state().progress is None and any("finished: 3 nodes" in t for t in r.texts())
+    assert r.outcomes() == [("round-1", "finished")]
 
 
 def test_progress_says_which_node_was_reached_last_and_how_long_the_dwell_still_runs() -> None:
@@ -325,6 +331,7 @@ def test_a_pause_darkens_the_lamp_and_freezes_the_dwell_a_cancel_ends_the_round_
     assert r.action(ActionType.CANCEL).result is AckResult.ACCEPTED
     assert not r.lamp and r.state().progress is None and r.core.itinerary is None
     assert any("cancelled by op-a" in t for t in r.texts())
+    assert r.outcomes() == [("round-1", "ended")]
 
 
 def test_driving_by_hand_holds_the_round_and_the_resume_comes_back_to_the_node() -> None:
