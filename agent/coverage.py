@@ -1528,7 +1528,12 @@ def park_in_middle(
     s_cell = _start_cell(fm, start)
     fm.focus(area.stand, s_cell)
     from_start = fm.geodesic(s_cell)
-    rows, cols = np.nonzero(area.stand & np.isfinite(from_start))
+    can = area.stand & np.isfinite(from_start)
+    extra = fm.config.dwell_clearance_m / fm.plan_resolution
+    if extra > 0:  # as far from walls as a dwell point (the guard will not drive up to nearer ones)
+        clear = can & ~_dilate(~fm.stand, extra)
+        can = clear if clear.any() else can
+    rows, cols = np.nonzero(can)
     if rows.size == 0:
         raise ValueError("baseline: the robot cannot reach anywhere to stand in the area from its start")
     tr, tc = np.nonzero(area.target)

@@ -35,7 +35,7 @@ import json
 import logging
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -91,8 +91,13 @@ def main(argv: list[str] | None = None) -> int:
     wall0 = time.perf_counter()
     jobs = [(r, m) for r in rooms for m in modes]
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        futures = {job: pool.submit(run_one, job[0], job[1], args.seed) for job in jobs}
-        results = {job: f.result() for job, f in futures.items()}
+        futures = {pool.submit(run_one, job[0], job[1], args.seed): job for job in jobs}
+        done: dict[tuple[str, str], dict[str, Any]] = {}
+        for f in as_completed(futures):  # progress as each run ends (a run takes minutes)
+            job = futures[f]
+            done[job] = f.result()
+            print(f"  {len(done)}/{len(jobs)} {job[0]} {job[1]}: {done[job]['coverage_ratio']:.4f}", file=sys.stderr)
+        results = {job: done[job] for job in jobs}
     rows = []
     print(f"{'room':20} {'mode':10} {'coverage':>9} {'reach m2':>8} {'time s':>8} {'pred s':>8} "
           f"{'lamp out s':>10} {'path m':>7} {'ideal m':>7} {'skips':>5} {'bumps':>5}")  # fmt: skip

@@ -67,6 +67,8 @@ fusion finds its heading from UWB to 2 degrees and the map starts in the site fr
 DRIVE_SPEED = 0.3
 PLAN_AT_S = 11.0
 """When the operator plans (the map has settled after the drive in)."""
+PLAN_RETRY_S = 30.0
+"""A first plan the maps do not allow yet is tried again every 2 s for this long."""
 SAMPLE_S = 0.2
 """Truth sampling period: the lamp's dose, the path, the brush."""
 STILL_M = 0.01
@@ -210,6 +212,7 @@ class RoundRun:
         self._next_sample = 0.0
         self._next_teleop = 0.0
         self._planned = False
+        self._plan_at = PLAN_AT_S
         self.passes = 0
         self.surveys = 0
         self.surveys_left = MAX_SURVEYS
@@ -251,9 +254,11 @@ class RoundRun:
             self._next_teleop = t + 0.1  # a held key: 10 a second, as the console sends them
             for name in self.crews:
                 self._send(name, Teleop, v=DRIVE_SPEED, omega=0.0, ttl_s=0.5)
-        if not self._planned and t >= PLAN_AT_S:
-            self._planned = True
-            self._plan_and_send(t)
+        if not self._planned and t >= self._plan_at:
+            # As an operator would: a plan refused because a map is not there yet (not placed in
+            # the site frame, not fetched) is asked for again a little later.
+            self._planned = self._plan_and_send(t) or t >= PLAN_AT_S + PLAN_RETRY_S
+            self._plan_at = t + 2.0
         self._read(t)
         if t >= self._next_sample:
             self._next_sample = t + SAMPLE_S
@@ -288,6 +293,12 @@ class RoundRun:
             return self._plan_and_send(t)
         if self.setup.mode != "uv" or self.passes >= MAX_PASSES:
             return False
+        got = (
+            float((self.dose[self.reach] >= self.setup.target_j_m2 * (1.0 - 1e-6)).mean()) if self.reach.any() else 0.0
+        )
+        self.notes.append(
+            f"t={t:.1f}: pass {self.passes} done: {100 * got:.2f} % of the reachable floor at the dose (truth)"
+        )
         return self._plan_and_send(t)
 
     def _plan_and_send(self, t: float) -> bool:
@@ -328,6 +339,9 @@ class RoundRun:
         else:
             self.passes += 1
             self.notes.append(f"t={t:.1f}: pass {self.passes} sent: {self.predicted_s:.0f} s predicted so far")
+        for name, crew in self.crews.items():
+            if name not in orders:  # nothing for it in this pass (a survey's views all went to the other)
+                crew.done_at = t
         for name, fields in orders.items():
             crew = self.crews[name]
             crew.order_id = fields["orderId"]
