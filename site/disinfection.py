@@ -324,6 +324,9 @@ class RoundRun:
             layers = [fetch_dose(self.op.zenoh, name) for name in names]
             dose_grids = [SharedDose.from_snapshot(d).grid() for d in layers if d is not None]
             prior = DoseGrid.merged(dose_grids) if dose_grids else None
+            if prior is not None:
+                layer = self._layer_coverage(cells, res, origin, prior)
+                self.notes.append(f"t={t:.1f}: the robots' layers: {100 * layer:.2f} % of the lamp's floor at the dose")
         wall0 = time.perf_counter()
         try:
             orders, survey = self._orders(cells, res, origin, starts, prior)
@@ -349,6 +352,25 @@ class RoundRun:
             crew.done_at = None
             self._send(name, Order, **fields)
         return True
+
+    def _layer_coverage(
+        self, cells: np.ndarray[Any, np.dtype[np.int8]], res: float, origin: tuple[float, float], dose: DoseGrid
+    ) -> float:
+        """Share of the room's lamp-reachable floor, on the robots' merged map, that their dose
+        layers say has the dose (what an operator reads off ``:dose`` before deciding on a top-up)."""
+        fm = cv.FloorMap.from_cells(cells, res, origin, ROUND_CONFIG)
+        try:
+            area = cv.rectangle(fm, *self.setup.rect)
+        except ValueError:
+            return 0.0
+        reach = cv.reachable(fm, area, self.lamp, target_dose=self.setup.target_j_m2)
+        if not reach.any():
+            return 0.0
+        h, w = fm.shape
+        xs = fm.origin[0] + (np.arange(w, dtype=np.float64) + 0.5) * fm.resolution
+        ys = fm.origin[1] + (np.arange(h, dtype=np.float64) + 0.5) * fm.resolution
+        had = dose.dose_at(xs, ys)
+        return float((had[reach] >= self.setup.target_j_m2).mean())
 
     def _orders(
         self,
