@@ -20,7 +20,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "board": ("fleetlink.cli.board", "serve a simulated control board, or probe a real one"),
     "agent": ("fleetlink.cli.agent", "run one robot's agent (board link, Zenoh + MQTT command links)"),
     "uwb": ("fleetlink.cli.uwb", "the UWB gateway: fixes from the field's true poses, over MQTT (PANS too)"),
-    "map": ("fleetlink.cli.map", "maps: fetch a robot's map, read a map_server map, build one from a CARMEN log"),
+    "map": (
+        "fleetlink.cli.map",
+        "maps: fetch a robot's map, read a map_server map, build one from a CARMEN log, score a trajectory's relation errors",
+    ),
     "dose": (
         "fleetlink.cli.dose",
         "UV dose: fetch robots' dose layers and write the dose report (PGM, PNG, CSV, summary)",

@@ -3,11 +3,16 @@ writes it as a ROS map_server map (PGM + YAML); ``load`` reads a map_server map 
 (``fleetlink field`` takes the same file as a floor plan); ``replay`` builds a map offline from a
 CARMEN log (FLASER, ROBOTLASER1, ODOM lines; .gz accepted), writing DIR/map.pgm, DIR/map.yaml and
 DIR/trajectory.txt (``ipc_timestamp x y theta`` per scan, the timestamp copied from the log).
+``relations`` writes a complete relation set (Kümmerle et al. 2009) from a corrected log's poses;
+``score`` scores a trajectory against one (mean ± sd translational and rotational error, all pairs,
+local pairs and revisits).
 
 Examples:
   fleetlink map save --robot r1 --out maps/r1 --connect tcp/127.0.0.1:7447
   fleetlink map load maps/r1/map.yaml
   fleetlink map replay ../shared/data/intel-corrected.log.gz --out out/intel
+  fleetlink map relations --log ../shared/data/intel-corrected.log.gz --out out/intel.relations
+  fleetlink map score --trajectory out/intel/trajectory.txt --relations out/intel.relations
 """
 
 from __future__ import annotations
@@ -42,6 +47,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rep.add_argument("--resolution", type=float, default=0.05, help="metres per cell (default 0.05)")
     rep.add_argument("--no-matching", action="store_true", help="map at the odometry poses (no scan matching)")
     rep.set_defaults(_run=run_replay)
+
+    rel = sub.add_parser("relations", help="write a complete relation set from a corrected CARMEN log")
+    rel.add_argument(
+        "--log",
+        required=True,
+        metavar="LOG",
+        help="corrected CARMEN log (plain or .gz): its scan poses are the reference",
+    )
+    rel.add_argument(
+        "--out", required=True, metavar="FILE", help="relations file to write (t1 t2 x y z roll pitch yaw per line)"
+    )
+    rel.add_argument(
+        "--max-distance", type=float, default=3.0, metavar="M", help="pair scans at most M metres apart (default 3)"
+    )
+    rel.set_defaults(_run=run_relations)
+
+    sco = sub.add_parser("score", help="score a trajectory against relations (relation errors)")
+    sco.add_argument(
+        "--trajectory", required=True, metavar="FILE", help="t x y theta per line (replay's trajectory.txt)"
+    )
+    sco.add_argument("--relations", required=True, metavar="FILE", help="t1 t2 x y z roll pitch yaw per line")
+    sco.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    sco.set_defaults(_run=run_score)
 
 
 def run(args: argparse.Namespace) -> int:  # pragma: no cover - argparse always sets a sub-action
@@ -134,4 +162,92 @@ def run_replay(args: argparse.Namespace) -> int:
     print(
         f"{len(result.rows)} scans mapped ({m.matched} matched, {m.fallbacks} on odometry); wrote {out}/map.pgm, map.yaml, trajectory.txt"
     )
+    return 0
+
+
+def run_relations(args: argparse.Namespace) -> int:
+    import math
+
+    import numpy as np
+
+    from fleetlink.agent.mapping.carmen import CarmenStats, LaserRecord, open_log, read_records
+    from fleetlink.agent.mapping.relations import DEFAULT_LOCAL_S, format_relations, generate_relations
+
+    name = "fleetlink map relations"
+    if not (math.isfinite(args.max_distance) and args.max_distance > 0):
+        print(f"{name}: --max-distance must be a number of metres above 0, got {args.max_distance}", file=sys.stderr)
+        return 2
+    stats = CarmenStats()
+    try:
+        with open_log(args.log) as f:
+            scans = [r for r in read_records(f, stats) if isinstance(r, LaserRecord)]
+    except OSError as exc:
+        print(f"{name}: cannot read {args.log}: {exc}", file=sys.stderr)
+        return 1
+    for example in stats.examples:
+        log.warning("%s: skipped %s", args.log, example)
+    if len(scans) < 2:
+        print(f"{name}: fewer than two scans in {args.log} ({stats.summary()})", file=sys.stderr)
+        return 1
+    # Each record's own maximum means "no return" (NaN here), so one maximum range serves them all.
+    ranges = [np.where(r.ranges >= r.max_range, np.nan, r.ranges) for r in scans]
+    relations = generate_relations(
+        [r.timestamp for r in scans],
+        [r.pose for r in scans],
+        max_distance_m=args.max_distance,
+        scans=[(d, r.angles) for d, r in zip(ranges, scans, strict=True)],
+        max_range=max(r.max_range for r in scans),
+        mount=scans[0].laser_offset,  # one mount for the log (ROBOTLASER1 could vary it per record)
+    )
+    try:
+        Path(args.out).write_text(format_relations(relations), encoding="ascii")
+    except OSError as exc:
+        print(f"{name}: cannot write {args.out}: {exc}", file=sys.stderr)
+        return 1
+    local = sum(abs(r.t2 - r.t1) < DEFAULT_LOCAL_S for r in relations)
+    print(f"{args.log}: {stats.summary()}")
+    print(
+        f"{len(relations)} relations from {len(scans)} scans ({local} within {DEFAULT_LOCAL_S:g} s,"
+        f" {len(relations) - local} revisits); wrote {args.out}"
+    )
+    return 0
+
+
+def run_score(args: argparse.Namespace) -> int:
+    import json
+
+    from fleetlink.agent.mapping.relations import format_score, parse_relations, parse_trajectory, score
+
+    name = "fleetlink map score"
+    try:
+        with open(args.trajectory, encoding="utf-8", errors="replace") as f:
+            times, poses = parse_trajectory(f)
+    except (OSError, ValueError) as exc:
+        print(f"{name}: cannot read {args.trajectory}: {exc}", file=sys.stderr)
+        return 1
+    try:
+        with open(args.relations, encoding="utf-8", errors="replace") as f:
+            relations = parse_relations(f)
+    except (OSError, ValueError) as exc:
+        print(f"{name}: cannot read {args.relations}: {exc}", file=sys.stderr)
+        return 1
+    if not relations:
+        print(f"{name}: no relations in {args.relations}", file=sys.stderr)
+        return 1
+    try:
+        result = score(times, poses, relations)
+    except ValueError as exc:
+        print(f"{name}: {args.trajectory}: {exc}", file=sys.stderr)
+        return 1
+    print(format_score(result), end="")
+    if args.json:
+        doc = {"trajectory": args.trajectory, "relations": args.relations, **result.as_dict()}
+        try:
+            Path(args.json).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+        except OSError as exc:
+            print(f"{name}: cannot write {args.json}: {exc}", file=sys.stderr)
+            return 1
+    if result.count == 0:
+        print(f"{name}: none of the {len(relations)} relations' times is in {args.trajectory}", file=sys.stderr)
+        return 1
     return 0
