@@ -1658,9 +1658,10 @@ def plan_survey(
     goal = enough * int(seeable.sum())
     seen = np.zeros(tx.size, dtype=bool)
     picked: list[int] = []
+    away = from_start[tuple(np.array(cands).T)] * 1e-6  # ties: nearer the start
     while int(seen.sum()) < goal and len(picked) < max_views:
         gain = (view & ~seen).sum(axis=1)
-        j = int(np.argmax(gain - from_start[tuple(np.array(cands).T)] * 1e-6))  # ties: nearer the start
+        j = int(np.argmax(gain - away))
         if gain[j] == 0:
             break
         picked.append(j)

@@ -17,7 +17,7 @@ import math
 import threading
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, TypeVar
 from urllib.parse import urlparse
 
 from fleetlink.links.base import Link, RetainLink
@@ -27,6 +27,8 @@ from fleetlink.shared.clock import Clock
 from fleetlink.shared.messages import Ack, AlarmAck, DoseSnapshot, LinkName, MapSnapshot, Mark, MarkSet
 from fleetlink.shared.mqtt import MqttSettings
 from fleetlink.shared.worker import Worker
+
+_S = TypeVar("_S", bound=wire.Message)
 
 log = logging.getLogger(__name__)
 
@@ -335,31 +337,25 @@ class OperatorLink:
 
     def fetch_map(self, robot: str, timeout: float = 3.0) -> MapSnapshot | None:
         """Ask the robot's map queryable (``fleetlink/v1/<robot>/map``); None if no good answer."""
-        primary = self._queries()
-        if primary is None:
-            return None
-        for key, payload in primary.query(keys.key(robot, MapSnapshot.TOPIC), timeout):
-            try:
-                msg = wire.decode_key(key, payload)
-            except wire.WireError as exc:
-                self._reject(PRIMARY, key, exc.reason)
-                continue
-            if isinstance(msg, MapSnapshot):
-                return msg
-        return None
+        return self._fetch(robot, MapSnapshot, timeout)
 
     def fetch_dose(self, robot: str, timeout: float = 3.0) -> DoseSnapshot | None:
         """Ask the robot's dose queryable (``fleetlink/v1/<robot>/dose``); None if no good answer."""
+        return self._fetch(robot, DoseSnapshot, timeout)
+
+    def _fetch(self, robot: str, cls: type[_S], timeout: float) -> _S | None:
+        """The first valid ``cls`` answer of ``fleetlink/v1/<robot>/<cls.TOPIC>``; bad replies are
+        counted and logged as rejected input."""
         primary = self._queries()
         if primary is None:
             return None
-        for key, payload in primary.query(keys.key(robot, DoseSnapshot.TOPIC), timeout):
+        for key, payload in primary.query(keys.key(robot, cls.TOPIC), timeout):
             try:
                 msg = wire.decode_key(key, payload)
             except wire.WireError as exc:
                 self._reject(PRIMARY, key, exc.reason)
                 continue
-            if isinstance(msg, DoseSnapshot):
+            if isinstance(msg, cls):
                 return msg
         return None
 
