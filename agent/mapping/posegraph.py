@@ -1,0 +1,196 @@
+"""A 2D pose graph and its least-squares solve: the back end that closes loops (issue 17).
+
+Nodes are poses ``(x, y, theta)`` in one frame (the mapper's keyframes). Edges are measured
+relative poses between two nodes, each with a 3x3 information matrix (the inverse covariance of
+``dx dy dtheta`` in the first node's frame): odometry or scan matching between consecutive
+keyframes, and loop closures between a keyframe and an older one it was matched against.
+
+    g = PoseGraph()
+    a = g.add_node((0.0, 0.0, 0.0)); b = g.add_node((1.0, 0.0, 0.0))
+    g.add_edge(a, b, (1.0, 0.0, 0.0), np.diag([100.0, 100.0, 400.0]))
+    result = g.optimize()            # Gauss-Newton; the first node (or ``fixed``) held still
+
+The error of an edge ``i -> j`` with measurement ``z`` is ``t2v(Z^-1 (X_i^-1 X_j))`` and the solve
+minimises the sum of ``rho(e^T Omega e)`` over the edges, with ``rho`` the identity (odometry) or
+the Cauchy kernel for edges marked ``robust`` (closures: a wrong match is down-weighted instead of
+bending the whole map). Jacobians and the update follow Grisetti, Kümmerle, Stachniss and
+Burgard, "A tutorial on graph-based SLAM" (IEEE ITS Magazine, 2010), section IV. The normal
+equations are solved dense (numpy): keyframes every half metre make a few hundred nodes for a
+building, a solve of tens of milliseconds.
+
+Bad input (a non-finite pose or measurement, an information matrix that is not symmetric positive
+definite, an edge to an unknown node or to itself) raises ``ValueError`` saying which. Pure numpy,
+no clock, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["Edge", "PoseGraph", "Solve", "relative"]
+
+Pose = tuple[float, float, float]
+F64 = npt.NDArray[np.float64]
+
+
+def _wrap(a: float) -> float:
+    return math.remainder(a, 2.0 * math.pi)
+
+
+def relative(a: Pose, b: Pose) -> Pose:
+    """``b`` seen from ``a``: ``a^-1 (+) b``."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return (c * dx + s * dy, -s * dx + c * dy, _wrap(b[2] - a[2]))
+
+
+@dataclass(frozen=True, slots=True)
+class Edge:
+    i: int
+    j: int
+    z: Pose
+    """Pose of node ``j`` in the frame of node ``i``, as measured."""
+    info: F64
+    """3x3 information matrix of ``z`` (dx, dy in metres, dtheta in radians)."""
+    robust: bool = False
+    """A loop closure: Cauchy-weighted, so one wrong match does not bend the map. The weight is
+    judged at the current guess, so a true closure many sigma off it (drift far beyond what the
+    odometry's information admits) is down-weighted too: add such a closure as a plain edge once
+    the front end has checked it."""
+
+
+@dataclass(frozen=True, slots=True)
+class Solve:
+    poses: list[Pose]
+    iterations: int
+    chi2_before: float
+    chi2_after: float
+    """Sum of e^T Omega e over every edge (no kernel), before and after."""
+    converged: bool
+    outliers: tuple[int, ...] = ()
+    """Indices (into ``edges``) of robust edges whose final weight fell below one half: closures
+    the solve did not believe."""
+
+
+class PoseGraph:
+    def __init__(self, cauchy_c: float = 1.0) -> None:
+        if not (math.isfinite(cauchy_c) and cauchy_c > 0):
+            raise ValueError(f"cauchy_c must be a finite number > 0, got {cauchy_c!r}")
+        self.cauchy_c = cauchy_c
+        self.poses: list[Pose] = []
+        self.edges: list[Edge] = []
+
+    def add_node(self, pose: Sequence[float]) -> int:
+        """A node at ``pose`` (the initial guess); its index."""
+        if len(pose) != 3 or not all(math.isfinite(float(v)) for v in pose):
+            raise ValueError(f"node pose must be three finite numbers (x, y, theta), got {tuple(pose)!r}")
+        self.poses.append((float(pose[0]), float(pose[1]), _wrap(float(pose[2]))))
+        return len(self.poses) - 1
+
+    def add_edge(self, i: int, j: int, z: Sequence[float], info: npt.ArrayLike, *, robust: bool = False) -> Edge:
+        """A measured pose of ``j`` in ``i``'s frame with its information matrix."""
+        n = len(self.poses)
+        if not (0 <= i < n and 0 <= j < n):
+            raise ValueError(f"edge {i}->{j}: no such node (the graph has {n})")
+        if i == j:
+            raise ValueError(f"edge {i}->{j}: a node cannot constrain itself")
+        if len(z) != 3 or not all(math.isfinite(float(v)) for v in z):
+            raise ValueError(f"edge {i}->{j}: measurement must be three finite numbers, got {tuple(z)!r}")
+        om = np.array(info, dtype=np.float64)
+        if om.shape != (3, 3) or not np.all(np.isfinite(om)) or not np.allclose(om, om.T, atol=1e-9):
+            raise ValueError(f"edge {i}->{j}: information must be a finite symmetric 3x3 matrix")
+        try:
+            np.linalg.cholesky(om)
+        except np.linalg.LinAlgError:
+            raise ValueError(f"edge {i}->{j}: information must be positive definite") from None
+        e = Edge(i, j, (float(z[0]), float(z[1]), _wrap(float(z[2]))), om, robust)
+        self.edges.append(e)
+        return e
+
+    # -- the solve ----------------------------------------------------------------------------------
+
+    @staticmethod
+    def _error(xi: Pose, xj: Pose, z: Pose) -> tuple[F64, F64, F64]:
+        """The edge's error and its Jacobians with respect to x_i and x_j (Grisetti et al. eq. 30-31)."""
+        ci, si = math.cos(xi[2]), math.sin(xi[2])
+        cz, sz = math.cos(z[2]), math.sin(z[2])
+        dx, dy = xj[0] - xi[0], xj[1] - xi[1]
+        rit = np.array([[ci, si], [-si, ci]])  # R_i^T
+        rzt = np.array([[cz, sz], [-sz, cz]])  # R_z^T
+        t = rzt @ (rit @ np.array([dx, dy]) - np.array([z[0], z[1]]))
+        e = np.array([t[0], t[1], _wrap(xj[2] - xi[2] - z[2])])
+        drit = np.array([[-si, ci], [-ci, -si]])  # d R_i^T / d theta_i
+        a = np.zeros((3, 3))
+        a[:2, :2] = -rzt @ rit
+        a[:2, 2] = rzt @ drit @ np.array([dx, dy])
+        a[2, 2] = -1.0
+        b = np.zeros((3, 3))
+        b[:2, :2] = rzt @ rit
+        b[2, 2] = 1.0
+        return e, a, b
+
+    def chi2(self, poses: Sequence[Pose] | None = None) -> float:
+        """Sum of e^T Omega e over the edges at ``poses`` (default: the graph's)."""
+        ps = self.poses if poses is None else poses
+        total = 0.0
+        for ed in self.edges:
+            e, _, _ = self._error(ps[ed.i], ps[ed.j], ed.z)
+            total += float(e @ ed.info @ e)
+        return total
+
+    def optimize(self, *, fixed: int = 0, iterations: int = 20, tolerance: float = 1e-9) -> Solve:
+        """Gauss-Newton (iteratively reweighted for robust edges) with node ``fixed`` held still.
+        The graph's poses are replaced by the solution; nodes no edge reaches keep their guess."""
+        n = len(self.poses)
+        if not 0 <= fixed < n:
+            raise ValueError(f"fixed node {fixed}: no such node (the graph has {n})")
+        poses = list(self.poses)
+        before = self.chi2(poses)
+        if not self.edges:
+            return Solve(poses, 0, before, before, True)
+        done = 0
+        converged = False
+        weights = [1.0] * len(self.edges)
+        for step in range(1, iterations + 1):
+            done = step
+            h = np.zeros((3 * n, 3 * n))
+            g = np.zeros(3 * n)
+            for k, ed in enumerate(self.edges):
+                e, a, b = self._error(poses[ed.i], poses[ed.j], ed.z)
+                w = 1.0
+                if ed.robust:
+                    s = float(e @ ed.info @ e)
+                    w = 1.0 / (1.0 + s / (self.cauchy_c * self.cauchy_c))
+                weights[k] = w
+                om = w * ed.info
+                i3, j3 = 3 * ed.i, 3 * ed.j
+                h[i3 : i3 + 3, i3 : i3 + 3] += a.T @ om @ a
+                h[i3 : i3 + 3, j3 : j3 + 3] += a.T @ om @ b
+                h[j3 : j3 + 3, i3 : i3 + 3] += b.T @ om @ a
+                h[j3 : j3 + 3, j3 : j3 + 3] += b.T @ om @ b
+                g[i3 : i3 + 3] += a.T @ om @ e
+                g[j3 : j3 + 3] += b.T @ om @ e
+            f3 = 3 * fixed
+            h[f3 : f3 + 3, :] = 0.0
+            h[:, f3 : f3 + 3] = 0.0
+            h[f3 : f3 + 3, f3 : f3 + 3] = np.eye(3)
+            g[f3 : f3 + 3] = 0.0
+            # Nodes no edge touches: held where they are.
+            loose = np.diag(h) == 0.0
+            h[loose, loose] = 1.0
+            dx = np.linalg.solve(h, -g)
+            poses = [
+                (p[0] + float(dx[3 * k]), p[1] + float(dx[3 * k + 1]), _wrap(p[2] + float(dx[3 * k + 2])))
+                for k, p in enumerate(poses)
+            ]
+            if float(np.max(np.abs(dx))) < tolerance:
+                converged = True
+                break
+        self.poses = poses
+        outliers = tuple(k for k, ed in enumerate(self.edges) if ed.robust and weights[k] < 0.5)
+        return Solve(poses, done, before, self.chi2(poses), converged, outliers)
