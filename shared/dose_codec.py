@@ -23,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from fleetlink.shared.dose import DoseGrid, Lamp
+from fleetlink.shared.map_codec import paste, patch_follows, patch_outside, patch_place, patch_window
 from fleetlink.shared.messages import (
     MAX_DOSE_CELLS,
     MAX_DOSE_DATA,
@@ -193,9 +194,8 @@ def patch_fields(
     unplaced_s: float,
 ) -> dict[str, Any] | None:
     """Keyword fields of a ``DoseUpdate`` for ``box`` (row0, col0, row1, col1), or None if it does not fit."""
-    h, w = dose.shape
-    r0, c0, r1, c1 = max(0, box[0]), max(0, box[1]), min(h, box[2]), min(w, box[3])
-    r1, c1 = max(r0, r1), max(c0, c1)
+    window = patch_window(dose.shape, box)
+    r0, c0, r1, c1 = window
     data = encode_cells(dose[r0:r1, c0:c1], PATCH_LEVEL)
     if len(data) > MAX_DOSE_DATA:
         return None
@@ -203,12 +203,7 @@ def patch_fields(
         "version": int(version),
         "base_version": int(base_version),
         **_common(resolution, origin, target_j_m2, lamp_on_s, unplaced_s),
-        "width": int(w),
-        "height": int(h),
-        "col": int(c0),
-        "row": int(r0),
-        "patch_width": int(c1 - c0),
-        "patch_height": int(r1 - r0),
+        **patch_place(dose.shape, window),
         "cells": data,
     }
 
@@ -255,20 +250,15 @@ class SharedDose:
 
         ``WireError`` for a patch that cannot be right (outside the layer, cells of the wrong size
         or values)."""
-        if msg.col + msg.patch_width > msg.width or msg.row + msg.patch_height > msg.height:
+        if patch_outside(msg):
             raise WireError(
                 f"the patch ({msg.col}, {msg.row}) + {msg.patch_width} x {msg.patch_height} lies outside the "
                 f"{msg.width} x {msg.height} layer",
                 "col",
             )
-        if msg.base_version != self.version or msg.version <= self.version:
+        if not patch_follows(msg, self.version, self.cells, self.resolution, self.origin):
             return False
-        if (msg.width, msg.height) != (self.cells.shape[1], self.cells.shape[0]):
-            return False
-        if msg.resolution != self.resolution or (msg.origin_x, msg.origin_y) != self.origin:
-            return False
-        patch = decode_cells(msg.cells, msg.patch_width, msg.patch_height)
-        self.cells[msg.row : msg.row + msg.patch_height, msg.col : msg.col + msg.patch_width] = patch
+        paste(self.cells, msg, decode_cells(msg.cells, msg.patch_width, msg.patch_height))
         self.version = msg.version
         self.target_j_m2, self.lamp_on_s, self.unplaced_s = msg.target_j_m2, msg.lamp_on_s, msg.unplaced_s
         return True

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -95,6 +95,73 @@ def fits_whole(cells: Cells) -> bool:
     return _surely_fits(cells) or len(encode_cells(cells, 1)) <= MAX_MAP_DATA
 
 
+class Patch(Protocol):
+    """What a grid update (``MapUpdate``, ``DoseUpdate``) says of where its patch goes."""
+
+    @property
+    def version(self) -> int: ...
+    @property
+    def base_version(self) -> int: ...
+    @property
+    def resolution(self) -> float: ...
+    @property
+    def origin_x(self) -> float: ...
+    @property
+    def origin_y(self) -> float: ...
+    @property
+    def width(self) -> int: ...
+    @property
+    def height(self) -> int: ...
+    @property
+    def col(self) -> int: ...
+    @property
+    def row(self) -> int: ...
+    @property
+    def patch_width(self) -> int: ...
+    @property
+    def patch_height(self) -> int: ...
+
+
+def patch_window(shape: tuple[int, ...], box: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+    """``box`` (row0, col0, row1, col1) clipped to a grid of ``shape`` (never of negative size)."""
+    h, w = shape[0], shape[1]
+    r0, c0, r1, c1 = max(0, box[0]), max(0, box[1]), min(h, box[2]), min(w, box[3])
+    return r0, c0, max(r0, r1), max(c0, c1)
+
+
+def patch_place(shape: tuple[int, ...], window: tuple[int, int, int, int]) -> dict[str, int]:
+    """An update's fields that place a patch ``window`` in a grid of ``shape``."""
+    r0, c0, r1, c1 = window
+    return {
+        "width": int(shape[1]),
+        "height": int(shape[0]),
+        "col": int(c0),
+        "row": int(r0),
+        "patch_width": int(c1 - c0),
+        "patch_height": int(r1 - r0),
+    }
+
+
+def patch_outside(msg: Patch) -> bool:
+    """The patch reaches beyond the grid it says it belongs to (the update cannot be right)."""
+    return msg.col + msg.patch_width > msg.width or msg.row + msg.patch_height > msg.height
+
+
+def patch_follows(
+    msg: Patch, version: int, cells: npt.NDArray[Any], resolution: float, origin: tuple[float, float]
+) -> bool:
+    """The update follows a copy at ``version`` of this grid (else: fetch a snapshot)."""
+    if msg.base_version != version or msg.version <= version:
+        return False
+    if (msg.width, msg.height) != (cells.shape[1], cells.shape[0]):
+        return False
+    return msg.resolution == resolution and (msg.origin_x, msg.origin_y) == origin
+
+
+def paste(cells: npt.NDArray[Any], msg: Patch, patch: npt.NDArray[Any]) -> None:
+    cells[msg.row : msg.row + msg.patch_height, msg.col : msg.col + msg.patch_width] = patch
+
+
 def snapshot_fields(cells: Cells, resolution: float, origin: tuple[float, float], version: int) -> dict[str, Any]:
     """Keyword fields of a ``MapSnapshot``; halves the resolution until the compressed cells fit."""
     data = _whole(cells)
@@ -123,8 +190,8 @@ def patch_fields(
     base_version: int,
 ) -> dict[str, Any] | None:
     """Keyword fields of a ``MapUpdate`` for ``box`` (row0, col0, row1, col1), or None if it does not fit."""
-    h, w = cells.shape
-    r0, c0, r1, c1 = max(0, box[0]), max(0, box[1]), min(h, box[2]), min(w, box[3])
+    window = patch_window(cells.shape, box)
+    r0, c0, r1, c1 = window
     data = encode_cells(cells[r0:r1, c0:c1], PATCH_LEVEL)
     if len(data) > MAX_MAP_DATA:
         return None
@@ -134,12 +201,7 @@ def patch_fields(
         "resolution": float(resolution),
         "origin_x": float(origin[0]),
         "origin_y": float(origin[1]),
-        "width": int(w),
-        "height": int(h),
-        "col": int(c0),
-        "row": int(r0),
-        "patch_width": int(c1 - c0),
-        "patch_height": int(r1 - r0),
+        **patch_place(cells.shape, window),
         "encoding": ENCODING,
         "cells": data,
     }
@@ -164,15 +226,10 @@ class SharedMap:
         """Apply a patch; False (unchanged) when it does not follow this copy: fetch a snapshot then.
 
         ValueError for a patch that cannot be right (outside the map, cells of the wrong size)."""
-        if msg.col + msg.patch_width > msg.width or msg.row + msg.patch_height > msg.height:
+        if patch_outside(msg):
             raise ValueError("the patch lies outside the map")
-        if msg.base_version != self.version or msg.version <= self.version:
+        if not patch_follows(msg, self.version, self.cells, self.resolution, self.origin):
             return False
-        if (msg.width, msg.height) != (self.cells.shape[1], self.cells.shape[0]):
-            return False
-        if msg.resolution != self.resolution or (msg.origin_x, msg.origin_y) != self.origin:
-            return False
-        patch = decode_cells(msg.cells, msg.patch_width, msg.patch_height)
-        self.cells[msg.row : msg.row + msg.patch_height, msg.col : msg.col + msg.patch_width] = patch
+        paste(self.cells, msg, decode_cells(msg.cells, msg.patch_width, msg.patch_height))
         self.version = msg.version
         return True
