@@ -370,6 +370,10 @@ async def test_tab_selects_the_next_robot(rig: Rig) -> None:
             seen.append(rig.app.selected)
         assert seen == ["r2", "r3", "r1"]  # wraps round
         assert isinstance(rig.app.focused, MapView)  # the focus stayed where it was
+        for _ in range(50):  # the status line is refreshed on the next tick, not with the key
+            if "robot r1" in status_line(rig.app):
+                break
+            await pilot.pause(0.05)
         assert "robot r1" in status_line(rig.app)
         # In an input, tab keeps its usual meaning: the focus moves on, the robot stays.
         await pilot.press("slash")

@@ -86,6 +86,7 @@ class LogOddsGrid:
         self.field: F32 = np.zeros((c, c), dtype=np.float32)
         self.coarse_field: F32 = np.zeros((1, 1), dtype=np.float32)
         self._tag = np.zeros(c * c, dtype=np.uint8)
+        self._placed = False  # the first scan places the grid (then it only grows)
         self.empty = True  # nothing integrated yet
         self.version = 0  # +1 per integrated scan
         self.dirty: Box | None = None  # cells changed since the last take_dirty()
@@ -107,7 +108,7 @@ class LogOddsGrid:
         cfg, res = self.config, self.resolution
         h, w = self.shape
         ox, oy = self.origin
-        if self.empty and not self.seen.any():
+        if self.empty and not self._placed:
             # First scan: centre the grid on it. Cell *centres* sit on round coordinates (multiples
             # of the resolution): a wall on a round coordinate (buildings, a UWB frame aligned with
             # them, the simulator's plans) then falls in the middle of a cell, so scans from either
@@ -119,6 +120,7 @@ class LogOddsGrid:
             w0 = math.ceil((xmax + pad - ox) / res)
             h0 = math.ceil((ymax + pad - oy) / res)
             self._realloc(0, 0, h0, w0, ox, oy, fresh=True)
+            self._placed = True
             return
         step = math.ceil(cfg.grow_step / res)
         add_l = step if xmin < ox else 0
@@ -171,11 +173,14 @@ class LogOddsGrid:
         ranges: FloatArray,
         angles: FloatArray,
         hit: npt.NDArray[np.bool_],
+        *,
+        refresh: bool = True,
     ) -> Box | None:
         """Add one scan taken from ``sensor_pose`` (x, y, theta of the sensor in the map frame).
 
         ``ranges``/``angles``: valid beams (see ``scan.prepare``); ``hit`` False for beams that
         returned nothing within range (they only clear). Returns the changed box of cells.
+        ``refresh=False`` leaves the likelihood field for a later ``refresh`` (a redraw of many scans).
         """
         if ranges.size == 0:
             return None
@@ -216,11 +221,27 @@ class LogOddsGrid:
             box = hits if box is None else _union(box, hits)
         if box is None:  # no beam reached past half a cell and none hit: nothing changed
             return None
-        self._refresh_field(box)
+        if refresh:
+            self._refresh_field(box)
         self.empty = False
         self.version += 1
         self.dirty = box if self.dirty is None else _union(self.dirty, box)
         return box
+
+    def clear(self) -> None:
+        """Forget every cell, keeping the grid's place and size (a redraw follows: the version goes on
+        counting, and the whole grid is marked changed)."""
+        self.logodds.fill(0.0)
+        self.seen.fill(False)
+        self.field.fill(0.0)
+        self.coarse_field.fill(0.0)
+        self.empty = True
+        self._placed = True
+        self.dirty = (0, 0, *self.shape)
+
+    def refresh(self, box: Box | None = None) -> None:
+        """Recompute the likelihood field over ``box`` (default: the whole grid)."""
+        self._refresh_field(box if box is not None else (0, 0, *self.shape))
 
     def _refresh_field(self, box: Box) -> None:
         """Recompute the likelihood field (and its coarse copy) over ``box`` plus the kernel's reach."""

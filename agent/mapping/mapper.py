@@ -29,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from fleetlink.agent.mapping import scan as scanprep
+from fleetlink.agent.mapping.closure import CloserConfig, LoopCloser, NodeScan
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.matcher import LocalMap, MatchConfig, field_score, icp_refine, match_scan, scan_normals
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig
@@ -90,6 +91,10 @@ class MapperConfig:
     odom_sigma_theta: float = 0.01  # rad
     odom_sigma_theta_per_m: float = 0.035  # rad per m (2 deg)
     odom_sigma_theta_per_rad: float = 0.1
+    # Loop closure (closure.py): the spaced keyframes become pose-graph nodes, closures are searched
+    # and verified at a bounded rate, and the grid is redrawn from the optimised poses. None: off.
+    closer: CloserConfig | None = field(default_factory=CloserConfig)
+    redraw_distance: float = 0.05  # m (a turn counts as its arc 3 m out): redraw the grid past this
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_range < self.max_range:
@@ -128,6 +133,14 @@ class OnboardMapper:
         self._local = LocalMap(cfg.local_keyframes, cfg.local_cell)
         self._last_local: Pose | None = None
         self._planner_version = -1
+        self.closer = LoopCloser(cfg.closer, cfg.grid, cfg.mount) if cfg.closer is not None else None
+        # For redrawing after a solve: each integrated scan's node, its pose in the node's frame, and
+        # its beams; per trajectory entry, its node and offset (-1: before the first node).
+        self._drawn: list[tuple[int, Pose, npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_]]] = []
+        self._links: list[tuple[int, Pose]] = []
+        self._node_pose: Pose | None = None  # the newest node's pose as the front end has it
+        self._drawn_at: list[Pose] = []  # each node's pose when the grid was last drawn from it
+        self.redraws = 0
 
     @property
     def version(self) -> int:
@@ -211,14 +224,81 @@ class OnboardMapper:
             idx = np.flatnonzero(hit)
             full_hit[idx[~keep_hit]] = False
             self.grid.integrate(compose(pose, cfg.mount), r, a, full_hit)
-            if cfg.refine_local and self._spaced(pose):
+            if self._spaced(pose):
                 self._last_local = pose
-                self._local.add(compose(pose, cfg.mount), kept, scan_normals(pts, labels)[keep_hit])
+                normals = scan_normals(pts, labels)[keep_hit]
+                if cfg.refine_local:
+                    self._local.add(compose(pose, cfg.mount), kept, normals)
+                if self.closer is not None:
+                    self.closer.add_node(t, pose, NodeScan(r, a, full_hit, kept, normals, match_pts))
+                    self._node_pose = pose
             self._last_key = (t, pose)
             integrated = True
+            if self.closer is not None and self._node_pose is not None:
+                node = len(self.closer) - 1
+                self._drawn.append(
+                    (node, relative(self._node_pose, pose), r.astype(np.float32), a.astype(np.float32), full_hit)
+                )
+                if self._node_pose == pose and self.closer.close():
+                    pose = self._after_solve(pose)
         self._last_pose = pose
         self.trajectory.append((t, pose))
+        if self.closer is not None:
+            self._links.append(
+                (len(self.closer) - 1, relative(self._node_pose, pose)) if self._node_pose is not None else (-1, pose)
+            )
         return ScanResult(t, pose, guess, matched, score, integrated)
+
+    def _after_solve(self, pose: Pose) -> Pose:
+        """The graph moved: carry the front end's state into the corrected frame, redraw the grid and
+        the local map from the optimised node poses. Returns ``pose`` corrected."""
+        cfg = self.config
+        closer = self.closer
+        assert closer is not None and self._node_pose is not None
+        new = closer.poses[-1]
+        fix = compose(new, _inverse(self._node_pose))  # old frame -> corrected frame
+        self._node_pose = new
+        self._last_local = new
+        if self._last_key is not None:
+            self._last_key = (self._last_key[0], compose(fix, self._last_key[1]))
+        pose = compose(fix, pose)
+        poses = closer.poses
+        if cfg.refine_local:
+            self._local = LocalMap(cfg.local_keyframes, cfg.local_cell)
+            for n in range(max(0, len(poses) - cfg.local_keyframes), len(poses)):
+                sc = closer.scans[n]
+                self._local.add(compose(poses[n], cfg.mount), sc.points, sc.normals)
+        # Redraw only once some node has moved enough since it was drawn to blur the walls: the grid's
+        # field is blurred over ~2 cells anyway, and a redraw costs every scan's ray update again.
+        n_drawn = len(self._drawn_at)
+        if n_drawn:
+            was = np.array(self._drawn_at)
+            now = np.array(poses[:n_drawn])
+            turn = np.abs(np.remainder(now[:, 2] - was[:, 2] + math.pi, 2.0 * math.pi) - math.pi)
+            moved = float(np.max(np.hypot(now[:, 0] - was[:, 0], now[:, 1] - was[:, 1]) + REDRAW_LEVER_M * turn))
+            if moved < cfg.redraw_distance:
+                return pose
+        self.redraws += 1
+        self._drawn_at = list(poses)
+        grid = self.grid
+        grid.clear()
+        for node, offset, r, a, hit in self._drawn:
+            sensor = compose(compose(poses[node], offset), cfg.mount)
+            grid.integrate(sensor, r.astype(np.float64), a.astype(np.float64), hit, refresh=False)
+        grid.refresh()
+        return pose
+
+    def corrected_trajectory(self) -> list[tuple[float, Pose]]:
+        """Every scan's pose as the optimised graph has it now (the online poses were each the best
+        estimate at their time; after a closure the past moves too). Without loop closure: the
+        trajectory as it was."""
+        if self.closer is None:
+            return list(self.trajectory)
+        poses = self.closer.poses
+        return [
+            (t, compose(poses[node], offset) if node >= 0 else offset)
+            for (t, _), (node, offset) in zip(self.trajectory, self._links, strict=True)
+        ]
 
     def _spaced(self, pose: Pose) -> bool:
         p0 = self._last_local
@@ -267,6 +347,10 @@ class OnboardMapper:
         if self.grid.empty:
             return None
         return self.planner().route(start_xy, goal_xy, blocked)
+
+
+REDRAW_LEVER_M = 3.0
+"""A node's turn counts towards ``redraw_distance`` as the arc it moves a wall this far away."""
 
 
 def _inverse(p: Pose) -> Pose:

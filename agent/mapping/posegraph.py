@@ -26,11 +26,13 @@ no clock, no I/O.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from scipy import sparse
+from scipy.sparse.linalg import spsolve
 
 __all__ = ["Edge", "PoseGraph", "Solve", "relative"]
 
@@ -112,6 +114,13 @@ class PoseGraph:
         self.edges.append(e)
         return e
 
+    def remove_edges(self, indices: Collection[int]) -> None:
+        """Drop the edges at ``indices`` (a closure the solve found wrong); the others keep their order."""
+        drop = set(indices)
+        if any(not 0 <= k < len(self.edges) for k in drop):
+            raise ValueError(f"no such edge among {sorted(drop)} (the graph has {len(self.edges)})")
+        self.edges = [ed for k, ed in enumerate(self.edges) if k not in drop]
+
     # -- the solve ----------------------------------------------------------------------------------
 
     @staticmethod
@@ -136,12 +145,7 @@ class PoseGraph:
 
     def chi2(self, poses: Sequence[Pose] | None = None) -> float:
         """Sum of e^T Omega e over the edges at ``poses`` (default: the graph's)."""
-        ps = self.poses if poses is None else poses
-        total = 0.0
-        for ed in self.edges:
-            e, _, _ = self._error(ps[ed.i], ps[ed.j], ed.z)
-            total += float(e @ ed.info @ e)
-        return total
+        return float(self.errors(poses).sum())
 
     def optimize(self, *, fixed: int = 0, iterations: int = 20, tolerance: float = 1e-9) -> Solve:
         """Gauss-Newton (iteratively reweighted for robust edges) with node ``fixed`` held still.
@@ -153,44 +157,100 @@ class PoseGraph:
         before = self.chi2(poses)
         if not self.edges:
             return Solve(poses, 0, before, before, True)
+        ii = np.array([ed.i for ed in self.edges], dtype=np.int64)
+        jj = np.array([ed.j for ed in self.edges], dtype=np.int64)
+        zz = np.array([ed.z for ed in self.edges], dtype=np.float64)
+        om = np.stack([ed.info for ed in self.edges])
+        robust = np.array([ed.robust for ed in self.edges], dtype=bool)
+        x = np.array(poses, dtype=np.float64)
+        # Sparse layout of H: the 3x3 blocks (i,i), (i,j), (j,i), (j,j) of every edge, then the fixed
+        # node's and the loose nodes' diagonals; duplicates are summed by the COO -> CSC conversion.
+        r3 = np.arange(3)
+        blk_r = (3 * np.stack((ii, ii, jj, jj), axis=1))[:, :, None, None] + r3[None, None, :, None]
+        blk_c = (3 * np.stack((ii, jj, ii, jj), axis=1))[:, :, None, None] + r3[None, None, None, :]
+        blk_r, blk_c = np.broadcast_to(blk_r, (len(ii), 4, 3, 3)), np.broadcast_to(blk_c, (len(ii), 4, 3, 3))
         done = 0
         converged = False
-        weights = [1.0] * len(self.edges)
+        w = np.ones(len(self.edges))
         for step in range(1, iterations + 1):
             done = step
-            h = np.zeros((3 * n, 3 * n))
+            e, a, b = _errors(x[ii], x[jj], zz)
+            if robust.any():
+                s = np.einsum("ek,ekl,el->e", e, om, e)
+                w = np.where(robust, 1.0 / (1.0 + s / (self.cauchy_c * self.cauchy_c)), 1.0)
+            wom = om * w[:, None, None]
+            at_om = np.einsum("eki,ekl->eil", a, wom)  # A^T Omega
+            bt_om = np.einsum("eki,ekl->eil", b, wom)
+            blocks = np.stack((at_om @ a, at_om @ b, bt_om @ a, bt_om @ b), axis=1)  # (E, 4, 3, 3): ii, ij, ji, jj
             g = np.zeros(3 * n)
-            for k, ed in enumerate(self.edges):
-                e, a, b = self._error(poses[ed.i], poses[ed.j], ed.z)
-                w = 1.0
-                if ed.robust:
-                    s = float(e @ ed.info @ e)
-                    w = 1.0 / (1.0 + s / (self.cauchy_c * self.cauchy_c))
-                weights[k] = w
-                om = w * ed.info
-                i3, j3 = 3 * ed.i, 3 * ed.j
-                h[i3 : i3 + 3, i3 : i3 + 3] += a.T @ om @ a
-                h[i3 : i3 + 3, j3 : j3 + 3] += a.T @ om @ b
-                h[j3 : j3 + 3, i3 : i3 + 3] += b.T @ om @ a
-                h[j3 : j3 + 3, j3 : j3 + 3] += b.T @ om @ b
-                g[i3 : i3 + 3] += a.T @ om @ e
-                g[j3 : j3 + 3] += b.T @ om @ e
-            f3 = 3 * fixed
-            h[f3 : f3 + 3, :] = 0.0
-            h[:, f3 : f3 + 3] = 0.0
-            h[f3 : f3 + 3, f3 : f3 + 3] = np.eye(3)
-            g[f3 : f3 + 3] = 0.0
-            # Nodes no edge touches: held where they are.
-            loose = np.diag(h) == 0.0
-            h[loose, loose] = 1.0
-            dx = np.linalg.solve(h, -g)
-            poses = [
-                (p[0] + float(dx[3 * k]), p[1] + float(dx[3 * k + 1]), _wrap(p[2] + float(dx[3 * k + 2])))
-                for k, p in enumerate(poses)
-            ]
+            np.add.at(g, (3 * ii[:, None] + r3).ravel(), np.einsum("eil,el->ei", at_om, e).ravel())
+            np.add.at(g, (3 * jj[:, None] + r3).ravel(), np.einsum("eil,el->ei", bt_om, e).ravel())
+            rows, cols, vals = blk_r.ravel(), blk_c.ravel(), blocks.ravel()
+            # The fixed node: its rows and columns out, identity on its diagonal (its step is zero).
+            f = fixed
+            keep = ~(((rows // 3) == f) | ((cols // 3) == f))
+            rows, cols, vals = rows[keep], cols[keep], vals[keep]
+            diag = np.zeros(3 * n)
+            np.add.at(diag, rows[rows == cols], vals[rows == cols])
+            extra = np.flatnonzero(diag == 0.0)  # the fixed node and nodes no edge touches: held still
+            g[3 * f : 3 * f + 3] = 0.0
+            h = sparse.csc_matrix(
+                (
+                    np.concatenate((vals, np.ones(len(extra)))),
+                    (np.concatenate((rows, extra)), np.concatenate((cols, extra))),
+                ),
+                shape=(3 * n, 3 * n),
+            )
+            dx = np.asarray(spsolve(h, -g), dtype=np.float64).reshape(n, 3)
+            x = x + dx
+            th = x[:, 2]
+            x[:, 2] = np.where(np.abs(th) > math.pi, np.remainder(th + math.pi, 2.0 * math.pi) - math.pi, th)
             if float(np.max(np.abs(dx))) < tolerance:
                 converged = True
                 break
+        poses = [(float(p[0]), float(p[1]), float(p[2])) for p in x]
         self.poses = poses
-        outliers = tuple(k for k, ed in enumerate(self.edges) if ed.robust and weights[k] < 0.5)
+        outliers = tuple(int(k) for k in np.flatnonzero(robust & (w < 0.5)))
         return Solve(poses, done, before, self.chi2(poses), converged, outliers)
+
+    def errors(self, poses: Sequence[Pose] | None = None) -> F64:
+        """Each edge's e^T Omega e at ``poses`` (default: the graph's; no kernel), in edge order."""
+        if not self.edges:
+            return np.zeros(0)
+        x = np.array(self.poses if poses is None else poses, dtype=np.float64)
+        ii = np.array([ed.i for ed in self.edges], dtype=np.int64)
+        jj = np.array([ed.j for ed in self.edges], dtype=np.int64)
+        zz = np.array([ed.z for ed in self.edges], dtype=np.float64)
+        om = np.stack([ed.info for ed in self.edges])
+        e, _, _ = _errors(x[ii], x[jj], zz)
+        out: F64 = np.einsum("ek,ekl,el->e", e, om, e)
+        return out
+
+
+def _errors(xi: F64, xj: F64, z: F64) -> tuple[F64, F64, F64]:
+    """``PoseGraph._error`` for many edges at once: errors (E, 3) and Jacobians (E, 3, 3)."""
+    ci, si = np.cos(xi[:, 2]), np.sin(xi[:, 2])
+    cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
+    dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
+    # R_i^T d, then R_z^T (R_i^T d - t_z)
+    u, v = ci * dx + si * dy - z[:, 0], -si * dx + ci * dy - z[:, 1]
+    e = np.column_stack(
+        (
+            cz * u + sz * v,
+            -sz * u + cz * v,
+            np.remainder(xj[:, 2] - xi[:, 2] - z[:, 2] + math.pi, 2.0 * math.pi) - math.pi,
+        )
+    )
+    # R_z^T R_i^T = R(-(theta_i + theta_z))
+    c, s = np.cos(xi[:, 2] + z[:, 2]), np.sin(xi[:, 2] + z[:, 2])
+    # d(R_i^T d)/d theta_i = (-si dx + ci dy, -ci dx - si dy); then R_z^T of that
+    p, q = -si * dx + ci * dy, -ci * dx - si * dy
+    m = len(e)
+    a = np.zeros((m, 3, 3))
+    a[:, 0, 0], a[:, 0, 1], a[:, 1, 0], a[:, 1, 1] = -c, -s, s, -c
+    a[:, 0, 2], a[:, 1, 2] = cz * p + sz * q, -sz * p + cz * q
+    a[:, 2, 2] = -1.0
+    b = np.zeros((m, 3, 3))
+    b[:, 0, 0], b[:, 0, 1], b[:, 1, 0], b[:, 1, 1] = c, s, -s, c
+    b[:, 2, 2] = 1.0
+    return e, a, b

@@ -1,0 +1,371 @@
+"""Loop closure: the mapper's keyframes as a pose graph, closures found and verified, the graph solved.
+
+The front end (``mapper.py``) matches each scan against the recent map; alone it drifts, and a robot
+that comes back to a room draws it again where its drifted pose says. ``LoopCloser`` keeps what a
+closure needs (after Cartographer's global SLAM, Hess et al. 2016, on a smaller scale):
+
+- **Nodes**: the mapper's spaced keyframes (0.3 m / 10 deg apart), each with its scan in the sensor
+  frame. Consecutive nodes are joined by the front end's relative pose (an odometry edge whose
+  uncertainty grows with the step).
+- **Submaps**: every ``submap_nodes`` consecutive nodes, drawn (once, when a closure check first
+  needs it) into a small log-odds grid and a point-to-line map in the frame of their first node.
+- **Search**: each new node is tried against at most ``attempts_per_node`` finished submaps whose
+  nodes lie within ``search_radius`` of it and that are at least ``min_gap_nodes`` behind (the front
+  end already matched the recent ones), nearest first, skipping those tried within
+  ``retry_nodes``; a bounded rate, so an agent's CPU share stays flat however long it maps.
+- **Verification**: correlative search of the node's scan over the submap's grid in a wide window
+  (``search_xy``, ``search_theta``, the motion prior nearly flat), then point-to-line refinement
+  against the submap's points. Accepted when the field score is at least ``min_score``, at least
+  ``min_inlier_ratio`` of the points found a line within 0.1 m, the two answers agree within
+  ``max_disagreement`` and the refined pose is constrained in every direction (``min_weak``: a
+  corridor seen end-on fixes no position along it).
+- **Solve**: accepted closures join the graph; it is optimised at once (Gauss-Newton, sparse), then
+  every closure whose error is above ``max_chi2`` (e^T Omega e, 3 degrees of freedom) is dropped and
+  the graph solved again: a verified but wrong closure is rejected, a right one absorbed.
+
+The caller (the mapper) re-renders its grid from the optimised node poses. Pure numpy; time is an
+argument; no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
+from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
+from fleetlink.agent.mapping.matcher import LocalMap, field_score, icp_refine, refine
+from fleetlink.agent.mapping.posegraph import PoseGraph
+
+__all__ = ["Closure", "CloserConfig", "CloserStats", "LoopCloser", "NodeScan"]
+
+Pose = tuple[float, float, float]
+F64 = npt.NDArray[np.float64]
+
+
+def _wrap(a: float) -> float:
+    return math.remainder(a, 2.0 * math.pi)
+
+
+def compose(a: Pose, b: Pose) -> Pose:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], _wrap(a[2] + b[2]))
+
+
+def relative(a: Pose, b: Pose) -> Pose:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return (c * dx + s * dy, -s * dx + c * dy, _wrap(b[2] - a[2]))
+
+
+def inverse(p: Pose) -> Pose:
+    c, s = math.cos(p[2]), math.sin(p[2])
+    return (-(c * p[0] + s * p[1]), -(-s * p[0] + c * p[1]), _wrap(-p[2]))
+
+
+@dataclass(frozen=True, slots=True)
+class CloserConfig:
+    submap_nodes: int = 10  # consecutive nodes per submap (~3 m of travel)
+    search_radius: float = 2.5  # m: a submap with a node this near the new node is a candidate
+    min_gap_nodes: int = 30  # candidates end at least this many nodes back
+    attempts_per_node: int = 1  # closure checks per new node (the rate bound)
+    retry_nodes: int = 5  # a submap tried is not tried again for this many nodes
+    search_xy: float = 1.0  # m, half-width of the verification's translation window
+    search_theta: float = math.radians(20.0)
+    # The pose drifts while no closure holds it: both the radius and the window grow by this share of
+    # the path travelled since the last accepted closure (and the heading window by drift_theta per
+    # metre), up to the caps.
+    drift_rate: float = 0.05
+    drift_theta_per_m: float = math.radians(0.5)
+    max_search_xy: float = 4.0  # m
+    max_search_theta: float = math.radians(35.0)
+    min_score: float = 0.5  # mean likelihood-field value of the scan's points on the submap
+    min_inlier_ratio: float = 0.6
+    inlier_distance: float = 0.1  # m
+    max_disagreement: float = 0.1  # m between the correlative and the refined answer
+    min_weak: float = 2000.0  # smallest eigenvalue of the refinement's information (1/m^2)
+    step_sigma_xy: float = 0.01  # m, odometry edge: sd = base + per metre moved
+    step_sigma_xy_per_m: float = 0.03
+    step_sigma_theta: float = math.radians(0.3)
+    step_sigma_theta_per_rad: float = 0.02
+    closure_sigma_xy: float = 0.03  # m
+    closure_sigma_theta: float = math.radians(1.0)
+    max_chi2: float = 16.0  # a closure whose error after the solve is above this is dropped
+    iterations: int = 10
+    confirm_above: float = 0.5  # m: a closure moving its node more than this waits for a second one
+    confirm_nodes: int = 10  # ... within this many nodes
+    confirm_distance: float = 0.2  # m: two closures agree when their corrections differ by less
+    confirm_angle: float = math.radians(2.0)
+    bnb_depth: int = 6  # branch-and-bound levels: the top blocks are 2^6 cells (3.2 m at 5 cm)
+
+    def __post_init__(self) -> None:
+        if self.submap_nodes < 2 or self.attempts_per_node < 0 or self.min_gap_nodes < self.submap_nodes:
+            raise ValueError("need submap_nodes >= 2, attempts_per_node >= 0 and min_gap_nodes >= submap_nodes")
+        for name in ("search_radius", "search_xy", "closure_sigma_xy", "step_sigma_xy", "max_chi2"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0")
+
+
+@dataclass(frozen=True, slots=True)
+class NodeScan:
+    """A keyframe's scan in the sensor frame: the prepared beams (for drawing a submap), the kept
+    points with their normals (point-to-line) and the thinned points (correlative search)."""
+
+    ranges: F64
+    angles: F64
+    hit: npt.NDArray[np.bool_]
+    points: F64
+    normals: F64
+    match_points: F64
+
+
+@dataclass(frozen=True, slots=True)
+class Closure:
+    node: int  # the new node
+    anchor: int  # the first node of the submap it was matched against
+    z: Pose  # the new node's pose in the anchor's frame
+    score: float
+    inlier_ratio: float
+
+
+@dataclass(slots=True)
+class _Submap:
+    first: int
+    last: int  # exclusive
+    grid: LogOddsGrid | None = None
+    local: LocalMap | None = None
+    grids: PrecomputedGrids | None = None
+    tried_at: int = -(10**9)
+
+
+@dataclass(slots=True)
+class CloserStats:
+    attempts: int = 0
+    accepted: int = 0
+    rejected_score: int = 0
+    rejected_inliers: int = 0
+    rejected_disagreement: int = 0
+    rejected_degenerate: int = 0
+    dropped_by_solve: int = 0
+    pending: int = 0  # large corrections held for a second closure
+    confirmed: int = 0
+    solves: int = 0
+
+
+class LoopCloser:
+    """See the module docstring. ``add_node`` then ``close`` per keyframe; one owner."""
+
+    def __init__(
+        self,
+        config: CloserConfig | None = None,
+        grid: GridConfig | None = None,
+        mount: Pose = (0.0, 0.0, 0.0),
+    ) -> None:
+        self.config = config or CloserConfig()
+        self.grid_config = grid or GridConfig()
+        self.mount = mount
+        self.graph = PoseGraph()
+        self.times: list[float] = []
+        self.scans: list[NodeScan] = []
+        self.submaps: list[_Submap] = []
+        self.closures: list[Closure] = []
+        self.stats = CloserStats()
+        self._closure_edges: list[int] = []  # graph edge index per entry of ``closures``
+        self._pending: list[Closure] = []  # large corrections waiting for a second closure
+        self.since_closure = 0.0  # m travelled (node to node) since the last accepted closure
+
+    def __len__(self) -> int:
+        return len(self.graph.poses)
+
+    @property
+    def poses(self) -> list[Pose]:
+        return self.graph.poses
+
+    def add_node(self, t: float, pose: Pose, scan: NodeScan) -> int:
+        """A keyframe at the front end's ``pose`` (the current frame); joined to the last node by the
+        front end's relative pose."""
+        cfg = self.config
+        k = self.graph.add_node(pose)
+        if k > 0:
+            prev = self.graph.poses[k - 1]
+            z = relative(prev, pose)
+            d = math.hypot(z[0], z[1])
+            sxy = cfg.step_sigma_xy + cfg.step_sigma_xy_per_m * d
+            sth = cfg.step_sigma_theta + cfg.step_sigma_theta_per_rad * abs(z[2])
+            self.graph.add_edge(k - 1, k, z, np.diag([1.0 / sxy**2, 1.0 / sxy**2, 1.0 / sth**2]))
+            self.since_closure += d
+        self.times.append(t)
+        self.scans.append(scan)
+        if k % cfg.submap_nodes == 0:
+            self.submaps.append(_Submap(k, k + 1))
+        else:
+            self.submaps[-1].last = k + 1
+        return k
+
+    def close(self) -> bool:
+        """Look for closures of the newest node; True when the graph was solved (poses moved)."""
+        k = len(self.graph.poses) - 1
+        if k < 0:
+            return False
+        cfg = self.config
+        found = []
+        for sm in self._candidates(k):
+            sm.tried_at = k
+            self.stats.attempts += 1
+            c = self._verify(k, sm)
+            if c is None:
+                continue
+            if self._jump(c) <= cfg.confirm_above:
+                found.append(c)
+                continue
+            # A large correction is believed only when a second closure nearby agrees with it: one
+            # match in a building of look-alike corridors can be wrong with a good score.
+            agree = [p for p in self._pending if k - p.node <= cfg.confirm_nodes and self._agree(p, c)]
+            if agree:
+                found.extend([*agree, c])
+                self._pending = [p for p in self._pending if p not in agree]
+                self.stats.confirmed += 1
+            else:
+                self._pending.append(c)
+                self.stats.pending += 1
+        self._pending = [p for p in self._pending if k - p.node <= cfg.confirm_nodes]
+        if not found:
+            return False
+        info = np.diag([1.0 / cfg.closure_sigma_xy**2, 1.0 / cfg.closure_sigma_xy**2, 1.0 / cfg.closure_sigma_theta**2])
+        for c in found:
+            self.graph.add_edge(c.anchor, c.node, c.z, info)
+            self.closures.append(c)
+            self._closure_edges.append(len(self.graph.edges) - 1)
+            self.stats.accepted += 1
+        self.since_closure = 0.0
+        self._solve()
+        return True
+
+    def _correction(self, c: Closure) -> Pose:
+        """The map-frame move the closure asks of its node: where it puts the node, from where it is."""
+        return compose(compose(self.graph.poses[c.anchor], c.z), inverse(self.graph.poses[c.node]))
+
+    def _jump(self, c: Closure) -> float:
+        """How far the closure moves its node (m, a turn counted as its arc at ``JUMP_LEVER_M``)."""
+        at = compose(self.graph.poses[c.anchor], c.z)
+        now = self.graph.poses[c.node]
+        return math.hypot(at[0] - now[0], at[1] - now[1]) + JUMP_LEVER_M * abs(_wrap(at[2] - now[2]))
+
+    def _agree(self, a: Closure, b: Closure) -> bool:
+        """Do two closures ask for the same correction? Both applied to ``b``'s node, compared."""
+        node = self.graph.poses[b.node]
+        pa = compose(self._correction(a), node)
+        pb = compose(self._correction(b), node)
+        cfg = self.config
+        return (
+            math.hypot(pa[0] - pb[0], pa[1] - pb[1]) <= cfg.confirm_distance
+            and abs(_wrap(pa[2] - pb[2])) <= cfg.confirm_angle
+        )
+
+    def _candidates(self, k: int) -> list[_Submap]:
+        cfg = self.config
+        if cfg.attempts_per_node == 0:
+            return []
+        here = np.array(self.graph.poses[k][:2])
+        xy = np.array([p[:2] for p in self.graph.poses])
+        near: list[tuple[float, int, _Submap]] = []
+        for i, sm in enumerate(self.submaps):
+            if sm.last - sm.first < cfg.submap_nodes or sm.last > k - cfg.min_gap_nodes:
+                continue
+            if k - sm.tried_at < cfg.retry_nodes:
+                continue
+            d = float(np.min(np.hypot(*(xy[sm.first : sm.last] - here).T)))
+            if d <= cfg.search_radius + self._growth()[0]:
+                near.append((d, i, sm))
+        near.sort(key=lambda e: (e[0], e[1]))
+        return [sm for _, _, sm in near[: cfg.attempts_per_node]]
+
+    def _growth(self) -> tuple[float, float]:
+        """How much wider than the base the search is now (m, rad), from the drift since the last closure."""
+        cfg = self.config
+        d = self.since_closure
+        return (
+            min(cfg.drift_rate * d, cfg.max_search_xy - cfg.search_xy),
+            min(cfg.drift_theta_per_m * d, cfg.max_search_theta - cfg.search_theta),
+        )
+
+    def _draw(self, sm: _Submap) -> tuple[LogOddsGrid, LocalMap, PrecomputedGrids]:
+        if sm.grid is None or sm.local is None or sm.grids is None:
+            anchor = self.graph.poses[sm.first]
+            grid = LogOddsGrid(self.grid_config)
+            local = LocalMap(sm.last - sm.first, cell=0.05)
+            for n in range(sm.first, sm.last):
+                sensor = compose(relative(anchor, self.graph.poses[n]), self.mount)
+                sc = self.scans[n]
+                grid.integrate(sensor, sc.ranges, sc.angles, sc.hit)
+                local.add(sensor, sc.points, sc.normals)
+            sm.grid, sm.local = grid, local
+            sm.grids = PrecomputedGrids(grid.field, grid.origin, grid.resolution, self.config.bnb_depth)
+        return sm.grid, sm.local, sm.grids
+
+    def _verify(self, k: int, sm: _Submap) -> Closure | None:
+        cfg = self.config
+        sc = self.scans[k]
+        if len(sc.match_points) < 10 or len(sc.points) < 10:
+            return None
+        grid, local, grids = self._draw(sm)
+        anchor = self.graph.poses[sm.first]
+        guess = compose(relative(anchor, self.graph.poses[k]), self.mount)
+        gxy, gth = self._growth()
+        wxy, wth = cfg.search_xy + gxy, cfg.search_theta + gth
+        hit = search(grids, sc.match_points, guess, wxy, wth, cfg.min_score)
+        if hit is None:
+            self.stats.rejected_score += 1
+            return None
+        found = refine(grid, sc.match_points, hit[0])
+        r = icp_refine(local, sc.points, found, found, (1.0, 1.0), 0.03, 0.15, iterations=12)
+        ratio = _inlier_ratio(local, sc.points, r.pose, cfg.inlier_distance)
+        if ratio < cfg.min_inlier_ratio:
+            self.stats.rejected_inliers += 1
+            return None
+        if math.hypot(r.pose[0] - found[0], r.pose[1] - found[1]) > cfg.max_disagreement:
+            self.stats.rejected_disagreement += 1
+            return None
+        if r.weak < cfg.min_weak:
+            self.stats.rejected_degenerate += 1
+            return None
+        robot = compose(r.pose, inverse(self.mount))
+        score = field_score(grid, sc.match_points, r.pose)
+        return Closure(k, sm.first, robot, score, ratio)
+
+    def _solve(self) -> None:
+        cfg = self.config
+        for _ in range(3):
+            self.graph.optimize(fixed=0, iterations=cfg.iterations, tolerance=1e-5)
+            self.stats.solves += 1
+            chi = self.graph.errors()
+            bad = [n for n, e in enumerate(self._closure_edges) if chi[e] > cfg.max_chi2]
+            if not bad:
+                return
+            drop = {self._closure_edges[n] for n in bad}
+            self.stats.dropped_by_solve += len(bad)
+            self.graph.remove_edges(drop)
+            keep = [n for n in range(len(self.closures)) if n not in set(bad)]
+            self.closures = [self.closures[n] for n in keep]
+            # Edge indices after the removal: each surviving index less the dropped ones below it.
+            dropped = sorted(drop)
+            self._closure_edges = [
+                self._closure_edges[n] - int(np.searchsorted(dropped, self._closure_edges[n])) for n in keep
+            ]
+        self.graph.optimize(fixed=0, iterations=cfg.iterations, tolerance=1e-5)
+
+
+JUMP_LEVER_M = 3.0
+"""A closure's turn counts towards ``confirm_above`` as the arc it moves a wall this far away."""
+
+
+def _inlier_ratio(local: LocalMap, points: F64, pose: Pose, distance: float) -> float:
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    wx = pose[0] + c * points[:, 0] - s * points[:, 1]
+    wy = pose[1] + s * points[:, 0] + c * points[:, 1]
+    _, dist = local.nearest_xy(wx, wy)
+    return float(np.count_nonzero(dist <= distance)) / max(1, len(points))
+
