@@ -121,8 +121,9 @@ def search(
         return out
 
     # The top level: every block of every rotation, best first.
-    br, bc = np.meshgrid(np.arange(nblk) * top, np.arange(nblk) * top, indexing="ij")
-    br, bc = br.ravel(), bc.ravel()
+    gr, gc = np.meshgrid(np.arange(nblk) * top, np.arange(nblk) * top, indexing="ij")
+    br: I64 = gr.ravel().astype(np.int64)
+    bc: I64 = gc.ravel().astype(np.int64)
     stack: list[tuple[float, int, int, int, int]] = []  # (bound, depth, rotation, row offset, col offset)
     for k in range(len(scans)):
         for sc_, r_, c_ in zip(score(depth, k, br, bc), br, bc, strict=True):

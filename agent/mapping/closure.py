@@ -35,12 +35,12 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
+from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.matcher import LocalMap, field_score, icp_refine, refine
 from fleetlink.agent.mapping.posegraph import PoseGraph
 
-__all__ = ["Closure", "CloserConfig", "CloserStats", "LoopCloser", "NodeScan"]
+__all__ = ["CloserConfig", "CloserStats", "Closure", "LoopCloser", "NodeScan"]
 
 Pose = tuple[float, float, float]
 F64 = npt.NDArray[np.float64]
@@ -78,9 +78,9 @@ class CloserConfig:
     # The pose drifts while no closure holds it: both the radius and the window grow by this share of
     # the path travelled since the last accepted closure (and the heading window by drift_theta per
     # metre), up to the caps.
-    drift_rate: float = 0.05
+    drift_rate: float = 0.1
     drift_theta_per_m: float = math.radians(0.5)
-    max_search_xy: float = 4.0  # m
+    max_search_xy: float = 10.0  # m
     max_search_theta: float = math.radians(35.0)
     min_score: float = 0.5  # mean likelihood-field value of the scan's points on the submap
     min_inlier_ratio: float = 0.6
@@ -94,6 +94,7 @@ class CloserConfig:
     closure_sigma_xy: float = 0.03  # m
     closure_sigma_theta: float = math.radians(1.0)
     max_chi2: float = 16.0  # a closure whose error after the solve is above this is dropped
+    max_drops: int = 3  # closures dropped per solve at most (each costs a solve)
     iterations: int = 10
     confirm_above: float = 0.5  # m: a closure moving its node more than this waits for a second one
     confirm_nodes: int = 10  # ... within this many nodes
@@ -234,15 +235,21 @@ class LoopCloser:
         self._pending = [p for p in self._pending if k - p.node <= cfg.confirm_nodes]
         if not found:
             return False
+        self.add_closures(found)
+        return True
+
+    def add_closures(self, closures: list[Closure]) -> None:
+        """Put verified closures into the graph and solve it; a closure the solve finds inconsistent
+        with the rest (error above ``max_chi2``) is dropped and the graph solved without it."""
+        cfg = self.config
         info = np.diag([1.0 / cfg.closure_sigma_xy**2, 1.0 / cfg.closure_sigma_xy**2, 1.0 / cfg.closure_sigma_theta**2])
-        for c in found:
+        for c in closures:
             self.graph.add_edge(c.anchor, c.node, c.z, info)
             self.closures.append(c)
             self._closure_edges.append(len(self.graph.edges) - 1)
             self.stats.accepted += 1
         self.since_closure = 0.0
         self._solve()
-        return True
 
     def _correction(self, c: Closure) -> Pose:
         """The map-frame move the closure asks of its node: where it puts the node, from where it is."""
@@ -337,25 +344,24 @@ class LoopCloser:
         return Closure(k, sm.first, robot, score, ratio)
 
     def _solve(self) -> None:
+        """Solve; while the worst closure's error is above ``max_chi2``, drop it and solve again. One
+        at a time: a wrong closure bends the graph and raises its neighbours' errors too, and they
+        come back under the gate once it is gone."""
         cfg = self.config
-        for _ in range(3):
+        for _ in range(cfg.max_drops + 1):
             self.graph.optimize(fixed=0, iterations=cfg.iterations, tolerance=1e-5)
             self.stats.solves += 1
             chi = self.graph.errors()
-            bad = [n for n, e in enumerate(self._closure_edges) if chi[e] > cfg.max_chi2]
-            if not bad:
+            if not self._closure_edges:
                 return
-            drop = {self._closure_edges[n] for n in bad}
-            self.stats.dropped_by_solve += len(bad)
-            self.graph.remove_edges(drop)
-            keep = [n for n in range(len(self.closures)) if n not in set(bad)]
-            self.closures = [self.closures[n] for n in keep]
-            # Edge indices after the removal: each surviving index less the dropped ones below it.
-            dropped = sorted(drop)
-            self._closure_edges = [
-                self._closure_edges[n] - int(np.searchsorted(dropped, self._closure_edges[n])) for n in keep
-            ]
-        self.graph.optimize(fixed=0, iterations=cfg.iterations, tolerance=1e-5)
+            worst = max(range(len(self._closure_edges)), key=lambda n: chi[self._closure_edges[n]])
+            edge = self._closure_edges[worst]
+            if chi[edge] <= cfg.max_chi2:
+                return
+            self.stats.dropped_by_solve += 1
+            self.graph.remove_edges([edge])
+            del self.closures[worst], self._closure_edges[worst]
+            self._closure_edges = [e - 1 if e > edge else e for e in self._closure_edges]
 
 
 JUMP_LEVER_M = 3.0
@@ -368,4 +374,3 @@ def _inlier_ratio(local: LocalMap, points: F64, pose: Pose, distance: float) -> 
     wy = pose[1] + s * points[:, 0] + c * points[:, 1]
     _, dist = local.nearest_xy(wx, wy)
     return float(np.count_nonzero(dist <= distance)) / max(1, len(points))
-

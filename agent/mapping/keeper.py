@@ -56,7 +56,9 @@ SHARE_PERIOD_S = 1.0
 def onboard_mapper_config() -> MapperConfig:
     """Unknown cells count as free on an onboard map: a scout is sent into rooms it has not seen
     (the guard still stops it at anything real)."""
-    return MapperConfig(planner=PlannerConfig(unknown_is_blocked=False))
+    # Loop closure stays off on board until UWB fixes enter the graph as priors (issue 17): a solve
+    # moves the map in its own frame while the next scans come with fused poses in the UWB frame.
+    return MapperConfig(planner=PlannerConfig(unknown_is_blocked=False), closer=None)
 
 
 @dataclass(frozen=True, slots=True)

@@ -136,7 +136,9 @@ class OnboardMapper:
         self.closer = LoopCloser(cfg.closer, cfg.grid, cfg.mount) if cfg.closer is not None else None
         # For redrawing after a solve: each integrated scan's node, its pose in the node's frame, and
         # its beams; per trajectory entry, its node and offset (-1: before the first node).
-        self._drawn: list[tuple[int, Pose, npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_]]] = []
+        self._drawn: list[
+            tuple[int, Pose, npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_]]
+        ] = []
         self._links: list[tuple[int, Pose]] = []
         self._node_pose: Pose | None = None  # the newest node's pose as the front end has it
         self._drawn_at: list[Pose] = []  # each node's pose when the grid was last drawn from it
@@ -270,14 +272,25 @@ class OnboardMapper:
                 self._local.add(compose(poses[n], cfg.mount), sc.points, sc.normals)
         # Redraw only once some node has moved enough since it was drawn to blur the walls: the grid's
         # field is blurred over ~2 cells anyway, and a redraw costs every scan's ray update again.
+        self.redraw(cfg.redraw_distance)
+        return pose
+
+    def redraw(self, threshold: float = 0.0) -> bool:
+        """Draw the grid again from every integrated scan at the graph's poses, if some node moved more
+        than ``threshold`` (m; a turn as its arc 3 m out) since the last drawing. True if it did."""
+        closer = self.closer
+        if closer is None:
+            return False
+        cfg = self.config
+        poses = closer.poses
         n_drawn = len(self._drawn_at)
         if n_drawn:
             was = np.array(self._drawn_at)
             now = np.array(poses[:n_drawn])
             turn = np.abs(np.remainder(now[:, 2] - was[:, 2] + math.pi, 2.0 * math.pi) - math.pi)
             moved = float(np.max(np.hypot(now[:, 0] - was[:, 0], now[:, 1] - was[:, 1]) + REDRAW_LEVER_M * turn))
-            if moved < cfg.redraw_distance:
-                return pose
+            if moved <= threshold:
+                return False
         self.redraws += 1
         self._drawn_at = list(poses)
         grid = self.grid
@@ -286,7 +299,7 @@ class OnboardMapper:
             sensor = compose(compose(poses[node], offset), cfg.mount)
             grid.integrate(sensor, r.astype(np.float64), a.astype(np.float64), hit, refresh=False)
         grid.refresh()
-        return pose
+        return True
 
     def corrected_trajectory(self) -> list[tuple[float, Pose]]:
         """Every scan's pose as the optimised graph has it now (the online poses were each the best

@@ -1,7 +1,9 @@
 """Replay a CARMEN log through the onboard mapper (the offline path of ``fleetlink map replay``).
 
 Each laser record's raw odometry seeds the matcher (``OnboardMapper.add_scan_odometry``); the
-trajectory keeps the record's ``ipc_timestamp`` text verbatim. Pure: records in, mapper and rows out.
+trajectory keeps the record's ``ipc_timestamp`` text verbatim. With loop closure (the default) the
+trajectory and the map are the final pose graph's: every scan where the last solve put it.
+Pure: records in, mapper and rows out.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ class ReplayResult:
     mapper: OnboardMapper
     rows: list[tuple[str, Pose]] = field(default_factory=list)  # (ipc_timestamp text, robot pose)
     logged: list[Pose] = field(default_factory=list)  # the log's own pose per scan (corrected logs: reference)
+    online: list[tuple[str, Pose]] = field(default_factory=list)  # each scan's pose when it was mapped
 
 
 def replay(
@@ -45,7 +48,15 @@ def replay(
         res = result.mapper.add_scan_odometry(rec.timestamp, ranges, rec.angles, rec.odom)
         result.rows.append((rec.ipc_timestamp, res.pose))
         result.logged.append(rec.pose)
-    return result if result is not None else ReplayResult(OnboardMapper(config))
+    if result is None:
+        return ReplayResult(OnboardMapper(config))
+    # With loop closure the past moves after each solve: the trajectory and the map written are the
+    # final graph's (each scan's online pose is kept in ``online``).
+    result.online = list(result.rows)
+    final = result.mapper.corrected_trajectory()
+    result.rows = [(ts, p) for (ts, _), (_, p) in zip(result.online, final, strict=True)]
+    result.mapper.redraw()
+    return result
 
 
 def format_trajectory(rows: Iterable[tuple[str, Pose]]) -> str:
