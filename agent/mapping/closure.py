@@ -82,11 +82,13 @@ class CloserConfig:
     drift_theta_per_m: float = math.radians(0.5)
     max_search_xy: float = 10.0  # m
     max_search_theta: float = math.radians(35.0)
-    min_score: float = 0.5  # mean likelihood-field value of the scan's points on the submap
+    min_score: float = 0.5  # mean likelihood-field value of the scan's points on the submap, refined
+    search_min_score: float = 0.4  # the branch-and-bound's floor (on the lattice)
+    angle_step: float = math.radians(0.5)  # the branch-and-bound's rotations
     min_inlier_ratio: float = 0.6
     inlier_distance: float = 0.1  # m
     max_disagreement: float = 0.1  # m between the correlative and the refined answer
-    min_weak: float = 2000.0  # smallest eigenvalue of the refinement's information (1/m^2)
+    min_weak: float = 10000.0  # smallest eigenvalue of the refinement's information (1/m^2)
     step_sigma_xy: float = 0.01  # m, odometry edge: sd = base + per metre moved
     step_sigma_xy_per_m: float = 0.03
     step_sigma_theta: float = math.radians(0.3)
@@ -212,37 +214,55 @@ class LoopCloser:
         if k < 0:
             return False
         cfg = self.config
-        found = []
-        for sm in self._candidates(k):
-            sm.tried_at = k
-            self.stats.attempts += 1
-            c = self._verify(k, sm)
-            if c is None:
-                continue
-            if self._jump(c) <= cfg.confirm_above:
-                found.append(c)
-                continue
-            # A large correction is believed only when a second closure nearby agrees with it: one
-            # match in a building of look-alike corridors can be wrong with a good score.
-            agree = [p for p in self._pending if k - p.node <= cfg.confirm_nodes and self._agree(p, c)]
-            if agree:
-                found.extend([*agree, c])
-                self._pending = [p for p in self._pending if p not in agree]
-                self.stats.confirmed += 1
-            else:
-                self._pending.append(c)
-                self.stats.pending += 1
         self._pending = [p for p in self._pending if k - p.node <= cfg.confirm_nodes]
+        found: list[Closure] = []
+        # A large correction is believed only when a second closure agrees with it: one match in a
+        # building of look-alike corridors can be wrong with a good score. So while one waits, the
+        # new node is first tried where that correction would put it, in a small window.
+        for p in list(self._pending):
+            fix = self._correction(p)
+            at = compose(fix, self.graph.poses[k])
+            for sm in self._candidates(k, at, fresh_only=False, limit=1):
+                self.stats.attempts += 1
+                c = self._verify(k, sm, fix, (cfg.search_xy, cfg.search_theta))
+                if c is not None and self._agree(p, c):
+                    found.extend([p, c])
+                    self._pending.remove(p)
+                    self.stats.confirmed += 1
+                    break
+            if found:
+                break
+        if not found:
+            for sm in self._candidates(k, self.graph.poses[k]):
+                sm.tried_at = k
+                self.stats.attempts += 1
+                c = self._verify(k, sm)
+                if c is None:
+                    continue
+                if self._jump(c) <= cfg.confirm_above:
+                    found.append(c)
+                    continue
+                agree = [p for p in self._pending if self._agree(p, c)]
+                if agree:
+                    found.extend([*agree, c])
+                    self._pending = [p for p in self._pending if p not in agree]
+                    self.stats.confirmed += 1
+                else:
+                    self._pending.append(c)
+                    self.stats.pending += 1
         if not found:
             return False
         self.add_closures(found)
         return True
 
+    def _closure_info(self) -> F64:
+        cfg = self.config
+        return np.diag([1.0 / cfg.closure_sigma_xy**2, 1.0 / cfg.closure_sigma_xy**2, 1.0 / cfg.closure_sigma_theta**2])
+
     def add_closures(self, closures: list[Closure]) -> None:
         """Put verified closures into the graph and solve it; a closure the solve finds inconsistent
         with the rest (error above ``max_chi2``) is dropped and the graph solved without it."""
-        cfg = self.config
-        info = np.diag([1.0 / cfg.closure_sigma_xy**2, 1.0 / cfg.closure_sigma_xy**2, 1.0 / cfg.closure_sigma_theta**2])
+        info = self._closure_info()
         for c in closures:
             self.graph.add_edge(c.anchor, c.node, c.z, info)
             self.closures.append(c)
@@ -272,23 +292,32 @@ class LoopCloser:
             and abs(_wrap(pa[2] - pb[2])) <= cfg.confirm_angle
         )
 
-    def _candidates(self, k: int) -> list[_Submap]:
+    def _candidates(self, k: int, at: Pose, *, fresh_only: bool = True, limit: int | None = None) -> list[_Submap]:
+        """Finished submaps far enough back with a node near ``at`` (the node's pose, or where a
+        pending correction puts it), nearest first; ``fresh_only``: not tried in ``retry_nodes``."""
         cfg = self.config
-        if cfg.attempts_per_node == 0:
+        limit = cfg.attempts_per_node if limit is None else limit
+        if limit == 0:
             return []
-        here = np.array(self.graph.poses[k][:2])
-        xy = np.array([p[:2] for p in self.graph.poses])
+        here = np.array(at[:2])
+        xyt = np.array(self.graph.poses)
+        radius = cfg.search_radius + (self._growth()[0] if fresh_only else 0.0)
         near: list[tuple[float, int, _Submap]] = []
         for i, sm in enumerate(self.submaps):
             if sm.last - sm.first < cfg.submap_nodes or sm.last > k - cfg.min_gap_nodes:
                 continue
-            if k - sm.tried_at < cfg.retry_nodes:
+            if fresh_only and k - sm.tried_at < cfg.retry_nodes:
                 continue
-            d = float(np.min(np.hypot(*(xy[sm.first : sm.last] - here).T)))
-            if d <= cfg.search_radius + self._growth()[0]:
-                near.append((d, i, sm))
+            nodes = xyt[sm.first : sm.last]
+            d = np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1])
+            if float(d.min()) > radius:
+                continue
+            # Rank by the node that saw most nearly what this one sees: near, and facing the same way
+            # (a scanner looking the other way down a corridor sees other walls).
+            turn = np.abs(np.remainder(nodes[:, 2] - at[2] + math.pi, 2.0 * math.pi) - math.pi)
+            near.append((float(np.min(d + VIEW_LEVER_M * turn)), i, sm))
         near.sort(key=lambda e: (e[0], e[1]))
-        return [sm for _, _, sm in near[: cfg.attempts_per_node]]
+        return [sm for _, _, sm in near[:limit]]
 
     def _growth(self) -> tuple[float, float]:
         """How much wider than the base the search is now (m, rad), from the drift since the last closure."""
@@ -313,21 +342,33 @@ class LoopCloser:
             sm.grids = PrecomputedGrids(grid.field, grid.origin, grid.resolution, self.config.bnb_depth)
         return sm.grid, sm.local, sm.grids
 
-    def _verify(self, k: int, sm: _Submap) -> Closure | None:
+    def _verify(
+        self, k: int, sm: _Submap, fix: Pose = (0.0, 0.0, 0.0), window: tuple[float, float] | None = None
+    ) -> Closure | None:
+        """Match node ``k``'s scan against ``sm``, searching around the node's pose moved by ``fix``
+        (a pending correction) within ``window`` (default: the base window grown by the drift)."""
         cfg = self.config
         sc = self.scans[k]
         if len(sc.match_points) < 10 or len(sc.points) < 10:
             return None
         grid, local, grids = self._draw(sm)
         anchor = self.graph.poses[sm.first]
-        guess = compose(relative(anchor, self.graph.poses[k]), self.mount)
-        gxy, gth = self._growth()
-        wxy, wth = cfg.search_xy + gxy, cfg.search_theta + gth
-        hit = search(grids, sc.match_points, guess, wxy, wth, cfg.min_score)
+        guess = compose(relative(anchor, compose(fix, self.graph.poses[k])), self.mount)
+        if window is None:
+            gxy, gth = self._growth()
+            wxy, wth = cfg.search_xy + gxy, cfg.search_theta + gth
+        else:
+            wxy, wth = window
+        # The lattice answer scores lower than the refined one (far points are off by the angle step):
+        # search with a lower floor, and gate on the refined score.
+        hit = search(grids, sc.match_points, guess, wxy, wth, cfg.search_min_score, cfg.angle_step)
         if hit is None:
             self.stats.rejected_score += 1
             return None
         found = refine(grid, sc.match_points, hit[0])
+        if field_score(grid, sc.match_points, found) < cfg.min_score:
+            self.stats.rejected_score += 1
+            return None
         r = icp_refine(local, sc.points, found, found, (1.0, 1.0), 0.03, 0.15, iterations=12)
         ratio = _inlier_ratio(local, sc.points, r.pose, cfg.inlier_distance)
         if ratio < cfg.min_inlier_ratio:
@@ -366,6 +407,8 @@ class LoopCloser:
 
 JUMP_LEVER_M = 3.0
 """A closure's turn counts towards ``confirm_above`` as the arc it moves a wall this far away."""
+VIEW_LEVER_M = 2.0
+"""Ranking candidates: a node facing another way counts as this many metres further per radian."""
 
 
 def _inlier_ratio(local: LocalMap, points: F64, pose: Pose, distance: float) -> float:
