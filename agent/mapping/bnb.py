@@ -64,13 +64,6 @@ class PrecomputedGrids:
             cur = nxt
 
 
-@dataclass(frozen=True, slots=True)
-class _Scan:
-    rows: I64  # the rotated points' cells (padded array coordinates) at the window's lowest offset
-    cols: I64
-    theta: float
-
-
 def search(
     grids: PrecomputedGrids,
     points: F64,
@@ -81,78 +74,93 @@ def search(
     angle_step: float = math.radians(0.5),
 ) -> tuple[Pose, float] | None:
     """The best sensor pose for ``points`` (sensor frame) within ``window_xy`` / ``window_theta``
-    of ``guess``, or None when no candidate scores above ``min_score``."""
+    of ``guess``, or None when no candidate scores above ``min_score``.
+
+    Depth first, in batches: the deepest level with candidates left gives up its ``_BATCH`` best,
+    all expanded in one vectorised lookup (one Python step per batch, not per block)."""
     if len(points) == 0:
         return None
     res, pad, depth = grids.resolution, grids.pad, grids.depth
     ox, oy = grids.origin
-    h, w = grids.shape
     n_lin = max(0, math.ceil(window_xy / res))
     n_ang = max(0, round(window_theta / angle_step))
     top = 1 << depth
-    # Offsets (in cells) run over [-n_lin, n_lin]; blocks of ``top`` cells tile them from the low corner.
+    # Offsets (in cells) run over [0, span) from the window's low corner; blocks of ``top`` tile them.
     span = 2 * n_lin + 1
     nblk = -(-span // top)
-    scans: list[_Scan] = []
-    px, py = points[:, 0], points[:, 1]
-    for a in range(-n_ang, n_ang + 1):
-        th = guess[2] + a * angle_step
-        c, s = math.cos(th), math.sin(th)
-        wx = guess[0] + c * px - s * py
-        wy = guess[1] + s * px + c * py
-        col = np.floor((wx - ox) / res).astype(np.int64) - n_lin + pad
-        row = np.floor((wy - oy) / res).astype(np.int64) - n_lin + pad
-        # A point whose whole window lies off the grid never scores: drop it from the lookups (it
-        # still counts in the mean, as a zero).
-        keep = (col + span > pad - top) & (col < pad + w) & (row + span > pad - top) & (row < pad + h)
-        scans.append(_Scan(row[keep], col[keep], th))
+    thetas = guess[2] + angle_step * np.arange(-n_ang, n_ang + 1, dtype=np.float64)
+    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    px, py = points[None, :, 0], points[None, :, 1]
+    cols: I64 = np.floor((guess[0] + c * px - s * py - ox) / res).astype(np.int64) - n_lin + pad
+    rows: I64 = np.floor((guess[1] + s * px + c * py - oy) / res).astype(np.int64) - n_lin + pad
     n_pts = float(len(points))
-    hi = grids.levels[0].shape
+    hh, ww = grids.levels[0].shape
 
-    def score(level: int, k: int, dr: I64, dc: I64) -> F64:
-        """Mean of level ``level`` over scan ``k``'s points shifted by each (dr, dc)."""
-        sc = scans[k]
-        grid = grids.levels[level]
-        rr = sc.rows[None, :] + dr[:, None]
-        cc = sc.cols[None, :] + dc[:, None]
-        ok = (rr >= 0) & (rr < hi[0]) & (cc >= 0) & (cc < hi[1])
-        vals = np.where(ok, grid[np.clip(rr, 0, hi[0] - 1), np.clip(cc, 0, hi[1] - 1)], 0.0)
-        out: F64 = vals.sum(axis=1, dtype=np.float64) / n_pts
+    def score(level: int, k: I64, dr: I64, dc: I64) -> F64:
+        """Mean of level ``level`` under rotation ``k``'s points shifted by (dr, dc), per candidate."""
+        rr = rows[k] + dr[:, None]
+        cc = cols[k] + dc[:, None]
+        ok = (rr >= 0) & (rr < hh) & (cc >= 0) & (cc < ww)
+        flat = np.clip(rr, 0, hh - 1) * ww + np.clip(cc, 0, ww - 1)
+        vals = grids.levels[level].reshape(-1)[flat]
+        out: F64 = np.where(ok, vals, np.float32(0.0)).sum(axis=1, dtype=np.float64) / n_pts
         return out
 
-    # The top level: every block of every rotation, best first.
-    gr, gc = np.meshgrid(np.arange(nblk) * top, np.arange(nblk) * top, indexing="ij")
-    br: I64 = gr.ravel().astype(np.int64)
-    bc: I64 = gc.ravel().astype(np.int64)
-    stack: list[tuple[float, int, int, int, int]] = []  # (bound, depth, rotation, row offset, col offset)
-    for k in range(len(scans)):
-        for sc_, r_, c_ in zip(score(depth, k, br, bc), br, bc, strict=True):
-            stack.append((float(sc_), depth, k, int(r_), int(c_)))
-    stack.sort(key=lambda e: e[0])  # a stack: the best is popped first
+    # The top level: every block of every rotation.
+    gk, gr, gc = np.meshgrid(np.arange(len(thetas)), np.arange(nblk) * top, np.arange(nblk) * top, indexing="ij")
+    k0: I64 = gk.ravel().astype(np.int64)
+    r0: I64 = gr.ravel().astype(np.int64)
+    c0: I64 = gc.ravel().astype(np.int64)
+    b0 = score(depth, k0, r0, c0)
+    # Per level, the candidates still to expand, sorted by bound (best last).
+    frontier: list[tuple[F64, I64, I64, I64]] = [(np.zeros(0), k0[:0], r0[:0], c0[:0])] * (depth + 1)
+    order = np.argsort(b0, kind="stable")
+    frontier[depth] = (b0[order], k0[order], r0[order], c0[order])
     best_score = min_score
     best: tuple[int, int, int] | None = None
-    while stack:
-        bound, d, k, r0, c0 = stack.pop()
-        if bound <= best_score:
+    while True:
+        level = next((d for d in range(1, depth + 1) if len(frontier[d][0])), -1)
+        if level < 0:
+            break
+        fb, fk, fr, fc = frontier[level]
+        take = slice(max(0, len(fb) - _BATCH), len(fb))
+        bb, kk, rr_, cc_ = fb[take], fk[take], fr[take], fc[take]
+        frontier[level] = (fb[: take.start], fk[: take.start], fr[: take.start], fc[: take.start])
+        live = bb > best_score
+        if not live.any():
+            # Sorted: everything left at this level is no better.
+            frontier[level] = (fb[:0], fk[:0], fr[:0], fc[:0])
             continue
-        if d == 0:
-            if r0 < span and c0 < span:
-                best_score, best = bound, (k, r0, c0)
+        kk, rr_, cc_ = kk[live], rr_[live], cc_[live]
+        half = 1 << (level - 1)
+        ck = np.repeat(kk, 4)
+        cr = (rr_[:, None] + np.array([0, 0, half, half])).ravel()
+        cc2 = (cc_[:, None] + np.array([0, half, 0, half])).ravel()
+        inside = (cr < span) & (cc2 < span)
+        ck, cr, cc2 = ck[inside], cr[inside], cc2[inside]
+        if not len(ck):
             continue
-        half = 1 << (d - 1)
-        dr = np.array([r0, r0, r0 + half, r0 + half], dtype=np.int64)
-        dc = np.array([c0, c0 + half, c0, c0 + half], dtype=np.int64)
-        inside = (dr < span) & (dc < span)
-        dr, dc = dr[inside], dc[inside]
-        if not len(dr):
+        kb = score(level - 1, ck, cr, cc2)
+        if level - 1 == 0:
+            i = int(np.argmax(kb))
+            if kb[i] > best_score:
+                best_score, best = float(kb[i]), (int(ck[i]), int(cr[i]), int(cc2[i]))
             continue
-        kids = score(d - 1, k, dr, dc)
-        order = np.argsort(kids)
-        for i in order:
-            if kids[i] > best_score:
-                stack.append((float(kids[i]), d - 1, k, int(dr[i]), int(dc[i])))
+        keep = kb > best_score
+        if not keep.any():
+            continue
+        nb = np.concatenate((frontier[level - 1][0], kb[keep]))
+        nk = np.concatenate((frontier[level - 1][1], ck[keep]))
+        nr = np.concatenate((frontier[level - 1][2], cr[keep]))
+        nc = np.concatenate((frontier[level - 1][3], cc2[keep]))
+        o = np.argsort(nb, kind="stable")
+        frontier[level - 1] = (nb[o], nk[o], nr[o], nc[o])
     if best is None:
         return None
-    k, r0, c0 = best
-    pose = (guess[0] + (c0 - n_lin) * res, guess[1] + (r0 - n_lin) * res, scans[k].theta)
+    k, r, cl = best
+    pose = (guess[0] + (cl - n_lin) * res, guess[1] + (r - n_lin) * res, float(thetas[k]))
     return pose, best_score
+
+
+_BATCH = 32
+"""Candidates expanded per step of the search."""
