@@ -221,3 +221,25 @@ def test_branch_and_bound_finds_the_best_candidate_scoring_all_would(seed: int) 
     assert found[1] == pytest.approx(best, abs=1e-6)
     # And nothing above a threshold over the best: no answer.
     assert search(grids, points, guess, 0.6, math.radians(4.0), min_score=best + 0.01, angle_step=step) is None
+
+
+def test_uwb_fixes_pull_the_map_into_the_site_frame() -> None:
+    """Odometry starts the map in the robot's own frame (its first pose at the origin); UWB fixes
+    (every fifth scan, 10 cm noise) enter the graph as priors, and the final trajectory lies in the
+    site frame without any alignment. Without them it stays in its own frame, consistent."""
+    truth, odom, scans = _drive()
+    rng = np.random.default_rng(5)
+    m = OnboardMapper(MapperConfig(matching=False, closer=CloserConfig()))
+    for i, ((r, a), o) in enumerate(zip(scans, odom, strict=True)):
+        fix = None
+        if i % 5 == 0:
+            fix = (truth[i][0] + rng.normal(0, 0.1), truth[i][1] + rng.normal(0, 0.1), 0.1)
+        m.add_scan_odometry(0.1 * i, r, a, o, site=fix)
+    final = [p for _, p in m.corrected_trajectory()]
+    err = [math.dist(p[:2], t[:2]) for p, t in zip(final, truth, strict=True)]
+    assert float(np.sqrt(np.mean(np.square(err)))) < 0.1, max(err)
+    # Without fixes: far from the site frame (it starts at the origin, the truth at (1, 1))...
+    _, closed, _ = _with_and_without()
+    assert min(math.dist(p[:2], t[:2]) for p, t in zip(closed, truth, strict=True)) > 0.5
+    # ... and as consistent in its own frame.
+    assert _ate(closed, truth) < 0.1

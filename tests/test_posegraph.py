@@ -154,3 +154,40 @@ def test_bad_input_is_refused_with_the_reason(call: object, why: str) -> None:
     with pytest.raises(ValueError, match=why):
         call(g)  # type: ignore[operator]
     assert len(g.poses) == 2 and g.edges == []  # nothing half-added
+
+
+def test_position_priors_pull_a_graph_into_their_frame() -> None:
+    """UWB fixes as priors: the graph starts in the robot's own frame (shifted and turned from the
+    site's); priors at a few nodes, nothing held fixed, and every node lands on its site pose."""
+    truth = _square()
+    g, _ = _drifted(truth, yaw_bias=0.0)
+    off = (2.0, -1.0, 0.4)  # the robot's frame seen from the site's
+    c, s = math.cos(off[2]), math.sin(off[2])
+    g.poses = [
+        (c * (p[0] - off[0]) + s * (p[1] - off[1]), -s * (p[0] - off[0]) + c * (p[1] - off[1]), p[2] - off[2])
+        for p in g.poses
+    ]
+    for k in range(0, len(truth), 4):
+        g.add_prior(k, truth[k][:2], 0.05)
+    assert _worst(g, truth) > 2.0
+    g.optimize(fixed=None)
+    assert _worst(g, truth) < 0.1
+    assert max(abs(math.remainder(p[2] - t[2], 2 * math.pi)) for p, t in zip(g.poses, truth, strict=True)) < 0.05
+
+
+def test_priors_are_refused_when_malformed() -> None:
+    g = PoseGraph()
+    g.add_node((0.0, 0.0, 0.0))
+    for call in (
+        lambda: g.add_prior(1, (0.0, 0.0), 0.1),
+        lambda: g.add_prior(0, (math.nan, 0.0), 0.1),
+        lambda: g.add_prior(0, (0.0,), 0.1),
+        lambda: g.add_prior(0, (0.0, 0.0), 0.0),
+    ):
+        with pytest.raises(ValueError):
+            call()
+    assert g.priors == []
+    g.add_prior(0, (1.0, 2.0), 0.1)
+    g.add_prior(0, (3.0, 2.0), 0.1)
+    g.optimize(fixed=None)
+    assert g.poses[0][:2] == pytest.approx((2.0, 2.0))

@@ -23,7 +23,6 @@ Pure numpy; no I/O.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt

@@ -96,6 +96,7 @@ class CloserConfig:
     closure_sigma_xy: float = 0.03  # m
     closure_sigma_theta: float = math.radians(1.0)
     max_chi2: float = 16.0  # a closure whose error after the solve is above this is dropped
+    prior_solve_nodes: int = 20  # with site priors, solve at least every this many nodes
     max_drops: int = 3  # closures dropped per solve at most (each costs a solve)
     iterations: int = 10
     confirm_above: float = 0.5  # m: a closure moving its node more than this waits for a second one
@@ -178,6 +179,7 @@ class LoopCloser:
         self.stats = CloserStats()
         self._closure_edges: list[int] = []  # graph edge index per entry of ``closures``
         self._pending: list[Closure] = []  # large corrections waiting for a second closure
+        self._solved_at = -1  # the newest node at the last solve
         self.since_closure = 0.0  # m travelled (node to node) since the last accepted closure
 
     def __len__(self) -> int:
@@ -187,11 +189,14 @@ class LoopCloser:
     def poses(self) -> list[Pose]:
         return self.graph.poses
 
-    def add_node(self, t: float, pose: Pose, scan: NodeScan) -> int:
+    def add_node(self, t: float, pose: Pose, scan: NodeScan, site: tuple[float, float, float] | None = None) -> int:
         """A keyframe at the front end's ``pose`` (the current frame); joined to the last node by the
-        front end's relative pose."""
+        front end's relative pose. ``site``: (x, y, sd) where the site frame measured the node (a
+        UWB-fused position), a prior that anchors the graph there."""
         cfg = self.config
         k = self.graph.add_node(pose)
+        if site is not None:
+            self.graph.add_prior(k, site[:2], site[2])
         if k > 0:
             prev = self.graph.poses[k - 1]
             z = relative(prev, pose)
@@ -251,6 +256,9 @@ class LoopCloser:
                     self._pending.append(c)
                     self.stats.pending += 1
         if not found:
+            if self.graph.priors and k - self._solved_at >= cfg.prior_solve_nodes:
+                self._solve()  # the priors alone pull the graph into the site frame, now and then
+                return True
             return False
         self.add_closures(found)
         return True
@@ -389,8 +397,10 @@ class LoopCloser:
         at a time: a wrong closure bends the graph and raises its neighbours' errors too, and they
         come back under the gate once it is gone."""
         cfg = self.config
+        self._solved_at = len(self.graph.poses) - 1
+        fixed = None if self.graph.priors else 0  # priors anchor the graph; else its first node does
         for _ in range(cfg.max_drops + 1):
-            self.graph.optimize(fixed=0, iterations=cfg.iterations, tolerance=1e-5)
+            self.graph.optimize(fixed=fixed, iterations=cfg.iterations, tolerance=1e-5)
             self.stats.solves += 1
             chi = self.graph.errors()
             if not self._closure_edges:

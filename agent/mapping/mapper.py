@@ -152,7 +152,14 @@ class OnboardMapper:
     def pose(self) -> Pose | None:
         return self._last_pose
 
-    def add_scan_odometry(self, t: float, ranges: npt.ArrayLike, angles: npt.ArrayLike, odom: Pose) -> ScanResult:
+    def add_scan_odometry(
+        self,
+        t: float,
+        ranges: npt.ArrayLike,
+        angles: npt.ArrayLike,
+        odom: Pose,
+        site: tuple[float, float, float] | None = None,
+    ) -> ScanResult:
         """Like ``add_scan`` with the guess = last pose moved by the odometry increment since the last scan."""
         prior: tuple[float, float] | None = None
         if self._last_pose is None or self._last_odom is None:
@@ -167,7 +174,7 @@ class OnboardMapper:
                 cfg.odom_sigma_theta + cfg.odom_sigma_theta_per_m * d + cfg.odom_sigma_theta_per_rad * abs(inc[2]),
             )
         self._last_odom = odom
-        return self.add_scan(t, ranges, angles, guess, prior)
+        return self.add_scan(t, ranges, angles, guess, prior, site)
 
     def add_scan(
         self,
@@ -176,10 +183,14 @@ class OnboardMapper:
         angles: npt.ArrayLike,
         pose_guess: Pose,
         prior: tuple[float, float] | None = None,
+        site: tuple[float, float, float] | None = None,
     ) -> ScanResult:
         """One lidar turn (ranges m, angles rad CCW in the sensor frame) near ``pose_guess``; returns the pose.
 
-        ``prior``: (sd xy m, sd theta rad) of the guess; None: ``MatchConfig.prior_sigma_*``."""
+        ``prior``: (sd xy m, sd theta rad) of the guess; None: ``MatchConfig.prior_sigma_*``.
+        ``site``: (x, y, sd) a site-frame position measured at this scan (a UWB fix, or the fused
+        pose once UWB has placed the robot); with loop closure, a node made from this scan takes it
+        as a prior, so the map is pulled into the site frame and stays there through closures."""
         cfg = self.config
         self.scans += 1
         guess = (float(pose_guess[0]), float(pose_guess[1]), wrap(float(pose_guess[2])))
@@ -232,7 +243,8 @@ class OnboardMapper:
                 if cfg.refine_local:
                     self._local.add(compose(pose, cfg.mount), kept, normals)
                 if self.closer is not None:
-                    self.closer.add_node(t, pose, NodeScan(r, a, full_hit, kept, normals, match_pts))
+                    scan = NodeScan(r, a, full_hit, kept, normals, match_pts)
+                    self.closer.add_node(t, pose, scan, site)
                     self._node_pose = pose
             self._last_key = (t, pose)
             integrated = True

@@ -34,7 +34,7 @@ import numpy.typing as npt
 from scipy import sparse
 from scipy.sparse.linalg import spsolve
 
-__all__ = ["Edge", "PoseGraph", "Solve", "relative"]
+__all__ = ["Edge", "PoseGraph", "Prior", "Solve", "relative"]
 
 Pose = tuple[float, float, float]
 F64 = npt.NDArray[np.float64]
@@ -79,6 +79,16 @@ class Solve:
     the solve did not believe."""
 
 
+@dataclass(frozen=True, slots=True)
+class Prior:
+    """A measured position of one node in the graph's frame (a UWB fix): error ``x_i - z``."""
+
+    i: int
+    xy: tuple[float, float]
+    sigma: float
+    """Standard deviation of each coordinate, metres."""
+
+
 class PoseGraph:
     def __init__(self, cauchy_c: float = 1.0) -> None:
         if not (math.isfinite(cauchy_c) and cauchy_c > 0):
@@ -86,6 +96,20 @@ class PoseGraph:
         self.cauchy_c = cauchy_c
         self.poses: list[Pose] = []
         self.edges: list[Edge] = []
+        self.priors: list[Prior] = []
+
+    def add_prior(self, i: int, xy: Sequence[float], sigma: float) -> Prior:
+        """Node ``i`` measured at ``xy`` (each coordinate with sd ``sigma``) in the graph's frame: what
+        anchors the graph to the site (a UWB fix). With priors no node is held fixed."""
+        if not 0 <= i < len(self.poses):
+            raise ValueError(f"prior on node {i}: no such node (the graph has {len(self.poses)})")
+        if len(xy) != 2 or not all(math.isfinite(float(v)) for v in xy):
+            raise ValueError(f"prior on node {i}: position must be two finite numbers, got {tuple(xy)!r}")
+        if not (math.isfinite(sigma) and sigma > 0):
+            raise ValueError(f"prior on node {i}: sigma must be a finite number > 0, got {sigma!r}")
+        p = Prior(i, (float(xy[0]), float(xy[1])), float(sigma))
+        self.priors.append(p)
+        return p
 
     def add_node(self, pose: Sequence[float]) -> int:
         """A node at ``pose`` (the initial guess); its index."""
@@ -145,18 +169,27 @@ class PoseGraph:
 
     def chi2(self, poses: Sequence[Pose] | None = None) -> float:
         """Sum of e^T Omega e over the edges at ``poses`` (default: the graph's)."""
-        return float(self.errors(poses).sum())
+        ps = self.poses if poses is None else poses
+        total = float(self.errors(ps).sum())
+        for p in self.priors:
+            dx, dy = ps[p.i][0] - p.xy[0], ps[p.i][1] - p.xy[1]
+            total += (dx * dx + dy * dy) / (p.sigma * p.sigma)
+        return total
 
-    def optimize(self, *, fixed: int = 0, iterations: int = 20, tolerance: float = 1e-9) -> Solve:
-        """Gauss-Newton (iteratively reweighted for robust edges) with node ``fixed`` held still.
-        The graph's poses are replaced by the solution; nodes no edge reaches keep their guess."""
+    def optimize(self, *, fixed: int | None = 0, iterations: int = 20, tolerance: float = 1e-9) -> Solve:
+        """Gauss-Newton (iteratively reweighted for robust edges) with node ``fixed`` held still
+        (``None``: none, for a graph its priors anchor). The graph's poses are replaced by the
+        solution; nodes no edge reaches keep their guess."""
         n = len(self.poses)
-        if not 0 <= fixed < n:
+        if fixed is not None and not 0 <= fixed < n:
             raise ValueError(f"fixed node {fixed}: no such node (the graph has {n})")
         poses = list(self.poses)
         before = self.chi2(poses)
-        if not self.edges:
+        if not self.edges and not self.priors:
             return Solve(poses, 0, before, before, True)
+        if not self.edges:  # priors only: each node with one goes to its mean
+            self.poses = _prior_means(poses, self.priors)
+            return Solve(self.poses, 1, before, self.chi2(self.poses), True)
         ii = np.array([ed.i for ed in self.edges], dtype=np.int64)
         jj = np.array([ed.j for ed in self.edges], dtype=np.int64)
         zz = np.array([ed.z for ed in self.edges], dtype=np.float64)
@@ -186,14 +219,28 @@ class PoseGraph:
             np.add.at(g, (3 * ii[:, None] + r3).ravel(), np.einsum("eil,el->ei", at_om, e).ravel())
             np.add.at(g, (3 * jj[:, None] + r3).ravel(), np.einsum("eil,el->ei", bt_om, e).ravel())
             rows, cols, vals = blk_r.ravel(), blk_c.ravel(), blocks.ravel()
-            # The fixed node: its rows and columns out, identity on its diagonal (its step is zero).
-            f = fixed
-            keep = ~(((rows // 3) == f) | ((cols // 3) == f))
-            rows, cols, vals = rows[keep], cols[keep], vals[keep]
+            if self.priors:  # e = x_i - z on x and y: J = I, so Omega on the diagonal, Omega e in g
+                pi = np.array([p.i for p in self.priors], dtype=np.int64)
+                pw = np.array([1.0 / (p.sigma * p.sigma) for p in self.priors])
+                pe = x[pi, :2] - np.array([p.xy for p in self.priors])
+                prow = np.concatenate((3 * pi, 3 * pi + 1))
+                rows = np.concatenate((rows, prow))
+                cols = np.concatenate((cols, prow))
+                vals = np.concatenate((vals, pw, pw))
+                np.add.at(g, prow, np.concatenate((pw * pe[:, 0], pw * pe[:, 1])))
+            if fixed is not None:
+                # The fixed node: its rows and columns out, identity on its diagonal (its step is zero).
+                keep = ~(((rows // 3) == fixed) | ((cols // 3) == fixed))
+                rows, cols, vals = rows[keep], cols[keep], vals[keep]
+                g[3 * fixed : 3 * fixed + 3] = 0.0
             diag = np.zeros(3 * n)
             np.add.at(diag, rows[rows == cols], vals[rows == cols])
-            extra = np.flatnonzero(diag == 0.0)  # the fixed node and nodes no edge touches: held still
-            g[3 * f : 3 * f + 3] = 0.0
+            extra = np.flatnonzero(diag == 0.0)  # the fixed node and nodes nothing touches: held still
+            # A whisker of damping: a graph anchored by position priors alone leaves its heading free
+            # where too few priors pin it; the step there stays (near) zero instead of undefined.
+            rows = np.concatenate((rows, np.arange(3 * n)))
+            cols = np.concatenate((cols, np.arange(3 * n)))
+            vals = np.concatenate((vals, np.full(3 * n, 1e-9)))
             h = sparse.csc_matrix(
                 (
                     np.concatenate((vals, np.ones(len(extra)))),
@@ -225,6 +272,19 @@ class PoseGraph:
         e, _, _ = _errors(x[ii], x[jj], zz)
         out: F64 = np.einsum("ek,ekl,el->e", e, om, e)
         return out
+
+
+def _prior_means(poses: list[Pose], priors: list[Prior]) -> list[Pose]:
+    """Each node with priors at their information-weighted mean position (heading unchanged)."""
+    acc: dict[int, tuple[float, float, float]] = {}
+    for p in priors:
+        w = 1.0 / (p.sigma * p.sigma)
+        sx, sy, sw = acc.get(p.i, (0.0, 0.0, 0.0))
+        acc[p.i] = (sx + w * p.xy[0], sy + w * p.xy[1], sw + w)
+    out = list(poses)
+    for i, (sx, sy, sw) in acc.items():
+        out[i] = (sx / sw, sy / sw, poses[i][2])
+    return out
 
 
 def _errors(xi: F64, xj: F64, z: F64) -> tuple[F64, F64, F64]:
