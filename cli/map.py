@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rep.add_argument("--out", required=True, help="output folder: map.pgm, map.yaml, trajectory.txt")
     rep.add_argument("--resolution", type=float, default=0.05, help="metres per cell (default 0.05)")
     rep.add_argument("--no-matching", action="store_true", help="map at the odometry poses (no scan matching)")
+    rep.add_argument(
+        "--no-closure", action="store_true", help="no loop closure: the front end's poses as they were mapped"
+    )
     rep.set_defaults(_run=run_replay)
 
     rel = sub.add_parser("relations", help="write a complete relation set from a corrected CARMEN log")
@@ -140,10 +143,12 @@ def run_replay(args: argparse.Namespace) -> int:
         print("fleetlink map replay: --resolution must be > 0", file=sys.stderr)
         return 2
     cfg = MapperConfig(grid=GridConfig(resolution=args.resolution), matching=not args.no_matching)
+    if args.no_closure:
+        cfg = replace(cfg, closer=None)
     stats = CarmenStats()
     try:
         with open_log(args.log) as f:
-            result = replay(read_records(f, stats), replace(cfg))
+            result = replay(read_records(f, stats), cfg)
     except OSError as exc:
         print(f"fleetlink map replay: cannot read {args.log}: {exc}", file=sys.stderr)
         return 1
@@ -159,8 +164,12 @@ def run_replay(args: argparse.Namespace) -> int:
     cells, res, origin = m.occupancy()
     write_map(cells, res, (origin[0], origin[1], 0.0), out, "map")
     print(f"{args.log}: {stats.summary()}")
+    closed = ""
+    if m.closer is not None:
+        closed = f"; {len(m.closer)} nodes, {len(m.closer.closures)} loop closures of {m.closer.stats.attempts} checked"
     print(
-        f"{len(result.rows)} scans mapped ({m.matched} matched, {m.fallbacks} on odometry); wrote {out}/map.pgm, map.yaml, trajectory.txt"
+        f"{len(result.rows)} scans mapped ({m.matched} matched, {m.fallbacks} on odometry{closed});"
+        f" wrote {out}/map.pgm, map.yaml, trajectory.txt"
     )
     return 0
 

@@ -138,6 +138,10 @@ def test_cli_replay_writes_map_server_files_and_a_verbatim_trajectory(tmp_path: 
     plan = load_plan(out / "map.yaml")
     assert len(plan.walls) > 4
     assert main(["map", "load", str(out / "map.yaml")]) == 0
+    # --no-closure: the front end alone (no pose graph); the same scans, the same timestamps.
+    bare = tmp_path / "bare"
+    assert main(["map", "replay", str(log), "--out", str(bare), "--no-closure"]) == 0
+    assert [r.split()[0] for r in (bare / "trajectory.txt").read_text().splitlines()] == TIMESTAMPS
 
 
 def test_cli_replay_rejects_a_log_without_scans(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
