@@ -428,15 +428,20 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"office plan, lockstep: {n} scans (10 Hz, 360 samples) over {drive['times'][-1]:.0f} s, odometry with wheel-radius errors"
     )
-    print(f"{'':>16} {'ATE m':>8} {'precision':>10} {'recall':>8} {'wall dist m':>12}")
+    print(f"{'':>16} {'ATE m':>8} {'final m':>8} {'precision':>10} {'recall':>8} {'wall dist m':>12}")
     for name in ("matching", "odometry_only"):
         r = office[name]
         print(
-            f"{name:>16} {r['ate_m']:>8.3f} {r['precision_ratio']:>10.3f} {r['recall_ratio']:>8.3f} {r['mean_wall_distance_m']:>12.3f}"
+            f"{name:>16} {r['ate_m']:>8.3f} {r['ate_final_m']:>8.3f} {r['precision_ratio']:>10.3f}"
+            f" {r['recall_ratio']:>8.3f} {r['mean_wall_distance_m']:>12.3f}"
         )
     ratio = office["matching"]["ate_m"] / office["odometry_only"]["ate_m"]
     office["ate_ratio"] = ratio
     print(f"ATE with matching / odometry only: {ratio:.3f}   (goal: ATE <= 0.05 m)")
+    print(
+        "('final': after the last loop-closure solve; the tour goes 31 m down the corridor and back, a patrol"
+        " that revisits: goal <= 0.03 m)"
+    )
 
     logs = ["intel-corrected.log.gz"] + ([] if args.quick else ["aces-corrected.log.gz"])
     for name in logs:
