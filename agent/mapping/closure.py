@@ -39,31 +39,11 @@ from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.matcher import LocalMap, field_score, icp_refine, refine
 from fleetlink.agent.mapping.posegraph import PoseGraph
+from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
 
 __all__ = ["CloserConfig", "CloserStats", "Closure", "LoopCloser", "NodeScan"]
 
-Pose = tuple[float, float, float]
 F64 = npt.NDArray[np.float64]
-
-
-def _wrap(a: float) -> float:
-    return math.remainder(a, 2.0 * math.pi)
-
-
-def compose(a: Pose, b: Pose) -> Pose:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], _wrap(a[2] + b[2]))
-
-
-def relative(a: Pose, b: Pose) -> Pose:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return (c * dx + s * dy, -s * dx + c * dy, _wrap(b[2] - a[2]))
-
-
-def inverse(p: Pose) -> Pose:
-    c, s = math.cos(p[2]), math.sin(p[2])
-    return (-(c * p[0] + s * p[1]), -(-s * p[0] + c * p[1]), _wrap(-p[2]))
 
 
 @dataclass(frozen=True, slots=True)
@@ -287,7 +267,7 @@ class LoopCloser:
         """How far the closure moves its node (m, a turn counted as its arc at ``JUMP_LEVER_M``)."""
         at = compose(self.graph.poses[c.anchor], c.z)
         now = self.graph.poses[c.node]
-        return math.hypot(at[0] - now[0], at[1] - now[1]) + JUMP_LEVER_M * abs(_wrap(at[2] - now[2]))
+        return math.hypot(at[0] - now[0], at[1] - now[1]) + JUMP_LEVER_M * abs(wrap(at[2] - now[2]))
 
     def _agree(self, a: Closure, b: Closure) -> bool:
         """Do two closures ask for the same correction? Both applied to ``b``'s node, compared."""
@@ -297,7 +277,7 @@ class LoopCloser:
         cfg = self.config
         return (
             math.hypot(pa[0] - pb[0], pa[1] - pb[1]) <= cfg.confirm_distance
-            and abs(_wrap(pa[2] - pb[2])) <= cfg.confirm_angle
+            and abs(wrap(pa[2] - pb[2])) <= cfg.confirm_angle
         )
 
     def _candidates(self, k: int, at: Pose, *, fresh_only: bool = True, limit: int | None = None) -> list[_Submap]:

@@ -33,28 +33,11 @@ from fleetlink.agent.mapping.closure import CloserConfig, LoopCloser, NodeScan
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.matcher import LocalMap, MatchConfig, field_score, icp_refine, match_scan, scan_normals
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig
+from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
 
 __all__ = ["MapperConfig", "OnboardMapper", "Pose", "ScanResult", "compose", "relative"]
 
-Pose = tuple[float, float, float]
 FloatArray = npt.NDArray[np.float64]
-
-
-def wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def compose(a: Pose, b: Pose) -> Pose:
-    """a (+) b: pose b given in a's frame, expressed in a's parent frame."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap(a[2] + b[2]))
-
-
-def relative(a: Pose, b: Pose) -> Pose:
-    """a^-1 (+) b: pose b seen from a."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return (c * dx + s * dy, -s * dx + c * dy, wrap(b[2] - a[2]))
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,7 +212,7 @@ class OnboardMapper:
                     score = field_score(target, match_pts, found)
                     good = r_.inliers >= cfg.min_inlier_ratio * len(icp_pts)
             if good or score >= cfg.min_score:
-                pose = compose(found, _inverse(cfg.mount))
+                pose = compose(found, inverse(cfg.mount))
                 pose = (pose[0], pose[1], wrap(pose[2]))
                 matched = True
         if matched:
@@ -279,7 +262,7 @@ class OnboardMapper:
         closer = self.closer
         assert closer is not None and self._node_pose is not None
         new = closer.poses[-1]
-        fix = compose(new, _inverse(self._node_pose))  # old frame -> corrected frame
+        fix = compose(new, inverse(self._node_pose))  # old frame -> corrected frame
         self._node_pose = new
         self._last_local = new
         if self._last_key is not None:
@@ -405,8 +388,3 @@ class OnboardMapper:
 
 REDRAW_LEVER_M = 3.0
 """A node's turn counts towards ``redraw_distance`` as the arc it moves a wall this far away."""
-
-
-def _inverse(p: Pose) -> Pose:
-    c, s = math.cos(p[2]), math.sin(p[2])
-    return (-(c * p[0] + s * p[1]), -(-s * p[0] + c * p[1]), -p[2])

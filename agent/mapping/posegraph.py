@@ -34,21 +34,11 @@ import numpy.typing as npt
 from scipy import sparse
 from scipy.sparse.linalg import spsolve
 
+from fleetlink.agent.mapping.se2 import Pose, relative, wrap
+
 __all__ = ["Edge", "PoseGraph", "Prior", "Solve", "relative"]
 
-Pose = tuple[float, float, float]
 F64 = npt.NDArray[np.float64]
-
-
-def _wrap(a: float) -> float:
-    return math.remainder(a, 2.0 * math.pi)
-
-
-def relative(a: Pose, b: Pose) -> Pose:
-    """``b`` seen from ``a``: ``a^-1 (+) b``."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return (c * dx + s * dy, -s * dx + c * dy, _wrap(b[2] - a[2]))
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,7 +105,7 @@ class PoseGraph:
         """A node at ``pose`` (the initial guess); its index."""
         if len(pose) != 3 or not all(math.isfinite(float(v)) for v in pose):
             raise ValueError(f"node pose must be three finite numbers (x, y, theta), got {tuple(pose)!r}")
-        self.poses.append((float(pose[0]), float(pose[1]), _wrap(float(pose[2]))))
+        self.poses.append((float(pose[0]), float(pose[1]), wrap(float(pose[2]))))
         return len(self.poses) - 1
 
     def add_edge(self, i: int, j: int, z: Sequence[float], info: npt.ArrayLike, *, robust: bool = False) -> Edge:
@@ -134,7 +124,7 @@ class PoseGraph:
             np.linalg.cholesky(om)
         except np.linalg.LinAlgError:
             raise ValueError(f"edge {i}->{j}: information must be positive definite") from None
-        e = Edge(i, j, (float(z[0]), float(z[1]), _wrap(float(z[2]))), om, robust)
+        e = Edge(i, j, (float(z[0]), float(z[1]), wrap(float(z[2]))), om, robust)
         self.edges.append(e)
         return e
 
@@ -156,7 +146,7 @@ class PoseGraph:
         rit = np.array([[ci, si], [-si, ci]])  # R_i^T
         rzt = np.array([[cz, sz], [-sz, cz]])  # R_z^T
         t = rzt @ (rit @ np.array([dx, dy]) - np.array([z[0], z[1]]))
-        e = np.array([t[0], t[1], _wrap(xj[2] - xi[2] - z[2])])
+        e = np.array([t[0], t[1], wrap(xj[2] - xi[2] - z[2])])
         drit = np.array([[-si, ci], [-ci, -si]])  # d R_i^T / d theta_i
         a = np.zeros((3, 3))
         a[:2, :2] = -rzt @ rit
