@@ -151,6 +151,9 @@ def test_closures_are_found_and_pull_the_trajectory_onto_the_truth() -> None:
 def test_closures_that_move_a_node_far_wait_for_a_second_one_that_agrees() -> None:
     m, _, _ = _with_and_without()
     assert m.closer is not None
+    # On this ring the first closure moves its node by more than confirm_above: it waited, and the
+    # next node, matched where it would put it, confirmed it.
+    assert m.closer.stats.pending >= 1 and m.closer.stats.confirmed >= 1, m.closer.stats
     jumps = [m.closer._jump(c) for c in m.closer.closures]
     # Every closure kept is consistent with the solved graph.
     assert max(jumps) < 0.2, jumps
@@ -168,9 +171,15 @@ def test_a_false_closure_is_dropped_by_the_solve() -> None:
     k, a = 40, 0
     true_z = relative(closer.poses[a], closer.poses[k])
     wrong = Closure(k, a, (true_z[0] + 1.5, true_z[1], true_z[2] + math.radians(10)), 0.9, 0.9)
-    closer.add_closures([wrong])
-    assert wrong not in closer.closures
-    assert len(closer.closures) == kept
+    # And a right one after it in the same batch: the bookkeeping must survive the wrong one's removal.
+    k2 = 60
+    right = Closure(k2, a, relative(closer.poses[a], closer.poses[k2]), 0.9, 0.9)
+    closer.add_closures([wrong, right])
+    assert wrong not in closer.closures and right in closer.closures
+    assert len(closer.closures) == kept + 1
+    for c, e in zip(closer.closures, closer._closure_edges, strict=True):
+        edge = closer.graph.edges[e]
+        assert (edge.i, edge.j, edge.z) == (c.anchor, c.node, c.z)
     assert closer.stats.dropped_by_solve >= 1
     moved = max(math.dist(p[:2], q[:2]) for p, q in zip(before, closer.poses, strict=True))
     assert moved < 0.02, moved
@@ -219,6 +228,14 @@ def test_branch_and_bound_finds_the_best_candidate_scoring_all_would(seed: int) 
                 v = float(np.where(ok, field[np.clip(rr, 0, 79), np.clip(cc, 0, 79)], 0.0).sum()) / len(points)
                 best = max(best, v)
     assert found[1] == pytest.approx(best, abs=1e-6)
+    # The pose it returns is the one that scores that: scored again on the lattice at that pose.
+    (x, y, th) = found[0]
+    c, s = math.cos(th), math.sin(th)
+    col = np.floor((x + c * points[:, 0] - s * points[:, 1] - origin[0]) / res + 1e-9).astype(int)
+    row = np.floor((y + s * points[:, 0] + c * points[:, 1] - origin[1]) / res + 1e-9).astype(int)
+    ok = (row >= 0) & (row < 80) & (col >= 0) & (col < 80)
+    again = float(np.where(ok, field[np.clip(row, 0, 79), np.clip(col, 0, 79)], 0.0).sum()) / len(points)
+    assert again == pytest.approx(best, abs=0.05)
     # And nothing above a threshold over the best: no answer.
     assert search(grids, points, guess, 0.6, math.radians(4.0), min_score=best + 0.01, angle_step=step) is None
 
@@ -243,3 +260,25 @@ def test_uwb_fixes_pull_the_map_into_the_site_frame() -> None:
     assert min(math.dist(p[:2], t[:2]) for p, t in zip(closed, truth, strict=True)) > 0.5
     # ... and as consistent in its own frame.
     assert _ate(closed, truth) < 0.1
+
+
+def test_the_front_end_keeps_matching_when_site_priors_move_the_map() -> None:
+    """With scan matching on, the first solve with UWB priors moves the map by metres (from the
+    robot's frame into the site's); the grids the front end matches move with it, so every later
+    scan still matches (no fallback to odometry) and the map ends in the site frame. Without the
+    point-to-line step, which would hide a stale grid: the grid match alone must hold."""
+    truth, odom, scans = _drive()
+    rng = np.random.default_rng(5)
+    m = OnboardMapper(MapperConfig(refine_local=False, closer=CloserConfig()))
+    scores = []
+    for i, ((r, a), o) in enumerate(zip(scans, odom, strict=True)):
+        fix = None
+        if i % 5 == 0:
+            fix = (truth[i][0] + rng.normal(0, 0.1), truth[i][1] + rng.normal(0, 0.1), 0.1)
+        scores.append(m.add_scan_odometry(0.1 * i, r, a, o, site=fix).score)
+    assert m.closer is not None and m.closer.stats.solves >= 1
+    assert m.fallbacks == 0
+    assert min(scores[5:]) > 0.5, min(scores[5:])
+    final = [p for _, p in m.corrected_trajectory()]
+    err = [math.dist(p[:2], t[:2]) for p, t in zip(final, truth, strict=True)]
+    assert float(np.sqrt(np.mean(np.square(err)))) < 0.1, max(err)

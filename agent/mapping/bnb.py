@@ -42,8 +42,8 @@ class PrecomputedGrids:
     by ``pad`` zero cells on each side so a lookup with a block's offset never leaves the array."""
 
     def __init__(self, field: F32, origin: tuple[float, float], resolution: float, depth: int = 6) -> None:
-        if depth < 0 or field.ndim != 2:
-            raise ValueError("need depth >= 0 and a 2D field")
+        if depth < 1 or field.ndim != 2:
+            raise ValueError("need depth >= 1 and a 2D field")
         self.resolution = resolution
         self.origin = origin
         self.depth = depth
@@ -77,6 +77,8 @@ def search(
 
     Depth first, in batches: the deepest level with candidates left gives up its ``_BATCH`` best,
     all expanded in one vectorised lookup (one Python step per batch, not per block)."""
+    if not (angle_step > 0 and math.isfinite(angle_step)):
+        raise ValueError(f"angle_step must be > 0, got {angle_step!r}")
     if len(points) == 0:
         return None
     res, pad, depth = grids.resolution, grids.pad, grids.depth

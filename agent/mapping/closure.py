@@ -23,14 +23,14 @@ closure needs (after Cartographer's global SLAM, Hess et al. 2016, on a smaller 
   every closure whose error is above ``max_chi2`` (e^T Omega e, 3 degrees of freedom) is dropped and
   the graph solved again: a verified but wrong closure is rejected, a right one absorbed.
 
-The caller (the mapper) re-renders its grid from the optimised node poses. Pure numpy; time is an
-argument; no I/O.
+The caller (the mapper) re-renders its grid from the optimised node poses. numpy and scipy (the
+solve); time is an argument; no I/O.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -68,6 +68,7 @@ class CloserConfig:
     min_inlier_ratio: float = 0.6
     inlier_distance: float = 0.1  # m
     max_disagreement: float = 0.1  # m between the correlative and the refined answer
+    max_disagreement_angle: float = math.radians(2.0)
     min_weak: float = 10000.0  # smallest eigenvalue of the refinement's information (1/m^2)
     step_sigma_xy: float = 0.01  # m, odometry edge: sd = base + per metre moved
     step_sigma_xy_per_m: float = 0.03
@@ -84,13 +85,29 @@ class CloserConfig:
     confirm_distance: float = 0.2  # m: two closures agree when their corrections differ by less
     confirm_angle: float = math.radians(2.0)
     bnb_depth: int = 6  # branch-and-bound levels: the top blocks are 2^6 cells (3.2 m at 5 cm)
+    cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
 
     def __post_init__(self) -> None:
         if self.submap_nodes < 2 or self.attempts_per_node < 0 or self.min_gap_nodes < self.submap_nodes:
             raise ValueError("need submap_nodes >= 2, attempts_per_node >= 0 and min_gap_nodes >= submap_nodes")
-        for name in ("search_radius", "search_xy", "closure_sigma_xy", "step_sigma_xy", "max_chi2"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0")
+        if self.bnb_depth < 1 or self.max_drops < 0 or self.cached_submaps < 1:
+            raise ValueError("need bnb_depth >= 1, max_drops >= 0 and cached_submaps >= 1")
+        for name in (
+            "search_radius",
+            "search_xy",
+            "search_theta",
+            "angle_step",
+            "closure_sigma_xy",
+            "closure_sigma_theta",
+            "step_sigma_xy",
+            "step_sigma_theta",
+            "max_chi2",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        if self.max_search_xy < self.search_xy or self.max_search_theta < self.search_theta:
+            raise ValueError("the search caps must be at least the base windows")
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,7 +132,7 @@ class Closure:
     inlier_ratio: float
 
 
-@dataclass(slots=True)
+@dataclass(slots=True, eq=False)
 class _Submap:
     first: int
     last: int  # exclusive
@@ -137,6 +154,7 @@ class CloserStats:
     pending: int = 0  # large corrections held for a second closure
     confirmed: int = 0
     solves: int = 0
+    submaps_drawn: int = 0  # drawings (a submap let go and needed again is drawn again)
 
 
 class LoopCloser:
@@ -159,6 +177,7 @@ class LoopCloser:
         self.stats = CloserStats()
         self._closure_edges: list[int] = []  # graph edge index per entry of ``closures``
         self._pending: list[Closure] = []  # large corrections waiting for a second closure
+        self._drawn: list[_Submap] = []  # the drawn submaps, least recently used first
         self._solved_at = -1  # the newest node at the last solve
         self.since_closure = 0.0  # m travelled (node to node) since the last accepted closure
 
@@ -174,6 +193,8 @@ class LoopCloser:
         front end's relative pose. ``site``: (x, y, sd) where the site frame measured the node (a
         UWB-fused position), a prior that anchors the graph there."""
         cfg = self.config
+        if site is not None and not (all(math.isfinite(v) for v in site) and site[2] > 0):
+            raise ValueError(f"site must be (x, y, sd) finite with sd > 0, got {site!r}")
         k = self.graph.add_node(pose)
         if site is not None:
             self.graph.add_prior(k, site[:2], site[2])
@@ -317,9 +338,13 @@ class LoopCloser:
         )
 
     def _draw(self, sm: _Submap) -> tuple[LogOddsGrid, LocalMap, PrecomputedGrids]:
+        """The submap's grid, point-to-line map and search levels, drawn the first time they are
+        needed. Only ``cached_submaps`` stay drawn (the least recently used is let go and drawn again
+        if asked for): each holds a grid and its seven search levels, megabytes apiece."""
         if sm.grid is None or sm.local is None or sm.grids is None:
             anchor = self.graph.poses[sm.first]
-            grid = LogOddsGrid(self.grid_config)
+            # A small growth step: the mapper's 8 m padding would make every submap a big grid.
+            grid = LogOddsGrid(replace(self.grid_config, grow_step=SUBMAP_GROW_M))
             local = LocalMap(sm.last - sm.first, cell=0.05)
             for n in range(sm.first, sm.last):
                 sensor = compose(relative(anchor, self.graph.poses[n]), self.mount)
@@ -328,6 +353,13 @@ class LoopCloser:
                 local.add(sensor, sc.points, sc.normals)
             sm.grid, sm.local = grid, local
             sm.grids = PrecomputedGrids(grid.field, grid.origin, grid.resolution, self.config.bnb_depth)
+            self.stats.submaps_drawn += 1
+        if sm in self._drawn:
+            self._drawn.remove(sm)
+        self._drawn.append(sm)
+        while len(self._drawn) > self.config.cached_submaps:
+            old = self._drawn.pop(0)
+            old.grid = old.local = old.grids = None
         return sm.grid, sm.local, sm.grids
 
     def _verify(
@@ -362,7 +394,10 @@ class LoopCloser:
         if ratio < cfg.min_inlier_ratio:
             self.stats.rejected_inliers += 1
             return None
-        if math.hypot(r.pose[0] - found[0], r.pose[1] - found[1]) > cfg.max_disagreement:
+        if (
+            math.hypot(r.pose[0] - found[0], r.pose[1] - found[1]) > cfg.max_disagreement
+            or abs(wrap(r.pose[2] - found[2])) > cfg.max_disagreement_angle
+        ):
             self.stats.rejected_disagreement += 1
             return None
         if r.weak < cfg.min_weak:
@@ -373,18 +408,19 @@ class LoopCloser:
         return Closure(k, sm.first, robot, score, ratio)
 
     def _solve(self) -> None:
-        """Solve; while the worst closure's error is above ``max_chi2``, drop it and solve again. One
-        at a time: a wrong closure bends the graph and raises its neighbours' errors too, and they
-        come back under the gate once it is gone."""
+        """Solve; while the worst closure's error is above ``max_chi2``, drop it and solve again (at
+        most ``max_drops`` times; the last solve is always after the last drop). One at a time: a
+        wrong closure bends the graph and raises its neighbours' errors too, and they come back under
+        the gate once it is gone."""
         cfg = self.config
         self._solved_at = len(self.graph.poses) - 1
         fixed = None if self.graph.priors else 0  # priors anchor the graph; else its first node does
-        for _ in range(cfg.max_drops + 1):
+        for attempt in range(cfg.max_drops + 1):
             self.graph.optimize(fixed=fixed, iterations=cfg.iterations, tolerance=1e-5)
             self.stats.solves += 1
-            chi = self.graph.errors()
-            if not self._closure_edges:
+            if not self._closure_edges or attempt == cfg.max_drops:
                 return
+            chi = self.graph.errors()
             worst = max(range(len(self._closure_edges)), key=lambda n: chi[self._closure_edges[n]])
             edge = self._closure_edges[worst]
             if chi[edge] <= cfg.max_chi2:
@@ -395,6 +431,8 @@ class LoopCloser:
             self._closure_edges = [e - 1 if e > edge else e for e in self._closure_edges]
 
 
+SUBMAP_GROW_M = 2.0
+"""A submap grid grows in steps of this many metres (the mapper's grid uses 8 m)."""
 JUMP_LEVER_M = 3.0
 """A closure's turn counts towards ``confirm_above`` as the arc it moves a wall this far away."""
 VIEW_LEVER_M = 2.0

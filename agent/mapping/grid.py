@@ -236,7 +236,6 @@ class LogOddsGrid:
         self.field.fill(0.0)
         self.coarse_field.fill(0.0)
         self.empty = True
-        self._placed = True
         self.dirty = (0, 0, *self.shape)
 
     def refresh(self, box: Box | None = None) -> None:

@@ -122,6 +122,8 @@ class OnboardMapper:
         self._last_local: Pose | None = None
         self._planner_version = -1
         self._recent: list[tuple[list[int], LogOddsGrid]] = []  # ([scans integrated], grid), oldest first
+        # The last ``recent_scans`` keyframes in the recent grids: sensor pose and beams.
+        self._recent_log: list[tuple[Pose, FloatArray, FloatArray, npt.NDArray[np.bool_]]] = []
         self.closer = LoopCloser(cfg.closer, cfg.grid, cfg.mount) if cfg.closer is not None else None
         # For redrawing after a solve: each integrated scan's node, its pose in the node's frame, and
         # its beams; per trajectory entry, its node and offset (-1: before the first node).
@@ -186,6 +188,11 @@ class OnboardMapper:
         if not all(math.isfinite(v) for v in guess) or not math.isfinite(t):
             self.rejected += 1
             raise ValueError(f"non-finite pose guess {pose_guess!r} or time {t!r}")
+        if site is not None and not (
+            len(site) == 3 and all(math.isfinite(float(v)) for v in site) and float(site[2]) > 0
+        ):
+            self.rejected += 1
+            raise ValueError(f"site must be (x, y, sd) finite with sd > 0, got {site!r}")
         r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, cfg.max_range)
         pts = scanprep.to_points(r[hit], a[hit])
         keep_hit = np.ones(len(pts), dtype=bool)
@@ -229,6 +236,7 @@ class OnboardMapper:
             self.grid.integrate(compose(pose, cfg.mount), r, a, full_hit)
             if cfg.recent_scans and self.closer is not None:
                 self._add_recent(compose(pose, cfg.mount), r, a, full_hit)
+            made_node = False
             if self._spaced(pose):
                 self._last_local = pose
                 normals = scan_normals(pts, labels)[keep_hit]
@@ -238,6 +246,7 @@ class OnboardMapper:
                     scan = NodeScan(r, a, full_hit, kept, normals, match_pts)
                     self.closer.add_node(t, pose, scan, site)
                     self._node_pose = pose
+                    made_node = True
             self._last_key = (t, pose)
             integrated = True
             if self.closer is not None and self._node_pose is not None:
@@ -245,7 +254,7 @@ class OnboardMapper:
                 self._drawn.append(
                     (node, relative(self._node_pose, pose), r.astype(np.float32), a.astype(np.float32), full_hit)
                 )
-                if self._node_pose == pose and self.closer.close():
+                if made_node and self.closer.close():
                     pose = self._after_solve(pose)
         self._last_pose = pose
         self.trajectory.append((t, pose))
@@ -274,6 +283,16 @@ class OnboardMapper:
             for n in range(max(0, len(poses) - cfg.local_keyframes), len(poses)):
                 sc = closer.scans[n]
                 self._local.add(compose(poses[n], cfg.mount), sc.points, sc.normals)
+        # The recent grids the front end matches move with it, rigidly: drawn again at their scans'
+        # poses moved by the same correction once it is large enough to blur a wall (after a large
+        # move, e.g. the first solve with site priors, matching the old ones would double the walls).
+        # Rigidly, not at the graph's poses: those bend the recent stretch to fit older closures,
+        # and the front end matching that bend measured the office 0.034 m off instead of 0.015 m.
+        if self._recent and math.hypot(fix[0], fix[1]) + REDRAW_LEVER_M * abs(fix[2]) > cfg.redraw_distance:
+            log = [(compose(fix, sensor), rr, aa, hit) for sensor, rr, aa, hit in self._recent_log]
+            self._recent, self._recent_log = [], []
+            for sensor, rr, aa, hit in log:
+                self._add_recent(sensor, rr, aa, hit)
         # Redraw only once some node has moved enough since it was drawn to blur the walls: the grid's
         # field is blurred over ~2 cells anyway, and a redraw costs every scan's ray update again.
         self.redraw(cfg.redraw_distance)
@@ -329,6 +348,8 @@ class OnboardMapper:
         ``recent_scans``, and the first is dropped once it holds them all, so the one matched against
         always holds between half and all of the last ``recent_scans`` keyframes."""
         n = self.config.recent_scans
+        self._recent_log.append((sensor, r, a, hit))
+        del self._recent_log[:-n]
         if not self._recent or (self._recent[-1][0][0] >= n // 2 and len(self._recent) < 2):
             self._recent.append(([0], LogOddsGrid(self.config.grid)))
         for count, grid in self._recent:
