@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from fleetlink.agent.mapping.se2 import compose, relative
+
 __all__ = [
     "DEFAULT_LOCAL_S",
     "DEFAULT_MAX_DISTANCE_M",
@@ -79,15 +81,8 @@ class Relation:
     dtheta: float  # rad
 
 
-def wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def relation(p1: Pose, p2: Pose) -> Pose:
-    """p1^-1 ⊕ p2: the pose p2 seen from p1, poses as (x, y, theta)."""
-    c, s = math.cos(p1[2]), math.sin(p1[2])
-    dx, dy = p2[0] - p1[0], p2[1] - p1[1]
-    return (c * dx + s * dy, -s * dx + c * dy, wrap(p2[2] - p1[2]))
+relation = relative
+"""p1^-1 (+) p2: the pose p2 seen from p1 (the relation a file line holds)."""
 
 
 # -- text ------------------------------------------------------------------------------------------
@@ -151,11 +146,6 @@ class _View:
     reach: FloatArray  # m per sorted beam: its reading, or the maximum range where it had no return
 
 
-def _compose(a: Pose, b: Pose) -> Pose:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap(a[2] + b[2]))
-
-
 def _view(pose: Pose, scan: Scan, max_range: float, mount: Pose) -> _View:
     ranges = np.asarray(scan[0], dtype=np.float64)
     angles = np.asarray(scan[1], dtype=np.float64)
@@ -163,7 +153,7 @@ def _view(pose: Pose, scan: Scan, max_range: float, mount: Pose) -> _View:
         raise ValueError(
             f"a scan's ranges and angles must be 1-D and of one length, got {ranges.shape} and {angles.shape}"
         )
-    sensor = _compose(pose, mount)
+    sensor = compose(pose, mount)
     # 0, NaN, inf and readings at the maximum are "no return" (the mapper's convention): the beam
     # saw nothing up to its maximum range.
     with np.errstate(invalid="ignore"):
