@@ -236,6 +236,8 @@ def test_branch_and_bound_finds_the_best_candidate_scoring_all_would(seed: int) 
     ok = (row >= 0) & (row < 80) & (col >= 0) & (col < 80)
     again = float(np.where(ok, field[np.clip(row, 0, 79), np.clip(col, 0, 79)], 0.0).sum()) / len(points)
     assert again == pytest.approx(best, abs=0.05)
+    # A search that cannot decide within its budget answers nothing rather than a guess.
+    assert search(grids, points, guess, 0.6, math.radians(4.0), min_score=0.0, angle_step=step, max_batches=1) is None
     # And nothing above a threshold over the best: no answer.
     assert search(grids, points, guess, 0.6, math.radians(4.0), min_score=best + 0.01, angle_step=step) is None
 

@@ -71,9 +71,11 @@ def search(
     window_theta: float,
     min_score: float,
     angle_step: float = math.radians(0.5),
+    max_batches: int = 2000,
 ) -> tuple[Pose, float] | None:
     """The best sensor pose for ``points`` (sensor frame) within ``window_xy`` / ``window_theta``
-    of ``guess``, or None when no candidate scores above ``min_score``.
+    of ``guess``, or None when no candidate scores above ``min_score`` or when ``max_batches``
+    expansions left the search undecided (the scan fits many places about as well).
 
     Depth first, in batches: the deepest level with candidates left gives up its ``_BATCH`` best,
     all expanded in one vectorised lookup (one Python step per batch, not per block)."""
@@ -112,14 +114,23 @@ def search(
     k0: I64 = gk.ravel().astype(np.int64)
     r0: I64 = gr.ravel().astype(np.int64)
     c0: I64 = gc.ravel().astype(np.int64)
-    b0 = score(depth, k0, r0, c0)
+    # Scored in chunks: a 10 m, 35 deg window has ~7000 top blocks, times ~150 points each.
+    b0 = np.concatenate(
+        [score(depth, k0[i : i + _CHUNK], r0[i : i + _CHUNK], c0[i : i + _CHUNK]) for i in range(0, len(k0), _CHUNK)]
+    )
     # Per level, the candidates still to expand, sorted by bound (best last).
     frontier: list[tuple[F64, I64, I64, I64]] = [(np.zeros(0), k0[:0], r0[:0], c0[:0])] * (depth + 1)
     order = np.argsort(b0, kind="stable")
     frontier[depth] = (b0[order], k0[order], r0[order], c0[order])
     best_score = min_score
     best: tuple[int, int, int] | None = None
+    batches = 0
     while True:
+        batches += 1
+        if batches > max_batches:
+            # So many blocks still bound above the best found that the scan fits many places about
+            # as well: not a distinctive match, and the search is bounded in time (~0.5 s here).
+            return None
         level = next((d for d in range(1, depth + 1) if len(frontier[d][0])), -1)
         if level < 0:
             break
@@ -165,3 +176,5 @@ def search(
 
 _BATCH = 32
 """Candidates expanded per step of the search."""
+_CHUNK = 1024
+"""Top-level blocks scored per lookup (bounds the temporary arrays)."""
