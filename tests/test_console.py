@@ -36,7 +36,7 @@ from fleetlink.shared.messages import (
     Order,
     Teleop,
 )
-from tests.harness.console_rig import ME, Rig
+from tests.harness.console_rig import ME, PROMPT, Rig
 
 
 def run_async(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -253,20 +253,25 @@ async def test_mark_flow_shared_and_saved(rig: Rig, tmp_path: Path) -> None:
 
 
 @run_async
-async def test_link_indicator_changes_on_failover(rig: Rig) -> None:
-    async with rig.app.run_test(size=(140, 44)) as pilot:
-        await with_robots(rig, pilot, "r1")
-        assert rig.app.query_one("#fleet").get_cell("r1", "link").plain == "zenoh"
-        rig.up = ("mqtt",)  # the robot is heard on MQTT only now
-        for _ in range(50):  # the state window (0.35 s), however slow the machine
-            await settle(pilot, 0.1)
-            if rig.app.query_one("#fleet").get_cell("r1", "link").plain == "mqtt":
-                break
-        assert rig.app.query_one("#fleet").get_cell("r1", "link").plain == "mqtt"
-        assert "failover" in screen_text(rig.app)
-        await pilot.press("i")
-        await pilot.pause()
-        assert rig.mqtt.messages(Teleop), "drive commands follow the fallback"
+async def test_link_indicator_changes_on_failover(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, policy=PROMPT)  # the production window: this test is about failing over
+    rig.start()
+    try:
+        async with rig.app.run_test(size=(140, 44)) as pilot:
+            await with_robots(rig, pilot, "r1")
+            assert rig.app.query_one("#fleet").get_cell("r1", "link").plain == "zenoh"
+            rig.up = ("mqtt",)  # the robot is heard on MQTT only now
+            for _ in range(50):  # the state window (0.35 s), however slow the machine
+                await settle(pilot, 0.1)
+                if rig.app.query_one("#fleet").get_cell("r1", "link").plain == "mqtt":
+                    break
+            assert rig.app.query_one("#fleet").get_cell("r1", "link").plain == "mqtt"
+            assert "failover" in screen_text(rig.app)
+            await pilot.press("i")
+            await pilot.pause()
+            assert rig.mqtt.messages(Teleop), "drive commands follow the fallback"
+    finally:
+        rig.close()
 
 
 @run_async
