@@ -310,6 +310,20 @@ class Fusion:
         o = self._nodes[-1].odom
         return Pose2D(o.x, o.y, o.theta)
 
+    def odom_at(self, t: float) -> Pose2D:
+        """The odometry-frame pose at time ``t``: interpolated in the history, clamped to its ends."""
+        nodes = self._nodes
+        if not nodes:
+            return Pose2D(0.0, 0.0, 0.0)
+        if t >= nodes[-1].t:
+            o = nodes[-1].odom
+        elif t <= nodes[0].t:
+            o = nodes[0].odom
+        else:
+            i = bisect.bisect_right([n.t for n in nodes], t)
+            o = _interpolate(nodes[i - 1].odom, nodes[i].odom, t)
+        return Pose2D(o.x, o.y, o.theta)
+
     def map_pose(self) -> MapPose:
         """The published map-frame pose at the newest odometry time: absorbs corrections without jumping.
 

@@ -276,7 +276,8 @@ def run_console(settings: ConsoleSettings, link: Any = None) -> int:
         link, fleet, clock, lock=lock, doses=doses, read_only=settings.read_only, marks_file=settings.marks_file,
         audit_log=audit_log_path(settings), **round_options(settings),
     )  # fmt: skip
-    fetcher = MapFetcher(maps, link.fetch_map, clock, lock).start()
+    fleet_map = fleet_map_service(link, maps, lock, clock, settings.operator)
+    fetcher = MapFetcher(maps, link.fetch_map, clock, lock, after_poll=fleet_map.step).start()
     dose_fetcher = DoseFetcher(doses, link.fetch_dose, clock, lock).start()  # merges the layers off the UI thread
     marks = share_marks(link, fleet, lock, clock=clock, publish=not settings.read_only)
     try:
@@ -287,8 +288,25 @@ def run_console(settings: ConsoleSettings, link: Any = None) -> int:
         marks.stop()
         fetcher.stop()
         dose_fetcher.stop()
+        if fleet_map.share is not None:
+            fleet_map.share.stop()
         link.close()
     return 0
+
+
+def fleet_map_service(link: Any, maps: Any, lock: Any, clock: Any, operator: str) -> Any:
+    """The fleet map this console builds from the robots' maps (site/fleetmap.py), served on its
+    primary link when that answers queries, so ``fleetlink map save --fleet`` can fetch it."""
+    from fleetlink.agent.mapping.share import MapShare
+    from fleetlink.shared import keys
+    from fleetlink.site.fleetmap import FleetMapService
+
+    share = None
+    primary = link.query_link() if hasattr(link, "query_link") else None
+    if primary is not None:
+        share = MapShare(primary, keys.FLEET_MAP, clock, sender=operator)
+        share.start()
+    return FleetMapService(maps, lock, clock, share=share)
 
 
 def round_options(settings: ConsoleSettings) -> dict[str, Any]:

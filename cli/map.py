@@ -28,14 +28,25 @@ log = logging.getLogger(__name__)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="map_command", metavar="ACTION", required=True)
 
-    save = sub.add_parser("save", help="fetch a robot's map over Zenoh and write PGM + YAML")
-    save.add_argument("--robot", required=True, help="robot id")
+    save = sub.add_parser("save", help="fetch a robot's map (or the fleet map) over Zenoh and write PGM + YAML")
+    who = save.add_mutually_exclusive_group(required=True)
+    who.add_argument("--robot", help="robot id")
+    who.add_argument(
+        "--fleet", action="store_true", help="the fleet map (served by the console, or by `fleetlink map fleet`)"
+    )
     save.add_argument("--out", required=True, help="folder (or base path) for map.pgm + map.yaml")
     save.add_argument(
         "--connect", action="append", default=[], metavar="ENDPOINT", help="zenoh endpoint to connect to (repeatable)"
     )
     save.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the map (default 5)")
     save.set_defaults(_run=run_save)
+
+    fl = sub.add_parser("fleet", help="build the fleet map from every robot's map and serve it (a site with a router)")
+    fl.add_argument(
+        "--connect", action="append", default=[], metavar="ENDPOINT", help="zenoh endpoint to connect to (repeatable)"
+    )
+    fl.add_argument("--period", type=float, default=2.0, help="seconds between builds while maps change (default 2)")
+    fl.set_defaults(_run=run_fleet)
 
     load = sub.add_parser("load", help="read a map_server map (YAML) and print a summary")
     load.add_argument("yaml", help="the map's YAML file")
@@ -86,15 +97,21 @@ def run_save(args: argparse.Namespace) -> int:
     from fleetlink.shared import keys
     from fleetlink.shared.map_codec import decode_cells
 
+    robot = keys.FLEET_MAP if args.fleet else args.robot
     try:
-        keys.check_robot_id(args.robot)
+        keys.check_robot_id(robot)
     except ValueError as exc:
         print(f"fleetlink map save: {exc}", file=sys.stderr)
         return 2
     with ZenohEndpoint(connect=args.connect, label="zenoh-map-save") as link:
-        snap = fetch_map(link, args.robot, timeout=args.timeout)
+        snap = fetch_map(link, robot, timeout=args.timeout)
     if snap is None:
-        print(f"fleetlink map save: no map from robot {args.robot!r} within {args.timeout:g} s", file=sys.stderr)
+        what = (
+            "no fleet map (is a console or `fleetlink map fleet` running?)"
+            if args.fleet
+            else f"no map from robot {robot!r}"
+        )
+        print(f"fleetlink map save: {what} within {args.timeout:g} s", file=sys.stderr)
         return 1
     cells = decode_cells(snap.cells, snap.width, snap.height)
     out = Path(args.out)
@@ -102,6 +119,66 @@ def run_save(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)  # a folder: out/map.pgm + out/map.yaml
     yaml = write_map(cells, snap.resolution, (snap.origin_x, snap.origin_y, 0.0), out, "map")
     print(f"{yaml} ({snap.width} x {snap.height} cells at {snap.resolution:g} m, version {snap.version})")
+    return 0
+
+
+def run_fleet(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from fleetlink.agent.mapping.share import MapShare, fetch_map
+    from fleetlink.links.zenoh import ZenohEndpoint
+    from fleetlink.operator.fleet import FleetModel
+    from fleetlink.operator.maps import MapFetcher, MapFollower
+    from fleetlink.shared import keys, wire
+    from fleetlink.shared.clock import SystemClock
+    from fleetlink.shared.messages import MapUpdate, State
+    from fleetlink.site.fleetmap import FleetMapService
+
+    if not (args.period > 0):
+        print("fleetlink map fleet: --period must be > 0", file=sys.stderr)
+        return 2
+    clock = SystemClock()
+    lock = threading.Lock()
+    follower = MapFollower(FleetModel("fleet-map"))
+    rejected = 0
+    done = threading.Event()
+
+    def hear(key: str, payload: bytes) -> None:
+        nonlocal rejected
+        try:
+            msg = wire.decode_key(key, payload)
+        except wire.WireError as exc:
+            rejected += 1
+            if rejected == 1:
+                log.warning("fleet map: rejected %s: %s (further rejections counted)", key, exc.reason)
+            return
+        with lock:
+            if isinstance(msg, State) and msg.header.robot != keys.FLEET_MAP:
+                follower.fleet.robot(msg.header.robot)  # a robot is heard: its map is wanted
+            elif isinstance(msg, MapUpdate):
+                follower.on_update(msg)
+
+    with ZenohEndpoint(connect=args.connect, label="zenoh-fleet-map") as link:
+        share = MapShare(link, keys.FLEET_MAP, clock, sender="fleet-map")
+        share.start()
+
+        def built(result: object) -> None:
+            log.info("fleet map version %s built", getattr(result, "version", "?"))
+
+        service = FleetMapService(follower, lock, clock, share=share, period_s=args.period, on_built=built)
+        link.subscribe(f"{keys.PREFIX}/*/{State.TOPIC}", hear)
+        link.subscribe(f"{keys.PREFIX}/*/{MapUpdate.TOPIC}", hear)
+        fetcher = MapFetcher(follower, lambda r: fetch_map(link, r), clock, lock, after_poll=service.step).start()
+        signal.signal(signal.SIGTERM, lambda *_: done.set())
+        print("fleetlink map fleet: serving fleetlink/v1/fleet/map; Ctrl-C stops", flush=True)
+        try:
+            done.wait()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            fetcher.stop()
+            share.stop()
     return 0
 
 

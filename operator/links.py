@@ -335,6 +335,11 @@ class OperatorLink:
         primary = self.links[LinkName.ZENOH]
         return primary if hasattr(primary, "query") and hasattr(primary, "serve") else None
 
+    def query_link(self) -> Any:
+        """The primary link when it answers queries (Zenoh, in-process), else None: where this
+        console serves what it shares (its marks; the fleet map it builds)."""
+        return self._queries()
+
     def fetch_map(self, robot: str, timeout: float = 3.0) -> MapSnapshot | None:
         """Ask the robot's map queryable (``fleetlink/v1/<robot>/map``); None if no good answer."""
         return self._fetch(robot, MapSnapshot, timeout)

@@ -19,6 +19,7 @@ import numpy as np
 from fleetlink.operator.fetcher import SnapshotFetcher
 from fleetlink.operator.fleet import FleetModel, Grid
 from fleetlink.shared.clock import Clock
+from fleetlink.shared.keys import FLEET_MAP
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.messages import MapSnapshot, MapUpdate
 
@@ -55,6 +56,8 @@ class MapFollower:
     def on_update(self, msg: MapUpdate) -> bool:
         """A patch from ``map/updates``: applied (True), or the copy is marked for a fresh snapshot."""
         robot = msg.header.robot
+        if robot == FLEET_MAP:
+            return False  # a fleet map service's own: this side builds its fleet map from the robots'
         shared = self.maps.get(robot)
         if shared is None:
             self._stale.add(robot)
@@ -73,6 +76,8 @@ class MapFollower:
         return True
 
     def on_snapshot(self, robot: str, msg: MapSnapshot) -> bool:
+        if robot == FLEET_MAP:
+            return False
         try:
             shared = SharedMap.from_snapshot(msg)
         except ValueError as exc:
@@ -109,5 +114,12 @@ class MapFetcher(SnapshotFetcher[MapSnapshot]):
         lock: threading.Lock,
         *,
         period_s: float = 0.5,
+        after_poll: Callable[[], object] | None = None,
     ) -> None:
+        """``after_poll``: run after each fetch round (the fleet map service's ``step``)."""
         super().__init__("map", follower, fetch, clock, lock, period_s=period_s)
+        self._after = after_poll
+
+    def after_poll(self) -> None:
+        if self._after is not None:
+            self._after()

@@ -28,6 +28,7 @@ from textual.widget import Widget
 from fleetlink.operator.dose import AT_TARGET, BELOW, FleetDose
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.shared.geometry import points_in_polygon
+from fleetlink.shared.keys import FLEET_MAP
 
 __all__ = ["MapGeometry", "MapView"]
 
@@ -171,7 +172,11 @@ class MapView(Widget, can_focus=True):
         merged = np.full((g.height, g.width), 255, dtype=np.uint8)
         xs = g.center_x + (np.arange(g.width) + 0.5 - g.width / 2) * g.scale
         ys = g.center_y - (np.arange(g.height) + 0.5 - g.height / 2) * g.scale * ASPECT
-        for ox, oy, res, w, h, data in self.fleet.grids.values():
+        # The fleet map, when there is one, is every robot's map registered and merged: drawn alone.
+        grids = self.fleet.grids
+        if FLEET_MAP in grids:
+            grids = {FLEET_MAP: grids[FLEET_MAP]}
+        for ox, oy, res, w, h, data in grids.values():
             grid = np.frombuffer(data, dtype=np.uint8).reshape(h, w)
             i = np.floor((xs - ox) / res).astype(np.int64)
             j = np.floor((ys - oy) / res).astype(np.int64)

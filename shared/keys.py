@@ -69,6 +69,10 @@ TRUTH_TOPIC = "truth"
 
 RESERVED_ROBOT_IDS = frozenset({SIM})
 
+FLEET_MAP = "fleet"
+"""The fleet map's place among the robots' maps: ``fleetlink/v1/fleet/map`` (site/fleetmap.py).
+Not a robot: consoles draw it as the site's map and never drive it."""
+
 MAX_TOPIC_SEGMENTS = 8
 
 SENDER_TOPICS = frozenset({"order", "actions", "teleop", "lease/request", "zones", "marks", "marks/set", "alarms/ack"})

@@ -33,11 +33,12 @@ def test_a_sweep_passes_the_brush_over_the_room_on_a_path_near_the_boustrophedon
     with RoundRun(setup) as run:
         result = run.run()
     assert result.finished, result.notes
-    # Measured 0.73 with a path 1.7x the ideal (the goals are 0.95 and 1.2x): the lanes stop 0.3 m short
-    # of walls ahead (the guard's stopping room), lanes across them sweep along those walls, and the
-    # pilot finds no path to a third of those (its own map's walls are thicker). A regression guard.
-    assert result.coverage >= 0.65, (result.coverage, result.notes)
-    assert result.ideal_path_m is not None and result.path_m <= 2.0 * result.ideal_path_m
+    # Measured 0.82 with a path 2.2x the ideal (the goals are 0.95 and 1.2x): the lanes stop 0.3 m short
+    # of walls ahead (the guard's stopping room) and lanes across them sweep along those walls, where
+    # the guard slows the robot and it weaves. (Before the map took each turn at its start, 0.73 and
+    # 1.7x: the smeared walls kept the lanes farther from the furniture.) A regression guard.
+    assert result.coverage >= 0.75, (result.coverage, result.notes)
+    assert result.ideal_path_m is not None and result.path_m <= 2.5 * result.ideal_path_m
     assert result.lamp_on_s == 0.0 and result.bumps == 0
 
 

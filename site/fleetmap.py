@@ -1,0 +1,120 @@
+"""The fleet map service: one map of the site, built from every robot's onboard map and served on
+the link like a robot's map (``fleetlink/v1/fleet/map``, patches on ``.../fleet/map/updates``).
+
+    service = FleetMapService(follower, lock, clock, share=MapShare(link, keys.FLEET_MAP, clock))
+    fetcher = MapFetcher(follower, fetch, clock, lock, after_poll=service.step)   # operator/maps.py
+
+The robots' maps are followed as the console follows them (``MapFollower``: a snapshot per robot,
+then its patches, a fresh snapshot when one is missed). ``step()`` (after each fetch round, at most
+every ``period_s``) copies the maps that changed under the lock, hands them to the pure core
+(agent/mapping/fleetmap.py: inter-robot registration, the site frame, the merge) outside it, puts
+the result in the fleet model as the grid ``keys.FLEET_MAP`` (the console's map draws it instead
+of the robots' own maps) and publishes it on ``share`` when its cells changed.
+
+Two hosts: the console (cli/console.py), on its own link, so the demo's console serves the fleet
+map that ``fleetlink map save --fleet`` fetches; and ``fleetlink map fleet``, a process of its own
+for a site with a router (``run_service``).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+
+import numpy as np
+
+from fleetlink.agent.mapping.fleetmap import FleetMap, FleetMapConfig, FleetResult, RobotMap
+from fleetlink.agent.mapping.keeper import MapPublication
+from fleetlink.agent.mapping.share import MapShare
+from fleetlink.operator.maps import MapFollower, to_grid
+from fleetlink.shared import keys
+from fleetlink.shared.clock import Clock
+from fleetlink.shared.map_codec import SharedMap, fits_whole
+
+__all__ = ["FleetMapService", "publication_of"]
+
+log = logging.getLogger(__name__)
+
+PERIOD_S = 2.0
+"""Seconds between builds while the robots' maps change (each robot shares its map every second)."""
+
+
+class FleetMapService:
+    def __init__(
+        self,
+        follower: MapFollower,
+        lock: threading.Lock,
+        clock: Clock,
+        *,
+        share: MapShare | None = None,
+        period_s: float = PERIOD_S,
+        config: FleetMapConfig | None = None,
+        on_built: Callable[[FleetResult], None] | None = None,
+    ) -> None:
+        self.follower = follower
+        self.lock = lock
+        self.clock = clock
+        self.share = share
+        self.period_s = period_s
+        self.core = FleetMap(config or FleetMapConfig())
+        self.on_built = on_built
+        self.result: FleetResult | None = None
+        self.builds = 0
+        self._next = -float("inf")
+        self._seen: dict[str, int] = {}
+        self._published: MapPublication | None = None
+
+    def step(self) -> bool:
+        """Build and publish if the robots' maps changed and ``period_s`` has passed. True if built."""
+        now = self.clock.now()
+        if now < self._next:
+            return False
+        with self.lock:
+            maps = {r: m for r, m in self.follower.maps.items() if r != keys.FLEET_MAP}
+            versions = {r: m.version for r, m in maps.items()}
+            if versions == self._seen:
+                return False
+            copies = {r: SharedMap(m.cells.copy(), m.resolution, m.origin, m.version) for r, m in maps.items()}
+        self._next = now + self.period_s
+        self._seen = versions
+        for robot in set(self.core.maps) - set(copies):
+            self.core.forget(robot)
+        for robot, m in copies.items():
+            try:
+                self.core.put(robot, RobotMap(m.cells, m.resolution, m.origin, m.version))
+            except ValueError as exc:
+                log.warning("fleet map: %s's map left out: %s", robot, exc)
+        result = self.core.build()
+        if result is None:
+            return False
+        self.result = result
+        self.builds += 1
+        with self.lock:
+            self.follower.fleet.set_grid(
+                keys.FLEET_MAP, to_grid(SharedMap(result.cells, result.resolution, result.origin, result.version))
+            )
+        if self.share is not None:
+            pub = publication_of(result, self._published)
+            if self._published is None or pub.version != self._published.version:
+                self.share.publish(pub)
+                self._published = pub
+        if self.on_built is not None:
+            self.on_built(result)
+        return True
+
+
+def publication_of(result: FleetResult, previous: MapPublication | None) -> MapPublication:
+    """The fleet map as a share publishes it: the box that changed since ``previous`` when the two
+    are on the same cells, the whole map when it grew or moved (a receiver then fetches it again)."""
+    cells = result.cells
+    h, w = cells.shape
+    changed: tuple[int, int, int, int] | None = (0, 0, h, w)
+    if previous is not None and previous.cells.shape == cells.shape and previous.origin == result.origin:
+        rows, cols = np.nonzero(previous.cells != cells)
+        changed = (
+            None if not len(rows) else (int(rows.min()), int(cols.min()), int(rows.max()) + 1, int(cols.max()) + 1)
+        )
+    if not fits_whole(cells):
+        changed = None  # served coarser as a snapshot; no patch would apply
+    return MapPublication(result.version, cells, result.resolution, result.origin, changed, site_frame=True)

@@ -1,0 +1,167 @@
+"""The fleet map's core (agent/mapping/fleetmap.py): inter-robot registration, the site frame, the merge."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fleetlink.agent.mapping.fleetmap import FleetMap, FleetMapConfig, RobotMap
+from fleetlink.agent.mapping.se2 import Pose, compose, inverse
+
+RES = 0.05
+
+# A floor of three rooms off a corridor, in site metres: (x1, y1, x2, y2) wall segments.
+WALLS = (
+    (0.0, 0.0, 9.0, 0.0), (9.0, 0.0, 9.0, 6.0), (9.0, 6.0, 0.0, 6.0), (0.0, 6.0, 0.0, 0.0),
+    (0.0, 2.0, 2.5, 2.0), (3.5, 2.0, 5.5, 2.0), (6.5, 2.0, 9.0, 2.0),
+    (3.0, 2.0, 3.0, 0.0), (6.0, 2.0, 6.0, 0.0), (4.0, 6.0, 4.0, 4.5), (1.5, 4.0, 2.5, 4.0),
+)  # fmt: skip
+
+
+def robot_map(box: tuple[float, float, float, float], motion: Pose = (0.0, 0.0, 0.0), version: int = 1) -> RobotMap:
+    """What a robot that saw the part ``box`` of the floor would share, its map placed ``motion``
+    off the site frame (a rigid error of its UWB placement): walls occupied, the rest of the box
+    free, the rest unknown, on the lattice of cells centred at multiples of RES."""
+    x0, y0, x1, y1 = box
+    pts = []
+    for a, b, c, d in WALLS:
+        n = max(2, int(math.hypot(c - a, d - b) / (RES / 4)))
+        t = np.linspace(0.0, 1.0, n)
+        pts.append(np.column_stack((a + (c - a) * t, b + (d - b) * t)))
+    walls = np.vstack(pts)
+    walls = walls[(walls[:, 0] >= x0) & (walls[:, 0] <= x1) & (walls[:, 1] >= y0) & (walls[:, 1] <= y1)]
+    c, s = math.cos(motion[2]), math.sin(motion[2])
+    placed = np.column_stack(
+        (motion[0] + c * walls[:, 0] - s * walls[:, 1], motion[1] + s * walls[:, 0] + c * walls[:, 1])
+    )
+    ox = math.floor((x0 - 1.0) / RES) * RES - RES / 2
+    oy = math.floor((y0 - 1.0) / RES) * RES - RES / 2
+    w, h = int((x1 - x0 + 2.0) / RES) + 1, int((y1 - y0 + 2.0) / RES) + 1
+    cells = np.full((h, w), -1, dtype=np.int8)
+    # Known floor: the box as placed.
+    gx, gy = np.meshgrid(ox + (np.arange(w) + 0.5) * RES, oy + (np.arange(h) + 0.5) * RES)
+    bx = c * (gx - motion[0]) + s * (gy - motion[1])
+    by = -s * (gx - motion[0]) + c * (gy - motion[1])
+    cells[(bx >= x0) & (bx <= x1) & (by >= y0) & (by <= y1)] = 0
+    cols = np.floor((placed[:, 0] - ox) / RES).astype(int)
+    rows = np.floor((placed[:, 1] - oy) / RES).astype(int)
+    ok = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+    cells[rows[ok], cols[ok]] = 100
+    return RobotMap(cells, RES, (ox, oy), version)
+
+
+def walls_of(cells: np.ndarray, origin: tuple[float, float], res: float) -> np.ndarray:
+    rows, cols = np.nonzero(cells == 100)
+    return np.column_stack((origin[0] + (cols + 0.5) * res, origin[1] + (rows + 0.5) * res))
+
+
+def undo(correction: Pose, points: np.ndarray) -> np.ndarray:
+    """``points`` moved back by the inverse of a map's correction (into that map's own frame)."""
+    x, y, th = inverse(correction)
+    c, s = math.cos(th), math.sin(th)
+    return np.column_stack((x + c * points[:, 0] - s * points[:, 1], y + s * points[:, 0] + c * points[:, 1]))
+
+
+def distance_to_walls(points: np.ndarray) -> np.ndarray:
+    segs = np.array(WALLS)
+    a, b = segs[None, :, :2], segs[None, :, 2:]
+    p = points[:, None, :]
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(axis=2) / (ab**2).sum(axis=2), 0, 1)
+    return np.hypot(*(a + t[..., None] * ab - p).transpose(2, 0, 1)).min(axis=1)
+
+
+def test_two_overlapping_maps_are_registered_and_meet_halfway() -> None:
+    fm = FleetMap()
+    off = (0.16, -0.08, math.radians(1.5))  # as measured between two robots' maps on the apartment
+    assert fm.put("a", robot_map((0.0, 0.0, 6.5, 6.0)))
+    assert fm.put("b", robot_map((2.5, 0.0, 9.0, 6.0), off))
+    result = fm.build()
+    assert result is not None
+    (reg,) = result.registrations
+    assert (reg.a, reg.b) == ("a", "b") and reg.points >= 200 and reg.score > 0.7
+    # The corrections undo the relative error: b's map moved by (about) off^-1 relative to a's.
+    ca, cb = result.corrections["a"], result.corrections["b"]
+    probe = (7.0, 3.0, 0.0)  # a point b saw, in the site frame
+    seen_by_b = compose(off, probe)
+    pa, pb = compose(ca, probe), compose(cb, seen_by_b)
+    assert math.hypot(pa[0] - pb[0], pa[1] - pb[1]) < 0.03
+    # Equal placement priors: each map moved about half of the disagreement.
+    assert 0.3 < math.hypot(ca[0], ca[1]) / max(1e-9, math.hypot(ca[0], ca[1]) + math.hypot(cb[0], cb[1])) < 0.7
+
+
+def test_the_merged_walls_are_single_where_the_overlay_doubles_them() -> None:
+    fm = FleetMap()
+    a = robot_map((0.0, 0.0, 6.5, 6.0))
+    b = robot_map((2.5, 0.0, 9.0, 6.0), (0.0, 0.2, 0.0))  # b's map 0.2 m off in y
+    fm.put("a", a)
+    fm.put("b", b)
+    result = fm.build()
+    assert result is not None and result.registrations
+    merged = walls_of(result.cells, result.origin, result.resolution)
+    # Moved back by a's correction (a's placement was right), the walls are where the floor's are.
+    d = distance_to_walls(undo(result.corrections["a"], merged))
+    assert np.median(d) <= 0.05
+    # Unregistered (as the console overlays them), b's walls in the overlap are 0.2 m off.
+    overlay = np.vstack([walls_of(m.cells, m.origin, RES) for m in (a, b)])
+    assert np.mean(distance_to_walls(overlay) > 0.1) > 0.2
+    assert np.mean(d > 0.1) < 0.05
+
+
+def test_maps_that_do_not_overlap_stay_where_their_robots_put_them() -> None:
+    fm = FleetMap()
+    fm.put("a", robot_map((0.0, 0.0, 3.0, 2.0)))
+    fm.put("b", robot_map((6.0, 3.0, 9.0, 6.0)))
+    result = fm.build()
+    assert result is not None
+    assert result.registrations == ()
+    assert result.corrections == {"a": (0.0, 0.0, 0.0), "b": (0.0, 0.0, 0.0)}
+    assert fm.refused == 1
+
+
+def test_a_map_of_somewhere_else_is_not_forced_onto_the_other() -> None:
+    cfg = FleetMapConfig()
+    fm = FleetMap(cfg)
+    fm.put("a", robot_map((0.0, 0.0, 9.0, 6.0)))
+    # b claims to have seen a's floor but its walls are a 90 degree turn of it: nothing fits.
+    b = robot_map((0.0, 0.0, 9.0, 6.0))
+    fm.put("b", RobotMap(np.ascontiguousarray(np.rot90(b.cells)), RES, b.origin, 1))
+    result = fm.build()
+    assert result is not None
+    assert result.registrations == () and fm.refused == 1
+    assert result.corrections["b"] == (0.0, 0.0, 0.0)
+
+
+def test_builds_are_deterministic_and_versioned_by_change() -> None:
+    def build() -> FleetMap:
+        fm = FleetMap()
+        fm.put("a", robot_map((0.0, 0.0, 6.5, 6.0)))
+        fm.put("b", robot_map((2.5, 0.0, 9.0, 6.0), (0.1, 0.05, 0.01)))
+        return fm
+
+    one, two = build(), build()
+    r1, r2 = one.build(), two.build()
+    assert r1 is not None and r2 is not None
+    assert np.array_equal(r1.cells, r2.cells) and r1.corrections == r2.corrections and r1.version == 1
+    again = one.build()
+    assert again is not None and again.version == 1  # nothing changed: same version
+    assert not one.put("a", robot_map((0.0, 0.0, 6.5, 6.0)))  # the same version again: ignored
+    assert one.put("a", robot_map((0.0, 0.0, 7.5, 6.0), version=2))
+    grown = one.build()
+    assert grown is not None and grown.version == 2
+
+
+def test_bad_input_is_refused_with_a_reason() -> None:
+    with pytest.raises(ValueError, match="resolution"):
+        RobotMap(np.zeros((3, 3), dtype=np.int8), float("nan"), (0.0, 0.0), 1)
+    with pytest.raises(ValueError, match="origin"):
+        RobotMap(np.zeros((3, 3), dtype=np.int8), 0.05, (float("inf"), 0.0), 1)
+    with pytest.raises(ValueError, match="min_score"):
+        FleetMapConfig(min_score=1.5)
+    with pytest.raises(ValueError, match="window_xy_m"):
+        FleetMapConfig(window_xy_m=0.0)
+    fm = FleetMap()
+    assert fm.build() is None
+    assert not fm.put("empty", RobotMap(np.zeros((4, 4), dtype=np.int8), RES, (0.0, 0.0), 1))  # no walls yet

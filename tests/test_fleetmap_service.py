@@ -1,0 +1,149 @@
+"""The fleet map end to end over real Zenoh peers on loopback: two robots share their maps (the
+agent's MapShare), a console follows them and builds the fleet map (the console's own wiring,
+cli/console.py ``fleet_map_service``), draws it instead of the robots' maps, serves it, and
+``fleetlink map save --fleet`` writes it as map_server files."""
+
+from __future__ import annotations
+
+import math
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fleetlink.agent.mapping.keeper import MapPublication
+from fleetlink.agent.mapping.share import MapShare
+from fleetlink.cli.console import fleet_map_service
+from fleetlink.cli.main import main
+from fleetlink.field.mapserver import read_map
+from fleetlink.links.mqtt import MqttEndpoint
+from fleetlink.links.zenoh import ZenohEndpoint
+from fleetlink.operator.console import attach
+from fleetlink.operator.fleet import FleetModel
+from fleetlink.operator.links import OperatorLink, mqtt_settings_for
+from fleetlink.operator.maps import MapFetcher, MapFollower, to_grid
+from fleetlink.operator.mapview import MapView
+from fleetlink.shared import keys, wire
+from fleetlink.shared.clock import SystemClock
+from fleetlink.shared.map_codec import SharedMap
+from fleetlink.shared.messages import Pose
+from fleetlink.site.fleetmap import FleetMapService
+from tests.harness import wait_until
+from tests.harness.console_rig import Rig
+from tests.test_console import run_async
+from tests.test_fleetmap import distance_to_walls, robot_map, undo, walls_of
+
+
+def publish_pose(link: ZenohEndpoint, counter: wire.HeaderCounter, x: float, y: float) -> None:
+    msg = counter.make(
+        Pose, x=x, y=y, theta=0.0, sd_x_m=0.1, sd_y_m=0.1, sd_theta_rad=0.1, odom_x=x, odom_y=y,
+        odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=False,
+    )  # fmt: skip
+    link.publish(wire.key_of(msg), wire.encode(msg))
+
+
+def test_two_robots_maps_become_one_fleet_map_that_the_cli_saves(
+    zenoh_peers: Any, mosquitto: Any, tmp_path: Path
+) -> None:
+    clock = SystemClock()
+    peers = zenoh_peers(2)
+    robots_side = ZenohEndpoint(session=peers[1])
+    robots_side.start()
+    link = OperatorLink(
+        clock,
+        "op-fleet",
+        ZenohEndpoint(session=peers[0]),
+        MqttEndpoint(mqtt_settings_for(f"mqtt://127.0.0.1:{mosquitto.port}"), client_id="op-fleet"),
+    ).start()
+    fleet = FleetModel("op-fleet")
+    lock = threading.Lock()
+    follower = MapFollower(fleet, retry_s=0.5)
+    attach(link, fleet, lock, follower)
+    service = fleet_map_service(link, follower, lock, clock, "op-fleet")
+    service.period_s = 0.2
+    fetcher = MapFetcher(follower, lambda r: link.fetch_map(r, timeout=2.0), clock, lock, period_s=0.1,
+                         after_poll=service.step).start()  # fmt: skip
+    off = (0.0, 0.2, math.radians(1.0))  # r2's map 0.2 m and a degree off r1's
+    maps = {"r1": robot_map((0.0, 0.0, 6.5, 6.0)), "r2": robot_map((2.5, 0.0, 9.0, 6.0), off)}
+    shares = {r: MapShare(robots_side, r, clock) for r in maps}
+    counters = {r: wire.HeaderCounter(clock, robot=r, sender=f"agent-{r}") for r in maps}
+    try:
+        for r, m in maps.items():
+            shares[r].start()
+            shares[r].publish(MapPublication(m.version, m.cells, m.resolution, m.origin, None, site_frame=True))
+
+        def built() -> bool:
+            for r in maps:
+                publish_pose(robots_side, counters[r], 3.0, 1.0)  # heard: the console fetches their maps
+            with lock:
+                return (
+                    keys.FLEET_MAP in fleet.grids and service.result is not None and bool(service.result.registrations)
+                )
+
+        wait_until(built, timeout=30, message="the fleet map built from both robots' maps")
+        assert service.share is not None
+        result = service.result
+        assert result is not None
+        # The fleet map's walls are single: its own walls lie on the floor's, once a's placement is undone.
+        merged = walls_of(result.cells, result.origin, result.resolution)
+        d = distance_to_walls(undo(result.corrections["r1"], merged))
+        assert np.median(d) <= 0.05 and np.mean(d > 0.1) < 0.05
+
+        out = tmp_path / "fleet"
+        args = ["map", "save", "--fleet", "--out", str(out), "--connect", peers.endpoints[0]]
+        wait_until(lambda: main(args) == 0, timeout=20, message="fleetlink map save --fleet")
+        saved = read_map(out / "map.yaml")
+        assert saved.grid.shape == result.cells.shape
+        assert ((saved.grid == 100) == (result.cells == 100)).all()
+        assert saved.origin[:2] == tuple(round(v, 6) for v in result.origin) or np.allclose(
+            saved.origin[:2], result.origin
+        )
+    finally:
+        fetcher.stop()
+        for share in shares.values():
+            share.stop()
+        if service.share is not None:
+            service.share.stop()
+        robots_side.close()
+        link.close()
+
+
+def wall_runs(view: MapView, x: float, y0: float, y1: float) -> int:
+    """How many separate walls the map widget draws in the terminal column at ``x`` between y0 and y1."""
+    col, top = view.geometry.to_cell(x, y1)
+    _, bottom = view.geometry.to_cell(x, y0)
+    runs, inside = 0, False
+    for row in range(top, bottom + 1):
+        wall = view._cells.get((col, row), (" ",))[0] == "█"
+        runs += wall and not inside
+        inside = wall
+    return runs
+
+
+@run_async
+async def test_the_console_draws_the_fleet_map_alone(tmp_path: Path) -> None:
+    rig = Rig(tmp_path)
+    follower = MapFollower(rig.fleet)
+    service = FleetMapService(follower, rig.lock, rig.clock, period_s=0.0)
+    a = robot_map((0.0, 0.0, 6.5, 6.0))
+    b = robot_map((2.5, 0.0, 9.0, 6.0), (0.0, 0.2, 0.0))  # r2's map 0.2 m up: the wall y = 6 at 6.2
+    rig.start()
+    try:
+        with rig.lock:
+            for r, m in (("r1", a), ("r2", b)):
+                follower.maps[r] = SharedMap(m.cells, m.resolution, m.origin, m.version)
+                rig.fleet.set_grid(r, to_grid(follower.maps[r]))
+        async with rig.app.run_test(size=(160, 48)) as pilot:
+            await pilot.pause(0.3)
+            view = rig.app.query_one(MapView)
+            view.geometry.center_x, view.geometry.center_y, view.geometry.scale = 5.0, 5.5, 0.05
+            view.update_view()
+            await pilot.pause(0.2)
+            assert wall_runs(view, 5.0, 5.6, 6.6) == 2  # the robots' maps overlaid: the wall twice
+            assert service.step()
+            view.update_view()
+            await pilot.pause(0.2)
+            assert wall_runs(view, 5.0, 5.6, 6.6) == 1  # the fleet map: once
+    finally:
+        rig.close()

@@ -1,0 +1,40 @@
+"""Onboard maps against the plan, with whole agents in lockstep: each lidar turn goes into the map
+at the pose the robot had when the turn began (agent/node.py ``add_revolution``), so walls seen
+while a robot turns are drawn once, where the plan has them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from fleetlink.agent.mapping.share import fetch_map
+from fleetlink.field.scenario import load_scenario
+from fleetlink.shared.map_codec import SharedMap
+from fleetlink.site.lockstep import MissionRun
+
+DEMO = Path(__file__).resolve().parents[1] / "field" / "scenarios" / "demo.toml"
+
+
+def wall_distances(m: SharedMap, segs: np.ndarray) -> np.ndarray:
+    """Each occupied cell's distance to the plan's nearest wall or obstacle edge."""
+    rows, cols = np.nonzero(m.cells >= 65)
+    pts = np.column_stack((m.origin[0] + (cols + 0.5) * m.resolution, m.origin[1] + (rows + 0.5) * m.resolution))
+    a, b = segs[None, :, :2], segs[None, :, 2:]
+    p = pts[:, None, :]
+    t = np.clip(((p - a) * (b - a)).sum(axis=2) / np.maximum(((b - a) ** 2).sum(axis=2), 1e-12), 0.0, 1.0)
+    return np.hypot(*(a + t[..., None] * (b - a) - p).transpose(2, 0, 1)).min(axis=1)
+
+
+def test_two_wandering_robots_draw_the_apartments_walls_where_the_plan_has_them() -> None:
+    with MissionRun(load_scenario(DEMO), record=False) as run:
+        run.run(120.0)
+        snaps = {r.name: fetch_map(run.operator.zenoh, r.name, timeout=2.0) for r in run.robots}
+        segs = run.plan.segments()
+    for robot, snap in snaps.items():
+        assert snap is not None, robot
+        d = wall_distances(SharedMap.from_snapshot(snap), segs)
+        assert len(d) > 1000, robot  # rooms' worth of walls
+        # Measured 0.045 and 0.036 m (mean); with each turn at the pose of its stamp, a turn after
+        # it began, 0.070 and 0.183 m: walls seen while turning drawn two or three times, fanned out.
+        assert float(d.mean()) < 0.06, (robot, float(d.mean()))
