@@ -26,7 +26,7 @@ from fleetlink.operator.maps import MapFetcher, MapFollower, to_grid
 from fleetlink.operator.mapview import MapView
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
-from fleetlink.shared.map_codec import SharedMap
+from fleetlink.shared.map_codec import SharedMap, decode_cells
 from fleetlink.shared.messages import Pose
 from fleetlink.site.fleetmap import FleetMapService
 from tests.harness import wait_until
@@ -147,3 +147,67 @@ async def test_the_console_draws_the_fleet_map_alone(tmp_path: Path) -> None:
             assert wall_runs(view, 5.0, 5.6, 6.6) == 1  # the fleet map: once
     finally:
         rig.close()
+
+
+def test_the_fleet_map_service_process_builds_and_serves_the_fleet_map(zenoh_peers: Any) -> None:
+    """``fleetlink map fleet`` as its own process (a site with a router runs it so): it hears the
+    robots' map updates, fetches their maps, and answers ``fleetlink/v1/fleet/map``."""
+    import subprocess
+    import sys
+
+    from fleetlink.agent.mapping.share import fetch_map
+
+    clock = SystemClock()
+    peers = zenoh_peers(1)
+    robots_side = ZenohEndpoint(session=peers[0])
+    robots_side.start()
+    maps = {"r1": robot_map((0.0, 0.0, 6.5, 6.0)), "r2": robot_map((2.5, 0.0, 9.0, 6.0), (0.05, 0.15, 0.01))}
+    shares = {r: MapShare(robots_side, r, clock) for r in maps}
+    service = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "fleetlink.cli.main",
+            "map",
+            "fleet",
+            "--connect",
+            peers.endpoints[0],
+            "--period",
+            "0.5",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        for r in shares.values():
+            r.start()
+        version = 1
+
+        def served() -> bool:
+            nonlocal version
+            version += 1  # each robot's map changes a little, as it maps: an update the service hears
+            for r, m in maps.items():
+                cells = m.cells.copy()
+                shares[r].publish(MapPublication(version, cells, m.resolution, m.origin, (0, 0, 1, 1), site_frame=True))
+            snap = fetch_map(robots_side, keys.FLEET_MAP, timeout=1.0)
+            return snap is not None and snap.width > 0
+
+        wait_until(served, timeout=40, message="the fleet map served by `fleetlink map fleet`")
+        snap = fetch_map(robots_side, keys.FLEET_MAP, timeout=1.0)
+        assert snap is not None
+        cells = decode_cells(snap.cells, snap.width, snap.height)
+        merged = walls_of(cells, (snap.origin_x, snap.origin_y), snap.resolution)
+        assert len(merged) > 500
+    finally:
+        service.terminate()
+        try:
+            out, err = service.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            service.kill()
+            out, err = service.communicate()
+        for share in shares.values():
+            share.stop()
+        robots_side.close()
+    assert service.returncode == 0, err[-2000:]
+    assert "serving fleetlink/v1/fleet/map" in out
