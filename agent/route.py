@@ -247,14 +247,16 @@ class Route:
             self._finish(False, self._failure[0], f"{self._failure[1]} ({refusal.text})")
             return
         reason = refusal.reason
-        barred = reason in (RefusalReason.OBSTACLE_IN_PATH, RefusalReason.OBSTACLE_AHEAD)
+        barred = reason in (RefusalReason.OBSTACLE_IN_PATH, RefusalReason.OBSTACLE_AHEAD, RefusalReason.BUMP)
         if self.phase.replannable and barred:
-            # Plan around it: at once when the drive start is refused, after ``replan_hold_s``
-            # when something stands in front (it may go away).
+            # Plan around it: at once when the drive start is refused or the bumper is pressed (the
+            # robot touches what it ran into: only backing out is allowed, so back out first), after
+            # ``replan_hold_s`` when something stands in front (it may go away).
             held = 0.0 if self.held_since is None else now - self.held_since
-            if reason is RefusalReason.OBSTACLE_IN_PATH or held >= c.replan_hold_s:
-                ahead = reason is RefusalReason.OBSTACLE_AHEAD
-                self._barred(now, pose, provider, refusal.distance_m, ahead, refusal.text)
+            if reason is not RefusalReason.OBSTACLE_AHEAD or held >= c.replan_hold_s:
+                ahead = reason is not RefusalReason.OBSTACLE_IN_PATH
+                seen = 0.0 if reason is RefusalReason.BUMP else refusal.distance_m
+                self._barred(now, pose, provider, seen, ahead, refusal.text)
                 return
         elif reason is RefusalReason.OBSTACLE_IN_PATH:
             self._finish(False, reason.value, f"refused: {refusal.text}")

@@ -190,9 +190,10 @@ class Truth(Message):
 MAX_STATE_ERRORS = 16
 MAX_ACTIONS = 16
 MAX_PARAMS = 8
-MAX_ORDER_NODES = 256
+MAX_ORDER_NODES = 512
 """Nodes (and edges) in one order: a coverage round of a large room is a few dozen dwell points or
-a hundred sweep lanes."""
+a few hundred sweep lane ends (office room-8's sweep on a crisp map: 272). A node and its edge
+without actions encode in ~170 bytes: 512 of them ~87 KB, a third of ``wire.MAX_PAYLOAD``."""
 MAX_EVENT_DATA = 16
 
 

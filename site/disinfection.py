@@ -51,7 +51,7 @@ from fleetlink.shared import wire
 from fleetlink.shared.dose import DoseGrid, FloorMask, Lamp, irradiance_window
 from fleetlink.shared.dose_codec import SharedDose
 from fleetlink.shared.map_codec import SharedMap
-from fleetlink.shared.messages import AckResult, Event, LeaseRequest, Order, Pose, Teleop
+from fleetlink.shared.messages import AckResult, ActionType, Event, LeaseRequest, Order, Pose, Teleop
 from fleetlink.site.agents import FIELD_LAMP
 from fleetlink.site.lockstep import MissionRun
 from fleetlink.site.rounds import ROUND_CONFIG, plan_round
@@ -76,6 +76,11 @@ STILL_M = 0.01
 LAWNMOWER_LANE_M = 0.6
 TRUTH_RES = 0.05
 SETTLE_S = 2.0
+HAZARD_RESUME_S = 5.0
+MAX_HAZARD_RESUMES = 3
+"""A bump or a cliff holds a robot's order (safety first: agent/core.py); as an operator who
+looks, sees the robot against a wall and presses resume, the operator resumes it after
+``HAZARD_RESUME_S``, at most this many times per robot (the robot backs out or skips the node)."""
 MAX_PASSES = 2
 """A UV round is planned again on what the robots' own dose layers say is still short (a top-up,
 as an operator does with a second ``:disinfect``), at most this many passes in all."""
@@ -166,6 +171,8 @@ class _Crew:
     fp_at: tuple[float, float] | None = None
     first_lane_at: tuple[float, float] | None = None
     bumped: bool = False
+    resume_at: float | None = None
+    resumes: int = 0
 
 
 class RoundRun:
@@ -246,6 +253,11 @@ class RoundRun:
         return self._score(time.perf_counter() - wall0)
 
     def _step(self, t: float) -> None:
+        for crew in self.crews.values():
+            if crew.resume_at is not None and t >= crew.resume_at:
+                crew.resume_at = None
+                crew.resumes += 1
+                self.op.action(crew.name, ActionType.RESUME, f"resume-{crew.name}-{crew.resumes}")
         if t >= self._next_renew:
             self._next_renew = t + RENEW_S
             for name in self.crews:
@@ -438,6 +450,10 @@ class RoundRun:
             ev: Event = events[self._events]
             self._events += 1
             crew = self.crews.get(ev.header.robot)
+            running = crew is not None and crew.sent_at is not None and crew.done_at is None
+            if crew is not None and running and ev.kind in ("bump", "cliff") and crew.resumes < MAX_HAZARD_RESUMES:
+                crew.resume_at = t + HAZARD_RESUME_S
+                self.notes.append(f"t={t:.1f}: {crew.name}: {ev.text}; the operator resumes in {HAZARD_RESUME_S:g} s")
             if crew is None or ev.kind != "order" or not crew.order_id:
                 continue
             if f"order {crew.order_id} finished" in ev.text:

@@ -371,3 +371,29 @@ def test_a_pose_that_settles_away_during_the_final_turn_is_closed_before_goal_re
     assert [e.kind for e in events] == [EventKind.GOAL_REACHED]
     assert math.hypot(body.x + shift[0] - 1.0, body.y + shift[1]) <= 0.02
     assert abs(math.remainder(body.th - math.pi / 2, 2 * math.pi)) < math.radians(2)
+
+
+def test_a_go_to_that_starts_against_a_wall_backs_out_and_plans_around() -> None:
+    """After a bump the order holds; when the operator resumes, the robot still touches what it ran
+    into, the guard allows only backing out: the route backs out, marks the spot and plans again
+    (before, it waited for the bumper until ``blocked_timeout_s`` and skipped the node)."""
+    asked: list[Sequence[tuple[float, float]]] = []
+
+    def planner(
+        start: tuple[float, float], goal: tuple[float, float], blocked: Sequence[tuple[float, float]] = ()
+    ) -> list[tuple[float, float]]:
+        asked.append(tuple(blocked))
+        return [start, goal]
+
+    p = Pilot(path_provider=planner)
+    body = Unicycle()
+    bumped = GuardInputs(bumped=True)
+    out = p.tick(0.0, body.pose, bumped)  # the bump itself: an event, and the go-to then under way ends
+    assert kinds(out) == [EventKind.BUMP]
+    p.order(0.1, "o1", 0, 2.0, 0.0, None, "op")  # the resumed node, straight ahead
+    t, outs = drive(p, body, 0.1, 0.5, inputs=bumped)
+    assert any(o.v < 0 for o in outs) and all(o.v <= 0 for o in outs)  # backing out only
+    t, outs = drive(p, body, t, 30.0)  # the bumper free again: on to the goal
+    assert any(asked[-1]), "the spot it ran into is marked for the next plan"
+    reached = [e for o in outs for e in o.events if e.kind is EventKind.GOAL_REACHED]
+    assert reached and not any(e.kind is EventKind.GOAL_FAILED for o in outs for e in o.events)

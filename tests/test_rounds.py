@@ -165,7 +165,7 @@ def test_a_robot_without_a_known_position_is_refused() -> None:
 
 
 def test_a_route_longer_than_one_order_is_refused_before_anything_is_sent() -> None:
-    narrow = CoverageConfig(tool_width_m=0.05)  # lanes every 5 cm: far more lane ends than one order carries
+    narrow = CoverageConfig(tool_width_m=0.02)  # lanes every 2 cm: far more lane ends than one order carries
     with pytest.raises(RoundError, match=f"one order carries {MAX_ORDER_NODES}"):
         plan("sweep", RectArea(0.1, 0.1, 8.9, 4.0), {"r1": A}, config=narrow)
 
