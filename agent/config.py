@@ -183,6 +183,8 @@ class AgentConfig:
 
 def _robot_id(robot: str) -> str:
     keys.check_robot_id(robot)
+    if robot == keys.FLEET_MAP:
+        raise ValueError(f"robot id {robot!r} is where the fleet map is served (fleetlink/v1/fleet/map)")
     return robot
 
 

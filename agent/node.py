@@ -68,6 +68,9 @@ STOP_TOPICS = frozenset({"actions"})
 """Where anyone's stop, pause and e-stop travel (instant actions): after the holder, before the rest."""
 
 
+MAX_TURN_S = 1.0
+"""Longest interval between turns taken as a turn's length (an RPLIDAR turns at 2-10 Hz); longer
+ones are a stalled or reopened lidar, not a turn, and must not backdate the next turns."""
 PLACE_SD_THETA_RAD = math.radians(2.0)
 """The fused heading's standard deviation at which the onboard map starts in the site frame."""
 
@@ -492,13 +495,15 @@ class LidarFeed:
             return now + LIDAR_REOPEN_S
         now = self.node.clock.now()
         if revs:
-            if self._last_turn_at is not None:  # the turn's length, smoothed over a few turns
-                self.turn_s += 0.25 * (min(2.0, (now - self._last_turn_at) / len(revs)) - self.turn_s)
+            gap = None if self._last_turn_at is None else (now - self._last_turn_at) / len(revs)
+            if gap is not None and gap <= MAX_TURN_S:  # the turn's length, smoothed over a few turns
+                self.turn_s += 0.25 * (gap - self.turn_s)
             self._last_turn_at = now
         lo, hi = LIDAR_READ_PERIOD_S
         return now + min(hi, max(lo, self.turn_s / 4.0))
 
     def close(self) -> None:
+        self._last_turn_at = None  # the gap until the next turn after a reopen is no turn's length
         if self.driver is not None:
             try:
                 self.driver.close()

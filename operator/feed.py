@@ -36,6 +36,7 @@ from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.linkmanager import PRIMARY, Failed, LinkHealth, Switch
 from fleetlink.operator.maps import MapFollower
 from fleetlink.shared import wire
+from fleetlink.shared.keys import FLEET_MAP
 from fleetlink.shared.messages import AlarmAck, Connection, DoseUpdate, MapUpdate
 
 __all__ = ["AnchorsHeard", "ConsoleSource", "FleetFeed", "Heard", "LinkEvent", "PresenceHeard", "attach"]
@@ -186,6 +187,8 @@ class FleetFeed:
         fleet = self.fleet
         if isinstance(item, Heard):
             msg = item.msg
+            if msg.header.robot == FLEET_MAP:
+                return  # another host's fleet map: no robot, and this console builds its own
             wall = self._wall() if self._wall is not None else msg.header.timestamp
             if isinstance(msg, AlarmAck):
                 self._refused(fleet.alarms.receive_ack(msg, wall), msg)

@@ -77,7 +77,6 @@ class FleetMapService:
                 return False
             copies = {r: SharedMap(m.cells.copy(), m.resolution, m.origin, m.version) for r, m in maps.items()}
         self._next = now + self.period_s
-        self._seen = versions
         for robot in set(self.core.maps) - set(copies):
             self.core.forget(robot)
         for robot, m in copies.items():
@@ -86,6 +85,7 @@ class FleetMapService:
             except ValueError as exc:
                 log.warning("fleet map: %s's map left out: %s", robot, exc)
         result = self.core.build()
+        self._seen = versions  # built (a build that raised is tried again next time)
         if result is None:
             return False
         self.result = result

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
 from rich.text import Text
 
 from fleetlink.operator.console import ConsoleApp
@@ -20,7 +21,7 @@ from fleetlink.operator.feed import FleetFeed, attach
 from fleetlink.operator.fleet import FleetModel, LeaseRenewal
 from fleetlink.operator.fleet_table import COLUMNS, FleetTable, fleet_rows, row_cells
 from fleetlink.operator.linkmanager import Failed, LinkHealth, Switch
-from fleetlink.shared import wire
+from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SimClock
 from fleetlink.shared.messages import Lease, Pose
 from tests.test_console import ME, Rig, run_async, settle, with_robots
@@ -241,3 +242,19 @@ def test_the_detail_shows_what_the_robots_agent_refused() -> None:
     assert fleet.apply(diag, "zenoh", 1.0)
     text = detail_text("r1", fleet.robots["r1"], ())
     assert "refused 11 inputs" in text and "does not match the key's sender 'op-bob'" in text
+
+
+def test_the_fleet_maps_own_messages_make_no_robot() -> None:
+    """``fleet`` is where the fleet map is served (another console's, or ``fleetlink map fleet``):
+    what comes from it is no robot to list, drive or stop."""
+    source, fleet, feed, _agent = feed_rig()
+    other = wire.HeaderCounter(SimClock(), robot=keys.FLEET_MAP, sender="fleet-map")
+    source.hear(pose(other, 1.0))
+    assert keys.FLEET_MAP not in fleet.robots and feed.applied == 1
+
+
+def test_a_robot_may_not_be_called_fleet() -> None:
+    from fleetlink.agent.config import _robot_id
+
+    with pytest.raises(ValueError, match="fleet map"):
+        _robot_id(keys.FLEET_MAP)

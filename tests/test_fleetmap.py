@@ -165,3 +165,30 @@ def test_bad_input_is_refused_with_a_reason() -> None:
     fm = FleetMap()
     assert fm.build() is None
     assert not fm.put("empty", RobotMap(np.zeros((4, 4), dtype=np.int8), RES, (0.0, 0.0), 1))  # no walls yet
+
+
+@pytest.mark.parametrize("off", [(0.45, 0.0, 0.0), (0.2, -0.1, math.radians(1.0)), (0.0, 0.1, math.radians(2.5))])
+def test_offsets_across_the_window_are_corrected_in_full(off: Pose) -> None:
+    """However far (within the search window) a map was placed off, the registration is applied
+    in full: the two maps' walls coincide after the corrections."""
+    fm = FleetMap()
+    fm.put("a", robot_map((0.0, 0.0, 6.5, 6.0)))
+    fm.put("b", robot_map((2.5, 0.0, 9.0, 6.0), off))
+    result = fm.build()
+    assert result is not None and len(result.registrations) == 1
+    ca, cb = result.corrections["a"], result.corrections["b"]
+    for probe in ((3.0, 1.0, 0.0), (6.0, 5.0, 0.0)):  # points both maps saw
+        pa, pb = compose(ca, probe), compose(cb, compose(off, probe))
+        assert math.hypot(pa[0] - pb[0], pa[1] - pb[1]) < 0.03, (off, pa, pb)
+
+
+def test_a_restarted_robot_whose_versions_repeat_is_registered_again() -> None:
+    fm = FleetMap()
+    fm.put("a", robot_map((0.0, 0.0, 6.5, 6.0)))
+    fm.put("b", robot_map((2.5, 0.0, 9.0, 6.0), (0.2, 0.0, 0.0), version=5))
+    first = fm.build()
+    assert first is not None
+    fm.put("b", robot_map((2.5, 0.0, 9.0, 6.5), (-0.2, 0.0, 0.0), version=5))  # restarted: a new map, same version
+    again = fm.build()
+    assert again is not None
+    assert again.corrections["b"][0] > 0.0 > first.corrections["b"][0]  # registered anew, not from the cache

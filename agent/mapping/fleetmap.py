@@ -134,6 +134,8 @@ class FleetResult:
 @dataclass
 class _Prepared:
     map: RobotMap
+    serial: int
+    """Which ``put`` this is (a restarted agent's versions repeat: the cache keys on this)."""
     centre: Pose
     walls: F64
     """Wall points (site frame, as placed), at most max_points."""
@@ -148,6 +150,7 @@ class FleetMap:
     refused: int = 0
     """Registrations tried and refused (too little overlap, too low a score)."""
     _pairs: dict[tuple[str, int, str, int], Registration | None] = field(default_factory=dict)
+    _puts: int = 0
     _version: int = 0
     _last: FleetResult | None = None
 
@@ -161,8 +164,9 @@ class FleetMap:
             return False
         h, w = m.cells.shape
         cx, cy = m.origin[0] + 0.5 * w * m.resolution, m.origin[1] + 0.5 * h * m.resolution
+        self._puts += 1
         self.maps[robot] = _Prepared(
-            m, (cx, cy, 0.0), walls, _field_grids(m, self.config.field_sigma_m), m.cells != UNKNOWN
+            m, self._puts, (cx, cy, 0.0), walls, _field_grids(m, self.config.field_sigma_m), m.cells != UNKNOWN
         )
         return True
 
@@ -199,7 +203,7 @@ class FleetMap:
 
     def _register(self, a: str, b: str) -> Registration | None:
         pa, pb = self.maps[a], self.maps[b]
-        key = (a, pa.map.version, b, pb.map.version)
+        key = (a, pa.serial, b, pb.serial)
         if key in self._pairs:
             return self._pairs[key]
         reg = self._search(a, pa, b, pb)
@@ -252,9 +256,22 @@ class FleetMap:
         tie = np.diag(
             [cfg.registration_sigma_xy_m**-2, cfg.registration_sigma_xy_m**-2, cfg.registration_sigma_theta_rad**-2]
         )
+        # First plain least squares, then robust from there: started where the robots put their
+        # maps, a registration a few decimetres off is tens of sigmas off, and a Cauchy weight
+        # would all but drop it (measured: a 0.45 m offset only a third corrected).
         for reg in regs:
-            g.add_edge(index[reg.a], index[reg.b], reg.z, tie, robust=True)
+            g.add_edge(index[reg.a], index[reg.b], reg.z, tie)
         g.optimize(fixed=site)
+        if len(regs) > 1:  # a false closure can only disagree with others where maps form loops
+            robust = PoseGraph()
+            for pose in g.poses:
+                robust.add_node(pose)
+            for r in robots:
+                robust.add_edge(site, index[r], placed[r], prior)
+            for reg in regs:
+                robust.add_edge(index[reg.a], index[reg.b], reg.z, tie, robust=True)
+            robust.optimize(fixed=site)
+            g = robust
         return {r: g.poses[index[r]] for r in robots}
 
     # -- merge -----------------------------------------------------------------------------------
