@@ -58,12 +58,14 @@ def test_the_motion_filter_skips_turns_seen_from_the_same_place() -> None:
 
 def test_the_map_restarts_once_when_the_robot_is_placed_in_the_site_frame() -> None:
     keeper = MapKeeper()
-    _turn(keeper, 0.0, (1.0, 1.0, 0.0), placed=False)
+    old = _turn(keeper, 0.0, (1.0, 1.0, 0.0), placed=False).publication
     first = keeper.mapper
     up = _turn(keeper, 0.1, (1.2, 1.0, 0.0), placed=True)
     assert up.restarted and keeper.restarts == 1 and keeper.mapper is not first
-    # The new map is shared and planned at once, though the old one was shared a moment ago.
-    assert up.planner is not None and up.publication is not None and up.publication.version == 1
+    # The new map is shared and planned at once, though the old one was shared a moment ago, and
+    # its version goes on from the old one's: a console takes it as newer and fetches it.
+    assert up.planner is not None and up.publication is not None and old is not None
+    assert up.publication.version > old.version and keeper.mapper.version == 1
     up = _turn(keeper, 0.5, (1.6, 1.0, 0.0), placed=True)
     assert not up.restarted and keeper.restarts == 1
 

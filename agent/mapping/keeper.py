@@ -97,10 +97,10 @@ class MapPublication:
     takes its floor only from such a map)."""
 
     @classmethod
-    def of(cls, mapper: OnboardMapper, *, site_frame: bool = False) -> MapPublication:
-        """The mapper's map now; takes (clears) its changed box."""
+    def of(cls, mapper: OnboardMapper, *, site_frame: bool = False, base: int = 0) -> MapPublication:
+        """The mapper's map now, its version counted on from ``base``; takes (clears) its changed box."""
         cells, res, origin = mapper.occupancy()
-        return cls(mapper.version, cells, res, origin, mapper.grid.take_dirty(), site_frame)
+        return cls(base + mapper.version, cells, res, origin, mapper.grid.take_dirty(), site_frame)
 
 
 @dataclass(frozen=True, slots=True)
@@ -134,6 +134,7 @@ class MapKeeper:
         self.mapper = OnboardMapper(self.config)
         self.in_site_frame = False
         self.restarts = 0
+        self._version_base = 0
         self._planned_version = -1
         self._next_planner = -math.inf
         self._shared_version = -1
@@ -147,6 +148,10 @@ class MapKeeper:
             self.in_site_frame = True
             self._last = None
             if not self.mapper.grid.empty:
+                # The new map's versions go on from the old one's: a console holding the old map
+                # takes the first newer one it hears of as the map to fetch (a version it has
+                # passed would be refused as stale, and the odometry-frame map would stay).
+                self._version_base += self.mapper.version + 1
                 self.mapper = OnboardMapper(self.config)
                 self._planned_version = -1
                 self._shared_version, self._next_share = -1, -math.inf
@@ -175,7 +180,7 @@ class MapKeeper:
             return None
         self._shared_version = mapper.version
         self._next_share = now + self.share_period
-        return MapPublication.of(mapper, site_frame=self.in_site_frame)
+        return MapPublication.of(mapper, site_frame=self.in_site_frame, base=self._version_base)
 
     def _due(self, t: float, pose: tuple[float, float, float]) -> bool:
         if self._last is None:
