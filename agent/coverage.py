@@ -138,7 +138,9 @@ class CoverageConfig:
     dwell_clearance_m: float = 0.0
     """Dwell points keep this far beyond ``margin_m`` from walls (paths may pass nearer): the
     collision guard will not drive head-on up to a point nearer a wall than its stopping distance
-    (0.40 m ahead), so a dwell point there is never reached."""
+    (0.40 m ahead), so a dwell point there is never reached. Where no point that far from walls is
+    near (a corridor too narrow), points along the corridor with this much stand floor ahead and
+    behind are candidates too: the robot comes to them along the corridor."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1023,7 +1025,10 @@ def _candidates(fm: FloorMap, stand: BoolGrid) -> list[Cell]:
     k = max(1, round(fm.config.candidate_spacing_m / fm.plan_resolution))
     extra = fm.config.dwell_clearance_m / fm.plan_resolution
     if extra > 0:  # away from the walls (the whole map's: ``stand`` may be cut to an area)
-        stand = stand & ~_dilate(~fm.stand, extra)
+        clear = stand & ~_dilate(~fm.stand, extra)
+        # Where no such point is near (a corridor narrower than twice the clearance), a point the
+        # robot drives to along the corridor, nothing nearer ahead than the clearance.
+        stand = clear | _along_corridor(fm.stand, stand & ~_dilate(clear, extra + 1.0), math.ceil(extra))
     rows, cols = np.nonzero(stand)
     if rows.size == 0:
         return []
@@ -1043,6 +1048,20 @@ def _candidates(fm: FloorMap, stand: BoolGrid) -> list[Cell]:
         cr, cc = np.nonzero(stand & (blocked >= 5))
         chosen.update((int(a), int(b)) for a, b in zip(cr, cc, strict=True))
     return sorted(chosen)
+
+
+def _along_corridor(whole: BoolGrid, cells: BoolGrid, reach: int) -> BoolGrid:
+    """``cells`` with ``reach`` cells of ``whole`` on both sides along x, or along y: a robot comes
+    to one along that axis and stops there with stand floor ``reach`` cells ahead of it, so the
+    guard's head-on stopping distance is no bar (office room-1: the 1 m passage south of its desks,
+    lit from nowhere else)."""
+    out = np.zeros_like(cells)
+    for dr, dc in ((0, 1), (1, 0)):
+        ok = cells.copy()
+        for step in range(1, reach + 1):
+            ok &= _shift(whole, dr * step, dc * step) & _shift(whole, -dr * step, -dc * step)
+        out |= ok
+    return out
 
 
 class _CoverLP:

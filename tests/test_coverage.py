@@ -434,3 +434,26 @@ def test_no_survey_when_the_map_has_seen_the_area_or_the_unknown_is_behind_walls
     assert cv.plan_survey(fm2, speckled < 0, cv.rectangle(fm2, 0, 0, 5, 4), (0.5, 0.5)) is None
     with pytest.raises(ValueError, match="unknown: expected the map's shape"):
         cv.unseen(fm, np.zeros((3, 3), dtype=bool), area)
+
+
+def test_a_one_metre_passage_behind_desks_is_dosed_from_dwell_points_along_it() -> None:
+    """Office room-1's layout: a row of desks leaves a 1 m passage along the wall behind it, open
+    at both ends. With a round's dwell clearance (0.57 m from walls) no dwell point fits in the
+    passage and none outside lights its middle within the 2 minutes a cell may take; dwell points
+    along the passage (the robot comes along it, nothing ahead nearer than the clearance) do."""
+    free, org = _box(9.0, 5.0)
+    _fill(free, org, 1.5, 1.0, 7.5, 1.8, False)  # the desks; the passage is y 0..1 behind them
+    config = cv.CoverageConfig(dwell_clearance_m=0.35, max_cell_dwell_s=120.0)
+    fm = cv.FloorMap(free, RES, org, config)
+    area = cv.rectangle(fm, 0.0, 0.0, 9.0, 5.0)  # as an operator gives a room (the bench's rooms too)
+    middle = np.zeros(fm.shape, dtype=bool)
+    r0, r1 = round((0.0 - org[1]) / RES), round((1.0 - org[1]) / RES)
+    c0, c1 = round((3.5 - org[0]) / RES), round((5.5 - org[0]) / RES)
+    middle[r0:r1, c0:c1] = True  # the passage's middle, 2 m and more from its open ends
+    reach = cv.reachable(fm, area, LAMP, START, target_dose=TARGET)
+    assert reach[middle & area.target].all()  # (without the passage's dwell points: none of it)
+    plan = cv.plan_uv(fm, area, LAMP, TARGET, START)
+    in_passage = [n for n in plan.nodes if 0.0 < n.y < 1.0 and 1.5 < n.x < 7.5]
+    assert in_passage, "dwell points in the passage"
+    for n in in_passage:  # stand floor (0.22 m from walls) for 0.35 m ahead and behind along it
+        assert 0.22 <= n.y <= 0.78
