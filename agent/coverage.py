@@ -1019,16 +1019,19 @@ def _start_cell(fm: FloorMap, start: Point) -> Cell:
     return rc
 
 
-def _candidates(fm: FloorMap, stand: BoolGrid) -> list[Cell]:
+def _candidates(fm: FloorMap, stand: BoolGrid, *, corridors: bool = True) -> list[Cell]:
     """One stand cell per lattice block (the one nearest the block's node), and the convex corners of
     the stand region; in row-major order."""
     k = max(1, round(fm.config.candidate_spacing_m / fm.plan_resolution))
     extra = fm.config.dwell_clearance_m / fm.plan_resolution
     if extra > 0:  # away from the walls (the whole map's: ``stand`` may be cut to an area)
         clear = stand & ~_dilate(~fm.stand, extra)
-        # Where no such point is near (a corridor narrower than twice the clearance), a point the
-        # robot drives to along the corridor, nothing nearer ahead than the clearance.
-        stand = clear | _along_corridor(fm.stand, stand & ~_dilate(clear, extra + 1.0), math.ceil(extra))
+        if corridors:
+            # Where no such point is near (a corridor narrower than twice the clearance): points
+            # the robot can only come to along the corridor, with nothing near ahead.
+            far = stand & ~_dilate(clear, 2.0 * extra + 3.0)
+            clear = clear | _along_corridor(fm.stand, far, math.ceil(extra))
+        stand = clear
     rows, cols = np.nonzero(stand)
     if rows.size == 0:
         return []
@@ -1051,16 +1054,21 @@ def _candidates(fm: FloorMap, stand: BoolGrid) -> list[Cell]:
 
 
 def _along_corridor(whole: BoolGrid, cells: BoolGrid, reach: int) -> BoolGrid:
-    """``cells`` with ``reach`` cells of ``whole`` on both sides along x, or along y: a robot comes
-    to one along that axis and stops there with stand floor ``reach`` cells ahead of it, so the
-    guard's head-on stopping distance is no bar (office room-1: the 1 m passage south of its desks,
-    lit from nowhere else)."""
+    """``cells`` in a corridor of ``whole`` along x or y: no stand floor ``reach`` cells to either
+    side across it (walls close on both sides: the robot can only come along it), and stand floor
+    for ``2 * reach`` cells ahead and behind along it (nothing ahead nearer than twice the dwell
+    clearance, however the guard's ultrasonic cone meets the corridor's sides). Office room-1:
+    the 1 m passage south of its desks, lit from nowhere else."""
     out = np.zeros_like(cells)
-    for dr, dc in ((0, 1), (1, 0)):
+    for (dr, dc), (pr, pc) in (((0, 1), (1, 0)), ((1, 0), (0, 1))):
         ok = cells.copy()
-        for step in range(1, reach + 1):
+        for step in range(1, 2 * reach + 1):
             ok &= _shift(whole, dr * step, dc * step) & _shift(whole, -dr * step, -dc * step)
-        out |= ok
+        walled = [np.zeros_like(cells), np.zeros_like(cells)]
+        for step in range(1, reach + 1):
+            walled[0] |= ~_shift(whole, pr * step, pc * step)
+            walled[1] |= ~_shift(whole, -pr * step, -pc * step)
+        out |= ok & walled[0] & walled[1]
     return out
 
 
@@ -1643,7 +1651,8 @@ def plan_survey(
     s_cell = _start_cell(fm, start)
     fm.focus(area.stand, s_cell)
     from_start = fm.geodesic(s_cell)
-    cands = [rc for rc in _candidates(fm, area.stand) if math.isfinite(from_start[rc])]
+    # A survey looks from where the robot stands freely (it drives in among what it has not seen).
+    cands = [rc for rc in _candidates(fm, area.stand, corridors=False) if math.isfinite(from_start[rc])]
     if not cands:
         return None
     rows, cols = np.nonzero(hid)
