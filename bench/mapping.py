@@ -151,15 +151,9 @@ def ate(est: list[Pose], ref: list[Pose]) -> float:
 
 
 def seg_distance(points: np.ndarray, segs: np.ndarray) -> np.ndarray:
-    out = np.full(len(points), np.inf)
-    for i in range(0, len(points), 2000):
-        p = points[i : i + 2000, None, :]
-        a, b = segs[None, :, :2], segs[None, :, 2:]
-        ab = b - a
-        t = np.clip(((p - a) * ab).sum(axis=2) / np.maximum((ab**2).sum(axis=2), 1e-12), 0, 1)
-        d = np.hypot(*(a + t[..., None] * ab - p).transpose(2, 0, 1))
-        out[i : i + 2000] = d.min(axis=1)
-    return out
+    from fleetlink.field.plans import nearest_segment_distances
+
+    return nearest_segment_distances(points, segs)
 
 
 def map_quality(mapper, est: list[Pose], truth: list[Pose], plan) -> dict[str, float]:  # type: ignore[no-untyped-def]

@@ -45,6 +45,7 @@ __all__ = [
     "builtin_plans",
     "dump_plan",
     "load_plan",
+    "nearest_segment_distances",
     "parse_plan",
     "plan_from_map",
     "save_plan",
@@ -360,6 +361,25 @@ def _distances(segs: npt.NDArray[np.float64], x: float, y: float) -> npt.NDArray
         t = np.where(n2 > 0, ((x - x1) * ex + (y - y1) * ey) / n2, 0.0)
     t = np.clip(t, 0.0, 1.0)
     return np.asarray(np.hypot(x - (x1 + t * ex), y - (y1 + t * ey)), dtype=np.float64)
+
+
+def nearest_segment_distances(
+    points: npt.ArrayLike, segs: npt.NDArray[np.float64], chunk: int = 2000
+) -> npt.NDArray[np.float64]:
+    """Distance from each of (M, 2) ``points`` to the nearest of the (N, 4) segments (inf without
+    segments): how far a map's walls lie from the plan's (bench/mapping.py, the mapping tests)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    out = np.full(len(p), np.inf)
+    if not len(segs):
+        return out
+    a, b = segs[None, :, :2], segs[None, :, 2:]
+    ab = b - a
+    n2 = np.maximum((ab**2).sum(axis=2), 1e-12)
+    for i in range(0, len(p), chunk):  # bounded temporaries: chunk x N x 2
+        q = p[i : i + chunk, None, :]
+        t = np.clip(((q - a) * ab).sum(axis=2) / n2, 0.0, 1.0)
+        out[i : i + chunk] = np.hypot(*(a + t[..., None] * ab - q).transpose(2, 0, 1)).min(axis=1)
+    return out
 
 
 # -- TOML ------------------------------------------------------------------------------------------

@@ -9,6 +9,7 @@ import pytest
 
 from fleetlink.agent.mapping.fleetmap import FleetMap, FleetMapConfig, RobotMap
 from fleetlink.agent.mapping.se2 import Pose, compose, inverse
+from fleetlink.field.plans import nearest_segment_distances
 
 RES = 0.05
 
@@ -65,12 +66,7 @@ def undo(correction: Pose, points: np.ndarray) -> np.ndarray:
 
 
 def distance_to_walls(points: np.ndarray) -> np.ndarray:
-    segs = np.array(WALLS)
-    a, b = segs[None, :, :2], segs[None, :, 2:]
-    p = points[:, None, :]
-    ab = b - a
-    t = np.clip(((p - a) * ab).sum(axis=2) / (ab**2).sum(axis=2), 0, 1)
-    return np.hypot(*(a + t[..., None] * ab - p).transpose(2, 0, 1)).min(axis=1)
+    return nearest_segment_distances(points, np.array(WALLS))
 
 
 def test_two_overlapping_maps_are_registered_and_meet_halfway() -> None:

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from fleetlink.agent.mapping.share import fetch_map
+from fleetlink.field.plans import nearest_segment_distances
 from fleetlink.field.scenario import load_scenario
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.site.lockstep import MissionRun
@@ -20,10 +21,7 @@ def wall_distances(m: SharedMap, segs: np.ndarray) -> np.ndarray:
     """Each occupied cell's distance to the plan's nearest wall or obstacle edge."""
     rows, cols = np.nonzero(m.cells >= 65)
     pts = np.column_stack((m.origin[0] + (cols + 0.5) * m.resolution, m.origin[1] + (rows + 0.5) * m.resolution))
-    a, b = segs[None, :, :2], segs[None, :, 2:]
-    p = pts[:, None, :]
-    t = np.clip(((p - a) * (b - a)).sum(axis=2) / np.maximum(((b - a) ** 2).sum(axis=2), 1e-12), 0.0, 1.0)
-    return np.hypot(*(a + t[..., None] * (b - a) - p).transpose(2, 0, 1)).min(axis=1)
+    return nearest_segment_distances(pts, segs)
 
 
 def test_two_wandering_robots_draw_the_apartments_walls_where_the_plan_has_them() -> None:

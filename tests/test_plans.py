@@ -360,3 +360,15 @@ def test_dump_of_every_builtin_reloads(tmp_path: Path) -> None:
         plan = load_plan(name)
         again = load_plan(save_plan(plan, tmp_path / f"{name}.toml"))
         assert again.walls == plan.walls and len(again.starts) == len(plan.starts)
+
+
+def test_nearest_segment_distances_by_hand() -> None:
+    from fleetlink.field.plans import nearest_segment_distances
+
+    segs = np.array([[0.0, 0.0, 2.0, 0.0], [3.0, -1.0, 3.0, 1.0]])
+    pts = np.array([[1.0, 0.5], [-1.0, 0.0], [2.5, 0.0], [3.0, 2.0], [10.0, 0.0]])
+    d = nearest_segment_distances(pts, segs)
+    assert d == pytest.approx([0.5, 1.0, 0.5, 1.0, 7.0])
+    many = np.column_stack((np.linspace(0.0, 2.0, 5001), np.full(5001, 0.25)))  # more than one chunk
+    assert nearest_segment_distances(many, segs, chunk=1000) == pytest.approx(np.full(5001, 0.25))
+    assert np.isinf(nearest_segment_distances(pts, np.zeros((0, 4)))).all()

@@ -71,7 +71,7 @@ class Turn:
     """One lidar turn as the keeper takes it."""
 
     t: float
-    """When the turn was taken (its stamp)."""
+    """When the turn began (the agent takes its stamp, at completion, less a turn: agent/node.py)."""
     distances_m: npt.ArrayLike
     angles_rad: npt.ArrayLike
     pose: tuple[float, float, float]
