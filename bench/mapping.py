@@ -49,6 +49,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fleetlink.field.plans import nearest_segment_distances
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 Pose = tuple[float, float, float]
@@ -150,19 +152,13 @@ def ate(est: list[Pose], ref: list[Pose]) -> float:
     return float(np.sqrt((e**2).sum(axis=1).mean()))
 
 
-def seg_distance(points: np.ndarray, segs: np.ndarray) -> np.ndarray:
-    from fleetlink.field.plans import nearest_segment_distances
-
-    return nearest_segment_distances(points, segs)
-
-
 def map_quality(mapper, est: list[Pose], truth: list[Pose], plan) -> dict[str, float]:  # type: ignore[no-untyped-def]
     cells, res, origin = mapper.occupancy()
     tf = align(est, truth)
     segs = plan.segments()
     rows, cols = np.nonzero(cells >= 65)
     occ = apply(tf, np.column_stack((origin[0] + (cols + 0.5) * res, origin[1] + (rows + 0.5) * res)))
-    d = seg_distance(occ, segs)
+    d = nearest_segment_distances(occ, segs)
     tol = 0.1
     # True walls the robot could see: wall samples next to mapped free space.
     samples = []
@@ -567,7 +563,7 @@ def fleet_map(duration: float) -> dict[str, object]:
     def quality(cells: np.ndarray, res: float, origin: tuple[float, float]) -> dict[str, float]:
         rows, cols = np.nonzero(cells >= 65)
         pts = np.column_stack((origin[0] + (cols + 0.5) * res, origin[1] + (rows + 0.5) * res))
-        d = seg_distance(pts, segs)
+        d = nearest_segment_distances(pts, segs)
         return {
             "median_wall_distance_m": float(np.median(d)) if len(d) else math.nan,
             "mean_wall_distance_m": float(d.mean()) if len(d) else math.nan,

@@ -13,7 +13,7 @@ of the robots' own maps) and publishes it on ``share`` when its cells changed.
 
 Two hosts: the console (cli/console.py), on its own link, so the demo's console serves the fleet
 map that ``fleetlink map save --fleet`` fetches; and ``fleetlink map fleet``, a process of its own
-for a site with a router (``run_service``).
+for a site with a router (cli/map.py ``run_fleet``).
 """
 
 from __future__ import annotations

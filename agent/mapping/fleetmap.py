@@ -15,12 +15,14 @@ maps were measured 0.16 m and 1.5 degrees apart, and the console's overlay draws
    (``bnb.search``, Hess et al. 2016) within ``window_xy_m`` / ``window_theta_rad`` of where they
    are, then refined on the interpolated field. A registration is kept when the overlap holds at
    least ``min_overlap_points`` walls and its score reaches ``min_score``; each is computed once per
-   pair of map versions.
+   pair of maps taken (``put``).
 3. **The site frame.** A pose graph (``posegraph.PoseGraph``): node 0 is the site frame, held
    still; each map is a node at its centre, tied to where its robot placed it by a prior edge
    (``placement_sigma``: what UWB placement is good for) and to the maps it overlaps by each
-   registration (``registration_sigma``, Cauchy-robust). Maps that overlap nobody stay where their
-   robots put them; a pair that agrees pulls both halfway, weighted by the priors.
+   registration (``registration_sigma``): solved as plain least squares, then again Cauchy-robust
+   from there when the maps form loops (only there can a false closure disagree with the others).
+   Maps that overlap nobody stay where their robots put them; a pair pulls both halfway, weighted
+   by the priors.
 4. **Merge.** Each map is resampled (nearest cell) at its corrected pose onto one lattice of
    ``resolution_m``; a cell is a wall where at least one map sees a wall and at least as many see a
    wall as see free floor, free where more see floor, unknown where none knows it.
