@@ -29,6 +29,7 @@ a_max = 1.0
 alpha_max = 6.0
 teleop_ttl_s = 0.5
 stop_distance_m = 0.4
+round_base = false                          # true: a round base may turn in place near things
 
 [rates]
 control_hz = 50.0
@@ -105,6 +106,9 @@ class Limits:
     alpha_max: Annotated[Limit, Setting(doc="rad/s^2")] = 6.0
     teleop_ttl_s: Annotated[Limit, Setting(doc="a teleop lapses after this long")] = 0.5
     stop_distance_m: Annotated[Limit, Setting(doc="the guard stops the robot this close to something")] = 0.4
+    round_base: Annotated[
+        bool, Setting(doc="the base is round: turning in place sweeps no new floor, so the guard allows it near things")
+    ] = False
 
 
 @dataclass(frozen=True, slots=True)

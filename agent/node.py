@@ -114,7 +114,7 @@ def pilot_config(cfg: AgentConfig) -> PilotConfig:
 
     lim = cfg.limits
     return PilotConfig(
-        guard=GuardConfig(stop_distance_m=lim.stop_distance_m),
+        guard=GuardConfig(stop_distance_m=lim.stop_distance_m, allow_turn_in_place=lim.round_base),
         limits=MotionLimits(v_max=lim.v_max, omega_max=lim.omega_max, a_max=lim.a_max, alpha_max=lim.alpha_max),
         teleop_ttl_s=lim.teleop_ttl_s,
     )
@@ -360,7 +360,7 @@ class AgentNode:
             self.dose.set_floor(FloorMask.from_occupancy(pub.cells, pub.resolution, pub.origin), pub.version)
         if update.planner is not None:
             with self._lock:
-                self.core.use_map(update.planner.route)
+                self.core.use_map(update.planner.route, update.planner.room_behind)
 
     def lidar_report(self, fault: str | None) -> None:
         """The lidar failed (``fault``) or delivers again (None)."""

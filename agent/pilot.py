@@ -44,7 +44,7 @@ from fleetlink.agent.pilot_machine import (
     Trigger,
     next_state,
 )
-from fleetlink.agent.route import Destination, Drive, PathProvider, Point, Route, RouteConfig, RouteEnd
+from fleetlink.agent.route import Destination, Drive, PathProvider, Point, RoomBehind, Route, RouteConfig, RouteEnd
 from fleetlink.shared.messages import MAX_COORDINATE_M
 
 __all__ = [
@@ -61,6 +61,7 @@ __all__ = [
     "PilotEvent",
     "PilotOutput",
     "PilotState",
+    "RoomBehind",
 ]
 
 Pose = tuple[float, float, float]
@@ -213,6 +214,7 @@ class Pilot:
         config: PilotConfig | None = None,
         home: Pose = (0.0, 0.0, 0.0),
         path_provider: PathProvider | None = None,
+        room_behind: RoomBehind | None = None,
     ) -> None:
         self.config = config or PilotConfig()
         c = self.config
@@ -220,6 +222,7 @@ class Pilot:
         self.goto = GoToController(c.limits, c.goto)  # lent to each route in turn
         self.limiter = RateLimiter(c.limits)
         self.path_provider = path_provider
+        self.room_behind = room_behind  # the map's room to back off (None: ``backoff_m`` blind)
         self._home: Pose = home
         self._state = PilotState.IDLE
         self._teleop: _Teleop | None = None  # set exactly in MANUAL
@@ -530,7 +533,7 @@ class Pilot:
         self._refusal = refusal.reason
         self.limiter.reset(now)
         if r is not None:
-            r.refused(now, pose, refusal, self.path_provider)
+            r.refused(now, pose, refusal, self.path_provider, self.room_behind)
             self._settle_route(now, r)
         return self._output(0.0, 0.0, refusing=True)
 

@@ -12,7 +12,8 @@ Phases (``RoutePhase``)::
 
     UNPLANNED --first step--> STRAIGHT (no provider, or it has no map)
               \\-------------> FOLLOWING (a provider's path)
-                               --barred by something ahead--> BACKING_OFF --> re-plan: FOLLOWING
+                               --barred by something ahead--> BACKING_OFF (as far as the map
+                                 behind allows; no room: straight on) --> re-plan: FOLLOWING
                                --drive start refused / no progress--> re-plan: FOLLOWING
                                --re-plans used up / no way around--> [FAILING_BACKOFF -->] RETREATING
     RETREATING --back where it came from, or refused--> end (failed)
@@ -34,6 +35,7 @@ __all__ = [
     "Destination",
     "Drive",
     "PathProvider",
+    "RoomBehind",
     "Route",
     "RouteConfig",
     "RouteEnd",
@@ -103,6 +105,7 @@ class Drive:
 
 
 _STILL = Drive()
+_MIN_BACKOFF_M = 0.02  # less room than this behind: no back-off
 
 
 @dataclass(frozen=True, slots=True)
@@ -139,11 +142,19 @@ class RoutePhase(StrEnum):
         return self in (RoutePhase.FAILING_BACKOFF, RoutePhase.RETREATING)
 
 
+class RoomBehind(Protocol):
+    """(pose, limit) -> how far (m, at most ``limit``) the robot may back straight before its body
+    meets what its map holds (``PathPlanner.room_behind``): it has no sensor behind it."""
+
+    def __call__(self, pose: Pose, limit: float, /) -> float: ...
+
+
 @dataclass(slots=True)
 class _Backoff:
     x: float
     y: float
     since: float
+    length: float
 
 
 @dataclass(slots=True)
@@ -176,10 +187,7 @@ class Route:
         c = self.config
         if self._backoff is not None:
             b = self._backoff
-            if (
-                math.hypot(pose[0] - b.x, pose[1] - b.y) < c.backoff_m
-                and now - b.since < 3.0 * c.backoff_m / c.backoff_speed
-            ):
+            if math.hypot(pose[0] - b.x, pose[1] - b.y) < b.length and now - b.since < 3.0 * b.length / c.backoff_speed:
                 return Drive(-c.backoff_speed, 0.0)
             self._backoff = None
             if self.phase is RoutePhase.FAILING_BACKOFF:
@@ -239,8 +247,16 @@ class Route:
         self.goto.insert_waypoint((pose[0] + k * (wx - pose[0]), pose[1] + k * (wy - pose[1])))
         return short
 
-    def refused(self, now: float, pose: Pose, refusal: Refusal, provider: PathProvider | None) -> None:
-        """The guard refused what the route asked for: fail, plan around it, or hold and wait."""
+    def refused(
+        self,
+        now: float,
+        pose: Pose,
+        refusal: Refusal,
+        provider: PathProvider | None,
+        room: RoomBehind | None = None,
+    ) -> None:
+        """The guard refused what the route asked for: fail, plan around it, or hold and wait.
+        ``room``: how far the map lets the robot back off (None: no map, ``backoff_m``)."""
         c = self.config
         if self._failure is not None:
             # Backing off a failed go-to was refused too: stop here.
@@ -256,7 +272,7 @@ class Route:
             if reason is not RefusalReason.OBSTACLE_AHEAD or held >= c.replan_hold_s:
                 ahead = reason is not RefusalReason.OBSTACLE_IN_PATH
                 seen = 0.0 if reason is RefusalReason.BUMP else refusal.distance_m
-                self._barred(now, pose, provider, seen, ahead, refusal.text)
+                self._barred(now, pose, provider, seen, ahead, refusal.text, room)
                 return
         elif reason is RefusalReason.OBSTACLE_IN_PATH:
             self._finish(False, reason.value, f"refused: {refusal.text}")
@@ -350,7 +366,14 @@ class Route:
         return self._follow(now, pose, path, why)
 
     def _barred(
-        self, now: float, pose: Pose, provider: PathProvider | None, seen_m: float | None, ahead: bool, text: str
+        self,
+        now: float,
+        pose: Pose,
+        provider: PathProvider | None,
+        seen_m: float | None,
+        ahead: bool,
+        text: str,
+        room: RoomBehind | None,
     ) -> None:
         """The guard barred the way on a planned path: mark where, then back off (if near) and re-plan."""
         c = self.config
@@ -359,19 +382,30 @@ class Route:
         self.blocked.append((pose[0] + reach * math.cos(pose[2]), pose[1] + reach * math.sin(pose[2])))
         self.held_since = None
         if self.replans >= c.max_replans:
-            self._fail(now, pose, "blocked", f"still blocked after {self.replans} re-plans: {text}", ahead)
-        elif ahead:
-            self._backoff = _Backoff(pose[0], pose[1], now)
+            self._fail(now, pose, "blocked", f"still blocked after {self.replans} re-plans: {text}", ahead, room)
+        elif ahead and self._back_off(now, pose, room):
             self.phase = RoutePhase.BACKING_OFF
         else:
             self._replan(now, pose, provider, "blocked")
 
-    def _fail(self, now: float, pose: Pose, reason: str, text: str, ahead: bool = False) -> None:
+    def _back_off(self, now: float, pose: Pose, room: RoomBehind | None) -> bool:
+        """Start backing straight off the spot, as far as ``backoff_m`` and the map behind allow
+        (False: no room behind, a door jamb or a wall there: plan on from here)."""
+        length = (
+            self.config.backoff_m if room is None else min(self.config.backoff_m, room(pose, self.config.backoff_m))
+        )
+        if length < _MIN_BACKOFF_M:
+            return False
+        self._backoff = _Backoff(pose[0], pose[1], now, length)
+        return True
+
+    def _fail(
+        self, now: float, pose: Pose, reason: str, text: str, ahead: bool = False, room: RoomBehind | None = None
+    ) -> None:
         """A planned go-to fails: first back off the spot (back along the leg the robot drove to get
         there, so the next go-to does not start facing what barred this one), then the end."""
         self._failure = (reason, text)
-        if ahead:
-            self._backoff = _Backoff(pose[0], pose[1], now)  # turning is refused there: straight back first
+        if ahead and self._back_off(now, pose, room):  # turning is refused there: straight back first
             self.phase = RoutePhase.FAILING_BACKOFF
         else:
             self.phase = RoutePhase.RETREATING

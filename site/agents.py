@@ -19,7 +19,8 @@ it now (``FieldSite`` gives one when its plan has access points or dead zones); 
 links then pass nothing while it says False (``AgentRuntime(reachable=...)``).
 
 The disinfection robots (named ``uvc-*``) carry ``FIELD_LAMP`` (``field_uv``), so their agents keep
-a UV dose layer, here and in lockstep runs (site/lockstep.py).
+a UV dose layer, here and in lockstep runs (site/lockstep.py); they are round bases that may turn in
+place beside furniture (``field_limits``).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import functools
 import logging
 from collections.abc import Callable, Mapping, Sequence
 
-from fleetlink.agent.config import AgentConfig, MqttSettings, Rates, UvTable, ZenohSettings, mqtt_settings
+from fleetlink.agent.config import AgentConfig, Limits, MqttSettings, Rates, UvTable, ZenohSettings, mqtt_settings
 from fleetlink.agent.runtime import AgentRuntime
 from fleetlink.field.realtime import Endpoints
 from fleetlink.shared.clock import Clock, SystemClock
@@ -37,7 +38,7 @@ from fleetlink.shared.messages import LinkName
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FIELD_LAMP", "FieldAgents", "field_uv"]
+__all__ = ["FIELD_LAMP", "FieldAgents", "field_limits", "field_uv"]
 
 FIELD_LAMP = UvTable(uvc_power_w=40.0, height_m=0.6, dose_resolution_m=0.05)
 """The simulated disinfection robots' lamp: 40 W of UV-C (four 36 W low-pressure tubes, ~10 W of
@@ -48,6 +49,12 @@ UV-C each, derated) at 0.6 m, a point source; the default target (10 mJ/cm²) an
 def field_uv(robot: str) -> UvTable | None:
     """The lamp of a simulated robot: the disinfection robots (``uvc-*``) have ``FIELD_LAMP``."""
     return FIELD_LAMP if robot.startswith("uvc-") else None
+
+
+def field_limits(robot: str) -> Limits:
+    """The motion limits of a simulated robot: the disinfection robots (``uvc-*``) are round
+    domestic bases, which may turn in place beside furniture; the scouts keep the seed's rule."""
+    return Limits(round_base=robot.startswith("uvc-"))
 
 
 class FieldAgents:
@@ -97,6 +104,7 @@ class FieldAgents:
                     rates=rates or Rates(),
                     operators=tuple(operators),
                     uv=field_uv(name),
+                    limits=field_limits(name),
                 )
             )
         self.agents: dict[str, AgentRuntime] = {}

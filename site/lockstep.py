@@ -68,7 +68,7 @@ from fleetlink.shared.messages import (
     Order,
     Teleop,
 )
-from fleetlink.site.agents import field_uv
+from fleetlink.site.agents import field_limits, field_uv
 
 __all__ = [
     "SESSION_POLL",
@@ -264,7 +264,12 @@ class MissionRun:
         name = spec.name
         lidar_url = f"inprocess://{name}/lidar" if rig.device is not None else None
         config = AgentConfig(
-            robot=name, board=f"inprocess://{name}/board", lidar=lidar_url, tag=name, uv=field_uv(name)
+            robot=name,
+            board=f"inprocess://{name}/board",
+            lidar=lidar_url,
+            tag=name,
+            uv=field_uv(name),
+            limits=field_limits(name),
         )
         peer = self.field.board_peer(index)
         session = BoardSession(

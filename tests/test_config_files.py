@@ -31,6 +31,20 @@ def test_robot_toml(tmp_path: Path) -> None:
         load_agent_config(path)
 
 
+def test_a_round_base_lets_the_guard_allow_turning_in_place(tmp_path: Path) -> None:
+    from fleetlink.agent.node import pilot_config
+    from fleetlink.site.agents import field_limits
+
+    path = tmp_path / "robot.toml"
+    path.write_text('robot = "r1"\nboard = "socket://h:1"\n[zenoh]\nconnect = ["tcp/h:7447"]\n')
+    assert not pilot_config(load_agent_config(path)).guard.allow_turn_in_place  # the seed's rule by default
+    path.write_text(
+        'robot = "r1"\nboard = "socket://h:1"\n[zenoh]\nconnect = ["tcp/h:7447"]\n[limits]\nround_base = true\n'
+    )
+    assert pilot_config(load_agent_config(path)).guard.allow_turn_in_place
+    assert field_limits("uvc-1").round_base and not field_limits("scout-1").round_base
+
+
 def test_scenario_toml(tmp_path: Path) -> None:
     path = tmp_path / "drill.toml"
     path.write_text(

@@ -142,3 +142,25 @@ def test_the_frontier_is_one_a_star_can_reach() -> None:
     path = planner((0.5, 0.5), goal)
     assert path is not None and path[-1] == goal
     assert all(x < 1.0 and y < 1.0 for x, y in path[:-1])  # from its own room's eastern edge
+
+
+def test_room_behind_stops_short_of_a_wall_behind_and_not_of_one_beside() -> None:
+    res = 0.05
+    g = np.zeros((80, 80), dtype=np.int8)  # 4 m x 4 m, free
+    g[:, 40] = 100  # a wall along x = 2.0-2.05
+    planner = PathPlanner(g, res)
+    limit = 0.15
+    # Facing west (away from the wall), 0.3 m from its face: backing east, the body (0.17 m)
+    # stops back_margin short of it, the cell's near edge counted.
+    room = planner.room_behind((2.0 - 0.3, 1.0, math.pi), limit)
+    expected = 0.3 - planner.config.robot_radius - planner.config.back_margin
+    assert abs(room - expected) < res / 2
+    # Facing the wall: backing away from it has all the room asked for.
+    assert planner.room_behind((2.0 - 0.3, 1.0, 0.0), limit) == limit
+    # Beside the wall, parallel to it, nearer than the margin but not touching: backing along it is free.
+    assert planner.room_behind((2.0 - 0.2, 1.0, math.pi / 2), limit) == limit
+    # Touching it already, with the wall behind: no room at all.
+    assert planner.room_behind((2.0 - 0.17, 1.0, math.pi), limit) < 0.01
+    # Off the map behind counts as blocked; a non-finite pose has no room.
+    assert planner.room_behind((0.1, 1.0, 0.0), limit) == 0.0
+    assert planner.room_behind((math.nan, 1.0, 0.0), limit) == 0.0

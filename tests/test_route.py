@@ -191,3 +191,33 @@ def test_cut_short_asks_for_what_the_echo_leaves_clear_on_a_path_only() -> None:
     straight = route()
     straight.step(0.0, (0.0, 0.0, 0.0), None)
     assert straight.cut_short((0.0, 0.0, 0.0), 2.0, 4.0) == 4.0
+
+
+def test_a_back_off_goes_only_as_far_as_the_map_behind_allows() -> None:
+    # A door jamb 7 cm behind the robot: it backs 7 cm, not the full 15 (it has no sensor behind
+    # it; backing the full way drove it into the jamb, whose bumper then allowed only more backing).
+    provider = Provider([(4.0, 0.0)])
+    r = route()
+    pose = (1.0, 0.0, 0.0)
+    asked: list[tuple[tuple[float, float, float], float]] = []
+
+    def room(p: tuple[float, float, float], limit: float) -> float:
+        asked.append((p, limit))
+        return 0.07
+
+    r.step(0.0, pose, provider)
+    r.refused(0.0, pose, Refusal(RefusalReason.BUMP, "bumper pressed"), provider, room)
+    assert asked == [(pose, r.config.backoff_m)] and r.phase is RoutePhase.BACKING_OFF
+    assert r.step(0.5, (0.95, 0.0, 0.0), provider).v == -r.config.backoff_speed  # 5 cm: still backing
+    r.step(1.0, (0.92, 0.0, 0.0), provider)  # 8 cm: done, re-planned
+    assert r.phase is RoutePhase.FOLLOWING and r.replans == 1
+
+
+def test_no_room_behind_means_no_back_off_a_replan_from_where_it_stands() -> None:
+    provider = Provider([(4.0, 0.0)])
+    r = route()
+    pose = (1.0, 0.0, 0.0)
+    r.step(0.0, pose, provider)
+    r.refused(0.0, pose, Refusal(RefusalReason.BUMP, "bumper pressed"), provider, lambda p, limit: 0.0)
+    assert r.phase is RoutePhase.FOLLOWING and r.replans == 1 and r.notes[-1].replanned
+    assert r.step(0.1, pose, provider).v >= 0.0  # never backs into what is behind it

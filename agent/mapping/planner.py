@@ -93,6 +93,7 @@ class PlannerConfig:
     max_expansions: int = 2_000_000
     blocked_radius: float = 0.25  # m: a ``blocked`` point is planned around as a disc this size
     known_tolerance: float = 0.15  # m: a ``blocked`` point this near a mapped wall is that wall: ignored
+    back_margin: float = 0.02  # m: backing straight (``room_behind``) stops this short of what the map blocks
     sensor: SensorCone | None = field(default_factory=lambda: SensorCone())  # None: legs not checked
 
     @property
@@ -360,6 +361,38 @@ class PathPlanner:
             return False
         near = sc.stop_distance + sc.range_margin
         return self.cone_range(b, h, near, marks) >= near
+
+    def room_behind(self, pose: tuple[float, float, float], limit: float) -> float:
+        """How far (m, at most ``limit``) the robot at ``pose`` can back straight before its body
+        would come within ``back_margin`` of anything the map blocks (a wall, or floor it has not
+        seen). The robot has no sensor behind it: the map is what it knows of the floor there.
+        A cell already that near (a robot parked beside a wall) only counts if backing would touch it."""
+        x, y, th = pose
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(th)) or not limit > 0.0:
+            return 0.0
+        cfg, res = self.config, self.echo_resolution
+        touch = cfg.robot_radius + res / 2.0  # a blocked cell's centre this near: its near edge touches the body
+        keep = touch + cfg.back_margin
+        span = limit + keep
+        c0, c1 = math.floor((x - span - self.origin[0]) / res), math.floor((x + span - self.origin[0]) / res) + 1
+        r0, r1 = math.floor((y - span - self.origin[1]) / res), math.floor((y + span - self.origin[1]) / res) + 1
+        h, w = self.echo.shape
+        window = np.ones((r1 - r0, c1 - c0), dtype=bool)  # off the map: not seen, blocked
+        ra, rb, ca, cb = max(r0, 0), min(r1, h), max(c0, 0), min(c1, w)
+        if ra < rb and ca < cb:
+            window[ra - r0 : rb - r0, ca - c0 : cb - c0] = self.echo[ra:rb, ca:cb]
+        rows, cols = np.nonzero(window)
+        dx = self.origin[0] + (cols + c0 + 0.5) * res - x
+        dy = self.origin[1] + (rows + r0 + 0.5) * res - y
+        back = -(dx * math.cos(th) + dy * math.sin(th))  # how far behind the centre, along the way back
+        lateral = np.abs(dy * math.cos(th) - dx * math.sin(th))
+        near = np.hypot(dx, dy) < keep
+        reach = np.where(near, touch, keep)
+        hit = (back > 0.0) & (lateral < reach)
+        if not hit.any():
+            return float(limit)
+        enter = back[hit] - np.sqrt(reach[hit] ** 2 - lateral[hit] ** 2)
+        return float(min(limit, max(0.0, enter.min())))
 
     def turn_ok(self, xy: Point, h0: float, h1: float, marks: Sequence[Point] = ()) -> bool:
         """The guard will let the robot turn in place at ``xy`` from ``h0`` to ``h1`` (shorter arc):
