@@ -30,6 +30,7 @@ alpha_max = 6.0
 teleop_ttl_s = 0.5
 stop_distance_m = 0.4
 round_base = false                          # true: a round base may turn in place near things
+creep_speed_mps = 0.0                       # > 0: creep to the walls (a sweeper), the bumper the last stop
 
 [rates]
 control_hz = 50.0
@@ -109,6 +110,12 @@ class Limits:
     round_base: Annotated[
         bool, Setting(doc="the base is round: turning in place sweeps no new floor, so the guard allows it near things")
     ] = False
+    creep_speed_mps: Annotated[
+        float,
+        Setting(
+            lo=0.0, hi=0.2, doc="inside the stop distance creep on at this speed, the bumper the last stop; 0: stop"
+        ),
+    ] = 0.0
 
 
 @dataclass(frozen=True, slots=True)

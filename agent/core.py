@@ -47,12 +47,12 @@ from fleetlink.agent.pilot import (
     CommandResult,
     CommandStatus,
     EventKind,
+    MapSense,
     PathProvider,
     PayloadRequest,
     Pilot,
     PilotEvent,
     PilotOutput,
-    RoomBehind,
 )
 from fleetlink.agent.pilot import OperatingMode as PilotMode
 from fleetlink.agent.uwb_input import FixObservation, fix_from_pans, fix_from_uwb
@@ -445,13 +445,14 @@ class AgentCore:
             self._next_state = now  # publish the change now
         return out
 
-    def use_map(self, plan: PathProvider | None, room_behind: RoomBehind | None = None) -> None:
+    def use_map(self, plan: PathProvider | None, sense: MapSense | None = None) -> None:
         """Route go-tos and return home over the onboard map: the runtime passes its mapper's
         ``OnboardMapper.plan`` (None while the map is still empty, so the pilot drives straight,
         exactly as without a map; [] when there is no path). None: no map, straight lines.
-        ``room_behind``: how far the map lets the robot back off an obstacle (None: blind)."""
+        ``sense``: what else the map says (room to back off, the echo to expect, clear legs; None:
+        the pilot backs off blind and never creeps)."""
         self.pilot.path_provider = plan
-        self.pilot.room_behind = room_behind
+        self.pilot.map_sense = sense
 
     def lidar_status(self, fault: str | None, url: str) -> Output:
         """The lidar stopped delivering scans (``fault``: why) or delivers again (None): an event

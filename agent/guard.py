@@ -3,7 +3,10 @@
 The rescue-robot seed's rules:
 
 * front ultrasonic nearer than ``stop_distance_m``: forward and turning commands are refused and
-  the robot stops; backing away (v < 0) stays allowed;
+  the robot stops; backing away (v < 0) stays allowed. A domestic robot that sweeps to the walls
+  (``creep_speed_mps`` > 0) creeps on forward at that speed instead while it follows a path
+  planned on its map, the bumper its last stop, and those drive starts are not checked against
+  the cone (below);
 * go-to, once turned toward the goal: refuse to drive when the obstacle ahead is nearer than the
   drive distance plus ``stop_distance_m`` (the robot would end up inside the safety margin);
 * cliff: stop; forward and turning refused, backing away allowed (the cliff sensors look ahead);
@@ -47,9 +50,13 @@ class GuardConfig:
     # The seed refuses turning in place near an obstacle (its base was not round). A round base
     # sweeps no new floor when it spins, so such robots may set this True.
     allow_turn_in_place: bool = False
+    # A domestic robot that sweeps to the walls: inside the stop distance it creeps on at this speed
+    # (m/s) instead of stopping, and a drive start is not refused for what the cone sees; the
+    # bumper is the last stop. 0: the seed's rule (stop at the stop distance).
+    creep_speed_mps: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("stop_distance_m", "sensor_min_m", "sensor_max_m"):
+        for name in ("stop_distance_m", "sensor_min_m", "sensor_max_m", "creep_speed_mps"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"GuardConfig.{name} must be a finite distance >= 0, got {v!r}")
@@ -92,8 +99,17 @@ class CollisionGuard:
         return d
 
     def filter(
-        self, v: float, omega: float, inputs: GuardInputs, *, goto_drive_distance_m: float | None = None
+        self,
+        v: float,
+        omega: float,
+        inputs: GuardInputs,
+        *,
+        goto_drive_distance_m: float | None = None,
+        on_path: bool = False,
     ) -> GuardDecision:
+        """``on_path``: the robot follows a path planned on its map, which the map says is clear;
+        only there may it creep (``creep_speed_mps``): straight at a goal with no map, or driven
+        by hand, it would creep into every wall on the way."""
         if not (math.isfinite(v) and math.isfinite(omega)):
             return GuardDecision(
                 0.0, 0.0, Refusal(RefusalReason.INVALID_COMMAND, f"invalid command v={v} omega={omega}")
@@ -111,6 +127,9 @@ class CollisionGuard:
         if inputs.bumped and moving:
             return GuardDecision(0.0, 0.0, Refusal(RefusalReason.BUMP, "bumper pressed: only backing out is allowed"))
         d = self.obstacle_m(inputs)
+        creeping = on_path and cfg.creep_speed_mps > 0.0
+        if d is not None and d < cfg.stop_distance_m and forward and creeping:
+            return GuardDecision(min(v, cfg.creep_speed_mps), omega)
         if (
             d is not None
             and d < cfg.stop_distance_m
@@ -126,7 +145,7 @@ class CollisionGuard:
                     d,
                 ),
             )
-        if forward and goto_drive_distance_m is not None and d is not None:
+        if forward and goto_drive_distance_m is not None and d is not None and not creeping:
             need = goto_drive_distance_m + cfg.stop_distance_m
             if d < need:
                 return GuardDecision(

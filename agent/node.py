@@ -33,7 +33,8 @@ from fleetlink.agent.core import AgentCore, Output, board_view
 from fleetlink.agent.dose_layer import DoseKeeper, DosePublication, DoseSample
 from fleetlink.agent.fusion import Fusion
 from fleetlink.agent.home import HomeKeeper
-from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update
+from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update, onboard_mapper_config
+from fleetlink.agent.mapping.mapper import MapperConfig
 from fleetlink.agent.mapping.se2 import compose, relative
 from fleetlink.agent.mapping.worker import KeeperHost
 from fleetlink.agent.odometry import Odometry
@@ -114,10 +115,19 @@ def pilot_config(cfg: AgentConfig) -> PilotConfig:
 
     lim = cfg.limits
     return PilotConfig(
-        guard=GuardConfig(stop_distance_m=lim.stop_distance_m, allow_turn_in_place=lim.round_base),
+        guard=GuardConfig(
+            stop_distance_m=lim.stop_distance_m,
+            allow_turn_in_place=lim.round_base,
+            creep_speed_mps=lim.creep_speed_mps,
+        ),
         limits=MotionLimits(v_max=lim.v_max, omega_max=lim.omega_max, a_max=lim.a_max, alpha_max=lim.alpha_max),
         teleop_ttl_s=lim.teleop_ttl_s,
     )
+
+
+def mapper_config(cfg: AgentConfig) -> MapperConfig:
+    """The robot's onboard mapper: legs laid for the ultrasonic cone unless its guard creeps."""
+    return onboard_mapper_config(cone=cfg.limits.creep_speed_mps == 0.0)
 
 
 HALT_TIMEOUT_S = 0.5
@@ -210,7 +220,7 @@ class AgentNode:
     def open_map(self, keeper: KeeperHost | None = None) -> None:
         """Start mapping (a lidar is configured): the keeper (in line unless ``keeper`` says where
         it runs: agent/mapping/worker.py), and the share on ``map_link``."""
-        self.keeper = keeper if keeper is not None else MapKeeper()
+        self.keeper = keeper if keeper is not None else MapKeeper(mapper_config(self.config))
         self._open_share()
 
     def close(self) -> None:
@@ -360,7 +370,7 @@ class AgentNode:
             self.dose.set_floor(FloorMask.from_occupancy(pub.cells, pub.resolution, pub.origin), pub.version)
         if update.planner is not None:
             with self._lock:
-                self.core.use_map(update.planner.route, update.planner.room_behind)
+                self.core.use_map(update.planner.route, update.planner)
 
     def lidar_report(self, fault: str | None) -> None:
         """The lidar failed (``fault``) or delivers again (None)."""

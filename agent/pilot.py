@@ -26,6 +26,7 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import Protocol
 
 from fleetlink.agent.guard import CollisionGuard, GuardConfig, GuardInputs, RefusalReason
 from fleetlink.agent.motion import GoToConfig, GoToController, MotionLimits, RateLimiter
@@ -44,7 +45,16 @@ from fleetlink.agent.pilot_machine import (
     Trigger,
     next_state,
 )
-from fleetlink.agent.route import Destination, Drive, PathProvider, Point, RoomBehind, Route, RouteConfig, RouteEnd
+from fleetlink.agent.route import (
+    Destination,
+    Drive,
+    PathProvider,
+    Point,
+    Route,
+    RouteConfig,
+    RouteEnd,
+    RoutePhase,
+)
 from fleetlink.shared.messages import MAX_COORDINATE_M
 
 __all__ = [
@@ -53,6 +63,7 @@ __all__ = [
     "CommandResult",
     "CommandStatus",
     "EventKind",
+    "MapSense",
     "OperatingMode",
     "PathProvider",
     "PayloadRequest",
@@ -61,10 +72,29 @@ __all__ = [
     "PilotEvent",
     "PilotOutput",
     "PilotState",
-    "RoomBehind",
 ]
 
 Pose = tuple[float, float, float]
+
+ECHO_TOLERANCE_M = 0.1
+"""A front reading within this of what the map says the ultrasonic should see there is that wall."""
+
+
+class MapSense(Protocol):
+    """What the robot's map tells the pilot beyond paths (``PathPlanner`` has them all)."""
+
+    def room_behind(self, pose: Pose, limit: float, /) -> float:
+        """How far (m, at most ``limit``) the robot may back straight before its body meets what the map holds."""
+        ...
+
+    def echo_ahead(self, pose: Pose, reach: float, /) -> float:
+        """The nearest echo (m, at most ``reach``) the front ultrasonic should read at ``pose`` by the map."""
+        ...
+
+    def leg_clear(self, a: Point, b: Point, /) -> bool:
+        """The robot's body clears every wall the map holds all along the straight line a-b."""
+        ...
+
 
 PAYLOAD_DEVICES = ("uv", "atomiser", "fan", "all")
 """What a payload request switches: the UV-C lamp, the atomiser, the HEPA fan, or every one (off)."""
@@ -214,7 +244,7 @@ class Pilot:
         config: PilotConfig | None = None,
         home: Pose = (0.0, 0.0, 0.0),
         path_provider: PathProvider | None = None,
-        room_behind: RoomBehind | None = None,
+        map_sense: MapSense | None = None,
     ) -> None:
         self.config = config or PilotConfig()
         c = self.config
@@ -222,7 +252,8 @@ class Pilot:
         self.goto = GoToController(c.limits, c.goto)  # lent to each route in turn
         self.limiter = RateLimiter(c.limits)
         self.path_provider = path_provider
-        self.room_behind = room_behind  # the map's room to back off (None: ``backoff_m`` blind)
+        # What the map says of the robot's surroundings (None: backs off blind, never creeps).
+        self.map_sense = map_sense
         self._home: Pose = home
         self._state = PilotState.IDLE
         self._teleop: _Teleop | None = None  # set exactly in MANUAL
@@ -518,10 +549,13 @@ class Pilot:
                 self._refusal = None  # (a held go-to re-aiming between refusals is the same episode)
             return self._output(0.0, 0.0, refusing=False)
         # The drive-start check sees the wanted speed (the limiter may still be at zero).
-        decision = self.guard.filter(drive.v, drive.omega, inputs, goto_drive_distance_m=drive.distance_m)
+        on_path = r is not None and self._may_creep(pose, inputs, r)
+        decision = self.guard.filter(
+            drive.v, drive.omega, inputs, goto_drive_distance_m=drive.distance_m, on_path=on_path
+        )
         if decision.refusal is None:
             lv, lw = self.limiter.step(now, drive.v, drive.omega)
-            decision = self.guard.filter(lv, lw, inputs)
+            decision = self.guard.filter(lv, lw, inputs, on_path=on_path)
         refusal = decision.refusal
         if refusal is None:
             self._refusal = None
@@ -533,9 +567,29 @@ class Pilot:
         self._refusal = refusal.reason
         self.limiter.reset(now)
         if r is not None:
-            r.refused(now, pose, refusal, self.path_provider, self.room_behind)
+            room = self.map_sense.room_behind if self.map_sense is not None else None
+            r.refused(now, pose, refusal, self.path_provider, room)
             self._settle_route(now, r)
         return self._output(0.0, 0.0, refusing=True)
+
+    def _may_creep(self, pose: Pose, inputs: GuardInputs, r: Route) -> bool:
+        """The guard may creep on (``GuardConfig.creep_speed_mps``) only where the map vouches for
+        the way: the leg to the current waypoint clears every wall it holds (a leg planned into
+        the unknown, through a wall seen since, does not), and the front reading is a wall it holds
+        (something it lacks, a box or a person, gets the seed's rules)."""
+        sense = self.map_sense
+        if r.phase is not RoutePhase.FOLLOWING or sense is None:
+            return False
+        d = self.guard.obstacle_m(inputs)
+        if d is None:
+            return True
+        reach = d + ECHO_TOLERANCE_M
+        if not sense.echo_ahead(pose, reach) < reach:
+            return False
+        goto = r.goto
+        if not 0 <= goto.index < len(goto.waypoints):
+            return False
+        return sense.leg_clear((pose[0], pose[1]), goto.waypoints[goto.index])
 
     def _settle_route(self, now: float, r: Route) -> None:
         """Report what the route noted, and end it if it ended."""

@@ -51,10 +51,16 @@ def field_uv(robot: str) -> UvTable | None:
     return FIELD_LAMP if robot.startswith("uvc-") else None
 
 
+CREEP_SPEED_MPS = 0.05
+"""How fast the field's domestic robots creep on inside the guard's stop distance (a robot vacuum's
+pace at the wall: its bumper is the last stop)."""
+
+
 def field_limits(robot: str) -> Limits:
     """The motion limits of a simulated robot: the disinfection robots (``uvc-*``) are round
     domestic bases, which may turn in place beside furniture; the scouts keep the seed's rule."""
-    return Limits(round_base=robot.startswith("uvc-"))
+    domestic = robot.startswith("uvc-")
+    return Limits(round_base=domestic, creep_speed_mps=CREEP_SPEED_MPS if domestic else 0.0)
 
 
 class FieldAgents:

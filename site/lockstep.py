@@ -46,8 +46,9 @@ import msgpack
 from fleetlink.agent.board.session import BoardSession, PollRates
 from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.lidar.driver import LidarDriver
+from fleetlink.agent.mapping.keeper import MapKeeper
 from fleetlink.agent.mapping.worker import DeferredKeeper, MapWorker
-from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed
+from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed, mapper_config
 from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 from fleetlink.devices.ports import InProcessPort
 from fleetlink.field.build import robot_seed
@@ -286,7 +287,12 @@ class MissionRun:
         mqtt.start()
         feed = None
         if rig.device is not None and mapping:
-            node.open_map(self.map_worker.keeper(name) if self.map_worker is not None else DeferredKeeper())
+            mapping_config = mapper_config(config)
+            node.open_map(
+                self.map_worker.keeper(name, mapping_config)
+                if self.map_worker is not None
+                else DeferredKeeper(MapKeeper(mapping_config))
+            )
 
             def open_driver(index: int = index) -> LidarDriver:
                 return LidarDriver(self.field.lidar_port(index), self.clock, pwm_motor_control=True)

@@ -54,7 +54,7 @@ ROUND_CONFIG = cv.CoverageConfig(
     lamp_while_driving=True,
     dwell_clearance_m=0.35,
     max_cell_dwell_s=120.0,
-    lane_end_clearance_m=0.3,
+    lane_end_clearance_m=0.0,
 )
 """How a round is planned: 99.5 % of the floor the lamp can reach (the worst-lit 0.5 % cost most
 of the time: the certificate asks for 99 %), 10 % more dose than the target (the robot stands a

@@ -43,6 +43,8 @@ def test_a_round_base_lets_the_guard_allow_turning_in_place(tmp_path: Path) -> N
     )
     assert pilot_config(load_agent_config(path)).guard.allow_turn_in_place
     assert field_limits("uvc-1").round_base and not field_limits("scout-1").round_base
+    assert field_limits("uvc-1").creep_speed_mps > 0 and field_limits("scout-1").creep_speed_mps == 0
+    assert pilot_config(load_agent_config(path)).guard.creep_speed_mps == 0.0
 
 
 def test_scenario_toml(tmp_path: Path) -> None:

@@ -46,6 +46,27 @@ def test_turn_in_place_option_for_round_bases() -> None:
     assert g.filter(0.1, 1.0, GuardInputs(0.3)).refused
 
 
+def test_a_creeping_guard_slows_to_the_wall_and_the_bumper_is_the_last_stop() -> None:
+    g = CollisionGuard(GuardConfig(stop_distance_m=0.4, creep_speed_mps=0.05))
+    # On a planned path, inside the stop distance forward motion creeps on (an arc keeps its
+    # turn), slower asks pass.
+    d = g.filter(0.3, 0.2, GuardInputs(0.3), on_path=True)
+    assert (d.v, d.omega, d.refusal) == (0.05, 0.2, None)
+    assert g.filter(0.02, 0.0, GuardInputs(0.26), on_path=True).v == 0.02
+    # Beyond it, full speed; a drive start is not refused for what the cone sees further on.
+    assert g.filter(0.3, 0.0, GuardInputs(0.45), on_path=True).v == 0.3
+    assert not g.filter(0.3, 0.0, GuardInputs(0.8), goto_drive_distance_m=1.0, on_path=True).refused
+    # Off a planned path (straight at a goal with no map, teleop): the seed's rules.
+    assert g.filter(0.3, 0.0, GuardInputs(0.3)).refused
+    assert g.filter(0.3, 0.0, GuardInputs(0.8), goto_drive_distance_m=1.0).refused
+    # The bumper and the cliff sensors still stop it; turning in place keeps the seed's rule.
+    assert g.filter(0.05, 0.0, GuardInputs(0.26, bumped=True), on_path=True).refusal is not None
+    assert g.filter(0.05, 0.0, GuardInputs(None, cliff=True), on_path=True).refusal is not None
+    assert g.filter(0.0, 1.0, GuardInputs(0.3), on_path=True).refused
+    with pytest.raises(ValueError, match="creep_speed_mps"):
+        GuardConfig(creep_speed_mps=math.nan)
+
+
 def test_cliff_and_bump_stop_forward_and_turning() -> None:
     c = G.filter(0.2, 0.0, GuardInputs(None, cliff=True))
     b = G.filter(0.0, 0.5, GuardInputs(None, bumped=True))

@@ -119,7 +119,7 @@ def test_a_goal_in_known_space_or_behind_a_known_wall_has_no_way_round_through_t
     g = _room_with_gap()
     planner = PathPlanner(g, RES, (0.0, 0.0), PlannerConfig(unknown_is_blocked=False))
     assert planner((1.0, 1.0), (6.0, 2.0)) is not None  # through the gap, as before
-    assert planner((1.0, 1.0), (5.3, 2.0)) is None  # known, too near the wall to stand: not "unexplored"
+    assert planner((1.0, 1.0), (5.2, 2.0)) is None  # known, too near the wall to stand: not "unexplored"
     g[70:90, 100] = 100  # the gap closed: the east half is known, free, and cut off
     closed = PathPlanner(g, RES, (0.0, 0.0), PlannerConfig(unknown_is_blocked=False))
     assert closed((1.0, 1.0), (6.0, 2.0)) is None  # known space it cannot reach: not "unexplored"
@@ -164,3 +164,32 @@ def test_room_behind_stops_short_of_a_wall_behind_and_not_of_one_beside() -> Non
     # Off the map behind counts as blocked; a non-finite pose has no room.
     assert planner.room_behind((0.1, 1.0, 0.0), limit) == 0.0
     assert planner.room_behind((math.nan, 1.0, 0.0), limit) == 0.0
+
+
+def test_a_goal_inside_the_margin_where_the_body_fits_ends_with_a_straight_leg_to_it() -> None:
+    # A sweep's lane end 0.25 m from a wall's face: inside the planner's 0.22 m margin (as plan cells
+    # of 0.1 m count it) but the 0.17 m body fits with room to spare.
+    g = _room_with_gap()
+    planner = PathPlanner(g, RES, (0.0, 0.0), PlannerConfig(unknown_is_blocked=False))
+    goal = (5.05 + 0.25, 2.0)
+    assert not planner.is_free(goal)
+    path = planner((1.0, 1.0), goal)
+    assert path is not None and path[-1] == goal
+    assert planner.is_free(path[-2]) and math.dist(path[-2], goal) <= planner.config.escape + 1e-9
+    assert _clearance(g, [path[-2], goal]) >= planner.config.robot_radius
+    # Where the body would touch the wall (0.15 m from its face), still no path.
+    assert planner((1.0, 1.0), (5.05 + 0.15, 2.0)) is None
+
+
+def test_the_echo_the_map_expects_and_legs_that_clear_its_walls() -> None:
+    g = _room_with_gap()
+    planner = PathPlanner(g, RES, (0.0, 0.0), PlannerConfig(unknown_is_blocked=False))
+    # Facing the dividing wall (x = 5.0) from 0.6 m: the sensor, 0.17 m ahead, sees it at ~0.43 m.
+    echo = planner.echo_ahead((4.4, 2.0, 0.0), 1.5)
+    assert 0.38 < echo < 0.46
+    assert planner.echo_ahead((4.4, 2.0, math.pi), 1.0) == 1.0  # nothing for a metre behind it
+    assert planner.echo_ahead((9.0, 2.0, 0.0), 3.0) < 1.1  # the map's own border wall
+    # A leg beside the wall, 0.25 m from its face, clears it; one into it does not.
+    assert planner.leg_clear((5.3, 1.0), (5.3, 3.0))
+    assert not planner.leg_clear((4.0, 2.0), (6.0, 2.0))
+    assert not planner.leg_clear((math.nan, 1.0), (5.3, 3.0))

@@ -397,3 +397,48 @@ def test_a_go_to_that_starts_against_a_wall_backs_out_and_plans_around() -> None
     assert any(asked[-1]), "the spot it ran into is marked for the next plan"
     reached = [e for o in outs for e in o.events if e.kind is EventKind.GOAL_REACHED]
     assert reached and not any(e.kind is EventKind.GOAL_FAILED for o in outs for e in o.events)
+
+
+class _Sense:
+    """A map that says where the walls are: what it should echo, whether legs clear them."""
+
+    def __init__(self, echo: float, clear: bool) -> None:
+        self.echo, self.clear = echo, clear
+
+    def room_behind(self, pose: tuple[float, float, float], limit: float, /) -> float:
+        return limit
+
+    def echo_ahead(self, pose: tuple[float, float, float], reach: float, /) -> float:
+        return min(self.echo, reach)
+
+    def leg_clear(self, a: tuple[float, float], b: tuple[float, float], /) -> bool:
+        return self.clear
+
+
+@pytest.mark.parametrize(
+    ("sense", "creeps"),
+    [
+        (_Sense(echo=0.3, clear=True), True),  # the wall the lane runs toward (or beside): creep on
+        (_Sense(echo=2.0, clear=True), False),  # the map has nothing there: a box, a person
+        (_Sense(echo=0.3, clear=False), False),  # a leg planned into the unknown, through a wall seen since
+        (None, False),  # no map: the seed's rules
+    ],
+)
+def test_a_creeping_robot_creeps_only_where_its_map_vouches_for_the_way(sense: _Sense | None, creeps: bool) -> None:
+    from fleetlink.agent.guard import GuardConfig
+    from fleetlink.agent.pilot import PilotConfig
+
+    def planner(
+        start: tuple[float, float], goal: tuple[float, float], blocked: Sequence[tuple[float, float]] = ()
+    ) -> list[tuple[float, float]]:
+        return [start, goal]
+
+    p = Pilot(PilotConfig(guard=GuardConfig(creep_speed_mps=0.05)), path_provider=planner, map_sense=sense)
+    body = Unicycle()
+    p.order(0.0, "o1", 0, 3.0, 0.0, None, "op")
+    t, _ = drive(p, body, 0.0, 2.0)  # under way
+    _, outs = drive(p, body, t, 1.0, inputs=GuardInputs(ultrasonic_m=0.3))
+    if creeps:
+        assert all(0.0 < o.v <= 0.05 + 1e-9 for o in outs[5:]) and not any(o.events for o in outs)
+    else:
+        assert outs[-1].v == 0.0 and EventKind.GUARD_REFUSAL in [e.kind for o in outs for e in o.events]

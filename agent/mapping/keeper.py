@@ -35,7 +35,7 @@ import numpy.typing as npt
 
 from fleetlink.agent.mapping.grid import Box
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
-from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig
+from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig, SensorCone
 
 __all__ = [
     "PLANNER_PERIOD_S",
@@ -56,14 +56,17 @@ SHARE_PERIOD_S = 1.0
 """Seconds between map publications (a snapshot to serve, a patch to send) while the map changes."""
 
 
-def onboard_mapper_config() -> MapperConfig:
+def onboard_mapper_config(*, cone: bool = True) -> MapperConfig:
     """Unknown cells count as free on an onboard map: a scout is sent into rooms it has not seen
-    (the guard still stops it at anything real)."""
+    (the guard still stops it at anything real). ``cone`` False: a robot whose guard creeps to the
+    walls instead of refusing drive starts for what its ultrasonic cone sees (docs/motion.md):
+    its legs are not cut short to please the cone."""
     # Loop closure stays off on board for now (measured, issue 17): the front end here is seeded by
     # the fused pose, so the steps between nodes carry the UWB noise; with closures on, the sweep
     # bench's rooms fell from 61-78 % to 11-65 % covered. It waits for a front end run on odometry
     # with UWB as the graph's priors (the site positions below are passed for that already).
-    return MapperConfig(planner=PlannerConfig(unknown_is_blocked=False), closer=None)
+    sensor = SensorCone() if cone else None
+    return MapperConfig(planner=PlannerConfig(unknown_is_blocked=False, sensor=sensor), closer=None)
 
 
 @dataclass(frozen=True, slots=True)

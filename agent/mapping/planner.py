@@ -29,7 +29,10 @@ within ``known_tolerance`` of a wall already on the map is that wall, seen by th
 (otherwise one echo off a door frame closes the doorway).
 
 A start inside the inflated zone (a robot parked near a wall) is moved to the nearest traversable
-cell within ``escape`` metres, which becomes the first waypoint; a goal there is refused (None).
+cell within ``escape`` metres, which becomes the first waypoint. A goal there is reached the same
+way in reverse when the robot's body fits at it (``fit_margin`` clear of every blocked map cell,
+at the map's own resolution): the path ends at the nearest traversable cell, then a straight leg
+the body fits along all the way. A goal the body does not fit at is refused (None).
 A goal beyond what the robot has mapped (off the map, or in a plan cell it has seen nothing of) is
 planned to the reachable edge of the known (a frontier cell) nearest it with no known wall on the
 straight line to it, and that last leg goes on into the unknown: a scout sent to coordinates it has
@@ -94,6 +97,7 @@ class PlannerConfig:
     blocked_radius: float = 0.25  # m: a ``blocked`` point is planned around as a disc this size
     known_tolerance: float = 0.15  # m: a ``blocked`` point this near a mapped wall is that wall: ignored
     back_margin: float = 0.02  # m: backing straight (``room_behind``) stops this short of what the map blocks
+    fit_margin: float = 0.02  # m: a goal inside the inflation is reached if the body stays this clear there
     sensor: SensorCone | None = field(default_factory=lambda: SensorCone())  # None: legs not checked
 
     @property
@@ -196,6 +200,13 @@ class PathPlanner:
         if self._inside(goal) and free[goal]:
             cells = self._astar(start, goal, free, cost)
             return None if cells is None else self._lay(s, g, cells, free, dist, marks, escaped=start != first)
+        near = self._near_goal(g, free, marks)
+        if near is not None:
+            cells = self._astar(start, near, free, cost)
+            if cells is None:
+                return None
+            path = self._lay(s, self.center(near), cells, free, dist, marks, escaped=start != first)
+            return [*path, g] if math.dist(path[-1], g) > 1e-6 else path
         if not self.unexplored(goal_xy):
             return None  # a wall, or too near one, or known space the robot cannot stand in
         # Beyond what the robot has mapped: to the reachable edge of the known (a frontier cell)
@@ -317,9 +328,22 @@ class PathPlanner:
         from ``marks``, the obstacles the map lacks, as small discs)."""
         return self._cone_min(xy, np.array([heading]), reach, marks)
 
-    def _cone_min(self, xy: Point, headings: npt.NDArray[np.float64], reach: float, marks: Sequence[Point]) -> float:
-        sc = self.config.sensor
-        assert sc is not None
+    def echo_ahead(self, pose: tuple[float, float, float], reach: float) -> float:
+        """``cone_range`` from a pose, off the map echoing nothing: what the map says the front
+        ultrasonic should read there (a reading much nearer is something the map does not hold)."""
+        if not all(math.isfinite(v) for v in pose) or not reach > 0.0:
+            return 0.0
+        return self._cone_min((pose[0], pose[1]), np.array([pose[2]]), reach, (), off_map_echoes=False)
+
+    def _cone_min(
+        self,
+        xy: Point,
+        headings: npt.NDArray[np.float64],
+        reach: float,
+        marks: Sequence[Point],
+        off_map_echoes: bool = True,
+    ) -> float:
+        sc = self.config.sensor or SensorCone()  # (None only turns the legs' checks off)
         half = sc.half_angle + sc.angle_margin
         k = max(2, math.ceil(2.0 * half / sc.ray_step) + 1)
         offs = np.linspace(-half, half, k)
@@ -335,7 +359,7 @@ class PathPlanner:
         rows = np.floor((py - self.origin[1]) / self.echo_resolution).astype(np.int64)
         h, w = self.echo.shape
         inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-        hit = ~inside  # off the map: unknown, assume it echoes
+        hit = ~inside if off_map_echoes else np.zeros_like(inside)  # off the map: unknown (may echo)
         hit[inside] = self.echo[rows[inside], cols[inside]]
         for mx, my in marks:
             hit |= np.hypot(px - mx, py - my) < _MARK_ECHO_M
@@ -373,17 +397,7 @@ class PathPlanner:
         cfg, res = self.config, self.echo_resolution
         touch = cfg.robot_radius + res / 2.0  # a blocked cell's centre this near: its near edge touches the body
         keep = touch + cfg.back_margin
-        span = limit + keep
-        c0, c1 = math.floor((x - span - self.origin[0]) / res), math.floor((x + span - self.origin[0]) / res) + 1
-        r0, r1 = math.floor((y - span - self.origin[1]) / res), math.floor((y + span - self.origin[1]) / res) + 1
-        h, w = self.echo.shape
-        window = np.ones((r1 - r0, c1 - c0), dtype=bool)  # off the map: not seen, blocked
-        ra, rb, ca, cb = max(r0, 0), min(r1, h), max(c0, 0), min(c1, w)
-        if ra < rb and ca < cb:
-            window[ra - r0 : rb - r0, ca - c0 : cb - c0] = self.echo[ra:rb, ca:cb]
-        rows, cols = np.nonzero(window)
-        dx = self.origin[0] + (cols + c0 + 0.5) * res - x
-        dy = self.origin[1] + (rows + r0 + 0.5) * res - y
+        dx, dy = self._blocked_near((x, y), limit + keep)
         back = -(dx * math.cos(th) + dy * math.sin(th))  # how far behind the centre, along the way back
         lateral = np.abs(dy * math.cos(th) - dx * math.sin(th))
         near = np.hypot(dx, dy) < keep
@@ -393,6 +407,65 @@ class PathPlanner:
             return float(limit)
         enter = back[hit] - np.sqrt(reach[hit] ** 2 - lateral[hit] ** 2)
         return float(min(limit, max(0.0, enter.min())))
+
+    def _blocked_near(self, p: Point, span: float) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Offsets (dx, dy) from ``p`` of the centres of the blocked map cells (``echo``, the map's own
+        resolution) in the square ``span`` around it; off the map counts as blocked (not seen)."""
+        res = self.echo_resolution
+        c0, c1 = math.floor((p[0] - span - self.origin[0]) / res), math.floor((p[0] + span - self.origin[0]) / res) + 1
+        r0, r1 = math.floor((p[1] - span - self.origin[1]) / res), math.floor((p[1] + span - self.origin[1]) / res) + 1
+        h, w = self.echo.shape
+        window = np.ones((r1 - r0, c1 - c0), dtype=bool)
+        ra, rb, ca, cb = max(r0, 0), min(r1, h), max(c0, 0), min(c1, w)
+        if ra < rb and ca < cb:
+            window[ra - r0 : rb - r0, ca - c0 : cb - c0] = self.echo[ra:rb, ca:cb]
+        rows, cols = np.nonzero(window)
+        dx = np.asarray(self.origin[0] + (cols + c0 + 0.5) * res - p[0], dtype=np.float64)
+        dy = np.asarray(self.origin[1] + (rows + r0 + 0.5) * res - p[1], dtype=np.float64)
+        return dx, dy
+
+    def _body_fits(self, p: Point, margin: float | None = None) -> bool:
+        """The robot's body, centred at ``p``, stays ``margin`` (``fit_margin``) clear of every
+        blocked map cell."""
+        cfg = self.config
+        need = cfg.robot_radius + (cfg.fit_margin if margin is None else margin) + self.echo_resolution / 2.0
+        dx, dy = self._blocked_near(p, need)
+        return not bool((np.hypot(dx, dy) < need).any())
+
+    def leg_clear(self, a: Point, b: Point) -> bool:
+        """The body stays ``back_margin`` clear of every wall the map holds all along a-b (the part
+        within the ultrasonic's range of ``a``: what the guard is asked to creep past)."""
+        if not all(math.isfinite(v) for v in (*a, *b)):
+            return False
+        length = math.dist(a, b)
+        reach = (self.config.sensor or SensorCone()).max_range
+        t_end = 1.0 if length <= reach else reach / length
+        n = max(2, math.ceil(min(length, reach) / (self.echo_resolution / 2.0)) + 1)
+        margin = self.config.back_margin
+        return all(
+            self._body_fits((a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])), margin)
+            for t in np.linspace(0.0, t_end, n)
+        )
+
+    def _near_goal(self, goal: Point, free: npt.NDArray[np.bool_], marks: Sequence[Point]) -> tuple[int, int] | None:
+        """For a goal in known space inside the inflation margin but where the body fits (a sweep's
+        lane end beside a wall, a few centimetres nearer it than the margin): the nearest traversable
+        cell within ``escape``, from which a straight leg, the body clear all along it, reaches it."""
+        cfg = self.config
+        rc = self.cell(goal)
+        if not self._inside(rc) or not self.known[rc] or not self._body_fits(goal):
+            return None
+        if any(math.dist(goal, m) < cfg.blocked_radius + cfg.robot_radius for m in marks):
+            return None
+        near = self._escape(rc, free)
+        if near is None:
+            return None
+        a = self.center(near)
+        n = max(2, math.ceil(math.dist(a, goal) / (self.echo_resolution / 2.0)) + 1)
+        for t in np.linspace(0.0, 1.0, n):
+            if not self._body_fits((a[0] + t * (goal[0] - a[0]), a[1] + t * (goal[1] - a[1]))):
+                return None
+        return near
 
     def turn_ok(self, xy: Point, h0: float, h1: float, marks: Sequence[Point] = ()) -> bool:
         """The guard will let the robot turn in place at ``xy`` from ``h0`` to ``h1`` (shorter arc):

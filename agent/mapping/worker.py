@@ -23,6 +23,7 @@ from collections import deque
 from typing import Protocol
 
 from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update
+from fleetlink.agent.mapping.mapper import MapperConfig
 from fleetlink.shared.worker import ProcessWorker
 
 __all__ = ["DeferredKeeper", "KeeperHost", "MapWorker", "RemoteKeeper"]
@@ -52,13 +53,13 @@ class _Keepers:
     def __init__(self) -> None:
         self.keepers: dict[str, MapKeeper] = {}
 
-    def __call__(self, request: tuple[str, str, Turn | None]) -> Update | None:
-        kind, robot, turn = request
+    def __call__(self, request: tuple[str, str, Turn | MapperConfig | None]) -> Update | None:
+        kind, robot, item = request
         if kind == "open":
-            self.keepers[robot] = MapKeeper()
+            self.keepers[robot] = MapKeeper(item if isinstance(item, MapperConfig) else None)
             return None
-        assert turn is not None
-        return self.keepers[robot].add(turn)
+        assert isinstance(item, Turn)
+        return self.keepers[robot].add(item)
 
 
 class MapWorker:
@@ -70,15 +71,15 @@ class MapWorker:
         self._order: deque[str] = deque()  # whose call each pending reply answers, oldest first
         self._replies: dict[str, list[Update | None]] = {}
 
-    def keeper(self, robot: str) -> RemoteKeeper:
+    def keeper(self, robot: str, config: MapperConfig | None = None) -> RemoteKeeper:
         if robot in self._waiting:
             raise ValueError(f"the map worker holds {robot!r}'s keeper already")
-        self._worker.tell(("open", robot, None))
+        self._worker.tell(("open", robot, config))
         self._waiting[robot] = 0
         self._replies[robot] = []
         return RemoteKeeper(self, robot)
 
-    def _submit(self, robot: str, request: tuple[str, str, Turn | None]) -> None:
+    def _submit(self, robot: str, request: tuple[str, str, Turn | MapperConfig | None]) -> None:
         self._worker.call(request)
         self._order.append(robot)
         self._waiting[robot] += 1
