@@ -35,7 +35,7 @@ from fleetlink.field.lidar import scan_source_for
 from fleetlink.field.lidar_worker import LidarWorker
 from fleetlink.field.open_loop import Motion, motion_for
 from fleetlink.field.plans import FloorPlan, load_plan
-from fleetlink.field.rplidar import SimulatedRplidar
+from fleetlink.field.rplidar import RplidarConfig, SimulatedRplidar, motor_at_start
 from fleetlink.field.scenario import RobotSpec, Scenario
 from fleetlink.field.world import WorldRobot
 from fleetlink.shared.clock import SimClock
@@ -117,7 +117,10 @@ class FieldRun:
             rig = Rig(spec, robot, motion_for(spec, seed) if open_loop else None, lidar)
             robot.board.start_clock(0.0)
             if lidar is not None and not open_loop:
-                rig.device = SimulatedRplidar(lidar.config, self._scan_source(rig))
+                motor = motor_at_start(scenario.lidar.motor, served=False)
+                rig.device = SimulatedRplidar(
+                    lidar.config, self._scan_source(rig), RplidarConfig(motor_on_at_start=motor)
+                )
                 rig.device.start_clock(0.0)
             self.rigs.append(rig)
         self.worker: LidarWorker | None = None

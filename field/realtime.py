@@ -19,7 +19,7 @@ from fleetlink.field.build import build_world, lidar_model
 from fleetlink.field.device_server import DeviceServer, Reactor
 from fleetlink.field.events import EventRunner
 from fleetlink.field.plans import FloorPlan, load_plan
-from fleetlink.field.rplidar import SimulatedRplidar
+from fleetlink.field.rplidar import RplidarConfig, SimulatedRplidar, motor_at_start
 from fleetlink.field.scenario import Scenario
 from fleetlink.field.world import World, WorldRobot
 from fleetlink.shared.clock import Clock, SystemClock
@@ -96,7 +96,10 @@ class RealtimeField:
             lidar_url = None
             model = lidar_model(self.scenario, spec, i)
             if model is not None:
-                device = SimulatedRplidar(model.config, self._scan_source(robot, model))
+                motor = motor_at_start(self.scenario.lidar.motor, served=True)
+                device = SimulatedRplidar(
+                    model.config, self._scan_source(robot, model), RplidarConfig(motor_on_at_start=motor)
+                )
                 device.start_clock(0.0)
                 server = DeviceServer(
                     device, _Offset(self.clock, now), step_hz=None, lock=self.lock, name="lidar", reactor=self._reactor

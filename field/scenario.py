@@ -93,6 +93,14 @@ class LidarSettings:
     rate_hz: Annotated[float, Setting(lo=1.0, hi=20.0, doc="revolutions per second")] = 10.0
     samples_per_second: Annotated[float, Setting(lo=100.0, hi=32000.0, doc="measurements a second")] = 8000.0
     """Measurements a second (the RPLIDAR A1's 8000); a turn has ``samples_per_second / rate_hz``."""
+    motor: Annotated[
+        Literal["auto", "running", "stopped"],
+        Setting(doc="the simulated RPLIDAR's motor at start: auto = running when served over TCP or a pty (no DTR)"),
+    ] = "auto"
+    """The simulated A1's motor when it starts (``field.rplidar.motor_at_start``): ``auto`` runs it
+    when the unit is served over TCP or a pty, where no DTR line reaches it (SLAMTEC's SDK starts an
+    A1's motor only by DTR), and leaves it to the master's DTR in process; ``running`` / ``stopped``
+    force it. SET_MOTOR_PWM 0 stops it and a PWM above 0 starts it either way."""
 
 
 def _pose_from_degrees(p: tuple[float, float, float]) -> tuple[float, float, float]:

@@ -219,9 +219,10 @@ def test_assume_joins_a_running_stream() -> None:
 
 
 def test_other_streams_are_cut_into_responses() -> None:
+    # 0x84: ultra capsules (A2/A3 boost modes), which fleetlink does not interpret
     dec = lp.LidarDecoder()
-    events = dec.feed(lp.encode_descriptor(84, 1, 0x82) + bytes(range(84)) * 2 + b"\x00")
-    assert events[1:] == [lp.Response(0x82, bytes(range(84)))] * 2
+    events = dec.feed(lp.encode_descriptor(132, 1, 0x84) + bytes(range(132)) * 2 + b"\x00")
+    assert events[1:] == [lp.Response(0x84, bytes(range(132)))] * 2
     assert dec.buffered == 1
 
 

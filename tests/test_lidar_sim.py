@@ -114,10 +114,12 @@ def test_force_scan_skips_spinup_and_health_error_stops_data() -> None:
 
 def test_ignored_commands_and_reset_banner() -> None:
     dev = device(motor_on_at_start=True)
-    assert dev.receive(lp.encode_request(lp.Command.EXPRESS_SCAN, bytes(5)), 0.0) == b""
+    assert dev.receive(lp.encode_express_request(5), 0.0) == b""  # no such scan mode
+    assert dev.receive(lp.encode_request(lp.Command.EXPRESS_SCAN), 0.0) == b""  # no working mode
+    assert dev.stats.bad_requests == 2
     assert dev.receive(lp.encode_request(lp.Command.GET_ACC_BOARD_FLAG, bytes(4)), 0.0) == b""
     assert dev.receive(b"\xa5\x19", 0.0) == b""  # unknown
-    assert dev.stats.ignored == 3 and not dev.scanning
+    assert dev.stats.ignored == 2 and not dev.scanning
     assert dev.receive(lp.encode_request(lp.Command.RESET), 0.0) == b""
     loud = device(boot_banner=True)
     assert loud.receive(lp.encode_request(lp.Command.RESET), 0.0).startswith(b"RP LIDAR System.\r\nFirmware Ver 1.29")

@@ -14,11 +14,19 @@ Typical use::
 
     drv = LidarDriver.open("/dev/ttyUSB0", SystemClock())
     drv.get_health()                     # DeviceHealth(status=0, error_code=0)
-    drv.start_scan()                     # motor on (DTR low, and SET_MOTOR_PWM), SCAN, descriptor
+    drv.start_scan()                     # motor on (DTR low, and SET_MOTOR_PWM), the scan mode
+                                         # (GET_LIDAR_CONF's typical one), EXPRESS_SCAN or SCAN
     while running:
         for rev in drv.poll(clock.now() + 0.2):
             use(rev.angles_rad, rev.distances_m)
     drv.close()                          # STOP, motor off, port closed
+
+Scan modes, as SLAMTEC's SDK picks them (``scan_mode="auto"``, the default): GET_LIDAR_CONF asks
+for the typical mode and its answer type; capsules (0x82) mean EXPRESS_SCAN with the mode's id,
+nodes (0x81) mean SCAN; a typical mode in a format fleetlink does not decode falls back to another
+capsule mode the unit lists, else SCAN. A unit that does not answer GET_LIDAR_CONF within
+``conf_timeout`` (firmware before 1.24) gets SCAN. The choice is kept until ``reconnect()``.
+``scan_mode="standard"`` always sends SCAN, ``"express"`` the legacy EXPRESS_SCAN (working mode 0).
 
 Requests (``get_info`` and friends) stop a running scan first, as SLAMTEC's SDK requires. ``stop()``
 sends STOP and then discards what still arrives until the line has been quiet for ``settle``
@@ -31,7 +39,7 @@ import contextlib
 import logging
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Literal, TypeVar
 
 from fleetlink.devices.ports import Port, PortClosed
 from fleetlink.devices.rplidar import protocol as lp
@@ -47,7 +55,10 @@ __all__ = [
     "LidarError",
     "LidarProtocolError",
     "LidarTimeout",
+    "ScanChoice",
 ]
+
+ScanChoice = Literal["auto", "standard", "express"]
 
 DEFAULT_MOTOR_PWM = 660  # SLAMTEC's default motor duty for units with PWM motor control
 
@@ -79,10 +90,12 @@ class DriverStats:
     stale_bytes: int = 0  # discarded after STOP / RESET
     stray_events: int = 0  # answers nobody asked for (e.g. a descriptor in the middle of a scan)
     reconnects: int = 0
+    conf_unanswered: int = 0  # GET_LIDAR_CONF timed out while picking the scan mode (old firmware)
     last_rx: float | None = None  # clock time of the last bytes received
 
 
-A = TypeVar("A", lp.DeviceInfo, lp.DeviceHealth, lp.SampleRate)
+T = TypeVar("T")
+A = TypeVar("A", lp.DeviceInfo, lp.DeviceHealth, lp.SampleRate, lp.LidarConf)
 
 
 class LidarDriver:
@@ -99,12 +112,18 @@ class LidarDriver:
         motor_pwm: int = DEFAULT_MOTOR_PWM,
         pwm_motor_control: bool = True,
         opener: Callable[[], Port] | None = None,
+        scan_mode: ScanChoice = "auto",
+        conf_timeout: float | None = None,
     ) -> None:
         """``timeout``: for each answer; ``settle``: the quiet time that ends a STOP's drain;
         ``stall_timeout``: ``poll`` raises ``LidarTimeout`` after this long without a byte while
         scanning; ``pwm_motor_control``: also send SET_MOTOR_PWM to start/stop the motor (an A1
         ignores it, units with a motor controller and our simulator over TCP need it);
-        ``opener``: makes a fresh port for ``reconnect()``."""
+        ``opener``: makes a fresh port for ``reconnect()``; ``scan_mode``: "auto" (the unit's typical
+        mode, as SLAMTEC's SDK), "standard" (SCAN) or "express" (legacy EXPRESS_SCAN);
+        ``conf_timeout``: how long "auto" waits for GET_LIDAR_CONF before taking SCAN (``timeout``)."""
+        if scan_mode not in ("auto", "standard", "express"):
+            raise ValueError(f"scan_mode {scan_mode!r} is not auto, standard or express")
         self.port = port
         self.clock = clock
         self.timeout = timeout
@@ -113,6 +132,8 @@ class LidarDriver:
         self.motor_pwm = motor_pwm
         self.pwm_motor_control = pwm_motor_control
         self.opener = opener
+        self.scan_mode = scan_mode
+        self.conf_timeout = conf_timeout
         self.stats = DriverStats()
         self.decoder = lp.LidarDecoder(batch=True)
         self.assembler = lp.RevolutionAssembler()
@@ -120,6 +141,8 @@ class LidarDriver:
         self._motor_on = False
         self._ready: list[lp.Revolution] = []
         self._closed = False
+        self._choice: tuple[int, lp.ScanMode | None] | None = None  # (working mode or -1 for SCAN, mode)
+        self.mode: lp.ScanMode | None = None  # the scan mode of the running scan, if the unit described it
 
     @classmethod
     def open(cls, url: str, clock: Clock, baudrate: int = 115200, **kwargs: object) -> LidarDriver:
@@ -155,6 +178,40 @@ class LidarDriver:
 
     def get_samplerate(self, timeout: float | None = None) -> lp.SampleRate:
         return self._request(lp.Command.GET_SAMPLERATE, lp.SampleRate, lp.AnswerType.SAMPLE_RATE, timeout)
+
+    def get_lidar_conf(self, conf: int, mode: int | None = None, timeout: float | None = None) -> lp.LidarConf:
+        """One GET_LIDAR_CONF entry (``lp.ConfType``), for scan mode ``mode`` where the entry is per mode."""
+        ans = self._request(
+            lp.Command.GET_LIDAR_CONF,
+            lp.LidarConf,
+            lp.AnswerType.LIDAR_CONF,
+            timeout,
+            payload=lp.encode_conf_request(conf, mode)[3:-1],
+        )
+        if ans.type != conf:
+            self.stats.protocol_errors += 1
+            raise LidarProtocolError(f"GET_LIDAR_CONF 0x{conf:X}: the answer is for 0x{ans.type:X}")
+        return ans
+
+    def get_typical_mode(self, timeout: float | None = None) -> int:
+        return self._conf_value(lambda: self.get_lidar_conf(lp.ConfType.SCAN_MODE_TYPICAL, None, timeout).u16())
+
+    def get_scan_mode(self, mode: int, timeout: float | None = None) -> lp.ScanMode:
+        """A scan mode's description: four GET_LIDAR_CONF requests, as SLAMTEC's SDK makes them."""
+        c = lp.ConfType
+
+        def ask() -> lp.ScanMode:
+            us = self.get_lidar_conf(c.SCAN_MODE_US_PER_SAMPLE, mode, timeout).q8()
+            dist = self.get_lidar_conf(c.SCAN_MODE_MAX_DISTANCE, mode, timeout).q8()
+            ans = self.get_lidar_conf(c.SCAN_MODE_ANS_TYPE, mode, timeout).u8()
+            name = self.get_lidar_conf(c.SCAN_MODE_NAME, mode, timeout).text()
+            return lp.ScanMode(mode, name, us, dist, ans)
+
+        return self._conf_value(ask)
+
+    def get_scan_modes(self, timeout: float | None = None) -> list[lp.ScanMode]:
+        count = self._conf_value(lambda: self.get_lidar_conf(lp.ConfType.SCAN_MODE_COUNT, None, timeout).u16())
+        return [self.get_scan_mode(i, timeout) for i in range(count)]
 
     def stop(self) -> None:
         """STOP: end the scan (the motor keeps turning); discard what is still on its way."""
@@ -192,18 +249,28 @@ class LidarDriver:
     # -- scanning --------------------------------------------------------------------------------
 
     def start_scan(self, force: bool = False, timeout: float | None = None) -> lp.Descriptor:
-        """Start the motor (again: its state is unknown after a power cycle or a lost request), send
-        SCAN (FORCE_SCAN: stream even before the motor is up to speed) and wait for the scan
-        descriptor. Nodes that follow it in the same read are kept for ``poll``."""
+        """Start the motor (again: its state is unknown after a power cycle or a lost request), pick
+        the scan mode (``scan_mode``; the first scan asks the unit), send EXPRESS_SCAN or SCAN
+        (FORCE_SCAN with ``force``: stream even before the motor is up to speed; express scans have
+        no forced variant) and wait for the descriptor. Samples that follow it in the same read are
+        kept for ``poll``."""
         if self._scanning:
             self.stop()
+        working_mode, mode = self._pick_mode()
         self.start_motor()
         self.decoder.reset()
         self.assembler.reset()
         self._ready.clear()
-        cmd = lp.Command.FORCE_SCAN if force else lp.Command.SCAN
+        if working_mode < 0:
+            cmd = lp.Command.FORCE_SCAN if force else lp.Command.SCAN
+            request = lp.encode_request(cmd)
+            wanted = lp.SCAN_DESCRIPTOR
+        else:
+            cmd = lp.Command.EXPRESS_SCAN
+            request = lp.encode_express_request(working_mode)
+            wanted = lp.EXPRESS_DESCRIPTOR
         self.stats.requests += 1
-        self._write(lp.encode_request(cmd))
+        self._write(request)
         wait = self.timeout if timeout is None else timeout
         deadline = self.clock.now() + wait
         while True:
@@ -216,11 +283,12 @@ class LidarDriver:
                 if not isinstance(ev, lp.Descriptor):
                     self.stats.stray_events += 1
                     continue
-                if ev != lp.SCAN_DESCRIPTOR:
+                if ev != wanted:
                     self.stats.protocol_errors += 1
                     self.decoder.reset()
-                    raise LidarProtocolError(f"{cmd.name}: unexpected answer {ev} (wanted {lp.SCAN_DESCRIPTOR})")
+                    raise LidarProtocolError(f"{cmd.name}: unexpected answer {ev} (wanted {wanted})")
                 self._scanning = True
+                self.mode = mode
                 self.stats.scans += 1
                 self.stats.last_rx = self.clock.now()
                 self._ready.extend(self._absorb(events[i + 1 :]))
@@ -268,6 +336,7 @@ class LidarDriver:
             self.port.close()
         self._end_scan()
         self._motor_on = False
+        self._choice = None  # the unit behind the port may have changed
         self.decoder.reset()
         try:
             self.port = self.opener()
@@ -298,12 +367,56 @@ class LidarDriver:
 
     # -- internals -------------------------------------------------------------------------------
 
-    def _request(self, cmd: lp.Command, kind: type[A], answer: lp.AnswerType, timeout: float | None) -> A:
+    def _pick_mode(self) -> tuple[int, lp.ScanMode | None]:
+        """(EXPRESS_SCAN working mode, or -1 for SCAN; the mode's description if the unit gave one)."""
+        if self.scan_mode == "standard":
+            return -1, None
+        if self.scan_mode == "express":
+            return 0, None
+        if self._choice is not None:
+            return self._choice
+        choice = self._ask_mode()
+        if choice is None:  # unanswered: SCAN this time, and ask again next time
+            return -1, None
+        self._choice = choice
+        return choice
+
+    def _ask_mode(self) -> tuple[int, lp.ScanMode | None] | None:
+        wait = self.timeout if self.conf_timeout is None else self.conf_timeout
+        try:
+            typical = self.get_scan_mode(self.get_typical_mode(wait), wait)
+        except LidarTimeout:
+            self.stats.conf_unanswered += 1
+            if self.stats.conf_unanswered == 1:
+                log.info("lidar: no answer to GET_LIDAR_CONF (firmware before 1.24?): standard scan")
+            return None
+        candidates = [typical]
+        if typical.answer_type not in (lp.AnswerType.MEASUREMENT, lp.AnswerType.MEASUREMENT_CAPSULED):
+            candidates = self.get_scan_modes(wait)  # e.g. ultra capsules: find a mode we decode
+        for mode in candidates:
+            if mode.answer_type == lp.AnswerType.MEASUREMENT_CAPSULED:
+                return mode.id, mode
+        for mode in candidates:
+            if mode.answer_type == lp.AnswerType.MEASUREMENT:
+                return -1, mode
+        return -1, None
+
+    def _conf_value(self, ask: Callable[[], T]) -> T:
+        """A value read from GET_LIDAR_CONF answers; one too short to hold it is a protocol error."""
+        try:
+            return ask()
+        except ValueError as exc:
+            self.stats.protocol_errors += 1
+            raise LidarProtocolError(f"GET_LIDAR_CONF: {exc}") from exc
+
+    def _request(
+        self, cmd: lp.Command, kind: type[A], answer: lp.AnswerType, timeout: float | None, payload: bytes = b""
+    ) -> A:
         if self._scanning:
             self.stop()
         self.decoder.reset()
         self.stats.requests += 1
-        self._write(lp.encode_request(cmd))
+        self._write(lp.encode_request(cmd, payload))
         wait = self.timeout if timeout is None else timeout
         deadline = self.clock.now() + wait
         while True:

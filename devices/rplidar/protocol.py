@@ -45,7 +45,9 @@ import numpy as np
 import numpy.typing as npt
 
 __all__ = [
+    "CAPSULE_LEN",
     "DESCRIPTOR_LEN",
+    "EXPRESS_DESCRIPTOR",
     "HEALTH_ERROR",
     "HEALTH_GOOD",
     "HEALTH_WARNING",
@@ -58,12 +60,15 @@ __all__ = [
     "SYNC2",
     "AnswerType",
     "AssemblerStats",
+    "CapsuleEncoder",
     "Command",
+    "ConfType",
     "DecoderStats",
     "Descriptor",
     "DeviceHealth",
     "DeviceInfo",
     "Event",
+    "LidarConf",
     "LidarDecoder",
     "Node",
     "NodeBatch",
@@ -74,15 +79,22 @@ __all__ = [
     "Revolution",
     "RevolutionAssembler",
     "SampleRate",
+    "ScanMode",
     "checksum",
+    "decode_capsule_angles",
     "device_deg_to_rad",
+    "encode_capsules",
+    "encode_conf_request",
     "encode_descriptor",
     "encode_device_info",
+    "encode_express_request",
     "encode_health",
+    "encode_lidar_conf",
     "encode_node",
     "encode_nodes",
     "encode_request",
     "encode_samplerate",
+    "parse_conf_request",
     "rad_to_device_deg",
     "split_requests",
 ]
@@ -91,6 +103,8 @@ SYNC = 0xA5  # first byte of every request and every descriptor
 SYNC2 = 0x5A  # second byte of a descriptor
 DESCRIPTOR_LEN = 7
 NODE_LEN = 5
+CAPSULE_LEN = 84  # express scan (answer 0x82): 4 header bytes + 16 cabins of 5 bytes, 32 samples
+CAPSULE_SAMPLES = 32
 MAX_ANSWER = 1024  # largest answer we accept (real ones are at most 84 bytes: express capsules)
 MAX_REQUEST_PAYLOAD = 255  # the size field of a request is one byte
 
@@ -118,6 +132,7 @@ class Command(IntEnum):
     GET_INFO = 0x50
     GET_HEALTH = 0x52
     GET_SAMPLERATE = 0x59
+    GET_LIDAR_CONF = 0x84  # firmware 1.24 and later
     SET_MOTOR_PWM = 0xF0
     GET_ACC_BOARD_FLAG = 0xFF  # A2/A3: does an accessory board drive the motor? (A1: no answer)
 
@@ -126,8 +141,33 @@ class AnswerType(IntEnum):
     DEVICE_INFO = 0x04
     DEVICE_HEALTH = 0x06
     SAMPLE_RATE = 0x15
+    LIDAR_CONF = 0x20
     MEASUREMENT = 0x81
-    MEASUREMENT_CAPSULED = 0x82  # express scan (not implemented by fleetlink)
+    MEASUREMENT_CAPSULED = 0x82  # express scan, legacy capsule format
+
+
+class ConfType(IntEnum):
+    """GET_LIDAR_CONF entries (``sl_lidar_cmd.h``'s ``SL_LIDAR_CONF_*``) that fleetlink speaks.
+
+    The request payload is the type as a little-endian u32, followed for the per-mode entries by
+    the scan mode's id as a u16; the answer (type 0x20) echoes the u32 type, then the value."""
+
+    SCAN_MODE_COUNT = 0x70  # u16
+    SCAN_MODE_US_PER_SAMPLE = 0x71  # u32, Q8 fixed point microseconds (per mode)
+    SCAN_MODE_MAX_DISTANCE = 0x74  # u32, Q8 fixed point metres (per mode)
+    SCAN_MODE_ANS_TYPE = 0x75  # u8, the answer type the mode streams (per mode)
+    SCAN_MODE_TYPICAL = 0x7C  # u16, the id of the mode SLAMTEC recommends for the model
+    SCAN_MODE_NAME = 0x7F  # NUL-terminated ASCII (per mode)
+
+
+PER_MODE_CONF = frozenset(
+    {
+        ConfType.SCAN_MODE_US_PER_SAMPLE,
+        ConfType.SCAN_MODE_MAX_DISTANCE,
+        ConfType.SCAN_MODE_ANS_TYPE,
+        ConfType.SCAN_MODE_NAME,
+    }
+)
 
 
 # -- events ---------------------------------------------------------------------------------------
@@ -147,6 +187,7 @@ class Descriptor(NamedTuple):
 
 
 SCAN_DESCRIPTOR = Descriptor(NODE_LEN, SEND_MODE_MULTI, AnswerType.MEASUREMENT)
+EXPRESS_DESCRIPTOR = Descriptor(CAPSULE_LEN, SEND_MODE_MULTI, AnswerType.MEASUREMENT_CAPSULED)
 
 
 class DeviceInfo(NamedTuple):
@@ -182,6 +223,49 @@ class DeviceHealth(NamedTuple):
 class SampleRate(NamedTuple):
     standard_us: int  # microseconds per sample in SCAN mode
     express_us: int  # ... in express mode
+
+
+class LidarConf(NamedTuple):
+    """A GET_LIDAR_CONF answer: the entry's type and its value bytes (see ``ConfType``)."""
+
+    type: int
+    value: bytes
+
+    def u8(self) -> int:
+        return self._int(1)
+
+    def u16(self) -> int:
+        return self._int(2)
+
+    def u32(self) -> int:
+        return self._int(4)
+
+    def q8(self) -> float:
+        """A u32 in Q8 fixed point (microseconds per sample, metres)."""
+        return self._int(4) / 256.0
+
+    def text(self) -> str:
+        """A NUL-terminated string (a scan mode's name)."""
+        return self.value.split(b"\x00", 1)[0].decode("ascii", "replace")
+
+    def _int(self, size: int) -> int:
+        if len(self.value) < size:
+            raise ValueError(f"conf 0x{self.type:02X}: {len(self.value)} value bytes, need {size}")
+        return int.from_bytes(self.value[:size], "little")
+
+
+class ScanMode(NamedTuple):
+    """One scan mode as GET_LIDAR_CONF describes it."""
+
+    id: int
+    name: str
+    us_per_sample: float
+    max_distance_m: float
+    answer_type: int  # 0x81 standard nodes, 0x82 express capsules (others: not decoded by fleetlink)
+
+    @property
+    def samples_per_second(self) -> float:
+        return 1e6 / self.us_per_sample
 
 
 class Node(NamedTuple):
@@ -225,7 +309,7 @@ class Response(NamedTuple):
     payload: bytes
 
 
-Event = Descriptor | DeviceInfo | DeviceHealth | SampleRate | Node | NodeBatch | Response
+Event = Descriptor | DeviceInfo | DeviceHealth | SampleRate | LidarConf | Node | NodeBatch | Response
 
 
 # -- encoders -------------------------------------------------------------------------------------
@@ -301,6 +385,175 @@ def encode_nodes(
     return out.tobytes()
 
 
+def encode_conf_request(conf: int, mode: int | None = None) -> bytes:
+    """GET_LIDAR_CONF: ``A5 84 size type(u32) [mode(u16)] checksum``."""
+    payload = (conf & 0xFFFF_FFFF).to_bytes(4, "little")
+    if mode is not None:
+        payload += (mode & 0xFFFF).to_bytes(2, "little")
+    return encode_request(Command.GET_LIDAR_CONF, payload)
+
+
+def parse_conf_request(payload: bytes) -> tuple[int, int | None] | None:
+    """The lidar's reading of a GET_LIDAR_CONF payload: (type, scan mode id or None), or None if
+    the payload is too short to hold a type."""
+    if len(payload) < 4:
+        return None
+    conf = int.from_bytes(payload[:4], "little")
+    mode = int.from_bytes(payload[4:6], "little") if len(payload) >= 6 else None
+    return conf, mode
+
+
+def encode_lidar_conf(conf: int, value: bytes) -> bytes:
+    """A GET_LIDAR_CONF answer with its descriptor: type 0x20, the u32 type echoed, then ``value``."""
+    body = (conf & 0xFFFF_FFFF).to_bytes(4, "little") + bytes(value)
+    return encode_descriptor(len(body), SEND_MODE_SINGLE, AnswerType.LIDAR_CONF) + body
+
+
+def encode_express_request(working_mode: int = 0) -> bytes:
+    """EXPRESS_SCAN: payload working_mode (u8), working_flags (u16), param (u16). Working mode 0 is
+    the legacy express scan; SLAMTEC's SDK puts the scan mode's id there on firmware with
+    GET_LIDAR_CONF (1 for an A1's "Express")."""
+    return encode_request(Command.EXPRESS_SCAN, bytes((working_mode & 0xFF, 0, 0, 0, 0)))
+
+
+_Q6_TURN = 360 * 64  # a turn in 1/64 degree
+_MAX_MM = 0x3FFF  # 14 bits of distance in a cabin
+
+
+def encode_capsules(
+    start_q6: npt.ArrayLike,
+    next_q6: npt.ArrayLike,
+    angles_q6: npt.ArrayLike,
+    distances_m: npt.ArrayLike,
+    new_scan: bool = False,
+) -> bytes:
+    """K express capsules (``CAPSULE_LEN`` bytes each) in one pass.
+
+    ``start_q6[k]`` is capsule k's start angle and ``next_q6[k]`` the start angle of the capsule
+    after it (the decoder interpolates capsule k's 32 sample angles between the two, as SLAMTEC's
+    SDK does); ``angles_q6`` (K*32, wire angles in 1/64 degree) are what each sample's angle should
+    decode to, which the per-sample compensation offsets (6 bits of 1/8 degree, subtracted) bring
+    about as nearly as they can; ``distances_m`` travel in whole millimetres (0: no return).
+    ``new_scan`` sets the start flag on the first capsule (a new scan session)."""
+    s = np.asarray(start_q6, dtype=np.int64).reshape(-1) % _Q6_TURN
+    nxt = np.asarray(next_q6, dtype=np.int64).reshape(-1) % _Q6_TURN
+    k = s.size
+    t = np.asarray(angles_q6, dtype=np.int64).reshape(k, CAPSULE_SAMPLES) % _Q6_TURN
+    mm = np.clip(np.rint(np.asarray(distances_m, dtype=np.float64) * 1000.0), 0, _MAX_MM).astype(np.int64)
+    mm = mm.reshape(k, CAPSULE_SAMPLES)
+    # The SDK's arithmetic: the increment per sample in Q16 degrees, angles from the start's Q16.
+    diff_q8 = ((nxt - s) % _Q6_TURN) * 4
+    inc_q16 = diff_q8 << 3
+    j = np.arange(CAPSULE_SAMPLES, dtype=np.int64)
+    raw = (s[:, None] << 10) + j[None, :] * inc_q16[:, None]
+    r6 = raw / 1024.0
+    tu = t + _Q6_TURN * np.rint((r6 - t) / _Q6_TURN).astype(np.int64)
+    off = np.clip(np.rint((r6 - tu - 0.5) / 8.0), 0, 63).astype(np.int64)
+    # Never let a sample decode across the 0/360 line from the side it is on (a turn's boundary).
+    dec = t + ((raw - (off << 13)) >> 10) - tu
+    off = np.where(dec < 0, off - (-dec + 7) // 8, off)
+    off = np.where(dec >= _Q6_TURN, off + (dec - _Q6_TURN + 8) // 8, off)
+    off = np.clip(off, 0, 63)
+    out = np.zeros((k, CAPSULE_LEN), dtype=np.uint8)
+    flag = np.zeros(k, dtype=np.int64)
+    if k and new_scan:
+        flag[0] = 0x8000
+    start_field = s | flag
+    out[:, 2] = start_field & 0xFF
+    out[:, 3] = start_field >> 8
+    d = (mm << 2) | (off >> 4)
+    cab = out[:, 4:].reshape(k, 16, 5)
+    cab[:, :, 0] = d[:, 0::2] & 0xFF
+    cab[:, :, 1] = d[:, 0::2] >> 8
+    cab[:, :, 2] = d[:, 1::2] & 0xFF
+    cab[:, :, 3] = d[:, 1::2] >> 8
+    cab[:, :, 4] = (off[:, 0::2] & 0xF) | ((off[:, 1::2] & 0xF) << 4)
+    cs = np.bitwise_xor.reduce(out[:, 2:], axis=1).astype(np.int64)
+    out[:, 0] = 0xA0 | (cs & 0xF)
+    out[:, 1] = 0x50 | (cs >> 4)
+    return out.tobytes()
+
+
+class CapsuleEncoder:
+    """The lidar's express-scan stream: samples in, capsules out, as samples become due.
+
+    ``push(angles_q6, distances_m, new_turn, next_q6)`` adds consecutive samples of one turn (wire
+    angles in 1/64 degree, as the turn is sent) and returns the capsules they complete. A capsule's
+    start angle is committed when the capsule before it is sent: the angle of the sample that will
+    follow, ``margin_q6`` ahead, so that the decoder's interpolated angles run a little ahead of the
+    samples' and the (subtracted, non-negative) offsets bring them back. Where the following sample
+    is the first of the next turn, not yet cast, it is predicted ``step_q6`` on; the offsets absorb
+    the difference. ``next_q6`` is the sample after the pushed ones when it is in the same turn
+    (None at the turn's end). The output depends only on the samples, not on how they were pushed.
+    """
+
+    def __init__(self, step_q6: float) -> None:
+        self.step_q6 = float(step_q6)
+        # A whole number of offset units (1/8 degree = 8 q6) above one sample step.
+        self.margin_q6 = int(min(8 * 48, 8 * math.ceil((self.step_q6 + 4.0) / 8.0)))
+        self.capsules = 0
+        self._angles: list[int] = []
+        self._dist: list[float] = []
+        self._first_of_turn: list[bool] = []
+        self._tail_next: int | None = None
+        self._start: int | None = None  # committed start angle of the next capsule
+
+    @property
+    def pending(self) -> int:
+        return len(self._angles)
+
+    def reset(self) -> None:
+        """A new scan session: the next capsule carries the start flag."""
+        self._angles.clear()
+        self._dist.clear()
+        self._first_of_turn.clear()
+        self._tail_next = None
+        self._start = None
+
+    def push(
+        self,
+        angles_q6: npt.ArrayLike,
+        distances_m: npt.ArrayLike,
+        new_turn: bool = False,
+        next_q6: int | None = None,
+    ) -> bytes:
+        a = np.asarray(angles_q6, dtype=np.int64).reshape(-1).tolist()
+        d = np.asarray(distances_m, dtype=np.float64).reshape(-1).tolist()
+        if not a:
+            return b""
+        self._angles += a
+        self._dist += d
+        self._first_of_turn += [new_turn] + [False] * (len(a) - 1)
+        self._tail_next = next_q6
+        n_caps = len(self._angles) // CAPSULE_SAMPLES
+        if n_caps == 0:
+            return b""
+        used = n_caps * CAPSULE_SAMPLES
+        angles = self._angles
+        new_scan = self._start is None
+        starts = np.empty(n_caps, dtype=np.int64)
+        nexts = np.empty(n_caps, dtype=np.int64)
+        start = angles[0] + self.margin_q6 if self._start is None else self._start
+        for c in range(n_caps):
+            last = (c + 1) * CAPSULE_SAMPLES - 1
+            if last + 1 < len(angles):
+                follow = None if self._first_of_turn[last + 1] else angles[last + 1]
+            else:
+                follow = self._tail_next
+            if follow is None:
+                follow = round(angles[last] + self.step_q6)
+            starts[c] = start
+            start = (follow + self.margin_q6) % _Q6_TURN
+            nexts[c] = start
+        self._start = start
+        out = encode_capsules(starts, nexts, angles[:used], self._dist[:used], new_scan=new_scan)
+        del self._angles[:used]
+        del self._dist[:used]
+        del self._first_of_turn[:used]
+        self.capsules += n_caps
+        return out
+
+
 def rad_to_device_deg(angles_rad: npt.ArrayLike) -> FloatArray:
     """Sensor-frame angles (rad, counter-clockwise) to the RPLIDAR's degrees clockwise in [0, 360)."""
     return np.mod(-np.degrees(np.asarray(angles_rad, dtype=np.float64)), 360.0)
@@ -323,6 +576,9 @@ class DecoderStats:
     bad_descriptors: int = 0  # A5 5A followed by an impossible size or mode
     resync_bytes: int = 0  # skipped in a node stream to get back in step
     wrong_size: int = 0  # answers of a known type with an unexpected size (delivered as Response)
+    capsules: int = 0  # express capsules that passed their sync nibbles and checksum
+    bad_capsules: int = 0  # capsules with good sync nibbles and a bad checksum (dropped)
+    capsule_resets: int = 0  # a capsule with the start flag in the middle of a stream
 
     @property
     def dropped_bytes(self) -> int:
@@ -359,6 +615,8 @@ class LidarDecoder:
         self._state = _IDLE
         self._desc: Descriptor | None = None
         self._last_angle: float | None = None  # degrees, of the last node emitted in this stream
+        self._cap_prev: bytes | None = None  # the last good capsule, decoded once the next one comes
+        self._cap_last_q6: int | None = None  # angle of the last sample decoded from capsules
 
     # -- public ----------------------------------------------------------------------------------
 
@@ -382,6 +640,8 @@ class LidarDecoder:
         self._state = _IDLE
         self._desc = None
         self._last_angle = None
+        self._cap_prev = None
+        self._cap_last_q6 = None
 
     def assume(self, descriptor: Descriptor) -> None:
         """Continue as if ``descriptor`` had just been received (joining a lidar already streaming)."""
@@ -404,6 +664,8 @@ class LidarDecoder:
     def _enter(self, desc: Descriptor) -> None:
         self._desc = desc
         self._last_angle = None
+        self._cap_prev = None
+        self._cap_last_q6 = None
         if desc.size == 0:
             self._state = _IDLE
         elif desc.mode == SEND_MODE_MULTI:
@@ -434,6 +696,10 @@ class LidarDecoder:
                 assert desc is not None
                 if desc.type == AnswerType.MEASUREMENT and desc.size == NODE_LEN:
                     pos, progressed = self._nodes(data, pos, out)
+                    if not progressed:
+                        break
+                elif desc.type == AnswerType.MEASUREMENT_CAPSULED and desc.size == CAPSULE_LEN:
+                    pos, progressed = self._capsules(data, pos, out)
                     if not progressed:
                         break
                 else:
@@ -506,6 +772,83 @@ class LidarDecoder:
             pos += 1
         return pos, pos > start
 
+    def _capsules(self, data: bytes, pos: int, out: list[Event]) -> tuple[int, bool]:
+        """Express capsules from ``pos``: runs of good ones are decoded in one pass; a position whose
+        sync nibbles are wrong is skipped a byte at a time, a capsule whose checksum is wrong is
+        dropped (``bad_capsules``) and the hunt goes on at its next byte. Either breaks the chain of
+        capsules, as in SLAMTEC's SDK: the capsule before it is not decoded."""
+        n = len(data)
+        start = pos
+        st = self.stats
+        while n - pos >= 2:
+            b0 = data[pos]
+            b1 = data[pos + 1]
+            if (b0 >> 4) != 0xA or (b1 >> 4) != 0x5:
+                st.resync_bytes += 1
+                self._cap_prev = None
+                pos += 1
+                continue
+            if n - pos < CAPSULE_LEN:
+                break  # wait for the whole capsule
+            k = min((n - pos) // CAPSULE_LEN, 1024)
+            arr = np.frombuffer(data, dtype=np.uint8, count=CAPSULE_LEN * k, offset=pos).reshape(k, CAPSULE_LEN)
+            good = ((arr[:, 0] >> 4) == 0xA) & ((arr[:, 1] >> 4) == 0x5)
+            cs = np.bitwise_xor.reduce(arr[:, 2:], axis=1)
+            good &= cs == ((arr[:, 0] & 0xF) | ((arr[:, 1] & 0xF) << 4))
+            m = k if bool(good.all()) else int(np.argmin(good))
+            if m == 0:
+                if b0 == SYNC and b1 == SYNC2:
+                    desc = _parse_descriptor(data, pos)
+                    if desc is not None:  # a new answer after a STOP the decoder was not told about
+                        st.descriptors += 1
+                        out.append(desc)
+                        self._enter(desc)
+                        return pos + DESCRIPTOR_LEN, True
+                st.bad_capsules += 1
+                st.resync_bytes += 1
+                self._cap_prev = None
+                pos += 1
+                continue
+            self._emit_capsules(arr[:m], out)
+            st.capsules += m
+            pos += CAPSULE_LEN * m
+        return pos, pos > start
+
+    def _emit_capsules(self, caps: U8Array, out: list[Event]) -> None:
+        """Decode each capsule whose successor is known: the one held from before, then these."""
+        st = self.stats
+        starts = (caps[:, 2].astype(np.int64) | (caps[:, 3].astype(np.int64) << 8)).tolist()
+        chain: list[bytes] = [] if self._cap_prev is None else [self._cap_prev]
+        pairs_prev: list[bytes] = []
+        pairs_next: list[int] = []
+        for i, sf in enumerate(starts):
+            if sf & 0x8000:  # a new scan session: what came before is not continued
+                if chain:
+                    st.capsule_resets += 1
+                chain = []
+            elif chain:
+                pairs_prev.append(chain[-1])
+                pairs_next.append(sf & 0x7FFF)
+            chain = [bytes(caps[i])]
+        self._cap_prev = chain[-1] if chain else None
+        if not pairs_prev:
+            return
+        prev = np.frombuffer(b"".join(pairs_prev), dtype=np.uint8).reshape(-1, CAPSULE_LEN)
+        angle_q6, dist_q2 = decode_capsule_angles(prev, np.array(pairs_next, dtype=np.int64))
+        last = self._cap_last_q6
+        before = np.concatenate(([angle_q6[0] if last is None else last], angle_q6[:-1]))
+        start = angle_q6 + _Q6_TURN // 2 < before  # the angle wraps: a new revolution
+        angle_deg = angle_q6 / ANGLE_Q
+        distance_m = dist_q2 / DIST_Q
+        quality = np.where(dist_q2 > 0, CAPSULE_QUALITY, 0).astype(np.uint8)
+        self._cap_last_q6 = int(angle_q6[-1])
+        st.nodes += int(angle_q6.size)
+        batch = NodeBatch(start, quality, angle_deg, distance_m)
+        if self.batch:
+            out.append(batch)
+        else:
+            out.extend(batch.nodes())
+
     def _emit_nodes(self, data: bytes, pos: int, m: int, out: list[Event]) -> None:
         if m == 1 and not self.batch:
             s0 = data[pos]
@@ -524,6 +867,41 @@ class LidarDecoder:
             out.append(batch)
         else:
             out.extend(batch.nodes())
+
+
+CAPSULE_QUALITY = 47  # capsules carry no quality; SLAMTEC's SDK reports 47 (0x2F) for a return
+
+
+def decode_capsule_angles(caps: U8Array, next_start_q6: npt.ArrayLike) -> tuple[npt.NDArray[np.int64], FloatArray]:
+    """The samples of K capsules (K, 84) given the start angle of the capsule after each: angles in
+    1/64 degree within [0, 360) and distances in 1/4 mm, K * 32 of each, in stream order.
+
+    SLAMTEC's SDK arithmetic, integer for integer: the capsule's start angle and the next one's in
+    Q8 degrees, their difference (plus 360 if the next is lower) shifted into a Q16 increment per
+    sample; sample j sits at start + j * increment, minus its 6-bit offset in 1/8 degree (four bits
+    in the cabin's last byte, two in the low bits of its distance word), floored to Q6."""
+    caps = np.asarray(caps, dtype=np.uint8).reshape(-1, CAPSULE_LEN)
+    k = caps.shape[0]
+    start_q8 = ((caps[:, 2].astype(np.int64) | (caps[:, 3].astype(np.int64) << 8)) & 0x7FFF) << 2
+    next_q8 = (np.asarray(next_start_q6, dtype=np.int64).reshape(-1) & 0x7FFF) << 2
+    diff_q8 = next_q8 - start_q8
+    diff_q8 = np.where(start_q8 > next_q8, diff_q8 + (360 << 8), diff_q8)
+    inc_q16 = diff_q8 << 3
+    cab = caps[:, 4:].reshape(k, 16, 5).astype(np.int64)
+    d1 = cab[:, :, 0] | (cab[:, :, 1] << 8)
+    d2 = cab[:, :, 2] | (cab[:, :, 3] << 8)
+    off1 = (cab[:, :, 4] & 0xF) | ((d1 & 0x3) << 4)
+    off2 = (cab[:, :, 4] >> 4) | ((d2 & 0x3) << 4)
+    dist = np.empty((k, CAPSULE_SAMPLES), dtype=np.int64)
+    dist[:, 0::2] = d1 & 0xFFFC
+    dist[:, 1::2] = d2 & 0xFFFC
+    off = np.empty((k, CAPSULE_SAMPLES), dtype=np.int64)
+    off[:, 0::2] = off1
+    off[:, 1::2] = off2
+    j = np.arange(CAPSULE_SAMPLES, dtype=np.int64)
+    raw = (start_q8[:, None] << 8) + j[None, :] * inc_q16[:, None]
+    angle = ((raw - (off << 13)) >> 10) % _Q6_TURN
+    return angle.reshape(-1), dist.reshape(-1).astype(np.float64)
 
 
 def _angle_at(data: bytes, pos: int) -> float:
@@ -570,6 +948,11 @@ def _parse_descriptor(data: bytes, i: int) -> Descriptor | None:
 
 def _answer(desc: Descriptor, payload: bytes, stats: DecoderStats) -> Event:
     t = desc.type
+    if t == AnswerType.LIDAR_CONF:
+        if len(payload) < 4:
+            stats.wrong_size += 1
+            return Response(t, payload)
+        return LidarConf(int.from_bytes(payload[:4], "little"), payload[4:])
     expected = _KNOWN_SIZES.get(t)
     if expected is None:
         return Response(t, payload)
