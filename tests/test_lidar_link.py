@@ -28,7 +28,7 @@ from fleetlink.devices.rplidar import protocol as lp
 from fleetlink.field.device_server import DeviceServer
 from fleetlink.field.lidar import LidarConfig, LidarModel, scan_source_for
 from fleetlink.field.raycast import Raycaster
-from fleetlink.field.rplidar import SimulatedRplidar
+from fleetlink.field.rplidar import RplidarConfig, SimulatedRplidar
 from fleetlink.shared.clock import Clock, SimClock, SystemClock
 
 W, H = 6.0, 4.0
@@ -282,3 +282,58 @@ def test_angles_are_counter_clockwise_in_the_sensor_frame() -> None:
     right = int(np.argmin(np.abs(rev.angles_rad - 3 * math.pi / 2)))
     assert rev.distances_m[left] == pytest.approx(1.0, abs=1e-3)
     assert rev.distances_m[right] == 0.0  # nothing on the right within range
+
+
+def test_inproc_scan_modes_and_fallback_for_old_firmware() -> None:
+    clock = SimClock(start=1.0)
+    lidar = make_lidar(now=clock.now())
+    with LidarDriver(lidar.in_process_port(clock), clock) as drv:
+        modes = drv.get_scan_modes()
+        assert [(m.id, m.name, m.answer_type) for m in modes] == [(0, "Standard", 0x81), (1, "Express", 0x82)]
+        assert modes[1].us_per_sample == 125.0 and modes[1].max_distance_m == 12.0
+        assert drv.get_typical_mode() == 1
+        with pytest.raises(LidarTimeout):
+            drv.get_lidar_conf(0x01)  # not an A1's entry: no answer
+    # firmware before 1.24 does not answer GET_LIDAR_CONF: the driver waits conf_timeout, then SCAN
+    old = SimulatedRplidar(lidar.lidar, lidar.scan_source, RplidarConfig(conf_commands=False, firmware=(1, 20)))
+    with LidarDriver(old.in_process_port(clock), clock, conf_timeout=0.2) as drv:
+        t0 = clock.now()
+        assert drv.start_scan() == lp.SCAN_DESCRIPTOR
+        assert clock.now() - t0 == pytest.approx(0.2, abs=0.01) and drv.stats.conf_unanswered == 1
+        assert drv.mode is None and not old.express
+        check_turn(drv.read_revolutions(1, timeout=1.0)[0])
+    # forced choices
+    for choice, wanted in (("standard", lp.SCAN_DESCRIPTOR), ("express", lp.EXPRESS_DESCRIPTOR)):
+        with LidarDriver(lidar.in_process_port(clock), clock, scan_mode=choice) as drv:  # type: ignore[arg-type]
+            assert drv.start_scan() == wanted
+            check_turn(drv.read_revolutions(1, timeout=1.0)[0])
+    with pytest.raises(ValueError):
+        LidarDriver(lidar.in_process_port(clock), clock, scan_mode="boost")  # type: ignore[arg-type]
+
+
+def test_conf_answer_for_another_entry_is_a_protocol_error() -> None:
+    clock = SimClock()
+    wrong = lp.encode_lidar_conf(lp.ConfType.SCAN_MODE_COUNT, b"\x02\x00")
+    drv = LidarDriver(InProcessPort(lambda data: wrong if data[1:2] == b"\x84" else b""), clock, timeout=0.2)
+    with pytest.raises(LidarProtocolError, match="0x70"):
+        drv.get_lidar_conf(lp.ConfType.SCAN_MODE_TYPICAL)
+    short = lp.encode_lidar_conf(lp.ConfType.SCAN_MODE_TYPICAL, b"\x01")
+    drv = LidarDriver(InProcessPort(lambda data: short if data[1:2] == b"\x84" else b""), clock, timeout=0.2)
+    with pytest.raises(LidarProtocolError, match="need 2"):
+        drv.get_typical_mode()
+
+
+def test_inproc_express_scan_is_deterministic() -> None:
+    def run() -> list[lp.Revolution]:
+        clock = SimClock(start=3.0)
+        model = LidarModel(LidarConfig(rate_hz=5.5), np.random.default_rng(11))  # noise and random phase
+        lidar = SimulatedRplidar(model.config, scan_source_for(model, lambda t: POSE, Raycaster(ROOM)), now=3.0)
+        with LidarDriver(lidar.in_process_port(clock), clock) as drv:
+            drv.start_scan()
+            return drv.read_revolutions(4, timeout=3.0)
+
+    a, b = run(), run()
+    assert [len(r) for r in a] == [len(r) for r in b] and all(1450 <= len(r) <= 1460 for r in a)
+    for ra, rb in zip(a, b, strict=True):
+        assert np.array_equal(ra.angles_rad, rb.angles_rad) and np.array_equal(ra.distances_m, rb.distances_m)
+        assert ra.stamp == rb.stamp

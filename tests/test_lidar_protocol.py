@@ -378,3 +378,154 @@ def test_request_decoder_never_raises(data: bytes) -> None:
     dec = lp.RequestDecoder()
     dec.feed(data)
     assert dec.buffered <= 3 + 255 + 1
+
+
+# -- GET_LIDAR_CONF ---------------------------------------------------------------------------------
+
+
+def test_conf_request_bytes_and_parsing() -> None:
+    # type 0x70 (count), no mode: A5 84 04 70 00 00 00 cs
+    req = lp.encode_conf_request(lp.ConfType.SCAN_MODE_COUNT)
+    assert req[:7] == bytes.fromhex("A58404700000 00".replace(" ", "")) and lp.checksum(req) == 0
+    # per-mode entries carry the mode id as a u16 after the u32 type
+    req = lp.encode_conf_request(lp.ConfType.SCAN_MODE_NAME, 1)
+    assert req[2] == 6 and req[3:9] == bytes.fromhex("7F0000000100")
+    assert lp.split_requests([req]) == [lp.Request(0x84, bytes.fromhex("7F0000000100"))]
+    assert lp.parse_conf_request(bytes.fromhex("7F0000000100")) == (0x7F, 1)
+    assert lp.parse_conf_request(bytes.fromhex("7C000000")) == (0x7C, None)
+    assert lp.parse_conf_request(b"\x70\x00") is None
+
+
+CONF_ANSWERS = (
+    lp.encode_lidar_conf(lp.ConfType.SCAN_MODE_COUNT, (2).to_bytes(2, "little"))
+    + lp.encode_lidar_conf(lp.ConfType.SCAN_MODE_US_PER_SAMPLE, (64000).to_bytes(4, "little"))
+    + lp.encode_lidar_conf(lp.ConfType.SCAN_MODE_NAME, b"Express\x00")
+)
+
+
+@pytest.mark.parametrize("feed", FEEDERS)
+def test_conf_answers(feed: Callable[[lp.LidarDecoder, bytes], list[lp.Event]]) -> None:
+    dec = lp.LidarDecoder()
+    events = [
+        e for e in feed(dec, CONF_ANSWERS + lp.encode_descriptor(6, 0, 0x20) + b"\x70") if isinstance(e, lp.LidarConf)
+    ]
+    count, us, name = events
+    assert count == lp.LidarConf(0x70, b"\x02\x00") and count.u16() == 2
+    assert us.q8() == 250.0  # the protocol's own example: 64000 / 256 = 250 microseconds
+    assert name.text() == "Express"
+    assert dec.buffered == 1 and dec.state == "answer"  # a trailing partial answer waits
+    with pytest.raises(ValueError, match="need 4"):
+        count.u32()
+
+
+def test_conf_answer_too_short_for_its_type() -> None:
+    dec = lp.LidarDecoder()
+    events = dec.feed(lp.encode_descriptor(2, 0, 0x20) + b"\x70\x00")
+    assert events[1:] == [lp.Response(0x20, b"\x70\x00")] and dec.stats.wrong_size == 1
+
+
+# -- express scan capsules --------------------------------------------------------------------------
+
+
+def test_express_request_bytes() -> None:
+    # the legacy express scan as SLAMTEC documents it: working mode 0, four reserved bytes
+    assert lp.encode_express_request(0) == bytes.fromhex("A5820500000000 0022".replace(" ", ""))
+    assert lp.encode_express_request(1)[3] == 1
+    assert lp.EXPRESS_DESCRIPTOR.encode() == bytes.fromhex("A55A5400004082")
+
+
+def capsule_stream(turns: int = 3, n: int = 800, chunk: int = 37) -> tuple[bytes, np.ndarray, np.ndarray]:
+    """A device-side capsule stream of ``turns`` evenly sampled turns (wire q6 angles, distances)."""
+    step = 360 * 64 / n
+    enc = lp.CapsuleEncoder(step)
+    q6 = np.rint(np.arange(n) * step).astype(np.int64) % (360 * 64)
+    dist = np.round(1.0 + 0.5 * np.sin(np.arange(n) / 40.0), 3)
+    dist[::97] = 0.0  # some no-returns
+    out = b""
+    for _ in range(turns):
+        for i in range(0, n, chunk):
+            j = min(n, i + chunk)
+            out += enc.push(q6[i:j], dist[i:j], new_turn=i == 0, next_q6=int(q6[j]) if j < n else None)
+    return out, q6, dist
+
+
+def test_capsule_bytes() -> None:
+    stream, _, dist = capsule_stream(1)
+    cap = stream[:84]
+    assert cap[0] >> 4 == 0xA and cap[1] >> 4 == 0x5
+    assert lp.checksum(cap[2:]) == (cap[0] & 0xF) | ((cap[1] & 0xF) << 4)
+    start = int.from_bytes(cap[2:4], "little")
+    assert start & 0x8000  # the first capsule of a scan session
+    assert int.from_bytes(stream[84 + 2 : 84 + 4], "little") & 0x8000 == 0
+    # cabin 0: distance in whole mm above two offset bits
+    assert int.from_bytes(cap[4:6], "little") >> 2 == round(dist[0] * 1000)
+    assert len(stream) == 84 * (800 // 32)
+
+
+def test_capsule_encoder_does_not_depend_on_chunking() -> None:
+    assert capsule_stream(2, chunk=1)[0] == capsule_stream(2, chunk=37)[0] == capsule_stream(2, chunk=800)[0]
+
+
+@pytest.mark.parametrize("feed", FEEDERS)
+def test_capsule_stream_decodes_to_the_samples(feed: Callable[[lp.LidarDecoder, bytes], list[lp.Event]]) -> None:
+    stream, q6, dist = capsule_stream(3)
+    dec = lp.LidarDecoder(batch=True)
+    events = feed(dec, lp.EXPRESS_DESCRIPTOR.encode() + stream + stream[:50])  # a partial capsule trails
+    assert events[0] == lp.EXPRESS_DESCRIPTOR
+    nodes = nodes_of(events[1:])
+    # each capsule is decoded once the next one has come: all but the last full one
+    assert len(nodes) == 3 * 800 - 32 and dec.stats.capsules == 75
+    assert dec.buffered == 50 and dec.state == "stream"
+    want_a = np.tile(q6 / 64, 3)[: len(nodes)]
+    want_d = np.tile(dist, 3)[: len(nodes)]
+    got_a = np.array([n.angle_deg for n in nodes])
+    assert np.abs((got_a - want_a + 180) % 360 - 180).max() <= 2 / 64
+    np.testing.assert_allclose([n.distance_m for n in nodes], want_d, atol=1e-9)
+    assert all(n.quality == (47 if n.distance_m else 0) for n in nodes)
+    assert [i for i, n in enumerate(nodes) if n.start] == [800, 1600]  # where the angle wraps
+    revs = lp.RevolutionAssembler().push_all(events)
+    assert [len(r) for r in revs] == [800]  # the turn between the two wraps
+
+
+def test_bad_capsules_are_dropped_and_counted() -> None:
+    stream, _, _ = capsule_stream(3)
+    bad = bytearray(stream)
+    bad[84 * 5 + 40] ^= 0x10  # a payload bit: the checksum fails
+    bad[84 * 20] = 0x00  # a sync nibble
+    bad[84 * 30 + 1] = 0xF5  # the other one
+    dec = lp.LidarDecoder(batch=True)
+    dec.assume(lp.EXPRESS_DESCRIPTOR)
+    nodes = nodes_of(dec.feed(bytes(bad)))
+    assert dec.stats.bad_capsules >= 1 and dec.stats.resync_bytes >= 84
+    # the three damaged capsules and the three before them (no successor to interpolate to) are lost
+    assert dec.stats.capsules == 75 - 3
+    assert len(nodes) == 3 * 800 - 32 - 6 * 32
+    ok = lp.LidarDecoder(batch=True)
+    ok.assume(lp.EXPRESS_DESCRIPTOR)
+    good = {(round(n.angle_deg * 64), n.distance_m) for n in nodes_of(ok.feed(stream))}
+    assert {(round(n.angle_deg * 64), n.distance_m) for n in nodes} <= good  # nothing invented
+
+
+def test_capsule_stream_lost_byte_and_descriptor_after_it() -> None:
+    """A lost byte costs the capsules around it; a new scan's descriptor (STOP and EXPRESS_SCAN again
+    without the decoder being told) is found once a capsule's worth of bytes has followed it."""
+    stream, _, _ = capsule_stream(2)
+    cut = stream[: 84 * 10 + 7] + stream[84 * 10 + 8 :]  # one byte lost in capsule 10
+    dec = lp.LidarDecoder(batch=True)
+    dec.assume(lp.EXPRESS_DESCRIPTOR)
+    events = dec.feed(cut + lp.EXPRESS_DESCRIPTOR.encode() + stream[: 84 * 3])
+    i = events.index(lp.EXPRESS_DESCRIPTOR)
+    assert len(nodes_of(events[:i])) == 2 * 800 - 32 - 2 * 32
+    assert len(nodes_of(events[i + 1 :])) == 2 * 32 and dec.stats.descriptors == 1
+
+
+@settings(max_examples=200, suppress_health_check=[HealthCheck.too_slow])
+@given(st.binary(max_size=600), st.integers(1, 90))
+def test_capsule_decoder_never_raises(data: bytes, chunk: int) -> None:
+    stream, _, _ = capsule_stream(1)
+    dec = lp.LidarDecoder(batch=True)
+    dec.assume(lp.EXPRESS_DESCRIPTOR)
+    mixed = stream[:300] + data + stream[300:]
+    for i in range(0, len(mixed), chunk):
+        dec.feed(mixed[i : i + chunk])
+    assert dec.buffered <= lp.MAX_ANSWER

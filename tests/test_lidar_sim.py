@@ -158,3 +158,90 @@ def test_empty_turns_pass_in_silence() -> None:
     dev.receive(lp.encode_request(lp.Command.SCAN), 0.0)
     assert dev.step(0.5) is None
     assert 4 <= len(calls) <= 6  # one attempt per (empty) turn at 10 Hz, not a busy loop
+
+
+def conf(dev: SimulatedRplidar, entry: int, mode: int | None = None) -> lp.LidarConf | None:
+    events = decode(dev.receive(lp.encode_conf_request(entry, mode), 0.0))
+    got = [e for e in events if isinstance(e, lp.LidarConf)]
+    return got[0] if got else None
+
+
+def test_lidar_conf_describes_the_scan_modes() -> None:
+    dev = device()
+    c = lp.ConfType
+    assert conf(dev, c.SCAN_MODE_COUNT) == lp.LidarConf(0x70, b"\x02\x00")
+    assert conf(dev, c.SCAN_MODE_TYPICAL) == lp.LidarConf(0x7C, b"\x01\x00")  # "Express"
+    for mode, name, ans in ((0, "Standard", 0x81), (1, "Express", 0x82)):
+        assert conf(dev, c.SCAN_MODE_NAME, mode) == lp.LidarConf(0x7F, name.encode() + b"\x00")
+        assert conf(dev, c.SCAN_MODE_ANS_TYPE, mode) == lp.LidarConf(0x75, bytes((ans,)))
+        us = conf(dev, c.SCAN_MODE_US_PER_SAMPLE, mode)
+        assert us is not None and us.u32() == 125 * 256  # Q8: the model's 8000 samples/s
+        dist = conf(dev, c.SCAN_MODE_MAX_DISTANCE, mode)
+        assert dist is not None and dist.q8() == 12.0
+    assert dev.stats.bad_requests == 0
+
+
+def test_lidar_conf_it_cannot_answer(caplog: pytest.LogCaptureFixture) -> None:
+    dev = device()
+    assert conf(dev, 0x01) is None  # DESIRED_ROT_FREQ: an A1 has no motor controller
+    assert conf(dev, 0x01) is None
+    assert conf(dev, lp.ConfType.SCAN_MODE_NAME, 2) is None  # no mode 2
+    assert conf(dev, lp.ConfType.SCAN_MODE_NAME) is None  # no mode id at all
+    assert dev.receive(lp.encode_request(lp.Command.GET_LIDAR_CONF, b"\x70"), 0.0) == b""
+    assert dev.stats.bad_requests == 5
+    assert sum("entry 0x1," in r.message for r in caplog.records) == 1  # logged once, then counted
+    assert conf(dev, lp.ConfType.SCAN_MODE_COUNT) is not None  # and it keeps serving
+    old = device(conf_commands=False, firmware=(1, 20))
+    assert conf(old, lp.ConfType.SCAN_MODE_COUNT) is None and old.stats.ignored == 1
+
+
+def test_express_scan_streams_paced_capsules() -> None:
+    dev = device(motor_on_at_start=True)
+    assert dev.receive(lp.encode_express_request(1), 1.0) == lp.EXPRESS_DESCRIPTOR.encode()
+    assert dev.scanning and dev.express and dev.mode.name == "Express"
+    stream = b""
+    t = 1.0
+    while t < 1.5:
+        t += 0.01
+        stream += dev.step(t) or b""
+    # a capsule goes out when its 32nd sample is due: 8000 samples/s from 1.002 s
+    assert len(stream) // 84 == int(8000 * 0.498) // 32 == dev.stats.capsules
+    assert len(stream) % 84 == 0 and stream[3] & 0x80  # the first capsule opens the session
+    dec = lp.LidarDecoder(batch=True)
+    dec.assume(lp.EXPRESS_DESCRIPTOR)
+    revs = lp.RevolutionAssembler().push_all(dec.feed(stream))
+    assert [len(r) for r in revs] == [N] * 3  # 5 turns started; the first ends in a wrap only at the 2nd
+    np.testing.assert_allclose(revs[0].distances_m, DISTANCES, atol=5e-4)  # whole millimetres
+    # legacy working mode 0 is the express scan too; STOP ends it
+    assert dev.receive(lp.encode_express_request(0), 2.0) == lp.EXPRESS_DESCRIPTOR.encode()
+    dev.receive(lp.encode_request(lp.Command.STOP), 2.0)
+    assert dev.step(2.5) is None and not dev.scanning
+
+
+def test_scan_modes_set_the_pace_and_samplerate() -> None:
+    modes = (
+        lp.ScanMode(0, "Standard", 500.0, 12.0, 0x81),
+        lp.ScanMode(1, "Express", 250.0, 12.0, 0x82),
+    )
+    dev = device(motor_on_at_start=True, scan_modes=modes)
+    assert decode(dev.receive(lp.encode_request(lp.Command.GET_SAMPLERATE), 0.0))[1] == lp.SampleRate(500, 250)
+    dev.receive(lp.encode_request(lp.Command.SCAN), 0.0)
+    assert len(dev.step(0.502) or b"") // 5 == 1001  # 2000 samples/s from 2 ms
+    dev.receive(lp.encode_express_request(1), 1.0)
+    assert len(dev.step(1.514) or b"") // 84 == 2001 // 32  # 4000 samples/s
+    with pytest.raises(ValueError):
+        RplidarConfig(scan_modes=modes[1:])  # ids must count from 0
+    with pytest.raises(ValueError):
+        RplidarConfig(scan_modes=modes, typical_mode=2)
+
+
+def test_motor_at_start() -> None:
+    from fleetlink.field.rplidar import motor_at_start
+
+    assert motor_at_start("auto", served=True) and not motor_at_start("auto", served=False)
+    assert motor_at_start("running", served=False) and not motor_at_start("stopped", served=True)
+    dev = device(motor_on_at_start=True)
+    dev.receive(lp.encode_express_request(0), 0.0)
+    assert dev.step(0.1)
+    dev.receive(lp.encode_request(lp.Command.SET_MOTOR_PWM, b"\x00\x00"), 0.1)  # PWM 0 stops it
+    assert dev.step(0.5) is None and not dev.motor_on
