@@ -529,3 +529,14 @@ def test_capsule_decoder_never_raises(data: bytes, chunk: int) -> None:
     for i in range(0, len(mixed), chunk):
         dec.feed(mixed[i : i + chunk])
     assert dec.buffered <= lp.MAX_ANSWER
+
+
+@settings(max_examples=100)
+@given(st.integers(0, 23039), st.floats(1.0, 100.0), st.integers(0, 2**32 - 1), st.booleans())
+def test_capsule_encoders_agree(start: int, step: float, seed: int, new_scan: bool) -> None:
+    """The plain-Python encoder (a step's one or two capsules) and the NumPy one make the same bytes."""
+    rng = np.random.default_rng(seed)
+    t = [int(round(start - 100 + j * step + rng.uniform(-30, 30))) % 23040 for j in range(32)]
+    nxt = int(round(start + 32 * step)) % 23040
+    d = rng.uniform(0, 20, 32).tolist()
+    assert lp._encode_capsule(start, nxt, t, d, new_scan) == lp.encode_capsules([start], [nxt], t, d, new_scan)

@@ -418,6 +418,8 @@ def encode_express_request(working_mode: int = 0) -> bytes:
 
 _Q6_TURN = 360 * 64  # a turn in 1/64 degree
 _MAX_MM = 0x3FFF  # 14 bits of distance in a cabin
+_CAPSULE_J = np.arange(CAPSULE_SAMPLES, dtype=np.int64)[None, :]
+_PY_CAPSULES = 8  # up to this many capsules at once, plain Python is quicker than NumPy
 
 
 def encode_capsules(
@@ -439,39 +441,84 @@ def encode_capsules(
     nxt = np.asarray(next_q6, dtype=np.int64).reshape(-1) % _Q6_TURN
     k = s.size
     t = np.asarray(angles_q6, dtype=np.int64).reshape(k, CAPSULE_SAMPLES) % _Q6_TURN
-    mm = np.clip(np.rint(np.asarray(distances_m, dtype=np.float64) * 1000.0), 0, _MAX_MM).astype(np.int64)
-    mm = mm.reshape(k, CAPSULE_SAMPLES)
-    # The SDK's arithmetic: the increment per sample in Q16 degrees, angles from the start's Q16.
-    diff_q8 = ((nxt - s) % _Q6_TURN) * 4
-    inc_q16 = diff_q8 << 3
-    j = np.arange(CAPSULE_SAMPLES, dtype=np.int64)
-    raw = (s[:, None] << 10) + j[None, :] * inc_q16[:, None]
-    r6 = raw / 1024.0
-    tu = t + _Q6_TURN * np.rint((r6 - t) / _Q6_TURN).astype(np.int64)
-    off = np.clip(np.rint((r6 - tu - 0.5) / 8.0), 0, 63).astype(np.int64)
+    mm = np.rint(np.asarray(distances_m, dtype=np.float64).reshape(k, CAPSULE_SAMPLES) * 1000.0).astype(np.int64)
+    np.clip(mm, 0, _MAX_MM, out=mm)
+    # The SDK's arithmetic: the increment per sample in Q16 degrees (Q8 difference << 3), sample j
+    # at start + j * increment; then the offset (1/8 degree = 8192 in Q16) that lands the floored
+    # Q6 angle on the sample's, taken against the copy of the sample's angle nearest the raw one.
+    inc_q16 = ((nxt - s) % _Q6_TURN) << 5
+    raw = (s << 10)[:, None] + _CAPSULE_J * inc_q16[:, None]
+    tu = t + ((raw >> 10) - t + _Q6_TURN // 2) // _Q6_TURN * _Q6_TURN
+    off = (raw - (tu << 10) - 512 + 4096) >> 13
+    np.clip(off, 0, 63, out=off)
     # Never let a sample decode across the 0/360 line from the side it is on (a turn's boundary).
     dec = t + ((raw - (off << 13)) >> 10) - tu
-    off = np.where(dec < 0, off - (-dec + 7) // 8, off)
-    off = np.where(dec >= _Q6_TURN, off + (dec - _Q6_TURN + 8) // 8, off)
-    off = np.clip(off, 0, 63)
-    out = np.zeros((k, CAPSULE_LEN), dtype=np.uint8)
-    flag = np.zeros(k, dtype=np.int64)
-    if k and new_scan:
-        flag[0] = 0x8000
-    start_field = s | flag
-    out[:, 2] = start_field & 0xFF
-    out[:, 3] = start_field >> 8
+    if (dec < 0).any() or (dec >= _Q6_TURN).any():
+        off = np.where(dec < 0, off - (-dec + 7) // 8, off)
+        off = np.where(dec >= _Q6_TURN, off + (dec - _Q6_TURN + 8) // 8, off)
+        np.clip(off, 0, 63, out=off)
     d = (mm << 2) | (off >> 4)
-    cab = out[:, 4:].reshape(k, 16, 5)
-    cab[:, :, 0] = d[:, 0::2] & 0xFF
+    cab = np.empty((k, 16, 5), dtype=np.int64)
+    cab[:, :, 0] = d[:, 0::2]
     cab[:, :, 1] = d[:, 0::2] >> 8
-    cab[:, :, 2] = d[:, 1::2] & 0xFF
+    cab[:, :, 2] = d[:, 1::2]
     cab[:, :, 3] = d[:, 1::2] >> 8
     cab[:, :, 4] = (off[:, 0::2] & 0xF) | ((off[:, 1::2] & 0xF) << 4)
-    cs = np.bitwise_xor.reduce(out[:, 2:], axis=1).astype(np.int64)
+    out = np.empty((k, CAPSULE_LEN), dtype=np.uint8)
+    start_field = s.copy()
+    if k and new_scan:
+        start_field[0] |= 0x8000
+    out[:, 2] = start_field & 0xFF
+    out[:, 3] = start_field >> 8
+    out[:, 4:] = (cab & 0xFF).reshape(k, 80)
+    cs = np.bitwise_xor.reduce(out[:, 2:], axis=1)
     out[:, 0] = 0xA0 | (cs & 0xF)
     out[:, 1] = 0x50 | (cs >> 4)
     return out.tobytes()
+
+
+def _encode_capsule(
+    start_q6: int, next_q6: int, angles_q6: Sequence[int], distances_m: Sequence[float], new_scan: bool
+) -> bytes:
+    """One capsule, as ``encode_capsules`` makes it (the same bytes), in plain Python: about four
+    times quicker than NumPy for the one or two capsules a stream produces per step."""
+    turn = _Q6_TURN
+    s = start_q6 % turn
+    inc = ((next_q6 % turn - s) % turn) << 5
+    raw = s << 10
+    body = bytearray(CAPSULE_LEN)
+    sf = s | (0x8000 if new_scan else 0)
+    body[2] = sf & 0xFF
+    body[3] = sf >> 8
+    offs = [0] * CAPSULE_SAMPLES
+    words = [0] * CAPSULE_SAMPLES
+    for j in range(CAPSULE_SAMPLES):
+        t = angles_q6[j] % turn
+        tu = t + ((raw >> 10) - t + turn // 2) // turn * turn
+        off = min(63, max(0, (raw - (tu << 10) - 512 + 4096) >> 13))
+        dec = t + ((raw - (off << 13)) >> 10) - tu
+        if dec < 0:
+            off = max(0, off - (-dec + 7) // 8)
+        elif dec >= turn:
+            off = min(63, off + (dec - turn + 8) // 8)
+        mm = min(_MAX_MM, max(0, round(distances_m[j] * 1000.0)))
+        offs[j] = off
+        words[j] = (mm << 2) | (off >> 4)
+        raw += inc
+    p = 4
+    for c in range(0, CAPSULE_SAMPLES, 2):
+        d1 = words[c]
+        d2 = words[c + 1]
+        body[p] = d1 & 0xFF
+        body[p + 1] = d1 >> 8
+        body[p + 2] = d2 & 0xFF
+        body[p + 3] = d2 >> 8
+        body[p + 4] = (offs[c] & 0xF) | ((offs[c + 1] & 0xF) << 4)
+        p += 5
+    cs = checksum(memoryview(body)[2:])
+    body[0] = 0xA0 | (cs & 0xF)
+    body[1] = 0x50 | (cs >> 4)
+    return bytes(body)
 
 
 class CapsuleEncoder:
@@ -546,7 +593,18 @@ class CapsuleEncoder:
             start = (follow + self.margin_q6) % _Q6_TURN
             nexts[c] = start
         self._start = start
-        out = encode_capsules(starts, nexts, angles[:used], self._dist[:used], new_scan=new_scan)
+        if n_caps <= _PY_CAPSULES:
+            parts = []
+            for c in range(n_caps):
+                lo, hi = c * CAPSULE_SAMPLES, (c + 1) * CAPSULE_SAMPLES
+                parts.append(
+                    _encode_capsule(
+                        int(starts[c]), int(nexts[c]), angles[lo:hi], self._dist[lo:hi], new_scan and c == 0
+                    )
+                )
+            out = b"".join(parts)
+        else:
+            out = encode_capsules(starts, nexts, angles[:used], self._dist[:used], new_scan=new_scan)
         del self._angles[:used]
         del self._dist[:used]
         del self._first_of_turn[:used]
