@@ -1,8 +1,8 @@
 """The simulated RPLIDAR A1: the slave side of its serial protocol, sans-I/O.
 
 ``SimulatedRplidar(lidar_config, scan_source)`` takes request bytes in ``receive(data, now)`` and
-returns the answer bytes; while it scans, ``step(now)`` returns the measurement nodes due since the
-last call, paced at the ``LidarConfig``'s ``samples_per_second``. It plugs into
+returns the answer bytes; while it scans, ``step(now)`` returns the measurement nodes (or express
+capsules) due since the last call, paced at the scan mode's µs per sample. It plugs into
 ``field.device_server.DeviceServer`` (TCP or a pty, in real time) or, in one process, into
 ``fleetlink.devices.ports.InProcessPort`` (``in_process_port``: lockstep under a ``SimClock``).
 

@@ -387,6 +387,9 @@ def test_conf_request_bytes_and_parsing() -> None:
     # type 0x70 (count), no mode: A5 84 04 70 00 00 00 cs
     req = lp.encode_conf_request(lp.ConfType.SCAN_MODE_COUNT)
     assert req[:7] == bytes.fromhex("A58404700000 00".replace(" ", "")) and lp.checksum(req) == 0
+    # the examples in docs/protocols/rplidar.md
+    assert lp.encode_conf_request(lp.ConfType.SCAN_MODE_TYPICAL) == bytes.fromhex("A5 84 04 7C 00 00 00 59")
+    assert lp.encode_conf_request(lp.ConfType.SCAN_MODE_NAME, 1) == bytes.fromhex("A5 84 06 7F 00 00 00 01 00 59")
     # per-mode entries carry the mode id as a u16 after the u32 type
     req = lp.encode_conf_request(lp.ConfType.SCAN_MODE_NAME, 1)
     assert req[2] == 6 and req[3:9] == bytes.fromhex("7F0000000100")
@@ -536,7 +539,7 @@ def test_capsule_decoder_never_raises(data: bytes, chunk: int) -> None:
 def test_capsule_encoders_agree(start: int, step: float, seed: int, new_scan: bool) -> None:
     """The plain-Python encoder (a step's one or two capsules) and the NumPy one make the same bytes."""
     rng = np.random.default_rng(seed)
-    t = [int(round(start - 100 + j * step + rng.uniform(-30, 30))) % 23040 for j in range(32)]
-    nxt = int(round(start + 32 * step)) % 23040
+    t = [round(start - 100 + j * step + float(rng.uniform(-30, 30))) % 23040 for j in range(32)]
+    nxt = round(start + 32 * step) % 23040
     d = rng.uniform(0, 20, 32).tolist()
     assert lp._encode_capsule(start, nxt, t, d, new_scan) == lp.encode_capsules([start], [nxt], t, d, new_scan)
