@@ -1,0 +1,849 @@
+"""A fleetlink robot as a VDA 5050 2.1 vehicle: the pure mapping core (no I/O, time passed in).
+
+``VehicleCore`` is one robot's VDA 5050 side. Inputs: the master's ``order`` and ``instantActions``
+(JSON bytes, ``receive``), the robot's fleetlink messages (``fleet``: State, Pose, BoardStatus,
+Event, Ack, Lease), the bridge's ``sent`` (which fleetlink header id a command got) and ``tick``.
+Outputs: a list of ``Publish`` (a VDA 5050 message for MQTT), ``SendOrder``/``SendActions``/
+``SendLease`` (fleetlink commands for the operator link) and ``Log`` lines (first of each kind).
+
+It owns VDA 5050's order rules (docs/vda5050.md): a new order only while the vehicle is idle and
+its first node is trivially reachable; an update of the current order only with a higher
+``orderUpdateId`` (lower: ``orderUpdateError``; equal: ignored) that starts at the decision point
+(the last base node: stitching); horizon nodes go to the robot as unreleased nodes, which it never
+drives to. ``nodeStates``/``edgeStates``/``lastNodeId`` follow the robot's ``State.progress``
+and its ``order`` events; node actions and instant actions carry VDA 5050 action states. Every
+message accepted or sent is checked against the official 2.1.0 schemas (``SchemaValidator``); a
+message that fails is refused with a ``validationError`` (level WARNING) in ``state.errors``,
+naming the topic and headerId, and the vehicle goes on serving.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any, Protocol
+
+from fleetlink.shared import wire
+from fleetlink.shared.messages import (
+    Ack,
+    AckResult,
+    Action,
+    ActionType,
+    BlockingType,
+    BoardStatus,
+    Event,
+    KeyValue,
+    Lease,
+    Pose,
+    State,
+)
+
+__all__ = [
+    "ERROR_HOLD_S",
+    "PROTOCOL_VERSION",
+    "Log",
+    "Publish",
+    "SendActions",
+    "SendLease",
+    "SendOrder",
+    "VehicleConfig",
+    "VehicleCore",
+    "iso8601",
+]
+
+PROTOCOL_VERSION = "2.1.0"
+MAJOR = "v2"
+ERROR_HOLD_S = 30.0
+"""How long a refused message's error stays in ``state.errors`` (or until the next accepted order)."""
+MAX_BRIDGE_ERRORS = 8
+LEASE_S = 60.0
+LEASE_RENEW_S = 20.0
+MAX_ID = 64
+"""fleetlink's ids (orders, nodes, edges, actions) are at most 64 characters (factsheet idLen)."""
+MAX_ACTION_STATES = 256
+FLEET_NODE_ACTIONS = ("payload", "dwell")
+TERMINAL = ("FINISHED", "FAILED")
+
+
+class Validator(Protocol):
+    def problems(self, topic: str, doc: object) -> list[str]: ...
+
+
+@dataclass(frozen=True, slots=True)
+class Publish:
+    """A VDA 5050 message for ``topic`` (``<interface>/v2/<manufacturer>/<serial>/<subtopic>``)."""
+
+    topic: str
+    doc: dict[str, Any]
+    qos: int = 0
+    retain: bool = False
+
+    @property
+    def payload(self) -> bytes:
+        return json.dumps(self.doc, separators=(",", ":")).encode()
+
+
+@dataclass(frozen=True, slots=True)
+class SendOrder:
+    """A fleetlink ``Order`` to the robot (its fields, header aside); ``tag`` names it in ``sent``."""
+
+    fields: dict[str, Any]
+    tag: str
+
+
+@dataclass(frozen=True, slots=True)
+class SendActions:
+    actions: tuple[Action, ...]
+    tag: str
+
+
+@dataclass(frozen=True, slots=True)
+class SendLease:
+    release: bool
+    duration_s: float = LEASE_S
+
+
+@dataclass(frozen=True, slots=True)
+class Log:
+    text: str
+    level: str = "warning"
+
+
+Out = Publish | SendOrder | SendActions | SendLease | Log
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleConfig:
+    robot: str
+    serial: str
+    manufacturer: str = "fleetlink"
+    interface: str = "uagv"
+    map_id: str = "site"
+    """The mapId reported and required (fleetlink robots share one site frame)."""
+    first_node_tolerance_m: float = 0.5
+    """A new order's first node counts as trivially reachable within this (or its allowedDeviationXY)."""
+    state_period_s: float = 5.0
+    visualization_period_s: float = 1.0
+    speed_max_mps: float = 0.5
+
+
+def iso8601(wall: float) -> str:
+    """``2026-01-01T00:00:00.000Z`` (UTC, milliseconds)."""
+    return datetime.fromtimestamp(wall, UTC).strftime("%Y-%m-%dT%H:%M:%S.") + f"{int(wall * 1000) % 1000:03d}Z"
+
+
+def _wrap(theta: float) -> float:
+    return max(-math.pi, min(math.pi, math.remainder(theta, 2 * math.pi)))
+
+
+@dataclass(slots=True)
+class _ActionState:
+    action_id: str
+    action_type: str
+    status: str = "WAITING"
+    result: str = ""
+    node_seq: int | None = None
+    """The node it runs at (node actions), None for instant actions."""
+
+    def doc(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"actionId": self.action_id, "actionType": self.action_type, "actionStatus": self.status}
+        if self.result:
+            d["resultDescription"] = self.result[:256]
+        return d
+
+
+@dataclass(slots=True)
+class _Pending:
+    """A fleetlink command sent, waiting for its ack."""
+
+    kind: str  # "order" or an instant action's VDA type
+    action_id: str = ""
+
+
+@dataclass(slots=True)
+class _Order:
+    order_id: str = ""
+    update_id: int = 0
+    nodes: list[dict[str, Any]] = field(default_factory=list)
+    edges: list[dict[str, Any]] = field(default_factory=list)
+    sent_nodes: list[tuple[str, int]] = field(default_factory=list)
+    """(nodeId, sequenceId) of the nodes of the last fleetlink order sent, in order."""
+    last_node_id: str = ""
+    last_node_seq: int = 0
+
+
+class VehicleCore:
+    def __init__(self, config: VehicleConfig, validator: Validator, *, sender: str) -> None:
+        self.config = config
+        self.validator = validator
+        self.sender = sender
+        self._header_ids: Counter[str] = Counter()
+        self.order = _Order()
+        self.actions: dict[str, _ActionState] = {}
+        self._errors: list[tuple[dict[str, Any], float]] = []
+        self.refused: Counter[str] = Counter()
+        """Messages refused, per ``<topic>/<errorType>``."""
+        self.invalid_out: Counter[str] = Counter()
+        """Messages the bridge would have sent that break their schema (not sent; a bug)."""
+        self._logged: set[str] = set()
+        self._pending: dict[tuple[str, int], _Pending] = {}
+        self._tags: dict[str, _Pending] = {}
+        self.fleet_state: State | None = None
+        self.pose: Pose | None = None
+        self.board: BoardStatus | None = None
+        self.lease_holder = ""
+        self.lease_until = 0.0
+        self._lease_sent = -math.inf
+        self._holding = False
+        self._state_key: tuple[Any, ...] | None = None
+        self._next_state = -math.inf
+        self._next_vis = -math.inf
+        self._progress_key: tuple[Any, ...] | None = None
+
+    # -- addresses and headers ----------------------------------------------------------------
+
+    def topic(self, sub: str) -> str:
+        c = self.config
+        return f"{c.interface}/{MAJOR}/{c.manufacturer}/{c.serial}/{sub}"
+
+    def _header(self, sub: str, wall: float) -> dict[str, Any]:
+        hid = self._header_ids[sub]
+        self._header_ids[sub] += 1
+        return {
+            "headerId": hid,
+            "timestamp": iso8601(wall),
+            "version": PROTOCOL_VERSION,
+            "manufacturer": self.config.manufacturer,
+            "serialNumber": self.config.serial,
+        }
+
+    def _publish(self, sub: str, body: dict[str, Any], wall: float, *, qos: int = 0, retain: bool = False) -> list[Out]:
+        doc = {**self._header(sub, wall), **body}
+        problems = self.validator.problems(sub, doc)
+        if problems:
+            self.invalid_out[sub] += 1
+            return self._log_once(f"out/{sub}", f"not sending an invalid {sub}: {'; '.join(problems)}", "error")
+        return [Publish(self.topic(sub), doc, qos, retain)]
+
+    def _log_once(self, kind: str, text: str, level: str = "warning") -> list[Out]:
+        if kind in self._logged or len(self._logged) >= 256:
+            return []
+        self._logged.add(kind)
+        return [Log(f"{self.config.serial}: {text}", level)]
+
+    # -- connection and factsheet ---------------------------------------------------------------
+
+    def connection(self, state: str, wall: float) -> list[Out]:
+        """ONLINE (every connect), OFFLINE (a clean exit): retained, QoS 1."""
+        return self._publish("connection", {"connectionState": state}, wall, qos=1, retain=True)
+
+    def will(self, wall: float) -> Publish:
+        """The last will (CONNECTIONBROKEN), for the MQTT client of this vehicle."""
+        doc = {**self._header("connection", wall), "connectionState": "CONNECTIONBROKEN"}
+        return Publish(self.topic("connection"), doc, 1, True)
+
+    def factsheet(self, wall: float) -> list[Out]:
+        return self._publish("factsheet", factsheet_body(self.config), wall)
+
+    # -- errors ---------------------------------------------------------------------------------
+
+    def _refuse(
+        self, sub: str, error_type: str, text: str, now: float, header_id: object = None, **refs: str
+    ) -> list[Out]:
+        self.refused[f"{sub}/{error_type}"] += 1
+        references = [{"referenceKey": "topic", "referenceValue": sub}]
+        if isinstance(header_id, int) and not isinstance(header_id, bool):
+            references.append({"referenceKey": "headerId", "referenceValue": str(header_id)})
+        references += [{"referenceKey": k, "referenceValue": v[:MAX_ID]} for k, v in refs.items()]
+        error = {
+            "errorType": error_type,
+            "errorLevel": "WARNING",
+            "errorDescription": text[:256],
+            "errorReferences": references,
+        }
+        self._errors = [*self._errors, (error, now + ERROR_HOLD_S)][-MAX_BRIDGE_ERRORS:]
+        self._next_state = -math.inf
+        return self._log_once(f"{sub}/{error_type}", f"refused {sub}: {error_type}: {text}")
+
+    # -- from the master --------------------------------------------------------------------------
+
+    def receive(self, sub: str, payload: bytes, now: float, wall: float) -> list[Out]:
+        """An ``order`` or ``instantActions`` message as it came (bytes)."""
+        out: list[Out] = []
+        try:
+            doc = json.loads(payload)
+        except (ValueError, UnicodeDecodeError) as exc:
+            out += self._refuse(sub, "validationError", f"not JSON: {exc}", now)
+            return out + self.tick(now, wall)
+        hid = doc.get("headerId") if isinstance(doc, dict) else None
+        problems = self.validator.problems(sub, doc)
+        if problems:
+            out += self._refuse(sub, "validationError", "; ".join(problems), now, hid)
+            return out + self.tick(now, wall)
+        if doc["manufacturer"] != self.config.manufacturer or doc["serialNumber"] != self.config.serial:
+            text = f"addressed to {doc['manufacturer']}/{doc['serialNumber']}"
+            out += self._refuse(sub, "validationError", text, now, hid)
+            return out + self.tick(now, wall)
+        if str(doc["version"]).split(".")[0] != "2":
+            out += self._refuse(
+                sub, "validationError", f"version {doc['version']!r}: this vehicle speaks 2.x", now, hid
+            )
+            return out + self.tick(now, wall)
+        if sub == "order":
+            out += self._order(doc, now, wall)
+        elif sub == "instantActions":
+            out += self._instant(doc, now, wall)
+        else:
+            out += self._refuse(sub, "validationError", f"the vehicle does not take {sub!r}", now, hid)
+        return out + self.tick(now, wall)
+
+    # -- orders -----------------------------------------------------------------------------------
+
+    @property
+    def busy(self) -> bool:
+        """VDA 5050: nodeStates not empty, or an action neither FINISHED nor FAILED."""
+        return bool(self.order.nodes) or any(a.status not in TERMINAL for a in self.actions.values())
+
+    def _check_order(self, doc: dict[str, Any]) -> str | None:
+        """Why fleetlink cannot run this (schema-valid) order, or None."""
+        ids = [doc["orderId"]] + [n["nodeId"] for n in doc["nodes"]] + [e["edgeId"] for e in doc["edges"]]
+        ids += [a["actionId"] for n in doc["nodes"] for a in n["actions"]]
+        long = next((i for i in ids if len(i) > MAX_ID or not i), None)
+        if long is not None:
+            return f"id {long[:40]!r}: ids are 1-{MAX_ID} characters here (factsheet idLen)"
+        if not doc["nodes"]:
+            return "an order needs at least one node"
+        for n in doc["nodes"]:
+            pos = n.get("nodePosition")
+            if pos is None:
+                return f"node {n['nodeId']!r} has no nodePosition: fleetlink drives to positions"
+            if pos["mapId"] != self.config.map_id:
+                return f"node {n['nodeId']!r} is on map {pos['mapId']!r}; this vehicle is on {self.config.map_id!r}"
+            for a in n["actions"]:
+                if a["actionType"] not in FLEET_NODE_ACTIONS:
+                    return f"node action {a['actionType']!r} is not supported (factsheet: payload, dwell)"
+        for e in doc["edges"]:
+            if e["actions"]:
+                return f"edge {e['edgeId']!r}: edge actions are not supported (put them on its start node)"
+        return None
+
+    def _reachable(self, node: dict[str, Any]) -> bool:
+        o = self.order
+        if node["nodeId"] == o.last_node_id and node["sequenceId"] == o.last_node_seq and o.last_node_id:
+            return True
+        here = self._position()
+        if here is None:
+            return False
+        pos = node["nodePosition"]
+        tolerance = max(float(pos.get("allowedDeviationXY", 0.0)), self.config.first_node_tolerance_m)
+        return math.hypot(pos["x"] - here[0], pos["y"] - here[1]) <= tolerance
+
+    def _decision_point(self) -> tuple[str, int]:
+        base = [n for n in self.order.nodes if n["released"]]
+        if base:
+            return base[-1]["nodeId"], base[-1]["sequenceId"]
+        return self.order.last_node_id, self.order.last_node_seq
+
+    def _order(self, doc: dict[str, Any], now: float, wall: float) -> list[Out]:
+        hid = doc["headerId"]
+        oid, uid = doc["orderId"], doc["orderUpdateId"]
+        why = self._check_order(doc)
+        if why is not None:
+            return self._refuse("order", "orderError", why, now, hid, orderId=oid)
+        o = self.order
+        first = doc["nodes"][0]
+        if oid != o.order_id:
+            if self.busy:
+                return self._refuse("order", "orderError", f"still running order {o.order_id!r}", now, hid, orderId=oid)
+            if not self._reachable(first):
+                text = f"first node {first['nodeId']!r} is not where the vehicle stands (trivially reachable)"
+                return self._refuse("order", "noRouteError", text, now, hid, orderId=oid)
+            self.order = _Order(order_id=oid, update_id=uid, last_node_id=o.last_node_id, last_node_seq=o.last_node_seq)
+            self.order.nodes = [_node_state(n) for n in doc["nodes"]]
+            self.order.edges = [_edge_state(e) for e in doc["edges"]]
+            self._forget_order_actions()
+        else:
+            if uid < o.update_id:
+                text = f"orderUpdateId {uid} is older than {o.update_id}"
+                return self._refuse("order", "orderUpdateError", text, now, hid, orderId=oid)
+            if uid == o.update_id:
+                return self._log_once(f"dup/{oid}/{uid}", f"order {oid}/{uid} again: ignored", "info")
+            point = self._decision_point()
+            if (first["nodeId"], first["sequenceId"]) != point:
+                text = f"update starts at {first['nodeId']}/{first['sequenceId']}, not the decision point {point[0]}/{point[1]}"
+                return self._refuse("order", "orderUpdateError", text, now, hid, orderId=oid)
+            stitch = first["sequenceId"]
+            o.update_id = uid
+            o.nodes = [n for n in o.nodes if n["sequenceId"] < stitch] + [_node_state(n) for n in doc["nodes"]]
+            o.edges = [e for e in o.edges if e["sequenceId"] < stitch] + [_edge_state(e) for e in doc["edges"]]
+            self._drop_actions(lambda a: a.node_seq is not None and a.node_seq > stitch and a.status == "WAITING")
+        for n in doc["nodes"]:
+            for a in n["actions"]:
+                if a["actionId"] not in self.actions:
+                    self._add_action(_ActionState(a["actionId"], a["actionType"], node_seq=n["sequenceId"]))
+        self._errors = [(e, t) for e, t in self._errors if _ref(e, "topic") != "order"]
+        out: list[Out] = []
+        if not self._holding or now - self._lease_sent > LEASE_RENEW_S:
+            out.append(self._lease(now))
+        fields = self._fleet_order(doc)
+        self.order.sent_nodes = [(n["nodeId"], n["sequenceId"]) for n in fields["nodes"]]
+        tag = f"order/{oid}/{uid}"
+        self._tags[tag] = _Pending("order")
+        out.append(SendOrder(fields, tag))
+        self._next_state = -math.inf
+        return out
+
+    def _fleet_order(self, doc: dict[str, Any]) -> dict[str, Any]:
+        """The fleetlink Order's fields: the nodes not yet traversed (an update: the current base
+        before the stitch point as well, so the robot misses none), their edges between them."""
+        o = self.order
+        nodes = [n for n in o.nodes if n["sequenceId"] > o.last_node_seq or not o.last_node_id]
+        if not nodes or nodes[0]["sequenceId"] > doc["nodes"][0]["sequenceId"]:
+            nodes = [n for n in o.nodes if n["sequenceId"] >= doc["nodes"][0]["sequenceId"]]
+        by_seq = {n["sequenceId"]: n for n in doc["nodes"]}
+        first, last = nodes[0]["sequenceId"], nodes[-1]["sequenceId"]
+        edges = [e for e in o.edges if first < e["sequenceId"] < last]
+        doc_actions = {n["nodeId"]: n["actions"] for n in doc["nodes"]}
+        fleet_nodes = []
+        for n in nodes:
+            src = by_seq.get(n["sequenceId"], n)
+            pos = src["nodePosition"]
+            theta = pos.get("theta")
+            acts = doc_actions.get(n["nodeId"], []) if n["sequenceId"] in by_seq else []
+            fleet_nodes.append(
+                {
+                    "nodeId": n["nodeId"],
+                    "sequenceId": n["sequenceId"],
+                    "released": n["released"],
+                    "x": float(pos["x"]),
+                    "y": float(pos["y"]),
+                    "theta": None if theta is None else _wrap(float(theta)),
+                    "actions": tuple(_fleet_action(a) for a in acts),
+                }
+            )
+        fleet_edges = [
+            {
+                "edgeId": e["edgeId"],
+                "sequenceId": e["sequenceId"],
+                "startNodeId": e["startNodeId"],
+                "endNodeId": e["endNodeId"],
+                "released": e["released"],
+                "maxSpeed": e.get("maxSpeed"),
+            }
+            for e in edges
+        ]
+        return {
+            "orderId": o.order_id,
+            "orderUpdateId": o.update_id,
+            "goal": None,
+            "returnHome": False,
+            "nodes": tuple(fleet_nodes),
+            "edges": tuple(fleet_edges),
+        }
+
+    # -- instant actions ----------------------------------------------------------------------------
+
+    def _instant(self, doc: dict[str, Any], now: float, wall: float) -> list[Out]:
+        out: list[Out] = []
+        for a in doc["actions"]:
+            aid, kind = a["actionId"], a["actionType"]
+            state = _ActionState(aid[:MAX_ID] or "-", kind)
+            self._add_action(state)
+            if kind == "stateRequest":
+                state.status = "FINISHED"
+                self._next_state = -math.inf
+            elif kind == "factsheetRequest":
+                state.status = "FINISHED"
+                out += self.factsheet(wall)
+            elif kind == "cancelOrder" and not self.order.nodes:
+                state.status, state.result = "FAILED", "no order to cancel"
+                out += self._refuse("instantActions", "noOrderToCancel", "no order to cancel", now, None, actionId=aid)
+            elif kind in ("startPause", "stopPause", "cancelOrder", "payload"):
+                fleet = {
+                    "startPause": ActionType.PAUSE,
+                    "stopPause": ActionType.RESUME,
+                    "cancelOrder": ActionType.CANCEL,
+                    "payload": ActionType.PAYLOAD,
+                }[kind]
+                params = tuple(
+                    KeyValue(key=str(p["key"])[:32], value=_text(p["value"])[:256])
+                    for p in a.get("actionParameters", [])[:8]
+                )
+                action = Action(actionId=state.action_id, actionType=fleet, actionParameters=params)
+                state.status = "RUNNING" if kind == "cancelOrder" else "INITIALIZING"
+                tag = f"actions/{aid}"
+                self._tags[tag] = _Pending(kind, state.action_id)
+                if kind in ("startPause", "stopPause", "payload") and not self._holding:
+                    out.append(self._lease(now))
+                out.append(SendActions((action,), tag))
+            else:
+                state.status, state.result = "FAILED", f"{kind} is not supported (see the factsheet)"
+                out += self._refuse("instantActions", "unsupportedAction", state.result, now, None, actionId=aid)
+        self._next_state = -math.inf
+        return out
+
+    def _add_action(self, state: _ActionState) -> None:
+        self.actions.pop(state.action_id, None)
+        self.actions[state.action_id] = state
+        while len(self.actions) > MAX_ACTION_STATES:
+            old = next((k for k, v in self.actions.items() if v.status in TERMINAL), next(iter(self.actions)))
+            del self.actions[old]
+
+    def _drop_actions(self, which: Any) -> None:
+        self.actions = {k: v for k, v in self.actions.items() if not which(v)}
+
+    def _forget_order_actions(self) -> None:
+        """A new order: the previous order's action states go (instant ones stay)."""
+        self._drop_actions(lambda a: a.node_seq is not None)
+
+    def _lease(self, now: float) -> SendLease:
+        self._lease_sent = now
+        self._holding = True
+        return SendLease(release=False)
+
+    # -- from the robot ---------------------------------------------------------------------------
+
+    def sent(self, tag: str, topic: str, header_id: int) -> None:
+        """The bridge sent the command ``tag`` as fleetlink ``topic`` #``header_id``."""
+        pending = self._tags.pop(tag, None)
+        if pending is not None:
+            self._pending[(topic, header_id)] = pending
+            if len(self._pending) > 1024:
+                self._pending.pop(next(iter(self._pending)))
+
+    def fleet(self, msg: wire.Message, now: float, wall: float) -> list[Out]:
+        out: list[Out] = []
+        if isinstance(msg, State):
+            self.fleet_state = msg
+            self._follow(msg)
+        elif isinstance(msg, Pose):
+            self.pose = msg
+        elif isinstance(msg, BoardStatus):
+            self.board = msg
+        elif isinstance(msg, Lease):
+            self.lease_holder, self.lease_until = msg.holder, msg.until
+            if msg.holder != self.sender:
+                self._holding = False
+        elif isinstance(msg, Ack) and msg.commandSender == self.sender:
+            out += self._ack(msg, now)
+        elif isinstance(msg, Event) and msg.kind == "order":
+            data = {kv.key: kv.value for kv in msg.data}
+            if data.get("order") == self.order.order_id and data.get("outcome") in ("finished", "ended"):
+                self._ended(data["outcome"] == "finished")
+        return out + self.tick(now, wall)
+
+    def _ack(self, ack: Ack, now: float) -> list[Out]:
+        pending = self._pending.pop((ack.commandTopic, ack.commandHeaderId), None)
+        if pending is None or ack.result is AckResult.DUPLICATE:
+            return []
+        ok = ack.result is AckResult.ACCEPTED
+        self._next_state = -math.inf
+        if pending.kind == "order":
+            if ok:
+                return []
+            text = f"the robot refused order {ack.orderId}: {ack.reason}"
+            self._ended(False, ack.reason)
+            return self._refuse("order", "orderError", text, now, None, orderId=ack.orderId or "")
+        state = self.actions.get(pending.action_id)
+        if state is None:
+            return []
+        if not ok:
+            state.status, state.result = "FAILED", ack.reason
+        elif pending.kind == "cancelOrder":
+            state.status = "FINISHED"
+            self._ended(False, "cancelled")
+        elif pending.kind in ("startPause", "stopPause", "payload"):
+            state.status = "FINISHED"
+        return []
+
+    def _follow(self, s: State) -> None:
+        """The robot's progress along the order: traversed nodes leave nodeStates."""
+        o = self.order
+        p = s.progress
+        if p is None or s.orderId != o.order_id or not o.nodes:
+            return
+        key = (p.nodesDone, p.lastNodeId, p.lastNodeSequenceId, p.dwellLeft_s > 0)
+        if key == self._progress_key:
+            return
+        self._progress_key = key
+        done = o.sent_nodes[: p.nodesDone]
+        done_seq = max((seq for _, seq in done), default=-1)
+        if p.lastNodeId:
+            o.last_node_id, o.last_node_seq = p.lastNodeId, p.lastNodeSequenceId
+        o.nodes = [n for n in o.nodes if n["sequenceId"] > done_seq]
+        o.edges = [e for e in o.edges if e["sequenceId"] > max(done_seq, o.last_node_seq if p.lastNodeId else -1)]
+        for a in self.actions.values():
+            if a.node_seq is None or a.status in TERMINAL:
+                continue
+            if a.node_seq <= done_seq:
+                a.status = "FINISHED"
+            elif p.lastNodeId and a.node_seq == p.lastNodeSequenceId:
+                a.status = "RUNNING"
+        self._next_state = -math.inf
+
+    def _ended(self, finished: bool, why: str = "") -> None:
+        o = self.order
+        if finished and o.nodes:
+            base = [n for n in o.nodes if n["released"]] or o.nodes
+            o.last_node_id, o.last_node_seq = base[-1]["nodeId"], base[-1]["sequenceId"]
+        o.nodes, o.edges = [], []
+        for a in self.actions.values():
+            if a.node_seq is not None and a.status not in TERMINAL:
+                a.status = "FINISHED" if finished else "FAILED"
+                if not finished:
+                    a.result = why or "the order ended"
+        self._progress_key = None
+        self._next_state = -math.inf
+
+    # -- time -------------------------------------------------------------------------------------
+
+    def tick(self, now: float, wall: float) -> list[Out]:
+        out: list[Out] = []
+        before = len(self._errors)
+        self._errors = [(e, t) for e, t in self._errors if t > now]
+        if len(self._errors) != before:
+            self._next_state = -math.inf
+        if self.order.nodes and self._holding and now - self._lease_sent > LEASE_RENEW_S:
+            out.append(self._lease(now))
+        elif not self.busy and self._holding and now - self._lease_sent > LEASE_RENEW_S:
+            self._holding = False
+            out.append(SendLease(release=True, duration_s=0.0))
+        key = self._key()
+        if key != self._state_key or now >= self._next_state:
+            self._state_key = key
+            self._next_state = now + self.config.state_period_s
+            out += self._publish("state", self.state_body(), wall)
+        if self.config.visualization_period_s > 0 and now >= self._next_vis and self.pose is not None:
+            self._next_vis = now + self.config.visualization_period_s
+            body: dict[str, Any] = {"agvPosition": self._agv_position(), "velocity": self._velocity()}
+            out += self._publish("visualization", body, wall)
+        return out
+
+    def _key(self) -> tuple[Any, ...]:
+        s = self.fleet_state
+        return (
+            self.order.order_id,
+            self.order.update_id,
+            self.order.last_node_id,
+            len(self.order.nodes),
+            tuple((a.action_id, a.status) for a in self.actions.values()),
+            len(self._errors),
+            None if s is None else (s.paused, s.driving, s.operatingMode, s.safetyState, s.errors),
+        )
+
+    # -- state assembly ---------------------------------------------------------------------------
+
+    def _position(self) -> tuple[float, float, float] | None:
+        if self.pose is not None:
+            return self.pose.x, self.pose.y, self.pose.theta
+        if self.fleet_state is not None:
+            a = self.fleet_state.agvPosition
+            return a.x, a.y, a.theta
+        return None
+
+    def _agv_position(self) -> dict[str, Any]:
+        here = self._position() or (0.0, 0.0, 0.0)
+        s = self.fleet_state
+        return {
+            "x": here[0],
+            "y": here[1],
+            "theta": _wrap(here[2]),
+            "mapId": self.config.map_id,
+            "positionInitialized": bool(s is not None and s.agvPosition.positionInitialized),
+            "localizationScore": s.agvPosition.localizationScore if s is not None else 0.0,
+        }
+
+    def _velocity(self) -> dict[str, Any]:
+        if self.pose is not None:
+            return {"vx": self.pose.vx, "vy": 0.0, "omega": self.pose.omega}
+        if self.fleet_state is not None:
+            v = self.fleet_state.velocity
+            return {"vx": v.vx, "vy": 0.0, "omega": v.omega}
+        return {"vx": 0.0, "vy": 0.0, "omega": 0.0}
+
+    def state_body(self) -> dict[str, Any]:
+        """Everything of ``state`` but the header."""
+        s = self.fleet_state
+        o = self.order
+        errors: list[dict[str, Any]] = []
+        if s is None:
+            errors.append(
+                {"errorType": "noTelemetry", "errorLevel": "WARNING", "errorDescription": "no state from the robot yet"}
+            )
+        else:
+            errors += [
+                {"errorType": e.errorType, "errorLevel": e.errorLevel.value, "errorDescription": e.errorDescription}
+                for e in s.errors
+            ]
+        errors += [e for e, _ in self._errors]
+        battery: dict[str, Any] = {"batteryCharge": 0.0, "charging": False}
+        if s is not None:
+            battery = {"batteryCharge": s.batteryState.batteryCharge, "charging": s.batteryState.charging}
+        if self.board is not None and self.board.battery_voltage_v is not None:
+            battery["batteryVoltage"] = self.board.battery_voltage_v
+        information = []
+        if s is not None:
+            information.append({"infoType": "driveMode", "infoLevel": "INFO", "infoDescription": s.driveMode})
+            if self.lease_holder:
+                information.append({"infoType": "lease", "infoLevel": "INFO", "infoDescription": self.lease_holder})
+        return {
+            "maps": [{"mapId": self.config.map_id, "mapVersion": "1", "mapStatus": "ENABLED"}],
+            "orderId": o.order_id,
+            "orderUpdateId": o.update_id,
+            "lastNodeId": o.last_node_id,
+            "lastNodeSequenceId": o.last_node_seq,
+            "driving": bool(s is not None and s.driving),
+            "paused": bool(s is not None and s.paused),
+            "newBaseRequest": False,
+            "operatingMode": s.operatingMode.value if s is not None else "SERVICE",
+            "nodeStates": [dict(n) for n in o.nodes],
+            "edgeStates": [dict(e) for e in o.edges],
+            "agvPosition": self._agv_position(),
+            "velocity": self._velocity(),
+            "loads": [],
+            "actionStates": [a.doc() for a in self.actions.values()],
+            "batteryState": battery,
+            "errors": errors,
+            "information": information,
+            "safetyState": {
+                "eStop": s.safetyState.eStop.value if s is not None else "NONE",
+                "fieldViolation": bool(s is not None and s.safetyState.fieldViolation),
+            },
+        }
+
+
+def _ref(error: dict[str, Any], key: str) -> str | None:
+    for r in error.get("errorReferences", []):
+        if r["referenceKey"] == key:
+            return str(r["referenceValue"])
+    return None
+
+
+def _text(value: object) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return value
+    return json.dumps(value)
+
+
+def _node_state(n: dict[str, Any]) -> dict[str, Any]:
+    d: dict[str, Any] = {"nodeId": n["nodeId"], "sequenceId": n["sequenceId"], "released": n["released"]}
+    if "nodeDescription" in n:
+        d["nodeDescription"] = n["nodeDescription"]
+    pos = n.get("nodePosition")
+    if pos is not None:
+        d["nodePosition"] = {k: pos[k] for k in ("x", "y", "theta", "mapId") if k in pos}
+    return d
+
+
+def _edge_state(e: dict[str, Any]) -> dict[str, Any]:
+    d: dict[str, Any] = {
+        "edgeId": e["edgeId"],
+        "sequenceId": e["sequenceId"],
+        "released": e["released"],
+        "startNodeId": e["startNodeId"],
+        "endNodeId": e["endNodeId"],
+    }
+    if "maxSpeed" in e:
+        d["maxSpeed"] = e["maxSpeed"]
+    return d
+
+
+def _fleet_action(a: dict[str, Any]) -> Action:
+    return Action(
+        actionId=a["actionId"],
+        actionType=ActionType(a["actionType"]),
+        actionParameters=tuple(
+            KeyValue(key=str(p["key"])[:32], value=_text(p["value"])[:256]) for p in a.get("actionParameters", [])[:8]
+        ),
+        blockingType=BlockingType(a["blockingType"]),
+    )
+
+
+def factsheet_body(c: VehicleConfig) -> dict[str, Any]:
+    """The factsheet (everything but the header): what a fleetlink robot is and does over VDA 5050."""
+
+    def act(kind: str, text: str, scopes: list[str], params: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+        d: dict[str, Any] = {"actionType": kind, "actionDescription": text, "actionScopes": scopes}
+        if params:
+            d["actionParameters"] = params
+        # blockingTypes left out: the official 2.1.0 schema types it as one string where the
+        # specification says an array, so no array passes it (docs/vda5050.md).
+        return d
+
+    def param(key: str, kind: str, text: str, optional: bool = False) -> dict[str, Any]:
+        return {"key": key, "valueDataType": kind, "description": text, "isOptional": optional}
+
+    return {
+        "typeSpecification": {
+            "seriesName": "fleetlink",
+            "seriesDescription": "fleetlink mobile robot (differential drive), through fleetlink's VDA 5050 bridge",
+            "agvKinematic": "DIFF",
+            "agvClass": "CARRIER",
+            "maxLoadMass": 0,
+            "localizationTypes": ["NATURAL"],
+            "navigationTypes": ["AUTONOMOUS"],
+        },
+        "physicalParameters": {
+            "speedMin": 0.0,
+            "speedMax": c.speed_max_mps,
+            "accelerationMax": 0.5,
+            "decelerationMax": 1.0,
+            "heightMax": 0.6,
+            "width": 0.35,
+            "length": 0.35,
+        },
+        "protocolLimits": {
+            "maxStringLens": {"idLen": MAX_ID, "msgLen": wire.MAX_PAYLOAD},
+            "maxArrayLens": {
+                "order.nodes": 512,
+                "order.edges": 511,
+                "node.actions": 16,
+                "edge.actions": 0,
+                "actions.actionsParameters": 8,
+                "instantActions": 16,
+            },
+            "timing": {
+                "minOrderInterval": 0.1,
+                "minStateInterval": 0.1,
+                "defaultStateInterval": c.state_period_s,
+                "visualizationInterval": c.visualization_period_s,
+            },
+        },
+        "protocolFeatures": {
+            "optionalParameters": [
+                {
+                    "parameter": "order.nodes.nodePosition",
+                    "support": "REQUIRED",
+                    "description": "robots drive to positions",
+                },
+                {"parameter": "order.edges.maxSpeed", "support": "SUPPORTED"},
+                {"parameter": "state.agvPosition", "support": "SUPPORTED"},
+                {"parameter": "state.velocity", "support": "SUPPORTED"},
+            ],
+            "agvActions": [
+                act("startPause", "hold the robot (fleetlink pause)", ["INSTANT"]),
+                act("stopPause", "carry on (fleetlink resume)", ["INSTANT"]),
+                act("cancelOrder", "end the order (fleetlink cancel)", ["INSTANT"]),
+                act("stateRequest", "publish state now", ["INSTANT"]),
+                act("factsheetRequest", "publish the factsheet", ["INSTANT"]),
+                act(
+                    "payload",
+                    "the disinfection payload: UV lamp, atomiser, fan (interlocks apply)",
+                    ["INSTANT", "NODE"],
+                    [
+                        param("device", "STRING", "uv (default), atomiser or fan", True),
+                        param("on", "BOOL", "true or false"),
+                        param("level", "INTEGER", "0-3, atomiser and fan", True),
+                    ],
+                ),
+                act("dwell", "stand at the node", ["NODE"], [param("duration", "FLOAT", "seconds, 0-3600")]),
+            ],
+        },
+        "agvGeometry": {},
+        "loadSpecification": {},
+    }

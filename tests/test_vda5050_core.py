@@ -1,0 +1,414 @@
+"""The VDA 5050 bridge's pure core: order update rules, stitching, horizon, action states, refusals.
+
+Every message the core emits is checked against the official 2.1.0 schemas in the handout
+(``../shared/reference/vda5050-2.1.0/`` beside the clone), and the package's copies must equal them.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from fleetlink.operator.vda5050.core import Publish, SendActions, SendLease, SendOrder, VehicleConfig, VehicleCore
+from fleetlink.operator.vda5050.schema import SCHEMA_TOPICS, SchemaValidator, load_schemas
+from fleetlink.shared import wire
+from fleetlink.shared.messages import (
+    Ack,
+    AckResult,
+    AgvPosition,
+    BatteryState,
+    CommsPolicy,
+    Contact,
+    EStop,
+    Event,
+    KeyValue,
+    LinkName,
+    LinkStatus,
+    OperatingMode,
+    OrderProgress,
+    SafetyState,
+    Severity,
+    State,
+    Velocity,
+)
+
+REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "vda5050-2.1.0"
+OFFICIAL = SchemaValidator(load_schemas(REFERENCE))
+SENDER = "vda5050"
+
+
+def test_the_package_carries_the_official_schemas_unchanged() -> None:
+    ours = load_schemas()
+    for topic in SCHEMA_TOPICS:
+        assert ours[topic] == json.loads((REFERENCE / f"{topic}.schema").read_text()), topic
+
+
+class Rig:
+    def __init__(self) -> None:
+        self.core = VehicleCore(VehicleConfig(robot="r1", serial="r1"), SchemaValidator(load_schemas()), sender=SENDER)
+        self.now = 0.0
+        self.out: list[Any] = []
+        self.hid = {"order": 0, "instantActions": 0}
+        self.fleet_hid = 100
+        self.counter = wire.HeaderCounter(_Clock(), robot="r1", sender="agent-r1")
+
+    def wall(self) -> float:
+        return 1_767_225_600.0 + self.now
+
+    def _check(self, outs: list[Any]) -> list[Any]:
+        for o in outs:
+            if isinstance(o, Publish):
+                sub = o.topic.rsplit("/", 1)[1]
+                assert o.topic == f"uagv/v2/fleetlink/r1/{sub}"
+                assert OFFICIAL.problems(sub, json.loads(o.payload)) == [], o.doc
+            if isinstance(o, SendOrder | SendActions):
+                self.fleet_hid += 1
+                self.core.sent(o.tag, "order" if isinstance(o, SendOrder) else "actions", self.fleet_hid)
+        self.out += outs
+        return outs
+
+    def send(self, sub: str, body: dict[str, Any] | bytes) -> list[Any]:
+        if isinstance(body, bytes):
+            payload = body
+        else:
+            doc = {
+                "headerId": self.hid[sub],
+                "timestamp": "2026-01-01T00:00:00.00Z",
+                "version": "2.1.0",
+                "manufacturer": "fleetlink",
+                "serialNumber": "r1",
+                **body,
+            }
+            self.hid[sub] += 1
+            assert OFFICIAL.problems(sub, doc) == [] or body.get("_bad")
+            payload = json.dumps({k: v for k, v in doc.items() if k != "_bad"}).encode()
+        return self._check(self.core.receive(sub, payload, self.now, self.wall()))
+
+    def fleet(self, msg: wire.Message) -> list[Any]:
+        return self._check(self.core.fleet(msg, self.now, self.wall()))
+
+    def state(self, *, order: str = "", done: int = 0, last: str = "", last_seq: int = 0, paused: bool = False) -> None:
+        progress = None
+        if order:
+            progress = OrderProgress(
+                nodesTotal=9,
+                nodesDone=done,
+                skipped=0,
+                lastNodeId=last,
+                lastNodeSequenceId=last_seq,
+                dwellLeft_s=0.0,
+                waiting="",
+            )
+        self.fleet(
+            self.counter.make(
+                State,
+                agvPosition=AgvPosition(
+                    x=0.0, y=0.0, theta=0.0, mapId="", positionInitialized=True, localizationScore=1.0
+                ),
+                velocity=Velocity(vx=0.0, omega=0.0),
+                batteryState=BatteryState(batteryCharge=80.0, charging=False),
+                errors=(),
+                operatingMode=OperatingMode.AUTOMATIC,
+                safetyState=SafetyState(eStop=EStop.NONE, fieldViolation=False),
+                driveMode="goto",
+                links=LinkStatus(zenoh=True, mqtt=True),
+                uwbStale=False,
+                payloadOn=False,
+                boardConnected=True,
+                orderId=order,
+                orderUpdateId=0,
+                goal=None,
+                driving=False,
+                paused=paused,
+                home=None,
+                contact=Contact(policy=CommsPolicy.STOP, lost=False, action="", silent_s=0.0),
+                progress=progress,
+            )
+        )
+
+    def ack(self, topic: str, result: AckResult = AckResult.ACCEPTED, reason: str = "") -> list[Any]:
+        return self.fleet(
+            self.counter.make(
+                Ack,
+                commandTopic=topic,
+                commandSender=SENDER,
+                commandHeaderId=self.fleet_hid,
+                orderId=None,
+                orderUpdateId=None,
+                result=result,
+                reason=reason,
+                link=LinkName.ZENOH,
+            )
+        )
+
+    def last_state(self) -> dict[str, Any]:
+        return [o.doc for o in self.out if isinstance(o, Publish) and o.topic.endswith("/state")][-1]
+
+
+class _Clock:
+    def now(self) -> float:
+        return 0.0
+
+    def wall(self) -> float:
+        return 1_767_225_600.0
+
+
+def node(nid: str, seq: int, x: float, released: bool = True, actions: list[Any] | None = None) -> dict[str, Any]:
+    return {
+        "nodeId": nid,
+        "sequenceId": seq,
+        "released": released,
+        "actions": actions or [],
+        "nodePosition": {"x": x, "y": 0.0, "mapId": "site"},
+    }
+
+
+def edge(a: str, b: str, seq: int, released: bool = True) -> dict[str, Any]:
+    return {
+        "edgeId": f"{a}-{b}",
+        "sequenceId": seq,
+        "released": released,
+        "startNodeId": a,
+        "endNodeId": b,
+        "actions": [],
+    }
+
+
+def order(oid: str, uid: int, nodes: list[Any], edges: list[Any]) -> dict[str, Any]:
+    return {"orderId": oid, "orderUpdateId": uid, "nodes": nodes, "edges": edges}
+
+
+BASE_WITH_HORIZON = order(
+    "o1",
+    0,
+    [node("n0", 0, 0.0), node("n1", 2, 1.0), node("n2", 4, 2.0, released=False)],
+    [edge("n0", "n1", 1), edge("n1", "n2", 3, released=False)],
+)
+
+
+def errors(rig: Rig) -> list[dict[str, Any]]:
+    return rig.last_state()["errors"]
+
+
+def test_an_order_goes_to_the_robot_with_its_horizon_unreleased_and_the_lease_first() -> None:
+    rig = Rig()
+    rig.state()
+    outs = rig.send("order", BASE_WITH_HORIZON)
+    assert isinstance(outs[0], SendLease) and not outs[0].release
+    sent = next(o for o in outs if isinstance(o, SendOrder)).fields
+    assert [(n["nodeId"], n["released"]) for n in sent["nodes"]] == [("n0", True), ("n1", True), ("n2", False)]
+    assert [e["released"] for e in sent["edges"]] == [True, False]
+    s = rig.last_state()
+    assert s["orderId"] == "o1" and [n["nodeId"] for n in s["nodeStates"]] == ["n0", "n1", "n2"]
+    # The robot reaches n0 and n1 and waits at n1 (the horizon is not driven): n2 stays, unreleased.
+    rig.state(order="o1", done=2, last="n1", last_seq=2)
+    s = rig.last_state()
+    assert s["lastNodeId"] == "n1" and s["lastNodeSequenceId"] == 2
+    assert s["nodeStates"] == [
+        {"nodeId": "n2", "sequenceId": 4, "released": False, "nodePosition": {"x": 2.0, "y": 0.0, "mapId": "site"}}
+    ]
+    assert [e["edgeId"] for e in s["edgeStates"]] == ["n1-n2"]
+
+
+def test_an_update_is_stitched_at_the_decision_point_and_older_updates_are_refused() -> None:
+    rig = Rig()
+    rig.state()
+    rig.send("order", BASE_WITH_HORIZON)
+    rig.state(order="o1", done=1, last="n0", last_seq=0)  # still on its way to n1
+    # Stitching elsewhere than the last base node (n1/2) is refused.
+    rig.send("order", order("o1", 1, [node("n0", 0, 0.0), node("n1", 2, 1.0)], [edge("n0", "n1", 1)]))
+    e = errors(rig)[-1]
+    assert e["errorType"] == "orderUpdateError" and e["errorLevel"] == "WARNING"
+    # A valid update: n1 (the decision point) released n2, n3.
+    outs = rig.send(
+        "order",
+        order(
+            "o1",
+            2,
+            [node("n1", 2, 1.0), node("n2", 4, 2.0), node("n3", 6, 3.0)],
+            [edge("n1", "n2", 3), edge("n2", "n3", 5)],
+        ),
+    )
+    sent = next(o for o in outs if isinstance(o, SendOrder)).fields
+    assert sent["orderUpdateId"] == 2
+    assert [n["nodeId"] for n in sent["nodes"]] == ["n1", "n2", "n3"] and all(n["released"] for n in sent["nodes"])
+    assert [n["nodeId"] for n in rig.last_state()["nodeStates"]] == ["n1", "n2", "n3"]
+    assert rig.last_state()["orderUpdateId"] == 2
+    # The same update again is ignored; an older one is refused with orderUpdateError.
+    assert not [o for o in rig.send("order", order("o1", 2, [node("n1", 2, 1.0)], [])) if isinstance(o, SendOrder)]
+    outs = rig.send("order", order("o1", 1, [node("n1", 2, 1.0)], []))
+    assert not [o for o in outs if isinstance(o, SendOrder)]
+    e = errors(rig)[-1]
+    assert e["errorType"] == "orderUpdateError"
+    assert {"referenceKey": "headerId", "referenceValue": str(rig.hid["order"] - 1)} in e["errorReferences"]
+
+
+def test_a_new_order_while_one_runs_or_far_from_the_robot_is_refused() -> None:
+    rig = Rig()
+    rig.state()
+    rig.send("order", BASE_WITH_HORIZON)
+    rig.send("order", order("o2", 0, [node("m0", 0, 0.0)], []))
+    assert errors(rig)[-1]["errorType"] == "orderError"
+    rig = Rig()
+    rig.state()
+    rig.send("order", order("far", 0, [node("m0", 0, 5.0)], []))
+    assert errors(rig)[-1]["errorType"] == "noRouteError"
+    assert not [o for o in rig.out if isinstance(o, SendOrder)]
+
+
+def test_node_actions_wait_run_and_finish_and_a_cancel_fails_the_rest() -> None:
+    rig = Rig()
+    rig.state()
+    dwell = {
+        "actionId": "d1",
+        "actionType": "dwell",
+        "blockingType": "HARD",
+        "actionParameters": [{"key": "duration", "value": 2}],
+    }
+    lamp = {
+        "actionId": "uv2",
+        "actionType": "payload",
+        "blockingType": "HARD",
+        "actionParameters": [{"key": "on", "value": True}],
+    }
+    outs = rig.send(
+        "order",
+        order(
+            "o1",
+            0,
+            [node("n0", 0, 0.0), node("n1", 2, 1.0, actions=[dwell]), node("n2", 4, 2.0, actions=[lamp])],
+            [edge("n0", "n1", 1), edge("n1", "n2", 3)],
+        ),
+    )
+    sent = next(o for o in outs if isinstance(o, SendOrder)).fields
+    assert sent["nodes"][1]["actions"][0].actionParameters == (KeyValue(key="duration", value="2"),)
+    assert sent["nodes"][2]["actions"][0].actionParameters == (KeyValue(key="on", value="true"),)
+    status = lambda: {a["actionId"]: a["actionStatus"] for a in rig.last_state()["actionStates"]}  # noqa: E731
+    assert status() == {"d1": "WAITING", "uv2": "WAITING"}
+    rig.ack("order")
+    rig.state(order="o1", done=1, last="n1", last_seq=2)  # at n1, dwelling
+    assert status() == {"d1": "RUNNING", "uv2": "WAITING"}
+    rig.state(order="o1", done=2, last="n1", last_seq=2)
+    assert status() == {"d1": "FINISHED", "uv2": "WAITING"}
+    rig.send("instantActions", {"actions": [{"actionId": "c1", "actionType": "cancelOrder", "blockingType": "NONE"}]})
+    assert status()["c1"] == "RUNNING"
+    rig.ack("actions")
+    assert status() == {"d1": "FINISHED", "uv2": "FAILED", "c1": "FINISHED"}
+    s = rig.last_state()
+    assert s["nodeStates"] == [] and s["orderId"] == "o1"  # VDA 5050: the ids are kept
+    # Cancelling again: nothing to cancel, FAILED and a noOrderToCancel warning naming the action.
+    rig.send("instantActions", {"actions": [{"actionId": "c2", "actionType": "cancelOrder", "blockingType": "NONE"}]})
+    assert status()["c2"] == "FAILED"
+    e = errors(rig)[-1]
+    assert (
+        e["errorType"] == "noOrderToCancel"
+        and {"referenceKey": "actionId", "referenceValue": "c2"} in e["errorReferences"]
+    )
+
+
+def test_pause_and_resume_map_to_fleetlink_and_a_refusal_fails_the_action() -> None:
+    rig = Rig()
+    rig.state()
+    outs = rig.send(
+        "instantActions", {"actions": [{"actionId": "p1", "actionType": "startPause", "blockingType": "NONE"}]}
+    )
+    acts = next(o for o in outs if isinstance(o, SendActions)).actions
+    assert acts[0].actionType.value == "pause"
+    rig.ack("actions")
+    outs = rig.send(
+        "instantActions", {"actions": [{"actionId": "p2", "actionType": "stopPause", "blockingType": "NONE"}]}
+    )
+    assert next(o for o in outs if isinstance(o, SendActions)).actions[0].actionType.value == "resume"
+    rig.ack("actions", AckResult.REJECTED, "lease held by op-1")
+    states = {a["actionId"]: a for a in rig.last_state()["actionStates"]}
+    assert states["p1"]["actionStatus"] == "FINISHED"
+    assert states["p2"]["actionStatus"] == "FAILED" and states["p2"]["resultDescription"] == "lease held by op-1"
+    # stateRequest and factsheetRequest are answered at once; an unknown action fails.
+    outs = rig.send(
+        "instantActions",
+        {
+            "actions": [
+                {"actionId": "f", "actionType": "factsheetRequest", "blockingType": "NONE"},
+                {"actionId": "x", "actionType": "pick", "blockingType": "HARD"},
+            ]
+        },
+    )
+    assert any(isinstance(o, Publish) and o.topic.endswith("/factsheet") for o in outs)
+    assert errors(rig)[-1]["errorType"] == "unsupportedAction"
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        b"{not json",
+        json.dumps({"headerId": 1, "orderId": "o"}).encode(),  # most required fields missing
+        json.dumps(
+            {
+                "headerId": 7,
+                "timestamp": "2026-01-01T00:00:00Z",
+                "version": "2.1.0",
+                "manufacturer": "fleetlink",
+                "serialNumber": "r1",
+                "orderId": "o",
+                "orderUpdateId": -1,
+                "nodes": [],
+                "edges": [],
+            }
+        ).encode(),
+        json.dumps([1, 2]).encode(),
+    ],
+)
+def test_a_malformed_order_is_refused_with_a_validation_error_and_the_vehicle_keeps_serving(payload: bytes) -> None:
+    rig = Rig()
+    rig.state()
+    outs = rig.send("order", payload)
+    assert not [o for o in outs if isinstance(o, SendOrder)]
+    e = errors(rig)[-1]
+    assert e["errorType"] == "validationError" and e["errorLevel"] == "WARNING"
+    assert {"referenceKey": "topic", "referenceValue": "order"} in e["errorReferences"]
+    assert rig.core.refused["order/validationError"] == 1
+    # The next valid order runs, and clears the order's refusal.
+    outs = rig.send("order", BASE_WITH_HORIZON)
+    assert [o for o in outs if isinstance(o, SendOrder)]
+    assert all(e["errorType"] != "validationError" for e in errors(rig))
+
+
+def test_errors_expire_and_the_finished_order_leaves_its_last_base_node() -> None:
+    rig = Rig()
+    rig.state()
+    rig.send("order", b"[]")
+    assert errors(rig)
+    rig.now = 31.0
+    rig._check(rig.core.tick(rig.now, rig.wall()))
+    assert errors(rig) == []
+    rig.send("order", order("o1", 0, [node("n0", 0, 0.0), node("n1", 2, 1.0)], [edge("n0", "n1", 1)]))
+    rig.fleet(
+        rig.counter.make(
+            Event,
+            kind="order",
+            text="done",
+            severity=Severity.INFO,
+            data=(KeyValue(key="order", value="o1"), KeyValue(key="outcome", value="finished")),
+        )
+    )
+    s = rig.last_state()
+    assert s["nodeStates"] == [] and (s["lastNodeId"], s["lastNodeSequenceId"]) == ("n1", 2)
+    # Idle again: the lease goes back.
+    rig.now = 60.0
+    assert any(isinstance(o, SendLease) and o.release for o in rig._check(rig.core.tick(rig.now, rig.wall())))
+
+
+def test_connection_factsheet_and_headers_count_per_topic() -> None:
+    rig = Rig()
+    a = rig._check(rig.core.connection("ONLINE", rig.wall()))[0]
+    b = rig._check(rig.core.connection("OFFLINE", rig.wall()))[0]
+    will = rig.core.will(rig.wall())
+    assert (a.retain, a.qos, a.doc["headerId"], b.doc["headerId"]) == (True, 1, 0, 1)
+    assert will.doc["connectionState"] == "CONNECTIONBROKEN" and OFFICIAL.problems("connection", will.doc) == []
+    f = rig._check(rig.core.factsheet(rig.wall()))[0]
+    assert f.doc["headerId"] == 0 and f.doc["version"] == "2.1.0"
+    types = {x["actionType"] for x in f.doc["protocolFeatures"]["agvActions"]}
+    assert {"startPause", "stopPause", "cancelOrder", "stateRequest", "factsheetRequest", "payload", "dwell"} <= types
