@@ -199,8 +199,8 @@ def test_an_order_goes_to_the_robot_with_its_horizon_unreleased_and_the_lease_fi
     outs = rig.send("order", BASE_WITH_HORIZON)
     assert isinstance(outs[0], SendLease) and not outs[0].release
     sent = next(o for o in outs if isinstance(o, SendOrder)).fields
-    assert [(n["nodeId"], n["released"]) for n in sent["nodes"]] == [("n0", True), ("n1", True), ("n2", False)]
-    assert [e["released"] for e in sent["edges"]] == [True, False]
+    assert [(n.nodeId, n.released) for n in sent["nodes"]] == [("n0", True), ("n1", True), ("n2", False)]
+    assert [e.released for e in sent["edges"]] == [True, False]
     s = rig.last_state()
     assert s["orderId"] == "o1" and [n["nodeId"] for n in s["nodeStates"]] == ["n0", "n1", "n2"]
     # The robot reaches n0 and n1 and waits at n1 (the horizon is not driven): n2 stays, unreleased.
@@ -234,7 +234,7 @@ def test_an_update_is_stitched_at_the_decision_point_and_older_updates_are_refus
     )
     sent = next(o for o in outs if isinstance(o, SendOrder)).fields
     assert sent["orderUpdateId"] == 2
-    assert [n["nodeId"] for n in sent["nodes"]] == ["n1", "n2", "n3"] and all(n["released"] for n in sent["nodes"])
+    assert [n.nodeId for n in sent["nodes"]] == ["n1", "n2", "n3"] and all(n.released for n in sent["nodes"])
     assert [n["nodeId"] for n in rig.last_state()["nodeStates"]] == ["n1", "n2", "n3"]
     assert rig.last_state()["orderUpdateId"] == 2
     # The same update again is ignored; an older one is refused with orderUpdateError.
@@ -284,8 +284,8 @@ def test_node_actions_wait_run_and_finish_and_a_cancel_fails_the_rest() -> None:
         ),
     )
     sent = next(o for o in outs if isinstance(o, SendOrder)).fields
-    assert sent["nodes"][1]["actions"][0].actionParameters == (KeyValue(key="duration", value="2"),)
-    assert sent["nodes"][2]["actions"][0].actionParameters == (KeyValue(key="on", value="true"),)
+    assert sent["nodes"][1].actions[0].actionParameters == (KeyValue(key="duration", value="2"),)
+    assert sent["nodes"][2].actions[0].actionParameters == (KeyValue(key="on", value="true"),)
     status = lambda: {a["actionId"]: a["actionStatus"] for a in rig.last_state()["actionStates"]}  # noqa: E731
     assert status() == {"d1": "WAITING", "uv2": "WAITING"}
     rig.ack("order")

@@ -196,20 +196,26 @@ class Vda5050Bridge:
 
     def _dispatch(self, robot: str, v: _Vehicle, outs: list[Out]) -> None:
         for out in outs:
-            if isinstance(out, Publish):
-                v.endpoint.publish(out.topic, out.payload, qos=out.qos, retain=out.retain)
-            elif isinstance(out, SendOrder):
-                msg = self.link.send(Order, robot, **out.fields)
-                v.core.sent(out.tag, Order.TOPIC, msg.header.headerId)
-            elif isinstance(out, SendActions):
-                msg = self.link.send(InstantActions, robot, actions=out.actions)
-                v.core.sent(out.tag, InstantActions.TOPIC, msg.header.headerId)
-            elif isinstance(out, SendLease):
-                header = self.link.counter.header(LeaseRequest.TOPIC, robot=robot)
-                request = LeaseRequest(header=header, duration_s=out.duration_s, release=out.release)
-                self.link.publish(request, links=("zenoh", "mqtt"))
-            elif isinstance(out, Log):
-                getattr(log, out.level, log.warning)("%s", out.text)
+            try:
+                self._dispatch_one(robot, v, out)
+            except Exception:  # keep serving: one output that cannot go must not stop the rest
+                log.exception("%s: sending %s failed", robot, type(out).__name__)
+
+    def _dispatch_one(self, robot: str, v: _Vehicle, out: Out) -> None:
+        if isinstance(out, Publish):
+            v.endpoint.publish(out.topic, out.payload, qos=out.qos, retain=out.retain)
+        elif isinstance(out, SendOrder):
+            msg = self.link.send(Order, robot, **out.fields)
+            v.core.sent(out.tag, Order.TOPIC, msg.header.headerId)
+        elif isinstance(out, SendActions):
+            msg = self.link.send(InstantActions, robot, actions=out.actions)
+            v.core.sent(out.tag, InstantActions.TOPIC, msg.header.headerId)
+        elif isinstance(out, SendLease):
+            header = self.link.counter.header(LeaseRequest.TOPIC, robot=robot)
+            request = LeaseRequest(header=header, duration_s=out.duration_s, release=out.release)
+            self.link.publish(request, links=("zenoh", "mqtt"))
+        elif isinstance(out, Log):
+            getattr(log, out.level, log.warning)("%s", out.text)
 
     # -- views ----------------------------------------------------------------------------------
 

@@ -37,6 +37,8 @@ from fleetlink.shared.messages import (
     Event,
     KeyValue,
     Lease,
+    OrderEdge,
+    OrderNode,
     Pose,
     State,
 )
@@ -389,7 +391,7 @@ class VehicleCore:
         if not self._holding or now - self._lease_sent > LEASE_RENEW_S:
             out.append(self._lease(now))
         fields = self._fleet_order(doc)
-        self.order.sent_nodes = [(n["nodeId"], n["sequenceId"]) for n in fields["nodes"]]
+        self.order.sent_nodes = [(n.nodeId, n.sequenceId) for n in fields["nodes"]]
         tag = f"order/{oid}/{uid}"
         self._tags[tag] = _Pending("order")
         out.append(SendOrder(fields, tag))
@@ -414,25 +416,25 @@ class VehicleCore:
             theta = pos.get("theta")
             acts = doc_actions.get(n["nodeId"], []) if n["sequenceId"] in by_seq else []
             fleet_nodes.append(
-                {
-                    "nodeId": n["nodeId"],
-                    "sequenceId": n["sequenceId"],
-                    "released": n["released"],
-                    "x": float(pos["x"]),
-                    "y": float(pos["y"]),
-                    "theta": None if theta is None else _wrap(float(theta)),
-                    "actions": tuple(_fleet_action(a) for a in acts),
-                }
+                OrderNode(
+                    nodeId=n["nodeId"],
+                    sequenceId=n["sequenceId"],
+                    released=n["released"],
+                    x=float(pos["x"]),
+                    y=float(pos["y"]),
+                    theta=None if theta is None else _wrap(float(theta)),
+                    actions=tuple(_fleet_action(a) for a in acts),
+                )
             )
         fleet_edges = [
-            {
-                "edgeId": e["edgeId"],
-                "sequenceId": e["sequenceId"],
-                "startNodeId": e["startNodeId"],
-                "endNodeId": e["endNodeId"],
-                "released": e["released"],
-                "maxSpeed": e.get("maxSpeed"),
-            }
+            OrderEdge(
+                edgeId=e["edgeId"],
+                sequenceId=e["sequenceId"],
+                startNodeId=e["startNodeId"],
+                endNodeId=e["endNodeId"],
+                released=e["released"],
+                maxSpeed=None if e.get("maxSpeed") is None else min(5.0, max(0.01, float(e["maxSpeed"]))),
+            )
             for e in edges
         ]
         return {
@@ -820,6 +822,12 @@ def factsheet_body(c: VehicleConfig) -> dict[str, Any]:
                     "parameter": "order.nodes.nodePosition",
                     "support": "REQUIRED",
                     "description": "robots drive to positions",
+                },
+                {"parameter": "order.nodes.nodePosition.theta", "support": "SUPPORTED"},
+                {
+                    "parameter": "order.nodes.nodePosition.allowedDeviationXY",
+                    "support": "SUPPORTED",
+                    "description": "a new order's first node: trivially reachable within it",
                 },
                 {"parameter": "order.edges.maxSpeed", "support": "SUPPORTED"},
                 {"parameter": "state.agvPosition", "support": "SUPPORTED"},

@@ -1,0 +1,193 @@
+"""End to end: an independent VDA 5050 master control (the PyPI package ``vda5050-sdk``: its
+``MasterClient`` over aiomqtt, its ``OrderBuilder``) drives a robot of the real-time simulated
+field through ``fleetlink vda5050``'s bridge: a multi-node order, startPause, stopPause,
+cancelOrder; a malformed order (published raw: the SDK will not build one) is refused in
+``state.errors`` and a following valid order runs. A real Mosquitto on a free port; the bridge's
+operator link and the agent speak over real Zenoh on loopback (multicast scouting off). A separate
+subscriber on ``#`` captures every VDA 5050 message on the wire, both directions, and each one is
+validated against the official 2.1.0 schemas (``../shared/reference/vda5050-2.1.0/``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import threading
+from typing import Any
+
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
+from vda5050 import MasterClient, MasterConfig, OrderBuilder
+
+from fleetlink.field.realtime import RealtimeField
+from fleetlink.operator.vda5050.schema import SchemaValidator, load_schemas
+from fleetlink.shared.clock import SystemClock
+from fleetlink.site.agents import FieldAgents
+from fleetlink.site.vda5050 import open_bridge
+from tests.harness.mosquitto import free_port
+from tests.test_field_realtime import quiet_scenario
+from tests.test_vda5050_core import REFERENCE
+
+ROBOT = "uvc-1"
+TARGET = f"fleetlink/{ROBOT}"
+PREFIX = f"uagv/v2/fleetlink/{ROBOT}/"
+MALFORMED = b'{"headerId": 9000, "orderId": "broken", "nodes": "not a list"}'
+
+
+class Wire:
+    """Every message under ``uagv/`` as the broker delivers it to a third party."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self.messages: list[tuple[str, bytes]] = []
+        self.lock = threading.Lock()
+        self.client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="wire-capture")
+        self.client.on_connect = lambda c, *_: c.subscribe("#", qos=1)
+        self.client.on_message = self._on_message
+        self.client.connect(host, port)
+        self.client.loop_start()
+
+    def _on_message(self, client: Any, userdata: Any, msg: Any) -> None:
+        if msg.topic.startswith("uagv/"):
+            with self.lock:
+                self.messages.append((msg.topic, bytes(msg.payload)))
+
+    def close(self) -> None:
+        self.client.disconnect()
+        self.client.loop_stop()
+
+
+async def wait_for(what: str, check: Any, timeout: float = 30.0) -> Any:
+    deadline = asyncio.get_running_loop().time() + timeout
+    while True:
+        value = check()
+        if value:
+            return value
+        if asyncio.get_running_loop().time() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.05)
+
+
+def test_a_vda5050_master_drives_a_field_robot_through_the_bridge(mosquitto) -> None:  # type: ignore[no-untyped-def]
+    clock = SystemClock()
+    field = RealtimeField(quiet_scenario(lidar={"enabled": False}), clock=clock)
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    agents = bridge = wire = None
+    try:
+        endpoints = field.start()
+        wire = Wire(mosquitto.host, mosquitto.port)
+        bridge = open_bridge(clock, mqtt_url=mosquitto.url, zenoh_listen=[listen], state_period_s=1.0)
+        bridge.start()
+        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[listen], mqtt_url=mosquitto.url)
+        agents.start()
+        truth = field.world.robots[0]
+        asyncio.run(master_session(mosquitto.url, lambda: truth.pose))
+        stats = bridge.stats()[ROBOT]
+        assert stats["invalid_out"] == {}
+        assert stats["refused"] == {"order/validationError": 1}
+    finally:
+        if bridge is not None:
+            bridge.close()
+        if agents is not None:
+            agents.stop()
+        field.stop()
+    # The bridge's clean exit says OFFLINE (retained): the last thing on its connection topic.
+    wire_check(wire)
+
+
+def wire_check(wire: Wire | None) -> None:
+    assert wire is not None
+    import time as _time
+
+    _time.sleep(0.5)
+    wire.close()
+    official = SchemaValidator(load_schemas(REFERENCE))
+    seen: dict[str, int] = {}
+    for topic, payload in wire.messages:
+        sub = topic.rsplit("/", 1)[1]
+        seen[sub] = seen.get(sub, 0) + 1
+        if payload == MALFORMED:
+            continue
+        doc = json.loads(payload)
+        assert official.problems(sub, doc) == [], (topic, doc)
+    assert {"order", "instantActions", "state", "visualization", "connection", "factsheet"} <= set(seen), seen
+    connections = [json.loads(p)["connectionState"] for t, p in wire.messages if t == PREFIX + "connection"]
+    assert connections[0] == "ONLINE" and connections[-1] == "OFFLINE"
+
+
+async def master_session(url: str, truth: Any) -> None:
+    states: list[Any] = []
+    master = MasterClient(MasterConfig(broker_url=url, client_id="vda-master", validate_messages=True))
+    master.on_state(lambda s, key: states.append(s))
+    async with master:
+        state = await wait_for("a state from the vehicle", lambda: states and states[-1].agv_position)
+        latest = lambda: states[-1]  # noqa: E731
+        x0, y0, th = state.x, state.y, state.theta
+        mp = state.map_id
+
+        def point(d: float) -> tuple[float, float]:
+            return x0 + d * math.cos(th), y0 + d * math.sin(th)
+
+        # 1. A three-node order along the robot's heading.
+        b = OrderBuilder(order_id="o-1", manufacturer="fleetlink", serial_number=ROBOT)
+        for i, d in enumerate((0.0, 0.3, 0.6)):
+            x, y = point(d)
+            b.add_node(f"n{i}", x=x, y=y, map_id=mp, allowed_deviation_xy=0.5)
+            if i:
+                b.add_edge(f"n{i - 1}", f"n{i}")
+        result = await master.dispatch(b.build(), TARGET)
+        assert result.accepted, result
+        await wait_for("the order in state", lambda: latest().order_id == "o-1" and latest().node_states)
+        start = truth()
+        await wait_for("driving", lambda: math.dist(truth()[:2], start[:2]) > 0.05)
+
+        # 2. startPause: the robot stands, paused; 3. stopPause: it drives on.
+        await master.pause(TARGET, action_id="pause-1")
+        await wait_for("paused", lambda: latest().paused)
+        await asyncio.sleep(0.6)
+        held = truth()
+        await asyncio.sleep(0.8)
+        assert math.dist(truth()[:2], held[:2]) < 0.02
+        status = lambda aid: next((a.action_status for a in latest().action_states if a.action_id == aid), None)  # noqa: E731
+        assert str(getattr(status("pause-1"), "value", status("pause-1"))) == "FINISHED"
+        await master.resume(TARGET, action_id="resume-1")
+        await wait_for("not paused", lambda: not latest().paused)
+        await wait_for("moving again", lambda: math.dist(truth()[:2], held[:2]) > 0.05)
+
+        # 4. cancelOrder: the order's nodes go, the robot stops, the ids stay.
+        await master.cancel_order(TARGET, action_id="cancel-1")
+        await wait_for("the cancel finished", lambda: str(getattr(status("cancel-1"), "value", "")) == "FINISHED")
+        await wait_for("no nodes left", lambda: not latest().node_states)
+        assert latest().order_id == "o-1"
+        await asyncio.sleep(0.5)
+        stopped = truth()
+        await asyncio.sleep(0.6)
+        assert math.dist(truth()[:2], stopped[:2]) < 0.02
+
+        # 5. A malformed order is refused in state.errors; the vehicle keeps serving.
+        pub = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="raw-master")
+        host, port = url.removeprefix("mqtt://").split(":")
+        pub.connect(host, int(port))
+        pub.loop_start()
+        pub.publish(PREFIX + "order", MALFORMED, qos=1).wait_for_publish(5)
+        pub.disconnect()
+        pub.loop_stop()
+        err = await wait_for(
+            "a validationError",
+            lambda: next((e for e in latest().errors if e.error_type == "validationError"), None),
+        )
+        assert str(getattr(err.error_level, "value", err.error_level)) == "WARNING"
+
+        # 6. A following valid order runs to its end.
+        here = latest().agv_position
+        b = OrderBuilder(order_id="o-2", manufacturer="fleetlink", serial_number=ROBOT)
+        b.add_node("m0", x=here.x, y=here.y, map_id=mp, allowed_deviation_xy=0.5)
+        b.add_node("m1", x=here.x + 0.25 * math.cos(here.theta), y=here.y + 0.25 * math.sin(here.theta), map_id=mp)
+        b.add_edge("m0", "m1")
+        result = await master.dispatch(b.build(), TARGET)
+        assert result.accepted, result
+        await wait_for(
+            "o-2 finished",
+            lambda: latest().order_id == "o-2" and latest().last_node_id == "m1" and not latest().node_states,
+        )
+        assert not any(e.error_type == "validationError" for e in latest().errors)
