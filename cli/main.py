@@ -30,7 +30,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     ),
     "console": ("fleetlink.cli.console", "the operator console: join a fleet over Zenoh (primary) and MQTT (fallback)"),
     "marks": ("fleetlink.cli.marks", "marks: export every console's marks (CSV, GeoJSON) for the incident report"),
-    "vda5050": ("fleetlink.cli.vda5050", "the VDA 5050 2.1 vehicle interface: every robot as a VDA 5050 vehicle on MQTT"),
+    "vda5050": ("fleetlink.cli.vda5050", "VDA 5050 2.1 vehicle interface: every robot as a VDA 5050 vehicle on MQTT"),
 }
 
 
