@@ -1955,6 +1955,7 @@ def plan_sweep(
                 more = _lane_ends_short(_distinct(_sweep_route(fm, edge, last, width, 1 - ax)), end)
                 link = fm.route(route[-1][0], more[0][0])[1:-1]
                 route = _distinct([*route, *((q, "transit") for q in link), (more[0][0], "transit"), *more[1:]])
+    route = _fill_gaps(fm, route, can, reach, rad)
     swept = _swept(fm, [p for p, _ in route], rad) & can
     s0 = (float(start[0]), float(start[1]))
     head = fm.route(s0, route[0][0])
@@ -1981,6 +1982,73 @@ def plan_sweep(
         swept_m2=swept_m2,
     )
     return CoveragePlan("sweep", tuple(nodes), tuple(edges), 0.0, pred, robot)
+
+
+FILL_MIN_M2 = 0.05
+"""A strip the lanes missed is swept by a lane of its own when it is at least this big..."""
+FILL_MIN_YIELD = 0.1
+"""... and that lane, with the way to it and back, sweeps at least this much of it per metre added
+(m²/m; a lane in the open sweeps 0.31: a third of that)."""
+
+
+def _fill_gaps(
+    fm: FloorMap, route: list[tuple[Point, str]], can: BoolGrid, reach: BoolGrid, rad: float
+) -> list[tuple[Point, str]]:
+    """``route`` with a lane inserted for each strip of sweepable floor its lanes miss (lanes are
+    spaced over the whole area's extent, so where a part of it ends between two lanes, the floor
+    beyond the last lane there is left; a lane is not run where the stand floor is narrower than a
+    plan cell): the straight lane between the two stand cells farthest apart along the strip,
+    among those that sweep it, put where it adds the least way (cheapest insertion, by straight
+    distances), when it is worth it (``FILL_MIN_M2``, ``FILL_MIN_YIELD``)."""
+    if len(route) < 2:
+        return route
+    missed = can & ~_swept(fm, [p for p, _ in route], rad)
+    area = fm.cell_area
+    lanes: list[tuple[float, Point, Point]] = []
+    for comp in components(missed):
+        if len(comp) * area < FILL_MIN_M2:
+            continue
+        strip = np.zeros(missed.shape, dtype=bool)
+        strip[comp[:, 0], comp[:, 1]] = True
+        stand = _stand_near(fm, strip, rad) & reach
+        if not stand.any():
+            continue
+        # Along the strip's longer side: each row (or column) of the stand cells that sweep it
+        # offers its runs as lanes; the one that sweeps most of the strip is taken.
+        rows, cols = comp[:, 0], comp[:, 1]
+        along_x = int(cols.max() - cols.min()) >= int(rows.max() - rows.min())
+        grid = stand if along_x else stand.T
+        best_lane: tuple[float, Point, Point] | None = None
+        for k in np.flatnonzero(grid.any(axis=1)):
+            for c0, c1 in _runs(grid[k]):
+                ends = [(int(k), c0), (int(k), c1)] if along_x else [(c0, int(k)), (c1, int(k))]
+                a, b = fm.plan_centre(ends[0]), fm.plan_centre(ends[1])
+                gain = float((_swept(fm, [a, b], rad) & strip).sum()) * area
+                if best_lane is None or gain > best_lane[0]:
+                    best_lane = (gain, a, b)
+        if best_lane is None or math.dist(best_lane[1], best_lane[2]) < 1e-9:
+            continue
+        gain, a, b = best_lane
+        lanes.append((gain, a, b))
+    out = list(route)
+    for gain, a, b in sorted(lanes, key=lambda g: -g[0]):
+        best: tuple[float, int, Point, Point] | None = None
+        for i in range(len(out) - 1):
+            p, q = out[i][0], out[i + 1][0]
+            if out[i + 1][1] == "lane":  # not into a lane: between lanes, or on the way
+                continue
+            for u, v in ((a, b), (b, a)):
+                cost = math.dist(p, u) + math.dist(u, v) + math.dist(v, q) - math.dist(p, q)
+                if best is None or cost < best[0]:
+                    best = (cost, i, u, v)
+        if best is None or gain < FILL_MIN_M2 or gain / max(best[0], 1e-9) < FILL_MIN_YIELD:
+            continue
+        _, i, u, v = best
+        p, q = out[i][0], out[i + 1][0]
+        into = [(w, "transit") for w in fm.route(p, u)[1:]]
+        back = [(w, "transit") for w in fm.route(v, q)[1:]]
+        out = [*out[: i + 1], *into, (v, "lane"), *back, *out[i + 2 :]]
+    return _distinct(out)
 
 
 def _distinct(way: Sequence[tuple[Point, str]]) -> list[tuple[Point, str]]:

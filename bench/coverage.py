@@ -17,8 +17,10 @@ true dose comes from the robot's true pose and its board's lamp. Modes, each its
 * ``lawnmower`` (baseline b): lanes 0.6 m apart over the room with the lamp on at the one constant
   speed that doses as much of the reachable floor as ``uv`` plans for;
 * ``sweep``: the boustrophedon floor-coverage route (no lamp), scored as the floor the robot's
-  brush (its 0.34 m diameter) passed over, and the path driven against the boustrophedon ideal
-  (reachable floor / brush width).
+  brush (its 0.34 m diameter) passed over (surveys included), and the path driven on the sweep's
+  order from its first lane on against the boustrophedon ideal (reachable floor / brush width);
+  the surveys' path (they map the room first; a room mapped before needs none) is reported
+  beside it as ``survey_path_m``.
 
 Scored on the floor a round can reach (``coverage.reachable``: floor some place the robot may
 stand in the room lights well enough to give the dose within 2 minutes, on the plan's true

@@ -120,7 +120,9 @@ class RoundResult:
     lamp_outside_s: float
     """Lamp-on seconds with the robot's centre outside the room (true)."""
     path_m: float
-    """The path the robots really drove while their orders ran (for a sweep: from the first lane)."""
+    """The path the robots really drove while the round's orders ran (passes and top-ups; for a
+    sweep from the first lane on), the surveys' not counted: they map the room, and a room mapped
+    before is planned without them."""
     ideal_path_m: float | None = None
     """Sweep: the reachable floor / the tool's width."""
     plan_wall_s: float = 0.0
@@ -131,6 +133,8 @@ class RoundResult:
     notes: list[str] = field(default_factory=list)
     surveys: int = 0
     """Survey passes before the round (the robots looked into what their maps had not seen)."""
+    survey_path_m: float = 0.0
+    """The path the robots drove on survey orders (the floor their brush passed then counts)."""
 
     @property
     def finished(self) -> bool:
@@ -154,6 +158,7 @@ class RoundResult:
             "skipped_nodes": self.skipped_nodes,
             "bumps": self.bumps,
             "surveys": self.surveys,
+            "survey_path_m": round(self.survey_path_m, 3),
             "plan_wall_s": round(self.plan_wall_s, 3),
             "wall_s": round(self.wall_s, 2),
             "sim_s": round(self.sim_s, 2),
@@ -209,7 +214,7 @@ class RoundRun:
         self.dose = np.zeros(self.truth_fm.shape)
         """J/m² the true floor got, on the truth grid's own cells."""
         self.swept = np.zeros(self.truth_fm.shape, dtype=bool)
-        self.lamp_on_s = self.lamp_outside_s = self.path_m = 0.0
+        self.lamp_on_s = self.lamp_outside_s = self.path_m = self.survey_path_m = 0.0
         self.predicted_s = 0.0
         self.ideal_path_m: float | None = None
         self.plan_wall_s = 0.0
@@ -479,7 +484,9 @@ class RoundRun:
             running = crew.sent_at is not None and crew.done_at is None
             if running and crew.last is not None:
                 step = math.dist(crew.last, (x, y))
-                if self.setup.mode != "sweep" or crew.first_lane_at is not None:
+                if self._surveying:
+                    self.survey_path_m += step
+                elif self.setup.mode != "sweep" or crew.first_lane_at is not None:
                     self.path_m += step
             crew.last = (x, y)
             if running and self.setup.mode == "sweep":
@@ -551,6 +558,7 @@ class RoundRun:
             bumps=self.bumps,
             notes=self.notes,
             surveys=self.surveys,
+            survey_path_m=self.survey_path_m,
         )
 
 
