@@ -31,6 +31,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "console": ("fleetlink.cli.console", "the operator console: join a fleet over Zenoh (primary) and MQTT (fallback)"),
     "marks": ("fleetlink.cli.marks", "marks: export every console's marks (CSV, GeoJSON) for the incident report"),
     "vda5050": ("fleetlink.cli.vda5050", "VDA 5050 2.1 vehicle interface: every robot as a VDA 5050 vehicle on MQTT"),
+    "record": ("fleetlink.cli.record", "the flight recorder: every fleet message on both links into an MCAP file"),
+    "replay": ("fleetlink.cli.replay", "play a flight recording into a read-only console, at any speed"),
 }
 
 

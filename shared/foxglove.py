@@ -1,0 +1,218 @@
+"""Foxglove's well-known message schemas (JSON encoding), so Foxglove and Lichtblick draw fleetlink
+poses, maps and scans without a plug-in.
+
+Schemas as Foxglove publishes them (github.com/foxglove/schemas, ``schemas/jsonschema``):
+``foxglove.PoseInFrame``, ``foxglove.Grid`` (an occupancy map is a grid of one ``INT8`` field) and
+``foxglove.LaserScan``. Builders return plain dicts ready for ``json.dumps``. Times are seconds
+since the Unix epoch (``{sec, nsec}``); frames are fleetlink's: ``map`` is the site (UWB) frame.
+
+Pure Python, no I/O.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+from collections.abc import Sequence
+from typing import Any, Final
+
+__all__ = [
+    "GRID",
+    "INT8",
+    "LASER_SCAN",
+    "MAP_FRAME",
+    "POSE_IN_FRAME",
+    "SCHEMAS",
+    "grid",
+    "laser_scan",
+    "pose_in_frame",
+    "schema_bytes",
+    "timestamp",
+]
+
+POSE_IN_FRAME: Final = "foxglove.PoseInFrame"
+GRID: Final = "foxglove.Grid"
+LASER_SCAN: Final = "foxglove.LaserScan"
+MAP_FRAME: Final = "map"
+"""The site frame (the UWB frame every pose, goal and map origin is in)."""
+INT8: Final = 2
+"""``foxglove.NumericType.INT8``."""
+
+
+def _num(description: str) -> dict[str, Any]:
+    return {"type": "number", "description": description}
+
+
+def _time(description: str) -> dict[str, Any]:
+    return {
+        "type": "object",
+        "title": "time",
+        "description": description,
+        "properties": {
+            "sec": {"type": "integer", "minimum": 0},
+            "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999},
+        },
+    }
+
+
+def _pose(description: str) -> dict[str, Any]:
+    return {
+        "title": "foxglove.Pose",
+        "description": description,
+        "type": "object",
+        "properties": {
+            "position": {
+                "title": "foxglove.Vector3",
+                "type": "object",
+                "properties": {axis: _num(f"{axis} coordinate length") for axis in "xyz"},
+            },
+            "orientation": {
+                "title": "foxglove.Quaternion",
+                "type": "object",
+                "properties": {axis: _num(f"{axis} value") for axis in "xyzw"},
+            },
+        },
+    }
+
+
+def _message(title: str, description: str, props: dict[str, Any]) -> dict[str, Any]:
+    return {"title": title, "description": description, "type": "object", "properties": props}
+
+
+_NUMERIC_TYPES = ("UNKNOWN", "UINT8", "INT8", "UINT16", "INT16", "UINT32", "INT32", "FLOAT32", "FLOAT64")
+
+SCHEMAS: Final[dict[str, dict[str, Any]]] = {
+    POSE_IN_FRAME: _message(
+        POSE_IN_FRAME,
+        "A timestamped pose for an object or reference frame in 3D space",
+        {
+            "timestamp": _time("Timestamp of pose"),
+            "frame_id": {"type": "string", "description": "Frame of reference for pose position and orientation"},
+            "pose": _pose("Pose in 3D space"),
+        },
+    ),
+    GRID: _message(
+        GRID,
+        "A 2D grid of data",
+        {
+            "timestamp": _time("Timestamp of grid"),
+            "frame_id": {"type": "string", "description": "Frame of reference"},
+            "pose": _pose("Origin of grid's corner relative to frame of reference"),
+            "column_count": {"type": "integer", "minimum": 0, "description": "Number of grid columns"},
+            "cell_size": {
+                "title": "foxglove.Vector2",
+                "type": "object",
+                "properties": {"x": _num("x coordinate length"), "y": _num("y coordinate length")},
+            },
+            "row_stride": {"type": "integer", "minimum": 0, "description": "Number of bytes between rows in `data`"},
+            "cell_stride": {"type": "integer", "minimum": 0, "description": "Number of bytes between cells in a row"},
+            "fields": {
+                "type": "array",
+                "description": "Fields in `data`",
+                "items": {
+                    "title": "foxglove.PackedElementField",
+                    "type": "object",
+                    "properties": {
+                        "name": {"type": "string"},
+                        "offset": {"type": "integer", "minimum": 0},
+                        "type": {
+                            "title": "foxglove.NumericType",
+                            "oneOf": [{"title": name, "const": i} for i, name in enumerate(_NUMERIC_TYPES)],
+                        },
+                    },
+                },
+            },
+            "data": {"type": "string", "contentEncoding": "base64", "description": "Grid cell data, row-major"},
+        },
+    ),
+    LASER_SCAN: _message(
+        LASER_SCAN,
+        "A single scan from a planar laser range-finder",
+        {
+            "timestamp": _time("Timestamp of scan"),
+            "frame_id": {"type": "string", "description": "Frame of reference"},
+            "pose": _pose("Origin of scan relative to frame of reference"),
+            "start_angle": _num("Bearing of first point, in radians"),
+            "end_angle": _num("Bearing of last point, in radians"),
+            "ranges": {"type": "array", "items": {"type": "number"}, "description": "Distance of detections"},
+            "intensities": {"type": "array", "items": {"type": "number"}, "description": "Intensity of detections"},
+        },
+    ),
+}
+
+
+def schema_bytes(name: str) -> bytes:
+    """The JSON Schema of Foxglove message ``name`` as UTF-8 JSON (an MCAP schema record's data)."""
+    return json.dumps(SCHEMAS[name], separators=(",", ":"), sort_keys=True).encode()
+
+
+def timestamp(t: float) -> dict[str, int]:
+    """Epoch seconds as Foxglove's ``{sec, nsec}`` (never negative)."""
+    t = max(0.0, t)
+    sec = math.floor(t)
+    nsec = round((t - sec) * 1e9)  # from the fraction: t * 1e9 would lose the nanoseconds
+    if nsec >= 1_000_000_000:
+        sec, nsec = sec + 1, nsec - 1_000_000_000
+    return {"sec": int(sec), "nsec": int(nsec)}
+
+
+def _planar(x: float, y: float, theta: float) -> dict[str, Any]:
+    half = theta / 2.0
+    return {
+        "position": {"x": x, "y": y, "z": 0.0},
+        "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)},
+    }
+
+
+def pose_in_frame(t: float, x: float, y: float, theta: float, frame: str = MAP_FRAME) -> dict[str, Any]:
+    """``foxglove.PoseInFrame``: a planar pose (heading ``theta`` rad about +z) in ``frame``."""
+    return {"timestamp": timestamp(t), "frame_id": frame, "pose": _planar(x, y, theta)}
+
+
+def grid(
+    t: float,
+    *,
+    origin: tuple[float, float],
+    resolution: float,
+    width: int,
+    cells: bytes,
+    name: str = "occupancy",
+    frame: str = MAP_FRAME,
+) -> dict[str, Any]:
+    """``foxglove.Grid`` of int8 ``cells`` (row-major, row 0 at ``origin``'s y: the wire's map layout,
+    -1 unknown and 0-100 occupancy percent), ``width`` cells a row."""
+    return {
+        "timestamp": timestamp(t),
+        "frame_id": frame,
+        "pose": _planar(origin[0], origin[1], 0.0),
+        "column_count": width,
+        "cell_size": {"x": resolution, "y": resolution},
+        "row_stride": width,
+        "cell_stride": 1,
+        "fields": [{"name": name, "offset": 0, "type": INT8}],
+        "data": base64.b64encode(cells).decode("ascii"),
+    }
+
+
+def laser_scan(
+    t: float,
+    *,
+    pose: tuple[float, float, float],
+    start_angle: float,
+    end_angle: float,
+    ranges: Sequence[float],
+    intensities: Sequence[float] = (),
+    frame: str = MAP_FRAME,
+) -> dict[str, Any]:
+    """``foxglove.LaserScan`` taken at ``pose`` (x, y, heading) in ``frame``; ranges in metres at equal
+    steps from ``start_angle`` to ``end_angle`` (radians, counter-clockwise from the heading)."""
+    return {
+        "timestamp": timestamp(t),
+        "frame_id": frame,
+        "pose": _planar(*pose),
+        "start_angle": start_angle,
+        "end_angle": end_angle,
+        "ranges": list(ranges),
+        "intensities": list(intensities),
+    }

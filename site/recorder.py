@@ -1,0 +1,414 @@
+"""The flight recorder's shell: fleet links in, an MCAP file out (docs/recording.md).
+
+``Recorder`` subscribes to every fleetlink key (and the UWB gateways' status, and the robots'
+liveliness tokens) on each link it is given, through the one link layer (``fleetlink.links``),
+exactly as the console does. A link's thread only stamps the receive time (the injected clock's
+``wall()``) and queues the bytes; one writer ``Worker`` turns them into records with the pure core
+(site/recording.py) and writes them with the ``mcap`` library. A second worker fetches the map
+snapshots the core asks for (Zenoh queryables), so a robot's map can be drawn whole.
+
+Crash safety: the file is chunked (zstd) and flushed to the OS after every batch the writer
+takes (every 20 ms while messages come), and only whole chunks reach it; a chunk is closed when it holds
+``chunk_size`` bytes or its first message is ``chunk_age_s`` old, whichever comes first, so a
+``kill -9`` loses at most the chunk being filled (at most ``chunk_age_s`` of traffic).
+``RecordingReader`` reads a file that was closed properly or recovers everything before a
+truncated or damaged tail.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import threading
+from collections import Counter, deque
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from fleetlink.links.base import Link
+from fleetlink.shared import keys
+from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.mqtt import MqttSettings
+from fleetlink.shared.worker import Worker
+from fleetlink.site.recording import Channel, RecordingCore, RecordingSummary
+
+__all__ = [
+    "CHUNK_AGE_S",
+    "CHUNK_SIZE",
+    "Recorder",
+    "RecordingError",
+    "RecordingReader",
+    "StoredMessage",
+    "open_recorder_links",
+    "summarise",
+]
+
+log = logging.getLogger(__name__)
+
+CHUNK_SIZE = 256 * 1024
+"""Uncompressed bytes a chunk holds before it is closed (~0.5 s of 50 robots' traffic)."""
+CHUNK_AGE_S = 1.0
+"""A chunk is closed when its first message is this old, however little traffic there is."""
+INBOX_SIZE = 100_000
+"""Messages waiting for the writer; beyond it they are dropped and counted (the disk stalled)."""
+UWB_STATUS = "fleetlink/uwb/*/status"
+ALIVE_TOKENS = keys.zenoh_all_robots("alive")
+PROFILE = "fleetlink"
+SNAPSHOT_TIMEOUT_S = 2.0
+
+
+class RecordingError(Exception):
+    """A recording that cannot be read (not MCAP, nothing readable). ``str()`` says why, for people."""
+
+
+def open_recorder_links(
+    *,
+    mqtt_url: str,
+    mqtt: MqttSettings | None = None,
+    zenoh_listen: Sequence[str] = (),
+    zenoh_connect: Sequence[str] = (),
+    zenoh_auth: dict[str, Any] | None = None,
+    client_id: str = "recorder",
+    clock: Clock | None = None,
+) -> list[Link]:
+    """The recorder's two endpoints (not started), set up as the console's (site/operator.py)."""
+    from fleetlink.links.mqtt import MqttEndpoint
+    from fleetlink.links.zenoh import ZenohEndpoint
+    from fleetlink.operator.links import mqtt_settings_for
+
+    zenoh = ZenohEndpoint(
+        listen=zenoh_listen, connect=zenoh_connect, clock=clock, label="zenoh-recorder", **dict(zenoh_auth or {})
+    )
+    broker = MqttEndpoint(mqtt or mqtt_settings_for(mqtt_url), client_id=client_id, clock=clock, label="mqtt-recorder")
+    return [zenoh, broker]
+
+
+@dataclass(frozen=True, slots=True)
+class _Heard:
+    kind: str  # "msg", "alive", "snapshot"
+    link: str
+    key: str
+    payload: bytes | bool
+    wall: float
+
+
+class Recorder:
+    """Records what ``links`` deliver into ``out`` (an MCAP file). ``start()``, then ``stop()``."""
+
+    def __init__(
+        self,
+        out: Path | str,
+        links: Sequence[Link],
+        clock: Clock | None = None,
+        *,
+        chunk_size: int = CHUNK_SIZE,
+        chunk_age_s: float = CHUNK_AGE_S,
+        compression: str = "zstd",
+        fetch_maps: bool = True,
+    ) -> None:
+        self.out = Path(out)
+        self.links = list(links)
+        self.clock: Clock = clock or SystemClock()
+        self.chunk_size = chunk_size
+        self.chunk_age_s = chunk_age_s
+        self.compression = compression
+        self.core = RecordingCore()
+        self.dropped = 0
+        self.written = 0
+        self._inbox: deque[_Heard] = deque()
+        self._inbox_lock = threading.Lock()
+        self._file: io.BufferedWriter | None = None
+        self._writer: Any = None
+        self._ids: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._chunk_started: float | None = None
+        self._to_fetch: set[str] = set()
+        self._fetch_lock = threading.Lock()
+        self._writing = Worker("recorder-writer", clock=self.clock, target=self._write_loop)
+        self._fetching = Worker("recorder-maps", clock=self.clock, target=self._fetch_loop) if fetch_maps else None
+        self._started = False
+        self._started_wall = 0.0
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def start(self) -> Recorder:
+        from mcap.writer import CompressionType, Writer
+
+        self._file = self.out.open("wb")
+        self._writer = Writer(
+            self._file,
+            chunk_size=self.chunk_size,
+            compression=CompressionType.ZSTD if self.compression == "zstd" else CompressionType.LZ4,
+        )
+        self._writer.start(profile=PROFILE, library="fleetlink recorder")
+        self._started_wall = self.clock.wall()
+        self._file.flush()  # the header: the file is an MCAP file from now on
+        for link in self.links:
+            name = link.name.value
+
+            def receive(key: str, payload: bytes, name: str = name) -> None:
+                self._put(_Heard("msg", name, key, payload, self.clock.wall()))
+
+            link.subscribe(keys.ZENOH_ALL, receive)
+            link.subscribe(UWB_STATUS, receive)
+            watch = getattr(link, "watch_liveliness", None)
+            if watch is not None:
+
+                def token(key: str, alive: bool, name: str = name) -> None:
+                    self._put(_Heard("alive", name, key, alive, self.clock.wall()))
+
+                watch(ALIVE_TOKENS, token)
+        self._writing.start()
+        if self._fetching is not None:
+            self._fetching.start()
+        for link in self.links:
+            link.start()
+        self._started = True
+        return self
+
+    def stop(self) -> None:
+        """Close the links, write what is queued, close the file with its summary. Idempotent."""
+        if not self._started:
+            return
+        self._started = False
+        for link in self.links:
+            try:
+                link.close()
+            except Exception as exc:  # the file must be closed whatever a transport does
+                log.warning("closing %s: %s", link.name.value, exc)
+        if self._fetching is not None:
+            self._fetching.stop()
+        self._writing.stop()
+        self._drain()
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            writer.add_metadata(
+                "fleetlink.recording",
+                {
+                    "robots": json.dumps(sorted(self.core.robots)),
+                    "rejected": json.dumps(dict(self.core.rejected.most_common(64))),
+                    "dropped": str(self.dropped),
+                    "started": repr(self._started_wall),
+                    "stopped": repr(self.clock.wall()),
+                },
+            )
+            writer.finish()  # (does not flush: closing the file does)
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> Recorder:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- the links' side ------------------------------------------------------------------------
+
+    def _put(self, heard: _Heard) -> None:
+        with self._inbox_lock:
+            if len(self._inbox) >= INBOX_SIZE:
+                self.dropped += 1
+                return
+            self._inbox.append(heard)
+        # No wake-up per message: the writer looks every few milliseconds (one wake per burst).
+
+    # -- the writer -----------------------------------------------------------------------------
+
+    def _write_loop(self, worker: Worker) -> None:
+        while not worker.stopping:
+            worker.wait(0.02)
+            self._drain()
+
+    def _drain(self) -> None:
+        with self._inbox_lock:
+            batch, self._inbox = self._inbox, deque()
+        writer = self._writer
+        if writer is None:
+            return
+        core = self.core
+        for heard in batch:
+            if heard.kind == "alive":
+                records = core.alive(heard.link, heard.key, bool(heard.payload), heard.wall)
+            else:
+                assert isinstance(heard.payload, bytes)
+                records = core.receive(heard.link, heard.key, heard.payload, heard.wall)
+            for r in records:
+                writer.add_message(
+                    self._channel_id(r.channel),
+                    log_time=r.log_time_ns,
+                    data=r.data,
+                    publish_time=r.publish_time_ns,
+                )
+                self.written += 1
+        now = self.clock.now()
+        if batch and self._chunk_started is None:
+            self._chunk_started = now
+        if self._chunk_started is not None and now - self._chunk_started >= self.chunk_age_s:
+            writer.flush()  # closes the chunk being filled, and flushes the file
+            self._chunk_started = None
+        elif batch and self._file is not None:
+            self._file.flush()  # a chunk the writer closed for its size: in the OS now, not in our buffer
+        wanted = core.wanted_maps()
+        if wanted and self._fetching is not None:
+            with self._fetch_lock:
+                self._to_fetch.update(wanted)
+            self._fetching.wake()
+
+    def _channel_id(self, channel: Channel) -> int:
+        found = self._ids.get(channel.topic)
+        if found is not None:
+            return found
+        schema_id = self._schemas.get(channel.schema_name)
+        if schema_id is None:
+            schema_id = self._schemas[channel.schema_name] = self._writer.register_schema(
+                name=channel.schema_name, encoding="jsonschema", data=channel.schema
+            )
+        cid: int = self._writer.register_channel(
+            topic=channel.topic, message_encoding="json", schema_id=schema_id, metadata=channel.metadata()
+        )
+        self._ids[channel.topic] = cid
+        return cid
+
+    # -- map snapshots --------------------------------------------------------------------------
+
+    def _fetch_loop(self, worker: Worker) -> None:
+        while not worker.stopping:
+            worker.wait(1.0)
+            with self._fetch_lock:
+                robots, self._to_fetch = sorted(self._to_fetch), set()
+            for robot in robots:
+                if worker.stopping:
+                    return
+                for link in self.links:
+                    query = getattr(link, "query", None)
+                    if query is None:
+                        continue
+                    try:
+                        replies = query(keys.key(robot, "map"), SNAPSHOT_TIMEOUT_S)
+                    except Exception as exc:  # a closing session: try again next time
+                        log.debug("map query for %s failed: %s", robot, exc)
+                        continue
+                    for key, payload in replies:
+                        self._put(_Heard("msg", link.name.value, key, payload, self.clock.wall()))
+                    break
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading
+
+
+@dataclass(frozen=True, slots=True)
+class StoredMessage:
+    topic: str
+    schema_name: str
+    metadata: dict[str, str]
+    log_time_ns: int
+    publish_time_ns: int
+    data: bytes
+
+
+class RecordingReader:
+    """Every message of an MCAP file in file order, whether it was closed properly or not.
+
+    ``messages()`` stops at a truncated or damaged tail (``complete`` is then False and ``problem``
+    says what was wrong); a file that is not MCAP at all raises ``RecordingError``.
+    """
+
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path)
+        self.complete = False
+        self.problem: str | None = None
+        self.metadata: dict[str, dict[str, str]] = {}
+        self.channels: dict[int, tuple[str, str, dict[str, str]]] = {}
+
+    def messages(self) -> Iterator[StoredMessage]:
+        from mcap.records import Channel as McapChannel
+        from mcap.records import Footer, Metadata, Schema
+        from mcap.records import Message as McapMessage
+        from mcap.stream_reader import StreamReader
+
+        try:
+            handle = self.path.open("rb")
+        except OSError as exc:
+            raise RecordingError(f"cannot open {self.path}: {exc.strerror or exc}") from None
+        schemas: dict[int, str] = {}
+        seen = 0
+        with handle:
+            records = StreamReader(handle, validate_crcs=True, record_size_limit=1 << 30).records
+            while True:
+                try:
+                    record = next(records)
+                except StopIteration:
+                    break
+                except Exception as exc:  # McapError, struct.error, EOF, a compressor's own error: damage
+                    if seen == 0 and _bad_magic(exc):
+                        raise RecordingError(f"{self.path} is not an MCAP file ({exc})") from None
+                    self.problem = _describe(exc)
+                    return
+                seen += 1
+                if isinstance(record, Schema):
+                    schemas[record.id] = record.name
+                elif isinstance(record, McapChannel):
+                    self.channels[record.id] = (record.topic, schemas.get(record.schema_id, "?"), dict(record.metadata))
+                elif isinstance(record, McapMessage):
+                    topic, schema, meta = self.channels.get(record.channel_id, ("?", "?", {}))
+                    yield StoredMessage(topic, schema, meta, record.log_time, record.publish_time, record.data)
+                elif isinstance(record, Metadata):
+                    self.metadata[record.name] = dict(record.metadata)
+                elif isinstance(record, Footer):
+                    self.complete = True
+        if not self.complete and self.problem is None:
+            self.problem = "the file ends before its footer"
+
+
+def _bad_magic(exc: Exception) -> bool:
+    return "magic" in type(exc).__name__.lower() or "magic" in str(exc).lower()
+
+
+def _describe(exc: Exception) -> str:
+    text = str(exc) or type(exc).__name__
+    return f"damaged or truncated after this point ({type(exc).__name__}: {text[:120]})"
+
+
+def summarise(path: Path | str) -> RecordingSummary:
+    """What ``fleetlink record --summary`` prints: read through the whole file (so a recovered file
+    is summarised too). Raises ``RecordingError`` for a file that is not MCAP."""
+    reader = RecordingReader(path)
+    counts: Counter[str] = Counter()
+    schemas: dict[str, str] = {}
+    robots: set[str] = set()
+    lo: int | None = None
+    hi: int | None = None
+    for m in reader.messages():
+        counts[m.topic] += 1
+        schemas[m.topic] = m.schema_name
+        lo = m.log_time_ns if lo is None else min(lo, m.log_time_ns)
+        hi = m.log_time_ns if hi is None else max(hi, m.log_time_ns)
+        if m.metadata.get("kind") in ("wire", "alive"):
+            robot = _robot_of(m.data)
+            if robot is not None and robot != keys.FLEET_MAP:
+                robots.add(robot)
+    meta = reader.metadata.get("fleetlink.recording")
+    notes: list[str] = []
+    if reader.problem is not None:
+        notes.append(f"note: {reader.problem}; everything before it is listed")
+    if meta is not None and meta.get("dropped", "0") != "0":
+        notes.append(f"note: the recorder dropped {meta['dropped']} messages (its disk could not keep up)")
+    if not counts and reader.problem is not None and not reader.channels:
+        raise RecordingError(f"{path}: nothing readable: {reader.problem}")
+    span = None if lo is None or hi is None else (lo, hi)
+    return RecordingSummary.build(counts, schemas, span, robots, complete=reader.complete, notes=notes)
+
+
+def _robot_of(data: bytes) -> str | None:
+    """The first ``"robot"`` of a record's JSON (a wire message's header comes first): found without
+    parsing the whole message, which a long recording would pay for millions of times."""
+    at = data.find(b'"robot":"')
+    if at < 0:
+        return None
+    start = at + 9
+    end = data.find(b'"', start)
+    return data[start:end].decode("utf-8", "replace") if end > start else None

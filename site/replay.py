@@ -1,0 +1,295 @@
+"""Replay a flight recording into the console (``fleetlink replay``, docs/recording.md).
+
+``ReplaySource`` is a console data source (operator/feed.py ``ConsoleSource``) that plays an MCAP
+file made by the recorder: each recorded wire message goes to the console's sinks with the link it
+came on and its receive time, UWB gateway status to the anchor sinks, liveliness to the presence
+sinks, at the recorded times scaled by ``speed``. The link manager (operator/linkmanager.py, pure)
+hears the robots' messages as the live console's did, so the link and health columns show what
+they showed then (without the commands: a replay sends none).
+
+Its clock (``ReplayClock``) is the recording's: ``now()`` and ``wall()`` are the recorded receive
+time being played (epoch seconds), so ages, lost robots and alarms read as they did live. It stops
+at the end of the recording: the console then shows the fleet as the recording left it.
+
+Seeking: ``start_s`` (seconds after the first message) fast-forwards through everything before it
+at once, so the fleet model holds the state at that moment, and plays on from there; ``seek(t)``
+does the same forward while playing. Read-only: ``send`` and ``publish`` refuse (and count); the
+console runs read-only and says so.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+from collections import Counter
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from fleetlink.operator.linkmanager import Failed, LinkHealth, LinkManager, Switch
+from fleetlink.operator.links import ROBOT_TOPICS
+from fleetlink.shared import wire, wire_json
+from fleetlink.shared.clock import Clock, SystemClock
+from fleetlink.shared.messages import DoseSnapshot, MapSnapshot
+from fleetlink.shared.worker import Worker
+from fleetlink.site.recorder import RecordingError, RecordingReader, StoredMessage
+
+__all__ = ["ReadOnlyReplay", "ReplayClock", "ReplaySource"]
+
+log = logging.getLogger(__name__)
+
+SENDER = "replay"
+POLL_S = 0.02
+"""The link manager's poll period in recorded time: the live console's (operator/links.py, 50 Hz)."""
+MAX_POLL_GAP_S = 5.0
+
+
+class ReadOnlyReplay(RuntimeError):
+    """A replay sends nothing: the recording is what happened."""
+
+
+class ReplayClock:
+    """The recording's time while it plays (a ``Clock``): ``now()`` = ``wall()`` = the recorded
+    receive time (epoch seconds) being played; waits and sleeps run on the real clock."""
+
+    def __init__(self, start: float, real: Clock | None = None) -> None:
+        self.real: Clock = real or SystemClock()
+        self._lock = threading.Lock()
+        self._pos = start
+        self._real0 = self.real.now()
+        self._speed = 0.0
+        self._end = math.inf
+
+    def now(self) -> float:
+        with self._lock:
+            return min(self._end, self._pos + (self.real.now() - self._real0) * self._speed)
+
+    def wall(self) -> float:
+        return self.now()
+
+    def run(self, position: float, speed: float, end: float = math.inf) -> None:
+        """From now on time goes from ``position`` at ``speed`` times real time, up to ``end``."""
+        with self._lock:
+            self._pos, self._real0, self._speed, self._end = position, self.real.now(), speed, end
+
+    def hold(self, position: float) -> None:
+        with self._lock:
+            self._pos, self._real0, self._speed = position, self.real.now(), 0.0
+
+    def sleep_until(self, deadline: float) -> None:
+        self.real.sleep_until(self.real.now() + max(0.0, deadline - self.now()))
+
+    def wait(self, event: threading.Event, timeout: float | None) -> bool:
+        return self.real.wait(event, timeout)
+
+
+def _stopped(metadata: dict[str, dict[str, str]]) -> float:
+    try:
+        value = float(metadata.get("fleetlink.recording", {}).get("stopped", "0"))
+    except ValueError:
+        return 0.0
+    return value if math.isfinite(value) else 0.0
+
+
+class ReplaySource:
+    """Plays ``path`` into the console's sinks. ``start()`` plays in real time x ``speed``;
+    ``play_until(t)`` delivers everything up to recorded time ``t`` at once (tests, seeking)."""
+
+    def __init__(
+        self, path: Path | str, *, speed: float = 1.0, start_s: float = 0.0, real: Clock | None = None
+    ) -> None:
+        if not (speed > 0 and math.isfinite(speed)):
+            raise ValueError(f"speed must be a positive number, got {speed}")
+        if start_s < 0:
+            raise ValueError(f"start must be >= 0 s, got {start_s}")
+        reader = RecordingReader(path)
+        stored = [m for m in reader.messages() if m.metadata.get("kind") in ("wire", "uwb-status", "alive")]
+        if not stored:
+            why = f": {reader.problem}" if reader.problem else ""
+            raise RecordingError(f"{path}: no fleet messages to replay{why}")
+        stored.sort(key=lambda m: m.log_time_ns)  # stable: file order among equal times
+        self.path = Path(path)
+        self.complete = reader.complete
+        self.problem = reader.problem
+        self.sender = SENDER
+        self.speed = speed
+        self._messages = stored
+        self.first = stored[0].log_time_ns / 1e9
+        self.last = max(stored[-1].log_time_ns / 1e9, _stopped(reader.metadata))
+        """Where the recording ends: when the recorder stopped (a crashed one: its last message)."""
+        self.start_at = min(self.last, self.first + start_s)
+        self.clock = ReplayClock(self.first, real)
+        self.manager = LinkManager()
+        self.refused: Counter[str] = Counter()
+        """Commands and publishes the console tried (a read-only console tries none)."""
+        self.skipped: Counter[str] = Counter()
+        """Recorded messages that no longer decode, by reason."""
+        self._next = 0
+        self._polled: float | None = None
+        self._lock = threading.Lock()
+        self._sinks: list[Callable[[wire.Message, str, float], None]] = []
+        self._listeners: list[Callable[[Switch | Failed], None]] = []
+        self._anchor_sinks: list[Callable[[str, list[tuple[str, float, float, float]]], None]] = []
+        self._presence_sinks: list[Callable[[str, str, bool, float], None]] = []
+        self._snapshots: dict[tuple[str, str], wire.Message] = {}
+        self._player: Worker | None = None
+
+    # -- ConsoleSource --------------------------------------------------------------------------
+
+    def send(self, cls: type[wire.Message], robot: str, *, expect_ack: bool = True, **fields: Any) -> wire.Message:
+        self.refused[cls.TOPIC] += 1
+        raise ReadOnlyReplay(f"a replay sends no commands ({cls.TOPIC} to {robot} refused)")
+
+    def publish(self, msg: wire.Message, *, links: Sequence[str] = ("zenoh",)) -> None:
+        self.refused[type(msg).TOPIC] += 1
+        raise ReadOnlyReplay(f"a replay publishes nothing ({type(msg).TOPIC} refused)")
+
+    def active(self, robot: str) -> str:
+        with self._lock:
+            return self.manager.active(robot)
+
+    def health(self, robot: str) -> tuple[LinkHealth, ...]:
+        with self._lock:
+            return self.manager.health(robot, self.clock.now())
+
+    def add_listener(self, listener: Callable[[Switch | Failed], None]) -> None:
+        self._listeners.append(listener)
+
+    def add_sink(self, sink: Callable[[wire.Message, str, float], None]) -> None:
+        self._sinks.append(sink)
+
+    def add_anchor_sink(self, sink: Callable[[str, list[tuple[str, float, float, float]]], None]) -> None:
+        self._anchor_sinks.append(sink)
+
+    def add_presence_sink(self, sink: Callable[[str, str, bool, float], None]) -> None:
+        self._presence_sinks.append(sink)
+
+    def fetch_map(self, robot: str, timeout: float = 0.0) -> MapSnapshot | None:
+        """The robot's last recorded map snapshot up to the time being played."""
+        found = self._snapshots.get((robot, MapSnapshot.TOPIC))
+        return found if isinstance(found, MapSnapshot) else None
+
+    def fetch_dose(self, robot: str, timeout: float = 0.0) -> DoseSnapshot | None:
+        found = self._snapshots.get((robot, DoseSnapshot.TOPIC))
+        return found if isinstance(found, DoseSnapshot) else None
+
+    def pending(self, robot: str) -> int:
+        return 0
+
+    # -- playing --------------------------------------------------------------------------------
+
+    def start(self) -> ReplaySource:
+        """Fast-forward to ``start_s``, then play on a worker at ``speed``."""
+        self.play_until(self.start_at)
+        self.clock.run(self.start_at, self.speed, self.last)
+        self._player = Worker("replay-player", clock=self.clock.real, target=self._play).start()
+        return self
+
+    def close(self) -> None:
+        if self._player is not None:
+            self._player.stop()
+            self._player = None
+
+    def seek(self, seconds: float) -> None:
+        """Jump to ``seconds`` after the first message (forward only: the fleet model keeps what
+        it has heard; a seek back needs a fresh console)."""
+        target = min(self.last, self.first + max(0.0, seconds))
+        if target < self.clock.now():
+            raise ValueError("a replay seeks forward only (start again with --start to go back)")
+        self.play_until(target)
+        self.clock.run(target, self.speed, self.last)
+
+    @property
+    def delivered(self) -> int:
+        """Recorded messages played so far."""
+        return self._next
+
+    @property
+    def done(self) -> bool:
+        return self._next >= len(self._messages)
+
+    def play_until(self, t: float) -> int:
+        """Deliver every recorded message received at or before ``t`` (epoch s) not yet delivered,
+        polling the link manager every ``POLL_S`` of recorded time in between, as the live
+        console's link worker did (so failovers happen where they happened)."""
+        n = 0
+        limit = round(t * 1e9)
+        while self._next < len(self._messages) and self._messages[self._next].log_time_ns <= limit:
+            stored = self._messages[self._next]
+            self._poll_until(stored.log_time_ns / 1e9)
+            self._next += 1
+            self._deliver(stored)
+            n += 1
+        self._poll_until(t)
+        return n
+
+    def _poll_until(self, t: float) -> None:
+        if self._polled is None:
+            self._polled = t
+        if t - self._polled > MAX_POLL_GAP_S:  # a long silence: its start and its end are enough
+            self._poll(self._polled + POLL_S)
+            self._polled = t - POLL_S
+        while self._polled + POLL_S <= t:
+            self._polled += POLL_S
+            self._poll(self._polled)
+
+    def _poll(self, t: float) -> None:
+        with self._lock:
+            actions = self.manager.poll(t)
+        for action in actions:
+            if isinstance(action, Switch | Failed):
+                for listener in self._listeners:
+                    listener(action)
+
+    def _play(self, worker: Worker) -> None:
+        while not worker.stopping and not (self.done and self.clock.now() >= self.last):
+            self.play_until(self.clock.now())
+            worker.wait(POLL_S)
+        if self.done:
+            self.play_until(self.last)
+            self.clock.hold(self.last)
+
+    def _deliver(self, stored: StoredMessage) -> None:
+        t = stored.log_time_ns / 1e9
+        kind = stored.metadata.get("kind")
+        link = stored.metadata.get("link", "zenoh")
+        if kind == "alive":
+            try:
+                doc = json.loads(stored.data)
+                robot, alive = str(doc["robot"]), bool(doc["alive"])
+            except (ValueError, KeyError, TypeError) as exc:
+                self.skipped[f"bad liveliness record: {exc}"] += 1
+                return
+            for presence in self._presence_sinks:
+                presence(robot, link, alive, t)
+            return
+        if kind == "uwb-status":
+            self._gateway(stored.data)
+            return
+        try:
+            cls = wire.message_type(stored.metadata.get("wire_topic", ""))
+            msg = wire_json.from_json(cls, stored.data)
+        except (KeyError, wire.WireError) as exc:
+            self.skipped[str(exc)[:200]] += 1
+            return
+        if isinstance(msg, MapSnapshot | DoseSnapshot):
+            self._snapshots[(msg.header.robot, msg.TOPIC)] = msg  # a queryable's answer: fetched, not heard
+            return
+        if msg.TOPIC in ROBOT_TOPICS:
+            with self._lock:
+                self.manager.heard(msg.header.robot, link, t)
+        for sink in self._sinks:
+            sink(msg, link, t)
+
+    def _gateway(self, data: bytes) -> None:
+        try:
+            status = json.loads(data)["status"]
+            gateway = str(status["gateway"])
+            anchors = [(str(a[0]), float(a[1]), float(a[2]), float(a[3])) for a in status.get("anchors", [])]
+        except (ValueError, KeyError, TypeError, IndexError) as exc:
+            self.skipped[f"bad UWB gateway status: {exc}"] += 1
+            return
+        for sink in self._anchor_sinks:
+            sink(gateway, anchors)

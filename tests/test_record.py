@@ -1,0 +1,232 @@
+"""The flight recorder (docs/recording.md): wire messages as JSON-schema MCAP channels, Foxglove's
+schemas for poses and maps, chunks a crash cannot take with it, the summary, bad files.
+
+Files are read back with the ``mcap`` library's own readers and every message is validated against
+its channel's schema with ``jsonschema``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from mcap.reader import make_reader
+
+from fleetlink.links.inprocess import InProcessBus
+from fleetlink.shared import foxglove, keys, wire, wire_json
+from fleetlink.shared.clock import SystemClock
+from fleetlink.shared.map_codec import patch_fields, snapshot_fields
+from fleetlink.shared.messages import LinkName, MapSnapshot, MapUpdate, Pose
+from fleetlink.shared.wire import Limits
+from fleetlink.site.recorder import Recorder, RecordingError, RecordingReader, summarise
+from fleetlink.site.recording import RecordingCore
+from tests.harness import wait_until
+from tests.harness.messages import state as harness_state
+from tests.test_wire import strategy_for
+
+
+def pose(counter: wire.HeaderCounter, x: float, theta: float = 0.5) -> Pose:
+    return counter.make(
+        Pose, x=x, y=1.0, theta=theta, sd_x_m=0.1, sd_y_m=0.1, sd_theta_rad=0.01,
+        odom_x=x, odom_y=0.0, odom_theta=0.0, vx=0.2, omega=0.0, uwbStale=False,
+    )  # fmt: skip
+
+
+def read_validated(path: Path) -> dict[str, list[Any]]:
+    """Every message of a closed file, via the mcap library's seeking reader, each validated against
+    its channel's JSON Schema; topic -> decoded JSON messages."""
+    out: dict[str, list[Any]] = {}
+    validators: dict[int, Any] = {}
+    with path.open("rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        for schema, channel, message in reader.iter_messages(log_time_order=True):
+            assert channel.message_encoding == "json" and schema is not None and schema.encoding == "jsonschema"
+            v = validators.get(channel.id)
+            if v is None:
+                doc = json.loads(schema.data)
+                jsonschema.validators.validator_for(doc).check_schema(doc)
+                v = validators[channel.id] = jsonschema.validators.validator_for(doc)(doc)
+            obj = json.loads(message.data)
+            v.validate(obj)
+            out.setdefault(channel.topic, []).append(obj)
+        counts = summary.statistics.channel_message_counts
+        assert sum(counts.values()) == sum(len(v) for v in out.values())
+    return out
+
+
+# -- the JSON form of the wire contract -----------------------------------------------------------
+
+
+@pytest.mark.parametrize("topic", sorted(wire.registered()))
+@settings(max_examples=25, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.data())
+def test_every_message_round_trips_through_json_and_fits_its_schema(topic: str, data: st.DataObject) -> None:
+    cls = wire.registered()[topic]
+    msg = data.draw(strategy_for(cls, Limits()))
+    text = wire_json.to_json(msg)
+    doc = wire_json.json_schema(cls)
+    jsonschema.Draft202012Validator(doc).validate(json.loads(text))
+    assert wire_json.from_json(cls, text) == msg
+
+
+def test_schema_refuses_what_the_wire_refuses() -> None:
+    doc = wire_json.json_schema(Pose)
+    good = json.loads(wire_json.to_json(pose(wire.HeaderCounter(SystemClock(), robot="r1", sender="a"), 1.0)))
+    validator = jsonschema.Draft202012Validator(doc)
+    validator.validate(good)
+    for bad in ({**good, "theta": 4.0}, {**good, "bogus": 1}, {k: v for k, v in good.items() if k != "vx"}):
+        assert not validator.is_valid(bad)
+        with pytest.raises(wire.WireError):
+            wire_json.from_json(Pose, json.dumps(bad))
+
+
+def test_from_json_raises_only_wire_errors() -> None:
+    for junk in (b"", b"[1]", b"{", b'{"header": 3}', b"\xff", b'{"cells": "###"}'):
+        with pytest.raises(wire.WireError):
+            wire_json.from_json(MapSnapshot, junk)
+
+
+def test_foxglove_pose_quaternion_and_time() -> None:
+    p = foxglove.pose_in_frame(1767225600.25, 1.0, 2.0, np.pi / 2)
+    assert p["timestamp"] == {"sec": 1767225600, "nsec": 250_000_000}
+    q = p["pose"]["orientation"]
+    assert q["z"] == pytest.approx(np.sqrt(0.5)) and q["w"] == pytest.approx(np.sqrt(0.5))
+    for name, doc in foxglove.SCHEMAS.items():
+        jsonschema.Draft7Validator.check_schema(doc)
+        assert doc["title"] == name
+    scan = foxglove.laser_scan(1.0, pose=(0.0, 0.0, 0.0), start_angle=0.0, end_angle=6.0, ranges=[1.0, 2.0])
+    jsonschema.Draft7Validator(foxglove.SCHEMAS[foxglove.LASER_SCAN]).validate(scan)
+
+
+# -- the core ---------------------------------------------------------------------------------------
+
+
+def test_core_channels_per_type_and_link_and_one_foxglove_pose_per_copy() -> None:
+    core = RecordingCore()
+    c = wire.HeaderCounter(SystemClock(), robot="r1", sender="agent-r1")
+    recs = []
+    for i in range(4):
+        p = pose(c, float(i))
+        raw = wire.encode(p)
+        recs += core.receive("zenoh", wire.key_of(p), raw, 100.0 + i)
+        recs += core.receive("mqtt", wire.key_of(p), raw, 100.0 + i)  # the same pose on the fallback
+    topics = Counter(r.channel.topic for r in recs)
+    assert topics == {"/fleetlink/zenoh/pose": 4, "/fleetlink/mqtt/pose": 4, "/foxglove/r1/pose": 4}
+    assert recs[0].log_time_ns == 100_000_000_000
+    assert recs[0].channel.metadata() == {"kind": "wire", "link": "zenoh", "wire_topic": "pose"}
+    assert core.receive("zenoh", "fleetlink/v1/r1/pose", b"\x00junk", 1.0) == []
+    assert core.receive("zenoh", "fleetlink/v1/r2/pose", wire.encode(pose(c, 1.0)), 1.0) == []  # header says r1
+    assert sum(core.rejected.values()) == 2
+    assert core.robots == {"r1"}
+
+
+def test_core_draws_a_whole_map_from_a_snapshot_and_its_updates() -> None:
+    core = RecordingCore()
+    c = wire.HeaderCounter(SystemClock(), robot="r1", sender="agent-r1")
+    cells = np.full((10, 20), -1, dtype=np.int8)
+    patch = c.make(MapUpdate, **patch_fields(cells, 0.1, (1.0, 2.0), (0, 0, 2, 2), 4, 3))
+    assert [r.channel.topic for r in core.receive("zenoh", wire.key_of(patch), wire.encode(patch), 1.0)] == [
+        "/fleetlink/zenoh/map/updates"
+    ]
+    assert core.wanted_maps() == ["r1"] and core.wanted_maps() == []
+    snap = c.make(MapSnapshot, **snapshot_fields(cells, 0.1, (1.0, 2.0), 3))
+    recs = core.snapshot("zenoh", keys.key("r1", "map"), wire.encode(snap), 2.0)
+    assert [r.channel.topic for r in recs] == ["/fleetlink/zenoh/map", "/foxglove/r1/map"]
+    cells[0:2, 0:2] = 100
+    patch = c.make(MapUpdate, **patch_fields(cells, 0.1, (1.0, 2.0), (0, 0, 2, 2), 4, 3))
+    recs = core.receive("zenoh", wire.key_of(patch), wire.encode(patch), 3.0)
+    grid = json.loads(recs[-1].data)
+    assert grid["column_count"] == 20 and grid["cell_size"] == {"x": 0.1, "y": 0.1}
+    assert grid["pose"]["position"] == {"x": 1.0, "y": 2.0, "z": 0.0}
+    data = np.frombuffer(__import__("base64").b64decode(grid["data"]), dtype=np.int8).reshape(10, 20)
+    assert (data == cells).all()
+
+
+# -- the recorder over in-process links -------------------------------------------------------------
+
+
+def test_recorder_writes_a_readable_file_and_its_summary(tmp_path: Path) -> None:
+    clock = SystemClock()
+    zb, mb = InProcessBus(LinkName.ZENOH), InProcessBus(LinkName.MQTT)
+    out = tmp_path / "mission.mcap"
+    rec = Recorder(out, [zb.endpoint("recorder"), mb.endpoint("recorder")], clock).start()
+    agent_z, agent_m = zb.endpoint("agent-r1"), mb.endpoint("agent-r1")
+    agent_z.start()
+    agent_m.start()
+    c = wire.HeaderCounter(clock, robot="r1", sender="agent-r1")
+    try:
+        for i in range(20):
+            p = pose(c, i * 0.1)
+            agent_z.publish(wire.key_of(p), wire.encode(p))
+            if i % 2 == 0:
+                agent_m.publish(wire.key_of(p), wire.encode(p))
+        s = harness_state(c)
+        agent_z.publish(wire.key_of(s), wire.encode(s))
+        agent_m.publish(
+            "fleetlink/uwb/gw-1/status", json.dumps({"gateway": "gw-1", "anchors": [["a1", 0, 0, 2]]}).encode()
+        )
+        zb.deliver()
+        mb.deliver()
+        wait_until(lambda: rec.written >= 20 + 10 + 20 + 1 + 1, message="everything written")
+    finally:
+        rec.stop()
+    got = read_validated(out)
+    assert len(got["/fleetlink/zenoh/pose"]) == 20 and len(got["/fleetlink/mqtt/pose"]) == 10
+    assert len(got["/foxglove/r1/pose"]) == 20
+    assert got["/fleetlink/zenoh/state"][0]["header"]["robot"] == "r1"
+    assert got["/fleetlink/mqtt/uwb-status"][0]["status"]["gateway"] == "gw-1"
+    summary = summarise(out)
+    assert summary.complete and summary.robots == ("r1",)
+    assert {c.topic: c.messages for c in summary.channels}["/fleetlink/zenoh/pose"] == 20
+    text = summary.text(str(out))
+    assert "robots (1): r1" in text and "/foxglove/r1/pose" in text and "foxglove.PoseInFrame" in text
+
+
+def test_bad_files_give_a_clear_error(tmp_path: Path) -> None:
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"this is not an mcap file at all")
+    with pytest.raises(RecordingError, match="not an MCAP file"):
+        summarise(junk)
+    with pytest.raises(RecordingError, match="cannot open"):
+        summarise(tmp_path / "missing.mcap")
+
+
+def test_a_truncated_or_damaged_file_gives_what_came_before(tmp_path: Path) -> None:
+    clock = SystemClock()
+    zb = InProcessBus(LinkName.ZENOH)
+    out = tmp_path / "whole.mcap"
+    rec = Recorder(out, [zb.endpoint("recorder")], clock, chunk_size=2_000).start()
+    agent = zb.endpoint("agent-r1")
+    agent.start()
+    c = wire.HeaderCounter(clock, robot="r1", sender="agent-r1")
+    try:
+        for i in range(200):
+            p = pose(c, i * 0.01)
+            agent.publish(wire.key_of(p), wire.encode(p))
+        zb.deliver()
+        wait_until(lambda: rec.written >= 400, message="written")
+    finally:
+        rec.stop()
+    whole = out.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole[: len(whole) * 2 // 3])
+    reader = RecordingReader(cut)
+    n = sum(1 for _ in reader.messages())
+    assert 100 < n < 400 and not reader.complete and reader.problem
+    assert not summarise(cut).complete
+    damaged = tmp_path / "damaged.mcap"
+    mid = len(whole) // 2
+    damaged.write_bytes(whole[:mid] + bytes(b ^ 0x5A for b in whole[mid : mid + 64]) + whole[mid + 64 :])
+    summary = summarise(damaged)  # no traceback: what came before the damage, and a note
+    assert 0 < summary.messages < 400 and any("damaged" in n for n in summary.notes)
+    time.sleep(0)  # (keeps the import of time used where the field tests are skipped)
