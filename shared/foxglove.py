@@ -27,6 +27,7 @@ __all__ = [
     "grid",
     "laser_scan",
     "pose_in_frame",
+    "pose_in_frame_json",
     "schema_bytes",
     "timestamp",
 ]
@@ -142,9 +143,15 @@ SCHEMAS: Final[dict[str, dict[str, Any]]] = {
 }
 
 
+_SCHEMA_BYTES: dict[str, bytes] = {}
+
+
 def schema_bytes(name: str) -> bytes:
     """The JSON Schema of Foxglove message ``name`` as UTF-8 JSON (an MCAP schema record's data)."""
-    return json.dumps(SCHEMAS[name], separators=(",", ":"), sort_keys=True).encode()
+    found = _SCHEMA_BYTES.get(name)
+    if found is None:
+        found = _SCHEMA_BYTES[name] = json.dumps(SCHEMAS[name], separators=(",", ":"), sort_keys=True).encode()
+    return found
 
 
 def timestamp(t: float) -> dict[str, int]:
@@ -168,6 +175,18 @@ def _planar(x: float, y: float, theta: float) -> dict[str, Any]:
 def pose_in_frame(t: float, x: float, y: float, theta: float, frame: str = MAP_FRAME) -> dict[str, Any]:
     """``foxglove.PoseInFrame``: a planar pose (heading ``theta`` rad about +z) in ``frame``."""
     return {"timestamp": timestamp(t), "frame_id": frame, "pose": _planar(x, y, theta)}
+
+
+def pose_in_frame_json(t: float, x: float, y: float, theta: float, frame: str = MAP_FRAME) -> bytes:
+    """``pose_in_frame(...)`` as compact JSON, formatted directly (a recorder writes one per pose:
+    a third of the time of building the dict and ``json.dumps``). ``frame`` must need no escaping."""
+    ts = timestamp(t)
+    half = theta / 2.0
+    return (
+        f'{{"timestamp":{{"sec":{ts["sec"]},"nsec":{ts["nsec"]}}},"frame_id":"{frame}",'
+        f'"pose":{{"position":{{"x":{float(x)!r},"y":{float(y)!r},"z":0.0}},'
+        f'"orientation":{{"x":0.0,"y":0.0,"z":{math.sin(half)!r},"w":{math.cos(half)!r}}}}}}}'
+    ).encode()
 
 
 def grid(

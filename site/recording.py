@@ -59,6 +59,8 @@ UWB_STATUS_KEY_PREFIX: Final = "fleetlink/uwb/"
 MAX_REASONS: Final = 64
 """Distinct rejection reasons counted apiece (the rest as one): a sender must not grow our memory."""
 OTHER: Final = "(other reasons)"
+RECENT: Final = 2048
+"""Messages remembered to recognise their copy on the other link (a fleet's poses of ~1 s)."""
 RESTART_GAP: Final = 1000
 """A pose counted this far below the newest drawn is from a restarted agent (drawn), not a late copy."""
 
@@ -158,6 +160,9 @@ class RecordingCore:
         self._last_pose: dict[tuple[str, str], int] = {}
         """(robot, sender) -> headerId of the newest pose drawn: its copy on the other link is not."""
         self._maps: dict[str, SharedMap] = {}
+        self._recent: dict[tuple[str, bytes], tuple[wire.Message, bytes]] = {}
+        """(key, payload) -> (message, JSON) of the last ``RECENT`` messages: the copy of a message
+        that came on both links is decoded and converted once."""
         self._want_map: set[str] = set()
         self.robots: set[str] = set()
         self.messages: Counter[str] = Counter()
@@ -171,12 +176,20 @@ class RecordingCore:
         """A message ``link`` delivered on ``key`` at ``wall`` (epoch seconds, the recorder's clock)."""
         if key.startswith(UWB_STATUS_KEY_PREFIX):
             return self._uwb_status(link, key, payload, wall)
-        try:
-            msg = wire.decode_key(key, payload)
-        except wire.WireError as exc:
-            self._reject(exc.reason)
-            return []
-        return self._message(link, msg, payload, wall)
+        seen = self._recent.get((key, payload))
+        if seen is not None:  # the same bytes on the other link (an agent's pose, state, ...)
+            msg, data = seen
+        else:
+            try:
+                msg = wire.decode_key(key, payload)
+            except wire.WireError as exc:
+                self._reject(exc.reason)
+                return []
+            data = wire_json.wire_to_json(type(msg), payload)
+            self._recent[(key, payload)] = (msg, data)
+            if len(self._recent) > RECENT:
+                del self._recent[next(iter(self._recent))]
+        return self._message(link, msg, data, wall)
 
     def snapshot(self, link: str, key: str, payload: bytes, wall: float) -> list[Record]:
         """A queryable's answer (a ``MapSnapshot``, a ``DoseSnapshot``) the shell fetched: recorded
@@ -194,7 +207,7 @@ class RecordingCore:
             self._reject(f"bad liveliness token: topic {topic!r}")
             return []
         self.robots.add(robot)
-        channel = self._other_channel(alive_channel(link))
+        channel = self._other.get(f"{FLEETLINK_PREFIX}/{link}/{ALIVE}") or self._other_channel(alive_channel(link))
         data = json.dumps({"robot": robot, "alive": alive}, separators=(",", ":")).encode()
         return [self._record(channel, data, wall, wall)]
 
@@ -231,9 +244,12 @@ class RecordingCore:
             self._reject("bad UWB gateway status: not a JSON object")
             return []
         data = json.dumps({"key": key, "status": status}, separators=(",", ":")).encode()
-        return [self._record(self._other_channel(uwb_status_channel(link)), data, wall, wall)]
+        channel = self._other.get(f"{FLEETLINK_PREFIX}/{link}/{UWB_STATUS}") or self._other_channel(
+            uwb_status_channel(link)
+        )
+        return [self._record(channel, data, wall, wall)]
 
-    def _message(self, link: str, msg: wire.Message, payload: bytes, wall: float) -> list[Record]:
+    def _message(self, link: str, msg: wire.Message, data: bytes, wall: float) -> list[Record]:
         cls = type(msg)
         header = msg.header
         slot = (link, cls.TOPIC)
@@ -242,16 +258,16 @@ class RecordingCore:
             channel = self._wire[slot] = wire_channel(link, cls.TOPIC)
         if header.robot != keys.FLEET_MAP:
             self.robots.add(header.robot)
-        out = [self._record(channel, wire_json.wire_to_json(cls, payload), wall, header.timestamp)]
+        out = [self._record(channel, data, wall, header.timestamp)]
         if isinstance(msg, Pose):
             last = self._last_pose.get((header.robot, header.sender))
             if last is None or header.headerId > last or header.headerId + RESTART_GAP < last:
                 self._last_pose[(header.robot, header.sender)] = header.headerId
-                data = _dumps(foxglove.pose_in_frame(header.timestamp, msg.x, msg.y, msg.theta))
+                data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
                 topic = f"{FOXGLOVE_PREFIX}/{header.robot}/pose"
                 out.append(self._record(self._fox(topic, foxglove.POSE_IN_FRAME), data, wall, header.timestamp))
         elif isinstance(msg, Truth):
-            data = _dumps(foxglove.pose_in_frame(header.timestamp, msg.x, msg.y, msg.theta))
+            data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
             topic = f"{FOXGLOVE_PREFIX}/{keys.SIM}/{header.robot}/truth"
             out.append(self._record(self._fox(topic, foxglove.POSE_IN_FRAME), data, wall, header.timestamp))
         elif isinstance(msg, MapSnapshot | MapUpdate):
@@ -262,7 +278,10 @@ class RecordingCore:
         return out
 
     def _fox(self, topic: str, schema: str) -> Channel:
-        return self._other_channel(_foxglove_channel(topic, schema))
+        found = self._other.get(topic)
+        if found is None:
+            found = self._other[topic] = _foxglove_channel(topic, schema)
+        return found
 
     def _map(self, msg: MapSnapshot | MapUpdate) -> bytes | None:
         robot = msg.header.robot

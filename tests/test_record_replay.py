@@ -1,0 +1,232 @@
+"""Replay (docs/recording.md): a recording played into a read-only console shows the fleet the live
+console showed, the console refuses to command and says so, and a snapshot of the replayed screen.
+
+A scene like tests/test_console_snapshot.py's is recorded over in-process links while a live
+console model (the real ``OperatorLink``) hears the same links; the clock is stepped by the test,
+so receive times, ages and link health come out the same on every run.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from fleetlink.cli.replay import console_parts, replay_app
+from fleetlink.links.inprocess import InProcessBus
+from fleetlink.operator.fleet_table import fleet_rows
+from fleetlink.operator.links import OperatorLink
+from fleetlink.shared import wire
+from fleetlink.shared.map_codec import snapshot_fields
+from fleetlink.shared.messages import (
+    AgvPosition,
+    BatteryState,
+    Event,
+    Goal,
+    Lease,
+    LinkName,
+    MapSnapshot,
+    Mark,
+    OperatingMode,
+    Pose,
+    Severity,
+    State,
+)
+from fleetlink.site.recorder import Recorder
+from fleetlink.site.replay import ReadOnlyReplay, ReplaySource
+from tests.harness import wait_until
+from tests.harness.messages import state as harness_state
+from tests.test_console_snapshot import ANCHORS, ORIGIN, RES, SIZE, before, room
+
+ME = "operator-1"
+EPOCH = 1_767_225_600.0
+
+
+class SteppedClock:
+    """Time only the test moves (``now`` = ``wall``); waits are real, so workers still run."""
+
+    def __init__(self, t: float = EPOCH) -> None:
+        self.t = t
+
+    def now(self) -> float:
+        return self.t
+
+    def wall(self) -> float:
+        return self.t
+
+    def advance(self, dt: float) -> None:
+        self.t += dt
+
+    def sleep_until(self, deadline: float) -> None:
+        pass
+
+    def wait(self, event: threading.Event, timeout: float | None) -> bool:
+        return event.wait(None if timeout is None else min(0.05, max(0.0, timeout)))
+
+
+def record_scene(path: Path) -> tuple[dict[str, Any], Any]:
+    """Record two robots reporting (as tests/test_console_snapshot.py's ``two_robots``), with a
+    live console model listening; returns the live fleet table and model views."""
+    clock = SteppedClock()
+    zb, mb = InProcessBus(LinkName.ZENOH, clock_now=clock.now), InProcessBus(LinkName.MQTT, clock_now=clock.now)
+    recorder = Recorder(path, [zb.endpoint("recorder"), mb.endpoint("recorder")], clock, fetch_maps=False).start()
+    console = OperatorLink(clock, ME, zb.endpoint(ME), mb.endpoint(ME)).start()
+    live, lock, _maps, _doses = console_parts(console)
+    agents = {r: (zb.endpoint(f"agent-{r}"), mb.endpoint(f"agent-{r}")) for r in ("r1", "r2")}
+    counters = {r: wire.HeaderCounter(clock, robot=r, sender=f"agent-{r}") for r in agents}
+    for z, m in agents.values():
+        z.start()
+        m.start()
+
+    def say(msg: wire.Message, both: bool = True) -> None:
+        z, m = agents[msg.header.robot]
+        z.publish(wire.key_of(msg), wire.encode(msg))
+        if both:
+            m.publish(wire.key_of(msg), wire.encode(msg))
+        zb.deliver()
+        mb.deliver()
+
+    def pose(robot: str, x: float, y: float, theta: float, stale: bool = False) -> None:
+        say(
+            counters[robot].make(
+                Pose, x=x, y=y, theta=theta, sd_x_m=0.05, sd_y_m=0.05, sd_theta_rad=0.01, odom_x=x, odom_y=y,
+                odom_theta=theta, vx=0.0, omega=0.0, uwbStale=stale,
+            )
+        )  # fmt: skip
+
+    def state(robot: str, x: float, y: float, theta: float, **over: Any) -> State:
+        at = AgvPosition(x=x, y=y, theta=theta, mapId="office", positionInitialized=True, localizationScore=0.9)
+        return harness_state(counters[robot], agvPosition=at, **over)
+
+    gateway = mb.endpoint("uwb-gateway")
+    gateway.start()
+    status = {"gateway": "g1", "anchors": [list(a) for a in ANCHORS]}
+    gateway.publish("fleetlink/uwb/g1/status", json.dumps(status).encode())
+    snap = counters["r1"].make(MapSnapshot, **snapshot_fields(room(), RES, ORIGIN, 7))
+    say(snap, both=False)  # a queryable's answer, as the recorder's map fetcher records it
+    say(state("r1", 0.5, 0.5, 0.0, batteryState=BatteryState(batteryCharge=87.0, charging=False)))
+    say(counters["r1"].make(Lease, holder="", until=0.0))
+    pose("r1", 0.5, 0.5, 0.0)
+    say(counters["r1"].make(Event, kind="goal_reached", text="reached (0.50, 0.50)", severity=Severity.INFO, data=()))
+    clock.advance(0.2)
+    say(
+        state(
+            "r2", 4.0, 0.5, math.pi / 4, operatingMode=OperatingMode.AUTOMATIC, driveMode="goto",
+            batteryState=BatteryState(batteryCharge=42.0, charging=False), uwbStale=True,
+            orderId="operator-1-order-3", goal=Goal(x=6.5, y=1.5, theta=None), driving=True,
+        )
+    )  # fmt: skip
+    say(counters["r2"].make(Lease, holder=ME, until=clock.wall() + 60))
+    for k in range(6):
+        clock.advance(0.05)
+        pose("r2", 2.5 + 0.25 * k, -0.25 + 0.125 * k, math.pi / 4, stale=True)
+    say(
+        counters["r2"].make(
+            Event,
+            kind="guard_refusal",
+            text="obstacle 0.35 m ahead: forward refused",
+            severity=Severity.WARNING,
+            data=(),
+        )
+    )
+    other = wire.HeaderCounter(clock, robot="r1", sender="operator-2")
+    mark = other.make(Mark, markId="op2-1", x=5.5, y=3.0, label="victim", kind="casualty", sd_m=0.0, removed=False)
+    agents["r1"][0].publish(wire.key_of(mark), wire.encode(mark))
+    zb.deliver()
+    clock.advance(0.1)
+    console.poll()
+    wait_until(lambda: recorder.core.messages["/fleetlink/zenoh/marks"] == 1, message="everything recorded")
+    with lock:
+        rows = {
+            r: [str(c) for c in row]
+            for r, row in fleet_rows(live, console.active, console.health, ME, clock.now()).items()
+        }
+        views = {
+            r: (v.mode, v.battery, v.pose, v.goal, v.lease_holder, v.uwb_stale, tuple(v.trail))
+            for r, v in live.robots.items()
+        }
+        marks = sorted(m.markId for m in live.live_marks())
+    console.close()
+    recorder.stop()
+    return {"rows": rows, "views": views, "marks": marks}, clock
+
+
+def replayed(path: Path) -> ReplaySource:
+    source = ReplaySource(path)
+    source.play_until(source.last)
+    source.clock.hold(source.last)
+    return source
+
+
+def test_replay_shows_the_fleet_the_live_console_showed(tmp_path: Path) -> None:
+    path = tmp_path / "scene.mcap"
+    live, clock = record_scene(path)
+    source = ReplaySource(path)
+    fleet, lock, _m, _d = console_parts(source)
+    source.play_until(source.last)
+    source.clock.hold(source.last)
+    assert source.clock.now() == pytest.approx(clock.now())
+    with lock:
+        rows = fleet_rows(fleet, source.active, source.health, ME, source.clock.now())
+        assert {r: [str(c) for c in row] for r, row in rows.items()} == live["rows"]
+        views = {
+            r: (v.mode, v.battery, v.pose, v.goal, v.lease_holder, v.uwb_stale, tuple(v.trail))
+            for r, v in fleet.robots.items()
+        }
+        assert views == live["views"]
+        assert sorted(m.markId for m in fleet.live_marks()) == live["marks"]
+        assert set(fleet.anchors) == {a[0] for a in ANCHORS}
+    assert source.fetch_map("r1") is not None and source.skipped == {}
+    with pytest.raises(ReadOnlyReplay):
+        source.send(Pose, "r1")
+    assert source.refused == {"pose": 1}
+
+
+def test_replay_plays_at_speed_and_seeks(tmp_path: Path) -> None:
+    path = tmp_path / "scene.mcap"
+    record_scene(path)
+    source = ReplaySource(path, speed=50.0, start_s=0.25)
+    fleet, lock, _m, _d = console_parts(source)
+    source.start()
+    try:
+        with lock:
+            assert "r2" in fleet.robots and fleet.robots["r1"].pose == (0.5, 0.5, 0.0)  # what came before 0.25 s
+        wait_until(lambda: source.done, timeout=5, message="played to the end at 50x")
+    finally:
+        source.close()
+    with lock:
+        assert fleet.robots["r2"].pose is not None and fleet.robots["r2"].pose[0] == pytest.approx(3.75)
+    assert source.clock.now() == pytest.approx(source.last)
+    with pytest.raises(ValueError, match="forward only"):
+        source.seek(0.0)
+
+
+def test_replayed_console_snapshot(snap_compare: Any, tmp_path: Path) -> None:
+    """The replayed scene in a read-only console: READ-ONLY in the status line, the fleet table and
+    map as recorded; a drive key is refused with a notice and nothing is sent."""
+    path = tmp_path / "scene.mcap"
+    record_scene(path)
+    source = ReplaySource(path)
+    app, fetchers = replay_app(source)
+    for fetcher in fetchers:
+        fetcher.stop()  # the map is handed over below, in step with the frames
+    source.play_until(source.last)
+    source.clock.hold(source.last)
+    maps = app.feed.maps
+    assert maps is not None
+    snap = source.fetch_map("r1")
+    assert snap is not None
+    with app.lock:
+        assert maps.on_snapshot("r1", snap)
+
+    async def drive(pilot: Any) -> None:
+        await pilot.press("i")
+        await asyncio.sleep(0)
+
+    assert snap_compare(app, terminal_size=SIZE, run_before=before(lambda _p: None, drive))
+    assert source.refused == {}
