@@ -398,7 +398,9 @@ def summarise(path: Path | str) -> RecordingSummary:
     if meta is not None and meta.get("dropped", "0") != "0":
         notes.append(f"note: the recorder dropped {meta['dropped']} messages (its disk could not keep up)")
     if not counts and reader.problem is not None and not reader.channels:
-        raise RecordingError(f"{path}: nothing readable: {reader.problem}")
+        raise RecordingError(
+            f"{path}: no message in it ({reader.problem}): a recorder stopped before its first chunk was written?"
+        )
     span = None if lo is None or hi is None else (lo, hi)
     return RecordingSummary.build(counts, schemas, span, robots, complete=reader.complete, notes=notes)
 

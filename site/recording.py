@@ -10,8 +10,7 @@ Channels (docs/recording.md):
 * ``/fleetlink/<link>/<topic>``: every wire message as it came, one channel per message type and
   link (``/fleetlink/zenoh/pose``, ``/fleetlink/mqtt/actions``), JSON in the wire's field names
   (``shared/wire_json.py``), schema ``fleetlink.<Class>``, the JSON Schema generated from the wire
-  contract. Map and dose snapshots fetched over Zenoh's queryables are on ``/fleetlink/zenoh/map``
-  and ``/fleetlink/zenoh/dose``.
+  contract. Map snapshots fetched over Zenoh's queryables are on ``/fleetlink/zenoh/map``.
 * ``/fleetlink/<link>/uwb-status`` (the UWB gateways' retained JSON status, with their anchors) and
   ``/fleetlink/<link>/alive`` (a robot's liveliness token coming or going): what the console hears
   besides wire messages.

@@ -8,7 +8,6 @@ its channel's schema with ``jsonschema``.
 from __future__ import annotations
 
 import json
-import time
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -229,4 +228,48 @@ def test_a_truncated_or_damaged_file_gives_what_came_before(tmp_path: Path) -> N
     damaged.write_bytes(whole[:mid] + bytes(b ^ 0x5A for b in whole[mid : mid + 64]) + whole[mid + 64 :])
     summary = summarise(damaged)  # no traceback: what came before the damage, and a note
     assert 0 < summary.messages < 400 and any("damaged" in n for n in summary.notes)
-    time.sleep(0)  # (keeps the import of time used where the field tests are skipped)
+
+
+# -- the commands ---------------------------------------------------------------------------------
+
+
+def test_record_summary_and_replay_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from fleetlink.cli.main import main
+
+    clock = SystemClock()
+    zb = InProcessBus(LinkName.ZENOH)
+    out = tmp_path / "mission.mcap"
+    rec = Recorder(out, [zb.endpoint("recorder")], clock).start()
+    agent = zb.endpoint("agent-r1")
+    agent.start()
+    c = wire.HeaderCounter(clock, robot="r1", sender="agent-r1")
+    try:
+        for i in range(10):
+            p = pose(c, i * 0.1)
+            agent.publish(wire.key_of(p), wire.encode(p))
+        s = harness_state(c)
+        agent.publish(wire.key_of(s), wire.encode(s))
+        zb.deliver()
+        wait_until(lambda: rec.written >= 21, message="written")
+    finally:
+        rec.stop()
+    assert main(["record", "--summary", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "21 messages on 3 channels" in said and "robots (1): r1" in said and "/fleetlink/zenoh/state" in said
+    assert main(["replay", str(out), "--headless", "--speed", "1000"]) == 0
+    said = capsys.readouterr().out
+    assert "r1" in said and "SEMIAUTOMATIC" in said
+
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(out.read_bytes()[:40])
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(bytes(range(256)) * 4)
+    for bad in (cut, empty, junk, tmp_path / "missing.mcap"):
+        assert main(["record", "--summary", str(bad)]) == 2
+        assert main(["replay", str(bad), "--headless"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("error: ") == 2 and "Traceback" not in err, err
+    assert main(["replay", str(out), "--speed", "0"]) == 2
+    assert "speed must be a positive number" in capsys.readouterr().err
