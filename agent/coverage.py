@@ -1019,9 +1019,10 @@ def _start_cell(fm: FloorMap, start: Point) -> Cell:
     return rc
 
 
-def _candidates(fm: FloorMap, stand: BoolGrid, *, corridors: bool = True) -> list[Cell]:
+def _candidates(fm: FloorMap, stand: BoolGrid, *, corridors: bool = True, narrow: bool = False) -> list[Cell]:
     """One stand cell per lattice block (the one nearest the block's node), and the convex corners of
-    the stand region; in row-major order."""
+    the stand region; in row-major order. ``narrow``: where no point clear of walls is near, any
+    stand cell (a survey looks from a gap beside a desk; it does not dwell there)."""
     k = max(1, round(fm.config.candidate_spacing_m / fm.plan_resolution))
     extra = fm.config.dwell_clearance_m / fm.plan_resolution
     if extra > 0:  # away from the walls (the whole map's: ``stand`` may be cut to an area)
@@ -1031,6 +1032,8 @@ def _candidates(fm: FloorMap, stand: BoolGrid, *, corridors: bool = True) -> lis
             # the robot can only come to along the corridor, with nothing near ahead.
             far = stand & ~_dilate(clear, 2.0 * extra + 3.0)
             clear = clear | _along_corridor(fm.stand, far, math.ceil(extra))
+        if narrow:
+            clear = clear | (stand & ~_dilate(clear, 2.0 * extra + 3.0))
         stand = clear
     rows, cols = np.nonzero(stand)
     if rows.size == 0:
@@ -1236,14 +1239,37 @@ class _CoverLP:
         self._primal()
 
     def cover(self, batch: int = 400) -> None:
-        """Add the cells the dwell leaves short (the shortest first) until none is."""
+        """Add the cells the dwell leaves short (the shortest first) until none is. A cell already
+        in the LP and still short is the tableau's rounding after many pivots (seen on a kitchen's
+        two-robot round: the loop added nothing and never ended): the tableau is solved again
+        from its slack basis, once, which clears it."""
+        refreshed = False
         for _ in range(1000):
             got = self.bn[:, self.support] @ self.dwell()
             short = np.nonzero(got < 1.0 - 1e-9)[0]
             if short.size == 0:
                 return
+            known = set(self.cells)
+            if all(int(c) in known for c in short):
+                if refreshed:
+                    break
+                self._refresh()
+                refreshed = True
+                continue
             self.add_cells(short[np.argsort(got[short], kind="stable")[:batch]].tolist())
         raise RuntimeError("cover LP: constraint generation did not settle")
+
+    def _refresh(self) -> None:
+        """The same LP (support and cells) solved again from the slack basis."""
+        m, n = self.m, len(self.cells)
+        tab = np.zeros((m + 1, m + n + 1))
+        tab[:m, :m] = np.eye(m)
+        tab[:m, m : m + n] = self.bn[np.ix_(self.cells, self.support)].T
+        tab[:m, -1] = 1.0
+        tab[m, m : m + n] = -1.0
+        self.tab = tab
+        self.basis = list(range(m))
+        self._primal()
 
     def drop_idle(self) -> None:
         """Remove the support points with no dwell."""
@@ -1634,6 +1660,7 @@ def plan_survey(
     max_views: int = 8,
     enough: float = 0.9,
     robot: str = "",
+    looked_from: Sequence[Point] = (),
 ) -> CoveragePlan | None:
     """View points from which the lidar sees into the area's ``unseen`` pockets, toured from
     ``start`` (kind ``survey``: no lamp, ``SURVEY_DWELL_S`` at each); None when the area has no
@@ -1643,7 +1670,9 @@ def plan_survey(
     are still closer together than a map cell) when the straight line to it crosses no known
     wall: through the known floor and into the unknown, optimistically (what hides the pocket
     may stand in it; a second survey looks again). Cells the robot's start sees so already were
-    in its view, not hidden: not counted. Greedy set cover, most unseen cells first, until
+    in its view, not hidden: not counted; nor are cells an earlier survey looked for from
+    ``looked_from`` (still unseen: what hides them is not on the map, e.g. the side of a desk the
+    lidar has not seen, and looking from there again would not show them). Greedy set cover, most unseen cells first, until
     ``enough`` of what any candidate sees is seen or ``max_views`` points."""
     hid = unseen(fm, unknown, area, min_pocket_m2=min_pocket_m2)
     if not hid.any():
@@ -1652,7 +1681,7 @@ def plan_survey(
     fm.focus(area.stand, s_cell)
     from_start = fm.geodesic(s_cell)
     # A survey looks from where the robot stands freely (it drives in among what it has not seen).
-    cands = [rc for rc in _candidates(fm, area.stand, corridors=False) if math.isfinite(from_start[rc])]
+    cands = [rc for rc in _candidates(fm, area.stand, corridors=False, narrow=True) if math.isfinite(from_start[rc])]
     if not cands:
         return None
     rows, cols = np.nonzero(hid)
@@ -1679,6 +1708,8 @@ def plan_survey(
         return out
 
     already = sees(start)
+    for p in looked_from:
+        already |= sees((float(p[0]), float(p[1])))
     view = np.array([sees(fm.plan_centre(rc)) & ~already for rc in cands])
     seeable = view.any(axis=0)
     if not seeable.any():

@@ -306,9 +306,10 @@ class ConsoleApp(App[None]):
         """The round being planned in a worker thread (one at a time)."""
         self._plan_dropped = False
         """``:cancel`` came while it was being planned: nothing is sent when it is ready."""
-        self.survey: tuple[RoundRequest, dict[str, str]] | None = None
+        self.survey: tuple[RoundRequest, dict[str, str], tuple[tuple[float, float], ...]] | None = None
         """A survey under way before a round: the request to plan again when every robot has
-        finished its survey order, and those orders' ids by robot."""
+        finished its survey order, those orders' ids by robot, and where the survey looks from
+        (the next plan's survey does not count on looking from there again)."""
         self.filter_text = ""
         self.frame_times: list[float] = []
         """How long each frame took to draw (the last 1000)."""
@@ -1034,7 +1035,9 @@ class ConsoleApp(App[None]):
 
     # -- rounds: disinfection and sweeping (operator/rounds.py, docs/payload.md) ------------------
 
-    def start_round(self, command: StartRound, surveys: int = MAX_SURVEYS) -> bool:
+    def start_round(
+        self, command: StartRound, surveys: int = MAX_SURVEYS, looked_from: tuple[tuple[float, float], ...] = ()
+    ) -> bool:
         """``:disinfect`` / ``:sweep``: check what can be checked at once (a warning notice and
         nothing else when it is wrong), then plan in a worker thread; the orders go out when the
         plan is ready (``on_round_planned``). While the maps have not seen all of the area the plan
@@ -1075,7 +1078,9 @@ class ConsoleApp(App[None]):
                 starts[robot] = (view.pose[0], view.pose[1])
                 if robot in self.fleet.grids:
                     grids.append(self.fleet.grids[robot])
-        request = RoundRequest("uv" if command.kind == "uv" else "sweep", command.area, robots, target, surveys)
+        request = RoundRequest(
+            "uv" if command.kind == "uv" else "sweep", command.area, robots, target, surveys, looked_from
+        )
         if not problem:
             try:
                 check_request(request)
@@ -1155,7 +1160,8 @@ class ConsoleApp(App[None]):
                 self.fleet.set_route(r.robot, (r.order_id, tuple((n.x, n.y, n.dwell_s) for n in r.route)))
             self.notice("info", f"{r.robot}: {what} sent as order {r.order_id} ({len(r.route) - 1} nodes)")
         if result.survey:
-            self.survey = (request, {r.robot: r.order_id for r in result.rounds})
+            views = tuple((n.x, n.y) for r in result.rounds for n in r.route[1:])
+            self.survey = (request, {r.robot: r.order_id for r in result.rounds}, views)
             self.notice("info", f"the {what} is planned when the survey is done (':cancel' drops both)")
         self._changed()
 
@@ -1165,7 +1171,7 @@ class ConsoleApp(App[None]):
         replaced), drop the round."""
         if self.survey is None:
             return
-        request, orders = self.survey
+        request, orders, views = self.survey
         ends = {r: v.order_end if (v := self.fleet.robots.get(r)) is not None else None for r in orders}
         what = "UV round" if request.kind == "uv" else "sweep"
         if any(e is not None and e[0] == orders[r] and e[1] != "finished" for r, e in ends.items()):
@@ -1177,7 +1183,7 @@ class ConsoleApp(App[None]):
         elif all(e == (orders[r], "finished") for r, e in ends.items()):
             self.survey = None
             again = StartRound(request.kind, request.area, mj_cm2(request.target_j_m2), request.robots)
-            self.call_later(self.start_round, again, request.surveys - 1)
+            self.call_later(self.start_round, again, request.surveys - 1, (*request.looked_from, *views))
 
     def round_action(self, action: str) -> None:
         """``:pause`` / ``:resume`` / ``:cancel`` the selected robot's round (or goal): instant

@@ -137,6 +137,10 @@ class RoundRequest:
     beside the area's floor (what furniture hid from where the robots came in), the planner sends
     the robots to look first (lamp off), and the console plans again when they are done
     (``MAX_SURVEYS`` from the console; 0: plan on the map as it is)."""
+    looked_from: tuple[tuple[float, float], ...] = ()
+    """Where this round's earlier surveys looked from. What the planner thought could be seen from
+    there and is still unseen is hidden by something the maps do not hold yet (a desk's unseen
+    side): a later survey counts it as looked at from there and looks from elsewhere."""
 
 
 def _finite(values: Sequence[float]) -> bool:

@@ -228,6 +228,7 @@ class RoundRun:
         self.passes = 0
         self.surveys = 0
         self.surveys_left = MAX_SURVEYS
+        self.looked_from: tuple[tuple[float, float], ...] = ()
         self._surveying = False
         self._events = 0
         self._acks = 0
@@ -403,9 +404,11 @@ class RoundRun:
         seed = RectArea(*s.rect)
         if s.mode in ("uv", "sweep"):
             surveys = self.surveys_left if self.passes == 0 else 0  # a top-up plans on what the round mapped
-            request = RoundRequest(s.mode, seed, names, s.target_j_m2, surveys)  # type: ignore[arg-type]
+            request = RoundRequest(s.mode, seed, names, s.target_j_m2, surveys, self.looked_from)  # type: ignore[arg-type]
             ids = {n: f"{s.mode}-{n}-{self.passes + self.surveys + 1}" for n in names}
             result = plan_round(request, cells, res, origin, starts, self.lamp, ids, prior)
+            if result.survey:  # as the console does: the next survey does not look from there again
+                self.looked_from += tuple((n.x, n.y) for r in result.rounds for n in r.route[1:])
             self.predicted_s += max(r.total_s for r in result.rounds)
             if s.mode == "sweep":  # the boustrophedon ideal over the true reachable floor
                 self.ideal_path_m = (

@@ -21,7 +21,7 @@ nowhere it could start from, a route with more nodes than an order carries.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -114,7 +114,7 @@ def plan_round(
         if not (np.isfinite(fm.geodesic(cell)) & area.stand).any():
             raise RoundError(f"{where}: {robot} cannot get there from ({p[0]:.2f}, {p[1]:.2f})")
     if request.surveys > 0:
-        survey = _survey(fm, cells, area, robots, points)
+        survey = _survey(fm, cells, area, robots, points, request.looked_from)
         if survey is not None:
             plans_, area_m2, seen = survey
             looks = tuple(_robot_round(p, f"{ids[p.robot][:56]}-survey") for p in plans_ if len(p.nodes) > 1)
@@ -160,11 +160,12 @@ def _survey(
     area: cv.Area,
     robots: list[str],
     points: list[Point],
+    looked_from: Sequence[Point] = (),
 ) -> tuple[tuple[cv.CoveragePlan, ...], float, float] | None:
     """The survey's plans (one per robot), the unseen m² and the share of it the views see; None
     when nothing worth a look is hidden."""
     unknown = np.asarray(cells, dtype=np.int8) < 0
-    look = cv.plan_survey(fm, unknown, area, points[0], robot=robots[0])
+    look = cv.plan_survey(fm, unknown, area, points[0], robot=robots[0], looked_from=looked_from)
     if look is None or look.predicted.area_m2 * look.predicted.coverage < SURVEY_WORTH_M2:
         return None
     if len(robots) == 1:
