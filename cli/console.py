@@ -37,6 +37,11 @@ Config file (TOML), every key optional; command-line options win:
     uvc_power_w = 10.0
     height_m = 0.6
     target_dose_mj_cm2 = 10.0            # :disinfect's default (dose MJ_CM2 overrides it)
+    [links]                              # docs/console.md "Links"
+    redundant = true                     # every command on both links at once; false: failover only (metered link)
+    degraded_rtt_s = 0.1                 # a link is degraded (alarm) over this RTT p95,
+    degraded_loss_pct = 5.0              # ... this share of copies unacked,
+    degraded_silence_s = 1.0             # ... or this long silent
 """
 
 from __future__ import annotations
@@ -72,6 +77,8 @@ class ConsoleSettings:
     ca_file: str | None = None
     uv: ConsoleUvTable | None = None
     """The lamp and target dose rounds are planned for (``[uv]``); None: the agent's defaults."""
+    links: ConsoleLinksTable = field(default_factory=lambda: ConsoleLinksTable())
+    """Redundant sending and the link health thresholds (``[links]``)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -128,6 +135,31 @@ class ConsoleUvTable:
 
 
 @dataclass(frozen=True, slots=True)
+class ConsoleLinksTable:
+    """``[links]``: how commands go out and when a link counts as degraded (docs/console.md "Links")."""
+
+    redundant: Annotated[
+        bool, Setting(doc="every command on both links at once; false (a metered link): the active link, failover")
+    ] = True
+    degraded_rtt_s: Annotated[float, Setting(lo=1e-3, hi=60.0, doc="RTT p95 over this: degraded, s")] = 0.1
+    degraded_loss_pct: Annotated[float, Setting(lo=0.0, hi=100.0, doc="copies unacked over this: degraded, %")] = 5.0
+    degraded_silence_s: Annotated[
+        float, Setting(lo=0.1, hi=600.0, doc="heard before, silent this long: degraded, s")
+    ] = 1.0
+
+    def policy(self) -> Any:
+        """The ``operator.linkmanager.LinkPolicy``."""
+        from fleetlink.operator.linkmanager import LinkPolicy
+
+        return LinkPolicy(
+            redundant=self.redundant,
+            degraded_rtt_s=self.degraded_rtt_s,
+            degraded_loss_pct=self.degraded_loss_pct,
+            degraded_silence_s=self.degraded_silence_s,
+        )
+
+
+@dataclass(frozen=True, slots=True)
 class ConsoleFile:
     """console.toml (see the module docstring); every key optional, command-line options win."""
 
@@ -141,6 +173,7 @@ class ConsoleFile:
     zenoh: ConsoleZenohTable | None = None
     mqtt: ConsoleMqttTable | None = None
     uv: ConsoleUvTable | None = None
+    links: ConsoleLinksTable | None = None
 
 
 def load_settings(args: argparse.Namespace) -> ConsoleSettings:
@@ -173,6 +206,8 @@ def load_settings(args: argparse.Namespace) -> ConsoleSettings:
         if f.mqtt is not None:
             s.mqtt_url = f.mqtt.url
         s.uv = f.uv
+        if f.links is not None:
+            s.links = f.links
     if getattr(args, "user", None):
         s.user = args.user
     if getattr(args, "password_file", None):
@@ -251,6 +286,7 @@ def open_link(settings: ConsoleSettings, clock: Any, client_id: str | None = Non
         zenoh_connect=settings.zenoh_connect,
         zenoh_auth=auth,
         client_id=client_id or f"{settings.operator}-{socket.gethostname()}"[:64],
+        policy=settings.links.policy(),
     ).start()
 
 

@@ -3,7 +3,8 @@
 ``alarm_lines`` (pure) renders the active alarms, one line each (severity, robot, alarm, first and
 last seen as ages, count, who acknowledged); ``AlarmPanel`` shows them under the robot detail and
 hides itself while there are none. ``AlarmKeeper`` is the console's side of its ``AlarmDesk``
-(operator/alarms.py): once per frame it tells the desk which robots went quiet on every link,
+(operator/alarms.py): once per frame it tells the desk which robots went quiet on every link
+and which have a degraded link (``LinkHealth.degraded``),
 collects the renotifications, writes the audit log (operator/audit.py) and publishes this
 console's acknowledgements (``AlarmAck``: on Zenoh, and retained on MQTT when the source can); it
 publishes them all again after every broker (re)connect, so a broker that lost its retained
@@ -133,7 +134,11 @@ class AlarmKeeper:
         if wall - self._quiet_checked >= QUIET_CHECK_S:  # not every frame: health costs per robot
             self._quiet_checked = wall
             for robot in robots:
-                desk.link_quiet(robot, links_quiet([h.age_s for h in health(robot)]), wall)
+                links = health(robot)
+                quiet = links_quiet([h.age_s for h in links])
+                desk.link_quiet(robot, quiet, wall)
+                # One link degraded while the robot is still heard (silent on all: link_lost).
+                desk.link_degraded(robot, [] if quiet else [(h.link, h.degraded) for h in links if h.degraded], wall)
         desk.tick(wall)
         records = desk.drain_audit()
         self.audit.write(records)

@@ -119,6 +119,7 @@ class AlarmKind(enum.StrEnum):
     BUMP = "bump"
     ESTOP = "estop"
     LINK_LOST = "link_lost"
+    LINK_DEGRADED = "link_degraded"
     TANK_LOW = "tank_low"
     LOCALISATION = "localisation"
 
@@ -141,6 +142,7 @@ KINDS: dict[AlarmKind, KindSpec] = {
     AlarmKind.BOARD_FAULT: KindSpec(AlarmSeverity.WARNING, False, "board fault"),
     AlarmKind.BUMP: KindSpec(AlarmSeverity.WARNING, True, "bump"),
     AlarmKind.LOCALISATION: KindSpec(AlarmSeverity.WARNING, False, "localisation degraded"),
+    AlarmKind.LINK_DEGRADED: KindSpec(AlarmSeverity.WARNING, False, "link degraded"),
     AlarmKind.TANK_LOW: KindSpec(AlarmSeverity.INFO, False, "tank low"),
 }
 
@@ -674,6 +676,14 @@ class AlarmDesk:
         """This console's view: the robot was heard on neither link for ``LINK_QUIET_S``."""
         text = f"nothing heard on any link for over {LINK_QUIET_S:.0f} s"
         obs = Observation(AlarmKind.LINK_LOST, "console", AlarmSeverity.CRITICAL if quiet else None, text)
+        self._apply(robot, obs, now, self._fresh(robot, obs.kind, now))
+
+    def link_degraded(self, robot: str, degraded: Sequence[tuple[str, str]], now: float) -> None:
+        """This console's view of one robot's links: [(link, why it is degraded)] (the link
+        manager's ``LinkHealth.degraded``: loss, RTT p95 or silence over the thresholds); an empty
+        list clears the alarm. (A robot silent on every link is ``link_lost``, not this.)"""
+        text = "; ".join(f"{link} {why}" for link, why in degraded)
+        obs = Observation(AlarmKind.LINK_DEGRADED, "console", AlarmSeverity.WARNING if degraded else None, text)
         self._apply(robot, obs, now, self._fresh(robot, obs.kind, now))
 
     def receive_ack(self, msg: AlarmAck, now: float) -> str | None:

@@ -1,4 +1,7 @@
-"""The fleet table: one row per robot (mode, battery, active link, link health, age, UWB, lease).
+"""The fleet table: one row per robot (mode, battery, link, link health, age, UWB, lease).
+
+The link column says where commands go: ``both`` (redundant sending), ``zenoh`` or ``mqtt``
+(failover); the health column the primary's state and the fallback's when it is down or degraded.
 
 ``fleet_rows`` (pure: the model, link views and time in, styled cells out) decides what each cell
 says and how it is coloured; ``FleetTable`` shows the rows, touching only the cells that changed.
@@ -13,7 +16,7 @@ from rich.text import Text
 from textual.widgets import DataTable
 
 from fleetlink.operator.fleet import FleetModel, RobotView
-from fleetlink.operator.linkmanager import PRIMARY, LinkHealth
+from fleetlink.operator.linkmanager import BOTH, PRIMARY, LinkHealth
 
 __all__ = ["COLUMNS", "Cell", "FleetTable", "Row", "fleet_rows", "id_cell", "row_cells"]
 
@@ -34,13 +37,26 @@ Row = tuple[Cell, ...]
 
 
 def health_cell(health: Sequence[LinkHealth]) -> Text:
+    """The primary's state (ok / degr / DOWN, loss, RTT p50), then the fallback's when it is not
+    fine (`` | mqtt DOWN``): one glance says whether a robot still has two paths."""
     primary = next((h for h in health if h.link == PRIMARY), None)
     if primary is None or primary.age_s is None:
         return Text("-", style="dim")
-    if primary.healthy:
-        rtt = f" {primary.rtt_s * 1000:.0f}ms" if primary.rtt_s is not None else ""
-        return Text(f"ok {primary.loss_pct:.0f}%{rtt}", style="green")
-    return Text(f"DOWN {primary.loss_pct:.0f}%", style="bold red")
+    rtt = f" {primary.rtt_s * 1000:.0f}ms" if primary.rtt_s is not None else ""
+    if not primary.healthy:
+        cell = Text(f"DOWN {primary.loss_pct:.0f}%", style="bold red")
+    elif primary.degraded:
+        cell = Text(f"degr {primary.loss_pct:.0f}%{rtt}", style="bold yellow")
+    else:
+        cell = Text(f"ok {primary.loss_pct:.0f}%{rtt}", style="green")
+    for other in health:
+        if other.link == PRIMARY or other.age_s is None:
+            continue
+        if not other.healthy:
+            cell.append(f" | {other.link} DOWN", style="bold red")
+        elif other.degraded:
+            cell.append(f" | {other.link} degr", style="bold yellow")
+    return cell
 
 
 def age_cell(age: float | None) -> str:
@@ -79,7 +95,7 @@ def row_cells(
         id_cell(view),
         view.mode if not view.estop else Text("ESTOP", style="bold red"),
         "?" if view.battery is None else f"{view.battery:.0f}%",
-        Text(link, style="green" if link == PRIMARY else "bold yellow"),
+        Text(link, style="green" if link in (PRIMARY, BOTH) else "bold yellow"),
         health_cell(health),
         age_cell(view.age(now)),
         uwb_cell(uwb_ok),

@@ -1,6 +1,10 @@
 """Primary/fallback link manager for the operator side: plain Python, no I/O, time passed in.
 
-Every command to a robot goes over the robot's *active* link, the primary (Zenoh) while it is
+Two ways to send. **Redundant** (``LinkPolicy.redundant``, the consoles' default): every command
+goes out on both links at once, same bytes, same header (IEC 62439-3 PRP's idea); the agent runs
+the first copy to arrive and acks each copy on the link it came by (agent/links/gate.py), so the
+loss of either link costs no time at all. Unacked commands are re-sent on both links. **Failover**
+(sites with a metered link, and the fall-back): every command goes over the robot's *active* link, the primary (Zenoh) while it is
 healthy. The primary turns unhealthy when the robot has not been heard on it for
 ``state_window_s`` (three missed 10 Hz states) or when a command sent on it has gone unacked for
 ``ack_timeout_s``. Then, at the next ``poll``, the robot's commands move to the fallback (MQTT)
@@ -10,16 +14,23 @@ the primary has been healthy again for ``holdoff_s`` the robot moves back.
 
 The adapter (operator/links.py) feeds in what it hears (``heard``, ``acked``), asks where a new
 command goes (``command``), and calls ``poll`` a few dozen times a second; the returned ``Send``
-and ``Switch`` values are its instructions. Health per robot and link (age of the last message,
-loss % from headerId gaps, round-trip time from acks) is exposed through ``health``.
+and ``Switch`` values are its instructions (no ``Switch`` in redundant mode: nothing moves).
+
+Health per robot and link (``health``), from each command's copies and their acks: round-trip
+time p50/p95 over the last ``rtt_window`` acks, loss (copies unacked within ``ack_timeout_s`` over
+the last ``loss_window``), age of the last message heard, and -- when both copies of a command were
+acked -- which link's ack came first and by how much. A link heard before is *degraded*
+(``LinkHealth.degraded`` says why) when its loss, its RTT p95 or its silence passes the policy's
+thresholds; the console raises an alarm for it (operator/alarms.py, ``link_degraded``).
 """
 
 from __future__ import annotations
 
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 __all__ = [
+    "BOTH",
     "FALLBACK",
     "LINKS",
     "PRIMARY",
@@ -34,6 +45,8 @@ __all__ = [
 PRIMARY = "zenoh"
 FALLBACK = "mqtt"
 LINKS = (PRIMARY, FALLBACK)
+BOTH = "both"
+"""What ``route`` says in redundant mode: every command goes on both links."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,13 +63,31 @@ class LinkPolicy:
     """How many recent commands the loss percentage looks at."""
     max_pending: int = 256
     """Unacked commands kept per robot; the oldest are dropped (and reported) beyond this."""
+    redundant: bool = False
+    """Every command on both links at once (the consoles' default: ``[links] redundant``); False:
+    on the active link only, failing over (the lockstep sortie and replays use this default)."""
+    rtt_window: int = 200
+    """How many recent acks per link the RTT percentiles look at."""
+    track_s: float = 2.0
+    """How long a command's copies are followed: an ack later than ``ack_timeout_s`` (a copy
+    counted lost) still gives its RTT until then."""
+    degraded_rtt_s: float = 0.1
+    """A link whose RTT p95 is over this is degraded."""
+    degraded_loss_pct: float = 5.0
+    """A link losing more than this share of its copies is degraded."""
+    degraded_silence_s: float = 1.0
+    """A link heard before and silent this long is degraded."""
+    min_samples: int = 5
+    """Acks (for RTT) or judged copies (for loss) needed before a link can be called degraded."""
 
     def __post_init__(self) -> None:
-        for name in ("state_window_s", "ack_timeout_s", "holdoff_s"):
+        for name in ("state_window_s", "ack_timeout_s", "holdoff_s", "track_s", "degraded_rtt_s", "degraded_silence_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        if self.max_attempts < 1 or self.loss_window < 1 or self.max_pending < 1:
-            raise ValueError("max_attempts, loss_window and max_pending must be >= 1")
+        if self.max_attempts < 1 or self.loss_window < 1 or self.max_pending < 1 or self.rtt_window < 1:
+            raise ValueError("max_attempts, loss_window, max_pending and rtt_window must be >= 1")
+        if not 0.0 <= self.degraded_loss_pct <= 100.0 or self.min_samples < 1:
+            raise ValueError("degraded_loss_pct must be in [0, 100] and min_samples >= 1")
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,15 +111,31 @@ class LinkHealth:
     loss_pct: float
     """Share of recent commands on this link that went unacked within the ack timeout."""
     rtt_s: float | None
-    """Smoothed command-to-ack round trip on this link (None: no ack yet)."""
+    """Command-to-ack round trip on this link, median of the window (None: no ack yet)."""
     reason: str
     """Why it is unhealthy ('' when healthy)."""
+    rtt_p95_s: float | None = None
+    """95th percentile of the same window."""
+    first_pct: float | None = None
+    """Of the commands acked on both links, the share whose ack came first on this one (None: none yet)."""
+    lead_s: float | None = None
+    """When this link's ack came first: by how much, the median (None: it never came first)."""
+    degraded: str = ""
+    """Why this link is degraded (loss, RTT or silence over the policy's thresholds); '' when not."""
 
     def describe(self) -> str:
         age = "never" if self.age_s is None else f"{self.age_s * 1000:.0f} ms"
         rtt = "-" if self.rtt_s is None else f"{self.rtt_s * 1000:.1f} ms"
+        if self.rtt_s is not None and self.rtt_p95_s is not None and self.rtt_p95_s != self.rtt_s:
+            rtt = f"{self.rtt_s * 1000:.1f}/{self.rtt_p95_s * 1000:.1f} ms"  # p50/p95
         state = "ok" if self.healthy else f"DOWN ({self.reason})"
-        return f"{self.link} {state} age {age} loss {self.loss_pct:.0f}% rtt {rtt}"
+        if self.healthy and self.degraded:
+            state = f"DEGRADED ({self.degraded})"
+        first = ""
+        if self.first_pct is not None:
+            lead = "" if self.lead_s is None else f" by {self.lead_s * 1000:.1f} ms"
+            first = f" first {self.first_pct:.0f}%{lead}"
+        return f"{self.link} {state} age {age} loss {self.loss_pct:.0f}% rtt {rtt}{first}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -129,9 +176,22 @@ class _Pending:
 
 
 @dataclass(slots=True)
+class _Copies:
+    """One command's copies: when each went out on its link, when each ack came back."""
+
+    first_sent: float
+    sent: dict[str, float] = field(default_factory=dict)
+    acked: dict[str, float] = field(default_factory=dict)
+    judged: set[str] = field(default_factory=set)
+    """Links whose copy is counted (acked in time, or lost)."""
+    together: bool = True
+    """Both copies went out at once (their acks can be compared: which link delivered first)."""
+
+
+@dataclass(slots=True)
 class _LinkState:
     last_heard: float | None = None
-    rtt_s: float | None = None
+    rtts: deque[float] = field(default_factory=deque)
     window: deque[bool] = field(default_factory=deque)
     ack_timeout_at: float | None = None
     """When an ack timeout last made this link unhealthy (cleared by the next message heard)."""
@@ -145,9 +205,16 @@ class _Robot:
     pending: dict[tuple[str, int], _Pending] = field(default_factory=dict)
     primary_healthy_since: float | None = None
     switches: int = 0
+    copies: dict[tuple[str, int], _Copies] = field(default_factory=dict)
+    """Commands whose copies are followed (acked, lost, late), oldest first."""
+    first: Counter[str] = field(default_factory=Counter)
+    """Commands acked on both links, by the link whose ack came first."""
+    leads: dict[str, deque[float]] = field(default_factory=lambda: {name: deque() for name in LINKS})
+    """By how much each link's ack came first (seconds), the last ``rtt_window``."""
 
 
-_RTT_ALPHA = 0.25
+MAX_FOLLOWED = 1024
+"""Commands whose copies are followed per robot; the oldest are forgotten first beyond this."""
 
 
 class LinkManager:
@@ -182,33 +249,87 @@ class LinkManager:
         ls = state.links[_check_link(link)]
         ls.last_heard = now
         ls.ack_timeout_at = None
-        pending = state.pending.pop((topic, header_id), None)
-        if pending is None:
-            return False
-        if pending.link == link:
-            self._outcome(ls, now - pending.sent_at < self.policy.ack_timeout_s)
-            rtt = max(0.0, now - pending.sent_at)
-            ls.rtt_s = rtt if ls.rtt_s is None else ls.rtt_s + _RTT_ALPHA * (rtt - ls.rtt_s)
-        return True
+        self._ack_copy(state, link, (topic, header_id), now)
+        return state.pending.pop((topic, header_id), None) is not None
+
+    def _ack_copy(self, state: _Robot, link: str, slot: tuple[str, int], now: float) -> None:
+        copies = state.copies.get(slot)
+        if copies is None or link not in copies.sent or link in copies.acked:
+            return
+        ls = state.links[link]
+        copies.acked[link] = now
+        rtt = max(0.0, now - copies.sent[link])
+        ls.rtts.append(rtt)
+        while len(ls.rtts) > self.policy.rtt_window:
+            ls.rtts.popleft()
+        if link not in copies.judged:
+            copies.judged.add(link)
+            self._outcome(ls, rtt < self.policy.ack_timeout_s)
+        if len(copies.acked) == len(LINKS) and copies.together:
+            (win, t_win), (_, t_other) = sorted(copies.acked.items(), key=lambda kv: kv[1])
+            state.first[win] += 1
+            leads = state.leads[win]
+            leads.append(t_other - t_win)
+            while len(leads) > self.policy.rtt_window:
+                leads.popleft()
+        if len(copies.acked) == len(copies.sent):
+            del state.copies[slot]
+
+    def _sent(self, state: _Robot, slot: tuple[str, int], links: tuple[str, ...], now: float) -> None:
+        """Copies of ``slot`` went out on ``links`` now (a first send, or a re-send)."""
+        copies = state.copies.pop(slot, None)
+        if copies is None:
+            copies = _Copies(first_sent=now)
+        else:
+            copies.together = False  # a re-send: its acks race nothing sent at the same time
+        for link in links:
+            copies.sent[link] = now
+            copies.acked.pop(link, None)
+            copies.judged.discard(link)
+        state.copies[slot] = copies  # (re)inserted last: the dict stays oldest first
+        while len(state.copies) > MAX_FOLLOWED:
+            del state.copies[next(iter(state.copies))]
+
+    def _judge(self, state: _Robot, now: float) -> None:
+        """Count copies unacked for ``ack_timeout_s`` as lost; forget commands older than ``track_s``."""
+        timeout = self.policy.ack_timeout_s
+        done = []
+        for slot, copies in state.copies.items():
+            for link, at in copies.sent.items():
+                if link in copies.judged or now - at < timeout:
+                    continue
+                copies.judged.add(link)
+                ls = state.links[link]
+                self._outcome(ls, False)
+                if ls.last_heard is None or ls.last_heard <= at + timeout:
+                    ls.ack_timeout_at = now if ls.ack_timeout_at is None else ls.ack_timeout_at
+            if now - max(copies.sent.values()) >= self.policy.track_s:
+                done.append(slot)
+        for slot in done:
+            del state.copies[slot]
 
     def command(
         self, robot: str, topic: str, header_id: int, payload: bytes, now: float, *, expect_ack: bool = True
     ) -> tuple[list[Send], list[Failed]]:
-        """Where a new command goes: one ``Send`` on the robot's active link.
+        """Where a new command goes: a ``Send`` on each link (redundant), or one on the robot's
+        active link (failover).
 
-        With ``expect_ack`` the command is kept until acked and re-sent on a switch; without it
-        (drive commands at 10 Hz, superseded by the next one anyway) it is sent once.
+        With ``expect_ack`` the command is kept until acked and re-sent (on a switch, or after the
+        ack timeout); its copies' acks feed the link health. Without it (drive commands at the
+        key's repeat rate, superseded by the next one anyway) it is sent once and not followed.
         """
         state = self._robot(robot, now)
-        send = Send(robot, state.active, topic, header_id, payload)
+        links = LINKS if self.policy.redundant else (state.active,)
+        sends = [Send(robot, link, topic, header_id, payload) for link in links]
         failed: list[Failed] = []
         if expect_ack:
             state.pending[(topic, header_id)] = _Pending(topic, header_id, payload, state.active, now, now)
+            self._sent(state, (topic, header_id), links, now)
             while len(state.pending) > self.policy.max_pending:
                 oldest = next(iter(state.pending))
                 dropped = state.pending.pop(oldest)
                 failed.append(Failed(robot, dropped.topic, dropped.header_id, "too many unacked commands"))
-        return [send], failed
+        return sends, failed
 
     def forget(self, robot: str) -> None:
         self._robots.pop(robot, None)
@@ -219,6 +340,10 @@ class LinkManager:
         """Switch links where health demands it, re-send unacked commands, give up on dead ones."""
         out: list[Send | Switch | Failed] = []
         for robot, state in self._robots.items():
+            self._judge(state, now)
+            if self.policy.redundant:  # nothing to move: every command already goes on both
+                out.extend(self._retry(robot, state, now))
+                continue
             self._expire_acks(state, now)
             primary_ok, reason = self._link_ok(state, PRIMARY, now)
             if primary_ok:
@@ -254,7 +379,7 @@ class LinkManager:
         if now - reference > self.policy.state_window_s:
             what = "never heard" if ls.last_heard is None else "silent"
             return False, f"{what} for {(now - reference) * 1000:.0f} ms"
-        if ls.ack_timeout_at is not None and link == state.active:
+        if ls.ack_timeout_at is not None and (link == state.active or self.policy.redundant):
             return False, f"ack timeout ({self.policy.ack_timeout_s * 1000:.0f} ms)"
         return True, ""
 
@@ -267,9 +392,8 @@ class LinkManager:
     def _resend_all(self, robot: str, state: _Robot, now: float) -> list[Send]:
         sends = []
         for p in state.pending.values():
-            if now - p.sent_at >= self.policy.ack_timeout_s:
-                self._outcome(state.links[p.link], False)
             p.link, p.sent_at, p.attempts = state.active, now, p.attempts + 1
+            self._sent(state, (p.topic, p.header_id), (state.active,), now)
             sends.append(Send(robot, state.active, p.topic, p.header_id, p.payload, resend=True))
         return sends
 
@@ -278,13 +402,14 @@ class LinkManager:
         for slot, p in list(state.pending.items()):
             if now - p.sent_at < self.policy.ack_timeout_s:
                 continue
-            self._outcome(state.links[p.link], False)
             if p.attempts >= self.policy.max_attempts:
                 del state.pending[slot]
                 out.append(Failed(robot, p.topic, p.header_id, f"no ack after {p.attempts} sends"))
                 continue
+            links = LINKS if self.policy.redundant else (state.active,)
             p.link, p.sent_at, p.attempts = state.active, now, p.attempts + 1
-            out.append(Send(robot, state.active, p.topic, p.header_id, p.payload, resend=True))
+            self._sent(state, slot, links, now)
+            out.extend(Send(robot, link, p.topic, p.header_id, p.payload, resend=True) for link in links)
         return out
 
     # -- outputs --------------------------------------------------------------------------------
@@ -293,8 +418,13 @@ class LinkManager:
         return list(self._robots)
 
     def active(self, robot: str) -> str:
+        """The link failover would use (in redundant mode it never moves from the primary)."""
         state = self._robots.get(robot)
         return PRIMARY if state is None else state.active
+
+    def route(self, robot: str) -> str:
+        """Where commands go: ``both`` (redundant), else the active link."""
+        return BOTH if self.policy.redundant else self.active(robot)
 
     def pending(self, robot: str) -> int:
         state = self._robots.get(robot)
@@ -312,13 +442,40 @@ class LinkManager:
 
     def _health(self, state: _Robot, now: float) -> tuple[LinkHealth, ...]:
         out = []
+        both = sum(state.first.values())
         for name in LINKS:
             ls = state.links[name]
             ok, reason = self._link_ok(state, name, now)
             age = None if ls.last_heard is None else max(0.0, now - ls.last_heard)
             loss = 100.0 * ls.window.count(False) / len(ls.window) if ls.window else 0.0
-            out.append(LinkHealth(name, ok, age, loss, ls.rtt_s, reason))
+            rtts = sorted(ls.rtts)
+            p50 = _pct(rtts, 0.5)
+            p95 = _pct(rtts, 0.95)
+            first = 100.0 * state.first[name] / both if both else None
+            lead = _pct(sorted(state.leads[name]), 0.5)
+            degraded = self._degraded(ls, age, loss, p95, len(rtts))
+            out.append(LinkHealth(name, ok, age, loss, p50, reason, p95, first, lead, degraded))
         return tuple(out)
+
+    def _degraded(self, ls: _LinkState, age: float | None, loss: float, p95: float | None, samples: int) -> str:
+        """Why a link heard before is degraded ('' if it is not)."""
+        p = self.policy
+        if age is None:
+            return ""  # never heard here (a one-link site): nothing to compare with
+        if age > p.degraded_silence_s:
+            return f"silent {age:.1f} s"
+        if len(ls.window) >= p.min_samples and loss > p.degraded_loss_pct:
+            return f"loss {loss:.0f}% > {p.degraded_loss_pct:g}%"
+        if p95 is not None and samples >= p.min_samples and p95 > p.degraded_rtt_s:
+            return f"rtt p95 {p95 * 1000:.0f} ms > {p.degraded_rtt_s * 1000:.0f} ms"
+        return ""
+
+
+def _pct(ordered: list[float], q: float) -> float | None:
+    """The ``q`` quantile of an ascending list (nearest rank); None if empty."""
+    if not ordered:
+        return None
+    return ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))]
 
 
 def _check_link(link: str) -> str:

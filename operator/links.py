@@ -1,5 +1,8 @@
 """The operator's two links (Zenoh primary, MQTT fallback) around the pure link manager.
 
+With ``LinkPolicy(redundant=True)`` (the consoles' default, ``[links] redundant``) every command
+goes out on both links at once, same bytes; else over the robot's active link, failing over.
+
 ``OperatorLink`` is the console's data source for the network: it subscribes to every fleetlink
 key on both links (``fleetlink.links`` endpoints, keyed by ``LinkName``), decodes (bad input is
 counted and logged once per reason), feeds health and acks into ``LinkManager``, hands good
@@ -252,7 +255,8 @@ class OperatorLink:
     # -- outbound -------------------------------------------------------------------------------
 
     def send(self, cls: type[wire.Message], robot: str, *, expect_ack: bool = True, **fields: Any) -> wire.Message:
-        """Build, encode and send a command to ``robot`` over its active link. Returns the message."""
+        """Build, encode and send a command to ``robot`` (on both links, or over its active link).
+        Returns the message."""
         msg = cls(header=self.counter.header(cls.TOPIC, robot=robot), **fields)
         payload = wire.encode(msg)
         now = self.clock.now()
@@ -389,8 +393,13 @@ class OperatorLink:
     # -- views ----------------------------------------------------------------------------------
 
     def active(self, robot: str) -> str:
+        """Where ``robot``'s commands go: ``both`` (redundant sending), else its active link."""
         with self._lock:
-            return self.manager.active(robot)
+            return self.manager.route(robot)
+
+    @property
+    def redundant(self) -> bool:
+        return self.manager.policy.redundant
 
     def health(self, robot: str) -> tuple[LinkHealth, ...]:
         with self._lock:

@@ -69,6 +69,27 @@ def test_gate_runs_a_command_once_across_links() -> None:
     )
 
 
+def test_gate_the_copy_on_the_other_link_takes_no_rate() -> None:
+    # A console sending everything on both links (redundant sending) at the sender's full rate:
+    # every first copy runs, every second copy is a free duplicate -- none refused over the rate.
+    gate = CommandGate("r1")
+    verdicts = []
+    for i in range(400):  # 400 teleops at 50/s (the rate) over 8 s, each on both links
+        raw = wire.encode(OP.make(Teleop, v=0.2, omega=0.0, ttl_s=0.5))
+        verdicts.append(gate.receive(LinkName.ZENOH, K["teleop"], raw, i * 0.02))
+        verdicts.append(gate.receive(LinkName.MQTT, K["teleop"], raw, i * 0.02 + 0.001))
+    assert [type(v) for v in verdicts[0::2]] == [Accepted] * 400
+    assert [type(v) for v in verdicts[1::2]] == [Duplicate] * 400
+    assert gate.limit.limited == 0
+    # A replay of a copy already answered on both links pays like anything else.
+    raw = wire.encode(OP.make(Teleop, v=0.2, omega=0.0, ttl_s=0.5))
+    gate.receive(LinkName.ZENOH, K["teleop"], raw, 9.0)
+    gate.receive(LinkName.MQTT, K["teleop"], raw, 9.0)
+    for _ in range(150):
+        gate.receive(LinkName.MQTT, K["teleop"], raw, 9.0)
+    assert gate.limit.limited > 0
+
+
 def test_gate_orders_are_idempotent_on_order_id_and_update() -> None:
     gate = CommandGate("r1")
     goal = Goal(x=1.0, y=2.0, theta=None)

@@ -146,3 +146,92 @@ def test_bad_link_name_rejected() -> None:
         LinkManager().heard("r1", "carrier-pigeon", 0.0)
     with pytest.raises(ValueError, match="holdoff_s"):
         LinkPolicy(holdoff_s=0)
+
+
+# -- redundant sending ---------------------------------------------------------------------------
+
+BOTH_LINKS = LinkPolicy(state_window_s=0.35, ack_timeout_s=0.25, holdoff_s=2.0, max_attempts=3, redundant=True)
+
+
+def test_redundant_sends_every_command_on_both_links_and_counts_who_came_first() -> None:
+    lm = LinkManager(BOTH_LINKS)
+    t = _feed(lm, "r1", (PRIMARY, FALLBACK), 0.0, 1.0)
+    assert lm.route("r1") == "both"
+    for i in range(10):
+        sends, _ = lm.command("r1", "order", i, b"g", t)
+        assert [s.link for s in sends] == [PRIMARY, FALLBACK] and {s.payload for s in sends} == {b"g"}
+        assert lm.acked("r1", PRIMARY, "order", i, t + 0.002)  # the first ack settles it
+        assert not lm.acked("r1", FALLBACK, "order", i, t + 0.005)  # the copy's ack: health only
+    teleop, _ = lm.command("r1", "teleop", 99, b"drive", t, expect_ack=False)
+    assert [s.link for s in teleop] == [PRIMARY, FALLBACK]  # a held key streams on both links
+    h = {x.link: x for x in lm.health("r1", t + 0.01)}
+    assert h[PRIMARY].first_pct == 100.0 and h[FALLBACK].first_pct == 0.0
+    assert h[PRIMARY].lead_s == pytest.approx(0.003) and h[FALLBACK].lead_s is None
+    assert h[PRIMARY].rtt_s == pytest.approx(0.002) and h[FALLBACK].rtt_p95_s == pytest.approx(0.005)
+    assert h[PRIMARY].loss_pct == h[FALLBACK].loss_pct == 0.0
+    assert not h[PRIMARY].degraded and not h[FALLBACK].degraded
+    assert "first 100% by 3.0 ms" in h[PRIMARY].describe()
+
+
+def test_redundant_never_switches_and_a_dead_primary_costs_nothing() -> None:
+    lm = LinkManager(BOTH_LINKS)
+    t = _feed(lm, "r1", (PRIMARY, FALLBACK), 0.0, 1.0)
+    out: list[object] = []
+    for i in range(20):  # the primary is dead from here on: only the fallback answers
+        now = round(t + i * 0.05, 3)
+        lm.heard("r1", FALLBACK, now)
+        lm.command("r1", "order", i, b"g", now)
+        assert lm.acked("r1", FALLBACK, "order", i, now + 0.003)
+        out += lm.poll(now)
+    assert not [o for o in out if isinstance(o, Switch | Send | Failed)]  # nothing moved, resent or lost
+    h = {x.link: x for x in lm.health("r1", t + 1.2)}
+    assert not h[PRIMARY].healthy and h[FALLBACK].healthy and not h[FALLBACK].degraded
+    assert h[PRIMARY].loss_pct == 100.0 and "silent" in h[PRIMARY].degraded
+
+
+def test_redundant_resends_on_both_links_when_neither_acks() -> None:
+    lm = LinkManager(BOTH_LINKS)
+    t = _feed(lm, "r1", (PRIMARY, FALLBACK), 0.0, 1.0)
+    lm.command("r1", "actions", 4, b"stop", t)
+    out = lm.poll(t + 0.3)
+    assert sorted(s.link for s in out if isinstance(s, Send)) == [FALLBACK, PRIMARY]
+    assert all(s.resend for s in out if isinstance(s, Send))
+
+
+def test_a_late_link_is_degraded_and_says_why() -> None:
+    lm = LinkManager(BOTH_LINKS)
+    t = _feed(lm, "r1", (PRIMARY, FALLBACK), 0.0, 1.0)
+    for i in range(20):  # MQTT delivers every copy, 150 ms late (over the 100 ms RTT threshold)
+        now = t + i * 0.05
+        lm.heard("r1", PRIMARY, now)
+        lm.heard("r1", FALLBACK, now)
+        lm.command("r1", "order", i, b"g", now)
+        lm.acked("r1", PRIMARY, "order", i, now + 0.002)
+        lm.acked("r1", FALLBACK, "order", i, now + 0.15)
+        lm.poll(now)
+    h = {x.link: x for x in lm.health("r1", t + 1.0)}
+    assert not h[PRIMARY].degraded
+    assert h[FALLBACK].healthy and h[FALLBACK].degraded.startswith("rtt p95 150 ms")
+    assert "DEGRADED" in h[FALLBACK].describe()
+
+
+def test_lost_copies_make_a_link_degraded_and_late_acks_still_give_rtt() -> None:
+    lm = LinkManager(BOTH_LINKS)
+    t = _feed(lm, "r1", (PRIMARY, FALLBACK), 0.0, 1.0)
+    for i in range(10):  # MQTT answers half the copies, 300 ms late: past the ack timeout
+        now = t + i * 0.05
+        lm.command("r1", "order", i, b"g", now)
+        lm.acked("r1", PRIMARY, "order", i, now + 0.002)
+        lm.poll(now + 0.26)
+        if i % 2 == 0:
+            lm.acked("r1", FALLBACK, "order", i, now + 0.3)
+    h = {x.link: x for x in lm.health("r1", t + 0.5)}
+    assert h[FALLBACK].loss_pct == 100.0 and h[FALLBACK].degraded.startswith("loss")
+    assert h[FALLBACK].rtt_s == pytest.approx(0.3)
+
+
+def test_new_policy_values_are_checked() -> None:
+    with pytest.raises(ValueError, match="degraded_rtt_s"):
+        LinkPolicy(degraded_rtt_s=0)
+    with pytest.raises(ValueError, match="degraded_loss_pct"):
+        LinkPolicy(degraded_loss_pct=120.0)

@@ -8,6 +8,7 @@ reaches the operator over Zenoh, exactly like a dead radio.
 
 from __future__ import annotations
 
+import itertools
 import time
 from typing import Any
 
@@ -78,7 +79,8 @@ def test_cut_primary_fails_over_without_loss_or_duplicates_and_fails_back(pair: 
     # The primary comes back: after the hold-off commands return to Zenoh.
     robot.open_primary()
     wait_until(lambda: op.active("r1") == PRIMARY, timeout=10.0, message="fail-back to zenoh")
-    assert switches[-1].to_link == PRIMARY
+    # (listeners hear of a switch just after the manager made it, outside its lock)
+    wait_until(lambda: switches[-1].to_link == PRIMARY, message="the fail-back reported")
 
     # The robot's fresh session may not have declared its subscriptions to the console yet: a goal
     # sent before that is acked over MQTT after the ack timeout. Goals go back to Zenoh soon.
@@ -111,3 +113,107 @@ def test_garbage_is_counted_and_logged_once(pair: Any, mosquitto: Any, caplog: A
     # Still serving.
     op.send(Order, "r1", **goal(99))
     wait_until(lambda: any(e.order == ("goal-99", 0) for e in robot.executed), message="goal after garbage")
+
+
+# -- redundant sending: every command on both links at once -----------------------------------------
+
+BOTH_LINKS = LinkPolicy(state_window_s=0.35, ack_timeout_s=0.25, holdoff_s=0.6, redundant=True)
+
+
+@pytest.fixture
+def redundant_pair(mosquitto: Any) -> Any:
+    op, endpoint = open_operator(mosquitto.port, BOTH_LINKS, sender="operator-r")
+    robot = LinkRobot("r1", endpoint, mosquitto.port, SystemClock())
+    try:
+        wait_until(lambda: all(h.age_s is not None for h in op.health("r1")), message="poses from r1 on both links")
+        wait_until(lambda: _zenoh_ready(op, robot), timeout=10.0, message="the robot's Zenoh subscriptions")
+        yield op, robot
+    finally:
+        robot.close()
+        op.close()
+
+
+def _zenoh_ready(op: Any, robot: LinkRobot) -> bool:
+    """A goal whose copy arrives on both links: the robot's Zenoh subscriptions reached the console."""
+    before = robot.gate.stats.duplicates
+    op.send(Order, "r1", **goal(10_000 + before + len(robot.executed)))
+    time.sleep(0.1)
+    return robot.gate.stats.duplicates > before
+
+
+def test_redundant_command_runs_once_and_is_acked_on_both_links(redundant_pair: Any) -> None:
+    op, robot = redundant_pair
+    assert op.redundant and op.active("r1") == "both"
+    start, dups = len(robot.executed), robot.gate.stats.duplicates
+    for i in range(10):
+        op.send(Order, "r1", **goal(i))
+        time.sleep(0.02)
+    wait_until(lambda: robot.gate.stats.duplicates - dups == 10, message="every goal's second copy")
+    wait_until(lambda: op.pending("r1") == 0, message="every goal acked")
+    ran = [e.order for e in robot.executed[start:]]
+    assert sorted(ran) == sorted((f"goal-{i}", 0) for i in range(10))  # each once
+    # Both copies acked, on their own links: the console knows which came first, on each link.
+    wait_until(
+        lambda: sum(h.first_pct or 0.0 for h in op.health("r1")) == pytest.approx(100.0),
+        message="first-delivery counts from the acks of both copies",
+    )
+    health = {h.link: h for h in op.health("r1")}
+    assert health[PRIMARY].rtt_s is not None and health[FALLBACK].rtt_s is not None
+    assert health[PRIMARY].loss_pct == 0.0 and health[FALLBACK].loss_pct == 0.0
+
+
+def test_a_link_that_delivers_late_is_degraded_and_raises_an_alarm(redundant_pair: Any, tmp_path: Any) -> None:
+    from fleetlink.operator.alarm_panel import AlarmKeeper
+    from fleetlink.operator.alarms import AlarmDesk, AlarmKind
+    from fleetlink.operator.audit import AuditLog
+    from fleetlink.shared.messages import LinkName
+
+    op, robot = redundant_pair
+    keeper = AlarmKeeper(op, AlarmDesk("operator-r"), AuditLog(tmp_path / "alarms.jsonl", "operator-r"))
+    keeper.frame(0.0, ["r1"], op.health)
+    assert keeper.desk.alarms.get("r1", AlarmKind.LINK_DEGRADED) is None
+    robot.ack_delay_s[LinkName.MQTT] = 0.15  # over the 100 ms RTT p95 threshold, under the ack timeout
+    sent = 100
+    for _ in range(BOTH_LINKS.min_samples + 10):
+        op.send(Order, "r1", **goal(sent))
+        sent += 1
+        time.sleep(0.03)
+    wait_until(lambda: {h.link: h for h in op.health("r1")}[FALLBACK].degraded != "", message="MQTT degraded")
+    health = {h.link: h for h in op.health("r1")}
+    assert health[FALLBACK].healthy and "rtt p95" in health[FALLBACK].degraded
+    assert not health[PRIMARY].degraded
+    assert health[PRIMARY].first_pct is not None and health[PRIMARY].first_pct > 50.0
+    keeper.frame(1.0, ["r1"], op.health)
+    alarm = keeper.desk.alarms.get("r1", AlarmKind.LINK_DEGRADED)
+    assert alarm is not None and "mqtt rtt p95" in alarm.text
+    keeper.close()
+
+
+def test_redundant_cut_of_zenoh_mid_teleop_no_deadman_stop_nothing_lost(redundant_pair: Any) -> None:
+    from fleetlink.operator.commander import TELEOP_TTL_S
+    from fleetlink.shared.messages import Teleop
+
+    op, robot = redundant_pair
+    start = len(robot.executed)
+    switches: list[object] = []
+    op.add_listener(switches.append)
+    sent = 200
+    t0 = time.monotonic()
+    cut = False
+    while time.monotonic() - t0 < 2.0:  # a held key (20 Hz) and a goal every 50 ms, a cut halfway
+        op.send(Teleop, "r1", expect_ack=False, v=0.2, omega=0.0, ttl_s=TELEOP_TTL_S)
+        op.send(Order, "r1", **goal(sent))
+        sent += 1
+        if not cut and time.monotonic() - t0 > 1.0:
+            robot.cut_primary()
+            cut = True
+        time.sleep(0.05)
+    wait_until(lambda: op.pending("r1") == 0, message="every goal acked")
+    done = robot.executed[start:]
+    orders = [e.order for e in done if e.topic == "order"]
+    assert sorted(orders) == sorted((f"goal-{i}", 0) for i in range(200, sent)), "lost or run twice"
+    drives = [e.at for e in done if e.topic == "teleop"]
+    gaps = [b - a for a, b in itertools.pairwise(drives)]
+    assert max(gaps) < TELEOP_TTL_S, "a drive gap the deadman would stop the robot for"
+    assert any(e.link == "mqtt" for e in done if e.topic == "teleop")  # after the cut, MQTT's copies ran
+    assert not switches  # nothing to fail over: both links were carrying everything already

@@ -4,7 +4,9 @@
   command's ``header.sender`` the login its key names -- on a secured site only that login may
   publish there, so the sender is the transport's word, not the payload's);
 * drops a command already executed: same (topic, sender, headerId, timestamp) -- an operator
-  may send the same bytes on both links, and re-sends are byte-identical -- or an order whose
+  sends the same bytes on both links (redundant sending: the first copy runs, the other is acked
+  as a duplicate on its own link and costs the sender no rate), and re-sends are byte-identical
+  -- or an order whose
   (orderId, orderUpdateId) was already executed; an order update older than the last one is stale;
 * counts rejections per (link, topic) and says which ones are new enough to log (once per
   link, topic and offending field), so garbage never floods the log;
@@ -144,8 +146,9 @@ class CommandGate:
         self.horizon_s = horizon_s
         self.max_entries = max_entries
         self.stats = GateStats()
-        # (topic, sender, headerId, timestamp) -> (time seen, link it first came on)
-        self._seen: OrderedDict[tuple[str, str, int, float], tuple[float, LinkName]] = OrderedDict()
+        # (topic, sender, headerId, timestamp) -> (time seen, link it first came on, whether its
+        # copy on the other link came too)
+        self._seen: OrderedDict[tuple[str, str, int, float], tuple[float, LinkName, bool]] = OrderedDict()
         self._orders: dict[str, int] = {}  # orderId -> highest executed orderUpdateId
         self._logged: set[tuple[str, str, bool]] = set()
         self.limit = RateLimit()
@@ -171,21 +174,32 @@ class CommandGate:
             self.stats.accepted += 1
             return Accepted(msg, link)
         sender = msg.header.sender
+        h = msg.header
+        ident = (topic, h.sender, h.headerId, h.timestamp)
+        first = self._seen.get(ident)
+        if first is not None and first[1] is not link and not first[2]:
+            # The copy on the other link of a command sent on both (redundant sending): acked as a
+            # duplicate, never run, and free -- it takes no token from the sender's rate, or a
+            # console sending everything twice would be held to half of it. Only the first such
+            # copy is free: replays of it go through the rate like anything else.
+            self._seen[ident] = (first[0], first[1], True)
+            self.stats.duplicates += 1
+            return Duplicate(
+                msg, link, self.ack(msg, link, AckResult.DUPLICATE, f"already received on {first[1].value}")
+            )
         if not always_allowed(msg) and not self.limit.allow(sender, now, priority=sender == self.priority_sender):
             # Over its rate: refused before any work (not remembered, no ack, no lease check),
             # counted, logged once per link and topic. The lease holder's teleops (10 Hz) are far
             # below the rate; stops are never limited.
             return self.reject(link, topic, f"sender {sender!r}: over its rate ({self.limit.rate:g} commands/s)")
         self._expire(now)
-        h = msg.header
-        ident = (topic, h.sender, h.headerId, h.timestamp)
         first = self._seen.get(ident)
         if first is not None:
             self.stats.duplicates += 1
             return Duplicate(
                 msg, link, self.ack(msg, link, AckResult.DUPLICATE, f"already received on {first[1].value}")
             )
-        self._seen[ident] = (now, link)
+        self._seen[ident] = (now, link, False)
         if isinstance(msg, Order):
             last = self._orders.get(msg.orderId)
             if last is not None and msg.orderUpdateId == last:
@@ -251,7 +265,7 @@ class CommandGate:
     def _expire(self, now: float) -> None:
         seen = self._seen
         while seen:
-            ident, (t, _) = next(iter(seen.items()))
+            ident, (t, _, _) = next(iter(seen.items()))
             if now - t <= self.horizon_s and len(seen) < self.max_entries:
                 break
             del seen[ident]

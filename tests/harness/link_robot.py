@@ -3,7 +3,8 @@
 The robot is the agent's command gate (agent/links/gate.py: decode, dedupe, ack on the link a
 command came from) behind its own Zenoh session and MQTT client, publishing its pose at 20 Hz on
 both links. ``cut_primary`` closes its Zenoh session: nothing more of it reaches the operator over
-Zenoh, exactly like a dead radio.
+Zenoh, exactly like a dead radio. ``ack_delay_s[link]`` holds its acks on that link back (a link
+that delivers late).
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ class LinkRobot:
         self.gate = CommandGate(robot)
         self.counter = wire.HeaderCounter(clock, robot=robot, sender=f"agent-{robot}")
         self.executed: list[Execution] = []
+        self.ack_delay_s: dict[LinkName, float] = {}
         self.lock = threading.Lock()
         self.session: Any = None
         self._subs: list[Any] = []
@@ -110,6 +112,12 @@ class LinkRobot:
                 ack = self.gate.make_ack(self.counter, verdict.ack)
             else:
                 return
+        delay = self.ack_delay_s.get(link, 0.0)
+        if delay > 0:
+            timer = threading.Timer(delay, self._put, (link, keys.key(self.robot, Ack.TOPIC), wire.encode(ack)))
+            timer.daemon = True
+            timer.start()
+            return
         self._put(link, keys.key(self.robot, Ack.TOPIC), wire.encode(ack))
 
     def _publish_poses(self) -> None:
