@@ -71,6 +71,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --secure: operator accounts op-<name> (repeat; the first is the field's console; "
         "default op-operator-1)",
     )
+    parser.add_argument(
+        "--light",
+        type=int,
+        default=0,
+        metavar="N",
+        help="N light robots instead of the scenario (real wire messages, no agents: pose 20 Hz, state 1 Hz, acks; "
+        "docs/operations.md 'Scale')",
+    )
+    parser.add_argument(
+        "--zenoh-connect",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="with --light: connect to this Zenoh router as a client (repeat for more) instead of listening",
+    )
     sub = parser.add_subparsers(dest="field_command", metavar="ACTION")
     run = sub.add_parser(
         "run",
@@ -109,6 +124,8 @@ def run(args: argparse.Namespace) -> int:
     from fleetlink.field.plans import PlanError, load_plan
     from fleetlink.field.scenario import ScenarioError, load_scenario
 
+    if args.light:
+        return _run_light(args)
     name = args.scenario
     try:
         scenario = load_scenario(resolve_scenario(name))
@@ -237,6 +254,53 @@ def _run_realtime(scenario: Scenario, plan: FloorPlan, duration: float, args: ar
         pass
     finally:
         site.stop()
+    return 0
+
+
+def _run_light(args: argparse.Namespace) -> int:
+    """``--light N``: N light robots (fleetlink.field.light) on Zenoh, in this one process, with a
+    status line every few seconds (what was published, how far the publisher fell behind, its CPU)."""
+    import os
+
+    from fleetlink.field.light_runner import open_light_fleet
+    from fleetlink.shared.clock import SystemClock
+
+    if args.light < 0 or args.light > 10_000:
+        print("error: --light takes 1-10000 robots", file=sys.stderr)
+        return 2
+    clock = SystemClock()
+    connect = tuple(args.zenoh_connect or ())
+    listen = () if connect or args.zenoh_listen == "none" else (args.zenoh_listen,)
+    try:
+        runner = open_light_fleet(
+            args.light, clock, connect=connect, listen=listen, mode="client" if connect else "peer"
+        )
+    except Exception as exc:  # zenoh.ZError: a bad or busy endpoint
+        print(f"error: cannot open the light fleet's Zenoh session: {exc}", file=sys.stderr)
+        return 2
+    where = f"connected to {', '.join(connect)}" if connect else f"listening on {', '.join(listen) or 'nothing'}"
+    print(f"fleetlink field --light: {args.light} light robots, {where}; Ctrl-C to stop", flush=True)
+    stop = threading.Event()
+    start = last = clock.now()
+    cpu_last = sum(os.times()[:2])
+    sent_last = 0
+    try:
+        while not stop.wait(min(2.0, args.duration) if args.duration else 2.0):
+            now, cpu = clock.now(), sum(os.times()[:2])
+            s = runner.fleet.stats
+            print(
+                f"t={now - start:6.1f} s  {(runner.published - sent_last) / (now - last):7.0f} msg/s  "
+                f"poses {s.poses}  states {s.states}  acks {s.acks}  skipped {s.skipped}  "
+                f"lag max {s.lag_max_s * 1e3:.1f} ms  CPU {(cpu - cpu_last) / (now - last) * 100:.0f} %",
+                flush=True,
+            )
+            last, cpu_last, sent_last = now, cpu, runner.published
+            if args.duration and now - start >= args.duration:
+                break
+    except KeyboardInterrupt:
+        pass
+    finally:
+        runner.close()
     return 0
 
 
