@@ -37,8 +37,8 @@ Row = tuple[Cell, ...]
 
 
 def health_cell(health: Sequence[LinkHealth]) -> Text:
-    """The primary's state (ok / degr / DOWN, loss, RTT p50), then the fallback's when it is not
-    fine (`` | mqtt DOWN``): one glance says whether a robot still has two paths."""
+    """The primary's state (ok / degr / DOWN, loss, RTT p50), then a mark when the fallback is not
+    fine (`` m✗`` down, `` m!`` degraded): one glance says whether a robot still has two paths."""
     primary = next((h for h in health if h.link == PRIMARY), None)
     if primary is None or primary.age_s is None:
         return Text("-", style="dim")
@@ -53,9 +53,9 @@ def health_cell(health: Sequence[LinkHealth]) -> Text:
         if other.link == PRIMARY or other.age_s is None:
             continue
         if not other.healthy:
-            cell.append(f" | {other.link} DOWN", style="bold red")
+            cell.append(f" {other.link[0]}✗", style="bold red")
         elif other.degraded:
-            cell.append(f" | {other.link} degr", style="bold yellow")
+            cell.append(f" {other.link[0]}!", style="bold yellow")
     return cell
 
 

@@ -28,7 +28,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from fleetlink.operator.linkmanager import Failed, LinkHealth, LinkManager, Switch
+from fleetlink.operator.linkmanager import Failed, LinkHealth, LinkManager, LinkPolicy, Switch
 from fleetlink.operator.links import ROBOT_TOPICS
 from fleetlink.shared import wire, wire_json
 from fleetlink.shared.clock import Clock, SystemClock
@@ -121,7 +121,9 @@ class ReplaySource:
         """Where the recording ends: when the recorder stopped (a crashed one: its last message)."""
         self.start_at = min(self.last, self.first + start_s)
         self.clock = ReplayClock(self.first, real)
-        self.manager = LinkManager()
+        self.manager = LinkManager(LinkPolicy(redundant=True))
+        """As the consoles' default (redundant sending: the link column says ``both``, nothing fails
+        over); a recording does not say how the recorded console sent."""
         self.refused: Counter[str] = Counter()
         """Commands and publishes the console tried (a read-only console tries none)."""
         self.skipped: Counter[str] = Counter()
@@ -148,7 +150,7 @@ class ReplaySource:
 
     def active(self, robot: str) -> str:
         with self._lock:
-            return self.manager.active(robot)
+            return self.manager.route(robot)
 
     def health(self, robot: str) -> tuple[LinkHealth, ...]:
         with self._lock:

@@ -87,3 +87,14 @@ def test_console_toml_then_the_command_line(tmp_path: Path) -> None:
     assert (s.zenoh_connect, s.zenoh_listen, s.mqtt_url) == (("tcp/h:7447",), (), "mqtt://h:1884")
     s = load_settings(console_args("--config", str(path), "--operator", "op-b", "--mqtt", "mqtt://k"))
     assert (s.operator, s.mqtt_url, s.zenoh_connect) == ("op-b", "mqtt://k", ("tcp/h:7447",))
+
+
+def test_console_links_table(tmp_path: Path) -> None:
+    path = tmp_path / "console.toml"
+    assert load_settings(console_args()).links.policy().redundant  # redundant sending by default
+    path.write_text("[links]\nredundant = false\ndegraded_rtt_s = 0.2\n")
+    policy = load_settings(console_args("--config", str(path))).links.policy()
+    assert not policy.redundant and policy.degraded_rtt_s == 0.2 and policy.degraded_loss_pct == 5.0
+    path.write_text("[links]\ndegraded_loss_pct = 150.0\n")
+    with pytest.raises(ConfigError, match=r"console\.toml: links\.degraded_loss_pct: must be <= 100"):
+        load_settings(console_args("--config", str(path)))

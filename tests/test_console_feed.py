@@ -258,3 +258,27 @@ def test_a_robot_may_not_be_called_fleet() -> None:
 
     with pytest.raises(ValueError, match="fleet map"):
         _robot_id(keys.FLEET_MAP)
+
+
+def test_telemetry_on_both_links_counts_once_and_either_link_alone_keeps_it_coming() -> None:
+    fleet = FleetModel(ME)
+    agent = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
+    both = pose(agent, 1.0)
+    assert fleet.apply(both, "mqtt", 1.0)  # whichever copy comes first is taken ...
+    assert not fleet.apply(both, "zenoh", 1.001)  # ... and the other skipped
+    assert fleet.robots["r1"].pose == (1.0, 0.0, 0.0) and len(fleet.robots["r1"].trail) == 1
+    for i, link in enumerate(("zenoh", "zenoh", "mqtt", "mqtt")):  # Zenoh cut after two: MQTT alone
+        assert fleet.apply(pose(agent, 2.0 + i), link, 2.0 + i)
+    assert fleet.robots["r1"].pose == (5.0, 0.0, 0.0)
+
+
+def test_health_cell_shows_a_degraded_primary_and_a_fallback_that_is_not_fine() -> None:
+    from fleetlink.operator.fleet_table import health_cell
+
+    ok = LinkHealth("zenoh", True, 0.1, 0.0, 0.0008, "")
+    slow = LinkHealth("mqtt", True, 0.1, 0.0, 0.15, "", 0.2, degraded="rtt p95 200 ms > 100 ms")
+    assert str(health_cell((ok, slow))) == "ok 0% 1ms m!"
+    degr = LinkHealth("zenoh", True, 0.1, 20.0, 0.001, "", degraded="loss 20% > 5%")
+    down = LinkHealth("mqtt", False, 2.0, 0.0, None, "silent")
+    cell = health_cell((degr, down))
+    assert str(cell) == "degr 20% 1ms m✗" and cell.style == "bold yellow"

@@ -20,6 +20,7 @@ import pytest
 from fleetlink.cli.replay import console_parts, replay_app
 from fleetlink.links.inprocess import InProcessBus
 from fleetlink.operator.fleet_table import fleet_rows
+from fleetlink.operator.linkmanager import LinkPolicy
 from fleetlink.operator.links import OperatorLink
 from fleetlink.shared import wire
 from fleetlink.shared.map_codec import snapshot_fields
@@ -75,7 +76,8 @@ def record_scene(path: Path) -> tuple[dict[str, Any], Any]:
     clock = SteppedClock()
     zb, mb = InProcessBus(LinkName.ZENOH, clock_now=clock.now), InProcessBus(LinkName.MQTT, clock_now=clock.now)
     recorder = Recorder(path, [zb.endpoint("recorder"), mb.endpoint("recorder")], clock, fetch_maps=False).start()
-    console = OperatorLink(clock, ME, zb.endpoint(ME), mb.endpoint(ME)).start()
+    # Sending as a console does by default (both links): the replay cannot know and assumes it.
+    console = OperatorLink(clock, ME, zb.endpoint(ME), mb.endpoint(ME), policy=LinkPolicy(redundant=True)).start()
     live, lock, _maps, _doses = console_parts(console)
     agents = {r: (zb.endpoint(f"agent-{r}"), mb.endpoint(f"agent-{r}")) for r in ("r1", "r2")}
     counters = {r: wire.HeaderCounter(clock, robot=r, sender=f"agent-{r}") for r in agents}
