@@ -1022,7 +1022,8 @@ def _start_cell(fm: FloorMap, start: Point) -> Cell:
 def _candidates(fm: FloorMap, stand: BoolGrid, *, corridors: bool = True, narrow: bool = False) -> list[Cell]:
     """One stand cell per lattice block (the one nearest the block's node), and the convex corners of
     the stand region; in row-major order. ``narrow``: where no point clear of walls is near, any
-    stand cell (a survey looks from a gap beside a desk; it does not dwell there)."""
+    stand cell not on the stand floor's edge (a survey looks from a gap beside a desk; it does
+    not dwell there)."""
     k = max(1, round(fm.config.candidate_spacing_m / fm.plan_resolution))
     extra = fm.config.dwell_clearance_m / fm.plan_resolution
     if extra > 0:  # away from the walls (the whole map's: ``stand`` may be cut to an area)
@@ -1033,7 +1034,13 @@ def _candidates(fm: FloorMap, stand: BoolGrid, *, corridors: bool = True, narrow
             far = stand & ~_dilate(clear, 2.0 * extra + 3.0)
             clear = clear | _along_corridor(fm.stand, far, math.ceil(extra))
         if narrow:
-            clear = clear | (stand & ~_dilate(clear, 2.0 * extra + 3.0))
+            # Not on the narrow floor's edge: a map that sees the furniture better once the robot
+            # is there must still let it stand there (a view on the edge of the living room's
+            # 0.6 m gap left the robot where no round could start from).
+            inner = stand.copy()
+            for dr, dc, _ in MOVES8:
+                inner &= _shift(fm.stand, dr, dc)
+            clear = clear | (inner & ~_dilate(clear, 2.0 * extra + 3.0))
         stand = clear
     rows, cols = np.nonzero(stand)
     if rows.size == 0:
