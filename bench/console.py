@@ -1,10 +1,10 @@
 """Is the console responsive with 50 robots reporting at 10 Hz?
 
-    python bench/console.py [--robots 50] [--seconds 8] [--json FILE]
+    python bench/console.py [--robots 50] [--pose-hz 10] [--seconds 8] [--json FILE]
 
 The real ConsoleApp (headless, Textual's run_test at 160x48) on the real OperatorLink over
-in-memory transports; a feeder thread pushes every robot's Pose and State at 10 Hz through the
-link's decode path, robots drive in circles so table and map change every frame. Measured:
+in-memory transports; a feeder thread pushes every robot's Pose at ``--pose-hz`` (10 Hz; 20 is
+an agent's and a light robot's rate) and State at 1 Hz through the link's decode path, robots drive in circles so table and map change every frame. Measured:
 
 * frame time: the console's periodic refresh (fleet model under the lock, table cells, map cell
   table, status), p50/p99, while the feed runs;
@@ -51,9 +51,10 @@ def pct(values: list[float], q: float) -> float:
     return s[min(len(s) - 1, round(q * (len(s) - 1)))]
 
 
-def feed(rig: Rig, n: int, stop: threading.Event) -> None:
+def feed(rig: Rig, n: int, stop: threading.Event, hz: float = 10.0) -> None:
     t0 = time.monotonic()
     tick = 0
+    state_every = max(1, round(hz))
     while not stop.is_set():
         t = time.monotonic() - t0
         for i in range(n):
@@ -61,7 +62,7 @@ def feed(rig: Rig, n: int, stop: threading.Event) -> None:
             th = 0.3 * t + i
             x, y = 10 * (i % 10) + 2 * math.cos(th), 10 * (i // 10) + 2 * math.sin(th)
             rig.pose(robot, x, y, math.atan2(math.sin(th + 1.57), math.cos(th + 1.57)), links=("zenoh",))
-            if tick % 10 == 0:
+            if tick % state_every == 0:
                 st = rig.counter(robot).make(
                     State,
                     agvPosition=AgvPosition(x=x, y=y, theta=0.0, mapId="", positionInitialized=True, localizationScore=1.0),
@@ -74,14 +75,14 @@ def feed(rig: Rig, n: int, stop: threading.Event) -> None:
                 )  # fmt: skip
                 rig.zenoh.inject(st)
         tick += 1
-        stop.wait(max(0.0, t0 + tick * 0.1 - time.monotonic()))
+        stop.wait(max(0.0, t0 + tick / hz - time.monotonic()))
 
 
-async def measure(n: int, seconds: float, tmp: Path) -> dict[str, float]:
+async def measure(n: int, seconds: float, tmp: Path, hz: float = 10.0) -> dict[str, float]:
     rig = Rig(tmp)
     rig.link.start()
     stop = threading.Event()
-    feeder = threading.Thread(target=feed, args=(rig, n, stop), daemon=True)
+    feeder = threading.Thread(target=feed, args=(rig, n, stop, hz), daemon=True)
     try:
         async with rig.app.run_test(size=(160, 48)) as pilot:
             feeder.start()
@@ -122,22 +123,29 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--robots", type=int, default=50)
     parser.add_argument("--seconds", type=float, default=8.0)
+    parser.add_argument("--pose-hz", type=float, default=10.0, help="each robot's pose rate (state: 1 Hz)")
+    parser.add_argument(
+        "--refresh-goal-ms", type=float, default=100.0, help="refresh p99 goal (issue 18, 500 robots: 50)"
+    )
     parser.add_argument("--json", type=Path, help="also write the figures as JSON (SI units)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        base = asyncio.run(measure(1, args.seconds, Path(tmp)))
-        full = asyncio.run(measure(args.robots, args.seconds, Path(tmp)))
-    print(f"console responsiveness, robots reporting pose at 10 Hz (+ state at 1 Hz), {args.seconds:g} s each")
+        base = asyncio.run(measure(1, args.seconds, Path(tmp), args.pose_hz))
+        full = asyncio.run(measure(args.robots, args.seconds, Path(tmp), args.pose_hz))
+    print(
+        f"console responsiveness, robots reporting pose at {args.pose_hz:g} Hz (+ state at 1 Hz), {args.seconds:g} s each"
+    )
     print(f"{'':22} {f'{args.robots} robots':>12} {'1 robot':>10} {'ratio':>7}")
     for key, label in (("frame_p50_s", "refresh p50 ms"), ("frame_p99_s", "refresh p99 ms"),
                        ("input_p50_s", "key->teleop p50 ms"), ("input_p99_s", "key->teleop p99 ms")):  # fmt: skip
         print(f"{label:22} {1e3 * full[key]:12.2f} {1e3 * base[key]:10.2f} {full[key] / base[key]:6.1f}x")
     print(f"rows shown {full['robots_shown']}/{args.robots}; {full['frames']} refreshes, {full['inputs']} key presses")
-    ok = full["frame_p99_s"] < 0.1 and full["input_p99_s"] < 0.05
-    print(f"goal: refresh p99 < 100 ms and key->teleop p99 < 50 ms: {'MET' if ok else 'NOT MET'}")
+    ok = full["frame_p99_s"] < args.refresh_goal_ms / 1e3 and full["input_p99_s"] < 0.05
+    print(f"goal: refresh p99 < {args.refresh_goal_ms:g} ms and key->teleop p99 < 50 ms: {'MET' if ok else 'NOT MET'}")
     if args.json:
         figures = {"robots_n": full, "one_robot": base, "frame_p99_ratio": full["frame_p99_s"] / base["frame_p99_s"],
-                   "input_p99_ratio": full["input_p99_s"] / base["input_p99_s"], "goal_met": ok}  # fmt: skip
+                   "input_p99_ratio": full["input_p99_s"] / base["input_p99_s"], "goal_met": ok,
+                   "refresh_p99_goal_s": args.refresh_goal_ms / 1e3, "pose_rate_hz": args.pose_hz}  # fmt: skip
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
     return 0 if ok else 1
 

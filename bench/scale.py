@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/scale.py [--robots 50] [--seconds 300] [--lidar-hz 1] [--lidar-samples 720]
                                     [--drive] [--no-mqtt] [--json FILE]
+    .venv/bin/python bench/scale.py --light --robots 500 [--seconds 60] [--command-robots 50] [--json FILE]
 
 The site as docs/operations.md lays it out: the real-time field (``RealtimeField``, the hall-50
 scenario cut to N robots) serves every robot's simulated board (and lidar, at ``--lidar-hz``; 0:
@@ -26,6 +27,17 @@ With ``--drive`` the console also drives every robot, as an operator holding a k
 their bays hit nothing), which keeps every agent's control loop at its full 50 Hz; the table then
 says how many robots were seen turning. Without it the fleet stands idle, and idle agents tick
 only once per pose.
+
+``--light``: N light robots instead (``fleetlink field --light N``: one process publishing every
+robot's real wire messages, pose 20 Hz, state and lease 1 Hz, liveliness tokens, acks; no agents,
+no field) through a two-router Zenoh mesh (site/mesh.py): the robots are clients of router A, the
+console a client of router B. Measured in the same run, one after the other on the same fleet:
+the console on router A (one router: the baseline) and on router B (the mesh), each for
+``--seconds``: poses delivered and staleness as above, and commands: a Teleop to each of the first
+``--command-robots`` robots ``TELEOP_HZ`` times a second, acked by the robot (ack round trip
+p50/p99 and the share acked). Beside them the CPU of the light fleet's process, each router and
+this process (the console), which is where a larger fleet breaks. ``--light --robots 500`` is the
+goal's configuration.
 
 Goals: >= 99.9 % delivered, staleness p99 <= 100 ms, agent RSS <= 80 MB. The table shows each
 figure beside its goal. Every robot has a simulated lidar (``--lidar-hz`` turns a second, sending
@@ -313,6 +325,193 @@ def run(
                 router.wait()
 
 
+@dataclass
+class Commander:
+    """Teleops to a few light robots from the console's session; their acks timed on arrival."""
+
+    robots: list[str]
+    measuring: bool = False
+    sent: dict[tuple[str, int], float] = field(default_factory=dict)
+    rtt: list[float] = field(default_factory=list)
+    refused: int = 0
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_ack(self, sample: Any) -> None:
+        from fleetlink.shared import wire
+        from fleetlink.shared.messages import Ack, AckResult
+
+        now = time.perf_counter()
+        try:
+            msg = wire.decode_key(str(sample.key_expr), sample.payload.to_bytes())
+        except wire.WireError:
+            return
+        if not isinstance(msg, Ack) or msg.commandSender != LIGHT_OPERATOR:
+            return
+        with self.lock:
+            t = self.sent.pop((msg.header.robot, msg.commandHeaderId), None)
+            if t is not None and self.measuring:
+                self.rtt.append(now - t)
+                self.refused += msg.result is not AckResult.ACCEPTED
+
+    def drive(self, session: Any, stop: threading.Event) -> None:
+        from fleetlink.shared import wire
+        from fleetlink.shared.clock import SystemClock
+        from fleetlink.shared.messages import Teleop
+
+        counter = wire.HeaderCounter(SystemClock(), robot=self.robots[0], sender=LIGHT_OPERATOR)
+        next_t = time.perf_counter()
+        while not stop.is_set():
+            for r in self.robots:
+                msg = Teleop(header=counter.header(Teleop.TOPIC, robot=r), v=0.0, omega=DRIVE_OMEGA, ttl_s=0.6)
+                with self.lock:
+                    if self.measuring:
+                        self.sent[(r, msg.header.headerId)] = time.perf_counter()
+                session.put(wire.key_of(msg), wire.encode(msg))
+            next_t += 1.0 / TELEOP_HZ
+            stop.wait(max(0.0, next_t - time.perf_counter()))
+
+
+LIGHT_OPERATOR = "op-bench"
+
+
+def light_phase(
+    where: str, endpoint: str, n: int, seconds: float, command_robots: int, pids: dict[str, int], warmup_timeout: float
+) -> dict[str, Any]:
+    """One measurement: a console session on ``endpoint`` for ``seconds`` after every robot was heard."""
+    import zenoh
+
+    from fleetlink.field.light import light_names
+    from fleetlink.links.zenoh import peer_config
+
+    console = Console()
+    commander = Commander(light_names(n)[:command_robots])
+    stop = threading.Event()
+    session = zenoh.open(peer_config(connect=[endpoint], mode="client"))
+    try:
+        session.declare_subscriber("fleetlink/v1/*/pose", console.on_sample)
+        session.declare_subscriber("fleetlink/v1/*/ack", commander.on_ack)
+        t_start = time.perf_counter()
+        while len(console.heard) < n:
+            if time.perf_counter() - t_start > warmup_timeout:
+                raise SystemExit(f"{where}: only {len(console.heard)} of {n} light robots heard")
+            time.sleep(0.2)
+        driver = None
+        if command_robots:
+            driver = threading.Thread(target=commander.drive, args=(session, stop), name="commands", daemon=True)
+            driver.start()
+        time.sleep(1.0)
+        cpu0 = {k: cpu_seconds(pid) for k, pid in pids.items()}
+        with console.lock, commander.lock:
+            console.measuring = commander.measuring = True
+        t0 = time.perf_counter()
+        time.sleep(seconds)
+        with console.lock, commander.lock:
+            console.measuring = commander.measuring = False
+        window = time.perf_counter() - t0
+        cpu = {k: (cpu_seconds(pid) - cpu0[k]) / window for k, pid in pids.items()}
+        time.sleep(1.0)  # the last acks
+        with commander.lock:
+            unanswered = len(commander.sent)
+        stop.set()
+        if driver is not None:
+            driver.join(5)
+    finally:
+        stop.set()
+        session.close()
+    received = sum(console.counts.values())
+    expected = POSE_HZ * n * window
+    span = sum(max(v) - min(v) + 1 for v in console.ids.values() if v)
+    answered = len(commander.rtt)
+    return {
+        "console_on": where,
+        "seconds_s": window,
+        "poses_expected": expected,
+        "poses_received": received,
+        "delivered_ratio": received / expected,
+        "delivered_by_sequence_ratio": received / span if span else 0.0,
+        "rate_min_robot_hz": min(console.counts.get(k, 0) for k in light_names(n)) / window,
+        "staleness_p50_s": pct(console.staleness, 0.50),
+        "staleness_p99_s": pct(console.staleness, 0.99),
+        "staleness_max_s": max(console.staleness, default=float("nan")),
+        "bad_poses": console.bad,
+        "commands_acked": answered,
+        "commands_unanswered": unanswered,
+        "commands_refused": commander.refused,
+        "acked_ratio": answered / (answered + unanswered) if answered + unanswered else 0.0,
+        "ack_rtt_p50_s": pct(commander.rtt, 0.50),
+        "ack_rtt_p99_s": pct(commander.rtt, 0.99),
+        "cpu_ratio": cpu,
+    }
+
+
+def run_light(n: int, seconds: float, command_robots: int, warmup_timeout: float) -> dict[str, Any]:
+    """``--light``: ``n`` light robots on router A of a two-router mesh; the console on A, then on B."""
+    from fleetlink.site.mesh import RouterMesh
+
+    tmp = Path(tempfile.mkdtemp(prefix="fleetlink-scale-light-"))
+    exe = str(Path(sys.executable).parent / "fleetlink")
+    with RouterMesh() as mesh:
+        log_path = tmp / "light.log"
+        with log_path.open("wb") as log:
+            fleet = subprocess.Popen(
+                [exe, "field", "--light", str(n), "--zenoh-connect", mesh.a.listen, "--zenoh-listen", "none"],
+                stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+            )  # fmt: skip
+        try:
+            pids = {"light_fleet": fleet.pid, "router_a": mesh.a.pid, "router_b": mesh.b.pid, "console": os.getpid()}
+            one = light_phase("router A", mesh.a.listen, n, seconds, command_robots, pids, warmup_timeout)
+            two = light_phase("router B", mesh.b.listen, n, seconds, command_robots, pids, warmup_timeout)
+        finally:
+            fleet.terminate()
+            try:
+                fleet.wait(10)
+            except subprocess.TimeoutExpired:
+                fleet.kill()
+                fleet.wait()
+    status = [line for line in log_path.read_text(errors="replace").splitlines() if line.startswith("t=")]
+    return {
+        "robots": n,
+        "light": True,
+        "command_robots": command_robots,
+        "teleop_rate_hz": TELEOP_HZ,
+        "host_cpus": os.cpu_count() or 0,
+        "load_average_1min": os.getloadavg()[0],
+        "one_router": one,
+        "mesh": two,
+        "light_fleet_last_status": status[-1] if status else "",
+        "light_fleet_crashed": fleet.returncode not in (0, -15),
+    }
+
+
+def light_table(r: dict[str, Any]) -> str:
+    one, two = r["one_router"], r["mesh"]
+    rows: list[tuple[str, Any, str]] = [
+        ("poses delivered", lambda p: f"{p['delivered_ratio'] * 100:.3f} %", ">= 99.9 %"),
+        ("  by sequence (lost on the way)", lambda p: f"{p['delivered_by_sequence_ratio'] * 100:.3f} %", ""),
+        ("  slowest robot's pose rate", lambda p: f"{p['rate_min_robot_hz']:.2f} Hz", "20 Hz"),
+        ("staleness p50", lambda p: f"{p['staleness_p50_s'] * 1e3:.1f} ms", ""),
+        ("staleness p99", lambda p: f"{p['staleness_p99_s'] * 1e3:.1f} ms", "<= 100 ms"),
+        ("staleness max", lambda p: f"{p['staleness_max_s'] * 1e3:.1f} ms", ""),
+        ("commands acked", lambda p: f"{p['acked_ratio'] * 100:.2f} % of {p['commands_acked'] + p['commands_unanswered']}", ""),
+        ("ack round trip p50", lambda p: f"{p['ack_rtt_p50_s'] * 1e3:.1f} ms", ""),
+        ("ack round trip p99", lambda p: f"{p['ack_rtt_p99_s'] * 1e3:.1f} ms", ""),
+    ]  # fmt: skip
+    for who in ("light_fleet", "router_a", "router_b", "console"):
+        rows.append((f"CPU: {who.replace('_', ' ')}", lambda p, w=who: f"{p['cpu_ratio'][w] * 100:.1f} %", ""))
+    head = (
+        f"{r['robots']} light robots in one process on router A; console on router A (one router), then on "
+        f"router B (two-router mesh); teleops to {r['command_robots']} robots at {r['teleop_rate_hz']:g} Hz each; "
+        f"{r['host_cpus']} CPUs, load average {r['load_average_1min']:.1f} at the end (other work on the host)"
+    )
+    lines = [head, f"{'':34} {'mesh (B)':>22} {'one router (A)':>22} {'goal':>10}"]
+    for name, fmt, goal in rows:
+        lines.append(f"{name:34} {fmt(two):>22} {fmt(one):>22} {goal:>10}")
+    lines.append(f"light fleet's last status: {r['light_fleet_last_status']}")
+    met = two["delivered_ratio"] >= GOALS["delivered_ratio"] and two["staleness_p99_s"] <= GOALS["staleness_p99_s"]
+    lines.append(f"goals through the mesh {'met' if met else 'NOT met'}")
+    return "\n".join(lines)
+
+
 def table(r: dict[str, Any]) -> str:
     rows = [
         ("poses delivered", f"{r['delivered_ratio'] * 100:.3f} %", ">= 99.9 %", r["delivered_ratio"] / 0.999),
@@ -375,8 +574,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drive", action="store_true", help="the console drives every robot (teleop, 4 Hz each)")
     ap.add_argument("--no-mqtt", action="store_true", help="agents on Zenoh only (no broker)")
     ap.add_argument("--warmup-timeout", type=float, default=120.0)
+    ap.add_argument("--light", action="store_true", help="light robots through a two-router mesh, no agents")
+    ap.add_argument("--command-robots", type=int, default=50, help="with --light: robots sent teleops (4 Hz each)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    if args.light:
+        r = run_light(args.robots, args.seconds, min(args.command_robots, args.robots), args.warmup_timeout)
+        print(light_table(r))
+        if args.json:
+            args.json.write_text(json.dumps(r, indent=2) + "\n")
+        return 0
     r = run(
         args.robots, args.seconds, args.lidar_hz, not args.no_mqtt, args.warmup_timeout, args.lidar_samples, args.drive
     )

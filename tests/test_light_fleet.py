@@ -246,3 +246,77 @@ def test_the_two_router_mesh_carries_light_telemetry_and_commands(mesh: RouterMe
         fleet.terminate()
         fleet.wait(10)
     assert fleet.returncode == 0
+
+
+def test_deploys_mesh_configs_route_between_their_clients() -> None:
+    """deploy/zenohd-mesh-{a,b}.json5 (ports rewritten) run as routers: a put on A reaches B's client."""
+    from pathlib import Path
+
+    from fleetlink.links.zenoh import open_session
+    from fleetlink.site.brokers import free_port
+    from fleetlink.site.mesh import ZenohRouter
+
+    deploy = Path(__file__).resolve().parent.parent / "deploy"
+    ep_a, ep_b = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
+    with (
+        ZenohRouter(ep_a, config=deploy / "zenohd-mesh-a.json5"),
+        ZenohRouter(ep_b, [ep_a], config=deploy / "zenohd-mesh-b.json5"),
+    ):
+        robot = open_session(connect=[ep_a], mode="client")
+        console = open_session(connect=[ep_b], mode="client")
+        got: list[str] = []
+        try:
+            console.declare_subscriber("fleetlink/v1/*/pose", lambda s: got.append(str(s.key_expr)))
+            assert wait_for(lambda: (robot.put("fleetlink/v1/r1/pose", b"x"), bool(got))[1], 10.0)
+        finally:
+            console.close()
+            robot.close()
+    assert got[0] == "fleetlink/v1/r1/pose"
+
+
+def test_a_full_agent_and_light_robots_on_router_a_are_driven_from_router_b(mesh: RouterMesh) -> None:
+    """A real agent (the real-time field's robot over TCP) and three light robots, all clients of
+    router A; the operator link on router B drives the agent and sees everyone."""
+    from fleetlink.field.light_runner import open_light_fleet
+    from fleetlink.field.realtime import RealtimeField
+    from fleetlink.links.zenoh import ZenohEndpoint
+    from fleetlink.site.agents import FieldAgents
+    from tests.test_field_realtime import quiet_scenario
+
+    clock = SystemClock()
+    field = RealtimeField(quiet_scenario(lidar={"enabled": False}), clock=clock)
+    agents = light = None
+    link = OperatorLink(
+        clock,
+        "op-a",
+        ZenohEndpoint(connect=[mesh.b.listen], mode="client"),
+        NoLink(),  # type: ignore[arg-type]
+    )
+    heard: list[wire.Message] = []
+    link.add_sink(lambda msg, _l, _n: heard.append(msg))
+    try:
+        endpoints = field.start()
+        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[mesh.a.listen], zenoh_mode="client")
+        agents.start()
+        light = open_light_fleet(3, clock, connect=[mesh.a.listen], mode="client")
+        link.start()
+        everyone = {"uvc-1", *light_names(3)}
+        assert wait_for(lambda: {m.header.robot for m in list(heard) if isinstance(m, Pose)} == everyone, 20.0)
+        (body,) = field.world.robots
+        x0, y0 = body.pose[0], body.pose[1]
+        acks_before = len([m for m in list(heard) if isinstance(m, Ack)])
+
+        def drive() -> bool:
+            link.send(Teleop, "uvc-1", v=0.2, omega=0.0, ttl_s=0.5)
+            return math.hypot(body.pose[0] - x0, body.pose[1] - y0) > 0.1
+
+        assert wait_for(drive, 20.0)
+        agent_acks = [m for m in list(heard) if isinstance(m, Ack) and m.header.robot == "uvc-1"]
+        assert len(agent_acks) > acks_before and all(a.result is AckResult.ACCEPTED for a in agent_acks)
+    finally:
+        link.close()
+        if light is not None:
+            light.close()
+        if agents is not None:
+            agents.stop()
+        field.stop()
