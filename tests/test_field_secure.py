@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -160,6 +161,13 @@ def test_no_credentials_no_connection_on_either_link(secured: Secured) -> None:
 def test_another_robot_cannot_drive_a_robot(secured: Secured) -> None:
     s = secured
     wait_until(lambda: s.fs.agents.agents["uvc-1"].board.snapshot.connected)
+
+    def at_rest() -> bool:  # the module's robots are shared: an earlier test's drive may still run out
+        before = s.pose("uvc-1")
+        time.sleep(0.3)
+        return s.moved("uvc-1", before) < 0.005
+
+    wait_until(at_rest, timeout=10, message="uvc-1 at rest")
     start = s.pose("uvc-1")
     clock = SystemClock()
     forger = wire.HeaderCounter(clock, robot="uvc-1", sender=OPERATOR)  # even claiming the operator's id
