@@ -29,9 +29,8 @@ from bench.scale import cpu_seconds  # noqa: E402
 
 def measure(tokens: str, n: int, seconds: float) -> dict[str, Any]:
     from fleetlink.field.light import LightFleet, light_names
-    from fleetlink.field.light_runner import LightRunner
+    from fleetlink.field.light_runner import LightRunner, alive_key
     from fleetlink.links.zenoh import ZenohEndpoint, open_session
-    from fleetlink.shared import keys
     from fleetlink.shared.clock import SystemClock
     from fleetlink.site.mesh import RouterMesh
 
@@ -39,13 +38,8 @@ def measure(tokens: str, n: int, seconds: float) -> dict[str, Any]:
     names = light_names(n)
     with RouterMesh() as mesh:
         link = ZenohEndpoint(connect=[mesh.a.listen], mode="client", label="zenoh-light")
-        for name in names:
-            if tokens == "contract":
-                link.add_alive(keys.key(name, "alive"))
-            elif tokens == "elsewhere":
-                link.add_alive(f"zz/{name}")
-        link.start()
-        runner = LightRunner(LightFleet(names, clock.now()), [_NoTokens(link)], clock).start()
+        alive = {"contract": alive_key, "elsewhere": lambda name: f"zz/{name}", "none": None}[tokens]
+        runner = LightRunner(LightFleet(names, clock.now()), [link], clock, owns_links=True, alive=alive).start()
         sub = open_session(connect=[mesh.b.listen], mode="client")
         count = [0]
         sub.declare_subscriber("fleetlink/v1/*/pose", lambda _s: count.__setitem__(0, count[0] + 1))
@@ -60,23 +54,8 @@ def measure(tokens: str, n: int, seconds: float) -> dict[str, Any]:
             poses = (count[0] - n0) / window
         finally:
             sub.close()
-            runner.stop()
-            link.close()
+            runner.close()
     return {"tokens": tokens, "robots": n, "seconds_s": window, "poses_at_b_hz": poses, "goal_hz": 20.0 * n, **cpu}
-
-
-class _NoTokens:
-    """The endpoint without ``add_alive``: this bench declares the tokens itself."""
-
-    def __init__(self, link: Any) -> None:
-        self._link = link
-        self.name = link.name
-        self.stats = link.stats
-
-    def __getattr__(self, attr: str) -> Any:
-        if attr == "add_alive":
-            raise AttributeError(attr)
-        return getattr(self._link, attr)
 
 
 def main() -> int:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from fleetlink.field.light import COMMAND_TOPICS, LightFleet, LightSettings, light_names
@@ -26,7 +26,7 @@ from fleetlink.shared import keys
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.worker import Worker
 
-__all__ = ["ALIVE_TOPIC", "LightRunner", "open_light_fleet"]
+__all__ = ["ALIVE_TOPIC", "LightRunner", "alive_key", "open_light_fleet"]
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +41,24 @@ TICK_S = 0.005
 batching shows (at most this much) as staleness at the console."""
 
 
+def alive_key(robot: str) -> str:
+    """``fleetlink/v1/<robot>/alive``: where an agent's presence token is, and so a light robot's."""
+    return keys.key(robot, ALIVE_TOPIC)
+
+
 class LightRunner(Worker):
-    def __init__(self, fleet: LightFleet, links: Sequence[Link], clock: Clock, *, owns_links: bool = False) -> None:
+    """``alive``: where each robot's liveliness token goes (None: no tokens); benches move them
+    to measure what the routers pay for them (bench/zenoh_tokens.py)."""
+
+    def __init__(
+        self,
+        fleet: LightFleet,
+        links: Sequence[Link],
+        clock: Clock,
+        *,
+        owns_links: bool = False,
+        alive: Callable[[str], str] | None = alive_key,
+    ) -> None:
         if not links:
             raise ValueError("a light fleet needs at least one link")
         super().__init__("light-fleet", clock=clock)
@@ -52,15 +68,16 @@ class LightRunner(Worker):
         self.published = 0
         self.unsent = 0
         self._owns = owns_links
+        self._alive = alive
 
     def start(self) -> LightRunner:
         for link in self.links:
             for topic in COMMAND_TOPICS:
                 link.subscribe(keys.sender_filter("*", topic), self._receiver(link))
             add_alive = getattr(link, "add_alive", None)
-            if add_alive is not None:
+            if add_alive is not None and self._alive is not None:
                 for name in self.fleet.robots:
-                    add_alive(keys.key(name, ALIVE_TOPIC))
+                    add_alive(self._alive(name))
             link.start()
         super().start()
         return self
@@ -105,6 +122,7 @@ def open_light_fleet(
     listen: Sequence[str] = (),
     settings: LightSettings | None = None,
     prefix: str = "L",
+    alive: Callable[[str], str] | None = alive_key,
     **auth: Any,
 ) -> LightRunner:
     """``n`` light robots (``L0000``...) on a Zenoh endpoint of their own (``ZenohEndpoint``'s
@@ -115,7 +133,8 @@ def open_light_fleet(
     link = ZenohEndpoint(listen=listen, connect=connect, clock=clock, label="zenoh-light", inbox_size=4096, **auth)
     link.start()  # first: the robots' deadlines start once the session is open (~0.5-1 s), not before
     try:
-        return LightRunner(LightFleet(names, clock.now(), settings), [link], clock, owns_links=True).start()
+        fleet = LightFleet(names, clock.now(), settings)
+        return LightRunner(fleet, [link], clock, owns_links=True, alive=alive).start()
     except BaseException:
         link.close()
         raise
