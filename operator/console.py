@@ -76,7 +76,7 @@ from fleetlink.operator.detail import RobotDetail, detail_text
 from fleetlink.operator.dose import DoseFollower, dose_report, save_report
 from fleetlink.operator.feed import ConsoleSource, FleetFeed, attach
 from fleetlink.operator.fleet import FleetModel, LeaseRenewal, Notice
-from fleetlink.operator.fleet_table import FleetTable, fleet_rows
+from fleetlink.operator.fleet_table import FleetTable, fleet_rows, row_cells
 from fleetlink.operator.maps import MapFollower
 from fleetlink.operator.mapview import MapView
 from fleetlink.operator.marks import DEFAULT_KIND, MARK_KINDS, MAX_LABEL, MarksStore, export_marks, find_mark, revised
@@ -101,6 +101,9 @@ from fleetlink.shared.clock import Clock
 from fleetlink.shared.dose import Lamp, j_m2
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.messages import ActionType, Mark, PeopleZones, Zone, ZonePoint
+
+DRAIN_SLICE_S = 0.008
+"""Telemetry is folded into the model in slices of about this long (keys wait at most one)."""
 
 __all__ = ["ConsoleApp", "ConsoleSource", "RoundPlanned", "TelemetryArrived", "attach"]
 
@@ -362,8 +365,11 @@ class ConsoleApp(App[None]):
     # -- frames ---------------------------------------------------------------------------------
 
     def on_telemetry_arrived(self, _message: TelemetryArrived) -> None:
-        if self.feed.drain():
+        # In slices: what is left waits behind whatever came meanwhile (a key press), not before it.
+        if self.feed.drain(DRAIN_SLICE_S):
             self._changed()
+        if self.feed.pending:
+            self.post_message(TelemetryArrived())
 
     def _changed(self) -> None:
         """Something on screen may have changed: draw a frame now, or when the last one is
@@ -393,12 +399,23 @@ class ConsoleApp(App[None]):
             fleet.tick(now)
             self._survey_done()
             notices = fleet.drain()
-            rows = fleet_rows(fleet, source.active, source.health, source.sender, now, self.filter_text)
             for n in notices:
                 self._log_notice(n)
-            self.query_one(FleetTable).show(rows)
-            if self.selected is None and rows:
-                self.selected = next(iter(rows))
+            table = self.query_one(FleetTable)
+            if self.filter_text:  # the filter reads every row's text
+                rows = fleet_rows(fleet, source.active, source.health, source.sender, now, self.filter_text)
+                table.show(rows)
+                order: list[str] = list(rows)
+            else:  # only the rows on screen are worked out (the rest when scrolled to)
+                order = sorted(fleet.robots)
+                table.show_lazy(
+                    order,
+                    lambda r: row_cells(
+                        fleet.robots[r], source.active(r), source.health(r), fleet.uwb_ok(r, now), source.sender, now
+                    ),
+                )
+            if self.selected is None and order:
+                self.selected = order[0]
                 self.query_one(MapView).fit()
             mapview = self.query_one(MapView)
             mapview.dose = self.doses.layer if self.show_dose else None
@@ -434,6 +451,9 @@ class ConsoleApp(App[None]):
         self.query_one("#notices", RichLog).write(Text(f"{n.severity:7} {n.text}", style=style))
 
     # -- robot selection ------------------------------------------------------------------------
+
+    def on_fleet_table_scrolled(self, _message: FleetTable.Scrolled) -> None:
+        self._changed()  # the rows that came into view are worked out in the next frame
 
     def on_data_table_row_highlighted(self, event: DataTable.RowHighlighted) -> None:
         if event.row_key.value is not None:
@@ -471,6 +491,25 @@ class ConsoleApp(App[None]):
         if robot is None or self.read_only:
             return
         self.commander.teleop(robot, twist)
+
+    async def on_event(self, event: events.Event) -> None:
+        # A drive key on the map (where the focus is by default) is handled the moment the app
+        # first sees it, before it travels to the map and bubbles back through the queues: its
+        # Teleop goes out without waiting for a frame or telemetry queued meanwhile.
+        if (
+            isinstance(event, events.Key)
+            and not event.is_forwarded
+            and isinstance(self.focused, MapView)
+            and len(self.screen_stack) == 1
+            and not self._priority_key(event.key)
+        ):
+            self.on_key(event)
+            if event._stop_propagation:
+                return
+        await super().on_event(event)
+
+    def _priority_key(self, key: str) -> bool:
+        return any(b.priority for b in self._bindings.key_to_bindings.get(key, ()))
 
     def on_key(self, event: events.Key) -> None:
         if isinstance(self.focused, Input) or len(self.screen_stack) > 1:
@@ -1150,6 +1189,8 @@ class ConsoleApp(App[None]):
             return
         self.drive.stop(self.clock.now())  # the orders replace driving: no late auto-stop may cancel them
         self.notice("info", result.summary())
+        for robot, why in result.left_out:
+            self.notice("warning", f"{robot} left out of the {what}: {why}")
         for r in result.rounds:
             try:
                 self.commander.order(r.robot, r.order)

@@ -226,6 +226,9 @@ class RoundPlan:
     survey: bool = False
     """These orders only look (view points, lamp off) into what the maps have not seen: plan the
     request again (one survey fewer) when every robot has finished its order."""
+    left_out: tuple[tuple[str, str], ...] = ()
+    """(robot, why) for each of several robots the plan could not use (standing where it cannot
+    start from, or cannot reach the area): the others share the round without it."""
 
     @property
     def total_s(self) -> float:

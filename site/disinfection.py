@@ -407,6 +407,8 @@ class RoundRun:
             request = RoundRequest(s.mode, seed, names, s.target_j_m2, surveys, self.looked_from)  # type: ignore[arg-type]
             ids = {n: f"{s.mode}-{n}-{self.passes + self.surveys + 1}" for n in names}
             result = plan_round(request, cells, res, origin, starts, self.lamp, ids, prior)
+            for robot, why in result.left_out:  # as the console shows them
+                self.notes.append(f"{robot} left out: {why}")
             if result.survey:  # as the console does: the next survey does not look from there again
                 self.looked_from += tuple((n.x, n.y) for r in result.rounds for n in r.route[1:])
             self.predicted_s += max(r.total_s for r in result.rounds)

@@ -105,20 +105,30 @@ def plan_round(
         ) from None
     if area.cells == 0:
         raise RoundError(f"{where}: no reachable floor in it")
-    robots = list(request.robots)
-    points = [starts[r] for r in robots]
-    for robot, p in zip(robots, points, strict=True):
+    # Several robots: one that cannot take part (it stands where no round starts, as a robot backed
+    # into a corner by a bump may) is left out and the others share the round; alone, it is refused.
+    robots: list[str] = []
+    left_out: list[tuple[str, str]] = []
+    for robot in request.robots:
+        p = starts[robot]
         cell = fm.escape(p)
         if cell is None:
-            raise RoundError(f"{robot} stands at ({p[0]:.2f}, {p[1]:.2f}), not on floor it can start from")
-        if not (np.isfinite(fm.geodesic(cell)) & area.stand).any():
-            raise RoundError(f"{where}: {robot} cannot get there from ({p[0]:.2f}, {p[1]:.2f})")
+            why = f"{robot} stands at ({p[0]:.2f}, {p[1]:.2f}), not on floor it can start from"
+        elif not (np.isfinite(fm.geodesic(cell)) & area.stand).any():
+            why = f"{where}: {robot} cannot get there from ({p[0]:.2f}, {p[1]:.2f})"
+        else:
+            robots.append(robot)
+            continue
+        left_out.append((robot, why))
+    if not robots:
+        raise RoundError(left_out[0][1])
+    points = [starts[r] for r in robots]
     if request.surveys > 0:
         survey = _survey(fm, cells, area, robots, points, request.looked_from)
         if survey is not None:
             plans_, area_m2, seen = survey
             looks = tuple(_robot_round(p, f"{ids[p.robot][:56]}-survey") for p in plans_ if len(p.nodes) > 1)
-            return RoundPlan(request, area_m2, seen, 0.0, looks, survey=True)
+            return RoundPlan(request, area_m2, seen, 0.0, looks, survey=True, left_out=tuple(left_out))
     try:
         if request.kind == "sweep":
             plans: tuple[cv.CoveragePlan, ...] = (
@@ -134,7 +144,15 @@ def plan_round(
                 xs = fm.origin[0] + (np.arange(w, dtype=np.float64) + 0.5) * fm.resolution
                 ys = fm.origin[1] + (np.arange(h, dtype=np.float64) + 0.5) * fm.resolution
                 had = prior.dose_at(xs, ys)
-            plan = cv.plan_uv(fm, area, lamp, request.target_j_m2, points[0], robot=robots[0], prior=had)
+            while True:
+                try:
+                    plan = cv.plan_uv(fm, area, lamp, request.target_j_m2, points[0], robot=robots[0], prior=had)
+                    break
+                except ValueError as exc:  # nowhere to stand reachable from the first: try the next
+                    if len(robots) == 1:
+                        raise
+                    left_out.append((robots[0], f"{where}: {robots[0]}: {exc}"))
+                    del robots[0], points[0]
             if len(robots) == 1 or not plan.dwell_points:
                 plans, coverage = (plan,), plan.predicted.coverage
             else:
@@ -147,7 +165,7 @@ def plan_round(
             raise RoundError(f"{where}: {100 * coverage:.1f} % of it has the dose already: nothing to top up")
         raise RoundError(f"{where}: nothing to do there (no floor the lamp or the tool reaches)")
     rounds = tuple(_robot_round(share, ids[share.robot or robots[0]]) for share in plans)
-    return RoundPlan(request, area.area_m2, coverage, area_unlit(plans), rounds)
+    return RoundPlan(request, area.area_m2, coverage, area_unlit(plans), rounds, left_out=tuple(left_out))
 
 
 SURVEY_WORTH_M2 = 0.3

@@ -144,7 +144,8 @@ def test_a_sweep_drives_lanes_without_the_lamp() -> None:
         ("uv", RectArea(2.15, 2.95, 2.85, 3.65), {"r1": A}, 100.0, "cannot get there"),  # the sealed closet
         ("uv", RectArea(4.85, 0.5, 5.25, 1.5), {"r1": A}, 100.0, "1.50): the robot can stand nowhere"),  # a wall
         ("uv", RoomArea(5.05, 1.0), {"r1": A}, 100.0, "lies in a wall"),
-        ("uv", RoomArea(0.5, 0.5), {"r1": (20.0, 1.0), "r2": A}, 100.0, "r1 stands at (20.00, 1.00)"),
+        ("uv", RoomArea(0.5, 0.5), {"r1": (20.0, 1.0)}, 100.0, "r1 stands at (20.00, 1.00)"),
+        ("uv", RoomArea(0.5, 0.5), {"r1": (20.0, 1.0), "r2": (2.5, 3.3)}, 100.0, "r1 stands at (20.00, 1.00)"),
         ("sweep", RoomArea(0.5, 0.5), {"r1": A, "r2": B}, 100.0, "a sweep is for one robot"),
         ("uv", RoomArea(0.5, 0.5), {"r1": A, "bad id!": B}, 100.0, "is not a robot id"),
         ("uv", PolyArea(((0.5, 0.5), (1.0, 0.5))), {"r1": A}, 100.0, "3 to 32 corners"),
@@ -154,6 +155,18 @@ def test_a_sweep_drives_lanes_without_the_lamp() -> None:
 def test_bad_input_is_refused_with_its_reason(kind: str, area: Any, robots: Any, target: float, why: str) -> None:
     with pytest.raises(RoundError, match=re.escape(why)):
         plan(kind, area, robots, target_j_m2=target)
+
+
+def test_a_robot_that_cannot_take_part_is_left_out_and_the_others_share_the_round() -> None:
+    # r1 stands off the map (as a robot backed into a corner by a bump may stand where no round
+    # starts), r2 in the sealed closet: r3 does the room alone, and the plan says why the others
+    # are not in it (the console shows each as a warning).
+    p = plan("uv", RoomArea(2.5, 1.0), {"r1": (20.0, 1.0), "r2": (2.5, 3.3), "r3": A})
+    assert [r.robot for r in p.rounds] == ["r3"] and p.coverage >= 0.99
+    assert [robot for robot, _ in p.left_out] == ["r1", "r2"]
+    assert "r1 stands at (20.00, 1.00)" in p.left_out[0][1] and "r2 cannot get there" in p.left_out[1][1]
+    both = plan("uv", RoomArea(2.5, 1.0), {"r1": A, "r3": B})
+    assert {r.robot for r in both.rounds} == {"r1", "r3"} and both.left_out == ()
 
 
 def test_a_robot_without_a_known_position_is_refused() -> None:
