@@ -373,19 +373,6 @@ class Commander:
 
 LIGHT_OPERATOR = "op-bench"
 
-LIGHT_ELSEWHERE_SCRIPT = r"""
-import sys, threading
-from fleetlink.field.light_runner import open_light_fleet
-from fleetlink.shared.clock import SystemClock
-runner = open_light_fleet(int(sys.argv[1]), SystemClock(), connect=[sys.argv[2]], mode="client",
-                          alive=lambda robot: f"fleetlink/alive/{robot}")
-print("t= light fleet with its tokens under fleetlink/alive/<robot>", flush=True)
-try:
-    threading.Event().wait()
-finally:
-    runner.close()
-"""
-
 
 def light_phase(
     where: str, endpoint: str, n: int, seconds: float, command_robots: int, pids: dict[str, int], warmup_timeout: float
@@ -457,10 +444,9 @@ def light_phase(
     }
 
 
-def run_light(
-    n: int, seconds: float, command_robots: int, warmup_timeout: float, tokens: str = "contract"
-) -> dict[str, Any]:
+def run_light(n: int, seconds: float, command_robots: int, warmup_timeout: float) -> dict[str, Any]:
     """``--light``: ``n`` light robots on router A of a two-router mesh; the console on A, then on B."""
+    from fleetlink.shared import keys
     from fleetlink.site.mesh import RouterMesh
 
     tmp = Path(tempfile.mkdtemp(prefix="fleetlink-scale-light-"))
@@ -469,8 +455,6 @@ def run_light(
         log_path = tmp / "light.log"
         with log_path.open("wb") as log:
             argv = [exe, "field", "--light", str(n), "--zenoh-connect", mesh.a.listen, "--zenoh-listen", "none"]
-            if tokens == "elsewhere":  # not the contract's key: what the routers pay for it (docs/operations.md)
-                argv = [sys.executable, "-c", LIGHT_ELSEWHERE_SCRIPT, str(n), mesh.a.listen]
             fleet = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT)
         try:
             pids = {"light_fleet": fleet.pid, "router_a": mesh.a.pid, "router_b": mesh.b.pid, "console": os.getpid()}
@@ -487,7 +471,7 @@ def run_light(
     return {
         "robots": n,
         "light": True,
-        "tokens": tokens,
+        "tokens": f"{keys.ALIVE_PREFIX}/<robot>",  # the contract's (keys.alive_key), as agents declare
         "command_robots": command_robots,
         "teleop_rate_hz": TELEOP_HZ,
         "host_cpus": os.cpu_count() or 0,
@@ -517,7 +501,7 @@ def light_table(r: dict[str, Any]) -> str:
     head = (
         f"{r['robots']} light robots in one process on router A; console on router A (one router), then on "
         f"router B (two-router mesh); teleops to {r['command_robots']} robots at {r['teleop_rate_hz']:g} Hz each; "
-        f"liveliness tokens {'at fleetlink/v1/<robot>/alive' if r['tokens'] == 'contract' else 'at fleetlink/alive/<robot>'}; "
+        f"liveliness tokens at {r.get('tokens', 'fleetlink/alive/v1/<robot>')}; "
         f"{r['host_cpus']} CPUs, load average {r['load_average_1min']:.1f} at the end (other work on the host)"
     )
     lines = [head, f"{'':34} {'mesh (B)':>22} {'one router (A)':>22} {'goal':>10}"]
@@ -593,18 +577,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup-timeout", type=float, default=120.0)
     ap.add_argument("--light", action="store_true", help="light robots through a two-router mesh, no agents")
     ap.add_argument("--command-robots", type=int, default=50, help="with --light: robots sent teleops (4 Hz each)")
-    ap.add_argument(
-        "--tokens",
-        choices=("contract", "elsewhere"),
-        default="contract",
-        help="with --light: the robots' liveliness tokens at the contract's key, or under fleetlink/alive/<robot>",
-    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     if args.light:
-        r = run_light(
-            args.robots, args.seconds, min(args.command_robots, args.robots), args.warmup_timeout, args.tokens
-        )
+        r = run_light(args.robots, args.seconds, min(args.command_robots, args.robots), args.warmup_timeout)
         print(light_table(r))
         if args.json:
             args.json.write_text(json.dumps(r, indent=2) + "\n")

@@ -4,11 +4,13 @@
 
 The light fleet (field/light.py, in this process) publishes on router A; a bare subscriber on
 router B counts the poses. Three runs, one after the other, differing only in the robots'
-liveliness tokens: at the contract's key ``fleetlink/v1/<robot>/alive`` (what agents and
-``fleetlink field --light`` declare, which consoles watch), under another prefix (``zz/<robot>``),
-and none. Measured: poses/s arriving at B (goal: 20 x N) and the CPU of each router and of this
+liveliness tokens: at the contract's key ``fleetlink/alive/v1/<robot>`` (``keys.alive_key``: what
+agents and ``fleetlink field --light`` declare, which consoles watch), at the old key
+``fleetlink/v1/<robot>/alive`` (the contract until issue 18: next to the robot's data keys), and
+none. Measured: poses/s arriving at B (goal: 20 x N) and the CPU of each router and of this
 process. zenoh 1.10.2 (the Python wheel's router) spends far more per routed sample when the
-tokens share the data's key tree (docs/operations.md, "Scale").
+tokens share the data's key tree, which is why the contract moved them (docs/operations.md,
+"Scale").
 """
 
 from __future__ import annotations
@@ -29,8 +31,9 @@ from bench.scale import cpu_seconds  # noqa: E402
 
 def measure(tokens: str, n: int, seconds: float) -> dict[str, Any]:
     from fleetlink.field.light import LightFleet, light_names
-    from fleetlink.field.light_runner import LightRunner, alive_key
+    from fleetlink.field.light_runner import LightRunner
     from fleetlink.links.zenoh import ZenohEndpoint, open_session
+    from fleetlink.shared import keys
     from fleetlink.shared.clock import SystemClock
     from fleetlink.site.mesh import RouterMesh
 
@@ -38,7 +41,7 @@ def measure(tokens: str, n: int, seconds: float) -> dict[str, Any]:
     names = light_names(n)
     with RouterMesh() as mesh:
         link = ZenohEndpoint(connect=[mesh.a.listen], mode="client", label="zenoh-light")
-        alive = {"contract": alive_key, "elsewhere": lambda name: f"zz/{name}", "none": None}[tokens]
+        alive = {"contract": keys.alive_key, "old": lambda name: f"fleetlink/v1/{name}/alive", "none": None}[tokens]
         runner = LightRunner(LightFleet(names, clock.now()), [link], clock, owns_links=True, alive=alive).start()
         sub = open_session(connect=[mesh.b.listen], mode="client")
         count = [0]
@@ -63,14 +66,19 @@ def main() -> int:
     ap.add_argument("--robots", type=int, default=500)
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--layouts", default="contract,old,none", help="which runs, comma-separated: contract, old, none")
     args = ap.parse_args()
-    runs = [measure(t, args.robots, args.seconds) for t in ("contract", "elsewhere", "none")]
+    runs = [measure(t, args.robots, args.seconds) for t in args.layouts.split(",")]
     print(f"{args.robots} light robots on router A, a subscriber on router B; load average {os.getloadavg()[0]:.1f}")
-    print(f"{'tokens':34} {'poses/s at B':>14} {'router A':>9} {'router B':>9} {'fleet+sub':>10}")
+    print(f"{'tokens':38} {'poses/s at B':>14} {'router A':>9} {'router B':>9} {'fleet+sub':>10}")
     for r in runs:
-        label = {"contract": "fleetlink/v1/<robot>/alive", "elsewhere": "zz/<robot>", "none": "none"}[r["tokens"]]
+        label = {
+            "contract": "fleetlink/alive/v1/<robot> (contract)",
+            "old": "fleetlink/v1/<robot>/alive (old)",
+            "none": "none",
+        }[r["tokens"]]
         print(
-            f"{label:34} {r['poses_at_b_hz']:8.0f} / {r['goal_hz']:.0f} {r['router_a_cpu_ratio'] * 100:8.1f}% "
+            f"{label:38} {r['poses_at_b_hz']:8.0f} / {r['goal_hz']:.0f} {r['router_a_cpu_ratio'] * 100:8.1f}% "
             f"{r['router_b_cpu_ratio'] * 100:8.1f}% {r['fleet_and_subscriber_cpu_ratio'] * 100:9.1f}%"
         )
     if args.json:

@@ -3,9 +3,9 @@
 ``LightRunner(fleet, links, clock)``: on ``start`` it starts the links (idempotent), subscribes the
 command keys of every robot (four wildcard subscriptions, ``fleetlink/v1/*/<topic>/*``, not four
 per robot: the fleet drops what is not addressed to one of its robots), declares each robot's
-liveliness token ``fleetlink/v1/<robot>/alive`` on links that hold tokens (``ZenohEndpoint``), and
-starts one ``Worker`` that sleeps until the fleet's next deadline (at least ``TICK_S``), takes
-every message due and publishes it. Telemetry goes on the first link (the primary, Zenoh); a command is answered (its
+liveliness token ``fleetlink/alive/v1/<robot>`` (``keys.alive_key``, as an agent does) on links
+that hold tokens (``ZenohEndpoint``), and starts one ``Worker`` that sleeps until the fleet's next
+deadline (at least ``TICK_S``), takes every message due and publishes it. Telemetry goes on the first link (the primary, Zenoh); a command is answered (its
 ack, the lease) on the link it came on, from that link's delivery thread. One lock serialises the
 core between the two threads; the core does the work, this file only moves bytes.
 
@@ -26,12 +26,9 @@ from fleetlink.shared import keys
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.worker import Worker
 
-__all__ = ["ALIVE_TOPIC", "LightRunner", "alive_key", "open_light_fleet"]
+__all__ = ["LightRunner", "open_light_fleet"]
 
 log = logging.getLogger(__name__)
-
-ALIVE_TOPIC = "alive"
-"""The agents' presence token topic (agent/links/zenoh_link.py), which consoles watch."""
 
 MAX_SLEEP_S = 0.05
 """The worker never sleeps longer than this (a fleet with nothing due still checks for stop)."""
@@ -41,14 +38,10 @@ TICK_S = 0.005
 batching shows (at most this much) as staleness at the console."""
 
 
-def alive_key(robot: str) -> str:
-    """``fleetlink/v1/<robot>/alive``: where an agent's presence token is, and so a light robot's."""
-    return keys.key(robot, ALIVE_TOPIC)
-
-
 class LightRunner(Worker):
-    """``alive``: where each robot's liveliness token goes (None: no tokens); benches move them
-    to measure what the routers pay for them (bench/zenoh_tokens.py)."""
+    """``alive``: where each robot's liveliness token goes (default the contract's
+    ``keys.alive_key``, as an agent's; None: no tokens); bench/zenoh_tokens.py puts them
+    elsewhere to measure what the routers pay for them."""
 
     def __init__(
         self,
@@ -57,7 +50,7 @@ class LightRunner(Worker):
         clock: Clock,
         *,
         owns_links: bool = False,
-        alive: Callable[[str], str] | None = alive_key,
+        alive: Callable[[str], str] | None = keys.alive_key,
     ) -> None:
         if not links:
             raise ValueError("a light fleet needs at least one link")
@@ -122,7 +115,7 @@ def open_light_fleet(
     listen: Sequence[str] = (),
     settings: LightSettings | None = None,
     prefix: str = "L",
-    alive: Callable[[str], str] | None = alive_key,
+    alive: Callable[[str], str] | None = keys.alive_key,
     **auth: Any,
 ) -> LightRunner:
     """``n`` light robots (``L0000``...) on a Zenoh endpoint of their own (``ZenohEndpoint``'s

@@ -4,7 +4,7 @@
 connect endpoints, multicast scouting off, peer or client mode, a login and TLS files for a
 secured site router. ``ZenohEndpoint`` is a ``fleetlink.links.base.Link`` over one session (its
 own, or one it is given), plus queries (``serve``/``query``, as ``InProcessLink``), an optional
-liveliness token (the agent's presence on ``fleetlink/v1/<robot>/alive``) and liveliness watches
+liveliness token (the agent's presence on ``fleetlink/alive/v1/<robot>``) and liveliness watches
 (``watch_liveliness``: the console learns which robots' tokens come and go, those present when
 it starts included; the changes reach it through the same inbox as samples, in arrival order).
 

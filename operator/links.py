@@ -49,8 +49,8 @@ MARKS_QUERY = keys.sender_filter("*", Mark.TOPIC)
 """``fleetlink/v1/*/marks/*``: every console answers it with the marks it made (under its own
 name, as it published them); a console that starts late asks it."""
 AnchorSink = Callable[[str, list[tuple[str, float, float, float]]], None]
-ALIVE_TOKENS = keys.zenoh_all_robots("alive")
-"""``fleetlink/v1/*/alive``: the agents' liveliness tokens (agent/links/zenoh_link.py), watched on
+ALIVE_TOKENS = keys.ZENOH_ALL_ALIVE
+"""``fleetlink/alive/v1/*``: the agents' liveliness tokens (agent/links/zenoh_link.py), watched on
 every link that can (``watch_liveliness``: Zenoh, in-process)."""
 PresenceSink = Callable[[str, str, bool, float], None]
 """``sink(robot, link, alive, wall time)``: a robot's token appeared (True) or went (False)."""
@@ -211,12 +211,9 @@ class OperatorLink:
 
     def _token(self, link: str, key: str, alive: bool) -> None:
         try:
-            robot, topic = keys.parse_key(key)
+            robot = keys.parse_alive_key(key)
         except ValueError as exc:
             self._reject(link, key, f"bad liveliness token: {exc}")
-            return
-        if topic != "alive":
-            self._reject(link, key, f"bad liveliness token: topic {topic!r} is not 'alive'")
             return
         wall = self.clock.wall()
         for sink in self._presence_sinks:

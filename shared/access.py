@@ -28,7 +28,7 @@ import json
 from collections.abc import Iterable, Sequence
 from typing import Any
 
-from fleetlink.shared.keys import PREFIX, SENDER_TOPICS, check_id, check_robot_id
+from fleetlink.shared.keys import PREFIX, SENDER_TOPICS, ZENOH_ALL_ALIVE, alive_key, check_id, check_robot_id
 
 __all__ = [
     "AGENT_READS",
@@ -221,7 +221,8 @@ def zenoh_access_control(
                 # wildcard subscriber); what it receives is limited on egress to its inputs.
                 _rule(f"{robot}-subscribe", ["ingress"], ["declare_subscriber"], [own]),
                 _rule(f"{robot}-commands-in", ["egress"], ["put", "delete"], reads),
-                _rule(f"{robot}-presence", ["ingress"], ["liveliness_token"], [own]),
+                # Its presence: one liveliness token, its own (keys.alive_key), outside its key tree.
+                _rule(f"{robot}-presence", ["ingress"], ["liveliness_token"], [alive_key(robot)]),
                 _rule(
                     f"{robot}-serve", ["ingress"], ["declare_queryable", "reply"], [_zenoh(robot, t) for t in SERVED]
                 ),
@@ -242,18 +243,19 @@ def zenoh_access_control(
     if simulator:
         grant("simulator", [SIM_USER], [_rule("sim-truth", ["ingress"], ["put"], truth)])
     everything = [f"{PREFIX}/**"]
+    presence = [ZENOH_ALL_ALIVE]  # every robot's liveliness token
     watch = [
         _rule(
             "operator-watch",
             ["ingress"],
             ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"],
-            [*everything, "fleetlink/uwb/*/status"],
+            [*everything, *presence, "fleetlink/uwb/*/status"],
         ),
         _rule(
             "operator-watch-in",
             ["egress"],
             ["put", "delete", "reply", "liveliness_token"],
-            [*everything, "fleetlink/uwb/*/status"],
+            [*everything, *presence, "fleetlink/uwb/*/status"],
         ),
         # Consoles that start late ask every console for its marks (operator/links.py MARKS_QUERY).
         _rule("operator-marks-queries", ["egress"], ["query"], [_zenoh("*", "marks")]),
@@ -266,7 +268,7 @@ def zenoh_access_control(
             _rule(f"{op}-serve-marks", ["ingress"], ["declare_queryable", "reply"], [_zenoh("*", "marks", op)]),
         ]
         grant(f"operator-{op}", [op], (watch if i == 0 else []) + mine, shared=[r["id"] for r in watch])
-    grant("routers", peers, [_rule("router-link", ["ingress", "egress"], _ALL_MESSAGES, everything)])
+    grant("routers", peers, [_rule("router-link", ["ingress", "egress"], _ALL_MESSAGES, [*everything, *presence])])
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 

@@ -15,6 +15,11 @@ and an MQTT topic, so a bridge between the two never rewrites names.
 * The robot id ``sim`` is reserved: ``fleetlink/v1/sim/<robot>/truth`` carries the simulator's
   ground truth about ``<robot>``. So that the all-robots wildcards never match a truth key, no
   ordinary topic may end in the segment ``truth``.
+* Presence is not under the robots' key tree: each robot's Zenoh liveliness token is at
+  ``fleetlink/alive/v1/<robot>`` (``alive_key``), watched with ``ZENOH_ALL_ALIVE``. Under
+  ``fleetlink/v1/<robot>/alive``, next to the data keys, zenoh 1.10's routers spent 4-6 times the
+  CPU per routed sample (docs/operations.md, "Scale"); nothing matching ``fleetlink/v1/**`` may
+  hold a token.
 
 Pure functions, no I/O. Every validator raises ``ValueError`` with a message naming the bad part.
 """
@@ -25,6 +30,7 @@ import functools
 import re
 
 __all__ = [
+    "ALIVE_PREFIX",
     "ID_PATTERN",
     "MAX_TOPIC_SEGMENTS",
     "MQTT_ALL",
@@ -35,7 +41,9 @@ __all__ = [
     "SIM",
     "TRUTH_TOPIC",
     "ZENOH_ALL",
+    "ZENOH_ALL_ALIVE",
     "ZENOH_ALL_TRUTH",
+    "alive_key",
     "check_id",
     "check_robot_id",
     "check_topic",
@@ -44,6 +52,7 @@ __all__ = [
     "key",
     "mqtt_all_robots",
     "mqtt_robot",
+    "parse_alive_key",
     "parse_key",
     "parse_truth_key",
     "sender_filter",
@@ -87,11 +96,20 @@ MQTT_ALL = f"{PREFIX}/#"
 """MQTT topic filter matching every fleetlink topic (including the sim namespace)."""
 
 ZENOH_ALL_TRUTH = f"{PREFIX}/{SIM}/*/{TRUTH_TOPIC}"
+
+ALIVE_PREFIX = "fleetlink/alive/v1"
+"""Where the robots' Zenoh liveliness tokens live, one per robot: ``fleetlink/alive/v1/<robot>``.
+Outside ``PREFIX`` on purpose (no ``fleetlink/v1/**`` expression matches a token); versioned
+with the key scheme. Zenoh only: MQTT's presence is the retained ``connection`` message."""
+
+ZENOH_ALL_ALIVE = f"{ALIVE_PREFIX}/*"
+"""Zenoh key expression matching every robot's liveliness token (consoles and recorders watch it)."""
 MQTT_ALL_TRUTH = f"{PREFIX}/{SIM}/+/{TRUTH_TOPIC}"
 
 _ID_RE = re.compile(ID_PATTERN)
 _PREFIX_SLASH = PREFIX + "/"
 _SIM_PREFIX = f"{PREFIX}/{SIM}/"
+_ALIVE_SLASH = ALIVE_PREFIX + "/"
 _MAX_SHOWN = 80
 
 
@@ -239,6 +257,24 @@ def parse_truth_key(key_expr: str) -> str:
         return check_robot_id(robot)
     except ValueError as exc:
         raise ValueError(f"invalid truth key {_show(key_expr)}: {exc}") from None
+
+
+def alive_key(robot: str) -> str:
+    """``fleetlink/alive/v1/<robot>``: the key of ``robot``'s liveliness token (its presence on Zenoh)."""
+    return f"{_ALIVE_SLASH}{check_robot_id(robot)}"
+
+
+def parse_alive_key(key_expr: object) -> str:
+    """The robot id of a liveliness token key ``fleetlink/alive/v1/<robot>``; ValueError naming the
+    bad part for anything else (another prefix, an extra segment, an invalid or reserved id)."""
+    if not isinstance(key_expr, str):
+        raise ValueError(f"invalid token key {_show(key_expr)}: expected a string, got {type(key_expr).__name__}")
+    if not key_expr.startswith(_ALIVE_SLASH):
+        raise ValueError(f"invalid token key {_show(key_expr)}: must start with {_ALIVE_SLASH!r}")
+    try:
+        return check_robot_id(key_expr[len(_ALIVE_SLASH) :])
+    except ValueError as exc:
+        raise ValueError(f"invalid token key {_show(key_expr)}: {exc}") from None
 
 
 def zenoh_all_robots(topic: str) -> str:

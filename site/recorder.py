@@ -54,7 +54,7 @@ CHUNK_AGE_S = 1.0
 INBOX_SIZE = 100_000
 """Messages waiting for the writer; beyond it they are dropped and counted (the disk stalled)."""
 UWB_STATUS = "fleetlink/uwb/*/status"
-ALIVE_TOKENS = keys.zenoh_all_robots("alive")
+ALIVE_TOKENS = keys.ZENOH_ALL_ALIVE
 PROFILE = "fleetlink"
 SNAPSHOT_TIMEOUT_S = 2.0
 

@@ -126,7 +126,7 @@ _UWB_STATUS_SCHEMA = json.dumps(
 _ALIVE_SCHEMA = json.dumps(
     {
         "title": "fleetlink.Liveliness",
-        "description": "A robot's liveliness token fleetlink/v1/<robot>/alive appeared (alive) or went",
+        "description": "A robot's liveliness token fleetlink/alive/v1/<robot> appeared (alive) or went",
         "type": "object",
         "properties": {"robot": {"type": "string"}, "alive": {"type": "boolean"}},
         "required": ["robot", "alive"],
@@ -196,14 +196,12 @@ class RecordingCore:
         return self.receive(link, key, payload, wall)
 
     def alive(self, link: str, key: str, alive: bool, wall: float) -> list[Record]:
-        """A liveliness token ``key`` (``fleetlink/v1/<robot>/alive``) came (True) or went."""
+        """A liveliness token ``key`` (``fleetlink/alive/v1/<robot>``, ``keys.alive_key``) came
+        (True) or went."""
         try:
-            robot, topic = keys.parse_key(key)
+            robot = keys.parse_alive_key(key)
         except ValueError as exc:
             self._reject(f"bad liveliness token: {exc}")
-            return []
-        if topic != ALIVE:
-            self._reject(f"bad liveliness token: topic {topic!r}")
             return []
         self.robots.add(robot)
         channel = self._other.get(f"{FLEETLINK_PREFIX}/{link}/{ALIVE}") or self._other_channel(alive_channel(link))

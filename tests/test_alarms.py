@@ -495,16 +495,16 @@ def test_in_process_liveliness_follows_start_cut_restore_and_close() -> None:
 
     bus = InProcessBus(LinkName.ZENOH)
     agent, console = bus.endpoint("agent-r1"), bus.endpoint("console")
-    agent.alive_key = "fleetlink/v1/r1/alive"
+    agent.alive_key = "fleetlink/alive/v1/r1"
     seen: list[tuple[str, bool]] = []
-    console.watch_liveliness("fleetlink/v1/*/alive", lambda key, alive: seen.append((key, alive)))
+    console.watch_liveliness("fleetlink/alive/v1/*", lambda key, alive: seen.append((key, alive)))
     console.start()
     bus.deliver()
     assert seen == []
     agent.start()
     bus.deliver()
     bus.deliver()
-    assert seen == [("fleetlink/v1/r1/alive", True)]
+    assert seen == [("fleetlink/alive/v1/r1", True)]
     bus.cut("agent-r1")
     bus.deliver()
     bus.restore("agent-r1")
@@ -512,9 +512,9 @@ def test_in_process_liveliness_follows_start_cut_restore_and_close() -> None:
     agent.close()
     bus.deliver()
     assert seen[1:] == [
-        ("fleetlink/v1/r1/alive", False),
-        ("fleetlink/v1/r1/alive", True),
-        ("fleetlink/v1/r1/alive", False),
+        ("fleetlink/alive/v1/r1", False),
+        ("fleetlink/alive/v1/r1", True),
+        ("fleetlink/alive/v1/r1", False),
     ]
 
 
@@ -530,9 +530,9 @@ def test_the_operator_link_turns_tokens_into_presence_and_robot_lost() -> None:
     clock = SimClock(start=0.0, epoch=T0)
     zenoh, mqtt = InProcessBus(LinkName.ZENOH), InProcessBus(LinkName.MQTT)
     agent = zenoh.endpoint("agent-r1")
-    agent.alive_key = "fleetlink/v1/r1/alive"
+    agent.alive_key = "fleetlink/alive/v1/r1"
     bogus = zenoh.endpoint("bogus")
-    bogus.alive_key = "fleetlink/v1/r2/not-alive"  # matches no watch: never reported
+    bogus.alive_key = "fleetlink/v1/r2/alive"  # the old key (before issue 18) matches no watch: never reported
     link = OperatorLink(clock, "op-a", zenoh.endpoint("op-a"), mqtt.endpoint("op-a"))
     fleet = FleetModel("op-a")
     attach(link, fleet, threading.Lock())
@@ -550,3 +550,50 @@ def test_the_operator_link_turns_tokens_into_presence_and_robot_lost() -> None:
     zenoh.deliver()
     assert fleet.alarms.alarms.get("r1", K.ROBOT_LOST) is None and fleet.robots["r1"].present is True
     link.close()
+
+
+def test_a_token_under_the_contracts_key_is_presence_and_a_bad_one_is_rejected_counted_logged_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Issue 18: presence is ``fleetlink/alive/v1/<robot>`` (``keys.alive_key``). A token there
+    whose last segment is no valid robot id (a reserved one, characters outside the id rule) is
+    refused: counted each time it comes or goes, logged once, never a robot in the console."""
+    import logging
+    import threading
+
+    from fleetlink.links.inprocess import InProcessBus
+    from fleetlink.operator.feed import attach
+    from fleetlink.operator.fleet import FleetModel
+    from fleetlink.operator.links import ALIVE_TOKENS, OperatorLink
+    from fleetlink.shared import keys
+    from fleetlink.shared.messages import LinkName
+
+    assert ALIVE_TOKENS == keys.ZENOH_ALL_ALIVE == "fleetlink/alive/v1/*"
+    clock = SimClock(start=0.0, epoch=T0)
+    zenoh, mqtt = InProcessBus(LinkName.ZENOH), InProcessBus(LinkName.MQTT)
+    agent = zenoh.endpoint("agent-r7")
+    agent.alive_key = keys.alive_key("r7")
+    reserved, invalid = zenoh.endpoint("reserved"), zenoh.endpoint("invalid")
+    reserved.alive_key = "fleetlink/alive/v1/sim"
+    invalid.alive_key = "fleetlink/alive/v1/r7!"
+    link = OperatorLink(clock, "op-a", zenoh.endpoint("op-a"), mqtt.endpoint("op-a"))
+    fleet = FleetModel("op-a")
+    attach(link, fleet, threading.Lock())
+    with caplog.at_level(logging.WARNING, logger="fleetlink.operator.links"):
+        link.start()
+        for e in (agent, reserved, invalid):
+            e.start()
+        zenoh.deliver()
+        assert set(fleet.robots) == {"r7"} and fleet.robots["r7"].present is True
+        for client in ("reserved", "invalid"):  # each bad token goes and comes back: 2 more each
+            zenoh.cut(client)
+            zenoh.deliver()
+            zenoh.restore(client)
+            zenoh.deliver()
+        link.close()
+    bad = {reason: n for reason, n in link.rejected.items() if reason.startswith("bad liveliness token")}
+    assert len(bad) == 2 and sorted(bad.values()) == [3, 3], link.rejected
+    assert any("reserved" in r for r in bad) and any("r7!" in r for r in bad)
+    logged = [r for r in caplog.records if "bad liveliness token" in r.getMessage()]
+    assert len(logged) == 2
+    assert set(fleet.robots) == {"r7"}

@@ -75,7 +75,7 @@ class Robot:
     """The robot's voice on both links; its Zenoh endpoint holds the liveliness token."""
 
     def __init__(self, session: Any, broker: MosquittoBroker, clock: SystemClock) -> None:
-        self.zenoh = ZenohEndpoint(session=session, alive_key=keys.key("r1", "alive"), label="zenoh-r1")
+        self.zenoh = ZenohEndpoint(session=session, alive_key=keys.alive_key("r1"), label="zenoh-r1")
         self.mqtt = MqttEndpoint(mqtt_settings_for(f"mqtt://127.0.0.1:{broker.port}"), client_id="agent-r1")
         self.counter = wire.HeaderCounter(clock, robot="r1", sender="agent-r1")
         self.zenoh.start()

@@ -23,6 +23,7 @@ import zenoh
 
 from fleetlink.links.mqtt import connect_client, nodelay_enabled
 from fleetlink.links.zenoh import peer_config
+from fleetlink.shared import keys
 from fleetlink.shared.access import mosquitto_acl, zenoh_access_control
 from fleetlink.shared.mqtt import MqttSettings
 from tests.harness import wait_until
@@ -386,6 +387,32 @@ def test_zenoh_fixes_only_from_the_gateway(router: Router) -> None:
     # r2 has no sentinel it could send to r1; its forged fix was sent before op's and gw's ones
     # left the router, and the router drops it on ingress (the same rule the other tests show).
     assert all(p != b"forged" for _, p in got), got
+
+
+def test_zenoh_each_robot_declares_only_its_own_presence_token(router: Router) -> None:
+    """Presence is ``fleetlink/alive/v1/<robot>`` (keys.alive_key, issue 18): a robot may hold its
+    own token there and no other; consoles watch them all. The old key under the robot's own tree
+    (``fleetlink/v1/<robot>/alive``) is refused too."""
+    op = router.client("op-alice")
+    seen: list[tuple[str, bool]] = []
+
+    def heard(sample: zenoh.Sample) -> None:
+        seen.append((str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT))
+
+    op.liveliness().declare_subscriber(keys.ZENOH_ALL_ALIVE, heard, history=True)
+    op.liveliness().declare_subscriber("fleetlink/v1/**", heard, history=True)
+    r1, r2 = router.client("r1"), router.client("r2")
+    held = [
+        r2.liveliness().declare_token(k)
+        for k in (keys.alive_key("r1"), keys.alive_key("r3"), "fleetlink/v1/r2/alive", "fleetlink/alive/v1/r2/x")
+    ]
+    held.append(r2.liveliness().declare_token(keys.alive_key("r2")))  # the sentinel: its own, after the forgeries
+    wait_until(lambda: (keys.alive_key("r2"), True) in seen, message="r2's own token")
+    held.append(r1.liveliness().declare_token(keys.alive_key("r1")))
+    wait_until(lambda: (keys.alive_key("r1"), True) in seen, message="r1's own token")
+    assert seen == [(keys.alive_key("r2"), True), (keys.alive_key("r1"), True)], seen
+    for token in held:
+        token.undeclare()
 
 
 @pytest.mark.parametrize(("user", "password"), [(None, None), ("r1", "wrong"), ("intruder", "x")])

@@ -192,7 +192,7 @@ def test_a_receiver_that_raises(pair: Pair) -> None:
 
 def test_zenoh_serve_and_query_and_the_alive_token() -> None:
     endpoint = loopback_endpoint()
-    alive = keys.key("r1", "alive")
+    alive = keys.alive_key("r1")
     a = ZenohEndpoint(listen=[endpoint], alive_key=alive)
     b = ZenohEndpoint(connect=[endpoint])
     a.serve(keys.key("r1", "map"), lambda asked: [(keys.key("r1", "map"), b"snapshot for " + asked.encode())])
@@ -203,7 +203,7 @@ def test_zenoh_serve_and_query_and_the_alive_token() -> None:
         wait_until(lambda: b.query(keys.key("r1", "map"), 0.5), message="an answer")
         assert b.query(keys.key("r1", "map"), 1.0) == [(keys.key("r1", "map"), b"snapshot for fleetlink/v1/r1/map")]
         assert b.query(keys.key("r2", "map"), 0.3) == []
-        tokens = lambda: [str(r.ok.key_expr) for r in b.session.liveliness().get(keys.zenoh_all_robots("alive"))]  # noqa: E731
+        tokens = lambda: [str(r.ok.key_expr) for r in b.session.liveliness().get(keys.ZENOH_ALL_ALIVE)]  # noqa: E731
         wait_until(lambda: tokens() == [alive], message="the alive token")
         a.unserve(keys.key("r1", "map"))  # withdrawn: nobody answers any more
         wait_until(lambda: b.query(keys.key("r1", "map"), 0.3) == [], message="the queryable withdrawn")

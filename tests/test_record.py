@@ -273,3 +273,14 @@ def test_record_summary_and_replay_commands(tmp_path: Path, capsys: pytest.Captu
         assert err.count("error: ") == 2 and "Traceback" not in err, err
     assert main(["replay", str(out), "--speed", "0"]) == 2
     assert "speed must be a positive number" in capsys.readouterr().err
+
+
+def test_the_recorder_takes_tokens_under_the_contracts_key_and_counts_bad_ones() -> None:
+    core = RecordingCore()
+    records = core.alive("zenoh", keys.alive_key("r1"), True, 1.0)
+    assert [json.loads(r.data) for r in records] == [{"robot": "r1", "alive": True}]
+    assert "r1" in core.robots
+    for bad in ("fleetlink/alive/v1/sim", "fleetlink/v1/r1/alive"):  # reserved id; the old key
+        assert core.alive("zenoh", bad, True, 2.0) == []
+    assert sum(n for r, n in core.rejected.items() if r.startswith("bad liveliness token")) == 2
+    assert core.robots == {"r1"}

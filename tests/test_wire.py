@@ -229,6 +229,45 @@ def test_truth_namespace() -> None:
         keys.truth_key("sim")
 
 
+@given(robot=ids)
+def test_alive_key_round_trip(robot: str) -> None:
+    k = keys.alive_key(robot)
+    assert k == f"fleetlink/alive/v1/{robot}"
+    assert keys.parse_alive_key(k) == robot
+
+
+def test_alive_keys_are_off_the_robots_key_tree() -> None:
+    # A token matched by fleetlink/v1/** cost zenoh 1.10's routers 4-6x the CPU (issue 18).
+    from fleetlink.links.base import key_matches
+
+    assert keys.ZENOH_ALL_ALIVE == "fleetlink/alive/v1/*"
+    assert key_matches(keys.ZENOH_ALL_ALIVE, keys.alive_key("r1"))
+    assert not key_matches(keys.ZENOH_ALL, keys.alive_key("r1"))
+    with pytest.raises(ValueError, match="reserved"):
+        keys.alive_key("sim")
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        "",
+        "fleetlink/alive/v1",
+        "fleetlink/alive/v1/",
+        "fleetlink/alive/v1/r1/x",
+        "fleetlink/alive/v1/a*",
+        "fleetlink/alive/v1/sim",
+        "fleetlink/alive/v1/r1\n",
+        "fleetlink/alive/v2/r1",
+        "fleetlink/alive/r1",
+        "fleetlink/v1/r1/alive",
+        None,
+    ],
+)
+def test_parse_alive_key_rejects(bad: Any) -> None:
+    with pytest.raises(ValueError, match="invalid token key"):
+        keys.parse_alive_key(bad)
+
+
 # --------------------------------------------------------------------------------------------------
 # Round trips (generic over every registered message)
 

@@ -1,9 +1,10 @@
 """The agent's primary link: a ``ZenohEndpoint`` with the agent's presence token.
 
 ``agent_zenoh_link(robot, settings)`` opens (on ``start``) a session as ``settings`` say (listen,
-connect, mode, login, TLS), declares the liveliness token ``fleetlink/v1/<robot>/alive`` while it
-is open. The node subscribes its inputs (``AgentNode.subscribe``); samples reach it in arrival
-order (links/zenoh.py says why that needs one delivery thread). Per-key QoS (commands and acks
+connect, mode, login, TLS), declares the liveliness token ``fleetlink/alive/v1/<robot>``
+(``keys.alive_key``: outside the robots' key tree, docs/wire-contract.md) while it is open. The
+node subscribes its inputs (``AgentNode.subscribe``); samples reach it in arrival order
+(links/zenoh.py says why that needs one delivery thread). Per-key QoS (commands and acks
 express, telemetry DROP) is the endpoint's.
 """
 
@@ -17,9 +18,7 @@ from fleetlink.shared import keys
 if TYPE_CHECKING:
     from fleetlink.agent.config import ZenohSettings
 
-__all__ = ["ALIVE_TOPIC", "URGENT_TOPICS", "agent_zenoh_link"]
-
-ALIVE_TOPIC = "alive"
+__all__ = ["URGENT_TOPICS", "agent_zenoh_link"]
 
 
 def agent_zenoh_link(robot: str, settings: ZenohSettings) -> ZenohEndpoint:
@@ -28,7 +27,7 @@ def agent_zenoh_link(robot: str, settings: ZenohSettings) -> ZenohEndpoint:
     return ZenohEndpoint(
         listen=settings.listen,
         connect=settings.connect,
-        alive_key=keys.key(robot, ALIVE_TOPIC),
+        alive_key=keys.alive_key(robot),
         label=f"zenoh-{robot}",
         mode=settings.mode,
         username=settings.username,
