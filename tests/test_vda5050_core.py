@@ -412,3 +412,20 @@ def test_connection_factsheet_and_headers_count_per_topic() -> None:
     assert f.doc["headerId"] == 0 and f.doc["version"] == "2.1.0"
     types = {x["actionType"] for x in f.doc["protocolFeatures"]["agvActions"]}
     assert {"startPause", "stopPause", "cancelOrder", "stateRequest", "factsheetRequest", "payload", "dwell"} <= types
+
+
+def test_the_duplicate_ack_of_the_other_links_copy_coming_first_does_not_lose_the_real_one() -> None:
+    # Redundant sending: the robot acks the copy it ran on one link and the other copy as a
+    # duplicate on the other; the duplicate's ack may reach the bridge first.
+    rig = Rig()
+    rig.state()
+    rig.send("instantActions", {"actions": [{"actionId": "p1", "actionType": "startPause", "blockingType": "NONE"}]})
+    rig.ack("actions", AckResult.DUPLICATE, "already received on zenoh")
+    rig.ack("actions")
+    assert {a["actionId"]: a["actionStatus"] for a in rig.last_state()["actionStates"]}["p1"] == "FINISHED"
+    # ... and a refusal of an order still reaches the master after the duplicate's ack.
+    rig.send("order", BASE_WITH_HORIZON)
+    rig.ack("order", AckResult.DUPLICATE, "already received on mqtt")
+    rig.ack("order", AckResult.REJECTED, "lease held by op-1")
+    assert errors(rig)[-1]["errorType"] == "orderError"
+    assert rig.last_state()["nodeStates"] == []

@@ -538,8 +538,12 @@ class VehicleCore:
         return out + self.tick(now, wall)
 
     def _ack(self, ack: Ack, now: float) -> list[Out]:
+        if ack.result is AckResult.DUPLICATE:
+            # The copy on the other link (redundant sending) or a re-send: its ack may come before
+            # the one that says how the command went, so it must not end the wait for that one.
+            return []
         pending = self._pending.pop((ack.commandTopic, ack.commandHeaderId), None)
-        if pending is None or ack.result is AckResult.DUPLICATE:
+        if pending is None:
             return []
         ok = ack.result is AckResult.ACCEPTED
         self._next_state = -math.inf
