@@ -95,8 +95,15 @@ class Record:
     publish_time_ns: int
 
 
+_NS_MAX = 2**64 - 1
+"""MCAP's times are uint64 nanoseconds."""
+
+
 def _ns(t: float) -> int:
-    return max(0, round(t * 1e9))
+    # A wire-valid header timestamp is any finite number >= 0: one far in the future must not
+    # overflow (round(inf), or a uint64 the writer cannot pack) and end the recorder's writer.
+    ns = t * 1e9
+    return max(0, round(ns)) if ns < _NS_MAX else _NS_MAX
 
 
 def wire_channel(link: str, topic: str) -> Channel:

@@ -7,6 +7,7 @@ its channel's schema with ``jsonschema``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections import Counter
 from pathlib import Path
@@ -284,3 +285,25 @@ def test_the_recorder_takes_tokens_under_the_contracts_key_and_counts_bad_ones()
         assert core.alive("zenoh", bad, True, 2.0) == []
     assert sum(n for r, n in core.rejected.items() if r.startswith("bad liveliness token")) == 2
     assert core.robots == {"r1"}
+
+
+def test_a_timestamp_far_in_the_future_is_recorded_and_the_writer_goes_on(tmp_path: Path) -> None:
+    # The wire takes any finite timestamp >= 0; MCAP's times are uint64 nanoseconds.
+    clock = SystemClock()
+    zb = InProcessBus(LinkName.ZENOH)
+    out = tmp_path / "future.mcap"
+    rec = Recorder(out, [zb.endpoint("recorder")], clock).start()
+    agent = zb.endpoint("agent-r1")
+    agent.start()
+    c = wire.HeaderCounter(clock, robot="r1", sender="agent-r1")
+    try:
+        for ts in (1e300, 1e12, None):
+            p = pose(c, 0.5)
+            if ts is not None:
+                p = dataclasses.replace(p, header=dataclasses.replace(p.header, timestamp=ts))
+            agent.publish(wire.key_of(p), wire.encode(p))
+            zb.deliver()
+            wait_until(lambda n=rec.written: rec.written >= n + 2, message="written")
+    finally:
+        rec.stop()
+    assert sum(1 for _ in RecordingReader(out).messages()) == 6
