@@ -121,6 +121,8 @@ class AlarmKeeper:
         self.audit = audit
         self._republish = threading.Event()
         self._quiet_checked = -math.inf
+        self._quiet_next = 0
+        """Where the next frame's share of the robots starts (``frame``)."""
         listen = getattr(source, "add_connect_listener", None)
         if listen is not None:
             listen(self._republish.set)  # on the broker's thread: only a flag
@@ -131,9 +133,19 @@ class AlarmKeeper:
         """Once per frame (``wall``: the console's wall clock): link quiet, renotifications, the
         audit log. Returns what to tell the operator and the acknowledgement lists to publish."""
         desk = self.desk
-        if wall - self._quiet_checked >= QUIET_CHECK_S:  # not every frame: health costs per robot
+        # Health costs per robot: each frame looks at its share of the robots, in turn, so each
+        # is looked at about every QUIET_CHECK_S and no frame does the whole fleet (but the first,
+        # and one after a pause as long as that).
+        fleet = list(robots)
+        share = min(1.0, (wall - self._quiet_checked) / QUIET_CHECK_S) if wall > self._quiet_checked else 0.0
+        count = min(len(fleet), math.ceil(len(fleet) * share)) if fleet else 0
+        if count:
             self._quiet_checked = wall
-            for robot in robots:
+            start = self._quiet_next % len(fleet)
+            self._quiet_next = start + count
+            for robot in (
+                (fleet * 2)[start : start + count] if start + count > len(fleet) else fleet[start : start + count]
+            ):
                 links = health(robot)
                 quiet = links_quiet([h.age_s for h in links])
                 desk.link_quiet(robot, quiet, wall)

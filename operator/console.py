@@ -3,10 +3,12 @@
 The app never opens a transport: it gets a ``ConsoleSource`` (in production ``OperatorLink``,
 which owns Zenoh + MQTT and the link manager) and shows a ``FleetModel``. What the network hears
 reaches the app as messages: the model's ``FleetFeed`` (operator/feed.py) keeps it in an inbox and
-posts the app a ``TelemetryArrived``; the app folds the inbox into the model on its own thread and
-redraws. A frame is drawn when something changed (telemetry, an operator action) and on a slow
-clock tick (ages, robots going quiet, lease renewal), at most ``refresh_hz`` times a second; no
-widget is ever touched off the UI thread, and no network thread ever waits for the UI.
+posts the app a ``TelemetryArrived``; the app folds the inbox into the model on its own thread (in
+slices of ``DRAIN_SLICE_S``, so a key waits one slice, not a burst) and redraws. A drive key on the
+map sends its teleop when the app first sees it, before any frame queued meanwhile. A frame is
+drawn when something changed (telemetry, an operator action) and on a slow clock tick (ages,
+robots going quiet, lease renewal), at most ``refresh_hz`` times a second; no widget is ever
+touched off the UI thread, and no network thread ever waits for the UI.
 
 The parts: the fleet table (operator/fleet_table.py), the robot detail (operator/detail.py), the
 status line (operator/status.py), the map (operator/mapview.py); typed commands are parsed by
@@ -23,6 +25,7 @@ stops every robot, and quitting sends stop to every robot before the links close
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import math
 import threading
@@ -346,6 +349,10 @@ class ConsoleApp(App[None]):
         yield Footer()
 
     def on_mount(self) -> None:
+        # Everything built so far (modules, widgets, styles) lives as long as the app: out of the
+        # collector's full passes, which then walk only what the fleet adds (at 500 robots a full
+        # pass held the UI thread 80-190 ms). Given back on unmount.
+        gc.freeze()
         self.query_one(MapView).focus()
         self.feed.bind(lambda: self.post_message(TelemetryArrived()))
         self.feed.drain()
@@ -356,6 +363,7 @@ class ConsoleApp(App[None]):
         self._changed()
 
     def on_unmount(self) -> None:
+        gc.unfreeze()
         self.feed.unbind()
         with self.lock:
             self.alarm_keeper.close()  # the last audit lines

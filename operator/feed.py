@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 import weakref
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -152,16 +153,34 @@ class FleetFeed:
             self._wake = None
         self.drain()
 
-    def drain(self) -> int:
-        """Fold everything waiting into the model (the app's thread). How many items."""
+    def drain(self, budget_s: float | None = None) -> int:
+        """Fold what waits into the model (the app's thread). How many items.
+
+        With ``budget_s`` it stops once that much time went (checked every few items) and leaves
+        the rest waiting (``pending``): the app folds it in slices, so a key press queued behind
+        a burst of telemetry waits one slice, not the whole burst."""
         with self._inbox_lock:
             self._wake_pending = False  # cleared first: an item that comes during the drain wakes again
         n = 0
+        inbox = self._inbox
         with self.lock:
-            while self._inbox:
-                self._apply(self._inbox.popleft())
+            if budget_s is None:
+                while inbox:
+                    self._apply(inbox.popleft())
+                    n += 1
+                return n
+            end = time.perf_counter() + budget_s
+            while inbox:
+                self._apply(inbox.popleft())
                 n += 1
+                if n % 32 == 0 and time.perf_counter() >= end:
+                    break
         return n
+
+    @property
+    def pending(self) -> bool:
+        """Items wait in the inbox (a budgeted ``drain`` left them)."""
+        return bool(self._inbox)
 
     # -- the network's side ---------------------------------------------------------------------
 

@@ -67,6 +67,8 @@ class RobotView:
     """The fused pose's position uncertainty: the larger of its x and y standard deviations,
     metres (None until a ``Pose`` said; a ``State`` carries none)."""
     trail: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=TRAIL_POINTS))
+    trail_added: int = 0
+    """Points ever appended to ``trail`` (the map draws only the new ones, the dropped ones by count)."""
     last_heard: float | None = None
     uwb_stale: bool | None = None
     uwb_fix_at: float | None = None
@@ -216,6 +218,7 @@ class FleetModel:
         view.pose = (x, y, theta)
         if not view.trail or math.hypot(x - view.trail[-1][0], y - view.trail[-1][1]) >= TRAIL_MIN_STEP_M:
             view.trail.append((x, y))
+            view.trail_added += 1
 
     def _state(self, view: RobotView, msg: State, now: float) -> None:
         p = msg.agvPosition

@@ -13,6 +13,8 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from rich.text import Text
+from textual.cache import LRUCache
+from textual.message import Message
 from textual.widgets import DataTable
 
 from fleetlink.operator.fleet import FleetModel, RobotView
@@ -128,29 +130,112 @@ def _same(cell: Cell) -> Any:
     return (cell.plain, str(cell.style), tuple(cell.spans)) if isinstance(cell, Text) else cell
 
 
+CACHE_SIZES = {"_row_render_cache": 200, "_cell_render_cache": 2000, "_row_renderable_cache": 200, "_line_cache": 200}
+"""DataTable's render caches (1000, 10000, 1000, 1000 rows, cells, rows, lines by default)."""
+
+VISIBLE_MARGIN = 2
+"""Rows just above and below the visible ones are kept current too (a scroll by a row or two)."""
+
+
 class FleetTable(DataTable[Cell]):
-    """The rows of ``fleet_rows``; row keys are robot ids."""
+    """The rows of ``fleet_rows``; row keys are robot ids.
+
+    Only the rows on screen are kept current: with hundreds of robots a frame touches the dozen
+    rows a person can see. A row off screen keeps what it showed until it is scrolled to; then
+    ``Scrolled`` asks the app for a frame (``show_lazy``) or the rows last given are applied at
+    once (``show``)."""
+
+    class Scrolled(Message):
+        """Other rows came into view."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(cursor_type="row", zebra_stripes=True, **kwargs)
         self._shown: dict[str, tuple[Any, ...]] = {}
+        """robot -> what its row shows (``_same`` of each cell)."""
+        self._order: list[str] = []
+        """The row keys in the table's order (rows are added at the end, never sorted)."""
+        self._index: dict[str, int] = {}
+        self._latest: Mapping[str, Row] = {}
+        """The rows ``show`` was last given, for the rows that come into view before the next."""
+        self.cells_updated = 0
+        """Cells rewritten so far (``update_cell`` calls)."""
+        # DataTable's render caches are keyed by its update count, so after an update only what is
+        # on screen is used again; sized for a screen, not for thousands of stale renders (which
+        # the garbage collector would walk: 100-190 ms pauses at 500 robots).
+        for name, size in CACHE_SIZES.items():
+            cache = getattr(self, name, None)
+            if isinstance(cache, LRUCache):
+                cache.maxsize = size
 
     def on_mount(self) -> None:
         for label, key in COLUMNS:
             self.add_column(label, key=key)
 
+    def visible_range(self) -> tuple[int, int]:
+        """The row indices [first, end) on screen (all of them before the table has a size)."""
+        height = self.scrollable_content_region.height - (self.header_height if self.show_header else 0)
+        if height <= 0:
+            return 0, len(self._order)
+        first = max(0, int(self.scroll_y) - VISIBLE_MARGIN)
+        return first, min(len(self._order), int(self.scroll_y) + height + 1 + VISIBLE_MARGIN)
+
     def show(self, rows: Mapping[str, Row]) -> None:
-        """Rows gone are removed, new ones added (in order, at the end), changed cells updated."""
-        for robot in [r for r in self._shown if r not in rows]:
-            self.remove_row(robot)
-            del self._shown[robot]
-        for robot, cells in rows.items():
-            key = tuple(_same(c) for c in cells)
-            old = self._shown.get(robot)
-            if old is None:
-                self.add_row(*cells, key=robot)
-            else:
-                for (_, column), value, was, now in zip(COLUMNS, cells, old, key, strict=True):
-                    if was != now:
-                        self.update_cell(robot, column, value)
-            self._shown[robot] = key
+        """Rows gone are removed, new ones added (in order, at the end), changed cells updated
+        (those on screen; the others when they come into view)."""
+        self._latest = rows
+        self._sync(list(rows), rows.__getitem__)
+
+    def show_lazy(self, order: Sequence[str], cells: Callable[[str], Row]) -> None:
+        """As ``show``, the rows ``order`` names, but ``cells(robot)`` is asked only for the rows
+        on screen and the new ones."""
+        self._latest = {}
+        self._sync(order, cells)
+
+    def _sync(self, order: Sequence[str], cells: Callable[[str], Row]) -> None:
+        keep = set(order)
+        gone = [r for r in self._order if r not in keep]
+        if gone:
+            for robot in gone:
+                self.remove_row(robot)
+                del self._shown[robot]
+            self._order = [r for r in self._order if r in keep]
+            self._index = {r: i for i, r in enumerate(self._order)}
+        for robot in order:
+            if robot not in self._shown:
+                row = cells(robot)
+                self.add_row(*row, key=robot)
+                self._shown[robot] = tuple(_same(c) for c in row)
+                self._index[robot] = len(self._order)
+                self._order.append(robot)
+        first, end = self.visible_range()
+        for robot in self._order[first:end]:
+            self._update(robot, cells(robot))
+
+    def _update(self, robot: str, cells: Row) -> None:
+        key = tuple(_same(c) for c in cells)
+        old = self._shown[robot]
+        if key == old:
+            return
+        for (_, column), value, was, now in zip(COLUMNS, cells, old, key, strict=True):
+            if was != now:
+                self.update_cell(robot, column, value)
+                self.cells_updated += 1
+        self._shown[robot] = key
+
+    def watch_scroll_y(self, old_value: float, new_value: float) -> None:
+        super().watch_scroll_y(old_value, new_value)
+        if int(old_value) != int(new_value):
+            self._revealed()
+
+    def on_resize(self) -> None:
+        self._revealed()
+
+    def _revealed(self) -> None:
+        if self._latest:
+            first, end = self.visible_range()
+            for robot in self._order[first:end]:
+                row = self._latest.get(robot)
+                if row is not None:
+                    self._update(robot, row)
+        else:
+            self.post_message(self.Scrolled())

@@ -4,23 +4,29 @@ people-present zones (░) and the selected robot's running round (dwell points 
 
 The geometry (``MapGeometry``) is pure and tested on its own: one terminal cell is ``scale`` metres
 wide and ``2 * scale`` metres tall (terminal cells are about twice as tall as wide), world +y is up.
-The widget renders line by line from a per-frame cell table that is rebuilt only when the fleet
-model's version or the view changed.
+The widget renders line by line from a cell table that is rebuilt only when the fleet model's
+version or the view changed, in layers: the maps, zones and anchors only when they or the view
+changed; the trails by their new and dropped points only; goals, marks and robots each time. Only
+the lines whose cells changed are refreshed, and rendered lines are cached.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import itertools
 import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 from rich.segment import Segment
 from rich.style import Style
 from textual import events
+from textual.geometry import Region
 from textual.message import Message
 from textual.strip import Strip
 from textual.widget import Widget
@@ -121,6 +127,18 @@ class MapView(Widget, can_focus=True):
         self.dose: FleetDose | None = None
         """The fleet's dose layer to draw (None: hidden); the app sets it under ``lock``."""
         self._dose_styles: dict[tuple[Style, int], Style] = {}
+        self._base: dict[tuple[int, int], Cell] = {}
+        """The maps, zones and anchors (``_base_layer``), for ``_base_key``."""
+        self._base_protected: set[tuple[int, int]] = set()
+        self._base_key: tuple[object, ...] = ()
+        self._trail_cells: dict[tuple[int, int], int] = {}
+        """Terminal cell -> trail points in it, every robot's, for the view ``_trails_view``."""
+        self._trail_of: dict[str, tuple[int, collections.deque[tuple[int, int] | None]]] = {}
+        """robot -> (its ``trail_added`` when last seen, the cell of each of its trail points)."""
+        self._trails_view: tuple[object, ...] = ()
+        self._strips: dict[int, Strip] = {}
+        """Rendered lines, by row, dropped when a line's cells change."""
+        self._full_refresh = True
 
     def on_resize(self, event: events.Resize) -> None:
         self._sync_size()
@@ -142,23 +160,33 @@ class MapView(Widget, can_focus=True):
         self.refresh()
 
     def update_view(self) -> None:
-        """Redraw if anything the picture depends on changed (called on every frame of the app)."""
+        """Redraw if anything the picture depends on changed (called on every frame of the app):
+        only the lines whose cells changed are refreshed."""
         self._sync_size()
         g = self.geometry
         dose = None if self.dose is None else (id(self.dose), self.dose.version)
         key = (self.fleet.version, g.width, g.height, g.center_x, g.center_y, g.scale, self.selected(), dose)
         if key != self._drawn:
             self._drawn = key
+            old = self._cells
             self._rebuild()
-            self.refresh()
+            if self._full_refresh:
+                self._full_refresh = False
+                self._strips.clear()
+                self.refresh()
+                return
+            dirty = {c[1] for c, v in self._cells.items() if old.get(c) != v}
+            dirty.update(c[1] for c in old if c not in self._cells)
+            width = self.content_size.width
+            for row in dirty:
+                self._strips.pop(row, None)
+                self.refresh(Region(0, row, width, 1))
 
-    def _rebuild(self) -> None:
+    def _base_layer(self, xs: npt.NDArray[np.floating[Any]], ys: npt.NDArray[np.floating[Any]]) -> None:
+        """The robots' maps, the zones and the anchors: rebuilt only when they or the view changed."""
         g = self.geometry
         cells: dict[tuple[int, int], Cell] = {}
-
         protected: set[tuple[int, int]] = set()
-        """Anchors, marks, goals and robots: a name label is drawn over the map (walls, free
-        space, trails) but never over one of these."""
 
         def put(x: float, y: float, char: str, style: Style, *, protect: bool = True) -> None:
             c = g.to_cell(x, y)
@@ -170,8 +198,6 @@ class MapView(Widget, can_focus=True):
         # The robots' maps merged (occupied wins over free, free over unknown), sampled at the
         # terminal cells' centres.
         merged = np.full((g.height, g.width), 255, dtype=np.uint8)
-        xs = g.center_x + (np.arange(g.width) + 0.5 - g.width / 2) * g.scale
-        ys = g.center_y - (np.arange(g.height) + 0.5 - g.height / 2) * g.scale * ASPECT
         # The fleet map, when there is one, is every robot's map registered and merged: drawn alone.
         grids = self.fleet.grids
         if FLEET_MAP in grids:
@@ -205,30 +231,112 @@ class MapView(Widget, can_focus=True):
                     cells[(int(col), int(row))] = ("░", ZONE_STYLE)
                 for x, y in corners:  # a zone smaller than a terminal cell still shows
                     put(x, y, "░", ZONE_STYLE, protect=False)
-        for name, (x, y) in self.fleet.anchors.items():
+        for x, y in self.fleet.anchors.values():
             put(x, y, "A", ANCHOR_STYLE)
-            del name
+        self._base = cells
+        self._base_protected = protected
+
+    def _update_trails(self, view_key: tuple[object, ...]) -> None:
+        """Keep ``_trail_cells`` (terminal cell -> how many trail points fall in it) current by
+        adding each robot's new points and dropping the ones its trail let go: per message O(1)."""
+        if view_key != self._trails_view:
+            self._trails_view = view_key
+            self._trail_of.clear()
+            self._trail_cells.clear()
+        g = self.geometry
+        counts = self._trail_cells
+        half_w, half_h, sx, sy = g.width / 2, g.height / 2, g.scale, g.scale * ASPECT
+        cx, cy, width, height = g.center_x, g.center_y, g.width, g.height
+
+        def cell(p: tuple[float, float]) -> tuple[int, int] | None:
+            col = math.floor((p[0] - cx) / sx + half_w)
+            row = math.floor(-(p[1] - cy) / sy + half_h)
+            return (col, row) if 0 <= col < width and 0 <= row < height else None
+
+        def drop(c: tuple[int, int] | None) -> None:
+            if c is not None:
+                n = counts[c] - 1
+                if n:
+                    counts[c] = n
+                else:
+                    del counts[c]
+
+        for robot, view in self.fleet.robots.items():
+            trail = view.trail
+            seen = self._trail_of.get(robot)
+            if seen is not None and seen[0] == view.trail_added and len(seen[1]) == len(trail):
+                continue
+            new = view.trail_added - seen[0] if seen is not None else len(trail)
+            if seen is None or new > len(trail) or new < 0:
+                if seen is not None:
+                    for c in seen[1]:
+                        drop(c)
+                mine: collections.deque[tuple[int, int] | None] = collections.deque()
+                points = list(trail)
+            else:
+                mine = seen[1]
+                points = list(itertools.islice(trail, len(trail) - new, None)) if new else []
+            for p in points:
+                c = cell(p)
+                mine.append(c)
+                if c is not None:
+                    counts[c] = counts.get(c, 0) + 1
+            while len(mine) > len(trail):
+                drop(mine.popleft())
+            self._trail_of[robot] = (view.trail_added, mine)
+
+    def _rebuild(self) -> None:
+        g = self.geometry
+        view_key = (g.width, g.height, g.center_x, g.center_y, g.scale)
+        xs = g.center_x + (np.arange(g.width) + 0.5 - g.width / 2) * g.scale
+        ys = g.center_y - (np.arange(g.height) + 0.5 - g.height / 2) * g.scale * ASPECT
+        fleet = self.fleet
+        base_key = (
+            view_key,
+            tuple((k, id(v)) for k, v in fleet.grids.items()),
+            tuple((k, id(v)) for k, v in fleet.zones.items()),
+            tuple(fleet.anchors.items()),
+        )
+        if base_key != self._base_key:
+            self._base_key = base_key
+            self._base_layer(xs, ys)
+            self._full_refresh = True
+        self._update_trails(view_key)
+        cells = dict(self._base)
+        for c in self._trail_cells:  # trails over the maps, under everything else
+            cells[c] = ("∙", TRAIL_STYLE)
+        protected = set(self._base_protected)
+        """Anchors, marks, goals and robots: a name label is drawn over the map (walls, free
+        space, trails) but never over one of these."""
+
+        def put(x: float, y: float, char: str, style: Style, *, protect: bool = True) -> None:
+            c = g.to_cell(x, y)
+            if g.inside(*c):
+                cells[c] = (char, style)
+                if protect:
+                    protected.add(c)
+
         selected = self.selected()
-        for view in self.fleet.robots.values():
-            for x, y in view.trail:
-                put(x, y, "∙", TRAIL_STYLE, protect=False)
         self._draw_round(selected, put)
-        for mark in self.fleet.live_marks():
+        for mark in fleet.live_marks():
             put(mark.x, mark.y, "✚" if mark.kind == "casualty" else "*", MARK_STYLE)
-        for view in self.fleet.robots.values():
+        for view in fleet.robots.values():
             if view.home is not None:  # every robot's home, where return home goes
                 put(view.home[0], view.home[1], "H", GOAL_STYLE)
             if view.goal is not None:
                 put(view.goal[0], view.goal[1], "G", GOAL_STYLE)
         labels: list[tuple[int, int, str, Style]] = []
-        for view in self.fleet.robots.values():
+        for view in fleet.robots.values():
             if view.pose is None:
                 continue
             x, y, th = view.pose
             style = LOST_STYLE if view.lost else SELECTED_STYLE if view.robot == selected else ROBOT_STYLE
-            put(x, y, heading_char(th), style)
             col, row = g.to_cell(x, y)
-            labels.append((col, row, view.robot[:6], style))
+            if g.inside(col, row):
+                cells[(col, row)] = (heading_char(th), style)
+                protected.add((col, row))
+            if -8 <= col < g.width and 0 <= row < g.height:
+                labels.append((col, row, view.robot[:6], style))
         for col, row, name, style in labels:  # after every glyph, so no label hides a robot
             for k, ch in enumerate(name):
                 c = (col + 2 + k, row)
@@ -295,7 +403,15 @@ class MapView(Widget, can_focus=True):
                 col += 1
 
     def render_line(self, y: int) -> Strip:
+        """One line of the map, from the cache unless its cells changed since it was rendered."""
         width = self.content_size.width
+        strip = self._strips.get(y)
+        if strip is not None and strip.cell_length == width:
+            return strip
+        strip = self._strips[y] = self._render_line(y, width)
+        return strip
+
+    def _render_line(self, y: int, width: int) -> Strip:
         cells = self._cells
         segments: list[Segment] = []
         run: list[str] = []

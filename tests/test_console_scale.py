@@ -1,0 +1,171 @@
+"""The console with many robots (issue 18): a frame works out only what changed and what is on
+screen, and a drive key never waits for telemetry or a frame. Behaviour, not timings
+(bench/console.py measures those)."""
+
+from __future__ import annotations
+
+import math
+import random
+from pathlib import Path
+from typing import Any
+
+from textual import events
+from textual.geometry import Region
+
+from fleetlink.operator import console as console_module
+from fleetlink.operator.fleet import TRAIL_POINTS, FleetModel
+from fleetlink.operator.fleet_table import FleetTable
+from fleetlink.operator.mapview import MapView
+from fleetlink.shared import wire
+from fleetlink.shared.clock import SimClock
+from fleetlink.shared.messages import Lease, Pose, Teleop
+from tests.test_console import ME, Rig, run_async, settle
+
+ROBOTS = [f"r{i:02d}" for i in range(60)]
+
+
+def counting_updates(table: FleetTable) -> list[tuple[str, str]]:
+    updates: list[tuple[str, str]] = []
+    real = table.update_cell
+
+    def counting(row: Any, column: Any, value: Any, **kw: Any) -> None:
+        updates.append((str(row), str(column)))
+        real(row, column, value, **kw)
+
+    table.update_cell = counting  # type: ignore[method-assign]
+    return updates
+
+
+@run_async
+async def test_a_row_update_changes_only_that_row_and_rows_off_screen_wait_until_shown(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, clock=SimClock(start=100.0))  # ages stand still: only what is sent changes
+    rig.link.start()
+    try:
+        async with rig.app.run_test(size=(140, 44)) as pilot:
+            for i, robot in enumerate(ROBOTS):
+                rig.pose(robot, float(i), 0.0, links=("zenoh",))
+            await settle(pilot, 0.4)
+            table = rig.app.query_one(FleetTable)
+            assert [str(k.value) for k in table.rows] == ROBOTS
+            first, end = table.visible_range()
+            assert first == 0 and end < len(ROBOTS)  # the test needs rows off screen
+            updates = counting_updates(table)
+
+            rig.zenoh.inject(rig.counter("r01").make(Lease, holder="", until=0.0))
+            await settle(pilot, 0.4)
+            assert updates == [("r01", "lease")]
+            assert table.get_cell("r01", "lease") == "free"
+
+            updates.clear()
+            rig.zenoh.inject(rig.counter("r59").make(Lease, holder="op-bob", until=0.0))
+            await settle(pilot, 0.4)
+            assert updates == []  # off screen: not worked out, not redrawn
+            assert table.get_cell("r59", "lease") == "-"
+
+            table.move_cursor(row=len(ROBOTS) - 1)  # scrolls to it: the next frame brings it up to date
+            await settle(pilot, 0.4)
+            assert ("r59", "lease") in updates
+            assert table.get_cell("r59", "lease") == "op-bob"
+    finally:
+        rig.link.close()
+
+
+@run_async
+async def test_a_drive_key_sends_its_teleop_before_queued_telemetry_and_frames(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, clock=SimClock(start=100.0))
+    rig.link.start()
+    slice_s = console_module.DRAIN_SLICE_S
+    try:
+        async with rig.app.run_test(size=(140, 44)) as pilot:
+            rig.pose("r00", 0.0, 0.0, links=("zenoh",))
+            await settle(pilot, 0.4)
+            assert rig.app.selected == "r00"
+            frames = len(rig.app.frame_times)
+            waiting: list[int] = []
+            publish = rig.zenoh.publish
+
+            def stamped(key: str, payload: bytes) -> bool:
+                if "/teleop" in key:
+                    waiting.append(len(rig.app.feed._inbox))
+                return publish(key, payload)
+
+            rig.zenoh.publish = stamped  # type: ignore[method-assign]
+            console_module.DRAIN_SLICE_S = 0.0  # the smallest slices: 32 items each
+            for k in range(2000):  # a burst of telemetry, and a frame due for it
+                rig.pose("r00", 0.001 * k, 0.0, links=("zenoh",))
+            rig.app._changed()
+            rig.app.post_message(events.Key("i", "i"))
+            await settle(pilot, 0.5)
+            assert len(waiting) >= 1
+            assert waiting[0] > 1000  # sent while most of the burst still waited to be folded in
+            assert len(rig.app.frame_times) > frames and not rig.app.feed.pending  # then all of it
+            drives = [t for t in rig.zenoh.messages(Teleop) if t.v > 0]
+            assert drives and drives[0].header.robot == "r00"
+            assert rig.fleet.robots["r00"].pose is not None and rig.fleet.robots["r00"].pose[0] > 1.9
+    finally:
+        console_module.DRAIN_SLICE_S = slice_s
+        rig.link.close()
+
+
+@run_async
+async def test_the_map_refreshes_only_the_lines_that_changed(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, clock=SimClock(start=100.0))
+    rig.link.start()
+    try:
+        async with rig.app.run_test(size=(140, 44)) as pilot:
+            rig.pose("r00", 0.0, 0.0, links=("zenoh",))
+            rig.pose("r01", 2.0, 2.0, links=("zenoh",))
+            await settle(pilot, 0.4)
+            view = rig.app.query_one(MapView)
+            refreshed: list[Region] = []
+            real = view.refresh
+
+            def recording(*regions: Region, **kw: Any) -> Any:
+                refreshed.extend(regions)
+                return real(*regions, **kw)
+
+            view.refresh = recording  # type: ignore[method-assign]
+            _, row = view.geometry.to_cell(2.0, 2.0)
+            rig.pose("r01", 2.5, 2.0, links=("zenoh",))  # along its line
+            await settle(pilot, 0.4)
+            assert refreshed and {r.y for r in refreshed} == {row}
+            assert all(r.height == 1 for r in refreshed)
+    finally:
+        rig.link.close()
+
+
+def fresh_cells(fleet: FleetModel, view: MapView) -> dict[tuple[int, int], Any]:
+    other = MapView(fleet, view.selected)
+    other.geometry = view.geometry
+    other._rebuild()
+    return other._cells
+
+
+def test_the_maps_kept_trails_match_drawing_from_scratch() -> None:
+    """Trails are kept by their new and dropped points: after many poses (past the trail's
+    length, robots crossing one another's cells, a view change) the cells are those a full
+    redraw gives."""
+    fleet = FleetModel(ME)
+    view = MapView(fleet, lambda: "r1")
+    view.geometry.width, view.geometry.height, view.geometry.scale = 60, 20, 0.2
+    rnd = random.Random(7)
+    counters = {r: wire.HeaderCounter(SimClock(start=1.0), robot=r, sender=f"agent-{r}") for r in ("r1", "r2", "r3")}
+    for step in range(3 * TRAIL_POINTS):
+        for i, counter in enumerate(counters.values()):
+            th = 0.05 * step + i
+            x, y = 2 * math.cos(th) + rnd.uniform(-0.1, 0.1), 1.5 * math.sin(th)
+            msg = counter.make(
+                Pose, x=x, y=y, theta=th, sd_x_m=0.05, sd_y_m=0.05, sd_theta_rad=0.01, odom_x=x, odom_y=y,
+                odom_theta=th, vx=0.0, omega=0.0, uwbStale=False,
+            )  # fmt: skip
+            fleet.apply(msg, "zenoh", 1.0 + step)
+        if step % 37 == 0:
+            view._rebuild()
+            assert view._cells == fresh_cells(fleet, view)
+        if step == 300:
+            view.geometry.pan(3, 1)
+    view._rebuild()
+    assert view._cells == fresh_cells(fleet, view)
+    assert sum(view._trail_cells.values()) == sum(
+        1 for v in fleet.robots.values() for x, y in v.trail if view.geometry.inside(*view.geometry.to_cell(x, y))
+    )
