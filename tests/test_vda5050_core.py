@@ -410,6 +410,7 @@ def test_connection_factsheet_and_headers_count_per_topic() -> None:
     assert will.doc["connectionState"] == "CONNECTIONBROKEN" and OFFICIAL.problems("connection", will.doc) == []
     f = rig._check(rig.core.factsheet(rig.wall()))[0]
     assert f.doc["headerId"] == 0 and f.doc["version"] == "2.1.0"
+    assert f.retain  # section 6.15: all messages on this topic retained
     types = {x["actionType"] for x in f.doc["protocolFeatures"]["agvActions"]}
     assert {"startPause", "stopPause", "cancelOrder", "stateRequest", "factsheetRequest", "payload", "dwell"} <= types
 

@@ -248,7 +248,8 @@ class VehicleCore:
         return Publish(self.topic("connection"), doc, 1, True)
 
     def factsheet(self, wall: float) -> list[Out]:
-        return self._publish("factsheet", factsheet_body(self.config), wall)
+        """Retained (VDA 5050 2.1 section 6.15: every message on this topic)."""
+        return self._publish("factsheet", factsheet_body(self.config), wall, retain=True)
 
     # -- errors ---------------------------------------------------------------------------------
 
