@@ -17,7 +17,6 @@ import argparse
 import logging
 import socket
 import sys
-import time
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -95,10 +94,10 @@ def record(args: argparse.Namespace) -> int:
         print(f"error: cannot start the recorder: {exc}", file=sys.stderr)
         return 1
     print(f"recording to {args.out} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-    deadline = None if args.duration is None else time.monotonic() + args.duration
+    deadline = None if args.duration is None else clock.now() + args.duration
     try:
-        while deadline is None or time.monotonic() < deadline:
-            time.sleep(0.2 if deadline is None else max(0.0, min(0.2, deadline - time.monotonic())))
+        while deadline is None or clock.now() < deadline:
+            clock.sleep(0.2 if deadline is None else max(0.0, min(0.2, deadline - clock.now())))
     except KeyboardInterrupt:
         pass
     finally:
