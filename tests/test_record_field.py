@@ -97,10 +97,21 @@ def test_a_recorded_field_session_reads_back_and_replays_to_the_same_fleet(mosqu
             timeout=60,
             message="a map drawn whole and an ack recorded",
         )
-        time.sleep(1.0)
+        wait_until(  # three seconds of both robots' poses (20 Hz) on record
+            lambda: all(recorder.core.messages[f"/foxglove/{r}/pose"] >= 60 for r in ROBOTS),
+            timeout=30,
+            message="3 s of poses from each robot",
+        )
+        said = recorder.core.messages["/fleetlink/mqtt/connection"]
         agents.stop()  # the robots go quiet (and say OFFLINE), so both sides end on the same messages
         agents = None
-        time.sleep(1.5)
+
+        def both_heard_offline() -> bool:
+            with live_lock:
+                offline = all(live.robots[r].connection == "OFFLINE" for r in ROBOTS)
+            return offline and recorder.core.messages["/fleetlink/mqtt/connection"] >= said + len(ROBOTS)
+
+        wait_until(both_heard_offline, timeout=30, message="both robots' OFFLINE in the console and on record")
         with live_lock:
             live_rows = comparable(fleet_rows(live, console.active, console.health, ME, clock.now()))
             live_views = view_state(live)

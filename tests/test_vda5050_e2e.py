@@ -25,6 +25,7 @@ from fleetlink.operator.vda5050.schema import SchemaValidator, load_schemas
 from fleetlink.shared.clock import SystemClock
 from fleetlink.site.agents import FieldAgents
 from fleetlink.site.vda5050 import open_bridge
+from tests.harness import wait_until
 from tests.harness.mosquitto import free_port
 from tests.test_field_realtime import quiet_scenario
 from tests.test_vda5050_core import REFERENCE
@@ -97,9 +98,13 @@ def test_a_vda5050_master_drives_a_field_robot_through_the_bridge(mosquitto) -> 
 
 def wire_check(wire: Wire | None) -> None:
     assert wire is not None
-    import time as _time
 
-    _time.sleep(0.5)
+    def offline_heard() -> bool:
+        with wire.lock:
+            said = [json.loads(p)["connectionState"] for t, p in wire.messages if t == PREFIX + "connection"]
+        return bool(said) and said[-1] == "OFFLINE"
+
+    wait_until(offline_heard, timeout=10, message="the bridge's OFFLINE on the wire")
     wire.close()
     official = SchemaValidator(load_schemas(REFERENCE))
     seen: dict[str, int] = {}
@@ -113,6 +118,24 @@ def wire_check(wire: Wire | None) -> None:
     assert {"order", "instantActions", "state", "visualization", "connection", "factsheet"} <= set(seen), seen
     connections = [json.loads(p)["connectionState"] for t, p in wire.messages if t == PREFIX + "connection"]
     assert connections[0] == "ONLINE" and connections[-1] == "OFFLINE"
+
+
+async def stands_still(truth: Any, states: list[Any]) -> None:
+    """The robot comes to rest (its true position unchanged over five polls in a row), then stays
+    within 2 cm of where it rests while the vehicle publishes two more states."""
+    last = [truth()]
+    steady = [0]
+
+    def at_rest() -> bool:
+        p = truth()
+        steady[0] = steady[0] + 1 if math.dist(p[:2], last[0][:2]) < 0.001 else 0
+        last[0] = p
+        return steady[0] >= 5
+
+    await wait_for("the robot at rest", at_rest)
+    held, seen = truth(), len(states)
+    await wait_for("two more states", lambda: len(states) >= seen + 2)
+    assert math.dist(truth()[:2], held[:2]) < 0.02
 
 
 async def master_session(url: str, truth: Any) -> None:
@@ -144,10 +167,8 @@ async def master_session(url: str, truth: Any) -> None:
         # 2. startPause: the robot stands, paused; 3. stopPause: it drives on.
         await master.pause(TARGET, action_id="pause-1")
         await wait_for("paused", lambda: latest().paused)
-        await asyncio.sleep(0.6)
+        await stands_still(truth, states)
         held = truth()
-        await asyncio.sleep(0.8)
-        assert math.dist(truth()[:2], held[:2]) < 0.02
         status = lambda aid: next((a.action_status for a in latest().action_states if a.action_id == aid), None)  # noqa: E731
         assert str(getattr(status("pause-1"), "value", status("pause-1"))) == "FINISHED"
         await master.resume(TARGET, action_id="resume-1")
@@ -159,10 +180,7 @@ async def master_session(url: str, truth: Any) -> None:
         await wait_for("the cancel finished", lambda: str(getattr(status("cancel-1"), "value", "")) == "FINISHED")
         await wait_for("no nodes left", lambda: not latest().node_states)
         assert latest().order_id == "o-1"
-        await asyncio.sleep(0.5)
-        stopped = truth()
-        await asyncio.sleep(0.6)
-        assert math.dist(truth()[:2], stopped[:2]) < 0.02
+        await stands_still(truth, states)
 
         # 5. A malformed order is refused in state.errors; the vehicle keeps serving.
         pub = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="raw-master")
