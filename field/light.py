@@ -27,7 +27,6 @@ from __future__ import annotations
 import heapq
 import math
 from dataclasses import dataclass, field
-from typing import Any
 
 from fleetlink.shared import keys, wire
 from fleetlink.shared.messages import (
@@ -52,6 +51,7 @@ from fleetlink.shared.messages import (
     State,
     Teleop,
     Velocity,
+    ack_fields,
 )
 
 __all__ = ["COMMAND_TOPICS", "LightFleet", "LightSettings", "LightStats", "light_names"]
@@ -406,16 +406,6 @@ class LightFleet:
         reason: str,
         wall: float,
     ) -> tuple[str, bytes]:
-        order = msg if isinstance(msg, Order) else None
-        fields: dict[str, Any] = {
-            "commandTopic": msg.TOPIC,
-            "commandSender": msg.header.sender,
-            "commandHeaderId": msg.header.headerId,
-            "orderId": order.orderId if order else None,
-            "orderUpdateId": order.orderUpdateId if order else None,
-            "result": result,
-            "reason": reason[:256],
-            "link": link,
-        }
+        fields = ack_fields(msg, link, result, reason)
         self.stats.acks += 1
         return self._key(r.name, Ack.TOPIC), wire.encode(Ack(header=self._header(r, Ack.TOPIC, wall), **fields))

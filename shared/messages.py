@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Annotated, ClassVar
+from typing import Annotated, Any, ClassVar
 
 from .wire import Message, bounded, register, sized
 
@@ -96,6 +96,7 @@ __all__ = [
     "Velocity",
     "Zone",
     "ZonePoint",
+    "ack_fields",
 ]
 
 MAX_BOARD_ERRORS = 16
@@ -556,6 +557,24 @@ class Ack(Message):
     reason: Annotated[str, sized(256)]
     link: LinkName
     """The link the command arrived on (and this ack goes out on)."""
+
+
+def ack_fields(
+    command: Order | InstantActions | Teleop, link: LinkName, result: AckResult, reason: str = ""
+) -> dict[str, Any]:
+    """The fields of the ``Ack`` answering ``command`` on ``link`` (stamp them with a header:
+    ``HeaderCounter.make(Ack, **fields)``): what an agent and a light robot both send."""
+    order = command if isinstance(command, Order) else None
+    return {
+        "commandTopic": command.TOPIC,
+        "commandSender": command.header.sender,
+        "commandHeaderId": command.header.headerId,
+        "orderId": order.orderId if order else None,
+        "orderUpdateId": order.orderUpdateId if order else None,
+        "result": result,
+        "reason": reason[:256],
+        "link": link,
+    }
 
 
 @register

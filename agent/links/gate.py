@@ -24,7 +24,7 @@ from typing import Any
 
 from fleetlink.agent.lease import ALWAYS_ALLOWED_ACTIONS
 from fleetlink.shared import keys, wire
-from fleetlink.shared.messages import Ack, AckResult, InstantActions, LinkName, Order, Teleop
+from fleetlink.shared.messages import Ack, AckResult, InstantActions, LinkName, Order, Teleop, ack_fields
 
 __all__ = ["COMMAND_TOPICS", "Accepted", "CommandGate", "Duplicate", "GateStats", "Rejected", "Verdict"]
 
@@ -245,17 +245,7 @@ class CommandGate:
 
     def ack(self, msg: Command, link: LinkName, result: AckResult, reason: str = "") -> dict[str, Any]:
         """The fields of the ``Ack`` answering ``msg`` (stamp with ``HeaderCounter.make(Ack, **fields)``)."""
-        order = msg if isinstance(msg, Order) else None
-        return {
-            "commandTopic": msg.TOPIC,
-            "commandSender": msg.header.sender,
-            "commandHeaderId": msg.header.headerId,
-            "orderId": order.orderId if order else None,
-            "orderUpdateId": order.orderUpdateId if order else None,
-            "result": result,
-            "reason": reason[:256],
-            "link": link,
-        }
+        return ack_fields(msg, link, result, reason)
 
     def make_ack(self, counter: wire.HeaderCounter, fields: dict[str, Any]) -> Ack:
         return counter.make(Ack, **fields)
