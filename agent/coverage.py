@@ -2035,9 +2035,10 @@ def _fill_gaps(
     """``route`` with a lane inserted for each strip of sweepable floor its lanes miss (lanes are
     spaced over the whole area's extent, so where a part of it ends between two lanes, the floor
     beyond the last lane there is left; a lane is not run where the stand floor is narrower than a
-    plan cell): the straight lane between the two stand cells farthest apart along the strip,
-    among those that sweep it, put where it adds the least way (cheapest insertion, by straight
-    distances), when it is worth it (``FILL_MIN_M2``, ``FILL_MIN_YIELD``)."""
+    plan cell): of the rows (or columns, along the strip's longer side) of stand cells that can
+    sweep it, the run that sweeps most of it, put between two lanes where it adds the least way
+    (cheapest insertion, by straight distances), when it is worth it (``FILL_MIN_M2``,
+    ``FILL_MIN_YIELD``)."""
     if len(route) < 2:
         return route
     missed = can & ~_swept(fm, [p for p, _ in route], rad)
