@@ -33,6 +33,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "vda5050": ("fleetlink.cli.vda5050", "VDA 5050 2.1 vehicle interface: every robot as a VDA 5050 vehicle on MQTT"),
     "record": ("fleetlink.cli.record", "the flight recorder: every fleet message on both links into an MCAP file"),
     "replay": ("fleetlink.cli.replay", "play a flight recording into a read-only console, at any speed"),
+    "foxglove": ("fleetlink.cli.foxglove", "serve the live fleet to Foxglove over WebSocket (poses, maps, dose)"),
 }
 
 

@@ -18,6 +18,7 @@ import logging
 import socket
 import sys
 from pathlib import Path
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +27,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     what = parser.add_mutually_exclusive_group(required=True)
     what.add_argument("--out", type=Path, help="record into this MCAP file (overwritten)")
     what.add_argument("--summary", type=Path, metavar="FILE", help="print what a recording holds and exit")
+    add_connection_arguments(parser)
+    parser.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
+    parser.add_argument(
+        "--chunk-age", type=float, default=None, help="close a chunk at least this often, s (default 1)"
+    )
+    parser.add_argument("--compression", choices=("zstd", "lz4"), default="zstd")
+
+
+def add_connection_arguments(parser: argparse.ArgumentParser) -> None:
+    """How a listener joins the fleet, as the console does (the recorder, ``fleetlink foxglove``)."""
     parser.add_argument("--config", type=Path, help="a console TOML file for the connection ([zenoh], [mqtt], login)")
     parser.add_argument("--zenoh-connect", action="append", default=None, help="Zenoh endpoint to connect to (repeat)")
     parser.add_argument("--zenoh-listen", action="append", default=None, help="Zenoh endpoint to listen on (repeat)")
@@ -33,11 +44,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--user", help="log in to the router and the broker as this user")
     parser.add_argument("--password-file", type=Path, help="the --user's password (one line)")
     parser.add_argument("--ca-file", help="the site CA, for tls/ Zenoh endpoints and mqtts:// urls")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
-    parser.add_argument(
-        "--chunk-age", type=float, default=None, help="close a chunk at least this often, s (default 1)"
-    )
-    parser.add_argument("--compression", choices=("zstd", "lz4"), default="zstd")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -53,22 +59,21 @@ def run(args: argparse.Namespace) -> int:
     return record(args)
 
 
-def record(args: argparse.Namespace) -> int:
-    from fleetlink.cli.console import load_settings, mqtt_client_settings
-    from fleetlink.shared.clock import SystemClock
-    from fleetlink.shared.config import ConfigError
-    from fleetlink.site.recorder import CHUNK_AGE_S, Recorder, open_recorder_links
+def connection_settings(args: argparse.Namespace) -> Any:
+    """The console's settings from ``add_connection_arguments``' options (``ConfigError`` or
+    ``ValueError`` for bad ones)."""
+    from fleetlink.cli.console import load_settings
 
     for name in ("operator", "read_only", "marks_file", "audit_log"):
-        setattr(args, name, None)  # the console's options the recorder has not: its defaults
-    try:
-        settings = load_settings(args)
-    except (ConfigError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    if args.duration is not None and not args.duration > 0:
-        print("error: --duration must be > 0", file=sys.stderr)
-        return 2
+        setattr(args, name, None)  # the console's options a listener has not: its defaults
+    return load_settings(args)
+
+
+def open_links(settings: Any, role: str, clock: Any) -> list[Any]:
+    """The listener's Zenoh and MQTT endpoints (not started), logged in as ``settings`` say."""
+    from fleetlink.cli.console import mqtt_client_settings
+    from fleetlink.site.recorder import open_recorder_links
+
     auth: dict[str, object] = {}
     if settings.user is not None:
         auth = {"username": settings.user, "password": settings.password}
@@ -76,17 +81,34 @@ def record(args: argparse.Namespace) -> int:
             auth["mode"] = "client"
     if settings.ca_file is not None:
         auth["root_ca"] = settings.ca_file
+    return open_recorder_links(
+        mqtt_url=settings.mqtt_url,
+        mqtt=mqtt_client_settings(settings),
+        zenoh_listen=settings.zenoh_listen,
+        zenoh_connect=settings.zenoh_connect,
+        zenoh_auth=auth,
+        client_id=f"{role}-{socket.gethostname()}"[:64],
+        clock=clock,
+        role=role,
+    )
+
+
+def record(args: argparse.Namespace) -> int:
+    from fleetlink.shared.clock import SystemClock
+    from fleetlink.shared.config import ConfigError
+    from fleetlink.site.recorder import CHUNK_AGE_S, Recorder
+
+    try:
+        settings = connection_settings(args)
+    except (ConfigError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.duration is not None and not args.duration > 0:
+        print("error: --duration must be > 0", file=sys.stderr)
+        return 2
     clock = SystemClock()
     try:
-        links = open_recorder_links(
-            mqtt_url=settings.mqtt_url,
-            mqtt=mqtt_client_settings(settings),
-            zenoh_listen=settings.zenoh_listen,
-            zenoh_connect=settings.zenoh_connect,
-            zenoh_auth=auth,
-            client_id=f"recorder-{socket.gethostname()}"[:64],
-            clock=clock,
-        )
+        links = open_links(settings, "recorder", clock)
         recorder = Recorder(
             args.out, links, clock, chunk_age_s=args.chunk_age or CHUNK_AGE_S, compression=args.compression
         ).start()

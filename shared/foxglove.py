@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from typing import Any, Final
 
 __all__ = [
+    "FLOAT32",
     "GRID",
     "INT8",
     "LASER_SCAN",
@@ -39,6 +40,9 @@ MAP_FRAME: Final = "map"
 """The site frame (the UWB frame every pose, goal and map origin is in)."""
 INT8: Final = 2
 """``foxglove.NumericType.INT8``."""
+FLOAT32: Final = 7
+"""``foxglove.NumericType.FLOAT32`` (little-endian, as Foxglove reads every multi-byte field)."""
+_CELL_BYTES: Final = {INT8: 1, FLOAT32: 4}
 
 
 def _num(description: str) -> dict[str, Any]:
@@ -198,18 +202,21 @@ def grid(
     cells: bytes,
     name: str = "occupancy",
     frame: str = MAP_FRAME,
+    numeric_type: int = INT8,
 ) -> dict[str, Any]:
-    """``foxglove.Grid`` of int8 ``cells`` (row-major, row 0 at ``origin``'s y: the wire's map layout,
-    -1 unknown and 0-100 occupancy percent), ``width`` cells a row."""
+    """``foxglove.Grid`` of one field ``name``: ``cells`` row-major, row 0 at ``origin``'s y (the
+    wire's map layout), ``width`` cells a row. ``INT8`` (the default): an occupancy map, -1 unknown
+    and 0-100 occupancy percent; ``FLOAT32``: little-endian floats (a dose layer's J/m²)."""
+    size = _CELL_BYTES[numeric_type]
     return {
         "timestamp": timestamp(t),
         "frame_id": frame,
         "pose": _planar(origin[0], origin[1], 0.0),
         "column_count": width,
         "cell_size": {"x": resolution, "y": resolution},
-        "row_stride": width,
-        "cell_stride": 1,
-        "fields": [{"name": name, "offset": 0, "type": INT8}],
+        "row_stride": width * size,
+        "cell_stride": size,
+        "fields": [{"name": name, "offset": 0, "type": numeric_type}],
         "data": base64.b64encode(cells).decode("ascii"),
     }
 

@@ -22,7 +22,7 @@ import json
 import logging
 import threading
 from collections import Counter, deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,6 +41,7 @@ __all__ = [
     "RecordingError",
     "RecordingReader",
     "StoredMessage",
+    "fetch_snapshots",
     "open_recorder_links",
     "summarise",
 ]
@@ -72,17 +73,46 @@ def open_recorder_links(
     zenoh_auth: dict[str, Any] | None = None,
     client_id: str = "recorder",
     clock: Clock | None = None,
+    role: str = "recorder",
 ) -> list[Link]:
-    """The recorder's two endpoints (not started), set up as the console's (site/operator.py)."""
+    """The recorder's two endpoints (not started), set up as the console's (site/operator.py).
+    ``role`` names them in logs (``fleetlink foxglove`` listens the same way: ``foxglove``)."""
     from fleetlink.links.mqtt import MqttEndpoint
     from fleetlink.links.zenoh import ZenohEndpoint
     from fleetlink.operator.links import mqtt_settings_for
 
     zenoh = ZenohEndpoint(
-        listen=zenoh_listen, connect=zenoh_connect, clock=clock, label="zenoh-recorder", **dict(zenoh_auth or {})
+        listen=zenoh_listen, connect=zenoh_connect, clock=clock, label=f"zenoh-{role}", **dict(zenoh_auth or {})
     )
-    broker = MqttEndpoint(mqtt or mqtt_settings_for(mqtt_url), client_id=client_id, clock=clock, label="mqtt-recorder")
+    broker = MqttEndpoint(mqtt or mqtt_settings_for(mqtt_url), client_id=client_id, clock=clock, label=f"mqtt-{role}")
     return [zenoh, broker]
+
+
+def fetch_snapshots(
+    links: Sequence[Link],
+    wanted: Sequence[tuple[str, str]],
+    deliver: Callable[[str, str, bytes], None],
+    stopping: Callable[[], bool] = lambda: False,
+    timeout_s: float = SNAPSHOT_TIMEOUT_S,
+) -> None:
+    """Ask each ``(robot, topic)`` snapshot (``fleetlink/v1/<robot>/map``, ``.../dose``) of the first
+    link that answers queries (Zenoh's queryables) and hand each reply to ``deliver(link, key,
+    payload)``, which checks it as any message. A failed query is tried again when it is wanted again."""
+    for robot, topic in wanted:
+        if stopping():
+            return
+        for link in links:
+            query = getattr(link, "query", None)
+            if query is None:
+                continue
+            try:
+                replies = query(keys.key(robot, topic), timeout_s)
+            except Exception as exc:  # a closing session: try again next time
+                log.debug("%s query for %s failed: %s", topic, robot, exc)
+                continue
+            for key, payload in replies:
+                deliver(link.name.value, key, payload)
+            break
 
 
 @dataclass(frozen=True, slots=True)
@@ -279,21 +309,11 @@ class Recorder:
             worker.wait(1.0)
             with self._fetch_lock:
                 robots, self._to_fetch = sorted(self._to_fetch), set()
-            for robot in robots:
-                if worker.stopping:
-                    return
-                for link in self.links:
-                    query = getattr(link, "query", None)
-                    if query is None:
-                        continue
-                    try:
-                        replies = query(keys.key(robot, "map"), SNAPSHOT_TIMEOUT_S)
-                    except Exception as exc:  # a closing session: try again next time
-                        log.debug("map query for %s failed: %s", robot, exc)
-                        continue
-                    for key, payload in replies:
-                        self._put(_Heard("msg", link.name.value, key, payload, self.clock.wall()))
-                    break
+
+            def deliver(link: str, key: str, payload: bytes) -> None:
+                self._put(_Heard("msg", link, key, payload, self.clock.wall()))
+
+            fetch_snapshots(self.links, [(robot, "map") for robot in robots], deliver, lambda: worker.stopping)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -17,7 +17,8 @@ Channels (docs/recording.md):
 * ``/foxglove/<robot>/pose`` (``foxglove.PoseInFrame``, the fused pose; the first copy of a pose
   that came on both links), ``/foxglove/<robot>/map`` (``foxglove.Grid`` of the robot's whole
   occupancy map, kept from snapshots and updates), ``/foxglove/sim/<robot>/truth`` (the field's
-  ground truth as a ``foxglove.PoseInFrame``). The wire carries no lidar scans, so no
+  ground truth as a ``foxglove.PoseInFrame``): made by ``FoxgloveScene`` (site/foxglove_scene.py),
+  the same as ``fleetlink foxglove`` serves live. The wire carries no lidar scans, so no
   ``foxglove.LaserScan`` is written (``shared/foxglove.py`` has it for when one does).
 
 Log time is when the recorder received the message (its clock's wall time), publish time the
@@ -29,12 +30,11 @@ from __future__ import annotations
 import json
 from collections import Counter
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Final
 
-from fleetlink.shared import foxglove, keys, wire, wire_json
-from fleetlink.shared.map_codec import SharedMap
-from fleetlink.shared.messages import MapSnapshot, MapUpdate, Pose, Truth
+from fleetlink.shared import keys, wire, wire_json
+from fleetlink.site.foxglove_scene import FOXGLOVE_PREFIX, MAP, Channel, FoxgloveScene, Record, ns
 
 __all__ = [
     "ALIVE",
@@ -51,7 +51,6 @@ __all__ = [
 ]
 
 FLEETLINK_PREFIX: Final = "/fleetlink"
-FOXGLOVE_PREFIX: Final = "/foxglove"
 UWB_STATUS: Final = "uwb-status"
 ALIVE: Final = "alive"
 UWB_STATUS_KEY_PREFIX: Final = "fleetlink/uwb/"
@@ -60,50 +59,6 @@ MAX_REASONS: Final = 64
 OTHER: Final = "(other reasons)"
 RECENT: Final = 2048
 """Messages remembered to recognise their copy on the other link (a fleet's poses of ~1 s)."""
-RESTART_GAP: Final = 1000
-"""A pose counted this far below the newest drawn is from a restarted agent (drawn), not a late copy."""
-
-
-@dataclass(frozen=True, slots=True)
-class Channel:
-    """One MCAP channel: its topic, its schema (name and JSON Schema) and metadata."""
-
-    topic: str
-    schema_name: str
-    schema: bytes = field(repr=False)
-    kind: str
-    """``wire`` (a fleet message), ``uwb-status``, ``alive``, ``foxglove``."""
-    link: str = ""
-    """``zenoh`` or ``mqtt`` for what came on a link; ``""`` for the derived Foxglove channels."""
-    wire_topic: str = ""
-    """The wire topic (``pose``, ``map/updates``) of a ``wire`` channel."""
-
-    def metadata(self) -> dict[str, str]:
-        out = {"kind": self.kind}
-        if self.link:
-            out["link"] = self.link
-        if self.wire_topic:
-            out["wire_topic"] = self.wire_topic
-        return out
-
-
-@dataclass(frozen=True, slots=True)
-class Record:
-    channel: Channel
-    data: bytes = field(repr=False)
-    log_time_ns: int
-    publish_time_ns: int
-
-
-_NS_MAX = 2**64 - 1
-"""MCAP's times are uint64 nanoseconds."""
-
-
-def _ns(t: float) -> int:
-    # A wire-valid header timestamp is any finite number >= 0: one far in the future must not
-    # overflow (round(inf), or a uint64 the writer cannot pack) and end the recorder's writer.
-    ns = t * 1e9
-    return max(0, round(ns)) if ns < _NS_MAX else _NS_MAX
 
 
 def wire_channel(link: str, topic: str) -> Channel:
@@ -153,23 +108,17 @@ def alive_channel(link: str) -> Channel:
     return Channel(f"{FLEETLINK_PREFIX}/{link}/{ALIVE}", "fleetlink.Liveliness", _ALIVE_SCHEMA, ALIVE, link)
 
 
-def _foxglove_channel(topic: str, schema: str) -> Channel:
-    return Channel(topic, schema, foxglove.schema_bytes(schema), "foxglove")
-
-
 class RecordingCore:
     """Wire bytes in, MCAP records out; counts what it refused. Not thread-safe: one caller at a time."""
 
     def __init__(self) -> None:
         self._wire: dict[tuple[str, str], Channel] = {}
         self._other: dict[str, Channel] = {}
-        self._last_pose: dict[tuple[str, str], int] = {}
-        """(robot, sender) -> headerId of the newest pose drawn: its copy on the other link is not."""
-        self._maps: dict[str, SharedMap] = {}
+        self.scene = FoxgloveScene(reject=self._reject)
+        """Poses, truth and maps in Foxglove's schemas (site/foxglove_scene.py, as the live server's)."""
         self._recent: dict[tuple[str, bytes], tuple[wire.Message, bytes]] = {}
         """(key, payload) -> (message, JSON) of the last ``RECENT`` messages: the copy of a message
         that came on both links is decoded and converted once."""
-        self._want_map: set[str] = set()
         self.robots: set[str] = set()
         self.messages: Counter[str] = Counter()
         """Records written per channel topic."""
@@ -218,9 +167,7 @@ class RecordingCore:
     def wanted_maps(self) -> list[str]:
         """Robots whose map the recorder cannot draw from updates alone: fetch their snapshot (then
         hand it to ``snapshot``). Each is asked for once until an update fails again."""
-        out = sorted(self._want_map)
-        self._want_map.clear()
-        return out
+        return [robot for robot, topic in self.scene.wanted() if topic == MAP]
 
     # -- internals ------------------------------------------------------------------------------
 
@@ -230,7 +177,7 @@ class RecordingCore:
 
     def _record(self, channel: Channel, data: bytes, wall: float, published: float) -> Record:
         self.messages[channel.topic] += 1
-        return Record(channel, data, _ns(wall), _ns(published))
+        return Record(channel, data, ns(wall), ns(published))
 
     def _other_channel(self, made: Channel) -> Channel:
         found = self._other.get(made.topic)
@@ -263,62 +210,13 @@ class RecordingCore:
         if header.robot != keys.FLEET_MAP:
             self.robots.add(header.robot)
         out = [self._record(channel, data, wall, header.timestamp)]
-        if isinstance(msg, Pose):
-            last = self._last_pose.get((header.robot, header.sender))
-            if last is None or header.headerId > last or header.headerId + RESTART_GAP < last:
-                self._last_pose[(header.robot, header.sender)] = header.headerId
-                data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
-                topic = f"{FOXGLOVE_PREFIX}/{header.robot}/pose"
-                out.append(self._record(self._fox(topic, foxglove.POSE_IN_FRAME), data, wall, header.timestamp))
-        elif isinstance(msg, Truth):
-            data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
-            topic = f"{FOXGLOVE_PREFIX}/{keys.SIM}/{header.robot}/truth"
-            out.append(self._record(self._fox(topic, foxglove.POSE_IN_FRAME), data, wall, header.timestamp))
-        elif isinstance(msg, MapSnapshot | MapUpdate):
-            grid = self._map(msg)
-            if grid is not None:
-                topic = f"{FOXGLOVE_PREFIX}/{header.robot}/map"
-                out.append(self._record(self._fox(topic, foxglove.GRID), grid, wall, header.timestamp))
+        scene = self.scene
+        out += scene.message(msg, wall)
+        if scene.pending():  # a map applied: its whole grid, after every snapshot and update
+            out += scene.changed(wall)
+        for r in out[1:]:
+            self.messages[r.channel.topic] += 1
         return out
-
-    def _fox(self, topic: str, schema: str) -> Channel:
-        found = self._other.get(topic)
-        if found is None:
-            found = self._other[topic] = _foxglove_channel(topic, schema)
-        return found
-
-    def _map(self, msg: MapSnapshot | MapUpdate) -> bytes | None:
-        robot = msg.header.robot
-        held = self._maps.get(robot)
-        try:
-            if isinstance(msg, MapSnapshot):
-                if held is not None and held.version == msg.version:
-                    return None  # the same map again (both links, or a second fetch)
-                held = self._maps[robot] = SharedMap.from_snapshot(msg)
-            elif held is None or held.version >= msg.version:
-                if held is None:
-                    self._want_map.add(robot)
-                return None
-            elif not held.apply(msg):
-                self._want_map.add(robot)
-                return None
-        except ValueError as exc:
-            self._reject(f"bad map cells: {exc}")
-            return None
-        cells = held.cells
-        return _dumps(
-            foxglove.grid(
-                msg.header.timestamp,
-                origin=held.origin,
-                resolution=held.resolution,
-                width=int(cells.shape[1]),
-                cells=cells.tobytes(),
-            )
-        )
-
-
-def _dumps(obj: object) -> bytes:
-    return json.dumps(obj, separators=(",", ":")).encode()
 
 
 # --------------------------------------------------------------------------------------------------

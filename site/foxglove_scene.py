@@ -1,0 +1,291 @@
+"""What the fleet looks like in Foxglove's well-known schemas: wire messages in, Foxglove records out.
+
+Pure: no I/O, no clock (times are passed in). One scene serves both the flight recorder
+(site/recording.py: every record into the MCAP file) and the live server (site/foxglove_live.py:
+the same records over Foxglove's WebSocket protocol), so a pose, a map or a dose layer looks the
+same in a recording and live.
+
+* ``/foxglove/<robot>/pose`` (``foxglove.PoseInFrame``): the fused pose in the site frame ``map``,
+  once per pose (the copy that came on the second link, recognised by its header's counter, is not
+  drawn again).
+* ``/foxglove/sim/<robot>/truth`` (``foxglove.PoseInFrame``): the simulated field's ground truth.
+* ``/foxglove/<robot>/map`` (``foxglove.Grid``, one ``INT8`` field ``occupancy``: -1 unknown,
+  0-100 %): a robot's onboard map (in the site frame), kept from its snapshots and patches;
+  ``/foxglove/fleet/map`` the fleet map (site/fleetmap.py) when a fleet map service publishes it.
+* ``/foxglove/fleet/dose`` (``foxglove.Grid``, one ``FLOAT32`` field ``dose_j_m2``): the robots'
+  UV dose layers summed (``operator.dose.merge_layers``, as the console draws them), with
+  ``dose=True`` only (the recorder keeps the layers' patches as wire messages).
+
+Maps and dose layers are kept whole from snapshots and patches: ``message`` applies them and
+``changed(wall)`` hands out the grids that changed since last asked (a caller that wants fewer asks
+less often: the live server throttles there). A patch that does not follow the copy (the first one
+heard, a lost one, a restarted agent) puts the robot on ``wanted()``: fetch its snapshot and hand
+it to ``message`` like any other.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Final
+
+import numpy as np
+
+from fleetlink.operator.dose import merge_layers
+from fleetlink.shared import foxglove, keys, wire
+from fleetlink.shared.dose_codec import SharedDose
+from fleetlink.shared.map_codec import SharedMap
+from fleetlink.shared.messages import DoseSnapshot, DoseUpdate, MapSnapshot, MapUpdate, Pose, Truth
+
+__all__ = [
+    "DOSE",
+    "FLEET_DOSE_TOPIC",
+    "FOXGLOVE_PREFIX",
+    "MAP",
+    "RESTART_GAP",
+    "Channel",
+    "FoxgloveScene",
+    "Record",
+    "map_topic",
+    "ns",
+    "pose_topic",
+    "truth_topic",
+]
+
+FOXGLOVE_PREFIX: Final = "/foxglove"
+MAP: Final = "map"
+DOSE: Final = "dose"
+"""The wire topics of the snapshots ``wanted()`` names (``fleetlink/v1/<robot>/map``, ``.../dose``)."""
+FLEET_DOSE_TOPIC: Final = f"{FOXGLOVE_PREFIX}/{keys.FLEET_MAP}/dose"
+RESTART_GAP: Final = 1000
+"""A pose counted this far below the newest drawn is from a restarted agent (drawn), not a late copy."""
+
+
+@dataclass(frozen=True, slots=True)
+class Channel:
+    """One channel: its topic, its schema (name and JSON Schema) and metadata."""
+
+    topic: str
+    schema_name: str
+    schema: bytes = field(repr=False)
+    kind: str
+    """``wire`` (a fleet message), ``uwb-status``, ``alive``, ``foxglove``."""
+    link: str = ""
+    """``zenoh`` or ``mqtt`` for what came on a link; ``""`` for the derived Foxglove channels."""
+    wire_topic: str = ""
+    """The wire topic (``pose``, ``map/updates``) of a ``wire`` channel."""
+
+    def metadata(self) -> dict[str, str]:
+        out = {"kind": self.kind}
+        if self.link:
+            out["link"] = self.link
+        if self.wire_topic:
+            out["wire_topic"] = self.wire_topic
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class Record:
+    channel: Channel
+    data: bytes = field(repr=False)
+    log_time_ns: int
+    publish_time_ns: int
+
+
+_NS_MAX = 2**64 - 1
+"""MCAP's (and Foxglove's) times are uint64 nanoseconds."""
+
+
+def ns(t: float) -> int:
+    """Seconds as uint64 nanoseconds, clamped: a wire-valid header timestamp is any finite number
+    >= 0, and one far in the future must not overflow (round(inf), or a uint64 nobody can pack)."""
+    n = t * 1e9
+    return max(0, round(n)) if n < _NS_MAX else _NS_MAX
+
+
+def pose_topic(robot: str) -> str:
+    return f"{FOXGLOVE_PREFIX}/{robot}/pose"
+
+
+def truth_topic(robot: str) -> str:
+    return f"{FOXGLOVE_PREFIX}/{keys.SIM}/{robot}/truth"
+
+
+def map_topic(robot: str) -> str:
+    """A robot's map, or the fleet map's (``robot == keys.FLEET_MAP``)."""
+    return f"{FOXGLOVE_PREFIX}/{robot}/map"
+
+
+def _dumps(obj: object) -> bytes:
+    return json.dumps(obj, separators=(",", ":")).encode()
+
+
+class FoxgloveScene:
+    """Decoded wire messages in, Foxglove records out. Not thread-safe: one caller at a time."""
+
+    def __init__(self, *, dose: bool = False, reject: Callable[[str], None] | None = None) -> None:
+        """``dose``: keep the robots' dose layers and draw their sum; ``reject(reason)``: told about
+        every snapshot or patch whose cells cannot be right (it is dropped)."""
+        self.dose = dose
+        self._reject = reject or (lambda reason: None)
+        self._channels: dict[str, Channel] = {}
+        self._last_pose: dict[tuple[str, str], int] = {}
+        """(robot, sender) -> headerId of the newest pose drawn: its copy on the other link is not."""
+        self.maps: dict[str, SharedMap] = {}
+        self.doses: dict[str, SharedDose] = {}
+        self._changed: dict[str, float] = {}
+        """Grid topic -> the header timestamp of the message that last changed it (not yet handed out)."""
+        self._stamps: dict[str, float] = {}
+        """Grid topic -> the header timestamp of the message that last changed it."""
+        self._want: set[tuple[str, str]] = set()
+        self._restarted: set[str] = set()
+        """Robots whose dose patches went back in version (a restarted agent): the next snapshot
+        replaces the copy although its version is lower."""
+        self._dose_version = 0
+
+    # -- inputs ---------------------------------------------------------------------------------
+
+    def message(self, msg: wire.Message, wall: float) -> list[Record]:
+        """A wire-valid message heard at ``wall`` (epoch seconds): the records to show at once
+        (poses, truth). Maps and dose layers are applied; ``changed`` hands out their grids."""
+        header = msg.header
+        if isinstance(msg, Pose):
+            last = self._last_pose.get((header.robot, header.sender))
+            if last is None or header.headerId > last or header.headerId + RESTART_GAP < last:
+                self._last_pose[(header.robot, header.sender)] = header.headerId
+                data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
+                channel = self.channel(pose_topic(header.robot), foxglove.POSE_IN_FRAME)
+                return [Record(channel, data, ns(wall), ns(header.timestamp))]
+        elif isinstance(msg, Truth):
+            data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
+            channel = self.channel(truth_topic(header.robot), foxglove.POSE_IN_FRAME)
+            return [Record(channel, data, ns(wall), ns(header.timestamp))]
+        elif isinstance(msg, MapSnapshot | MapUpdate):
+            if self._map(msg):
+                topic = map_topic(header.robot)
+                self._changed[topic] = self._stamps[topic] = header.timestamp
+        elif self.dose and isinstance(msg, DoseSnapshot | DoseUpdate) and self._dose(msg):
+            self._dose_version += 1
+            self._changed[FLEET_DOSE_TOPIC] = self._stamps[FLEET_DOSE_TOPIC] = header.timestamp
+        return []
+
+    def wanted(self) -> list[tuple[str, str]]:
+        """(robot, ``MAP`` or ``DOSE``) snapshots to fetch, each named once until a patch fails
+        again."""
+        out = sorted(self._want)
+        self._want.clear()
+        return out
+
+    # -- outputs --------------------------------------------------------------------------------
+
+    def pending(self) -> list[str]:
+        """Grid topics changed since they were last handed out."""
+        return list(self._changed)
+
+    def changed(self, wall: float, topics: list[str] | None = None) -> list[Record]:
+        """The grids changed since they were last handed out (of ``topics`` only, if given), as
+        records logged at ``wall``. Each is handed out once per change."""
+        out = []
+        for topic in list(self._changed) if topics is None else topics:
+            stamp = self._changed.pop(topic, None)
+            if stamp is None:
+                continue
+            record = self.grid(topic, wall, stamp)
+            if record is not None:
+                out.append(record)
+        return out
+
+    def grid(self, topic: str, wall: float, stamp: float | None = None) -> Record | None:
+        """The grid of ``topic`` as it is now (None if there is none), stamped when it last changed."""
+        if stamp is None:
+            stamp = self._stamps.get(topic)
+        if topic == FLEET_DOSE_TOPIC:
+            layer = merge_layers(self.doses, self._dose_version) if self.doses else None
+            if layer is None or not layer.grid.dose.size:
+                return None
+            g = layer.grid
+            cells = np.ascontiguousarray(g.dose, dtype="<f4")
+            t = wall if stamp is None else stamp
+            data = _dumps(
+                foxglove.grid(
+                    t,
+                    origin=g.origin,
+                    resolution=g.resolution,
+                    width=int(cells.shape[1]),
+                    cells=cells.tobytes(),
+                    name="dose_j_m2",
+                    numeric_type=foxglove.FLOAT32,
+                )
+            )
+        else:
+            robot = topic[len(FOXGLOVE_PREFIX) + 1 : -len(MAP) - 1]
+            held = self.maps.get(robot)
+            if held is None or topic != map_topic(robot):
+                return None
+            t = wall if stamp is None else stamp
+            cells8 = held.cells
+            data = _dumps(
+                foxglove.grid(
+                    t,
+                    origin=held.origin,
+                    resolution=held.resolution,
+                    width=int(cells8.shape[1]),
+                    cells=cells8.tobytes(),
+                )
+            )
+        return Record(self.channel(topic, foxglove.GRID), data, ns(wall), ns(t))
+
+    def channel(self, topic: str, schema: str) -> Channel:
+        """The Foxglove channel ``topic`` of schema ``schema`` (made once)."""
+        found = self._channels.get(topic)
+        if found is None:
+            found = self._channels[topic] = Channel(topic, schema, foxglove.schema_bytes(schema), "foxglove")
+        return found
+
+    # -- layers ---------------------------------------------------------------------------------
+
+    def _map(self, msg: MapSnapshot | MapUpdate) -> bool:
+        robot = msg.header.robot
+        held = self.maps.get(robot)
+        try:
+            if isinstance(msg, MapSnapshot):
+                if held is not None and held.version == msg.version:
+                    return False  # the same map again (both links, or a second fetch)
+                self.maps[robot] = SharedMap.from_snapshot(msg)
+                return True
+            if held is None or held.version >= msg.version:
+                if held is None:
+                    self._want.add((robot, MAP))
+                return False
+            if not held.apply(msg):
+                self._want.add((robot, MAP))
+                return False
+        except ValueError as exc:
+            self._reject(f"bad map cells: {exc}")
+            return False
+        return True
+
+    def _dose(self, msg: DoseSnapshot | DoseUpdate) -> bool:
+        robot = msg.header.robot
+        held = self.doses.get(robot)
+        try:
+            if isinstance(msg, DoseSnapshot):
+                if held is not None and held.version >= msg.version and robot not in self._restarted:
+                    return False  # the same layer again, or an older one
+                self.doses[robot] = SharedDose.from_snapshot(msg)
+                self._restarted.discard(robot)
+                return True
+            if held is None:
+                self._want.add((robot, DOSE))
+                return False
+            if held.apply(msg):
+                return True
+            if msg.version > held.version:
+                self._want.add((robot, DOSE))  # missed one, or the layer grew
+            elif msg.base_version < held.version and msg.version < held.version:
+                self._want.add((robot, DOSE))  # the agent restarted: its layer starts again
+                self._restarted.add(robot)
+        except (wire.WireError, ValueError) as exc:
+            self._reject(f"bad dose cells: {exc}")
+        return False

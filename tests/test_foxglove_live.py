@@ -1,0 +1,317 @@
+"""``fleetlink foxglove``: the live fleet over Foxglove's WebSocket protocol.
+
+The core (site/foxglove_live.py) on its own: poses built only for watched channels, the copy from
+the second link dropped, grids throttled and sent whole to a late subscriber, bad input refused,
+counted and reported once. Then end to end: a real field robot (its simulated board and lidar, its
+agent on real Zenoh on loopback with multicast scouting off and a private Mosquitto), the server,
+and an independent WebSocket client (the ``websockets`` package, written to the published
+protocol: serverInfo, advertise, subscribe, binary messageData) that decodes the robot's pose and
+map and finds them equal to what the agent published.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import struct
+import threading
+import time
+from typing import Any
+
+import numpy as np
+from websockets.sync.client import ClientConnection, connect
+
+from fleetlink.agent.mapping.share import fetch_map
+from fleetlink.links.zenoh import ZenohEndpoint
+from fleetlink.shared import foxglove, keys, wire
+from fleetlink.shared.clock import SystemClock
+from fleetlink.shared.map_codec import SharedMap, snapshot_fields
+from fleetlink.shared.messages import MapSnapshot, Pose, Truth
+from fleetlink.site.agents import FieldAgents
+from fleetlink.site.foxglove_live import LiveCore
+from fleetlink.site.foxglove_scene import FLEET_DOSE_TOPIC, map_topic, pose_topic
+from fleetlink.site.foxglove_server import FoxgloveLive
+from fleetlink.site.recorder import open_recorder_links
+from tests.harness import wait_until
+from tests.harness.mosquitto import free_port
+from tests.test_field_realtime import quiet_scenario
+from tests.test_record import pose
+
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+"""foxglove-sdk 0.30 accepts only ``foxglove.sdk.v1`` (the same protocol as ``foxglove.websocket.v1``
+under a new name); a client offers both, as Foxglove and Lichtblick do."""
+MESSAGE_DATA = 0x01
+
+
+# -- the core ---------------------------------------------------------------------------------------
+
+
+def map_snapshot(counter: wire.HeaderCounter, version: int, fill: int = 0) -> MapSnapshot:
+    cells = np.full((4, 6), -1, dtype=np.int8)
+    cells[1:3, 1:5] = fill
+    return counter.make(MapSnapshot, **snapshot_fields(cells, 0.05, (-1.0, 2.0), version))
+
+
+def test_poses_are_built_only_for_watched_channels_and_once_per_copy() -> None:
+    clock = SystemClock()
+    core = LiveCore()
+    c = wire.HeaderCounter(clock, robot="r1", sender="agent-r1")
+    p = pose(c, 1.5, theta=0.3)
+    key, data = wire.key_of(p), wire.encode(p)
+    assert core.receive(key, data, 100.0) == []  # nobody watches: advertised, not built
+    assert [ch.topic for ch in core.announced] == [pose_topic("r1")]
+    core.subscribe(pose_topic("r1"), 0.0, 100.0)
+    p2 = pose(c, 1.6, theta=0.3)
+    (record,) = core.receive(wire.key_of(p2), wire.encode(p2), 100.1)
+    assert core.receive(wire.key_of(p2), wire.encode(p2), 100.2) == []  # the copy on the other link
+    got = json.loads(record.data)
+    assert got["frame_id"] == "map" and got["pose"]["position"] == {"x": 1.6, "y": 1.0, "z": 0.0}
+    assert math.isclose(2 * math.atan2(got["pose"]["orientation"]["z"], got["pose"]["orientation"]["w"]), 0.3)
+    assert record.publish_time_ns == round(p2.header.timestamp * 1e9)
+    core.unsubscribe(pose_topic("r1"))
+    p3 = pose(c, 1.7)
+    assert core.receive(wire.key_of(p3), wire.encode(p3), 100.3) == []
+
+
+def test_truth_is_drawn_when_watched() -> None:
+    core = LiveCore()
+    t = wire.HeaderCounter(SystemClock(), robot="r1", sender="field").make(
+        Truth, x=1.0, y=2.0, theta=0.0, v=0.0, omega=0.0, bumped=False, sim_time_s=1.0
+    )
+    core.subscribe("/foxglove/sim/r1/truth", 0.0, 1.0)
+    (record,) = core.receive(wire.key_of(t), wire.encode(t), 1.0)
+    assert record.channel.topic == "/foxglove/sim/r1/truth"
+
+
+def test_grids_are_throttled_and_a_late_subscriber_gets_the_latest_at_once() -> None:
+    clock = SystemClock()
+    core = LiveCore(grid_period_s=1.0)
+    c = wire.HeaderCounter(clock, robot="r1", sender="agent-r1")
+    topic = map_topic("r1")
+    s1 = map_snapshot(c, 1, fill=0)
+    core.receive(wire.key_of(s1), wire.encode(s1), 10.0)
+    assert core.due(0.0, 10.0) == []  # nobody watches: advertised only
+    assert topic in core.channels
+    (first,) = core.subscribe(topic, 0.1, 10.1)  # the picture now, not in a second
+    g = json.loads(first.data)
+    assert g["column_count"] == 6 and g["fields"] == [{"name": "occupancy", "offset": 0, "type": foxglove.INT8}]
+    assert base64.b64decode(g["data"]) == SharedMap.from_snapshot(s1).cells.tobytes()
+    s2 = map_snapshot(c, 2, fill=100)
+    core.receive(wire.key_of(s2), wire.encode(s2), 10.2)
+    assert core.due(0.5, 10.5) == []  # changed, but sent 0.4 s ago
+    (second,) = core.due(1.2, 11.2)
+    assert base64.b64decode(json.loads(second.data)["data"]) == SharedMap.from_snapshot(s2).cells.tobytes()
+    assert core.due(5.0, 15.0) == []  # unchanged: not sent again
+    (again,) = core.subscribe(topic, 6.0, 16.0)  # a second client
+    assert again.data == second.data
+
+
+def test_bad_input_is_refused_counted_and_reported_once() -> None:
+    core = LiveCore()
+    for _ in range(3):
+        assert core.receive("fleetlink/v1/r1/pose", b"\x93garbage", 1.0) == []
+        assert core.receive("fleetlink/v1/r1/pose", b"\xc1", 1.0) == []
+    assert sum(core.rejected.values()) == 6
+    assert len(core.new_reasons) == len(core.rejected) >= 1  # each reason once, however often
+    core.receive("fleetlink/v1/r1/state", b"\xc1", 1.0)  # not drawn: not even decoded
+    assert sum(core.rejected.values()) == 6
+
+
+def test_a_dose_layer_is_served_as_a_float_grid() -> None:
+    from fleetlink.shared.dose import Lamp
+    from fleetlink.shared.dose_codec import snapshot_fields as dose_fields
+    from fleetlink.shared.messages import DoseSnapshot
+
+    cells = np.zeros((3, 4), dtype=np.float64)
+    cells[1, 2] = 12.5
+    c = wire.HeaderCounter(SystemClock(), robot="r1", sender="agent-r1")
+    lamp = Lamp(uvc_power_w=10.0, height_m=0.5, tube_length_m=0.0, min_distance_m=0.1)
+    fields = dose_fields(cells, 0.1, (0.05, 0.05), 1, target_j_m2=10.0, lamp_on_s=3.0, unplaced_s=0.0, lamp=lamp)
+    assert fields is not None
+    snap = c.make(DoseSnapshot, **fields)
+    core = LiveCore()
+    core.subscribe(FLEET_DOSE_TOPIC, 0.0, 1.0)
+    core.receive(wire.key_of(snap), wire.encode(snap), 1.0)
+    (record,) = core.due(0.0, 1.0)
+    g = json.loads(record.data)
+    assert g["fields"] == [{"name": "dose_j_m2", "offset": 0, "type": foxglove.FLOAT32}]
+    got = np.frombuffer(base64.b64decode(g["data"]), dtype="<f4").reshape(-1, g["column_count"])
+    assert got.max() == 12.5 and g["cell_stride"] == 4 and g["row_stride"] == 4 * g["column_count"]
+
+
+# -- end to end -------------------------------------------------------------------------------------
+
+
+class FoxgloveClient:
+    """A Foxglove WebSocket client to the published protocol, on a thread: channels by topic,
+    subscriptions, each binary messageData decoded as JSON."""
+
+    def __init__(self, url: str) -> None:
+        self.ws: ClientConnection = connect(url, subprotocols=SUBPROTOCOLS, open_timeout=10)  # type: ignore[arg-type]
+        self.server_info: dict[str, Any] | None = None
+        self.channels: dict[str, dict[str, Any]] = {}
+        self.subs: dict[int, str] = {}
+        self.messages: dict[str, list[tuple[int, Any]]] = {}
+        self.lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            for frame in self.ws:
+                if isinstance(frame, str):
+                    op = json.loads(frame)
+                    with self.lock:
+                        if op["op"] == "serverInfo":
+                            self.server_info = op
+                        elif op["op"] == "advertise":
+                            for ch in op["channels"]:
+                                self.channels[ch["topic"]] = ch
+                        elif op["op"] == "unadvertise":
+                            for cid in op["channelIds"]:
+                                self.channels = {t: c for t, c in self.channels.items() if c["id"] != cid}
+                elif frame[0] == MESSAGE_DATA:
+                    sub, log_time = struct.unpack_from("<IQ", frame, 1)
+                    with self.lock:
+                        self.messages.setdefault(self.subs[sub], []).append((log_time, json.loads(frame[13:])))
+        except Exception:  # closed
+            pass
+
+    def subscribe(self, topic: str) -> None:
+        with self.lock:
+            sub = len(self.subs) + 1
+            self.subs[sub] = topic
+            cid = self.channels[topic]["id"]
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": sub, "channelId": cid}]}))
+
+    def got(self, topic: str) -> list[tuple[int, Any]]:
+        with self.lock:
+            return list(self.messages.get(topic, ()))
+
+    def close(self) -> None:
+        self.ws.close()
+        self._thread.join(5)
+
+
+def test_a_field_robot_live_in_a_foxglove_client(mosquitto: Any) -> None:
+    from fleetlink.field.realtime import RealtimeField
+
+    clock = SystemClock()
+    field = RealtimeField(quiet_scenario(), clock=clock)
+    # Zenoh peers do not route for each other: the server and the test's own listener each listen,
+    # the agent connects to both (on a site, all of them to its router).
+    at_server, at_test = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
+    wire_poses: dict[float, Pose] = {}
+    poses_lock = threading.Lock()
+
+    def on_pose(key: str, payload: bytes) -> None:
+        msg = wire.decode_key(key, payload)
+        assert isinstance(msg, Pose)
+        with poses_lock:
+            wire_poses[msg.header.timestamp] = msg
+
+    listener = ZenohEndpoint(listen=[at_test], label="zenoh-test")
+    listener.subscribe(keys.key("uvc-1", "pose"), on_pose)
+    live = agents = client = None
+    try:
+        endpoints = field.start()
+        listener.start()
+        links = open_recorder_links(mqtt_url=mosquitto.url, zenoh_listen=[at_server], clock=clock, role="foxglove")
+        live = FoxgloveLive(links, clock, port=0).start()
+        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[at_server, at_test], mqtt_url=mosquitto.url)
+        agents.start()
+        client = FoxgloveClient(f"ws://127.0.0.1:{live.port}")
+        wait_until(lambda: client.server_info is not None, message="serverInfo")
+        assert client.ws.subprotocol == "foxglove.sdk.v1"
+        assert client.server_info is not None and client.server_info["name"] == "fleetlink"
+
+        pose_t, map_t = pose_topic("uvc-1"), map_topic("uvc-1")
+        wait_until(lambda: pose_t in client.channels, timeout=30, message="the robot's pose advertised")
+        assert client.channels[pose_t]["schemaName"] == "foxglove.PoseInFrame"
+        assert client.channels[pose_t]["encoding"] == "json"
+        client.subscribe(pose_t)
+        wait_until(lambda: len(client.got(pose_t)) >= 20, timeout=20, message="a second of poses in the client")
+
+        # Each pose in the client is one the agent published: its stamp, position and heading.
+        matched = 0
+        with poses_lock:
+            published = dict(wire_poses)
+        for _log_time, got in client.got(pose_t):
+            stamp = got["timestamp"]["sec"] + got["timestamp"]["nsec"] / 1e9
+            near = [t for t in published if abs(t - stamp) < 1e-6]
+            if not near:
+                continue  # heard by the server before the test's listener was connected
+            p = published[near[0]]
+            pos, q = got["pose"]["position"], got["pose"]["orientation"]
+            assert got["frame_id"] == "map"
+            assert (pos["x"], pos["y"]) == (p.x, p.y)
+            assert abs(math.remainder(2 * math.atan2(q["z"], q["w"]) - p.theta, math.tau)) < 1e-9
+            matched += 1
+        assert matched >= 10, (matched, len(client.got(pose_t)))
+
+        # The robot's map: the same cells as its snapshot, fetched from the agent by the test.
+        wait_until(lambda: map_t in client.channels, timeout=30, message="the robot's map advertised")
+        client.subscribe(map_t)
+        wait_until(lambda: client.got(map_t), timeout=10, message="the map sent at once on subscribing")
+        snap = fetch_map(listener, "uvc-1", timeout=5.0)
+        assert snap is not None
+        want = SharedMap.from_snapshot(snap)
+
+        def same_map() -> bool:
+            g = client.got(map_t)[-1][1]
+            return (
+                base64.b64decode(g["data"]) == want.cells.tobytes()
+                and g["column_count"] == want.cells.shape[1]
+                and (g["pose"]["position"]["x"], g["pose"]["position"]["y"]) == want.origin
+            )
+
+        wait_until(same_map, timeout=10, message="the client's map equal to the agent's snapshot")
+        assert live.core.rejected == {}
+    finally:
+        if client is not None:
+            client.close()
+        if agents is not None:
+            agents.stop()
+        if live is not None:
+            live.stop()
+        listener.close()
+        field.stop()
+
+
+def test_the_server_keeps_serving_after_malformed_messages(mosquitto: Any) -> None:
+    clock = SystemClock()
+    at_server = f"tcp/127.0.0.1:{free_port()}"
+    sender = ZenohEndpoint(connect=[at_server], label="zenoh-test-sender")
+    links = open_recorder_links(mqtt_url=mosquitto.url, zenoh_listen=[at_server], clock=clock, role="foxglove")
+    live = FoxgloveLive(links, clock, port=0, fetch=False).start()
+    client = None
+    try:
+        sender.start()
+        client = FoxgloveClient(f"ws://127.0.0.1:{live.port}")
+        counter = wire.HeaderCounter(clock, robot="r9", sender="agent-r9")
+        x = [0.0]
+
+        def publish_pose() -> bool:
+            x[0] += 0.01
+            p = pose(counter, x[0])
+            sender.publish(wire.key_of(p), wire.encode(p))
+            sender.publish("fleetlink/v1/r9/pose", b"\xc1not msgpack")
+            time.sleep(0.02)
+            return pose_topic("r9") in client.channels
+
+        wait_until(publish_pose, interval=0, timeout=20, message="r9 advertised")
+        client.subscribe(pose_topic("r9"))
+
+        def served() -> bool:
+            publish_pose()
+            return len(client.got(pose_topic("r9"))) >= 5
+
+        wait_until(served, interval=0, timeout=10, message="poses served between malformed ones")
+        assert sum(live.core.rejected.values()) >= 5
+        assert len(live.core.rejected) == 1  # one reason, logged once
+    finally:
+        if client is not None:
+            client.close()
+        live.stop()
+        sender.close()
