@@ -123,6 +123,7 @@ class Rates:
     control_hz: Annotated[Rate, Setting(doc="the control loop while driving")] = 50.0
     pose_hz: Annotated[Rate, Setting(doc="pose telemetry")] = 20.0
     state_hz: Annotated[Rate, Setting(doc="state telemetry")] = 1.0
+    scan_hz: Annotated[float, Setting(lo=0.0, hi=20.0, doc="lidar scans on Zenoh (0: none)")] = 2.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -43,7 +43,8 @@ from fleetlink.links.base import Link, QueryLink
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.dose import FloorMask
-from fleetlink.shared.messages import Connection, ConnectionState, LeaseRequest, LinkName, LinkStatus, UwbFix
+from fleetlink.shared.messages import Connection, ConnectionState, LeaseRequest, LinkName, LinkStatus, Scan, UwbFix
+from fleetlink.shared.scan_codec import scan_fields
 
 __all__ = ["INPUTS", "LINK_STATUS_PERIOD_S", "POLL_RATES", "AgentNode", "input_keys", "pilot_config"]
 
@@ -172,6 +173,8 @@ class AgentNode:
         self._keys = {topic: keys.key(robot, topic) for topic in _OUTPUT_TOPICS}
         self._lock = threading.Lock()
         self._conn_counter = wire.HeaderCounter(clock, robot=robot, sender=f"agent-{robot}")
+        self._scan_key = keys.key(robot, Scan.TOPIC)
+        self._next_scan = -float("inf")
         self._motor: object = None
         self._odom_t = 0.0
         self._next_links = -float("inf")
@@ -352,10 +355,20 @@ class AgentNode:
         seen = compose((p.x, p.y, p.theta), relative((o_now.x, o_now.y, o_now.theta), (o.x, o.y, o.theta)))
         update = keeper.add(Turn(t, rev.distances_m, rev.angles_rad, seen, placed, driving, now))
         self.scans += 1
+        self._share_scan(rev, seen, now)
         if update is not None:
             self._use_map(update)
         if self.scan_sink is not None:
             self.scan_sink(rev)
+
+    def _share_scan(self, rev: Any, seen: tuple[float, float, float], now: float) -> None:
+        """The turn as a ``Scan`` on the map's link (Zenoh), at most ``[rates] scan_hz`` a second."""
+        hz = self.config.rates.scan_hz
+        if hz <= 0.0 or self.map_link is None or now < self._next_scan:
+            return
+        self._next_scan = now + 1.0 / hz
+        msg = self._conn_counter.make(Scan, **scan_fields(rev.angles_rad, rev.distances_m, seen))
+        self.map_link.publish(self._scan_key, wire.encode(msg))
 
     def _use_map(self, update: Update) -> None:
         if update.restarted:

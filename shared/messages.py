@@ -37,6 +37,7 @@ __all__ = [
     "MAX_MARK_SET",
     "MAX_ORDER_NODES",
     "MAX_PARAMS",
+    "MAX_SCAN_BEAMS",
     "MAX_STATE_ERRORS",
     "MAX_UWB_ANCHORS",
     "Ack",
@@ -85,6 +86,7 @@ __all__ = [
     "PeopleZones",
     "Pose",
     "SafetyState",
+    "Scan",
     "Severity",
     "State",
     "StateError",
@@ -856,6 +858,34 @@ class PeopleZones(Message):
 
 
 # -- onboard maps (docs/mapping.md) ------------------------------------------------------------
+
+# -- lidar scans (docs/wire-contract.md "scan") ---------------------------------------------------
+
+MAX_SCAN_BEAMS = 2048
+"""Beams of one ``Scan`` (an RPLIDAR A1 gives 360-1450 samples a turn; the agent sends 360)."""
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Scan(Message):
+    """A robot's latest lidar turn, on ``fleetlink/v1/<robot>/scan`` (Zenoh only, at most
+    ``[rates] scan_hz`` a second): what consoles and ``fleetlink foxglove`` draw over the map.
+
+    ``count`` beams at equal steps of ``2 pi / count`` counter-clockwise from ``start_angle``
+    (radians from the robot's heading), each the nearest return in its step; taken at the fused pose
+    (``x``, ``y``, ``theta``, the site frame as ``Pose``'s) at the turn's start, as the map takes it.
+    ``ranges``: ``count`` little-endian uint16 millimetres, 0 for no return (checked where decoded:
+    ``shared/scan_codec.py``)."""
+
+    TOPIC: ClassVar[str] = "scan"
+
+    x: Coordinate
+    y: Coordinate
+    theta: Annotated[float, bounded(-3.2, 3.2)]
+    start_angle: Annotated[float, bounded(-6.3, 6.3)]
+    count: Annotated[int, bounded(1, MAX_SCAN_BEAMS)]
+    ranges: Annotated[bytes, sized(2 * MAX_SCAN_BEAMS)]
+
 
 MAX_MAP_DATA = 240 * 1024
 """Compressed cells per message, bytes (leaves room for the fields under wire.MAX_PAYLOAD)."""

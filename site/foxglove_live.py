@@ -6,8 +6,8 @@ deliver and what the WebSocket clients subscribe to, and logs the records it ret
 Foxglove SDK's channels.
 
 * What is drawn is ``FoxgloveScene``'s (site/foxglove_scene.py, the flight recorder's too): poses,
-  ground truth, the robots' maps and the fleet map, the fleet's dose layer.
-* Only what a client subscribed to is built: a pose on a channel nobody watches costs its decode
+  lidar scans, ground truth, the robots' maps and the fleet map, the fleet's dose layer.
+* Only what a client subscribed to is built: a pose or a scan on a channel nobody watches costs its decode
   (the channel must be advertised) but no JSON. The same message heard on the second link is
   recognised by its bytes and not decoded again.
 * Grids are sent when they changed, at most once every ``grid_period_s`` per grid (a robot shares
@@ -25,14 +25,14 @@ from collections import Counter
 from typing import Final
 
 from fleetlink.shared import foxglove, wire
-from fleetlink.shared.messages import Pose, Truth
-from fleetlink.site.foxglove_scene import Channel, FoxgloveScene, Record, pose_topic, truth_topic
+from fleetlink.shared.messages import Pose, Scan, Truth
+from fleetlink.site.foxglove_scene import Channel, FoxgloveScene, Record, pose_topic, scan_topic, truth_topic
 
 __all__ = ["DRAWN_SUFFIXES", "GRID_PERIOD_S", "LiveCore"]
 
 GRID_PERIOD_S: Final = 1.0
 """Seconds between two sends of one grid (map, fleet map, dose layer) while it changes."""
-DRAWN_SUFFIXES: Final = ("/pose", "/truth", "/map", "/map/updates", "/dose", "/dose/updates")
+DRAWN_SUFFIXES: Final = ("/pose", "/truth", "/scan", "/map", "/map/updates", "/dose", "/dose/updates")
 """The keys worth decoding: the rest of the fleet's traffic (commands, state, acks) is not drawn."""
 RECENT: Final = 2048
 """Messages remembered to recognise their copy on the other link (a fleet's poses of ~1 s)."""
@@ -80,11 +80,15 @@ class LiveCore:
         self._recent[slot] = None
         if len(self._recent) > RECENT:
             del self._recent[next(iter(self._recent))]
-        if isinstance(msg, Pose | Truth):
+        if isinstance(msg, Pose | Truth | Scan):
             robot = msg.header.robot
             self.robots.add(robot)
-            topic = pose_topic(robot) if isinstance(msg, Pose) else truth_topic(robot)
-            self._announce(topic, foxglove.POSE_IN_FRAME)
+            if isinstance(msg, Scan):
+                topic, schema = scan_topic(robot), foxglove.LASER_SCAN
+            else:
+                topic = pose_topic(robot) if isinstance(msg, Pose) else truth_topic(robot)
+                schema = foxglove.POSE_IN_FRAME
+            self._announce(topic, schema)
             if not self.subscribed[topic]:
                 return []
         return self._count(self.scene.message(msg, wall))

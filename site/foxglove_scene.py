@@ -9,6 +9,8 @@ same in a recording and live.
   once per pose (the copy that came on the second link, recognised by its header's counter, is not
   drawn again).
 * ``/foxglove/sim/<robot>/truth`` (``foxglove.PoseInFrame``): the simulated field's ground truth.
+* ``/foxglove/<robot>/scan`` (``foxglove.LaserScan``): the robot's latest lidar turn (the wire's
+  ``Scan``, at most ``[rates] scan_hz``), in frame ``map`` at the pose it was taken from.
 * ``/foxglove/<robot>/map`` (``foxglove.Grid``, one ``INT8`` field ``occupancy``: -1 unknown,
   0-100 %): a robot's onboard map (in the site frame), kept from its snapshots and patches;
   ``/foxglove/fleet/map`` the fleet map (site/fleetmap.py) when a fleet map service publishes it.
@@ -26,6 +28,7 @@ it to ``message`` like any other.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
@@ -36,7 +39,8 @@ from fleetlink.operator.dose import merge_layers
 from fleetlink.shared import foxglove, keys, wire
 from fleetlink.shared.dose_codec import SharedDose
 from fleetlink.shared.map_codec import SharedMap
-from fleetlink.shared.messages import DoseSnapshot, DoseUpdate, MapSnapshot, MapUpdate, Pose, Truth
+from fleetlink.shared.messages import DoseSnapshot, DoseUpdate, MapSnapshot, MapUpdate, Pose, Scan, Truth
+from fleetlink.shared.scan_codec import scan_ranges
 
 __all__ = [
     "DOSE",
@@ -50,6 +54,7 @@ __all__ = [
     "map_topic",
     "ns",
     "pose_topic",
+    "scan_topic",
     "truth_topic",
 ]
 
@@ -108,6 +113,10 @@ def pose_topic(robot: str) -> str:
     return f"{FOXGLOVE_PREFIX}/{robot}/pose"
 
 
+def scan_topic(robot: str) -> str:
+    return f"{FOXGLOVE_PREFIX}/{robot}/scan"
+
+
 def truth_topic(robot: str) -> str:
     return f"{FOXGLOVE_PREFIX}/{keys.SIM}/{robot}/truth"
 
@@ -160,6 +169,24 @@ class FoxgloveScene:
         elif isinstance(msg, Truth):
             data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
             channel = self.channel(truth_topic(header.robot), foxglove.POSE_IN_FRAME)
+            return [Record(channel, data, ns(wall), ns(header.timestamp))]
+        elif isinstance(msg, Scan):
+            try:
+                ranges = scan_ranges(msg)
+            except wire.WireError as exc:
+                self._reject(exc.reason)
+                return []
+            step = math.tau / msg.count
+            data = _dumps(
+                foxglove.laser_scan(
+                    header.timestamp,
+                    pose=(msg.x, msg.y, msg.theta),
+                    start_angle=msg.start_angle,
+                    end_angle=msg.start_angle + step * (msg.count - 1),
+                    ranges=np.nan_to_num(ranges, nan=0.0).tolist(),  # no return: 0 (JSON has no NaN)
+                )
+            )
+            channel = self.channel(scan_topic(header.robot), foxglove.LASER_SCAN)
             return [Record(channel, data, ns(wall), ns(header.timestamp))]
         elif isinstance(msg, MapSnapshot | MapUpdate):
             if self._map(msg):

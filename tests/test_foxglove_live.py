@@ -27,10 +27,11 @@ from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.shared import foxglove, keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.map_codec import SharedMap, snapshot_fields
-from fleetlink.shared.messages import MapSnapshot, Pose, Truth
+from fleetlink.shared.messages import MapSnapshot, Pose, Scan, Truth
+from fleetlink.shared.scan_codec import BEAMS, scan_fields, scan_points, scan_ranges
 from fleetlink.site.agents import FieldAgents
 from fleetlink.site.foxglove_live import LiveCore
-from fleetlink.site.foxglove_scene import FLEET_DOSE_TOPIC, map_topic, pose_topic
+from fleetlink.site.foxglove_scene import FLEET_DOSE_TOPIC, map_topic, pose_topic, scan_topic
 from fleetlink.site.foxglove_server import FoxgloveLive
 from fleetlink.site.recorder import open_recorder_links
 from tests.harness import wait_until
@@ -140,6 +141,29 @@ def test_a_dose_layer_is_served_as_a_float_grid() -> None:
     assert got.max() == 12.5 and g["cell_stride"] == 4 and g["row_stride"] == 4 * g["column_count"]
 
 
+def test_a_scan_keeps_the_nearest_return_of_each_beam_and_its_points_land_where_they_were_seen() -> None:
+    angles = np.array([0.001, 0.002, math.pi / 2 + 0.001, math.pi, 3 * math.pi / 2])
+    dists = np.array([2.0, 1.5, 3.0, 0.0, np.inf])  # two in beam 0 (the nearer kept), no return, no return
+    fields = scan_fields(angles, dists, (1.0, 2.0, math.pi / 2))
+    c = wire.HeaderCounter(SystemClock(), robot="r1", sender="agent-r1")
+    sent = c.make(Scan, **fields)
+    msg = wire.decode_key(wire.key_of(sent), wire.encode(sent))
+    assert isinstance(msg, Scan) and msg.count == BEAMS and len(msg.ranges) == 2 * BEAMS
+    r = scan_ranges(msg)
+    assert r[0] == 1.5 and r[90] == 3.0 and np.isnan(r[180]) and np.isnan(r[270])
+    assert np.count_nonzero(np.isfinite(r)) == 2
+    pts = scan_points(msg)  # heading +y: the beam ahead lands at y + 1.5, the one to the left at x - 3
+    assert np.allclose(pts, [[1.0, 3.5], [-2.0, 2.0]], atol=0.03)  # beams 1 degree wide, at their middle
+    bad = c.make(Scan, **{**fields, "count": 10})
+    core = LiveCore()
+    core.subscribe(scan_topic("r1"), 0.0, 1.0)
+    assert core.receive(wire.key_of(bad), wire.encode(bad), 1.0) == []  # 720 bytes for 10 beams
+    assert sum(core.rejected.values()) == 1
+    (record,) = core.receive(wire.key_of(msg), wire.encode(msg), 1.0)
+    got = json.loads(record.data)
+    assert got["ranges"][0] == 1.5 and got["ranges"][180] == 0.0 and len(got["ranges"]) == BEAMS
+
+
 # -- end to end -------------------------------------------------------------------------------------
 
 
@@ -211,8 +235,17 @@ def test_a_field_robot_live_in_a_foxglove_client(mosquitto: Any) -> None:
         with poses_lock:
             wire_poses[msg.header.timestamp] = msg
 
+    wire_scans: dict[float, Scan] = {}
+
+    def on_scan(key: str, payload: bytes) -> None:
+        msg = wire.decode_key(key, payload)
+        assert isinstance(msg, Scan)
+        with poses_lock:
+            wire_scans[msg.header.timestamp] = msg
+
     listener = ZenohEndpoint(listen=[at_test], label="zenoh-test")
     listener.subscribe(keys.key("uvc-1", "pose"), on_pose)
+    listener.subscribe(keys.key("uvc-1", "scan"), on_scan)
     live = agents = client = None
     try:
         endpoints = field.start()
@@ -267,6 +300,30 @@ def test_a_field_robot_live_in_a_foxglove_client(mosquitto: Any) -> None:
             )
 
         wait_until(same_map, timeout=10, message="the client's map equal to the agent's snapshot")
+
+        # The robot's lidar scans (the wire's Scan, 2 Hz): the same beams, from the same pose.
+        scan_t = scan_topic("uvc-1")
+        wait_until(lambda: scan_t in client.channels, timeout=10, message="the robot's scan advertised")
+        assert client.channels[scan_t]["schemaName"] == "foxglove.LaserScan"
+        client.subscribe(scan_t)
+
+        def a_scan_matched() -> bool:
+            with poses_lock:
+                published = dict(wire_scans)
+            for _t, got in client.got(scan_t):
+                stamp = got["timestamp"]["sec"] + got["timestamp"]["nsec"] / 1e9
+                near = [t for t in published if abs(t - stamp) < 1e-6]
+                if near:
+                    sent = published[near[0]]
+                    want = np.nan_to_num(scan_ranges(sent), nan=0.0)
+                    assert got["ranges"] == want.tolist() and len(want) == BEAMS
+                    assert (got["pose"]["position"]["x"], got["pose"]["position"]["y"]) == (sent.x, sent.y)
+                    assert got["start_angle"] == sent.start_angle
+                    assert (want > 0).mean() > 0.5  # walls all round the living room
+                    return True
+            return False
+
+        wait_until(a_scan_matched, timeout=10, message="a scan in the client equal to the one on the wire")
         assert live.core.rejected == {}
     finally:
         if client is not None:
