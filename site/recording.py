@@ -18,8 +18,8 @@ Channels (docs/recording.md):
   that came on both links), ``/foxglove/<robot>/map`` (``foxglove.Grid`` of the robot's whole
   occupancy map, kept from snapshots and updates), ``/foxglove/sim/<robot>/truth`` (the field's
   ground truth as a ``foxglove.PoseInFrame``): made by ``FoxgloveScene`` (site/foxglove_scene.py),
-  the same as ``fleetlink foxglove`` serves live. The wire carries no lidar scans, so no
-  ``foxglove.LaserScan`` is written (``shared/foxglove.py`` has it for when one does).
+  the same as ``fleetlink foxglove`` serves live; ``/foxglove/<robot>/scan`` (``foxglove.LaserScan``)
+  from the wire's ``Scan``.
 
 Log time is when the recorder received the message (its clock's wall time), publish time the
 sender's ``header.timestamp``.
