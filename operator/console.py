@@ -242,6 +242,7 @@ class ConsoleApp(App[None]):
         Binding("f", "fit", "fit map"),
         Binding("P", "pause_resume", "pause/resume", show=False),  # shift-p: p is the lamp
         Binding("D", "dose_layer", "dose layer", show=False),  # shift-d: d drives (WASD)
+        Binding("L", "legend", "map legend", show=False),  # shift-l: l turns right
         Binding("plus", "zoom(0.8)", "zoom in", show=False),
         Binding("minus", "zoom(1.25)", "zoom out", show=False),
         Binding("shift+up", "pan(0, -4)", show=False),
@@ -971,6 +972,13 @@ class ConsoleApp(App[None]):
 
         self.run_worker(work, thread=True, group="dose", exit_on_error=False)
         return True
+
+    def action_legend(self) -> None:
+        """``L``: hide or show the map's legend."""
+        m = self.query_one(MapView)
+        m.legend = not m.legend
+        with self.lock:
+            m.update_view()
 
     def action_zoom(self, factor: float) -> None:
         m = self.query_one(MapView)

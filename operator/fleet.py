@@ -12,6 +12,9 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
+import numpy as np
+import numpy.typing as npt
+
 from fleetlink.operator.alarms import AlarmDesk
 from fleetlink.operator.marks import marks_of_set, supersedes
 from fleetlink.shared.messages import (
@@ -28,15 +31,20 @@ from fleetlink.shared.messages import (
     MarkSet,
     OrderProgress,
     Pose,
+    Scan,
     Severity,
     State,
     UwbFix,
 )
-from fleetlink.shared.wire import Message
+from fleetlink.shared.scan_codec import scan_points
+from fleetlink.shared.wire import Message, WireError
 
 __all__ = ["CONTACT_RENEW_S", "FleetModel", "Grid", "LeaseRenewal", "Notice", "RobotView", "Route"]
 
 TRAIL_POINTS = 200
+SCAN_STALE_S = 3.0
+"""A robot's scan is no longer drawn this long after it arrived (the robot has moved on, or its
+lidar stopped)."""
 
 Grid = tuple[float, float, float, int, int, bytes]
 """(origin_x, origin_y, resolution, width, height, cells row by row from origin_y up: 0 free,
@@ -107,6 +115,11 @@ class RobotView:
     order_end: tuple[str, str] | None = None
     """(order id, outcome) of the last order with nodes it ended: ``finished`` (every node done
     or skipped), ``ended`` (cancelled, stopped, replaced), as its ``order`` event says."""
+    scan: npt.NDArray[np.float64] | None = None
+    """Its latest lidar scan's returns in the site frame, ``(N, 2)`` metres (a ``Scan``, or
+    ``set_scan``); the map draws the selected robot's. None until one arrives, and again once it is
+    ``SCAN_STALE_S`` old."""
+    scan_at: float | None = None
 
     def age(self, now: float) -> float | None:
         return None if self.last_heard is None else max(0.0, now - self.last_heard)
@@ -208,6 +221,11 @@ class FleetModel:
             # Totals since the agent started (a restarted agent starts again from 0).
             view.refused = sum(c.count for c in (*msg.rejected, *msg.oversized)) + msg.handler_failures
             view.refused_reason = msg.last_reason
+        elif isinstance(msg, Scan):
+            try:
+                self.set_scan(h.robot, scan_points(msg), now)
+            except WireError:  # ranges that are not count uint16s: nothing to draw
+                return False
         elif isinstance(msg, Connection):
             view.connection = msg.connectionState.value
             if msg.connectionState is not ConnectionState.ONLINE:
@@ -300,14 +318,25 @@ class FleetModel:
             return None
         return route
 
+    def set_scan(self, robot: str, points: npt.NDArray[np.float64], now: float) -> None:
+        """A robot's latest lidar scan, its points in the site frame (``(N, 2)`` metres)."""
+        view = self.robot(robot)
+        view.scan = points
+        view.scan_at = now
+        self.version += 1
+
     def set_grid(self, robot: str, grid: Grid) -> None:
         """A robot's occupancy grid for the map (``operator/maps.py`` keeps them current)."""
         self.grids[robot] = grid
         self.version += 1
 
     def tick(self, now: float) -> None:
-        """Robots silent for ``lost_after_s`` are reported lost (once)."""
+        """Robots silent for ``lost_after_s`` are reported lost (once); scans ``SCAN_STALE_S`` old
+        are let go."""
         for view in self.robots.values():
+            if view.scan_at is not None and now - view.scan_at > SCAN_STALE_S:
+                view.scan = view.scan_at = None
+                self.version += 1
             age = view.age(now)
             if age is not None and age > self.lost_after_s and not view.lost:
                 view.lost = True

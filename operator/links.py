@@ -40,7 +40,7 @@ __all__ = ["ROBOT_TOPICS", "OperatorLink", "mqtt_settings_for", "parse_mqtt_url"
 # Topics only a robot's agent publishes: hearing one on a link proves the robot <-> operator path
 # on that link works. (UWB fixes come from the gateway, marks from other consoles: they prove nothing.)
 ROBOT_TOPICS = frozenset(
-    {"state", "pose", "ack", "events", "connection", "board", "lease", "map/updates", "dose/updates"}
+    {"state", "pose", "ack", "events", "connection", "board", "lease", "map/updates", "dose/updates", "scan"}
 )
 
 UWB_STATUS = "fleetlink/uwb/*/status"

@@ -23,6 +23,7 @@ import pytest
 from textual.widgets import Input, Static
 
 from fleetlink.operator.console import ConsoleApp
+from fleetlink.operator.maprender import FREE, WALL
 from fleetlink.operator.maps import MapFollower
 from fleetlink.operator.mapview import ASPECT, MapView
 from fleetlink.shared import wire
@@ -427,4 +428,6 @@ async def test_robot_name_shows_inside_a_mapped_room(rig: Rig) -> None:
             lines[robot] = line
             assert line[col] == "→", (robot, line)  # the glyph is not hidden by any label
             assert line[col + 2 : col + 4] == robot, (robot, line)
-        assert "·" in lines["r1"] and "█" in lines["r1"]  # the row is inside the mapped room
+        _, row = view.geometry.to_cell(*rig.voices["r1"])
+        drawn = {view.frame.pixels(col, row)[1] for col in range(view.geometry.width)} if view.frame else set()
+        assert {FREE, WALL} <= drawn  # the row is inside the mapped room

@@ -14,12 +14,14 @@ from typing import Any
 
 import numpy as np
 import pytest
+from rich.color import Color
 from textual.widgets import RichLog
 
 from fleetlink.agent.dose_layer import DoseKeeper, DoseSample
-from fleetlink.operator.dose import AT_TARGET, BELOW, NONE, DoseFetcher, DoseFollower, merge_layers
+from fleetlink.operator.dose import AT_TARGET, NONE, DoseFetcher, DoseFollower, merge_layers
+from fleetlink.operator.maprender import DOSE_PIXELS, PIXEL_COLOURS, UNKNOWN
 from fleetlink.operator.maps import MapFollower
-from fleetlink.operator.mapview import DOSE_BG, MapView
+from fleetlink.operator.mapview import MapView
 from fleetlink.shared import wire
 from fleetlink.shared.dose import FloorMask, Lamp
 from fleetlink.shared.dose_codec import SharedDose, patch_fields, snapshot_fields
@@ -108,15 +110,29 @@ async def test_dose_layer_drawn_summarised_and_saved(rig: Rig, tmp_path: Path) -
             await settle(pilot)
             assert view.dose is layer and any("dose layer shown: r1, r2" in n for n in notices(rig.app))
             g = view.geometry
-            col, row = g.to_cell(2.0, 2.0)
-            char, style = view._cells[(col, row)]
-            assert char == "→" and style.bgcolor == DOSE_BG[AT_TARGET].bgcolor  # the robot, on dose at the target
-            far = g.to_cell(5.7, 0.2)  # the far corner, behind r2's weaker dose: under the target
-            assert view._cells[far][1].bgcolor == DOSE_BG[BELOW].bgcolor
-            outside = g.to_cell(-3.0, 2.0)
-            assert view._cells.get(outside, (" ", None))[1] is None or view._cells[outside][1].bgcolor is None
-            legend = view.render_line(g.height - 1).text
-            assert "dose" in legend and "at/over 100 J/m²" in legend and "under 100" in legend and "none" in legend
+            char, style = view.cell(*g.to_cell(2.0, 2.0))  # r1, selected: its own background
+            assert char == "→" and view.pixel_at(2.0, 2.0) == DOSE_PIXELS[-1]  # on dose at the target
+            xs, ys = g.pixel_centres()
+            checked = 0
+            for x, y in ((2.6, 2.0), (3.3, 1.0), (5.7, 0.2), (0.3, 3.7), (4.0, 3.0)):  # a pixel by its dose / target
+                col, prow = g.to_pixel(x, y)
+                if not g.inside(col, prow // 2):
+                    continue
+                checked += 1
+                ratio = layer.grid.dose_at(xs[col : col + 1], ys[prow : prow + 1])[0, 0] / layer.target_j_m2
+                want = DOSE_PIXELS[min(4, int(ratio * 4))]
+                assert view.pixel_at(x, y) == want, (x, y, ratio)
+                assert view.frame is not None
+                if view.frame.glyph(col, prow // 2) is None:  # not under a robot or the legend
+                    char, style = view.cell(col, prow // 2)
+                    assert Color.parse(PIXEL_COLOURS[want]) in (style.color, style.bgcolor)
+            assert checked >= 3
+            # The far corner, behind r2's weaker dose: under the target.
+            assert view.pixel_at(5.7, 0.2) in DOSE_PIXELS[:-1]
+            assert view.pixel_at(-3.0, 2.0) in (UNKNOWN, None)  # no map, no dose (or off the view)
+            bottom = [view.render_line(g.height - k).text for k in (1, 2, 3)]
+            scale = next(line for line in bottom if "dose of" in line)  # the dose scale above the legend
+            assert "dose of 100 J/m²" in scale and "<25%" in scale and "at/over" in scale and "none" in scale
             assert layer.classes(np.array([2.0, -3.0]), np.array([2.0]))[0].tolist() == [AT_TARGET, NONE]
 
             # A patch on dose/updates (the real OperatorLink decodes it): applied, merged, redrawn.

@@ -21,6 +21,7 @@ from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.operator.console import ConsoleApp, attach
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.links import OperatorLink, mqtt_settings_for
+from fleetlink.operator.maprender import WALL
 from fleetlink.operator.maps import MapFetcher, MapFollower
 from fleetlink.operator.mapview import MapView
 from fleetlink.shared import keys, wire
@@ -163,10 +164,8 @@ async def test_the_map_widget_draws_the_fetched_walls(console: Any) -> None:
         view = app.query_one(MapView)
         view.geometry.center_x, view.geometry.center_y = 2.0, 2.0
         view.update_view()
-        col, row = view.geometry.to_cell(2.05, 2.0)
-        assert view._cells.get((col, row), (" ",))[0] == "█"
-        col, row = view.geometry.to_cell(3.5, 2.0)  # beyond the wall: unknown, nothing drawn
-        assert (col, row) not in view._cells or view._cells[(col, row)][0] != "█"
+        assert view.pixel_at(2.05, 2.0) == WALL
+        assert view.pixel_at(3.5, 2.0) != WALL  # beyond the wall: unknown
 
 
 def test_a_console_that_starts_late_gets_the_marks_placed_before(zenoh_peers: Any, mosquitto: Any) -> None:

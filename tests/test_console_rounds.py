@@ -17,7 +17,8 @@ from fleetlink.cli.console import load_settings
 from fleetlink.operator.commands import CommandError, RoundAction, StartRound, parse_command
 from fleetlink.operator.detail import RobotDetail, detail_text
 from fleetlink.operator.fleet import FleetModel
-from fleetlink.operator.mapview import ROUTE_DONE_STYLE, ROUTE_STYLE, ZONE_STYLE, MapView
+from fleetlink.operator.maprender import ROUTE_DONE_STYLE, ROUTE_STYLE, ZONE_STYLE
+from fleetlink.operator.mapview import MapView
 from fleetlink.operator.rounds import DEFAULT_LAMP, PolyArea, RectArea, RoomArea
 from fleetlink.shared import wire
 from fleetlink.shared.clock import SimClock
@@ -144,6 +145,12 @@ def notices(rig: Rig) -> str:
     return "".join(line.text for line in rig.app.query_one("#notices", RichLog).lines)
 
 
+def map_styles(rig: Rig) -> set[Any]:
+    """The styles of every glyph the map draws."""
+    frame = rig.app.query_one(MapView).frame
+    return frame.styles() if frame is not None else set()
+
+
 def orders(rig: Rig) -> list[Order]:
     seen: dict[tuple[str, int], Order] = {}
     for m in [*rig.zenoh.messages(Order), *rig.mqtt.messages(Order)]:
@@ -202,15 +209,16 @@ async def test_disinfect_sends_an_order_with_nodes_and_the_detail_and_map_follow
         line = f"round {order.orderId}: 1/{len(order.nodes)} nodes done, dwell 12 s left"
         assert await until(pilot, lambda: line in detail(rig)), detail(rig)
         assert line in screen_text(rig.app)
-        drawn = {style for _, style in rig.app.query_one(MapView)._cells.values()}
+        frame = rig.app.query_one(MapView).frame
+        assert frame is not None
+        drawn = frame.styles()
         assert ROUTE_STYLE in drawn and ROUTE_DONE_STYLE not in drawn
-        glyphs = [c for c, style in rig.app.query_one(MapView)._cells.values() if style == ROUTE_STYLE]
-        assert "o" in glyphs  # dwell points
+        assert "o" in frame.chars(ROUTE_STYLE)  # dwell points
         # Another robot's order, or the round over: not drawn any more.
         rig.zenoh.inject(state(rig.counter("r1"), orderId=order.orderId, driveMode="idle"))
         assert await until(pilot, lambda: "round uv-" not in detail(rig))
         await settle(pilot, 0.2)
-        assert ROUTE_STYLE not in {style for _, style in rig.app.query_one(MapView)._cells.values()}
+        assert ROUTE_STYLE not in map_styles(rig)
 
 
 @run_async
@@ -296,12 +304,13 @@ async def test_a_robot_without_a_pose_or_a_map_or_whose_lease_is_anothers_gets_n
 async def test_people_present_zones_are_drawn_on_the_map(rig: Rig) -> None:
     async with rig.app.run_test(size=(140, 44)) as pilot:
         await mapped(rig, pilot, "r1")
+        legend = screen_text(rig.app).count("░")  # the legend's
         await command(pilot, "zone add ward -0.9 0.3 0.5 0.3 0.5 1.3 -0.9 1.3")
-        assert await until(pilot, lambda: ZONE_STYLE in {s for _, s in rig.app.query_one(MapView)._cells.values()})
-        assert "░" in screen_text(rig.app)
+        assert await until(pilot, lambda: ZONE_STYLE in map_styles(rig))
+        assert screen_text(rig.app).count("░") > legend
         await command(pilot, "zone rm ward")
-        await until(pilot, lambda: ZONE_STYLE not in {s for _, s in rig.app.query_one(MapView)._cells.values()})
-        assert "░" not in screen_text(rig.app)
+        await until(pilot, lambda: ZONE_STYLE not in map_styles(rig))
+        assert screen_text(rig.app).count("░") == legend
 
 
 def test_the_order_ids_and_the_default_lamp_match_the_agents() -> None:

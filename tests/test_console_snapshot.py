@@ -22,9 +22,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+from fleetlink.operator.dose import FleetDose
 from fleetlink.operator.maps import MapFollower
 from fleetlink.shared import wire
 from fleetlink.shared.clock import SimClock
+from fleetlink.shared.dose import DoseGrid
 from fleetlink.shared.map_codec import snapshot_fields
 from fleetlink.shared.messages import (
     AgvPosition,
@@ -32,18 +34,22 @@ from fleetlink.shared.messages import (
     Event,
     FixStatus,
     Goal,
+    Home,
+    HomeSource,
     Lease,
     MapSnapshot,
     Mark,
     OperatingMode,
     Order,
     Pose,
+    Scan,
     Severity,
     State,
     Teleop,
     UwbFix,
     Velocity,
 )
+from fleetlink.shared.scan_codec import scan_fields
 from tests.harness.messages import state as harness_state
 from tests.test_console import ME, Rig
 
@@ -255,3 +261,81 @@ def test_read_only_mode(snap_compare: Snap, read_only_rig: Rig) -> None:
 
     assert snap_compare(r.app, terminal_size=SIZE, run_before=before(lambda _p: two_robots(r), drive))
     assert r.zenoh.sent == [] and r.mqtt.sent == []
+
+
+# -- the map ------------------------------------------------------------------------------------------
+
+
+def ray_cast(cells: np.ndarray, x: float, y: float, beams: int = 360) -> tuple[np.ndarray, np.ndarray]:
+    """What a lidar at (x, y), heading 0, sees of ``room()``: the range to the first wall each beam."""
+    angles = np.arange(beams) * (2 * math.pi / beams)
+    ranges = np.zeros(beams)
+    h, w = cells.shape
+    for k, a in enumerate(angles):
+        for step in range(1, 1500):
+            d = step * 0.01
+            i = math.floor((x + d * math.cos(a) - ORIGIN[0]) / RES)
+            j = math.floor((y + d * math.sin(a) - ORIGIN[1]) / RES)
+            if not (0 <= i < w and 0 <= j < h):
+                break
+            if cells[j, i] == 100:
+                ranges[k] = d
+                break
+    return angles, ranges
+
+
+def map_extras(rig: Rig) -> None:
+    """On top of ``two_robots``: r1's lidar scan (it is selected), r2's home, a hazard and a note."""
+    clock = rig.clock
+    assert isinstance(clock, SimClock)
+    angles, ranges = ray_cast(room(), 0.5, 0.5)
+    rig.zenoh.inject(rig.counter("r1").make(Scan, **scan_fields(angles, ranges, (0.5, 0.5, 0.0))))
+    home = Home(x=0.5, y=3.0, theta=None, source=HomeSource.LOCALISED)
+    say(
+        rig,
+        state(
+            rig, "r2", 4.0, 0.5, math.pi / 4, operatingMode=OperatingMode.AUTOMATIC, driveMode="goto",
+            batteryState=BatteryState(batteryCharge=42.0, charging=False), uwbStale=True,
+            orderId="operator-1-order-3", goal=Goal(x=6.5, y=1.5, theta=None), driving=True, home=home,
+        ),
+    )  # fmt: skip
+    other = wire.HeaderCounter(clock, robot="r2", sender="operator-2")
+    for mark_id, kind, x, y in (("op2-2", "hazard", 2.0, 3.3), ("op2-3", "note", 6.0, -0.4)):
+        rig.zenoh.inject(other.make(Mark, markId=mark_id, x=x, y=y, label=kind, kind=kind, sd_m=0.0, removed=False))
+
+
+def dose_layer(rig: Rig) -> None:
+    """A dose layer over the left of the room, rising left to right from nothing to twice the target."""
+    res = 0.05
+    xs = np.arange(0, 60) * res  # x 0 .. 3 m
+    dose = np.tile(np.clip(xs / 3.0, 0.0, 1.0) * 200.0, (80, 1))  # y -0.5 .. 3.5 m
+    grid = DoseGrid.from_array(dose, res, (-res / 2, -0.5 - res / 2))
+    layer = FleetDose(grid, 100.0, ("r1",), (), 60.0, 0.0, 23, 1)
+    with rig.lock:
+        rig.app.doses.layer = layer
+
+
+def test_the_map_in_half_blocks_with_a_scan_home_marks_and_an_alarm(snap_compare: Snap, rig: Rig) -> None:
+    """The map at two pixels a cell: the room's walls, floor and unknown corner in colour, r1's
+    lidar scan (r1 is selected) in red over it, r2's trail, goal, home and its alarm (UWB stale),
+    a casualty, a hazard and a note, the anchors, the legend on the bottom lines."""
+    seen: list[str] = []
+
+    def legend(pilot: Any) -> None:
+        frame = pilot.app.query_one("#map").frame
+        seen.extend(frame.text(frame.height - k) for k in (1, 2))
+
+    steps = before(lambda _p: two_robots(rig), lambda _p: map_extras(rig), legend)
+    assert snap_compare(rig.app, terminal_size=SIZE, run_before=steps)
+    assert "scan" in " ".join(seen)  # explained now that one is drawn
+
+
+def test_the_map_with_the_dose_layer(snap_compare: Snap, rig: Rig) -> None:
+    """D shows the dose layer: the floor coloured by its dose against the target, the scale above
+    the legend."""
+
+    async def show(pilot: Any) -> None:
+        await pilot.press("D")
+
+    steps = before(lambda _p: two_robots(rig), lambda _p: map_extras(rig), lambda _p: dose_layer(rig), show)
+    assert snap_compare(rig.app, terminal_size=SIZE, run_before=steps)

@@ -22,6 +22,7 @@ from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.operator.console import attach
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.links import OperatorLink, mqtt_settings_for
+from fleetlink.operator.maprender import WALL
 from fleetlink.operator.maps import MapFetcher, MapFollower, to_grid
 from fleetlink.operator.mapview import MapView
 from fleetlink.shared import keys, wire
@@ -110,12 +111,13 @@ def test_two_robots_maps_become_one_fleet_map_that_the_cli_saves(
 
 
 def wall_runs(view: MapView, x: float, y0: float, y1: float) -> int:
-    """How many separate walls the map widget draws in the terminal column at ``x`` between y0 and y1."""
-    col, top = view.geometry.to_cell(x, y1)
-    _, bottom = view.geometry.to_cell(x, y0)
+    """How many separate walls the map widget draws in the pixel column at ``x`` between y0 and y1."""
+    assert view.frame is not None
+    col, top = view.geometry.to_pixel(x, y1)
+    _, bottom = view.geometry.to_pixel(x, y0)
     runs, inside = 0, False
-    for row in range(top, bottom + 1):
-        wall = view._cells.get((col, row), (" ",))[0] == "█"
+    for prow in range(top, bottom + 1):
+        wall = view.frame.pixel(col, prow) == WALL
         runs += wall and not inside
         inside = wall
     return runs
