@@ -11,6 +11,12 @@ an agent's and a light robot's rate) and State at 1 Hz through the link's decode
 * input latency: a drive key posted to the app until its Teleop reaches the transport (stamped in
   the transport's publish), p50/p99; a stop key between two presses, posted the same way.
 
+With ``--maps``, each robot also has an onboard map of its 20 m x 20 m square at 0.05 m (walls
+every 4 m) that changes once a second (as ``MapFollower`` hands the console a robot's map after
+each update), and publishes its lidar ``Scan`` at 2 Hz through the link's decode path (the agents'
+default ``[rates] scan_hz``): the map widget then rasters maps, draws the selected robot's scan and
+re-renders the rows they touch.
+
 Baseline, same run: the same figures with one robot. Goal: frame p99 well under the 100 ms
 refresh period and input latency p99 under 50 ms.
 """
@@ -30,6 +36,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import numpy as np  # noqa: E402
 from textual import events  # noqa: E402
 
 from fleetlink.shared.messages import (  # noqa: E402
@@ -40,11 +47,37 @@ from fleetlink.shared.messages import (  # noqa: E402
     LinkStatus,
     OperatingMode,
     SafetyState,
+    Scan,
     State,
     Teleop,
     Velocity,
 )
+from fleetlink.shared.scan_codec import scan_fields  # noqa: E402
 from tests.harness.console_rig import Rig  # noqa: E402
+
+MAP_RES = 0.05
+MAP_SIZE_M = 20.0
+
+
+_CELLS: list[bytes] = []
+
+
+def robot_grid(i: int) -> tuple[float, float, float, int, int, bytes]:
+    """Robot ``i``'s onboard map (the fleet model's ``Grid``): its 20 m square around its circle,
+    walls every 4 m; a new grid each call (as each map update hands the console a new one)."""
+    n = int(MAP_SIZE_M / MAP_RES)
+    if not _CELLS:
+        cells = np.zeros((n, n), dtype=np.uint8)
+        cells[::80, :] = 100
+        cells[:, ::80] = 100
+        cells[: n // 8, : n // 8] = 255  # a corner not seen yet
+        _CELLS.append(cells.tobytes())
+    ox, oy = 10 * (i % 10) - MAP_SIZE_M / 2, 10 * (i // 10) - MAP_SIZE_M / 2
+    return (ox, oy, MAP_RES, n, n, _CELLS[0])
+
+
+SCAN_ANGLES = np.arange(360) * (2 * math.pi / 360)
+SCAN_RANGES = 3.0 + 0.5 * np.sin(4 * SCAN_ANGLES)
 
 
 def pct(values: list[float], q: float) -> float:
@@ -52,10 +85,11 @@ def pct(values: list[float], q: float) -> float:
     return s[min(len(s) - 1, round(q * (len(s) - 1)))]
 
 
-def feed(rig: Rig, n: int, stop: threading.Event, hz: float = 10.0) -> None:
+def feed(rig: Rig, n: int, stop: threading.Event, hz: float = 10.0, maps: bool = False) -> None:
     t0 = time.monotonic()
     tick = 0
     state_every = max(1, round(hz))
+    scan_every = max(1, round(hz / 2))
     while not stop.is_set():
         t = time.monotonic() - t0
         for i in range(n):
@@ -75,15 +109,20 @@ def feed(rig: Rig, n: int, stop: threading.Event, hz: float = 10.0) -> None:
                     contact=Contact(policy=CommsPolicy.STOP, lost=False, action="", silent_s=0.0),
                 )  # fmt: skip
                 rig.zenoh.inject(st)
+            if maps and (tick + i) % scan_every == 0:  # 2 Hz, the robots spread over the ticks
+                rig.zenoh.inject(rig.counter(robot).make(Scan, **scan_fields(SCAN_ANGLES, SCAN_RANGES, (x, y, th))))
+            if maps and (tick + i) % state_every == 0:  # a map update a second
+                with rig.lock:
+                    rig.fleet.set_grid(robot, robot_grid(i))
         tick += 1
         stop.wait(max(0.0, t0 + tick / hz - time.monotonic()))
 
 
-async def measure(n: int, seconds: float, tmp: Path, hz: float = 10.0) -> dict[str, float]:
+async def measure(n: int, seconds: float, tmp: Path, hz: float = 10.0, maps: bool = False) -> dict[str, float]:
     rig = Rig(tmp)
     rig.link.start()
     stop = threading.Event()
-    feeder = threading.Thread(target=feed, args=(rig, n, stop, hz), daemon=True)
+    feeder = threading.Thread(target=feed, args=(rig, n, stop, hz, maps), daemon=True)
     teleops: list[float] = []
     """When each Teleop reached the (Zenoh) transport."""
     publish = rig.zenoh.publish
@@ -139,13 +178,18 @@ def main() -> int:
     parser.add_argument(
         "--refresh-goal-ms", type=float, default=100.0, help="refresh p99 goal (issue 18, 500 robots: 50)"
     )
+    parser.add_argument(
+        "--maps", action="store_true", help="each robot's map (updated at 1 Hz) and lidar scan (2 Hz) too"
+    )
     parser.add_argument("--json", type=Path, help="also write the figures as JSON (SI units)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        base = asyncio.run(measure(1, args.seconds, Path(tmp), args.pose_hz))
-        full = asyncio.run(measure(args.robots, args.seconds, Path(tmp), args.pose_hz))
+        base = asyncio.run(measure(1, args.seconds, Path(tmp), args.pose_hz, args.maps))
+        full = asyncio.run(measure(args.robots, args.seconds, Path(tmp), args.pose_hz, args.maps))
+    extra = ", maps updated at 1 Hz and scans at 2 Hz" if args.maps else ""
     print(
-        f"console responsiveness, robots reporting pose at {args.pose_hz:g} Hz (+ state at 1 Hz), {args.seconds:g} s each"
+        f"console responsiveness, robots reporting pose at {args.pose_hz:g} Hz (+ state at 1 Hz{extra}), "
+        f"{args.seconds:g} s each"
     )
     print(f"{'':22} {f'{args.robots} robots':>12} {'1 robot':>10} {'ratio':>7}")
     for key, label in (("frame_p50_s", "refresh p50 ms"), ("frame_p99_s", "refresh p99 ms"),
@@ -157,7 +201,8 @@ def main() -> int:
     if args.json:
         figures = {"robots_n": full, "one_robot": base, "frame_p99_ratio": full["frame_p99_s"] / base["frame_p99_s"],
                    "input_p99_ratio": full["input_p99_s"] / base["input_p99_s"], "goal_met": ok,
-                   "refresh_p99_goal_s": args.refresh_goal_ms / 1e3, "pose_rate_hz": args.pose_hz}  # fmt: skip
+                   "refresh_p99_goal_s": args.refresh_goal_ms / 1e3, "pose_rate_hz": args.pose_hz,
+                   "maps_and_scans": args.maps}  # fmt: skip
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
     return 0 if ok else 1
 

@@ -483,6 +483,12 @@ class MapPainter:
         """robot -> (its ``trail_added`` when last seen, the pixel of each of its trail points)."""
         self._styles: dict[tuple[Style, int], Style] = {}
         self._alarms: tuple[int, dict[str, Style]] = (-1, {})
+        self._legend_glyphs: tuple[object, dict[tuple[int, int], Glyph]] = (None, {})
+        self._letters: dict[tuple[str, Style], Glyph] = {}
+        """Robots' glyphs and their names' letters, made once."""
+        self._rasters: dict[str, tuple[int, tuple[object, ...], U8]] = {}
+        """map -> (id of its grid, the view, its pixels): the maps rastered one by one."""
+        self.rasters = 0
         self.frames = 0
         self.base_builds = 0
 
@@ -536,7 +542,11 @@ class MapPainter:
             style = LOST_STYLE if rv.lost else SELECTED_STYLE if rv.robot == selected else ROBOT_STYLE
             col, row = g.to_cell(x, y)
             if g.inside(col, row):
-                glyphs[(col, row)] = Glyph(heading_char(th), style)
+                char = heading_char(th)
+                glyph = self._letters.get((char, style))
+                if glyph is None:
+                    glyph = self._letters[(char, style)] = Glyph(char, style)
+                glyphs[(col, row)] = glyph
                 protected.add((col, row))
             alarm = alarms.get(rv.robot)
             if alarm is not None and g.inside(col + 1, row) and (col + 1, row) not in protected:
@@ -544,14 +554,29 @@ class MapPainter:
                 protected.add((col + 1, row))
             if -8 <= col < g.width and 0 <= row < g.height:
                 labels.append((col, row, rv.robot[:6], style))
+        letters = self._letters
         for col, row, name, style in labels:  # after every glyph, so no name hides a robot
             for k, ch in enumerate(name):
                 c = (col + 2 + k, row)
                 if g.inside(*c) and c not in protected:
-                    glyphs[c] = Glyph(ch, style)
+                    glyph = letters.get((ch, style))
+                    if glyph is None:
+                        glyph = letters[(ch, style)] = Glyph(ch, style)
+                    glyphs[c] = glyph
         if legend:
-            target = dose.target_j_m2 if dose is not None else None
-            lines = legend_rows(g.width, scan=scan is not None, dose_target=target)
+            glyphs.update(self._legend(g, scan is not None, dose.target_j_m2 if dose is not None else None))
+        by_row: dict[int, Overlays] = {}
+        for (col, row), glyph in glyphs.items():  # drawn in the same order each frame: equal rows, equal keys
+            by_row.setdefault(row, {})[col] = glyph
+        self.frames += 1
+        return MapFrame(cell_codes(pixels), by_row, self._styles)
+
+    def _legend(self, g: MapGeometry, scan: bool, target: float | None) -> dict[tuple[int, int], Glyph]:
+        """The legend's glyphs on the bottom lines (kept while the view's size and what it says hold)."""
+        key = (g.width, g.height, scan, target)
+        if self._legend_glyphs[0] != key:
+            glyphs: dict[tuple[int, int], Glyph] = {}
+            lines = legend_rows(g.width, scan=scan, dose_target=target)
             for k, line in enumerate(lines):
                 row = g.height - len(lines) + k
                 col = 0
@@ -560,16 +585,8 @@ class MapPainter:
                         if row >= 0 and col < g.width:
                             glyphs[(col, row)] = Glyph(ch, style)
                         col += 1
-        by_row: dict[int, Overlays] = {}
-        for (col, row), glyph in glyphs.items():
-            by_row.setdefault(row, {})[col] = glyph
-        for row_glyphs in by_row.values():  # in column order: equal rows give equal keys
-            if len(row_glyphs) > 1:
-                ordered = dict(sorted(row_glyphs.items()))
-                row_glyphs.clear()
-                row_glyphs.update(ordered)
-        self.frames += 1
-        return MapFrame(cell_codes(pixels), by_row, self._styles)
+            self._legend_glyphs = (key, glyphs)
+        return self._legend_glyphs[1]
 
     def _update_base(
         self, fleet: FleetModel, g: MapGeometry, view_key: tuple[object, ...], dose: FleetDose | None
@@ -590,7 +607,19 @@ class MapPainter:
         grids = fleet.grids
         if FLEET_MAP in grids:  # every robot's map registered and merged: drawn alone
             grids = {FLEET_MAP: grids[FLEET_MAP]}
-        pixels = raster_grids(g, grids.values())
+        # Each map rastered on its own and kept until it or the view changes: a robot's map update
+        # re-rasters that map only. Merged by the larger class: wall over free over unknown.
+        kept: dict[str, tuple[int, tuple[object, ...], U8]] = {}
+        for robot, grid in grids.items():
+            had = self._rasters.get(robot)
+            if had is None or had[0] != id(grid) or had[1] != view_key:
+                had = (id(grid), view_key, raster_grids(g, [grid]))
+                self.rasters += 1
+            kept[robot] = had
+        self._rasters = kept
+        pixels = np.zeros((2 * g.height, g.width), dtype=np.uint8)
+        for _, _, raster in kept.values():
+            np.maximum(pixels, raster, out=pixels)
         xs, ys = g.pixel_centres()
         if dose is not None:
             dose_pixels(pixels, dose.grid.dose_at(xs, ys), dose.target_j_m2)

@@ -266,3 +266,23 @@ def test_a_scan_on_the_wire_becomes_the_robots_points_until_it_is_stale() -> Non
     assert fleet.robots["r1"].scan is points
     fleet.tick(10.0 + SCAN_STALE_S + 0.1)
     assert fleet.robots["r1"].scan is None and fleet.version > version
+
+
+def test_a_map_update_rasters_that_map_only() -> None:
+    fleet = FleetModel(ME)
+    g = MapGeometry(40, 12, scale=0.25)
+    for k, robot in enumerate(("r1", "r2", "r3")):
+        fleet.set_grid(robot, grid([[0] * 20 for _ in range(20)], (-5.0 + 3 * k, -1.0), 0.1))
+    painter = MapPainter()
+    painter.paint(fleet, g, None)
+    assert painter.rasters == 3
+    wall = grid([[100] * 20 for _ in range(20)], (-2.0, -1.0), 0.1)
+    fleet.set_grid("r2", wall)  # r2's map changed
+    frame = painter.paint(fleet, g, None)
+    assert painter.rasters == 4
+    assert frame.pixel(*g.to_pixel(-1.0, 0.0)) == WALL and frame.pixel(*g.to_pixel(-4.0, 0.0)) == FREE
+    painter.paint(fleet, g, None)
+    assert painter.rasters == 4
+    g.pan(1, 0)  # a new view: every map again
+    painter.paint(fleet, g, None)
+    assert painter.rasters == 7
