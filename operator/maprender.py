@@ -535,12 +535,15 @@ class MapPainter:
                 put(rv.goal[0], rv.goal[1], GOAL)
         alarms = self._alarm_styles(fleet)
         labels: list[tuple[int, int, str, Style]] = []
+        robots: set[tuple[int, int]] = set()
+        """Cells with a robot or an alarm: an alarm goes beside its robot but over neither."""
         for rv in fleet.robots.values():
             if rv.pose is None:
                 continue
             x, y, th = rv.pose
             style = LOST_STYLE if rv.lost else SELECTED_STYLE if rv.robot == selected else ROBOT_STYLE
             col, row = g.to_cell(x, y)
+            robots.add((col, row))
             if g.inside(col, row):
                 char = heading_char(th)
                 glyph = self._letters.get((char, style))
@@ -549,9 +552,13 @@ class MapPainter:
                 glyphs[(col, row)] = glyph
                 protected.add((col, row))
             alarm = alarms.get(rv.robot)
-            if alarm is not None and g.inside(col + 1, row) and (col + 1, row) not in protected:
-                glyphs[(col + 1, row)] = Glyph("!", alarm)
-                protected.add((col + 1, row))
+            if alarm is not None:  # right of it (over a home, goal or mark), else left of it
+                for c in ((col + 1, row), (col - 1, row)):
+                    if g.inside(*c) and c not in robots:
+                        glyphs[c] = Glyph("!", alarm)
+                        protected.add(c)
+                        robots.add(c)
+                        break
             if -8 <= col < g.width and 0 <= row < g.height:
                 labels.append((col, row, rv.robot[:6], style))
         letters = self._letters

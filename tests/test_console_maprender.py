@@ -186,6 +186,13 @@ def test_a_robots_alarm_is_a_bang_beside_it_coloured_by_severity() -> None:
     assert not isinstance(fleet.alarms.alarms.acknowledge("r1", AlarmKind.LOW_BATTERY, "op-2", 2.0), str)
     frame = painter.paint(fleet, g, None, legend=False)  # redrawn: the alarms' version moved
     assert frame.glyph(col + 1, row) == mr.Glyph("!", mr.ACKED_ALARM_STYLE)
+    fleet.robots["r1"].home = g.to_world(col + 1, row)  # its home beside it: the alarm goes over it
+    pose(fleet, "r2", *g.to_world(col - 1, row))  # another robot on its left
+    frame = painter.paint(fleet, g, None, legend=False)
+    assert frame.text(row)[col - 1 : col + 2] == "→→!"
+    pose(fleet, "r3", *g.to_world(col + 1, row))  # and one on its right: the alarm has no room
+    frame = painter.paint(fleet, g, None, legend=False)
+    assert frame.text(row)[col - 1 : col + 2] == "→→→"
 
 
 def test_marks_of_each_kind_look_different() -> None:
