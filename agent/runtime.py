@@ -64,7 +64,9 @@ class AgentRuntime:
         self.config = config
         self.clock = clock or SystemClock()
         robot = config.robot
-        self.board = BoardSession(open_port or _serial_opener(config.board), self.clock, rates=POLL_RATES, seed=seed)
+        self.board = BoardSession(
+            open_port or _serial_opener(config.board), self.clock, rates=POLL_RATES, seed=seed, direct=True
+        )
         self.node = node = AgentNode(config, self.clock, self.board, scan_sink=scan_sink)
         self.zenoh: ZenohEndpoint | None = None
         self.mqtt: MqttEndpoint | None = None

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import os
 import select
+import socket
 from collections.abc import Callable
 from typing import Protocol
 
@@ -59,6 +60,7 @@ class SerialPort:
         except (serial.SerialException, OSError, ValueError) as exc:
             raise PortClosed(f"cannot open {url}: {exc}") from exc
         self._slice = slice_s
+        _no_delay(self._port)
         self._fd: int | None = None
         try:
             fd = self._port.fileno()
@@ -127,6 +129,15 @@ class SerialPort:
     def close(self) -> None:
         with contextlib.suppress(self._serial_error, OSError):
             self._port.close()
+
+
+def _no_delay(port: object) -> None:
+    """TCP_NODELAY on a ``socket://`` port (pyserial leaves Nagle on): a request of a few bytes
+    goes out when it is written, as on a serial line, never held back for an ACK."""
+    sock = getattr(port, "_socket", None)
+    if isinstance(sock, socket.socket) and sock.family in (socket.AF_INET, socket.AF_INET6):
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
 
 class InProcessPort:

@@ -84,6 +84,11 @@ class PollSchedule:
     def next_time(self) -> float:
         return min(self.next_due.values())
 
+    def ran(self, task: str, now: float) -> None:
+        """``task`` was just run out of turn: its next slot is a period from ``now``."""
+        if task in self.next_due:
+            self.next_due[task] = now + self.periods[task]
+
 
 def _fields(rates: PollRates) -> list[tuple[str, float]]:
     return [(name, getattr(rates, name)) for name in rates.__dataclass_fields__]
@@ -96,7 +101,16 @@ class _Call:
 
 
 class BoardSession:
-    """Owns the board link. Thread-safe entry points: ``set_velocity``, ``call``, ``snapshot``, ``stop``."""
+    """Owns the board link. Thread-safe entry points: ``set_velocity``, ``call``, ``snapshot``, ``stop``.
+
+    ``direct``: a new velocity is written to the board by the thread that calls ``set_velocity``
+    (the agent's: the link thread that decided it, or the control loop), when no exchange is in
+    flight; the worker takes the board's reply with its next exchange (it is woken for it).
+    Otherwise -- an exchange in flight, or ``direct`` off -- the worker is woken and sends it before
+    anything else. The frame is the same SET_VELOCITY either way; direct sending only saves the
+    wake-up of the session's thread (and its wait for the GIL) between a command and the board.
+    Real-time agents send directly (agent/runtime.py); lockstep runs do not (their board session
+    runs when the run ticks it, so the order of every step stays the run's)."""
 
     def __init__(
         self,
@@ -109,6 +123,7 @@ class BoardSession:
         max_failures: int = 3,
         on_update: Callable[[BoardSnapshot], None] | None = None,
         seed: int | None = None,
+        direct: bool = False,
     ) -> None:
         self._open_port = open_port
         self.clock = clock
@@ -123,6 +138,14 @@ class BoardSession:
         self._lock = threading.Lock()
         self._calls: SimpleQueue[_Call] = SimpleQueue()
         self._command = (0.0, 0.0)
+        self.direct = direct
+        # One exchange at a time on the port: the worker holds this for each of its exchanges, a
+        # direct velocity for writing its request; a request written and not yet answered is
+        # ``_in_flight`` (the velocity it carries), finished by the worker before anything else.
+        self._io = threading.Lock()
+        self._in_flight: tuple[float, float] | None = None
+        self.direct_sends = 0
+        """Velocities written by the caller's thread (``direct``)."""
         # A new velocity is sent at once, not at the next 50 Hz slot: set_velocity wakes the worker.
         self._worker = Worker("board-session", clock=clock, target=lambda _w: self.run_forever())
         self._urgent = False
@@ -151,8 +174,27 @@ class BoardSession:
             raise ValueError(f"velocity must be finite, got vx={vx} omega={omega}")
         if (vx, omega) != self._command:
             self._command = (vx, omega)
-            self._urgent = True
+            if not (self.direct and self._send_now(vx, omega)):
+                self._urgent = True
             self._worker.wake()
+
+    def _send_now(self, vx: float, omega: float) -> bool:
+        """Write SET_VELOCITY from this thread if the port is free; the worker reads the reply."""
+        if self.client is None or not self._io.acquire(blocking=False):
+            return False
+        try:
+            client = self.client
+            if client is None or self._in_flight is not None or client.in_flight:
+                return False
+            try:
+                client.begin(p.SetVelocity(vx, 0.0, omega))
+            except BoardError:  # the port failed: the worker's next exchange finds out and reconnects
+                return False
+            self._in_flight = (vx, omega)
+            self.direct_sends += 1
+            return True
+        finally:
+            self._io.release()
 
     def call(self, request: p.Request) -> Future[p.Reply]:
         """Queue a one-off request (payload, LEDs, ...), sent between polls."""
@@ -167,8 +209,10 @@ class BoardSession:
     def stop(self, timeout: float = 2.0) -> None:
         self._worker.stop(timeout)
         if self.client is not None:
-            self.client.close()
-            self.client = None
+            with self._io:
+                self.client.close()
+                self.client = None
+                self._in_flight = None
             self._set(connected=False, last_error="stopped")
 
     def __enter__(self) -> BoardSession:
@@ -196,11 +240,12 @@ class BoardSession:
             if not self._connect():
                 return self._retry_at
         assert self._schedule is not None
-        if self._urgent:
-            self._urgent = False
-            if "motion" in self._schedule.next_due:
-                self._schedule.next_due["motion"] = now
         try:
+            self._finish_direct()
+            if self._urgent:
+                self._urgent = False
+                if "motion" in self._schedule.next_due:
+                    self._schedule.next_due["motion"] = now
             for task in self._schedule.due(now):
                 getattr(self, f"_poll_{task}")()
             self._serve_calls()
@@ -280,8 +325,10 @@ class BoardSession:
     def _disconnect(self, reason: str) -> None:
         if self.client is not None:
             log.warning("board link lost: %s", reason)
-            self.client.close()
-            self.client = None
+            with self._io:
+                self.client.close()
+                self.client = None
+                self._in_flight = None
             self._schedule_retry(reason)
 
     def _set(self, **changes: object) -> None:
@@ -292,8 +339,29 @@ class BoardSession:
             self.on_update(snap)
 
     def _ask(self, req: p.Request) -> p.Reply:
+        client = self.client
+        assert client is not None
+        with self._io:
+            self._finish_direct_locked()
+            return client.request(req)
+
+    def _finish_direct(self) -> None:
+        """Take the reply to a velocity a caller wrote (``direct``), if there is one."""
+        if self._in_flight is not None:
+            with self._io:
+                self._finish_direct_locked()
+
+    def _finish_direct_locked(self) -> None:
+        sent = self._in_flight
+        if sent is None:
+            return
+        self._in_flight = None
         assert self.client is not None
-        return self.client.request(req)
+        dr = self.client.finish()
+        assert isinstance(dr, p.DeadReckon)
+        self._dead_reckon(dr, sent)
+        if self._schedule is not None:
+            self._schedule.ran("motion", self.clock.now())  # it counts as the motion poll
 
     def _serve_calls(self) -> None:
         while True:
@@ -317,6 +385,10 @@ class BoardSession:
         vx, omega = self._command
         dr = self._ask(p.SetVelocity(vx, 0.0, omega))
         assert isinstance(dr, p.DeadReckon)
+        self._dead_reckon(dr, (vx, omega))
+
+    def _dead_reckon(self, dr: p.DeadReckon, command: tuple[float, float]) -> None:
+        vx, omega = command
         x, y, th = self._snap.odom
         c, s = math.cos(th), math.sin(th)
         odom = (x + c * dr.dx - s * dr.dy, y + s * dr.dx + c * dr.dy, _wrap(th + dr.dtheta))

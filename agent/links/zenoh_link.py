@@ -4,8 +4,10 @@
 connect, mode, login, TLS), declares the liveliness token ``fleetlink/alive/v1/<robot>``
 (``keys.alive_key``: outside the robots' key tree, docs/wire-contract.md) while it is open. The
 node subscribes its inputs (``AgentNode.subscribe``); samples reach it in arrival order
-(links/zenoh.py says why that needs one delivery thread). Per-key QoS (commands and acks
-express, telemetry DROP) is the endpoint's.
+(links/zenoh.py says why that needs one delivery thread); the lease holder's command that finds
+nothing queued is delivered on zenoh's own thread (``direct``: the node's input handler is short,
+and the driver's command then reaches the board without a thread hop). Per-key QoS (commands and
+acks express, telemetry DROP) is the endpoint's.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ def agent_zenoh_link(robot: str, settings: ZenohSettings) -> ZenohEndpoint:
         connect=settings.connect,
         alive_key=keys.alive_key(robot),
         label=f"zenoh-{robot}",
+        direct=True,
         mode=settings.mode,
         username=settings.username,
         password=settings.password,

@@ -73,7 +73,39 @@ class BoardClient:
 
     def request(self, req: p.Request, timeout: float | None = None) -> p.Reply:
         """Send one typed request; return its typed reply (retrying timeouts and garbled exchanges)."""
-        event = self._exchange(self.connection.send(req, self.clock.now(), timeout))
+        self.begin(req, timeout)
+        return self._reply(self._complete())
+
+    def begin(self, req: p.Request, timeout: float | None = None) -> None:
+        """Write a request and return at once, without its reply: ``finish()`` takes the reply (and
+        runs the retries). ``request`` is the two in a row. A caller that must not wait for the
+        board's answer (a new velocity, sent from the thread that decided it) begins the exchange
+        and leaves it to the one who finishes; nothing else may be sent in between."""
+        data = self.connection.send(req, self.clock.now(), timeout)
+        try:
+            self.port.write(data)
+        except PortClosed as exc:
+            self.connection.abandon()
+            raise BoardDisconnected(str(exc)) from exc
+
+    @property
+    def in_flight(self) -> bool:
+        """An exchange has begun and not finished."""
+        return self.connection.busy
+
+    def finish(self) -> p.Reply:
+        """The reply to the request ``begin`` wrote (waiting for it, retrying as the connection
+        says). What has already arrived is taken first: a reply that came in time is not taken for
+        a timeout because its reader came late."""
+        try:
+            self.connection.receive_data(self.port.read_some(self.clock, self.clock.now()))
+        except PortClosed as exc:
+            self.connection.abandon()
+            raise BoardDisconnected(str(exc)) from exc
+        return self._reply(self._complete())
+
+    @staticmethod
+    def _reply(event: Event) -> p.Reply:
         if isinstance(event, Answered):
             return event.reply
         raise _error(event)
@@ -109,10 +141,18 @@ class BoardClient:
 
     def _exchange(self, data: bytes) -> Event:
         """Write ``data``, then move bytes and time until the connection has an answer."""
+        try:
+            self.port.write(data)
+        except PortClosed as exc:
+            self.connection.abandon()
+            raise BoardDisconnected(str(exc)) from exc
+        return self._complete()
+
+    def _complete(self) -> Event:
+        """Move bytes and time until the exchange in flight has an answer."""
         conn = self.connection
         clock = self.clock
         try:
-            self.port.write(data)
             now = clock.now()
             while True:
                 event = conn.next_event(now)
