@@ -30,7 +30,6 @@ change renders the same, so the widget keeps its rendered line.
 from __future__ import annotations
 
 import collections
-import itertools
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -477,15 +476,17 @@ class MapPainter:
         self._base: U8 = np.zeros((0, 0), dtype=np.uint8)
         self._base_glyphs: dict[tuple[int, int], Glyph] = {}
         self._trails_view: tuple[object, ...] = ()
-        self._trail_counts: npt.NDArray[np.int32] = np.zeros((0, 0), dtype=np.int32)
-        """Pixel -> trail points in it, every robot's, for the view ``_trails_view``."""
+        self._trail_counts: dict[tuple[int, int], int] = {}
+        """Pixel (row, col) -> trail points in it, every robot's, for the view ``_trails_view``."""
+        self._trail_mask: npt.NDArray[np.bool_] = np.zeros((0, 0), dtype=bool)
+        """The pixels with any trail point (set and cleared as a count leaves or reaches 0)."""
         self._trail_of: dict[str, tuple[int, collections.deque[tuple[int, int] | None]]] = {}
         """robot -> (its ``trail_added`` when last seen, the pixel of each of its trail points)."""
         self._styles: dict[tuple[Style, int], Style] = {}
         self._alarms: tuple[int, dict[str, Style]] = (-1, {})
         self._legend_glyphs: tuple[object, dict[tuple[int, int], Glyph]] = (None, {})
-        self._letters: dict[tuple[str, Style], Glyph] = {}
-        """Robots' glyphs and their names' letters, made once."""
+        self._looks: dict[tuple[str, Style], tuple[tuple[Glyph, ...], tuple[Glyph, ...]]] = {}
+        """(robot, style) -> its arrows (by heading) and its name's letters, made once."""
         self._rasters: dict[str, tuple[int, tuple[object, ...], U8]] = {}
         """map -> (id of its grid, the view, its pixels): the maps rastered one by one."""
         self.rasters = 0
@@ -506,7 +507,7 @@ class MapPainter:
         self._update_trails(fleet, g, view_key)
         pixels = self._base.copy()
         if self._trail_of:
-            trail = (self._trail_counts > 0) & (pixels <= FREE)  # under walls and the dose layer
+            trail = self._trail_mask & (pixels <= FREE)  # under walls and the dose layer
             pixels[trail] = TRAIL
         view = fleet.robots.get(selected) if selected is not None else None
         scan = view.scan if view is not None else None
@@ -528,48 +529,50 @@ class MapPainter:
         self._draw_round(fleet, g, selected, put)
         for mark in fleet.live_marks():
             put(mark.x, mark.y, mark_glyph(mark.kind))
+        width, height = g.width, g.height
+        cx, cy, sx, sy, hw, hh = g.center_x, g.center_y, g.scale, g.scale * ASPECT, width / 2, height / 2
         for rv in fleet.robots.values():
             if rv.home is not None:  # every robot's home, where return home goes
                 put(rv.home[0], rv.home[1], HOME)
             if rv.goal is not None:
                 put(rv.goal[0], rv.goal[1], GOAL)
         alarms = self._alarm_styles(fleet)
-        labels: list[tuple[int, int, str, Style]] = []
+        looks = self._looks
+        labels: list[tuple[int, int, tuple[Glyph, ...]]] = []
         robots: set[tuple[int, int]] = set()
         """Cells with a robot or an alarm: an alarm goes beside its robot but over neither."""
         for rv in fleet.robots.values():
-            if rv.pose is None:
+            pose = rv.pose
+            if pose is None:
                 continue
-            x, y, th = rv.pose
+            x, y, th = pose
+            row = math.floor(-(y - cy) / sy + hh)
+            if not 0 <= row < height:  # neither it, its alarm nor its name shows
+                continue
+            col = math.floor((x - cx) / sx + hw)
             style = LOST_STYLE if rv.lost else SELECTED_STYLE if rv.robot == selected else ROBOT_STYLE
-            col, row = g.to_cell(x, y)
+            look = looks.get((rv.robot, style))
+            if look is None:  # its eight arrows and its name's letters in this style, made once
+                arrows = tuple(Glyph(ch, style) for ch in HEADING_CHARS)
+                look = looks[(rv.robot, style)] = (arrows, tuple(Glyph(ch, style) for ch in rv.robot[:6]))
             robots.add((col, row))
-            if g.inside(col, row):
-                char = heading_char(th)
-                glyph = self._letters.get((char, style))
-                if glyph is None:
-                    glyph = self._letters[(char, style)] = Glyph(char, style)
-                glyphs[(col, row)] = glyph
+            if 0 <= col < width:
+                glyphs[(col, row)] = look[0][round(th / (math.pi / 4)) % 8]
                 protected.add((col, row))
             alarm = alarms.get(rv.robot)
             if alarm is not None:  # right of it (over a home, goal or mark), else left of it
                 for c in ((col + 1, row), (col - 1, row)):
-                    if g.inside(*c) and c not in robots:
+                    if 0 <= c[0] < width and c not in robots:
                         glyphs[c] = Glyph("!", alarm)
                         protected.add(c)
                         robots.add(c)
                         break
-            if -8 <= col < g.width and 0 <= row < g.height:
-                labels.append((col, row, rv.robot[:6], style))
-        letters = self._letters
-        for col, row, name, style in labels:  # after every glyph, so no name hides a robot
-            for k, ch in enumerate(name):
-                c = (col + 2 + k, row)
-                if g.inside(*c) and c not in protected:
-                    glyph = letters.get((ch, style))
-                    if glyph is None:
-                        glyph = letters[(ch, style)] = Glyph(ch, style)
-                    glyphs[c] = glyph
+            if -8 <= col < width:
+                labels.append((col + 2, row, look[1]))
+        for col, row, name in labels:  # after every glyph, so no name hides a robot
+            for k, glyph in enumerate(name, start=col):
+                if 0 <= k < width and (k, row) not in protected:
+                    glyphs[(k, row)] = glyph
         if legend:
             glyphs.update(self._legend(g, scan is not None, dose.target_j_m2 if dose is not None else None))
         by_row: dict[int, Overlays] = {}
@@ -651,13 +654,15 @@ class MapPainter:
         self._base_glyphs = glyphs
 
     def _update_trails(self, fleet: FleetModel, g: MapGeometry, view_key: tuple[object, ...]) -> None:
-        """Keep ``_trail_counts`` (pixel -> how many trail points fall in it) current by adding each
-        robot's new points and dropping the ones its trail let go: per message O(1)."""
+        """Keep ``_trail_counts`` (pixel -> how many trail points fall in it) and ``_trail_mask``
+        current by adding each robot's new points and dropping the ones its trail let go: per
+        message O(1)."""
         if view_key != self._trails_view:
             self._trails_view = view_key
             self._trail_of.clear()
-            self._trail_counts = np.zeros((2 * g.height, g.width), dtype=np.int32)
-        counts = self._trail_counts
+            self._trail_counts = {}
+            self._trail_mask = np.zeros((2 * g.height, g.width), dtype=bool)
+        counts, mask = self._trail_counts, self._trail_mask
         cx, cy, scale = g.center_x, g.center_y, g.scale
         half_w, half_h, width, height = g.width / 2, g.height * ASPECT / 2, g.width, 2 * g.height
 
@@ -665,6 +670,22 @@ class MapPainter:
             col = math.floor((p[0] - cx) / scale + half_w)
             row = math.floor(-(p[1] - cy) / scale + half_h)
             return (row, col) if 0 <= col < width and 0 <= row < height else None
+
+        def add(c: tuple[int, int] | None) -> None:
+            if c is not None:
+                n = counts.get(c, 0)
+                counts[c] = n + 1
+                if not n:
+                    mask[c] = True
+
+        def drop(c: tuple[int, int] | None) -> None:
+            if c is not None:
+                n = counts[c] - 1
+                if n:
+                    counts[c] = n
+                else:
+                    del counts[c]
+                    mask[c] = False
 
         for robot, view in fleet.robots.items():
             trail = view.trail
@@ -675,22 +696,19 @@ class MapPainter:
             if seen is None or new > len(trail) or new < 0:
                 if seen is not None:
                     for c in seen[1]:
-                        if c is not None:
-                            counts[c] -= 1
+                        drop(c)
                 mine: collections.deque[tuple[int, int] | None] = collections.deque()
                 points = list(trail)
             else:
                 mine = seen[1]
-                points = list(itertools.islice(trail, len(trail) - new, None)) if new else []
+                n = len(trail)  # the new points at the deque's right end: indexed from there, O(1) each
+                points = [trail[k] for k in range(n - new, n)]
             for p in points:
                 c = pixel(p)
                 mine.append(c)
-                if c is not None:
-                    counts[c] += 1
+                add(c)
             while len(mine) > len(trail):
-                c = mine.popleft()
-                if c is not None:
-                    counts[c] -= 1
+                drop(mine.popleft())
             self._trail_of[robot] = (view.trail_added, mine)
 
     def _alarm_styles(self, fleet: FleetModel) -> dict[str, Style]:
@@ -707,7 +725,7 @@ class MapPainter:
 
     def trail_points(self) -> int:
         """Trail points inside the view (tests compare with the robots' trails)."""
-        return int(self._trail_counts.sum())
+        return sum(self._trail_counts.values())
 
     @staticmethod
     def _draw_round(fleet: FleetModel, g: MapGeometry, robot: str | None, put: Callable[..., None]) -> None:
