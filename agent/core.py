@@ -797,7 +797,16 @@ class AgentCore:
             if isinstance(step, GoTo):
                 st = step.stop
                 r = self.pilot.order(
-                    now, it.order_id, it.update_id, st.x, st.y, st.theta, it.sender, admitted=True, max_v=st.max_v
+                    now,
+                    it.order_id,
+                    it.update_id,
+                    st.x,
+                    st.y,
+                    st.theta,
+                    it.sender,
+                    admitted=True,
+                    max_v=st.max_v,
+                    deviation=st.deviation,
                 )
                 if not r.accepted:
                     it.interrupted(now, r.reason[:64] or "refused")
@@ -1342,6 +1351,7 @@ def _stops(msg: Order) -> list[Stop]:
                 StopAction(a.actionId, a.actionType.value, {kv.key: kv.value for kv in a.actionParameters})
                 for a in n.actions
             ),
+            n.allowedDeviationXY,
         )
         for i, n in enumerate(nodes)
     ]

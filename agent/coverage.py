@@ -141,6 +141,11 @@ class CoverageConfig:
     (0.40 m ahead), so a dwell point there is never reached. Where no point that far from walls is
     near (a corridor too narrow), points along the corridor with this much stand floor ahead and
     behind are candidates too: the robot comes to them along the corridor."""
+    pass_deviation_m: float = 0.15
+    """A node the robot drives through (no dwell: a sweep's lane end, a point on the way) may be
+    reached this near (the order node's allowedDeviationXY): planned on the map of the moment
+    the plan was made, it can lie a few centimetres inside a wall's margin on the robot's map by the
+    time it gets there. Dwell points are reached exactly (the dose is planned from there)."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -816,12 +821,16 @@ class CoveragePlan:
         )
 
 
-def plan_order(plan: CoveragePlan, order_id: str, *, max_speed_mps: float | None = None) -> dict[str, Any]:
+def plan_order(
+    plan: CoveragePlan, order_id: str, *, max_speed_mps: float | None = None, pass_deviation_m: float = 0.0
+) -> dict[str, Any]:
     """The plan as an order's fields (``Order(**fields)``, VDA 5050 nodes and edges): every node
     with its actions in order, the lamp switched on before a lit dwell or a lit edge and off once
     nothing lit follows, ``dwell`` for each dwell time, the lamp off at the last node; each edge
-    capped at ``max_speed_mps`` (a sweep's lanes, a lamp pass at constant speed). ValueError if the
-    plan has more nodes than one order carries (``MAX_ORDER_NODES``): split the area."""
+    capped at ``max_speed_mps`` (a sweep's lanes, a lamp pass at constant speed); each node without
+    a dwell reached within ``pass_deviation_m`` when it cannot be exactly (allowedDeviationXY,
+    ``CoverageConfig.pass_deviation_m``). ValueError if the plan has more nodes than one order
+    carries (``MAX_ORDER_NODES``): split the area."""
     if len(plan.nodes) > MAX_ORDER_NODES:
         raise ValueError(
             f"the route has {len(plan.nodes)} nodes, one order carries {MAX_ORDER_NODES}: choose a smaller area"
@@ -861,6 +870,7 @@ def plan_order(plan: CoveragePlan, order_id: str, *, max_speed_mps: float | None
                 y=n.y,
                 theta=None,
                 actions=tuple(actions),
+                allowedDeviationXY=0.0 if n.dwell_s > 0 else pass_deviation_m,
             )
         )
     edges = tuple(
@@ -1872,7 +1882,9 @@ def _runs(row: BoolGrid) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(starts, ends, strict=True)]
 
 
-def _decompose(stand: BoolGrid, res: float, ox: float, oy: float, width: float) -> list[_Strip]:
+def _decompose(
+    stand: BoolGrid, res: float, ox: float, oy: float, width: float, spread: float | None = None
+) -> list[_Strip]:
     """Boustrophedon decomposition of ``stand`` (rows along y, lanes along x): lanes one tool width
     apart (evenly over the stand rows' extent), each split into intervals of stand cells; intervals
     on consecutive lanes that overlap one-to-one continue the same cell, anything else (a split
@@ -1911,7 +1923,62 @@ def _decompose(stand: BoolGrid, res: float, ox: float, oy: float, width: float) 
             strips[s].lanes.append((y, ox + (a + 0.5) * res, ox + (b + 0.5) * res))
             nxt[i] = s
         open_, prev = nxt, ivs
+    for strip in strips:
+        _edge_lanes(strip, stand, res, ox, oy, width, width if spread is None else spread)
     return strips
+
+
+def _edge_lanes(strip: _Strip, stand: BoolGrid, res: float, ox: float, oy: float, width: float, spread: float) -> None:
+    """Spread ``strip``'s lanes over its own floor where that goes on past its end lanes (the lanes are
+    spaced over the whole area, so a part of it, such as the floor beside a table, ends between two
+    of them): to the last row of stand cells at each end that still continues the end lane's
+    interval alone (one run, not merged with a neighbour's). Up to ``spread`` apart the same lanes
+    spread; beyond, a lane more when the floor past them is two plan cells or more. Swept in the
+    strip's turn, that floor costs a lane and a step at most, where a lane of its own added later
+    costs the way there and back (``_fill_gaps``)."""
+    h = stand.shape[0]
+    ext: list[int] = []  # rows past each end lane, bottom then top
+    for top in (False, True):
+        y, x0, x1 = strip.lanes[-1] if top else strip.lanes[0]
+        r = math.floor((y - oy) / res)
+        a, b = round((x0 - ox) / res - 0.5), round((x1 - ox) / res - 0.5)
+        step = 1 if top else -1
+        got = 0
+        for k in range(1, max(1, math.ceil(width / res))):
+            rr = r + step * k
+            if not 0 <= rr < h:
+                break
+            over = [(c0, c1) for c0, c1 in _runs(stand[rr]) if c0 <= b and a <= c1]
+            if len(over) != 1 or (over[0][1] - over[0][0]) - (b - a) > width / res:  # none, split, merged
+                break
+            got = k
+        ext.append(got)
+    if not any(ext):
+        return
+    lanes = strip.lanes
+    y_lo, y_hi = lanes[0][0], lanes[-1][0]
+    span = y_hi - y_lo
+    lo, hi = ext[0] * res, ext[1] * res
+    n = len(lanes)
+    room = (n - 1) * max(spread, width) - span  # how far the same lanes can spread
+    if lo + hi - max(room, 0.0) >= 2 * res - 1e-9:  # worth a lane: 0.2 m or more of floor beside it
+        n += 1
+    elif lo + hi > room:
+        if room <= 1e-9:
+            return
+        lo, hi = lo * room / (lo + hi), hi * room / (lo + hi)
+    ys = np.linspace(y_lo - lo, y_hi + hi, n) if n > 1 else np.array([y_lo - lo])
+    out: list[tuple[float, float, float]] = []
+    for y in ys:
+        r = min(max(math.floor((y - oy) / res), 0), h - 1)
+        near = min(lanes, key=lambda lane: abs(lane[0] - y))
+        a, b = round((near[1] - ox) / res - 0.5), round((near[2] - ox) / res - 0.5)
+        over = [(c0, c1) for c0, c1 in _runs(stand[r]) if c0 <= b and a <= c1]
+        if not over:
+            return  # cannot happen: every row between the end rows continues the lanes
+        c0, c1 = max(over, key=lambda run: min(run[1], b) - max(run[0], a))
+        out.append((float(y), ox + (c0 + 0.5) * res, ox + (c1 + 0.5) * res))
+    strip.lanes = out
 
 
 def _swept(fm: FloorMap, way: Sequence[Point], radius: float) -> BoolGrid:
@@ -2160,41 +2227,27 @@ def _near_centres(fm: FloorMap, cells: BoolGrid, radius: float) -> BoolGrid:
 
 
 def _sweep_route(fm: FloorMap, reach: BoolGrid, s_cell: Cell, width: float, axis: int) -> list[tuple[Point, str]]:
-    """Waypoints (and the kind of the edge that leads to each) of the boustrophedon over ``reach``."""
+    """Waypoints (and the kind of the edge that leads to each) of the boustrophedon over ``reach``,
+    lanes ``width`` apart; a strip's lanes may spread to half way between that and the tool's own
+    width (``_edge_lanes``: the overlap kept for the robot's centimetres off its lane halves)."""
     res = fm.plan_resolution
     ox, oy = fm.origin
+    spread = width + max(0.0, fm.config.tool_width_m - width) / 2.0
     if axis == 0:
-        strips = _decompose(reach, res, ox, oy, width)
+        strips = _decompose(reach, res, ox, oy, width, spread)
 
         def xy(u: float, v: float) -> Point:
             return (u, v)
     else:
-        strips = _decompose(reach.T, res, oy, ox, width)
+        strips = _decompose(reach.T, res, oy, ox, width, spread)
 
         def xy(u: float, v: float) -> Point:
             return (v, u)
 
     # Within a strip, lane (y, x0, x1) runs from x0 to x1 or back.
     way: list[tuple[Point, str]] = []
-    cur = s_cell
     cur_pt = fm.plan_centre(s_cell)
-    left = list(range(len(strips)))
-    while left:
-        fld = fm.geodesic(cur)
-        best: tuple[tuple[float, int, int], bool, bool] | None = None  # (distance, strip, corner), top, right
-        for k in left:
-            lanes = strips[k].lanes
-            for top in (False, True):
-                y, x0, x1 = lanes[-1] if top else lanes[0]
-                for right in (False, True):
-                    d = float(fld[fm.plan_cell(xy(x1 if right else x0, y))])
-                    key = (d, k, 2 * int(top) + int(right))
-                    if math.isfinite(d) and (best is None or key < best[0]):
-                        best = (key, top, right)
-        if best is None:
-            break  # the rest is out of reach (cannot happen: the strips are cut from reachable cells)
-        (_, k, _), top, right = best
-        left.remove(k)
+    for k, top, right in _strip_order(fm, strips, s_cell, xy):
         lanes = strips[k].lanes[::-1] if top else strips[k].lanes
         for i, (y, x0, x1) in enumerate(lanes):
             a, b = (x1, x0) if right else (x0, x1)
@@ -2206,5 +2259,109 @@ def _sweep_route(fm: FloorMap, reach: BoolGrid, s_cell: Cell, width: float, axis
             way.append((pb, "lane"))
             cur_pt = pb
             right = not right
-        cur = fm.plan_cell(cur_pt)
     return way
+
+
+STRIP_ORDER_EXACT = 12
+"""Up to this many strips, the order that sweeps them is the shortest (by the stand paths between
+them) of all; beyond, it is built nearest first and then improved by moving strips (or-opt)."""
+
+
+def _strip_order(
+    fm: FloorMap, strips: list[_Strip], s_cell: Cell, xy: Callable[[float, float], Point]
+) -> list[tuple[int, bool, bool]]:
+    """The order to sweep ``strips`` in from ``s_cell``: (strip, from its top lane, from the right end
+    of that lane) each, so that the way between strips (the stand path from where one ends to where
+    the next begins) is short. A strip is entered at one of its four corners and left at the corner
+    its lanes' count gives."""
+    n = len(strips)
+    if n == 0:
+        return []
+
+    def corner(k: int, top: bool, right: bool) -> Cell:
+        y, x0, x1 = strips[k].lanes[-1] if top else strips[k].lanes[0]
+        return fm.plan_cell(xy(x1 if right else x0, y))
+
+    def leaves(k: int, top: bool, right: bool) -> tuple[bool, bool]:
+        """Where a strip entered at (top, right) is left: the far lane, at the end its count gives."""
+        return not top, right if len(strips[k].lanes) % 2 == 0 else not right
+
+    entries = [(k, top, right) for k in range(n) for top in (False, True) for right in (False, True)]
+    # Distance from the start and from each strip's exit corner to each entry corner.
+    sources = {s_cell, *(corner(k, *leaves(k, t, r)) for k, t, r in entries)}
+    fields = {src: fm.geodesic(src) for src in sources}
+
+    def dist(src: Cell, e: tuple[int, bool, bool]) -> float:
+        d = float(fields[src][corner(*e)])
+        return d if math.isfinite(d) else math.inf
+
+    def out_of(e: tuple[int, bool, bool]) -> Cell:
+        return corner(e[0], *leaves(*e))
+
+    def length(order: list[tuple[int, bool, bool]]) -> float:
+        total, at = 0.0, s_cell
+        for e in order:
+            total += dist(at, e)
+            at = out_of(e)
+        return total
+
+    if n <= STRIP_ORDER_EXACT:
+        # Held-Karp over (strips swept, the last one and how it was entered), a mask at a time:
+        # cost[mask, e] is the shortest way that sweeps the strips in mask and ends with entry e.
+        m = len(entries)
+        step = np.array([[dist(out_of(e), f) for f in entries] for e in entries])
+        first = np.array([dist(s_cell, e) for e in entries])
+        strip_of = np.array([e[0] for e in entries])
+        cost = np.full((1 << n, m), np.inf)
+        back = np.full((1 << n, m), -1, dtype=np.intp)
+        for q in range(m):
+            cost[1 << int(strip_of[q]), q] = first[q]
+        for mask in range(1, 1 << n):
+            row = cost[mask]
+            if not np.isfinite(row).any():
+                continue
+            via = row[:, None] + step  # (last entry, next entry)
+            arg = np.argmin(via, axis=0)
+            got = via[arg, np.arange(m)]
+            for q in np.flatnonzero(np.isfinite(got) & ((mask >> strip_of) & 1 == 0)).tolist():
+                nm = mask | 1 << int(strip_of[q])
+                if got[q] < cost[nm, q] - 1e-12:
+                    cost[nm, q] = got[q]
+                    back[nm, q] = arg[q]
+        full = (1 << n) - 1
+        if np.isfinite(cost[full]).any():
+            q = int(np.argmin(cost[full]))
+            mask = full
+            order: list[tuple[int, bool, bool]] = []
+            while q >= 0:
+                order.append(entries[q])
+                prev = int(back[mask, q])
+                mask &= ~(1 << entries[q][0])
+                q = prev
+            return order[::-1]
+    # Nearest first, then or-opt: move a strip (entered either way) to where it lengthens least.
+    order = []
+    left = set(range(n))
+    at = s_cell
+    while left:
+        cands = [(dist(at, e), e) for e in entries if e[0] in left]
+        d, e = min(cands)
+        if not math.isfinite(d):
+            break  # the rest is out of reach (cannot happen: the strips are cut from reachable cells)
+        order.append(e)
+        left.discard(e[0])
+        at = out_of(e)
+    improved = True
+    while improved:
+        improved = False
+        now = length(order)
+        for i in range(len(order)):
+            rest = order[:i] + order[i + 1 :]
+            k = order[i][0]
+            for j in range(len(rest) + 1):
+                for t in (False, True):
+                    for r in (False, True):
+                        trial = [*rest[:j], (k, t, r), *rest[j:]]
+                        if length(trial) < now - 1e-9:
+                            order, now, improved = trial, length(trial), True
+    return order

@@ -79,6 +79,8 @@ class Stop:
     released: bool = True
     max_v: float | None = None
     actions: tuple[StopAction, ...] = ()
+    deviation: float = 0.0
+    """m: reached within this of (x, y) when (x, y) itself cannot be (``OrderNode.allowedDeviationXY``)."""
 
 
 @dataclass(frozen=True, slots=True)

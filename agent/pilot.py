@@ -46,6 +46,7 @@ from fleetlink.agent.pilot_machine import (
     next_state,
 )
 from fleetlink.agent.route import (
+    MAX_DEVIATION_M,
     Destination,
     Drive,
     PathProvider,
@@ -349,10 +350,12 @@ class Pilot:
         *,
         admitted: bool = False,
         max_v: float | None = None,
+        deviation: float = 0.0,
     ) -> CommandResult:
         """Go to (x, y[, theta]). ``admitted``: a node of an order ``admit`` has let in already (the
         agent's itinerary drives an order's nodes one by one under its id). ``max_v``: a speed cap
-        for this go-to (m/s; an order edge's maxSpeed)."""
+        for this go-to (m/s; an order edge's maxSpeed). ``deviation``: the nearest place within this
+        (m) will do when (x, y) cannot be reached (a node's allowedDeviationXY)."""
         if not admitted:
             refused = self.admit(order_id, order_update_id)
             if refused is not None:
@@ -361,12 +364,14 @@ class Pilot:
             return _rejected(f"goal must be finite, got x={x} y={y} theta={theta}")
         if max_v is not None and not (_finite(max_v) and max_v > 0.0):
             return _rejected(f"speed cap must be a positive number, got {max_v!r}")
+        if not (_finite(deviation) and 0.0 <= deviation <= MAX_DEVIATION_M):
+            return _rejected(f"allowed deviation must be 0-{MAX_DEVIATION_M:g} m, got {deviation!r}")
         extent = self.config.extent_m
         if abs(x) > extent or abs(y) > extent:
             return _rejected(f"goal ({x:.4g}, {y:.4g}) is outside the site's extent (|x|, |y| <= {extent:g} m)")
         held = self._route is not None and self._route.dest.order_id == order_id
         trigger = Trigger.ORDER_UPDATE if held else Trigger.ORDER_NEW
-        dest = Destination(order_id, order_update_id, x, y, theta, sender, max_v=max_v)
+        dest = Destination(order_id, order_update_id, x, y, theta, sender, max_v=max_v, deviation=deviation)
         result = self._fire(now, trigger, _Command(sender, dest=dest))
         if result.accepted:
             self.remember(order_id, order_update_id)

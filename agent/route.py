@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Protocol
 
@@ -74,6 +74,12 @@ class RouteConfig:
     stop_distance_m: float = 0.4  # the guard's
 
 
+MAX_DEVIATION_M = 1.0
+"""The largest allowed deviation a go-to takes (``OrderNode.allowedDeviationXY``'s bound)."""
+DEVIATION_STEP_M = 0.05
+"""Places within a destination's allowed deviation are tried this far apart, nearest first."""
+
+
 @dataclass(frozen=True, slots=True)
 class Destination:
     order_id: str | None  # None: return home, or a retrace (``via`` given)
@@ -87,6 +93,9 @@ class Destination:
     just drove it): followed instead of planning one; the planner is asked only if it is barred."""
     max_v: float | None = None
     """A speed cap for this go-to (m/s): an order edge's maxSpeed."""
+    deviation: float = 0.0
+    """m: when (x, y) cannot be reached, the nearest place within this that can will do (an order
+    node's allowedDeviationXY)."""
 
     @property
     def label(self) -> str:
@@ -307,7 +316,41 @@ class Route:
         if isinstance(planned, str):
             self._finish(False, "planner_failed", f"the planner failed ({planned})")
             return False
+        if planned is not None and len(planned) == 0 and d.deviation > 0.0:
+            planned = self._nearby(provider, pose)
         return self._follow(now, pose, planned, None)
+
+    def _nearby(self, provider: PathProvider, pose: Pose) -> Sequence[Point]:
+        """A path to the nearest place within the destination's allowed deviation that has one
+        (rings ``DEVIATION_STEP_M`` apart, 8 places on the first and more on each further out),
+        which then becomes the destination; [] when none has. A sweep's lane end planned on the map
+        of an hour ago may lie in a wall's margin on the map of now: a few centimetres short of it
+        is where the lane ends, not a node skipped and its lane lost."""
+        d = self.dest
+        rings = max(1, math.ceil(min(d.deviation, MAX_DEVIATION_M) / DEVIATION_STEP_M - 1e-9))
+        for k in range(1, rings + 1):
+            r = min(k * DEVIATION_STEP_M, d.deviation)
+            n = 8 * k
+            for j in range(n):
+                a = 2.0 * math.pi * j / n
+                q = (d.x + r * math.cos(a), d.y + r * math.sin(a))
+                try:
+                    path = provider((pose[0], pose[1]), q)
+                except Exception:
+                    continue
+                if path:
+                    self.dest = replace(d, x=q[0], y=q[1])
+                    self.notes.append(
+                        RouteNote(
+                            False,
+                            f"{d.label}: ({d.x:.2f}, {d.y:.2f}) cannot be reached: "
+                            f"going to ({q[0]:.2f}, {q[1]:.2f}), {r:.2f} m from it",
+                            "deviated",
+                            len(path),
+                        )
+                    )
+                    return path
+        return []
 
     def _ask(self, provider: PathProvider, pose: Pose, blocked: tuple[Point, ...] = ()) -> Sequence[Point] | str | None:
         """The provider's path, or why it raised: a planner that fails on some input ends the

@@ -483,6 +483,10 @@ class OrderNode:
     theta: Annotated[float, bounded(-3.2, 3.2)] | None
     """Heading to arrive with, radians; nil: any."""
     actions: Annotated[tuple[Action, ...], sized(MAX_ACTIONS)] = ()
+    allowedDeviationXY: Annotated[float, bounded(0.0, 1.0)] = 0.0
+    """m (VDA 5050 ``nodePosition.allowedDeviationXY``): when (x, y) itself cannot be reached (the
+    robot's map of the moment puts it inside a wall's margin), the nearest place within this that
+    can is; 0: (x, y) or nothing."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

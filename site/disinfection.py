@@ -444,7 +444,11 @@ class RoundRun:
         path = sweep.predicted.path_m + sum(e.length_m for e in sweep.edges[:1])
         self.predicted_s = path / speed
         self.notes.append(f"lawnmower: lanes {LAWNMOWER_LANE_M} m apart at {speed:.3f} m/s")
-        return {name: cv.plan_order(lit, f"lawnmower-{name}-1", max_speed_mps=speed)}, False
+        return {
+            name: cv.plan_order(
+                lit, f"lawnmower-{name}-1", max_speed_mps=speed, pass_deviation_m=fm.config.pass_deviation_m
+            )
+        }, False
 
     def _read(self, t: float) -> None:
         acks = self.op.acks

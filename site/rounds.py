@@ -127,7 +127,11 @@ def plan_round(
         survey = _survey(fm, cells, area, robots, points, request.looked_from)
         if survey is not None:
             plans_, area_m2, seen = survey
-            looks = tuple(_robot_round(p, f"{ids[p.robot][:56]}-survey") for p in plans_ if len(p.nodes) > 1)
+            looks = tuple(
+                _robot_round(p, f"{ids[p.robot][:56]}-survey", fm.config.pass_deviation_m)
+                for p in plans_
+                if len(p.nodes) > 1
+            )
             return RoundPlan(request, area_m2, seen, 0.0, looks, survey=True, left_out=tuple(left_out))
     try:
         if request.kind == "sweep":
@@ -164,7 +168,7 @@ def plan_round(
         if prior is not None and request.kind == "uv" and coverage > 0:
             raise RoundError(f"{where}: {100 * coverage:.1f} % of it has the dose already: nothing to top up")
         raise RoundError(f"{where}: nothing to do there (no floor the lamp or the tool reaches)")
-    rounds = tuple(_robot_round(share, ids[share.robot or robots[0]]) for share in plans)
+    rounds = tuple(_robot_round(share, ids[share.robot or robots[0]], fm.config.pass_deviation_m) for share in plans)
     return RoundPlan(request, area.area_m2, coverage, area_unlit(plans), rounds, left_out=tuple(left_out))
 
 
@@ -192,9 +196,9 @@ def _survey(
     return fleet.plans, look.predicted.area_m2, look.predicted.coverage
 
 
-def _robot_round(share: cv.CoveragePlan, order_id: str) -> RobotRound:
+def _robot_round(share: cv.CoveragePlan, order_id: str, deviation_m: float) -> RobotRound:
     try:
-        fields = cv.plan_order(share, order_id)
+        fields = cv.plan_order(share, order_id, pass_deviation_m=deviation_m)
     except ValueError as exc:  # more nodes than one order carries
         raise RoundError(f"{share.robot}: {exc}") from None
     route = tuple(RouteNode(n.node_id, n.x, n.y, n.dwell_s) for n in share.nodes)

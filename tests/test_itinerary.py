@@ -8,6 +8,7 @@ import dataclasses
 import math
 from typing import Any
 
+import msgpack
 import pytest
 
 from fleetlink.agent.core import AgentCore, BoardView, Output
@@ -355,6 +356,43 @@ def test_an_edge_speed_cap_holds_the_robot_below_it() -> None:
     r.send(Order, **order((node(0, 0.0, 0.0), node(1, 3.0, 0.0)), (edge(0, max_speed=0.1),)))
     r.run(10.0)
     assert 0.05 < r.top_speed <= 0.1 + 1e-9
+
+
+def test_a_nodes_allowed_deviation_reaches_the_go_to_and_one_out_of_bounds_is_refused() -> None:
+    r = Robot()
+    near = dataclasses.replace(node(1, 3.0, 0.0), allowedDeviationXY=0.15)
+    assert r.send(Order, **order((node(0, 0.0, 0.0), near), (edge(0),))).result is AckResult.ACCEPTED
+    r.run(1.0)
+    route = r.core.pilot._route
+    assert route is not None and (route.dest.x, route.dest.deviation) == (3.0, 0.15)
+    for bad in (1.5, -0.1, math.nan):
+        msg = r.counter.make(Order, **order((node(0, 0.0, 0.0), node(1, 3.0, 0.0)), (edge(0),), oid="o-bad"))
+        obj = msgpack.unpackb(wire.encode(msg))
+        obj["nodes"][1]["allowedDeviationXY"] = bad
+        with pytest.raises(wire.WireError, match=r"nodes\[1\]\.allowedDeviationXY"):
+            wire.decode(Order, msgpack.packb(obj))
+
+
+def test_the_plans_drive_through_nodes_may_deviate_its_dwell_points_may_not() -> None:
+    from fleetlink.agent.coverage import CoveragePlan, PlanEdge, PlanNode, Prediction, plan_order
+
+    pred = Prediction(coverage=1.0, dwell_s=10.0, travel_s=0.0, total_s=10.0, path_m=2.0, area_m2=1.0)
+    plan = CoveragePlan(
+        "uv",
+        (
+            PlanNode("n0", 0, 0.0, 0.0, 0.0, False),
+            PlanNode("n1", 2, 1.0, 0.0, 0.0, True),
+            PlanNode("n2", 4, 2.0, 0.0, 10.0, True),
+        ),
+        (
+            PlanEdge("e1", 1, "n0", "n1", ((0.0, 0.0), (1.0, 0.0)), 1.0, True),
+            PlanEdge("e2", 3, "n1", "n2", ((1.0, 0.0), (2.0, 0.0)), 1.0, True),
+        ),
+        100.0,
+        pred,
+    )
+    assert [n.allowedDeviationXY for n in plan_order(plan, "o")["nodes"]] == [0.0, 0.0, 0.0]
+    assert [n.allowedDeviationXY for n in plan_order(plan, "o", pass_deviation_m=0.15)["nodes"]] == [0.15, 0.15, 0.0]
 
 
 def test_the_same_order_again_is_a_duplicate_and_an_older_update_is_refused() -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 
 import pytest
 
@@ -59,6 +60,47 @@ def test_a_provider_without_a_map_means_straight_and_an_empty_path_fails() -> No
     d = r.step(0.0, (0.0, 0.0, 0.0), Provider([]))
     assert (d.v, d.omega) == (0.0, 0.0)
     assert r.end is not None and not r.end.reached and r.end.reason == "no_path" and "(4.00, 0.00)" in r.end.text
+
+
+class WallAt:
+    """A provider with a wall's margin where x > 3.9: goals there have no path, others a straight one."""
+
+    def __init__(self) -> None:
+        self.calls: list[Point] = []
+
+    def __call__(self, start: Point, goal: Point, /, blocked: Sequence[Point] = ()) -> Sequence[Point] | None:
+        self.calls.append(goal)
+        return [] if goal[0] > 3.9 else [start, goal]
+
+
+def test_a_goal_that_cannot_be_reached_is_taken_at_the_nearest_place_within_its_allowed_deviation() -> None:
+    r = Route(replace(DEST, deviation=0.15), GoToController(), RouteConfig())
+    walls = WallAt()
+    body, t = Unicycle(), 0.0
+    r.step(t, body.pose, walls)
+    assert r.phase is RoutePhase.FOLLOWING
+    assert r.dest.x == pytest.approx(3.9, abs=1e-9) and r.dest.y == pytest.approx(0.0, abs=1e-9)  # 0.10 m short
+    assert (r.dest.order_id, r.dest.deviation) == ("o1", 0.15)
+    assert walls.calls[0] == (4.0, 0.0) and len(walls.calls) <= 1 + 8 + 16  # two rings at most
+    deviated, planned = r.notes
+    assert deviated.reason == "deviated" and "(4.00, 0.00) cannot be reached: going to (3.90, 0.00)" in deviated.text
+    assert planned.reason == "planned"
+    while r.end is None and t < 30.0:
+        d = r.step(t, body.pose, walls)
+        body.step(d.v, d.omega, 0.02)
+        t += 0.02
+    assert r.end is not None and r.end.reached
+    assert math.hypot(body.x - 3.9, body.y) < 0.01
+
+
+def test_no_place_within_the_allowed_deviation_means_no_path_and_none_means_only_the_goal() -> None:
+    r = Route(replace(DEST, deviation=0.05), GoToController(), RouteConfig())
+    r.step(0.0, (0.0, 0.0, 0.0), WallAt())  # 3.95 is in the margin too
+    assert r.end is not None and r.end.reason == "no_path" and "(4.00, 0.00)" in r.end.text
+    walls = WallAt()
+    r = route()
+    r.step(0.0, (0.0, 0.0, 0.0), walls)
+    assert r.end is not None and r.end.reason == "no_path" and walls.calls == [(4.0, 0.0)]
 
 
 def test_a_planned_path_drops_the_start_and_ends_at_the_goal() -> None:

@@ -213,6 +213,17 @@ def test_an_order_goes_to_the_robot_with_its_horizon_unreleased_and_the_lease_fi
     assert [e["edgeId"] for e in s["edgeStates"]] == ["n1-n2"]
 
 
+def test_a_nodes_allowed_deviation_goes_to_the_robot_up_to_a_metre() -> None:
+    rig = Rig()
+    rig.state()
+    nodes = [node("n0", 0, 0.0), node("n1", 2, 1.0), node("n2", 4, 2.0)]
+    nodes[1]["nodePosition"]["allowedDeviationXY"] = 0.15
+    nodes[2]["nodePosition"]["allowedDeviationXY"] = 3.0
+    outs = rig.send("order", order("o1", 0, nodes, [edge("n0", "n1", 1), edge("n1", "n2", 3)]))
+    sent = next(o for o in outs if isinstance(o, SendOrder)).fields
+    assert [n.allowedDeviationXY for n in sent["nodes"]] == [0.0, 0.15, 1.0]
+
+
 def test_an_update_is_stitched_at_the_decision_point_and_older_updates_are_refused() -> None:
     rig = Rig()
     rig.state()

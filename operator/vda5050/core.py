@@ -425,6 +425,9 @@ class VehicleCore:
                     y=float(pos["y"]),
                     theta=None if theta is None else _wrap(float(theta)),
                     actions=tuple(_fleet_action(a) for a in acts),
+                    # fleetlink's robots take the nearest place within it only when the node itself
+                    # cannot be reached, and at most a metre of it
+                    allowedDeviationXY=min(max(float(pos.get("allowedDeviationXY", 0.0)), 0.0), 1.0),
                 )
             )
         fleet_edges = [
