@@ -19,6 +19,7 @@ import threading
 
 from fleetlink.agent.board.session import BoardSession
 from fleetlink.devices.controlbus import protocol as p
+from fleetlink.devices.ports import InProcessPort
 from fleetlink.field.board import SimulatedBoard
 from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.shared import keys
@@ -46,7 +47,13 @@ class Served:
             return serve(req)
 
         self.board._serve = spy  # type: ignore[method-assign]
-        self.session = BoardSession(lambda: self.board.in_process_port(self.clock), self.clock, seed=3, direct=direct)
+        self.ports: list[InProcessPort] = []
+        self.session = BoardSession(self._open, self.clock, seed=3, direct=direct)
+
+    def _open(self) -> InProcessPort:
+        port = self.board.in_process_port(self.clock)
+        self.ports.append(port)
+        return port
 
     def run(self, duration: float) -> None:
         end = self.clock.now() + duration
@@ -88,6 +95,22 @@ def test_with_an_exchange_in_flight_the_velocity_waits_for_the_session() -> None
     assert s.session.urgent and s.session.direct_sends == 0
     s.session.tick()  # the velocity first, before anything else due
     assert s.requests[0] is p.SetVelocity and s.board.state.set_left > 0.0
+    s.session.stop()
+
+
+def test_a_direct_velocity_lost_on_a_cut_line_goes_again_once_the_board_is_back() -> None:
+    s = Served(direct=True)
+    s.run(0.2)
+    s.ports[-1].cut = True  # the cable is cut: writes vanish, nothing comes back
+    s.session.set_velocity(0.2, 0.0)
+    assert s.session.direct_sends == 1 and s.board.state.set_left == 0.0
+    # The reply never comes: timeouts, retries, the session gives the link up and opens a new
+    # port (not cut), and the velocity asked for goes out again on it.
+    s.run(3.0)
+    assert s.session.snapshot.connects == 2 and len(s.ports) == 2
+    assert s.session.snapshot.connected
+    assert s.board.state.set_left > 0.0
+    assert s.session.snapshot.command == (0.2, 0.0)
     s.session.stop()
 
 
