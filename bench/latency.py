@@ -54,6 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from fleetlink.agent.config import AgentConfig, Rates, ZenohSettings, mqtt_settings
 from fleetlink.agent.runtime import AgentRuntime
+from fleetlink.cli.agent import AGENT_SWITCH_INTERVAL_S
 from fleetlink.field.board import SimulatedBoard
 from fleetlink.field.device_server import DeviceServer
 from fleetlink.links.zenoh import peer_config
@@ -538,6 +539,8 @@ def main() -> int:
     )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    # The agent's process hands the GIL over every 1 ms (cli/agent.py); this one hosts the agent.
+    sys.setswitchinterval(AGENT_SWITCH_INTERVAL_S)
     rng = random.Random(5)
     clock = SystemClock()
     op = wire.HeaderCounter(clock, robot="r1", sender="operator-1")
