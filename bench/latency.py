@@ -537,10 +537,16 @@ def main() -> int:
         help="the agent's path as it was before direct delivery: every sample through the Zenoh delivery "
         "thread, every velocity written by the board session's thread",
     )
+    ap.add_argument(
+        "--switch-interval",
+        type=float,
+        default=AGENT_SWITCH_INTERVAL_S,
+        help="seconds between GIL hand-overs in this process (default: the agent process's, cli/agent.py)",
+    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     # The agent's process hands the GIL over every 1 ms (cli/agent.py); this one hosts the agent.
-    sys.setswitchinterval(AGENT_SWITCH_INTERVAL_S)
+    sys.setswitchinterval(args.switch_interval)
     rng = random.Random(5)
     clock = SystemClock()
     op = wire.HeaderCounter(clock, robot="r1", sender="operator-1")
@@ -628,6 +634,7 @@ def main() -> int:
     figures["board"] = "thread" if args.board_in_process else "process"
     figures["direct"] = not args.no_direct
     figures["lidar"] = args.lidar
+    figures["switch_interval_s"] = args.switch_interval
     if args.lidar:
         figures["lidar_turns"] = scans
     where = "a thread of the bench" if args.board_in_process else "its own process"
