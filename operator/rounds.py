@@ -312,10 +312,14 @@ class RoundIds:
 
 def floor_of(grids: Sequence[Grid]) -> tuple[npt.NDArray[np.int8], float, Point]:
     """The maps ``grids`` (drawable: 0 free, 100 occupied, 255 unknown) as one map of int8 cells
-    (-1 unknown, 0 free, 100 occupied), its resolution and origin. Several maps are merged as the
-    console draws them (occupied wins over free, free over unknown) when they share a resolution
-    and a lattice (the onboard maps do: cells on multiples of the resolution); otherwise the first
-    is used alone. RoundError without any."""
+    (-1 unknown, 0 free, 100 occupied), its resolution and origin. Several maps that share a
+    resolution and a lattice (the onboard maps do: cells on multiples of the resolution) are merged
+    with one in charge: the map that knows most cells as it is, the others' cells only where it
+    knows nothing (the first of them to know a cell; occupied over free among them). Two robots'
+    maps agree on a wall only to within their alignment (a few centimetres), so where both know a
+    cell, "occupied wins" drew every wall and table as thick as both copies: planned on that, room-1's
+    round needed 888 s of dwell for one robot, against 704 s on one robot's own map. Maps on another
+    lattice are left out. RoundError without any."""
     if not grids:
         raise RoundError("no map from the round's robots yet (the console shows each robot's map as it arrives)")
     first = grids[0]
@@ -326,12 +330,19 @@ def floor_of(grids: Sequence[Grid]) -> tuple[npt.NDArray[np.int8], float, Point]
     w = max(round((g[0] - xs0) / res) + g[3] for g in same)
     h = max(round((g[1] - ys0) / res) + g[4] for g in same)
     out = np.full((h, w), -1, dtype=np.int8)
-    for ox, oy, _, gw, gh, data in same:
+
+    def known(g: Grid) -> int:
+        return int(np.count_nonzero(np.frombuffer(g[5], dtype=np.uint8) != 255))
+
+    # The map in charge first (the one that knows most; the first on a tie), then the others, each
+    # filling only what the ones before it left unknown.
+    for ox, oy, _, gw, gh, data in sorted(same, key=lambda g: -known(g)):
         c0, r0 = round((ox - xs0) / res), round((oy - ys0) / res)
         cells = np.frombuffer(data, dtype=np.uint8).reshape(gh, gw)
         window = out[r0 : r0 + gh, c0 : c0 + gw]
-        window[(cells == 0) & (window == -1)] = 0
-        window[cells == 100] = 100
+        unknown = window == -1
+        window[unknown & (cells == 100)] = 100
+        window[unknown & (cells == 0)] = 0
     return out, float(res), (float(xs0), float(ys0))
 
 

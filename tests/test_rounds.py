@@ -206,6 +206,71 @@ def test_maps_are_merged_as_the_console_draws_them() -> None:
         floor_of([])
 
 
+def test_the_map_that_knows_most_is_in_charge_where_maps_disagree() -> None:
+    # Two robots' maps of one wall, a cell apart (their alignment): merged, the wall stays one map's,
+    # not both copies; the other map only fills what the first does not know.
+    a = np.full((4, 5), 0, dtype=np.uint8)
+    a[2, :] = 100  # the wall, as the map that knows most draws it
+    a[0, 0] = 255
+    b = np.full((4, 5), 0, dtype=np.uint8)
+    b[3, :] = 100  # the same wall a cell further up
+    b[0, 0] = 100
+    b[:, 4] = 255
+    for order in ([grid(0.0, 0.0, a), grid(0.0, 0.0, b)], [grid(0.0, 0.0, b), grid(0.0, 0.0, a)]):
+        cells, _, _ = floor_of(order)
+        assert cells[2].tolist() == [100] * 5 and cells[3].tolist() == [0] * 5  # one wall, a's
+        assert cells[0, 0] == 100  # unknown to a: b's
+
+
+ROOM_8_CORNER = (  # office room-8's top-left corner on uvc-2's map (0.05 m cells, top row first), where
+    # uvc-1 stood (row 12, column 14) when the two-robot round was planned: its outline, as uvc-2's
+    # lidar drew it, round it
+    "###########################",
+    "###########################",
+    "###..#.###...........#....#",
+    *["##........................."] * 8,
+    "##..............#..........",
+    "##..............##.........",
+    "##..............##.........",
+    "##........#.....##.........",
+    "##........##...##..........",
+    "##..........#####..........",
+    *["##........................."] * 8,
+)
+
+
+def test_a_robot_seen_as_an_obstacle_on_the_other_robots_map_still_takes_part() -> None:
+    res = 0.05
+    cells = np.zeros((60, 80), dtype=np.int8)  # a 4 x 3 m room
+    cells[0, :] = cells[:, -1] = 100
+    window = np.array([[100 if ch == "#" else 0 for ch in row] for row in ROOM_8_CORNER[::-1]], dtype=np.int8)
+    cells[-window.shape[0] :, : window.shape[1]] = window
+    corner = ((14 + 0.5) * res, (60 - 12 - 0.5) * res)
+    request = RoundRequest("uv", RectArea(0.1, 0.05, 3.95, 2.9), ("r1", "r2"), 100.0)
+    p = plan_round(request, cells, res, (0.0, 0.0), {"r1": corner, "r2": (3.0, 1.0)}, DEFAULT_LAMP)
+    assert p.left_out == () and sorted(r.robot for r in p.rounds) == ["r1", "r2"]
+
+
+def test_a_top_up_is_planned_only_below_the_share_a_round_certifies() -> None:
+    from fleetlink.shared.dose import DoseGrid
+
+    request = RoundRequest("uv", RectArea(0.5, 0.5, 4.5, 3.5), ("r1",), 100.0)
+    dose = np.full((43, 91), 150.0)
+
+    def top_up(hole: tuple[slice, slice]) -> RoundPlan:
+        had = dose.copy()
+        had[hole] = 0.0
+        prior = DoseGrid.from_array(had, RES, (-0.05, -0.05))  # centres on multiples of 0.1 m
+        return plan_round(request, CELLS, RES, (0.0, 0.0), {"r1": A}, DEFAULT_LAMP, prior=prior)
+
+    # 0.06 m² short of the dose (about 0.5 % of the rectangle): the round is done, though the plan
+    # itself aims at 99.5 %.
+    with pytest.raises(RoundError, match=r"has the dose already \(a round certifies 99 %\): nothing to top up"):
+        top_up((slice(15, 17), slice(20, 23)))
+    p = top_up((slice(15, 25), slice(20, 30)))  # a square metre short
+    assert p.rounds and p.rounds[0].dwell_s > 0
+
+
 def test_order_ids_stay_new_and_times_read_as_people_say_them() -> None:
     ids = RoundIds()
     first = ids.next("uv", "r1", 1000.2)
