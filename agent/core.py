@@ -848,7 +848,14 @@ class AgentCore:
                 return
             stop = it.failed(now)
             if stop is not None:
-                self._itinerary_note(it, f"node {stop.node_id} skipped: {ev.text}", out, Severity.WARNING)
+                self._itinerary_note(
+                    it,
+                    f"node {stop.node_id} skipped: {ev.text}",
+                    out,
+                    Severity.WARNING,
+                    skipped=stop.node_id,
+                    sequenceId=str(stop.sequence_id),
+                )
                 # Its payload switches still apply (not its dwell): the route after it expects the
                 # lamp as they leave it, and a skipped "lamp on" would run the rest of a round dark.
                 for a in stop.actions:
@@ -915,9 +922,11 @@ class AgentCore:
         out.messages.append((event, None))
         self._next_state = -math.inf
 
-    def _itinerary_note(self, it: Itinerary, text: str, out: Output, severity: Severity = Severity.INFO) -> None:
+    def _itinerary_note(
+        self, it: Itinerary, text: str, out: Output, severity: Severity = Severity.INFO, **data: str
+    ) -> None:
         out.messages.append(
-            (self._event("order", f"order {it.order_id}: {text}"[:256], severity, order=it.order_id), None)
+            (self._event("order", f"order {it.order_id}: {text}"[:256], severity, order=it.order_id, **data), None)
         )
         self._next_state = -math.inf
 

@@ -32,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--robot", action="append", default=[], help="serve only these robots (repeat; default all)")
     parser.add_argument("--sender", default="vda5050", help="the bridge's fleetlink login (sender id)")
     parser.add_argument("--state-period", type=float, default=5.0, help="seconds between unchanged states")
+    parser.add_argument(
+        "--max-vehicles", type=int, default=512, help="robots served at most (more are counted and logged once)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -50,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
         map_id=args.map_id,
         robots=args.robot,
         state_period_s=args.state_period,
+        max_vehicles=args.max_vehicles,
     )
     with bridge:
         log.info("VDA 5050 bridge up: %s/v2/%s/<robot>/...", args.interface, args.manufacturer)

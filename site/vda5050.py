@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from fleetlink.operator.links import mqtt_settings_for
-from fleetlink.operator.vda5050.bridge import Vda5050Bridge
+from fleetlink.operator.vda5050.bridge import MAX_VEHICLES, Vda5050Bridge
 from fleetlink.shared.clock import Clock
 from fleetlink.site.operator import open_operator_link
 
@@ -30,6 +30,7 @@ def open_bridge(
     robots: Sequence[str] = (),
     state_period_s: float = 5.0,
     visualization_period_s: float = 1.0,
+    max_vehicles: int = MAX_VEHICLES,
 ) -> Vda5050Bridge:
     """A bridge (not started). ``mqtt_url``: the fleet's broker (the operator link's fallback) and,
     unless ``vda_mqtt_url`` names another, the broker the master control speaks VDA 5050 on."""
@@ -51,4 +52,5 @@ def open_bridge(
         robots=robots,
         state_period_s=state_period_s,
         visualization_period_s=visualization_period_s,
+        max_vehicles=max_vehicles,
     )

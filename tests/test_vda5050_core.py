@@ -6,6 +6,7 @@ Every message the core emits is checked against the official 2.1.0 schemas in th
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,7 @@ from fleetlink.shared.messages import (
     EStop,
     Event,
     KeyValue,
+    Lease,
     LinkName,
     LinkStatus,
     OperatingMode,
@@ -90,13 +92,23 @@ class Rig:
     def fleet(self, msg: wire.Message) -> list[Any]:
         return self._check(self.core.fleet(msg, self.now, self.wall()))
 
-    def state(self, *, order: str = "", done: int = 0, last: str = "", last_seq: int = 0, paused: bool = False) -> None:
+    def state(
+        self,
+        *,
+        order: str = "",
+        done: int = 0,
+        last: str = "",
+        last_seq: int = 0,
+        paused: bool = False,
+        skipped: int = 0,
+        x: float = 0.0,
+    ) -> None:
         progress = None
         if order:
             progress = OrderProgress(
                 nodesTotal=9,
                 nodesDone=done,
-                skipped=0,
+                skipped=skipped,
                 lastNodeId=last,
                 lastNodeSequenceId=last_seq,
                 dwellLeft_s=0.0,
@@ -106,7 +118,7 @@ class Rig:
             self.counter.make(
                 State,
                 agvPosition=AgvPosition(
-                    x=0.0, y=0.0, theta=0.0, mapId="", positionInitialized=True, localizationScore=1.0
+                    x=x, y=0.0, theta=0.0, mapId="", positionInitialized=True, localizationScore=1.0
                 ),
                 velocity=Velocity(vx=0.0, omega=0.0),
                 batteryState=BatteryState(batteryCharge=80.0, charging=False),
@@ -441,3 +453,173 @@ def test_the_duplicate_ack_of_the_other_links_copy_coming_first_does_not_lose_th
     rig.ack("order", AckResult.REJECTED, "lease held by op-1")
     assert errors(rig)[-1]["errorType"] == "orderError"
     assert rig.last_state()["nodeStates"] == []
+
+
+def order_event(rig: Rig, oid: str, **data: str) -> None:
+    kvs = (KeyValue(key="order", value=oid), *(KeyValue(key=k, value=v) for k, v in data.items()))
+    rig.fleet(rig.counter.make(Event, kind="order", text=f"order {oid}", severity=Severity.INFO, data=kvs))
+
+
+def tick(rig: Rig, now: float) -> list[Any]:
+    rig.now = now
+    return rig._check(rig.core.tick(now, rig.wall()))
+
+
+DWELL = {
+    "actionId": "d1",
+    "actionType": "dwell",
+    "blockingType": "HARD",
+    "actionParameters": [{"key": "duration", "value": 2}],
+}
+THREE = order(
+    "o1",
+    0,
+    [node("n0", 0, 0.0), node("n1", 2, 1.0, actions=[DWELL]), node("n2", 4, 2.0)],
+    [edge("n0", "n1", 1), edge("n1", "n2", 3)],
+)
+
+
+def skip_errors(rig: Rig) -> list[dict[str, Any]]:
+    return [e for e in errors(rig) if e["errorType"] == "noRouteError"]
+
+
+def refs(error: dict[str, Any]) -> list[tuple[str, str]]:
+    return [(r["referenceKey"], r["referenceValue"]) for r in error["errorReferences"]]
+
+
+def test_a_skipped_node_leaves_node_states_without_becoming_the_last_node_and_its_actions_fail() -> None:
+    # The robot reports only counts (OrderProgress): n1 done while n0 stays the last node reached.
+    rig = Rig()
+    rig.state()
+    rig.send("order", THREE)
+    rig.ack("order")
+    rig.state(order="o1", done=1, last="n0", last_seq=0)
+    rig.state(order="o1", done=2, skipped=1, last="n0", last_seq=0)
+    s = rig.last_state()
+    assert [n["nodeId"] for n in s["nodeStates"]] == ["n2"]
+    assert [e["edgeId"] for e in s["edgeStates"]] == ["n1-n2"]  # the way on to n2 is still to drive
+    assert (s["lastNodeId"], s["lastNodeSequenceId"]) == ("n0", 0)  # section 6.10.2: traversed nodes only
+    d1 = next(a for a in s["actionStates"] if a["actionId"] == "d1")
+    assert d1["actionStatus"] == "FAILED" and "n1 skipped" in d1["resultDescription"]
+    (e,) = skip_errors(rig)
+    assert e["errorLevel"] == "WARNING"
+    assert {("orderId", "o1"), ("nodeId", "n1"), ("sequenceId", "2"), ("actionId", "d1")} <= set(refs(e))
+    # The robot's event naming the node, coming after, changes nothing; the warning is not doubled.
+    order_event(rig, "o1", skipped="n1", sequenceId="2")
+    assert len(skip_errors(rig)) == 1 and rig.core.skipped_nodes == 1
+    # It reaches n2 and finishes: n2 is the last node; the warning stays until a new order.
+    rig.state(order="o1", done=3, skipped=1, last="n2", last_seq=4)
+    order_event(rig, "o1", outcome="finished")
+    s = rig.last_state()
+    assert s["nodeStates"] == [] and s["lastNodeId"] == "n2" and len(skip_errors(rig)) == 1
+    rig.send("order", order("o2", 0, [node("m0", 0, 0.0)], []))
+    assert skip_errors(rig) == []
+
+
+def test_a_skipped_last_node_named_by_the_robots_event_is_not_reported_as_reached() -> None:
+    # Skipping the last node ends the order at once: no State with that progress comes, only the
+    # robot's events (agent/core.py: the skip names the node, then the order finishes).
+    rig = Rig()
+    rig.state()
+    rig.send("order", order("o1", 0, [node("n0", 0, 0.0), node("n1", 2, 1.0)], [edge("n0", "n1", 1)]))
+    rig.ack("order")
+    rig.state(order="o1", done=1, last="n0", last_seq=0)
+    order_event(rig, "o1", skipped="n1", sequenceId="2")
+    s = rig.last_state()
+    assert s["nodeStates"] == [] and s["edgeStates"] == []
+    order_event(rig, "o1", outcome="finished")
+    s = rig.last_state()
+    assert (s["lastNodeId"], s["lastNodeSequenceId"]) == ("n0", 0)
+    assert ("nodeId", "n1") in refs(skip_errors(rig)[0])
+    # An event for another order, or without a usable sequence id, is not taken for a skip.
+    order_event(rig, "o-other", skipped="n0", sequenceId="0")
+    order_event(rig, "o1", skipped="n0", sequenceId="zero")
+    assert len(skip_errors(rig)) == 1
+
+
+def test_an_update_stitched_at_a_skipped_decision_point_is_accepted_and_does_not_drive_there() -> None:
+    rig = Rig()
+    rig.state()
+    rig.send("order", BASE_WITH_HORIZON)  # n0, n1 base; n2 horizon
+    rig.ack("order")
+    rig.state(order="o1", done=2, skipped=1, last="n0", last_seq=0)  # n1 (the decision point) skipped
+    assert [n["nodeId"] for n in rig.last_state()["nodeStates"]] == ["n2"]
+    outs = rig.send(
+        "order",
+        order(
+            "o1",
+            1,
+            [node("n1", 2, 1.0), node("n2", 4, 2.0), node("n3", 6, 3.0)],
+            [edge("n1", "n2", 3), edge("n2", "n3", 5)],
+        ),
+    )
+    assert not [e for e in errors(rig) if e["errorType"] == "orderUpdateError"]
+    sent = next(o for o in outs if isinstance(o, SendOrder)).fields
+    assert [n.nodeId for n in sent["nodes"]] == ["n2", "n3"]
+    assert [n["nodeId"] for n in rig.last_state()["nodeStates"]] == ["n2", "n3"]
+
+
+def test_node_states_echo_node_positions_unchanged_and_a_first_node_within_its_deviation_counts_where_the_robot_is() -> (
+    None
+):
+    rig = Rig()
+    rig.state(x=0.7)
+    nodes = [node("n0", 0, 0.0), node("n1", 2, 1.5)]
+    nodes[0]["nodePosition"].update(allowedDeviationXY=2.0, theta=-3.0, allowedDeviationTheta=0.1)
+    nodes[1]["nodePosition"].update(allowedDeviationXY=0.15, mapDescription="ground floor")
+    outs = rig.send("order", order("o1", 0, nodes, [edge("n0", "n1", 1)]))
+    s = rig.last_state()
+    assert [n["nodePosition"] for n in s["nodeStates"]] == [n["nodePosition"] for n in nodes]
+    sent = next(o for o in outs if isinstance(o, SendOrder)).fields["nodes"]
+    # n0: the robot stands 0.7 m from it, within its 2 m: reached where it is (section 6.6.3.1)
+    assert (sent[0].x, sent[0].y, sent[1].x, sent[1].y) == (0.7, 0.0, 1.5, 0.0)
+    assert [n.allowedDeviationXY for n in sent] == [1.0, 0.15]
+    # The factsheet says allowedDeviationXY is used, and not allowedDeviationTheta.
+    f = rig._check(rig.core.factsheet(rig.wall()))[0].doc
+    params = {p["parameter"] for p in f["protocolFeatures"]["optionalParameters"]}
+    assert "order.nodes.nodePosition.allowedDeviationXY" in params
+    assert "order.nodes.nodePosition.allowedDeviationTheta" not in params
+
+
+def leases(outs: list[Any]) -> list[bool]:
+    """The lease requests among ``outs``: True for a release."""
+    return [o.release for o in outs if isinstance(o, SendLease)]
+
+
+def test_the_lease_is_renewed_often_enough_for_contact_and_released_once_idle_never_renewed_after() -> None:
+    rig = Rig()
+    rig.state()
+    assert leases(rig.send("order", THREE)) == [False]
+    rig.ack("order")
+    # While the order runs: renewed every LEASE_RENEW_S (the agent's contact timeout is 6 s).
+    renewals = [t for t in (0.1 * i for i in range(1, 101)) if leases(tick(rig, t)) == [False]]
+    assert len(renewals) == 5 and all(b - a < 2.2 for a, b in itertools.pairwise(renewals))
+    # It finishes just before a renewal would be due: idle from then, released after LEASE_IDLE_S,
+    # and the renewal that was due in between is not sent after the release.
+    order_event(rig, "o1", outcome="finished")
+    sent = [(round(t, 1), leases(tick(rig, t))) for t in (10.0 + 0.1 * i for i in range(1, 100))]
+    requests = [(t, r) for t, r in sent if r]
+    assert [r for _, r in requests][-1] == [True]
+    release_t = requests[-1][0]
+    assert not [t for t, r in sent if r and t > release_t]
+    # The robot's word from before the release reached it: not a re-grant.
+    rig.now = release_t + 0.5
+    assert leases(rig.fleet(rig.counter.make(Lease, holder=SENDER, until=rig.wall() + 50))) == []
+    # Later still naming the bridge: a late renewal's copy re-granted it: released again, once.
+    rig.now = release_t + 4.0
+    assert leases(rig.fleet(rig.counter.make(Lease, holder=SENDER, until=rig.wall() + 50))) == [True]
+    rig.now = release_t + 4.5
+    assert leases(rig.fleet(rig.counter.make(Lease, holder=SENDER, until=rig.wall() + 50))) == []
+    assert rig.core.lease_rereleases == 1
+    assert not [r for r in (leases(tick(rig, release_t + 5 + i)) for i in range(10)) if r]
+    # A new order asks again.
+    assert leases(rig.send("order", order("o2", 0, [node("m0", 0, 0.0)], []))) == [False]
+
+
+def test_a_stale_lease_without_the_bridge_does_not_stop_the_renewals() -> None:
+    # The robot's Lease published before it saw the bridge's request names nobody.
+    rig = Rig()
+    rig.state()
+    rig.send("order", THREE)
+    rig.fleet(rig.counter.make(Lease, holder="", until=0.0))
+    assert leases(tick(rig, 2.5)) == [False]

@@ -35,11 +35,15 @@ from fleetlink.shared.messages import InstantActions, LeaseRequest, Order, State
 from fleetlink.shared.mqtt import MqttSettings
 from fleetlink.shared.worker import Worker
 
-__all__ = ["TICK_S", "Vda5050Bridge"]
+__all__ = ["MAX_VEHICLES", "TICK_S", "Vda5050Bridge"]
 
 log = logging.getLogger(__name__)
 
 TICK_S = 0.1
+MAX_VEHICLES = 512
+"""Vehicles one bridge serves at most (each has a core and an MQTT client): a flood of ``State``
+under ever new robot ids must not grow the bridge without bound. More are refused, counted
+(``refused_vehicles``) and logged once."""
 
 
 class _Vehicle:
@@ -64,6 +68,7 @@ class Vda5050Bridge:
         state_period_s: float = 5.0,
         visualization_period_s: float = 1.0,
         validator: SchemaValidator | None = None,
+        max_vehicles: int = MAX_VEHICLES,
     ) -> None:
         self.clock = clock
         self.link = link
@@ -76,6 +81,9 @@ class Vda5050Bridge:
         self.visualization_period_s = visualization_period_s
         self.validator = validator or SchemaValidator(load_schemas())
         self.vehicles: dict[str, _Vehicle] = {}
+        self.max_vehicles = max_vehicles
+        self.refused_vehicles = 0
+        """Robots not made vehicles because ``max_vehicles`` were already served."""
         self._lock = threading.RLock()
         self._closed = False
         self._ticker = Worker("vda5050-tick", clock=clock, target=self._tick_loop)
@@ -112,6 +120,16 @@ class Vda5050Bridge:
             v = self.vehicles.get(robot)
             if v is not None or self._closed or (self.robots and robot not in self.robots):
                 return v
+            if len(self.vehicles) >= self.max_vehicles:
+                self.refused_vehicles += 1
+                if self.refused_vehicles == 1:
+                    log.warning(
+                        "robot %r not served: the bridge already serves %d vehicles (max_vehicles); "
+                        "further robots are counted, not logged",
+                        robot[:64],
+                        self.max_vehicles,
+                    )
+                return None
             config = VehicleConfig(
                 robot=robot,
                 serial=robot,
@@ -220,8 +238,15 @@ class Vda5050Bridge:
     # -- views ----------------------------------------------------------------------------------
 
     def stats(self) -> dict[str, Any]:
+        """Per vehicle: messages refused and invalid ones not sent, skipped nodes, leases released
+        again."""
         with self._lock:
             return {
-                r: {"refused": dict(v.core.refused), "invalid_out": dict(v.core.invalid_out)}
+                r: {
+                    "refused": dict(v.core.refused),
+                    "invalid_out": dict(v.core.invalid_out),
+                    "skipped_nodes": v.core.skipped_nodes,
+                    "lease_rereleases": v.core.lease_rereleases,
+                }
                 for r, v in self.vehicles.items()
             }

@@ -62,7 +62,18 @@ ERROR_HOLD_S = 30.0
 """How long a refused message's error stays in ``state.errors`` (or until the next accepted order)."""
 MAX_BRIDGE_ERRORS = 8
 LEASE_S = 60.0
-LEASE_RENEW_S = 20.0
+LEASE_RENEW_S = 2.0
+"""While the bridge wants a robot's lease it renews it this often, as a console does
+(operator/fleet.py ``CONTACT_RENEW_S``): the agent takes a lease holder that asked for the lease as
+an operator working with it, and three missed renewals as lost contact (agent/contact.py)."""
+LEASE_IDLE_S = 5.0
+"""The lease goes back once the vehicle has been idle this long (a next order soon keeps it)."""
+LEASE_REGRANT_S = 3.0
+"""A ``Lease`` naming the bridge this long after it released the lease (or before it ever asked)
+says a late request re-granted it (a renewal's copy on the other link overtaken by the release):
+the bridge releases it again, or the robot would count the bridge's silence as lost contact."""
+MAX_SKIP_ERRORS = 8
+"""Skipped nodes reported in ``state.errors`` at once (the newest; every one is counted)."""
 MAX_ID = 64
 """fleetlink's ids (orders, nodes, edges, actions) are at most 64 characters (factsheet idLen)."""
 MAX_ACTION_STATES = 256
@@ -175,6 +186,13 @@ class _Order:
     """(nodeId, sequenceId) of the nodes of the last fleetlink order sent, in order."""
     last_node_id: str = ""
     last_node_seq: int = 0
+    base_end: tuple[str, int] = ("", 0)
+    """The last released node (nodeId, sequenceId): the decision point while the base runs."""
+    skipped: set[int] = field(default_factory=set)
+    """sequenceIds of the nodes the robot skipped (could not reach), over every update."""
+    positions: dict[int, dict[str, Any]] = field(default_factory=dict)
+    """The fleetlink position to send per sequenceId where it is not the node's own (a new order's
+    first node the robot already stands within the allowedDeviationXY of: counted where it is)."""
 
 
 class VehicleCore:
@@ -199,7 +217,15 @@ class VehicleCore:
         self.lease_holder = ""
         self.lease_until = 0.0
         self._lease_sent = -math.inf
-        self._holding = False
+        self._want_lease = False
+        """The bridge wants the robot's lease (asked for it for an order or an action, not yet released)."""
+        self._idle_since: float | None = None
+        self._released_at = -math.inf
+        self.lease_rereleases = 0
+        """Releases sent again because a late request had re-granted the lease (``LEASE_REGRANT_S``)."""
+        self._skips: list[dict[str, Any]] = []
+        """noRouteError warnings for the skipped nodes, held until the next new order."""
+        self.skipped_nodes = 0
         self._state_key: tuple[Any, ...] | None = None
         self._next_state = -math.inf
         self._next_vis = -math.inf
@@ -333,6 +359,16 @@ class VehicleCore:
                 return f"edge {e['edgeId']!r}: edge actions are not supported (put them on its start node)"
         return None
 
+    def _within_deviation(self, node: dict[str, Any]) -> tuple[float, float] | None:
+        """Where the robot stands, if that is within the node's own allowedDeviationXY (VDA 5050
+        section 6.6.3.1: such a first node counts as traversed where the vehicle is), else None."""
+        here = self._position()
+        pos = node["nodePosition"]
+        deviation = float(pos.get("allowedDeviationXY", 0.0))
+        if here is None or deviation <= 0 or math.hypot(pos["x"] - here[0], pos["y"] - here[1]) > deviation:
+            return None
+        return here[0], here[1]
+
     def _reachable(self, node: dict[str, Any]) -> bool:
         o = self.order
         if node["nodeId"] == o.last_node_id and node["sequenceId"] == o.last_node_seq and o.last_node_id:
@@ -345,10 +381,13 @@ class VehicleCore:
         return math.hypot(pos["x"] - here[0], pos["y"] - here[1]) <= tolerance
 
     def _decision_point(self) -> tuple[str, int]:
-        base = [n for n in self.order.nodes if n["released"]]
+        o = self.order
+        base = [n for n in o.nodes if n["released"]]
         if base:
             return base[-1]["nodeId"], base[-1]["sequenceId"]
-        return self.order.last_node_id, self.order.last_node_seq
+        if o.nodes and o.base_end[1] in o.skipped:
+            return o.base_end  # the base's last node was skipped; the horizon waits behind it
+        return o.last_node_id, o.last_node_seq
 
     def _order(self, doc: dict[str, Any], now: float, wall: float) -> list[Out]:
         hid = doc["headerId"]
@@ -367,6 +406,10 @@ class VehicleCore:
             self.order = _Order(order_id=oid, update_id=uid, last_node_id=o.last_node_id, last_node_seq=o.last_node_seq)
             self.order.nodes = [_node_state(n) for n in doc["nodes"]]
             self.order.edges = [_edge_state(e) for e in doc["edges"]]
+            here = self._within_deviation(first)
+            if here is not None:
+                self.order.positions[first["sequenceId"]] = {"x": here[0], "y": here[1]}
+            self._skips = []
             self._forget_order_actions()
         else:
             if uid < o.update_id:
@@ -380,18 +423,28 @@ class VehicleCore:
                 return self._refuse("order", "orderUpdateError", text, now, hid, orderId=oid)
             stitch = first["sequenceId"]
             o.update_id = uid
-            o.nodes = [n for n in o.nodes if n["sequenceId"] < stitch] + [_node_state(n) for n in doc["nodes"]]
+            # a decision point the robot skipped stays skipped: it is not driven to again
+            new_nodes = [n for n in doc["nodes"] if n["sequenceId"] not in o.skipped]
+            o.nodes = [n for n in o.nodes if n["sequenceId"] < stitch] + [_node_state(n) for n in new_nodes]
             o.edges = [e for e in o.edges if e["sequenceId"] < stitch] + [_edge_state(e) for e in doc["edges"]]
             self._drop_actions(lambda a: a.node_seq is not None and a.node_seq > stitch and a.status == "WAITING")
+        released = [n for n in doc["nodes"] if n["released"]]
+        if released:
+            self.order.base_end = (released[-1]["nodeId"], released[-1]["sequenceId"])
         for n in doc["nodes"]:
+            if n["sequenceId"] in self.order.skipped:
+                continue
             for a in n["actions"]:
                 if a["actionId"] not in self.actions:
                     self._add_action(_ActionState(a["actionId"], a["actionType"], node_seq=n["sequenceId"]))
         self._errors = [(e, t) for e, t in self._errors if _ref(e, "topic") != "order"]
         out: list[Out] = []
-        if not self._holding or now - self._lease_sent > LEASE_RENEW_S:
+        if not self._want_lease or now - self._lease_sent >= LEASE_RENEW_S:
             out.append(self._lease(now))
         fields = self._fleet_order(doc)
+        if fields is None:  # an update of nothing but a skipped decision point: nothing to drive
+            self._next_state = -math.inf
+            return out
         self.order.sent_nodes = [(n.nodeId, n.sequenceId) for n in fields["nodes"]]
         tag = f"order/{oid}/{uid}"
         self._tags[tag] = _Pending("order")
@@ -399,13 +452,15 @@ class VehicleCore:
         self._next_state = -math.inf
         return out
 
-    def _fleet_order(self, doc: dict[str, Any]) -> dict[str, Any]:
+    def _fleet_order(self, doc: dict[str, Any]) -> dict[str, Any] | None:
         """The fleetlink Order's fields: the nodes not yet traversed (an update: the current base
         before the stitch point as well, so the robot misses none), their edges between them."""
         o = self.order
         nodes = [n for n in o.nodes if n["sequenceId"] > o.last_node_seq or not o.last_node_id]
         if not nodes or nodes[0]["sequenceId"] > doc["nodes"][0]["sequenceId"]:
             nodes = [n for n in o.nodes if n["sequenceId"] >= doc["nodes"][0]["sequenceId"]]
+        if not nodes:
+            return None
         by_seq = {n["sequenceId"]: n for n in doc["nodes"]}
         first, last = nodes[0]["sequenceId"], nodes[-1]["sequenceId"]
         edges = [e for e in o.edges if first < e["sequenceId"] < last]
@@ -413,7 +468,7 @@ class VehicleCore:
         fleet_nodes = []
         for n in nodes:
             src = by_seq.get(n["sequenceId"], n)
-            pos = src["nodePosition"]
+            pos = {**src["nodePosition"], **o.positions.get(n["sequenceId"], {})}
             theta = pos.get("theta")
             acts = doc_actions.get(n["nodeId"], []) if n["sequenceId"] in by_seq else []
             fleet_nodes.append(
@@ -482,7 +537,7 @@ class VehicleCore:
                 state.status = "RUNNING" if kind == "cancelOrder" else "INITIALIZING"
                 tag = f"actions/{aid}"
                 self._tags[tag] = _Pending(kind, state.action_id)
-                if kind in ("startPause", "stopPause", "payload") and not self._holding:
+                if kind in ("startPause", "stopPause", "payload") and not self._want_lease:
                     out.append(self._lease(now))
                 out.append(SendActions((action,), tag))
             else:
@@ -507,8 +562,41 @@ class VehicleCore:
 
     def _lease(self, now: float) -> SendLease:
         self._lease_sent = now
-        self._holding = True
+        self._want_lease = True
         return SendLease(release=False)
+
+    def _lease_tick(self, now: float) -> list[Out]:
+        """Renew the lease while the bridge wants it; release it once the vehicle has been idle
+        ``LEASE_IDLE_S``. The release is decided first and ends the wanting, so no renewal can
+        follow it: only a new order or action asks again (``_lease``)."""
+        if not self._want_lease:
+            return []
+        if self.busy:
+            self._idle_since = None
+        elif self._idle_since is None:
+            self._idle_since = now
+        if self._idle_since is not None and now - self._idle_since >= LEASE_IDLE_S:
+            self._want_lease, self._idle_since, self._released_at = False, None, now
+            return [SendLease(release=True, duration_s=0.0)]
+        if now - self._lease_sent >= LEASE_RENEW_S:
+            return [self._lease(now)]
+        return []
+
+    def _lease_heard(self, msg: Lease, now: float) -> list[Out]:
+        """The robot's lease. One naming the bridge while the bridge does not want it, and not just
+        the robot's word from before the release reached it, was re-granted by a late request (or
+        is left from an earlier run of the bridge): released again."""
+        self.lease_holder, self.lease_until = msg.holder, msg.until
+        if msg.holder != self.sender or self._want_lease or now - self._released_at < LEASE_REGRANT_S:
+            return []
+        self._released_at = now
+        self.lease_rereleases += 1
+        return [
+            SendLease(release=True, duration_s=0.0),
+            *self._log_once(
+                "lease/regranted", "the robot's lease was granted to the bridge after it let go: released again"
+            ),
+        ]
 
     # -- from the robot ---------------------------------------------------------------------------
 
@@ -524,20 +612,24 @@ class VehicleCore:
         out: list[Out] = []
         if isinstance(msg, State):
             self.fleet_state = msg
-            self._follow(msg)
+            out += self._follow(msg)
         elif isinstance(msg, Pose):
             self.pose = msg
         elif isinstance(msg, BoardStatus):
             self.board = msg
         elif isinstance(msg, Lease):
-            self.lease_holder, self.lease_until = msg.holder, msg.until
-            if msg.holder != self.sender:
-                self._holding = False
+            out += self._lease_heard(msg, now)
         elif isinstance(msg, Ack) and msg.commandSender == self.sender:
             out += self._ack(msg, now)
         elif isinstance(msg, Event) and msg.kind == "order":
             data = {kv.key: kv.value for kv in msg.data}
-            if data.get("order") == self.order.order_id and data.get("outcome") in ("finished", "ended"):
+            if data.get("order") != self.order.order_id or not self.order.order_id:
+                pass
+            elif "skipped" in data:
+                seq = _int(data.get("sequenceId"))
+                if seq is not None:
+                    self._skip(seq, data["skipped"], msg.text)
+            elif data.get("outcome") in ("finished", "ended"):
                 self._ended(data["outcome"] == "finished")
         return out + self.tick(now, wall)
 
@@ -569,18 +661,39 @@ class VehicleCore:
             state.status = "FINISHED"
         return []
 
-    def _follow(self, s: State) -> None:
-        """The robot's progress along the order: traversed nodes leave nodeStates."""
+    def _follow(self, s: State) -> list[Out]:
+        """The robot's progress along the order: traversed nodes leave nodeStates (and so do
+        skipped ones, ``_skip``)."""
         o = self.order
         p = s.progress
+        out: list[Out] = []
         if p is None or s.orderId != o.order_id or not o.nodes:
-            return
-        key = (p.nodesDone, p.lastNodeId, p.lastNodeSequenceId, p.dwellLeft_s > 0)
+            return out
+        key = (p.nodesDone, p.skipped, p.lastNodeId, p.lastNodeSequenceId, p.dwellLeft_s > 0)
         if key == self._progress_key:
-            return
+            return out
         self._progress_key = key
         done = o.sent_nodes[: p.nodesDone]
         done_seq = max((seq for _, seq in done), default=-1)
+        # Done means reached or skipped. Done after the last node reached: skipped (the event that
+        # names it may come later, or be lost). Done before it: reached, unless the robot's skip
+        # count says otherwise and only those nodes can explain it.
+        reached_seq = p.lastNodeSequenceId if p.lastNodeId else -1
+        leaving = [n for n in o.nodes if n["sequenceId"] <= done_seq and n["sequenceId"] not in o.skipped]
+        for n in leaving:
+            if n["sequenceId"] > reached_seq:
+                self._skip(n["sequenceId"], n["nodeId"], "")
+        unexplained = p.skipped - len(o.skipped)
+        earlier = [n for n in leaving if n["sequenceId"] < reached_seq]
+        if unexplained > 0 and len(earlier) == unexplained:
+            for n in earlier:
+                self._skip(n["sequenceId"], n["nodeId"], "")
+        elif unexplained > 0 and earlier:
+            out += self._log_once(
+                f"skips/{o.order_id}",
+                f"order {o.order_id}: {unexplained} skipped node(s) among {len(earlier)} passed without the robot's "
+                "word on which (states lost): counted as reached",
+            )
         if p.lastNodeId:
             o.last_node_id, o.last_node_seq = p.lastNodeId, p.lastNodeSequenceId
         o.nodes = [n for n in o.nodes if n["sequenceId"] > done_seq]
@@ -592,6 +705,50 @@ class VehicleCore:
                 a.status = "FINISHED"
             elif p.lastNodeId and a.node_seq == p.lastNodeSequenceId:
                 a.status = "RUNNING"
+        self._next_state = -math.inf
+        return out
+
+    def _skip(self, seq: int, node_id: str, why: str) -> None:
+        """The robot skipped the node ``seq`` (no way there; agent/itinerary.py) and drove on. VDA
+        5050 has no word for it, so (docs/vda5050.md "Skipped nodes"): the node leaves
+        ``nodeStates`` (section 6.10.1: they are the nodes the vehicle still shall traverse) with
+        the edge leading to it, but ``lastNodeId`` stays the last node reached (section 6.10.2:
+        traversed nodes only); its actions, never triggered, are FAILED (section 6.11); and a
+        ``noRouteError`` WARNING names the order, the node and its actions (sections 6.10.5, 7.1),
+        held until the next new order."""
+        o = self.order
+        if seq in o.skipped:
+            return
+        o.skipped.add(seq)
+        self.skipped_nodes += 1
+        node = next((n for n in o.nodes if n["sequenceId"] == seq), None)
+        if node is not None:
+            node_id = node["nodeId"]
+            o.nodes = [n for n in o.nodes if n is not node]
+            o.edges = [e for e in o.edges if e["sequenceId"] != seq - 1]
+        failed = []
+        for a in self.actions.values():
+            if a.node_seq == seq and a.status not in TERMINAL:
+                a.status, a.result = "FAILED", f"node {node_id} skipped: the robot found no way there"
+                failed.append(a.action_id)
+        references = [
+            {"referenceKey": "orderId", "referenceValue": o.order_id},
+            {"referenceKey": "orderUpdateId", "referenceValue": str(o.update_id)},
+            {"referenceKey": "nodeId", "referenceValue": node_id[:MAX_ID]},
+            {"referenceKey": "sequenceId", "referenceValue": str(seq)},
+        ]
+        references += [{"referenceKey": "actionId", "referenceValue": aid} for aid in failed]
+        text = f"node {node_id} (sequenceId {seq}) skipped: the robot found no way there and drove on"
+        if failed:
+            text += f"; its actions FAILED: {', '.join(failed)}"
+        error = {
+            "errorType": "noRouteError",
+            "errorLevel": "WARNING",
+            "errorDescription": (text + (f" ({why})" if why else ""))[:256],
+            "errorHint": "send the node again in a new order once the way is clear, if it matters",
+            "errorReferences": references,
+        }
+        self._skips = [*self._skips, error][-MAX_SKIP_ERRORS:]
         self._next_state = -math.inf
 
     def _ended(self, finished: bool, why: str = "") -> None:
@@ -616,11 +773,7 @@ class VehicleCore:
         self._errors = [(e, t) for e, t in self._errors if t > now]
         if len(self._errors) != before:
             self._next_state = -math.inf
-        if self.order.nodes and self._holding and now - self._lease_sent > LEASE_RENEW_S:
-            out.append(self._lease(now))
-        elif not self.busy and self._holding and now - self._lease_sent > LEASE_RENEW_S:
-            self._holding = False
-            out.append(SendLease(release=True, duration_s=0.0))
+        out += self._lease_tick(now)
         key = self._key()
         if key != self._state_key or now >= self._next_state:
             self._state_key = key
@@ -634,6 +787,7 @@ class VehicleCore:
 
     def _key(self) -> tuple[Any, ...]:
         s = self.fleet_state
+        o = self.order
         return (
             self.order.order_id,
             self.order.update_id,
@@ -641,6 +795,7 @@ class VehicleCore:
             len(self.order.nodes),
             tuple((a.action_id, a.status) for a in self.actions.values()),
             len(self._errors),
+            len(o.skipped),
             None if s is None else (s.paused, s.driving, s.operatingMode, s.safetyState, s.errors),
         )
 
@@ -689,6 +844,7 @@ class VehicleCore:
                 for e in s.errors
             ]
         errors += [e for e, _ in self._errors]
+        errors += self._skips
         battery: dict[str, Any] = {"batteryCharge": 0.0, "charging": False}
         if s is not None:
             battery = {"batteryCharge": s.batteryState.batteryCharge, "charging": s.batteryState.charging}
@@ -732,6 +888,13 @@ def _ref(error: dict[str, Any], key: str) -> str | None:
     return None
 
 
+def _int(text: str | None) -> int | None:
+    try:
+        return int(text) if text is not None else None
+    except ValueError:
+        return None
+
+
 def _text(value: object) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
@@ -746,7 +909,8 @@ def _node_state(n: dict[str, Any]) -> dict[str, Any]:
         d["nodeDescription"] = n["nodeDescription"]
     pos = n.get("nodePosition")
     if pos is not None:
-        d["nodePosition"] = {k: pos[k] for k in ("x", "y", "theta", "mapId") if k in pos}
+        # echoed as the master sent it (section 6.10.6: the object defined in section 6.6)
+        d["nodePosition"] = dict(pos)
     return d
 
 
@@ -835,7 +999,8 @@ def factsheet_body(c: VehicleConfig) -> dict[str, Any]:
                 {
                     "parameter": "order.nodes.nodePosition.allowedDeviationXY",
                     "support": "SUPPORTED",
-                    "description": "a new order's first node: trivially reachable within it",
+                    "description": "a new order's first node counts as reached within it (section 6.6.3.1); "
+                    "elsewhere, up to 1 m, the nearest reachable place when the node itself cannot be reached",
                 },
                 {"parameter": "order.edges.maxSpeed", "support": "SUPPORTED"},
                 {"parameter": "state.agvPosition", "support": "SUPPORTED"},
