@@ -68,6 +68,7 @@ __all__ = [
     "URGENT_TOPICS",
     "Answer",
     "LivelinessReceiver",
+    "PullSubscription",
     "ZenohEndpoint",
     "open_session",
     "peer_config",
@@ -109,6 +110,7 @@ def peer_config(
     root_ca: str | None = None,
     tls_cert: str | None = None,
     tls_key: str | None = None,
+    timestamping: bool = False,
 ) -> Any:
     """A ``zenoh.Config``: explicit endpoints, multicast scouting off unless asked for.
 
@@ -120,6 +122,10 @@ def peer_config(
     ``op-<name>``); ``root_ca`` is the site CA that ``tls/<host>:<port>`` endpoints are verified
     against (the router's certificate must name ``<host>``); ``tls_cert``/``tls_key`` present a
     client certificate for mutual TLS.
+
+    ``timestamping``: the session stamps every sample it receives without a timestamp with its
+    hybrid logical clock, on zenoh's own thread (``ZenohEndpoint.subscribe_pull``: a receive time
+    taken without running Python per sample).
     """
     import zenoh  # imported here so modules that only build configs stay importable without it
 
@@ -135,6 +141,8 @@ def peer_config(
     # No message larger than the wire contract's is even reassembled (zenoh's default is 1 GiB):
     # ten 10 MB puts grew an agent by 16 MB before its own size check could refuse them.
     conf.insert_json5("transport/link/rx/max_message_size", json.dumps(MAX_MESSAGE_BYTES))
+    if timestamping:
+        conf.insert_json5("timestamping/enabled", "true")
     if (username is None) != (password is None):
         raise ValueError("zenoh username and password go together (both or neither)")
     if username is not None:
@@ -156,6 +164,56 @@ def open_session(listen: Sequence[str] = (), connect: Sequence[str] = (), **auth
 
 
 Item = tuple[Receiver, str, bytes]
+
+PULL_CAPACITY = 16_384
+"""Samples a pull subscription holds for its reader (~10 s of 50 robots' traffic); when it is full,
+zenoh's thread waits for the reader, as it waits for the GIL before a callback can queue."""
+
+
+class PullSubscription:
+    """Samples on ``key_expr`` kept in zenoh's own queue (a ``FifoChannel``) until ``drain`` takes
+    them: no Python runs per sample on zenoh's thread, and no thread is woken per sample. For a
+    reader that takes everything in batches (the flight recorder); order is arrival order.
+
+    Each sample comes with its receive time (epoch seconds) from its zenoh timestamp: the time the
+    first timestamping zenoh node received it (this session's, when the endpoint was opened with
+    ``timestamping=True`` and the sample came peer to peer; a site router's, which stamps every
+    sample it routes), or None when it has none (the reader stamps it when it takes it)."""
+
+    def __init__(self, key_expr: str, capacity: int) -> None:
+        self.key_expr = key_expr
+        self.capacity = capacity
+        self.failed = 0
+        """Drains that ended in an error (a session closing under the reader)."""
+        self._sub: Any = None
+
+    def drain(self, out: list[tuple[str, bytes, float | None]], limit: int = 1 << 30) -> int:
+        """Append up to ``limit`` waiting samples to ``out`` as (key, payload, receive time);
+        how many."""
+        sub = self._sub
+        if sub is None:
+            return 0
+        n = 0
+        append = out.append
+        try:
+            while n < limit:
+                sample = sub.try_recv()
+                if sample is None:
+                    break
+                ts = sample.timestamp
+                append(
+                    (
+                        str(sample.key_expr),
+                        sample.payload.to_bytes(),
+                        None if ts is None else ts.get_time_as_ntp64().as_secs_f64(),
+                    )
+                )
+                n += 1
+        except Exception as exc:  # the session closed under us (or a bug: said once)
+            if not self.failed:
+                log.warning("pull %s: %s", self.key_expr, exc)
+            self.failed += 1
+        return n
 
 
 class _Inbox:
@@ -283,6 +341,7 @@ class ZenohEndpoint:
         self._given = session
         self._session: Any = None
         self._subs: list[tuple[str, Receiver]] = []
+        self._pulls: list[PullSubscription] = []
         self._served: list[tuple[str, Answer]] = []
         self._declared: list[Any] = []  # subscribers
         self._queryables: list[tuple[str, Any]] = []
@@ -320,6 +379,8 @@ class ZenohEndpoint:
             self._keyexprs = {}
             for key_expr, receiver in self._subs:
                 self._declare_subscriber(key_expr, receiver)
+            for pull in self._pulls:
+                self._declare_pull(pull)
             for key_expr, answer in self._served:
                 self._declare_queryable(key_expr, answer)
             for key_expr, on_change in self._watches:
@@ -338,6 +399,8 @@ class ZenohEndpoint:
             self._queryables = []
             token, self._token = self._token, None
             more, self._more_tokens = self._more_tokens, []
+        for pull in self._pulls:
+            pull._sub = None  # (undeclared below, with the other subscribers)
         if session is None:
             return
         for d in [*declared, token, *more]:
@@ -407,6 +470,16 @@ class ZenohEndpoint:
             self._subs.append((key_expr, receiver))
             if self._session is not None:
                 self._declare_subscriber(key_expr, receiver)
+
+    def subscribe_pull(self, key_expr: str, capacity: int = PULL_CAPACITY) -> PullSubscription:
+        """Samples on ``key_expr`` for the caller to take with ``drain`` (``PullSubscription``),
+        instead of a receiver called per sample; declared again at every ``start``."""
+        pull = PullSubscription(key_expr, capacity)
+        with self._lock:
+            self._pulls.append(pull)
+            if self._session is not None:
+                self._declare_pull(pull)
+        return pull
 
     def add_alive(self, key: str) -> None:
         """Another liveliness token on ``key``, declared while the endpoint is open (as
@@ -498,6 +571,13 @@ class ZenohEndpoint:
 
         handler = zenoh.handlers.Callback(on_sample, indirect=False)
         self._declared.append(self._session.declare_subscriber(key_expr, handler))
+
+    def _declare_pull(self, pull: PullSubscription) -> None:
+        import zenoh
+
+        sub = self._session.declare_subscriber(pull.key_expr, zenoh.handlers.FifoChannel(pull.capacity))
+        self._declared.append(sub)
+        pull._sub = sub
 
     def _declare_liveliness(self, key_expr: str, on_change: LivelinessReceiver) -> None:
         import zenoh

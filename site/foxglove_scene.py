@@ -31,7 +31,7 @@ import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Final
+from typing import Final, NamedTuple
 
 import numpy as np
 
@@ -90,10 +90,11 @@ class Channel:
         return out
 
 
-@dataclass(frozen=True, slots=True)
-class Record:
+class Record(NamedTuple):
+    """One message to write or send (a named tuple: a recorder makes thousands a second)."""
+
     channel: Channel
-    data: bytes = field(repr=False)
+    data: bytes
     log_time_ns: int
     publish_time_ns: int
 
@@ -139,8 +140,9 @@ class FoxgloveScene:
         self.dose = dose
         self._reject = reject or (lambda reason: None)
         self._channels: dict[str, Channel] = {}
-        self._last_pose: dict[tuple[str, str], int] = {}
-        """(robot, sender) -> headerId of the newest pose drawn: its copy on the other link is not."""
+        self._last_pose: dict[str, tuple[str, int]] = {}
+        """robot -> (sender, headerId) of the newest pose drawn: its copy on the other link is not
+        (one entry a robot, whoever sends its poses)."""
         self.maps: dict[str, SharedMap] = {}
         self.doses: dict[str, SharedDose] = {}
         self._changed: dict[str, float] = {}
@@ -159,12 +161,15 @@ class FoxgloveScene:
         """A wire-valid message heard at ``wall`` (epoch seconds): the records to show at once
         (poses, truth). Maps and dose layers are applied; ``changed`` hands out their grids."""
         header = msg.header
-        if isinstance(msg, Pose):
-            last = self._last_pose.get((header.robot, header.sender))
-            if last is None or header.headerId > last or header.headerId + RESTART_GAP < last:
-                self._last_pose[(header.robot, header.sender)] = header.headerId
+        if type(msg) is Pose:
+            robot, hid = header.robot, header.headerId
+            last = self._last_pose.get(robot)
+            if last is None or last[0] != header.sender or hid > last[1] or hid + RESTART_GAP < last[1]:
+                self._last_pose[robot] = (header.sender, hid)
                 data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
-                channel = self.channel(pose_topic(header.robot), foxglove.POSE_IN_FRAME)
+                channel = self._channels.get(f"{FOXGLOVE_PREFIX}/{robot}/pose") or self.channel(
+                    pose_topic(robot), foxglove.POSE_IN_FRAME
+                )
                 return [Record(channel, data, ns(wall), ns(header.timestamp))]
         elif isinstance(msg, Truth):
             data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
@@ -209,6 +214,11 @@ class FoxgloveScene:
     def pending(self) -> list[str]:
         """Grid topics changed since they were last handed out."""
         return list(self._changed)
+
+    @property
+    def has_pending(self) -> bool:
+        """Some grid changed since it was last handed out (``pending()`` without the list)."""
+        return bool(self._changed)
 
     def changed(self, wall: float, topics: list[str] | None = None) -> list[Record]:
         """The grids changed since they were last handed out (of ``topics`` only, if given), as

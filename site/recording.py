@@ -59,6 +59,11 @@ MAX_REASONS: Final = 64
 OTHER: Final = "(other reasons)"
 RECENT: Final = 2048
 """Messages remembered to recognise their copy on the other link (a fleet's poses of ~1 s)."""
+MAX_ROBOTS: Final = 1024
+"""Distinct robots recorded (each has its Foxglove channels, its map, its last pose); a message
+about another one is refused (counted under ``TOO_MANY_ROBOTS``): a flood of made-up robot ids
+must not grow the recorder's memory or the file's channels without bound."""
+TOO_MANY_ROBOTS: Final = f"too many robots (more than {MAX_ROBOTS} distinct robot ids): a new one is not recorded"
 
 
 def wire_channel(link: str, topic: str) -> Channel:
@@ -123,7 +128,9 @@ class RecordingCore:
         self.messages: Counter[str] = Counter()
         """Records written per channel topic."""
         self.rejected: Counter[str] = Counter()
-        """Inputs refused (not wire-valid, bad status JSON, bad cells), by reason."""
+        """Inputs refused (not wire-valid, bad status JSON, bad cells, too many robots), by reason."""
+        self.new_reasons: list[str] = []
+        """Reasons refused for the first time since the shell last took them (it logs each once)."""
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -131,7 +138,8 @@ class RecordingCore:
         """A message ``link`` delivered on ``key`` at ``wall`` (epoch seconds, the recorder's clock)."""
         if key.startswith(UWB_STATUS_KEY_PREFIX):
             return self._uwb_status(link, key, payload, wall)
-        seen = self._recent.get((key, payload))
+        recent = self._recent
+        seen = recent.get((key, payload))
         if seen is not None:  # the same bytes on the other link (an agent's pose, state, ...)
             msg, data = seen
         else:
@@ -140,10 +148,13 @@ class RecordingCore:
             except wire.WireError as exc:
                 self._reject(exc.reason)
                 return []
+            robot = msg.header.robot
+            if robot not in self.robots and robot != keys.FLEET_MAP and not self._new_robot(robot):
+                return []
             data = wire_json.wire_to_json(type(msg), payload)
-            self._recent[(key, payload)] = (msg, data)
-            if len(self._recent) > RECENT:
-                del self._recent[next(iter(self._recent))]
+            recent[(key, payload)] = (msg, data)
+            if len(recent) > RECENT:
+                del recent[next(iter(recent))]
         return self._message(link, msg, data, wall)
 
     def snapshot(self, link: str, key: str, payload: bytes, wall: float) -> list[Record]:
@@ -159,7 +170,8 @@ class RecordingCore:
         except ValueError as exc:
             self._reject(f"bad liveliness token: {exc}")
             return []
-        self.robots.add(robot)
+        if robot not in self.robots and not self._new_robot(robot):
+            return []
         channel = self._other.get(f"{FLEETLINK_PREFIX}/{link}/{ALIVE}") or self._other_channel(alive_channel(link))
         data = json.dumps({"robot": robot, "alive": alive}, separators=(",", ":")).encode()
         return [self._record(channel, data, wall, wall)]
@@ -173,7 +185,18 @@ class RecordingCore:
 
     def _reject(self, reason: str) -> None:
         known = reason in self.rejected or len(self.rejected) < MAX_REASONS
-        self.rejected[reason if known else OTHER] += 1
+        key = reason if known else OTHER
+        if key not in self.rejected:
+            self.new_reasons.append(key)
+        self.rejected[key] += 1
+
+    def _new_robot(self, robot: str) -> bool:
+        """Take ``robot`` on (True) unless ``MAX_ROBOTS`` are already recorded."""
+        if len(self.robots) >= MAX_ROBOTS:
+            self._reject(TOO_MANY_ROBOTS)
+            return False
+        self.robots.add(robot)
+        return True
 
     def _record(self, channel: Channel, data: bytes, wall: float, published: float) -> Record:
         self.messages[channel.topic] += 1
@@ -201,21 +224,20 @@ class RecordingCore:
         return [self._record(channel, data, wall, wall)]
 
     def _message(self, link: str, msg: wire.Message, data: bytes, wall: float) -> list[Record]:
-        cls = type(msg)
-        header = msg.header
-        slot = (link, cls.TOPIC)
-        channel = self._wire.get(slot)
+        topic = msg.TOPIC
+        channel = self._wire.get((link, topic))
         if channel is None:
-            channel = self._wire[slot] = wire_channel(link, cls.TOPIC)
-        if header.robot != keys.FLEET_MAP:
-            self.robots.add(header.robot)
-        out = [self._record(channel, data, wall, header.timestamp)]
+            channel = self._wire[(link, topic)] = wire_channel(link, topic)
+        messages = self.messages
+        messages[channel.topic] += 1
         scene = self.scene
-        out += scene.message(msg, wall)
-        if scene.pending():  # a map applied: its whole grid, after every snapshot and update
-            out += scene.changed(wall)
-        for r in out[1:]:
-            self.messages[r.channel.topic] += 1
+        more = scene.message(msg, wall)
+        if scene.has_pending:  # a map applied: its whole grid, after every snapshot and update
+            more += scene.changed(wall)
+        out = [Record(channel, data, ns(wall), ns(msg.header.timestamp))]
+        for r in more:
+            messages[r.channel.topic] += 1
+            out.append(r)
         return out
 
 

@@ -307,3 +307,129 @@ def test_a_timestamp_far_in_the_future_is_recorded_and_the_writer_goes_on(tmp_pa
     finally:
         rec.stop()
     assert sum(1 for _ in RecordingReader(out).messages()) == 6
+
+
+# -- cost and bounds ---------------------------------------------------------------------------------
+
+
+def test_the_message_appender_writes_what_the_mcap_writer_writes() -> None:
+    """``MessageAppender`` (site/recorder.py) bypasses ``Writer.add_message`` for speed: the file must
+    be byte for byte the library's own, chunk boundaries, indexes and statistics included."""
+    import io
+
+    from mcap.writer import CompressionType, Writer
+
+    from fleetlink.site.recorder import MessageAppender
+
+    def write(fast: bool) -> bytes:
+        buf = io.BytesIO()
+        w = Writer(buf, chunk_size=4096, compression=CompressionType.ZSTD)
+        w.start(profile="fleetlink", library="test")
+        sid = w.register_schema(name="s", encoding="jsonschema", data=b"{}")
+        ids = [w.register_channel(topic=f"/c{i}", message_encoding="json", schema_id=sid) for i in range(3)]
+        appender = MessageAppender(w)
+        assert appender.fast  # mcap 1.6's writer: the fast path is taken
+        for i in range(500):  # out of order times too: a recorder's two links interleave
+            t = 1_000_000 + i * 1000 - (i % 7) * 3000
+            data = json.dumps({"i": i, "pad": "x" * (i % 50)}).encode()
+            if fast:
+                appender.add(ids[i % 3], t, data, t - 5)
+            else:
+                w.add_message(ids[i % 3], log_time=t, data=data, publish_time=t - 5)
+            if i == 250:
+                w.flush()  # a chunk closed by age, as the recorder does
+        w.finish()
+        return buf.getvalue()
+
+    assert write(True) == write(False)
+
+
+def test_a_flood_of_robot_ids_is_refused_counted_and_bounded(caplog: pytest.LogCaptureFixture) -> None:
+    """A sender making up robot ids (each wire-valid) must not grow the recorder without bound: past
+    ``MAX_ROBOTS`` a new robot's messages are refused, counted under one reason, logged once, and the
+    robots already known are still recorded."""
+    from fleetlink.site.recording import MAX_ROBOTS, TOO_MANY_ROBOTS
+
+    core = RecordingCore()
+    known = wire.HeaderCounter(SystemClock(), robot="r-known", sender="agent-r-known")
+    p = pose(known, 1.0)
+    assert core.receive("zenoh", wire.key_of(p), wire.encode(p), 1.0)
+    flood = MAX_ROBOTS + 300
+    for i in range(flood):
+        c = wire.HeaderCounter(SystemClock(), robot=f"fake-{i}", sender="x")
+        p = pose(c, 1.0)
+        core.receive("zenoh", wire.key_of(p), wire.encode(p), 2.0)
+        core.alive("zenoh", keys.alive_key(f"ghost-{i}"), True, 2.0)
+    assert len(core.robots) == MAX_ROBOTS
+    assert core.rejected[TOO_MANY_ROBOTS] == flood - (MAX_ROBOTS - 1) + flood  # poses and tokens
+    assert core.new_reasons == [TOO_MANY_ROBOTS]  # one reason, to be logged once
+    assert len(core.scene._last_pose) <= MAX_ROBOTS and len(core.messages) <= 2 * MAX_ROBOTS + 2
+    p = pose(known, 2.0)
+    assert [r.channel.topic for r in core.receive("mqtt", wire.key_of(p), wire.encode(p), 3.0)] == [
+        "/fleetlink/mqtt/pose",
+        "/foxglove/r-known/pose",
+    ]
+
+    # The recorder logs the reason once and keeps recording.
+    clock = SystemClock()
+    bus = InProcessBus(LinkName.ZENOH)
+    rec = Recorder(Path(__import__("tempfile").mkdtemp()) / "flood.mcap", [bus.endpoint("recorder")], clock)
+    rec.core = core
+    rec.start()
+    sender = bus.endpoint("x")
+    sender.start()
+    try:
+        with caplog.at_level("WARNING", logger="fleetlink.site.recorder"):
+            for i in range(3):
+                c = wire.HeaderCounter(clock, robot=f"more-{i}", sender="x")
+                p = pose(c, 1.0)
+                sender.publish(wire.key_of(p), wire.encode(p))
+            bus.deliver()
+            wait_until(lambda: core.rejected[TOO_MANY_ROBOTS] >= 2 * flood - MAX_ROBOTS + 1 + 3, message="counted")
+            wait_until(lambda: not core.new_reasons, message="taken by the writer")
+    finally:
+        rec.stop()
+    said = [r.getMessage() for r in caplog.records if "too many robots" in r.getMessage()]
+    assert len(said) == 1 and "further ones are counted" in said[0]
+
+
+def test_zenoh_samples_are_taken_in_batches_with_their_receive_time(tmp_path: Path) -> None:
+    """On a real Zenoh session the recorder takes samples from zenoh's queue (no Python per sample
+    on zenoh's thread); each is logged at the time zenoh stamped it on arrival, not when taken."""
+    from mcap.reader import make_reader
+
+    from fleetlink.links.zenoh import ZenohEndpoint
+    from fleetlink.site.brokers import free_port
+    from fleetlink.site.recorder import open_recorder_links
+
+    clock = SystemClock()
+    at = f"tcp/127.0.0.1:{free_port()}"
+    links = open_recorder_links(mqtt_url="mqtt://127.0.0.1:1", zenoh_listen=[at], clock=clock)
+    out = tmp_path / "z.mcap"
+    rec = Recorder(out, links[:1], clock, fetch_maps=False).start()
+    agent = ZenohEndpoint(connect=[at], label="zenoh-agent")
+    agent.start()
+    c = wire.HeaderCounter(clock, robot="r1", sender="agent-r1")
+    sent: list[float] = []
+    try:
+        wait_until(lambda: agent.up, message="linked")
+        for i in range(40):
+            p = pose(c, i * 0.1)
+            sent.append(clock.wall())
+            agent.publish(wire.key_of(p), wire.encode(p))
+            if i == 0:
+                wait_until(lambda: rec.core.messages["/fleetlink/zenoh/pose"] >= 1, message="the route is up")
+                sent = [clock.wall()]
+            clock.sleep(0.002)
+        wait_until(lambda: rec.core.messages["/fleetlink/zenoh/pose"] >= 40, message="all recorded")
+    finally:
+        agent.close()
+        rec.stop()
+    with out.open("rb") as f:
+        times = [m.log_time / 1e9 for _, ch, m in make_reader(f).iter_messages() if ch.topic == "/fleetlink/zenoh/pose"]
+    assert len(times) == 40
+    # Stamped on arrival, one by one: stamps taken when the batch is taken (every 20 ms) would be
+    # one for the whole batch. In sending order, each after its send and soon after.
+    assert times == sorted(times) and len(set(times)) == 40
+    lags = [t - s for t, s in zip(times[1:], sent[-39:], strict=True)]
+    assert min(lags) > -0.001 and max(lags) < 0.25, lags
