@@ -38,6 +38,8 @@ from fleetlink.site.recording import Channel, RecordingCore, RecordingSummary
 __all__ = [
     "CHUNK_AGE_S",
     "CHUNK_SIZE",
+    "FleetStream",
+    "MessageAppender",
     "Recorder",
     "RecordingError",
     "RecordingReader",
@@ -491,6 +493,166 @@ class RecordingReader:
                     self.complete = True
         if not self.complete and self.problem is None:
             self.problem = "the file ends before its footer"
+
+
+FLEET_KINDS = frozenset({"wire", "uwb-status", "alive"})
+"""The channels a replay plays (``Channel.kind``): what the console heard; not the Foxglove ones."""
+REORDER_S = 2.0
+"""A recovered file (no index) is read in file order; its messages are put in time order within
+this window (the recorder writes a batch every 20 ms, the links' messages interleaved)."""
+
+
+class _CountingFile:
+    """A file that counts the bytes read from it (what a reader actually read, for tests and notes).
+    Not an ``io.RawIOBase``: the mcap library would wrap that in a read-ahead buffer."""
+
+    def __init__(self, path: Path) -> None:
+        self._f = path.open("rb")
+        self.bytes_read = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def read(self, size: int | None = -1) -> bytes:
+        data = self._f.read(size)
+        self.bytes_read += len(data)
+        return data
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._f.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._f.tell()
+
+    def close(self) -> None:
+        self._f.close()
+
+
+class FleetStream:
+    """The fleet messages of a recording (``FLEET_KINDS``), in receive-time order, read as they are
+    wanted: a replay never holds the recording.
+
+    A file closed properly is read through its index (the ``mcap`` library's seeking reader: the
+    summary first, then each chunk when the replay reaches its time, one chunk at a time). A
+    recovered file (no summary) is read in file order with ``RecordingReader``, once through to
+    learn its time span, then again as it plays, sorted within ``REORDER_S``. ``bytes_read`` says
+    how much of the file has been read."""
+
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path)
+        try:
+            self._file = _CountingFile(self.path)
+        except OSError as exc:
+            raise RecordingError(f"cannot open {self.path}: {exc.strerror or exc}") from None
+        self._scanned = 0
+        self.metadata: dict[str, dict[str, str]] = {}
+        self.complete = False
+        self.problem: str | None = None
+        self.first_ns: int | None = None
+        self.last_ns: int | None = None
+        self.count = 0
+        """Fleet messages in the file (a recovered file: up to its damage)."""
+        self.indexed = False
+        """Read through its index (a file closed properly); False: in file order (recovered)."""
+        self._reader: Any = None
+        self._topics: list[str] = []
+        try:
+            if not self._open_indexed():
+                self._scan()
+        except BaseException:
+            self._file.close()
+            raise
+
+    @property
+    def bytes_read(self) -> int:
+        return self._file.bytes_read + self._scanned
+
+    def close(self) -> None:
+        self._file.close()
+
+    def _open_indexed(self) -> bool:
+        from mcap.reader import SeekingReader
+
+        try:
+            reader = SeekingReader(self._file, validate_crcs=True)  # type: ignore[arg-type]
+            summary = reader.get_summary()
+        except Exception:  # not MCAP, truncated, no footer: read it as a recovered file
+            return False
+        if summary is None or not summary.chunk_indexes or summary.statistics is None:
+            return False
+        fleet = {cid for cid, ch in summary.channels.items() if (ch.metadata or {}).get("kind") in FLEET_KINDS}
+        self._topics = sorted({summary.channels[cid].topic for cid in fleet})
+        counts = summary.statistics.channel_message_counts
+        self.count = sum(counts.get(cid, 0) for cid in fleet)
+        times = [
+            (c.message_start_time, c.message_end_time)
+            for c in summary.chunk_indexes
+            if fleet & set(c.message_index_offsets)
+        ]
+        if times:
+            self.first_ns = min(t[0] for t in times)
+            self.last_ns = max(t[1] for t in times)
+        try:
+            for record in reader.iter_metadata():
+                self.metadata[record.name] = dict(record.metadata)
+        except Exception as exc:  # a damaged metadata record: play without it
+            log.debug("metadata of %s: %s", self.path, exc)
+        self._reader = reader
+        self.complete = self.indexed = True
+        return True
+
+    def _scan(self) -> None:
+        reader = RecordingReader(self.path)
+        for m in reader.messages():  # one pass, nothing kept: the span and the count
+            if m.metadata.get("kind") in FLEET_KINDS:
+                self.count += 1
+                t = m.log_time_ns
+                self.first_ns = t if self.first_ns is None else min(self.first_ns, t)
+                self.last_ns = t if self.last_ns is None else max(self.last_ns, t)
+        self._scanned = self.path.stat().st_size
+        self.metadata = reader.metadata
+        self.complete = reader.complete
+        self.problem = reader.problem
+
+    def messages(self) -> Iterator[StoredMessage]:
+        """The fleet messages in receive-time order (file order among equal times). A file damaged
+        where the index said it was not: stops there, ``problem`` says why."""
+        if self._reader is None:
+            yield from self._recovered()
+            return
+        try:
+            for schema, channel, message in self._reader.iter_messages(topics=self._topics, log_time_order=True):
+                yield StoredMessage(
+                    channel.topic,
+                    schema.name if schema is not None else "?",
+                    dict(channel.metadata),
+                    message.log_time,
+                    message.publish_time,
+                    message.data,
+                )
+        except Exception as exc:  # a chunk that does not read back (its CRC, a compressor's error)
+            self.problem = _describe(exc)
+
+    def _recovered(self) -> Iterator[StoredMessage]:
+        import heapq
+
+        reader = RecordingReader(self.path)
+        window = round(REORDER_S * 1e9)
+        heap: list[tuple[int, int, StoredMessage]] = []
+        n = 0
+        for m in reader.messages():
+            if m.metadata.get("kind") not in FLEET_KINDS:
+                continue
+            heapq.heappush(heap, (m.log_time_ns, n, m))
+            n += 1
+            while heap and heap[0][0] <= m.log_time_ns - window:
+                yield heapq.heappop(heap)[2]
+        self._scanned += self.path.stat().st_size
+        while heap:
+            yield heapq.heappop(heap)[2]
 
 
 def _bad_magic(exc: Exception) -> bool:

@@ -11,10 +11,16 @@ Its clock (``ReplayClock``) is the recording's: ``now()`` and ``wall()`` are the
 time being played (epoch seconds), so ages, lost robots and alarms read as they did live. It stops
 at the end of the recording: the console then shows the fleet as the recording left it.
 
+Reading: the file is never held. ``FleetStream`` (site/recorder.py) reads a file closed properly
+through its MCAP index (the summary when it opens, then each chunk when the time being played
+reaches it, in receive-time order), a recovered file in file order; the source keeps an iterator
+and the next message only, so an hour-long recording costs what one chunk does.
+
 Seeking: ``start_s`` (seconds after the first message) fast-forwards through everything before it
 at once, so the fleet model holds the state at that moment, and plays on from there; ``seek(t)``
-does the same forward while playing. Read-only: ``send`` and ``publish`` refuse (and count); the
-console runs read-only and says so.
+does the same forward while playing (each chunk is read once; the fleet model is cumulative, so
+the chunks before the target are needed, the ones after it are not read until played).
+Read-only: ``send`` and ``publish`` refuse (and count); the console runs read-only and says so.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ from fleetlink.shared import wire, wire_json
 from fleetlink.shared.clock import Clock, SystemClock
 from fleetlink.shared.messages import DoseSnapshot, MapSnapshot
 from fleetlink.shared.worker import Worker
-from fleetlink.site.recorder import RecordingError, RecordingReader, StoredMessage
+from fleetlink.site.recorder import FleetStream, RecordingError, StoredMessage
 
 __all__ = ["ReadOnlyReplay", "ReplayClock", "ReplaySource"]
 
@@ -104,20 +110,24 @@ class ReplaySource:
             raise ValueError(f"speed must be a positive number, got {speed}")
         if start_s < 0:
             raise ValueError(f"start must be >= 0 s, got {start_s}")
-        reader = RecordingReader(path)
-        stored = [m for m in reader.messages() if m.metadata.get("kind") in ("wire", "uwb-status", "alive")]
-        if not stored:
-            why = f": {reader.problem}" if reader.problem else ""
+        stream = FleetStream(path)
+        if not stream.count or stream.first_ns is None or stream.last_ns is None:
+            stream.close()
+            why = f": {stream.problem}" if stream.problem else ""
             raise RecordingError(f"{path}: no fleet messages to replay{why}")
-        stored.sort(key=lambda m: m.log_time_ns)  # stable: file order among equal times
         self.path = Path(path)
-        self.complete = reader.complete
-        self.problem = reader.problem
+        self.stream = stream
+        """The recording, read as it plays (``FleetStream``: chunk by chunk through its index)."""
+        self.complete = stream.complete
         self.sender = SENDER
         self.speed = speed
-        self._messages = stored
-        self.first = stored[0].log_time_ns / 1e9
-        self.last = max(stored[-1].log_time_ns / 1e9, _stopped(reader.metadata))
+        self.total = stream.count
+        """Fleet messages in the recording."""
+        self._messages = stream.messages()
+        self._peek: StoredMessage | None = next(self._messages, None)
+        self._delivered = 0
+        self.first = stream.first_ns / 1e9
+        self.last = max(stream.last_ns / 1e9, _stopped(stream.metadata))
         """Where the recording ends: when the recorder stopped (a crashed one: its last message)."""
         self.start_at = min(self.last, self.first + start_s)
         self.clock = ReplayClock(self.first, real)
@@ -128,9 +138,10 @@ class ReplaySource:
         """Commands and publishes the console tried (a read-only console tries none)."""
         self.skipped: Counter[str] = Counter()
         """Recorded messages that no longer decode, by reason."""
-        self._next = 0
         self._polled: float | None = None
         self._lock = threading.Lock()
+        self._playing = threading.RLock()
+        """Held while messages are read and delivered (the player, a seek from the console)."""
         self._sinks: list[Callable[[wire.Message, str, float], None]] = []
         self._listeners: list[Callable[[Switch | Failed], None]] = []
         self._anchor_sinks: list[Callable[[str, list[tuple[str, float, float, float]]], None]] = []
@@ -190,9 +201,16 @@ class ReplaySource:
         return self
 
     def close(self) -> None:
+        """Stop playing and close the file (what was played stays with the sinks)."""
         if self._player is not None:
             self._player.stop()
             self._player = None
+        self.stream.close()
+
+    @property
+    def problem(self) -> str | None:
+        """What was wrong with the file (damage, truncation) where playing stopped, or None."""
+        return self.stream.problem
 
     def seek(self, seconds: float) -> None:
         """Jump to ``seconds`` after the first message (forward only: the fleet model keeps what
@@ -206,11 +224,11 @@ class ReplaySource:
     @property
     def delivered(self) -> int:
         """Recorded messages played so far."""
-        return self._next
+        return self._delivered
 
     @property
     def done(self) -> bool:
-        return self._next >= len(self._messages)
+        return self._peek is None
 
     def play_until(self, t: float) -> int:
         """Deliver every recorded message received at or before ``t`` (epoch s) not yet delivered,
@@ -218,13 +236,14 @@ class ReplaySource:
         console's link worker did (so failovers happen where they happened)."""
         n = 0
         limit = round(t * 1e9)
-        while self._next < len(self._messages) and self._messages[self._next].log_time_ns <= limit:
-            stored = self._messages[self._next]
-            self._poll_until(stored.log_time_ns / 1e9)
-            self._next += 1
-            self._deliver(stored)
-            n += 1
-        self._poll_until(t)
+        with self._playing:
+            while (stored := self._peek) is not None and stored.log_time_ns <= limit:
+                self._poll_until(stored.log_time_ns / 1e9)
+                self._peek = next(self._messages, None)
+                self._delivered += 1
+                self._deliver(stored)
+                n += 1
+            self._poll_until(t)
         return n
 
     def _poll_until(self, t: float) -> None:

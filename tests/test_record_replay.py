@@ -232,3 +232,72 @@ def test_replayed_console_snapshot(snap_compare: Any, tmp_path: Path) -> None:
 
     assert snap_compare(app, terminal_size=SIZE, run_before=before(lambda _p: None, drive))
     assert source.refused == {}
+
+
+def test_a_long_recording_is_played_chunk_by_chunk_not_held(tmp_path: Path) -> None:
+    """``ReplaySource`` reads a recording through its index as it plays (``FleetStream``): opening
+    it reads the summary only, playing to a time reads the chunks up to that time, and a seek to the
+    end reads each remaining chunk once; no list of the recording's messages is ever made."""
+    clock = SteppedClock()
+    bus = InProcessBus(LinkName.ZENOH, clock_now=clock.now)
+    path = tmp_path / "long.mcap"
+    recorder = Recorder(path, [bus.endpoint("recorder")], clock, fetch_maps=False, chunk_size=16 * 1024)
+    recorder.start()
+    agent = bus.endpoint("agent-r1")
+    agent.start()
+    counter = wire.HeaderCounter(clock, robot="r1", sender="agent-r1")
+    n = 3000  # 150 s of one robot's poses at 20 Hz
+    for i in range(n):
+        p = counter.make(
+            Pose, x=i * 0.001, y=0.0, theta=0.0, sd_x_m=0.05, sd_y_m=0.05, sd_theta_rad=0.01,
+            odom_x=0.0, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=False,
+        )  # fmt: skip
+        agent.publish(wire.key_of(p), wire.encode(p))
+        bus.deliver()
+        clock.advance(0.05)
+        if i % 200 == 0:
+            wait_until(lambda i=i: recorder.core.messages["/fleetlink/zenoh/pose"] > i, message="recorded")
+    wait_until(lambda: recorder.core.messages["/fleetlink/zenoh/pose"] == n, message="all recorded")
+    recorder.stop()
+    size = path.stat().st_size
+
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and len(summary.chunk_indexes) >= 20  # a long file: many chunks
+
+    source = ReplaySource(path)
+    try:
+        assert source.total == n and source.stream.complete and source.stream.indexed
+        opened = source.stream.bytes_read
+        assert opened < size / 10  # the summary (and the first chunk, for the first message)
+        assert source.delivered == 0
+        heard: list[float] = []
+        source.add_sink(lambda msg, link, t: heard.append(msg.x))  # type: ignore[attr-defined]
+        source.play_until(source.first + 0.25 * (source.last - source.first))
+        quarter = source.stream.bytes_read
+        assert abs(source.delivered - n // 4) <= 2
+        assert quarter < size / 2  # only the chunks up to that time
+        source.seek(source.last - source.first)  # to the end: the rest, each chunk once
+        assert source.done and source.delivered == n
+        assert heard == sorted(heard) and len(heard) == n  # in order, every one, once
+        assert source.stream.bytes_read < 1.2 * size  # each chunk read once, not the file again
+    finally:
+        source.close()
+    # Nothing holds the recording: the source keeps an iterator and the next message only.
+    assert not any(isinstance(v, list) and len(v) > 100 for v in vars(source).values())
+
+    # A recorder that crashed leaves no index: the file is read in file order (twice: its span,
+    # then as it plays), in time order, up to the damage.
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: int(size * 0.6)])
+    source = ReplaySource(cut)
+    try:
+        assert not source.stream.indexed and not source.complete and source.problem is not None
+        xs: list[float] = []
+        source.add_sink(lambda msg, link, t: xs.append(msg.x))  # type: ignore[attr-defined]
+        source.play_until(source.last)
+        assert source.done and 0.4 * n < len(xs) == source.total < 0.7 * n and xs == sorted(xs)
+    finally:
+        source.close()
