@@ -40,6 +40,9 @@ MAX_DELIVERIES = 1_000_000
 class InProcessLink:
     """One party's endpoint on an ``InProcessBus``; satisfies ``fleetlink.links.base.Link``."""
 
+    PUBLISH_QUEUES = True
+    """``publish`` only queues for the bus's ``deliver`` (links/sender.py: no send thread)."""
+
     def __init__(self, bus: InProcessBus, client_id: str) -> None:
         self.name = bus.name
         self.client_id = client_id

@@ -186,6 +186,9 @@ class MqttEndpoint:
     """A ``Link`` on one broker connection. See the module docstring."""
 
     name = LinkName.MQTT
+    PUBLISH_QUEUES = True
+    """``publish`` only queues the packet for the loop thread (never waits on the network):
+    no send thread of its own is needed (links/sender.py)."""
 
     def __init__(
         self,

@@ -16,7 +16,8 @@ The adapter (operator/links.py) feeds in what it hears (``heard``, ``acked``), a
 command goes (``command``), and calls ``poll`` a few dozen times a second; the returned ``Send``
 and ``Switch`` values are its instructions (no ``Switch`` in redundant mode: nothing moves).
 
-Health per robot and link (``health``), from each command's copies and their acks: round-trip
+Health per robot and link (``health``), from each command's copies and their acks (teleops'
+too: followed, never re-sent): round-trip
 time p50/p95 over the last ``rtt_window`` acks, loss (copies unacked within ``ack_timeout_s`` over
 the last ``loss_window``), age of the last message heard, and -- when both copies of a command were
 acked -- which link's ack came first and by how much. A link heard before is *degraded*
@@ -315,16 +316,18 @@ class LinkManager:
         active link (failover).
 
         With ``expect_ack`` the command is kept until acked and re-sent (on a switch, or after the
-        ack timeout); its copies' acks feed the link health. Without it (drive commands at the
-        key's repeat rate, superseded by the next one anyway) it is sent once and not followed.
+        ack timeout). Without it (drive commands at the key's repeat rate, superseded by the next
+        one anyway) it is sent once, never re-sent. Either way its copies are followed: the agent
+        acks a teleop like any command, so a held key's stream feeds the link health (RTT, loss,
+        which link delivered first) as goals do -- the commands a driver notices a slow link by.
         """
         state = self._robot(robot, now)
         links = LINKS if self.policy.redundant else (state.active,)
         sends = [Send(robot, link, topic, header_id, payload) for link in links]
         failed: list[Failed] = []
+        self._sent(state, (topic, header_id), links, now)
         if expect_ack:
             state.pending[(topic, header_id)] = _Pending(topic, header_id, payload, state.active, now, now)
-            self._sent(state, (topic, header_id), links, now)
             while len(state.pending) > self.policy.max_pending:
                 oldest = next(iter(state.pending))
                 dropped = state.pending.pop(oldest)

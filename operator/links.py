@@ -10,6 +10,12 @@ messages to a sink, and sends commands where the link manager says, re-sending u
 switch. A poll worker (``poll_hz``) drives the manager's clock-based decisions. The same bytes
 travel on both links; map and marks queries go over the primary when it can answer queries, and
 retained messages (the consoles' mark sets) over the links whose broker keeps them (MQTT).
+
+Each link's copy leaves on its own path: a link whose ``publish`` may wait on the network (Zenoh,
+whose commands are put with congestion control BLOCK) gets a send thread of its own
+(``links.sender.LinkSender``: a bounded queue, the oldest dropped and counted when full), and a
+link whose ``publish`` only queues (MQTT: paho's loop thread writes) is published to inline. So a
+stalled Zenoh holds up neither the MQTT copy nor the caller (the console's key handling).
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from typing import Any, TypeVar
 from urllib.parse import urlparse
 
 from fleetlink.links.base import Link, RetainLink
+from fleetlink.links.sender import LinkSender, needs_sender
 from fleetlink.operator.linkmanager import FALLBACK, PRIMARY, Failed, LinkHealth, LinkManager, LinkPolicy, Send, Switch
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
@@ -86,6 +93,10 @@ Listener = Callable[[Switch | Failed], None]
 MAX_EARLY = 4096
 """Messages kept for the first sink while none is added (the oldest dropped beyond)."""
 
+SENDER_STOP_S = 2.0
+"""On close, how long each link's send thread may take to hand on what was queued (the stop-all
+sent on quit) before the link is closed under it."""
+
 MAX_REJECT_REASONS = 256
 """Distinct rejection reasons counted (and logged once) apiece; the rest count as ``OTHER_REASONS``."""
 OTHER_REASONS = "(other reasons)"
@@ -109,6 +120,11 @@ class OperatorLink:
         if primary.name is not LinkName(PRIMARY) or fallback.name is not LinkName(FALLBACK):
             raise ValueError(f"links must be {PRIMARY} then {FALLBACK}, got {primary.name} and {fallback.name}")
         self.links: dict[LinkName, Link] = {primary.name: primary, fallback.name: fallback}
+        self.senders: dict[LinkName, LinkSender] = {
+            name: LinkSender(link) for name, link in self.links.items() if needs_sender(link)
+        }
+        """The send thread of each link whose publish may wait (links/sender.py); the others are
+        published to inline."""
         self.manager = LinkManager(policy)
         self.counter = wire.HeaderCounter(clock, robot="operator", sender=sender)
         self.rejected: Counter[str] = Counter()
@@ -165,11 +181,15 @@ class OperatorLink:
 
                 watch(ALIVE_TOKENS, token)
             link.start()
+        for sender in self.senders.values():
+            sender.start()
         self._poller.start()
         return self
 
     def close(self) -> None:
         self._poller.stop()
+        for sender in self.senders.values():  # what was queued goes out first (a stop-all on quit)
+            sender.stop(SENDER_STOP_S)
         for link in self.links.values():
             try:
                 link.close()
@@ -293,9 +313,19 @@ class OperatorLink:
             if isinstance(link, RetainLink):
                 link.add_connect_hook(listener)
 
+    def flush(self, timeout: float = 2.0) -> bool:
+        """Wait until every link's send thread has handed on what was sent so far; False if one
+        had not within ``timeout`` (each; a stuck link)."""
+        return all([sender.flush(timeout) for sender in self.senders.values()])
+
     def _put(self, link: str, key: str, payload: bytes) -> None:
+        name = LinkName(link)
+        sender = self.senders.get(name)
+        if sender is not None:
+            sender.submit(key, payload)  # never waits: its own thread publishes
+            return
         try:
-            self.links[LinkName(link)].publish(key, payload)
+            self.links[name].publish(key, payload)
         except Exception as exc:  # a dead transport must not take the console down; health shows it
             log.debug("publish on %s failed: %s", link, exc)
 

@@ -37,6 +37,9 @@ PROMPT = LinkPolicy(state_window_s=0.35, ack_timeout_s=0.25, holdoff_s=1.0)
 class MemoryTransport:
     """A ``fleetlink.links.base.Link`` that records what is published and injects what arrives."""
 
+    PUBLISH_QUEUES = True
+    """``publish`` only records (links/sender.py: sent inline, so a test reads it at once)."""
+
     def __init__(self, name: str) -> None:
         self.name = LinkName(name)
         self.stats = LinkStats()
