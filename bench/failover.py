@@ -1,6 +1,6 @@
 """Losing the primary link (Zenoh): what it costs with redundant sending and with failover only.
 
-    python bench/failover.py [--cuts 10] [--mode both|redundant|failover] [--json FILE]
+    python bench/failover.py [--cuts 10] [--mode both|redundant|failover|stall] [--json FILE]
 
 Real parts on loopback: a private Mosquitto (tests/harness), the operator's OperatorLink
 (Zenoh peer + paho client, link manager polling at 50 Hz) and a robot made of the agent's real
@@ -18,6 +18,14 @@ Two modes, the same load and the same cuts:
 * **failover** (a site with a metered link): commands go over the active link and move to MQTT
   once the link manager sees the primary silent (0.35 s) or a command unacked (0.25 s). Goal: cut ->
   first goal run over MQTT p99 <= 500 ms, 0 lost, 0 run twice.
+
+* **stall** (``--mode stall``): redundant sending, but the primary *stalls* instead of dropping:
+  the console's Zenoh publish blocks for the window (as a put with congestion control BLOCK waits
+  when its queue towards a peer is full; tests/test_link_stall.py makes that stall for real), the
+  robot's session stays open. Run twice: ``stall`` (each link's copy on its own send thread,
+  operator/links.py) and ``stall-inline`` (the baseline: both copies from the caller's thread, one
+  after the other, as before issue 18). Goal for ``stall``: added delay p99 <= 20 ms, 0 lost, 0
+  run twice, no deadman stop.
 
 *Added delay*: each goal's time from send to execution; the p99 of the goals sent in the first
 second after each cut, minus the p99 of the goals sent while both links were up and had been for
@@ -46,7 +54,7 @@ sys.path.insert(0, str(ROOT))
 from fleetlink.operator.commander import TELEOP_TTL_S  # noqa: E402
 from fleetlink.operator.linkmanager import FALLBACK, PRIMARY, LinkPolicy  # noqa: E402
 from fleetlink.shared.clock import SystemClock  # noqa: E402
-from fleetlink.shared.messages import Order, Teleop  # noqa: E402
+from fleetlink.shared.messages import LinkName, Order, Teleop  # noqa: E402
 from fleetlink.site.brokers import MosquittoBroker  # noqa: E402
 from tests.harness import wait_until  # noqa: E402
 from tests.harness.link_robot import LinkRobot, goal, open_operator  # noqa: E402
@@ -68,9 +76,11 @@ def pct(values: list[float], q: float) -> float:
 
 
 def run(mode: str, cuts: int, period: float, port: int, clock: SystemClock) -> dict[str, Any]:
-    redundant = mode == "redundant"
+    redundant = mode != "failover"
+    stalls = mode.startswith("stall")
     policy = LinkPolicy(state_window_s=0.35, ack_timeout_s=0.25, holdoff_s=0.3, redundant=redundant)
-    op, endpoint = open_operator(port, policy, sender=f"bench-{mode}")
+    op, endpoint = open_operator(port, policy, sender=f"bench-{mode}", stalling=stalls, inline=mode == "stall-inline")
+    stalling: Any = op.links[LinkName.ZENOH] if stalls else None
     robot = LinkRobot("r1", endpoint, port, clock)
     sent_at: dict[str, float] = {}
     cut_times: list[float] = []
@@ -82,10 +92,18 @@ def run(mode: str, cuts: int, period: float, port: int, clock: SystemClock) -> d
             if stop.wait(period / 2):
                 return
             cut_times.append(clock.now())
-            robot.cut_primary()
+            if stalling is not None:
+                stalling.stall()
+            else:
+                robot.cut_primary()
             if stop.wait(period / 2):
+                if stalling is not None:
+                    stalling.resume()
                 return
-            robot.open_primary()
+            if stalling is not None:
+                stalling.resume()
+            else:
+                robot.open_primary()
             open_times.append(clock.now())
 
     try:
@@ -113,6 +131,8 @@ def run(mode: str, cuts: int, period: float, port: int, clock: SystemClock) -> d
         health = {h.link: h for h in op.health("r1")}
     finally:
         stop.set()
+        if stalling is not None:
+            stalling.resume()
         robot.close()
         op.close()
     executed = list(robot.executed)
@@ -174,7 +194,9 @@ def run(mode: str, cuts: int, period: float, port: int, clock: SystemClock) -> d
 
 def verdict(f: dict[str, Any]) -> bool:
     clean = f["lost_count"] == 0 and f["executed_twice_count"] == 0
-    if f["mode"] == "redundant":
+    if f["mode"] == "stall-inline":
+        return True  # the baseline: shown, not judged
+    if f["mode"] in ("redundant", "stall"):
         return clean and f["added_delay_p99_s"] <= GOALS["added_delay_p99_s"] and f["deadman_stop_count"] == 0
     return clean and f["failover_p99_s"] <= GOALS["failover_p99_s"]
 
@@ -199,7 +221,7 @@ ROWS = (
 
 def table(results: dict[str, dict[str, Any]]) -> str:
     modes = list(results)
-    head = f"{'':38}" + "".join(f"{m:>12}" for m in modes)
+    head = f"{'':38}" + "".join(f"{m:>13}" for m in modes)
     if len(modes) == 2:
         head += f"{'ratio':>9}"
     lines = [head]
@@ -208,11 +230,11 @@ def table(results: dict[str, dict[str, Any]]) -> str:
         for m in modes:
             v = results[m].get(key)
             if v is None or v != v:
-                cells.append(f"{'-':>12}")
+                cells.append(f"{'-':>13}")
             elif isinstance(v, int):
-                cells.append(f"{v:>10d}{unit:>2}")
+                cells.append(f"{v:>11d}{unit:>2}")
             else:
-                cells.append(f"{v * scale:>10.1f}{unit:>2}")
+                cells.append(f"{v * scale:>11.1f}{unit:>2}")
         line = f"{label:38}" + "".join(cells)
         if len(modes) == 2:
             a, b = results[modes[0]].get(key), results[modes[1]].get(key)
@@ -226,12 +248,12 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--cuts", type=int, default=10, help="primary cuts per mode")
     parser.add_argument("--period", type=float, default=3.0, help="seconds between cuts (down half of it)")
-    parser.add_argument("--mode", choices=("both", "redundant", "failover"), default="both")
+    parser.add_argument("--mode", choices=("both", "redundant", "failover", "stall"), default="both")
     parser.add_argument("--json", type=Path, help="also write the figures as JSON (SI units)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)  # the link switches of failover mode are expected
     clock = SystemClock()
-    modes = ["redundant", "failover"] if args.mode == "both" else [args.mode]
+    modes = {"both": ["redundant", "failover"], "stall": ["stall", "stall-inline"]}.get(args.mode, [args.mode])
     results: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory() as tmp, MosquittoBroker(Path(tmp)) as broker:
         for mode in modes:
@@ -241,15 +263,18 @@ def main() -> int:
     print(
         f"primary (Zenoh) cut {args.cuts} times per mode, every {args.period:g} s for {args.period / 2:g} s; "
         f"a goal every {GOAL_PERIOD_S * 1e3:.0f} ms, a drive every {DRIVE_PERIOD_S * 1e3:.0f} ms (ttl "
-        f"{TELEOP_TTL_S:g} s)"
+        f"{TELEOP_TTL_S:g} s)" + (" -- the primary stalls (its publish blocks) instead" if args.mode == "stall" else "")
     )
-    print(table(results) + ("\n(ratio: redundant / failover)" if len(results) == 2 else ""))
+    ratio = f"\n(ratio: {modes[0]} / {modes[1]})" if len(results) == 2 else ""
+    print(table(results) + ratio)
     print(f"machine: {os.cpu_count()} cores, load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     met = {m: verdict(f) for m, f in results.items()}
     for m, ok in met.items():
+        if m == "stall-inline":
+            continue
         goal_text = (
             "added delay p99 <= 20 ms, 0 lost, 0 run twice, no deadman stop"
-            if m == "redundant"
+            if m in ("redundant", "stall")
             else "cut -> MQTT p99 <= 500 ms, 0 lost, 0 run twice"
         )
         print(f"{m}: {goal_text}: {'MET' if ok else 'NOT MET'}")
@@ -262,8 +287,8 @@ def main() -> int:
             "load_average": list(load),
         }
         if len(results) == 2:
-            r, f = results["redundant"], results["failover"]
-            doc["ratio_redundant_to_failover"] = {
+            r, f = results[modes[0]], results[modes[1]]
+            doc[f"ratio_{modes[0]}_to_{modes[1]}".replace("-", "_")] = {
                 k: r[k] / f[k]
                 for k in ("added_delay_p99_s", "goal_delay_cut_p99_s", "drive_gap_max_s")
                 if isinstance(r[k], float) and isinstance(f[k], float) and f[k]

@@ -28,7 +28,7 @@ from fleetlink.shared.messages import Ack, AckResult, Goal, LinkName, Order, Pos
 from tests.harness import wait_until
 from tests.harness.zenoh_peers import loopback_endpoint, zenoh_config
 
-__all__ = ["COMMANDS", "Execution", "LinkRobot", "goal", "open_operator"]
+__all__ = ["COMMANDS", "Execution", "LinkRobot", "StallingLink", "goal", "open_operator"]
 
 COMMANDS = ("order", "actions", "teleop")
 
@@ -151,12 +151,48 @@ class LinkRobot:
         self.mqtt.loop_stop()
 
 
-def open_operator(mqtt_port: int, policy: LinkPolicy, sender: str = "operator-1") -> tuple[OperatorLink, str]:
-    """An operator link listening on a fresh loopback Zenoh endpoint (robots connect to it)."""
+class StallingLink:
+    """A link whose ``publish`` waits while ``stall()`` is in force, as a Zenoh put with congestion
+    control BLOCK waits when its queue towards a peer is full (tests/test_link_stall.py makes that
+    for real); everything else is the inner link's. It says nothing of ``PUBLISH_QUEUES``, so an
+    ``OperatorLink`` gives it a send thread (links/sender.py) as it gives Zenoh."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+        self.name = inner.name
+        self.stats = inner.stats
+        self._flowing = threading.Event()
+        self._flowing.set()
+
+    def stall(self) -> None:
+        self._flowing.clear()
+
+    def resume(self) -> None:
+        self._flowing.set()
+
+    def publish(self, key: str, payload: bytes) -> bool:
+        self._flowing.wait()
+        return bool(self.inner.publish(key, payload))
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+
+def open_operator(
+    mqtt_port: int, policy: LinkPolicy, sender: str = "operator-1", *, stalling: bool = False, inline: bool = False
+) -> tuple[OperatorLink, str]:
+    """An operator link listening on a fresh loopback Zenoh endpoint (robots connect to it).
+    ``stalling``: its Zenoh endpoint is a ``StallingLink`` (``op.links[ZENOH]``); ``inline``: no
+    send threads, every copy published on the caller's thread one after the other (as before
+    issue 18: the baseline of bench/failover.py's stall mode)."""
     endpoint = loopback_endpoint()
-    primary = ZenohEndpoint(listen=[endpoint])
+    primary: Any = ZenohEndpoint(listen=[endpoint])
+    if stalling:
+        primary = StallingLink(primary)
     fallback = MqttEndpoint(mqtt_settings_for(f"mqtt://127.0.0.1:{mqtt_port}"), client_id=sender)
     link = OperatorLink(SystemClock(), sender, primary, fallback, policy=policy, poll_hz=50.0)
+    if inline:
+        link.senders.clear()
     link.start()
     wait_until(lambda: fallback.up, timeout=5.0, message="operator MQTT client to connect")
     return link, endpoint
