@@ -17,6 +17,8 @@ import math
 from collections.abc import Sequence
 from typing import Any, Final
 
+import orjson
+
 __all__ = [
     "FLOAT32",
     "GRID",
@@ -25,6 +27,7 @@ __all__ = [
     "MAP_FRAME",
     "POSE_IN_FRAME",
     "SCHEMAS",
+    "dumps",
     "grid",
     "laser_scan",
     "pose_in_frame",
@@ -182,15 +185,28 @@ def pose_in_frame(t: float, x: float, y: float, theta: float, frame: str = MAP_F
 
 
 def pose_in_frame_json(t: float, x: float, y: float, theta: float, frame: str = MAP_FRAME) -> bytes:
-    """``pose_in_frame(...)`` as compact JSON, formatted directly (a recorder writes one per pose:
-    a third of the time of building the dict and ``json.dumps``). ``frame`` must need no escaping."""
-    ts = timestamp(t)
+    """``pose_in_frame(...)`` as compact JSON, written by orjson from the fewest dicts (a recorder
+    writes one per pose: ~1.2 us, where building ``pose_in_frame`` and ``json.dumps`` took ~7)."""
     half = theta / 2.0
-    return (
-        f'{{"timestamp":{{"sec":{ts["sec"]},"nsec":{ts["nsec"]}}},"frame_id":"{frame}",'
-        f'"pose":{{"position":{{"x":{float(x)!r},"y":{float(y)!r},"z":0.0}},'
-        f'"orientation":{{"x":0.0,"y":0.0,"z":{math.sin(half)!r},"w":{math.cos(half)!r}}}}}}}'
-    ).encode()
+    return dumps(
+        {
+            "timestamp": timestamp(t),
+            "frame_id": frame,
+            "pose": {
+                "position": {"x": float(x), "y": float(y), "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)},
+            },
+        }
+    )
+
+
+def dumps(obj: object) -> bytes:
+    """Compact JSON: orjson (several times ``json.dumps``'s speed), or ``json`` for what orjson
+    refuses (an integer beyond 64 bits: the seconds of a wire-valid but absurd timestamp)."""
+    try:
+        return orjson.dumps(obj)
+    except TypeError:
+        return json.dumps(obj, separators=(",", ":")).encode()
 
 
 def grid(

@@ -63,6 +63,7 @@ __all__ = [
     "decode",
     "decode_any",
     "decode_key",
+    "decode_key_unpacked",
     "encode",
     "key_of",
     "message_type",
@@ -779,6 +780,13 @@ def decode_key(key_expr: str, data: bytes, *, max_payload: int = MAX_PAYLOAD) ->
 
     Accepts ordinary keys and truth keys. Raises only WireError.
     """
+    return decode_key_unpacked(key_expr, data, max_payload=max_payload)[0]
+
+
+def decode_key_unpacked(key_expr: str, data: bytes, *, max_payload: int = MAX_PAYLOAD) -> tuple[Message, Any]:
+    """``decode_key``, and the unpacked msgpack value it validated (plain dicts and lists, not to be
+    changed): for a receiver that also needs the message's wire form (the flight recorder's JSON,
+    shared/wire_json.py) without unpacking it twice. Raises only WireError."""
     sender: str | None = None
     try:
         if keys.is_truth_key(key_expr):
@@ -793,14 +801,19 @@ def decode_key(key_expr: str, data: bytes, *, max_payload: int = MAX_PAYLOAD) ->
             f"a {topic!r} message must be published on {keys.PREFIX}/<robot>/{topic}/<sender>, not {_show(key_expr)}",
             "key",
         )
-    msg = decode_any(topic, data, max_payload=max_payload)
+    _load_builtin_messages()
+    cls = _REGISTRY.get(topic)
+    if cls is None:
+        raise WireError(f"no message registered for topic {_show(topic)}", "topic")
+    obj = _unpack(data, max_payload)
+    msg = _decode_obj(cls, obj)
     if msg.header.robot != robot:
         raise WireError(f"{msg.header.robot!r} does not match the key's robot {robot!r}", "header.robot")
     if sender is not None and msg.header.sender != sender:
         raise WireError(
             f"{msg.header.sender!r} does not match the key's sender {sender!r} (who published it)", "header.sender"
         )
-    return msg
+    return msg, obj
 
 
 # --------------------------------------------------------------------------------------------------

@@ -30,7 +30,15 @@ import orjson
 
 from fleetlink.shared import wire
 
-__all__ = ["JSON_SCHEMA_DIALECT", "from_json", "json_schema", "schema_bytes", "to_json", "wire_to_json"]
+__all__ = [
+    "JSON_SCHEMA_DIALECT",
+    "from_json",
+    "json_schema",
+    "schema_bytes",
+    "to_json",
+    "unpacked_to_json",
+    "wire_to_json",
+]
 
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 
@@ -187,7 +195,12 @@ def wire_to_json(cls: type[wire.Message], payload: bytes) -> bytes:
     spelling of some floats, ``1e-07`` as ``1e-7``: the same numbers): ~1 us for a pose where
     ``json.dumps`` took ~8 us, and a flight recorder converts a thousand a second. A wire-valid
     message has only finite floats and integers of at most 64 bits, which orjson writes."""
-    obj = msgpack.unpackb(payload, raw=False)
+    return unpacked_to_json(cls, msgpack.unpackb(payload, raw=False))
+
+
+def unpacked_to_json(cls: type[wire.Message], obj: Any) -> bytes:
+    """``wire_to_json`` of the value ``wire.decode_key_unpacked`` unpacked and validated (not
+    changed: bytes are converted in a copy)."""
     conv = _to_json_of(cls)
     if conv is not None:
         obj = conv(obj)

@@ -27,7 +27,6 @@ it to ``message`` like any other.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -128,7 +127,9 @@ def map_topic(robot: str) -> str:
 
 
 def _dumps(obj: object) -> bytes:
-    return json.dumps(obj, separators=(",", ":")).encode()
+    """Compact JSON (``foxglove.dumps``: orjson, a scan's 360 ranges in a fraction of ``json.dumps``'s
+    time; every float here is finite)."""
+    return foxglove.dumps(obj)
 
 
 class FoxgloveScene:

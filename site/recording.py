@@ -144,14 +144,14 @@ class RecordingCore:
             msg, data = seen
         else:
             try:
-                msg = wire.decode_key(key, payload)
+                msg, unpacked = wire.decode_key_unpacked(key, payload)
             except wire.WireError as exc:
                 self._reject(exc.reason)
                 return []
             robot = msg.header.robot
             if robot not in self.robots and robot != keys.FLEET_MAP and not self._new_robot(robot):
                 return []
-            data = wire_json.wire_to_json(type(msg), payload)
+            data = wire_json.unpacked_to_json(type(msg), unpacked)
             recent[(key, payload)] = (msg, data)
             if len(recent) > RECENT:
                 del recent[next(iter(recent))]
