@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fleetlink.cli.record import add_connection_arguments, connection_settings, open_links
+from fleetlink.cli.record import add_connection_arguments, connection_settings, open_links, run_until_stopped
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -57,12 +57,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: cannot start the Foxglove server: {exc}", file=sys.stderr)
         return 1
     print(f"serving the fleet on ws://{args.host}:{live.port} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-    deadline = None if args.duration is None else clock.now() + args.duration
     try:
-        while deadline is None or clock.now() < deadline:
-            clock.sleep(0.2 if deadline is None else max(0.0, min(0.2, deadline - clock.now())))
-    except KeyboardInterrupt:
-        pass
+        run_until_stopped(clock, args.duration)
     finally:
         live.stop()
     core = live.core

@@ -69,6 +69,16 @@ def connection_settings(args: argparse.Namespace) -> Any:
     return load_settings(args)
 
 
+def run_until_stopped(clock: Any, duration: float | None) -> None:
+    """Wait on ``clock`` for ``duration`` seconds (None: until Ctrl-C); Ctrl-C ends it quietly."""
+    deadline = None if duration is None else clock.now() + duration
+    try:
+        while deadline is None or clock.now() < deadline:
+            clock.sleep(0.2 if deadline is None else max(0.0, min(0.2, deadline - clock.now())))
+    except KeyboardInterrupt:
+        pass
+
+
 def open_links(settings: Any, role: str, clock: Any) -> list[Any]:
     """The listener's Zenoh and MQTT endpoints (not started), logged in as ``settings`` say."""
     from fleetlink.cli.console import mqtt_client_settings
@@ -116,12 +126,8 @@ def record(args: argparse.Namespace) -> int:
         print(f"error: cannot start the recorder: {exc}", file=sys.stderr)
         return 1
     print(f"recording to {args.out} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-    deadline = None if args.duration is None else clock.now() + args.duration
     try:
-        while deadline is None or clock.now() < deadline:
-            clock.sleep(0.2 if deadline is None else max(0.0, min(0.2, deadline - clock.now())))
-    except KeyboardInterrupt:
-        pass
+        run_until_stopped(clock, args.duration)
     finally:
         recorder.stop()
     core = recorder.core
