@@ -20,7 +20,7 @@ from fleetlink.operator.linkmanager import LinkPolicy
 from fleetlink.operator.links import OperatorLink
 from fleetlink.shared import wire
 from fleetlink.shared.clock import Clock, SystemClock
-from fleetlink.shared.messages import Ack, AckResult, InstantActions, LinkName, Order, Pose
+from fleetlink.shared.messages import Ack, AckResult, InstantActions, LinkName, Order, Pose, Teleop
 from fleetlink.site.rounds import plan_round
 
 __all__ = ["CALM", "ME", "PROMPT", "MemoryTransport", "Rig"]
@@ -124,9 +124,10 @@ class Rig:
         self.link.close()
 
     def _ack(self, transport: MemoryTransport, key: str, payload: bytes) -> None:
-        """Like an agent: ack every order and instant action on the link it came on."""
+        """Like an agent: ack every order, instant action and teleop on the link it came on (an
+        unacked teleop counts as lost: after 2 s of them the console fails over to MQTT)."""
         msg = wire.decode_key(key, payload)
-        if not isinstance(msg, Order | InstantActions):
+        if not isinstance(msg, Order | InstantActions | Teleop):
             return
         fields = {
             "commandTopic": msg.TOPIC, "commandSender": msg.header.sender, "commandHeaderId": msg.header.headerId,
