@@ -2018,8 +2018,9 @@ def plan_sweep(
 ) -> CoveragePlan:
     """A boustrophedon floor-coverage route over the area: the standable part of the area is cut into
     cells (``_decompose``) with lanes along x (``axis=0``) or y (``axis=1``) one tool width apart;
-    each cell is swept lane by lane, turning at alternate ends; cells are taken nearest entry first
-    (any of a cell's four corners) from where the last one ended, joined by shortest stand paths.
+    each cell is swept lane by lane, turning at alternate ends, its lanes spread to its own floor
+    (``_edge_lanes``); cells are taken in the order whose ways between them are shortest, each entered
+    at any of its four corners (``_strip_order``), joined by shortest stand paths.
     ``axis=None`` tries both and keeps the shorter route (usually lanes along the longest side).
     ``predicted.coverage``: share of the floor the tool can reach at all (``swept_m2``: target cells
     within half a tool width of a stand cell) that the route passes within half a tool width of;

@@ -10,7 +10,7 @@ true dose comes from the robot's true pose and its board's lamp. Modes, each its
 
 * ``uv``: the console's planner (``site/rounds.py``: dwell points, 99.5 % of the lamp-reachable
   floor, 10 % dose margin, the lamp on between points), then a top-up pass on what the robot's
-  own dose layer says is still short (``MAX_PASSES``);
+  own dose layer says is still short, when it reads under 99 % (``MAX_PASSES``, ``CERTIFIED``);
 * ``uv x2``: the same with two robots splitting the room;
 * ``park`` (baseline a): park in the middle, dwell until the farthest reachable floor in line of
   sight has the dose;

@@ -83,7 +83,8 @@ looks, sees the robot against a wall and presses resume, the operator resumes it
 ``HAZARD_RESUME_S``, at most this many times per robot (the robot backs out or skips the node)."""
 MAX_PASSES = 2
 """A UV round is planned again on what the robots' own dose layers say is still short (a top-up,
-as an operator does with a second ``:disinfect``), at most this many passes in all."""
+as an operator does with a second ``:disinfect``; none once they read ``CERTIFIED``), at most this
+many passes in all."""
 
 
 @dataclass(frozen=True, slots=True)

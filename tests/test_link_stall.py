@@ -124,7 +124,7 @@ def test_teleop_copies_feed_rtt_loss_and_first_delivered(redundant: bool) -> Non
 # -- a real stall ----------------------------------------------------------------------------------
 
 FROZEN_PEER = """
-import sys, time, zenoh
+import sys, threading, zenoh
 conf = zenoh.Config()
 conf.insert_json5("mode", '"client"')
 conf.insert_json5("connect/endpoints", '["%s"]' % sys.argv[1])
@@ -132,7 +132,7 @@ conf.insert_json5("scouting/multicast/enabled", "false")
 s = zenoh.open(conf)
 sub = s.declare_subscriber("**", lambda sample: None)
 print("ready", flush=True)
-time.sleep(600)
+threading.Event().wait()  # until the test kills it (SIGSTOP first)
 """
 
 
