@@ -144,8 +144,25 @@ def test_closures_are_found_and_pull_the_trajectory_onto_the_truth() -> None:
     want = relative(truth[first], truth[again])
     got = relative(closed[first], closed[again])
     assert math.dist(want[:2], got[:2]) < 0.1, (want, got)
-    # The grid was drawn again from the corrected poses.
+    # The grid is drawn again from the corrected poses when it is read (see the next test).
+    m.occupancy()
     assert m.redraws >= 1
+
+
+def test_the_grid_is_drawn_again_when_read_not_after_every_solve() -> None:
+    m, _ = _run(MapperConfig(matching=False, closer=CloserConfig()))
+    assert m.closer is not None and m.closer.stats.solves >= 2
+    assert m.redraws == 0  # nothing read the map during the run
+    before = m._grid.logodds.copy()
+    m.occupancy()
+    assert m.redraws == 1 and not np.array_equal(before, m._grid.logodds)
+    # Drawn at the final poses: every integrated scan where the last solve put it.
+    assert m._drawn_at == m.closer.poses
+    field = m.grid.field.copy()
+    m._grid.refresh()
+    assert np.array_equal(field, m._grid.field)
+    m.occupancy()
+    assert m.redraws == 1  # nothing moved since: not drawn again
 
 
 def test_closures_that_move_a_node_far_wait_for_a_second_one_that_agrees() -> None:

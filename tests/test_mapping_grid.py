@@ -119,3 +119,22 @@ def test_chunked_free_space_and_banded_occupancy_change_no_value(monkeypatch: py
         assert np.array_equal(g.field, whole.field)
         assert np.array_equal(o, occ)
     assert (occ >= 0).any() and (occ == -1).any()
+
+
+def test_a_field_refreshed_late_is_the_field_refreshed_per_scan() -> None:
+    """``integrate(refresh=False)`` remembers what it changed (shifted when the grid grows) and
+    ``refresh_stale`` brings the likelihood field and its coarse copy to the same values, to the bit,
+    as refreshing after every scan: the whole grid is refreshed only when it is read."""
+    rng = np.random.default_rng(11)
+    now, late = LogOddsGrid(GridConfig(grow_step=2.0)), LogOddsGrid(GridConfig(grow_step=2.0))
+    for k in range(15):
+        pose = (float(rng.uniform(-1, 1)) + 0.8 * k, float(rng.uniform(-1, 1)) - 0.5 * k, float(rng.uniform(-3, 3)))
+        n = int(rng.integers(20, 200))
+        r, a, hit = rng.uniform(0.2, 6.0, n), np.sort(rng.uniform(-np.pi, np.pi, n)), rng.random(n) > 0.2
+        now.integrate(pose, r, a, hit)
+        late.integrate(pose, r, a, hit, refresh=False)
+    assert late.stale is not None and not np.array_equal(late.field, now.field)
+    late.refresh_stale()
+    assert late.stale is None
+    assert late.shape == now.shape and late.origin == now.origin
+    assert np.array_equal(late.field, now.field) and np.array_equal(late.coarse_field, now.coarse_field)

@@ -90,6 +90,7 @@ class LogOddsGrid:
         self.empty = True  # nothing integrated yet
         self.version = 0  # +1 per integrated scan
         self.dirty: Box | None = None  # cells changed since the last take_dirty()
+        self.stale: Box | None = None  # cells whose likelihood field waits for refresh_stale()
 
     # -- geometry ------------------------------------------------------------------------------
 
@@ -160,6 +161,9 @@ class LogOddsGrid:
             if self.dirty is not None:
                 r0, c0, r1, c1 = self.dirty
                 self.dirty = (r0 + row0, c0 + col0, r1 + row0, c1 + col0)
+            if self.stale is not None:
+                r0, c0, r1, c1 = self.stale
+                self.stale = (r0 + row0, c0 + col0, r1 + row0, c1 + col0)
         self.logodds, self.seen, self.field = lo, seen, fld
         self.origin = (ox, oy)
         self.coarse_field = _max_pool(fld, c)
@@ -180,7 +184,8 @@ class LogOddsGrid:
 
         ``ranges``/``angles``: valid beams (see ``scan.prepare``); ``hit`` False for beams that
         returned nothing within range (they only clear). Returns the changed box of cells.
-        ``refresh=False`` leaves the likelihood field for a later ``refresh`` (a redraw of many scans).
+        ``refresh=False`` leaves the likelihood field for a later ``refresh_stale`` (a redraw of many
+        scans, or a grid nobody matches against until it is read): the box is remembered in ``stale``.
         """
         if ranges.size == 0:
             return None
@@ -223,6 +228,8 @@ class LogOddsGrid:
             return None
         if refresh:
             self._refresh_field(box)
+        else:
+            self.stale = box if self.stale is None else _union(self.stale, box)
         self.empty = False
         self.version += 1
         self.dirty = box if self.dirty is None else _union(self.dirty, box)
@@ -237,10 +244,21 @@ class LogOddsGrid:
         self.coarse_field.fill(0.0)
         self.empty = True
         self.dirty = (0, 0, *self.shape)
+        self.stale = None
 
     def refresh(self, box: Box | None = None) -> None:
-        """Recompute the likelihood field over ``box`` (default: the whole grid)."""
+        """Recompute the likelihood field over ``box`` (default: the whole grid, and nothing is stale)."""
+        if box is None:
+            self.stale = None
         self._refresh_field(box if box is not None else (0, 0, *self.shape))
+
+    def refresh_stale(self) -> None:
+        """Bring the likelihood field up to date over what ``integrate(refresh=False)`` changed: the
+        same field, to the bit, as refreshing after every scan (each cell's value depends only on the
+        log-odds around it)."""
+        if self.stale is not None:
+            box, self.stale = self.stale, None
+            self._refresh_field(box)
 
     def _refresh_field(self, box: Box) -> None:
         """Recompute the likelihood field (and its coarse copy) over ``box`` plus the kernel's reach."""

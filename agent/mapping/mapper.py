@@ -108,7 +108,12 @@ class OnboardMapper:
 
     def __init__(self, config: MapperConfig | None = None) -> None:
         self.config = cfg = config or MapperConfig()
-        self.grid = LogOddsGrid(cfg.grid)
+        self._grid = LogOddsGrid(cfg.grid)
+        # With loop closure and recent grids the whole grid is an output only (the front end matches
+        # the recent grids): its likelihood field is brought up to date, and the grid drawn again
+        # after solves, when it is read (``grid``, ``occupancy``, ``plan``, ``version``), not per scan.
+        self._lazy = cfg.closer is not None and cfg.recent_scans > 0
+        self._redraw_due = False
         self.trajectory: list[tuple[float, Pose]] = []
         self.scans = 0
         self.matched = 0
@@ -121,9 +126,10 @@ class OnboardMapper:
         self._local = LocalMap(cfg.local_keyframes, cfg.local_cell)
         self._last_local: Pose | None = None
         self._planner_version = -1
-        self._recent: list[tuple[list[int], LogOddsGrid]] = []  # ([scans integrated], grid), oldest first
-        # The last ``recent_scans`` keyframes in the recent grids: sensor pose and beams.
-        self._recent_log: list[tuple[Pose, FloatArray, FloatArray, npt.NDArray[np.bool_]]] = []
+        # The recent grids, oldest first: [scans integrated], the grid, and the transform from the map
+        # frame into the grid's own frame (the frame the grid was drawn in: a solve that moves the
+        # front end moves the grid with it by composing this, not by drawing it again).
+        self._recent: list[tuple[list[int], LogOddsGrid, list[Pose]]] = []
         self.closer = LoopCloser(cfg.closer, cfg.grid, cfg.mount) if cfg.closer is not None else None
         # For redrawing after a solve: each integrated scan's node, its pose in the node's frame, and
         # its beams; per trajectory entry, its node and offset (-1: before the first node).
@@ -134,6 +140,19 @@ class OnboardMapper:
         self._node_pose: Pose | None = None  # the newest node's pose as the front end has it
         self._drawn_at: list[Pose] = []  # each node's pose when the grid was last drawn from it
         self.redraws = 0
+
+    @property
+    def grid(self) -> LogOddsGrid:
+        """The map, up to date: drawn again from the graph's poses if a solve has moved some node more
+        than ``redraw_distance`` since it was last drawn, its likelihood field refreshed. A redraw costs
+        every integrated scan's ray update, so with loop closure the grid is drawn when read, at the
+        reader's rate (the map share's 1 Hz on board; once at the end of a replay), not after every
+        solve."""
+        if self._redraw_due:
+            self._redraw_due = False
+            self.redraw(self.config.redraw_distance)
+        self._grid.refresh_stale()
+        return self._grid
 
     @property
     def version(self) -> int:
@@ -205,10 +224,12 @@ class OnboardMapper:
 
         sensor_guess = compose(guess, cfg.mount)
         pose, score, matched = guess, 0.0, False
-        target = self._match_grid()
+        target, to_target = self._match_grid()
         if cfg.matching and not target.empty and len(match_pts) >= cfg.min_points:
-            m = match_scan(target, match_pts, sensor_guess, cfg.match, prior)
-            found, score = m.pose, m.score
+            # Matched in the target grid's frame (a rigid move of the map frame: the prior's penalty,
+            # isotropic in x and y, is the same in either), refined and reported in the map frame.
+            m = match_scan(target, match_pts, compose(to_target, sensor_guess), cfg.match, prior)
+            found, score = compose(inverse(to_target), m.pose), m.score
             good = False
             if cfg.refine_local and len(self._local):
                 sd = prior if prior is not None else (cfg.match.prior_sigma_xy, cfg.match.prior_sigma_theta)
@@ -216,7 +237,7 @@ class OnboardMapper:
                 r_ = icp_refine(self._local, icp_pts, found, sensor_guess, sd, cfg.icp_sigma, cfg.icp_max_distance)
                 if r_.inliers >= cfg.min_points:
                     found = r_.pose
-                    score = field_score(target, match_pts, found)
+                    score = field_score(target, match_pts, compose(to_target, found))
                     good = r_.inliers >= cfg.min_inlier_ratio * len(icp_pts)
             if good or score >= cfg.min_score:
                 pose = compose(found, inverse(cfg.mount))
@@ -224,7 +245,7 @@ class OnboardMapper:
                 matched = True
         if matched:
             self.matched += 1
-        elif not self.grid.empty:
+        elif not self._grid.empty:
             self.fallbacks += 1
 
         integrated = False
@@ -233,7 +254,7 @@ class OnboardMapper:
             full_hit = hit.copy()
             idx = np.flatnonzero(hit)
             full_hit[idx[~keep_hit]] = False
-            self.grid.integrate(compose(pose, cfg.mount), r, a, full_hit)
+            self._grid.integrate(compose(pose, cfg.mount), r, a, full_hit, refresh=not self._lazy)
             if cfg.recent_scans and self.closer is not None:
                 self._add_recent(compose(pose, cfg.mount), r, a, full_hit)
             made_node = False
@@ -283,19 +304,20 @@ class OnboardMapper:
             for n in range(max(0, len(poses) - cfg.local_keyframes), len(poses)):
                 sc = closer.scans[n]
                 self._local.add(compose(poses[n], cfg.mount), sc.points, sc.normals)
-        # The recent grids the front end matches move with it, rigidly: drawn again at their scans'
-        # poses moved by the same correction once it is large enough to blur a wall (after a large
-        # move, e.g. the first solve with site priors, matching the old ones would double the walls).
-        # Rigidly, not at the graph's poses: those bend the recent stretch to fit older closures,
-        # and the front end matching that bend measured the office 0.034 m off instead of 0.015 m.
-        if self._recent and math.hypot(fix[0], fix[1]) + REDRAW_LEVER_M * abs(fix[2]) > cfg.redraw_distance:
-            log = [(compose(fix, sensor), rr, aa, hit) for sensor, rr, aa, hit in self._recent_log]
-            self._recent, self._recent_log = [], []
-            for sensor, rr, aa, hit in log:
-                self._add_recent(sensor, rr, aa, hit)
-        # Redraw only once some node has moved enough since it was drawn to blur the walls: the grid's
-        # field is blurred over ~2 cells anyway, and a redraw costs every scan's ray update again.
-        self.redraw(cfg.redraw_distance)
+        # The recent grids the front end matches move with it, rigidly: each keeps the transform from
+        # the map frame into its own, and the correction is composed into it (exact, and no scan is
+        # drawn again: redrawing the last 60 keyframes after every solve was a quarter of intel's
+        # replay time). Rigidly, not at the graph's poses: those bend the recent stretch to fit older
+        # closures, and the front end matching that bend measured the office 0.034 m off, not 0.015 m.
+        back = inverse(fix)
+        for _, _, tf in self._recent:
+            tf[0] = compose(tf[0], back)
+        # Redraw only once some node has moved enough since it was drawn to blur the walls (the grid's
+        # field is blurred over ~2 cells anyway, and a redraw costs every scan's ray update again), and
+        # only when the grid is read (see ``grid``).
+        self._redraw_due = True
+        if not self._lazy:
+            self.grid  # noqa: B018 (drawn now: the front end matches this grid)
         return pose
 
     def redraw(self, threshold: float = 0.0) -> bool:
@@ -316,7 +338,8 @@ class OnboardMapper:
                 return False
         self.redraws += 1
         self._drawn_at = list(poses)
-        grid = self.grid
+        self._redraw_due = False
+        grid = self._grid
         grid.clear()
         for node, offset, r, a, hit in self._drawn:
             sensor = compose(compose(poses[node], offset), cfg.mount)
@@ -336,24 +359,25 @@ class OnboardMapper:
             for (t, _), (node, offset) in zip(self.trajectory, self._links, strict=True)
         ]
 
-    def _match_grid(self) -> LogOddsGrid:
-        """What the front end matches against: the whole grid, or (``recent_scans``) the older of two
-        staggered recent grids, so the steps it measures are local (Cartographer's local SLAM)."""
+    def _match_grid(self) -> tuple[LogOddsGrid, Pose]:
+        """What the front end matches against and the transform from the map frame into its frame:
+        the whole grid, or (``recent_scans``) the older of two staggered recent grids, so the steps it
+        measures are local (Cartographer's local SLAM)."""
         if not self._recent:
-            return self.grid
-        return self._recent[0][1]
+            return self.grid, (0.0, 0.0, 0.0)
+        _, grid, tf = self._recent[0]
+        return grid, tf[0]
 
     def _add_recent(self, sensor: Pose, r: FloatArray, a: FloatArray, hit: npt.NDArray[np.bool_]) -> None:
         """Add a keyframe to the recent grids: a second grid starts when the first holds half of
         ``recent_scans``, and the first is dropped once it holds them all, so the one matched against
-        always holds between half and all of the last ``recent_scans`` keyframes."""
+        always holds between half and all of the last ``recent_scans`` keyframes. A new grid starts in
+        the map frame as it is now."""
         n = self.config.recent_scans
-        self._recent_log.append((sensor, r, a, hit))
-        del self._recent_log[:-n]
         if not self._recent or (self._recent[-1][0][0] >= n // 2 and len(self._recent) < 2):
-            self._recent.append(([0], LogOddsGrid(self.config.grid)))
-        for count, grid in self._recent:
-            grid.integrate(sensor, r, a, hit)
+            self._recent.append(([0], LogOddsGrid(self.config.grid), [(0.0, 0.0, 0.0)]))
+        for count, grid, tf in self._recent:
+            grid.integrate(compose(tf[0], sensor), r, a, hit)
             count[0] += 1
         if self._recent[0][0][0] >= n:
             self._recent.pop(0)
@@ -383,7 +407,8 @@ class OnboardMapper:
 
     def occupancy(self) -> tuple[npt.NDArray[np.int8], float, tuple[float, float]]:
         """(cells, resolution, origin): map_server-style int8 cells, row 0 at the bottom."""
-        return self.grid.occupancy(), self.grid.resolution, self.grid.origin
+        grid = self.grid
+        return grid.occupancy(), grid.resolution, grid.origin
 
     def planner(self) -> PathPlanner:
         """A planner over the current map (rebuilt when the map changed)."""
