@@ -29,14 +29,17 @@ Pure Python, no I/O.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import enum
+import inspect
 import math
 import re
+import sys
 import threading
 import types
 import typing
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import Annotated, Any, ClassVar, TypeVar
 
 import msgpack
@@ -65,6 +68,7 @@ __all__ = [
     "decode_key",
     "decode_key_unpacked",
     "encode",
+    "generic_decoding",
     "key_of",
     "message_type",
     "register",
@@ -248,11 +252,14 @@ class FieldSpec:
 class _Struct:
     """Codec for one dataclass, built once.
 
-    ``dec``/``enc`` try a fast path (one comprehension over the fields); if anything is wrong
-    they re-run the slow, field-by-field path, which finds and names the offending field.
+    ``dec`` runs the decoder generated for the class (``_generate``: straight-line code, every
+    check inlined); on anything it does not accept as it stands it re-runs the generic,
+    field-by-field path (``_dec_slow``), which decides: it accepts what the generated code would
+    have and finds and names the offending field. ``enc`` tries one comprehension over the fields,
+    and the field-by-field path if anything is wrong.
     """
 
-    __slots__ = ("cls", "codec", "dec_fields", "enc_fields", "n", "names", "specs")
+    __slots__ = ("cls", "codec", "dec_fields", "enc_fields", "fast", "n", "names", "source", "specs")
 
     def __init__(self, cls: type[Any], specs: tuple[FieldSpec, ...], codecs: tuple[_Codec, ...]) -> None:
         self.cls = cls
@@ -261,14 +268,15 @@ class _Struct:
         self.names = frozenset(s.name for s in specs)
         self.dec_fields = tuple((s.name, c.dec) for s, c in zip(specs, codecs, strict=True))
         self.enc_fields = tuple((s.name, c.enc) for s, c in zip(specs, codecs, strict=True))
+        self.fast, self.source = _generate(cls, specs)
         self.codec = _Codec(self.dec, self.enc)
 
     def dec(self, value: Any) -> Any:
-        if type(value) is dict and len(value) == self.n:
+        if _generated:
             try:
-                return self.cls(**{name: dec(value[name]) for name, dec in self.dec_fields})
+                return self.fast(value)
             except Exception:
-                pass  # the slow path raises the precise WireError
+                pass  # the generic path decides, and names the offending field
         return self._dec_slow(value)
 
     def _dec_slow(self, value: Any) -> Any:
@@ -375,11 +383,10 @@ def _allow(limits: Limits, where: str, kind: str, *allowed: str) -> None:
             raise TypeError(f"{where}: limit {name!r} does not apply to {kind}")
 
 
-def _with_check(codec: _Codec, check: Callable[[Any], object] | None) -> _Codec:
-    if check is None:
-        return codec
-    inner_dec, inner_enc = codec.dec, codec.enc
-    passed: set[str] = set()  # ids and versions repeat on every message: check each once
+def _checker(check: Callable[[Any], object]) -> tuple[Callable[[Any], None], set[str]]:
+    """``run(value)``: ``check`` with its failure as a WireError, and the set of strings that
+    passed (ids and versions repeat on every message: each is checked once)."""
+    passed: set[str] = set()
 
     def run(value: Any) -> None:
         if type(value) is str and value in passed:
@@ -390,6 +397,15 @@ def _with_check(codec: _Codec, check: Callable[[Any], object] | None) -> _Codec:
             raise WireError(str(exc) or type(exc).__name__) from None
         if type(value) is str and len(passed) < _CHECK_CACHE_SIZE:
             passed.add(value)
+
+    return run, passed
+
+
+def _with_check(codec: _Codec, check: Callable[[Any], object] | None) -> _Codec:
+    if check is None:
+        return codec
+    inner_dec, inner_enc = codec.dec, codec.enc
+    run, _ = _checker(check)
 
     def dec(value: Any) -> Any:
         out = inner_dec(value)
@@ -623,6 +639,181 @@ def _enum_codec(cls: type[enum.Enum], where: str) -> _Codec:
         raise WireError(f"expected {cls.__name__}, got {_show(value)}")
 
     return _Codec(dec, enc)
+
+
+# --------------------------------------------------------------------------------------------------
+# Generated decoders: one function per dataclass, written once when it is compiled
+
+
+class _Fallback(Exception):
+    """Raised by a generated decoder for anything it does not accept as it stands."""
+
+
+_generated = True
+"""Decode through the generated functions (False: the generic path alone, ``generic_decoding``)."""
+
+_FLOAT_MAX = sys.float_info.max
+
+
+@contextlib.contextmanager
+def generic_decoding() -> Iterator[None]:
+    """Within this block, decode with the generic field-by-field path only, as before the decoders
+    were generated: the reference that tests hold the generated ones to. Not for concurrent use."""
+    global _generated
+    before, _generated = _generated, False
+    try:
+        yield
+    finally:
+        _generated = before
+
+
+class _Writer:
+    """Source text of one generated decoder and the values it refers to."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+        self.env: dict[str, Any] = {"_Fallback": _Fallback}
+        self._count = 0
+
+    def name(self, hint: str) -> str:
+        self._count += 1
+        return f"{hint}{self._count}"
+
+    def const(self, value: Any, hint: str) -> str:
+        name = self.name(f"_{hint}")
+        self.env[name] = value
+        return name
+
+    def line(self, indent: int, text: str) -> None:
+        self.lines.append("    " * indent + text)
+
+    def value(self, tp: Any, limits: Limits, v: str, indent: int) -> None:
+        """Lines that check the wire value in local ``v`` against ``tp`` and ``limits`` and leave
+        its decoded value in ``v``, or raise; mirrors ``_compile`` case by case."""
+        origin = typing.get_origin(tp)
+        if origin is typing.Union or origin is types.UnionType:
+            inner = next(a for a in typing.get_args(tp) if a is not type(None))
+            inner_tp, inner_limits = _unwrap(inner, limits)
+            self.line(indent, f"if {v} is not None:")
+            self.value(inner_tp, inner_limits, v, indent + 1)
+            return
+        fail = "raise _Fallback"
+        if origin is list or origin is tuple:
+            item_tp, item_limits = _unwrap(typing.get_args(tp)[0], limits.item or _NO_LIMITS)
+            items, x = self.name("items"), self.name("x")
+            self.line(indent, f"if type({v}) is not list or len({v}) > {limits.max_len!r}:")
+            self.line(indent + 1, fail)
+            self.line(indent, f"{items} = []")
+            self.line(indent, f"for {x} in {v}:")
+            self.value(item_tp, item_limits, x, indent + 1)
+            self.line(indent + 1, f"{items}.append({x})")
+            self.line(indent, f"{v} = tuple({items})" if origin is tuple else f"{v} = {items}")
+        elif tp is bool:
+            self.line(indent, f"if type({v}) is not bool:")
+            self.line(indent + 1, fail)
+        elif tp is int:
+            ge, le = limits.ge, limits.le
+            lo = _INT_MIN if ge is None or not math.isfinite(ge) else max(_INT_MIN, math.ceil(ge))
+            hi = _INT_MAX if le is None or not math.isfinite(le) else min(_INT_MAX, math.floor(le))
+            self.line(indent, f"if type({v}) is not int or not ({lo!r} <= {v} <= {hi!r}):")
+            self.line(indent + 1, fail)
+        elif tp is float:
+            # One chained comparison within the finite floats: NaN, the infinities and anything out
+            # of range all fail it.
+            flo = max(-_FLOAT_MAX, -math.inf if limits.ge is None else float(limits.ge))
+            fhi = min(_FLOAT_MAX, math.inf if limits.le is None else float(limits.le))
+            self.line(indent, f"if type({v}) is not float:")
+            self.line(indent + 1, f"if type({v}) is not int:")
+            self.line(indent + 2, fail)
+            self.line(indent + 1, f"{v} = float({v})")
+            self.line(indent, f"if not ({flo!r} <= {v} <= {fhi!r}):")
+            self.line(indent + 1, fail)
+        elif tp is str or tp is bytes:
+            default = DEFAULT_MAX_STR_LEN if tp is str else MAX_PAYLOAD
+            max_len = default if limits.max_len is None else limits.max_len
+            self.line(indent, f"if type({v}) is not {tp.__name__} or len({v}) > {max_len!r}:")
+            self.line(indent + 1, fail)
+        elif isinstance(tp, type) and issubclass(tp, enum.Enum):
+            members = self.const({str(m.value): m for m in tp}, "members")
+            self.line(indent, f"if type({v}) is not str:")
+            self.line(indent + 1, fail)
+            self.line(indent, f"{v} = {members}[{v}]")
+        else:  # a nested dataclass: its own generated decoder
+            self.line(indent, f"{v} = {self.const(_struct(tp).fast, 'struct')}({v})")
+        if limits.check is not None:
+            run, passed = _checker(limits.check)
+            call = f"{self.const(run, 'check')}({v})"
+            if tp is str:
+                self.line(indent, f"if {v} not in {self.const(passed, 'passed')}:")
+                self.line(indent + 1, call)
+            else:
+                self.line(indent, call)
+
+
+def _slot_setters(cls: type[Any], names: tuple[str, ...]) -> list[Callable[[Any, Any], None]] | None:
+    """Each field's slot ``__set__``, when making ``cls`` by filling its slots is what its
+    dataclass ``__init__`` does: generated by ``dataclass`` (frozen, slotted, taking exactly the
+    fields, no ``InitVar``), no ``__new__`` of its own. None otherwise: then the class is called."""
+    params = getattr(cls, "__dataclass_params__", None)
+    init = cls.__dict__.get("__init__")
+    new: Any = getattr(cls, "__new__", None)
+    if params is None or not params.frozen or init is None or new is not object.__new__:
+        return None
+    code = getattr(init, "__code__", None)
+    if code is None or code.co_filename != "<string>":  # dataclass writes __init__ with exec
+        return None
+    try:
+        taken = list(inspect.signature(init).parameters.values())[1:]
+    except (TypeError, ValueError):
+        return None
+    if sorted(p.name for p in taken) != sorted(names) or any(
+        p.kind not in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) for p in taken
+    ):
+        return None
+    setters = []
+    for name in names:
+        slot = inspect.getattr_static(cls, name, None)
+        if type(slot) is not types.MemberDescriptorType:
+            return None
+        setters.append(slot.__set__)
+    return setters
+
+
+def _generate(cls: type[Any], specs: tuple[FieldSpec, ...]) -> tuple[Callable[[Any], Any], str]:
+    """The decoder of dataclass ``cls`` as one generated function, and its source.
+
+    It checks what ``_Struct._dec_slow`` checks, inline: a map of exactly the fields (their
+    count, then each by name), each value's type, range, length, enum value and ``check``; makes
+    the instance as the dataclass's ``__init__`` would (its slots filled, then ``__post_init__``);
+    and raises (``_Fallback``, ``KeyError``, a check's ``WireError``) on anything else, for the
+    generic path to decide and name."""
+    w = _Writer()
+    names = tuple(s.name for s in specs)
+    fn = f"decode_{cls.__name__}"
+    w.line(0, f"def {fn}(value):")
+    w.line(1, f"if type(value) is not dict or len(value) != {len(specs)}:")
+    w.line(2, "raise _Fallback")
+    local = [f"f{i}" for i in range(len(specs))]
+    for v, spec in zip(local, specs, strict=True):
+        w.line(1, f"{v} = value[{spec.name!r}]")
+    for v, spec in zip(local, specs, strict=True):
+        w.value(spec.type, spec.limits, v, 1)
+    setters = _slot_setters(cls, names)
+    made = w.const(cls, "cls")
+    if setters is None:
+        w.line(1, f"return {made}({', '.join(f'{n}={v}' for n, v in zip(names, local, strict=True))})")
+    else:
+        w.line(1, f"o = {w.const(object.__new__, 'new')}({made})")
+        for v, setter in zip(local, setters, strict=True):
+            w.line(1, f"{w.const(setter, 'set')}(o, {v})")
+        if hasattr(cls, "__post_init__"):
+            w.line(1, "o.__post_init__()")
+        w.line(1, "return o")
+    source = "\n".join(w.lines) + "\n"
+    scope: dict[str, Any] = {}
+    exec(compile(source, f"<fleetlink.wire decoder of {cls.__qualname__}>", "exec"), w.env, scope)
+    decoder: Callable[[Any], Any] = scope[fn]
+    return decoder, source
 
 
 # --------------------------------------------------------------------------------------------------
