@@ -47,6 +47,7 @@ from textual.widgets import DataTable, Footer, Input, RichLog, Static
 from fleetlink.operator.alarm_panel import AlarmKeeper, AlarmPanel, Said, alarm_lines
 from fleetlink.operator.alarms import AckEntry, AlarmKind
 from fleetlink.operator.audit import AuditLog
+from fleetlink.operator.collector import Collector, untangle_strips
 from fleetlink.operator.commander import LEASE_S, Commander
 from fleetlink.operator.commands import (
     AckAlarm,
@@ -320,6 +321,8 @@ class ConsoleApp(App[None]):
         self.filter_text = ""
         self.frame_times: list[float] = []
         """How long each frame took to draw (the last 1000)."""
+        self.collector = Collector(clock.now)
+        """Python's garbage collector while the app runs: paced by the app (operator/collector.py)."""
         self.sent_stop_on_quit = False
         self._last_frame = -math.inf
         self._frame_timer: Timer | None = None
@@ -352,8 +355,11 @@ class ConsoleApp(App[None]):
     def on_mount(self) -> None:
         # Everything built so far (modules, widgets, styles) lives as long as the app: out of the
         # collector's full passes, which then walk only what the fleet adds (at 500 robots a full
-        # pass held the UI thread 80-190 ms). Given back on unmount.
+        # pass held the UI thread 80-190 ms). Given back on unmount. From now on the app collects
+        # when it chooses (operator/collector.py), not whichever thread allocates.
+        untangle_strips()
         gc.freeze()
+        self.collector.start()
         self.query_one(MapView).focus()
         self.feed.bind(lambda: self.post_message(TelemetryArrived()))
         self.feed.drain()
@@ -364,6 +370,7 @@ class ConsoleApp(App[None]):
         self._changed()
 
     def on_unmount(self) -> None:
+        self.collector.stop()
         gc.unfreeze()
         self.feed.unbind()
         with self.lock:
@@ -379,6 +386,7 @@ class ConsoleApp(App[None]):
             self._changed()
         if self.feed.pending:
             self.post_message(TelemetryArrived())
+        self.collector.step()
 
     def _changed(self) -> None:
         """Something on screen may have changed: draw a frame now, or when the last one is
@@ -448,6 +456,8 @@ class ConsoleApp(App[None]):
         self._save_if_changed()
         self.frame_times.append(self.clock.now() - t0)
         del self.frame_times[:-1000]
+        # A full pass, when one is due, right after the frame: the next is 1 / refresh_hz away.
+        self.collector.step(after_frame=True, fleet=len(fleet.robots))
 
     def _status_text(self) -> str:
         return status_text(self.source.sender, self.read_only, self.selected, self.drive.speed, self.drive.turn)
@@ -547,6 +557,7 @@ class ConsoleApp(App[None]):
         twist = self.drive.tick(self.clock.now())
         if twist is not None:
             self.send_twist(twist)
+        self.collector.step()
 
     def stop_all(self) -> list[str]:
         """Stop every robot we know: a stop instant action (acked, re-sent on failover) each."""

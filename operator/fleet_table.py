@@ -10,10 +10,11 @@ says and how it is coloured; ``FleetTable`` shows the rows, touching only the ce
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, Self
 
 from rich.text import Text
 from textual.cache import LRUCache
+from textual.geometry import Region
 from textual.message import Message
 from textual.widgets import DataTable
 
@@ -136,17 +137,26 @@ CACHE_SIZES = {"_row_render_cache": 200, "_cell_render_cache": 2000, "_row_rende
 VISIBLE_MARGIN = 2
 """Rows just above and below the visible ones are kept current too (a scroll by a row or two)."""
 
+ROWS_PER_FRAME = 6
+"""At most this many rows are redrawn in a frame, in turn (the next frame goes on after the last
+one redrawn): each row's cells are drawn through Rich, ~1-2 ms a row, and at 500 robots every row
+on screen changes every frame (pose age, link health), so redrawing them all (20-40 ms) held up
+the key presses that came meanwhile. A screen of 20 rows is current within 4 frames (0.4 s)."""
+
 
 class FleetTable(DataTable[Cell]):
     """The rows of ``fleet_rows``; row keys are robot ids.
 
     Only the rows on screen are kept current: with hundreds of robots a frame touches the dozen
-    rows a person can see. A row off screen keeps what it showed until it is scrolled to; then
+    rows a person can see, and redraws at most ``ROWS_PER_FRAME`` of them, in turn. A row off screen keeps what it showed until it is scrolled to; then
     ``Scrolled`` asks the app for a frame (``show_lazy``) or the rows last given are applied at
     once (``show``)."""
 
     class Scrolled(Message):
         """Other rows came into view."""
+
+    _rows_only = False
+    """``update_cell`` refreshes the whole table; while set, only the rows redrawn are."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(cursor_type="row", zebra_stripes=True, **kwargs)
@@ -159,6 +169,9 @@ class FleetTable(DataTable[Cell]):
         """The rows ``show`` was last given, for the rows that come into view before the next."""
         self.cells_updated = 0
         """Cells rewritten so far (``update_cell`` calls)."""
+        self._turn = 0
+        """The row index (in ``_order``) whose turn it is to be redrawn first."""
+
         # DataTable's render caches are keyed by its update count, so after an update only what is
         # on screen is used again; sized for a screen, not for thousands of stale renders (which
         # the garbage collector would walk: 100-190 ms pauses at 500 robots).
@@ -208,19 +221,48 @@ class FleetTable(DataTable[Cell]):
                 self._index[robot] = len(self._order)
                 self._order.append(robot)
         first, end = self.visible_range()
-        for robot in self._order[first:end]:
-            self._update(robot, cells(robot))
+        n = end - first
+        if n <= 0:
+            return
+        start = self._turn if first <= self._turn < end else first
+        redrawn = 0
+        self._rows_only = True
+        try:
+            for k in range(n):
+                i = first + (start - first + k) % n
+                robot = self._order[i]
+                if self._update(robot, cells(robot)):
+                    self._refresh_line(i)
+                    redrawn += 1
+                    if redrawn == ROWS_PER_FRAME:
+                        self._turn = i + 1
+                        break
+        finally:
+            self._rows_only = False
 
-    def _update(self, robot: str, cells: Row) -> None:
+    def _refresh_line(self, index: int) -> None:
+        """Refresh row ``index``'s line (rows are one line high). ``refresh_row`` does the same
+        through ``ordered_rows``, which after each update walks all the rows (500)."""
+        y = index - int(self.scroll_y) + (self.header_height if self.show_header else 0)
+        self.refresh(Region(0, y, self.size.width, 1))
+
+    def refresh(self, *regions: Region, repaint: bool = True, layout: bool = False, recompose: bool = False) -> Self:
+        if self._rows_only and not regions and not layout and not recompose:
+            return self  # update_cell's whole-table refresh: the row is refreshed on its own
+        return super().refresh(*regions, repaint=repaint, layout=layout, recompose=recompose)
+
+    def _update(self, robot: str, cells: Row) -> bool:
+        """Rewrite the cells of ``robot``'s row that changed; whether any did."""
         key = tuple(_same(c) for c in cells)
         old = self._shown[robot]
         if key == old:
-            return
+            return False
         for (_, column), value, was, now in zip(COLUMNS, cells, old, key, strict=True):
             if was != now:
                 self.update_cell(robot, column, value)
                 self.cells_updated += 1
         self._shown[robot] = key
+        return True
 
     def watch_scroll_y(self, old_value: float, new_value: float) -> None:
         super().watch_scroll_y(old_value, new_value)

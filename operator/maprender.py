@@ -539,6 +539,8 @@ class MapPainter:
         alarms = self._alarm_styles(fleet)
         looks = self._looks
         labels: list[tuple[int, int, tuple[Glyph, ...]]] = []
+        first: list[tuple[int, int, tuple[Glyph, ...]]] = []
+        alarmed: list[tuple[int, int, tuple[Glyph, ...]]] = []
         robots: set[tuple[int, int]] = set()
         """Cells with a robot or an alarm: an alarm goes beside its robot but over neither."""
         for rv in fleet.robots.values():
@@ -568,8 +570,22 @@ class MapPainter:
                         robots.add(c)
                         break
             if -8 <= col < width:
-                labels.append((col + 2, row, look[1]))
-        for col, row, name in labels:  # after every glyph, so no name hides a robot
+                label = (col + 2, row, look[1])
+                if rv.robot == selected:
+                    first.append(label)
+                elif alarm is not None:
+                    alarmed.append(label)
+                else:
+                    labels.append(label)
+        # After every glyph, so no name hides a robot; a name that would run into one already
+        # drawn is left out (the selected robot's first, then those with an alarm): zoomed out
+        # over hundreds of robots the map shows the names that can be read, not a jumble.
+        taken: set[tuple[int, int]] = set()
+        for col, row, name in (*first, *alarmed, *labels):
+            span = [(k, row) for k in range(col, col + len(name) + 1)]  # and a space after it
+            if not taken.isdisjoint(span):
+                continue
+            taken.update(span)
             for k, glyph in enumerate(name, start=col):
                 if 0 <= k < width and (k, row) not in protected:
                     glyphs[(k, row)] = glyph

@@ -171,6 +171,19 @@ def test_robots_homes_goals_marks_anchors_and_alarms_have_their_own_glyphs_on_th
     assert selected.cell(col, row)[1] == mr.SELECTED_STYLE  # its own background when selected
 
 
+def test_names_that_would_run_into_one_already_drawn_are_left_out_the_selected_first() -> None:
+    fleet = FleetModel(ME)
+    g = MapGeometry(40, 12, scale=0.25)  # a cell 0.25 m wide
+    for robot, x in (("r1", 0.1), ("r2", 0.35), ("r3", 2.1)):  # side by side, and 8 cells on
+        pose(fleet, robot, x, 0.1)
+    col, row = g.to_cell(0.1, 0.1)
+    frame = MapPainter().paint(fleet, g, None, legend=False)
+    # r1's name, then r2's, which would run into it: left out; r3's is clear of both.
+    assert frame.text(row)[col : col + 12] == "→→r1    → r3"
+    chosen = MapPainter().paint(fleet, g, "r2", legend=False)
+    assert chosen.text(row)[col : col + 12] == "→→ r2   → r3"  # the selected robot's name first
+
+
 def test_a_robots_alarm_is_a_bang_beside_it_coloured_by_severity() -> None:
     from fleetlink.operator.alarms import AlarmKind, AlarmSeverity
 

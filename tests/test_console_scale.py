@@ -14,7 +14,7 @@ from textual.geometry import Region
 
 from fleetlink.operator import console as console_module
 from fleetlink.operator.fleet import TRAIL_POINTS, FleetModel
-from fleetlink.operator.fleet_table import FleetTable
+from fleetlink.operator.fleet_table import ROWS_PER_FRAME, FleetTable
 from fleetlink.operator.maprender import MapFrame, MapGeometry, MapPainter
 from fleetlink.operator.mapview import MapView
 from fleetlink.shared import wire
@@ -67,6 +67,34 @@ async def test_a_row_update_changes_only_that_row_and_rows_off_screen_wait_until
             await settle(pilot, 0.4)
             assert ("r59", "lease") in updates
             assert table.get_cell("r59", "lease") == "op-bob"
+    finally:
+        rig.link.close()
+
+
+@run_async
+async def test_a_frame_redraws_a_few_rows_in_turn_until_every_row_on_screen_is_current(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, clock=SimClock(start=100.0))
+    rig.link.start()
+    try:
+        async with rig.app.run_test(size=(140, 44)) as pilot:
+            for i, robot in enumerate(ROBOTS):
+                rig.pose(robot, float(i), 0.0, links=("zenoh",))
+            await settle(pilot, 0.4)
+            table = rig.app.query_one(FleetTable)
+            first, end = table.visible_range()
+            on_screen = ROBOTS[first:end]
+            assert len(on_screen) > 2 * ROWS_PER_FRAME
+            rows = {r: tuple(table.get_row(r)) for r in ROBOTS}
+            updates = counting_updates(table)
+            frames = 0
+            while any(table.get_cell(r, "lease") != "op-bob" for r in on_screen):
+                updates.clear()
+                table.show_lazy(ROBOTS, lambda r: (*rows[r][:-1], "op-bob"))  # every row changed
+                frames += 1
+                redrawn = {r for r, _ in updates}
+                assert 0 < len(redrawn) <= ROWS_PER_FRAME
+                assert redrawn <= set(on_screen)
+            assert frames == math.ceil(len(on_screen) / ROWS_PER_FRAME)  # each row once, in turn
     finally:
         rig.link.close()
 
