@@ -112,8 +112,12 @@ class OnboardMapper:
         # With loop closure and recent grids the whole grid is an output only (the front end matches
         # the recent grids): its likelihood field is brought up to date, and the grid drawn again
         # after solves, when it is read (``grid``, ``occupancy``, ``plan``, ``version``), not per scan.
+        # Lazily: a keyframe is drawn into the whole grid when the grid is next read, at its node's pose
+        # then (a replay draws each scan once, at the end, instead of once per scan and again at the end).
         self._lazy = cfg.closer is not None and cfg.recent_scans > 0
         self._redraw_due = False
+        self._undrawn = 0  # entries of ``_drawn`` from here on are not in the grid yet (lazy only)
+        self._mapped = False  # some keyframe has been integrated (the grid may not show it yet)
         self.trajectory: list[tuple[float, Pose]] = []
         self.scans = 0
         self.matched = 0
@@ -151,6 +155,8 @@ class OnboardMapper:
         if self._redraw_due:
             self._redraw_due = False
             self.redraw(self.config.redraw_distance)
+        if self._undrawn < len(self._drawn):
+            self._draw(self._drawn[self._undrawn :])
         self._grid.refresh_stale()
         return self._grid
 
@@ -245,7 +251,7 @@ class OnboardMapper:
                 matched = True
         if matched:
             self.matched += 1
-        elif not self._grid.empty:
+        elif self._mapped:
             self.fallbacks += 1
 
         integrated = False
@@ -254,7 +260,9 @@ class OnboardMapper:
             full_hit = hit.copy()
             idx = np.flatnonzero(hit)
             full_hit[idx[~keep_hit]] = False
-            self._grid.integrate(compose(pose, cfg.mount), r, a, full_hit, refresh=not self._lazy)
+            if not self._lazy:
+                self._grid.integrate(compose(pose, cfg.mount), r, a, full_hit)
+            self._mapped = True
             if cfg.recent_scans and self.closer is not None:
                 self._add_recent(compose(pose, cfg.mount), r, a, full_hit)
             made_node = False
@@ -275,6 +283,8 @@ class OnboardMapper:
                 self._drawn.append(
                     (node, relative(self._node_pose, pose), r.astype(np.float32), a.astype(np.float32), full_hit)
                 )
+                if not self._lazy:
+                    self._undrawn = len(self._drawn)
                 if made_node and self.closer.close():
                     pose = self._after_solve(pose)
         self._last_pose = pose
@@ -320,13 +330,22 @@ class OnboardMapper:
             self.grid  # noqa: B018 (drawn now: the front end matches this grid)
         return pose
 
+    def finish(self) -> int:
+        """The end of a run (a replay): the loop closer's final pass (every node matched against the
+        submaps near it, the graph solved again; ``LoopCloser.finish``), the grid due a redraw. Returns
+        the edges the pass added; 0 without loop closure."""
+        if self.closer is None:
+            return 0
+        added = self.closer.finish()
+        self._redraw_due = True
+        return added
+
     def redraw(self, threshold: float = 0.0) -> bool:
         """Draw the grid again from every integrated scan at the graph's poses, if some node moved more
         than ``threshold`` (m; a turn as its arc 3 m out) since the last drawing. True if it did."""
         closer = self.closer
         if closer is None:
             return False
-        cfg = self.config
         poses = closer.poses
         n_drawn = len(self._drawn_at)
         if n_drawn:
@@ -337,15 +356,26 @@ class OnboardMapper:
             if moved <= threshold:
                 return False
         self.redraws += 1
-        self._drawn_at = list(poses)
         self._redraw_due = False
-        grid = self._grid
-        grid.clear()
-        for node, offset, r, a, hit in self._drawn:
-            sensor = compose(compose(poses[node], offset), cfg.mount)
-            grid.integrate(sensor, r.astype(np.float64), a.astype(np.float64), hit, refresh=False)
-        grid.refresh()
+        self._grid.clear()
+        self._undrawn = 0
+        self._drawn_at = []
+        self._draw(self._drawn)
+        self._grid.refresh()
         return True
+
+    def _draw(
+        self, entries: list[tuple[int, Pose, npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_]]]
+    ) -> None:
+        """Integrate ``entries`` (the tail of ``_drawn``) into the grid at their nodes' poses now; the
+        field is left stale (refreshed when read). Each node's pose is remembered as drawn."""
+        poses = self.closer.poses if self.closer is not None else []
+        mount = self.config.mount
+        for node, offset, r, a, hit in entries:
+            sensor = compose(compose(poses[node], offset), mount)
+            self._grid.integrate(sensor, r.astype(np.float64), a.astype(np.float64), hit, refresh=False)
+        self._undrawn = len(self._drawn)
+        self._drawn_at.extend(poses[len(self._drawn_at) :])
 
     def corrected_trajectory(self) -> list[tuple[float, Pose]]:
         """Every scan's pose as the optimised graph has it now (the online poses were each the best
@@ -376,11 +406,15 @@ class OnboardMapper:
         n = self.config.recent_scans
         if not self._recent or (self._recent[-1][0][0] >= n // 2 and len(self._recent) < 2):
             self._recent.append(([0], LogOddsGrid(self.config.grid), [(0.0, 0.0, 0.0)]))
-        for count, grid, tf in self._recent:
-            grid.integrate(compose(tf[0], sensor), r, a, hit)
+        for i, (count, grid, tf) in enumerate(self._recent):
+            # Only the grid matched against needs its likelihood field now; the younger one's is
+            # brought up to date (to the bit the same) when it takes over.
+            grid.integrate(compose(tf[0], sensor), r, a, hit, refresh=i == 0)
             count[0] += 1
         if self._recent[0][0][0] >= n:
             self._recent.pop(0)
+            if self._recent:
+                self._recent[0][1].refresh_stale()
 
     def _spaced(self, pose: Pose) -> bool:
         p0 = self._last_local
