@@ -83,6 +83,109 @@ at once, so this only paces keepalives when nothing else happens."""
 MAX_QUEUED = 256
 """QoS 1 messages paho keeps while disconnected; QoS 0 ones are not sent at all then."""
 
+READ_SIZE = 64 * 1024
+"""Bytes a buffered client (``connect_client(buffered=True)``) asks its socket for at a time."""
+
+MAX_BUFFERED_PACKETS = 1024
+"""Packets the endpoint's loop takes from the client's buffer before it lets paho write and ping."""
+
+_BUFFERED: Any = None
+
+
+def _buffered_client_class() -> Any:
+    """paho's ``Client``, reading its socket ``READ_SIZE`` bytes at a time, and taking the QoS 0
+    publications in what it read without paho's own handling.
+
+    paho reads every packet with three or four ``recv`` calls (its command byte, each byte of its
+    length, its body), and turns a publication into an ``MQTTMessage`` (with a ``Condition`` of its
+    own), logs it and looks it up in its callback filters: ~30 us of Python a message, which a
+    recorder or a console of 50 robots pays a few hundred times a second. This client keeps what
+    one ``recv`` brought and hands it out as paho asks for it, so a burst costs one ``recv``; and
+    when ``_fl_publish(topic, payload)`` is set (``MqttEndpoint``) every whole QoS 0 PUBLISH of MQTT
+    3.1.1 in the buffer goes straight to it, parsed here. Everything else (QoS 1, a packet not yet
+    all read, a topic that is not UTF-8, MQTT 5, any other packet) is paho's, read from the same
+    buffer. paho's loop does not know about buffered bytes (its ``select`` waits on the socket), so
+    whoever runs the loop must take them after each ``loop()`` (``buffered_bytes`` says how many:
+    ``MqttEndpoint._run``). The buffer is dropped with the connection (``reconnect``)."""
+    global _BUFFERED
+    if _BUFFERED is None:
+        import paho.mqtt.client as mqtt
+
+        fallback = mqtt.Client._packet_read
+        raw_recv = mqtt.Client._sock_recv
+        ok, again, lost = mqtt.MQTT_ERR_SUCCESS, mqtt.MQTT_ERR_AGAIN, mqtt.MQTT_ERR_CONN_LOST
+        now = mqtt.time_func
+
+        class BufferedClient(mqtt.Client):
+            _fl_buf = b""
+            _fl_pos = 0
+            _fl_publish: Callable[[str, bytes], None] | None = None
+
+            def _packet_read(self) -> Any:
+                deliver = self._fl_publish
+                if deliver is None or self._in_packet["command"] != 0 or self._protocol == mqtt.MQTTv5:
+                    return fallback(self)
+                buf, pos = self._fl_buf, self._fl_pos
+                if pos >= len(buf):
+                    try:
+                        buf, pos = raw_recv(self, READ_SIZE), 0
+                    except BlockingIOError:
+                        return again
+                    except OSError:  # paho's own read meets it again, and logs it
+                        return fallback(self)
+                    if not buf:
+                        return lost
+                    self._fl_buf, self._fl_pos = buf, 0
+                n = len(buf)
+                if buf[pos] & 0xF6 != 0x30:  # not a PUBLISH at QoS 0 (dup and retain flags aside)
+                    return fallback(self)
+                i, length, shift = pos + 1, 0, 0
+                while True:  # the remaining length: 1-4 bytes, 7 bits each
+                    if i >= n or shift > 21:
+                        return fallback(self)
+                    byte = buf[i]
+                    i += 1
+                    length |= (byte & 127) << shift
+                    shift += 7
+                    if not byte & 128:
+                        break
+                end = i + length
+                if end > n or length < 2:
+                    return fallback(self)
+                start = i + 2 + ((buf[i] << 8) | buf[i + 1])
+                if start > end:
+                    return fallback(self)
+                try:
+                    topic = buf[i + 2 : start].decode("utf-8")
+                except UnicodeDecodeError:
+                    return fallback(self)
+                self._fl_pos = end
+                with self._msgtime_mutex:
+                    self._last_bytes_received = now()
+                deliver(topic, buf[start:end])
+                return ok
+
+            def _sock_recv(self, bufsize: int) -> bytes:
+                buf, pos = self._fl_buf, self._fl_pos
+                if pos >= len(buf):
+                    buf = super()._sock_recv(READ_SIZE)  # BlockingIOError when nothing is there
+                    if not buf:
+                        return buf  # the broker closed the connection
+                    pos = 0
+                out = buf[pos : pos + bufsize]
+                self._fl_buf, self._fl_pos = buf, pos + len(out)
+                return out
+
+            def buffered_bytes(self) -> int:
+                return len(self._fl_buf) - self._fl_pos
+
+            def reconnect(self) -> Any:
+                self._fl_buf, self._fl_pos = b"", 0  # a new connection: the old one's bytes are not its
+                return super().reconnect()
+
+        _BUFFERED = BufferedClient
+    return _BUFFERED
+
 
 @dataclass(frozen=True, slots=True)
 class MqttMessage:
@@ -119,6 +222,7 @@ def connect_client(
     clean_session: bool = True,
     start: bool = True,
     rng: random.Random | None = None,
+    buffered: bool = False,
 ) -> mqtt.Client:
     """A paho 2.x client (MQTT 3.1.1, callback API v2) set up from ``settings``.
 
@@ -132,13 +236,18 @@ def connect_client(
     trying in the background until it connects and reconnects after every loss. Set the
     ``on_connect``/``on_message`` callbacks first or pass ``start=False`` and start it yourself.
     Stop it with ``client.disconnect(); client.loop_stop()``. ``MqttEndpoint`` is the usual way in.
+
+    ``buffered``: the client reads its socket in blocks (``_buffered_client_class``), for a caller
+    that runs the loop itself and takes what is buffered after each ``loop()``; not with ``start``.
     """
     import paho.mqtt.client as mqtt
     from paho.mqtt.enums import CallbackAPIVersion
 
+    if buffered and start:
+        raise ValueError("a buffered client needs a loop that takes its buffer: start=False")
     rng = rng if rng is not None else random.Random()
     cid = settings.client_id or client_id or ""
-    client = mqtt.Client(
+    client = (_buffered_client_class() if buffered else mqtt.Client)(
         CallbackAPIVersion.VERSION2,
         client_id=cid,
         clean_session=clean_session,
@@ -234,11 +343,14 @@ class MqttEndpoint:
         with self._lock:
             if self._client is not None:
                 return
-            c = connect_client(self.settings, client_id=self.client_id, will=self.will, start=False, rng=self._rng)
+            c: Any = connect_client(
+                self.settings, client_id=self.client_id, will=self.will, start=False, rng=self._rng, buffered=True
+            )
             c.max_queued_messages_set(MAX_QUEUED)
             c.on_connect = self._on_connect
             c.on_disconnect = self._on_disconnect
             c.on_message = self._on_message
+            c._fl_publish = self._deliver  # QoS 0 publications straight from the read buffer
             # Registering for write interest makes paho queue every packet for the loop thread
             # instead of writing from the caller's (see the module docstring); the loop's select
             # already watches the socket whenever something is queued.
@@ -365,6 +477,10 @@ class MqttEndpoint:
                     worker.wait(delay)
                     continue
             rc = c.loop(timeout=LOOP_TIMEOUT_S)
+            taken = 0  # the packets one recv brought with the one paho read (see READ_SIZE)
+            while rc == mqtt.MQTT_ERR_SUCCESS and c.buffered_bytes() and taken < MAX_BUFFERED_PACKETS:
+                rc = c.loop_read()
+                taken += 1
             if rc != mqtt.MQTT_ERR_SUCCESS and not worker.stopping and not self._closing:
                 self._connected = False
                 need_connect = True
@@ -409,9 +525,11 @@ class MqttEndpoint:
         self._connected = False
 
     def _on_message(self, client: Any, userdata: Any, msg: Any) -> None:
-        if not self.stats.admit(self.label, msg.topic, len(msg.payload)):  # the broker should have refused it
+        self._deliver(msg.topic, bytes(msg.payload))
+
+    def _deliver(self, topic: str, payload: bytes) -> None:
+        if not self.stats.admit(self.label, topic, len(payload)):  # the broker should have refused it
             return
-        topic, payload = msg.topic, bytes(msg.payload)
         routes = self._routes
         receivers = routes.get(topic)
         if receivers is None:

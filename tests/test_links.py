@@ -274,6 +274,54 @@ def test_mqtt_will_on_connect_hook_and_resubscribe_after_a_broker_restart(mosqui
         watcher.close()
 
 
+def test_mqtt_reads_a_burst_in_blocks_and_leaves_nothing_in_its_buffer(
+    mosquitto: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The endpoint's client reads its socket ``READ_SIZE`` bytes at a time: a burst of packets
+    costs a few ``recv`` calls, not three or four a packet, and every packet a ``recv`` brought is
+    delivered although nothing more arrives after it (paho's own ``select`` knows nothing of them).
+    Packets of every size: one byte, ones split across two reads, one larger than a read."""
+    import paho.mqtt.client as paho
+
+    from fleetlink.links.mqtt import READ_SIZE
+
+    # No keepalive pings during the test: nothing but the burst makes the socket readable.
+    settings = MqttSettings("127.0.0.1", mosquitto.port, keepalive_s=60, reconnect_min_s=0.1, reconnect_max_s=0.5)
+    a, b, inbox = MqttEndpoint(settings, client_id="burst-a"), MqttEndpoint(settings, client_id="burst-b"), Inbox()
+    b.subscribe("fleetlink/v1/burst/**", inbox)
+    reads = [0]
+    real = paho.Client._sock_recv
+
+    def counted(self: Any, bufsize: int) -> bytes:
+        if self is b.client:
+            reads[0] += 1
+        return real(self, bufsize)
+
+    monkeypatch.setattr(paho.Client, "_sock_recv", counted)
+    sizes = [1 + (i * 997) % 3000 for i in range(1500)] + [3 * READ_SIZE + 17] + [5] * 10
+    sent = [(f"fleetlink/v1/burst/t{i % 7}", bytes([i % 256]) * n) for i, n in enumerate(sizes)]
+    try:
+        a.start()
+        b.start()
+        wait_until(lambda: a.up and b.up, message="both up")
+        wait_until(  # the subscription is in place
+            lambda: a.publish("fleetlink/v1/burst/probe", b"?") and bool(inbox.snapshot()), message="a probe"
+        )
+        reads[0] = 0
+        for key, payload in sent:
+            assert a.publish(key, payload)
+
+        def burst() -> list[tuple[str, bytes]]:
+            return [m for m in inbox.snapshot() if not m[0].endswith("/probe")]
+
+        wait_until(lambda: len(burst()) >= len(sent), message="the whole burst")
+        assert burst() == sent
+        assert reads[0] < len(sent) / 4, reads[0]
+    finally:
+        a.close()
+        b.close()
+
+
 def test_per_key_quality_of_service() -> None:
     import zenoh
 
