@@ -1,14 +1,15 @@
 """Record every fleet message on both links into an MCAP file, or say what a recording holds.
 
     fleetlink record --out mission.mcap --zenoh-connect tcp/10.0.0.5:7447 --mqtt mqtt://10.0.0.5:1883
-    fleetlink record --summary mission.mcap
+    fleetlink record --summary mission.mcap [--scan]
 
 The recorder joins the fleet as the console does (the same connection options, and ``--config``
 takes a console TOML for them) and records until Ctrl-C, SIGTERM or ``--duration``. Each wire
 message goes to the channel ``/fleetlink/<link>/<topic>`` as JSON with its JSON Schema; poses and
 maps also to Foxglove's schemas (``/foxglove/<robot>/pose``, ``/foxglove/<robot>/map``). Chunks are
 zstd-compressed and closed at least every second: a crash loses at most the last one.
-See docs/recording.md.
+``--summary`` reads a file's summary section (its index and statistics) when it has one, and
+every message when it has none (cut short by a crash) or with ``--scan``. See docs/recording.md.
 """
 
 from __future__ import annotations
@@ -27,6 +28,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     what = parser.add_mutually_exclusive_group(required=True)
     what.add_argument("--out", type=Path, help="record into this MCAP file (overwritten)")
     what.add_argument("--summary", type=Path, metavar="FILE", help="print what a recording holds and exit")
+    parser.add_argument(
+        "--scan",
+        action="store_true",
+        help="with --summary: read every message (each chunk's CRC checked) instead of the file's summary section",
+    )
     add_connection_arguments(parser)
     parser.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
     parser.add_argument(
@@ -51,11 +57,14 @@ def run(args: argparse.Namespace) -> int:
 
     if args.summary is not None:
         try:
-            print(summarise(args.summary).text(str(args.summary)))
+            print(summarise(args.summary, index=not args.scan).text(str(args.summary)))
         except RecordingError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         return 0
+    if args.scan:
+        print("error: --scan goes with --summary", file=sys.stderr)
+        return 2
     return record(args)
 
 

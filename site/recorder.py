@@ -684,9 +684,98 @@ def _describe(exc: Exception) -> str:
     return f"damaged or truncated after this point ({type(exc).__name__}: {text[:120]})"
 
 
-def summarise(path: Path | str) -> RecordingSummary:
-    """What ``fleetlink record --summary`` prints: read through the whole file (so a recovered file
-    is summarised too). Raises ``RecordingError`` for a file that is not MCAP."""
+def summarise(path: Path | str, *, index: bool = True) -> RecordingSummary:
+    """What ``fleetlink record --summary`` prints. A file closed properly is summarised from its
+    summary section (``_summarise_indexed``: statistics, channels, the recorder's metadata; no
+    chunk is read, so a recording of hours answers at once); a file without a usable one (cut short
+    by a crash) or with ``index=False`` is read message by message up to its end or its damage (and
+    every chunk's CRC checked), with a note saying why. Raises ``RecordingError`` for a file that
+    is not MCAP."""
+    why: str | None = None
+    if index:
+        found = _summarise_indexed(Path(path))
+        if isinstance(found, RecordingSummary):
+            return found
+        why = found
+    return _summarise_scan(path, why)
+
+
+def _summarise_indexed(path: Path) -> RecordingSummary | str:
+    """The summary from ``path``'s summary section, or why it cannot be (then the file is read
+    message by message)."""
+    from mcap.reader import SeekingReader
+
+    try:
+        f = _CountingFile(path)
+    except OSError as exc:
+        raise RecordingError(f"cannot open {path}: {exc.strerror or exc}") from None
+    try:
+        try:
+            reader = SeekingReader(f, validate_crcs=True)  # type: ignore[arg-type]
+            summary = reader.get_summary()
+        except Exception:  # no footer at the end: not closed (or not MCAP: the scan says so)
+            return "no summary section (the file was not closed: cut short by a crash?)"
+        if summary is None:
+            return "its footer says it has no summary section"
+        stats = summary.statistics
+        if stats is None:
+            return "its summary section has no statistics"
+        problem = _summary_crc_problem(f, path)
+        if problem is not None:
+            return problem
+        try:
+            meta = next((dict(m.metadata) for m in reader.iter_metadata() if m.name == "fleetlink.recording"), None)
+            robots = None if meta is None else json.loads(meta.get("robots", "null"))
+        except Exception as exc:  # a damaged metadata record: the messages say which robots
+            return f"its fleetlink.recording metadata does not read back ({type(exc).__name__})"
+        if not (isinstance(robots, list) and all(isinstance(r, str) for r in robots)):
+            return "it has no fleetlink.recording metadata with the robots"
+        counts: Counter[str] = Counter()
+        schemas: dict[str, str] = {}
+        for cid, n in stats.channel_message_counts.items():
+            channel = summary.channels.get(cid)
+            if channel is None:
+                return f"its statistics count channel {cid}, which its summary does not have"
+            counts[channel.topic] += n
+            schema = summary.schemas.get(channel.schema_id)
+            schemas[channel.topic] = schema.name if schema is not None else "?"
+        span = (stats.message_start_time, stats.message_end_time) if stats.message_count else None
+        notes = []
+        if meta is not None and meta.get("dropped", "0") != "0":
+            notes.append(f"note: the recorder dropped {meta['dropped']} messages (its disk could not keep up)")
+        return RecordingSummary.build(
+            counts, schemas, span, robots, complete=True, notes=notes, from_index=True, bytes_read=f.bytes_read
+        )
+    finally:
+        f.close()
+
+
+_FOOTER_CRC_OFFSET = 8 + 4
+"""From the end of an MCAP file: its closing magic (8 bytes), then the footer's summary CRC (4),
+which covers everything from the summary section's start up to it."""
+
+
+def _summary_crc_problem(f: _CountingFile, path: Path) -> str | None:
+    """None if ``path``'s summary section matches the CRC in its footer (or it has none)."""
+    import zlib
+
+    from mcap.reader import FOOTER_SIZE
+    from mcap.stream_reader import MAGIC_SIZE
+
+    size = path.stat().st_size
+    f.seek(size - MAGIC_SIZE - FOOTER_SIZE)
+    footer = f.read(FOOTER_SIZE)
+    summary_start, crc = struct.unpack_from("<Q", footer, 9)[0], struct.unpack_from("<I", footer, FOOTER_SIZE - 4)[0]
+    if crc == 0:  # the writer did not compute one
+        return None
+    f.seek(summary_start)
+    covered = f.read(size - _FOOTER_CRC_OFFSET - summary_start)
+    if zlib.crc32(covered) != crc:
+        return "its summary section does not match the CRC in its footer"
+    return None
+
+
+def _summarise_scan(path: Path | str, why: str | None) -> RecordingSummary:
     reader = RecordingReader(path)
     counts: Counter[str] = Counter()
     schemas: dict[str, str] = {}
@@ -704,6 +793,8 @@ def summarise(path: Path | str) -> RecordingSummary:
                 robots.add(robot)
     meta = reader.metadata.get("fleetlink.recording")
     notes: list[str] = []
+    if why is not None:
+        notes.append(f"note: {why}: read message by message")
     if reader.problem is not None:
         notes.append(f"note: {reader.problem}; everything before it is listed")
     if meta is not None and meta.get("dropped", "0") != "0":
@@ -713,7 +804,8 @@ def summarise(path: Path | str) -> RecordingSummary:
             f"{path}: no message in it ({reader.problem}): a recorder stopped before its first chunk was written?"
         )
     span = None if lo is None or hi is None else (lo, hi)
-    return RecordingSummary.build(counts, schemas, span, robots, complete=reader.complete, notes=notes)
+    size = Path(path).stat().st_size
+    return RecordingSummary.build(counts, schemas, span, robots, complete=reader.complete, notes=notes, bytes_read=size)
 
 
 def _robot_of(data: bytes) -> str | None:

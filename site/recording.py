@@ -261,6 +261,11 @@ class RecordingSummary:
     complete: bool
     """The file was closed properly (it has its summary); False: recovered after a crash."""
     notes: tuple[str, ...] = ()
+    from_index: bool = False
+    """Read from the file's summary section (statistics, channels, metadata), no chunk read;
+    False: read message by message (a file without a usable summary, or asked to)."""
+    bytes_read: int = 0
+    """What reading it took."""
 
     @property
     def messages(self) -> int:
@@ -282,8 +287,10 @@ class RecordingSummary:
         *,
         complete: bool,
         notes: Iterable[str] = (),
+        from_index: bool = False,
+        bytes_read: int = 0,
     ) -> RecordingSummary:
-        channels = tuple(ChannelSummary(t, schemas.get(t, "?"), n) for t, n in sorted(counts.items()))
+        channels = tuple(ChannelSummary(t, schemas.get(t, "?"), n) for t, n in sorted(counts.items()) if n > 0)
         return cls(
             channels,
             None if span is None else span[0],
@@ -291,6 +298,8 @@ class RecordingSummary:
             tuple(sorted(set(robots))),
             complete,
             tuple(notes),
+            from_index,
+            bytes_read,
         )
 
     def text(self, path: str = "") -> str:

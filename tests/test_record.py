@@ -227,8 +227,117 @@ def test_a_truncated_or_damaged_file_gives_what_came_before(tmp_path: Path) -> N
     damaged = tmp_path / "damaged.mcap"
     mid = len(whole) // 2
     damaged.write_bytes(whole[:mid] + bytes(b ^ 0x5A for b in whole[mid : mid + 64]) + whole[mid + 64 :])
-    summary = summarise(damaged)  # no traceback: what came before the damage, and a note
+    # Its summary section is whole: --summary says what the index says, without reading a chunk.
+    assert summarise(damaged).messages == 400 and summarise(damaged).from_index
+    summary = summarise(damaged, index=False)  # --scan: no traceback, what came before the damage, a note
     assert 0 < summary.messages < 400 and any("damaged" in n for n in summary.notes)
+
+
+def record_poses(path: Path, n: int, *, chunk_size: int = 16 * 1024) -> None:
+    """``n`` poses of r1 on Zenoh (every second one on MQTT too) and a state, recorded into ``path``."""
+    clock = SystemClock()
+    zb, mb = InProcessBus(LinkName.ZENOH), InProcessBus(LinkName.MQTT)
+    rec = Recorder(path, [zb.endpoint("recorder"), mb.endpoint("recorder")], clock, chunk_size=chunk_size)
+    rec.start()
+    agent_z, agent_m = zb.endpoint("agent-r1"), mb.endpoint("agent-r1")
+    agent_z.start()
+    agent_m.start()
+    c = wire.HeaderCounter(clock, robot="r1", sender="agent-r1")
+    try:
+        for i in range(n):
+            p = pose(c, i * 0.001)
+            agent_z.publish(wire.key_of(p), wire.encode(p))
+            if i % 2 == 0:
+                agent_m.publish(wire.key_of(p), wire.encode(p))
+        s = harness_state(c)
+        agent_z.publish(wire.key_of(s), wire.encode(s))
+        zb.deliver()
+        mb.deliver()
+        wait_until(lambda: rec.written >= n + n // 2 + n + 1, message="everything written")
+    finally:
+        rec.stop()
+
+
+def test_summary_of_a_closed_file_is_read_from_its_summary_section(tmp_path: Path) -> None:
+    """No chunk is read: the counts, span and channels come from the statistics and the summary's
+    channels, the robots from the recorder's metadata; the same as reading every message."""
+    out = tmp_path / "long.mcap"
+    record_poses(out, 3000)
+    size = out.stat().st_size
+    summary = summarise(out)
+    assert summary.from_index and summary.complete and not summary.notes
+    # The summary section (145 chunk indexes of 16 KiB chunks: ~6 % of this file; with the
+    # recorder's 256 KiB chunks, a few hundredths of one) read twice, parsed and its CRC checked.
+    assert summary.bytes_read < size / 7
+    scanned = summarise(out, index=False)
+    assert not scanned.from_index and scanned.bytes_read == size
+    assert (summary.channels, summary.start_ns, summary.end_ns, summary.robots) == (
+        scanned.channels,
+        scanned.start_ns,
+        scanned.end_ns,
+        scanned.robots,
+    )
+    counts = {c.topic: c.messages for c in summary.channels}
+    assert counts["/fleetlink/zenoh/pose"] == 3000 and counts["/fleetlink/mqtt/pose"] == 1500
+    assert summary.robots == ("r1",) and summary.text() == scanned.text()
+
+
+def test_summary_of_a_file_cut_short_is_read_message_by_message_and_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from fleetlink.cli.main import main
+
+    out = tmp_path / "whole.mcap"
+    record_poses(out, 600, chunk_size=4_000)
+    cut = tmp_path / "crashed.mcap"
+    cut.write_bytes(out.read_bytes()[: out.stat().st_size * 2 // 3])
+    summary = summarise(cut)
+    assert not summary.from_index and not summary.complete and 0 < summary.messages < 600 * 2.5
+    assert summary.robots == ("r1",)
+    assert any("no summary section" in n and "read message by message" in n for n in summary.notes)
+    assert main(["record", "--summary", str(cut)]) == 0
+    said = capsys.readouterr().out
+    assert "recovered" in said and "no summary section (the file was not closed" in said
+    assert main(["record", "--summary", str(out), "--scan"]) == 0
+    assert "read message by message" not in capsys.readouterr().out
+    assert main(["record", "--out", str(tmp_path / "x.mcap"), "--scan"]) == 2
+
+
+def test_summary_falls_back_to_reading_every_message_when_its_summary_cannot_be_used(tmp_path: Path) -> None:
+    out = tmp_path / "whole.mcap"
+    record_poses(out, 200, chunk_size=4_000)
+    whole = out.read_bytes()
+    # A byte of the summary section changed: its CRC (in the footer) no longer matches.
+    from mcap.reader import make_reader
+
+    with out.open("rb") as f:
+        stats = make_reader(f).get_summary()
+    assert stats is not None and stats.statistics is not None
+    at = whole.rfind(b"/fleetlink/zenoh/pose")  # the channel, repeated in the summary section
+    bad = tmp_path / "bad-summary.mcap"
+    bad.write_bytes(whole[:at] + b"X" + whole[at + 1 :])
+    summary = summarise(bad)
+    assert not summary.from_index and summary.messages == 200 + 100 + 200 + 1
+    assert any("does not match the CRC" in n for n in summary.notes)
+
+    # Another writer's file: a summary, but not the recorder's metadata (the robots): every message.
+    from mcap.writer import Writer
+
+    other = tmp_path / "other.mcap"
+    with other.open("wb") as f:
+        writer = Writer(f)
+        writer.start(profile="", library="test")
+        schema = writer.register_schema(name="fleetlink.Pose", encoding="jsonschema", data=b"{}")
+        channel = writer.register_channel(
+            topic="/fleetlink/zenoh/pose", message_encoding="json", schema_id=schema, metadata={"kind": "wire"}
+        )
+        c = wire.HeaderCounter(SystemClock(), robot="r7", sender="agent-r7")
+        for i in range(3):
+            writer.add_message(channel, log_time=i, data=wire_json.to_json(pose(c, 0.0)), publish_time=i)
+        writer.finish()
+    summary = summarise(other)
+    assert not summary.from_index and summary.complete and summary.robots == ("r7",) and summary.messages == 3
+    assert any("no fleetlink.recording metadata" in n for n in summary.notes)
 
 
 # -- the commands ---------------------------------------------------------------------------------
