@@ -17,8 +17,11 @@ warm-up:
 * **recorder**: ``fleetlink record --out FILE`` (decode, JSON, Foxglove poses, MCAP zstd chunks).
 
 Measured from /proc: each process's CPU time (user + system) over the window divided by the wall
-time, i.e. the share of one core. Goal: the recorder <= 10 % of one core at 50 robots. The table
-also gives the messages recorded, the file's size and rate.
+time, i.e. the share of one core, and the recorder's by thread (/proc/<pid>/task: zenoh's threads
+by their names, the Python threads together as ``python``). Goal: the recorder <= 10 % of one core
+at 50 robots. The table also gives the load average, the messages recorded, the file's size and
+rate. ``--recorder-only`` skips the baselines: more runs in the time, to alternate two versions
+on a busy host.
 """
 
 from __future__ import annotations
@@ -129,15 +132,40 @@ def decode_only(connect: str, mqtt_url: str, decode: bool = True) -> None:
 # -- the run --------------------------------------------------------------------------------------
 
 
-def measure(proc: subprocess.Popen[Any], seconds: float) -> float:
+def thread_seconds(pid: int) -> dict[int, tuple[str, float]]:
+    """Each thread of ``pid``: its name (``comm``: zenoh's Rust threads have their own, Python's
+    threads are all named after the process) and its CPU seconds."""
+    out: dict[int, tuple[str, float]] = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                head, tail = f.read().rsplit(")", 1)
+        except OSError:  # the thread ended
+            continue
+        fields = tail.split()
+        out[int(tid)] = (head.split("(", 1)[1], (int(fields[11]) + int(fields[12])) / CLK_TCK)
+    return out
+
+
+def measure(proc: subprocess.Popen[Any], seconds: float) -> tuple[float, dict[str, float]]:
+    """The share of one core ``proc`` took over ``seconds`` after the warm-up, and that share by
+    thread name (``python`` for the process's own threads)."""
     time.sleep(WARMUP_S)
+    threads0 = thread_seconds(proc.pid)
     c0, t0 = cpu_seconds(proc.pid), time.monotonic()
     time.sleep(seconds)
     c1, t1 = cpu_seconds(proc.pid), time.monotonic()
-    return (c1 - c0) / (t1 - t0)
+    threads1 = thread_seconds(proc.pid)
+    wall = t1 - t0
+    by_name: dict[str, float] = {}
+    own = threads1.get(proc.pid, ("", 0.0))[0]  # the main thread's name: the Python threads'
+    for tid, (name, cpu) in threads1.items():
+        label = "python" if name == own else name
+        by_name[label] = by_name.get(label, 0.0) + (cpu - threads0.get(tid, (name, 0.0))[1]) / wall
+    return (c1 - c0) / wall, dict(sorted(by_name.items(), key=lambda kv: -kv[1]))
 
 
-def run(robots: int, seconds: float) -> dict[str, Any]:
+def run(robots: int, seconds: float, baselines: bool = True) -> dict[str, Any]:
     from fleetlink.site.brokers import MosquittoBroker, free_port
     from fleetlink.site.recorder import summarise
 
@@ -155,21 +183,25 @@ def run(robots: int, seconds: float) -> dict[str, Any]:
         try:
             time.sleep(2.0)
             gen_c0, gen_t0 = cpu_seconds(gen.pid), time.monotonic()
-            bare = subprocess.Popen(
-                [py, __file__, "--role", "links", "--listen", listen, "--mqtt", broker.url],
-                env=env, stdout=subprocess.PIPE, text=True,
-            )  # fmt: skip
-            links_share = measure(bare, seconds)
-            bare.terminate()
-            bare.communicate(timeout=30)
-            base = subprocess.Popen(
-                [py, __file__, "--role", "baseline", "--listen", listen, "--mqtt", broker.url],
-                env=env, stdout=subprocess.PIPE, text=True,
-            )  # fmt: skip
-            base_share = measure(base, seconds)
-            base.terminate()
-            out, _ = base.communicate(timeout=30)
-            decoded = json.loads(out.strip().splitlines()[-1])
+            links_share = base_share = float("nan")
+            decoded = {"decoded": 0}
+            if baselines:
+                bare = subprocess.Popen(
+                    [py, __file__, "--role", "links", "--listen", listen, "--mqtt", broker.url],
+                    env=env, stdout=subprocess.PIPE, text=True,
+                )  # fmt: skip
+                links_share, _ = measure(bare, seconds)
+                bare.terminate()
+                bare.communicate(timeout=30)
+                base = subprocess.Popen(
+                    [py, __file__, "--role", "baseline", "--listen", listen, "--mqtt", broker.url],
+                    env=env, stdout=subprocess.PIPE, text=True,
+                )  # fmt: skip
+                base_share, _ = measure(base, seconds)
+                base.terminate()
+                out, _ = base.communicate(timeout=30)
+                decoded = json.loads(out.strip().splitlines()[-1])
+            load_before = os.getloadavg()[0]
             mcap = work / "bench.mcap"
             fleetlink = str(Path(py).with_name("fleetlink"))
             rec = subprocess.Popen(
@@ -177,7 +209,8 @@ def run(robots: int, seconds: float) -> dict[str, Any]:
                  "--mqtt", broker.url],
                 env=env, stderr=subprocess.DEVNULL,
             )  # fmt: skip
-            rec_share = measure(rec, seconds)
+            rec_share, rec_threads = measure(rec, seconds)
+            load_after = os.getloadavg()[0]
             rec.terminate()
             rec.wait(timeout=30)
             gen_share = (cpu_seconds(gen.pid) - gen_c0) / (time.monotonic() - gen_t0)
@@ -192,6 +225,9 @@ def run(robots: int, seconds: float) -> dict[str, Any]:
             "robots": robots,
             "window_s": seconds,
             "recorder_cpu_share_of_core_ratio": rec_share,
+            "recorder_threads_cpu_share_of_core_ratio": rec_threads,
+            "load_average_1min_at_recorder_start": load_before,
+            "load_average_1min_at_recorder_end": load_after,
             "baseline_decode_only_cpu_share_of_core_ratio": base_share,
             "baseline_links_only_cpu_share_of_core_ratio": links_share,
             "generator_cpu_share_of_core_ratio": gen_share,
@@ -214,6 +250,8 @@ def table(r: dict[str, Any]) -> str:
         ("baseline: the links only (messages counted), CPU of one core", f"{r['baseline_links_only_cpu_share_of_core_ratio']:.1%}", ""),
         ("baseline: the links + wire.decode_key, CPU of one core", f"{r['baseline_decode_only_cpu_share_of_core_ratio']:.1%}", ""),
         ("recorder (fleetlink record), CPU of one core", f"{r['recorder_cpu_share_of_core_ratio']:.1%}", f"goal <= 10 %: {ok}"),
+        ("  by thread: " + ", ".join(f"{k} {v:.1%}" for k, v in list(r["recorder_threads_cpu_share_of_core_ratio"].items())[:6]), "", ""),
+        ("load average (1 min) while the recorder ran", f"{r['load_average_1min_at_recorder_start']:.1f}", f"..{r['load_average_1min_at_recorder_end']:.1f}"),
         ("recorder minus baseline", f"{r['recorder_cpu_share_of_core_ratio'] - r['baseline_decode_only_cpu_share_of_core_ratio']:.1%}", ""),
         ("generator process, CPU of one core", f"{r['generator_cpu_share_of_core_ratio']:.1%}", ""),
         ("wire messages recorded per second", f"{r['recorded_wire_message_rate_hz']:.0f}", ""),
@@ -230,6 +268,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--json", type=Path, help="write the figures here (SI units, units in the keys)")
     parser.add_argument(
+        "--recorder-only", action="store_true", help="skip the two baselines (more runs in the time, to alternate)"
+    )
+    parser.add_argument(
         "--role", choices=("bench", "generator", "baseline", "links"), default="bench", help=argparse.SUPPRESS
     )
     parser.add_argument("--listen", help=argparse.SUPPRESS)
@@ -241,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.role in ("baseline", "links"):
         decode_only(args.listen, args.mqtt, decode=args.role == "baseline")
         return 0
-    result = run(args.robots, args.seconds)
+    result = run(args.robots, args.seconds, baselines=not args.recorder_only)
     print(table(result))
     if args.json is not None:
         args.json.write_text(json.dumps(result, indent=2) + "\n")

@@ -2,15 +2,17 @@
 
 ``Recorder`` subscribes to every fleetlink key (and the UWB gateways' status, and the robots'
 liveliness tokens) on each link it is given, through the one link layer (``fleetlink.links``),
-exactly as the console does. A link's thread only stamps the receive time (the injected clock's
-``wall()``) and queues the bytes; one writer ``Worker`` turns them into records with the pure core
-(site/recording.py) and writes them with the ``mcap`` library. A second worker fetches the map
-snapshots the core asks for (Zenoh queryables), so a robot's map can be drawn whole.
+exactly as the console does. MQTT's thread only stamps the receive time (the injected clock's
+``wall()``) and queues the bytes; Zenoh's samples wait in zenoh's own queue, stamped by zenoh on
+arrival. One writer ``Worker`` wakes every ``BATCH_PERIOD_S``, takes both, turns them into records
+with the pure core (site/recording.py) and writes them with the ``mcap`` library. A second worker
+fetches the map snapshots the core asks for (Zenoh queryables), so a robot's map can be drawn whole.
 
 Crash safety: the file is chunked (zstd) and flushed to the OS after every batch the writer
-takes (every 20 ms while messages come), and only whole chunks reach it; a chunk is closed when it holds
-``chunk_size`` bytes or its first message is ``chunk_age_s`` old, whichever comes first, so a
-``kill -9`` loses at most the chunk being filled (at most ``chunk_age_s`` of traffic).
+takes (every 100 ms while messages come), and only whole chunks reach it; a chunk is closed when it
+holds ``chunk_size`` bytes or its first message is ``chunk_age_s`` old (checked with every batch),
+whichever comes first, so a ``kill -9`` loses at most the chunk being filled (at most
+``chunk_age_s`` and a batch of traffic).
 ``RecordingReader`` reads a file that was closed properly or recovers everything before a
 truncated or damaged tail.
 """
@@ -124,8 +126,12 @@ def fetch_snapshots(
 _Heard = tuple[bool, str, str, bytes | bool, float]
 """(liveliness?, link, key, payload or alive, receive time): what a link's thread queues."""
 
-PULL_PERIOD_S = 0.02
-"""How often the Zenoh samples waiting in zenoh's queue are taken (``ZenohEndpoint.subscribe_pull``)."""
+BATCH_PERIOD_S = 0.1
+"""How often the writer wakes: it takes the Zenoh samples waiting in zenoh's queue
+(``ZenohEndpoint.subscribe_pull``) and the MQTT messages its link queued, and writes them. Every
+message keeps the time it arrived (zenoh's stamp, the MQTT link's), so a batch costs no accuracy;
+one thread woken ten times a second costs less than two woken fifty times (docs/recording.md,
+"Cost")."""
 
 
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
@@ -244,9 +250,8 @@ class Recorder:
         self._to_fetch: set[str] = set()
         self._fetch_lock = threading.Lock()
         self._pulls: list[tuple[str, Any]] = []
-        """(link, ``PullSubscription``): Zenoh's samples, taken in batches by ``_pulling``."""
+        """(link, ``PullSubscription``): Zenoh's samples, taken in batches by the writer."""
         self._writing = Worker("recorder-writer", clock=self.clock, target=self._write_loop)
-        self._pulling = Worker("recorder-pull", clock=self.clock, target=self._pull_loop)
         self._fetching = Worker("recorder-maps", clock=self.clock, target=self._fetch_loop) if fetch_maps else None
         self._started = False
         self._started_wall = 0.0
@@ -287,8 +292,6 @@ class Recorder:
 
                 watch(ALIVE_TOKENS, token)
         self._writing.start()
-        if self._pulls:
-            self._pulling.start()
         if self._fetching is not None:
             self._fetching.start()
         for link in self.links:
@@ -301,7 +304,7 @@ class Recorder:
         if not self._started:
             return
         self._started = False
-        self._pulling.stop()
+        self._writing.stop()
         self._pull()  # what zenoh holds for us, before its subscribers go with the session
         for link in self.links:
             try:
@@ -310,7 +313,6 @@ class Recorder:
                 log.warning("closing %s: %s", link.name.value, exc)
         if self._fetching is not None:
             self._fetching.stop()
-        self._writing.stop()
         self._drain()
         writer, self._writer = self._writer, None
         if writer is not None:
@@ -345,11 +347,6 @@ class Recorder:
             self._inbox.append(heard)
         # No wake-up per message: the writer looks every few milliseconds (one wake per burst).
 
-    def _pull_loop(self, worker: Worker) -> None:
-        while not worker.stopping:
-            worker.wait(PULL_PERIOD_S)
-            self._pull()
-
     def _pull(self) -> None:
         """Take the Zenoh samples waiting (stamped by zenoh when they arrived: a sample without a
         stamp gets the time it is taken) into the writer's inbox."""
@@ -373,7 +370,8 @@ class Recorder:
 
     def _write_loop(self, worker: Worker) -> None:
         while not worker.stopping:
-            worker.wait(0.02)
+            worker.wait(BATCH_PERIOD_S)
+            self._pull()
             self._drain()
 
     def _drain(self) -> None:
@@ -519,7 +517,7 @@ FLEET_KINDS = frozenset({"wire", "uwb-status", "alive"})
 """The channels a replay plays (``Channel.kind``): what the console heard; not the Foxglove ones."""
 REORDER_S = 2.0
 """A recovered file (no index) is read in file order; its messages are put in time order within
-this window (the recorder writes a batch every 20 ms, the links' messages interleaved)."""
+this window (the recorder writes a batch every 100 ms, the links' messages interleaved)."""
 
 
 class _CountingFile:
