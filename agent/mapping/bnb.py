@@ -83,13 +83,16 @@ def search(
         raise ValueError(f"angle_step must be > 0, got {angle_step!r}")
     if len(points) == 0:
         return None
-    res, pad, depth = grids.resolution, grids.pad, grids.depth
+    res, pad = grids.resolution, grids.pad
     ox, oy = grids.origin
     n_lin = max(0, math.ceil(window_xy / res))
     n_ang = max(0, round(window_theta / angle_step))
-    top = 1 << depth
     # Offsets (in cells) run over [0, span) from the window's low corner; blocks of ``top`` tile them.
+    # A small window starts at the level whose one block covers it (the levels above would only split
+    # that block's bound again): the same answer, fewer steps.
     span = 2 * n_lin + 1
+    depth = min(grids.depth, max(1, (span - 1).bit_length()))
+    top = 1 << depth
     nblk = -(-span // top)
     thetas = guess[2] + angle_step * np.arange(-n_ang, n_ang + 1, dtype=np.float64)
     c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]

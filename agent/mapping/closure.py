@@ -85,6 +85,15 @@ class CloserConfig:
     confirm_distance: float = 0.2  # m: two closures agree when their corrections differ by less
     confirm_angle: float = math.radians(2.0)
     bnb_depth: int = 6  # branch-and-bound levels: the top blocks are 2^6 cells (3.2 m at 5 cm)
+    # The final pass (``finish``, the end of a replay): every node matched against the finished submaps
+    # near it (not its own), in a small window around where the solved graph puts it; each match an edge.
+    final_radius: float = 3.0  # m: a submap seen from this near (2 m per radian of heading counted in)
+    final_per_node: int = 6  # submaps per node at most, the nearest by view first
+    final_window_xy: float = 0.3  # m
+    final_window_theta: float = math.radians(4.0)
+    final_sigma_xy: float = 0.03  # m
+    final_sigma_theta: float = math.radians(1.0)
+    final_drops: int = 20  # edges the final solve may drop, one at a time
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
 
     def __post_init__(self) -> None:
@@ -155,6 +164,7 @@ class CloserStats:
     confirmed: int = 0
     solves: int = 0
     submaps_drawn: int = 0  # drawings (a submap let go and needed again is drawn again)
+    final_edges: int = 0  # matches the final pass (``finish``) verified
 
 
 class LoopCloser:
@@ -363,7 +373,11 @@ class LoopCloser:
         return sm.grid, sm.local, sm.grids
 
     def _verify(
-        self, k: int, sm: _Submap, fix: Pose = (0.0, 0.0, 0.0), window: tuple[float, float] | None = None
+        self,
+        k: int,
+        sm: _Submap,
+        fix: Pose = (0.0, 0.0, 0.0),
+        window: tuple[float, float] | None = None,
     ) -> Closure | None:
         """Match node ``k``'s scan against ``sm``, searching around the node's pose moved by ``fix``
         (a pending correction) within ``window`` (default: the base window grown by the drift)."""
@@ -407,18 +421,70 @@ class LoopCloser:
         score = field_score(grid, sc.match_points, r.pose)
         return Closure(k, sm.first, robot, score, ratio)
 
-    def _solve(self) -> None:
+    def finish(self) -> int:
+        """The final pass: every node matched against the finished submaps it sees (not its own; the
+        ``final_per_node`` nearest by view within ``final_radius``), each in a small window around
+        where the solved graph puts it; every verified match an edge; then the graph solved again,
+        the worst edges dropped one at a time as for closures (at most ``final_drops``). Dense
+        constraints, after Cartographer's global SLAM: a node's pose becomes the average of many
+        scan-to-submap matches instead of the front end's chain of steps, and places where no loop
+        closure was verified online are tied to what was mapped there before. Returns the edges kept."""
+        cfg = self.config
+        n = len(self.graph.poses)
+        if n == 0:
+            return 0
+        xyt = np.array(self.graph.poses)
+        full = [i for i, sm in enumerate(self.submaps) if sm.last - sm.first >= cfg.submap_nodes]
+        pairs: dict[int, list[int]] = {}  # submap -> nodes, so each submap is drawn once
+        if full:
+            starts = np.array([self.submaps[i].first for i in full])
+            ends = np.array([self.submaps[i].last for i in full])
+            cols = np.concatenate([np.arange(a, b) for a, b in zip(starts, ends, strict=True)])
+            bounds = np.concatenate(([0], np.cumsum(ends - starts)[:-1]))
+            for k0 in range(0, n, _FINAL_ROWS):  # in blocks of nodes: the (nodes x nodes) table stays small
+                rows = xyt[k0 : k0 + _FINAL_ROWS]
+                other = xyt[cols]
+                d = np.hypot(rows[:, None, 0] - other[None, :, 0], rows[:, None, 1] - other[None, :, 1])
+                turn = np.abs(np.remainder(other[None, :, 2] - rows[:, None, 2] + math.pi, 2.0 * math.pi) - math.pi)
+                # Per submap, the node that saw most nearly what this one sees (as for candidates).
+                rank = np.minimum.reduceat(d + VIEW_LEVER_M * turn, bounds, axis=1)
+                ks = np.arange(k0, k0 + len(rows))
+                rank[(ks[:, None] >= starts[None, :]) & (ks[:, None] < ends[None, :])] = np.inf  # not its own
+                for r in range(len(rows)):
+                    near = np.flatnonzero(rank[r] <= cfg.final_radius)
+                    near = near[np.argsort(rank[r, near], kind="stable")][: cfg.final_per_node]
+                    for j in near.tolist():
+                        pairs.setdefault(full[j], []).append(k0 + r)
+        found: list[Closure] = []
+        window = (cfg.final_window_xy, cfg.final_window_theta)
+        for s_i in sorted(pairs):
+            for k in pairs[s_i]:
+                c = self._verify(k, self.submaps[s_i], window=window)
+                if c is not None:
+                    found.append(c)
+        info = np.diag([1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_theta**2])
+        for c in found:
+            self.graph.add_edge(c.anchor, c.node, c.z, info)
+            self.closures.append(c)
+            self._closure_edges.append(len(self.graph.edges) - 1)
+        before = len(self.closures)
+        self.stats.final_edges += len(found)
+        self._solve(max_drops=cfg.final_drops)
+        return len(found) - (before - len(self.closures))
+
+    def _solve(self, max_drops: int | None = None) -> None:
         """Solve; while the worst closure's error is above ``max_chi2``, drop it and solve again (at
         most ``max_drops`` times; the last solve is always after the last drop). One at a time: a
         wrong closure bends the graph and raises its neighbours' errors too, and they come back under
         the gate once it is gone."""
         cfg = self.config
+        drops = cfg.max_drops if max_drops is None else max_drops
         self._solved_at = len(self.graph.poses) - 1
         fixed = None if self.graph.priors else 0  # priors anchor the graph; else its first node does
-        for attempt in range(cfg.max_drops + 1):
+        for attempt in range(drops + 1):
             self.graph.optimize(fixed=fixed, iterations=cfg.iterations, tolerance=1e-5)
             self.stats.solves += 1
-            if not self._closure_edges or attempt == cfg.max_drops:
+            if not self._closure_edges or attempt == drops:
                 return
             chi = self.graph.errors()
             worst = max(range(len(self._closure_edges)), key=lambda n: chi[self._closure_edges[n]])
@@ -434,6 +500,8 @@ class LoopCloser:
 SUBMAP_GROW_M = 2.0
 """A submap grid grows in steps of this many metres (the mapper's grid uses 8 m)."""
 JUMP_LEVER_M = 3.0
+_FINAL_ROWS = 256
+"""Nodes ranked against every submap at once in the final pass."""
 """A closure's turn counts towards ``confirm_above`` as the arc it moves a wall this far away."""
 VIEW_LEVER_M = 2.0
 """Ranking candidates: a node facing another way counts as this many metres further per radian."""

@@ -27,6 +27,8 @@ class ReplayResult:
     rows: list[tuple[str, Pose]] = field(default_factory=list)  # (ipc_timestamp text, robot pose)
     logged: list[Pose] = field(default_factory=list)  # the log's own pose per scan (corrected logs: reference)
     online: list[tuple[str, Pose]] = field(default_factory=list)  # each scan's pose when it was mapped
+    # Each scan where the last online solve put it, before the final pass (``OnboardMapper.finish``).
+    before_final: list[tuple[str, Pose]] = field(default_factory=list)
 
 
 def replay(
@@ -51,8 +53,13 @@ def replay(
     if result is None:
         return ReplayResult(OnboardMapper(config))
     # With loop closure the past moves after each solve: the trajectory and the map written are the
-    # final graph's (each scan's online pose is kept in ``online``).
+    # final graph's (each scan's online pose is kept in ``online``), after the final pass (every node
+    # matched against the submaps it sees, the graph solved again: ``LoopCloser.finish``).
     result.online = list(result.rows)
+    result.before_final = [
+        (ts, p) for (ts, _), (_, p) in zip(result.online, result.mapper.corrected_trajectory(), strict=True)
+    ]
+    result.mapper.finish()
     final = result.mapper.corrected_trajectory()
     result.rows = [(ts, p) for (ts, _), (_, p) in zip(result.online, final, strict=True)]
     result.mapper.redraw()
