@@ -243,7 +243,9 @@ async def measure(
             go.set()
             await asyncio.sleep(1.0)
             rig.app.frame_times.clear()
-            applied0, t_start = rig.app.feed.applied, time.monotonic()
+            applied0, t_start, cpu0 = rig.app.feed.applied, time.monotonic(), time.process_time()
+            received0 = sum(rig.link.delivered.values())
+            conflated0 = getattr(rig.app.feed, "conflated", 0)
             latencies: list[float] = []
             end = time.monotonic() + seconds
             while time.monotonic() < end:
@@ -257,9 +259,14 @@ async def measure(
                         latencies.append((teleops[before] if len(teleops) > before else time.monotonic()) - t0)
                 await asyncio.sleep(0.15)
             frames = list(rig.app.frame_times)
-            collector = rig.app.collector
-            gc_passes, gc_longest = list(collector.passes), list(collector.longest)
-            folded = (rig.app.feed.applied - applied0) / (time.monotonic() - t_start)
+            collector = getattr(rig.app, "collector", None)  # (None: a console before 2026-11-28)
+            gc_passes = list(collector.passes) if collector is not None else [-1, -1, -1]
+            gc_longest = list(collector.longest) if collector is not None else [0.0, 0.0, 0.0]
+            conflated = getattr(rig.app.feed, "conflated", 0) - conflated0
+            took = time.monotonic() - t_start
+            cpu = (time.process_time() - cpu0) / took
+            received = (sum(rig.link.delivered.values()) - received0) / took
+            folded = (rig.app.feed.applied - applied0) / took
             shown = len(rig.app.query_one("#fleet").rows)
     finally:
         robots_stop.set()
@@ -282,6 +289,9 @@ async def measure(
         "input_p99_s": pct(latencies, 0.99),
         "inputs": len(latencies),
         "folded_per_s": folded,
+        "conflated_per_s": conflated / took,
+        "received_per_s": received,
+        "console_cpu_share": cpu,
         "load_1min": os.getloadavg()[0],
         "gc_passes": gc_passes,
         "gc_longest_s": gc_longest,
@@ -324,9 +334,10 @@ def main() -> int:
     print(f"rows shown {full['robots_shown']}/{args.robots}; {full['frames']} refreshes, {full['inputs']} key presses")
     expected = args.robots * args.pose_hz * (1 + 1 / args.pose_hz)  # poses and states
     print(
-        f"messages folded into the model {full['folded_per_s']:.0f}/s (poses and states sent: {expected:.0f}/s); "
+        f"messages received {full['received_per_s']:.0f}/s, folded into the model {full['folded_per_s']:.0f}/s, poses replaced by a newer one before "
+        f"they were {full['conflated_per_s']:.0f}/s (poses and states sent: {expected:.0f}/s); "
         f"robots encoded {'in the console' if args.encode_in_process else 'in a process of their own'}; "
-        f"load average {full['load_1min']:.1f}"
+        f"load average {full['load_1min']:.1f}; the console's process used {100 * full['console_cpu_share']:.0f} % of a core"
     )
     passes, longest = full["gc_passes"], full["gc_longest_s"]
     print(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -234,9 +235,20 @@ class FleetModel:
 
     def _pose(self, view: RobotView, x: float, y: float, theta: float) -> None:
         view.pose = (x, y, theta)
+        self._trail(view, x, y)
+
+    @staticmethod
+    def _trail(view: RobotView, x: float, y: float) -> None:
         if not view.trail or math.hypot(x - view.trail[-1][0], y - view.trail[-1][1]) >= TRAIL_MIN_STEP_M:
             view.trail.append((x, y))
             view.trail_added += 1
+
+    def trail_through(self, robot: str, points: Iterable[tuple[float, float]]) -> None:
+        """Where ``robot`` was at poses a busy console folded into a later one (operator/feed.py,
+        before that pose is applied): on its trail, as if each had been applied."""
+        view = self.robot(robot)
+        for x, y in points:
+            self._trail(view, x, y)
 
     def _state(self, view: RobotView, msg: State, now: float) -> None:
         p = msg.agvPosition

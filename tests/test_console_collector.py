@@ -115,6 +115,15 @@ def test_survivors_are_frozen_as_the_fleet_grows_a_bounded_number_of_times() -> 
     assert fake.freezes == c.freezes
 
 
+def test_a_fleet_grown_by_a_quarter_gets_a_full_pass_after_the_next_frame_and_is_frozen() -> None:
+    fake = FakeGc()
+    c = collector(fake)  # no pass due
+    assert c.step(fleet=500) is None  # not after a frame
+    assert c.step(after_frame=True, fleet=500) == 2 and fake.freezes == 1
+    assert c.step(after_frame=True, fleet=600) is None  # not a quarter more
+    assert c.step(after_frame=True, fleet=625) == 2 and fake.freezes == 2
+
+
 class Knot:
     """A reference cycle that counts the knots alive."""
 

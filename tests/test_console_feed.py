@@ -85,8 +85,8 @@ def test_bound_the_network_only_queues_and_wakes_the_app_once_per_batch() -> Non
     for k in range(5):
         source.hear(pose(agent, float(k)))
     assert wakes == [1] and "r1" not in fleet.robots  # nothing touched the model yet
-    assert feed.drain() == 5
-    assert fleet.robots["r1"].pose == (4.0, 0.0, 0.0)  # in order: the last one wins
+    assert feed.drain() == 1 and feed.conflated == 4  # one robot's poses: its latest, once
+    assert fleet.robots["r1"].pose == (4.0, 0.0, 0.0)
     source.hear(pose(agent, 9.0))
     assert wakes == [1, 1]  # the next batch wakes again
     feed.unbind()  # what still waits is folded in, and from now on at once
@@ -95,13 +95,43 @@ def test_bound_the_network_only_queues_and_wakes_the_app_once_per_batch() -> Non
     assert fleet.robots["r1"].pose == (10.0, 0.0, 0.0) and wakes == [1, 1]
 
 
+def test_a_robots_newer_pose_takes_the_place_of_one_still_waiting_and_nothing_else_is_merged() -> None:
+    source, fleet, feed, r1 = feed_rig()
+    r2 = wire.HeaderCounter(SimClock(), robot="r2", sender="agent-r2")
+    feed.bind(lambda: True)
+    first, newer = pose(r1, 1.0), pose(r1, 2.0)
+    source.hear(first)
+    source.hear(r1.make(Lease, holder="op-bob", until=0.0))
+    source.hear(pose(r2, 5.0))
+    source.hear(newer, "mqtt")
+    source.hear(first, "zenoh")  # a late copy of the older pose does not take the newer one's place
+    source.hear(r1.make(Lease, holder="op-eve", until=0.0))
+    seen: list[tuple[str, str]] = []
+    real = fleet.apply
+
+    def applying(msg: wire.Message, link: str, now: float) -> bool:
+        seen.append((msg.header.robot, type(msg).__name__))
+        return real(msg, link, now)
+
+    fleet.apply = applying  # type: ignore[method-assign]
+    assert feed.drain() == 4 and feed.conflated == 2
+    # r1's pose where its first one waited, then the rest in the order they came: leases both.
+    assert seen == [("r1", "Pose"), ("r1", "Lease"), ("r2", "Pose"), ("r1", "Lease")]
+    assert fleet.robots["r1"].pose == (2.0, 0.0, 0.0) and fleet.robots["r2"].pose == (5.0, 0.0, 0.0)
+    assert fleet.robots["r1"].lease_holder == "op-eve"
+    assert list(fleet.robots["r1"].trail) == [(1.0, 0.0), (2.0, 0.0)]  # the pose passed over: on the trail
+    source.hear(pose(r1, 3.0))  # drained: the next pose waits on its own again
+    assert feed.drain() == 1 and fleet.robots["r1"].pose == (3.0, 0.0, 0.0)
+    assert list(fleet.robots["r1"].trail) == [(1.0, 0.0), (2.0, 0.0), (3.0, 0.0)]
+
+
 def test_an_app_that_cannot_take_the_wake_up_is_woken_again_later() -> None:
     source, _fleet, feed, agent = feed_rig()
     answers = [False, True]
     feed.bind(lambda: answers.pop(0))
     source.hear(pose(agent, 1.0))  # refused (the app is shutting down, say)
-    source.hear(pose(agent, 2.0))  # so this one wakes again
-    assert answers == [] and feed.drain() == 2
+    source.hear(pose(agent, 2.0))  # so this one wakes again (though it takes the first one's place)
+    assert answers == [] and feed.drain() == 1
 
 
 def test_one_feed_per_fleet_model() -> None:

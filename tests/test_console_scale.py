@@ -120,8 +120,8 @@ async def test_a_drive_key_sends_its_teleop_before_queued_telemetry_and_frames(t
 
             rig.zenoh.publish = stamped  # type: ignore[method-assign]
             console_module.DRAIN_SLICE_S = 0.0  # the smallest slices: 32 items each
-            for k in range(2000):  # a burst of telemetry, and a frame due for it
-                rig.pose("r00", 0.001 * k, 0.0, links=("zenoh",))
+            for k in range(2000):  # a burst of telemetry (2000 robots: one robot's poses fold into one), a frame due
+                rig.pose(f"b{k:04d}", 0.001 * k, 0.0, links=("zenoh",))
             rig.app._changed()
             rig.app.post_message(events.Key("i", "i"))
             await settle(pilot, 0.5)
@@ -130,7 +130,7 @@ async def test_a_drive_key_sends_its_teleop_before_queued_telemetry_and_frames(t
             assert len(rig.app.frame_times) > frames and not rig.app.feed.pending  # then all of it
             drives = [t for t in rig.zenoh.messages(Teleop) if t.v > 0]
             assert drives and drives[0].header.robot == "r00"
-            assert rig.fleet.robots["r00"].pose is not None and rig.fleet.robots["r00"].pose[0] > 1.9
+            assert len(rig.fleet.robots) == 2001 and rig.fleet.robots["b1999"].pose == (1.999, 0.0, 0.0)
     finally:
         console_module.DRAIN_SLICE_S = slice_s
         rig.link.close()
