@@ -7,7 +7,8 @@ posts the app a ``TelemetryArrived``; the app folds the inbox into the model on 
 slices of ``DRAIN_SLICE_S``, so a key waits one slice, not a burst) and redraws. A drive key on the
 map sends its teleop when the app first sees it, before any frame queued meanwhile. A frame is
 drawn when something changed (telemetry, an operator action) and on a slow clock tick (ages,
-robots going quiet, lease renewal), at most ``refresh_hz`` times a second; no widget is ever
+robots going quiet, lease renewal), at most ``refresh_hz`` times a second (fewer when frames take
+long: ``FRAME_SPACING``); no widget is ever
 touched off the UI thread, and no network thread ever waits for the UI.
 
 The parts: the fleet table (operator/fleet_table.py), the robot detail (operator/detail.py), the
@@ -108,6 +109,10 @@ from fleetlink.shared.messages import ActionType, Mark, PeopleZones, Zone, ZoneP
 
 DRAIN_SLICE_S = 0.008
 """Telemetry is folded into the model in slices of about this long (keys wait at most one)."""
+FRAME_SPACING = 4.0
+"""The next frame comes at least this many times as long after the last one as that one took to
+work out (and never sooner than 1 / refresh_hz): a host too busy for 10 frames a second of 500
+robots draws fewer, and keys and telemetry get the time between them."""
 
 __all__ = ["ConsoleApp", "ConsoleSource", "RoundPlanned", "TelemetryArrived", "attach"]
 
@@ -325,6 +330,8 @@ class ConsoleApp(App[None]):
         """Python's garbage collector while the app runs: paced by the app (operator/collector.py)."""
         self.sent_stop_on_quit = False
         self._last_frame = -math.inf
+        self._frame_cost = 0.0
+        """How long the last frame took to work out (the spacing of the next, ``FRAME_SPACING``)."""
         self._frame_timer: Timer | None = None
         with self.lock:
             for mark in self.marks.load():
@@ -390,14 +397,19 @@ class ConsoleApp(App[None]):
 
     def _changed(self) -> None:
         """Something on screen may have changed: draw a frame now, or when the last one is
-        1 / refresh_hz old."""
+        1 / refresh_hz old (or ``FRAME_SPACING`` times its own cost, if that is longer)."""
         if self._frame_timer is not None:
             return
-        wait = self._last_frame + 1.0 / self.refresh_hz - self.clock.now()
+        wait = self._last_frame + self.frame_period() - self.clock.now()
         if wait <= 0:
             self._frame()
         else:
             self._frame_timer = self.set_timer(wait, self._timed_frame)
+
+    def frame_period(self) -> float:
+        """The least time from one frame to the next: 1 / refresh_hz, or ``FRAME_SPACING`` times
+        what the last frame took, if that is longer."""
+        return max(1.0 / self.refresh_hz, FRAME_SPACING * self._frame_cost)
 
     def _timed_frame(self) -> None:
         self._frame_timer = None
@@ -454,7 +466,8 @@ class ConsoleApp(App[None]):
         if new_robots:
             self.share_zones()
         self._save_if_changed()
-        self.frame_times.append(self.clock.now() - t0)
+        self._frame_cost = self.clock.now() - t0
+        self.frame_times.append(self._frame_cost)
         del self.frame_times[:-1000]
         # A full pass, when one is due, right after the frame: the next is 1 / refresh_hz away.
         self.collector.step(after_frame=True, fleet=len(fleet.robots))

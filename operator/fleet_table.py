@@ -139,7 +139,7 @@ VISIBLE_MARGIN = 2
 
 ROWS_PER_FRAME = 6
 """At most this many rows are redrawn in a frame, in turn (the next frame goes on after the last
-one redrawn): each row's cells are drawn through Rich, ~1-2 ms a row, and at 500 robots every row
+one redrawn; rows just scrolled into view are all brought up to date at once): each row's cells are drawn through Rich, ~1-2 ms a row, and at 500 robots every row
 on screen changes every frame (pose age, link health), so redrawing them all (20-40 ms) held up
 the key presses that came meanwhile. A screen of 20 rows is current within 4 frames (0.4 s)."""
 
@@ -170,6 +170,8 @@ class FleetTable(DataTable[Cell]):
         self.cells_updated = 0
         """Cells rewritten so far (``update_cell`` calls)."""
         self._turn = 0
+        self._shown_range = (0, 0)
+        """The rows [first, end) on screen in the last frame."""
         """The row index (in ``_order``) whose turn it is to be redrawn first."""
 
         # DataTable's render caches are keyed by its update count, so after an update only what is
@@ -225,13 +227,19 @@ class FleetTable(DataTable[Cell]):
         if n <= 0:
             return
         start = self._turn if first <= self._turn < end else first
+        was_first, was_end = self._shown_range
+        self._shown_range = (first, end)
         redrawn = 0
         self._rows_only = True
         try:
-            for k in range(n):
+            for i in range(first, end):  # rows scrolled into view since the last frame: all at once
+                if not was_first <= i < was_end and self._update(self._order[i], cells(self._order[i])):
+                    self._refresh_line(i)
+            for k in range(n):  # the others in turn
                 i = first + (start - first + k) % n
-                robot = self._order[i]
-                if self._update(robot, cells(robot)):
+                if not was_first <= i < was_end:
+                    continue
+                if self._update(self._order[i], cells(self._order[i])):
                     self._refresh_line(i)
                     redrawn += 1
                     if redrawn == ROWS_PER_FRAME:

@@ -9,6 +9,7 @@ import random
 from pathlib import Path
 from typing import Any
 
+import pytest
 from textual import events
 from textual.geometry import Region
 
@@ -133,6 +134,32 @@ async def test_a_drive_key_sends_its_teleop_before_queued_telemetry_and_frames(t
             assert len(rig.fleet.robots) == 2001 and rig.fleet.robots["b1999"].pose == (1.999, 0.0, 0.0)
     finally:
         console_module.DRAIN_SLICE_S = slice_s
+        rig.link.close()
+
+
+@run_async
+async def test_frames_that_take_long_come_less_often(tmp_path: Path) -> None:
+    clock = SimClock(start=100.0)
+    rig = Rig(tmp_path, clock=clock)
+    rig.link.start()
+    real_show = FleetTable.show_lazy
+
+    def slow_show(self: FleetTable, *args: Any) -> None:
+        clock.advance(0.05)  # a frame that takes 50 ms to work out
+        real_show(self, *args)
+
+    try:
+        async with rig.app.run_test(size=(140, 44)) as pilot:
+            assert rig.app.frame_period() == 0.1  # 1 / refresh_hz
+            FleetTable.show_lazy = slow_show  # type: ignore[method-assign]
+            rig.app._draw()
+            assert rig.app.frame_period() == pytest.approx(0.05 * console_module.FRAME_SPACING)  # 0.2 s
+            FleetTable.show_lazy = real_show  # type: ignore[method-assign]
+            rig.app._draw()
+            assert rig.app.frame_period() == 0.1
+            await pilot.pause()
+    finally:
+        FleetTable.show_lazy = real_show  # type: ignore[method-assign]
         rig.link.close()
 
 
