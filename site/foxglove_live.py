@@ -21,7 +21,7 @@ Foxglove SDK's channels.
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, OrderedDict
 from typing import Final
 
 from fleetlink.shared import foxglove, wire
@@ -59,7 +59,7 @@ class LiveCore:
         self.robots: set[str] = set()
         self.received = 0
         self.sent = 0
-        self._recent: dict[tuple[str, bytes], None] = {}
+        self._recent: OrderedDict[tuple[str, bytes], None] = OrderedDict()  # FIFO (site/recording.py)
         self._grid_sent: dict[str, float] = {}
 
     # -- from the links -------------------------------------------------------------------------
@@ -79,7 +79,7 @@ class LiveCore:
             return []
         self._recent[slot] = None
         if len(self._recent) > RECENT:
-            del self._recent[next(iter(self._recent))]
+            self._recent.popitem(last=False)
         if isinstance(msg, Pose | Truth | Scan):
             robot = msg.header.robot
             self.robots.add(robot)
