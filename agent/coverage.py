@@ -1882,13 +1882,21 @@ def _runs(row: BoolGrid) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(starts, ends, strict=True)]
 
 
+STRIP_STEP_M = 1.0
+"""A lane whose interval ends this much further in (or out) than the one before it, at either end,
+starts a strip of its own (measured, bench/coverage.py: the bedroom's sweep 93.9 -> 95.1 %)."""
+
+
 def _decompose(
     stand: BoolGrid, res: float, ox: float, oy: float, width: float, spread: float | None = None
 ) -> list[_Strip]:
     """Boustrophedon decomposition of ``stand`` (rows along y, lanes along x): lanes one tool width
     apart (evenly over the stand rows' extent), each split into intervals of stand cells; intervals
     on consecutive lanes that overlap one-to-one continue the same cell, anything else (a split
-    around an obstacle, a merge) starts new cells."""
+    around an obstacle, a merge, or an interval whose end moves by more than ``STRIP_STEP_M``: a
+    doorway's nub, the floor beside a wardrobe ending) starts new cells. A strip that ends at such a
+    step spreads its lanes over its own floor (``_edge_lanes``) instead of leaving a lane's worth of it
+    beside the shorter lane, which runs along one wall only."""
     rows = np.nonzero(stand.any(axis=1))[0]
     if rows.size == 0:
         return []
@@ -1915,7 +1923,8 @@ def _decompose(
                 k = over_prev[0]
                 pa, pb = prev[k]
                 over_cur = [q for q, (ca, cb) in enumerate(ivs) if ca <= pb and pa <= cb]
-                if len(over_cur) == 1 and k in open_:
+                step = max(abs(a - pa), abs(b - pb)) * res
+                if len(over_cur) == 1 and k in open_ and step <= STRIP_STEP_M:
                     s = open_[k]
             if s is None:
                 strips.append(_Strip())
@@ -1951,6 +1960,9 @@ def _edge_lanes(strip: _Strip, stand: BoolGrid, res: float, ox: float, oy: float
             over = [(c0, c1) for c0, c1 in _runs(stand[rr]) if c0 <= b and a <= c1]
             if len(over) != 1 or (over[0][1] - over[0][0]) - (b - a) > width / res:  # none, split, merged
                 break
+            if min(over[0][1], b) - max(over[0][0], a) + 1 < 0.9 * (b - a + 1):
+                break  # narrower: the floor of the strip beyond a step (a nub), not this one's
+
             got = k
         ext.append(got)
     if not any(ext):
@@ -1962,7 +1974,7 @@ def _edge_lanes(strip: _Strip, stand: BoolGrid, res: float, ox: float, oy: float
     n = len(lanes)
     room = (n - 1) * max(spread, width) - span  # how far the same lanes can spread
     if lo + hi - max(room, 0.0) >= 2 * res - 1e-9:  # worth a lane: 0.2 m or more of floor beside it
-        n += 1
+        n = max(n + 1, math.ceil((span + lo + hi) / max(spread, width) - 1e-9) + 1)  # none further apart than spread
     elif lo + hi > room:
         if room <= 1e-9:
             return

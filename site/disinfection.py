@@ -136,6 +136,8 @@ class RoundResult:
     """Survey passes before the round (the robots looked into what their maps had not seen)."""
     survey_path_m: float = 0.0
     """The path the robots drove on survey orders (the floor their brush passed then counts)."""
+    approach_path_m: float = 0.0
+    """A sweep: the path from where the robot stood to its first lane (not in ``path_m``)."""
 
     @property
     def finished(self) -> bool:
@@ -160,6 +162,7 @@ class RoundResult:
             "bumps": self.bumps,
             "surveys": self.surveys,
             "survey_path_m": round(self.survey_path_m, 3),
+            "approach_path_m": round(self.approach_path_m, 3),
             "plan_wall_s": round(self.plan_wall_s, 3),
             "wall_s": round(self.wall_s, 2),
             "sim_s": round(self.sim_s, 2),
@@ -176,6 +179,8 @@ class _Crew:
     footprint: tuple[int, int, np.ndarray[Any, np.dtype[np.float64]]] | None = None
     fp_at: tuple[float, float] | None = None
     first_lane_at: tuple[float, float] | None = None
+    sweeping: bool = False
+    """A sweep's order has reached its first lane (node n1): its path counts from there."""
     bumped: bool = False
     resume_at: float | None = None
     resumes: int = 0
@@ -215,7 +220,7 @@ class RoundRun:
         self.dose = np.zeros(self.truth_fm.shape)
         """J/m² the true floor got, on the truth grid's own cells."""
         self.swept = np.zeros(self.truth_fm.shape, dtype=bool)
-        self.lamp_on_s = self.lamp_outside_s = self.path_m = self.survey_path_m = 0.0
+        self.lamp_on_s = self.lamp_outside_s = self.path_m = self.survey_path_m = self.approach_path_m = 0.0
         self.predicted_s = 0.0
         self.ideal_path_m: float | None = None
         self.plan_wall_s = 0.0
@@ -369,6 +374,7 @@ class RoundRun:
             crew.order_id = fields["orderId"]
             crew.sent_at = t if crew.sent_at is None else crew.sent_at
             crew.done_at = None
+            crew.sweeping = False
             self._send(name, Order, **fields)
         return True
 
@@ -496,8 +502,13 @@ class RoundRun:
                 step = math.dist(crew.last, (x, y))
                 if self._surveying:
                     self.survey_path_m += step
-                elif self.setup.mode != "sweep" or crew.first_lane_at is not None:
+                elif self.setup.mode != "sweep":
                     self.path_m += step
+                elif crew.sweeping or self._on_first_lane(crew):
+                    crew.sweeping = True
+                    self.path_m += step
+                else:
+                    self.approach_path_m += step
             crew.last = (x, y)
             if running and self.setup.mode == "sweep":
                 self._brush(crew, x, y)
@@ -511,6 +522,16 @@ class RoundRun:
                     crew.fp_at = (x, y)
                 r0, c0, e = crew.footprint
                 self.dose[r0 : r0 + e.shape[0], c0 : c0 + e.shape[1]] += e * SAMPLE_S
+
+    def _on_first_lane(self, crew: _Crew) -> bool:
+        """The robot says its sweep order has reached node n1, where the first lane begins (or a
+        node after it): the boustrophedon's path starts there; the way to it depends on where the
+        robot happened to stand."""
+        st = self.op.states.get(crew.name)
+        progress = getattr(st, "progress", None)
+        return bool(
+            st is not None and st.orderId == crew.order_id and progress is not None and progress.lastNodeSequenceId >= 2
+        )
 
     def _in_room(self, x: float, y: float) -> bool:
         fm = self.truth_fm
@@ -569,6 +590,7 @@ class RoundRun:
             notes=self.notes,
             surveys=self.surveys,
             survey_path_m=self.survey_path_m,
+            approach_path_m=self.approach_path_m,
         )
 
 

@@ -123,11 +123,14 @@ class ScriptedOperator:
         self.acks: list[Any] = []
         self.events: list[Any] = []
         self.poses: dict[str, Any] = {}
+        self.states: dict[str, Any] = {}
+        """The latest ``State`` from each robot (its order's progress among it)."""
         self.on_event: Callable[[Any], None] | None = None
         for link in (zenoh, mqtt):
             link.start()
             link.subscribe(keys.zenoh_all_robots("ack"), self._ack)
             link.subscribe(keys.zenoh_all_robots("events"), self._event)
+            link.subscribe(keys.zenoh_all_robots("state"), self._state)
         zenoh.subscribe(keys.zenoh_all_robots("pose"), self._pose)
         self._seen: set[tuple[str, str, int]] = set()
 
@@ -177,6 +180,11 @@ class ScriptedOperator:
             self.events.append(msg)
             if self.on_event is not None:
                 self.on_event(msg)
+
+    def _state(self, key: str, payload: bytes) -> None:
+        msg = wire.decode_key(key, payload)
+        if self._fresh(msg):
+            self.states[msg.header.robot] = msg
 
     def _pose(self, key: str, payload: bytes) -> None:
         msg = wire.decode_key(key, payload)

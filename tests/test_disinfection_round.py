@@ -33,12 +33,14 @@ def test_a_sweep_passes_the_brush_over_the_room_on_a_path_near_the_boustrophedon
     with RoundRun(setup) as run:
         result = run.run()
     assert result.finished, result.notes
-    # Measured 0.82 with a path 2.2x the ideal (the goals are 0.95 and 1.2x): the lanes stop 0.3 m short
-    # of walls ahead (the guard's stopping room) and lanes across them sweep along those walls, where
-    # the guard slows the robot and it weaves. (Before the map took each turn at its start, 0.73 and
-    # 1.7x: the smeared walls kept the lanes farther from the furniture.) A regression guard.
-    assert result.coverage >= 0.75, (result.coverage, result.notes)
-    assert result.ideal_path_m is not None and result.path_m <= 2.5 * result.ideal_path_m
+    # Measured 0.987 with a path 1.19x the ideal (2026-11-28; the benchmark's goals are 0.95 and
+    # 1.2x). It was 0.82 at 2.2x when lanes stopped 0.3 m short of walls and lanes across them swept
+    # along those walls, where the guard slowed the robot and it weaved. A regression guard.
+    assert result.coverage >= 0.95, (result.coverage, result.notes)
+    assert result.ideal_path_m is not None and result.path_m <= 1.3 * result.ideal_path_m
+    # The path counts from the first lane (its start, node n1, reached as the robot's state says):
+    # the way there from where the robot stood is reported apart.
+    assert 0.0 < result.approach_path_m < 0.1 * result.path_m, result.figures()
     assert result.lamp_on_s == 0.0 and result.bumps == 0
 
 
