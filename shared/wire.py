@@ -22,7 +22,10 @@ dataclasses, and ``list[X]`` / ``tuple[X, ...]`` (which must have a ``max_len``)
 ``decode(cls, data)`` / ``decode_any(topic, data)`` / ``decode_key(key, data)`` validate everything
 and raise nothing but ``WireError`` (a ``ValueError``) whose ``reason`` names the offending
 field, e.g. ``"battery_percent: 150.0 out of range [0.0, 100.0]"``. Validators are compiled once
-per class; no type introspection happens per message.
+per class; no type introspection happens per message. Each class also gets a generated decoder
+(``_generate``: straight-line checks, the instance filled slot by slot) which takes what it can as
+it stands and leaves everything else to the generic path, which decides and names the field
+(docs/wire-contract.md, "How a message is checked").
 
 Pure Python, no I/O.
 """
