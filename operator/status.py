@@ -27,4 +27,4 @@ class StatusLine(Static):
     def show(self, text: str) -> None:
         if text != self._text:
             self._text = text
-            self.update(text)
+            self.update(text, layout=False)  # one line high (console.tcss): no relayout
