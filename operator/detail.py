@@ -120,7 +120,8 @@ class RobotDetail(Static):
         # when that height changes, not for every pose (a relayout redraws the whole screen,
         # 15-40 ms at 50 robots on a busy host, and a key pressed meanwhile waits for it).
         width = self.content_size.width
-        height = visualize(self, text, markup=self._render_markup).get_height(self.styles, width) if width else None
+        visual = visualize(self, text, markup=self._render_markup)
+        height = visual.get_height(self.styles, width) if width else None  # type: ignore[arg-type]  # (as Widget does)
         self._text = text
         self.update(text, layout=height is None or height != self._height)
         self._height = height
