@@ -13,7 +13,16 @@ from typing import Any
 
 import pytest
 
-from fleetlink.operator.vda5050.core import Publish, SendActions, SendLease, SendOrder, VehicleConfig, VehicleCore
+from fleetlink.operator.vda5050.core import (
+    ACTION_TIMEOUT_S,
+    NEW_BASE_REQUEST_M,
+    Publish,
+    SendActions,
+    SendLease,
+    SendOrder,
+    VehicleConfig,
+    VehicleCore,
+)
 from fleetlink.operator.vda5050.schema import SCHEMA_TOPICS, SchemaValidator, load_schemas
 from fleetlink.shared import wire
 from fleetlink.shared.messages import (
@@ -102,6 +111,8 @@ class Rig:
         paused: bool = False,
         skipped: int = 0,
         x: float = 0.0,
+        update: int = 0,
+        waiting: str = "",
     ) -> None:
         progress = None
         if order:
@@ -112,7 +123,7 @@ class Rig:
                 lastNodeId=last,
                 lastNodeSequenceId=last_seq,
                 dwellLeft_s=0.0,
-                waiting="",
+                waiting=waiting,
             )
         self.fleet(
             self.counter.make(
@@ -131,7 +142,7 @@ class Rig:
                 payloadOn=False,
                 boardConnected=True,
                 orderId=order,
-                orderUpdateId=0,
+                orderUpdateId=update,
                 goal=None,
                 driving=False,
                 paused=paused,
@@ -623,3 +634,171 @@ def test_a_stale_lease_without_the_bridge_does_not_stop_the_renewals() -> None:
     rig.send("order", THREE)
     rig.fleet(rig.counter.make(Lease, holder="", until=0.0))
     assert leases(tick(rig, 2.5)) == [False]
+
+
+def states(rig: Rig) -> list[dict[str, Any]]:
+    return [o.doc for o in rig.out if isinstance(o, Publish) and o.topic.endswith("/state")]
+
+
+def test_new_base_request_is_set_near_the_end_of_the_base_while_a_horizon_waits_and_cleared_by_a_new_base() -> None:
+    # VDA 5050 2.1.0 section 6.10.3 and the state table: "the AGV is almost at the end of the base
+    # and will reduce speed, if no new base is transmitted. Trigger for master control to send a
+    # new base." Every state below is checked against the official schema (Rig._check).
+    assert NEW_BASE_REQUEST_M == 1.0
+    rig = Rig()
+    rig.state()
+    flag = lambda: rig.last_state()["newBaseRequest"]  # noqa: E731
+    rig.send(
+        "order",
+        order(
+            "o1",
+            0,
+            [node("n0", 0, 0.0), node("n1", 2, 3.0), node("n2", 4, 5.0, released=False)],
+            [edge("n0", "n1", 1), edge("n1", "n2", 3, released=False)],
+        ),
+    )
+    rig.ack("order")
+    assert flag() is False
+    rig.state(order="o1", done=1, last="n0", last_seq=0, x=1.5)  # 1.5 m of base left
+    assert flag() is False
+    published = len(states(rig))
+    rig.state(order="o1", done=1, last="n0", last_seq=0, x=2.2)  # 0.8 m left: ask for more
+    assert flag() is True and len(states(rig)) == published + 1  # a state at once, not at the period
+    rig.state(order="o1", done=1, last="n0", last_seq=0, x=1.9)  # the pose jitters back (1.1 m): held
+    assert flag() is True
+    # The master sends a new base (n2 released, n3 the horizon): 2.8 m left, no request.
+    rig.send(
+        "order",
+        order(
+            "o1",
+            1,
+            [node("n1", 2, 3.0), node("n2", 4, 5.0), node("n3", 6, 7.0, released=False)],
+            [edge("n1", "n2", 3), edge("n2", "n3", 5, released=False)],
+        ),
+    )
+    assert flag() is False
+    # The robot reaches n2 before the master says more: it waits there for the horizon; requested.
+    rig.state(order="o1", update=1, done=2, last="n2", last_seq=4, x=5.0, waiting="horizon")
+    s = rig.last_state()
+    assert s["newBaseRequest"] is True and [n["nodeId"] for n in s["nodeStates"]] == ["n3"]
+    # Everything released: no horizon, nothing to request, even at the very end of the base.
+    rig.send("order", order("o1", 2, [node("n2", 4, 5.0), node("n3", 6, 7.0)], [edge("n2", "n3", 5)]))
+    assert flag() is False
+    rig.state(order="o1", update=2, done=0, last="n2", last_seq=4, x=6.9)
+    assert flag() is False
+
+
+def test_a_base_without_a_horizon_never_requests_a_new_base_and_a_skipped_base_end_does() -> None:
+    rig = Rig()
+    rig.state()
+    rig.send("order", order("o1", 0, [node("n0", 0, 0.0), node("n1", 2, 0.5)], [edge("n0", "n1", 1)]))
+    rig.ack("order")
+    rig.state(order="o1", done=1, last="n0", last_seq=0, x=0.4)
+    assert rig.last_state()["newBaseRequest"] is False
+    # The decision point n1 skipped (no way there): the base is used up, the horizon waits: asked.
+    rig = Rig()
+    rig.state()
+    rig.send("order", BASE_WITH_HORIZON)  # n0 (0), n1 (1 m) released, n2 (2 m) horizon
+    rig.ack("order")
+    assert rig.last_state()["newBaseRequest"] is True  # 1.0 m of base: at the threshold already
+    rig = Rig()
+    rig.state(x=-2.0)
+    nodes = [node("n0", 0, -2.0), node("n1", 2, 1.0), node("n2", 4, 2.0, released=False)]
+    rig.send("order", order("o1", 0, nodes, [edge("n0", "n1", 1), edge("n1", "n2", 3, released=False)]))
+    rig.ack("order")
+    rig.state(order="o1", done=1, last="n0", last_seq=0, x=-2.0)
+    assert rig.last_state()["newBaseRequest"] is False
+    rig.state(order="o1", done=2, skipped=1, last="n0", last_seq=0, x=-1.5)
+    s = rig.last_state()
+    assert s["newBaseRequest"] is True and [n["nodeId"] for n in s["nodeStates"]] == ["n2"]
+
+
+def action_status(rig: Rig) -> dict[str, str]:
+    return {a["actionId"]: a["actionStatus"] for a in rig.last_state()["actionStates"]}
+
+
+def timeouts(rig: Rig) -> list[dict[str, Any]]:
+    return [e for e in errors(rig) if e["errorType"] == "actionTimeout"]
+
+
+def test_an_instant_action_the_robot_never_acks_fails_with_an_action_timeout() -> None:
+    rig = Rig()
+    rig.state()
+    rig.send("instantActions", {"actions": [{"actionId": "p1", "actionType": "startPause", "blockingType": "NONE"}]})
+    tick(rig, ACTION_TIMEOUT_S - 0.1)
+    assert action_status(rig)["p1"] == "INITIALIZING" and timeouts(rig) == []
+    tick(rig, ACTION_TIMEOUT_S)
+    p1 = next(a for a in rig.last_state()["actionStates"] if a["actionId"] == "p1")
+    assert p1["actionStatus"] == "FAILED" and "no ack from the robot" in p1["resultDescription"]
+    (e,) = timeouts(rig)
+    assert e["errorLevel"] == "WARNING" and ("actionId", "p1") in refs(e) and "startPause" in e["errorDescription"]
+    assert rig.core.timed_out_actions == 1
+    # The ack coming after all does not turn the FAILED action FINISHED (the master was told).
+    rig.ack("actions")
+    assert action_status(rig)["p1"] == "FAILED"
+    # Like the other refusals, the warning goes after ERROR_HOLD_S.
+    tick(rig, ACTION_TIMEOUT_S + 31.0)
+    assert timeouts(rig) == []
+
+
+def test_an_unacked_cancel_fails_and_keeps_the_nodes_until_the_robot_says_it_cancelled() -> None:
+    rig = Rig()
+    rig.state()
+    rig.send("order", THREE)
+    rig.ack("order")
+    rig.send("instantActions", {"actions": [{"actionId": "c1", "actionType": "cancelOrder", "blockingType": "NONE"}]})
+    assert action_status(rig)["c1"] == "RUNNING"
+    rig.now = ACTION_TIMEOUT_S / 2
+    rig.state(order="o1", done=1, last="n0", last_seq=0)  # the robot drives on: not a word on the cancel
+    tick(rig, ACTION_TIMEOUT_S)
+    s = rig.last_state()
+    assert action_status(rig)["c1"] == "FAILED" and [n["nodeId"] for n in s["nodeStates"]] == ["n1", "n2"]
+    assert action_status(rig)["d1"] == "WAITING"  # the robot named its order all along
+    # The late ack says the robot did cancel: the order ends as it has on the robot.
+    rig.ack("actions")
+    s = rig.last_state()
+    assert s["nodeStates"] == [] and action_status(rig) == {"d1": "FAILED", "c1": "FAILED"}
+
+
+def test_node_actions_fail_when_the_robot_says_nothing_of_their_order_for_the_timeout() -> None:
+    rig = Rig()
+    rig.state()
+    rig.send("order", THREE)  # d1: a dwell at n1
+    rig.ack("order")
+    # The robot names the order in its state every second for a minute (a long way to n1):
+    # the action waits all along.
+    for t in range(1, 61):
+        rig.now = float(t)
+        rig.state(order="o1", done=1, last="n0", last_seq=0)
+    assert action_status(rig)["d1"] == "WAITING"
+    # Then silence (the robot out of reach).
+    tick(rig, 60.0 + ACTION_TIMEOUT_S - 0.1)
+    assert action_status(rig)["d1"] == "WAITING"
+    tick(rig, 60.0 + ACTION_TIMEOUT_S)
+    s = rig.last_state()
+    d1 = next(a for a in s["actionStates"] if a["actionId"] == "d1")
+    assert d1["actionStatus"] == "FAILED" and "no word from the robot on order o1" in d1["resultDescription"]
+    (e,) = timeouts(rig)
+    assert e["errorLevel"] == "WARNING" and {("orderId", "o1"), ("actionId", "d1")} <= set(refs(e))
+    assert [n["nodeId"] for n in s["nodeStates"]] == ["n1", "n2"]  # as last known
+    # The robot back, at n1 and past it: the action stays FAILED; the order finishes.
+    rig.state(order="o1", done=2, last="n1", last_seq=2)
+    order_event(rig, "o1", outcome="finished")
+    assert action_status(rig)["d1"] == "FAILED" and rig.last_state()["nodeStates"] == []
+    assert len(timeouts(rig)) == 1  # held until the next new order
+    rig.send("order", order("o2", 0, [node("m0", 0, 0.0)], []))
+    assert timeouts(rig) == []
+
+
+def test_node_actions_of_an_order_the_robot_never_takes_up_fail_after_the_timeout() -> None:
+    # No ack, and the robot's states go on naming no order (it never got this one).
+    rig = Rig()
+    rig.state()
+    rig.send("order", THREE)
+    for t in range(1, int(ACTION_TIMEOUT_S)):
+        rig.now = float(t)
+        rig.state()
+    assert action_status(rig)["d1"] == "WAITING"
+    tick(rig, ACTION_TIMEOUT_S)
+    assert action_status(rig)["d1"] == "FAILED" and len(timeouts(rig)) == 1
+    assert rig.core.timed_out_actions == 1

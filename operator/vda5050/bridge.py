@@ -238,14 +238,15 @@ class Vda5050Bridge:
     # -- views ----------------------------------------------------------------------------------
 
     def stats(self) -> dict[str, Any]:
-        """Per vehicle: messages refused and invalid ones not sent, skipped nodes, leases released
-        again."""
+        """Per vehicle: messages refused and invalid ones not sent, skipped nodes, actions FAILED
+        for the robot's silence, leases released again."""
         with self._lock:
             return {
                 r: {
                     "refused": dict(v.core.refused),
                     "invalid_out": dict(v.core.invalid_out),
                     "skipped_nodes": v.core.skipped_nodes,
+                    "timed_out_actions": v.core.timed_out_actions,
                     "lease_rereleases": v.core.lease_rereleases,
                 }
                 for r, v in self.vehicles.items()

@@ -44,7 +44,9 @@ from fleetlink.shared.messages import (
 )
 
 __all__ = [
+    "ACTION_TIMEOUT_S",
     "ERROR_HOLD_S",
+    "NEW_BASE_REQUEST_M",
     "PROTOCOL_VERSION",
     "Log",
     "Publish",
@@ -77,6 +79,15 @@ MAX_SKIP_ERRORS = 8
 MAX_ID = 64
 """fleetlink's ids (orders, nodes, edges, actions) are at most 64 characters (factsheet idLen)."""
 MAX_ACTION_STATES = 256
+ACTION_TIMEOUT_S = 10.0
+"""An action the bridge waits on the robot for FAILS after this long without the robot's word on
+it (``actionTimeout`` in ``state.errors``): an instant action sent and not acked (the operator
+link gives up re-sending after about a second, operator/linkmanager.py), a node action whose order
+the robot has neither acked nor mentioned since (its ``State`` names the order it runs, at 1 Hz and
+on change; ``order`` events)."""
+NEW_BASE_REQUEST_M = 1.0
+"""``newBaseRequest`` goes true when the released base left to drive is this short and a horizon
+waits (2 s at the factsheet's speedMax of 0.5 m/s; the robot stops at the base's last node)."""
 FLEET_NODE_ACTIONS = ("payload", "dwell")
 TERMINAL = ("FINISHED", "FAILED")
 
@@ -141,6 +152,8 @@ class VehicleConfig:
     state_period_s: float = 5.0
     visualization_period_s: float = 1.0
     speed_max_mps: float = 0.5
+    action_timeout_s: float = ACTION_TIMEOUT_S
+    new_base_request_m: float = NEW_BASE_REQUEST_M
 
 
 def iso8601(wall: float) -> str:
@@ -160,6 +173,8 @@ class _ActionState:
     result: str = ""
     node_seq: int | None = None
     """The node it runs at (node actions), None for instant actions."""
+    deadline: float = math.inf
+    """It FAILS at this time unless the robot has a word on it first (``ACTION_TIMEOUT_S``)."""
 
     def doc(self) -> dict[str, Any]:
         d: dict[str, Any] = {"actionId": self.action_id, "actionType": self.action_type, "actionStatus": self.status}
@@ -224,8 +239,16 @@ class VehicleCore:
         self.lease_rereleases = 0
         """Releases sent again because a late request had re-granted the lease (``LEASE_REGRANT_S``)."""
         self._skips: list[dict[str, Any]] = []
-        """noRouteError warnings for the skipped nodes, held until the next new order."""
+        """The order's own warnings, held until the next new order: noRouteError for the skipped
+        nodes, actionTimeout for node actions the robot went silent on."""
         self.skipped_nodes = 0
+        self.timed_out_actions = 0
+        """Actions FAILED because the robot had no word on them for ``action_timeout_s``."""
+        self._base_request_for: tuple[str, str, int] | None = None
+        """(orderId, base end nodeId, sequenceId) newBaseRequest was set for: it stays set until an
+        update moves the base's end (or the horizon is gone), so a pose jittering across the
+        threshold does not flap it."""
+        self.new_base_request = False
         self._state_key: tuple[Any, ...] | None = None
         self._next_state = -math.inf
         self._next_vis = -math.inf
@@ -293,9 +316,13 @@ class VehicleCore:
             "errorDescription": text[:256],
             "errorReferences": references,
         }
+        self._hold(error, now)
+        return self._log_once(f"{sub}/{error_type}", f"refused {sub}: {error_type}: {text}")
+
+    def _hold(self, error: dict[str, Any], now: float) -> None:
+        """``error`` in ``state.errors`` for ``ERROR_HOLD_S`` (the newest ``MAX_BRIDGE_ERRORS``)."""
         self._errors = [*self._errors, (error, now + ERROR_HOLD_S)][-MAX_BRIDGE_ERRORS:]
         self._next_state = -math.inf
-        return self._log_once(f"{sub}/{error_type}", f"refused {sub}: {error_type}: {text}")
 
     # -- from the master --------------------------------------------------------------------------
 
@@ -449,6 +476,7 @@ class VehicleCore:
         tag = f"order/{oid}/{uid}"
         self._tags[tag] = _Pending("order")
         out.append(SendOrder(fields, tag))
+        self._heard_on_order(now)
         self._next_state = -math.inf
         return out
 
@@ -535,6 +563,7 @@ class VehicleCore:
                 )
                 action = Action(actionId=state.action_id, actionType=fleet, actionParameters=params)
                 state.status = "RUNNING" if kind == "cancelOrder" else "INITIALIZING"
+                state.deadline = now + self.config.action_timeout_s
                 tag = f"actions/{aid}"
                 self._tags[tag] = _Pending(kind, state.action_id)
                 if kind in ("startPause", "stopPause", "payload") and not self._want_lease:
@@ -612,6 +641,9 @@ class VehicleCore:
         out: list[Out] = []
         if isinstance(msg, State):
             self.fleet_state = msg
+            o = self.order
+            if o.order_id and msg.orderId == o.order_id and msg.orderUpdateId >= o.update_id:
+                self._heard_on_order(now)
             out += self._follow(msg)
         elif isinstance(msg, Pose):
             self.pose = msg
@@ -626,6 +658,7 @@ class VehicleCore:
             if data.get("order") != self.order.order_id or not self.order.order_id:
                 pass
             elif "skipped" in data:
+                self._heard_on_order(now)
                 seq = _int(data.get("sequenceId"))
                 if seq is not None:
                     self._skip(seq, data["skipped"], msg.text)
@@ -645,6 +678,7 @@ class VehicleCore:
         self._next_state = -math.inf
         if pending.kind == "order":
             if ok:
+                self._heard_on_order(now)
                 return []
             text = f"the robot refused order {ack.orderId}: {ack.reason}"
             self._ended(False, ack.reason)
@@ -652,6 +686,12 @@ class VehicleCore:
         state = self.actions.get(pending.action_id)
         if state is None:
             return []
+        if state.status in TERMINAL:
+            # FAILED already: the ack came after ACTION_TIMEOUT_S. The master was told; the state
+            # stays, but a cancel the robot did carry out ends the order as the robot has.
+            if ok and pending.kind == "cancelOrder":
+                self._ended(False, "cancelled")
+            return self._log_once(f"late/{pending.kind}", f"the robot's ack of {pending.kind} came after it timed out")
         if not ok:
             state.status, state.result = "FAILED", ack.reason
         elif pending.kind == "cancelOrder":
@@ -765,6 +805,107 @@ class VehicleCore:
         self._progress_key = None
         self._next_state = -math.inf
 
+    # -- timeouts ---------------------------------------------------------------------------------
+
+    def _heard_on_order(self, now: float) -> None:
+        """The robot said it has the current order (acked it, names it and this update in its
+        ``State``, an event on it), or the bridge just sent it: its node actions' wait starts over."""
+        for a in self.actions.values():
+            if a.node_seq is not None and a.status not in TERMINAL:
+                a.deadline = now + self.config.action_timeout_s
+
+    def _expire_actions(self, now: float) -> list[Out]:
+        """FAIL the actions the robot has had no word on for ``action_timeout_s`` (VDA 5050 section
+        6.11: FAILED, "could not be finished for whatever reason"), each named in an
+        ``actionTimeout`` WARNING: an instant action in its own (held ``ERROR_HOLD_S``), an order's
+        node actions together (held until the next new order, as skipped nodes are). The node
+        states stay as last known: the bridge cannot tell whether the robot still drives."""
+        late = [a for a in self.actions.values() if a.status not in TERMINAL and now >= a.deadline]
+        if not late:
+            return []
+        t = self.config.action_timeout_s
+        o = self.order
+        hint = "the robot may be out of reach: check its link; send the action again once it answers"
+        for a in late:
+            a.status = "FAILED"
+            if a.node_seq is None:
+                a.result = f"no ack from the robot within {t:g} s"
+                self._hold(
+                    {
+                        "errorType": "actionTimeout",
+                        "errorLevel": "WARNING",
+                        "errorDescription": f"instant action {a.action_id} ({a.action_type}) FAILED: {a.result}",
+                        "errorHint": hint,
+                        "errorReferences": [
+                            {"referenceKey": "topic", "referenceValue": "instantActions"},
+                            {"referenceKey": "actionId", "referenceValue": a.action_id},
+                        ],
+                    },
+                    now,
+                )
+            else:
+                a.result = f"no word from the robot on order {o.order_id} for {t:g} s"
+        node = [a.action_id for a in late if a.node_seq is not None]
+        if node:
+            references = [
+                {"referenceKey": "orderId", "referenceValue": o.order_id},
+                {"referenceKey": "orderUpdateId", "referenceValue": str(o.update_id)},
+            ]
+            references += [{"referenceKey": "actionId", "referenceValue": aid} for aid in node[:16]]
+            text = f"{len(node)} node action(s) FAILED: no word from the robot on order {o.order_id} for {t:g} s"
+            error = {
+                "errorType": "actionTimeout",
+                "errorLevel": "WARNING",
+                "errorDescription": f"{text}: {', '.join(node)}"[:256],
+                "errorHint": hint,
+                "errorReferences": references,
+            }
+            self._skips = [*self._skips, error][-MAX_SKIP_ERRORS:]
+        self.timed_out_actions += len(late)
+        self._next_state = -math.inf
+        return self._log_once("actionTimeout", f"{len(late)} action(s) FAILED: no word from the robot for {t:g} s")
+
+    # -- base request -----------------------------------------------------------------------------
+
+    def _base_left_m(self, limit: float) -> float | None:
+        """The released base still to drive: straight lines from the robot through the released
+        nodes not yet traversed (a lower bound on the robot's own way between them); counted up to
+        just past ``limit``. None when the robot's position is not known."""
+        base = [n["nodePosition"] for n in self.order.nodes if n["released"]]
+        if not base:
+            return 0.0
+        here = self._position()
+        if here is None:
+            return None
+        left, x, y = 0.0, here[0], here[1]
+        for p in base:
+            left += math.hypot(p["x"] - x, p["y"] - y)
+            if left > limit:
+                break
+            x, y = p["x"], p["y"]
+        return left
+
+    def _update_base_request(self) -> None:
+        """``newBaseRequest`` (VDA 5050 2.1.0 section 6.10.3: "If the AGV detects that its base is
+        running low, it can set the newBaseRequest flag to 'true' to prevent unnecessary braking";
+        the state table: the AGV "is almost at the end of the base and will reduce speed, if no new
+        base is transmitted. Trigger for master control to send a new base"). Set while a horizon
+        waits and the released base left to drive is at most ``new_base_request_m`` (the robot at
+        the decision point, waiting for an update, included); then held until an update moves the
+        base's end, and cleared once no horizon is left (all released, or the order over)."""
+        o = self.order
+        if not any(not n["released"] for n in o.nodes):
+            self._base_request_for, self.new_base_request = None, False
+            return
+        key = (o.order_id, *o.base_end)
+        if self._base_request_for != key:
+            left = self._base_left_m(self.config.new_base_request_m)
+            if left is None or left > self.config.new_base_request_m:
+                self._base_request_for, self.new_base_request = None, False
+                return
+            self._base_request_for = key
+        self.new_base_request = True
+
     # -- time -------------------------------------------------------------------------------------
 
     def tick(self, now: float, wall: float) -> list[Out]:
@@ -773,7 +914,9 @@ class VehicleCore:
         self._errors = [(e, t) for e, t in self._errors if t > now]
         if len(self._errors) != before:
             self._next_state = -math.inf
+        out += self._expire_actions(now)
         out += self._lease_tick(now)
+        self._update_base_request()
         key = self._key()
         if key != self._state_key or now >= self._next_state:
             self._state_key = key
@@ -796,6 +939,8 @@ class VehicleCore:
             tuple((a.action_id, a.status) for a in self.actions.values()),
             len(self._errors),
             len(o.skipped),
+            len(self._skips),
+            self.new_base_request,
             None if s is None else (s.paused, s.driving, s.operatingMode, s.safetyState, s.errors),
         )
 
@@ -863,7 +1008,7 @@ class VehicleCore:
             "lastNodeSequenceId": o.last_node_seq,
             "driving": bool(s is not None and s.driving),
             "paused": bool(s is not None and s.paused),
-            "newBaseRequest": False,
+            "newBaseRequest": self.new_base_request,
             "operatingMode": s.operatingMode.value if s is not None else "SERVICE",
             "nodeStates": [dict(n) for n in o.nodes],
             "edgeStates": [dict(e) for e in o.edges],
