@@ -209,6 +209,19 @@ def test_the_same_input_maps_the_same_way() -> None:
     assert np.array_equal(a.grid.logodds, b.grid.logodds)
 
 
+def test_without_loop_closure_the_grid_is_drawn_per_keyframe_as_on_board() -> None:
+    """On board closures are off (onboard_mapper_config): nothing is deferred, every keyframe is in
+    the grid and its likelihood field as soon as ``add_scan`` returns (the front end matches it)."""
+    _, odom, scans = _drive()
+    m = OnboardMapper(MapperConfig(matching=False, closer=None))
+    integrated = 0
+    for i in range(8):
+        r, a = scans[i]
+        integrated += m.add_scan_odometry(0.1 * i, r, a, odom[i]).integrated
+        assert m._grid.version == integrated and m._grid.stale is None
+    assert integrated >= 2 and m.finish() == 0 and m.redraws == 0
+
+
 def test_the_final_pass_ties_every_node_to_the_submaps_it_sees() -> None:
     """``finish`` (the end of a replay): every node matched against the finished submaps near it,
     not its own, each match an edge; the graph solved again is nearer the truth (on this ring: the
