@@ -111,6 +111,22 @@ def _buffered_client_class() -> Any:
     if _BUFFERED is None:
         import paho.mqtt.client as mqtt
 
+        # paho's private read path, as 2.0-2.1 have it. A paho without it gets paho's own reads (the
+        # endpoint asks ``buffered_bytes`` and sets ``_fl_publish`` either way), not a broken link.
+        private = ("_packet_read", "_sock_recv", "_msgtime_mutex", "_last_bytes_received", "_in_packet")
+        known = set(dir(mqtt.Client)) | set(mqtt.Client.__init__.__code__.co_names)  # methods, attributes set
+        if not (all(a in known for a in private) and hasattr(mqtt, "time_func")):
+            log.warning("this paho-mqtt reads differently: the MQTT endpoint uses paho's own reads")
+
+            class PlainClient(mqtt.Client):
+                _fl_publish: Callable[[str, bytes], None] | None = None
+
+                def buffered_bytes(self) -> int:
+                    return 0
+
+            _BUFFERED = PlainClient
+            return _BUFFERED
+
         fallback = mqtt.Client._packet_read
         raw_recv = mqtt.Client._sock_recv
         ok, again, lost = mqtt.MQTT_ERR_SUCCESS, mqtt.MQTT_ERR_AGAIN, mqtt.MQTT_ERR_CONN_LOST

@@ -133,3 +133,18 @@ def test_a_burst_in_one_read_costs_one_recv_and_a_long_length_is_parsed() -> Non
     assert read([b"".join(burst)], buffered=False)[1] >= 3 * 200
     big = publish("fleetlink/v1/r1/map", b"m" * 2_000_000)  # a 4-byte remaining length
     assert read([big[:5], big[5:70_000], big[70_000:]], buffered=True)[0] == [("fleetlink/v1/r1/map", b"m" * 2_000_000)]
+
+
+def test_a_paho_without_the_private_read_path_gets_its_own_reads(monkeypatch: Any) -> None:
+    # The buffered reads use paho 2.0-2.x's private read path; a paho that lacks it must still
+    # connect and deliver (paho's own reads), not fail on the first packet.
+    import fleetlink.links.mqtt as flm
+
+    monkeypatch.setattr(flm, "_BUFFERED", None)
+    monkeypatch.delattr(mqtt.Client, "_sock_recv")  # as if a later paho had renamed it
+    plain = flm._buffered_client_class()
+    assert plain.__name__ == "PlainClient" and issubclass(plain, mqtt.Client)
+    client = plain(CallbackAPIVersion.VERSION2)
+    assert client.buffered_bytes() == 0
+    assert plain._packet_read is mqtt.Client._packet_read  # paho's own
+    monkeypatch.setattr(flm, "_BUFFERED", None)  # the next caller builds the real one again
