@@ -2,7 +2,9 @@
 ``MasterClient`` over aiomqtt, its ``OrderBuilder``) drives a robot of the real-time simulated
 field through ``fleetlink vda5050``'s bridge: a multi-node order, startPause, stopPause,
 cancelOrder; a malformed order (published raw: the SDK will not build one) is refused in
-``state.errors`` and a following valid order runs. A real Mosquitto on a free port; the bridge's
+``state.errors`` and a following valid order runs; a base with a horizon, extended when the vehicle
+asks for a new base (``newBaseRequest``). A node inside a wall, in an order of its own: skipped,
+its action FAILED, a ``noRouteError`` WARNING, the order finished. A real Mosquitto on a free port; the bridge's
 operator link and the agent speak over real Zenoh on loopback (multicast scouting off). A separate
 subscriber on ``#`` captures every VDA 5050 message on the wire, both directions, and each one is
 validated against the official 2.1.0 schemas (``../shared/reference/vda5050-2.1.0/``).
@@ -18,7 +20,7 @@ from typing import Any
 
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
-from vda5050 import MasterClient, MasterConfig, OrderBuilder
+from vda5050 import Action, ActionParameter, BlockingType, MasterClient, MasterConfig, OrderBuilder
 
 from fleetlink.field.realtime import RealtimeField
 from fleetlink.operator.vda5050.schema import SchemaValidator, load_schemas
@@ -96,7 +98,10 @@ def test_a_vda5050_master_drives_a_field_robot_through_the_bridge(mosquitto) -> 
     wire_check(wire)
 
 
-def wire_check(wire: Wire | None) -> None:
+TOPICS = frozenset({"order", "instantActions", "state", "visualization", "connection", "factsheet"})
+
+
+def wire_check(wire: Wire | None, topics: frozenset[str] = TOPICS) -> None:
     assert wire is not None
 
     def offline_heard() -> bool:
@@ -115,7 +120,7 @@ def wire_check(wire: Wire | None) -> None:
             continue
         doc = json.loads(payload)
         assert official.problems(sub, doc) == [], (topic, doc)
-    assert {"order", "instantActions", "state", "visualization", "connection", "factsheet"} <= set(seen), seen
+    assert topics <= set(seen), seen
     connections = [json.loads(p)["connectionState"] for t, p in wire.messages if t == PREFIX + "connection"]
     assert connections[0] == "ONLINE" and connections[-1] == "OFFLINE"
 
@@ -209,3 +214,154 @@ async def master_session(url: str, truth: Any) -> None:
             lambda: latest().order_id == "o-2" and latest().last_node_id == "m1" and not latest().node_states,
         )
         assert not any(e.error_type == "validationError" for e in latest().errors)
+
+        # 7. A base with a horizon: near the base's end the vehicle asks for a new base
+        # (newBaseRequest), which the master's SDK takes up as a base request; it extends the base
+        # (an order update stitched at the decision point) and the robot drives on to the end.
+        here = latest().agv_position
+        b = OrderBuilder(order_id="o-3", manufacturer="fleetlink", serial_number=ROBOT)
+        for i, d in enumerate((0.0, 0.3, 0.6)):
+            x, y = here.x + d * math.cos(here.theta), here.y + d * math.sin(here.theta)
+            b.add_node(f"h{i}", x=x, y=y, map_id=mp, allowed_deviation_xy=0.5 if i == 0 else None)
+            if i:
+                b.add_edge(f"h{i - 1}", f"h{i}")
+        o3 = b.horizon_from("h2").build()
+        assert [n.released for n in o3.nodes] == [True, True, False]
+        result = await master.dispatch(o3, TARGET)
+        assert result.accepted, result
+        assert await master.wait_for_base_request(TARGET, timeout=30)
+        assert latest().new_base_request and latest().order_id == "o-3"
+        result = await master.extend_base(
+            TARGET,
+            [o3.nodes[2].model_copy(update={"released": True})],
+            [o3.edges[1].model_copy(update={"released": True})],
+        )
+        assert result.accepted, result
+        await wait_for(
+            "o-3 finished",
+            lambda: latest().order_id == "o-3" and latest().last_node_id == "h2" and not latest().node_states,
+        )
+        assert latest().order_update_id == 1 and not latest().new_base_request
+
+
+IN_WALL = (5.97, 3.0)
+"""A place in the wall between the living room and the kitchen (x = 6, y 2.1-4.5), 3 cm inside its
+face as the robot's lidar sees it from the living room, in the plan's frame: no robot fits there."""
+
+
+def robot_frame(agent: Any, truth: Any) -> Any:
+    """Plan -> the robot's own frame. The field runs no UWB here, so the robot's frame (its map,
+    its reported ``agvPosition``) starts where it stands; the robot has not moved yet."""
+    tx, ty, tth = truth()
+    p = agent.core.fusion.map_pose()
+    d = p.theta - tth
+
+    def to_robot(xy: tuple[float, float]) -> tuple[float, float]:
+        dx, dy = xy[0] - tx, xy[1] - ty
+        return p.x + dx * math.cos(d) - dy * math.sin(d), p.y + dx * math.sin(d) + dy * math.cos(d)
+
+    return to_robot
+
+
+def no_way_into_the_wall(agent: Any, truth: Any) -> bool:
+    """The robot's planner has a map (a path to a free place beside it) and finds no way into the
+    wall: the order may start (before its first map the robot would drive straight)."""
+    plan = agent.core.pilot.path_provider
+    if plan is None:
+        return False
+    to_robot = robot_frame(agent, truth)
+    here = to_robot(truth()[:2])
+    return bool(plan(here, to_robot(beside(truth)))) and not plan(here, to_robot(IN_WALL))
+
+
+def beside(truth: Any) -> tuple[float, float]:
+    """Free floor 0.4 m ahead of the robot's start (the living room), in the plan's frame."""
+    x, y, th = truth()
+    return x + 0.4 * math.cos(th), y + 0.4 * math.sin(th)
+
+
+def test_a_node_inside_a_wall_is_skipped_its_actions_fail_and_the_robot_finishes_the_order(mosquitto) -> None:  # type: ignore[no-untyped-def]
+    """A three-node order whose middle node lies in a wall: the master sees that node's action
+    FAILED and a noRouteError WARNING naming it, and the robot goes on to the last node and
+    finishes the order. The robot maps with its lidar (the planner then says there is no way into
+    the wall at once: no time spent driving at it)."""
+    clock = SystemClock()
+    field = RealtimeField(quiet_scenario(), clock=clock)
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    agents = bridge = wire = None
+    try:
+        endpoints = field.start()
+        wire = Wire(mosquitto.host, mosquitto.port)
+        bridge = open_bridge(clock, mqtt_url=mosquitto.url, zenoh_listen=[listen], state_period_s=1.0)
+        bridge.start()
+        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[listen], mqtt_url=mosquitto.url)
+        agent = agents.start()[ROBOT]
+        truth = field.world.robots[0]
+        pose = lambda: truth.pose  # noqa: E731
+        wait_until(lambda: no_way_into_the_wall(agent, pose), timeout=20, message="the robot's map")
+        start = beside(pose)
+        to_robot = robot_frame(agent, pose)
+        asyncio.run(wall_session(mosquitto.url, to_robot(IN_WALL), to_robot(start)))
+        assert math.dist(truth.pose[:2], start) < 0.35  # where the order's last node is
+        stats = bridge.stats()[ROBOT]
+        assert stats["invalid_out"] == {} and stats["refused"] == {}
+        assert stats["skipped_nodes"] == 1 and stats["timed_out_actions"] == 0
+    finally:
+        if bridge is not None:
+            bridge.close()
+        if agents is not None:
+            agents.stop()
+        field.stop()
+    wire_check(wire, TOPICS - {"instantActions"})
+
+
+def dwell(action_id: str, seconds: float) -> Action:
+    return Action(
+        action_type="dwell",
+        action_id=action_id,
+        blocking_type=BlockingType.HARD,
+        action_parameters=[ActionParameter(key="duration", value=seconds)],
+    )
+
+
+async def wall_session(url: str, in_wall: tuple[float, float], last: tuple[float, float]) -> None:
+    states: list[Any] = []
+    master = MasterClient(MasterConfig(broker_url=url, client_id="vda-master", validate_messages=True))
+    master.on_state(lambda s, key: states.append(s))
+    async with master:
+        await wait_for("a state from the vehicle", lambda: states and states[-1].agv_position)
+        latest = lambda: states[-1]  # noqa: E731
+        here = latest().agv_position
+        # Where the robot stands, a node in the wall, one beside the robot; a dwell at each of the
+        # last two.
+        b = OrderBuilder(order_id="o-wall", manufacturer="fleetlink", serial_number=ROBOT)
+        b.add_node("w0", x=here.x, y=here.y, map_id=here.map_id, allowed_deviation_xy=0.5)
+        b.add_node("w1", x=in_wall[0], y=in_wall[1], map_id=here.map_id, actions=[dwell("in-wall", 1.0)])
+        b.add_node("w2", x=last[0], y=last[1], map_id=here.map_id, actions=[dwell("beside", 0.2)])
+        b.add_edge("w0", "w1")
+        b.add_edge("w1", "w2")
+        result = await master.dispatch(b.build(), TARGET)
+        assert result.accepted, result
+
+        def status(aid: str) -> str:
+            s = next((a.action_status for a in latest().action_states if a.action_id == aid), None)
+            return str(getattr(s, "value", s))
+
+        # The master sees the node in the wall given up: its action FAILED, and a noRouteError
+        # WARNING naming the order, the node and the action.
+        err = await wait_for(
+            "a noRouteError", lambda: next((e for e in latest().errors if e.error_type == "noRouteError"), None)
+        )
+        assert str(getattr(err.error_level, "value", err.error_level)) == "WARNING"
+        references = {(r.reference_key, r.reference_value) for r in err.error_references or []}
+        assert {("orderId", "o-wall"), ("nodeId", "w1"), ("actionId", "in-wall")} <= references, references
+        await wait_for("in-wall FAILED", lambda: status("in-wall") == "FAILED")
+        assert "w1" not in [n.node_id for n in latest().node_states]
+        # The robot goes on to the next node, dwells there and finishes the order.
+        await wait_for(
+            "o-wall finished",
+            lambda: latest().last_node_id == "w2" and not latest().node_states and status("beside") == "FINISHED",
+        )
+        s = latest()
+        assert s.order_id == "o-wall" and status("in-wall") == "FAILED"
+        assert any(e.error_type == "noRouteError" for e in s.errors)  # held until the next new order
