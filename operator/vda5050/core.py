@@ -14,7 +14,9 @@ drives to. ``nodeStates``/``edgeStates``/``lastNodeId`` follow the robot's ``Sta
 and its ``order`` events; node actions and instant actions carry VDA 5050 action states. Every
 message accepted or sent is checked against the official 2.1.0 schemas (``SchemaValidator``); a
 message that fails is refused with a ``validationError`` (level WARNING) in ``state.errors``,
-naming the topic and headerId, and the vehicle goes on serving.
+naming the topic and headerId, and the vehicle goes on serving. ``newBaseRequest`` is set while a
+horizon waits and the released base left is short (``NEW_BASE_REQUEST_M``); an action the robot
+has had no word on for ``ACTION_TIMEOUT_S`` is FAILED with an ``actionTimeout`` warning.
 """
 
 from __future__ import annotations
