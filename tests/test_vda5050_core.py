@@ -802,3 +802,40 @@ def test_node_actions_of_an_order_the_robot_never_takes_up_fail_after_the_timeou
     tick(rig, ACTION_TIMEOUT_S)
     assert action_status(rig)["d1"] == "FAILED" and len(timeouts(rig)) == 1
     assert rig.core.timed_out_actions == 1
+
+
+def test_the_actions_of_an_update_the_robot_never_gets_fail_and_the_running_bases_do_not() -> None:
+    rig = Rig()
+    rig.state()
+    rig.send(
+        "order",
+        order(
+            "o1",
+            0,
+            [node("n0", 0, 0.0), node("n1", 2, 1.0, actions=[DWELL]), node("n2", 4, 2.0, released=False)],
+            [edge("n0", "n1", 1), edge("n1", "n2", 3, released=False)],
+        ),
+    )
+    rig.ack("order")
+    lamp = {
+        "actionId": "uv3",
+        "actionType": "payload",
+        "blockingType": "HARD",
+        "actionParameters": [{"key": "on", "value": True}],
+    }
+    rig.send(
+        "order",
+        order(
+            "o1",
+            1,
+            [node("n1", 2, 1.0), node("n2", 4, 2.0), node("n3", 6, 3.0, actions=[lamp])],
+            [edge("n1", "n2", 3), edge("n2", "n3", 5)],
+        ),
+    )
+    # The update is lost: the robot's states go on naming update 0 of the order.
+    for t in range(1, int(ACTION_TIMEOUT_S) + 1):
+        rig.now = float(t)
+        rig.state(order="o1", update=0, done=1, last="n0", last_seq=0)
+    assert action_status(rig) == {"d1": "WAITING", "uv3": "FAILED"}
+    (e,) = timeouts(rig)
+    assert ("actionId", "uv3") in refs(e) and ("orderUpdateId", "1") in refs(e)

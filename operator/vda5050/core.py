@@ -177,6 +177,8 @@ class _ActionState:
     """The node it runs at (node actions), None for instant actions."""
     deadline: float = math.inf
     """It FAILS at this time unless the robot has a word on it first (``ACTION_TIMEOUT_S``)."""
+    update_id: int = 0
+    """A node action: the orderUpdateId that first carried it to the robot."""
 
     def doc(self) -> dict[str, Any]:
         d: dict[str, Any] = {"actionId": self.action_id, "actionType": self.action_type, "actionStatus": self.status}
@@ -191,6 +193,8 @@ class _Pending:
 
     kind: str  # "order" or an instant action's VDA type
     action_id: str = ""
+    update_id: int = 0
+    """An order's orderUpdateId."""
 
 
 @dataclass(slots=True)
@@ -465,7 +469,9 @@ class VehicleCore:
                 continue
             for a in n["actions"]:
                 if a["actionId"] not in self.actions:
-                    self._add_action(_ActionState(a["actionId"], a["actionType"], node_seq=n["sequenceId"]))
+                    self._add_action(
+                        _ActionState(a["actionId"], a["actionType"], node_seq=n["sequenceId"], update_id=uid)
+                    )
         self._errors = [(e, t) for e, t in self._errors if _ref(e, "topic") != "order"]
         out: list[Out] = []
         if not self._want_lease or now - self._lease_sent >= LEASE_RENEW_S:
@@ -476,9 +482,9 @@ class VehicleCore:
             return out
         self.order.sent_nodes = [(n.nodeId, n.sequenceId) for n in fields["nodes"]]
         tag = f"order/{oid}/{uid}"
-        self._tags[tag] = _Pending("order")
+        self._tags[tag] = _Pending("order", update_id=uid)
         out.append(SendOrder(fields, tag))
-        self._heard_on_order(now)
+        self._heard_on_order(now, uid)
         self._next_state = -math.inf
         return out
 
@@ -644,8 +650,8 @@ class VehicleCore:
         if isinstance(msg, State):
             self.fleet_state = msg
             o = self.order
-            if o.order_id and msg.orderId == o.order_id and msg.orderUpdateId >= o.update_id:
-                self._heard_on_order(now)
+            if o.order_id and msg.orderId == o.order_id:
+                self._heard_on_order(now, msg.orderUpdateId)
             out += self._follow(msg)
         elif isinstance(msg, Pose):
             self.pose = msg
@@ -660,7 +666,6 @@ class VehicleCore:
             if data.get("order") != self.order.order_id or not self.order.order_id:
                 pass
             elif "skipped" in data:
-                self._heard_on_order(now)
                 seq = _int(data.get("sequenceId"))
                 if seq is not None:
                     self._skip(seq, data["skipped"], msg.text)
@@ -680,7 +685,7 @@ class VehicleCore:
         self._next_state = -math.inf
         if pending.kind == "order":
             if ok:
-                self._heard_on_order(now)
+                self._heard_on_order(now, pending.update_id)
                 return []
             text = f"the robot refused order {ack.orderId}: {ack.reason}"
             self._ended(False, ack.reason)
@@ -809,11 +814,13 @@ class VehicleCore:
 
     # -- timeouts ---------------------------------------------------------------------------------
 
-    def _heard_on_order(self, now: float) -> None:
-        """The robot said it has the current order (acked it, names it and this update in its
-        ``State``, an event on it), or the bridge just sent it: its node actions' wait starts over."""
+    def _heard_on_order(self, now: float, update_id: int) -> None:
+        """The robot said it has the current order up to ``update_id`` (acked that update, names it
+        in its ``State``), or the bridge just sent that update: the wait starts over for the node
+        actions it carries (those of earlier updates included; a later update's, which the robot
+        has not got yet, wait on)."""
         for a in self.actions.values():
-            if a.node_seq is not None and a.status not in TERMINAL:
+            if a.node_seq is not None and a.status not in TERMINAL and a.update_id <= update_id:
                 a.deadline = now + self.config.action_timeout_s
 
     def _expire_actions(self, now: float) -> list[Out]:
