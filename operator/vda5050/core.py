@@ -85,8 +85,8 @@ ACTION_TIMEOUT_S = 10.0
 """An action the bridge waits on the robot for FAILS after this long without the robot's word on
 it (``actionTimeout`` in ``state.errors``): an instant action sent and not acked (the operator
 link gives up re-sending after about a second, operator/linkmanager.py), a node action whose order
-the robot has neither acked nor mentioned since (its ``State`` names the order it runs, at 1 Hz and
-on change; ``order`` events)."""
+update the robot has neither acked nor named since (its ``State`` names the order and update it
+runs, at 1 Hz and on change)."""
 NEW_BASE_REQUEST_M = 1.0
 """``newBaseRequest`` goes true when the released base left to drive is this short and a horizon
 waits (2 s at the factsheet's speedMax of 0.5 m/s; the robot stops at the base's last node)."""
