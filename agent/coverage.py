@@ -1962,7 +1962,6 @@ def _edge_lanes(strip: _Strip, stand: BoolGrid, res: float, ox: float, oy: float
                 break
             if min(over[0][1], b) - max(over[0][0], a) + 1 < 0.9 * (b - a + 1):
                 break  # narrower: the floor of the strip beyond a step (a nub), not this one's
-
             got = k
         ext.append(got)
     if not any(ext):

@@ -528,10 +528,9 @@ class RoundRun:
         node after it): the boustrophedon's path starts there; the way to it depends on where the
         robot happened to stand."""
         st = self.op.states.get(crew.name)
-        progress = getattr(st, "progress", None)
-        return bool(
-            st is not None and st.orderId == crew.order_id and progress is not None and progress.lastNodeSequenceId >= 2
-        )
+        if st is None or st.orderId != crew.order_id or st.progress is None:
+            return False
+        return bool(st.progress.lastNodeSequenceId >= 2)
 
     def _in_room(self, x: float, y: float) -> bool:
         fm = self.truth_fm

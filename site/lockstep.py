@@ -183,7 +183,9 @@ class ScriptedOperator:
 
     def _state(self, key: str, payload: bytes) -> None:
         msg = wire.decode_key(key, payload)
-        if self._fresh(msg):
+        last = self.states.get(msg.header.robot)
+        # The same State comes on both links, and the MQTT copy of an older one may come after a newer one.
+        if self._fresh(msg) and (last is None or msg.header.headerId > last.header.headerId):
             self.states[msg.header.robot] = msg
 
     def _pose(self, key: str, payload: bytes) -> None:
