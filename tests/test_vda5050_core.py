@@ -790,7 +790,7 @@ def test_node_actions_fail_when_the_robot_says_nothing_of_their_order_for_the_ti
     assert timeouts(rig) == []
 
 
-def test_node_actions_of_an_order_the_robot_never_takes_up_fail_after_the_timeout() -> None:
+def test_an_order_the_robot_never_takes_up_is_dropped_after_the_timeout_and_the_vehicle_is_idle_again() -> None:
     # No ack, and the robot's states go on naming no order (it never got this one).
     rig = Rig()
     rig.state()
@@ -799,9 +799,42 @@ def test_node_actions_of_an_order_the_robot_never_takes_up_fail_after_the_timeou
         rig.now = float(t)
         rig.state()
     assert action_status(rig)["d1"] == "WAITING"
+    # Meanwhile another order is refused: the vehicle is busy with this one.
+    assert rig.send("order", order("o2", 0, [node("m0", 0, 0.0)], [])) and any(
+        e["errorType"] == "orderError" and "still running" in e["errorDescription"] for e in errors(rig)
+    )
     tick(rig, ACTION_TIMEOUT_S)
-    assert action_status(rig)["d1"] == "FAILED" and len(timeouts(rig)) == 1
-    assert rig.core.timed_out_actions == 1
+    s = rig.last_state()
+    assert s["nodeStates"] == [] and s["edgeStates"] == [] and action_status(rig)["d1"] == "FAILED"
+    (e,) = [e for e in errors(rig) if e["errorType"] == "orderError" and "never took" in e["errorDescription"]]
+    assert e["errorLevel"] == "WARNING" and ("orderId", "o1") in refs(e)
+    assert rig.core.dropped_orders == 1 and not rig.core.busy
+    # The robot answers again: the master sends the same order again, and it goes to the robot.
+    sent = [o for o in rig.send("order", THREE) if isinstance(o, SendOrder)]
+    assert len(sent) == 1 and [n["nodeId"] for n in rig.last_state()["nodeStates"]] == ["n0", "n1", "n2"]
+    rig.ack("order")
+    tick(rig, 3 * ACTION_TIMEOUT_S)
+    assert rig.last_state()["nodeStates"] != [] and rig.core.dropped_orders == 1  # taken: never dropped
+
+
+def test_a_dropped_order_that_reaches_the_robot_after_all_is_cancelled_on_the_robot() -> None:
+    rig = Rig()
+    rig.state()
+    rig.send("order", THREE)
+    tick(rig, ACTION_TIMEOUT_S)
+    assert rig.core.dropped_orders == 1
+    rig.send("order", order("o2", 0, [node("m0", 0, 0.0)], []))  # the master moved on
+    rig.now = ACTION_TIMEOUT_S + 1.0
+
+    # The robot got o1 late (a queue delivered after all) and runs it: it is cancelled there.
+    def cancels() -> list[str]:
+        return [a.actionType.value for o in rig.out if isinstance(o, SendActions) for a in o.actions]
+
+    rig.state(order="o1", done=1, last="n0", last_seq=0)
+    assert cancels() == ["cancel"]
+    rig.now += 1.0
+    rig.state(order="o1", done=1, last="n0", last_seq=0)
+    assert cancels() == ["cancel"]  # once per timeout, not per state
 
 
 def test_the_actions_of_an_update_the_robot_never_gets_fail_and_the_running_bases_do_not() -> None:

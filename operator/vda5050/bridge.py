@@ -246,6 +246,7 @@ class Vda5050Bridge:
                     "refused": dict(v.core.refused),
                     "invalid_out": dict(v.core.invalid_out),
                     "skipped_nodes": v.core.skipped_nodes,
+                    "dropped_orders": v.core.dropped_orders,
                     "timed_out_actions": v.core.timed_out_actions,
                     "lease_rereleases": v.core.lease_rereleases,
                 }

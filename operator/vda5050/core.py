@@ -195,6 +195,8 @@ class _Pending:
     action_id: str = ""
     update_id: int = 0
     """An order's orderUpdateId."""
+    order_id: str = ""
+    """An order's orderId."""
 
 
 @dataclass(slots=True)
@@ -214,6 +216,10 @@ class _Order:
     positions: dict[int, dict[str, Any]] = field(default_factory=dict)
     """The fleetlink position to send per sequenceId where it is not the node's own (a new order's
     first node the robot already stands within the allowedDeviationXY of: counted where it is)."""
+    taken: bool = False
+    """The robot has acked this order (any update) or named it in its ``State``."""
+    take_by: float = math.inf
+    """Not taken by then: dropped (``VehicleCore._expire_order``)."""
 
 
 class VehicleCore:
@@ -249,6 +255,11 @@ class VehicleCore:
         nodes, actionTimeout for node actions the robot went silent on."""
         self.skipped_nodes = 0
         self.timed_out_actions = 0
+        self.dropped_orders = 0
+        """Orders dropped because the robot never took them (``_expire_order``)."""
+        self._dropped = ""
+        """The last order dropped: a robot seen running it after all is sent a cancel."""
+        self._cancel_dropped_at = -math.inf
         """Actions FAILED because the robot had no word on them for ``action_timeout_s``."""
         self._base_request_for: tuple[str, str, int] | None = None
         """(orderId, base end nodeId, sequenceId) newBaseRequest was set for: it stays set until an
@@ -430,7 +441,8 @@ class VehicleCore:
             return self._refuse("order", "orderError", why, now, hid, orderId=oid)
         o = self.order
         first = doc["nodes"][0]
-        if oid != o.order_id:
+        # An order dropped as never taken may come again as it was: it is new to the robot.
+        if oid != o.order_id or (oid == self._dropped and not o.nodes):
             if self.busy:
                 return self._refuse("order", "orderError", f"still running order {o.order_id!r}", now, hid, orderId=oid)
             if not self._reachable(first):
@@ -444,6 +456,9 @@ class VehicleCore:
                 self.order.positions[first["sequenceId"]] = {"x": here[0], "y": here[1]}
             self._skips = []
             self._forget_order_actions()
+            self.order.take_by = now + self.config.action_timeout_s
+            if oid == self._dropped:
+                self._dropped = ""
         else:
             if uid < o.update_id:
                 text = f"orderUpdateId {uid} is older than {o.update_id}"
@@ -482,7 +497,7 @@ class VehicleCore:
             return out
         self.order.sent_nodes = [(n.nodeId, n.sequenceId) for n in fields["nodes"]]
         tag = f"order/{oid}/{uid}"
-        self._tags[tag] = _Pending("order", update_id=uid)
+        self._tags[tag] = _Pending("order", update_id=uid, order_id=oid)
         out.append(SendOrder(fields, tag))
         self._heard_on_order(now, uid)
         self._next_state = -math.inf
@@ -651,7 +666,10 @@ class VehicleCore:
             self.fleet_state = msg
             o = self.order
             if o.order_id and msg.orderId == o.order_id:
+                o.taken = True
                 self._heard_on_order(now, msg.orderUpdateId)
+            elif self._dropped and msg.orderId == self._dropped and msg.progress is not None:
+                out += self._cancel_dropped(now)
             out += self._follow(msg)
         elif isinstance(msg, Pose):
             self.pose = msg
@@ -685,6 +703,8 @@ class VehicleCore:
         self._next_state = -math.inf
         if pending.kind == "order":
             if ok:
+                if pending.order_id == self.order.order_id:
+                    self.order.taken = True
                 self._heard_on_order(now, pending.update_id)
                 return []
             text = f"the robot refused order {ack.orderId}: {ack.reason}"
@@ -823,6 +843,50 @@ class VehicleCore:
             if a.node_seq is not None and a.status not in TERMINAL and a.update_id <= update_id:
                 a.deadline = now + self.config.action_timeout_s
 
+    def _expire_order(self, now: float) -> list[Out]:
+        """Drop an order the robot has not taken (no ack, no ``State`` naming it) within
+        ``action_timeout_s`` of its sending: its nodes leave the state, its actions FAIL, an
+        ``orderError`` WARNING says so (held until the next new order), and the vehicle is idle
+        again, so the master can send it (or another) once the robot answers. Kept, a robot that
+        never got it would hold the vehicle busy for ever: new orders refused, and a
+        ``cancelOrder`` that cannot reach the robot FAILED too. Should the order reach the robot
+        after all, the robot is sent a cancel when its state names it (``_cancel_dropped``)."""
+        o = self.order
+        if not o.nodes or o.taken or now < o.take_by:
+            return []
+        t = self.config.action_timeout_s
+        text = f"the robot never took order {o.order_id} (no ack, not in its state for {t:g} s): dropped"
+        self._ended(False, f"order dropped: the robot never took it within {t:g} s")
+        error = {
+            "errorType": "orderError",
+            "errorLevel": "WARNING",
+            "errorDescription": text[:256],
+            "errorHint": "the robot may be out of reach: check its link; send the order again once it answers",
+            "errorReferences": [
+                {"referenceKey": "orderId", "referenceValue": o.order_id},
+                {"referenceKey": "orderUpdateId", "referenceValue": str(o.update_id)},
+            ],
+        }
+        self._skips = [*self._skips, error][-MAX_SKIP_ERRORS:]
+        self._dropped = o.order_id
+        self._cancel_dropped_at = -math.inf
+        self.dropped_orders += 1
+        return self._log_once("orderDropped", text)
+
+    def _cancel_dropped(self, now: float) -> list[Out]:
+        """The robot runs the order dropped as never taken (it got there late): cancel it, as the
+        master was told it would not run (at most once per ``action_timeout_s``)."""
+        if now < self._cancel_dropped_at:
+            return []
+        self._cancel_dropped_at = now + self.config.action_timeout_s
+        action = Action(actionId=f"drop-{self._dropped}"[:MAX_ID], actionType=ActionType.CANCEL, actionParameters=())
+        return [
+            SendActions((action,), f"drop/{self._dropped}"),
+            *self._log_once(
+                f"late/{self._dropped}", f"order {self._dropped} reached the robot after it was dropped: cancelled"
+            ),
+        ]
+
     def _expire_actions(self, now: float) -> list[Out]:
         """FAIL the actions the robot has had no word on for ``action_timeout_s`` (VDA 5050 section
         6.11: FAILED, "could not be finished for whatever reason"), each named in an
@@ -923,6 +987,7 @@ class VehicleCore:
         self._errors = [(e, t) for e, t in self._errors if t > now]
         if len(self._errors) != before:
             self._next_state = -math.inf
+        out += self._expire_order(now)
         out += self._expire_actions(now)
         out += self._lease_tick(now)
         self._update_base_request()
