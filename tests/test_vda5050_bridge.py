@@ -3,11 +3,13 @@ ids does not grow the bridge without bound (capped, counted, logged once; it kee
 
 from __future__ import annotations
 
+import json
 import logging
 from typing import Any
 
 import pytest
 
+from fleetlink.operator.linkmanager import Failed
 from fleetlink.operator.vda5050 import bridge as bridge_module
 from fleetlink.operator.vda5050.bridge import Vda5050Bridge
 from fleetlink.shared import wire
@@ -20,6 +22,7 @@ from fleetlink.shared.messages import (
     EStop,
     LinkStatus,
     OperatingMode,
+    Order,
     SafetyState,
     State,
     Velocity,
@@ -52,7 +55,23 @@ class FakeEndpoint:
 class FakeLink:
     sender = "vda5050"
 
+    def __init__(self) -> None:
+        self.counter = wire.HeaderCounter(SimClock(), robot="r0", sender=self.sender)
+        self.sent: list[wire.Message] = []
+        self.listeners: list[Any] = []
+
     def add_sink(self, sink: Any) -> None:
+        pass
+
+    def add_listener(self, listener: Any) -> None:
+        self.listeners.append(listener)
+
+    def send(self, cls: type[wire.Message], robot: str, **fields: Any) -> wire.Message:
+        msg = cls(header=self.counter.header(cls.TOPIC, robot=robot), **fields)
+        self.sent.append(msg)
+        return msg
+
+    def publish(self, msg: wire.Message, **kwargs: Any) -> None:
         pass
 
     def start(self) -> None:
@@ -109,3 +128,52 @@ def test_a_flood_of_new_robot_ids_is_capped_counted_and_logged_once(
     b._fleet(state("r0"), "zenoh", clock.now())
     assert len(b.vehicles["r0"].endpoint.published) > before  # type: ignore[attr-defined]
     assert set(b.stats()) == {"r0", "r1", "r2", "r3"}
+
+
+def test_an_order_the_operator_link_gives_up_on_is_dropped_at_the_next_tick(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The link's poll thread reports a command it gave up on (no ack on any link after its re-sends);
+    # the bridge hands it to the vehicle at its next tick: the order is dropped then, not 10 s later.
+    monkeypatch.setattr(bridge_module, "MqttEndpoint", FakeEndpoint)
+    clock = SimClock()
+    link = FakeLink()
+    b = Vda5050Bridge(clock, link, MqttSettings("127.0.0.1", 1))  # type: ignore[arg-type]
+    monkeypatch.setattr(b._ticker, "start", lambda: None)  # ticked by hand below
+    b.start()
+    b._fleet(state("r0"), "zenoh", clock.now())
+    doc = {
+        "headerId": 1,
+        "timestamp": "2026-01-01T00:00:00.00Z",
+        "version": "2.1.0",
+        "manufacturer": "fleetlink",
+        "serialNumber": "r0",
+        "orderId": "o1",
+        "orderUpdateId": 0,
+        "nodes": [
+            {
+                "nodeId": "n0",
+                "sequenceId": 0,
+                "released": True,
+                "actions": [],
+                "nodePosition": {"x": 0.0, "y": 0.0, "mapId": "site"},
+            },
+            {
+                "nodeId": "n1",
+                "sequenceId": 2,
+                "released": True,
+                "actions": [],
+                "nodePosition": {"x": 1.0, "y": 0.0, "mapId": "site"},
+            },
+        ],
+        "edges": [
+            {"edgeId": "e1", "sequenceId": 1, "startNodeId": "n0", "endNodeId": "n1", "released": True, "actions": []}
+        ],
+    }
+    b._master("r0", "order", "", json.dumps(doc).encode())
+    (sent,) = [m for m in link.sent if isinstance(m, Order)]
+    assert b.vehicles["r0"].core.busy
+    clock.advance(1.2)
+    (listener,) = link.listeners
+    listener(Failed("r0", Order.TOPIC, sent.header.headerId, "no ack after 4 sends"))
+    b._tick_once()
+    core = b.vehicles["r0"].core
+    assert not core.busy and core.dropped_orders == 1 and b.stats()["r0"]["dropped_orders"] == 1

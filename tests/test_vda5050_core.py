@@ -872,3 +872,28 @@ def test_the_actions_of_an_update_the_robot_never_gets_fail_and_the_running_base
     assert action_status(rig) == {"d1": "WAITING", "uv3": "FAILED"}
     (e,) = timeouts(rig)
     assert ("actionId", "uv3") in refs(e) and ("orderUpdateId", "1") in refs(e)
+
+
+def test_a_command_the_operator_link_gives_up_on_fails_its_action_or_drops_its_order_at_once() -> None:
+    # The link re-sends an unacked command on both links and gives up after about a second: what
+    # waits on it fails then, not after ACTION_TIMEOUT_S.
+    rig = Rig()
+    rig.state()
+    rig.send("instantActions", {"actions": [{"actionId": "p1", "actionType": "startPause", "blockingType": "NONE"}]})
+    hid = rig.fleet_hid
+    rig.now = 1.2
+    rig._check(rig.core.undelivered("actions", hid, "no ack after 4 sends", rig.now))
+    tick(rig, 1.3)
+    p1 = next(a for a in rig.last_state()["actionStates"] if a["actionId"] == "p1")
+    assert p1["actionStatus"] == "FAILED" and "no ack after 4 sends" in p1["resultDescription"]
+    rig.send("order", THREE)
+    rig._check(rig.core.undelivered("order", rig.fleet_hid, "no ack after 4 sends", 2.5))
+    tick(rig, 2.6)
+    s = rig.last_state()
+    assert s["nodeStates"] == [] and rig.core.dropped_orders == 1 and not rig.core.busy
+    assert any("no ack after 4 sends" in e["errorDescription"] for e in errors(rig) if e["errorType"] == "orderError")
+    # A give-up on a command the robot did answer (an ack came first) changes nothing.
+    rig.send("order", order("o2", 0, [node("m0", 0, 0.0), node("m1", 2, 1.0)], [edge("m0", "m1", 1)]))
+    rig.ack("order")
+    rig._check(rig.core.undelivered("order", rig.fleet_hid, "no ack after 4 sends", 3.0))
+    assert rig.core.dropped_orders == 1 and rig.core.busy

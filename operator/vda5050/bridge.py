@@ -13,10 +13,12 @@ from __future__ import annotations
 import functools
 import logging
 import threading
+from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
 from fleetlink.links.mqtt import MqttEndpoint, MqttMessage
+from fleetlink.operator.linkmanager import Failed, Switch
 from fleetlink.operator.links import OperatorLink
 from fleetlink.operator.vda5050.core import (
     Log,
@@ -85,6 +87,8 @@ class Vda5050Bridge:
         self.refused_vehicles = 0
         """Robots not made vehicles because ``max_vehicles`` were already served."""
         self._lock = threading.RLock()
+        self._undelivered: deque[Failed] = deque(maxlen=4096)
+        """Commands the operator link gave up on (its poll thread), for the tick to hand on."""
         self._closed = False
         self._ticker = Worker("vda5050-tick", clock=clock, target=self._tick_loop)
 
@@ -94,6 +98,7 @@ class Vda5050Bridge:
         for robot in self.robots:
             self._vehicle(robot)
         self.link.add_sink(self._fleet)
+        self.link.add_listener(self._link_event)
         self.link.start()
         self._ticker.start()
         return self
@@ -200,15 +205,32 @@ class Vda5050Bridge:
                 return
             self._dispatch(robot, v, outs)
 
+    def _link_event(self, event: Switch | Failed) -> None:
+        if isinstance(event, Failed):
+            self._undelivered.append(event)
+
     def _tick_loop(self, worker: Worker) -> None:
         while not worker.stopping:
-            with self._lock:
-                for robot, v in list(self.vehicles.items()):
-                    try:
-                        self._dispatch(robot, v, v.core.tick(self.clock.now(), self.clock.wall()))
-                    except Exception:
-                        log.exception("%s: tick failed", robot)
+            self._tick_once()
             worker.wait(TICK_S)
+
+    def _tick_once(self) -> None:
+        with self._lock:
+            while self._undelivered:
+                f = self._undelivered.popleft()
+                fv = self.vehicles.get(f.robot)
+                if fv is not None:
+                    try:
+                        outs = fv.core.undelivered(f.topic, f.header_id, f.reason, self.clock.now())
+                    except Exception:
+                        log.exception("%s: handling an undelivered %s failed", f.robot, f.topic)
+                        continue
+                    self._dispatch(f.robot, fv, outs)
+            for robot, v in list(self.vehicles.items()):
+                try:
+                    self._dispatch(robot, v, v.core.tick(self.clock.now(), self.clock.wall()))
+                except Exception:
+                    log.exception("%s: tick failed", robot)
 
     # -- outputs --------------------------------------------------------------------------------
 

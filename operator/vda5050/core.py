@@ -843,6 +843,28 @@ class VehicleCore:
             if a.node_seq is not None and a.status not in TERMINAL and a.update_id <= update_id:
                 a.deadline = now + self.config.action_timeout_s
 
+    def undelivered(self, topic: str, header_id: int, reason: str, now: float) -> list[Out]:
+        """The operator link gave up on the fleetlink command ``topic`` #``header_id`` (no ack on
+        any link after its re-sends, about a second): what waits on it fails now, not after
+        ``action_timeout_s``. An instant action FAILED with an ``actionTimeout`` WARNING; an order
+        the robot has not taken dropped (``_expire_order``; it is cancelled on the robot should it
+        get there after all)."""
+        pending = self._pending.pop((topic, header_id), None)
+        if pending is None:
+            return []
+        why = f"not delivered: {reason}"
+        if pending.kind == "order":
+            o = self.order
+            if pending.order_id == o.order_id and not o.taken and o.nodes:
+                return self._drop_order(f"the robot never took order {o.order_id} ({why})")
+            return []
+        state = self.actions.get(pending.action_id)
+        if state is None or state.status in TERMINAL:
+            return []
+        state.deadline = now  # FAILED by _expire_actions, as a timeout, with this reason
+        state.result = why
+        return self._expire_actions(now)
+
     def _expire_order(self, now: float) -> list[Out]:
         """Drop an order the robot has not taken (no ack, no ``State`` naming it) within
         ``action_timeout_s`` of its sending: its nodes leave the state, its actions FAIL, an
@@ -855,8 +877,12 @@ class VehicleCore:
         if not o.nodes or o.taken or now < o.take_by:
             return []
         t = self.config.action_timeout_s
-        text = f"the robot never took order {o.order_id} (no ack, not in its state for {t:g} s): dropped"
-        self._ended(False, f"order dropped: the robot never took it within {t:g} s")
+        return self._drop_order(f"the robot never took order {o.order_id} (no ack, not in its state for {t:g} s)")
+
+    def _drop_order(self, why: str) -> list[Out]:
+        o = self.order
+        text = f"{why}: dropped"
+        self._ended(False, "order dropped: the robot never took it")
         error = {
             "errorType": "orderError",
             "errorLevel": "WARNING",
@@ -902,7 +928,7 @@ class VehicleCore:
         for a in late:
             a.status = "FAILED"
             if a.node_seq is None:
-                a.result = f"no ack from the robot within {t:g} s"
+                a.result = a.result or f"no ack from the robot within {t:g} s"
                 self._hold(
                     {
                         "errorType": "actionTimeout",
