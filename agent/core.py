@@ -123,11 +123,9 @@ NODE_NEAR_M = 0.3
 NODE_PASS_M = 0.5
 """The same for a node with no actions (a waypoint: a sweep's lane end by a wall, where the
 guard stops the robot its 0.40 m stopping distance short)."""
-NODE_BUMP_M = 0.1
-"""A hazard (bump, cliff) this near an order's node (or within its allowed deviation, if larger)
-counts the node reached; the order still holds for the operator."""
 _HAZARDS = ("cliff", "bump")
-"""Go-to endings that hold an order with nodes (the operator looks first) instead of skipping the node."""
+"""Go-to endings that hold an order with nodes (the operator looks first) instead of skipping the
+node; one within ``NODE_NEAR_M`` / ``NODE_PASS_M`` of the node counts it reached, then holds."""
 _MODE = {
     PilotMode.IDLE: OperatingMode.SEMIAUTOMATIC,
     PilotMode.MANUAL: OperatingMode.MANUAL,
@@ -870,10 +868,11 @@ class AgentCore:
         elif ev.kind is EventKind.GOAL_FAILED:  # a hazard: hold for the operator
             cur = it.current
             near = NODE_NEAR_M if cur is None or cur.actions else NODE_PASS_M
-            if cur is not None and it.closest_m <= min(near, max(cur.deviation, NODE_BUMP_M)):
-                # The body touched something (a doorway's jamb beside a lane end) within the node's
-                # allowed deviation: the node was reached. Driving at it again after the resume
-                # would press the same spot (measured: three bumps at one node, the round left).
+            if cur is not None and it.closest_m <= near:
+                # The body touched something (a doorway's jamb beside a lane end, a wall the map
+                # put a little further out) as near the node as a blocked go-to counts reached:
+                # the node was reached. Driving at it again after the resume would press the same
+                # spot (measured: three bumps at one node, the round left unfinished).
                 gap = it.closest_m
                 it.arrived(now)
                 it.hold(now, ev.reason or "hazard")
