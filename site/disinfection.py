@@ -80,7 +80,9 @@ HAZARD_RESUME_S = 5.0
 MAX_HAZARD_RESUMES = 3
 """A bump or a cliff holds a robot's order (safety first: agent/core.py); as an operator who
 looks, sees the robot against a wall and presses resume, the operator resumes it after
-``HAZARD_RESUME_S``, at most this many times per robot (the robot backs out or skips the node)."""
+``HAZARD_RESUME_S``, at most this many times in a row while the order gets no further (a node done
+since the last bump starts the count again: a long sweep may brush a few walls; a robot pressing
+the same spot is left for a person to look at)."""
 MAX_PASSES = 2
 """A UV round is planned again on what the robots' own dose layers say is still short (a top-up,
 as an operator does with a second ``:disinfect``; none once they read ``CERTIFIED``), at most this
@@ -184,6 +186,9 @@ class _Crew:
     bumped: bool = False
     resume_at: float | None = None
     resumes: int = 0
+    stuck: int = 0
+    """Bumps since the order last got on (``MAX_HAZARD_RESUMES``)."""
+    progress_at_bump: tuple[str, int] | None = None
 
 
 class RoundRun:
@@ -472,7 +477,13 @@ class RoundRun:
             self._events += 1
             crew = self.crews.get(ev.header.robot)
             running = crew is not None and crew.sent_at is not None and crew.done_at is None
-            if crew is not None and running and ev.kind in ("bump", "cliff") and crew.resumes < MAX_HAZARD_RESUMES:
+            if crew is not None and running and ev.kind in ("bump", "cliff"):
+                st = self.op.states.get(crew.name)
+                got = (st.orderId, st.progress.nodesDone) if st is not None and st.progress is not None else None
+                if got != crew.progress_at_bump:
+                    crew.progress_at_bump, crew.stuck = got, 0
+                crew.stuck += 1
+            if crew is not None and running and ev.kind in ("bump", "cliff") and crew.stuck <= MAX_HAZARD_RESUMES:
                 crew.resume_at = t + HAZARD_RESUME_S
                 self.notes.append(f"t={t:.1f}: {crew.name}: {ev.text}; the operator resumes in {HAZARD_RESUME_S:g} s")
             if crew is None or ev.kind != "order" or not crew.order_id:
