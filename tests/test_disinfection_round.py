@@ -52,3 +52,27 @@ def test_a_round_setup_that_cannot_run_says_why(kw: dict[str, object], why: str)
     args: dict[str, object] = {"plan": "apartment", "room": "living", "rect": LIVING, "robots": (PUT_DOWN,), **kw}
     with pytest.raises(ValueError, match=why):
         RoundSetup(**args)  # type: ignore[arg-type]
+
+
+def test_the_truth_counts_the_floor_the_brush_swept_between_samples() -> None:
+    # The truth samples the robot every 0.2 s: its positions are 0.06-0.1 m apart on a lane, more
+    # where it speeds up. The brush sweeps all the way between them; discs at the samples alone
+    # leave the lane's edges scalloped (here, samples 0.15 m apart, cells 0.155 m off the lane).
+    import numpy as np
+
+    from fleetlink.agent import coverage as cv
+    from fleetlink.site.disinfection import _Crew
+    from fleetlink.site.rounds import ROUND_CONFIG
+
+    fm = cv.FloorMap(np.ones((40, 80), dtype=bool), 0.05, (0.0, 0.0), ROUND_CONFIG)
+    run = RoundRun.__new__(RoundRun)
+    run.truth_fm, run.room = fm, cv.rectangle(fm, 0.0, 0.0, 4.0, 2.0)
+    run.swept = np.zeros(fm.shape, dtype=bool)
+    crew = _Crew("r")
+    for i in range(7):
+        run._brush(crew, 1.0 + 0.15 * i, 1.03)
+    gx, gy = fm.centres()
+    rad = fm.config.tool_width_m / 2.0
+    lane = (np.abs(gy - 1.03) <= rad - 1e-9) & (gx >= 1.0) & (gx <= 1.9)
+    assert run.swept[lane].all()
+    assert not run.swept[np.abs(gy - 1.03) > rad + 1e-9].any()
