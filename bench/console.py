@@ -13,8 +13,11 @@ message, then shared the console's interpreter lock). Measured:
 
 * frame time: the console's periodic refresh (fleet model under the lock, table cells, map cell
   table, status), p50/p99, while the feed runs;
-* input latency: a drive key posted to the app until its Teleop reaches the transport (stamped in
-  the transport's publish), p50/p99; a stop key between two presses, posted the same way;
+* input latency: a drive key handed to the app's terminal driver on a keyboard thread (as a
+  terminal's input thread hands it each key it read, ``Driver.process_message``) until its Teleop
+  reaches the transport (stamped in the transport's publish), p50/p99; a stop key between two
+  presses, handed on the same way (``--keys-from-loop``: posted to the app from its event loop, as
+  the bench did before 2026-12-01);
 * how many messages a second the console folded into its model (all of them, if it keeps up),
   and the host's load average.
 
@@ -205,8 +208,51 @@ def receive(rig: Rig, n: int, stop: threading.Event, hz: float, maps: bool, inbo
             map_updates(rig, n, tick, hz)
 
 
+def keys_typed(app: Any, seconds: float, teleops: list[float], sent: threading.Event, out: list[float]) -> None:
+    """The keyboard: for ``seconds``, ``i`` then space (stop, so the next ``i`` is a change and
+    goes out at once) every 0.15 s, each handed to the app's driver on this thread as a terminal's
+    input thread hands it what it read (``Driver.process_message``). ``out``: each ``i``'s time
+    from then until its Teleop reached the transport."""
+    driver = app._driver
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        for key in ("i", "space"):
+            before = len(teleops)
+            sent.clear()
+            t0 = time.monotonic()
+            driver.process_message(events.Key(key, " " if key == "space" else key))
+            while len(teleops) == before and time.monotonic() - t0 < 2:
+                sent.wait(0.05)
+                sent.clear()
+            if key == "i":  # stamped where it reaches the transport
+                out.append((teleops[before] if len(teleops) > before else time.monotonic()) - t0)
+        time.sleep(0.15)
+
+
+async def keys_posted(app: Any, seconds: float, teleops: list[float], sent: threading.Event, out: list[float]) -> None:
+    """``--keys-from-loop``: the same keys posted to the app from the event loop (the bench before
+    2026-12-01: a key then never waited for the loop to take it from the input thread)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        for key in ("i", "space"):
+            before = len(teleops)
+            t0 = time.monotonic()
+            app.post_message(events.Key(key, " " if key == "space" else key))
+            while len(teleops) == before and time.monotonic() - t0 < 2:
+                await asyncio.sleep(0.0005)
+            if key == "i":
+                out.append((teleops[before] if len(teleops) > before else time.monotonic()) - t0)
+        await asyncio.sleep(0.15)
+
+
 async def measure(
-    n: int, seconds: float, tmp: Path, hz: float = 10.0, maps: bool = False, in_process: bool = False
+    n: int,
+    seconds: float,
+    tmp: Path,
+    hz: float = 10.0,
+    maps: bool = False,
+    in_process: bool = False,
+    keys_from_loop: bool = False,
 ) -> dict[str, float]:
     # The robots' process is forked before the rig starts any thread of its own.
     ctx = multiprocessing.get_context("fork")
@@ -229,11 +275,13 @@ async def measure(
         feeder = threading.Thread(target=receive, args=(rig, n, stop, hz, maps, inbox), daemon=True)
     teleops: list[float] = []
     """When each Teleop reached the (Zenoh) transport."""
+    sent = threading.Event()
     publish = rig.zenoh.publish
 
     def stamped(key: str, payload: bytes) -> bool:
         if f"/{Teleop.TOPIC}/" in key + "/":
             teleops.append(time.monotonic())
+            sent.set()
         return publish(key, payload)
 
     rig.zenoh.publish = stamped  # type: ignore[method-assign]
@@ -247,17 +295,15 @@ async def measure(
             received0 = sum(rig.link.delivered.values())
             conflated0 = getattr(rig.app.feed, "conflated", 0)
             latencies: list[float] = []
-            end = time.monotonic() + seconds
-            while time.monotonic() < end:
-                for key in ("i", "space"):  # then stop, so the next "i" is a change and goes out at once
-                    before = len(teleops)
-                    t0 = time.monotonic()
-                    rig.app.post_message(events.Key(key, " " if key == "space" else key))
-                    while len(teleops) == before and time.monotonic() - t0 < 2:
-                        await asyncio.sleep(0.0005)
-                    if key == "i":  # stamped where it reaches the transport, not when this loop looks
-                        latencies.append((teleops[before] if len(teleops) > before else time.monotonic()) - t0)
-                await asyncio.sleep(0.15)
+            if keys_from_loop:
+                await keys_posted(rig.app, seconds, teleops, sent, latencies)
+            else:
+                keyboard = threading.Thread(
+                    target=keys_typed, args=(rig.app, seconds, teleops, sent, latencies), name="keyboard", daemon=True
+                )
+                keyboard.start()
+                while keyboard.is_alive():
+                    await asyncio.sleep(0.05)
             frames = list(rig.app.frame_times)
             collector = getattr(rig.app, "collector", None)  # (None: a console before 2026-11-28)
             gc_passes = list(collector.passes) if collector is not None else [-1, -1, -1]
@@ -316,12 +362,17 @@ def main() -> int:
         action="store_true",
         help="build and encode the robots' messages in the console's process (the bench before 2026-11-28)",
     )
+    parser.add_argument(
+        "--keys-from-loop",
+        action="store_true",
+        help="post the keys to the app from its event loop (the bench before 2026-12-01), not from a keyboard thread",
+    )
     parser.add_argument("--json", type=Path, help="also write the figures as JSON (SI units)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        where = args.encode_in_process
-        base = asyncio.run(measure(1, args.seconds, Path(tmp), args.pose_hz, args.maps, where))
-        full = asyncio.run(measure(args.robots, args.seconds, Path(tmp), args.pose_hz, args.maps, where))
+        where, loop = args.encode_in_process, args.keys_from_loop
+        base = asyncio.run(measure(1, args.seconds, Path(tmp), args.pose_hz, args.maps, where, loop))
+        full = asyncio.run(measure(args.robots, args.seconds, Path(tmp), args.pose_hz, args.maps, where, loop))
     extra = ", maps updated at 1 Hz and scans at 2 Hz" if args.maps else ""
     print(
         f"console responsiveness, robots reporting pose at {args.pose_hz:g} Hz (+ state at 1 Hz{extra}), "
