@@ -82,6 +82,7 @@ from fleetlink.operator.dose import DoseFollower, dose_report, save_report
 from fleetlink.operator.feed import ConsoleSource, FleetFeed, attach
 from fleetlink.operator.fleet import FleetModel, LeaseRenewal, Notice
 from fleetlink.operator.fleet_table import FleetTable, fleet_rows, row_cells
+from fleetlink.operator.keylane import KeyLane
 from fleetlink.operator.maps import MapFollower
 from fleetlink.operator.mapview import MapView
 from fleetlink.operator.marks import DEFAULT_KIND, MARK_KINDS, MAX_LABEL, MarksStore, export_marks, find_mark, revised
@@ -100,7 +101,7 @@ from fleetlink.operator.rounds import (
     mj_cm2,
 )
 from fleetlink.operator.status import StatusLine, status_text
-from fleetlink.operator.teleop import DriveKeys, Twist
+from fleetlink.operator.teleop import DRIVE_KEYS, SPEED_KEYS, STOP_KEYS, DriveKeys, Twist
 from fleetlink.shared import wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.dose import Lamp, j_m2
@@ -117,6 +118,13 @@ robots draws fewer, and keys and telemetry get the time between them."""
 __all__ = ["ConsoleApp", "ConsoleSource", "RoundPlanned", "TelemetryArrived", "attach"]
 
 log = logging.getLogger(__name__)
+
+
+def drive_key(event: events.Key) -> str:
+    """The name ``DriveKeys`` knows a key by: its printable character (``i``, ``,``, ``W``),
+    else its key name (``space``, ``up``)."""
+    char = event.character
+    return char if char is not None and char.isprintable() and char != " " else event.key
 
 
 class TelemetryArrived(Message):
@@ -303,6 +311,11 @@ class ConsoleApp(App[None]):
         self.refresh_hz = refresh_hz
         self.clock_hz = clock_hz
         self.drive = DriveKeys(repeat_timeout_s=repeat_timeout_s)
+        self._drive_lock = threading.Lock()
+        """Guards ``drive`` and the teleop each of its decisions sends (the UI thread's keys and
+        ticks, the input thread's keys: ``KeyLane``), so teleops leave in the order decided."""
+        self.key_lane = KeyLane(self._drive_key_now)
+        """Drive keys taken on the terminal's input thread (operator/keylane.py)."""
         self.commander = Commander(source, clock)
         self.leases = LeaseRenewal(LEASE_S)
         self.selected: str | None = None
@@ -368,6 +381,7 @@ class ConsoleApp(App[None]):
         gc.freeze()
         self.collector.start()
         self.query_one(MapView).focus()
+        self.key_lane.install(self._driver)
         self.feed.bind(lambda: self.post_message(TelemetryArrived()))
         self.feed.drain()
         self.set_interval(1.0 / self.clock_hz, self._changed)
@@ -377,6 +391,7 @@ class ConsoleApp(App[None]):
         self._changed()
 
     def on_unmount(self) -> None:
+        self.key_lane.uninstall()
         self.collector.stop()
         gc.unfreeze()
         self.feed.unbind()
@@ -519,26 +534,69 @@ class ConsoleApp(App[None]):
         return True
 
     def send_twist(self, twist: Twist) -> None:
+        with self._drive_lock:
+            self._send_twist(twist)
+
+    def _send_twist(self, twist: Twist) -> None:
+        """(Under ``_drive_lock``.)"""
         robot = self.selected
         if robot is None or self.read_only:
             return
         self.commander.teleop(robot, twist)
 
+    def _press(self, key: str) -> None:
+        """A drive, stop or speed key into ``drive``; the teleop it decides, sent (either thread)."""
+        with self._drive_lock:
+            twist = self.drive.press(key, self.clock.now())
+            if twist is not None:
+                self._send_twist(twist)
+
+    def _drive_stop(self) -> None:
+        """Driving ends (an order, an e-stop, a pause replaces it): no repeat and no auto-stop
+        follows (the caller sends what replaces it)."""
+        with self._drive_lock:
+            self.drive.stop(self.clock.now())
+
+    def _drive_key_now(self, event: events.Key) -> bool:
+        """On the terminal's input thread (``KeyLane``, every event before this one handled): a
+        drive or stop key the app would hand to the drive (the map has the focus, no dialog,
+        no priority binding, a robot selected that this console may drive) sends its teleop now;
+        True if so. False hands the key on to the app: speed steps (they redraw the status line),
+        refusals (the app says why), every other key."""
+        key = drive_key(event)
+        if key not in DRIVE_KEYS and key not in STOP_KEYS:
+            return False
+        if self.selected is None or self.read_only or self._priority_key(event.key):
+            return False
+        stack = self._screen_stack
+        if len(stack) != 1 or not isinstance(stack[-1].focused, MapView):
+            return False
+        # Read without the model's lock (a frame may hold it for tens of ms): one robot's lease
+        # holder, as the app's own check reads it; the robot enforces its lease either way.
+        if key not in STOP_KEYS and not self.fleet.may_drive(self.selected)[0]:
+            return False
+        self._press(key)
+        return True
+
     async def on_event(self, event: events.Event) -> None:
-        # A drive key on the map (where the focus is by default) is handled the moment the app
-        # first sees it, before it travels to the map and bubbles back through the queues: its
-        # Teleop goes out without waiting for a frame or telemetry queued meanwhile.
-        if (
-            isinstance(event, events.Key)
-            and not event.is_forwarded
-            and isinstance(self.focused, MapView)
-            and len(self.screen_stack) == 1
-            and not self._priority_key(event.key)
-        ):
-            self.on_key(event)
-            if event._stop_propagation:
-                return
-        await super().on_event(event)
+        # A drive key on the map (where the focus is by default) that the input thread handed on
+        # (behind another key, operator/keylane.py) is handled the moment the app first sees it,
+        # before it travels to the map and bubbles back through the queues: its Teleop goes out
+        # without waiting for a frame or telemetry queued meanwhile.
+        try:
+            if (
+                isinstance(event, events.Key)
+                and not event.is_forwarded
+                and isinstance(self.focused, MapView)
+                and len(self.screen_stack) == 1
+                and not self._priority_key(event.key)
+            ):
+                self.on_key(event)
+                if event._stop_propagation:
+                    return
+            await super().on_event(event)
+        finally:
+            self.key_lane.handled(event)
 
     def _priority_key(self, key: str) -> bool:
         return any(b.priority for b in self._bindings.key_to_bindings.get(key, ()))
@@ -546,35 +604,29 @@ class ConsoleApp(App[None]):
     def on_key(self, event: events.Key) -> None:
         if isinstance(self.focused, Input) or len(self.screen_stack) > 1:
             return
-        char = event.character
-        key = char if char is not None and char.isprintable() and char != " " else event.key
+        key = drive_key(event)
         if not self.drive.handles(key):
             return
         event.stop()
         event.prevent_default()
-        now = self.clock.now()
-        if key in ("k", "space"):
-            twist = self.drive.press(key, now)
-            if twist is not None and self.selected and not self.read_only:
-                self.send_twist(twist)
+        if key in STOP_KEYS:
+            self._press(key)
             return
-        moving = key not in ("q", "z", "W", "x", "e", "c")
-        if moving and not self._command_ok(self.selected, "drive"):
+        if key not in SPEED_KEYS and not self._command_ok(self.selected, "drive"):
             return
-        twist = self.drive.press(key, now)
-        if twist is not None:
-            self.send_twist(twist)
+        self._press(key)
         self.query_one(StatusLine).show(self._status_text())
 
     def _drive_tick(self) -> None:
-        twist = self.drive.tick(self.clock.now())
-        if twist is not None:
-            self.send_twist(twist)
+        with self._drive_lock:
+            twist = self.drive.tick(self.clock.now())
+            if twist is not None:
+                self._send_twist(twist)
         self.collector.step()
 
     def stop_all(self) -> list[str]:
         """Stop every robot we know: a stop instant action (acked, re-sent on failover) each."""
-        self.drive.stop(self.clock.now())
+        self._drive_stop()
         with self.lock:
             robots = list(self.fleet.robots)
         for robot in robots:
@@ -599,7 +651,7 @@ class ConsoleApp(App[None]):
         if not self._command_ok(robot, "goal"):
             return False
         assert robot is not None
-        self.drive.stop(self.clock.now())  # the order replaces driving: no auto-stop may cancel it later
+        self._drive_stop()  # the order replaces driving: no auto-stop may cancel it later
         order_id = self.commander.goal(robot, x, y, theta)
         self.notice("info", f"{robot}: goal ({x:.2f}, {y:.2f}) sent as order {order_id}")
         return True
@@ -609,7 +661,7 @@ class ConsoleApp(App[None]):
         if not self._command_ok(robot, "return home"):
             return
         assert robot is not None
-        self.drive.stop(self.clock.now())  # (as a goal: a late auto-stop would cancel the way home)
+        self._drive_stop()  # (as a goal: a late auto-stop would cancel the way home)
         self.commander.home(robot)
         self.notice("info", f"{robot}: return home sent")
 
@@ -662,7 +714,7 @@ class ConsoleApp(App[None]):
         if not self._command_ok(robot, "e-stop", needs_lease=False):
             return
         assert robot is not None
-        self.drive.stop(self.clock.now())
+        self._drive_stop()
         self.commander.estop(robot)
         self.notice("error", f"{robot}: E-STOP sent (latched until released: R)")
 
@@ -670,7 +722,7 @@ class ConsoleApp(App[None]):
         if self.read_only:
             self.notice("warning", "read-only console: e-stop not sent")
             return
-        self.drive.stop(self.clock.now())
+        self._drive_stop()
         with self.lock:
             robots = list(self.fleet.robots)
         for robot in robots:
@@ -1227,7 +1279,7 @@ class ConsoleApp(App[None]):
         if refusals:
             self.notice("warning", f"{what} not sent: {refusals[0]}")
             return
-        self.drive.stop(self.clock.now())  # the orders replace driving: no late auto-stop may cancel them
+        self._drive_stop()  # the orders replace driving: no late auto-stop may cancel them
         self.notice("info", result.summary())
         for robot, why in result.left_out:
             self.notice("warning", f"{robot} left out of the {what}: {why}")
@@ -1276,7 +1328,7 @@ class ConsoleApp(App[None]):
         if action == "cancel" and self.planning is not None and robot in self.planning.robots:
             self._plan_dropped = True
         if action in ("pause", "cancel"):
-            self.drive.stop(self.clock.now())
+            self._drive_stop()
         kind = {"pause": ActionType.PAUSE, "resume": ActionType.RESUME, "cancel": ActionType.CANCEL}[action]
         self.commander.action(robot, kind)
         self.notice("info", f"{robot}: {action} sent")
@@ -1309,8 +1361,9 @@ class ConsoleApp(App[None]):
         if self.read_only or self.sent_stop_on_quit:
             return
         self.sent_stop_on_quit = True
-        if self.selected is not None:
-            self.send_twist(Twist(0.0, 0.0))
+        with self._drive_lock:  # the stop decided and sent in one step: no repeat after it
+            self.drive.stop(self.clock.now())
+            self._send_twist(Twist(0.0, 0.0))
         self.stop_all()
         # Then give back the leases we hold: a console that leaves on purpose is not a lost link,
         # so no robot acts on its comms-loss policy (a console that crashes leaves them held).
