@@ -34,6 +34,10 @@ exercise failover pass ``PROMPT``."""
 PROMPT = LinkPolicy(state_window_s=0.35, ack_timeout_s=0.25, holdoff_s=1.0)
 
 
+MAX_ROUTES = 100_000
+"""Keys whose receivers a ``MemoryTransport`` keeps (the rest are matched every time)."""
+
+
 class MemoryTransport:
     """A ``fleetlink.links.base.Link`` that records what is published and injects what arrives."""
 
@@ -46,6 +50,10 @@ class MemoryTransport:
         self.up = True
         self.sent: list[tuple[str, bytes]] = []
         self._receivers: list[tuple[str, Callable[[str, bytes], None]]] = []
+        self._routes: dict[str, list[Callable[[str, bytes], None]]] = {}
+        """The receivers of each key injected so far (as Zenoh routes a key once, not per sample:
+        matching every sample against every subscription in Python cost the bench's console a
+        quarter of its network thread at 500 robots)."""
         self.lock = threading.Lock()
         self.responder: Callable[[MemoryTransport, str, bytes], None] | None = None
 
@@ -57,6 +65,7 @@ class MemoryTransport:
 
     def subscribe(self, key_expr: str, receiver: Callable[[str, bytes], None]) -> None:
         self._receivers.append((key_expr, receiver))
+        self._routes.clear()
 
     def publish(self, key: str, payload: bytes) -> bool:
         with self.lock:
@@ -67,12 +76,17 @@ class MemoryTransport:
 
     def close(self) -> None:
         self._receivers.clear()
+        self._routes.clear()
 
     def inject(self, msg: wire.Message) -> None:
         self.inject_raw(wire.key_of(msg), wire.encode(msg))
 
     def inject_raw(self, key: str, payload: bytes) -> None:
-        receivers = [r for expr, r in self._receivers if key_matches(expr, key)]
+        receivers = self._routes.get(key)
+        if receivers is None:
+            receivers = [r for expr, r in self._receivers if key_matches(expr, key)]
+            if len(self._routes) < MAX_ROUTES:
+                self._routes[key] = receivers
         assert receivers, "not started, or closed"
         for receiver in receivers:
             receiver(key, payload)
