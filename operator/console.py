@@ -247,7 +247,9 @@ class ConsoleApp(App[None]):
         Binding("T", "release_lease", "release"),
         Binding("h", "home", "home"),
         Binding("p", "payload", "payload"),
-        Binding("M", "mark_here", "mark here", show=False),  # shift-m: m drives back-right
+        # shift-m (m drives back-right). Priority, so its dialog opens while the key is first
+        # handled: a label typed right behind it ("victim": i and m drive) goes into the dialog.
+        Binding("M", "mark_here", "mark here", show=False, priority=True),
         # E-stop: latched on the robot until an authorised release (R, with a confirmation).
         Binding("E", "estop", "E-STOP", priority=True),
         Binding("ctrl+e", "estop_all", "E-STOP ALL", priority=True),

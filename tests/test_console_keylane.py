@@ -108,6 +108,31 @@ async def test_keys_typed_behind_a_colon_reach_the_command_line_though_the_loop_
 
 
 @run_async
+async def test_a_label_typed_right_after_mark_here_goes_to_the_dialog(rig: Rig) -> None:
+    """``M`` then ``victim`` in one burst: the ``i`` and the ``m`` are drive keys, but ``M`` opens
+    its dialog when the app first sees it (a priority binding), so they are typed into the label."""
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        burst = [key("M")] + [key(c) for c in "victim"]
+
+        def keyboard() -> None:
+            for k in burst:
+                rig.app._driver.process_message(k)
+
+        await with_loop_busy(keyboard)
+        for _ in range(50):
+            if len(rig.app.screen_stack) > 1 and rig.app.screen.query_one("#mark-label").value == "victim":
+                break
+            await pilot.pause(0.05)
+        assert rig.app.screen.query_one("#mark-label").value == "victim"
+        assert rig.zenoh.messages(Teleop) == [] and rig.app.key_lane.taken == 0
+        # In the dialog's label, M is a letter too.
+        await pilot.press("M")
+        await pilot.pause()
+        assert rig.app.screen.query_one("#mark-label").value == "victimM"
+
+
+@run_async
 async def test_refused_drive_keys_and_speed_steps_go_through_the_app(rig: Rig) -> None:
     async with rig.app.run_test(size=(140, 44)) as pilot:
         await with_robots(rig, pilot, "r1")
