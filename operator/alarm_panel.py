@@ -39,7 +39,7 @@ from fleetlink.operator.linkmanager import FALLBACK, PRIMARY, LinkHealth
 from fleetlink.shared import wire
 from fleetlink.shared.messages import AlarmAck
 
-__all__ = ["MAX_LINES", "AlarmKeeper", "AlarmPanel", "Said", "ago", "alarm_lines"]
+__all__ = ["MAX_LINES", "AlarmKeeper", "AlarmPanel", "Said", "ago", "alarm_lines", "link_states_of"]
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +101,14 @@ class AlarmPanel(Static):
         self.display = any_alarm
 
 
+def link_states_of(
+    health: Callable[[str], Sequence[LinkHealth]],
+) -> Callable[[str], Sequence[tuple[str, float | None, str]]]:
+    """``AlarmKeeper.frame``'s ``links`` from a source's ``health`` (a source without
+    ``link_states``)."""
+    return lambda robot: [(h.link, h.age_s, h.degraded) for h in health(robot)]
+
+
 @dataclass(frozen=True, slots=True)
 class Said:
     """What the console should tell the operator after a frame: a notice, and whether to ring."""
@@ -128,10 +136,12 @@ class AlarmKeeper:
             listen(self._republish.set)  # on the broker's thread: only a flag
 
     def frame(
-        self, wall: float, robots: Iterable[str], health: Callable[[str], Sequence[LinkHealth]]
+        self, wall: float, robots: Iterable[str], links: Callable[[str], Sequence[tuple[str, float | None, str]]]
     ) -> tuple[list[Said], list[tuple[str, tuple[AckEntry, ...]]]]:
         """Once per frame (``wall``: the console's wall clock): link quiet, renotifications, the
-        audit log. Returns what to tell the operator and the acknowledgement lists to publish."""
+        audit log. ``links(robot)``: each of its links' (name, age of the last message, why it is
+        degraded), ``OperatorLink.link_states`` (``link_states_of`` makes it from ``health``).
+        Returns what to tell the operator and the acknowledgement lists to publish."""
         desk = self.desk
         # Health costs per robot: each frame looks at its share of the robots, in turn, so each
         # is looked at about every QUIET_CHECK_S and no frame does the whole fleet (but the first,
@@ -146,11 +156,11 @@ class AlarmKeeper:
             for robot in (
                 (fleet * 2)[start : start + count] if start + count > len(fleet) else fleet[start : start + count]
             ):
-                links = health(robot)
-                quiet = links_quiet([h.age_s for h in links])
+                states = links(robot)
+                quiet = links_quiet([age for _, age, _ in states])
                 desk.link_quiet(robot, quiet, wall)
                 # One link degraded while the robot is still heard (silent on all: link_lost).
-                desk.link_degraded(robot, [] if quiet else [(h.link, h.degraded) for h in links if h.degraded], wall)
+                desk.link_degraded(robot, [] if quiet else [(link, why) for link, _, why in states if why], wall)
         desk.tick(wall)
         records = desk.drain_audit()
         self.audit.write(records)

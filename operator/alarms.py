@@ -499,6 +499,12 @@ class Observation:
     event: bool = False
 
 
+_QUIET_TEXT = f"nothing heard on any link for over {LINK_QUIET_S:.0f} s"
+_LINK_QUIET = Observation(AlarmKind.LINK_LOST, "console", AlarmSeverity.CRITICAL, _QUIET_TEXT)
+_LINK_HEARD = Observation(AlarmKind.LINK_LOST, "console", None, _QUIET_TEXT)
+_LINKS_FINE = Observation(AlarmKind.LINK_DEGRADED, "console", None, "")
+"""The console's own link observations that every robot gets twice a second, made once."""
+
 Prior = Callable[[AlarmKind, str], AlarmSeverity | None]
 """(kind, source) -> what that source said last (for hysteresis)."""
 
@@ -674,16 +680,18 @@ class AlarmDesk:
 
     def link_quiet(self, robot: str, quiet: bool, now: float) -> None:
         """This console's view: the robot was heard on neither link for ``LINK_QUIET_S``."""
-        text = f"nothing heard on any link for over {LINK_QUIET_S:.0f} s"
-        obs = Observation(AlarmKind.LINK_LOST, "console", AlarmSeverity.CRITICAL if quiet else None, text)
+        obs = _LINK_QUIET if quiet else _LINK_HEARD
         self._apply(robot, obs, now, self._fresh(robot, obs.kind, now))
 
     def link_degraded(self, robot: str, degraded: Sequence[tuple[str, str]], now: float) -> None:
         """This console's view of one robot's links: [(link, why it is degraded)] (the link
         manager's ``LinkHealth.degraded``: loss, RTT p95 or silence over the thresholds); an empty
         list clears the alarm. (A robot silent on every link is ``link_lost``, not this.)"""
-        text = "; ".join(f"{link} {why}" for link, why in degraded)
-        obs = Observation(AlarmKind.LINK_DEGRADED, "console", AlarmSeverity.WARNING if degraded else None, text)
+        if degraded:
+            text = "; ".join(f"{link} {why}" for link, why in degraded)
+            obs = Observation(AlarmKind.LINK_DEGRADED, "console", AlarmSeverity.WARNING, text)
+        else:
+            obs = _LINKS_FINE
         self._apply(robot, obs, now, self._fresh(robot, obs.kind, now))
 
     def receive_ack(self, msg: AlarmAck, now: float) -> str | None:

@@ -45,7 +45,7 @@ from textual.screen import ModalScreen
 from textual.timer import Timer
 from textual.widgets import DataTable, Footer, Input, RichLog, Static
 
-from fleetlink.operator.alarm_panel import AlarmKeeper, AlarmPanel, Said, alarm_lines
+from fleetlink.operator.alarm_panel import AlarmKeeper, AlarmPanel, Said, alarm_lines, link_states_of
 from fleetlink.operator.alarms import AckEntry, AlarmKind
 from fleetlink.operator.audit import AuditLog
 from fleetlink.operator.collector import Collector, untangle_strips
@@ -309,6 +309,8 @@ class ConsoleApp(App[None]):
         self.marks_file = marks_file
         self.marks = MarksStore(marks_file)
         self.alarm_keeper = AlarmKeeper(source, fleet.alarms, AuditLog(audit_log, source.sender))
+        self._link_states = getattr(source, "link_states", None) or link_states_of(source.health)
+        """Each robot's links as the link alarms look at them (cheaper than ``health``)."""
         """Alarms (operator/alarm_panel.py): the panel's rows, acknowledgements, the audit log."""
         self.refresh_hz = refresh_hz
         self.clock_hz = clock_hz
@@ -472,7 +474,7 @@ class ConsoleApp(App[None]):
             view = fleet.robots.get(selected) if selected is not None else None
             self.query_one(RobotDetail).show(detail_text(selected, view, health))
             wall = self.clock.wall()
-            said, acks = self.alarm_keeper.frame(wall, list(fleet.robots), source.health)
+            said, acks = self.alarm_keeper.frame(wall, list(fleet.robots), self._link_states)
             alarms = fleet.alarms.rows()
             self.query_one(AlarmPanel).show(alarm_lines(alarms, wall, source.sender, selected), bool(alarms))
             renew = [] if self.read_only else self.leases.due(fleet, now)

@@ -443,6 +443,28 @@ class LinkManager:
             return tuple(LinkHealth(name, False, None, 0.0, None, "never heard") for name in LINKS)
         return self._health(state, now)
 
+    def link_states(self, robot: str, now: float) -> tuple[tuple[str, float | None, str], ...]:
+        """Each link's (name, ``age_s``, ``degraded``) as ``health`` says them, and nothing else
+        (no RTT median, first-arrival shares or health reasons): what the link alarms look at for
+        every robot twice a second (operator/alarm_panel.py), at a third of ``health``'s cost."""
+        state = self._robots.get(robot)
+        if state is None:
+            return tuple((name, None, "") for name in LINKS)
+        out = []
+        samples = self.policy.min_samples
+        for name in LINKS:
+            ls = state.links[name]
+            if ls.last_heard is None:
+                out.append((name, None, ""))
+                continue
+            age = max(0.0, now - ls.last_heard)
+            # Loss and RTT count only from min_samples on (``_degraded``): worked out only then.
+            window = ls.window
+            loss = 100.0 * window.count(False) / len(window) if len(window) >= samples else 0.0
+            p95 = _pct(sorted(ls.rtts), 0.95) if len(ls.rtts) >= samples else None
+            out.append((name, age, self._degraded(ls, age, loss, p95, len(ls.rtts))))
+        return tuple(out)
+
     def _health(self, state: _Robot, now: float) -> tuple[LinkHealth, ...]:
         out = []
         both = sum(state.first.values())

@@ -167,6 +167,11 @@ class ReplaySource:
         with self._lock:
             return self.manager.health(robot, self.clock.now())
 
+    def link_states(self, robot: str) -> tuple[tuple[str, float | None, str], ...]:
+        """Each link's (name, age of the last message, why it is degraded): ``LinkManager.link_states``."""
+        with self._lock:
+            return self.manager.link_states(robot, self.clock.now())
+
     def add_listener(self, listener: Callable[[Switch | Failed], None]) -> None:
         self._listeners.append(listener)
 

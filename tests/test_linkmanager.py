@@ -235,3 +235,29 @@ def test_new_policy_values_are_checked() -> None:
         LinkPolicy(degraded_rtt_s=0)
     with pytest.raises(ValueError, match="degraded_loss_pct"):
         LinkPolicy(degraded_loss_pct=120.0)
+
+
+def _states_as_health(lm: LinkManager, robot: str, now: float) -> None:
+    """``link_states`` says what ``health`` says of each link's age and degradation."""
+    assert lm.link_states(robot, now) == tuple((h.link, h.age_s, h.degraded) for h in lm.health(robot, now))
+
+
+def test_link_states_are_health_s_ages_and_degradations() -> None:
+    lm = LinkManager(BOTH_LINKS)
+    _states_as_health(lm, "nobody", 0.0)
+    t = _feed(lm, "r1", (PRIMARY,), 0.0, 1.0)  # heard on Zenoh only: MQTT never heard
+    _states_as_health(lm, "r1", t)
+    for i in range(12):  # MQTT: two copies lost (under min_samples at first), then late, then silent
+        now = t + i * 0.05
+        lm.heard("r1", PRIMARY, now)
+        if i > 2:
+            lm.heard("r1", FALLBACK, now)
+        lm.command("r1", "order", i, b"g", now)
+        lm.acked("r1", PRIMARY, "order", i, now + 0.002)
+        if i > 2:
+            lm.acked("r1", FALLBACK, "order", i, now + (0.15 if i > 6 else 0.01))
+        lm.poll(now + 0.26)
+        _states_as_health(lm, "r1", now + 0.26)
+    for later in (0.5, 1.5, 5.0):  # silence grows
+        _states_as_health(lm, "r1", t + 0.6 + later)
+    assert {link: why for link, _, why in lm.link_states("r1", t + 0.7)}[FALLBACK]

@@ -170,7 +170,7 @@ def test_a_link_that_delivers_late_is_degraded_and_raises_an_alarm(redundant_pai
 
     op, robot = redundant_pair
     keeper = AlarmKeeper(op, AlarmDesk("operator-r"), AuditLog(tmp_path / "alarms.jsonl", "operator-r"))
-    keeper.frame(0.0, ["r1"], op.health)
+    keeper.frame(0.0, ["r1"], op.link_states)
     assert keeper.desk.alarms.get("r1", AlarmKind.LINK_DEGRADED) is None
     robot.ack_delay_s[LinkName.MQTT] = 0.15  # over the 100 ms RTT p95 threshold, under the ack timeout
     sent = 100
@@ -185,7 +185,7 @@ def test_a_link_that_delivers_late_is_degraded_and_raises_an_alarm(redundant_pai
     assert health[FALLBACK].healthy and health[FALLBACK].degraded.startswith(("rtt p95", "loss"))
     assert not health[PRIMARY].degraded
     assert health[PRIMARY].first_pct is not None and health[PRIMARY].first_pct > 50.0
-    keeper.frame(1.0, ["r1"], op.health)
+    keeper.frame(1.0, ["r1"], op.link_states)
     alarm = keeper.desk.alarms.get("r1", AlarmKind.LINK_DEGRADED)
     assert alarm is not None and alarm.text.startswith("mqtt ")
     keeper.close()
