@@ -450,7 +450,7 @@ class LinkManager:
         state = self._robots.get(robot)
         if state is None:
             return tuple((name, None, "") for name in LINKS)
-        out = []
+        out: list[tuple[str, float | None, str]] = []
         samples = self.policy.min_samples
         for name in LINKS:
             ls = state.links[name]
