@@ -35,7 +35,7 @@ from fleetlink.operator.alarms import (
 )
 from fleetlink.operator.audit import AuditLog
 from fleetlink.operator.feed import ConsoleSource
-from fleetlink.operator.linkmanager import FALLBACK, PRIMARY, LinkHealth
+from fleetlink.operator.linkmanager import FALLBACK, PRIMARY
 from fleetlink.shared import wire
 from fleetlink.shared.messages import AlarmAck
 
@@ -101,12 +101,13 @@ class AlarmPanel(Static):
         self.display = any_alarm
 
 
-def link_states_of(
-    health: Callable[[str], Sequence[LinkHealth]],
-) -> Callable[[str], Sequence[tuple[str, float | None, str]]]:
-    """``AlarmKeeper.frame``'s ``links`` from a source's ``health`` (a source without
-    ``link_states``)."""
-    return lambda robot: [(h.link, h.age_s, h.degraded) for h in health(robot)]
+def link_states_of(source: ConsoleSource) -> Callable[[str], Sequence[tuple[str, float | None, str]]]:
+    """``AlarmKeeper.frame``'s ``links`` for ``source``: its ``link_states`` (``OperatorLink``,
+    the replay), else made from its ``health``."""
+    states: Callable[[str], Sequence[tuple[str, float | None, str]]] | None = getattr(source, "link_states", None)
+    if states is not None:
+        return states
+    return lambda robot: [(h.link, h.age_s, h.degraded) for h in source.health(robot)]
 
 
 @dataclass(frozen=True, slots=True)

@@ -309,7 +309,7 @@ class ConsoleApp(App[None]):
         self.marks_file = marks_file
         self.marks = MarksStore(marks_file)
         self.alarm_keeper = AlarmKeeper(source, fleet.alarms, AuditLog(audit_log, source.sender))
-        self._link_states = getattr(source, "link_states", None) or link_states_of(source.health)
+        self._link_states = link_states_of(source)
         """Each robot's links as the link alarms look at them (cheaper than ``health``)."""
         """Alarms (operator/alarm_panel.py): the panel's rows, acknowledgements, the audit log."""
         self.refresh_hz = refresh_hz
