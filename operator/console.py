@@ -5,7 +5,9 @@ which owns Zenoh + MQTT and the link manager) and shows a ``FleetModel``. What t
 reaches the app as messages: the model's ``FleetFeed`` (operator/feed.py) keeps it in an inbox and
 posts the app a ``TelemetryArrived``; the app folds the inbox into the model on its own thread (in
 slices of ``DRAIN_SLICE_S``, so a key waits one slice, not a burst) and redraws. A drive key on the
-map sends its teleop when the app first sees it, before any frame queued meanwhile. A frame is
+map sends its teleop on the terminal's input thread, without waiting for the event loop
+(operator/keylane.py), or, behind a key the app has not handled yet, when the app first sees it,
+before any frame queued meanwhile. A frame is
 drawn when something changed (telemetry, an operator action) and on a slow clock tick (ages,
 robots going quiet, lease renewal), at most ``refresh_hz`` times a second (fewer when frames take
 long: ``FRAME_SPACING``); no widget is ever
