@@ -3,9 +3,9 @@
 ``alarm_lines`` (pure) renders the active alarms, one line each (severity, robot, alarm, first and
 last seen as ages, count, who acknowledged); ``AlarmPanel`` shows them under the robot detail and
 hides itself while there are none. ``AlarmKeeper`` is the console's side of its ``AlarmDesk``
-(operator/alarms.py): once per frame it tells the desk which robots went quiet on every link
-and which have a degraded link (``LinkHealth.degraded``),
-collects the renotifications, writes the audit log (operator/audit.py) and publishes this
+(operator/alarms.py): on a clock of its own (``check_links``, a share of the robots each time) it
+tells the desk which robots went quiet on every link and which have a degraded link
+(``LinkHealth.degraded``); once per frame (``frame``) it collects the renotifications, writes the audit log (operator/audit.py) and publishes this
 console's acknowledgements (``AlarmAck``: on Zenoh, and retained on MQTT when the source can); it
 publishes them all again after every broker (re)connect, so a broker that lost its retained
 messages gets them back.
@@ -131,37 +131,49 @@ class AlarmKeeper:
         self._republish = threading.Event()
         self._quiet_checked = -math.inf
         self._quiet_next = 0
-        """Where the next frame's share of the robots starts (``frame``)."""
+        """Where the next share of the robots starts (``check_links``)."""
         listen = getattr(source, "add_connect_listener", None)
         if listen is not None:
             listen(self._republish.set)  # on the broker's thread: only a flag
 
-    def frame(
+    def check_links(
         self, wall: float, robots: Iterable[str], links: Callable[[str], Sequence[tuple[str, float | None, str]]]
-    ) -> tuple[list[Said], list[tuple[str, tuple[AckEntry, ...]]]]:
-        """Once per frame (``wall``: the console's wall clock): link quiet, renotifications, the
-        audit log. ``links(robot)``: each of its links' (name, age of the last message, why it is
-        degraded), ``OperatorLink.link_states`` (``link_states_of`` makes it from ``health``).
-        Returns what to tell the operator and the acknowledgement lists to publish."""
+    ) -> None:
+        """The link alarms (link quiet, a link degraded) for the share of ``robots`` due at ``wall``
+        (the console's wall clock): called as often as the caller likes, each robot is looked at
+        about every ``QUIET_CHECK_S``, in turn, so no call does the whole fleet (but the first, and
+        one after a pause as long as that). ``links(robot)``: each of its links' (name, age of the
+        last message, why it is degraded), ``OperatorLink.link_states`` (``link_states_of`` makes
+        it for any source)."""
         desk = self.desk
-        # Health costs per robot: each frame looks at its share of the robots, in turn, so each
-        # is looked at about every QUIET_CHECK_S and no frame does the whole fleet (but the first,
-        # and one after a pause as long as that).
         fleet = list(robots)
         share = min(1.0, (wall - self._quiet_checked) / QUIET_CHECK_S) if wall > self._quiet_checked else 0.0
         count = min(len(fleet), math.ceil(len(fleet) * share)) if fleet else 0
-        if count:
-            self._quiet_checked = wall
-            start = self._quiet_next % len(fleet)
-            self._quiet_next = start + count
-            for robot in (
-                (fleet * 2)[start : start + count] if start + count > len(fleet) else fleet[start : start + count]
-            ):
-                states = links(robot)
-                quiet = links_quiet([age for _, age, _ in states])
-                desk.link_quiet(robot, quiet, wall)
-                # One link degraded while the robot is still heard (silent on all: link_lost).
-                desk.link_degraded(robot, [] if quiet else [(link, why) for link, _, why in states if why], wall)
+        if not count:
+            return
+        self._quiet_checked = wall
+        start = self._quiet_next % len(fleet)
+        self._quiet_next = start + count
+        for robot in (fleet * 2)[start : start + count] if start + count > len(fleet) else fleet[start : start + count]:
+            states = links(robot)
+            quiet = links_quiet([age for _, age, _ in states])
+            desk.link_quiet(robot, quiet, wall)
+            # One link degraded while the robot is still heard (silent on all: link_lost).
+            desk.link_degraded(robot, [] if quiet else [(link, why) for link, _, why in states if why], wall)
+
+    def frame(
+        self,
+        wall: float,
+        robots: Iterable[str] = (),
+        links: Callable[[str], Sequence[tuple[str, float | None, str]]] | None = None,
+    ) -> tuple[list[Said], list[tuple[str, tuple[AckEntry, ...]]]]:
+        """Once per frame (``wall``: the console's wall clock): renotifications, the audit log, and
+        with ``links`` the link alarms' share of ``robots`` (``check_links``; the console looks at
+        them on a clock of its own, between frames). Returns what to tell the operator and the
+        acknowledgement lists to publish."""
+        desk = self.desk
+        if links is not None:
+            self.check_links(wall, robots, links)
         desk.tick(wall)
         records = desk.drain_audit()
         self.audit.write(records)

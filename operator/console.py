@@ -110,6 +110,8 @@ from fleetlink.shared.dose import Lamp, j_m2
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.messages import ActionType, Mark, PeopleZones, Zone, ZonePoint
 
+LINK_CHECK_S = 0.1
+"""How often the link alarms look at their share of the robots' links (between frames)."""
 DRAIN_SLICE_S = 0.008
 """Telemetry is folded into the model in slices of about this long (keys wait at most one)."""
 FRAME_SPACING = 4.0
@@ -392,6 +394,7 @@ class ConsoleApp(App[None]):
         self.feed.drain()
         self.set_interval(1.0 / self.clock_hz, self._changed)
         self.set_interval(0.05, self._drive_tick)
+        self.set_interval(LINK_CHECK_S, self._check_links)
         if self.read_only:
             self.notice("info", "read-only mode: this console watches, it does not command")
         self._changed()
@@ -476,7 +479,7 @@ class ConsoleApp(App[None]):
             view = fleet.robots.get(selected) if selected is not None else None
             self.query_one(RobotDetail).show(detail_text(selected, view, health))
             wall = self.clock.wall()
-            said, acks = self.alarm_keeper.frame(wall, list(fleet.robots), self._link_states)
+            said, acks = self.alarm_keeper.frame(wall)
             alarms = fleet.alarms.rows()
             self.query_one(AlarmPanel).show(alarm_lines(alarms, wall, source.sender, selected), bool(alarms))
             renew = [] if self.read_only else self.leases.due(fleet, now)
@@ -492,6 +495,18 @@ class ConsoleApp(App[None]):
         del self.frame_times[:-1000]
         # A full pass, when one is due, right after the frame: the next is 1 / refresh_hz away.
         self.collector.step(after_frame=True, fleet=len(fleet.robots))
+
+    def _check_links(self) -> None:
+        """The link alarms' turn (``AlarmKeeper.check_links``): on a clock of its own between
+        frames, a share of the robots' links each time (each robot about every 0.5 s); a frame
+        follows when it raised or cleared an alarm."""
+        fleet = self.fleet
+        with self.lock:
+            version = fleet.alarms.alarms.version
+            self.alarm_keeper.check_links(self.clock.wall(), list(fleet.robots), self._link_states)
+            changed = fleet.alarms.alarms.version != version
+        if changed:
+            self._changed()
 
     def _status_text(self) -> str:
         return status_text(self.source.sender, self.read_only, self.selected, self.drive.speed, self.drive.turn)
