@@ -535,7 +535,13 @@ class ConsoleApp(App[None]):
             raise SkipAction()
         table = self.query_one(FleetTable)
         if table.row_count:
-            table.move_cursor(row=(table.cursor_row + 1) % table.row_count)
+            row = (table.cursor_row + 1) % table.row_count
+            table.move_cursor(row=row)
+            # Selected now, not when the table's highlight comes back through the queues: a drive
+            # key typed right behind Tab drives the robot Tab selected.
+            key = table.ordered_rows[row].key.value
+            if key is not None:
+                self.selected = str(key)
 
     # -- commands -------------------------------------------------------------------------------
 

@@ -108,6 +108,25 @@ async def test_keys_typed_behind_a_colon_reach_the_command_line_though_the_loop_
 
 
 @run_async
+async def test_a_drive_key_typed_right_behind_tab_drives_the_robot_tab_selected(rig: Rig) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1", "r2")
+        assert rig.app.selected == "r1"
+
+        def keyboard() -> None:
+            for k in (key("tab", "\t"), key("i")):
+                rig.app._driver.process_message(k)
+
+        await with_loop_busy(keyboard)
+        for _ in range(50):
+            if rig.zenoh.messages(Teleop):
+                break
+            await pilot.pause(0.02)
+        assert rig.app.selected == "r2"
+        assert rig.zenoh.messages(Teleop)[0].header.robot == "r2"  # (before: r1, the old selection)
+
+
+@run_async
 async def test_a_label_typed_right_after_mark_here_goes_to_the_dialog(rig: Rig) -> None:
     """``M`` then ``victim`` in one burst: the ``i`` and the ``m`` are drive keys, but ``M`` opens
     its dialog when the app first sees it (a priority binding), so they are typed into the label."""
