@@ -100,6 +100,10 @@ async def test_keys_typed_behind_a_colon_reach_the_command_line_though_the_loop_
         order = (rig.zenoh.messages(Order) + rig.mqtt.messages(Order))[-1]
         assert (order.goal.x, order.goal.y) == (1.5, 2.0)
         assert rig.app.key_lane.taken == 0
+        for _ in range(50):  # Enter gives the focus back to the map (deferred, Widget.focus)
+            if isinstance(rig.app.focused, MapView):
+                break
+            await pilot.pause(0.05)
         assert isinstance(rig.app.focused, MapView)
         # Every key handled: the next drive key is taken on the input thread again.
         assert rig.app.key_lane.waiting == 0
@@ -156,7 +160,10 @@ async def test_refused_drive_keys_and_speed_steps_go_through_the_app(rig: Rig) -
     async with rig.app.run_test(size=(140, 44)) as pilot:
         await with_robots(rig, pilot, "r1")
         rig.zenoh.inject(rig.counter("r1").make(Lease, holder="operator-2", until=rig.clock.wall() + 30))
-        await pilot.pause(0.2)
+        for _ in range(100):  # folded into the model (the app's thread, in its next slice)
+            if rig.app.fleet.robots["r1"].lease_holder == "operator-2":
+                break
+            await pilot.pause(0.02)
         await asyncio.to_thread(rig.app._driver.process_message, key("i"))
         await pilot.pause()
         assert rig.zenoh.messages(Teleop) == []
