@@ -6,6 +6,11 @@ Fixtures:
   zenoh_peers(n=2)               -> ZenohPeers: n connected loopback zenoh sessions, closed at teardown
   rig                            a started console rig (tests/harness/console_rig.py), closed at teardown
   _no_thread_leaks (autouse)     fails a test that leaves a non-daemon thread running
+
+The suite runs on two pytest-xdist workers (addopts in pyproject.toml). Tests marked ``slow`` are
+collected first, so each worker starts on a long one and the short ones fill in around them: the
+run does not end with one worker idle while the other finishes a long test it picked up last.
+Tests that share a module-scoped fixture carry an ``xdist_group`` mark (one worker, one set-up).
 """
 
 from __future__ import annotations
@@ -23,6 +28,11 @@ from tests.harness.zenoh_peers import zenoh_peers
 __all__ = ["mosquitto", "mosquitto_factory", "rig", "zenoh_peers"]
 
 THREAD_GRACE_S = 2.0
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    # Stable: the slow tests first, each part in collection order (the same on every worker).
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
 @pytest.fixture(autouse=True)

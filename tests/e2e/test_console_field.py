@@ -54,6 +54,7 @@ def pose(session: str, shown: str | None = None) -> tuple[float, float] | None:
     return (float(m.group(2)), float(m.group(3))) if m else None
 
 
+@pytest.mark.slow
 def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
     session = f"fl-e2e-{uuid.uuid4().hex[:8]}"
     fleetlink = Path(sys.executable).parent / "fleetlink"

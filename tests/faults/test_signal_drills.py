@@ -135,6 +135,7 @@ def test_sigterm_on_a_secured_field_leaves_no_secrets(tmp_path: Path) -> None:
 @pytest.mark.skipif(
     TMUX is None and not os.environ.get("CI"), reason="tmux not installed (./dev test installs it with apt-get)"
 )
+@pytest.mark.slow
 def test_sigterm_on_a_console_in_a_terminal_sends_stop(tmp_path: Path) -> None:
     """The real console in tmux, joined to a secured field as op-alice, driving uvc-1: SIGTERM and
     its stop reaches the site at once (op-bob's login watches her commands through the router),
