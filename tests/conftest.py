@@ -15,6 +15,7 @@ Tests that share a module-scoped fixture carry an ``xdist_group`` mark (one work
 
 from __future__ import annotations
 
+import signal
 import threading
 from collections.abc import Iterator
 
@@ -28,6 +29,16 @@ from tests.harness.zenoh_peers import zenoh_peers
 __all__ = ["mosquitto", "mosquitto_factory", "rig", "zenoh_peers"]
 
 THREAD_GRACE_S = 2.0
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # A run started with SIGINT ignored (a background job of a non-interactive shell, as a CI runner
+    # may start it) hands that on to every process a test starts, and Python then leaves it ignored:
+    # SIGINT (Ctrl-C) would not stop a command under test (tests/test_uwb_mqtt.py), depending on
+    # which earlier test of the same worker happened to install a handler. Take it back, as a
+    # terminal has it: children then start with SIGINT at its default.
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
