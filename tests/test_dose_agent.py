@@ -11,6 +11,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 import zenoh
 
 from fleetlink.agent.dose_share import fetch_dose
@@ -39,6 +40,7 @@ from tests.test_field_realtime import quiet_scenario
 OP = "op-test"
 
 
+@pytest.mark.slow
 def test_a_field_agent_serves_its_dose_layer_over_zenoh() -> None:
     clock = SystemClock()
     field = RealtimeField(quiet_scenario(), clock=clock)  # uvc-1 in the apartment, its lidar at 10 Hz

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import zenoh
 
 from fleetlink.field.realtime import RealtimeField
@@ -65,6 +66,7 @@ def test_field_agents_drive_the_field_robots_over_zenoh() -> None:
         field.stop()
 
 
+@pytest.mark.slow
 def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -> None:
     from fleetlink.agent.mapping.share import fetch_map
     from fleetlink.links.zenoh import ZenohEndpoint

@@ -33,6 +33,9 @@ from fleetlink.site.security import SiteSecurity
 from tests.harness import wait_until
 from tests.test_field_realtime import quiet_scenario
 
+# One worker runs this module under pytest-xdist, so its module-scoped set-up runs once.
+pytestmark = pytest.mark.xdist_group("field_secure")
+
 OPERATOR = "op-operator-1"
 SECOND_OPERATOR = "op-operator-2"  # more people: their own logins and sender ids
 THIRD_OPERATOR = "op-operator-3"

@@ -20,6 +20,7 @@ import time
 from typing import Any
 
 import numpy as np
+import pytest
 from websockets.sync.client import ClientConnection, connect
 
 from fleetlink.agent.mapping.share import fetch_map
@@ -218,6 +219,7 @@ class FoxgloveClient:
         self._thread.join(5)
 
 
+@pytest.mark.slow
 def test_a_field_robot_live_in_a_foxglove_client(mosquitto: Any) -> None:
     from fleetlink.field.realtime import RealtimeField
 

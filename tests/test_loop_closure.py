@@ -222,6 +222,7 @@ def test_without_loop_closure_the_grid_is_drawn_per_keyframe_as_on_board() -> No
     assert integrated >= 2 and m.finish() == 0 and m.redraws == 0
 
 
+@pytest.mark.slow
 def test_the_final_pass_ties_every_node_to_the_submaps_it_sees() -> None:
     """``finish`` (the end of a replay): every node matched against the finished submaps near it,
     not its own, each match an edge; the graph solved again is nearer the truth (on this ring: the

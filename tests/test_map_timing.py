@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.field.plans import nearest_segment_distances
@@ -24,6 +25,7 @@ def wall_distances(m: SharedMap, segs: np.ndarray) -> np.ndarray:
     return nearest_segment_distances(pts, segs)
 
 
+@pytest.mark.slow
 def test_two_wandering_robots_draw_the_apartments_walls_where_the_plan_has_them() -> None:
     with MissionRun(load_scenario(DEMO), record=False) as run:
         run.run(120.0)

@@ -18,6 +18,9 @@ import pytest
 from fleetlink.field.scenario import parse_scenario
 from fleetlink.site.lockstep import MissionRun, write_mission_outputs
 
+# One worker runs this module under pytest-xdist, so its module-scoped set-up runs once.
+pytestmark = pytest.mark.xdist_group("mission_lockstep")
+
 SCENARIO = """
 name = "two-scouts"
 plan = "office"

@@ -12,6 +12,7 @@ import struct
 from typing import Any
 
 import paho.mqtt.client as mqtt
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from paho.mqtt.enums import CallbackAPIVersion
@@ -109,6 +110,7 @@ packets = st.lists(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None)
 @given(packets=packets, cuts=st.lists(st.integers(0, 200_000), max_size=40))
 def test_the_buffered_reader_delivers_what_paho_delivers_however_the_bytes_are_cut(

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import jsonschema
+import pytest
 from mcap.stream_reader import StreamReader
 
 from fleetlink.cli.replay import console_parts
@@ -50,6 +51,7 @@ def view_state(fleet: Any) -> dict[str, tuple[Any, ...]]:
     }
 
 
+@pytest.mark.slow
 def test_a_recorded_field_session_reads_back_and_replays_to_the_same_fleet(mosquitto, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     from fleetlink.field.realtime import RealtimeField
 
@@ -149,6 +151,7 @@ def test_a_recorded_field_session_reads_back_and_replays_to_the_same_fleet(mosqu
     assert source.skipped == {}
 
 
+@pytest.mark.slow
 def test_a_recorder_killed_mid_recording_loses_at_most_its_last_chunk(mosquitto, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     clock = SystemClock()
     listen = f"tcp/127.0.0.1:{free_port()}"

@@ -22,6 +22,9 @@ from fleetlink.field.scenario import ScenarioError, load_scenario, parse_scenari
 from fleetlink.shared.messages import AckResult, CommsPolicy
 from fleetlink.site.sortie import Drive, GoTo, Home, Policy, Search, SortieResult, SortieRun, office_sortie, percentile
 
+# One worker runs this module under pytest-xdist, so its module-scoped set-up runs once.
+pytestmark = pytest.mark.xdist_group("sortie_mission")
+
 SORTIE = Path(__file__).resolve().parents[1] / "field" / "scenarios" / "sortie.toml"
 
 

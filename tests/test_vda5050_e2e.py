@@ -19,6 +19,7 @@ import threading
 from typing import Any
 
 import paho.mqtt.client as mqtt
+import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from vda5050 import Action, ActionParameter, BlockingType, MasterClient, MasterConfig, OrderBuilder
 
@@ -71,6 +72,7 @@ async def wait_for(what: str, check: Any, timeout: float = 30.0) -> Any:
         await asyncio.sleep(0.05)
 
 
+@pytest.mark.slow
 def test_a_vda5050_master_drives_a_field_robot_through_the_bridge(mosquitto) -> None:  # type: ignore[no-untyped-def]
     clock = SystemClock()
     field = RealtimeField(quiet_scenario(lidar={"enabled": False}), clock=clock)

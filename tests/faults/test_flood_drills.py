@@ -18,6 +18,7 @@ from typing import Any
 
 import msgpack
 import paho.mqtt.client as mqtt
+import pytest
 import zenoh
 
 from fleetlink.shared import keys, wire
@@ -51,6 +52,7 @@ def _flood(session: Any, mclient: Any, make: Any, stop: threading.Event) -> None
             time.sleep(ahead)
 
 
+@pytest.mark.slow
 def test_the_lease_holder_drives_through_garbage_and_valid_floods(tmp_path: Path, mosquitto: MosquittoBroker) -> None:
     clock = SystemClock()
     log_path = tmp_path / "agent.log"

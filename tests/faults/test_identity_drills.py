@@ -34,6 +34,9 @@ from fleetlink.site.field import FieldSite, Security
 from tests.harness import wait_until
 from tests.test_field_realtime import quiet_scenario
 
+# One worker runs this module under pytest-xdist, so its module-scoped set-up runs once.
+pytestmark = pytest.mark.xdist_group("identity_drills")
+
 ALICE, BOB, ROBOT = "op-alice", "op-bob", "uvc-1"
 
 

@@ -287,6 +287,7 @@ def _state(d: Drill) -> State | None:
     return d.op.last_state()
 
 
+@pytest.mark.slow
 def test_uwb_outage_and_nlos_burst(drill: Drill) -> None:  # noqa: F811
     poses = _poses(drill)
     uwb = Uwb(drill)

@@ -19,6 +19,8 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
+
 from fleetlink.links.mqtt import MqttEndpoint
 from fleetlink.shared import keys
 from fleetlink.shared.mqtt import MqttSettings
@@ -31,6 +33,7 @@ PUBLISHERS = 3
 RATE_HZ = 200.0
 
 
+@pytest.mark.slow
 def test_tls_endpoint_under_concurrent_publishing_never_disconnects(tmp_path: Path) -> None:
     ca = make_site_ca(tmp_path / "ca")
     broker = DeployBroker(
