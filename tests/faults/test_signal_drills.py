@@ -42,7 +42,9 @@ def _retained_connection(port: int) -> list[ConnectionState]:
     c.subscribe(keys.key("r1", Connection.TOPIC), qos=1)
     c.loop_start()
     try:
-        wait_until(lambda: got, timeout=5, message="the retained connection state")
+        deadline = time.monotonic() + 5.0
+        while not got and time.monotonic() < deadline:  # none yet: [] (a caller's wait_until asks again)
+            time.sleep(0.05)
     finally:
         c.loop_stop()
         c.disconnect()
@@ -206,7 +208,8 @@ def test_sigterm_on_a_console_in_a_terminal_sends_stop(tmp_path: Path) -> None:
 
         wait_until(stopped, timeout=5, message=f"a stop after SIGTERM (screen: {screen(session)[-400:]!r})")
         at = min(t for t, m in list(seen) if t >= signalled and isinstance(m, InstantActions))
-        assert at - signalled < 0.5, f"the stop came {at - signalled:.2f} s after the signal"
+        # At once, not after a link's timeouts (0.1-0.3 s on an idle host; a second allows a busy one).
+        assert at - signalled < 1.0, f"the stop came {at - signalled:.2f} s after the signal"
 
         def gone() -> bool:
             try:
