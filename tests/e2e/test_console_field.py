@@ -44,8 +44,18 @@ ROUND = re.compile(r"round uv-uvc-1-\d+: \d+/\d+ nodes done")  # the detail's pr
 ROUND_DOSE = 1
 
 
+# A tmux server of this test process's own (-L): other tmux users of the machine (people, other test
+# runs) neither see its sessions nor lend the panes their server's environment; it exits with its
+# last session.
+SOCKET = f"fleetlink-tests-{os.getpid()}"
+
+
+def tmux_cmd(*args: str) -> list[str]:
+    return [TMUX or "tmux", "-L", SOCKET, *args]
+
+
 def tmux(*args: str) -> str:
-    return subprocess.run([TMUX or "tmux", *args], check=True, capture_output=True, text=True).stdout
+    return subprocess.run(tmux_cmd(*args), check=True, capture_output=True, text=True).stdout
 
 
 def screen(session: str) -> str:
@@ -221,7 +231,7 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
         )
         tmux("send-keys", "-t", session, "C-q")
         wait_until(
-            lambda: subprocess.run([TMUX or "tmux", "has-session", "-t", session], capture_output=True).returncode != 0,
+            lambda: subprocess.run(tmux_cmd("has-session", "-t", session), capture_output=True).returncode != 0,
             timeout=60,
             message="the field and console exiting on ctrl+q",
         )
@@ -235,7 +245,7 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
         tail = "\n".join(log.read_text().splitlines()[-20:]) if log.exists() else "(no field.log)"
         raise AssertionError(f"{exc}\n--- screen ---\n{shown}\n--- field.log ---\n{tail}") from None
     finally:
-        subprocess.run([TMUX or "tmux", "kill-session", "-t", session], capture_output=True)
+        subprocess.run(tmux_cmd("kill-session", "-t", session), capture_output=True)
         if pane_pid is not None and alive(pane_pid):  # a hung field: kill what this test started
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pane_pid, signal.SIGKILL)
