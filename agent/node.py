@@ -31,7 +31,7 @@ from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.contact import ContactKeeper
 from fleetlink.agent.core import AgentCore, Output, board_view
 from fleetlink.agent.dose_layer import DoseKeeper, DosePublication, DoseSample
-from fleetlink.agent.fusion import Fusion
+from fleetlink.agent.fusion import Fusion, PoseObservation
 from fleetlink.agent.home import HomeKeeper
 from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update, onboard_mapper_config
 from fleetlink.agent.mapping.mapper import MapperConfig
@@ -371,6 +371,8 @@ class AgentNode:
         self.map_link.publish(self._scan_key, wire.encode(msg))
 
     def _use_map(self, update: Update) -> None:
+        if update.moved is not None or update.seen is not None:
+            self._localise(update)
         if update.restarted:
             log.info("%s: UWB frame established; the map restarts in it", self.robot)
             self._open_share()
@@ -384,6 +386,19 @@ class AgentNode:
         if update.planner is not None:
             with self._lock:
                 self.core.use_map(update.planner.route, update.planner)
+
+    def _localise(self, update: Update) -> None:
+        """Loop closure moved the map (``moved``): the fused pose moves with it, at once; the turn's
+        pose as matched in the map (``seen``) is a pose measurement for the fusion, so the pose the
+        pilot drives on stays where the map it plans on says it is (docs/localisation.md)."""
+        with self._lock:
+            fusion = self.core.fusion
+            if update.moved is not None:
+                fusion.shift_frame(update.moved)
+            s = update.seen
+            if s is not None:
+                obs = PoseObservation(s.t, *s.pose, s.sd_xy, s.sd_theta)
+                fusion.add_map_pose(obs, self.clock.now())
 
     def lidar_report(self, fault: str | None) -> None:
         """The lidar failed (``fault``) or delivers again (None)."""

@@ -16,6 +16,12 @@ keeper decides:
 * **Planner renewal.** The first planner as soon as the map has cells; then a fresh one every
   ``planner_period`` seconds while the robot drives and the map changed (standing still, the map
   changes only by noise, and building a planner costs tens of milliseconds).
+* **Where the map says the robot is.** With loop closure on, the map moves under the robot when a
+  closure is solved, while the pilot drives on the fused pose (UWB and odometry). So each update
+  carries what localisation needs to move with the map: ``Update.moved``, how the solves since the
+  last update moved the map frame where the robot is (the fusion shifts its frame by it, at once),
+  and ``Update.seen``, the pose the scan matched at in the map (a pose measurement for the fusion,
+  given only in the site frame, for a match that is well posed in every direction).
 * **What to share.** Every ``share_period`` seconds, if the map changed, a ``MapPublication``: the
   cells copied at one version and the box changed since the last one, for the shell's ``MapShare``
   to serve and patch.
@@ -33,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from fleetlink.agent.mapping.closure import CloserConfig
 from fleetlink.agent.mapping.grid import Box
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig, SensorCone
@@ -42,6 +49,7 @@ __all__ = [
     "SHARE_PERIOD_S",
     "MapKeeper",
     "MapPublication",
+    "Seen",
     "Turn",
     "Update",
     "onboard_mapper_config",
@@ -52,6 +60,12 @@ PLANNER_PERIOD_S = 2.0
 SITE_SIGMA_M = 0.3
 """How far a fused pose is trusted as a site-frame position in the map's pose graph: looser than a
 single UWB fix (~0.1 m) because consecutive fused poses share their errors."""
+SEEN_SD_XY_M = 0.05
+"""How far the map's pose of the robot is trusted as a measurement for the fusion (1 sd)."""
+SEEN_SD_THETA_RAD = math.radians(1.0)
+SEEN_MIN_WEAK = 10000.0
+"""A scan match whose weakest information (1/m^2) is below this is not passed on: along a corridor
+seen end-on the match only repeats the fused guess it started from."""
 SHARE_PERIOD_S = 1.0
 """Seconds between map publications (a snapshot to serve, a patch to send) while the map changes."""
 
@@ -66,7 +80,7 @@ def onboard_mapper_config(*, cone: bool = True) -> MapperConfig:
     # bench's rooms fell from 61-78 % to 11-65 % covered. It waits for a front end run on odometry
     # with UWB as the graph's priors (the site positions below are passed for that already).
     sensor = SensorCone() if cone else None
-    return MapperConfig(planner=PlannerConfig(unknown_is_blocked=False, sensor=sensor), closer=None)
+    return MapperConfig(planner=PlannerConfig(unknown_is_blocked=False, sensor=sensor), closer=CloserConfig(search_xy=0.3, search_theta=math.radians(5.0), drift_rate=0.0, drift_theta_per_m=0.0, max_search_xy=0.3, max_search_theta=math.radians(5.0), confirm_above=0.15))
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,6 +121,16 @@ class MapPublication:
 
 
 @dataclass(frozen=True, slots=True)
+class Seen:
+    """Where the map says the robot was at ``t``: the scan matched in the map (the site frame)."""
+
+    t: float
+    pose: tuple[float, float, float]
+    sd_xy: float
+    sd_theta: float
+
+
+@dataclass(frozen=True, slots=True)
 class Update:
     restarted: bool = False
     """The map started again (the robot was just placed in the site frame)."""
@@ -114,6 +138,11 @@ class Update:
     """A fresh planner for the pilot, or None (keep the one it has)."""
     publication: MapPublication | None = None
     """The map to share now, or None (nothing new, or not yet time)."""
+    moved: tuple[float, float, float] | None = None
+    """How loop closure moved the map frame where the robot is since the last update (the transform
+    from the old frame to the new one), or None. Localisation moves with it."""
+    seen: Seen | None = None
+    """The turn's pose as matched in the map (site frame only), or None."""
 
 
 class MapKeeper:
@@ -167,7 +196,12 @@ class MapKeeper:
         # Once UWB has placed the robot, its fused position anchors the map's pose graph in the site
         # frame (loop closures then straighten the map without pulling it off the anchors' frame).
         site = (pose[0], pose[1], SITE_SIGMA_M) if placed else None
-        self.mapper.add_scan(t, turn.distances_m, turn.angles_rad, pose, site=site)
+        result = self.mapper.add_scan(t, turn.distances_m, turn.angles_rad, pose, site=site)
+        moved = seen = None
+        if self.config.closer is not None and self.in_site_frame:
+            moved = self.mapper.take_moved()
+            if result.matched and result.weak >= SEEN_MIN_WEAK:
+                seen = Seen(t, result.pose, SEEN_SD_XY_M, SEEN_SD_THETA_RAD)
         grid = self.mapper.grid
         renew = self._planned_version < 0 or (driving and now >= self._next_planner)
         planner = None
@@ -175,7 +209,7 @@ class MapKeeper:
             self._next_planner = now + self.planner_period
             self._planned_version = grid.version
             planner = self.mapper.planner()
-        return Update(restarted=restarted, planner=planner, publication=self._publication(now))
+        return Update(restarted, planner, self._publication(now), moved, seen)
 
     def _publication(self, now: float) -> MapPublication | None:
         mapper = self.mapper

@@ -101,6 +101,7 @@ class ScanResult:
     matched: bool  # the match was used (False: fell back to the guess)
     score: float
     integrated: bool  # the scan was added to the grid
+    weak: float = 0.0  # the refinement's weakest information (1/m^2; 0: not refined): how well the match is posed
 
 
 class OnboardMapper:
@@ -144,6 +145,7 @@ class OnboardMapper:
         self._node_pose: Pose | None = None  # the newest node's pose as the front end has it
         self._drawn_at: list[Pose] = []  # each node's pose when the grid was last drawn from it
         self.redraws = 0
+        self._moved: Pose | None = None  # how the solves since ``take_moved`` moved the frame at the robot
 
     @property
     def grid(self) -> LogOddsGrid:
@@ -229,7 +231,7 @@ class OnboardMapper:
         match_pts = scanprep.thin(kept, cfg.match_cell)
 
         sensor_guess = compose(guess, cfg.mount)
-        pose, score, matched = guess, 0.0, False
+        pose, score, matched, weak = guess, 0.0, False, 0.0
         target, to_target = self._match_grid()
         if cfg.matching and not target.empty and len(match_pts) >= cfg.min_points:
             # Matched in the target grid's frame (a rigid move of the map frame: the prior's penalty,
@@ -242,7 +244,7 @@ class OnboardMapper:
                 icp_pts = scanprep.thin(kept, cfg.icp_cell)
                 r_ = icp_refine(self._local, icp_pts, found, sensor_guess, sd, cfg.icp_sigma, cfg.icp_max_distance)
                 if r_.inliers >= cfg.min_points:
-                    found = r_.pose
+                    found, weak = r_.pose, r_.weak
                     score = field_score(target, match_pts, compose(to_target, found))
                     good = r_.inliers >= cfg.min_inlier_ratio * len(icp_pts)
             if good or score >= cfg.min_score:
@@ -293,7 +295,7 @@ class OnboardMapper:
             self._links.append(
                 (len(self.closer) - 1, relative(self._node_pose, pose)) if self._node_pose is not None else (-1, pose)
             )
-        return ScanResult(t, pose, guess, matched, score, integrated)
+        return ScanResult(t, pose, guess, matched, score, integrated, weak if matched else 0.0)
 
     def _after_solve(self, pose: Pose) -> Pose:
         """The graph moved: carry the front end's state into the corrected frame, redraw the grid and
@@ -303,6 +305,7 @@ class OnboardMapper:
         assert closer is not None and self._node_pose is not None
         new = closer.poses[-1]
         fix = compose(new, inverse(self._node_pose))  # old frame -> corrected frame
+        self._moved = fix if self._moved is None else compose(fix, self._moved)
         self._node_pose = new
         self._last_local = new
         if self._last_key is not None:
@@ -329,6 +332,13 @@ class OnboardMapper:
         if not self._lazy:
             self.grid  # noqa: B018 (drawn now: the front end matches this grid)
         return pose
+
+    def take_moved(self) -> Pose | None:
+        """How the loop closer's solves since the last call moved the map frame where the robot is:
+        the transform taking a pose in the old frame to the corrected one (composed over the solves),
+        or None (no solve moved it). Whoever localises the robot in this map moves its pose by it."""
+        moved, self._moved = self._moved, None
+        return moved
 
     def finish(self) -> int:
         """The end of a run (a replay): the loop closer's final pass (every node matched against the
