@@ -38,7 +38,8 @@ the last one), so the search costs at most so much per second however fast nodes
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -49,7 +50,19 @@ from fleetlink.agent.mapping.matcher import LocalMap, field_score, icp_refine, r
 from fleetlink.agent.mapping.posegraph import PoseGraph
 from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
 
-__all__ = ["Check", "CheckResult", "CloserConfig", "CloserStats", "Closure", "Drawn", "LoopCloser", "NodeScan", "run_check"]
+__all__ = [
+    "Check",
+    "CheckResult",
+    "CloserConfig",
+    "CloserStats",
+    "Closure",
+    "ClosureSearch",
+    "DeferredSearch",
+    "Drawn",
+    "LoopCloser",
+    "NodeScan",
+    "run_check",
+]
 
 F64 = npt.NDArray[np.float64]
 
@@ -178,6 +191,7 @@ class Check:
     grid_config: GridConfig
     mount: Pose  # the lidar on the robot
     confirms: Closure | None = None  # a pending closure this check may confirm (else a fresh search)
+    owner: object = field(default=None, compare=False)  # the closer that planned it (``take`` ignores others')
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -212,6 +226,42 @@ class CloserStats:
     final_edges: int = 0  # matches the final pass (``finish``) verified
 
 
+class ClosureSearch(Protocol):
+    """Where a mapper's closure checks run (``LoopCloser.plan`` -> here -> ``LoopCloser.take``)."""
+
+    def submit(self, checks: list[Check]) -> None:
+        """Run these checks (in order), their verdicts to be collected later."""
+        ...
+
+    def collect(self) -> list[CheckResult]:
+        """The verdicts ready, in the order their checks were submitted; never waits."""
+        ...
+
+    @property
+    def busy(self) -> bool:
+        """Checks submitted whose verdicts are not ready yet (a new batch then waits its turn)."""
+        ...
+
+
+class DeferredSearch:
+    """Checks run at once, in line, their verdicts collected with the next node: the results of a
+    search elsewhere that always keeps up, deterministically (lockstep runs, tests)."""
+
+    def __init__(self) -> None:
+        self._done: list[CheckResult] = []
+
+    def submit(self, checks: list[Check]) -> None:
+        self._done.extend(run_check(c) for c in checks)
+
+    def collect(self) -> list[CheckResult]:
+        done, self._done = self._done, []
+        return done
+
+    @property
+    def busy(self) -> bool:
+        return False
+
+
 class LoopCloser:
     """See the module docstring. ``add_node`` then ``close`` per keyframe; one owner."""
 
@@ -235,6 +285,7 @@ class LoopCloser:
         self._drawn: list[_Submap] = []  # the drawn submaps, least recently used first
         self._solved_at = -1  # the newest node at the last solve
         self._searched_t = -math.inf  # the time of the last node whose fresh search was planned
+        self._token = object()  # marks this closer's checks: a search host shared with a successor
         self.since_closure = 0.0  # m travelled (node to node) since the last accepted closure
 
     def __len__(self) -> int:
@@ -325,6 +376,8 @@ class LoopCloser:
         cfg = self.config
         found: list[Closure] = []
         for r in results:
+            if r.check.owner is not self._token:
+                continue  # planned by a closer before this one (a map restarted meanwhile)
             sm = self.submaps[r.check.submap]
             if r.drawn is not None and sm.drawn is None:
                 sm.drawn = r.drawn
@@ -494,7 +547,8 @@ class LoopCloser:
         """The submap's scans with their sensor poses in its first node's frame (the graph's now)."""
         anchor = self.graph.poses[sm.first]
         return tuple(
-            (compose(relative(anchor, self.graph.poses[n]), self.mount), self.scans[n]) for n in range(sm.first, sm.last)
+            (compose(relative(anchor, self.graph.poses[n]), self.mount), self.scans[n])
+            for n in range(sm.first, sm.last)
         )
 
     def _check(
@@ -518,7 +572,21 @@ class LoopCloser:
             self._touch(sm)
         parts = () if drawn is not None else self._parts(sm)
         i = self.submaps.index(sm)
-        return Check(k, i, sm.first, self.scans[k], guess, window, drawn, parts, cfg, self.grid_config, self.mount, confirms)
+        return Check(
+            k,
+            i,
+            sm.first,
+            self.scans[k],
+            guess,
+            window,
+            drawn,
+            parts,
+            cfg,
+            self.grid_config,
+            self.mount,
+            confirms,
+            self._token,
+        )
 
     def _verify(
         self,

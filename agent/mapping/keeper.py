@@ -39,12 +39,13 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from fleetlink.agent.mapping.closure import CloserConfig
+from fleetlink.agent.mapping.closure import CloserConfig, ClosureSearch, DeferredSearch
 from fleetlink.agent.mapping.grid import Box
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig, SensorCone
 
 __all__ = [
+    "ONBOARD_CLOSER",
     "PLANNER_PERIOD_S",
     "SHARE_PERIOD_S",
     "MapKeeper",
@@ -70,17 +71,45 @@ SHARE_PERIOD_S = 1.0
 """Seconds between map publications (a snapshot to serve, a patch to send) while the map changes."""
 
 
-def onboard_mapper_config(*, cone: bool = True) -> MapperConfig:
+ONBOARD_CLOSER = CloserConfig(
+    search_xy=0.3,
+    search_theta=math.radians(5.0),
+    drift_rate=0.0,
+    drift_theta_per_m=0.0,
+    max_search_xy=0.3,
+    max_search_theta=math.radians(5.0),
+    confirm_above=0.15,
+    bnb_depth=4,
+    check_period=1.0,
+)
+"""Loop closure on a robot: the front end is seeded by the fused pose, which UWB holds within a few
+centimetres of the site frame, so the map never drifts far from where a closure would put it: the
+search window is small and does not grow with the path (+-0.3 m, +-5 deg; a replay's grows to 10 m,
+and on board such windows accepted look-alike places 0.5 m off, which bent the map under the robot),
+a closure that would move its node more than 0.15 m waits for a second one that agrees, and a node is
+searched at most once a second (the search's rate, whatever the speed)."""
+ONBOARD_REDRAW_BATCH = 50
+"""Keyframes drawn again per read of the map while a redraw is under way (the map is read every second
+or two on a robot): what a read costs stays bounded however long the robot has mapped."""
+
+
+ONBOARD_CLOSURES = True
+"""Loop closure on board by default (measured: docs/mapping.md "On board")."""
+
+
+def onboard_mapper_config(*, cone: bool = True, closures: bool = ONBOARD_CLOSURES) -> MapperConfig:
     """Unknown cells count as free on an onboard map: a scout is sent into rooms it has not seen
     (the guard still stops it at anything real). ``cone`` False: a robot whose guard creeps to the
     walls instead of refusing drive starts for what its ultrasonic cone sees (docs/motion.md):
-    its legs are not cut short to please the cone."""
-    # Loop closure stays off on board for now (measured, issue 17): the front end here is seeded by
-    # the fused pose, so the steps between nodes carry the UWB noise; with closures on, the sweep
-    # bench's rooms fell from 61-78 % to 11-65 % covered. It waits for a front end run on odometry
-    # with UWB as the graph's priors (the site positions below are passed for that already).
+    its legs are not cut short to please the cone. ``closures``: loop closure on board
+    (``ONBOARD_CLOSER``; the keeper then feeds the map's pose back to the fusion: docs/mapping.md
+    "On board")."""
     sensor = SensorCone() if cone else None
-    return MapperConfig(planner=PlannerConfig(unknown_is_blocked=False, sensor=sensor), closer=CloserConfig(search_xy=0.3, search_theta=math.radians(5.0), drift_rate=0.0, drift_theta_per_m=0.0, max_search_xy=0.3, max_search_theta=math.radians(5.0), confirm_above=0.15))
+    return MapperConfig(
+        planner=PlannerConfig(unknown_is_blocked=False, sensor=sensor),
+        closer=ONBOARD_CLOSER if closures else None,
+        redraw_batch=ONBOARD_REDRAW_BATCH,
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -153,8 +182,13 @@ class MapKeeper:
         *,
         share_period: float = SHARE_PERIOD_S,
         max_gap_s: float = 1.0,
+        search: ClosureSearch | None = None,
     ) -> None:
+        """``search``: where loop closure's checks run (a worker thread on a robot:
+        agent/mapping/worker.py); default ``DeferredSearch``, in line, each node's verdicts taken at
+        the next node, as from a search that always keeps up (deterministic: lockstep runs)."""
         self.config = config or onboard_mapper_config()
+        self.search: ClosureSearch = search if search is not None else DeferredSearch()
         self.planner_period = planner_period
         self.share_period = share_period
         self.min_move_m = self.config.keyframe_distance
@@ -163,7 +197,7 @@ class MapKeeper:
         self.skipped = 0
         """Turns left out by the motion filter."""
         self._last: tuple[float, float, float, float] | None = None  # t, x, y, theta of the last mapped turn
-        self.mapper = OnboardMapper(self.config)
+        self.mapper = OnboardMapper(self.config, self.search)
         self.in_site_frame = False
         self.restarts = 0
         self._version_base = 0
@@ -184,7 +218,7 @@ class MapKeeper:
                 # takes the first newer one it hears of as the map to fetch (a version it has
                 # passed would be refused as stale, and the odometry-frame map would stay).
                 self._version_base += self.mapper.version + 1
-                self.mapper = OnboardMapper(self.config)
+                self.mapper = OnboardMapper(self.config, self.search)
                 self._planned_version = -1
                 self._shared_version, self._next_share = -1, -math.inf
                 self.restarts += 1
@@ -202,13 +236,15 @@ class MapKeeper:
             moved = self.mapper.take_moved()
             if result.matched and result.weak >= SEEN_MIN_WEAK:
                 seen = Seen(t, result.pose, SEEN_SD_XY_M, SEEN_SD_THETA_RAD)
-        grid = self.mapper.grid
+        # The grid is read (drawn up to date: agent/mapping/mapper.py) only when a planner may be due.
         renew = self._planned_version < 0 or (driving and now >= self._next_planner)
         planner = None
-        if renew and not grid.empty and grid.version != self._planned_version:
-            self._next_planner = now + self.planner_period
-            self._planned_version = grid.version
-            planner = self.mapper.planner()
+        if renew:
+            grid = self.mapper.grid
+            if not grid.empty and grid.version != self._planned_version:
+                self._next_planner = now + self.planner_period
+                self._planned_version = grid.version
+                planner = self.mapper.planner()
         return Update(restarted, planner, self._publication(now), moved, seen)
 
     def _publication(self, now: float) -> MapPublication | None:
