@@ -131,8 +131,14 @@ class PoseObservation:
     x: float
     y: float
     theta: float
-    sd_xy: float
-    sd_theta: float
+    cov: tuple[float, ...]
+    """The covariance of (x, y, theta), 3 x 3 row-major, in the map frame."""
+
+    @classmethod
+    def of(cls, t: float, x: float, y: float, theta: float, sd_xy: float, sd_theta: float) -> PoseObservation:
+        """One with ``sd_xy`` in every direction and ``sd_theta``, uncorrelated."""
+        a, b = sd_xy * sd_xy, sd_theta * sd_theta
+        return cls(t, x, y, theta, (a, 0.0, 0.0, 0.0, a, 0.0, 0.0, 0.0, b))
 
 
 @dataclass(frozen=True, slots=True)
@@ -347,10 +353,13 @@ class Fusion:
         through the history (late ones replayed, ones ahead of the odometry held), as fixes are.
         Refused until the heading is known: the map is in the site frame only from then on."""
         c = self.config
-        if not all(math.isfinite(v) for v in (obs.t, obs.x, obs.y, obs.theta, obs.sd_xy, obs.sd_theta)):
+        if not all(math.isfinite(v) for v in (obs.t, obs.x, obs.y, obs.theta, *obs.cov)):
             return self._refuse_map("not finite")
-        if obs.sd_xy <= 0 or obs.sd_theta <= 0:
-            return self._refuse_map("sd not positive")
+        if len(obs.cov) != 9:
+            return self._refuse_map("the covariance is not 3 x 3")
+        cov = np.array(obs.cov).reshape(3, 3)
+        if not np.allclose(cov, cov.T, rtol=1e-9, atol=1e-15) or not np.all(np.linalg.eigvalsh(cov) > 0):
+            return self._refuse_map("the covariance is not symmetric positive definite")
         if obs.t > now + c.future_tolerance_s:
             return self._refuse_map(f"measured {obs.t - now:.2f} s in the future")
         if not self._nodes:
@@ -394,7 +403,14 @@ class Fusion:
         big[:3, :3] = rot
 
         def moved(o: PoseObservation) -> PoseObservation:
-            return replace(o, x=c * o.x - s * o.y + dx, y=s * o.x + c * o.y + dy, theta=wrap_angle(o.theta + phi))
+            cov = rot @ np.array(o.cov).reshape(3, 3) @ rot.T
+            return replace(
+                o,
+                x=c * o.x - s * o.y + dx,
+                y=s * o.x + c * o.y + dy,
+                theta=wrap_angle(o.theta + phi),
+                cov=tuple(float(v) for v in cov.ravel()),
+            )
 
         for n in self._nodes:
             if n.disc.pos_init:
@@ -763,8 +779,11 @@ class Fusion:
         c = self.config
         if not (d.pos_init and d.heading_init):
             return FixVerdict(False, "not placed", math.nan), x, P
-        sxy, sth = max(obs.sd_xy, c.min_map_sd_m), max(obs.sd_theta, c.min_map_sd_rad)
-        R = np.diag([sxy * sxy, sxy * sxy, sth * sth])
+        R = np.array(obs.cov).reshape(3, 3)
+        # Floors, added where the observation claims less (a PSD term each: R stays positive definite).
+        R[0, 0] += max(0.0, c.min_map_sd_m**2 - R[0, 0])
+        R[1, 1] += max(0.0, c.min_map_sd_m**2 - R[1, 1])
+        R[2, 2] += max(0.0, c.min_map_sd_rad**2 - R[2, 2])
         nu = np.array([obs.x - x[_X], obs.y - x[_Y], wrap_angle(obs.theta - float(x[_TH]))])
         S = _H3 @ P @ _H3.T + R
         S_inv = np.linalg.inv(S)

@@ -351,9 +351,10 @@ class AgentNode:
             t = (rev.stamp if rev.stamp is not None else now) - turn_s
             o_now = self.core.fusion.odom_pose()
             o = self.core.fusion.odom_at(t)
+            anchored = not self.core.fusion.uwb_stale(now)
         # The fused pose now, moved back by the odometry to the turn's start.
         seen = compose((p.x, p.y, p.theta), relative((o_now.x, o_now.y, o_now.theta), (o.x, o.y, o.theta)))
-        update = keeper.add(Turn(t, rev.distances_m, rev.angles_rad, seen, placed, driving, now))
+        update = keeper.add(Turn(t, rev.distances_m, rev.angles_rad, seen, placed, driving, now, anchored))
         self.scans += 1
         self._share_scan(rev, seen, now)
         if update is not None:
@@ -397,7 +398,7 @@ class AgentNode:
                 fusion.shift_frame(update.moved)
             s = update.seen
             if s is not None:
-                obs = PoseObservation(s.t, *s.pose, s.sd_xy, s.sd_theta)
+                obs = PoseObservation(s.t, *s.pose, s.cov)
                 fusion.add_map_pose(obs, self.clock.now())
 
     def lidar_report(self, fault: str | None) -> None:

@@ -222,14 +222,14 @@ def test_fix_older_than_the_history_or_from_the_future_is_refused() -> None:
 
 def _seen(sim: Sim, dx: float = 0.0, dth: float = 0.0, t: float | None = None) -> PoseObservation:
     """The map's pose of the robot now (or at ``t``, from the truth then), off the truth by dx, dth."""
-    return PoseObservation(sim.t if t is None else t, sim.x + dx, sim.y, sim.th + dth, 0.03, math.radians(1.0))
+    return PoseObservation.of(sim.t if t is None else t, sim.x + dx, sim.y, sim.th + dth, 0.03, math.radians(1.0))
 
 
 def test_a_map_pose_is_a_pose_measurement_gated_on_its_own() -> None:
     sim, fusion = converged(20.0)
     before = fusion.filter_pose()
     # The map says the robot is 5 cm east of where the filter has it, and turned 1 degree more.
-    seen = PoseObservation(sim.t, before.x + 0.05, before.y, before.theta + math.radians(1.0), 0.03, math.radians(1))
+    seen = PoseObservation.of(sim.t, before.x + 0.05, before.y, before.theta + math.radians(1.0), 0.03, math.radians(1))
     v = fusion.add_map_pose(seen, sim.t)
     assert v.accepted and v.reason == "accepted" and v.nis < fusion.config.map_gate_chi2
     after = fusion.filter_pose()
@@ -242,8 +242,16 @@ def test_a_map_pose_is_a_pose_measurement_gated_on_its_own() -> None:
     far = fusion.add_map_pose(_seen(sim, dx=1.0), sim.t)
     assert not far.accepted and far.reason == "gate" and far.nis > fusion.config.map_gate_chi2
     assert fusion.filter_pose() == after and fusion.map_rejected == 1
-    bad = fusion.add_map_pose(PoseObservation(sim.t, math.nan, 0.0, 0.0, 0.03, 0.01), sim.t)
+    bad = fusion.add_map_pose(PoseObservation.of(sim.t, math.nan, 0.0, 0.0, 0.03, 0.01), sim.t)
     assert not bad.accepted and bad.reason == "not finite"
+    flat = fusion.add_map_pose(PoseObservation(sim.t, sim.x, sim.y, sim.th, (1.0, 0, 0, 0, 0.0, 0, 0, 0, 1.0)), sim.t)
+    assert not flat.accepted and "positive definite" in flat.reason
+    # Along a direction the map pins down badly (a corridor seen end-on) the map's pose moves nothing.
+    along = np.diag([100.0, 0.03**2, 0.02**2])
+    p0 = fusion.filter_pose()
+    obs = PoseObservation(sim.t, p0.x + 0.3, p0.y, p0.theta, tuple(along.ravel()))
+    assert fusion.add_map_pose(obs, sim.t).accepted
+    assert abs(fusion.filter_pose().x - p0.x) < 0.001
 
 
 def test_a_map_pose_before_the_heading_is_known_is_refused() -> None:

@@ -43,6 +43,7 @@ from fleetlink.agent.mapping.closure import CloserConfig, ClosureSearch, Deferre
 from fleetlink.agent.mapping.grid import Box
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig, SensorCone
+from fleetlink.agent.mapping.se2 import inverse as inverse_pose
 
 __all__ = [
     "ONBOARD_CLOSER",
@@ -54,6 +55,7 @@ __all__ = [
     "Turn",
     "Update",
     "onboard_mapper_config",
+    "seen_covariance",
 ]
 
 PLANNER_PERIOD_S = 2.0
@@ -62,11 +64,11 @@ SITE_SIGMA_M = 0.3
 """How far a fused pose is trusted as a site-frame position in the map's pose graph: looser than a
 single UWB fix (~0.1 m) because consecutive fused poses share their errors."""
 SEEN_SD_XY_M = 0.05
-"""How far the map's pose of the robot is trusted as a measurement for the fusion (1 sd)."""
+"""How far the map's pose of the robot is trusted as a measurement for the fusion (1 sd), along the
+direction the scan pins best; along a direction it pins less well, less (see ``seen_covariance``)."""
 SEEN_SD_THETA_RAD = math.radians(1.0)
 SEEN_MIN_WEAK = 10000.0
-"""A scan match whose weakest information (1/m^2) is below this is not passed on: along a corridor
-seen end-on the match only repeats the fused guess it started from."""
+"""A scan match whose weakest information (1/m^2) is below this is not passed on at all."""
 SHARE_PERIOD_S = 1.0
 """Seconds between map publications (a snapshot to serve, a patch to send) while the map changes."""
 
@@ -126,6 +128,10 @@ class Turn:
     """The fusion has placed the robot in the UWB (site) frame."""
     driving: bool
     now: float
+    anchored: bool = True
+    """UWB fixes are coming in (not stale): the fused pose is tied to the site frame now, so its
+    position is a prior for the map's pose graph. During an outage it is odometry (and the map's own
+    pose) carried on, and a prior from it would only pull the map along its drift."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -151,12 +157,37 @@ class MapPublication:
 
 @dataclass(frozen=True, slots=True)
 class Seen:
-    """Where the map says the robot was at ``t``: the scan matched in the map (the site frame)."""
+    """Where the map says the robot was at ``t``: the scan matched in the map (the site frame), with
+    the covariance of (x, y, theta), row-major, in the map frame."""
 
     t: float
     pose: tuple[float, float, float]
-    sd_xy: float
-    sd_theta: float
+    cov: tuple[float, ...]
+
+
+def seen_covariance(
+    information: npt.NDArray[np.float64],
+    pose: tuple[float, float, float],
+    mount: tuple[float, float, float],
+    sd_xy: float = SEEN_SD_XY_M,
+    sd_theta: float = SEEN_SD_THETA_RAD,
+) -> tuple[float, ...]:
+    """The covariance the fusion gives a scan match: shaped by the refinement's information (the
+    directions the scan's walls pin down, and how much better than the others), scaled so that the
+    best-pinned direction has ``sd_xy`` (the raw information, every point independent, would claim
+    millimetres: the map's own errors are not in it), the heading at least ``sd_theta``. Along a
+    corridor the variance is then large and the fusion keeps its own estimate there: the match only
+    repeats the guess it was given. ``information`` is the sensor pose's; ``pose`` the robot's."""
+    c = np.linalg.inv(information + np.eye(3) * 1e-6)
+    c = (c + c.T) / 2.0
+    ix, iy, iphi = inverse_pose(mount)
+    cs, sn = math.cos(pose[2] - iphi), math.sin(pose[2] - iphi)  # the sensor's heading
+    j = np.array([[1.0, 0.0, -sn * ix - cs * iy], [0.0, 1.0, cs * ix - sn * iy], [0.0, 0.0, 1.0]])
+    c = j @ c @ j.T
+    lo = float(np.linalg.eigvalsh(c[:2, :2])[0])
+    c *= sd_xy * sd_xy / max(lo, 1e-18)
+    c[2, 2] = max(float(c[2, 2]), sd_theta * sd_theta)
+    return tuple(float(v) for v in c.ravel())
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,13 +260,15 @@ class MapKeeper:
         self._last = (t, *pose)
         # Once UWB has placed the robot, its fused position anchors the map's pose graph in the site
         # frame (loop closures then straighten the map without pulling it off the anchors' frame).
-        site = (pose[0], pose[1], SITE_SIGMA_M) if placed else None
+        site = (pose[0], pose[1], SITE_SIGMA_M) if placed and turn.anchored else None
         result = self.mapper.add_scan(t, turn.distances_m, turn.angles_rad, pose, site=site)
         moved = seen = None
         if self.config.closer is not None and self.in_site_frame:
             moved = self.mapper.take_moved()
-            if result.matched and result.weak >= SEEN_MIN_WEAK:
-                seen = Seen(t, result.pose, SEEN_SD_XY_M, SEEN_SD_THETA_RAD)
+            if moved is not None and max(abs(v) for v in moved) < 1e-9:
+                moved = None  # a solve that moved nothing here (the priors' own, far from any closure)
+            if result.matched and result.information is not None and result.weak >= SEEN_MIN_WEAK:
+                seen = Seen(t, result.pose, seen_covariance(result.information, result.pose, self.config.mount))
         # The grid is read (drawn up to date: agent/mapping/mapper.py) only when a planner may be due.
         renew = self._planned_version < 0 or (driving and now >= self._next_planner)
         planner = None

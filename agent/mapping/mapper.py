@@ -106,6 +106,9 @@ class ScanResult:
     score: float
     integrated: bool  # the scan was added to the grid
     weak: float = 0.0  # the refinement's weakest information (1/m^2; 0: not refined): how well the match is posed
+    information: FloatArray | None = (
+        None  # the refinement's data information on the sensor pose (x, y, theta), map frame
+    )
 
 
 class OnboardMapper:
@@ -251,6 +254,7 @@ class OnboardMapper:
 
         sensor_guess = compose(guess, cfg.mount)
         pose, score, matched, weak = guess, 0.0, False, 0.0
+        info: FloatArray | None = None
         target, to_target = self._match_grid()
         if cfg.matching and not target.empty and len(match_pts) >= cfg.min_points:
             # Matched in the target grid's frame (a rigid move of the map frame: the prior's penalty,
@@ -263,7 +267,7 @@ class OnboardMapper:
                 icp_pts = scanprep.thin(kept, cfg.icp_cell)
                 r_ = icp_refine(self._local, icp_pts, found, sensor_guess, sd, cfg.icp_sigma, cfg.icp_max_distance)
                 if r_.inliers >= cfg.min_points:
-                    found, weak = r_.pose, r_.weak
+                    found, weak, info = r_.pose, r_.weak, r_.information
                     score = field_score(target, match_pts, compose(to_target, found))
                     good = r_.inliers >= cfg.min_inlier_ratio * len(icp_pts)
             if good or score >= cfg.min_score:
@@ -314,7 +318,9 @@ class OnboardMapper:
             self._links.append(
                 (len(self.closer) - 1, relative(self._node_pose, pose)) if self._node_pose is not None else (-1, pose)
             )
-        return ScanResult(t, pose, guess, matched, score, integrated, weak if matched else 0.0)
+        if not matched:
+            weak, info = 0.0, None
+        return ScanResult(t, pose, guess, matched, score, integrated, weak, info)
 
     def _close(self) -> bool:
         """Loop closure for the node just made: in line, or (``search``) the verdicts that came back
