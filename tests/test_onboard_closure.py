@@ -1,7 +1,7 @@
 """Loop closure on board: the map moves under the robot, and the pose the pilot drives on moves with it.
 
 The ring corridor of tests/test_loop_closure.py, driven once round and on, with a biased odometry.
-UWB places the robot over its first 3 m and then goes quiet (an outage): the fused pose carries on on
+UWB places the robot over its first 9 m and then goes quiet (an outage): the fused pose carries on on
 odometry alone and drifts, and the map keeper maps every turn at it, as the agent does
 (agent/node.py ``add_revolution`` and ``_localise``). When the robot comes back to its start, a
 closure is solved and the map moves where the robot is; ``Update.moved`` shifts the fusion's frame by
@@ -30,7 +30,7 @@ from tests.test_loop_closure import STEP, _drive, _run
 
 Pose = tuple[float, float, float]
 DT = 0.1  # s between turns
-UWB_STEPS = 20  # turns with a fix each (3 m), then the outage
+UWB_STEPS = 60  # turns with a fix each (9 m: the map is anchored by then), then the outage
 
 
 @dataclass
@@ -143,7 +143,7 @@ def test_the_maps_pose_keeps_the_robot_localised_through_an_outage() -> None:
     """Scan matching on: each turn's pose as matched in the map is a measurement for the fusion, so
     the fused pose follows the map instead of the odometry's drift while UWB is quiet."""
     truth, _, _ = _drive()
-    n = 150  # 22 m round two corners, 20 m of it without UWB
+    n = 260  # 37 m round three corners, 28 m of it without UWB
     fed = _onboard(matching=True, turns=n)
     blind = _onboard(matching=True, feedback=False, turns=n)
     assert fed.fusion.map_accepted > 0.8 * (n - UWB_STEPS), (fed.fusion.map_accepted, fed.fusion.last_map_rejection)

@@ -60,9 +60,16 @@ __all__ = [
 
 PLANNER_PERIOD_S = 2.0
 """Seconds between planners handed to the pilot while the robot drives and the map grows."""
-SITE_SIGMA_M = 0.3
-"""How far a fused pose is trusted as a site-frame position in the map's pose graph: looser than a
-single UWB fix (~0.1 m) because consecutive fused poses share their errors."""
+SITE_SIGMA_M = 0.1
+"""How far a fused pose is trusted as a site-frame position in the map's pose graph (one prior per
+node, ~0.3 m apart): looser than the fused pose's own ~2 cm because consecutive fused poses share
+their errors. Measured on the office patrol on board (bench/mapping.py section 1b): at 0.3 m the map
+began a few degrees askew (the fused heading when the robot was placed) stayed so for tens of metres
+of corridor, 0.1-0.4 m off; at 0.1 m, solved every 10 nodes, the map's pose is 1.6 cm from the truth."""
+ANCHOR_PRIORS = 20
+"""Site priors (UWB-placed nodes, one per 0.3 m) a solve must have had before the fusion hears from
+the map: ~6 m of travel, enough to turn a map begun at the first fused heading (sd up to 2 deg) onto
+the anchors' frame."""
 SEEN_SD_XY_M = 0.05
 """How far the map's pose of the robot is trusted as a measurement for the fusion (1 sd), along the
 direction the scan pins best; along a direction it pins less well, less (see ``seen_covariance``)."""
@@ -83,6 +90,7 @@ ONBOARD_CLOSER = CloserConfig(
     confirm_above=0.15,
     bnb_depth=4,
     check_period=1.0,
+    prior_solve_nodes=10,
 )
 """Loop closure on a robot: the front end is seeded by the fused pose, which UWB holds within a few
 centimetres of the site frame, so the map never drifts far from where a closure would put it: the
@@ -229,6 +237,7 @@ class MapKeeper:
         """Turns left out by the motion filter."""
         self._last: tuple[float, float, float, float] | None = None  # t, x, y, theta of the last mapped turn
         self.mapper = OnboardMapper(self.config, self.search)
+        self._anchored = False
         self.in_site_frame = False
         self.restarts = 0
         self._version_base = 0
@@ -250,6 +259,7 @@ class MapKeeper:
                 # passed would be refused as stale, and the odometry-frame map would stay).
                 self._version_base += self.mapper.version + 1
                 self.mapper = OnboardMapper(self.config, self.search)
+                self._anchored = False
                 self._planned_version = -1
                 self._shared_version, self._next_share = -1, -math.inf
                 self.restarts += 1
@@ -261,14 +271,18 @@ class MapKeeper:
         # Once UWB has placed the robot, its fused position anchors the map's pose graph in the site
         # frame (loop closures then straighten the map without pulling it off the anchors' frame).
         site = (pose[0], pose[1], SITE_SIGMA_M) if placed and turn.anchored else None
+        was_anchored = self._map_anchored()
         result = self.mapper.add_scan(t, turn.distances_m, turn.angles_rad, pose, site=site)
-        moved = seen = None
-        if self.config.closer is not None and self.in_site_frame:
-            moved = self.mapper.take_moved()
-            if moved is not None and max(abs(v) for v in moved) < 1e-9:
-                moved = None  # a solve that moved nothing here (the priors' own, far from any closure)
-            if result.matched and result.information is not None and result.weak >= SEEN_MIN_WEAK:
-                seen = Seen(t, result.pose, seen_covariance(result.information, result.pose, self.config.mount))
+        moved = self.mapper.take_moved()
+        seen = None
+        if not was_anchored or (moved is not None and max(abs(v) for v in moved) < 1e-9):
+            # Before the map is anchored the fusion has not followed it, so the solve that anchors it
+            # (which can turn a map begun a degree or two askew) must not move the pose; and a solve
+            # that moved nothing here (the priors' own, far from any closure) is no news.
+            moved = None
+        info = result.information
+        if self._map_anchored() and result.matched and info is not None and result.weak >= SEEN_MIN_WEAK:
+            seen = Seen(t, result.pose, seen_covariance(info, result.pose, self.config.mount))
         # The grid is read (drawn up to date: agent/mapping/mapper.py) only when a planner may be due.
         renew = self._planned_version < 0 or (driving and now >= self._next_planner)
         planner = None
@@ -279,6 +293,17 @@ class MapKeeper:
                 self._planned_version = grid.version
                 planner = self.mapper.planner()
         return Update(restarted, planner, self._publication(now), moved, seen)
+
+    def _map_anchored(self) -> bool:
+        """The map is in the site frame and its pose graph has been solved with ``ANCHOR_PRIORS``
+        site priors or more: its frame is the anchors' now, not the fused heading it happened to start
+        with. Only from then on does the fusion hear from the map (``Update.moved``, ``Update.seen``)."""
+        closer = self.mapper.closer
+        if closer is None or not self.in_site_frame:
+            return False
+        if not self._anchored:
+            self._anchored = closer.stats.solves > 0 and len(closer.graph.priors) >= ANCHOR_PRIORS
+        return self._anchored
 
     def _publication(self, now: float) -> MapPublication | None:
         mapper = self.mapper
