@@ -117,6 +117,10 @@ class CloserConfig:
     final_drops: int = 20  # edges the final solve may drop, one at a time
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
+    # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
+    # a solve costs about in proportion to the graph, so its share of a core stays flat however long
+    # the robot maps (0: as soon as something is found, as ``close`` does).
+    solve_nodes_per_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.submap_nodes < 2 or self.attempts_per_node < 0 or self.min_gap_nodes < self.submap_nodes:
@@ -286,6 +290,8 @@ class LoopCloser:
         self._solved_at = -1  # the newest node at the last solve
         self._searched_t = -math.inf  # the time of the last node whose fresh search was planned
         self._token = object()  # marks this closer's checks: a search host shared with a successor
+        self._solved_t = -math.inf  # the newest node's time at the last solve
+        self._unsolved = False  # closures added (or priors due) since the last solve
         self.since_closure = 0.0  # m travelled (node to node) since the last accepted closure
 
     def __len__(self) -> int:
@@ -392,7 +398,7 @@ class LoopCloser:
             else:
                 self._classify(c, found)
         self._pending = [p for p in self._pending if k - p.node <= cfg.confirm_nodes]
-        return self._conclude(k, found)
+        return self._conclude(k, found, paced=True)
 
     def _confirm_checks(self, k: int, p: Closure) -> list[Check]:
         cfg = self.config
@@ -443,13 +449,23 @@ class LoopCloser:
             self._pending.append(c)
             self.stats.pending += 1
 
-    def _conclude(self, k: int, found: list[Closure]) -> bool:
-        if not found:
-            if self.graph.priors and k - self._solved_at >= self.config.prior_solve_nodes:
-                self._solve()  # the priors alone pull the graph into the site frame, now and then
-                return True
+    def _conclude(self, k: int, found: list[Closure], paced: bool = False) -> bool:
+        """Closures found join the graph; the graph is solved when they did, or when the priors are due
+        a solve (they alone pull the graph into the site frame, now and then). ``paced``: not sooner
+        than ``len(graph) / solve_nodes_per_s`` seconds (node time) after the last solve; what waits
+        is solved at a later node. True when the graph was solved."""
+        cfg = self.config
+        if found:
+            self._add(found)
+            self._unsolved = True
+        elif self.graph.priors and k - self._solved_at >= cfg.prior_solve_nodes:
+            self._unsolved = True
+        if not self._unsolved:
             return False
-        self.add_closures(found)
+        wait = len(self.graph.poses) / cfg.solve_nodes_per_s if paced and cfg.solve_nodes_per_s > 0 else 0.0
+        if self.times[k] - self._solved_t < wait:
+            return False
+        self._solve()
         return True
 
     def _closure_info(self) -> F64:
@@ -459,6 +475,10 @@ class LoopCloser:
     def add_closures(self, closures: list[Closure]) -> None:
         """Put verified closures into the graph and solve it; a closure the solve finds inconsistent
         with the rest (error above ``max_chi2``) is dropped and the graph solved without it."""
+        self._add(closures)
+        self._solve()
+
+    def _add(self, closures: list[Closure]) -> None:
         info = self._closure_info()
         for c in closures:
             self.graph.add_edge(c.anchor, c.node, c.z, info)
@@ -466,7 +486,6 @@ class LoopCloser:
             self._closure_edges.append(len(self.graph.edges) - 1)
             self.stats.accepted += 1
         self.since_closure = 0.0
-        self._solve()
 
     def _correction(self, c: Closure) -> Pose:
         """The map-frame move the closure asks of its node: where it puts the node, from where it is."""
@@ -665,6 +684,8 @@ class LoopCloser:
         cfg = self.config
         drops = cfg.max_drops if max_drops is None else max_drops
         self._solved_at = len(self.graph.poses) - 1
+        self._solved_t = self.times[-1] if self.times else -math.inf
+        self._unsolved = False
         fixed = None if self.graph.priors else 0  # priors anchor the graph; else its first node does
         for attempt in range(drops + 1):
             self.graph.optimize(fixed=fixed, iterations=cfg.iterations, tolerance=1e-5)

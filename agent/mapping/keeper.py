@@ -91,13 +91,16 @@ ONBOARD_CLOSER = CloserConfig(
     bnb_depth=4,
     check_period=1.0,
     prior_solve_nodes=10,
+    solve_nodes_per_s=500.0,
 )
 """Loop closure on a robot: the front end is seeded by the fused pose, which UWB holds within a few
 centimetres of the site frame, so the map never drifts far from where a closure would put it: the
 search window is small and does not grow with the path (+-0.3 m, +-5 deg; a replay's grows to 10 m,
 and on board such windows accepted look-alike places 0.5 m off, which bent the map under the robot),
-a closure that would move its node more than 0.15 m waits for a second one that agrees, and a node is
-searched at most once a second (the search's rate, whatever the speed)."""
+a closure that would move its node more than 0.15 m waits for a second one that agrees, a node is
+searched at most once a second (the search's rate, whatever the speed), and the graph is solved at
+most once per (nodes / 500) s (1 s at 500 nodes, 10 s at 5 000: a solve's cost grows with the graph,
+its share of a core does not). Site priors solved every 10 nodes (``SITE_SIGMA_M``)."""
 ONBOARD_REDRAW_BATCH = 50
 """Keyframes drawn again per read of the map while a redraw is under way (the map is read every second
 or two on a robot): what a read costs stays bounded however long the robot has mapped."""
