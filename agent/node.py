@@ -180,6 +180,8 @@ class AgentNode:
         self._next_links = -float("inf")
         self._holder: str | None = None  # none told to the links yet
         self.keeper: KeeperHost | None = None
+        self._follows: tuple[float, ...] | None = None
+        """The covariance of the last map pose the fusion took (``Turn.follows``)."""
         self.share: Any = None
         uv = config.uv
         self.dose: DoseKeeper | None = (
@@ -352,9 +354,10 @@ class AgentNode:
             o_now = self.core.fusion.odom_pose()
             o = self.core.fusion.odom_at(t)
             anchored = not self.core.fusion.uwb_stale(now)
+            follows = self._follows
         # The fused pose now, moved back by the odometry to the turn's start.
         seen = compose((p.x, p.y, p.theta), relative((o_now.x, o_now.y, o_now.theta), (o.x, o.y, o.theta)))
-        update = keeper.add(Turn(t, rev.distances_m, rev.angles_rad, seen, placed, driving, now, anchored))
+        update = keeper.add(Turn(t, rev.distances_m, rev.angles_rad, seen, placed, driving, now, anchored, follows))
         self.scans += 1
         self._share_scan(rev, seen, now)
         if update is not None:
@@ -372,6 +375,8 @@ class AgentNode:
         self.map_link.publish(self._scan_key, wire.encode(msg))
 
     def _use_map(self, update: Update) -> None:
+        if update.restarted:
+            self._follows = None
         if update.moved is not None or update.seen is not None:
             self._localise(update)
         if update.restarted:
@@ -397,9 +402,8 @@ class AgentNode:
             if update.moved is not None:
                 fusion.shift_frame(update.moved)
             s = update.seen
-            if s is not None:
-                obs = PoseObservation(s.t, *s.pose, s.cov)
-                fusion.add_map_pose(obs, self.clock.now())
+            if s is not None and fusion.add_map_pose(PoseObservation(s.t, *s.pose, s.cov), self.clock.now()).accepted:
+                self._follows = s.cov
 
     def lidar_report(self, fault: str | None) -> None:
         """The lidar failed (``fault``) or delivers again (None)."""

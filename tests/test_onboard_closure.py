@@ -3,10 +3,12 @@
 The ring corridor of tests/test_loop_closure.py, driven once round and on, with a biased odometry.
 UWB places the robot over its first 9 m and then goes quiet (an outage): the fused pose carries on on
 odometry alone and drifts, and the map keeper maps every turn at it, as the agent does
-(agent/node.py ``add_revolution`` and ``_localise``). When the robot comes back to its start, a
-closure is solved and the map moves where the robot is; ``Update.moved`` shifts the fusion's frame by
-the same transform, at once. With scan matching on, ``Update.seen`` (the turn's pose as matched in
-the map) is a pose measurement for the fusion: the map keeps the robot localised through the outage.
+(agent/node.py ``add_revolution`` and ``_localise``). With scan matching off the map only follows
+the fused pose, and the test tells the keeper the fusion follows the map (``Turn.follows``, as after
+map poses pinned all round): when the robot comes back to its start a closure is solved, the map moves
+where the robot is, and ``Update.moved`` shifts the fusion's frame by the same transform, at once.
+With scan matching on, ``Update.seen`` (the turn's pose as matched in the map) is a pose measurement
+for the fusion: the map keeps the robot localised through the outage.
 """
 
 from __future__ import annotations
@@ -16,10 +18,11 @@ from dataclasses import dataclass, replace
 from functools import cache
 
 import numpy as np
+import pytest
 
 from fleetlink.agent.fusion import Fusion, PoseObservation
 from fleetlink.agent.mapping.closure import Check, CloserConfig, DeferredSearch, LoopCloser, run_check
-from fleetlink.agent.mapping.keeper import MapKeeper, Turn, onboard_mapper_config
+from fleetlink.agent.mapping.keeper import MapKeeper, Turn, followed_part, onboard_mapper_config
 from fleetlink.agent.mapping.mapper import MapperConfig
 from fleetlink.agent.mapping.se2 import compose
 from fleetlink.agent.mapping.worker import SearchWorker
@@ -50,7 +53,14 @@ class OnboardRun:
     fusion: Fusion
 
 
-def _onboard(matching: bool, feedback: bool = True, turns: int | None = None) -> OnboardRun:
+ROOM = (0.05**2, 0.0, 0.0, 0.0, 0.05**2, 0.0, 0.0, 0.0, math.radians(1.0) ** 2)
+"""A map pose pinned in every direction (a room's walls all round)."""
+
+
+def _onboard(matching: bool, feedback: bool = True, turns: int | None = None, follow_all: bool = False) -> OnboardRun:
+    """``follow_all``: the agent tells the keeper its fusion has been following the map in every
+    direction (``Turn.follows``), as it would after map poses pinned in a room; with matching off
+    there are no map poses, and the closures' corrections are the only news from the map."""
     truth, odom, scans = _drive()
     n = len(scans) if turns is None else turns
     fusion = Fusion()
@@ -59,6 +69,7 @@ def _onboard(matching: bool, feedback: bool = True, turns: int | None = None) ->
     config = replace(onboard_mapper_config(), matching=matching, closer=CloserConfig())
     keeper = MapKeeper(config, search=DeferredSearch())
     run = OnboardRun([], [], [], keeper, fusion)
+    follows: tuple[float, ...] | None = None
     for i in range(n):
         t = DT * (i + 1)
         fusion.predict(OdomPose(t, *odom[i], STEP / DT, 0.0))
@@ -67,7 +78,7 @@ def _onboard(matching: bool, feedback: bool = True, turns: int | None = None) ->
         p = fusion.map_pose()
         r, a = scans[i]
         placed = fusion.heading_initialized and p.sd_theta <= PLACE_SD_THETA_RAD  # as AgentNode places it
-        up = keeper.add(Turn(t, r, a, (p.x, p.y, p.theta), placed, True, t, anchored=not fusion.uwb_stale(t)))
+        up = keeper.add(Turn(t, r, a, (p.x, p.y, p.theta), placed, True, t, not fusion.uwb_stale(t), follows))
         if feedback and up.moved is not None:  # as AgentNode._localise does
             before = fusion.map_pose()
             fusion.shift_frame(up.moved)
@@ -75,7 +86,10 @@ def _onboard(matching: bool, feedback: bool = True, turns: int | None = None) ->
             run.shifts.append(Shift(i, up.moved, (before.x, before.y, before.theta), (after.x, after.y, after.theta)))
         if feedback and up.seen is not None:
             s = up.seen
-            fusion.add_map_pose(PoseObservation(s.t, *s.pose, s.cov), t)
+            if fusion.add_map_pose(PoseObservation(s.t, *s.pose, s.cov), t).accepted:
+                follows = s.cov
+        if follow_all and feedback and keeper.in_site_frame:
+            follows = ROOM
         q = fusion.map_pose()
         run.fused.append((q.x, q.y, q.theta))
         pose = keeper.mapper.pose
@@ -89,7 +103,7 @@ LAP = 300
 
 @cache
 def _closing() -> OnboardRun:
-    return _onboard(matching=False, turns=LAP)
+    return _onboard(matching=False, turns=LAP, follow_all=True)
 
 
 @cache
@@ -132,7 +146,7 @@ def test_a_closure_on_board_moves_the_fused_pose_with_the_map() -> None:
 def test_without_the_shift_the_map_and_the_pose_part() -> None:
     """The same run with the updates not applied to the fusion (as before on board): after the
     closure the map has moved and the fused pose has not."""
-    run = _onboard(matching=False, feedback=False, turns=LAP)
+    run = _onboard(matching=False, feedback=False, turns=LAP, follow_all=True)
     closer = run.keeper.mapper.closer
     assert closer is not None and closer.closures
     k = next(s.step for s in _closing().shifts if math.hypot(s.moved[0], s.moved[1]) > 0.2)
@@ -154,7 +168,7 @@ def test_the_maps_pose_keeps_the_robot_localised_through_an_outage() -> None:
 
 
 def test_on_board_runs_are_deterministic() -> None:
-    a, b = _closing(), _onboard(matching=False, turns=LAP)
+    a, b = _closing(), _onboard(matching=False, turns=LAP, follow_all=True)
     assert a.fused == b.fused and a.mapped == b.mapped
     assert [s.moved for s in a.shifts] == [s.moved for s in b.shifts]
     assert np.array_equal(a.keeper.mapper.grid.logodds, b.keeper.mapper.grid.logodds)
@@ -198,3 +212,17 @@ def test_results_planned_by_a_closer_before_a_restart_are_ignored() -> None:
     fresh.add_node(0.0, (0.0, 0.0, 0.0), old.scans[0])
     assert fresh.take(stale) is False
     assert fresh.stats.attempts == 0 and not fresh.closures
+
+
+def test_the_pose_moves_with_the_map_only_where_it_followed_the_map() -> None:
+    """Down a corridor along x the map's poses pinned y and the heading, not x: the fused pose kept
+    UWB's x. A solve that moves the map 0.2 m along x and 0.05 m across moves the pose 0.05 m across."""
+    before = (10.0, 2.0, 0.0)
+    corridor = (4.0, 0.0, 0.0, 0.0, 0.05**2, 0.0, 0.0, 0.0, math.radians(1.0) ** 2)
+    moved = (0.2, 0.05, 0.0)
+    part = followed_part(moved, before, corridor)
+    after = compose(part, before)
+    assert after == pytest.approx((10.0, 2.05, 0.0), abs=1e-12)
+    # In a room it pinned every direction: the whole correction, a turn included.
+    turn = compose((0.0, 0.0, 0.01), (0.1, -0.1, 0.0))
+    assert compose(followed_part(turn, before, ROOM), before) == pytest.approx(compose(turn, before), abs=1e-12)

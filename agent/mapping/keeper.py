@@ -43,6 +43,7 @@ from fleetlink.agent.mapping.closure import CloserConfig, ClosureSearch, Deferre
 from fleetlink.agent.mapping.grid import Box
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig, SensorCone
+from fleetlink.agent.mapping.se2 import compose
 from fleetlink.agent.mapping.se2 import inverse as inverse_pose
 
 __all__ = [
@@ -54,6 +55,7 @@ __all__ = [
     "Seen",
     "Turn",
     "Update",
+    "followed_part",
     "onboard_mapper_config",
     "seen_covariance",
 ]
@@ -143,6 +145,10 @@ class Turn:
     """UWB fixes are coming in (not stale): the fused pose is tied to the site frame now, so its
     position is a prior for the map's pose graph. During an outage it is odometry (and the map's own
     pose) carried on, and a prior from it would only pull the map along its drift."""
+    follows: tuple[float, ...] | None = None
+    """The covariance (3 x 3 row-major, map frame) of the last map pose the fusion took
+    (``Update.seen`` accepted), or None: the fused pose has not been following the map, and a solve
+    moves the map alone (``Update.moved`` stays None)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -199,6 +205,33 @@ def seen_covariance(
     c *= sd_xy * sd_xy / max(lo, 1e-18)
     c[2, 2] = max(float(c[2, 2]), sd_theta * sd_theta)
     return tuple(float(v) for v in c.ravel())
+
+
+FOLLOW_SD_M = 0.15
+"""A direction the map's pose pins to within this (1 sd, ``seen_covariance``) is one the fusion
+follows the map in; along the others (a corridor) it keeps its own estimate."""
+FOLLOW_SD_RAD = math.radians(3.0)
+
+
+def followed_part(
+    moved: tuple[float, float, float], before: tuple[float, float, float], cov: tuple[float, ...]
+) -> tuple[float, float, float]:
+    """The part of a solve's correction the fused pose moves with. ``moved`` takes the map's pose of
+    the robot ``before`` the solve to where the solve put it; the fusion followed the map only along
+    the directions its pose measurements pinned (``cov``, the last ``Seen``'s): there the fused pose
+    was the map's and must move with it, and along the others (a corridor seen end-on) it stayed
+    where UWB and odometry put it, which the map's correction there only brings the map nearer to. The
+    robot's move is projected onto the pinned directions, the turn kept if the heading was pinned;
+    returned as a transform of the frame that moves the robot so, at ``before``."""
+    after = compose(moved, before)
+    d = np.array([after[0] - before[0], after[1] - before[1]])
+    c = np.array(cov).reshape(3, 3)
+    w, v = np.linalg.eigh(c[:2, :2])
+    keep = v[:, w <= FOLLOW_SD_M**2]
+    dx, dy = (keep @ (keep.T @ d)).tolist()
+    dth = math.remainder(after[2] - before[2], math.tau) if c[2, 2] <= FOLLOW_SD_RAD**2 else 0.0
+    target = (before[0] + dx, before[1] + dy, before[2] + dth)
+    return compose(target, inverse_pose(before))
 
 
 @dataclass(frozen=True, slots=True)
@@ -278,14 +311,18 @@ class MapKeeper:
         result = self.mapper.add_scan(t, turn.distances_m, turn.angles_rad, pose, site=site)
         moved = self.mapper.take_moved()
         seen = None
-        if not was_anchored or (moved is not None and max(abs(v) for v in moved) < 1e-9):
+        if not was_anchored or moved is None or turn.follows is None:
             # Before the map is anchored the fusion has not followed it, so the solve that anchors it
-            # (which can turn a map begun a degree or two askew) must not move the pose; and a solve
-            # that moved nothing here (the priors' own, far from any closure) is no news.
+            # (which can turn a map begun a degree or two askew) must not move the pose.
             moved = None
+        else:
+            moved = followed_part(moved, compose(inverse_pose(moved), result.pose), turn.follows)
+            if max(abs(v) for v in moved) < 1e-9:
+                moved = None  # a solve that moved nothing here, or only along what the fusion kept its own
         info = result.information
         if self._map_anchored() and result.matched and info is not None and result.weak >= SEEN_MIN_WEAK:
             seen = Seen(t, result.pose, seen_covariance(info, result.pose, self.config.mount))
+
         # The grid is read (drawn up to date: agent/mapping/mapper.py) only when a planner may be due.
         renew = self._planned_version < 0 or (driving and now >= self._next_planner)
         planner = None
