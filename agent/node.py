@@ -127,8 +127,9 @@ def pilot_config(cfg: AgentConfig) -> PilotConfig:
 
 
 def mapper_config(cfg: AgentConfig) -> MapperConfig:
-    """The robot's onboard mapper: legs laid for the ultrasonic cone unless its guard creeps."""
-    return onboard_mapper_config(cone=cfg.limits.creep_speed_mps == 0.0)
+    """The robot's onboard mapper: legs laid for the ultrasonic cone unless its guard creeps; loop
+    closure unless robot.toml's ``[mapping] loop_closure`` is false."""
+    return onboard_mapper_config(cone=cfg.limits.creep_speed_mps == 0.0, closures=cfg.mapping.loop_closure)
 
 
 HALT_TIMEOUT_S = 0.5

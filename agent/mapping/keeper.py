@@ -108,17 +108,13 @@ ONBOARD_REDRAW_BATCH = 50
 or two on a robot): what a read costs stays bounded however long the robot has mapped."""
 
 
-ONBOARD_CLOSURES = True
-"""Loop closure on board by default (measured: docs/mapping.md "On board")."""
-
-
-def onboard_mapper_config(*, cone: bool = True, closures: bool = ONBOARD_CLOSURES) -> MapperConfig:
+def onboard_mapper_config(*, cone: bool = True, closures: bool = True) -> MapperConfig:
     """Unknown cells count as free on an onboard map: a scout is sent into rooms it has not seen
     (the guard still stops it at anything real). ``cone`` False: a robot whose guard creeps to the
     walls instead of refusing drive starts for what its ultrasonic cone sees (docs/motion.md):
     its legs are not cut short to please the cone. ``closures``: loop closure on board
-    (``ONBOARD_CLOSER``; the keeper then feeds the map's pose back to the fusion: docs/mapping.md
-    "On board")."""
+    (``ONBOARD_CLOSER``; the keeper then hands the map's pose back to the fusion: docs/mapping.md
+    "On board"; robot.toml ``[mapping] loop_closure``)."""
     sensor = SensorCone() if cone else None
     return MapperConfig(
         planner=PlannerConfig(unknown_is_blocked=False, sensor=sensor),
