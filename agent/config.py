@@ -175,6 +175,15 @@ class UvTable:
 
 
 @dataclass(frozen=True, slots=True)
+class MappingTable:
+    """``[mapping]``: the onboard map (docs/mapping.md, "On board")."""
+
+    loop_closure: Annotated[
+        bool, Setting(doc="close loops on board; the fused pose then moves with the map (false: the map follows it)")
+    ] = True
+
+
+@dataclass(frozen=True, slots=True)
 class AgentConfig:
     robot: str
     board: str
@@ -191,6 +200,7 @@ class AgentConfig:
     comms: Comms = field(default_factory=Comms)
     uv: UvTable | None = None
     """The UV-C lamp (None: no lamp, no dose layer)."""
+    mapping: MappingTable = field(default_factory=MappingTable)
 
 
 def _robot_id(robot: str) -> str:
@@ -220,6 +230,7 @@ class RobotFile:
     home: HomeTable | None = None
     comms: Comms = field(default_factory=Comms)
     uv: UvTable | None = None
+    mapping: MappingTable = field(default_factory=MappingTable)
 
     def validate(self) -> None:
         if self.zenoh is None and self.mqtt is None:
@@ -262,4 +273,5 @@ def parse_agent_config(
         f.home,
         f.comms,
         f.uv,
+        f.mapping,
     )

@@ -15,6 +15,13 @@ scale ``k`` (true distance = k * odometry distance: wheel-radius error) and its 
   outlier; good fixes the capped gate refuses after a long outage are not locked out either: a run
   of ``reinit_after`` consecutive rejections that agree with each other (checked through the
   odometry between them) re-initialises the pose from that run.
+- ``add_map_pose(obs, now)``: the robot's pose as its onboard map has it (scan-matched against the
+  map, the map loop-closed and anchored to the site frame by UWB): a full pose update (x, y, heading)
+  with R from the observation's sd, gated on its own chi^2 (3 degrees of freedom), applied at its time
+  through the same history as fixes. Only once the heading is known (the map is in the site frame).
+- ``shift_frame(tf)``: the map frame moved under the robot (a loop closure's solve corrected the map
+  where the robot is): the filter's state, its history and the published pose move with it, rigidly
+  and at once, so the pose the pilot drives on stays where the map says it is.
 - Initialisation: the first ``init_fixes`` fixes that agree give the position; the heading comes
   from aligning the fixes' path with the odometry's path once the robot has moved
   ``heading_init_path_m``; before that the heading is marked unknown and not used.
@@ -42,7 +49,7 @@ import numpy.typing as npt
 from fleetlink.agent.odometry import OdomPose, wrap_angle
 from fleetlink.agent.uwb_input import FixObservation
 
-__all__ = ["FixVerdict", "Fusion", "FusionConfig", "MapPose", "Pose2D", "SeedReset"]
+__all__ = ["FixVerdict", "Fusion", "FusionConfig", "MapPose", "Pose2D", "PoseObservation", "SeedReset"]
 
 Vec = npt.NDArray[np.float64]
 
@@ -50,6 +57,8 @@ _X, _Y, _TH, _K, _B = range(5)
 _I5 = np.eye(5)
 _H = np.zeros((2, 5))
 _H[0, _X] = _H[1, _Y] = 1.0
+_H3 = np.zeros((3, 5))
+_H3[0, _X] = _H3[1, _Y] = _H3[2, _TH] = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,11 +95,15 @@ class FusionConfig:
     output_rate_rad_s: float = 0.2  # heading corrections (100x the gyro's bias drift)
     output_snap_m: float = 1.0  # a correction larger than this is applied at once (counted: output_snaps)
     output_snap_rad: float = 0.5
+    # the onboard map's pose (add_map_pose)
+    map_gate_chi2: float = 16.27  # chi^2, 3 degrees of freedom, 99.9 %
+    min_map_sd_m: float = 0.02  # floors on a map pose's sd
+    min_map_sd_rad: float = 0.005
 
     def __post_init__(self) -> None:
         if self.history_s < 1.0:
             raise ValueError(f"history_s must be >= 1 s (late fixes), not {self.history_s}")
-        for name in ("gate_chi2", "gate_max_sd_m", "stale_timeout_s", "min_fix_sd_m"):
+        for name in ("gate_chi2", "gate_max_sd_m", "stale_timeout_s", "min_fix_sd_m", "map_gate_chi2"):
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be a positive number, not {v!r}")
@@ -107,6 +120,25 @@ class FixVerdict:
     accepted: bool
     reason: str  # "accepted", "initialised", "reinitialised", "gate", "initialising", "too old", ...
     nis: float  # normalised innovation squared the gate saw (nan when not gated)
+
+
+@dataclass(frozen=True, slots=True)
+class PoseObservation:
+    """The robot's pose at ``t`` (the agent's clock) as its onboard map has it: the scan matched
+    against the map, in the map's frame, which UWB anchors to the site frame."""
+
+    t: float
+    x: float
+    y: float
+    theta: float
+    cov: tuple[float, ...]
+    """The covariance of (x, y, theta), 3 x 3 row-major, in the map frame."""
+
+    @classmethod
+    def of(cls, t: float, x: float, y: float, theta: float, sd_xy: float, sd_theta: float) -> PoseObservation:
+        """One with ``sd_xy`` in every direction and ``sd_theta``, uncorrelated."""
+        a, b = sd_xy * sd_xy, sd_theta * sd_theta
+        return cls(t, x, y, theta, (a, 0.0, 0.0, 0.0, a, 0.0, 0.0, 0.0, b))
 
 
 @dataclass(frozen=True, slots=True)
@@ -176,6 +208,7 @@ class _Node:
     disc: _Disc = field(default_factory=_Disc)
     verdict: FixVerdict | None = None
     counted: bool = False
+    seen: PoseObservation | None = None  # a map pose (then ``fix`` is None)
 
 
 @dataclass(frozen=True, slots=True)
@@ -241,6 +274,11 @@ class Fusion:
         self.odom_rejected = 0  # odometry older than the newest
         self.last_rejection = ""
         self.output_snaps = 0  # corrections beyond output_snap_m/rad applied to the published pose at once
+        self.map_accepted = 0  # map poses (add_map_pose) applied
+        self.map_rejected = 0  # ... refused (gate, not placed yet, too old, unusable)
+        self.last_map_rejection = ""
+        self.frame_shifts = 0  # shift_frame calls applied
+        self._pending_map: list[PoseObservation] = []  # map poses measured after the last odometry pose
         self._out: _Output | None = None
 
     # -- inputs ---------------------------------------------------------------------------------
@@ -259,9 +297,17 @@ class Fusion:
 
     def _advance(self, odom: OdomPose) -> None:
         last = self._nodes[-1]
-        while self._pending and self._pending[0].t_measured <= odom.t:
-            fix = self._pending.pop(0)
-            node = _Node(fix.t_measured, _interpolate(last.odom, odom, fix.t_measured), fix)
+        while True:
+            tf = self._pending[0].t_measured if self._pending else math.inf
+            tm = self._pending_map[0].t if self._pending_map else math.inf
+            if min(tf, tm) > odom.t:
+                break
+            if tf <= tm:  # a fix and a map pose at the same time: the fix first
+                fix = self._pending.pop(0)
+                node = _Node(tf, _interpolate(last.odom, odom, tf), fix)
+            else:
+                seen = self._pending_map.pop(0)
+                node = _Node(tm, _interpolate(last.odom, odom, tm), None, seen=seen)
             self._step(self._nodes[-1], node)
             self._nodes.append(node)
         node = _Node(odom.t, odom, None)
@@ -300,6 +346,87 @@ class Fusion:
             self._step(self._nodes[j - 1], self._nodes[j])
         assert node.verdict is not None
         return node.verdict
+
+    def add_map_pose(self, obs: PoseObservation, now: float) -> FixVerdict:
+        """The robot's pose at ``obs.t`` as its onboard map has it (see ``PoseObservation``), received
+        at ``now``: a pose update (x, y, heading) gated at ``map_gate_chi2``, applied at its time
+        through the history (late ones replayed, ones ahead of the odometry held), as fixes are.
+        Refused until the heading is known: the map is in the site frame only from then on."""
+        c = self.config
+        if not all(math.isfinite(v) for v in (obs.t, obs.x, obs.y, obs.theta, *obs.cov)):
+            return self._refuse_map("not finite")
+        if len(obs.cov) != 9:
+            return self._refuse_map("the covariance is not 3 x 3")
+        cov = np.array(obs.cov).reshape(3, 3)
+        if not np.allclose(cov, cov.T, rtol=1e-9, atol=1e-15) or not np.all(np.linalg.eigvalsh(cov) > 0):
+            return self._refuse_map("the covariance is not symmetric positive definite")
+        if obs.t > now + c.future_tolerance_s:
+            return self._refuse_map(f"measured {obs.t - now:.2f} s in the future")
+        if not self._nodes:
+            return self._refuse_map("no odometry yet")
+        last = self._nodes[-1]
+        if obs.t > last.t:
+            bisect.insort(self._pending_map, obs, key=lambda o: o.t)
+            ok = last.disc.pos_init and last.disc.heading_init
+            return FixVerdict(ok, "accepted (pending)" if ok else "not placed (pending)", math.nan)
+        if obs.t < self._nodes[0].t:
+            return self._refuse_map(f"{last.t - obs.t:.2f} s old, older than the history")
+        times = [n.t for n in self._nodes]
+        i = bisect.bisect_right(times, obs.t)
+        if i == len(self._nodes):  # measured with the newest odometry: applies now, nothing to replay
+            node = _Node(last.t, last.odom, None, seen=obs)
+            self._step(last, node)
+            self._nodes.append(node)
+        else:
+            node = _Node(obs.t, _interpolate(self._nodes[i - 1].odom, self._nodes[i].odom, obs.t), None, seen=obs)
+            self._nodes.insert(i, node)
+            for j in range(i, len(self._nodes)):
+                self._step(self._nodes[j - 1], self._nodes[j])
+        assert node.verdict is not None
+        return node.verdict
+
+    def shift_frame(self, tf: tuple[float, float, float]) -> None:
+        """The map frame moved: ``tf`` (x, y, theta) takes a pose in the old frame to the new one (a
+        loop closure's solve moved the map where the robot is by it). The filter's state and its
+        whole history, the map poses held or kept for replay and the published pose move with it,
+        rigidly and at once (the map moved at once too: the pose the pilot drives on must not lag the
+        walls it plans among). UWB fixes stay as measured: the site frame is theirs, and they pull
+        the pose back as far as the map left it. Nothing happens before the position is known."""
+        dx, dy, phi = (float(v) for v in tf)
+        if not all(math.isfinite(v) for v in (dx, dy, phi)):
+            raise ValueError(f"shift_frame needs a finite transform, got {tf!r}")
+        if not self.position_initialized:
+            return
+        c, s = math.cos(phi), math.sin(phi)
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        big = _I5.copy()
+        big[:3, :3] = rot
+
+        def moved(o: PoseObservation) -> PoseObservation:
+            cov = rot @ np.array(o.cov).reshape(3, 3) @ rot.T
+            return replace(
+                o,
+                x=c * o.x - s * o.y + dx,
+                y=s * o.x + c * o.y + dy,
+                theta=wrap_angle(o.theta + phi),
+                cov=tuple(float(v) for v in cov.ravel()),
+            )
+
+        for n in self._nodes:
+            if n.disc.pos_init:
+                x = n.x.copy()
+                x[_X], x[_Y] = c * n.x[_X] - s * n.x[_Y] + dx, s * n.x[_X] + c * n.x[_Y] + dy
+                x[_TH] = wrap_angle(float(n.x[_TH]) + phi)
+                n.x, n.P = x, big @ n.P @ big.T
+            if n.seen is not None:
+                n.seen = moved(n.seen)
+        self._pending_map = [moved(o) for o in self._pending_map]
+        out = self._out
+        if out is not None:
+            self._out = replace(
+                out, x=c * out.x - s * out.y + dx, y=s * out.x + c * out.y + dy, theta=wrap_angle(out.theta + phi)
+            )
+        self.frame_shifts += 1
 
     # -- outputs --------------------------------------------------------------------------------
 
@@ -481,6 +608,11 @@ class Fusion:
         self.last_rejection = reason
         return FixVerdict(False, reason, math.nan)
 
+    def _refuse_map(self, reason: str) -> FixVerdict:
+        self.map_rejected += 1
+        self.last_map_rejection = reason
+        return FixVerdict(False, reason, math.nan)
+
     def _prune(self) -> None:
         nodes = self._nodes
         if len(nodes) < 8 or nodes[1].t >= nodes[-1].t - self.config.history_s - 0.5:
@@ -505,6 +637,18 @@ class Fusion:
             x, P = self._predict(prev.x, prev.P, prev.odom, node.odom, d.heading_init)
         else:
             x, P = prev.x.copy(), prev.P.copy()
+        if node.seen is not None:
+            verdict, node.x, node.P = self._update_map(x, P, d, node.seen)
+            node.disc = d
+            node.verdict = verdict
+            if not node.counted:
+                node.counted = True
+                if verdict.accepted:
+                    self.map_accepted += 1
+                else:
+                    self.map_rejected += 1
+                    self.last_map_rejection = verdict.reason
+            return
         if node.fix is None:
             node.x, node.P, node.disc = x, P, d
             return
@@ -629,6 +773,29 @@ class Fusion:
                 d = _Disc(True, d.heading_init or fit.rotated, 0, _accepted(buffer))
                 return FixVerdict(True, "reinitialised", nis), x, P, d
         return FixVerdict(False, "gate", nis), x, P, d
+
+    def _update_map(self, x: Vec, P: Vec, d: _Disc, obs: PoseObservation) -> tuple[FixVerdict, Vec, Vec]:
+        """The pose update of a map pose: x, y and heading at once, gated on its NIS (3 dof)."""
+        c = self.config
+        if not (d.pos_init and d.heading_init):
+            return FixVerdict(False, "not placed", math.nan), x, P
+        R = np.array(obs.cov).reshape(3, 3)
+        # Floors, added where the observation claims less (a PSD term each: R stays positive definite).
+        R[0, 0] += max(0.0, c.min_map_sd_m**2 - R[0, 0])
+        R[1, 1] += max(0.0, c.min_map_sd_m**2 - R[1, 1])
+        R[2, 2] += max(0.0, c.min_map_sd_rad**2 - R[2, 2])
+        nu = np.array([obs.x - x[_X], obs.y - x[_Y], wrap_angle(obs.theta - float(x[_TH]))])
+        S = _H3 @ P @ _H3.T + R
+        S_inv = np.linalg.inv(S)
+        nis = float(nu @ S_inv @ nu)
+        if c.gate and nis > c.map_gate_chi2:
+            return FixVerdict(False, "gate", nis), x, P
+        K = P @ _H3.T @ S_inv
+        x = x + K @ nu
+        x[_TH] = wrap_angle(float(x[_TH]))
+        IKH = _I5 - K @ _H3
+        P = IKH @ P @ IKH.T + K @ R @ K.T
+        return FixVerdict(True, "accepted", nis), x, P
 
     def _from_fit(self, x0: Vec, P0: Vec, fit: _Fit, odom: OdomPose, heading_known: bool) -> tuple[Vec, Vec]:
         """The state at ``odom``'s time given a map-from-odometry fit; calibration states are kept."""

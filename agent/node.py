@@ -31,7 +31,7 @@ from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.contact import ContactKeeper
 from fleetlink.agent.core import AgentCore, Output, board_view
 from fleetlink.agent.dose_layer import DoseKeeper, DosePublication, DoseSample
-from fleetlink.agent.fusion import Fusion
+from fleetlink.agent.fusion import Fusion, PoseObservation
 from fleetlink.agent.home import HomeKeeper
 from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update, onboard_mapper_config
 from fleetlink.agent.mapping.mapper import MapperConfig
@@ -127,8 +127,9 @@ def pilot_config(cfg: AgentConfig) -> PilotConfig:
 
 
 def mapper_config(cfg: AgentConfig) -> MapperConfig:
-    """The robot's onboard mapper: legs laid for the ultrasonic cone unless its guard creeps."""
-    return onboard_mapper_config(cone=cfg.limits.creep_speed_mps == 0.0)
+    """The robot's onboard mapper: legs laid for the ultrasonic cone unless its guard creeps; loop
+    closure unless robot.toml's ``[mapping] loop_closure`` is false."""
+    return onboard_mapper_config(cone=cfg.limits.creep_speed_mps == 0.0, closures=cfg.mapping.loop_closure)
 
 
 HALT_TIMEOUT_S = 0.5
@@ -180,6 +181,8 @@ class AgentNode:
         self._next_links = -float("inf")
         self._holder: str | None = None  # none told to the links yet
         self.keeper: KeeperHost | None = None
+        self._follows: tuple[float, ...] | None = None
+        """The covariance of the last map pose the fusion took (``Turn.follows``)."""
         self.share: Any = None
         uv = config.uv
         self.dose: DoseKeeper | None = (
@@ -351,9 +354,11 @@ class AgentNode:
             t = (rev.stamp if rev.stamp is not None else now) - turn_s
             o_now = self.core.fusion.odom_pose()
             o = self.core.fusion.odom_at(t)
+            anchored = not self.core.fusion.uwb_stale(now)
+            follows = self._follows
         # The fused pose now, moved back by the odometry to the turn's start.
         seen = compose((p.x, p.y, p.theta), relative((o_now.x, o_now.y, o_now.theta), (o.x, o.y, o.theta)))
-        update = keeper.add(Turn(t, rev.distances_m, rev.angles_rad, seen, placed, driving, now))
+        update = keeper.add(Turn(t, rev.distances_m, rev.angles_rad, seen, placed, driving, now, anchored, follows))
         self.scans += 1
         self._share_scan(rev, seen, now)
         if update is not None:
@@ -372,6 +377,10 @@ class AgentNode:
 
     def _use_map(self, update: Update) -> None:
         if update.restarted:
+            self._follows = None
+        if update.moved is not None or update.seen is not None:
+            self._localise(update)
+        if update.restarted:
             log.info("%s: UWB frame established; the map restarts in it", self.robot)
             self._open_share()
             if self.dose is not None:
@@ -384,6 +393,18 @@ class AgentNode:
         if update.planner is not None:
             with self._lock:
                 self.core.use_map(update.planner.route, update.planner)
+
+    def _localise(self, update: Update) -> None:
+        """Loop closure moved the map (``moved``): the fused pose moves with it, at once; the turn's
+        pose as matched in the map (``seen``) is a pose measurement for the fusion, so the pose the
+        pilot drives on stays where the map it plans on says it is (docs/localisation.md)."""
+        with self._lock:
+            fusion = self.core.fusion
+            if update.moved is not None:
+                fusion.shift_frame(update.moved)
+            s = update.seen
+            if s is not None and fusion.add_map_pose(PoseObservation(s.t, *s.pose, s.cov), self.clock.now()).accepted:
+                self._follows = s.cov
 
     def lidar_report(self, fault: str | None) -> None:
         """The lidar failed (``fault``) or delivers again (None)."""

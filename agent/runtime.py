@@ -8,7 +8,8 @@
   does not wake it);
 * the links' own delivery threads (fleetlink.links: Zenoh's in-order delivery, paho's loop),
   which hand every payload to ``AgentNode.on_input``;
-* with a ``lidar`` URL in robot.toml, the lidar worker: ``LidarFeed.step(now)`` reads a quarter
+* with a ``lidar`` URL in robot.toml, the lidar worker (and, with loop closure on, the closure
+  search worker, agent/mapping/worker.py ``SearchWorker``): ``LidarFeed.step(now)`` reads a quarter
   turn at a time into the node's map keeper (mapping, frame restarts, planner renewal:
   agent/mapping/keeper.py), serves the map on the Zenoh link (``fleetlink/v1/<robot>/map``,
   docs/mapping.md), and reports a failing lidar (``lidar_fault``/``lidar_ok`` events, an error in
@@ -30,7 +31,8 @@ from fleetlink.agent.core import AgentCore
 from fleetlink.agent.links.mqtt_link import agent_mqtt_link
 from fleetlink.agent.links.zenoh_link import agent_zenoh_link
 from fleetlink.agent.mapping.keeper import MapKeeper
-from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed
+from fleetlink.agent.mapping.worker import SearchWorker
+from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed, mapper_config
 from fleetlink.devices.ports import Port
 from fleetlink.links.gated import GatedLink
 from fleetlink.links.mqtt import MqttEndpoint
@@ -83,6 +85,7 @@ class AgentRuntime:
         self._control = Worker(f"agent-{robot}", clock=self.clock, target=self._control_loop)
         node.on_started = self._control.wake
         self._lidar: Worker | None = None
+        self._search: SearchWorker | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -95,7 +98,10 @@ class AgentRuntime:
                 log.error("%s link failed to start: %s", link.name.value, exc)
         self._control.start()
         if self.config.lidar:
-            self.node.open_map()
+            mapping = mapper_config(self.config)
+            if mapping.closer is not None:  # loop closure's checks on a thread of their own
+                self._search = SearchWorker(f"closure-{self.config.robot}", clock=self.clock).start()
+            self.node.open_map(MapKeeper(mapping, search=self._search))
             self._lidar = Worker(f"lidar-{self.config.robot}", clock=self.clock, target=self._lidar_loop).start()
         return self
 
@@ -107,6 +113,9 @@ class AgentRuntime:
         if self._lidar is not None:
             self._lidar.stop()
             self._lidar = None
+        if self._search is not None:
+            self._search.stop()
+            self._search = None
         if self.board.snapshot.connected:
             self.node.halt()
         self.node.close()

@@ -47,6 +47,19 @@ def test_a_round_base_lets_the_guard_allow_turning_in_place(tmp_path: Path) -> N
     assert pilot_config(load_agent_config(path)).guard.creep_speed_mps == 0.0
 
 
+def test_loop_closure_on_board_can_be_turned_off(tmp_path: Path) -> None:
+    from fleetlink.agent.node import mapper_config
+
+    path = tmp_path / "robot.toml"
+    path.write_text('robot = "r1"\nboard = "socket://h:1"\n[zenoh]\nconnect = ["tcp/h:7447"]\n')
+    assert mapper_config(load_agent_config(path)).closer is not None  # on by default
+    path.write_text(path.read_text() + "[mapping]\nloop_closure = false\n")
+    assert mapper_config(load_agent_config(path)).closer is None
+    path.write_text(path.read_text().replace("false", '"no"'))
+    with pytest.raises(ConfigError, match=r"mapping\.loop_closure"):
+        load_agent_config(path)
+
+
 def test_scenario_toml(tmp_path: Path) -> None:
     path = tmp_path / "drill.toml"
     path.write_text(

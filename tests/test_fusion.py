@@ -1,4 +1,5 @@
-"""Fusion: convergence, the gate (also after a long outage), late-fix replay, the two outputs, staleness."""
+"""Fusion: convergence, the gate (also after a long outage), late-fix replay, the two outputs, staleness;
+the onboard map's pose as a measurement and the map frame's shift (loop closure on board)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from fleetlink.agent.fusion import Fusion, FusionConfig, SeedReset
+from fleetlink.agent.fusion import Fusion, FusionConfig, PoseObservation, SeedReset
 from fleetlink.agent.odometry import Odometry, OdomPose
 from fleetlink.agent.uwb_input import FixObservation
 
@@ -217,6 +218,101 @@ def test_fix_older_than_the_history_or_from_the_future_is_refused() -> None:
     nan = fusion.add_fix(FixObservation(sim.t, math.nan, sim.y, 0.1, 0.1, 90, "test"), sim.t)
     assert not nan.accepted and nan.reason == "not finite"
     assert fusion.rejected >= 3
+
+
+def _seen(sim: Sim, dx: float = 0.0, dth: float = 0.0, t: float | None = None) -> PoseObservation:
+    """The map's pose of the robot now (or at ``t``, from the truth then), off the truth by dx, dth."""
+    return PoseObservation.of(sim.t if t is None else t, sim.x + dx, sim.y, sim.th + dth, 0.03, math.radians(1.0))
+
+
+def test_a_map_pose_is_a_pose_measurement_gated_on_its_own() -> None:
+    sim, fusion = converged(20.0)
+    before = fusion.filter_pose()
+    # The map says the robot is 5 cm east of where the filter has it, and turned 1 degree more.
+    seen = PoseObservation.of(sim.t, before.x + 0.05, before.y, before.theta + math.radians(1.0), 0.03, math.radians(1))
+    v = fusion.add_map_pose(seen, sim.t)
+    assert v.accepted and v.reason == "accepted" and v.nis < fusion.config.map_gate_chi2
+    after = fusion.filter_pose()
+    # Pulled towards it in position and in heading (a full pose update), not past it.
+    assert before.x + 0.005 < after.x < seen.x
+    assert 0.001 < math.remainder(after.theta - before.theta, math.tau) < math.radians(1.0)
+    assert after.sd_x < before.sd_x and after.sd_theta < before.sd_theta
+    assert fusion.map_accepted == 1 and fusion.accepted > 0  # UWB's counters are its own
+    # One 1 m off is refused by the gate, and changes nothing.
+    far = fusion.add_map_pose(_seen(sim, dx=1.0), sim.t)
+    assert not far.accepted and far.reason == "gate" and far.nis > fusion.config.map_gate_chi2
+    assert fusion.filter_pose() == after and fusion.map_rejected == 1
+    bad = fusion.add_map_pose(PoseObservation.of(sim.t, math.nan, 0.0, 0.0, 0.03, 0.01), sim.t)
+    assert not bad.accepted and bad.reason == "not finite"
+    flat = fusion.add_map_pose(PoseObservation(sim.t, sim.x, sim.y, sim.th, (1.0, 0, 0, 0, 0.0, 0, 0, 0, 1.0)), sim.t)
+    assert not flat.accepted and "positive definite" in flat.reason
+    # Along a direction the map pins down badly (a corridor seen end-on) the map's pose moves nothing.
+    along = np.diag([100.0, 0.03**2, 0.02**2])
+    p0 = fusion.filter_pose()
+    obs = PoseObservation(sim.t, p0.x + 0.3, p0.y, p0.theta, tuple(along.ravel()))
+    assert fusion.add_map_pose(obs, sim.t).accepted
+    assert abs(fusion.filter_pose().x - p0.x) < 0.001
+
+
+def test_a_map_pose_before_the_heading_is_known_is_refused() -> None:
+    sim, fusion = Sim(), Fusion()
+    for _ in sim.run(fusion, 0.8):  # placed, but the heading not known yet (the map is not in the site frame)
+        pass
+    assert fusion.position_initialized and not fusion.heading_initialized
+    v = fusion.add_map_pose(_seen(sim), sim.t)
+    assert not v.accepted and v.reason == "not placed"
+    assert fusion.map_rejected == 1 and fusion.map_accepted == 0
+
+
+def test_late_map_poses_replay_to_the_in_order_answer() -> None:
+    on_time, late = Fusion(), Fusion()
+    sim = Sim(seed=5)
+    held: list[PoseObservation] = []
+    for i in range(round(30.0 / DT)):
+        pose, fixes = sim.step()
+        for f in fixes:
+            on_time.add_fix(f, sim.t)
+            late.add_fix(f, sim.t)
+        on_time.predict(pose)
+        late.predict(pose)
+        if sim.t > 10.0 and i % 4 == 0:  # a mapped turn, its pose ~0.3 s late (a turn, and the mapping)
+            obs = _seen(sim, dx=0.02)
+            on_time.add_map_pose(obs, sim.t)
+            held.append(obs)
+        while held and held[0].t <= sim.t - 0.3:
+            late.add_map_pose(held.pop(0), sim.t)
+    for obs in held:
+        late.add_map_pose(obs, sim.t + 0.3)
+    a, b = on_time.filter_pose(), late.filter_pose()
+    assert on_time.map_accepted > 50 and late.map_accepted == on_time.map_accepted
+    assert (b.x, b.y, b.theta) == pytest.approx((a.x, a.y, a.theta), abs=1e-9)
+
+
+def test_the_frame_shift_moves_the_filter_and_the_published_pose_at_once() -> None:
+    sim, fusion = converged(20.0)
+    # A loop closure's solve moved the map 0.2 m east, 0.1 m north and turned it 3 degrees where
+    # the robot is: the pose the pilot drives on moves with it, not at the output's glide rate.
+    before, pub = fusion.filter_pose(), fusion.map_pose()
+    c, s = math.cos(math.radians(3.0)), math.sin(math.radians(3.0))
+    tf = (pub.x + 0.2 - (c * pub.x - s * pub.y), pub.y + 0.1 - (s * pub.x + c * pub.y), math.radians(3.0))
+    fusion.shift_frame(tf)
+    after, pub2 = fusion.filter_pose(), fusion.map_pose()
+    for b, a in ((before, after), (pub, pub2)):
+        assert a.x == pytest.approx(c * b.x - s * b.y + tf[0], abs=1e-9)
+        assert a.y == pytest.approx(s * b.x + c * b.y + tf[1], abs=1e-9)
+        assert math.remainder(a.theta - b.theta - tf[2], math.tau) == pytest.approx(0.0, abs=1e-9)
+    assert after.sd_x == pytest.approx(math.hypot(before.sd_x * c, before.sd_y * s), rel=0.3)
+    assert fusion.frame_shifts == 1 and fusion.output_snaps == 0
+    # The next odometry carries on from there.
+    pose, _ = sim.step()
+    fusion.predict(pose)
+    assert math.hypot(fusion.map_pose().x - after.x, fusion.map_pose().y - after.y) < 0.05
+    # UWB keeps the site frame: with fixes the pose comes back to the truth over seconds, not at once.
+    moved = math.dist((pub.x, pub.y), (pub2.x, pub2.y))
+    errors = []
+    for _ in sim.run(fusion, 10.0):
+        errors.append(sim.error(fusion))
+    assert moved > 0.15 and errors[0] > 0.6 * moved and errors[-1] < errors[0] / 3
 
 
 def test_odom_pose_never_jumps_while_the_map_pose_absorbs_corrections() -> None:

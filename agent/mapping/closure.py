@@ -25,12 +25,21 @@ closure needs (after Cartographer's global SLAM, Hess et al. 2016, on a smaller 
 
 The caller (the mapper) re-renders its grid from the optimised node poses. numpy and scipy (the
 solve); time is an argument; no I/O.
+
+**In line or elsewhere.** ``close()`` searches and solves in line (a replay). On a robot the search
+runs elsewhere (a worker thread: agent/mapping/worker.py): ``plan(k, t)`` hands out a node's
+verifications as ``Check`` values that carry everything they need (the scan, the submap drawn or the
+scans to draw it from, the window), ``run_check`` runs one anywhere, and ``take(results)`` brings the
+verdicts back into the graph (confirmation of large corrections, the solve) in the owner's thread.
+``check_period`` bounds the rate of fresh searches in time (a node's search waits that long after
+the last one), so the search costs at most so much per second however fast nodes come.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -41,7 +50,19 @@ from fleetlink.agent.mapping.matcher import LocalMap, field_score, icp_refine, r
 from fleetlink.agent.mapping.posegraph import PoseGraph
 from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
 
-__all__ = ["CloserConfig", "CloserStats", "Closure", "LoopCloser", "NodeScan"]
+__all__ = [
+    "Check",
+    "CheckResult",
+    "CloserConfig",
+    "CloserStats",
+    "Closure",
+    "ClosureSearch",
+    "DeferredSearch",
+    "Drawn",
+    "LoopCloser",
+    "NodeScan",
+    "run_check",
+]
 
 F64 = npt.NDArray[np.float64]
 
@@ -95,6 +116,11 @@ class CloserConfig:
     final_sigma_theta: float = math.radians(1.0)
     final_drops: int = 20  # edges the final solve may drop, one at a time
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
+    check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
+    # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
+    # a solve costs about in proportion to the graph, so its share of a core stays flat however long
+    # the robot maps (0: as soon as something is found, as ``close`` does).
+    solve_nodes_per_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.submap_nodes < 2 or self.attempts_per_node < 0 or self.min_gap_nodes < self.submap_nodes:
@@ -141,13 +167,50 @@ class Closure:
     inlier_ratio: float
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class Drawn:
+    """A submap drawn for verification, in its first node's frame: the log-odds grid (and its field),
+    the point-to-line map, and the branch and bound's levels. Read only once drawn."""
+
+    grid: LogOddsGrid
+    local: LocalMap
+    grids: PrecomputedGrids
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Check:
+    """One verification of a node against a submap, self-contained: ``run_check`` needs nothing else,
+    so it can run on another thread while the graph goes on growing (the verdict, a relative pose, is
+    valid whatever the graph does meanwhile)."""
+
+    node: int
+    submap: int  # its index in ``LoopCloser.submaps``
+    anchor: int  # the submap's first node (its frame)
+    scan: NodeScan
+    guess: Pose  # the node's sensor pose in the submap's frame
+    window: tuple[float, float]  # (m, rad) half-widths of the search
+    drawn: Drawn | None  # the submap as drawn, or None: draw it from ``parts``
+    parts: tuple[tuple[Pose, NodeScan], ...]  # (sensor pose in the submap's frame, scan) per node
+    config: CloserConfig
+    grid_config: GridConfig
+    mount: Pose  # the lidar on the robot
+    confirms: Closure | None = None  # a pending closure this check may confirm (else a fresh search)
+    owner: object = field(default=None, compare=False)  # the closer that planned it (``take`` ignores others')
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CheckResult:
+    check: Check
+    closure: Closure | None
+    outcome: str  # "accepted", "few points", "score", "inliers", "disagreement", "degenerate"
+    drawn: Drawn | None  # the submap as drawn for the check (None: not drawn, too few points)
+
+
 @dataclass(slots=True, eq=False)
 class _Submap:
     first: int
     last: int  # exclusive
-    grid: LogOddsGrid | None = None
-    local: LocalMap | None = None
-    grids: PrecomputedGrids | None = None
+    drawn: Drawn | None = None
     tried_at: int = -(10**9)
 
 
@@ -165,6 +228,42 @@ class CloserStats:
     solves: int = 0
     submaps_drawn: int = 0  # drawings (a submap let go and needed again is drawn again)
     final_edges: int = 0  # matches the final pass (``finish``) verified
+
+
+class ClosureSearch(Protocol):
+    """Where a mapper's closure checks run (``LoopCloser.plan`` -> here -> ``LoopCloser.take``)."""
+
+    def submit(self, checks: list[Check]) -> None:
+        """Run these checks (in order), their verdicts to be collected later."""
+        ...
+
+    def collect(self) -> list[CheckResult]:
+        """The verdicts ready, in the order their checks were submitted; never waits."""
+        ...
+
+    @property
+    def busy(self) -> bool:
+        """Checks submitted whose verdicts are not ready yet (a new batch then waits its turn)."""
+        ...
+
+
+class DeferredSearch:
+    """Checks run at once, in line, their verdicts collected with the next node: the results of a
+    search elsewhere that always keeps up, deterministically (lockstep runs, tests)."""
+
+    def __init__(self) -> None:
+        self._done: list[CheckResult] = []
+
+    def submit(self, checks: list[Check]) -> None:
+        self._done.extend(run_check(c) for c in checks)
+
+    def collect(self) -> list[CheckResult]:
+        done, self._done = self._done, []
+        return done
+
+    @property
+    def busy(self) -> bool:
+        return False
 
 
 class LoopCloser:
@@ -189,6 +288,10 @@ class LoopCloser:
         self._pending: list[Closure] = []  # large corrections waiting for a second closure
         self._drawn: list[_Submap] = []  # the drawn submaps, least recently used first
         self._solved_at = -1  # the newest node at the last solve
+        self._searched_t = -math.inf  # the time of the last node whose fresh search was planned
+        self._token = object()  # marks this closer's checks: a search host shared with a successor
+        self._solved_t = -math.inf  # the newest node's time at the last solve
+        self._unsolved = False  # closures added (or priors due) since the last solve
         self.since_closure = 0.0  # m travelled (node to node) since the last accepted closure
 
     def __len__(self) -> int:
@@ -225,7 +328,7 @@ class LoopCloser:
         return k
 
     def close(self) -> bool:
-        """Look for closures of the newest node; True when the graph was solved (poses moved)."""
+        """Look for closures of the newest node, in line; True when the graph was solved (poses moved)."""
         k = len(self.graph.poses) - 1
         if k < 0:
             return False
@@ -236,11 +339,8 @@ class LoopCloser:
         # building of look-alike corridors can be wrong with a good score. So while one waits, the
         # new node is first tried where that correction would put it, in a small window.
         for p in list(self._pending):
-            fix = self._correction(p)
-            at = compose(fix, self.graph.poses[k])
-            for sm in self._candidates(k, at, fresh_only=False, limit=1):
-                self.stats.attempts += 1
-                c = self._verify(k, sm, fix, (cfg.search_xy, cfg.search_theta))
+            for check in self._confirm_checks(k, p):
+                c = self._note(run_check(self._with_drawn(check)))
                 if c is not None and self._agree(p, c):
                     found.extend([p, c])
                     self._pending.remove(p)
@@ -249,29 +349,123 @@ class LoopCloser:
             if found:
                 break
         if not found:
-            for sm in self._candidates(k, self.graph.poses[k]):
-                sm.tried_at = k
-                self.stats.attempts += 1
-                c = self._verify(k, sm)
-                if c is None:
-                    continue
-                if self._jump(c) <= cfg.confirm_above:
-                    found.append(c)
-                    continue
-                agree = [p for p in self._pending if self._agree(p, c)]
-                if agree:
-                    found.extend([*agree, c])
-                    self._pending = [p for p in self._pending if p not in agree]
-                    self.stats.confirmed += 1
-                else:
-                    self._pending.append(c)
-                    self.stats.pending += 1
-        if not found:
-            if self.graph.priors and k - self._solved_at >= cfg.prior_solve_nodes:
-                self._solve()  # the priors alone pull the graph into the site frame, now and then
-                return True
+            for check in self._fresh_checks(k):
+                self._classify(self._note(run_check(self._with_drawn(check))), found)
+        return self._conclude(k, found)
+
+    def plan(self, k: int | None = None) -> list[Check]:
+        """The verifications for node ``k`` (default the newest), to run elsewhere (``run_check``) and
+        bring back with ``take``: one per pending large correction (where it would put the node), and
+        the fresh search, unless one was planned less than ``check_period`` ago (by node time)."""
+        k = len(self.graph.poses) - 1 if k is None else k
+        if k < 0:
+            return []
+        cfg = self.config
+        self._pending = [p for p in self._pending if k - p.node <= cfg.confirm_nodes]
+        checks = [c for p in self._pending for c in self._confirm_checks(k, p)]
+        if self.times[k] - self._searched_t >= cfg.check_period:
+            fresh = self._fresh_checks(k)
+            if fresh:
+                self._searched_t = self.times[k]
+            checks.extend(fresh)
+        return checks
+
+    def take(self, results: list[CheckResult]) -> bool:
+        """Bring verdicts back (from ``plan``'s checks, run anywhere, in the order planned): drawn
+        submaps cached, a confirmation agreeing with its pending closure accepts both, a fresh closure
+        accepted or held as ``close`` does; then the graph solved if anything was found (or the priors
+        are due a solve). True when the graph was solved (poses moved). Call it for every new node,
+        with no results too."""
+        k = len(self.graph.poses) - 1
+        if k < 0:
             return False
-        self.add_closures(found)
+        cfg = self.config
+        found: list[Closure] = []
+        for r in results:
+            if r.check.owner is not self._token:
+                continue  # planned by a closer before this one (a map restarted meanwhile)
+            sm = self.submaps[r.check.submap]
+            if r.drawn is not None and sm.drawn is None:
+                sm.drawn = r.drawn
+                self._touch(sm)
+            c = self._note(r)
+            p = r.check.confirms
+            if p is not None:
+                if c is not None and p in self._pending and self._agree(p, c):
+                    found.extend([p, c])
+                    self._pending.remove(p)
+                    self.stats.confirmed += 1
+            else:
+                self._classify(c, found)
+        self._pending = [p for p in self._pending if k - p.node <= cfg.confirm_nodes]
+        return self._conclude(k, found, paced=True)
+
+    def _confirm_checks(self, k: int, p: Closure) -> list[Check]:
+        cfg = self.config
+        fix = self._correction(p)
+        at = compose(fix, self.graph.poses[k])
+        return [
+            self._check(k, sm, fix, (cfg.search_xy, cfg.search_theta), confirms=p)
+            for sm in self._candidates(k, at, fresh_only=False, limit=1)
+        ]
+
+    def _fresh_checks(self, k: int) -> list[Check]:
+        checks = []
+        for sm in self._candidates(k, self.graph.poses[k]):
+            sm.tried_at = k
+            checks.append(self._check(k, sm))
+        return checks
+
+    def _note(self, r: CheckResult, attempt: bool = True) -> Closure | None:
+        """Count a verdict in the stats (``attempt``: as a closure check); the closure, if accepted."""
+        st = self.stats
+        st.attempts += attempt
+        if r.drawn is not None and r.check.drawn is None:
+            st.submaps_drawn += 1
+        if r.outcome in ("score", "few points"):
+            st.rejected_score += r.outcome == "score"
+        elif r.outcome == "inliers":
+            st.rejected_inliers += 1
+        elif r.outcome == "disagreement":
+            st.rejected_disagreement += 1
+        elif r.outcome == "degenerate":
+            st.rejected_degenerate += 1
+        return r.closure
+
+    def _classify(self, c: Closure | None, found: list[Closure]) -> None:
+        """A fresh closure: accepted when it moves its node little, else held for a second one that
+        agrees (both accepted then)."""
+        if c is None:
+            return
+        if self._jump(c) <= self.config.confirm_above:
+            found.append(c)
+            return
+        agree = [p for p in self._pending if self._agree(p, c)]
+        if agree:
+            found.extend([*agree, c])
+            self._pending = [p for p in self._pending if p not in agree]
+            self.stats.confirmed += 1
+        else:
+            self._pending.append(c)
+            self.stats.pending += 1
+
+    def _conclude(self, k: int, found: list[Closure], paced: bool = False) -> bool:
+        """Closures found join the graph; the graph is solved when they did, or when the priors are due
+        a solve (they alone pull the graph into the site frame, now and then). ``paced``: not sooner
+        than ``len(graph) / solve_nodes_per_s`` seconds (node time) after the last solve; what waits
+        is solved at a later node. True when the graph was solved."""
+        cfg = self.config
+        if found:
+            self._add(found)
+            self._unsolved = True
+        elif self.graph.priors and k - self._solved_at >= cfg.prior_solve_nodes:
+            self._unsolved = True
+        if not self._unsolved:
+            return False
+        wait = len(self.graph.poses) / cfg.solve_nodes_per_s if paced and cfg.solve_nodes_per_s > 0 else 0.0
+        if self.times[k] - self._solved_t < wait:
+            return False
+        self._solve()
         return True
 
     def _closure_info(self) -> F64:
@@ -281,6 +475,10 @@ class LoopCloser:
     def add_closures(self, closures: list[Closure]) -> None:
         """Put verified closures into the graph and solve it; a closure the solve finds inconsistent
         with the rest (error above ``max_chi2``) is dropped and the graph solved without it."""
+        self._add(closures)
+        self._solve()
+
+    def _add(self, closures: list[Closure]) -> None:
         info = self._closure_info()
         for c in closures:
             self.graph.add_edge(c.anchor, c.node, c.z, info)
@@ -288,7 +486,6 @@ class LoopCloser:
             self._closure_edges.append(len(self.graph.edges) - 1)
             self.stats.accepted += 1
         self.since_closure = 0.0
-        self._solve()
 
     def _correction(self, c: Closure) -> Pose:
         """The map-frame move the closure asks of its node: where it puts the node, from where it is."""
@@ -347,30 +544,68 @@ class LoopCloser:
             min(cfg.drift_theta_per_m * d, cfg.max_search_theta - cfg.search_theta),
         )
 
-    def _draw(self, sm: _Submap) -> tuple[LogOddsGrid, LocalMap, PrecomputedGrids]:
-        """The submap's grid, point-to-line map and search levels, drawn the first time they are
-        needed. Only ``cached_submaps`` stay drawn (the least recently used is let go and drawn again
-        if asked for): each holds a grid and its seven search levels, megabytes apiece."""
-        if sm.grid is None or sm.local is None or sm.grids is None:
-            anchor = self.graph.poses[sm.first]
-            # A small growth step: the mapper's 8 m padding would make every submap a big grid.
-            grid = LogOddsGrid(replace(self.grid_config, grow_step=SUBMAP_GROW_M))
-            local = LocalMap(sm.last - sm.first, cell=0.05)
-            for n in range(sm.first, sm.last):
-                sensor = compose(relative(anchor, self.graph.poses[n]), self.mount)
-                sc = self.scans[n]
-                grid.integrate(sensor, sc.ranges, sc.angles, sc.hit)
-                local.add(sensor, sc.points, sc.normals)
-            sm.grid, sm.local = grid, local
-            sm.grids = PrecomputedGrids(grid.field, grid.origin, grid.resolution, self.config.bnb_depth)
+    def _draw(self, sm: _Submap) -> Drawn:
+        """The submap drawn (``Drawn``), the first time it is needed. Only ``cached_submaps`` stay drawn
+        (the least recently used is let go and drawn again if asked for): each holds a grid and its
+        search levels, megabytes apiece."""
+        if sm.drawn is None:
+            sm.drawn = draw_submap(self._parts(sm), self.grid_config, self.config.bnb_depth)
             self.stats.submaps_drawn += 1
+        self._touch(sm)
+        return sm.drawn
+
+    def _touch(self, sm: _Submap) -> None:
+        """``sm`` used now: last in the cache's order; the least recently used beyond the cache let go."""
         if sm in self._drawn:
             self._drawn.remove(sm)
         self._drawn.append(sm)
         while len(self._drawn) > self.config.cached_submaps:
-            old = self._drawn.pop(0)
-            old.grid = old.local = old.grids = None
-        return sm.grid, sm.local, sm.grids
+            self._drawn.pop(0).drawn = None
+
+    def _parts(self, sm: _Submap) -> tuple[tuple[Pose, NodeScan], ...]:
+        """The submap's scans with their sensor poses in its first node's frame (the graph's now)."""
+        anchor = self.graph.poses[sm.first]
+        return tuple(
+            (compose(relative(anchor, self.graph.poses[n]), self.mount), self.scans[n])
+            for n in range(sm.first, sm.last)
+        )
+
+    def _check(
+        self,
+        k: int,
+        sm: _Submap,
+        fix: Pose = (0.0, 0.0, 0.0),
+        window: tuple[float, float] | None = None,
+        confirms: Closure | None = None,
+    ) -> Check:
+        """Node ``k`` against ``sm``, searched around the node's pose moved by ``fix`` (a pending
+        correction) within ``window`` (default: the base window grown by the drift)."""
+        cfg = self.config
+        if window is None:
+            gxy, gth = self._growth()
+            window = (cfg.search_xy + gxy, cfg.search_theta + gth)
+        anchor = self.graph.poses[sm.first]
+        guess = compose(relative(anchor, compose(fix, self.graph.poses[k])), self.mount)
+        drawn = sm.drawn
+        if drawn is not None:
+            self._touch(sm)
+        parts = () if drawn is not None else self._parts(sm)
+        i = self.submaps.index(sm)
+        return Check(
+            k,
+            i,
+            sm.first,
+            self.scans[k],
+            guess,
+            window,
+            drawn,
+            parts,
+            cfg,
+            self.grid_config,
+            self.mount,
+            confirms,
+            self._token,
+        )
 
     def _verify(
         self,
@@ -379,47 +614,16 @@ class LoopCloser:
         fix: Pose = (0.0, 0.0, 0.0),
         window: tuple[float, float] | None = None,
     ) -> Closure | None:
-        """Match node ``k``'s scan against ``sm``, searching around the node's pose moved by ``fix``
-        (a pending correction) within ``window`` (default: the base window grown by the drift)."""
-        cfg = self.config
-        sc = self.scans[k]
-        if len(sc.match_points) < 10 or len(sc.points) < 10:
-            return None
-        grid, local, grids = self._draw(sm)
-        anchor = self.graph.poses[sm.first]
-        guess = compose(relative(anchor, compose(fix, self.graph.poses[k])), self.mount)
-        if window is None:
-            gxy, gth = self._growth()
-            wxy, wth = cfg.search_xy + gxy, cfg.search_theta + gth
-        else:
-            wxy, wth = window
-        # The lattice answer scores lower than the refined one (far points are off by the angle step):
-        # search with a lower floor, and gate on the refined score.
-        hit = search(grids, sc.match_points, guess, wxy, wth, cfg.search_min_score, cfg.angle_step)
-        if hit is None:
-            self.stats.rejected_score += 1
-            return None
-        found = refine(grid, sc.match_points, hit[0])
-        if field_score(grid, sc.match_points, found) < cfg.min_score:
-            self.stats.rejected_score += 1
-            return None
-        r = icp_refine(local, sc.points, found, found, (1.0, 1.0), 0.03, 0.15, iterations=12)
-        ratio = _inlier_ratio(local, sc.points, r.pose, cfg.inlier_distance)
-        if ratio < cfg.min_inlier_ratio:
-            self.stats.rejected_inliers += 1
-            return None
-        if (
-            math.hypot(r.pose[0] - found[0], r.pose[1] - found[1]) > cfg.max_disagreement
-            or abs(wrap(r.pose[2] - found[2])) > cfg.max_disagreement_angle
-        ):
-            self.stats.rejected_disagreement += 1
-            return None
-        if r.weak < cfg.min_weak:
-            self.stats.rejected_degenerate += 1
-            return None
-        robot = compose(r.pose, inverse(self.mount))
-        score = field_score(grid, sc.match_points, r.pose)
-        return Closure(k, sm.first, robot, score, ratio)
+        """Match node ``k``'s scan against ``sm`` in line (see ``_check``), counted in the stats."""
+        return self._note(run_check(self._with_drawn(self._check(k, sm, fix, window))), attempt=False)
+
+    def _with_drawn(self, check: Check) -> Check:
+        """In line: the check with its submap drawn here, into the cache (unless the scan has too few
+        points to be checked at all: then nothing is drawn, as ``run_check`` would not)."""
+        sc = check.scan
+        if check.drawn is not None or len(sc.match_points) < 10 or len(sc.points) < 10:
+            return check
+        return replace(check, drawn=self._draw(self.submaps[check.submap]), parts=())
 
     def finish(self) -> int:
         """The final pass: every node matched against the finished submaps it sees (not its own; the
@@ -480,6 +684,8 @@ class LoopCloser:
         cfg = self.config
         drops = cfg.max_drops if max_drops is None else max_drops
         self._solved_at = len(self.graph.poses) - 1
+        self._solved_t = self.times[-1] if self.times else -math.inf
+        self._unsolved = False
         fixed = None if self.graph.priors else 0  # priors anchor the graph; else its first node does
         for attempt in range(drops + 1):
             self.graph.optimize(fixed=fixed, iterations=cfg.iterations, tolerance=1e-5)
@@ -505,6 +711,54 @@ _FINAL_ROWS = 256
 """A closure's turn counts towards ``confirm_above`` as the arc it moves a wall this far away."""
 VIEW_LEVER_M = 2.0
 """Ranking candidates: a node facing another way counts as this many metres further per radian."""
+
+
+def draw_submap(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, depth: int) -> Drawn:
+    """A submap drawn from its scans at their sensor poses in its frame."""
+    # A small growth step: the mapper's 8 m padding would make every submap a big grid.
+    g = LogOddsGrid(replace(grid, grow_step=SUBMAP_GROW_M))
+    local = LocalMap(len(parts), cell=0.05)
+    for sensor, sc in parts:
+        g.integrate(sensor, sc.ranges, sc.angles, sc.hit)
+        local.add(sensor, sc.points, sc.normals)
+    return Drawn(g, local, PrecomputedGrids(g.field, g.origin, g.resolution, depth))
+
+
+def run_check(check: Check) -> CheckResult:
+    """One verification (pure; any thread): branch and bound of the node's scan over the submap's
+    field in the check's window, Gauss-Newton on the field, point-to-line against the submap's
+    points; accepted when the refined score, the inlier share, the two answers' agreement and the
+    weakest information all pass (``CloserConfig``). The submap is drawn first if the check carries
+    only its parts."""
+    cfg = check.config
+    sc = check.scan
+    if len(sc.match_points) < 10 or len(sc.points) < 10:
+        return CheckResult(check, None, "few points", None)
+    drawn = check.drawn or draw_submap(check.parts, check.grid_config, cfg.bnb_depth)
+    grid, local = drawn.grid, drawn.local
+    wxy, wth = check.window
+    # The lattice answer scores lower than the refined one (far points are off by the angle step):
+    # search with a lower floor, and gate on the refined score.
+    hit = search(drawn.grids, sc.match_points, check.guess, wxy, wth, cfg.search_min_score, cfg.angle_step)
+    if hit is None:
+        return CheckResult(check, None, "score", drawn)
+    found = refine(grid, sc.match_points, hit[0])
+    if field_score(grid, sc.match_points, found) < cfg.min_score:
+        return CheckResult(check, None, "score", drawn)
+    r = icp_refine(local, sc.points, found, found, (1.0, 1.0), 0.03, 0.15, iterations=12)
+    ratio = _inlier_ratio(local, sc.points, r.pose, cfg.inlier_distance)
+    if ratio < cfg.min_inlier_ratio:
+        return CheckResult(check, None, "inliers", drawn)
+    if (
+        math.hypot(r.pose[0] - found[0], r.pose[1] - found[1]) > cfg.max_disagreement
+        or abs(wrap(r.pose[2] - found[2])) > cfg.max_disagreement_angle
+    ):
+        return CheckResult(check, None, "disagreement", drawn)
+    if r.weak < cfg.min_weak:
+        return CheckResult(check, None, "degenerate", drawn)
+    robot = compose(r.pose, inverse(check.mount))
+    score = field_score(grid, sc.match_points, r.pose)
+    return CheckResult(check, Closure(check.node, check.anchor, robot, score, ratio), "accepted", drawn)
 
 
 def _inlier_ratio(local: LocalMap, points: F64, pose: Pose, distance: float) -> float:

@@ -246,6 +246,15 @@ class LogOddsGrid:
         self.dirty = (0, 0, *self.shape)
         self.stale = None
 
+    def blank_like(self) -> LogOddsGrid:
+        """An empty grid in this one's place and size, its version going on from this one's: a grid to
+        draw the same map again into, to take this one's place when drawn."""
+        g = LogOddsGrid(self.config, self.origin)
+        g._realloc(0, 0, *self.shape, *self.origin, fresh=True)
+        g._placed = True
+        g.version = self.version
+        return g
+
     def refresh(self, box: Box | None = None) -> None:
         """Recompute the likelihood field over ``box`` (default: the whole grid, and nothing is stale)."""
         if box is None:

@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from fleetlink.agent.mapping import scan as scanprep
-from fleetlink.agent.mapping.closure import CloserConfig, LoopCloser, NodeScan
+from fleetlink.agent.mapping.closure import CloserConfig, ClosureSearch, LoopCloser, NodeScan
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.matcher import LocalMap, MatchConfig, field_score, icp_refine, match_scan, scan_normals
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig
@@ -83,6 +83,10 @@ class MapperConfig:
     # 0.027 -> 0.015 m; intel and aces within their seed-to-seed spread or better). 0: the whole grid.
     recent_scans: int = 60
     redraw_distance: float = 0.05  # m (a turn counts as its arc 3 m out): redraw the grid past this
+    # A redraw draws at most this many keyframes per read of the grid, into a second grid that takes
+    # the first one's place once every keyframe is in it (0: all at once). Bounds what a read costs
+    # however long the run: on a robot the map is read every second or two (share, planner).
+    redraw_batch: int = 0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_range < self.max_range:
@@ -101,13 +105,20 @@ class ScanResult:
     matched: bool  # the match was used (False: fell back to the guess)
     score: float
     integrated: bool  # the scan was added to the grid
+    weak: float = 0.0  # the refinement's weakest information (1/m^2; 0: not refined): how well the match is posed
+    information: FloatArray | None = (
+        None  # the refinement's data information on the sensor pose (x, y, theta), map frame
+    )
 
 
 class OnboardMapper:
     """Builds the map on board; see the module docstring. Not thread-safe (one owner)."""
 
-    def __init__(self, config: MapperConfig | None = None) -> None:
+    def __init__(self, config: MapperConfig | None = None, search: ClosureSearch | None = None) -> None:
+        """``search``: where loop closure's checks run (agent/mapping/worker.py; their verdicts come
+        back at a later node); None: in line, each node searched and solved as it is made (a replay)."""
         self.config = cfg = config or MapperConfig()
+        self.search = search
         self._grid = LogOddsGrid(cfg.grid)
         # With loop closure and recent grids the whole grid is an output only (the front end matches
         # the recent grids): its likelihood field is brought up to date, and the grid drawn again
@@ -144,6 +155,12 @@ class OnboardMapper:
         self._node_pose: Pose | None = None  # the newest node's pose as the front end has it
         self._drawn_at: list[Pose] = []  # each node's pose when the grid was last drawn from it
         self.redraws = 0
+        # A redraw under way in steps (``redraw_batch``): the grid drawn into, the next entry of
+        # ``_drawn`` to draw, each node's pose as drawn there.
+        self._back: LogOddsGrid | None = None
+        self._back_next = 0
+        self._back_at: list[Pose] = []
+        self._moved: Pose | None = None  # how the solves since ``take_moved`` moved the frame at the robot
 
     @property
     def grid(self) -> LogOddsGrid:
@@ -152,9 +169,16 @@ class OnboardMapper:
         every integrated scan's ray update, so with loop closure the grid is drawn when read, at the
         reader's rate (the map share's 1 Hz on board; once at the end of a replay), not after every
         solve."""
-        if self._redraw_due:
+        cfg = self.config
+        if self._redraw_due and self._back is None:
             self._redraw_due = False
-            self.redraw(self.config.redraw_distance)
+            if cfg.redraw_batch > 0 and self._lazy:
+                if self._moved_since_drawn() > cfg.redraw_distance:
+                    self._back, self._back_next, self._back_at = self._grid.blank_like(), 0, []
+            else:
+                self.redraw(cfg.redraw_distance)
+        if self._back is not None:
+            self._redraw_step(cfg.redraw_batch)
         if self._undrawn < len(self._drawn):
             self._draw(self._drawn[self._undrawn :])
         self._grid.refresh_stale()
@@ -229,7 +253,8 @@ class OnboardMapper:
         match_pts = scanprep.thin(kept, cfg.match_cell)
 
         sensor_guess = compose(guess, cfg.mount)
-        pose, score, matched = guess, 0.0, False
+        pose, score, matched, weak = guess, 0.0, False, 0.0
+        info: FloatArray | None = None
         target, to_target = self._match_grid()
         if cfg.matching and not target.empty and len(match_pts) >= cfg.min_points:
             # Matched in the target grid's frame (a rigid move of the map frame: the prior's penalty,
@@ -242,7 +267,7 @@ class OnboardMapper:
                 icp_pts = scanprep.thin(kept, cfg.icp_cell)
                 r_ = icp_refine(self._local, icp_pts, found, sensor_guess, sd, cfg.icp_sigma, cfg.icp_max_distance)
                 if r_.inliers >= cfg.min_points:
-                    found = r_.pose
+                    found, weak, info = r_.pose, r_.weak, r_.information
                     score = field_score(target, match_pts, compose(to_target, found))
                     good = r_.inliers >= cfg.min_inlier_ratio * len(icp_pts)
             if good or score >= cfg.min_score:
@@ -285,7 +310,7 @@ class OnboardMapper:
                 )
                 if not self._lazy:
                     self._undrawn = len(self._drawn)
-                if made_node and self.closer.close():
+                if made_node and self._close():
                     pose = self._after_solve(pose)
         self._last_pose = pose
         self.trajectory.append((t, pose))
@@ -293,7 +318,25 @@ class OnboardMapper:
             self._links.append(
                 (len(self.closer) - 1, relative(self._node_pose, pose)) if self._node_pose is not None else (-1, pose)
             )
-        return ScanResult(t, pose, guess, matched, score, integrated)
+        if not matched:
+            weak, info = 0.0, None
+        return ScanResult(t, pose, guess, matched, score, integrated, weak, info)
+
+    def _close(self) -> bool:
+        """Loop closure for the node just made: in line, or (``search``) the verdicts that came back
+        taken into the graph and this node's checks handed out, one batch at a time (a node made
+        while the last batch still runs is not searched: the search's rate is its own). True when
+        the graph was solved."""
+        closer, search = self.closer, self.search
+        assert closer is not None
+        if search is None:
+            return closer.close()
+        solved = closer.take(search.collect())
+        if not search.busy:
+            checks = closer.plan()
+            if checks:
+                search.submit(checks)
+        return solved
 
     def _after_solve(self, pose: Pose) -> Pose:
         """The graph moved: carry the front end's state into the corrected frame, redraw the grid and
@@ -303,6 +346,7 @@ class OnboardMapper:
         assert closer is not None and self._node_pose is not None
         new = closer.poses[-1]
         fix = compose(new, inverse(self._node_pose))  # old frame -> corrected frame
+        self._moved = fix if self._moved is None else compose(fix, self._moved)
         self._node_pose = new
         self._last_local = new
         if self._last_key is not None:
@@ -330,6 +374,13 @@ class OnboardMapper:
             self.grid  # noqa: B018 (drawn now: the front end matches this grid)
         return pose
 
+    def take_moved(self) -> Pose | None:
+        """How the loop closer's solves since the last call moved the map frame where the robot is:
+        the transform taking a pose in the old frame to the corrected one (composed over the solves),
+        or None (no solve moved it). Whoever localises the robot in this map moves its pose by it."""
+        moved, self._moved = self._moved, None
+        return moved
+
     def finish(self) -> int:
         """The end of a run (a replay): the loop closer's final pass (every node matched against the
         submaps near it, the graph solved again; ``LoopCloser.finish``), the grid due a redraw. Returns
@@ -346,23 +397,53 @@ class OnboardMapper:
         closer = self.closer
         if closer is None:
             return False
-        poses = closer.poses
-        n_drawn = len(self._drawn_at)
-        if n_drawn:
-            was = np.array(self._drawn_at)
-            now = np.array(poses[:n_drawn])
-            turn = np.abs(np.remainder(now[:, 2] - was[:, 2] + math.pi, 2.0 * math.pi) - math.pi)
-            moved = float(np.max(np.hypot(now[:, 0] - was[:, 0], now[:, 1] - was[:, 1]) + REDRAW_LEVER_M * turn))
-            if moved <= threshold:
-                return False
+        if self._drawn_at and self._moved_since_drawn() <= threshold:
+            return False
         self.redraws += 1
         self._redraw_due = False
+        self._back = None
         self._grid.clear()
         self._undrawn = 0
         self._drawn_at = []
         self._draw(self._drawn)
         self._grid.refresh()
         return True
+
+    def _moved_since_drawn(self) -> float:
+        """How far the node that moved most has moved since the grid was drawn from it (m; a turn as
+        its arc ``REDRAW_LEVER_M`` out); 0 before any drawing."""
+        n_drawn = len(self._drawn_at)
+        if self.closer is None or not n_drawn:
+            return 0.0
+        was = np.array(self._drawn_at)
+        now = np.array(self.closer.poses[:n_drawn])
+        turn = np.abs(np.remainder(now[:, 2] - was[:, 2] + math.pi, 2.0 * math.pi) - math.pi)
+        return float(np.max(np.hypot(now[:, 0] - was[:, 0], now[:, 1] - was[:, 1]) + REDRAW_LEVER_M * turn))
+
+    def _redraw_step(self, batch: int) -> None:
+        """Draw the next ``batch`` keyframes into the grid being redrawn, at their nodes' poses now;
+        once every keyframe is in it (those integrated meanwhile too), it takes the grid's place: the
+        version goes on from the old grid's, and all of it is marked changed."""
+        back = self._back
+        assert back is not None and self.closer is not None
+        poses = self.closer.poses
+        mount = self.config.mount
+        stop = min(len(self._drawn), self._back_next + batch)
+        for node, offset, r, a, hit in self._drawn[self._back_next : stop]:
+            sensor = compose(compose(poses[node], offset), mount)
+            back.integrate(sensor, r.astype(np.float64), a.astype(np.float64), hit, refresh=False)
+            if node >= len(self._back_at):
+                self._back_at.extend(poses[len(self._back_at) : node + 1])
+        self._back_next = stop
+        if stop < len(self._drawn):
+            return
+        back.version = max(back.version, self._grid.version) + 1
+        back.dirty = (0, 0, *back.shape)
+        self._grid, self._back = back, None
+        self._undrawn = len(self._drawn)
+        self._drawn_at = self._back_at
+        self.redraws += 1
+        self._redraw_due = True  # a solve since the redraw began may have moved nodes again
 
     def _draw(
         self, entries: list[tuple[int, Pose, npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_]]]

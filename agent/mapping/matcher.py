@@ -449,6 +449,7 @@ class IcpResult:
     pose: Pose
     inliers: int  # correspondences used at the last iteration
     weak: float  # smallest eigenvalue of the data information (1/m^2 units, theta scaled by 1 m)
+    information: FloatArray | None = None  # the data's information on (x, y, theta) at the answer (None: no data)
 
 
 def icp_refine(
@@ -504,4 +505,4 @@ def icp_refine(
         if math.hypot(step[0], step[1]) < 1e-4 and abs(step[2]) < 1e-4:
             break
     weak = 0.0 if hd_last is None else float(np.linalg.eigvalsh(hd_last)[0])
-    return IcpResult((x, y, th), inliers, weak)
+    return IcpResult((x, y, th), inliers, weak, hd_last)

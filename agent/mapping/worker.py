@@ -12,6 +12,11 @@
   only when the next turn arrives, a tenth of a simulated second later, by which time it is
   normally done.
 
+Loop closure's checks (agent/mapping/closure.py) run where the keeper's ``search`` says: in line,
+one node behind (``DeferredSearch``, the keeper's default: lockstep runs stay deterministic), or on
+a thread of their own (``SearchWorker``, the real-time agent's): the lidar thread maps each turn
+without waiting for a branch and bound, and takes the verdicts when the next node is made.
+
 One turn behind is what a robot sees anyway: its mapping thread finishes a turn while the next one
 is being read. The keeper is deterministic and each robot's turns reach it in order, so
 ``DeferredKeeper`` and ``RemoteKeeper`` give byte-identical runs.
@@ -19,14 +24,20 @@ is being read. The keeper is deterministic and each robot's turns reach it in or
 
 from __future__ import annotations
 
+import logging
+import threading
 from collections import deque
 from typing import Protocol
 
+from fleetlink.agent.mapping.closure import Check, CheckResult, run_check
 from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update
 from fleetlink.agent.mapping.mapper import MapperConfig
-from fleetlink.shared.worker import ProcessWorker
+from fleetlink.shared.clock import Clock
+from fleetlink.shared.worker import ProcessWorker, Worker
 
-__all__ = ["DeferredKeeper", "KeeperHost", "MapWorker", "RemoteKeeper"]
+__all__ = ["DeferredKeeper", "KeeperHost", "MapWorker", "RemoteKeeper", "SearchWorker"]
+
+log = logging.getLogger(__name__)
 
 
 class KeeperHost(Protocol):
@@ -114,3 +125,57 @@ class RemoteKeeper:
         w._submit(self.robot, ("add", self.robot, turn))
         # The reply to this robot's previous turn, if there was one (this turn's is the newest).
         return w._take(self.robot) if w._waiting[self.robot] > 1 else None
+
+
+class SearchWorker(Worker):
+    """Loop closure's checks on a thread of their own (``ClosureSearch``; the real-time agent's): a
+    batch submitted is run in order while the lidar thread maps on; its verdicts wait for
+    ``collect``. One batch at a time (the mapper submits none while ``busy``): the search costs at
+    most one thread's time, whatever the nodes' rate. A check that raises is logged and counts as
+    found nothing. ``start()`` before use, ``stop()`` after (``Worker``)."""
+
+    def __init__(self, name: str, clock: Clock | None = None) -> None:
+        super().__init__(name, clock=clock)
+        self._lock = threading.Lock()
+        self._queue: deque[list[Check]] = deque()
+        self._done: list[CheckResult] = []
+        self._batches = 0  # submitted, verdicts not yet ready
+        self.checks = 0
+        self.failures = 0
+
+    def submit(self, checks: list[Check]) -> None:
+        with self._lock:
+            self._queue.append(list(checks))
+            self._batches += 1
+        self.wake()
+
+    def collect(self) -> list[CheckResult]:
+        with self._lock:
+            done, self._done = self._done, []
+        return done
+
+    @property
+    def busy(self) -> bool:
+        with self._lock:
+            return self._batches > 0
+
+    def run(self) -> None:
+        while not self.stopping:
+            with self._lock:
+                batch = self._queue.popleft() if self._queue else None
+            if batch is None:
+                self.wait(1.0)  # woken by submit (or stop)
+                continue
+            results = []
+            for check in batch:
+                try:
+                    results.append(run_check(check))
+                except Exception as exc:  # a bug in one check must not end the search
+                    self.failures += 1
+                    if self.failures == 1:
+                        log.exception("%s: a closure check failed: %s", self.name, exc)
+                    results.append(CheckResult(check, None, "failed", None))
+                self.checks += 1
+            with self._lock:
+                self._done.extend(results)
+                self._batches -= 1
