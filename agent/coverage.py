@@ -1992,7 +1992,7 @@ def _edge_lanes(strip: _Strip, stand: BoolGrid, res: float, ox: float, oy: float
     strip.lanes = out
 
 
-def _swept(fm: FloorMap, way: Sequence[Point], radius: float) -> BoolGrid:
+def swept_cells(fm: FloorMap, way: Sequence[Point], radius: float) -> BoolGrid:
     """Map cells whose centre lies within ``radius`` of the polyline ``way``."""
     out = np.zeros(fm.shape, dtype=bool)
     res = fm.resolution
@@ -2064,7 +2064,7 @@ def plan_sweep(
         # The lanes stop short of the walls they run into: the floor there is swept by lanes across
         # them (along those walls, where the guard does not stop the robot), as a robot vacuum's
         # edge pass does.
-        missed = can & ~_swept(fm, [p for p, _ in route], rad)
+        missed = can & ~swept_cells(fm, [p for p, _ in route], rad)
         if missed.sum() * fm.cell_area >= 0.1:
             edge = _stand_near(fm, missed, rad) & reach
             last = fm.escape(route[-1][0])
@@ -2073,7 +2073,7 @@ def plan_sweep(
                 link = fm.route(route[-1][0], more[0][0])[1:-1]
                 route = _distinct([*route, *((q, "transit") for q in link), (more[0][0], "transit"), *more[1:]])
     route = _fill_gaps(fm, route, can, reach, rad)
-    swept = _swept(fm, [p for p, _ in route], rad) & can
+    swept = swept_cells(fm, [p for p, _ in route], rad) & can
     s0 = (float(start[0]), float(start[1]))
     head = fm.route(s0, route[0][0])
     nodes = [PlanNode("n0", 0, s0[0], s0[1], 0.0, False)]
@@ -2120,7 +2120,7 @@ def _fill_gaps(
     ``FILL_MIN_YIELD``)."""
     if len(route) < 2:
         return route
-    missed = can & ~_swept(fm, [p for p, _ in route], rad)
+    missed = can & ~swept_cells(fm, [p for p, _ in route], rad)
     area = fm.cell_area
     lanes: list[tuple[float, Point, Point]] = []
     for comp in components(missed):
@@ -2141,7 +2141,7 @@ def _fill_gaps(
             for c0, c1 in _runs(grid[k]):
                 ends = [(int(k), c0), (int(k), c1)] if along_x else [(c0, int(k)), (c1, int(k))]
                 a, b = fm.plan_centre(ends[0]), fm.plan_centre(ends[1])
-                gain = float((_swept(fm, [a, b], rad) & strip).sum()) * area
+                gain = float((swept_cells(fm, [a, b], rad) & strip).sum()) * area
                 if best_lane is None or gain > best_lane[0]:
                     best_lane = (gain, a, b)
         if best_lane is None or math.dist(best_lane[1], best_lane[2]) < 1e-9:

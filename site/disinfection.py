@@ -485,9 +485,11 @@ class RoundRun:
                 if got != crew.progress_at_bump:
                     crew.progress_at_bump, crew.stuck = got, 0
                 crew.stuck += 1
-            if crew is not None and running and ev.kind in ("bump", "cliff") and crew.stuck <= MAX_HAZARD_RESUMES:
-                crew.resume_at = t + HAZARD_RESUME_S
-                self.notes.append(f"t={t:.1f}: {crew.name}: {ev.text}; the operator resumes in {HAZARD_RESUME_S:g} s")
+                if crew.stuck <= MAX_HAZARD_RESUMES:
+                    crew.resume_at = t + HAZARD_RESUME_S
+                    self.notes.append(
+                        f"t={t:.1f}: {crew.name}: {ev.text}; the operator resumes in {HAZARD_RESUME_S:g} s"
+                    )
             if crew is None or ev.kind != "order" or not crew.order_id:
                 continue
             if f"order {crew.order_id} finished" in ev.text:
@@ -561,24 +563,9 @@ class RoundRun:
             if not self._in_room(x, y):
                 return
             crew.first_lane_at = (x, y)
-        ax, ay = crew.brush_at if crew.brush_at is not None else (x, y)
+        start = crew.brush_at if crew.brush_at is not None else (x, y)
         crew.brush_at = (x, y)
-        rad = fm.config.tool_width_m / 2.0
-        h, w = fm.shape
-        r0 = max(0, math.floor((min(ay, y) - rad - fm.origin[1]) / fm.resolution))
-        r1 = min(h, math.ceil((max(ay, y) + rad - fm.origin[1]) / fm.resolution) + 1)
-        c0 = max(0, math.floor((min(ax, x) - rad - fm.origin[0]) / fm.resolution))
-        c1 = min(w, math.ceil((max(ax, x) + rad - fm.origin[0]) / fm.resolution) + 1)
-        if r0 >= r1 or c0 >= c1:
-            return
-        ys = fm.origin[1] + (np.arange(r0, r1) + 0.5) * fm.resolution
-        xs = fm.origin[0] + (np.arange(c0, c1) + 0.5) * fm.resolution
-        px, py = xs[None, :] - ax, ys[:, None] - ay
-        dx, dy = x - ax, y - ay
-        ll = dx * dx + dy * dy
-        t = np.clip((px * dx + py * dy) / ll, 0.0, 1.0) if ll > 0 else 0.0
-        near = (px - t * dx) ** 2 + (py - t * dy) ** 2 <= rad * rad
-        self.swept[r0:r1, c0:c1] |= near
+        self.swept |= cv.swept_cells(fm, [start, (x, y)], fm.config.tool_width_m / 2.0)
 
     def _score(self, wall: float) -> RoundResult:
         s = self.setup

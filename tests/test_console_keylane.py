@@ -18,7 +18,7 @@ from textual.message import Message
 
 from fleetlink.operator.keylane import KeyLane
 from fleetlink.operator.mapview import MapView
-from fleetlink.shared.messages import Lease, Order, Teleop
+from fleetlink.shared.messages import Lease, Teleop
 from tests.harness.console_rig import Rig
 from tests.test_console import run_async, status_line, with_robots
 
@@ -92,12 +92,8 @@ async def test_keys_typed_behind_a_colon_reach_the_command_line_though_the_loop_
                 rig.app._driver.process_message(k)
 
         await with_loop_busy(keyboard)
-        for _ in range(50):
-            if rig.zenoh.messages(Order) or rig.mqtt.messages(Order):
-                break
-            await pilot.pause(0.05)
+        order = await rig.last_order(pilot)
         assert rig.zenoh.messages(Teleop) == [] and rig.mqtt.messages(Teleop) == []
-        order = (rig.zenoh.messages(Order) + rig.mqtt.messages(Order))[-1]
         assert (order.goal.x, order.goal.y) == (1.5, 2.0)
         assert rig.app.key_lane.taken == 0
         for _ in range(50):  # Enter gives the focus back to the map (deferred, Widget.focus)

@@ -255,12 +255,12 @@ class VehicleCore:
         nodes, actionTimeout for node actions the robot went silent on."""
         self.skipped_nodes = 0
         self.timed_out_actions = 0
+        """Actions FAILED because the robot had no word on them for ``action_timeout_s``."""
         self.dropped_orders = 0
         """Orders dropped because the robot never took them (``_expire_order``)."""
         self._dropped = ""
         """The last order dropped: a robot seen running it after all is sent a cancel."""
         self._cancel_dropped_at = -math.inf
-        """Actions FAILED because the robot had no word on them for ``action_timeout_s``."""
         self._base_request_for: tuple[str, str, int] | None = None
         """(orderId, base end nodeId, sequenceId) newBaseRequest was set for: it stays set until an
         update moves the base's end (or the horizon is gone), so a pose jittering across the

@@ -160,6 +160,17 @@ class Rig:
             self.agents[robot] = wire.HeaderCounter(self.clock, robot=robot, sender=f"agent-{robot}")
         return self.agents[robot]
 
+    async def last_order(self, pilot: Any) -> Order:
+        """The last Order sent, on whichever link carried it (on a loaded machine the link manager
+        may have moved commands to MQTT), waiting up to 2.5 s for one."""
+        for _ in range(50):
+            if self.zenoh.messages(Order) or self.mqtt.messages(Order):
+                break
+            await pilot.pause(0.05)
+        found: list[Order] = self.zenoh.messages(Order) + self.mqtt.messages(Order)
+        assert found, "no Order on either link"
+        return found[-1]
+
     def pose(
         self, robot: str, x: float, y: float, theta: float = 0.0, links: tuple[str, ...] = ("zenoh", "mqtt")
     ) -> None:
