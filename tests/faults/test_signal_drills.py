@@ -162,21 +162,29 @@ def test_sigterm_on_a_console_in_a_terminal_sends_stop(tmp_path: Path) -> None:
         seen: list[tuple[float, object]] = []
         password = (folder / "op-bob.password").read_text().strip()
         sessions: list[zenoh.Session] = []
+        refusals: list[str] = []
 
         def joined() -> bool:
             # A client tries its endpoint once; a TLS handshake with a router busy starting the
-            # site's agents can miss that try under CI load (seen once), so the watcher tries again.
+            # site's agents can miss that try under CI load (seen twice, once for all of 30 s), so
+            # the watcher tries again, and a failure says what each try was told.
             try:
                 config = peer_config(
                     connect=[connect], mode="client", username="op-bob", password=password,
                     root_ca=ca.group(1) if ca else None,
                 )  # fmt: skip
                 sessions.append(zenoh.open(config))
-            except zenoh.ZError:
+            except zenoh.ZError as exc:
+                refusals.append(f"{time.monotonic():.1f}: {exc}")
                 return False
             return True
 
-        wait_until(joined, interval=0.5, timeout=30, message="op-bob's watcher on the router")
+        try:
+            wait_until(joined, interval=0.5, timeout=60, message="op-bob's watcher on the router")
+        except AssertionError as exc:
+            raise AssertionError(
+                f"{exc}; {len(refusals)} tries, the last: {refusals[-3:]}; field: {''.join(lines)[-1500:]!r}"
+            ) from None
         watcher = sessions[0]
         for topic in ("actions", "teleop"):
             watcher.declare_subscriber(
