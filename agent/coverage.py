@@ -1941,10 +1941,12 @@ def _edge_lanes(strip: _Strip, stand: BoolGrid, res: float, ox: float, oy: float
     """Spread ``strip``'s lanes over its own floor where that goes on past its end lanes (the lanes are
     spaced over the whole area, so a part of it, such as the floor beside a table, ends between two
     of them): to the last row of stand cells at each end that still continues the end lane's
-    interval alone (one run, not merged with a neighbour's). Up to ``spread`` apart the same lanes
-    spread; beyond, a lane more when the floor past them is two plan cells or more. Swept in the
-    strip's turn, that floor costs a lane and a step at most, where a lane of its own added later
-    costs the way there and back (``_fill_gaps``)."""
+    interval alone (one run, not merged with a neighbour's), up to ``spread`` apart. What floor is
+    left past them gets no lane more here: beside an island that lane would run the strip's whole
+    length and sweep again, for the floor beside the island alone, what the lanes the island cuts
+    short sweep (the kitchen's: 3.8 m for 0.1 m²); ``_fill_gaps`` adds a lane where it is worth its
+    way (measured over the five rooms at seeds 16-18, docs/payload.md: no lane more was ever worth
+    0.05 m² per metre)."""
     h = stand.shape[0]
     ext: list[int] = []  # rows past each end lane, bottom then top
     for top in (False, True):
@@ -1972,9 +1974,7 @@ def _edge_lanes(strip: _Strip, stand: BoolGrid, res: float, ox: float, oy: float
     lo, hi = ext[0] * res, ext[1] * res
     n = len(lanes)
     room = (n - 1) * max(spread, width) - span  # how far the same lanes can spread
-    if lo + hi - max(room, 0.0) >= 2 * res - 1e-9:  # worth a lane: 0.2 m or more of floor beside it
-        n = max(n + 1, math.ceil((span + lo + hi) / max(spread, width) - 1e-9) + 1)  # none further apart than spread
-    elif lo + hi > room:
+    if lo + hi > room:
         if room <= 1e-9:
             return
         lo, hi = lo * room / (lo + hi), hi * room / (lo + hi)
@@ -2116,8 +2116,8 @@ def _fill_gaps(
     beyond the last lane there is left; a lane is not run where the stand floor is narrower than a
     plan cell): of the rows (or columns, along the strip's longer side) of stand cells that can
     sweep it, the run that sweeps most of it, put between two lanes where it adds the least way
-    (cheapest insertion, by straight distances), when it is worth it (``FILL_MIN_M2``,
-    ``FILL_MIN_YIELD``)."""
+    (cheapest insertion, by straight distances), or after the route's last point, when it is worth
+    it (``FILL_MIN_M2``, ``FILL_MIN_YIELD``)."""
     if len(route) < 2:
         return route
     missed = can & ~swept_cells(fm, [p for p, _ in route], rad)
@@ -2151,20 +2151,23 @@ def _fill_gaps(
     out = list(route)
     for gain, a, b in sorted(lanes, key=lambda g: -g[0]):
         best: tuple[float, int, Point, Point] | None = None
-        for i in range(len(out) - 1):
-            p, q = out[i][0], out[i + 1][0]
-            if out[i + 1][1] == "lane":  # not into a lane: between lanes, or on the way
+        for i in range(len(out)):
+            p = out[i][0]
+            last = i == len(out) - 1  # after the route's end: no way back to add
+            if not last and out[i + 1][1] == "lane":  # not into a lane: between lanes, or on the way
                 continue
             for u, v in ((a, b), (b, a)):
-                cost = math.dist(p, u) + math.dist(u, v) + math.dist(v, q) - math.dist(p, q)
+                cost = math.dist(p, u) + math.dist(u, v)
+                if not last:
+                    q = out[i + 1][0]
+                    cost += math.dist(v, q) - math.dist(p, q)
                 if best is None or cost < best[0]:
                     best = (cost, i, u, v)
         if best is None or gain < FILL_MIN_M2 or gain / max(best[0], 1e-9) < FILL_MIN_YIELD:
             continue
         _, i, u, v = best
-        p, q = out[i][0], out[i + 1][0]
-        into = [(w, "transit") for w in fm.route(p, u)[1:]]
-        back = [(w, "transit") for w in fm.route(v, q)[1:]]
+        into = [(w, "transit") for w in fm.route(out[i][0], u)[1:]]
+        back = [(w, "transit") for w in fm.route(v, out[i + 1][0])[1:]] if i + 1 < len(out) else []
         out = [*out[: i + 1], *into, (v, "lane"), *back, *out[i + 2 :]]
     return _distinct(out)
 

@@ -43,11 +43,14 @@ from fleetlink.shared.dose import DoseGrid, Lamp
 
 __all__ = ["CERTIFIED", "ROUND_CONFIG", "SWEEP_OVERLAP", "plan_round"]
 
-SWEEP_OVERLAP = 0.9
-"""A sweep's lanes are this share of the brush apart (0.31 m for the 0.34 m brush): a tenth
-overlapping, for the robot's centimetre or two off its lane. Measured with whole agents in
-lockstep (bench/coverage.py, all five rooms): at 0.8 the path was 1.26-1.41x the ideal for the
-same coverage; at 1.0 the kitchen fell from 93 % to 90 %; at 0.95 no room gained."""
+SWEEP_OVERLAP = 0.93
+"""A sweep's lanes are this share of the brush apart (0.316 m for the 0.34 m brush): 2.4 cm
+overlapping, for the robot's centimetre or two off its lane (with loop closure on board its fused
+pose is 1-2 cm from the truth). Measured with whole agents in lockstep (bench/coverage.py, the five
+rooms at seeds 16-18, docs/payload.md): at 0.8 the path was 1.26-1.41x the ideal for the same
+coverage; at 0.9 the kitchen's and room-8's paths were 1.21x at seed 17 (with no lane more for a
+strip's edge floor; 1.22-1.29x before that); at 0.95 the coverage was no better than at 0.93 and
+room-8's at seed 18 2 points lower; at 1.0 the kitchen fell from 93 % to 90 %."""
 
 CERTIFIED = 0.99
 """A round is done when this share of the floor the lamp reaches has the dose (as the robots' dose
