@@ -247,23 +247,34 @@ def _lane_cover(stand: np.ndarray, strips: list[Any], res: float, radius: float)
     return float((near & stand).sum() / stand.sum())
 
 
+def _floor_with_a_hole(
+    h: int, w: int, rim: int, hole: tuple[int, int, int, int], width: float, spread: float, mp: pytest.MonkeyPatch
+) -> tuple[np.ndarray, list[Any], list[Any]]:
+    """A rectangle of stand cells (0.1 m) less ``hole`` (rows r0:r1, columns c0:c1): its strips,
+    and its strips without ``_edge_lanes``."""
+    stand = np.zeros((h, w), dtype=bool)
+    stand[rim : h - rim, rim : w - rim] = True
+    r0, r1, c0, c1 = hole
+    stand[r0:r1, c0:c1] = False
+    strips = cv._decompose(stand, 0.1, 0.0, 0.0, width, spread)
+    with mp.context() as m:
+        m.setattr(cv, "_edge_lanes", lambda strip, *a, **k: strip.lanes)
+        plain = cv._decompose(stand, 0.1, 0.0, 0.0, width, spread)
+    return stand, strips, plain
+
+
 def test_a_strip_that_ends_between_two_lanes_spreads_its_lanes_to_its_own_floor(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     # A 3 x 2 m floor with a 1 x 0.3 m table: the lanes are spaced over the whole floor, so the
     # strips beside the table end between two of them and leave its edges unswept.
-    res, width, spread = 0.1, 0.31, 0.325
-    stand = np.zeros((24, 34), dtype=bool)
-    stand[2:22, 2:32] = True
-    stand[5:8, 12:22] = False
-    spread_out = cv._decompose(stand, res, 0.0, 0.0, width, spread)
-    assert _lane_cover(stand, spread_out, res, 0.17) >= 0.985  # a 0.34 m brush
+    spread = 0.325
+    stand, spread_out, plain = _floor_with_a_hole(24, 34, 2, (5, 8, 12, 22), 0.31, spread, monkeypatch)
+    assert _lane_cover(stand, spread_out, 0.1, 0.17) >= 0.985  # a 0.34 m brush
     for strip in spread_out:
         ys = [y for y, _, _ in strip.lanes]
         assert max(np.diff(ys), default=0.0) <= spread + 1e-9
-    monkeypatch.setattr(cv, "_edge_lanes", lambda strip, *a, **k: strip.lanes)
-    plain = cv._decompose(stand, res, 0.0, 0.0, width, spread)
-    assert _lane_cover(stand, plain, res, 0.17) < 0.98
+    assert _lane_cover(stand, plain, 0.1, 0.17) < 0.98
     assert sum(len(s.lanes) for s in spread_out) == sum(len(s.lanes) for s in plain)  # spread, not a lane more
 
 
@@ -273,15 +284,9 @@ def test_the_strip_past_an_island_gets_no_lane_more_for_the_floor_the_lanes_besi
     # The kitchen's shape: the strip past the island runs the room's whole length; its floor between
     # its first lane and the island is floor the lanes the island cuts short sweep already. A lane
     # more there (as _edge_lanes once added for 0.2 m of it: four lanes, 5.4 m, here) swept nothing
-    # they do not (the kitchen's sweep was 1.28x the ideal with it, 1.13x without, docs/payload.md).
-    res, width, spread = 0.1, 0.306, 0.323
-    stand = np.zeros((32, 42), dtype=bool)
-    stand[1:31, 1:41] = True
-    stand[8:13, 15:26] = False
-    strips = cv._decompose(stand, res, 0.0, 0.0, width, spread)
-    assert _lane_cover(stand, strips, res, 0.17) == 1.0
-    monkeypatch.setattr(cv, "_edge_lanes", lambda strip, *a, **k: strip.lanes)
-    plain = cv._decompose(stand, res, 0.0, 0.0, width, spread)
+    # they do not (the kitchen's sweep was 1.29x the ideal with it, 1.14x without, docs/payload.md).
+    stand, strips, plain = _floor_with_a_hole(32, 42, 1, (8, 13, 15, 26), 0.306, 0.323, monkeypatch)
+    assert _lane_cover(stand, strips, 0.1, 0.17) == 1.0
     assert sum(len(s.lanes) for s in strips) == sum(len(s.lanes) for s in plain)
 
 
