@@ -76,3 +76,80 @@ def test_empty_and_nonfinite_input() -> None:
     with pytest.raises(ValueError):
         m.add_scan(0.1, np.ones(10), np.linspace(0, 1, 10), (math.nan, 0.0, 0.0))
     assert m.rejected == 1
+
+
+def _refine_one_step_at_a_time(grid, points, pose, iterations=8):  # type: ignore[no-untyped-def]
+    """The refinement as first written: every halved step scored on its own, the field's corners looked
+    up again for each gradient (the reference the batched refinement must equal, to the bit)."""
+    from fleetlink.agent.mapping.matcher import field_score
+
+    x, y, th = pose
+    res = grid.resolution
+    ox, oy = grid.origin
+    px, py = points[:, 0], points[:, 1]
+    h, w = grid.field.shape
+    current = -1.0
+    for _ in range(iterations):
+        c, s = math.cos(th), math.sin(th)
+        u = (x + c * px - s * py - ox) / res - 0.5
+        v = (y + s * px + c * py - oy) / res - 0.5
+        uf, vf = np.floor(u), np.floor(v)
+        fu, fv = u - uf, v - vf
+        u0, v0 = uf.astype(np.int64), vf.astype(np.int64)
+        ok = (u0 >= 0) & (u0 < w - 1) & (v0 >= 0) & (v0 < h - 1)
+        f = grid.field.astype(np.float64)
+        uc, vc = np.clip(u0, 0, w - 2), np.clip(v0, 0, h - 2)
+        m00, m10 = np.where(ok, f[vc, uc], 0.0), np.where(ok, f[vc, uc + 1], 0.0)
+        m01, m11 = np.where(ok, f[vc + 1, uc], 0.0), np.where(ok, f[vc + 1, uc + 1], 0.0)
+        gu, gv = 1 - fu, 1 - fv
+        val = gv * (gu * m00 + fu * m10) + fv * (gu * m01 + fu * m11)
+        du = gv * (m10 - m00) + fv * (m11 - m01)
+        dv = gu * (m01 - m00) + fu * (m11 - m10)
+        if current < 0.0:
+            current = float(val.mean())
+        gx, gy = du / res, dv / res
+        jac = np.column_stack((gx, gy, gx * (-s * px - c * py) + gy * (c * px - s * py)))
+        hess = jac.T @ jac
+        grad = jac.T @ (1.0 - val)
+        if not np.isfinite(hess).all() or np.trace(hess) < 1e-9:
+            break
+        hess += np.diag(np.maximum(np.diag(hess), 1e-6) * 0.1 + 1e-6)
+        step = np.linalg.solve(hess, grad)
+        step = step / max(1.0, math.hypot(step[0], step[1]) / res, abs(step[2]) / math.radians(1.0))
+        for _half in range(4):
+            cand = (x + float(step[0]), y + float(step[1]), th + float(step[2]))
+            score = field_score(grid, points, cand)
+            if score > current:
+                break
+            step = step / 2.0
+        else:
+            break
+        x, y, th = cand
+        gain, current = score - current, score
+        if gain < 1e-5:
+            break
+    return (x, y, th), current
+
+
+def test_the_refinement_is_the_one_step_at_a_time_refinement_to_the_bit() -> None:
+    """``refine`` scores its halved steps together and keeps the corners of the pose it takes; its answer
+    (and the score ``match_scan`` takes from it) must be the plain one's, bit for bit, near the grid's
+    edge too (where the corners are checked per point)."""
+    from fleetlink.agent.mapping.matcher import _refine, field_score
+
+    rc = Raycaster(ROOM)
+    m = OnboardMapper(MapperConfig(closer=None))
+    truth = (2.0, 1.2, 0.3)
+    m.add_scan(0.0, _scan(rc, truth), ANGLES, truth)
+    grid = m.grid
+    rng = np.random.default_rng(4)
+    pts = np.column_stack((np.cos(ANGLES), np.sin(ANGLES))) * _scan(rc, truth)[:, None]
+    pts = pts[np.hypot(pts[:, 0], pts[:, 1]) > 0][::3]
+    for k in range(30):
+        start = (truth[0] + rng.normal(0, 0.05), truth[1] + rng.normal(0, 0.05), truth[2] + rng.normal(0, 0.03))
+        if k == 29:  # far off: points past the grid's edge
+            start = (start[0] - 9.0, start[1], start[2])
+        pose, score = _refine(grid, pts, start)
+        ref_pose, ref_score = _refine_one_step_at_a_time(grid, pts, start)
+        assert pose == ref_pose and score == ref_score, k
+        assert score == field_score(grid, pts, pose)

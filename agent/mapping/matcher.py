@@ -26,7 +26,9 @@ Pure numpy; no I/O.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,10 +146,14 @@ def _search(
     return [(*divmod(int(b), scores.shape[1]), float(flat[b])) for b in best]
 
 
+@functools.cache
 def _grid_offsets(lo: int, hi: int) -> npt.NDArray[np.int64]:
+    """Every (col, row) offset in ``[lo, hi]^2``, rows outer (read-only: cached, two windows a scan)."""
     k = np.arange(lo, hi + 1, dtype=np.int64)
     qq, rr = np.meshgrid(k, k)
-    return np.column_stack((qq.ravel(), rr.ravel()))
+    out = np.column_stack((qq.ravel(), rr.ravel()))
+    out.flags.writeable = False
+    return out
 
 
 def match_scan(
@@ -205,24 +211,28 @@ def match_scan(
     pose = best[1]
 
     # 3. refine
-    pose = refine(grid, points, pose, cfg.refine_iterations)
-    score = field_score(grid, points, pose)
+    pose, score = _refine(grid, points, pose, cfg.refine_iterations)
     if score < guess_score:  # never worse than where we started
         return Match(guess, guess_score, guess_score)
     return Match(pose, score, guess_score)
 
 
-def _corners(field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+def _corners(
+    field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray, inside: bool = False
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """(4, N) field values at the cells around continuous cell coords (u, v) (order m00, m10, m01, m11,
-    0 outside the field), and the fractional parts fu, fv."""
+    0 outside the field), and the fractional parts fu, fv. ``inside``: the caller knows every point's four
+    corners are inside the field (``_inside``), so they are not checked."""
     h, w = field.shape
     uf, vf = np.floor(u), np.floor(v)
     fu, fv = u - uf, v - vf
     u0, v0 = uf.astype(np.int64), vf.astype(np.int64)
-    if len(u0) and int(u0.min()) >= 0 and int(u0.max()) < w - 1 and int(v0.min()) >= 0 and int(v0.max()) < h - 1:
+    if inside or (
+        u0.size and int(u0.min()) >= 0 and int(u0.max()) < w - 1 and int(v0.min()) >= 0 and int(v0.max()) < h - 1
+    ):
         # All four corners inside (the usual case): one gather, no masks.
         flat = v0 * w + u0
-        idx = np.empty((4, len(flat)), dtype=np.int64)
+        idx = np.empty((4, *flat.shape), dtype=np.int64)
         idx[0] = flat
         np.add(flat, 1, out=idx[1])
         np.add(flat, w, out=idx[2])
@@ -235,80 +245,141 @@ def _corners(field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray) -> tu
     return m, fu, fv
 
 
-def _interp(field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray) -> FloatArray:
+def _interp(field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray, inside: bool = False) -> FloatArray:
     """Bilinearly interpolated value of ``field`` at continuous cell coords (cell centres at k)."""
-    (m00, m10, m01, m11), fu, fv = _corners(field, u, v)
+    (m00, m10, m01, m11), fu, fv = _corners(field, u, v, inside)
     gu = 1 - fu
     out: FloatArray = (1 - fv) * (gu * m00 + fu * m10) + fv * (gu * m01 + fu * m11)
     return out
 
 
-def _bilinear(
-    field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Value and gradient (d/du, d/dv, per cell) of ``field`` at continuous cell coords (cell centres at k)."""
-    (m00, m10, m01, m11), fu, fv = _corners(field, u, v)
-    gu, gv = 1 - fu, 1 - fv
-    val = gv * (gu * m00 + fu * m10) + fv * (gu * m01 + fu * m11)
-    du = gv * (m10 - m00) + fv * (m11 - m01)
-    dv = gu * (m01 - m00) + fu * (m11 - m10)
-    return val, du, dv
-
-
 def _score_at(
-    field: npt.NDArray[np.float32], px: FloatArray, py: FloatArray, pose: Pose, origin: tuple[float, float], res: float
+    field: npt.NDArray[np.float32],
+    px: FloatArray,
+    py: FloatArray,
+    pose: Pose,
+    origin: tuple[float, float],
+    res: float,
+    inside: bool = False,
 ) -> float:
     """``field_score`` on the sensor-frame coordinates ``px``, ``py`` (no (N, 2) intermediates)."""
     x, y, th = pose
     c, s = math.cos(th), math.sin(th)
     u = (x + c * px - s * py - origin[0]) / res - 0.5
     v = (y + s * px + c * py - origin[1]) / res - 0.5
-    return float(_interp(field, u, v).mean())
+    # The mean as ndarray.mean computes it (pairwise sum, then / n), without its Python wrapper.
+    return float(np.add.reduce(_interp(field, u, v, inside))) / len(px)
+
+
+def _inside(shape: tuple[int, int], reach: float, x: float, y: float, origin: tuple[float, float], res: float) -> bool:
+    """Do the four interpolation corners of every point within ``reach`` (m) of (x, y) lie inside a field
+    of ``shape``? With a cell to spare each side for rounding."""
+    h, w = shape
+    u0 = (x - origin[0]) / res - 0.5
+    v0 = (y - origin[1]) / res - 0.5
+    r = reach / res
+    return u0 - r >= 1.0 and u0 + r <= w - 3.0 and v0 - r >= 1.0 and v0 + r <= h - 3.0
 
 
 def refine(grid: LogOddsGrid, points: FloatArray, pose: Pose, iterations: int = 8) -> Pose:
     """Gauss-Newton on the interpolated field from ``pose``, with step halving: a step is taken only
     if it raises the mean field value (the field is peaked, so full steps overshoot)."""
+    return _refine(grid, points, pose, iterations)[0]
+
+
+def _refine(grid: LogOddsGrid, points: FloatArray, pose: Pose, iterations: int = 8) -> tuple[Pose, float]:
+    """``refine``, and ``field_score`` at the pose it returns (which it computed on the way: -1 when it
+    ran no iteration). The halved steps are scored together, in one pass over (4, N) arrays, and the
+    field's corners at the pose taken are kept for the next iteration's gradient: element by element
+    the same arithmetic as scoring each step alone, so the same answer to the bit."""
     x, y, th = pose
     res = grid.resolution
-    ox, oy = grid.origin
+    origin = grid.origin
+    field = grid.field
     px, py = points[:, 0], points[:, 1]
+    n = len(px)
+    # How far the points reach from the sensor: the corners' bounds are then checked per pose, not per point.
+    reach = math.sqrt(float(np.max(px * px + py * py))) if n else 0.0
     current = -1.0
+    at: tuple[FloatArray, FloatArray, FloatArray] | None = None  # corners, fu, fv at (x, y, th)
     for _ in range(iterations):
         c, s = math.cos(th), math.sin(th)
-        wx = x + c * px - s * py
-        wy = y + s * px + c * py
-        val, du, dv = _bilinear(grid.field, (wx - ox) / res - 0.5, (wy - oy) / res - 0.5)
+        if at is None:
+            at = _corners_at(field, px, py, ((x, y, th),), origin, res, reach)
+        (m00, m10, m01, m11), fu, fv = at
+        fu, fv = fu[0], fv[0]
+        m00, m10, m01, m11 = m00[0], m10[0], m01[0], m11[0]
+        gu, gv = 1 - fu, 1 - fv
+        val = gv * (gu * m00 + fu * m10) + fv * (gu * m01 + fu * m11)
+        du = gv * (m10 - m00) + fv * (m11 - m01)
+        dv = gu * (m01 - m00) + fu * (m11 - m10)
         if current < 0.0:
-            current = float(val.mean())
+            current = float(np.add.reduce(val)) / n
         gx, gy = du / res, dv / res  # per metre
         dwx_dth = -s * px - c * py
         dwy_dth = c * px - s * py
         jac = np.column_stack((gx, gy, gx * dwx_dth + gy * dwy_dth))
         hess = jac.T @ jac
         grad = jac.T @ (1.0 - val)
-        if not np.isfinite(hess).all() or np.trace(hess) < 1e-9:
+        h00, h11, h22 = float(hess[0, 0]), float(hess[1, 1]), float(hess[2, 2])
+        if not math.isfinite(float(np.add.reduce(hess, axis=None))) or (h00 + h11) + h22 < 1e-9:
             break
-        hess += np.diag(np.maximum(np.diag(hess), 1e-6) * 0.1 + 1e-6)  # Levenberg damping
+        # Levenberg damping (np.diag(np.maximum(np.diag(hess), 1e-6) * 0.1 + 1e-6), in floats)
+        hess[0, 0] = h00 + (max(h00, 1e-6) * 0.1 + 1e-6)
+        hess[1, 1] = h11 + (max(h11, 1e-6) * 0.1 + 1e-6)
+        hess[2, 2] = h22 + (max(h22, 1e-6) * 0.1 + 1e-6)
         try:
             step = np.linalg.solve(hess, grad)
         except np.linalg.LinAlgError:
             break
-        # Bound the step: the linearisation holds within about a cell.
-        step = step / max(1.0, math.hypot(step[0], step[1]) / res, abs(step[2]) / math.radians(1.0))
+        # Bound the step: the linearisation holds within about a cell. Then up to 4 halvings of it.
+        s0, s1, s2 = (float(v) for v in step)
+        bound = max(1.0, math.hypot(s0, s1) / res, abs(s2) / math.radians(1.0))
+        s0, s1, s2 = s0 / bound, s1 / bound, s2 / bound
+        cands = []
         for _half in range(4):
-            cand = (x + float(step[0]), y + float(step[1]), th + float(step[2]))
-            score = _score_at(grid.field, px, py, cand, grid.origin, res)
-            if score > current:
-                break
-            step = step / 2.0
-        else:
+            cands.append((x + s0, y + s1, th + s2))
+            s0, s1, s2 = s0 / 2.0, s1 / 2.0, s2 / 2.0
+        corners, cu, cv = _corners_at(field, px, py, cands, origin, res, reach)
+        scores = np.add.reduce(_blend(corners, cu, cv), axis=1) / n
+        better = np.flatnonzero(scores > current)
+        if not better.size:
             break  # no step along this direction helps: at the optimum
-        x, y, th = cand
+        k = int(better[0])
+        x, y, th = cands[k]
+        score = float(scores[k])
+        at = (corners[:, k : k + 1], cu[k : k + 1], cv[k : k + 1])
         gain, current = score - current, score
         if gain < 1e-5:
             break
-    return (x, y, th)
+    return (x, y, th), current
+
+
+def _corners_at(
+    field: npt.NDArray[np.float32],
+    px: FloatArray,
+    py: FloatArray,
+    poses: Sequence[Pose],
+    origin: tuple[float, float],
+    res: float,
+    reach: float,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``_corners`` of the points seen from each of ``poses``: ((4, P, N), (P, N), (P, N)). Each element
+    computed as ``_score_at`` computes it for one pose."""
+    cs = np.array([(p[0], p[1], math.cos(p[2]), math.sin(p[2])) for p in poses])
+    x, y, c, s = cs[:, 0:1], cs[:, 1:2], cs[:, 2:3], cs[:, 3:4]
+    u = (x + c * px - s * py - origin[0]) / res - 0.5
+    v = (y + s * px + c * py - origin[1]) / res - 0.5
+    shape = (int(field.shape[0]), int(field.shape[1]))
+    inside = all(_inside(shape, reach, p[0], p[1], origin, res) for p in poses)
+    return _corners(field, u, v, inside)
+
+
+def _blend(m: FloatArray, fu: FloatArray, fv: FloatArray) -> FloatArray:
+    """Bilinear interpolation of the corners ``m`` (as ``_interp``)."""
+    gu = 1 - fu
+    out: FloatArray = (1 - fv) * (gu * m[0] + fu * m[1]) + fv * (gu * m[2] + fu * m[3])
+    return out
 
 
 # -- point-to-line refinement against a local map of recent keyframes ------------------------------
