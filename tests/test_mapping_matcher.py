@@ -153,3 +153,28 @@ def test_the_refinement_is_the_one_step_at_a_time_refinement_to_the_bit() -> Non
         ref_pose, ref_score = _refine_one_step_at_a_time(grid, pts, start)
         assert pose == ref_pose and score == ref_score, k
         assert score == field_score(grid, pts, pose)
+
+
+def test_the_local_map_finds_the_nearest_fused_point_in_the_cells_around() -> None:
+    """``LocalMap.nearest_xy`` against brute force: the nearest fused point among the 3 x 3 cells around
+    each query (-1 and an infinite distance where they hold none), and its distance."""
+    from fleetlink.agent.mapping.matcher import LocalMap
+
+    rng = np.random.default_rng(8)
+    local = LocalMap(keyframes=3, cell=0.1)
+    for _ in range(3):
+        pts = rng.uniform(-2.0, 2.0, (150, 2))
+        normals = np.tile([[1.0, 0.0]], (150, 1))
+        local.add((0.0, 0.0, 0.0), pts, normals)
+    q = rng.uniform(-2.6, 2.6, (400, 2))
+    idx, dist = local.nearest_xy(q[:, 0], q[:, 1])
+    cell = np.floor(local.points / 0.1)
+    for k, (x, y) in enumerate(q):
+        here = np.floor(np.array([x, y]) / 0.1)
+        near = np.flatnonzero((np.abs(cell - here) <= 1).all(axis=1))
+        if not near.size:
+            assert idx[k] == -1 and dist[k] == np.inf
+            continue
+        d = np.hypot(local.points[near, 0] - x, local.points[near, 1] - y)
+        assert idx[k] == near[np.argmin(d)] and dist[k] == d.min()
+    assert (idx == -1).any() and (idx >= 0).sum() > 200

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from scipy.linalg import lapack
 
 from fleetlink.agent.mapping.grid import LogOddsGrid
 
@@ -328,9 +329,8 @@ def _refine(grid: LogOddsGrid, points: FloatArray, pose: Pose, iterations: int =
         hess[0, 0] = h00 + (max(h00, 1e-6) * 0.1 + 1e-6)
         hess[1, 1] = h11 + (max(h11, 1e-6) * 0.1 + 1e-6)
         hess[2, 2] = h22 + (max(h22, 1e-6) * 0.1 + 1e-6)
-        try:
-            step = np.linalg.solve(hess, grad)
-        except np.linalg.LinAlgError:
+        step = _solve(hess, grad)
+        if step is None:
             break
         # Bound the step: the linearisation holds within about a cell. Then up to 4 halvings of it.
         s0, s1, s2 = (float(v) for v in step)
@@ -353,6 +353,16 @@ def _refine(grid: LogOddsGrid, points: FloatArray, pose: Pose, iterations: int =
         if gain < 1e-5:
             break
     return (x, y, th), current
+
+
+def _solve(a: FloatArray, b: FloatArray) -> FloatArray | None:
+    """``np.linalg.solve(a, b)`` for one small system (LAPACK's dgesv, as numpy calls it, without numpy's
+    wrapping, which costs several times the solve); None where numpy raises (singular)."""
+    _, _, x, info = lapack.dgesv(a, b)
+    if info != 0:
+        return None
+    out: FloatArray = x
+    return out
 
 
 def _corners_at(
@@ -442,6 +452,7 @@ class LocalMap:
         self._noff: npt.NDArray[np.int64] = np.zeros(9, dtype=np.int64)
         self._px: FloatArray = np.zeros(1)
         self._py: FloatArray = np.zeros(1)
+        self.stacked: FloatArray = np.zeros((4, 0))
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -491,6 +502,8 @@ class LocalMap:
         # Gathers read these; index -1 (none) reads the appended point at infinity.
         self._px = np.append(self.points[:, 0], np.inf)
         self._py = np.append(self.points[:, 1], np.inf)
+        # Rows x, y, normal x, normal y: one gather per iteration of ``icp_refine`` instead of four.
+        self.stacked = np.vstack((self.points.T, self.normals.T))
 
     def nearest(self, xy: FloatArray) -> tuple[npt.NDArray[np.int64], FloatArray]:
         """Index of the nearest fused point within the 3x3 cells around each of ``xy`` (-1: none), and
@@ -507,12 +520,17 @@ class LocalMap:
         inside = (ix >= 2) & (ix < self._tw - 2) & (iy >= 2) & (iy < self._th - 2)
         cells = np.where(inside, iy * self._tw + ix, self._tw + 1)
         i = self._table[cells[:, None] + self._noff[None, :]]  # (N, 9), -1: none
-        d = np.hypot(self._px[i] - x[:, None], self._py[i] - y[:, None])  # none: inf
-        j = d.argmin(axis=1)
+        # The nearest by squared distance (cheaper than hypot over all nine), its distance by hypot.
+        dx = self._px[i] - x[:, None]  # none: inf
+        dy = self._py[i] - y[:, None]
+        dx *= dx
+        dy *= dy
+        dx += dy
         rows = np.arange(n)
-        dist = d[rows, j]
-        best = np.where(np.isfinite(dist), i[rows, j], -1).astype(np.int64)
-        return best, dist
+        j = dx.argmin(axis=1)
+        best = i[rows, j]  # -1 where all nine are empty (their distance: inf)
+        dist = np.hypot(self._px[best] - x, self._py[best] - y)
+        return best.astype(np.int64), dist
 
 
 @dataclass(frozen=True, slots=True)
@@ -544,21 +562,27 @@ def icp_refine(
     lam = np.diag([1.0 / sxy**2, 1.0 / sxy**2, 1.0 / sth**2])
     inliers = 0
     hd_last: FloatArray | None = None
-    lpx, lpy = local.points[:, 0], local.points[:, 1]
-    lnx, lny = local.normals[:, 0], local.normals[:, 1]
+    # Rows: the points in the map frame (x, y; rewritten each iteration), in the sensor frame (x, y): the
+    # inliers are then picked out of all four at once, and the local map's points and normals likewise.
+    pts = np.empty((4, len(px)))
+    pts[2], pts[3] = px, py
+    wx, wy = pts[0], pts[1]
     for _ in range(iterations):
         c, s = math.cos(th), math.sin(th)
-        wx = x + c * px - s * py
-        wy = y + s * px + c * py
+        np.multiply(px, c, out=wx)  # x + c px - s py, in that order
+        wx += x
+        wx -= s * py
+        np.multiply(px, s, out=wy)  # y + s px + c py
+        wy += y
+        wy += c * py
         idx, dist = local.nearest_xy(wx, wy)
         ok = dist <= max_distance  # none: inf
         inliers = int(np.count_nonzero(ok))
         if inliers < 3:
             break
-        i = idx[ok]
-        nx, ny = lnx[i], lny[i]
-        pxo, pyo = px[ok], py[ok]
-        r = nx * (wx[ok] - lpx[i]) + ny * (wy[ok] - lpy[i])
+        wxo, wyo, pxo, pyo = pts.compress(ok, axis=1)
+        lpx, lpy, nx, ny = local.stacked.take(idx[ok], axis=1)
+        r = nx * (wxo - lpx) + ny * (wyo - lpy)
         w = 1.0 / (1.0 + (r / sigma) ** 2) / sigma**2
         dth = nx * (-s * pxo - c * pyo) + ny * (c * pxo - s * pyo)
         jac = np.column_stack((nx, ny, dth))
@@ -567,10 +591,10 @@ def icp_refine(
         dev = np.array([x - prior_pose[0], y - prior_pose[1], math.remainder(th - prior_pose[2], 2.0 * math.pi)])
         hess = hd + lam
         grad = jw @ r + lam @ dev
-        try:
-            step = -np.linalg.solve(hess, grad)
-        except np.linalg.LinAlgError:
+        sol = _solve(hess, grad)
+        if sol is None:
             break
+        step = -sol
         x, y, th = x + float(step[0]), y + float(step[1]), th + float(step[2])
         hd_last = hd
         if math.hypot(step[0], step[1]) < 1e-4 and abs(step[2]) < 1e-4:
