@@ -207,13 +207,18 @@ class LogOddsGrid:
         ocol = ((ex[hit] - ox) / res).astype(np.int64)
         orow = ((ey[hit] - oy) / res).astype(np.int64)
         occ_idx = orow * w + ocol
-        np.clip(free_idx, 0, h * w - 1, out=free_idx)
-        np.clip(occ_idx, 0, h * w - 1, out=occ_idx)
+        # Every cell lies inside the grid (``ensure`` above), but clip the indices if some box says not.
+        if box is not None and not (box[0] >= 0 and box[1] >= 0 and box[2] <= h and box[3] <= w):
+            np.clip(free_idx, 0, h * w - 1, out=free_idx)
+        if orow.size and not (
+            int(orow.min()) >= 0 and int(ocol.min()) >= 0 and int(orow.max()) < h and int(ocol.max()) < w
+        ):
+            np.clip(occ_idx, 0, h * w - 1, out=occ_idx)
         tag = self._tag
         tag[free_idx] = 1
         tag[occ_idx] = 2  # hit wins over crossed
         cells = np.concatenate((free_idx, occ_idx))
-        delta = np.where(tag[cells] == 2, np.float32(self.l_occ), np.float32(self.l_free))
+        delta = np.array([0.0, self.l_free, self.l_occ], dtype=np.float32).take(tag[cells])
         flat = self.logodds.reshape(-1)
         # Fancy-index assignment with repeated indices writes each cell once with the same value:
         # exactly one update per cell per scan, without sorting.
@@ -456,12 +461,20 @@ def _free_cells(
             beam = np.repeat(np.arange(b0, b1), c)
             starts = ends[b0:b1] - c - base
             k = np.arange(total, dtype=np.float64) - np.repeat(starts, c) + 0.5
-            fcol = ((sx + k * res * cos_a[beam] - ox) / res).astype(np.int64)
-            frow = ((sy + k * res * sin_a[beam] - oy) / res).astype(np.int64)
+            k *= res
+            fcol = ((sx + k * cos_a[beam] - ox) / res).astype(np.int64)
+            frow = ((sy + k * sin_a[beam] - oy) / res).astype(np.int64)
             parts.append(frow * w + fcol)
-            chunk = (int(frow.min()), int(fcol.min()), int(frow.max()) + 1, int(fcol.max()) + 1)
-            box = chunk if box is None else _union(box, chunk)
         b0 = b1
+    # Along a beam a sample's row and column are monotone in k (each step of the arithmetic is), so the
+    # samples' box is that of each beam's first and last ones: computed alike, 2 per beam, not all.
+    some = counts > 0
+    if some.any():
+        ends_k = np.concatenate((np.full(int(some.sum()), 0.5), counts[some] - 0.5)) * res
+        ca, sa = np.tile(cos_a[some], 2), np.tile(sin_a[some], 2)
+        ecol = ((sx + ends_k * ca - ox) / res).astype(np.int64)
+        erow = ((sy + ends_k * sa - oy) / res).astype(np.int64)
+        box = (int(erow.min()), int(ecol.min()), int(erow.max()) + 1, int(ecol.max()) + 1)
     free = np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
     return free, box
 
