@@ -250,9 +250,13 @@ def test_the_final_pass_ties_every_node_to_the_submaps_it_sees() -> None:
     assert m._drawn_at == m.closer.poses
 
 
-@pytest.mark.parametrize(("seed", "depth"), [(1, 3), (2, 3), (3, 3), (1, 6), (2, 6)])
-def test_branch_and_bound_finds_the_best_candidate_scoring_all_would(seed: int, depth: int) -> None:
-    """Depth 6 on this 1.25 m window: the search starts at the level whose one block covers it."""
+@pytest.mark.parametrize(
+    ("seed", "depth", "spread"),
+    [(1, 3, 1.5), (2, 3, 1.5), (3, 3, 1.5), (1, 6, 1.5), (2, 6, 1.5), (1, 3, 2.6), (4, 6, 2.6)],
+)
+def test_branch_and_bound_finds_the_best_candidate_scoring_all_would(seed: int, depth: int, spread: float) -> None:
+    """Depth 6 on this 1.25 m window: the search starts at the level whose one block covers it. Points
+    spread 2.6 m reach past the field and its padding (the lookups that mask and clip), 1.5 m not."""
     rng = np.random.default_rng(seed)
     res = 0.05
     field = np.zeros((80, 80), dtype=np.float32)
@@ -265,7 +269,7 @@ def test_branch_and_bound_finds_the_best_candidate_scoring_all_would(seed: int, 
     field += rng.random(field.shape).astype(np.float32) * 0.2
     origin = (-2.0, -2.0)
     grids = PrecomputedGrids(field, origin, res, depth=depth)
-    points = rng.uniform(-1.5, 1.5, (40, 2))
+    points = rng.uniform(-spread, spread, (40, 2))
     guess = (0.1, -0.05, 0.2)
     step = math.radians(2.0)
     found = search(grids, points, guess, window_xy=0.6, window_theta=math.radians(4.0), min_score=0.0, angle_step=step)

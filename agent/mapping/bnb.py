@@ -101,9 +101,24 @@ def search(
     rows: I64 = np.floor((guess[1] + s * px + c * py - oy) / res).astype(np.int64) - n_lin + pad
     n_pts = float(len(points))
     hh, ww = grids.levels[0].shape
+    # Each rotation's points' extent, and their flat indices: a batch whose every shifted point lies
+    # inside the levels (the usual case) is looked up without masks or clips, and sums the same values.
+    rmin, rmax = rows.min(axis=1), rows.max(axis=1)
+    cmin, cmax = cols.min(axis=1), cols.max(axis=1)
+    flat0: I64 = rows * ww + cols
 
     def score(level: int, k: I64, dr: I64, dc: I64) -> F64:
         """Mean of level ``level`` under rotation ``k``'s points shifted by (dr, dc), per candidate."""
+        if (
+            int((rmin[k] + dr).min()) >= 0
+            and int((rmax[k] + dr).max()) < hh
+            and int((cmin[k] + dc).min()) >= 0
+            and int((cmax[k] + dc).max()) < ww
+        ):
+            inner = flat0[k]
+            inner += (dr * ww + dc)[:, None]
+            fast: F64 = grids.levels[level].reshape(-1).take(inner).sum(axis=1, dtype=np.float64) / n_pts
+            return fast
         rr = rows[k] + dr[:, None]
         cc = cols[k] + dc[:, None]
         ok = (rr >= 0) & (rr < hh) & (cc >= 0) & (cc < ww)
