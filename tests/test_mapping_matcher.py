@@ -178,3 +178,27 @@ def test_the_local_map_finds_the_nearest_fused_point_in_the_cells_around() -> No
         d = np.hypot(local.points[near, 0] - x, local.points[near, 1] - y)
         assert idx[k] == near[np.argmin(d)] and dist[k] == d.min()
     assert (idx == -1).any() and (idx >= 0).sum() > 200
+
+
+def test_a_local_map_extended_at_once_is_the_one_added_to_frame_by_frame() -> None:
+    """Submaps fuse their scans' points once (``LocalMap.extend``): the same fused points, normals and
+    lookups as adding the frames one by one, the oldest dropped alike when there are more than it keeps."""
+    from fleetlink.agent.mapping.matcher import LocalMap
+
+    rng = np.random.default_rng(2)
+    frames = []
+    for k in range(7):
+        pts = rng.uniform(-3.0, 3.0, (120, 2))
+        normals = rng.normal(size=(120, 2))
+        normals /= np.hypot(normals[:, 0], normals[:, 1])[:, None]
+        normals[::17] = np.nan  # points without a normal are left out
+        frames.append(((0.1 * k, -0.05 * k, 0.02 * k), pts, normals))
+    one, many = LocalMap(keyframes=5, cell=0.05), LocalMap(keyframes=5, cell=0.05)
+    for f in frames:
+        one.add(*f)
+    many.extend(frames)
+    assert np.array_equal(one.keys, many.keys) and np.array_equal(one.points, many.points)
+    assert np.array_equal(one.normals, many.normals) and np.array_equal(one.stacked, many.stacked)
+    q = rng.uniform(-3.5, 3.5, (300, 2))
+    for a, b in zip(one.nearest(q), many.nearest(q), strict=True):
+        assert np.array_equal(a, b)

@@ -717,10 +717,12 @@ def draw_submap(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, dept
     """A submap drawn from its scans at their sensor poses in its frame."""
     # A small growth step: the mapper's 8 m padding would make every submap a big grid.
     g = LogOddsGrid(replace(grid, grow_step=SUBMAP_GROW_M))
-    local = LocalMap(len(parts), cell=0.05)
+    local = LocalMap(max(1, len(parts)), cell=0.05)
     for sensor, sc in parts:
-        g.integrate(sensor, sc.ranges, sc.angles, sc.hit)
-        local.add(sensor, sc.points, sc.normals)
+        # The field once at the end, over what the scans changed: the same field as refreshed per scan.
+        g.integrate(sensor, sc.ranges, sc.angles, sc.hit, refresh=False)
+    g.refresh_stale()
+    local.extend([(sensor, sc.points, sc.normals) for sensor, sc in parts])  # fused once, not per scan
     return Drawn(g, local, PrecomputedGrids(g.field, g.origin, g.resolution, depth))
 
 

@@ -459,13 +459,21 @@ class LocalMap:
 
     def add(self, sensor_pose: Pose, points: FloatArray, normals: FloatArray) -> None:
         """Add one keyframe's points and normals (sensor frame) seen from ``sensor_pose``."""
-        ok = np.isfinite(normals).all(axis=1)
-        c, s = math.cos(sensor_pose[2]), math.sin(sensor_pose[2])
-        wp = _transform(points[ok], *sensor_pose)
-        nv = normals[ok]
-        wn = np.column_stack((c * nv[:, 0] - s * nv[:, 1], s * nv[:, 0] + c * nv[:, 1]))
-        self._frames.append((wp, wn))
+        self.extend([(sensor_pose, points, normals)])
+
+    def extend(self, frames: Sequence[tuple[Pose, FloatArray, FloatArray]]) -> None:
+        """``add`` each of ``frames`` (sensor pose, points, normals) in order, the points fused once at the
+        end: the same map as adding them one by one."""
+        for sensor_pose, points, normals in frames:
+            ok = np.isfinite(normals).all(axis=1)
+            c, s = math.cos(sensor_pose[2]), math.sin(sensor_pose[2])
+            wp = _transform(points[ok], *sensor_pose)
+            nv = normals[ok]
+            wn = np.column_stack((c * nv[:, 0] - s * nv[:, 1], s * nv[:, 0] + c * nv[:, 1]))
+            self._frames.append((wp, wn))
         del self._frames[: -self.keyframes]
+        if not self._frames:
+            return
         pts = np.vstack([f[0] for f in self._frames])
         nrm = np.vstack([f[1] for f in self._frames])
         k = np.floor(pts / self.cell).astype(np.int64)
