@@ -347,3 +347,19 @@ def test_the_front_end_keeps_matching_when_site_priors_move_the_map() -> None:
     final = [p for _, p in m.corrected_trajectory()]
     err = [math.dist(p[:2], t[:2]) for p, t in zip(final, truth, strict=True)]
     assert float(np.sqrt(np.mean(np.square(err)))) < 0.1, max(err)
+
+
+def test_each_level_holds_the_maximum_of_its_window() -> None:
+    """Branch and bound's levels: level d at (r, c) is the maximum of the padded field over the 2^d x 2^d
+    cells from (r, c) up and to the right (cut off at the array's edge)."""
+    rng = np.random.default_rng(3)
+    field = rng.random((23, 31)).astype(np.float32)
+    grids = PrecomputedGrids(field, (0.0, 0.0), 0.05, depth=3)
+    base = grids.levels[0]
+    assert np.array_equal(base[8:31, 8:39], field) and base.shape == (39, 47)
+    for d, level in enumerate(grids.levels):
+        k = 1 << d
+        want = np.array(
+            [[base[r : r + k, c : c + k].max() for c in range(base.shape[1])] for r in range(base.shape[0])]
+        )
+        assert np.array_equal(level, want), d

@@ -56,9 +56,12 @@ class PrecomputedGrids:
         cur = base
         for d in range(depth):
             s = 1 << d  # the window grows from s to 2s: max of the s-window here and s cells on
-            nxt = cur.copy()
-            np.maximum(nxt[:, :-s], cur[:, s:], out=nxt[:, :-s])
-            np.maximum(nxt[:-s, :], nxt[s:, :].copy(), out=nxt[:-s, :])
+            across = np.empty_like(cur)
+            np.maximum(cur[:, :-s], cur[:, s:], out=across[:, :-s])
+            across[:, -s:] = cur[:, -s:]
+            nxt = np.empty_like(cur)
+            np.maximum(across[:-s, :], across[s:, :], out=nxt[:-s, :])
+            nxt[-s:, :] = across[-s:, :]
             self.levels.append(nxt)
             cur = nxt
 
