@@ -123,18 +123,20 @@ def _search(
         and int(cols.min()) + int(oc.min()) >= 0
         and int(cols.max()) + int(oc.max()) < w
     ):
-        # Every candidate inside the grid (the usual case): one flat index per point and per offset.
+        # Every candidate inside the grid (the usual case): one flat index per point and per offset,
+        # offsets outermost (each offset a scalar added to one long contiguous run).
         rows *= w
         rows += cols
-        r = rows[:, None, :] + (orr * w + oc)[None, :, None]  # (A, T, N)
+        r = (orr * w + oc)[:, None, None] + rows[None, :, :]  # (T, A, N)
     else:
         # Clip instead of masking (cheaper): the grid always extends past every integrated scan, so
         # its edge cells are empty and a point beyond the edge reads 0 either way.
-        r = np.clip(rows[:, None, :] + orr[None, :, None], 0, h - 1)
-        q = np.clip(cols[:, None, :] + oc[None, :, None], 0, w - 1)
+        r = np.clip(orr[:, None, None] + rows[None, :, :], 0, h - 1)
+        q = np.clip(oc[:, None, None] + cols[None, :, :], 0, w - 1)
         r *= w
         r += q
-    scores = np.add.reduce(field.reshape(-1).take(r), axis=2, dtype=np.float32)
+    # Each candidate's sum over its points in point order, as from an (A, T, N) array; then (A, T).
+    scores = np.ascontiguousarray(np.add.reduce(field.reshape(-1).take(r), axis=2, dtype=np.float32).T)
     scores /= r.shape[2]  # the mean, as np.mean computes it
     scores = scores - penalty  # (A, T)
     flat = scores.ravel()
