@@ -450,7 +450,7 @@ class LocalMap:
         self.keys: npt.NDArray[np.int64] = np.zeros(0, dtype=np.int64)
         self.points: FloatArray = np.zeros((0, 2))
         self.normals: FloatArray = np.zeros((0, 2))
-        self._table: npt.NDArray[np.int32] = np.full(1, -1, dtype=np.int32)
+        self._table: npt.NDArray[np.intp] = np.full(1, -1, dtype=np.intp)
         self._tx0 = self._ty0 = self._tw = self._th = 0
         self._noff: npt.NDArray[np.int64] = np.zeros(9, dtype=np.int64)
         self._px: FloatArray = np.zeros(1)
@@ -499,15 +499,15 @@ class LocalMap:
         one cell outside the points' box reads the all-empty cell next to the corner instead."""
         n = len(self.keys)
         if n == 0:
-            self._table = np.full(1, -1, dtype=np.int32)
+            self._table = np.full(1, -1, dtype=np.intp)
             self._tx0 = self._ty0 = self._tw = self._th = 0
             return
         cx = (self.keys >> 32) - _KEY_OFFSET
         cy = (self.keys & 0xFFFFFFFF) - _KEY_OFFSET
         self._tx0, self._ty0 = int(cx.min()) - 3, int(cy.min()) - 3
         self._tw, self._th = int(cx.max()) - self._tx0 + 4, int(cy.max()) - self._ty0 + 4
-        table = np.full(self._tw * self._th, -1, dtype=np.int32)
-        table[(cy - self._ty0) * self._tw + (cx - self._tx0)] = np.arange(n, dtype=np.int32)
+        table = np.full(self._tw * self._th, -1, dtype=np.intp)
+        table[(cy - self._ty0) * self._tw + (cx - self._tx0)] = np.arange(n, dtype=np.intp)
         self._table = table
         self._noff = _NY * self._tw + _NX  # the 3x3 neighbours' flat offsets, in _NX/_NY order
         # Gathers read these; index -1 (none) reads the appended point at infinity.
