@@ -202,3 +202,47 @@ def test_a_local_map_extended_at_once_is_the_one_added_to_frame_by_frame() -> No
     q = rng.uniform(-3.5, 3.5, (300, 2))
     for a, b in zip(one.nearest(q), many.nearest(q), strict=True):
         assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize(("sd_cells", "spread"), [(0.07, 3.0), (0.3, 3.0), (1.0, 3.0), (0.07, 9.0), (5.0, 3.0)])
+def test_the_correlative_search_skips_only_candidates_the_prior_leaves_no_chance(
+    sd_cells: float, spread: float
+) -> None:
+    """With top 1 the search scores only candidates penalised less than 1 beyond the least penalised
+    (a mean field value lies in [0, 1]); its answer must be the one scoring every candidate gives: tight
+    priors (few scored), loose ones (all scored), points past the grid's edge (clipped lookups)."""
+    from fleetlink.agent.mapping.matcher import _grid_offsets, _search
+
+    rng = np.random.default_rng(int(sd_cells * 100 + spread))
+    field = np.clip(rng.random((120, 140)).astype(np.float32) * 1.2 - 0.1, 0.0, 1.0)
+    pts = rng.uniform(-spread, spread, (90, 2))
+    thetas = 0.3 + np.radians(1.5) * np.arange(-10, 11)
+    offs = _grid_offsets(-3, 3)
+    pen = 0.15 * (
+        ((offs[:, 0] ** 2 + offs[:, 1] ** 2) / sd_cells**2)[None, :] + (np.arange(-10, 11) / 8.0)[:, None] ** 2
+    )
+    for x, y in ((3.1, 2.9), (0.4, 0.3)):
+        got = _search(field, pts, 0.05, (0.0, 0.0), x, y, thetas, offs, pen)
+        every = _search(field, pts, 0.05, (0.0, 0.0), x, y, thetas, offs, pen, top=2)[0]
+        assert got == [every]
+
+
+def test_the_correlative_search_finds_walls_the_prior_disfavours_but_allows() -> None:
+    """The walls lie where a candidate penalised 0.8 beyond the least penalised puts the points: the
+    mean field value (1 there, 0 elsewhere) outweighs the prior, and the search must score that one."""
+    from fleetlink.agent.mapping.matcher import _grid_offsets, _search
+
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-2.0, 2.0, (60, 2))
+    thetas = np.radians(1.5) * np.arange(-5, 6)
+    offs = _grid_offsets(-3, 3)
+    pen = 0.2 * (offs[:, 0] ** 2 + offs[:, 1] ** 2)[None, :] + 0.0 * thetas[:, None]  # one cell: 0.2, two: 0.8
+    a, t = 7, int(np.flatnonzero((offs[:, 0] == 2) & (offs[:, 1] == 0))[0])
+    field = np.zeros((200, 200), dtype=np.float32)
+    c, s = math.cos(thetas[a]), math.sin(thetas[a])
+    cols = np.floor((5.0 + c * pts[:, 0] - s * pts[:, 1]) / 0.05).astype(int) + offs[t, 0]
+    rows = np.floor((5.0 + s * pts[:, 0] + c * pts[:, 1]) / 0.05).astype(int) + offs[t, 1]
+    field[rows, cols] = 1.0
+    got = _search(field, pts, 0.05, (0.0, 0.0), 5.0, 5.0, thetas, offs, pen)
+    assert got[0][:2] == (a, t) and got[0][2] == pytest.approx(1.0 - 0.8)
+    assert got == [_search(field, pts, 0.05, (0.0, 0.0), 5.0, 5.0, thetas, offs, pen, top=2)[0]]
