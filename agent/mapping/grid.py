@@ -18,7 +18,9 @@ the UWB frame (metres). The grid grows in chunks (``grow_step``) when a scan rea
 
 It also keeps the matcher's *likelihood field*: the occupied probability blurred by a small
 binomial kernel (so scores and gradients are smooth), plus a max-pooled coarse copy for the
-correlative search. Both are refreshed only over the box a scan touched.
+correlative search. Both are refreshed per scan only over small tiles around the cells whose
+occupied evidence the scan changed (``_refresh_cells``), or over the box the scans touched when
+refreshed late (``refresh_stale``): the same values either way.
 
 Pure numpy; no I/O.
 """
