@@ -363,3 +363,17 @@ def test_each_level_holds_the_maximum_of_its_window() -> None:
             [[base[r : r + k, c : c + k].max() for c in range(base.shape[1])] for r in range(base.shape[0])]
         )
         assert np.array_equal(level, want), d
+
+
+def test_a_small_window_builds_only_the_levels_it_needs() -> None:
+    rng = np.random.default_rng(5)
+    field = rng.random((60, 60)).astype(np.float32)
+    grids = PrecomputedGrids(field, (0.0, 0.0), 0.05, depth=6)
+    pts = rng.uniform(0.5, 2.5, (30, 2))
+    found = search(grids, pts, (0.0, 0.0, 0.0), 0.3, math.radians(2.0), min_score=0.0)
+    assert found is not None and len(grids._levels) == 5  # 0.3 m: 13 cells, blocks of 16 = level 4
+    full = PrecomputedGrids(field, (0.0, 0.0), 0.05, depth=6)
+    assert all(np.array_equal(a, b) for a, b in zip(grids.levels, full.levels, strict=True))
+    assert search(full, pts, (0.0, 0.0, 0.0), 0.3, math.radians(2.0), min_score=0.0) == found
+    with pytest.raises(ValueError):
+        grids.level(7)

@@ -46,7 +46,7 @@ import numpy.typing as npt
 
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
-from fleetlink.agent.mapping.matcher import LocalMap, field_score, icp_refine, refine
+from fleetlink.agent.mapping.matcher import LocalMap, _refine, field_score, icp_refine
 from fleetlink.agent.mapping.posegraph import PoseGraph
 from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
 
@@ -744,8 +744,8 @@ def run_check(check: Check) -> CheckResult:
     hit = search(drawn.grids, sc.match_points, check.guess, wxy, wth, cfg.search_min_score, cfg.angle_step)
     if hit is None:
         return CheckResult(check, None, "score", drawn)
-    found = refine(grid, sc.match_points, hit[0])
-    if field_score(grid, sc.match_points, found) < cfg.min_score:
+    found, score = _refine(grid, sc.match_points, hit[0])  # and the field score there
+    if score < cfg.min_score:
         return CheckResult(check, None, "score", drawn)
     r = icp_refine(local, sc.points, found, found, (1.0, 1.0), 0.03, 0.15, iterations=12)
     ratio = _inlier_ratio(local, sc.points, r.pose, cfg.inlier_distance)
