@@ -246,3 +246,61 @@ def test_the_correlative_search_finds_walls_the_prior_disfavours_but_allows() ->
     got = _search(field, pts, 0.05, (0.0, 0.0), 5.0, 5.0, thetas, offs, pen)
     assert got[0][:2] == (a, t) and got[0][2] == pytest.approx(1.0 - 0.8)
     assert got == [_search(field, pts, 0.05, (0.0, 0.0), 5.0, 5.0, thetas, offs, pen, top=2)[0]]
+
+
+def _icp_every_point_again(local, points, pose, prior_pose, prior, sigma=0.03, max_distance=0.15, iterations=8):  # type: ignore[no-untyped-def]
+    """Point-to-line as first written: every point's correspondence looked up afresh each iteration."""
+    x, y, th = pose
+    px, py = points[:, 0], points[:, 1]
+    sxy, sth = max(prior[0], 1e-3), max(prior[1], 1e-4)
+    lam = np.diag([1.0 / sxy**2, 1.0 / sxy**2, 1.0 / sth**2])
+    inliers, hd_last = 0, None
+    for _ in range(iterations):
+        c, s = math.cos(th), math.sin(th)
+        wx, wy = x + c * px - s * py, y + s * px + c * py
+        idx, dist = local.nearest_xy(wx, wy)
+        ok = dist <= max_distance
+        inliers = int(np.count_nonzero(ok))
+        if inliers < 3:
+            break
+        i = idx[ok]
+        nx, ny = local.normals[i, 0], local.normals[i, 1]
+        pxo, pyo = px[ok], py[ok]
+        r = nx * (wx[ok] - local.points[i, 0]) + ny * (wy[ok] - local.points[i, 1])
+        w = 1.0 / (1.0 + (r / sigma) ** 2) / sigma**2
+        jac = np.column_stack((nx, ny, nx * (-s * pxo - c * pyo) + ny * (c * pxo - s * pyo)))
+        jw = (jac * w[:, None]).T
+        hd = jw @ jac
+        dev = np.array([x - prior_pose[0], y - prior_pose[1], math.remainder(th - prior_pose[2], 2.0 * math.pi)])
+        step = -np.linalg.solve(hd + lam, jw @ r + lam @ dev)
+        x, y, th = x + float(step[0]), y + float(step[1]), th + float(step[2])
+        hd_last = hd
+        if math.hypot(step[0], step[1]) < 1e-4 and abs(step[2]) < 1e-4:
+            break
+    weak = 0.0 if hd_last is None else float(np.linalg.eigvalsh(hd_last)[0])
+    return (x, y, th), inliers, weak, hd_last
+
+
+def test_point_to_line_is_the_one_that_looks_every_correspondence_up_again() -> None:
+    """``icp_refine`` gathers the 3 x 3 cells' points again only for points whose cell changed, and
+    solves through LAPACK directly: its answer must be the plain one's, bit for bit, from starts far
+    enough off that many points change cells."""
+    from fleetlink.agent.mapping.matcher import LocalMap, icp_refine, scan_normals
+    from fleetlink.agent.mapping.scan import segment_labels, to_points
+
+    rc = Raycaster(ROOM)
+    truth = (2.0, 1.2, 0.3)
+    r = _scan(rc, truth)
+    pts = to_points(r[r > 0], ANGLES[r > 0])
+    normals = scan_normals(pts, segment_labels(pts, 0.3, 5.0))
+    local = LocalMap(keyframes=5, cell=0.1)
+    local.add(truth, pts, normals)
+    rng = np.random.default_rng(9)
+    for k in range(12):
+        start = (truth[0] + rng.normal(0, 0.06), truth[1] + rng.normal(0, 0.06), truth[2] + rng.normal(0, 0.03))
+        got = icp_refine(local, pts, start, start, (0.1, 0.05) if k % 2 else (1.0, 1.0))
+        pose, inliers, weak, info = _icp_every_point_again(
+            local, pts, start, start, (0.1, 0.05) if k % 2 else (1.0, 1.0)
+        )
+        assert got.pose == pose and got.inliers == inliers and got.weak == weak, k
+        assert info is not None and got.information is not None and np.array_equal(got.information, info)

@@ -585,18 +585,34 @@ class LocalMap:
         n = len(x)
         if n == 0 or len(self.keys) == 0:
             return np.full(n, -1, dtype=np.int64), np.full(n, np.inf)
+        return self._pick(self._gather(self._cells(x, y)), x, y)
+
+    def _cells(self, x: FloatArray, y: FloatArray) -> npt.NDArray[np.int64]:
+        """The table cell of each point (one all-empty cell for points more than a cell outside)."""
         ix = np.floor(x / self.cell).astype(np.int64) - self._tx0
         iy = np.floor(y / self.cell).astype(np.int64) - self._ty0
         inside = (ix >= 2) & (ix < self._tw - 2) & (iy >= 2) & (iy < self._th - 2)
-        cells = np.where(inside, iy * self._tw + ix, self._tw + 1)
-        i = self._table[cells[:, None] + self._noff[None, :]]  # (N, 9), -1: none
+        cells: npt.NDArray[np.int64] = np.where(inside, iy * self._tw + ix, self._tw + 1)
+        return cells
+
+    def _gather(self, cells: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.intp], FloatArray, FloatArray]:
+        """The fused points in the 3 x 3 cells around each of ``cells``: (N, 9) indices (-1: none) and
+        their coordinates (inf: none)."""
+        i = self._table[cells[:, None] + self._noff[None, :]]
+        return i, self._px[i], self._py[i]
+
+    def _pick(
+        self, near: tuple[npt.NDArray[np.intp], FloatArray, FloatArray], x: FloatArray, y: FloatArray
+    ) -> tuple[npt.NDArray[np.int64], FloatArray]:
+        """The nearest of ``near`` (``_gather``'s) to each point, and its distance."""
+        i, gx, gy = near
         # The nearest by squared distance (cheaper than hypot over all nine), its distance by hypot.
-        dx = self._px[i] - x[:, None]  # none: inf
-        dy = self._py[i] - y[:, None]
+        dx = gx - x[:, None]  # none: inf
+        dy = gy - y[:, None]
         dx *= dx
         dy *= dy
         dx += dy
-        rows = np.arange(n)
+        rows = np.arange(len(x))
         j = dx.argmin(axis=1)
         best = i[rows, j]  # -1 where all nine are empty (their distance: inf)
         dist = np.hypot(self._px[best] - x, self._py[best] - y)
@@ -637,6 +653,10 @@ def icp_refine(
     pts = np.empty((4, len(px)))
     pts[2], pts[3] = px, py
     wx, wy = pts[0], pts[1]
+    if len(local) == 0 or len(px) == 0:
+        return IcpResult((x, y, th), 0, 0.0, None)
+    near: tuple[npt.NDArray[np.intp], FloatArray, FloatArray] | None = None
+    last_cells: npt.NDArray[np.int64] | None = None
     for _ in range(iterations):
         c, s = math.cos(th), math.sin(th)
         np.multiply(px, c, out=wx)  # x + c px - s py, in that order
@@ -645,7 +665,19 @@ def icp_refine(
         np.multiply(px, s, out=wy)  # y + s px + c py
         wy += y
         wy += c * py
-        idx, dist = local.nearest_xy(wx, wy)
+        # Correspondences: the 3 x 3 cells' fused points gathered again only for the points whose
+        # cell changed since the last iteration (most keep theirs: the steps are millimetres).
+        cells = local._cells(wx, wy)
+        if near is None or last_cells is None:
+            near = local._gather(cells)
+        else:
+            moved = np.flatnonzero(cells != last_cells)
+            if moved.size:
+                fresh = local._gather(cells[moved])
+                for old_part, new_part in zip(near, fresh, strict=True):
+                    old_part[moved] = new_part
+        last_cells = cells
+        idx, dist = local._pick(near, wx, wy)
         ok = dist <= max_distance  # none: inf
         inliers = int(np.count_nonzero(ok))
         if inliers < 3:
