@@ -250,9 +250,13 @@ def test_the_final_pass_ties_every_node_to_the_submaps_it_sees() -> None:
     assert m._drawn_at == m.closer.poses
 
 
-@pytest.mark.parametrize(("seed", "depth"), [(1, 3), (2, 3), (3, 3), (1, 6), (2, 6)])
-def test_branch_and_bound_finds_the_best_candidate_scoring_all_would(seed: int, depth: int) -> None:
-    """Depth 6 on this 1.25 m window: the search starts at the level whose one block covers it."""
+@pytest.mark.parametrize(
+    ("seed", "depth", "spread"),
+    [(1, 3, 1.5), (2, 3, 1.5), (3, 3, 1.5), (1, 6, 1.5), (2, 6, 1.5), (1, 3, 2.6), (4, 6, 2.6)],
+)
+def test_branch_and_bound_finds_the_best_candidate_scoring_all_would(seed: int, depth: int, spread: float) -> None:
+    """Depth 6 on this 1.25 m window: the search starts at the level whose one block covers it. Points
+    spread 2.6 m reach past the field and its padding (the lookups that mask and clip), 1.5 m not."""
     rng = np.random.default_rng(seed)
     res = 0.05
     field = np.zeros((80, 80), dtype=np.float32)
@@ -265,7 +269,7 @@ def test_branch_and_bound_finds_the_best_candidate_scoring_all_would(seed: int, 
     field += rng.random(field.shape).astype(np.float32) * 0.2
     origin = (-2.0, -2.0)
     grids = PrecomputedGrids(field, origin, res, depth=depth)
-    points = rng.uniform(-1.5, 1.5, (40, 2))
+    points = rng.uniform(-spread, spread, (40, 2))
     guess = (0.1, -0.05, 0.2)
     step = math.radians(2.0)
     found = search(grids, points, guess, window_xy=0.6, window_theta=math.radians(4.0), min_score=0.0, angle_step=step)
@@ -343,3 +347,33 @@ def test_the_front_end_keeps_matching_when_site_priors_move_the_map() -> None:
     final = [p for _, p in m.corrected_trajectory()]
     err = [math.dist(p[:2], t[:2]) for p, t in zip(final, truth, strict=True)]
     assert float(np.sqrt(np.mean(np.square(err)))) < 0.1, max(err)
+
+
+def test_each_level_holds_the_maximum_of_its_window() -> None:
+    """Branch and bound's levels: level d at (r, c) is the maximum of the padded field over the 2^d x 2^d
+    cells from (r, c) up and to the right (cut off at the array's edge)."""
+    rng = np.random.default_rng(3)
+    field = rng.random((23, 31)).astype(np.float32)
+    grids = PrecomputedGrids(field, (0.0, 0.0), 0.05, depth=3)
+    base = grids.levels[0]
+    assert np.array_equal(base[8:31, 8:39], field) and base.shape == (39, 47)
+    for d, level in enumerate(grids.levels):
+        k = 1 << d
+        want = np.array(
+            [[base[r : r + k, c : c + k].max() for c in range(base.shape[1])] for r in range(base.shape[0])]
+        )
+        assert np.array_equal(level, want), d
+
+
+def test_a_small_window_builds_only_the_levels_it_needs() -> None:
+    rng = np.random.default_rng(5)
+    field = rng.random((60, 60)).astype(np.float32)
+    grids = PrecomputedGrids(field, (0.0, 0.0), 0.05, depth=6)
+    pts = rng.uniform(0.5, 2.5, (30, 2))
+    found = search(grids, pts, (0.0, 0.0, 0.0), 0.3, math.radians(2.0), min_score=0.0)
+    assert found is not None and len(grids._levels) == 5  # 0.3 m: 13 cells, blocks of 16 = level 4
+    full = PrecomputedGrids(field, (0.0, 0.0), 0.05, depth=6)
+    assert all(np.array_equal(a, b) for a, b in zip(grids.levels, full.levels, strict=True))
+    assert search(full, pts, (0.0, 0.0, 0.0), 0.3, math.radians(2.0), min_score=0.0) == found
+    with pytest.raises(ValueError):
+        grids.level(7)

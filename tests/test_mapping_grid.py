@@ -138,3 +138,43 @@ def test_a_field_refreshed_late_is_the_field_refreshed_per_scan() -> None:
     assert late.stale is None
     assert late.shape == now.shape and late.origin == now.origin
     assert np.array_equal(late.field, now.field) and np.array_equal(late.coarse_field, now.coarse_field)
+
+
+@pytest.mark.parametrize("coarse", [1, 3, 4])
+def test_the_field_refreshed_around_changed_cells_is_the_whole_field_refreshed(coarse: int) -> None:
+    """Per scan the likelihood field is recomputed only over small tiles around the cells whose
+    occupied evidence changed (``_refresh_cells``); it must equal, to the bit, the field and coarse
+    field computed over the whole grid, through growth, walls cleared again, and any coarse factor."""
+    rng = np.random.default_rng(5)
+    grid = LogOddsGrid(GridConfig(grow_step=2.0, coarse=coarse))
+    tiled = 0
+    original = grid._refresh_cells
+
+    def counted(changed: np.ndarray) -> bool:
+        nonlocal tiled
+        done = original(changed)
+        tiled += done and changed.size > 0
+        return done
+
+    grid._refresh_cells = counted  # type: ignore[method-assign]
+    for k in range(25):
+        pose = (float(rng.uniform(-1, 1)) + 0.3 * k, float(rng.uniform(-1, 1)), float(rng.uniform(-3, 3)))
+        n = int(rng.integers(20, 300))
+        r, a, hit = rng.uniform(0.2, 5.0, n), np.sort(rng.uniform(-np.pi, np.pi, n)), rng.random(n) > 0.3
+        grid.integrate(pose, r, a, hit)
+        whole = LogOddsGrid(GridConfig(grow_step=2.0, coarse=coarse))
+        whole._realloc(0, 0, *grid.shape, *grid.origin, fresh=True)
+        whole.logodds[:] = grid.logodds
+        whole.refresh()
+        assert np.array_equal(grid.field, whole.field), k
+        assert np.array_equal(grid.coarse_field, whole.coarse_field), k
+    assert tiled >= 20  # the tiles did the work, not the fallback
+
+
+def test_tiles_past_the_grid_edge_fall_back_to_the_box() -> None:
+    grid = LogOddsGrid(GridConfig(grow_step=1.0))
+    _beam(grid, 2.0)
+    h, w = grid.shape
+    assert not grid._refresh_cells(np.array([w + 1], dtype=np.int64))  # row 1: the tile would leave the grid
+    assert not grid._refresh_cells(np.array([(h // 2) * w + w - 2], dtype=np.int64))
+    assert grid._refresh_cells(np.array([(h // 2) * w + w // 2], dtype=np.int64))

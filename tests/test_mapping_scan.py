@@ -52,3 +52,13 @@ def test_evenly_spaced_points_stay_one_segment_and_isolated_points_are_noise() -
 def test_thin_keeps_one_point_per_cell() -> None:
     pts = np.array([[0.01, 0.01], [0.02, 0.02], [0.5, 0.5], [0.51, 0.52], [1.0, 0.0]])
     assert thin(pts, 0.1).tolist() == [[0.01, 0.01], [0.5, 0.5], [1.0, 0.0]]
+
+
+def test_thin_keeps_the_first_point_of_each_cell_in_scan_order() -> None:
+    """Against np.unique's first occurrences: the first point (in scan order) of every cell, in scan order."""
+    rng = np.random.default_rng(6)
+    pts = rng.uniform(-3.0, 3.0, (500, 2))
+    keys = np.floor(pts / 0.25).astype(np.int64)
+    _, first = np.unique(keys[:, 0] * 1_000_003 + keys[:, 1], return_index=True)
+    assert np.array_equal(thin(pts, 0.25), pts[np.sort(first)])
+    assert thin(pts[:1], 0.25).tolist() == pts[:1].tolist()

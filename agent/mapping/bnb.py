@@ -23,6 +23,7 @@ Pure numpy; no I/O.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 import numpy.typing as npt
@@ -39,7 +40,9 @@ class PrecomputedGrids:
     """The field and its sliding-window maxima for windows of 1, 2, 4, ... ``2^depth`` cells.
 
     Level ``d``: ``level[d][r, c] = max(field[r : r + 2^d, c : c + 2^d])``. Every level is padded
-    by ``pad`` zero cells on each side so a lookup with a block's offset never leaves the array."""
+    by ``pad`` zero cells on each side so a lookup with a block's offset never leaves the array.
+    Levels are built when first asked for (``level``): a small window's search never needs the top
+    ones (the final pass's 0.3 m windows stop at level 4 of 6)."""
 
     def __init__(self, field: F32, origin: tuple[float, float], resolution: float, depth: int = 6) -> None:
         if depth < 1 or field.ndim != 2:
@@ -52,15 +55,33 @@ class PrecomputedGrids:
         h, w = self.shape
         base = np.zeros((h + 2 * pad, w + 2 * pad), dtype=np.float32)
         base[pad : pad + h, pad : pad + w] = field
-        self.levels: list[F32] = [base]
-        cur = base
-        for d in range(depth):
-            s = 1 << d  # the window grows from s to 2s: max of the s-window here and s cells on
-            nxt = cur.copy()
-            np.maximum(nxt[:, :-s], cur[:, s:], out=nxt[:, :-s])
-            np.maximum(nxt[:-s, :], nxt[s:, :].copy(), out=nxt[:-s, :])
-            self.levels.append(nxt)
-            cur = nxt
+        self._levels: list[F32] = [base]
+        self._lock = threading.Lock()  # a drawn submap may be searched from two threads
+
+    @property
+    def levels(self) -> list[F32]:
+        """Every level, 0 to ``depth`` (built now if not yet)."""
+        self.level(self.depth)
+        return self._levels
+
+    def level(self, d: int) -> F32:
+        """Level ``d`` (0: the padded field), built with those below it if not yet."""
+        if d < len(self._levels):
+            return self._levels[d]
+        if not 0 <= d <= self.depth:
+            raise ValueError(f"no level {d}: the levels run 0 to {self.depth}")
+        with self._lock:
+            while len(self._levels) <= d:
+                cur = self._levels[-1]
+                s = 1 << (len(self._levels) - 1)  # the window grows from s to 2s: max of the s-window here and s on
+                across = np.empty_like(cur)
+                np.maximum(cur[:, :-s], cur[:, s:], out=across[:, :-s])
+                across[:, -s:] = cur[:, -s:]
+                nxt = np.empty_like(cur)
+                np.maximum(across[:-s, :], across[s:, :], out=nxt[:-s, :])
+                nxt[-s:, :] = across[-s:, :]
+                self._levels.append(nxt)
+        return self._levels[d]
 
 
 def search(
@@ -100,15 +121,30 @@ def search(
     cols: I64 = np.floor((guess[0] + c * px - s * py - ox) / res).astype(np.int64) - n_lin + pad
     rows: I64 = np.floor((guess[1] + s * px + c * py - oy) / res).astype(np.int64) - n_lin + pad
     n_pts = float(len(points))
-    hh, ww = grids.levels[0].shape
+    hh, ww = grids.level(0).shape
+    # Each rotation's points' extent, and their flat indices: a batch whose every shifted point lies
+    # inside the levels (the usual case) is looked up without masks or clips, and sums the same values.
+    rmin, rmax = rows.min(axis=1), rows.max(axis=1)
+    cmin, cmax = cols.min(axis=1), cols.max(axis=1)
+    flat0: I64 = rows * ww + cols
 
     def score(level: int, k: I64, dr: I64, dc: I64) -> F64:
         """Mean of level ``level`` under rotation ``k``'s points shifted by (dr, dc), per candidate."""
+        if (
+            int((rmin[k] + dr).min()) >= 0
+            and int((rmax[k] + dr).max()) < hh
+            and int((cmin[k] + dc).min()) >= 0
+            and int((cmax[k] + dc).max()) < ww
+        ):
+            inner = flat0[k]
+            inner += (dr * ww + dc)[:, None]
+            fast: F64 = grids.level(level).reshape(-1).take(inner).sum(axis=1, dtype=np.float64) / n_pts
+            return fast
         rr = rows[k] + dr[:, None]
         cc = cols[k] + dc[:, None]
         ok = (rr >= 0) & (rr < hh) & (cc >= 0) & (cc < ww)
         flat = np.clip(rr, 0, hh - 1) * ww + np.clip(cc, 0, ww - 1)
-        vals = grids.levels[level].reshape(-1)[flat]
+        vals = grids.level(level).reshape(-1)[flat]
         out: F64 = np.where(ok, vals, np.float32(0.0)).sum(axis=1, dtype=np.float64) / n_pts
         return out
 

@@ -46,7 +46,7 @@ import numpy.typing as npt
 
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
-from fleetlink.agent.mapping.matcher import LocalMap, field_score, icp_refine, refine
+from fleetlink.agent.mapping.matcher import LocalMap, _refine, field_score, icp_refine
 from fleetlink.agent.mapping.posegraph import PoseGraph
 from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
 
@@ -717,10 +717,12 @@ def draw_submap(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, dept
     """A submap drawn from its scans at their sensor poses in its frame."""
     # A small growth step: the mapper's 8 m padding would make every submap a big grid.
     g = LogOddsGrid(replace(grid, grow_step=SUBMAP_GROW_M))
-    local = LocalMap(len(parts), cell=0.05)
+    local = LocalMap(max(1, len(parts)), cell=0.05)
     for sensor, sc in parts:
-        g.integrate(sensor, sc.ranges, sc.angles, sc.hit)
-        local.add(sensor, sc.points, sc.normals)
+        # The field once at the end, over what the scans changed: the same field as refreshed per scan.
+        g.integrate(sensor, sc.ranges, sc.angles, sc.hit, refresh=False)
+    g.refresh_stale()
+    local.extend([(sensor, sc.points, sc.normals) for sensor, sc in parts])  # fused once, not per scan
     return Drawn(g, local, PrecomputedGrids(g.field, g.origin, g.resolution, depth))
 
 
@@ -742,8 +744,8 @@ def run_check(check: Check) -> CheckResult:
     hit = search(drawn.grids, sc.match_points, check.guess, wxy, wth, cfg.search_min_score, cfg.angle_step)
     if hit is None:
         return CheckResult(check, None, "score", drawn)
-    found = refine(grid, sc.match_points, hit[0])
-    if field_score(grid, sc.match_points, found) < cfg.min_score:
+    found, score = _refine(grid, sc.match_points, hit[0])  # and the field score there
+    if score < cfg.min_score:
         return CheckResult(check, None, "score", drawn)
     r = icp_refine(local, sc.points, found, found, (1.0, 1.0), 0.03, 0.15, iterations=12)
     ratio = _inlier_ratio(local, sc.points, r.pose, cfg.inlier_distance)

@@ -344,7 +344,7 @@ def _lookup(grids: PrecomputedGrids, local: F64, x: float, y: float, thetas: F64
     res, pad = grids.resolution, grids.pad
     u = (x + c * px - s * py - grids.origin[0]) / res - 0.5 + pad
     v = (y + s * px + c * py - grids.origin[1]) / res - 0.5 + pad
-    base = grids.levels[0]
+    base = grids.level(0)
     hh, ww = base.shape
     u = np.clip(u, 0, ww - 1.001)
     v = np.clip(v, 0, hh - 1.001)

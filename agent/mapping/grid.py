@@ -18,7 +18,9 @@ the UWB frame (metres). The grid grows in chunks (``grow_step``) when a scan rea
 
 It also keeps the matcher's *likelihood field*: the occupied probability blurred by a small
 binomial kernel (so scores and gradients are smooth), plus a max-pooled coarse copy for the
-correlative search. Both are refreshed only over the box a scan touched.
+correlative search. Both are refreshed per scan only over small tiles around the cells whose
+occupied evidence the scan changed (``_refresh_cells``), or over the box the scans touched when
+refreshed late (``refresh_stale``): the same values either way.
 
 Pure numpy; no I/O.
 """
@@ -207,17 +209,23 @@ class LogOddsGrid:
         ocol = ((ex[hit] - ox) / res).astype(np.int64)
         orow = ((ey[hit] - oy) / res).astype(np.int64)
         occ_idx = orow * w + ocol
-        np.clip(free_idx, 0, h * w - 1, out=free_idx)
-        np.clip(occ_idx, 0, h * w - 1, out=occ_idx)
+        # Every cell lies inside the grid (``ensure`` above), but clip the indices if some box says not.
+        if box is not None and not (box[0] >= 0 and box[1] >= 0 and box[2] <= h and box[3] <= w):
+            np.clip(free_idx, 0, h * w - 1, out=free_idx)
+        if orow.size and not (
+            int(orow.min()) >= 0 and int(ocol.min()) >= 0 and int(orow.max()) < h and int(ocol.max()) < w
+        ):
+            np.clip(occ_idx, 0, h * w - 1, out=occ_idx)
         tag = self._tag
         tag[free_idx] = 1
         tag[occ_idx] = 2  # hit wins over crossed
         cells = np.concatenate((free_idx, occ_idx))
-        delta = np.where(tag[cells] == 2, np.float32(self.l_occ), np.float32(self.l_free))
+        delta = np.array([0.0, self.l_free, self.l_occ], dtype=np.float32).take(tag[cells])
         flat = self.logodds.reshape(-1)
         # Fancy-index assignment with repeated indices writes each cell once with the same value:
         # exactly one update per cell per scan, without sorting.
-        new = np.clip(flat[cells] + delta, self.config.l_min, self.config.l_max)
+        old = flat[cells]
+        new = np.clip(old + delta, self.config.l_min, self.config.l_max)
         flat[cells] = new
         tag[cells] = 0
         self.seen.reshape(-1)[cells] = True
@@ -227,7 +235,12 @@ class LogOddsGrid:
         if box is None:  # no beam reached past half a cell and none hit: nothing changed
             return None
         if refresh:
-            self._refresh_field(box)
+            # The field reads only the occupied evidence, which is 0 wherever the log-odds are <= 0:
+            # of the ~10^5 cells a scan's rays cross, a few hundred change it (walls hit, walls
+            # cleared). Recompute the field around those alone, unless older changes wait (stale).
+            changed = cells[(new != old) & ((new > 0.0) | (old > 0.0))]
+            if self.stale is not None or not self._refresh_cells(changed):
+                self._refresh_field(box)
         else:
             self.stale = box if self.stale is None else _union(self.stale, box)
         self.empty = False
@@ -268,6 +281,70 @@ class LogOddsGrid:
         if self.stale is not None:
             box, self.stale = self.stale, None
             self._refresh_field(box)
+
+    def _refresh_cells(self, changed: npt.NDArray[np.int64]) -> bool:
+        """Recompute the likelihood field (and its coarse copy) over the small tiles within the kernel's
+        reach of ``changed`` (flat indices, repeats allowed: the cells whose occupied evidence changed),
+        with the same arithmetic in the same order as ``_refresh_field``: the same field, to the bit.
+        False (nothing done) when a tile would reach past the grid's edge (the grid keeps a metre of
+        empty cells around what it has seen, so that is the exception)."""
+        if changed.size == 0:
+            return True
+        h, w = self.shape
+        c = self.config.coarse
+        t = c * -(-_TILE // c)  # tile side, a whole number of coarse cells (>= 2 * _K + 1)
+        # A changed cell's 5 x 5 reach spans at most two tiles each way: those of its corners.
+        corners = changed[None, :] + np.array([[-_K * w - _K], [-_K * w + _K], [_K * w - _K], [_K * w + _K]])
+        rows, cols = np.divmod(corners, w)
+        tw = -(-w // t)
+        rows //= t
+        cols //= t
+        rows *= tw
+        rows += cols
+        tiles = _unique(rows.ravel())
+        r0, c0 = np.divmod(tiles, tw)
+        r0 *= t  # each tile's first row and column
+        c0 *= t
+        if int(r0[0]) < 2 * _K or int(r0[-1]) + t + 2 * _K > h:  # (sorted by row)
+            return False
+        if int(c0.min()) < 2 * _K or int(c0.max()) + t + 2 * _K > w:
+            return False
+        n = len(tiles)
+        p = t + 2 * _K  # a tile with the kernel's reach around it
+        span = np.arange(p, dtype=np.int64)
+        patch = (span[:, None] * w + span[None, :]).ravel()
+        # (rows, columns, tiles): every slice below runs along the tiles, contiguous.
+        occ = self.logodds.reshape(-1).take(patch[:, None] + ((r0 - _K) * w + (c0 - _K))[None, :]).reshape(p, p, n)
+        # Occupied evidence, then along rows, then across them, each sum in the kernel's order.
+        np.divide(occ, np.float32(self.l_occ * 2.0), out=occ)
+        np.maximum(occ, np.float32(0.0), out=occ)
+        np.minimum(occ, np.float32(1.0), out=occ)
+        tmp = np.multiply(occ[:, 0:t], _KERNEL[0])
+        buf = np.empty_like(tmp)
+        for i in range(1, 2 * _K + 1):
+            tmp += np.multiply(occ[:, i : i + t], _KERNEL[i], out=buf)
+        blur = np.multiply(tmp[0:t], _KERNEL[0])
+        buf = buf[0:t]
+        for i in range(1, 2 * _K + 1):
+            blur += np.multiply(tmp[i : i + t], _KERNEL[i], out=buf)
+        blur *= np.float32(16.0 / 6.0)
+        np.minimum(blur, np.float32(1.0), out=blur)
+        inner = (span[:t, None] * w + span[None, :t]).ravel()
+        self.field.reshape(-1)[inner[:, None] + (r0 * w + c0)[None, :]] = blur.reshape(t * t, n)
+        # The coarse cells of each tile: the maxima of its c x c blocks (element-wise maxima of strided
+        # views, as _max_pool).
+        k = t // c
+        across = blur[:, 0::c].copy()
+        for i in range(1, c):
+            np.maximum(across, blur[:, i::c], out=across)
+        pooled = across[0::c].copy()
+        for i in range(1, c):
+            np.maximum(pooled, across[i::c], out=pooled)
+        cw = w // c
+        cspan = np.arange(k, dtype=np.int64)
+        cells = (cspan[:, None] * cw + cspan[None, :]).ravel()
+        self.coarse_field.reshape(-1)[cells[:, None] + ((r0 // c) * cw + c0 // c)[None, :]] = pooled.reshape(k * k, n)
+        return True
 
     def _refresh_field(self, box: Box) -> None:
         """Recompute the likelihood field (and its coarse copy) over ``box`` plus the kernel's reach."""
@@ -350,6 +427,8 @@ def _p_occupied(logodds: F32) -> FloatArray:
     return p
 
 
+_TILE = 8
+"""Cells per side of the tiles ``_refresh_cells`` recomputes (rounded up to whole coarse cells)."""
 _OCCUPANCY_BAND = 32768
 """Cells per band in ``occupancy``."""
 _FREE_CHUNK = 16384
@@ -384,14 +463,35 @@ def _free_cells(
             beam = np.repeat(np.arange(b0, b1), c)
             starts = ends[b0:b1] - c - base
             k = np.arange(total, dtype=np.float64) - np.repeat(starts, c) + 0.5
-            fcol = ((sx + k * res * cos_a[beam] - ox) / res).astype(np.int64)
-            frow = ((sy + k * res * sin_a[beam] - oy) / res).astype(np.int64)
+            k *= res
+            fcol = ((sx + k * cos_a[beam] - ox) / res).astype(np.int64)
+            frow = ((sy + k * sin_a[beam] - oy) / res).astype(np.int64)
             parts.append(frow * w + fcol)
-            chunk = (int(frow.min()), int(fcol.min()), int(frow.max()) + 1, int(fcol.max()) + 1)
-            box = chunk if box is None else _union(box, chunk)
         b0 = b1
+    # Along a beam a sample's row and column are monotone in k (each step of the arithmetic is), so the
+    # samples' box is that of each beam's first and last ones: computed alike, 2 per beam, not all.
+    some = counts > 0
+    if some.any():
+        ends_k = np.concatenate((np.full(int(some.sum()), 0.5), counts[some] - 0.5)) * res
+        ca, sa = np.tile(cos_a[some], 2), np.tile(sin_a[some], 2)
+        ecol = ((sx + ends_k * ca - ox) / res).astype(np.int64)
+        erow = ((sy + ends_k * sa - oy) / res).astype(np.int64)
+        box = (int(erow.min()), int(ecol.min()), int(erow.max()) + 1, int(ecol.max()) + 1)
     free = np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
     return free, box
+
+
+def _unique(a: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """The distinct values of ``a``, sorted (``np.unique`` without its overhead: several times faster on
+    the few hundred cells a scan changes)."""
+    s = np.sort(a)
+    if s.size < 2:
+        return s
+    keep = np.empty(s.size, dtype=bool)
+    keep[0] = True
+    np.not_equal(s[1:], s[:-1], out=keep[1:])
+    out: npt.NDArray[np.int64] = s[keep]
+    return out
 
 
 def _union(a: Box, b: Box) -> Box:

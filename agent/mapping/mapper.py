@@ -355,9 +355,12 @@ class OnboardMapper:
         poses = closer.poses
         if cfg.refine_local:
             self._local = LocalMap(cfg.local_keyframes, cfg.local_cell)
-            for n in range(max(0, len(poses) - cfg.local_keyframes), len(poses)):
-                sc = closer.scans[n]
-                self._local.add(compose(poses[n], cfg.mount), sc.points, sc.normals)
+            self._local.extend(
+                [
+                    (compose(poses[n], cfg.mount), closer.scans[n].points, closer.scans[n].normals)
+                    for n in range(max(0, len(poses) - cfg.local_keyframes), len(poses))
+                ]
+            )
         # The recent grids the front end matches move with it, rigidly: each keeps the transform from
         # the map frame into its own, and the correction is composed into it (exact, and no scan is
         # drawn again: redrawing the last 60 keyframes after every solve was a quarter of intel's

@@ -26,11 +26,14 @@ Pure numpy; no I/O.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from scipy.linalg import lapack
 
 from fleetlink.agent.mapping.grid import LogOddsGrid
 
@@ -107,7 +110,13 @@ def _search(
     penalty: FloatArray,
     top: int = 1,
 ) -> list[tuple[int, int, float]]:
-    """The ``top`` best (theta index, offset index, score) of rotations x integer cell offsets on ``field``."""
+    """The ``top`` best (theta index, offset index, score) of rotations x integer cell offsets on ``field``
+    (a likelihood field: values in [0, 1])."""
+    if top == 1:
+        # Only the candidates the motion prior leaves a chance, when they are few (_search_best).
+        chance = penalty <= float(penalty.min()) + _SCORE_SPAN
+        if _PRUNE_SHARE * int(np.count_nonzero(chance)) <= chance.size:
+            return [_search_best(field, points, cell_size, origin, x, y, thetas, offsets, penalty, chance)]
     c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
     px, py = points[None, :, 0], points[None, :, 1]
     cols = np.floor((x + c * px - s * py - origin[0]) / cell_size).astype(np.int64)  # (A, N)
@@ -120,18 +129,20 @@ def _search(
         and int(cols.min()) + int(oc.min()) >= 0
         and int(cols.max()) + int(oc.max()) < w
     ):
-        # Every candidate inside the grid (the usual case): one flat index per point and per offset.
+        # Every candidate inside the grid (the usual case): one flat index per point and per offset,
+        # offsets outermost (each offset a scalar added to one long contiguous run).
         rows *= w
         rows += cols
-        r = rows[:, None, :] + (orr * w + oc)[None, :, None]  # (A, T, N)
+        r = (orr * w + oc)[:, None, None] + rows[None, :, :]  # (T, A, N)
     else:
         # Clip instead of masking (cheaper): the grid always extends past every integrated scan, so
         # its edge cells are empty and a point beyond the edge reads 0 either way.
-        r = np.clip(rows[:, None, :] + orr[None, :, None], 0, h - 1)
-        q = np.clip(cols[:, None, :] + oc[None, :, None], 0, w - 1)
+        r = np.clip(orr[:, None, None] + rows[None, :, :], 0, h - 1)
+        q = np.clip(oc[:, None, None] + cols[None, :, :], 0, w - 1)
         r *= w
         r += q
-    scores = np.add.reduce(field.reshape(-1).take(r), axis=2, dtype=np.float32)
+    # Each candidate's sum over its points in point order, as from an (A, T, N) array; then (A, T).
+    scores = np.ascontiguousarray(np.add.reduce(field.reshape(-1).take(r), axis=2, dtype=np.float32).T)
     scores /= r.shape[2]  # the mean, as np.mean computes it
     scores = scores - penalty  # (A, T)
     flat = scores.ravel()
@@ -144,10 +155,67 @@ def _search(
     return [(*divmod(int(b), scores.shape[1]), float(flat[b])) for b in best]
 
 
+def _search_best(
+    field: npt.NDArray[np.float32],
+    points: FloatArray,
+    cell_size: float,
+    origin: tuple[float, float],
+    x: float,
+    y: float,
+    thetas: FloatArray,
+    offsets: npt.NDArray[np.int64],
+    penalty: FloatArray,
+    chance: npt.NDArray[np.bool_],
+) -> tuple[int, int, float]:
+    """``_search`` with ``top`` 1, scoring only the candidates the motion prior leaves a chance: a score
+    is a mean field value (in [0, 1]) less the candidate's penalty, so the least penalised candidate
+    scores at least minus its penalty, and a candidate penalised more than 1 beyond it scores less than
+    that whatever the field says. Those are not scored; the rest are, each exactly as ``_search`` scores
+    it (its points' sum in point order, / N, less its penalty), and the first best in the same (rotation,
+    offset) order wins: the same answer. With odometry's tight prior a handful of the hundreds.
+    ``chance``: (A, T), the candidates to score."""
+    va, vt = np.nonzero(chance)  # row-major: _search's order
+    used = chance.any(axis=1)
+    which = (np.cumsum(used) - 1)[va]  # each candidate's row among the rotations used
+    th = thetas[used]
+    c, s = np.cos(th)[:, None], np.sin(th)[:, None]
+    px, py = points[None, :, 0], points[None, :, 1]
+    cols = np.floor((x + c * px - s * py - origin[0]) / cell_size).astype(np.int64)[which]  # (V, N)
+    rows = np.floor((y + s * px + c * py - origin[1]) / cell_size).astype(np.int64)[which]
+    h, w = field.shape
+    oc, orr = offsets[vt, 0][:, None], offsets[vt, 1][:, None]
+    rows += orr
+    cols += oc
+    if int(rows.min()) >= 0 and int(rows.max()) < h and int(cols.min()) >= 0 and int(cols.max()) < w:
+        rows *= w
+        rows += cols
+    else:  # as _search: clipped (the grid's edge cells are empty)
+        np.clip(rows, 0, h - 1, out=rows)
+        np.clip(cols, 0, w - 1, out=cols)
+        rows *= w
+        rows += cols
+    scores = np.add.reduce(field.reshape(-1).take(rows), axis=1, dtype=np.float32)
+    scores /= rows.shape[1]  # the mean, as np.mean computes it
+    final = scores - penalty[va, vt]
+    b = int(final.argmax())
+    return int(va[b]), int(vt[b]), float(final[b])
+
+
+_SCORE_SPAN = 1.0 + 1e-3
+"""How far a likelihood field's mean value can range (0 to 1), with room for float32 rounding."""
+_PRUNE_SHARE = 4
+"""The correlative search scores only the candidates with a chance when they are at most 1 in this many
+(beyond that, scoring them all in one broadcast is as cheap)."""
+
+
+@functools.cache
 def _grid_offsets(lo: int, hi: int) -> npt.NDArray[np.int64]:
+    """Every (col, row) offset in ``[lo, hi]^2``, rows outer (read-only: cached, two windows a scan)."""
     k = np.arange(lo, hi + 1, dtype=np.int64)
     qq, rr = np.meshgrid(k, k)
-    return np.column_stack((qq.ravel(), rr.ravel()))
+    out = np.column_stack((qq.ravel(), rr.ravel()))
+    out.flags.writeable = False
+    return out
 
 
 def match_scan(
@@ -205,24 +273,28 @@ def match_scan(
     pose = best[1]
 
     # 3. refine
-    pose = refine(grid, points, pose, cfg.refine_iterations)
-    score = field_score(grid, points, pose)
+    pose, score = _refine(grid, points, pose, cfg.refine_iterations)
     if score < guess_score:  # never worse than where we started
         return Match(guess, guess_score, guess_score)
     return Match(pose, score, guess_score)
 
 
-def _corners(field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+def _corners(
+    field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray, inside: bool = False
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """(4, N) field values at the cells around continuous cell coords (u, v) (order m00, m10, m01, m11,
-    0 outside the field), and the fractional parts fu, fv."""
+    0 outside the field), and the fractional parts fu, fv. ``inside``: the caller knows every point's four
+    corners are inside the field (``_inside``), so they are not checked."""
     h, w = field.shape
     uf, vf = np.floor(u), np.floor(v)
     fu, fv = u - uf, v - vf
     u0, v0 = uf.astype(np.int64), vf.astype(np.int64)
-    if len(u0) and int(u0.min()) >= 0 and int(u0.max()) < w - 1 and int(v0.min()) >= 0 and int(v0.max()) < h - 1:
+    if inside or (
+        u0.size and int(u0.min()) >= 0 and int(u0.max()) < w - 1 and int(v0.min()) >= 0 and int(v0.max()) < h - 1
+    ):
         # All four corners inside (the usual case): one gather, no masks.
         flat = v0 * w + u0
-        idx = np.empty((4, len(flat)), dtype=np.int64)
+        idx = np.empty((4, *flat.shape), dtype=np.int64)
         idx[0] = flat
         np.add(flat, 1, out=idx[1])
         np.add(flat, w, out=idx[2])
@@ -235,80 +307,151 @@ def _corners(field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray) -> tu
     return m, fu, fv
 
 
-def _interp(field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray) -> FloatArray:
+def _interp(field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray, inside: bool = False) -> FloatArray:
     """Bilinearly interpolated value of ``field`` at continuous cell coords (cell centres at k)."""
-    (m00, m10, m01, m11), fu, fv = _corners(field, u, v)
+    (m00, m10, m01, m11), fu, fv = _corners(field, u, v, inside)
     gu = 1 - fu
     out: FloatArray = (1 - fv) * (gu * m00 + fu * m10) + fv * (gu * m01 + fu * m11)
     return out
 
 
-def _bilinear(
-    field: npt.NDArray[np.float32], u: FloatArray, v: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Value and gradient (d/du, d/dv, per cell) of ``field`` at continuous cell coords (cell centres at k)."""
-    (m00, m10, m01, m11), fu, fv = _corners(field, u, v)
-    gu, gv = 1 - fu, 1 - fv
-    val = gv * (gu * m00 + fu * m10) + fv * (gu * m01 + fu * m11)
-    du = gv * (m10 - m00) + fv * (m11 - m01)
-    dv = gu * (m01 - m00) + fu * (m11 - m10)
-    return val, du, dv
-
-
 def _score_at(
-    field: npt.NDArray[np.float32], px: FloatArray, py: FloatArray, pose: Pose, origin: tuple[float, float], res: float
+    field: npt.NDArray[np.float32],
+    px: FloatArray,
+    py: FloatArray,
+    pose: Pose,
+    origin: tuple[float, float],
+    res: float,
+    inside: bool = False,
 ) -> float:
     """``field_score`` on the sensor-frame coordinates ``px``, ``py`` (no (N, 2) intermediates)."""
     x, y, th = pose
     c, s = math.cos(th), math.sin(th)
     u = (x + c * px - s * py - origin[0]) / res - 0.5
     v = (y + s * px + c * py - origin[1]) / res - 0.5
-    return float(_interp(field, u, v).mean())
+    # The mean as ndarray.mean computes it (pairwise sum, then / n), without its Python wrapper.
+    return float(np.add.reduce(_interp(field, u, v, inside))) / len(px)
+
+
+def _inside(shape: tuple[int, int], reach: float, x: float, y: float, origin: tuple[float, float], res: float) -> bool:
+    """Do the four interpolation corners of every point within ``reach`` (m) of (x, y) lie inside a field
+    of ``shape``? With a cell to spare each side for rounding."""
+    h, w = shape
+    u0 = (x - origin[0]) / res - 0.5
+    v0 = (y - origin[1]) / res - 0.5
+    r = reach / res
+    return u0 - r >= 1.0 and u0 + r <= w - 3.0 and v0 - r >= 1.0 and v0 + r <= h - 3.0
 
 
 def refine(grid: LogOddsGrid, points: FloatArray, pose: Pose, iterations: int = 8) -> Pose:
     """Gauss-Newton on the interpolated field from ``pose``, with step halving: a step is taken only
     if it raises the mean field value (the field is peaked, so full steps overshoot)."""
+    return _refine(grid, points, pose, iterations)[0]
+
+
+def _refine(grid: LogOddsGrid, points: FloatArray, pose: Pose, iterations: int = 8) -> tuple[Pose, float]:
+    """``refine``, and ``field_score`` at the pose it returns (which it computed on the way: -1 when it
+    ran no iteration). The halved steps are scored together, in one pass over (4, N) arrays, and the
+    field's corners at the pose taken are kept for the next iteration's gradient: element by element
+    the same arithmetic as scoring each step alone, so the same answer to the bit."""
     x, y, th = pose
     res = grid.resolution
-    ox, oy = grid.origin
+    origin = grid.origin
+    field = grid.field
     px, py = points[:, 0], points[:, 1]
+    n = len(px)
+    # How far the points reach from the sensor: the corners' bounds are then checked per pose, not per point.
+    reach = math.sqrt(float(np.max(px * px + py * py))) if n else 0.0
     current = -1.0
+    at: tuple[FloatArray, FloatArray, FloatArray] | None = None  # corners, fu, fv at (x, y, th)
     for _ in range(iterations):
         c, s = math.cos(th), math.sin(th)
-        wx = x + c * px - s * py
-        wy = y + s * px + c * py
-        val, du, dv = _bilinear(grid.field, (wx - ox) / res - 0.5, (wy - oy) / res - 0.5)
+        if at is None:
+            at = _corners_at(field, px, py, ((x, y, th),), origin, res, reach)
+        (m00, m10, m01, m11), fu, fv = at
+        fu, fv = fu[0], fv[0]
+        m00, m10, m01, m11 = m00[0], m10[0], m01[0], m11[0]
+        gu, gv = 1 - fu, 1 - fv
+        val = gv * (gu * m00 + fu * m10) + fv * (gu * m01 + fu * m11)
+        du = gv * (m10 - m00) + fv * (m11 - m01)
+        dv = gu * (m01 - m00) + fu * (m11 - m10)
         if current < 0.0:
-            current = float(val.mean())
+            current = float(np.add.reduce(val)) / n
         gx, gy = du / res, dv / res  # per metre
         dwx_dth = -s * px - c * py
         dwy_dth = c * px - s * py
-        jac = np.column_stack((gx, gy, gx * dwx_dth + gy * dwy_dth))
+        jac = np.empty((n, 3))  # (N, 3), C order: np.column_stack's layout, without its overhead
+        jac[:, 0], jac[:, 1], jac[:, 2] = gx, gy, gx * dwx_dth + gy * dwy_dth
         hess = jac.T @ jac
         grad = jac.T @ (1.0 - val)
-        if not np.isfinite(hess).all() or np.trace(hess) < 1e-9:
+        h00, h11, h22 = float(hess[0, 0]), float(hess[1, 1]), float(hess[2, 2])
+        if not math.isfinite(float(np.add.reduce(hess, axis=None))) or (h00 + h11) + h22 < 1e-9:
             break
-        hess += np.diag(np.maximum(np.diag(hess), 1e-6) * 0.1 + 1e-6)  # Levenberg damping
-        try:
-            step = np.linalg.solve(hess, grad)
-        except np.linalg.LinAlgError:
+        # Levenberg damping (np.diag(np.maximum(np.diag(hess), 1e-6) * 0.1 + 1e-6), in floats)
+        hess[0, 0] = h00 + (max(h00, 1e-6) * 0.1 + 1e-6)
+        hess[1, 1] = h11 + (max(h11, 1e-6) * 0.1 + 1e-6)
+        hess[2, 2] = h22 + (max(h22, 1e-6) * 0.1 + 1e-6)
+        step = _solve(hess, grad)
+        if step is None:
             break
-        # Bound the step: the linearisation holds within about a cell.
-        step = step / max(1.0, math.hypot(step[0], step[1]) / res, abs(step[2]) / math.radians(1.0))
+        # Bound the step: the linearisation holds within about a cell. Then up to 4 halvings of it.
+        s0, s1, s2 = (float(v) for v in step)
+        bound = max(1.0, math.hypot(s0, s1) / res, abs(s2) / math.radians(1.0))
+        s0, s1, s2 = s0 / bound, s1 / bound, s2 / bound
+        cands = []
         for _half in range(4):
-            cand = (x + float(step[0]), y + float(step[1]), th + float(step[2]))
-            score = _score_at(grid.field, px, py, cand, grid.origin, res)
-            if score > current:
-                break
-            step = step / 2.0
-        else:
+            cands.append((x + s0, y + s1, th + s2))
+            s0, s1, s2 = s0 / 2.0, s1 / 2.0, s2 / 2.0
+        corners, cu, cv = _corners_at(field, px, py, cands, origin, res, reach)
+        scores = np.add.reduce(_blend(corners, cu, cv), axis=1) / n
+        better = np.flatnonzero(scores > current)
+        if not better.size:
             break  # no step along this direction helps: at the optimum
-        x, y, th = cand
+        k = int(better[0])
+        x, y, th = cands[k]
+        score = float(scores[k])
+        at = (corners[:, k : k + 1], cu[k : k + 1], cv[k : k + 1])
         gain, current = score - current, score
         if gain < 1e-5:
             break
-    return (x, y, th)
+    return (x, y, th), current
+
+
+def _solve(a: FloatArray, b: FloatArray) -> FloatArray | None:
+    """``np.linalg.solve(a, b)`` for one small system (LAPACK's dgesv, as numpy calls it, without numpy's
+    wrapping, which costs several times the solve); None where numpy raises (singular)."""
+    _, _, x, info = lapack.dgesv(a, b)
+    if info != 0:
+        return None
+    out: FloatArray = x
+    return out
+
+
+def _corners_at(
+    field: npt.NDArray[np.float32],
+    px: FloatArray,
+    py: FloatArray,
+    poses: Sequence[Pose],
+    origin: tuple[float, float],
+    res: float,
+    reach: float,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``_corners`` of the points seen from each of ``poses``: ((4, P, N), (P, N), (P, N)). Each element
+    computed as ``_score_at`` computes it for one pose."""
+    cs = np.array([(p[0], p[1], math.cos(p[2]), math.sin(p[2])) for p in poses])
+    x, y, c, s = cs[:, 0:1], cs[:, 1:2], cs[:, 2:3], cs[:, 3:4]
+    u = (x + c * px - s * py - origin[0]) / res - 0.5
+    v = (y + s * px + c * py - origin[1]) / res - 0.5
+    shape = (int(field.shape[0]), int(field.shape[1]))
+    inside = all(_inside(shape, reach, p[0], p[1], origin, res) for p in poses)
+    return _corners(field, u, v, inside)
+
+
+def _blend(m: FloatArray, fu: FloatArray, fv: FloatArray) -> FloatArray:
+    """Bilinear interpolation of the corners ``m`` (as ``_interp``)."""
+    gu = 1 - fu
+    out: FloatArray = (1 - fv) * (gu * m[0] + fu * m[1]) + fv * (gu * m[2] + fu * m[3])
+    return out
 
 
 # -- point-to-line refinement against a local map of recent keyframes ------------------------------
@@ -366,24 +509,33 @@ class LocalMap:
         self.keys: npt.NDArray[np.int64] = np.zeros(0, dtype=np.int64)
         self.points: FloatArray = np.zeros((0, 2))
         self.normals: FloatArray = np.zeros((0, 2))
-        self._table: npt.NDArray[np.int32] = np.full(1, -1, dtype=np.int32)
+        self._table: npt.NDArray[np.intp] = np.full(1, -1, dtype=np.intp)
         self._tx0 = self._ty0 = self._tw = self._th = 0
         self._noff: npt.NDArray[np.int64] = np.zeros(9, dtype=np.int64)
         self._px: FloatArray = np.zeros(1)
         self._py: FloatArray = np.zeros(1)
+        self.stacked: FloatArray = np.zeros((4, 0))
 
     def __len__(self) -> int:
         return len(self.keys)
 
     def add(self, sensor_pose: Pose, points: FloatArray, normals: FloatArray) -> None:
         """Add one keyframe's points and normals (sensor frame) seen from ``sensor_pose``."""
-        ok = np.isfinite(normals).all(axis=1)
-        c, s = math.cos(sensor_pose[2]), math.sin(sensor_pose[2])
-        wp = _transform(points[ok], *sensor_pose)
-        nv = normals[ok]
-        wn = np.column_stack((c * nv[:, 0] - s * nv[:, 1], s * nv[:, 0] + c * nv[:, 1]))
-        self._frames.append((wp, wn))
+        self.extend([(sensor_pose, points, normals)])
+
+    def extend(self, frames: Sequence[tuple[Pose, FloatArray, FloatArray]]) -> None:
+        """``add`` each of ``frames`` (sensor pose, points, normals) in order, the points fused once at the
+        end: the same map as adding them one by one."""
+        for sensor_pose, points, normals in frames:
+            ok = np.isfinite(normals).all(axis=1)
+            c, s = math.cos(sensor_pose[2]), math.sin(sensor_pose[2])
+            wp = _transform(points[ok], *sensor_pose)
+            nv = normals[ok]
+            wn = np.column_stack((c * nv[:, 0] - s * nv[:, 1], s * nv[:, 0] + c * nv[:, 1]))
+            self._frames.append((wp, wn))
         del self._frames[: -self.keyframes]
+        if not self._frames:
+            return
         pts = np.vstack([f[0] for f in self._frames])
         nrm = np.vstack([f[1] for f in self._frames])
         k = np.floor(pts / self.cell).astype(np.int64)
@@ -406,20 +558,22 @@ class LocalMap:
         one cell outside the points' box reads the all-empty cell next to the corner instead."""
         n = len(self.keys)
         if n == 0:
-            self._table = np.full(1, -1, dtype=np.int32)
+            self._table = np.full(1, -1, dtype=np.intp)
             self._tx0 = self._ty0 = self._tw = self._th = 0
             return
         cx = (self.keys >> 32) - _KEY_OFFSET
         cy = (self.keys & 0xFFFFFFFF) - _KEY_OFFSET
         self._tx0, self._ty0 = int(cx.min()) - 3, int(cy.min()) - 3
         self._tw, self._th = int(cx.max()) - self._tx0 + 4, int(cy.max()) - self._ty0 + 4
-        table = np.full(self._tw * self._th, -1, dtype=np.int32)
-        table[(cy - self._ty0) * self._tw + (cx - self._tx0)] = np.arange(n, dtype=np.int32)
+        table = np.full(self._tw * self._th, -1, dtype=np.intp)
+        table[(cy - self._ty0) * self._tw + (cx - self._tx0)] = np.arange(n, dtype=np.intp)
         self._table = table
         self._noff = _NY * self._tw + _NX  # the 3x3 neighbours' flat offsets, in _NX/_NY order
         # Gathers read these; index -1 (none) reads the appended point at infinity.
         self._px = np.append(self.points[:, 0], np.inf)
         self._py = np.append(self.points[:, 1], np.inf)
+        # Rows x, y, normal x, normal y: one gather per iteration of ``icp_refine`` instead of four.
+        self.stacked = np.vstack((self.points.T, self.normals.T))
 
     def nearest(self, xy: FloatArray) -> tuple[npt.NDArray[np.int64], FloatArray]:
         """Index of the nearest fused point within the 3x3 cells around each of ``xy`` (-1: none), and
@@ -431,17 +585,38 @@ class LocalMap:
         n = len(x)
         if n == 0 or len(self.keys) == 0:
             return np.full(n, -1, dtype=np.int64), np.full(n, np.inf)
+        return self._pick(self._gather(self._cells(x, y)), x, y)
+
+    def _cells(self, x: FloatArray, y: FloatArray) -> npt.NDArray[np.int64]:
+        """The table cell of each point (one all-empty cell for points more than a cell outside)."""
         ix = np.floor(x / self.cell).astype(np.int64) - self._tx0
         iy = np.floor(y / self.cell).astype(np.int64) - self._ty0
         inside = (ix >= 2) & (ix < self._tw - 2) & (iy >= 2) & (iy < self._th - 2)
-        cells = np.where(inside, iy * self._tw + ix, self._tw + 1)
-        i = self._table[cells[:, None] + self._noff[None, :]]  # (N, 9), -1: none
-        d = np.hypot(self._px[i] - x[:, None], self._py[i] - y[:, None])  # none: inf
-        j = d.argmin(axis=1)
-        rows = np.arange(n)
-        dist = d[rows, j]
-        best = np.where(np.isfinite(dist), i[rows, j], -1).astype(np.int64)
-        return best, dist
+        cells: npt.NDArray[np.int64] = np.where(inside, iy * self._tw + ix, self._tw + 1)
+        return cells
+
+    def _gather(self, cells: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.intp], FloatArray, FloatArray]:
+        """The fused points in the 3 x 3 cells around each of ``cells``: (N, 9) indices (-1: none) and
+        their coordinates (inf: none)."""
+        i = self._table[cells[:, None] + self._noff[None, :]]
+        return i, self._px[i], self._py[i]
+
+    def _pick(
+        self, near: tuple[npt.NDArray[np.intp], FloatArray, FloatArray], x: FloatArray, y: FloatArray
+    ) -> tuple[npt.NDArray[np.int64], FloatArray]:
+        """The nearest of ``near`` (``_gather``'s) to each point, and its distance."""
+        i, gx, gy = near
+        # The nearest by squared distance (cheaper than hypot over all nine), its distance by hypot.
+        dx = gx - x[:, None]  # none: inf
+        dy = gy - y[:, None]
+        dx *= dx
+        dy *= dy
+        dx += dy
+        rows = np.arange(len(x))
+        j = dx.argmin(axis=1)
+        best = i[rows, j]  # -1 where all nine are empty (their distance: inf)
+        dist = np.hypot(self._px[best] - x, self._py[best] - y)
+        return best.astype(np.int64), dist
 
 
 @dataclass(frozen=True, slots=True)
@@ -473,33 +648,56 @@ def icp_refine(
     lam = np.diag([1.0 / sxy**2, 1.0 / sxy**2, 1.0 / sth**2])
     inliers = 0
     hd_last: FloatArray | None = None
-    lpx, lpy = local.points[:, 0], local.points[:, 1]
-    lnx, lny = local.normals[:, 0], local.normals[:, 1]
+    # Rows: the points in the map frame (x, y; rewritten each iteration), in the sensor frame (x, y): the
+    # inliers are then picked out of all four at once, and the local map's points and normals likewise.
+    pts = np.empty((4, len(px)))
+    pts[2], pts[3] = px, py
+    wx, wy = pts[0], pts[1]
+    if len(local) == 0 or len(px) == 0:
+        return IcpResult((x, y, th), 0, 0.0, None)
+    near: tuple[npt.NDArray[np.intp], FloatArray, FloatArray] | None = None
+    last_cells: npt.NDArray[np.int64] | None = None
     for _ in range(iterations):
         c, s = math.cos(th), math.sin(th)
-        wx = x + c * px - s * py
-        wy = y + s * px + c * py
-        idx, dist = local.nearest_xy(wx, wy)
+        np.multiply(px, c, out=wx)  # x + c px - s py, in that order
+        wx += x
+        wx -= s * py
+        np.multiply(px, s, out=wy)  # y + s px + c py
+        wy += y
+        wy += c * py
+        # Correspondences: the 3 x 3 cells' fused points gathered again only for the points whose
+        # cell changed since the last iteration (most keep theirs: the steps are millimetres).
+        cells = local._cells(wx, wy)
+        if near is None or last_cells is None:
+            near = local._gather(cells)
+        else:
+            moved = np.flatnonzero(cells != last_cells)
+            if moved.size:
+                fresh = local._gather(cells[moved])
+                for old_part, new_part in zip(near, fresh, strict=True):
+                    old_part[moved] = new_part
+        last_cells = cells
+        idx, dist = local._pick(near, wx, wy)
         ok = dist <= max_distance  # none: inf
         inliers = int(np.count_nonzero(ok))
         if inliers < 3:
             break
-        i = idx[ok]
-        nx, ny = lnx[i], lny[i]
-        pxo, pyo = px[ok], py[ok]
-        r = nx * (wx[ok] - lpx[i]) + ny * (wy[ok] - lpy[i])
+        wxo, wyo, pxo, pyo = pts.compress(ok, axis=1)
+        lpx, lpy, nx, ny = local.stacked.take(idx[ok], axis=1)
+        r = nx * (wxo - lpx) + ny * (wyo - lpy)
         w = 1.0 / (1.0 + (r / sigma) ** 2) / sigma**2
         dth = nx * (-s * pxo - c * pyo) + ny * (c * pxo - s * pyo)
-        jac = np.column_stack((nx, ny, dth))
+        jac = np.empty((len(nx), 3))  # (K, 3), C order: np.column_stack's layout, without its overhead
+        jac[:, 0], jac[:, 1], jac[:, 2] = nx, ny, dth
         jw = (jac * w[:, None]).T
         hd = jw @ jac
         dev = np.array([x - prior_pose[0], y - prior_pose[1], math.remainder(th - prior_pose[2], 2.0 * math.pi)])
         hess = hd + lam
         grad = jw @ r + lam @ dev
-        try:
-            step = -np.linalg.solve(hess, grad)
-        except np.linalg.LinAlgError:
+        sol = _solve(hess, grad)
+        if sol is None:
             break
+        step = -sol
         x, y, th = x + float(step[0]), y + float(step[1]), th + float(step[2])
         hd_last = hd
         if math.hypot(step[0], step[1]) < 1e-4 and abs(step[2]) < 1e-4:
