@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_connection_arguments(parser)
     parser.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
     parser.add_argument(
-        "--chunk-age", type=float, default=None, help="close a chunk at least this often, s (default 1)"
+        "--chunk-age", type=float, default=None, help="close a chunk at least this often, s (default 0.75)"
     )
     parser.add_argument("--compression", choices=("zstd", "lz4"), default="zstd")
 

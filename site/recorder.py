@@ -9,10 +9,10 @@ with the pure core (site/recording.py) and writes them with the ``mcap`` library
 fetches the map snapshots the core asks for (Zenoh queryables), so a robot's map can be drawn whole.
 
 Crash safety: the file is chunked (zstd) and flushed to the OS after every batch the writer
-takes (every 100 ms while messages come), and only whole chunks reach it; a chunk is closed when it
-holds ``chunk_size`` bytes or its first message is ``chunk_age_s`` old (checked with every batch),
-whichever comes first, so a ``kill -9`` loses at most the chunk being filled (at most
-``chunk_age_s`` and a batch of traffic).
+takes (every 250 ms while messages come), and only whole chunks reach it; a chunk is closed when it
+holds ``chunk_size`` bytes or its first batch is ``chunk_age_s`` old (checked with every batch),
+whichever comes first, so a ``kill -9`` loses at most the chunk being filled and the batch waiting
+(at most ``chunk_age_s`` and a batch period of traffic: 1 s with the defaults).
 ``RecordingReader`` reads a file that was closed properly or recovers everything before a
 truncated or damaged tail.
 """
@@ -38,6 +38,7 @@ from fleetlink.shared.worker import Worker
 from fleetlink.site.recording import Channel, RecordingCore, RecordingSummary
 
 __all__ = [
+    "BATCH_PERIOD_S",
     "CHUNK_AGE_S",
     "CHUNK_SIZE",
     "FleetStream",
@@ -55,8 +56,9 @@ log = logging.getLogger(__name__)
 
 CHUNK_SIZE = 256 * 1024
 """Uncompressed bytes a chunk holds before it is closed (~0.5 s of 50 robots' traffic)."""
-CHUNK_AGE_S = 1.0
-"""A chunk is closed when its first message is this old, however little traffic there is."""
+CHUNK_AGE_S = 0.75
+"""A chunk is closed when its first batch is this old, however little traffic there is: with the
+batch before it (``BATCH_PERIOD_S``), a crash loses at most 1 s of traffic."""
 INBOX_SIZE = 100_000
 """Messages waiting for the writer; beyond it they are dropped and counted (the disk stalled)."""
 UWB_STATUS = "fleetlink/uwb/*/status"
@@ -126,12 +128,13 @@ def fetch_snapshots(
 _Heard = tuple[bool, str, str, bytes | bool, float]
 """(liveliness?, link, key, payload or alive, receive time): what a link's thread queues."""
 
-BATCH_PERIOD_S = 0.1
+BATCH_PERIOD_S = 0.25
 """How often the writer wakes: it takes the Zenoh samples waiting in zenoh's queue
 (``ZenohEndpoint.subscribe_pull``) and the MQTT messages its link queued, and writes them. Every
-message keeps the time it arrived (zenoh's stamp, the MQTT link's), so a batch costs no accuracy;
-one thread woken ten times a second costs less than two woken fifty times (docs/recording.md,
-"Cost")."""
+message keeps the time it arrived (zenoh's stamp, the MQTT link's), so a batch costs no accuracy.
+Each wake costs the same ~0.5 ms however few messages it takes (the writer's code and data are
+cold again after a pause): four wakes a second write 50 robots' traffic with ~10 % less CPU than
+ten (docs/recording.md, "Cost")."""
 
 
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
@@ -517,7 +520,7 @@ FLEET_KINDS = frozenset({"wire", "uwb-status", "alive"})
 """The channels a replay plays (``Channel.kind``): what the console heard; not the Foxglove ones."""
 REORDER_S = 2.0
 """A recovered file (no index) is read in file order; its messages are put in time order within
-this window (the recorder writes a batch every 100 ms, the links' messages interleaved)."""
+this window (the recorder writes a batch every 250 ms, the links' messages interleaved)."""
 
 
 class _CountingFile:

@@ -121,8 +121,8 @@ class RecordingCore:
         self._other: dict[str, Channel] = {}
         self.scene = FoxgloveScene(reject=self._reject)
         """Poses, truth and maps in Foxglove's schemas (site/foxglove_scene.py, as the live server's)."""
-        self._recent: OrderedDict[tuple[str, bytes], tuple[wire.Message, bytes]] = OrderedDict()
-        """(key, payload) -> (message, JSON) of the last ``RECENT`` messages: the copy of a message
+        self._recent: OrderedDict[tuple[str, bytes], tuple[wire.Message, bytes, int]] = OrderedDict()
+        """(key, payload) -> (message, JSON, publish time in ns) of the last ``RECENT`` messages: the copy of a message
         that came on both links is decoded and converted once. (An ``OrderedDict``: a plain dict
         emptied from the front finds its first key by walking past every key deleted before it,
         ~2 us an insert at this size; ``popitem(last=False)`` does not.)"""
@@ -143,7 +143,7 @@ class RecordingCore:
         recent = self._recent
         seen = recent.get((key, payload))
         if seen is not None:  # the same bytes on the other link (an agent's pose, state, ...)
-            msg, data = seen
+            msg, data, published = seen
         else:
             try:
                 msg, unpacked = wire.decode_key_unpacked(key, payload)
@@ -154,10 +154,11 @@ class RecordingCore:
             if robot not in self.robots and robot != keys.FLEET_MAP and not self._new_robot(robot):
                 return []
             data = wire_json.unpacked_to_json(type(msg), unpacked)
-            recent[(key, payload)] = (msg, data)
+            published = ns(msg.header.timestamp)
+            recent[(key, payload)] = (msg, data, published)
             if len(recent) > RECENT:
                 recent.popitem(last=False)
-        return self._message(link, msg, data, wall)
+        return self._message(link, msg, data, wall, published)
 
     def snapshot(self, link: str, key: str, payload: bytes, wall: float) -> list[Record]:
         """A queryable's answer (a ``MapSnapshot``, a ``DoseSnapshot``) the shell fetched: recorded
@@ -225,18 +226,18 @@ class RecordingCore:
         )
         return [self._record(channel, data, wall, wall)]
 
-    def _message(self, link: str, msg: wire.Message, data: bytes, wall: float) -> list[Record]:
-        topic = msg.TOPIC
-        channel = self._wire.get((link, topic))
+    def _message(self, link: str, msg: wire.Message, data: bytes, wall: float, published: int) -> list[Record]:
+        channel = self._wire.get((link, msg.TOPIC))
         if channel is None:
-            channel = self._wire[(link, topic)] = wire_channel(link, topic)
+            channel = self._wire[(link, msg.TOPIC)] = wire_channel(link, msg.TOPIC)
         messages = self.messages
         messages[channel.topic] += 1
+        logged = ns(wall)
+        out = [Record(channel, data, logged, published)]
         scene = self.scene
-        more = scene.message(msg, wall)
+        more = scene.message(msg, wall, wall_ns=logged, stamp_ns=published)
         if scene.has_pending:  # a map applied: its whole grid, after every snapshot and update
             more += scene.changed(wall)
-        out = [Record(channel, data, ns(wall), ns(msg.header.timestamp))]
         for r in more:
             messages[r.channel.topic] += 1
             out.append(r)
