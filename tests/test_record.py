@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import struct
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,7 @@ from fleetlink.shared.wire import Limits
 from fleetlink.site.recorder import Recorder, RecordingError, RecordingReader, summarise
 from fleetlink.site.recording import RecordingCore
 from tests.harness import wait_until
+from tests.harness.mcap_doctor import doctor
 from tests.harness.messages import state as harness_state
 from tests.test_wire import strategy_for
 
@@ -42,7 +44,10 @@ def pose(counter: wire.HeaderCounter, x: float, theta: float = 0.5) -> Pose:
 
 def read_validated(path: Path) -> dict[str, list[Any]]:
     """Every message of a closed file, via the mcap library's seeking reader, each validated against
-    its channel's JSON Schema; topic -> decoded JSON messages."""
+    its channel's JSON Schema; topic -> decoded JSON messages. The file's structure first checked
+    record by record as the official CLI's ``mcap doctor`` checks it (tests/harness/mcap_doctor.py):
+    what the library's readers take on trust (message and chunk indexes, statistics, CRCs)."""
+    assert doctor(path) == []
     out: dict[str, list[Any]] = {}
     validators: dict[int, Any] = {}
     with path.open("rb") as f:
@@ -451,6 +456,54 @@ def test_the_message_appender_writes_what_the_mcap_writer_writes() -> None:
         return buf.getvalue()
 
     assert write(True) == write(False)
+
+
+def test_the_doctor_passes_the_libraries_file_and_finds_what_its_readers_take_on_trust(tmp_path: Path) -> None:
+    """The MCAP structure check every recording in these tests goes through
+    (tests/harness/mcap_doctor.py, after the official CLI's ``mcap doctor``): a file the ``mcap``
+    writer wrote passes; a message index entry one byte off, a statistics count one too high, a
+    chunk index pointing past its chunk do not, though the library's seeking reader reads each of
+    them without a word."""
+    from mcap.opcode import Opcode
+    from mcap.writer import CompressionType, Writer
+
+    from tests.harness.mcap_doctor import _lex
+
+    path = tmp_path / "good.mcap"
+    with path.open("wb") as f:
+        w = Writer(f, chunk_size=2048, compression=CompressionType.ZSTD)
+        w.start(profile="fleetlink", library="test")
+        sid = w.register_schema(name="s", encoding="jsonschema", data=b"{}")
+        ids = [w.register_channel(topic=f"/c{i}", message_encoding="json", schema_id=sid) for i in range(2)]
+        for i in range(200):
+            w.add_message(ids[i % 2], log_time=1000 + i, data=json.dumps({"i": i}).encode(), publish_time=1000 + i)
+        w.add_metadata("m", {"k": "v"})
+        w.finish()
+    good = path.read_bytes()
+    assert doctor(path) == []
+    records = _lex(good, 8, len(good) - 8)
+
+    def damaged(opcode: int, at: int, change: int, name: str) -> Path:
+        """A copy with the u64 ``at`` bytes into the first record of ``opcode``'s body changed by ``change``."""
+        offset = next(o for o, op, _n, _r in records if op == opcode) + 9 + at
+        data = bytearray(good)
+        (value,) = struct.unpack_from("<Q", data, offset)
+        struct.pack_into("<Q", data, offset, value + change)
+        out = tmp_path / name
+        out.write_bytes(bytes(data))
+        with out.open("rb") as f:  # the library reads it as it is
+            assert sum(1 for _ in make_reader(f).iter_messages()) == 200
+        return out
+
+    # A message index: channel id u16, records length u32, then (log time u64, offset u64) entries.
+    index = doctor(damaged(Opcode.MESSAGE_INDEX, 2 + 4 + 8, 1, "index.mcap"))
+    assert any("message indexes after the chunk" in p for p in index), index
+    # Statistics: message count u64 first.
+    stats = doctor(damaged(Opcode.STATISTICS, 0, 1, "stats.mcap"))
+    assert any("statistics say" in p for p in stats), stats
+    # A chunk index: message start u64, end u64, chunk start offset u64, chunk length u64.
+    chunk = doctor(damaged(Opcode.CHUNK_INDEX, 24, 1, "chunk.mcap"))
+    assert any("chunk index of the chunk" in p for p in chunk), chunk
 
 
 def test_a_flood_of_robot_ids_is_refused_counted_and_bounded(caplog: pytest.LogCaptureFixture) -> None:
