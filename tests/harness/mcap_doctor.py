@@ -232,9 +232,9 @@ def doctor(path: Path | str) -> list[str]:
     offsets_start = offsets[0][0] if offsets else 0
     if footer.summary_offset_start != offsets_start:
         problems.append(f"the footer's summary_offset_start {footer.summary_offset_start} is not {offsets_start}")
-    if footer.summary_crc and summary:
-        if footer.summary_crc != zlib.crc32(data[summary_start : records[-1][0] + 9 + 8 + 8]):
-            problems.append("the footer's summary CRC does not match the summary section")
+    summary_bytes = data[summary_start : records[-1][0] + 9 + 8 + 8]  # up to the footer's summary_crc
+    if footer.summary_crc and summary and footer.summary_crc != zlib.crc32(summary_bytes):
+        problems.append("the footer's summary CRC does not match the summary section")
     groups: dict[int, list[tuple[int, int, int, Any]]] = {}
     for r in summary:
         if r[1] != Opcode.SUMMARY_OFFSET:
