@@ -42,11 +42,12 @@ def pose(counter: wire.HeaderCounter, x: float, theta: float = 0.5) -> Pose:
     )  # fmt: skip
 
 
-def read_validated(path: Path) -> dict[str, list[Any]]:
+def read_validated(path: Path, compression: str = "zstd") -> dict[str, list[Any]]:
     """Every message of a closed file, via the mcap library's seeking reader, each validated against
     its channel's JSON Schema; topic -> decoded JSON messages. The file's structure first checked
     record by record as the official CLI's ``mcap doctor`` checks it (tests/harness/mcap_doctor.py):
-    what the library's readers take on trust (message and chunk indexes, statistics, CRCs)."""
+    what the library's readers take on trust (message and chunk indexes, statistics, CRCs). Every
+    message is in a chunk (the doctor checks), and every chunk is compressed with ``compression``."""
     assert doctor(path) == []
     out: dict[str, list[Any]] = {}
     validators: dict[int, Any] = {}
@@ -54,6 +55,7 @@ def read_validated(path: Path) -> dict[str, list[Any]]:
         reader = make_reader(f, validate_crcs=True)
         summary = reader.get_summary()
         assert summary is not None and summary.statistics is not None
+        assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {compression}
         for schema, channel, message in reader.iter_messages(log_time_order=True):
             assert channel.message_encoding == "json" and schema is not None and schema.encoding == "jsonschema"
             v = validators.get(channel.id)
