@@ -6,7 +6,8 @@ exactly as the console does. MQTT's thread only stamps the receive time (the inj
 ``wall()``) and queues the bytes; Zenoh's samples wait in zenoh's own queue, stamped by zenoh on
 arrival. One writer ``Worker`` wakes every ``BATCH_PERIOD_S``, takes both, turns them into records
 with the pure core (site/recording.py) and writes them with the ``mcap`` library. A second worker
-fetches the map snapshots the core asks for (Zenoh queryables), so a robot's map can be drawn whole.
+fetches the map and dose snapshots the core asks for (Zenoh queryables), so a robot's map can be
+drawn whole and a replay can answer the console's fetches (site/replay.py).
 
 Crash safety: the file is chunked (zstd) and flushed to the OS after every batch the writer
 takes (every 250 ms while messages come), and only whole chunks reach it; a chunk is closed when it
@@ -250,7 +251,8 @@ class Recorder:
         self._ids: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._chunk_started: float | None = None
-        self._to_fetch: set[str] = set()
+        self._to_fetch: set[tuple[str, str]] = set()
+        """(robot, ``map`` or ``dose``) snapshots the core wants (``RecordingCore.wanted_snapshots``)."""
         self._fetch_lock = threading.Lock()
         self._pulls: list[tuple[str, Any]] = []
         """(link, ``PullSubscription``): Zenoh's samples, taken in batches by the writer."""
@@ -413,7 +415,7 @@ class Recorder:
             self._chunk_started = None
         elif batch and self._file is not None:
             self._file.flush()  # a chunk the writer closed for its size: in the OS now, not in our buffer
-        wanted = core.wanted_maps()
+        wanted = core.wanted_snapshots()
         if wanted and self._fetching is not None:
             with self._fetch_lock:
                 self._to_fetch.update(wanted)
@@ -434,18 +436,18 @@ class Recorder:
         self._ids[channel.topic] = cid
         return cid
 
-    # -- map snapshots --------------------------------------------------------------------------
+    # -- map and dose snapshots -----------------------------------------------------------------
 
     def _fetch_loop(self, worker: Worker) -> None:
         while not worker.stopping:
             worker.wait(1.0)
             with self._fetch_lock:
-                robots, self._to_fetch = sorted(self._to_fetch), set()
+                wanted, self._to_fetch = sorted(self._to_fetch), set()
 
             def deliver(link: str, key: str, payload: bytes) -> None:
                 self._put((False, link, key, payload, self.clock.wall()))
 
-            fetch_snapshots(self.links, [(robot, "map") for robot in robots], deliver, lambda: worker.stopping)
+            fetch_snapshots(self.links, wanted, deliver, lambda: worker.stopping)
 
 
 # --------------------------------------------------------------------------------------------------

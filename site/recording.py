@@ -34,7 +34,8 @@ from dataclasses import dataclass
 from typing import Final
 
 from fleetlink.shared import keys, wire, wire_json
-from fleetlink.site.foxglove_scene import FOXGLOVE_PREFIX, MAP, Channel, FoxgloveScene, Record, ns
+from fleetlink.shared.messages import DoseSnapshot, DoseUpdate
+from fleetlink.site.foxglove_scene import DOSE, FOXGLOVE_PREFIX, MAP, Channel, FoxgloveScene, Record, ns
 
 __all__ = [
     "ALIVE",
@@ -133,6 +134,11 @@ class RecordingCore:
         """Inputs refused (not wire-valid, bad status JSON, bad cells, too many robots), by reason."""
         self.new_reasons: list[str] = []
         """Reasons refused for the first time since the shell last took them (it logs each once)."""
+        self._doses: dict[str, tuple[int, int, int, float, float, float]] = {}
+        """robot -> (version, width, height, resolution, origin x, y) of its dose layer as the recorded
+        snapshot and the updates since leave it: which updates follow (``map_codec.patch_follows``'s
+        rule on the headers alone; the recorder keeps no cells: it draws no dose layer)."""
+        self._want_doses: set[str] = set()
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -155,6 +161,8 @@ class RecordingCore:
                 return []
             data = wire_json.unpacked_to_json(type(msg), unpacked)
             published = ns(msg.header.timestamp)
+            if type(msg) is DoseUpdate or type(msg) is DoseSnapshot:
+                self._follow_dose(msg)
             recent[(key, payload)] = (msg, data, published)
             if len(recent) > RECENT:
                 recent.popitem(last=False)
@@ -179,12 +187,30 @@ class RecordingCore:
         data = json.dumps({"robot": robot, "alive": alive}, separators=(",", ":")).encode()
         return [self._record(channel, data, wall, wall)]
 
-    def wanted_maps(self) -> list[str]:
-        """Robots whose map the recorder cannot draw from updates alone: fetch their snapshot (then
-        hand it to ``snapshot``). Each is asked for once until an update fails again."""
-        return [robot for robot, topic in self.scene.wanted() if topic == MAP]
+    def wanted_snapshots(self) -> list[tuple[str, str]]:
+        """(robot, ``map`` or ``dose``): snapshots to fetch (then hand each to ``snapshot``), for
+        the robots whose map or dose layer cannot be followed from their updates alone (the first
+        update heard, one that does not follow): a replay answers the console's fetches from them
+        (site/replay.py). Each is asked for once until an update fails to follow again."""
+        doses, self._want_doses = sorted(self._want_doses), set()
+        return [(robot, MAP) for robot, topic in self.scene.wanted() if topic == MAP] + [(r, DOSE) for r in doses]
 
     # -- internals ------------------------------------------------------------------------------
+
+    def _follow_dose(self, msg: DoseUpdate | DoseSnapshot) -> None:
+        """A dose snapshot (fetched by the recorder: it becomes the layer's head) or update (it
+        moves the head if it follows, else the robot's snapshot is wanted). Called once per message
+        (not for its copy on the other link)."""
+        robot = msg.header.robot
+        shape = (msg.width, msg.height, msg.resolution, msg.origin_x, msg.origin_y)
+        if isinstance(msg, DoseSnapshot):
+            self._doses[robot] = (msg.version, *shape)
+            return
+        head = self._doses.get(robot)
+        if head is not None and msg.base_version == head[0] and msg.version > head[0] and shape == head[1:]:
+            self._doses[robot] = (msg.version, *shape)
+        elif head is None or msg.version != head[0]:  # (the same version again: nothing to fetch)
+            self._want_doses.add(robot)
 
     def _reject(self, reason: str) -> None:
         known = reason in self.rejected or len(self.rejected) < MAX_REASONS

@@ -145,7 +145,7 @@ def test_core_draws_a_whole_map_from_a_snapshot_and_its_updates() -> None:
     assert [r.channel.topic for r in core.receive("zenoh", wire.key_of(patch), wire.encode(patch), 1.0)] == [
         "/fleetlink/zenoh/map/updates"
     ]
-    assert core.wanted_maps() == ["r1"] and core.wanted_maps() == []
+    assert core.wanted_snapshots() == [("r1", "map")] and core.wanted_snapshots() == []
     snap = c.make(MapSnapshot, **snapshot_fields(cells, 0.1, (1.0, 2.0), 3))
     recs = core.snapshot("zenoh", keys.key("r1", "map"), wire.encode(snap), 2.0)
     assert [r.channel.topic for r in recs] == ["/fleetlink/zenoh/map", "/foxglove/r1/map"]
@@ -157,6 +157,43 @@ def test_core_draws_a_whole_map_from_a_snapshot_and_its_updates() -> None:
     assert grid["pose"]["position"] == {"x": 1.0, "y": 2.0, "z": 0.0}
     data = np.frombuffer(__import__("base64").b64decode(grid["data"]), dtype=np.int8).reshape(10, 20)
     assert (data == cells).all()
+
+
+def test_core_asks_for_a_robots_dose_layer_when_its_updates_cannot_be_followed() -> None:
+    """The recorder keeps no dose cells (it draws no dose layer), only each layer's version and
+    shape: the first update heard, and one that does not follow, ask for the robot's snapshot once;
+    updates that follow, and a copy on the other link, ask for nothing."""
+    from fleetlink.shared import dose_codec
+    from fleetlink.shared.dose import Lamp
+    from fleetlink.shared.messages import DoseSnapshot, DoseUpdate
+
+    core = RecordingCore()
+    c = wire.HeaderCounter(SystemClock(), robot="r1", sender="agent-r1")
+    dose, common = np.zeros((10, 20)), {"target_j_m2": 100.0, "lamp_on_s": 1.0, "unplaced_s": 0.0}
+
+    def update(version: int, base: int) -> tuple[str, bytes]:
+        fields = dose_codec.patch_fields(dose, 0.1, (-0.05, -0.05), (0, 0, 2, 2), version, base, **common)
+        assert fields is not None
+        msg = c.make(DoseUpdate, **fields)
+        return wire.key_of(msg), wire.encode(msg)
+
+    first = update(4, 3)
+    core.receive("zenoh", *first, 1.0)
+    assert core.wanted_snapshots() == [("r1", "dose")] and core.wanted_snapshots() == []
+    fields = dose_codec.snapshot_fields(dose, 0.1, (-0.05, -0.05), 4, **common, lamp=Lamp(10.0, 0.6))
+    assert fields is not None
+    snap = c.make(DoseSnapshot, **fields)
+    assert [r.channel.topic for r in core.snapshot("zenoh", keys.key("r1", "dose"), wire.encode(snap), 2.0)] == [
+        "/fleetlink/zenoh/dose"
+    ]
+    core.receive("mqtt", *first, 2.1)  # the first update's copy, late on the other link
+    for version in (5, 6):
+        heard = update(version, version - 1)
+        core.receive("zenoh", *heard, 3.0)
+        core.receive("mqtt", *heard, 3.0)
+    assert core.wanted_snapshots() == []
+    core.receive("zenoh", *update(9, 8), 4.0)  # two were missed
+    assert core.wanted_snapshots() == [("r1", "dose")]
 
 
 # -- the recorder over in-process links -------------------------------------------------------------
