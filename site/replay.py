@@ -19,7 +19,8 @@ and the next message only, so an hour-long recording costs what one chunk does.
 Seeking: ``start_s`` (seconds after the first message) fast-forwards through everything before it
 at once, so the fleet model holds the state at that moment, and plays on from there; ``seek(t)``
 does the same forward while playing (each chunk is read once; the fleet model is cumulative, so
-the chunks before the target are needed, the ones after it are not read until played).
+the chunks before the target are needed, the ones after it are not read until played), and
+``set_speed(x)`` changes the speed: the console's ``:seek`` and ``:speed``.
 
 Snapshots: the console asks a robot's map and dose layer as it asks a live robot's queryable
 (``fetch_map``, ``fetch_dose``), and gets what the robot would have answered at the time being
@@ -284,6 +285,20 @@ class ReplaySource:
             raise ValueError("a replay seeks forward only (start again with --start to go back)")
         self.play_until(target)
         self.clock.run(target, self.speed, self.last)
+
+    def set_speed(self, speed: float) -> None:
+        """Play at ``speed`` times real time from now on (the console's ``:speed``)."""
+        if not (speed > 0 and math.isfinite(speed)):
+            raise ValueError(f"speed must be a positive number, got {speed}")
+        with self._playing:
+            self.speed = speed
+            if self._player is not None:  # playing: time goes on from here at the new speed
+                self.clock.run(self.clock.now(), speed, self.last)
+
+    @property
+    def position(self) -> float:
+        """Seconds after the first message of the time being played (what ``seek`` takes)."""
+        return self.clock.now() - self.first
 
     @property
     def delivered(self) -> int:

@@ -389,3 +389,46 @@ def test_a_replayed_console_follows_maps_and_dose_layers_past_their_recorded_sna
     with lock:
         assert maps.maps["r1"].version == now["map"] and doses.layers["r1"].version == now["dose"]
         assert (maps.maps["r1"].cells == cells).all() and np.allclose(doses.layers["r1"].cells, dose)
+
+
+def test_the_replayed_console_seeks_forward_and_changes_speed(tmp_path: Path) -> None:
+    """``:seek S`` / ``:seek +S`` jump the replay forward (everything before the target delivered at
+    once, off the UI thread), ``:speed X`` changes its speed; a seek back is refused with a notice
+    (the fleet model keeps what it heard: an earlier moment needs ``--start``)."""
+    from tests.test_console import screen_text, type_text
+
+    path = tmp_path / "scene.mcap"
+    record_scene(path)
+    source = ReplaySource(path, speed=0.001)  # all but still: only the commands move it
+    app, fetchers = replay_app(source)
+
+    async def run() -> None:
+        async with app.run_test(size=SIZE) as pilot:
+            source.start()
+
+            async def command(text: str) -> None:
+                await pilot.press("colon")
+                await type_text(pilot, text)
+                await pilot.press("enter")
+                await pilot.pause()
+
+            assert source.position < 0.05 and source.delivered < source.total
+            await command("seek 0.3")
+            await asyncio.to_thread(wait_until, lambda: source.position >= 0.3, message="the seek")
+            await pilot.pause()
+            assert source.delivered < source.total  # the marks came later
+            assert "replay at 0.3 s" in screen_text(app)
+            await command("seek +10")  # past the end: the end
+            await asyncio.to_thread(wait_until, lambda: source.delivered == source.total, message="the rest")
+            await command("speed 4")
+            assert source.speed == 4.0 and "replay at 4x" in screen_text(app)
+            await command("seek 0")
+            await asyncio.to_thread(wait_until, lambda: "forward only" in screen_text(app), message="refused")
+            assert source.delivered == source.total and source.refused == {}
+
+    try:
+        asyncio.run(run())
+    finally:
+        source.close()
+        for fetcher in fetchers:
+            fetcher.stop()
