@@ -115,7 +115,7 @@ def open_links(settings: Any, role: str, clock: Any) -> list[Any]:
 def record(args: argparse.Namespace) -> int:
     from fleetlink.shared.clock import SystemClock
     from fleetlink.shared.config import ConfigError
-    from fleetlink.site.recorder import CHUNK_AGE_S, Recorder
+    from fleetlink.site.recorder import CHUNK_AGE_S, Recorder, use_recorder_runtime
 
     try:
         settings = connection_settings(args)
@@ -126,6 +126,7 @@ def record(args: argparse.Namespace) -> int:
         print("error: --duration must be > 0", file=sys.stderr)
         return 2
     clock = SystemClock()
+    use_recorder_runtime()  # (one zenoh receive thread: before the first session opens)
     try:
         links = open_links(settings, "recorder", clock)
         recorder = Recorder(

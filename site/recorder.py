@@ -23,6 +23,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 import struct
 import threading
 from collections import Counter, deque
@@ -42,6 +43,7 @@ __all__ = [
     "BATCH_PERIOD_S",
     "CHUNK_AGE_S",
     "CHUNK_SIZE",
+    "ZENOH_RUNTIME",
     "FleetStream",
     "MessageAppender",
     "Recorder",
@@ -51,6 +53,7 @@ __all__ = [
     "fetch_snapshots",
     "open_recorder_links",
     "summarise",
+    "use_recorder_runtime",
 ]
 
 log = logging.getLogger(__name__)
@@ -136,6 +139,20 @@ message keeps the time it arrived (zenoh's stamp, the MQTT link's), so a batch c
 Each wake costs the same ~0.5 ms however few messages it takes (the writer's code and data are
 cold again after a pause): four wakes a second write 50 robots' traffic with ~10 % less CPU than
 ten (docs/recording.md, "Cost")."""
+
+
+ZENOH_RUNTIME = "(rx: (worker_threads: 1))"
+"""zenoh's runtime in a recorder process (``fleetlink record``; the ``ZENOH_RUNTIME`` variable, RON):
+one receive worker thread instead of zenoh's default two. The recorder's session reads a link or
+two; with two workers the receive work moved between them, and on a loaded host the pair cost
+1.4-5.2 % of a core against 1.1-1.6 % for one worker, alternated in the same session at load 4.8-6
+(docs/recording.md, "Cost"). One worker reads 50 robots' traffic in about 1.5 % of a core."""
+
+
+def use_recorder_runtime() -> None:
+    """Before the process's first zenoh session (zenoh reads ``ZENOH_RUNTIME`` once, when its
+    runtime starts): the recorder's runtime, unless the environment already names one."""
+    os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
 
 
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")

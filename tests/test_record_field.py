@@ -178,6 +178,12 @@ def test_a_recorder_killed_mid_recording_loses_at_most_its_last_chunk(mosquitto,
             return out.stat().st_size > header_size
 
         wait_until(publish, interval=0, message="the first chunk on disk (the recorder is connected)")
+        # Its zenoh runtime reads with one receive thread (site/recorder.py ZENOH_RUNTIME).
+        names = [
+            (Path(f"/proc/{proc.pid}/task") / t / "comm").read_text().strip()
+            for t in os.listdir(f"/proc/{proc.pid}/task")
+        ]
+        assert sorted(n for n in names if n.startswith("rx-")) == ["rx-0"], names
         end = time.monotonic() + 4.0
         while time.monotonic() < end:
             p: Pose = pose(counter, len(sent) * 0.01)
