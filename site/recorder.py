@@ -144,9 +144,9 @@ ten (docs/recording.md, "Cost")."""
 ZENOH_RUNTIME = "(rx: (worker_threads: 1))"
 """zenoh's runtime in a recorder process (``fleetlink record``; the ``ZENOH_RUNTIME`` variable, RON):
 one receive worker thread instead of zenoh's default two. The recorder's session reads a link or
-two; with two workers the receive work moved between them, and on a loaded host the pair cost
-1.4-5.2 % of a core against 1.1-1.6 % for one worker, alternated in the same session at load 4.8-6
-(docs/recording.md, "Cost"). One worker reads 50 robots' traffic in about 1.5 % of a core."""
+two; with two workers the receive work moved between them, and on a loaded host zenoh's threads
+cost 1.6-5.2 % of a core against 1.4-2.0 % with one worker, alternated in the same session at load
+4.8-6 (docs/recording.md, "Cost"). One worker reads 50 robots' traffic in about 1.5 % of a core."""
 
 
 def use_recorder_runtime() -> None:
