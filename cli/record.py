@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_connection_arguments(parser)
     parser.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
     parser.add_argument(
-        "--chunk-age", type=float, default=None, help="close a chunk at least this often, s (default 1)"
+        "--chunk-age", type=float, default=None, help="close a chunk at least this often, s (default 0.75)"
     )
     parser.add_argument("--compression", choices=("zstd", "lz4"), default="zstd")
 
@@ -115,7 +115,7 @@ def open_links(settings: Any, role: str, clock: Any) -> list[Any]:
 def record(args: argparse.Namespace) -> int:
     from fleetlink.shared.clock import SystemClock
     from fleetlink.shared.config import ConfigError
-    from fleetlink.site.recorder import CHUNK_AGE_S, Recorder
+    from fleetlink.site.recorder import CHUNK_AGE_S, Recorder, use_recorder_runtime
 
     try:
         settings = connection_settings(args)
@@ -126,6 +126,7 @@ def record(args: argparse.Namespace) -> int:
         print("error: --duration must be > 0", file=sys.stderr)
         return 2
     clock = SystemClock()
+    use_recorder_runtime()  # (one zenoh receive thread: before the first session opens)
     try:
         links = open_links(settings, "recorder", clock)
         recorder = Recorder(

@@ -27,6 +27,9 @@
                              by the selected robot, or shared between the robots named
     sweep room X Y | rect X0 Y0 X1 Y1 | poly X1 Y1 ... [with ROBOT]   a sweeping round
     pause, resume, cancel    the selected robot's round (or goal): hold it, carry on, end it
+    seek S | seek +S         a replay (``fleetlink replay``): jump to S seconds after the recording's
+                             start, or S seconds on (forward only: an earlier moment needs --start)
+    speed X                  a replay: play at X times real time from now on
 
 ``parse_command(line)`` gives one of the command classes below, ``None`` for a blank line, or a
 ``CommandError`` whose ``text`` is the notice to show. Nothing here sends anything: the app does.
@@ -63,6 +66,8 @@ __all__ = [
     "MarksList",
     "Payload",
     "RoundAction",
+    "Seek",
+    "Speed",
     "StartRound",
     "StopAll",
     "ZoneAdd",
@@ -71,7 +76,7 @@ __all__ = [
     "parse_command",
 ]
 
-USAGE = "goal X Y [THETA_DEG] | mark KIND X Y [LABEL] | mark here|edit|rm ... | marks [export PATH] | home [set|X Y] | estop [all] | release | policy stop|retrace|home | payload [uv|atomiser|fan] on|off|LEVEL | disinfect|sweep room|rect|poly ... | pause | resume | cancel | stop | ack [ROBOT] [KIND|all] | dose [save DIR] [X1 Y1 X2 Y2]"
+USAGE = "goal X Y [THETA_DEG] | mark KIND X Y [LABEL] | mark here|edit|rm ... | marks [export PATH] | home [set|X Y] | estop [all] | release | policy stop|retrace|home | payload [uv|atomiser|fan] on|off|LEVEL | disinfect|sweep room|rect|poly ... | pause | resume | cancel | stop | ack [ROBOT] [KIND|all] | dose [save DIR] [X1 Y1 X2 Y2] | seek [+]S | speed X (a replay)"
 POLICIES = ("stop", "retrace", "home")
 PAYLOAD_DEVICES = ("uv", "atomiser", "fan")
 MARK_USAGE = "mark KIND X Y [LABEL] | mark here [KIND] [LABEL] | mark edit ID [KIND] [LABEL] | mark rm ID"
@@ -191,6 +196,25 @@ class RoundAction:
 
 
 @dataclass(frozen=True, slots=True)
+class Seek:
+    """A replay jumps to ``seconds`` after the recording's start, or ``seconds`` on (``relative``)."""
+
+    seconds: float
+    relative: bool
+
+
+@dataclass(frozen=True, slots=True)
+class Speed:
+    """A replay plays at ``factor`` times real time from now on."""
+
+    factor: float
+
+
+MAX_SPEED = 1000.0
+"""The fastest replay ``speed`` takes (a day's recording in a minute and a half)."""
+
+
+@dataclass(frozen=True, slots=True)
 class ZoneAdd:
     """A people-present zone (no UV light may reach into it), sent to every robot."""
 
@@ -260,6 +284,8 @@ Command = (
     | AckAlarm
     | Dose
     | DoseSave
+    | Seek
+    | Speed
 )
 
 
@@ -360,6 +386,20 @@ def parse_command(line: str) -> Command | CommandError | None:
         return _ack(line, args)
     if verb == "dose":
         return _dose(line, args)
+    if verb == "seek" and len(args) == 1:
+        nums = _numbers(line, [args[0].removeprefix("+")])
+        if isinstance(nums, CommandError):
+            return nums
+        if nums[0] < 0:
+            return CommandError(line, f"bad command {line!r}: seek S (from the start) or +S (on), S >= 0 seconds")
+        return Seek(nums[0], args[0].startswith("+"))
+    if verb == "speed" and len(args) == 1:
+        nums = _numbers(line, args)
+        if isinstance(nums, CommandError):
+            return nums
+        if not 0 < nums[0] <= MAX_SPEED:
+            return CommandError(line, f"bad command {line!r}: speed X, 0 < X <= {MAX_SPEED:g} (times real time)")
+        return Speed(nums[0])
     return CommandError(line, f"unknown command {line!r}: {USAGE}")
 
 

@@ -33,7 +33,7 @@ import logging
 import math
 import threading
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from rich.text import Text
 from textual import events
@@ -72,6 +72,8 @@ from fleetlink.operator.commands import (
     MarksList,
     Payload,
     RoundAction,
+    Seek,
+    Speed,
     StartRound,
     StopAll,
     ZoneAdd,
@@ -1190,6 +1192,33 @@ class ConsoleApp(App[None]):
             self.dose_summary(command.box, target_mj_cm2=command.target_mj_cm2)
         elif isinstance(command, DoseSave):
             self.dose_summary(command.box, Path(command.path).expanduser(), target_mj_cm2=command.target_mj_cm2)
+        elif isinstance(command, Seek | Speed):
+            self.replay_control(command)
+
+    def replay_control(self, command: Seek | Speed) -> None:
+        """``:seek`` and ``:speed``: what a replay's source (site/replay.py ``ReplaySource``) does;
+        a live console says they are not for it. A seek delivers everything up to its target at
+        once, on a thread of its own (as the replay's player does), never on the UI thread."""
+        source: Any = self.source
+        seek, set_speed = getattr(source, "seek", None), getattr(source, "set_speed", None)
+        if seek is None or set_speed is None:
+            self.notice("warning", "seek and speed are for a replay (fleetlink replay FILE)")
+            return
+        if isinstance(command, Speed):
+            set_speed(command.factor)
+            self.notice("info", f"replay at {command.factor:g}x real time")
+            return
+        target = command.seconds + (source.position if command.relative else 0.0)
+
+        def run() -> None:
+            try:
+                seek(target)
+            except ValueError as exc:  # back in time: the replay goes forward only
+                self.call_from_thread(self.notice, "warning", f"{exc}")
+                return
+            self.call_from_thread(self.notice, "info", f"replay at {target:.1f} s")
+
+        threading.Thread(target=run, name="replay-seek", daemon=True).start()
 
     # -- rounds: disinfection and sweeping (operator/rounds.py, docs/payload.md) ------------------
 

@@ -158,9 +158,13 @@ class FoxgloveScene:
 
     # -- inputs ---------------------------------------------------------------------------------
 
-    def message(self, msg: wire.Message, wall: float) -> list[Record]:
+    def message(
+        self, msg: wire.Message, wall: float, *, wall_ns: int | None = None, stamp_ns: int | None = None
+    ) -> list[Record]:
         """A wire-valid message heard at ``wall`` (epoch seconds): the records to show at once
-        (poses, truth). Maps and dose layers are applied; ``changed`` hands out their grids."""
+        (poses, truth). Maps and dose layers are applied; ``changed`` hands out their grids.
+        ``wall_ns``, ``stamp_ns``: ``ns(wall)`` and ``ns(msg.header.timestamp)`` when the caller has
+        them already (the recorder: a pose's records share them)."""
         header = msg.header
         if type(msg) is Pose:
             robot, hid = header.robot, header.headerId
@@ -171,7 +175,14 @@ class FoxgloveScene:
                 channel = self._channels.get(f"{FOXGLOVE_PREFIX}/{robot}/pose") or self.channel(
                     pose_topic(robot), foxglove.POSE_IN_FRAME
                 )
-                return [Record(channel, data, ns(wall), ns(header.timestamp))]
+                return [
+                    Record(
+                        channel,
+                        data,
+                        ns(wall) if wall_ns is None else wall_ns,
+                        ns(header.timestamp) if stamp_ns is None else stamp_ns,
+                    )
+                ]
         elif isinstance(msg, Truth):
             data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
             channel = self.channel(truth_topic(header.robot), foxglove.POSE_IN_FRAME)

@@ -6,13 +6,14 @@ exactly as the console does. MQTT's thread only stamps the receive time (the inj
 ``wall()``) and queues the bytes; Zenoh's samples wait in zenoh's own queue, stamped by zenoh on
 arrival. One writer ``Worker`` wakes every ``BATCH_PERIOD_S``, takes both, turns them into records
 with the pure core (site/recording.py) and writes them with the ``mcap`` library. A second worker
-fetches the map snapshots the core asks for (Zenoh queryables), so a robot's map can be drawn whole.
+fetches the map and dose snapshots the core asks for (Zenoh queryables), so a robot's map can be
+drawn whole and a replay can answer the console's fetches (site/replay.py).
 
 Crash safety: the file is chunked (zstd) and flushed to the OS after every batch the writer
-takes (every 100 ms while messages come), and only whole chunks reach it; a chunk is closed when it
-holds ``chunk_size`` bytes or its first message is ``chunk_age_s`` old (checked with every batch),
-whichever comes first, so a ``kill -9`` loses at most the chunk being filled (at most
-``chunk_age_s`` and a batch of traffic).
+takes (every 250 ms while messages come), and only whole chunks reach it; a chunk is closed when it
+holds ``chunk_size`` bytes or its first batch is ``chunk_age_s`` old (checked with every batch),
+whichever comes first, so a ``kill -9`` loses at most the chunk being filled and the batch waiting
+(at most ``chunk_age_s`` and a batch period of traffic: 1 s with the defaults).
 ``RecordingReader`` reads a file that was closed properly or recovers everything before a
 truncated or damaged tail.
 """
@@ -22,6 +23,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 import struct
 import threading
 from collections import Counter, deque
@@ -38,8 +40,10 @@ from fleetlink.shared.worker import Worker
 from fleetlink.site.recording import Channel, RecordingCore, RecordingSummary
 
 __all__ = [
+    "BATCH_PERIOD_S",
     "CHUNK_AGE_S",
     "CHUNK_SIZE",
+    "ZENOH_RUNTIME",
     "FleetStream",
     "MessageAppender",
     "Recorder",
@@ -49,14 +53,16 @@ __all__ = [
     "fetch_snapshots",
     "open_recorder_links",
     "summarise",
+    "use_recorder_runtime",
 ]
 
 log = logging.getLogger(__name__)
 
 CHUNK_SIZE = 256 * 1024
 """Uncompressed bytes a chunk holds before it is closed (~0.5 s of 50 robots' traffic)."""
-CHUNK_AGE_S = 1.0
-"""A chunk is closed when its first message is this old, however little traffic there is."""
+CHUNK_AGE_S = 0.75
+"""A chunk is closed when its first batch is this old, however little traffic there is: with the
+batch before it (``BATCH_PERIOD_S``), a crash loses at most 1 s of traffic."""
 INBOX_SIZE = 100_000
 """Messages waiting for the writer; beyond it they are dropped and counted (the disk stalled)."""
 UWB_STATUS = "fleetlink/uwb/*/status"
@@ -126,12 +132,27 @@ def fetch_snapshots(
 _Heard = tuple[bool, str, str, bytes | bool, float]
 """(liveliness?, link, key, payload or alive, receive time): what a link's thread queues."""
 
-BATCH_PERIOD_S = 0.1
+BATCH_PERIOD_S = 0.25
 """How often the writer wakes: it takes the Zenoh samples waiting in zenoh's queue
 (``ZenohEndpoint.subscribe_pull``) and the MQTT messages its link queued, and writes them. Every
-message keeps the time it arrived (zenoh's stamp, the MQTT link's), so a batch costs no accuracy;
-one thread woken ten times a second costs less than two woken fifty times (docs/recording.md,
-"Cost")."""
+message keeps the time it arrived (zenoh's stamp, the MQTT link's), so a batch costs no accuracy.
+Each wake costs the same ~0.5 ms however few messages it takes (the writer's code and data are
+cold again after a pause): four wakes a second write 50 robots' traffic with ~10 % less CPU than
+ten (docs/recording.md, "Cost")."""
+
+
+ZENOH_RUNTIME = "(rx: (worker_threads: 1))"
+"""zenoh's runtime in a recorder process (``fleetlink record``; the ``ZENOH_RUNTIME`` variable, RON):
+one receive worker thread instead of zenoh's default two. The recorder's session reads a link or
+two; with two workers the receive work moved between them, and on a loaded host zenoh's threads
+cost 1.6-5.2 % of a core against 1.4-2.0 % with one worker, alternated in the same session at load
+4.8-6 (docs/recording.md, "Cost"). One worker reads 50 robots' traffic in about 1.5 % of a core."""
+
+
+def use_recorder_runtime() -> None:
+    """Before the process's first zenoh session (zenoh reads ``ZENOH_RUNTIME`` once, when its
+    runtime starts): the recorder's runtime, unless the environment already names one."""
+    os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
 
 
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
@@ -247,7 +268,8 @@ class Recorder:
         self._ids: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._chunk_started: float | None = None
-        self._to_fetch: set[str] = set()
+        self._to_fetch: set[tuple[str, str]] = set()
+        """(robot, ``map`` or ``dose``) snapshots the core wants (``RecordingCore.wanted_snapshots``)."""
         self._fetch_lock = threading.Lock()
         self._pulls: list[tuple[str, Any]] = []
         """(link, ``PullSubscription``): Zenoh's samples, taken in batches by the writer."""
@@ -410,7 +432,7 @@ class Recorder:
             self._chunk_started = None
         elif batch and self._file is not None:
             self._file.flush()  # a chunk the writer closed for its size: in the OS now, not in our buffer
-        wanted = core.wanted_maps()
+        wanted = core.wanted_snapshots()
         if wanted and self._fetching is not None:
             with self._fetch_lock:
                 self._to_fetch.update(wanted)
@@ -431,18 +453,18 @@ class Recorder:
         self._ids[channel.topic] = cid
         return cid
 
-    # -- map snapshots --------------------------------------------------------------------------
+    # -- map and dose snapshots -----------------------------------------------------------------
 
     def _fetch_loop(self, worker: Worker) -> None:
         while not worker.stopping:
             worker.wait(1.0)
             with self._fetch_lock:
-                robots, self._to_fetch = sorted(self._to_fetch), set()
+                wanted, self._to_fetch = sorted(self._to_fetch), set()
 
             def deliver(link: str, key: str, payload: bytes) -> None:
                 self._put((False, link, key, payload, self.clock.wall()))
 
-            fetch_snapshots(self.links, [(robot, "map") for robot in robots], deliver, lambda: worker.stopping)
+            fetch_snapshots(self.links, wanted, deliver, lambda: worker.stopping)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -517,7 +539,7 @@ FLEET_KINDS = frozenset({"wire", "uwb-status", "alive"})
 """The channels a replay plays (``Channel.kind``): what the console heard; not the Foxglove ones."""
 REORDER_S = 2.0
 """A recovered file (no index) is read in file order; its messages are put in time order within
-this window (the recorder writes a batch every 100 ms, the links' messages interleaved)."""
+this window (the recorder writes a batch every 250 ms, the links' messages interleaved)."""
 
 
 class _CountingFile:

@@ -34,7 +34,8 @@ from dataclasses import dataclass
 from typing import Final
 
 from fleetlink.shared import keys, wire, wire_json
-from fleetlink.site.foxglove_scene import FOXGLOVE_PREFIX, MAP, Channel, FoxgloveScene, Record, ns
+from fleetlink.shared.messages import DoseSnapshot, DoseUpdate
+from fleetlink.site.foxglove_scene import DOSE, FOXGLOVE_PREFIX, MAP, Channel, FoxgloveScene, Record, ns
 
 __all__ = [
     "ALIVE",
@@ -121,8 +122,8 @@ class RecordingCore:
         self._other: dict[str, Channel] = {}
         self.scene = FoxgloveScene(reject=self._reject)
         """Poses, truth and maps in Foxglove's schemas (site/foxglove_scene.py, as the live server's)."""
-        self._recent: OrderedDict[tuple[str, bytes], tuple[wire.Message, bytes]] = OrderedDict()
-        """(key, payload) -> (message, JSON) of the last ``RECENT`` messages: the copy of a message
+        self._recent: OrderedDict[tuple[str, bytes], tuple[wire.Message, bytes, int]] = OrderedDict()
+        """(key, payload) -> (message, JSON, publish time in ns) of the last ``RECENT`` messages: the copy of a message
         that came on both links is decoded and converted once. (An ``OrderedDict``: a plain dict
         emptied from the front finds its first key by walking past every key deleted before it,
         ~2 us an insert at this size; ``popitem(last=False)`` does not.)"""
@@ -133,6 +134,11 @@ class RecordingCore:
         """Inputs refused (not wire-valid, bad status JSON, bad cells, too many robots), by reason."""
         self.new_reasons: list[str] = []
         """Reasons refused for the first time since the shell last took them (it logs each once)."""
+        self._doses: dict[str, tuple[int, int, int, float, float, float]] = {}
+        """robot -> (version, width, height, resolution, origin x, y) of its dose layer as the recorded
+        snapshot and the updates since leave it: which updates follow (``map_codec.patch_follows``'s
+        rule on the headers alone; the recorder keeps no cells: it draws no dose layer)."""
+        self._want_doses: set[str] = set()
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -143,7 +149,7 @@ class RecordingCore:
         recent = self._recent
         seen = recent.get((key, payload))
         if seen is not None:  # the same bytes on the other link (an agent's pose, state, ...)
-            msg, data = seen
+            msg, data, published = seen
         else:
             try:
                 msg, unpacked = wire.decode_key_unpacked(key, payload)
@@ -154,10 +160,13 @@ class RecordingCore:
             if robot not in self.robots and robot != keys.FLEET_MAP and not self._new_robot(robot):
                 return []
             data = wire_json.unpacked_to_json(type(msg), unpacked)
-            recent[(key, payload)] = (msg, data)
+            published = ns(msg.header.timestamp)
+            if type(msg) is DoseUpdate or type(msg) is DoseSnapshot:
+                self._follow_dose(msg)
+            recent[(key, payload)] = (msg, data, published)
             if len(recent) > RECENT:
                 recent.popitem(last=False)
-        return self._message(link, msg, data, wall)
+        return self._message(link, msg, data, wall, published)
 
     def snapshot(self, link: str, key: str, payload: bytes, wall: float) -> list[Record]:
         """A queryable's answer (a ``MapSnapshot``, a ``DoseSnapshot``) the shell fetched: recorded
@@ -178,12 +187,30 @@ class RecordingCore:
         data = json.dumps({"robot": robot, "alive": alive}, separators=(",", ":")).encode()
         return [self._record(channel, data, wall, wall)]
 
-    def wanted_maps(self) -> list[str]:
-        """Robots whose map the recorder cannot draw from updates alone: fetch their snapshot (then
-        hand it to ``snapshot``). Each is asked for once until an update fails again."""
-        return [robot for robot, topic in self.scene.wanted() if topic == MAP]
+    def wanted_snapshots(self) -> list[tuple[str, str]]:
+        """(robot, ``map`` or ``dose``): snapshots to fetch (then hand each to ``snapshot``), for
+        the robots whose map or dose layer cannot be followed from their updates alone (the first
+        update heard, one that does not follow): a replay answers the console's fetches from them
+        (site/replay.py). Each is asked for once until an update fails to follow again."""
+        doses, self._want_doses = sorted(self._want_doses), set()
+        return [(robot, MAP) for robot, topic in self.scene.wanted() if topic == MAP] + [(r, DOSE) for r in doses]
 
     # -- internals ------------------------------------------------------------------------------
+
+    def _follow_dose(self, msg: DoseUpdate | DoseSnapshot) -> None:
+        """A dose snapshot (fetched by the recorder: it becomes the layer's head) or update (it
+        moves the head if it follows, else the robot's snapshot is wanted). Called once per message
+        (not for its copy on the other link)."""
+        robot = msg.header.robot
+        shape = (msg.width, msg.height, msg.resolution, msg.origin_x, msg.origin_y)
+        if isinstance(msg, DoseSnapshot):
+            self._doses[robot] = (msg.version, *shape)
+            return
+        head = self._doses.get(robot)
+        if head is not None and msg.base_version == head[0] and msg.version > head[0] and shape == head[1:]:
+            self._doses[robot] = (msg.version, *shape)
+        elif head is None or msg.version != head[0]:  # (the same version again: nothing to fetch)
+            self._want_doses.add(robot)
 
     def _reject(self, reason: str) -> None:
         known = reason in self.rejected or len(self.rejected) < MAX_REASONS
@@ -225,18 +252,18 @@ class RecordingCore:
         )
         return [self._record(channel, data, wall, wall)]
 
-    def _message(self, link: str, msg: wire.Message, data: bytes, wall: float) -> list[Record]:
-        topic = msg.TOPIC
-        channel = self._wire.get((link, topic))
+    def _message(self, link: str, msg: wire.Message, data: bytes, wall: float, published: int) -> list[Record]:
+        channel = self._wire.get((link, msg.TOPIC))
         if channel is None:
-            channel = self._wire[(link, topic)] = wire_channel(link, topic)
+            channel = self._wire[(link, msg.TOPIC)] = wire_channel(link, msg.TOPIC)
         messages = self.messages
         messages[channel.topic] += 1
+        logged = ns(wall)
+        out = [Record(channel, data, logged, published)]
         scene = self.scene
-        more = scene.message(msg, wall)
+        more = scene.message(msg, wall, wall_ns=logged, stamp_ns=published)
         if scene.has_pending:  # a map applied: its whole grid, after every snapshot and update
             more += scene.changed(wall)
-        out = [Record(channel, data, ns(wall), ns(msg.header.timestamp))]
         for r in more:
             messages[r.channel.topic] += 1
             out.append(r)

@@ -19,12 +19,20 @@ and the next message only, so an hour-long recording costs what one chunk does.
 Seeking: ``start_s`` (seconds after the first message) fast-forwards through everything before it
 at once, so the fleet model holds the state at that moment, and plays on from there; ``seek(t)``
 does the same forward while playing (each chunk is read once; the fleet model is cumulative, so
-the chunks before the target are needed, the ones after it are not read until played).
+the chunks before the target are needed, the ones after it are not read until played), and
+``set_speed(x)`` changes the speed: the console's ``:seek`` and ``:speed``.
+
+Snapshots: the console asks a robot's map and dose layer as it asks a live robot's queryable
+(``fetch_map``, ``fetch_dose``), and gets what the robot would have answered at the time being
+played: the last recorded snapshot (the recorder fetched it when the robot's updates could not be
+applied) brought up to date with every recorded update played since. So a console that fetches
+late still follows the updates that come after (each one follows its copy), as it did live.
 Read-only: ``send`` and ``publish`` refuse (and count); the console runs read-only and says so.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -34,11 +42,15 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from fleetlink.operator.linkmanager import Failed, LinkHealth, LinkManager, LinkPolicy, Switch
 from fleetlink.operator.links import ROBOT_TOPICS
-from fleetlink.shared import wire, wire_json
+from fleetlink.shared import dose_codec, map_codec, wire, wire_json
 from fleetlink.shared.clock import Clock, SystemClock
-from fleetlink.shared.messages import DoseSnapshot, MapSnapshot
+from fleetlink.shared.dose_codec import SharedDose
+from fleetlink.shared.map_codec import SharedMap
+from fleetlink.shared.messages import DoseSnapshot, DoseUpdate, MapSnapshot, MapUpdate
 from fleetlink.shared.worker import Worker
 from fleetlink.site.recorder import FleetStream, RecordingError, StoredMessage
 
@@ -146,7 +158,13 @@ class ReplaySource:
         self._listeners: list[Callable[[Switch | Failed], None]] = []
         self._anchor_sinks: list[Callable[[str, list[tuple[str, float, float, float]]], None]] = []
         self._presence_sinks: list[Callable[[str, str, bool, float], None]] = []
-        self._snapshots: dict[tuple[str, str], wire.Message] = {}
+        self._snapshots: dict[tuple[str, str], MapSnapshot | DoseSnapshot] = {}
+        """(robot, topic) -> the last recorded snapshot (its header and fields, to answer with)."""
+        self._copies: dict[tuple[str, str], SharedMap | SharedDose] = {}
+        """(robot, topic) -> that snapshot brought up to date with the updates played since."""
+        self._answers: dict[tuple[str, str], MapSnapshot | DoseSnapshot] = {}
+        """(robot, topic) -> the last snapshot built from a copy (rebuilt when the copy's version moved)."""
+        self._copies_lock = threading.Lock()
         self._player: Worker | None = None
 
     # -- ConsoleSource --------------------------------------------------------------------------
@@ -185,13 +203,55 @@ class ReplaySource:
         self._presence_sinks.append(sink)
 
     def fetch_map(self, robot: str, timeout: float = 0.0) -> MapSnapshot | None:
-        """The robot's last recorded map snapshot up to the time being played."""
-        found = self._snapshots.get((robot, MapSnapshot.TOPIC))
+        """The robot's map as it would have answered at the time being played: its last recorded
+        snapshot with the recorded updates played since applied (None before its first snapshot)."""
+        found = self._answer(robot, MapSnapshot.TOPIC)
         return found if isinstance(found, MapSnapshot) else None
 
     def fetch_dose(self, robot: str, timeout: float = 0.0) -> DoseSnapshot | None:
-        found = self._snapshots.get((robot, DoseSnapshot.TOPIC))
+        """The robot's dose layer as it would have answered at the time being played (as ``fetch_map``)."""
+        found = self._answer(robot, DoseSnapshot.TOPIC)
         return found if isinstance(found, DoseSnapshot) else None
+
+    def _answer(self, robot: str, topic: str) -> MapSnapshot | DoseSnapshot | None:
+        key = (robot, topic)
+        with self._copies_lock:
+            recorded, copy = self._snapshots.get(key), self._copies.get(key)
+            if recorded is None or copy is None or copy.version == recorded.version:
+                return recorded
+            built = self._answers.get(key)
+            if built is not None and built.version == copy.version:
+                return built
+            fields: dict[str, Any] | None
+            if isinstance(copy, SharedMap):
+                fields = dict(map_codec.snapshot_fields(copy.cells, copy.resolution, copy.origin, copy.version))
+            else:
+                assert copy.lamp is not None  # (a copy is made from a snapshot, which names its lamp)
+                fields = dose_codec.snapshot_fields(
+                    copy.cells.astype(np.float64), copy.resolution, copy.origin, copy.version,
+                    target_j_m2=copy.target_j_m2, lamp_on_s=copy.lamp_on_s, unplaced_s=copy.unplaced_s,
+                    lamp=copy.lamp,
+                )  # fmt: skip
+                if fields is None:  # too many distinct doses to answer in one message: the recorded one
+                    return recorded
+            built = self._answers[key] = dataclasses.replace(recorded, **fields)
+            return built
+
+    def _follow(self, msg: wire.Message) -> None:
+        """A recorded snapshot becomes the robot's copy; a played update brings it up to date."""
+        key = (msg.header.robot, msg.TOPIC.removesuffix("/updates"))
+        try:
+            with self._copies_lock:
+                if isinstance(msg, MapSnapshot):
+                    self._snapshots[key], self._copies[key] = msg, SharedMap.from_snapshot(msg)
+                elif isinstance(msg, DoseSnapshot):
+                    self._snapshots[key], self._copies[key] = msg, SharedDose.from_snapshot(msg)
+                elif isinstance(msg, MapUpdate | DoseUpdate):
+                    copy = self._copies.get(key)
+                    if copy is not None:
+                        copy.apply(msg)  # type: ignore[arg-type]  # (a map's copy takes map updates)
+        except (wire.WireError, ValueError) as exc:  # cells that cannot be right: as the console would
+            self.skipped[f"bad {msg.TOPIC} cells: {exc}"[:200]] += 1
 
     def pending(self, robot: str) -> int:
         return 0
@@ -225,6 +285,20 @@ class ReplaySource:
             raise ValueError("a replay seeks forward only (start again with --start to go back)")
         self.play_until(target)
         self.clock.run(target, self.speed, self.last)
+
+    def set_speed(self, speed: float) -> None:
+        """Play at ``speed`` times real time from now on (the console's ``:speed``)."""
+        if not (speed > 0 and math.isfinite(speed)):
+            raise ValueError(f"speed must be a positive number, got {speed}")
+        with self._playing:
+            self.speed = speed
+            if self._player is not None:  # playing: time goes on from here at the new speed
+                self.clock.run(self.clock.now(), speed, self.last)
+
+    @property
+    def position(self) -> float:
+        """Seconds after the first message of the time being played (what ``seek`` takes)."""
+        return self.clock.now() - self.first
 
     @property
     def delivered(self) -> int:
@@ -301,8 +375,10 @@ class ReplaySource:
             self.skipped[str(exc)[:200]] += 1
             return
         if isinstance(msg, MapSnapshot | DoseSnapshot):
-            self._snapshots[(msg.header.robot, msg.TOPIC)] = msg  # a queryable's answer: fetched, not heard
+            self._follow(msg)  # a queryable's answer: fetched, not heard
             return
+        if isinstance(msg, MapUpdate | DoseUpdate):
+            self._follow(msg)
         if msg.TOPIC in ROBOT_TOPICS:
             with self._lock:
                 self.manager.heard(msg.header.robot, link, t)

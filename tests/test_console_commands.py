@@ -13,6 +13,8 @@ from fleetlink.operator.commands import (
     Home,
     MarkAt,
     Payload,
+    Seek,
+    Speed,
     StopAll,
     parse_command,
 )
@@ -45,6 +47,14 @@ def test_mark_with_and_without_label() -> None:
     assert parse_command("mark hazard 1 2 gas leak") == MarkAt("hazard", 1.0, 2.0, "gas leak")
     assert parse_command("mark casualty -1.5 0") == MarkAt("casualty", -1.5, 0.0, "")
     assert parse_command("mark hazard 1 2 gas:leak   here") == MarkAt("hazard", 1.0, 2.0, "gas:leak here")
+
+
+def test_replay_seek_and_speed() -> None:
+    assert parse_command("seek 120") == Seek(120.0, relative=False)
+    assert parse_command("seek +30") == Seek(30.0, relative=True)
+    assert parse_command("speed 4") == Speed(4.0)
+    for bad in ("seek -5", "seek +-5", "seek x", "speed 0", "speed -1", "speed 1e9", "speed nan"):
+        assert isinstance(parse_command(bad), CommandError), bad
 
 
 def test_home_payload_stop() -> None:

@@ -374,3 +374,74 @@ def test_the_server_keeps_serving_after_malformed_messages(mosquitto: Any) -> No
             client.close()
         live.stop()
         sender.close()
+
+
+def test_a_robots_dose_layer_reaches_a_foxglove_client_as_a_float_grid(mosquitto: Any) -> None:
+    """The dose layer end to end: a robot publishes a dose update the server cannot follow (the
+    first it hears), the server fetches the robot's layer from its Zenoh queryable, and a client
+    on the WebSocket gets the fleet's layer as a ``foxglove.Grid`` of one FLOAT32 field with the
+    robot's doses (J/m²), then each update the robot publishes after."""
+    from fleetlink.shared import dose_codec
+    from fleetlink.shared.dose import Lamp
+    from fleetlink.shared.messages import DoseSnapshot, DoseUpdate
+
+    clock = SystemClock()
+    at_server = f"tcp/127.0.0.1:{free_port()}"
+    robot = ZenohEndpoint(connect=[at_server], label="zenoh-test-robot")
+    counter = wire.HeaderCounter(clock, robot="uvc-9", sender="agent-uvc-9")
+    res, origin, common = 0.1, (-0.05, -0.05), {"target_j_m2": 100.0, "lamp_on_s": 2.0, "unplaced_s": 0.0}
+    dose = np.zeros((12, 16))
+    now = {"version": 3}
+
+    def answer(key: str) -> list[tuple[str, bytes]]:  # the robot's dose queryable: its layer as it is
+        fields = dose_codec.snapshot_fields(dose, res, origin, now["version"], **common, lamp=Lamp(10.0, 0.6))
+        assert fields is not None
+        return [(key, wire.encode(counter.make(DoseSnapshot, **fields)))]
+
+    def expose(k: int) -> None:
+        """The lamp doses a 2 x 2 spot; the robot publishes the patch."""
+        dose[k : k + 2, k : k + 2] += 25.0
+        fields = dose_codec.patch_fields(
+            dose, res, origin, (k, k, k + 2, k + 2), now["version"] + 1, now["version"], **common
+        )
+        assert fields is not None
+        now["version"] += 1
+        msg = counter.make(DoseUpdate, **fields)
+        robot.publish(wire.key_of(msg), wire.encode(msg))
+
+    robot.serve(keys.key("uvc-9", "dose"), answer)
+    links = open_recorder_links(mqtt_url=mosquitto.url, zenoh_listen=[at_server], clock=clock, role="foxglove")
+    live = FoxgloveLive(links, clock, port=0, grid_period_s=0.2).start()
+    client = None
+    try:
+        robot.start()
+        client = FoxgloveClient(f"ws://127.0.0.1:{live.port}")
+
+        def advertised() -> bool:
+            expose(0)
+            time.sleep(0.2)
+            return FLEET_DOSE_TOPIC in client.channels
+
+        wait_until(advertised, interval=0, timeout=20, message="the fleet's dose layer advertised")
+        assert client.channels[FLEET_DOSE_TOPIC]["schemaName"] == "foxglove.Grid"
+        client.subscribe(FLEET_DOSE_TOPIC)
+
+        def the_robots_layer() -> bool:
+            got = client.got(FLEET_DOSE_TOPIC)
+            if not got:
+                return False
+            g = got[-1][1]
+            cells = np.frombuffer(base64.b64decode(g["data"]), dtype="<f4").reshape(-1, g["column_count"])
+            assert g["fields"] == [{"name": "dose_j_m2", "offset": 0, "type": foxglove.FLOAT32}]
+            assert g["frame_id"] == "map" and g["cell_size"] == {"x": res, "y": res}
+            return cells.shape == dose.shape and np.allclose(cells, dose)
+
+        wait_until(the_robots_layer, timeout=10, message="the client's dose layer equal to the robot's")
+        expose(6)  # an update after: it follows the fetched layer, and the client gets it
+        wait_until(the_robots_layer, timeout=10, message="the next update in the client")
+        assert live.core.rejected == {}
+    finally:
+        if client is not None:
+            client.close()
+        live.stop()
+        robot.close()

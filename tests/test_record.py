@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import struct
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,7 @@ from fleetlink.shared.wire import Limits
 from fleetlink.site.recorder import Recorder, RecordingError, RecordingReader, summarise
 from fleetlink.site.recording import RecordingCore
 from tests.harness import wait_until
+from tests.harness.mcap_doctor import doctor
 from tests.harness.messages import state as harness_state
 from tests.test_wire import strategy_for
 
@@ -40,15 +42,20 @@ def pose(counter: wire.HeaderCounter, x: float, theta: float = 0.5) -> Pose:
     )  # fmt: skip
 
 
-def read_validated(path: Path) -> dict[str, list[Any]]:
+def read_validated(path: Path, compression: str = "zstd") -> dict[str, list[Any]]:
     """Every message of a closed file, via the mcap library's seeking reader, each validated against
-    its channel's JSON Schema; topic -> decoded JSON messages."""
+    its channel's JSON Schema; topic -> decoded JSON messages. The file's structure first checked
+    record by record as the official CLI's ``mcap doctor`` checks it (tests/harness/mcap_doctor.py):
+    what the library's readers take on trust (message and chunk indexes, statistics, CRCs). Every
+    message is in a chunk (the doctor checks), and every chunk is compressed with ``compression``."""
+    assert doctor(path) == []
     out: dict[str, list[Any]] = {}
     validators: dict[int, Any] = {}
     with path.open("rb") as f:
         reader = make_reader(f, validate_crcs=True)
         summary = reader.get_summary()
         assert summary is not None and summary.statistics is not None
+        assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {compression}
         for schema, channel, message in reader.iter_messages(log_time_order=True):
             assert channel.message_encoding == "json" and schema is not None and schema.encoding == "jsonschema"
             v = validators.get(channel.id)
@@ -138,7 +145,7 @@ def test_core_draws_a_whole_map_from_a_snapshot_and_its_updates() -> None:
     assert [r.channel.topic for r in core.receive("zenoh", wire.key_of(patch), wire.encode(patch), 1.0)] == [
         "/fleetlink/zenoh/map/updates"
     ]
-    assert core.wanted_maps() == ["r1"] and core.wanted_maps() == []
+    assert core.wanted_snapshots() == [("r1", "map")] and core.wanted_snapshots() == []
     snap = c.make(MapSnapshot, **snapshot_fields(cells, 0.1, (1.0, 2.0), 3))
     recs = core.snapshot("zenoh", keys.key("r1", "map"), wire.encode(snap), 2.0)
     assert [r.channel.topic for r in recs] == ["/fleetlink/zenoh/map", "/foxglove/r1/map"]
@@ -150,6 +157,43 @@ def test_core_draws_a_whole_map_from_a_snapshot_and_its_updates() -> None:
     assert grid["pose"]["position"] == {"x": 1.0, "y": 2.0, "z": 0.0}
     data = np.frombuffer(__import__("base64").b64decode(grid["data"]), dtype=np.int8).reshape(10, 20)
     assert (data == cells).all()
+
+
+def test_core_asks_for_a_robots_dose_layer_when_its_updates_cannot_be_followed() -> None:
+    """The recorder keeps no dose cells (it draws no dose layer), only each layer's version and
+    shape: the first update heard, and one that does not follow, ask for the robot's snapshot once;
+    updates that follow, and a copy on the other link, ask for nothing."""
+    from fleetlink.shared import dose_codec
+    from fleetlink.shared.dose import Lamp
+    from fleetlink.shared.messages import DoseSnapshot, DoseUpdate
+
+    core = RecordingCore()
+    c = wire.HeaderCounter(SystemClock(), robot="r1", sender="agent-r1")
+    dose, common = np.zeros((10, 20)), {"target_j_m2": 100.0, "lamp_on_s": 1.0, "unplaced_s": 0.0}
+
+    def update(version: int, base: int) -> tuple[str, bytes]:
+        fields = dose_codec.patch_fields(dose, 0.1, (-0.05, -0.05), (0, 0, 2, 2), version, base, **common)
+        assert fields is not None
+        msg = c.make(DoseUpdate, **fields)
+        return wire.key_of(msg), wire.encode(msg)
+
+    first = update(4, 3)
+    core.receive("zenoh", *first, 1.0)
+    assert core.wanted_snapshots() == [("r1", "dose")] and core.wanted_snapshots() == []
+    fields = dose_codec.snapshot_fields(dose, 0.1, (-0.05, -0.05), 4, **common, lamp=Lamp(10.0, 0.6))
+    assert fields is not None
+    snap = c.make(DoseSnapshot, **fields)
+    assert [r.channel.topic for r in core.snapshot("zenoh", keys.key("r1", "dose"), wire.encode(snap), 2.0)] == [
+        "/fleetlink/zenoh/dose"
+    ]
+    core.receive("mqtt", *first, 2.1)  # the first update's copy, late on the other link
+    for version in (5, 6):
+        heard = update(version, version - 1)
+        core.receive("zenoh", *heard, 3.0)
+        core.receive("mqtt", *heard, 3.0)
+    assert core.wanted_snapshots() == []
+    core.receive("zenoh", *update(9, 8), 4.0)  # two were missed
+    assert core.wanted_snapshots() == [("r1", "dose")]
 
 
 # -- the recorder over in-process links -------------------------------------------------------------
@@ -451,6 +495,54 @@ def test_the_message_appender_writes_what_the_mcap_writer_writes() -> None:
         return buf.getvalue()
 
     assert write(True) == write(False)
+
+
+def test_the_doctor_passes_the_libraries_file_and_finds_what_its_readers_take_on_trust(tmp_path: Path) -> None:
+    """The MCAP structure check every recording in these tests goes through
+    (tests/harness/mcap_doctor.py, after the official CLI's ``mcap doctor``): a file the ``mcap``
+    writer wrote passes; a message index entry one byte off, a statistics count one too high, a
+    chunk index pointing past its chunk do not, though the library's seeking reader reads each of
+    them without a word."""
+    from mcap.opcode import Opcode
+    from mcap.writer import CompressionType, Writer
+
+    from tests.harness.mcap_doctor import _lex
+
+    path = tmp_path / "good.mcap"
+    with path.open("wb") as f:
+        w = Writer(f, chunk_size=2048, compression=CompressionType.ZSTD)
+        w.start(profile="fleetlink", library="test")
+        sid = w.register_schema(name="s", encoding="jsonschema", data=b"{}")
+        ids = [w.register_channel(topic=f"/c{i}", message_encoding="json", schema_id=sid) for i in range(2)]
+        for i in range(200):
+            w.add_message(ids[i % 2], log_time=1000 + i, data=json.dumps({"i": i}).encode(), publish_time=1000 + i)
+        w.add_metadata("m", {"k": "v"})
+        w.finish()
+    good = path.read_bytes()
+    assert doctor(path) == []
+    records = _lex(good, 8, len(good) - 8)
+
+    def damaged(opcode: int, at: int, change: int, name: str) -> Path:
+        """A copy with the u64 ``at`` bytes into the first record of ``opcode``'s body changed by ``change``."""
+        offset = next(o for o, op, _n, _r in records if op == opcode) + 9 + at
+        data = bytearray(good)
+        (value,) = struct.unpack_from("<Q", data, offset)
+        struct.pack_into("<Q", data, offset, value + change)
+        out = tmp_path / name
+        out.write_bytes(bytes(data))
+        with out.open("rb") as f:  # the library reads it as it is
+            assert sum(1 for _ in make_reader(f).iter_messages()) == 200
+        return out
+
+    # A message index: channel id u16, records length u32, then (log time u64, offset u64) entries.
+    index = doctor(damaged(Opcode.MESSAGE_INDEX, 2 + 4 + 8, 1, "index.mcap"))
+    assert any("message indexes after the chunk" in p for p in index), index
+    # Statistics: message count u64 first.
+    stats = doctor(damaged(Opcode.STATISTICS, 0, 1, "stats.mcap"))
+    assert any("statistics say" in p for p in stats), stats
+    # A chunk index: message start u64, end u64, chunk start offset u64, chunk length u64.
+    chunk = doctor(damaged(Opcode.CHUNK_INDEX, 24, 1, "chunk.mcap"))
+    assert any("chunk index of the chunk" in p for p in chunk), chunk
 
 
 def test_a_flood_of_robot_ids_is_refused_counted_and_bounded(caplog: pytest.LogCaptureFixture) -> None:

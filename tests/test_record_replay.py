@@ -15,6 +15,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from fleetlink.cli.replay import console_parts, replay_app
@@ -301,3 +302,133 @@ def test_a_long_recording_is_played_chunk_by_chunk_not_held(tmp_path: Path) -> N
         assert source.done and 0.4 * n < len(xs) == source.total < 0.7 * n and xs == sorted(xs)
     finally:
         source.close()
+
+
+def test_a_replayed_console_follows_maps_and_dose_layers_past_their_recorded_snapshots(tmp_path: Path) -> None:
+    """A robot's map and dose layer change after the recorder fetched their snapshots (it fetches
+    a robot's snapshot when it hears an update it cannot follow, the dose layer's as the map's).
+    The replay answers the console's fetches as the robot would have at the time played: the
+    recorded snapshot with the updates played since, so a console that fetches late has the last
+    picture and follows the updates after it (a console given the recorded snapshot as it was would
+    refuse every later update: it does not follow its copy)."""
+    from fleetlink.shared import dose_codec, map_codec
+    from fleetlink.shared.dose import Lamp
+    from fleetlink.shared.dose_codec import SharedDose
+    from fleetlink.shared.map_codec import SharedMap
+    from fleetlink.shared.messages import DoseSnapshot, DoseUpdate, MapUpdate
+
+    clock = SteppedClock()
+    bus = InProcessBus(LinkName.ZENOH, clock_now=clock.now)
+    path = tmp_path / "layers.mcap"
+    recorder = Recorder(path, [bus.endpoint("recorder")], clock).start()
+    agent = bus.endpoint("agent-r1")
+    counter = wire.HeaderCounter(clock, robot="r1", sender="agent-r1")
+    res, origin = 0.1, (-0.05, -0.05)
+    cells = np.full((20, 30), -1, dtype=np.int8)
+    dose = np.zeros((20, 30))
+    common = {"target_j_m2": 100.0, "lamp_on_s": 1.0, "unplaced_s": 0.0}
+    now = {"map": 7, "dose": 3}
+
+    def answer(key: str) -> list[tuple[str, bytes]]:  # the robot's queryables: its layers as they are now
+        if key.endswith("/map"):
+            msg: wire.Message = counter.make(MapSnapshot, **map_codec.snapshot_fields(cells, res, origin, now["map"]))
+        else:
+            fields = dose_codec.snapshot_fields(dose, res, origin, now["dose"], **common, lamp=Lamp(10.0, 0.6))
+            assert fields is not None
+            msg = counter.make(DoseSnapshot, **fields)
+        return [(key, wire.encode(msg))]
+
+    agent.serve("fleetlink/v1/r1/map", answer)
+    agent.serve("fleetlink/v1/r1/dose", answer)
+    agent.start()
+
+    def change(k: int) -> None:
+        """The robot sees a wall and its lamp doses a spot, and publishes both patches."""
+        box = (k, k, k + 2, k + 2)
+        cells[k : k + 2, k : k + 2] = 100
+        dose[k : k + 2, k : k + 2] += 40.0
+        m = map_codec.patch_fields(cells, res, origin, box, now["map"] + 1, now["map"])
+        d = dose_codec.patch_fields(dose, res, origin, box, now["dose"] + 1, now["dose"], **common)
+        assert m is not None and d is not None
+        now["map"] += 1
+        now["dose"] += 1
+        for msg in (counter.make(MapUpdate, **m), counter.make(DoseUpdate, **d)):
+            agent.publish(wire.key_of(msg), wire.encode(msg))
+        bus.deliver()
+        clock.advance(1.0)
+
+    try:
+        change(0)  # the first updates heard: the recorder fetches both snapshots
+        wait_until(
+            lambda: recorder.core.messages["/fleetlink/zenoh/map"] and recorder.core.messages["/fleetlink/zenoh/dose"],
+            message="both snapshots fetched and recorded",
+        )
+        for k in range(2, 8, 2):  # then they change three more times
+            change(k)
+        wait_until(lambda: recorder.core.messages["/fleetlink/zenoh/dose/updates"] == 4, message="all recorded")
+    finally:
+        recorder.stop()
+
+    # The console asks only once everything has been played: it gets the layers as they ended.
+    source = replayed(path)
+    got_map, got_dose = source.fetch_map("r1"), source.fetch_dose("r1")
+    assert got_map is not None and got_dose is not None
+    assert (got_map.version, got_dose.version) == (now["map"], now["dose"])
+    assert (SharedMap.from_snapshot(got_map).cells == cells).all()
+    assert np.allclose(SharedDose.from_snapshot(got_dose).cells, dose)
+    # A console that fetched right after the snapshots were recorded follows every update after them.
+    source = ReplaySource(path)
+    _fleet, lock, maps, doses = console_parts(source)
+    first = min(m.log_time_ns for m in source.stream.messages() if m.topic == "/fleetlink/zenoh/dose") / 1e9
+    source.play_until(first)
+    early_map, early_dose = source.fetch_map("r1"), source.fetch_dose("r1")
+    assert early_map is not None and early_dose is not None and early_map.version < now["map"]
+    with lock:
+        assert maps.on_snapshot("r1", early_map) and doses.on_snapshot("r1", early_dose)
+    source.play_until(source.last)
+    with lock:
+        assert maps.maps["r1"].version == now["map"] and doses.layers["r1"].version == now["dose"]
+        assert (maps.maps["r1"].cells == cells).all() and np.allclose(doses.layers["r1"].cells, dose)
+
+
+def test_the_replayed_console_seeks_forward_and_changes_speed(tmp_path: Path) -> None:
+    """``:seek S`` / ``:seek +S`` jump the replay forward (everything before the target delivered at
+    once, off the UI thread), ``:speed X`` changes its speed; a seek back is refused with a notice
+    (the fleet model keeps what it heard: an earlier moment needs ``--start``)."""
+    from tests.test_console import screen_text, type_text
+
+    path = tmp_path / "scene.mcap"
+    record_scene(path)
+    source = ReplaySource(path, speed=0.001)  # all but still: only the commands move it
+    app, fetchers = replay_app(source)
+
+    async def run() -> None:
+        async with app.run_test(size=SIZE) as pilot:
+            source.start()
+
+            async def command(text: str) -> None:
+                await pilot.press("colon")
+                await type_text(pilot, text)
+                await pilot.press("enter")
+                await pilot.pause()
+
+            assert source.position < 0.05 and source.delivered < source.total
+            await command("seek 0.3")
+            await asyncio.to_thread(wait_until, lambda: source.position >= 0.3, message="the seek")
+            await pilot.pause()
+            assert source.delivered < source.total  # the marks came later
+            assert "replay at 0.3 s" in screen_text(app)
+            await command("seek +10")  # past the end: the end
+            await asyncio.to_thread(wait_until, lambda: source.delivered == source.total, message="the rest")
+            await command("speed 4")
+            assert source.speed == 4.0 and "replay at 4x" in screen_text(app)
+            await command("seek 0")
+            await asyncio.to_thread(wait_until, lambda: "forward only" in screen_text(app), message="refused")
+            assert source.delivered == source.total and source.refused == {}
+
+    try:
+        asyncio.run(run())
+    finally:
+        source.close()
+        for fetcher in fetchers:
+            fetcher.stop()

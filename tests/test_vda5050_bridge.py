@@ -1,5 +1,7 @@
-"""The VDA 5050 bridge's shell without a broker: a flood of fleetlink ``State`` under ever new robot
-ids does not grow the bridge without bound (capped, counted, logged once; it keeps serving)."""
+"""The VDA 5050 bridge's shell: without a broker, a flood of fleetlink ``State`` under ever new robot
+ids does not grow the bridge without bound (capped, counted, logged once; it keeps serving), and an
+order the operator link gives up on is dropped at the next tick; on a real Mosquitto, a vehicle whose
+connection vanishes leaves its last will ``CONNECTIONBROKEN`` retained."""
 
 from __future__ import annotations
 
@@ -177,3 +179,54 @@ def test_an_order_the_operator_link_gives_up_on_is_dropped_at_the_next_tick(monk
     b._tick_once()
     core = b.vehicles["r0"].core
     assert not core.busy and core.dropped_orders == 1 and b.stats()["r0"]["dropped_orders"] == 1
+
+
+def test_a_vehicle_that_vanishes_leaves_its_last_will_retained_on_a_real_broker(mosquitto: Any) -> None:
+    """VDA 5050 section 6.14: the vehicle's MQTT connection carries the last will
+    ``CONNECTIONBROKEN`` on ``connection`` (QoS 1, retained). The bridge's vehicle connection says
+    ``ONLINE`` retained when it connects; when it vanishes without a DISCONNECT (its socket cut, as
+    a crashed bridge's) the broker publishes the will, and a master that subscribes afterwards
+    still gets it (retained), valid against the official 2.1.0 connection schema."""
+    import paho.mqtt.client as mqtt
+    from paho.mqtt.enums import CallbackAPIVersion
+
+    from fleetlink.operator.vda5050.schema import SchemaValidator, load_schemas
+    from tests.harness import wait_until
+    from tests.test_vda5050_core import REFERENCE
+
+    official = SchemaValidator(load_schemas(REFERENCE))
+    topic = "uagv/v2/fleetlink/r0/connection"
+    settings = MqttSettings("127.0.0.1", mosquitto.port, keepalive_s=1, reconnect_min_s=5.0, reconnect_max_s=5.0)
+    b = Vda5050Bridge(SimClock(), FakeLink(), settings, robots=("r0",))  # type: ignore[arg-type]
+
+    def retained() -> list[dict[str, Any]]:
+        """What a master subscribing now gets on the vehicle's connection topic (retained only)."""
+        got: list[dict[str, Any]] = []
+        c = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="late-master")
+        c.on_connect = lambda client, *_: client.subscribe(topic, qos=1)
+        c.on_message = lambda _c, _u, m: got.append(json.loads(m.payload)) if m.retain else None
+        c.connect("127.0.0.1", mosquitto.port)
+        c.loop_start()
+        try:
+            wait_until(lambda: bool(got), timeout=5, message="a retained connection message")
+        finally:
+            c.disconnect()
+            c.loop_stop()
+        return got
+
+    try:
+        b.start()
+        endpoint = b.vehicles["r0"].endpoint
+        wait_until(lambda: endpoint.up, message="the vehicle's MQTT connection")
+        wait_until(lambda: retained()[-1]["connectionState"] == "ONLINE", message="ONLINE retained")
+        endpoint.client.socket().close()  # gone without a DISCONNECT: the broker sends the will
+        heard: list[dict[str, Any]] = []
+        wait_until(
+            lambda: heard.extend(retained()) or heard[-1]["connectionState"] == "CONNECTIONBROKEN",
+            message="the last will",
+        )
+        will = heard[-1]
+        assert official.problems("connection", will) == [], will
+        assert (will["manufacturer"], will["serialNumber"], will["version"]) == ("fleetlink", "r0", "2.1.0")
+    finally:
+        b.close()

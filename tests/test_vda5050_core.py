@@ -212,6 +212,15 @@ BASE_WITH_HORIZON = order(
 )
 
 
+HEADER = {
+    "headerId": 7,
+    "timestamp": "2026-01-01T00:00:00.00Z",
+    "version": "2.1.0",
+    "manufacturer": "fleetlink",
+    "serialNumber": "r1",
+}
+
+
 def errors(rig: Rig) -> list[dict[str, Any]]:
     return rig.last_state()["errors"]
 
@@ -393,6 +402,9 @@ def test_pause_and_resume_map_to_fleetlink_and_a_refusal_fails_the_action() -> N
             }
         ).encode(),
         json.dumps([1, 2]).encode(),
+        # The schema's "format": "date-time" (checked: jsonschema needs rfc3339-validator for it).
+        json.dumps({**HEADER, **BASE_WITH_HORIZON, "timestamp": "yesterday, 5 pm"}).encode(),
+        json.dumps({**HEADER, **BASE_WITH_HORIZON, "timestamp": "2026-01-01T00:00:00"}).encode(),  # no zone
     ],
 )
 def test_a_malformed_order_is_refused_with_a_validation_error_and_the_vehicle_keeps_serving(payload: bytes) -> None:
