@@ -79,10 +79,15 @@ SETTLE_S = 2.0
 HAZARD_RESUME_S = 5.0
 MAX_HAZARD_RESUMES = 3
 """A bump or a cliff holds a robot's order (safety first: agent/core.py); as an operator who
-looks, sees the robot against a wall and presses resume, the operator resumes it after
-``HAZARD_RESUME_S``, at most this many times in a row while the order gets no further (a node done
-since the last bump starts the count again: a long sweep may brush a few walls; a robot pressing
-the same spot is left for a person to look at)."""
+looks, sees the robot against a wall, backs it off and presses resume, the operator backs it out
+(``BACK_OUT``) and resumes it after ``HAZARD_RESUME_S``, at most this many times in a row while the
+order gets no further (a node done since the last bump starts the count again: a long sweep may
+brush a few walls; a robot pressing the same spot is left for a person to look at)."""
+BACK_OUT = (1.0, 1.0, -0.1)
+"""From this long after a bump or a cliff, for this long, the operator holds the drive key back at
+this speed (m/s; 10 teleops a second): the robot backs 0.1 m off what it touched. A robot left
+touching it keeps its bumper pressed, and the lamp interlock refuses a UV round's resume (the
+kitchen's two-robot round at seed 16 waited on "lamp refused" until its deadline)."""
 MAX_PASSES = 2
 """A UV round is planned again on what the robots' own dose layers say is still short (a top-up,
 as an operator does with a second ``:disinfect``; none once they read ``CERTIFIED``), at most this
@@ -187,6 +192,8 @@ class _Crew:
     """A sweep's order has reached its first lane (node n1): its path counts from there."""
     bumped: bool = False
     resume_at: float | None = None
+    back_out: tuple[float, float] | None = None
+    """When the operator holds the drive key back (``BACK_OUT``): from, until."""
     resumes: int = 0
     stuck: int = 0
     """Bumps since the order last got on (``MAX_HAZARD_RESUMES``)."""
@@ -272,11 +279,7 @@ class RoundRun:
         return self._score(time.perf_counter() - wall0)
 
     def _step(self, t: float) -> None:
-        for crew in self.crews.values():
-            if crew.resume_at is not None and t >= crew.resume_at:
-                crew.resume_at = None
-                crew.resumes += 1
-                self.op.action(crew.name, ActionType.RESUME, f"resume-{crew.name}-{crew.resumes}")
+        self._after_hazards(t)
         if t >= self._next_renew:
             self._next_renew = t + RENEW_S
             for name in self.crews:
@@ -301,6 +304,21 @@ class RoundRun:
             pass
 
     # -- the operator ------------------------------------------------------------------------------
+
+    def _after_hazards(self, t: float) -> None:
+        """The operator's hands after a bump or a cliff (``_read`` schedules them): the drive key held
+        back, then resume."""
+        for crew in self.crews.values():
+            if crew.back_out is not None and crew.back_out[0] <= t:
+                if t < crew.back_out[1]:
+                    self._send(crew.name, Teleop, v=BACK_OUT[2], omega=0.0, ttl_s=0.5)
+                    crew.back_out = (t + 0.1, crew.back_out[1])  # a held key: 10 a second
+                else:
+                    crew.back_out = None
+            if crew.resume_at is not None and t >= crew.resume_at:
+                crew.resume_at = None
+                crew.resumes += 1
+                self.op.action(crew.name, ActionType.RESUME, f"resume-{crew.name}-{crew.resumes}")
 
     def _send(self, robot: str, cls: type[wire.Message], **fields: Any) -> wire.Message:
         msg = self.op.counter(robot).make(cls, **fields)
@@ -487,8 +505,10 @@ class RoundRun:
                 crew.stuck += 1
                 if crew.stuck <= MAX_HAZARD_RESUMES:
                     crew.resume_at = t + HAZARD_RESUME_S
+                    crew.back_out = (t + BACK_OUT[0], t + BACK_OUT[0] + BACK_OUT[1])
                     self.notes.append(
-                        f"t={t:.1f}: {crew.name}: {ev.text}; the operator resumes in {HAZARD_RESUME_S:g} s"
+                        f"t={t:.1f}: {crew.name}: {ev.text}; the operator backs it out and resumes in"
+                        f" {HAZARD_RESUME_S:g} s"
                     )
             if crew is None or ev.kind != "order" or not crew.order_id:
                 continue

@@ -78,3 +78,38 @@ def test_the_truth_counts_the_floor_the_brush_swept_between_samples() -> None:
     lane = (np.abs(gy - 1.03) <= rad - 1e-9) & (gx >= 1.0) & (gx <= 1.9)
     assert run.swept[lane].all()
     assert not run.swept[np.abs(gy - 1.03) > rad + 1e-9].any()
+
+
+def test_after_a_bump_the_operator_backs_the_robot_out_before_resuming() -> None:
+    # A robot left against what it bumped keeps its bumper pressed: the lamp interlock refuses a UV
+    # round's resume ("lamp refused"), and the kitchen's two-robot round at seed 16 waited so until
+    # its deadline. As a person would, the bench's operator holds the drive key back first.
+    from types import SimpleNamespace
+
+    from fleetlink.shared.clock import SimClock
+    from fleetlink.shared.messages import ActionType, Event, Severity, Teleop
+    from fleetlink.shared.wire import HeaderCounter
+    from fleetlink.site.disinfection import BACK_OUT, HAZARD_RESUME_S, _Crew
+
+    sent: list[tuple[float, str, object]] = []
+    now = [0.0]
+    bump = HeaderCounter(SimClock(), robot="uvc-1", sender="agent-uvc-1").make(
+        Event, kind="bump", text="bumper pressed: stopped", severity=Severity.ERROR, data=()
+    )
+    run = RoundRun.__new__(RoundRun)
+    run.op = SimpleNamespace(
+        acks=[], events=[bump], states={}, action=lambda robot, kind, _id: sent.append((now[0], robot, kind))
+    )
+    run._send = lambda robot, cls, **f: sent.append((now[0], robot, f["v"] if cls is Teleop else cls))  # type: ignore[method-assign]
+    run.crews = {"uvc-1": _Crew("uvc-1", order_id="uv-uvc-1-1", sent_at=0.0)}
+    run.notes, run._acks, run._events, run.skipped = [], 0, 0, 0
+    run._read(10.0)
+    for k in range(1, 70):
+        now[0] = 10.0 + 0.1 * k
+        run._after_hazards(now[0])
+    backs = [t for t, _, what in sent if what == BACK_OUT[2]]
+    resumes = [t for t, _, what in sent if what is ActionType.RESUME]
+    assert BACK_OUT[2] < 0.0 and len(backs) >= 9  # about a second, ten a second
+    assert 10.0 + BACK_OUT[0] - 1e-9 <= min(backs) and max(backs) < 10.0 + BACK_OUT[0] + BACK_OUT[1]
+    assert resumes == [pytest.approx(10.0 + HAZARD_RESUME_S)]
+    assert max(backs) < resumes[0]
