@@ -29,3 +29,24 @@ def test_scale_bench_runs_mapping_agents_and_drives_them() -> None:
     assert 0 < r["agent_rss_max_bytes"] < 500 * 2**20 and r["agent_cpu_mean_ratio"] > 0
     table = scale.table(r)
     assert "2 robots" in table and "1 Hz x 720 samples" in table and "2 of 2 robots seen turning" in table
+
+
+def test_an_agent_process_does_not_load_scipy_until_its_pose_graph_solves() -> None:
+    # scipy costs an agent ~29 MB of RSS (bench/scale.py: 72 -> 105 MB per mapping agent, over the
+    # 80 MB goal, when the matcher took scipy.linalg's dgesv and the pose graph scipy.sparse at
+    # import). The runtime, the mapper and loop closure import without it; a solve loads it.
+    import subprocess
+
+    code = (
+        "import sys\n"
+        "import fleetlink.agent.runtime, fleetlink.agent.mapping.closure\n"
+        "from fleetlink.agent.mapping.posegraph import PoseGraph\n"
+        "assert 'scipy' not in sys.modules, sorted(m for m in sys.modules if m.startswith('scipy'))[:5]\n"
+        "import numpy as np\n"
+        "g = PoseGraph()\n"
+        "a, b = g.add_node((0.0, 0.0, 0.0)), g.add_node((1.1, 0.0, 0.0))\n"
+        "g.add_edge(a, b, (1.0, 0.0, 0.0), np.diag([100.0, 100.0, 400.0]))\n"
+        "g.optimize()\n"
+        "assert 'scipy.sparse' in sys.modules\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)

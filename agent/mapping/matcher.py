@@ -33,7 +33,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.linalg import lapack
 
 from fleetlink.agent.mapping.grid import LogOddsGrid
 
@@ -418,12 +417,14 @@ def _refine(grid: LogOddsGrid, points: FloatArray, pose: Pose, iterations: int =
 
 
 def _solve(a: FloatArray, b: FloatArray) -> FloatArray | None:
-    """``np.linalg.solve(a, b)`` for one small system (LAPACK's dgesv, as numpy calls it, without numpy's
-    wrapping, which costs several times the solve); None where numpy raises (singular)."""
-    _, _, x, info = lapack.dgesv(a, b)
-    if info != 0:
+    """``np.linalg.solve(a, b)`` for one small system; None where it raises (singular). (scipy's
+    ``lapack.dgesv`` is the same routine without numpy's wrapping and a few microseconds cheaper,
+    but importing scipy.linalg costs every agent process ~29 MB of RSS: bench/scale.py's agents
+    went from 72 to 101 MB, over the 80 MB goal.)"""
+    try:
+        out: FloatArray = np.linalg.solve(a, b).astype(np.float64, copy=False)
+    except np.linalg.LinAlgError:
         return None
-    out: FloatArray = x
     return out
 
 

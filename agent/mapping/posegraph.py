@@ -32,8 +32,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import sparse
-from scipy.sparse.linalg import spsolve
 
 from fleetlink.agent.mapping.se2 import Pose, relative, wrap
 
@@ -232,6 +230,9 @@ class PoseGraph:
             rows = np.concatenate((rows, np.arange(3 * n)))
             cols = np.concatenate((cols, np.arange(3 * n)))
             vals = np.concatenate((vals, np.full(3 * n, 1e-9)))
+            from scipy import sparse  # here, not at import: ~29 MB of RSS an agent without a solve
+            from scipy.sparse.linalg import spsolve  # (closures off, or none yet) does not pay
+
             h = sparse.csc_matrix(
                 (
                     np.concatenate((vals, np.ones(len(extra)))),
