@@ -234,8 +234,9 @@ def _run_realtime(scenario: Scenario, plan: FloorPlan, duration: float, args: ar
         print(f"error: cannot start {what}: {exc}", file=sys.stderr)
         return 2
     try:
-        for line in site.describe():
-            print(line, file=sys.stderr)
+        # One write: print() writes a line and its newline apart, and an agent's log line from
+        # another thread could land between them (a test read "ca.crt2026-12-02 ..." as the CA's path).
+        sys.stderr.write("".join(f"{line}\n" for line in site.describe()))
         if console:
             from fleetlink.cli.console import ConsoleSettings, run_console
 
