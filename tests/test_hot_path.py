@@ -206,8 +206,16 @@ def test_a_teleop_goes_straight_to_the_board_through_the_guard_and_the_deadman_s
     st = board.state
     ahead = st.x + board.config.radius + 0.3
     board.floor.add_wall(ahead, st.y - 1.0, ahead, st.y + 1.0)
+    # The guard reads the agent's board view, taken from the snapshot at its next control tick: a
+    # teleop between the two was once decided on the view from before the wall (one ramp step,
+    # 0.015 m/s, then refused), so the test waits for the view.
     wait_until(
-        lambda: (s := agent.board.snapshot.sensors) is not None and 0.0 < s.distances[0] < 0.4,
+        lambda: (
+            (s := agent.board.snapshot.sensors) is not None
+            and 0.0 < s.distances[0] < 0.4
+            and (u := agent.core.board.ultrasonic_m) is not None
+            and u < 0.4
+        ),
         message="the agent to see the wall",
     )
     highest = 0.0
