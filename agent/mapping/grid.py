@@ -315,20 +315,8 @@ class LogOddsGrid:
         patch = (span[:, None] * w + span[None, :]).ravel()
         # (rows, columns, tiles): every slice below runs along the tiles, contiguous.
         occ = self.logodds.reshape(-1).take(patch[:, None] + ((r0 - _K) * w + (c0 - _K))[None, :]).reshape(p, p, n)
-        # Occupied evidence, then along rows, then across them, each sum in the kernel's order.
-        np.divide(occ, np.float32(self.l_occ * 2.0), out=occ)
-        np.maximum(occ, np.float32(0.0), out=occ)
-        np.minimum(occ, np.float32(1.0), out=occ)
-        tmp = np.multiply(occ[:, 0:t], _KERNEL[0])
-        buf = np.empty_like(tmp)
-        for i in range(1, 2 * _K + 1):
-            tmp += np.multiply(occ[:, i : i + t], _KERNEL[i], out=buf)
-        blur = np.multiply(tmp[0:t], _KERNEL[0])
-        buf = buf[0:t]
-        for i in range(1, 2 * _K + 1):
-            blur += np.multiply(tmp[i : i + t], _KERNEL[i], out=buf)
-        blur *= np.float32(16.0 / 6.0)
-        np.minimum(blur, np.float32(1.0), out=blur)
+        _evidence(occ, occ, self.l_occ)
+        blur = _blur(occ, t, t)
         inner = (span[:t, None] * w + span[None, :t]).ravel()
         self.field.reshape(-1)[inner[:, None] + (r0 * w + c0)[None, :]] = blur.reshape(t * t, n)
         # The coarse cells of each tile: the maxima of its c x c blocks (element-wise maxima of strided
@@ -364,21 +352,8 @@ class LogOddsGrid:
         # Occupied evidence in [0, 1]: 0 for free/unknown, rising with the log-odds above 0. Written into
         # a zero-padded buffer; every step below works in place (the same arithmetic, fewer temporaries).
         pad = np.zeros((ih + 2 * _K, iw + 2 * _K), dtype=np.float32)
-        occ = pad[_K : _K + ih, _K : _K + iw]
-        np.divide(lo, np.float32(self.l_occ * 2.0), out=occ)
-        np.maximum(occ, np.float32(0.0), out=occ)
-        np.minimum(occ, np.float32(1.0), out=occ)
-        tmp = np.multiply(pad[:, 0:iw], _KERNEL[0])
-        buf = np.empty_like(tmp)
-        for i in range(1, 2 * _K + 1):
-            tmp += np.multiply(pad[:, i : i + iw], _KERNEL[i], out=buf)
-        blur = np.multiply(tmp[0:ih, :], _KERNEL[0])
-        buf = buf[0:ih, :]
-        for i in range(1, 2 * _K + 1):
-            blur += np.multiply(tmp[i : i + ih, :], _KERNEL[i], out=buf)
-        # A one-cell wall blurred across it peaks at 6/16: scale so a wall reads ~1.
-        blur *= np.float32(16.0 / 6.0)
-        np.minimum(blur, np.float32(1.0), out=blur)
+        _evidence(lo, pad[_K : _K + ih, _K : _K + iw], self.l_occ)
+        blur = _blur(pad, ih, iw)
         self.field[orow0:orow1, ocol0:ocol1] = blur[orow0 - irow0 : orow1 - irow0, ocol0 - icol0 : ocol1 - icol0]
         self.coarse_field[orow0 // c : orow1 // c, ocol0 // c : ocol1 // c] = _max_pool(
             self.field[orow0:orow1, ocol0:ocol1], c
@@ -405,6 +380,30 @@ class LogOddsGrid:
     def take_dirty(self) -> Box | None:
         box, self.dirty = self.dirty, None
         return box
+
+
+def _evidence(logodds: npt.NDArray[np.float32], out: npt.NDArray[np.float32], l_occ: float) -> None:
+    """Occupied evidence in [0, 1] into ``out``: 0 for free or unknown, rising with the log-odds above 0."""
+    np.divide(logodds, np.float32(l_occ * 2.0), out=out)
+    np.maximum(out, np.float32(0.0), out=out)
+    np.minimum(out, np.float32(1.0), out=out)
+
+
+def _blur(pad: npt.NDArray[np.float32], rows: int, cols: int) -> npt.NDArray[np.float32]:
+    """The field over the ``rows`` x ``cols`` cells inside ``pad``'s kernel-wide margin (any axes after
+    the first two ride along: the tiles of ``_refresh_tiles``): the kernel along rows, then across
+    them, each sum in the kernel's order, scaled so a one-cell wall (6/16 blurred across it) reads 1."""
+    tmp = np.multiply(pad[:, 0:cols], _KERNEL[0])
+    buf = np.empty_like(tmp)
+    for i in range(1, 2 * _K + 1):
+        tmp += np.multiply(pad[:, i : i + cols], _KERNEL[i], out=buf)
+    blur: npt.NDArray[np.float32] = np.multiply(tmp[0:rows], _KERNEL[0])
+    buf = buf[0:rows]
+    for i in range(1, 2 * _K + 1):
+        blur += np.multiply(tmp[i : i + rows], _KERNEL[i], out=buf)
+    blur *= np.float32(16.0 / 6.0)
+    np.minimum(blur, np.float32(1.0), out=blur)
+    return blur
 
 
 def _max_pool(a: F32, c: int) -> F32:
