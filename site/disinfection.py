@@ -80,13 +80,15 @@ HAZARD_RESUME_S = 5.0
 MAX_HAZARD_RESUMES = 3
 """A bump or a cliff holds a robot's order (safety first: agent/core.py); as an operator who
 looks, sees the robot against a wall, backs it off and presses resume, the operator backs it out
-(``BACK_OUT``) and resumes it after ``HAZARD_RESUME_S``, at most this many times in a row while the
+(``BACK_OUT_*``) and resumes it after ``HAZARD_RESUME_S``, at most this many times in a row while the
 order gets no further (a node done since the last bump starts the count again: a long sweep may
 brush a few walls; a robot pressing the same spot is left for a person to look at)."""
-BACK_OUT = (1.0, 1.0, -0.1)
-"""From this long after a bump or a cliff, for this long, the operator holds the drive key back at
-this speed (m/s; 10 teleops a second): the robot backs 0.1 m off what it touched. A robot left
-touching it keeps its bumper pressed, and the lamp interlock refuses a UV round's resume (the
+BACK_OUT_AFTER_S = 1.0
+BACK_OUT_FOR_S = 1.0
+BACK_OUT_MPS = -0.1
+"""``BACK_OUT_AFTER_S`` after a bump or a cliff, for ``BACK_OUT_FOR_S``, the operator holds the drive
+key back at this speed (10 teleops a second): the robot backs 0.1 m off what it touched. A robot
+left touching it keeps its bumper pressed, and the lamp interlock refuses a UV round's resume (the
 kitchen's two-robot round at seed 16 waited on "lamp refused" until its deadline)."""
 MAX_PASSES = 2
 """A UV round is planned again on what the robots' own dose layers say is still short (a top-up,
@@ -193,7 +195,7 @@ class _Crew:
     bumped: bool = False
     resume_at: float | None = None
     back_out: tuple[float, float] | None = None
-    """When the operator holds the drive key back (``BACK_OUT``): from, until."""
+    """When the operator holds the drive key back (``BACK_OUT_*``): from, until."""
     resumes: int = 0
     stuck: int = 0
     """Bumps since the order last got on (``MAX_HAZARD_RESUMES``)."""
@@ -311,7 +313,7 @@ class RoundRun:
         for crew in self.crews.values():
             if crew.back_out is not None and crew.back_out[0] <= t:
                 if t < crew.back_out[1]:
-                    self._send(crew.name, Teleop, v=BACK_OUT[2], omega=0.0, ttl_s=0.5)
+                    self._send(crew.name, Teleop, v=BACK_OUT_MPS, omega=0.0, ttl_s=0.5)
                     crew.back_out = (t + 0.1, crew.back_out[1])  # a held key: 10 a second
                 else:
                     crew.back_out = None
@@ -505,7 +507,7 @@ class RoundRun:
                 crew.stuck += 1
                 if crew.stuck <= MAX_HAZARD_RESUMES:
                     crew.resume_at = t + HAZARD_RESUME_S
-                    crew.back_out = (t + BACK_OUT[0], t + BACK_OUT[0] + BACK_OUT[1])
+                    crew.back_out = (t + BACK_OUT_AFTER_S, t + BACK_OUT_AFTER_S + BACK_OUT_FOR_S)
                     self.notes.append(
                         f"t={t:.1f}: {crew.name}: {ev.text}; the operator backs it out and resumes in"
                         f" {HAZARD_RESUME_S:g} s"

@@ -89,7 +89,7 @@ def test_after_a_bump_the_operator_backs_the_robot_out_before_resuming() -> None
     from fleetlink.shared.clock import SimClock
     from fleetlink.shared.messages import ActionType, Event, Severity, Teleop
     from fleetlink.shared.wire import HeaderCounter
-    from fleetlink.site.disinfection import BACK_OUT, HAZARD_RESUME_S, _Crew
+    from fleetlink.site.disinfection import BACK_OUT_AFTER_S, BACK_OUT_FOR_S, BACK_OUT_MPS, HAZARD_RESUME_S, _Crew
 
     sent: list[tuple[float, str, object]] = []
     now = [0.0]
@@ -107,9 +107,9 @@ def test_after_a_bump_the_operator_backs_the_robot_out_before_resuming() -> None
     for k in range(1, 70):
         now[0] = 10.0 + 0.1 * k
         run._after_hazards(now[0])
-    backs = [t for t, _, what in sent if what == BACK_OUT[2]]
+    backs = [t for t, _, what in sent if what == BACK_OUT_MPS]
     resumes = [t for t, _, what in sent if what is ActionType.RESUME]
-    assert BACK_OUT[2] < 0.0 and len(backs) >= 9  # about a second, ten a second
-    assert 10.0 + BACK_OUT[0] - 1e-9 <= min(backs) and max(backs) < 10.0 + BACK_OUT[0] + BACK_OUT[1]
+    assert BACK_OUT_MPS < 0.0 and len(backs) >= 9  # about a second, ten a second
+    assert min(backs) >= 10.0 + BACK_OUT_AFTER_S - 1e-9 and max(backs) < 10.0 + BACK_OUT_AFTER_S + BACK_OUT_FOR_S
     assert resumes == [pytest.approx(10.0 + HAZARD_RESUME_S)]
     assert max(backs) < resumes[0]
