@@ -5,7 +5,7 @@ map pose, whether the *board* reports the lamp on (its own report, not what was 
 whether the fusion has placed the robot in the site frame. The lamp's state is held from one
 sample to the next: an interval counts when the sample that opens it says the lamp was on. The
 floor is the robot's own onboard map in the site frame (``set_floor``, from the map keeper's
-publications; unknown cells take no dose and block light, shared/dose.py); the dose grid is in
+publications; unknown cells block light and take no dose but for a lit wall's face, shared/dose.py); the dose grid is in
 the same frame, at ``resolution`` on the lattice every robot's layer shares.
 
 Where the keeper puts lamp-on time:

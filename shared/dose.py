@@ -33,6 +33,10 @@ their angular shadow intervals, binned at ~1/2 cell at the reach, decide almost 
 and the few cells left (next to wall faces, along shadow edges) get an exact segment/square test
 against the wall cells of their bin. The bins only decide how much work the exact test does, never
 the answer (tests/test_dose.py checks it against an exhaustive test of every segment and wall cell).
+A non-free cell beside a lit floor cell (by a side) is the wall's face: the wall's surface lies
+somewhere inside it, and the floor in front of it is lit; it takes the irradiance at its own
+centre. Two robots' maps agree on a wall only to within a cell, and where one robot's map holds
+such a cell as floor, the fleet's sum reads the dose the other robot gave it (``_faces``).
 
 Reach: cells farther than ``lamp.reach(cutoff_w_m2)`` (where ``E`` falls below the cutoff), capped
 at ``max_radius_m``, get 0: each such cell misses less than ``cutoff_w_m2`` (conservative).
@@ -216,7 +220,8 @@ def _reach(lamp: Lamp, cutoff: float, cap: float) -> float:
 class FloorMask:
     """Which cells of a grid are floor that light crosses and that takes a dose (True).
 
-    Everything else (walls, obstacles, and unknown cells unless asked) blocks light and gets none.
+    Everything else (walls, obstacles, and unknown cells unless asked) blocks light and gets none,
+    but for a wall's lit face (the module's docstring, "Shadows").
     """
 
     free: Bools
@@ -339,11 +344,28 @@ def irradiance_window(
     v = oy + (np.arange(r0, r1, dtype=np.float64) + 0.5) * res - y
     r2 = v[:, None] ** 2 + u[None, :] ** 2
     win_free = np.asarray(free[r0:r1, c0:c1], dtype=bool)
-    lit = win_free & (r2 <= radius * radius)
+    inside = r2 <= radius * radius
+    lit = win_free & inside
     _shade(lit, win_free, u, v, r2, radius, res)
     e = lamp.at(r2)
-    e *= lit
+    e *= lit | (_faces(lit) & ~win_free & inside)
     return r0, c0, e
+
+
+def _faces(lit: Bools) -> Bools:
+    """Cells beside a lit cell (by a side): where the light stops at a wall, the wall's face.
+
+    A map cell is 5-10 cm: the wall's surface lies somewhere inside its first occupied (or unknown)
+    cell, and the floor in front of it there is lit as the floor beside it is. Such a cell takes its
+    own irradiance (from its centre's distance), so that where another robot's map holds it as
+    floor (two maps agree on a wall to within a cell) the fleet's dose there is the dose it got.
+    Floor cells are unchanged: a face is never a free cell."""
+    out = np.zeros_like(lit)
+    out[1:, :] |= lit[:-1, :]
+    out[:-1, :] |= lit[1:, :]
+    out[:, 1:] |= lit[:, :-1]
+    out[:, :-1] |= lit[:, 1:]
+    return out
 
 
 def _pseudo_angle(v: F64, u: F64) -> F64:

@@ -165,7 +165,25 @@ def test_a_wall_casts_the_shadow_geometry_says() -> None:
     assert (walled[rows[behind], cols[behind]] == 0.0).all()
     # In front of the wall, beside it and outside the wedge: exactly the open-floor value.
     np.testing.assert_array_equal(walled[rows[~behind], cols[~behind]], open_[rows[~behind], cols[~behind]])
-    assert (walled[~free] == 0.0).all()  # the wall itself takes no floor dose
+    # The wall's lit face (every cell of a one-cell wall facing the lamp) takes its own irradiance.
+    np.testing.assert_array_equal(walled[~free], open_[~free])
+
+
+def test_only_a_walls_lit_face_takes_a_dose() -> None:
+    """The first cell of a thick wall, beside lit floor, holds the floor in front of the wall's
+    surface: it takes the irradiance at its own centre; the wall behind it, and the face of a wall
+    in another's shadow, take none."""
+    res = 0.1
+    free, origin = _grid(60, 60, res)
+    free[20:40, 30:33] = False  # a wall three cells thick: x in [2.95, 3.25]
+    free[28:32, 45] = False  # a short wall in its shadow
+    x, y = 1.02, 3.01
+    e = irradiance(LAMP, x, y, free, res, origin)
+    open_ = irradiance(LAMP, x, y, np.ones_like(free), res, origin)
+    np.testing.assert_array_equal(e[20:40, 30], open_[20:40, 30])  # the face towards the lamp
+    assert (e[20:40, 31:33] == 0.0).all()  # the inside and the back
+    assert (e[28:32, 45] == 0.0).all()  # a face no light reaches
+    assert (e[~free & (open_ > 0.0)] > 0.0).sum() == 20  # nothing else of the walls
 
 
 def test_the_shadow_edge_at_one_column() -> None:
@@ -195,14 +213,14 @@ def test_a_diagonal_wall_one_cell_thick_does_not_leak() -> None:
 
 
 def test_a_wall_cell_under_the_lamp_is_ignored() -> None:
-    """The robot's own cell mapped as a wall (noise) must not darken the room; it takes no dose."""
+    """The robot's own cell mapped as a wall (noise) must not darken the room."""
     res = 0.1
     free, origin = _grid(40, 30, res)
     open_ = irradiance(LAMP, 2.02, 1.51, free, res, origin)
     free[15, 20] = False  # the cell the lamp stands over
     free[15, 21] = False  # and a wall cell beside it, which does cast a shadow
     e = irradiance(LAMP, 2.02, 1.51, free, res, origin)
-    assert e[15, 20] == 0.0
+    assert e[15, 20] == open_[15, 20]  # beside lit floor: its face's dose (it is floor, in truth)
     assert e[15, 22:].max() == 0.0  # behind the neighbour, along the row
     assert e[15, :20].min() > 0.0
     # The neighbour, 3 cm from the lamp, shades a wide wedge to the right; the left half is as if
@@ -294,6 +312,27 @@ def test_robots_add_up_in_the_site_frame() -> None:
     # The stub shades the right half of the room from the lamp at (1.5, 2.0), low down.
     assert float(a.dose_at(np.array([3.5]), np.array([0.3]))[0, 0]) == 0.0
     assert float(b.dose_at(np.array([3.5]), np.array([0.3]))[0, 0]) > 0.0
+
+
+def test_two_maps_a_cell_apart_on_a_wall_read_the_dose_where_either_calls_it_floor() -> None:
+    """Two robots' maps agree on a wall only to within a cell: b's map has the wall's face one cell
+    further in than a's. The floor a calls floor beside the wall, which b lit, has b's dose in the
+    fleet's sum (it used to read none there: the two-robot rounds topped up for it)."""
+    res = 0.05
+    free_a, origin = _grid(80, 60, res)
+    free_a[:, 70:] = False  # a's wall face at x = 3.475 (cells 70 on)
+    free_b = free_a.copy()
+    free_b[:, 69] = False  # b's one cell further in
+    map_a = FloorMask(free_a, res, origin)
+    map_b = FloorMask(free_b, res, origin)
+    b = DoseGrid(res)
+    b.add(LAMP, 3.0, 1.5, 60.0, map_b)
+    face = b.dose_at(np.array([69 * res]), np.arange(10, 50) * res)
+    open_ = irradiance(LAMP, 3.0, 1.5, np.ones_like(free_a), res, origin) * 60.0
+    np.testing.assert_allclose(face[:, 0], open_[10:50, 69], rtol=1e-12)
+    merged = DoseGrid.merged([b])
+    assert (merged.on(map_a)[10:50, 69] > 0.0).all()
+    assert (b.dose_at(np.array([71 * res]), np.arange(10, 50) * res) == 0.0).all()  # behind the face: none
 
 
 def test_the_grid_grows_on_the_lattice() -> None:
