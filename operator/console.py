@@ -112,6 +112,7 @@ from fleetlink.shared.dose import Lamp, j_m2
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.messages import ActionType, Mark, PeopleZones, Zone, ZonePoint
 
+READ_ONLY_NOTICE = "read-only mode: this console watches, it does not command"
 LINK_CHECK_S = 0.1
 """How often the link alarms look at their share of the robots' links (between frames)."""
 DRAIN_SLICE_S = 0.008
@@ -356,10 +357,26 @@ class ConsoleApp(App[None]):
         self._frame_cost = 0.0
         """How long the last frame took to work out (the spacing of the next, ``FRAME_SPACING``)."""
         self._frame_timer: Timer | None = None
+        self._notices_forgotten = False
+        """The feed forgot what was heard (a replay's seek back): the notices shown go at the next."""
         with self.lock:
-            for mark in self.marks.load():
-                self.fleet.apply(mark, "file", self.clock.now())
-            self._saved_marks = self.fleet.marks_version
+            self._load_marks()
+        self.feed.on_forget(self._heard_forgotten)
+
+    def _load_marks(self) -> None:
+        """The marks file into the model (the caller holds ``lock``)."""
+        for mark in self.marks.load():
+            self.fleet.apply(mark, "file", self.clock.now())
+        self._saved_marks = self.fleet.marks_version
+
+    def _heard_forgotten(self) -> None:
+        """The app's part of ``FleetFeed.forget`` (a replay seeking back; the feed's lock held, on
+        the replay's thread): what it keeps besides the model is as at its start: the marks file
+        read again, the link alarms looked at afresh, the notices shown cleared (on the UI thread,
+        before the next one is shown)."""
+        self.alarm_keeper.forget()
+        self._load_marks()
+        self._notices_forgotten = True
 
     # -- layout ---------------------------------------------------------------------------------
 
@@ -398,7 +415,7 @@ class ConsoleApp(App[None]):
         self.set_interval(0.05, self._drive_tick)
         self.set_interval(LINK_CHECK_S, self._check_links)
         if self.read_only:
-            self.notice("info", "read-only mode: this console watches, it does not command")
+            self.notice("info", READ_ONLY_NOTICE)
         self._changed()
 
     def on_unmount(self) -> None:
@@ -518,7 +535,13 @@ class ConsoleApp(App[None]):
 
     def _log_notice(self, n: Notice) -> None:
         style = {"info": "", "warning": "bold yellow", "error": "bold red"}.get(n.severity, "")
-        self.query_one("#notices", RichLog).write(Text(f"{n.severity:7} {n.text}", style=style))
+        log = self.query_one("#notices", RichLog)
+        if self._notices_forgotten:  # the notices of a past the replay went back before
+            self._notices_forgotten = False
+            log.clear()
+            if self.read_only:
+                log.write(Text(f"{'info':7} {READ_ONLY_NOTICE}"))
+        log.write(Text(f"{n.severity:7} {n.text}", style=style))
 
     # -- robot selection ------------------------------------------------------------------------
 
@@ -1197,8 +1220,10 @@ class ConsoleApp(App[None]):
 
     def replay_control(self, command: Seek | Speed) -> None:
         """``:seek`` and ``:speed``: what a replay's source (site/replay.py ``ReplaySource``) does;
-        a live console says they are not for it. A seek delivers everything up to its target at
-        once, on a thread of its own (as the replay's player does), never on the UI thread."""
+        a live console says they are not for it. A seek applies everything up to its target at
+        once, as ``--start`` does, on a thread of its own (as the replay's player does), never on
+        the UI thread; a seek back first has the feed forget what was heard (``FleetFeed.forget``,
+        called by the source as it starts again from the recording's start)."""
         source: Any = self.source
         seek, set_speed = getattr(source, "seek", None), getattr(source, "set_speed", None)
         if seek is None or set_speed is None:
@@ -1208,15 +1233,18 @@ class ConsoleApp(App[None]):
             set_speed(command.factor)
             self.notice("info", f"replay at {command.factor:g}x real time")
             return
-        target = command.seconds + (source.position if command.relative else 0.0)
+        # Relative: from where it plays now, back to the start at most (on past the end: the end).
+        target = max(0.0, source.position + command.seconds) if command.relative else command.seconds
 
         def run() -> None:
             try:
-                seek(target)
-            except ValueError as exc:  # back in time: the replay goes forward only
+                with self.feed.at_once():
+                    seek(target)
+            except ValueError as exc:  # not a time in the recording: nothing moved
                 self.call_from_thread(self.notice, "warning", f"{exc}")
                 return
-            self.call_from_thread(self.notice, "info", f"replay at {target:.1f} s")
+            self.call_from_thread(self.notice, "info", f"replay at {source.position:.1f} s")
+            self.call_from_thread(self._changed)
 
         threading.Thread(target=run, name="replay-seek", daemon=True).start()
 
