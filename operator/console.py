@@ -1243,10 +1243,20 @@ class ConsoleApp(App[None]):
             except ValueError as exc:  # not a time in the recording: nothing moved
                 self.call_from_thread(self.notice, "warning", f"{exc}")
                 return
-            self.call_from_thread(self.notice, "info", f"replay at {source.position:.1f} s")
-            self.call_from_thread(self._changed)
+            self.call_from_thread(self._sought, f"replay at {source.position:.1f} s")
 
         threading.Thread(target=run, name="replay-seek", daemon=True).start()
+
+    def _sought(self, text: str) -> None:
+        """A seek moved the replay's clock, which paces the frames (back: the next frame was timed
+        for when the clock would pass the last one's time again; on: a frame drawn meanwhile
+        measured the jump as its cost): paced afresh from now."""
+        if self._frame_timer is not None:
+            self._frame_timer.stop()
+            self._frame_timer = None
+        self._last_frame, self._frame_cost = -math.inf, 0.0
+        self.notice("info", text)
+        self._changed()
 
     # -- rounds: disinfection and sweeping (operator/rounds.py, docs/payload.md) ------------------
 

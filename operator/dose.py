@@ -243,7 +243,7 @@ class DoseFetcher(SnapshotFetcher[DoseSnapshot]):
         """Sum the layers into ``follower.layer`` if they changed since the last merge (and
         ``merge_s`` has passed, unless ``force``). True if it merged."""
         now = self.clock.now()
-        if not force and now < self._next_merge:
+        if not force and self._next_merge - self.merge_s <= now < self._next_merge:  # (a clock gone back: due)
             return False
         with self.lock:
             f = self.doses

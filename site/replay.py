@@ -152,7 +152,6 @@ class ReplaySource:
         self._restart_listeners: list[Callable[[], None]] = []
         self._copies_lock = threading.Lock()
         self._player: Worker | None = None
-        self._messages: Generator[StoredMessage, None, None] | None = None
         self._from_the_start()
 
     def _from_the_start(self) -> None:
@@ -162,9 +161,10 @@ class ReplaySource:
         ``FleetFeed.forget``). The clock waits at the first message, as it does while ``start``
         fast-forwards, so what is applied now reads as it does in a replay started there."""
         with self._playing:
-            if self._messages is not None:
-                self._messages.close()  # its chunk let go
-            self._messages = self.stream.messages()
+            played = getattr(self, "_messages", None)
+            if played is not None:
+                played.close()  # its chunk let go
+            self._messages: Generator[StoredMessage, None, None] = self.stream.messages()
             self._peek: StoredMessage | None = next(self._messages, None)
             self._delivered = 0
             self._played_to = -math.inf

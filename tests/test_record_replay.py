@@ -245,8 +245,9 @@ def test_replayed_console_snapshot(snap_compare: Any, tmp_path: Path) -> None:
 
 def test_a_long_recording_is_played_chunk_by_chunk_not_held(tmp_path: Path) -> None:
     """``ReplaySource`` reads a recording through its index as it plays (``FleetStream``): opening
-    it reads the summary only, playing to a time reads the chunks up to that time, and a seek to the
-    end reads each remaining chunk once; no list of the recording's messages is ever made."""
+    it reads the summary only, playing to a time reads the chunks up to that time, a seek to the
+    end reads each remaining chunk once, and a seek back reads the chunks up to its target again;
+    no list of the recording's messages is ever made."""
     clock = SteppedClock()
     bus = InProcessBus(LinkName.ZENOH, clock_now=clock.now)
     path = tmp_path / "long.mcap"
@@ -292,6 +293,15 @@ def test_a_long_recording_is_played_chunk_by_chunk_not_held(tmp_path: Path) -> N
         assert source.done and source.delivered == n
         assert heard == sorted(heard) and len(heard) == n  # in order, every one, once
         assert source.stream.bytes_read < 1.2 * size  # each chunk read once, not the file again
+        # Back to the middle: the recording is read again from its start up to there (the fleet
+        # model is cumulative), so a seek back costs the chunks before its target once more.
+        at_end = source.stream.bytes_read
+        heard.clear()
+        source.seek(0.5 * (source.last - source.first))
+        again = source.stream.bytes_read - at_end
+        assert abs(source.delivered - n // 2) <= 2 and heard == sorted(heard) and len(heard) == source.delivered
+        chunks = at_end - opened  # every chunk read once (here ~57 % of the file)
+        assert 0.4 * chunks < again < 0.6 * chunks + opened
     finally:
         source.close()
     # Nothing holds the recording: the source keeps an iterator and the next message only.
@@ -308,6 +318,11 @@ def test_a_long_recording_is_played_chunk_by_chunk_not_held(tmp_path: Path) -> N
         source.add_sink(lambda msg, link, t: xs.append(msg.x))  # type: ignore[attr-defined]
         source.play_until(source.last)
         assert source.done and 0.4 * n < len(xs) == source.total < 0.7 * n and xs == sorted(xs)
+        xs.clear()
+        source.seek(0.0)  # back: read in file order again, from its start
+        assert xs == sorted(xs) and len(xs) == source.delivered < 0.05 * n and not source.done
+        source.play_until(source.last)
+        assert source.done and len(xs) == source.total and xs == sorted(xs)
     finally:
         source.close()
 
@@ -487,7 +502,9 @@ def record_changes(path: Path) -> None:
     common = {"target_j_m2": 100.0, "lamp_on_s": 1.0, "unplaced_s": 0.0}
     gateway = mb.endpoint("uwb-gateway")
     gateway.start()
-    gateway.publish("fleetlink/uwb/g1/status", json.dumps({"gateway": "g1", "anchors": [list(a) for a in ANCHORS]}).encode())
+    gateway.publish(
+        "fleetlink/uwb/g1/status", json.dumps({"gateway": "g1", "anchors": [list(a) for a in ANCHORS]}).encode()
+    )
     say(counters["r1"].make(MapSnapshot, **map_codec.snapshot_fields(cells, res, origin, 7)), both=False)
     dose_fields = dose_codec.snapshot_fields(dose, res, origin, 3, **common, lamp=Lamp(10.0, 0.6))
     assert dose_fields is not None
@@ -529,7 +546,9 @@ def record_changes(path: Path) -> None:
                 )
             )  # fmt: skip
         if t == 6.0:
-            mark = other.make(Mark, markId="op2-1", x=5.5, y=3.0, label="victim", kind="casualty", sd_m=0.0, removed=False)
+            mark = other.make(
+                Mark, markId="op2-1", x=5.5, y=3.0, label="victim", kind="casualty", sd_m=0.0, removed=False
+            )
             agents["r1"][0].publish(wire.key_of(mark), wire.encode(mark))
             zb.deliver()
             say(counters["r1"].make(Event, kind="cliff", text="cliff ahead", severity=Severity.ERROR, data=()))
@@ -554,7 +573,9 @@ def console_state(source: ReplaySource, fleet: Any, lock: threading.Lock, maps: 
             "mark_sets": dict(fleet.mark_sets),
             "alarms": [dataclasses.astuple(a) for a in fleet.alarms.rows()],
             "anchors": dict(fleet.anchors),
-            "rows": {r: [str(c) for c in row] for r, row in fleet_rows(fleet, source.active, source.health, ME, now).items()},
+            "rows": {
+                r: [str(c) for c in row] for r, row in fleet_rows(fleet, source.active, source.health, ME, now).items()
+            },
             "answers": (got_map and got_map.version, got_dose and got_dose.version),
             "copies": ({r: m.version for r, m in maps.maps.items()}, {r: d.version for r, d in doses.layers.items()}),
         }
@@ -643,3 +664,63 @@ def test_a_seek_to_a_time_that_is_not_one_is_refused_and_moves_nothing(tmp_path:
         assert (console_state(source, fleet, lock, maps, doses), source.delivered, source.position) == before
     finally:
         source.close()
+
+
+def test_the_replayed_console_seeks_back_to_what_a_console_started_there_shows(tmp_path: Path) -> None:
+    """In the read-only console: played to the end (the e-stop, the cliff, the mark), then ``:seek
+    3.1`` back, ``:seek +3`` on and ``:seek -1`` back: each time the console's robots, marks, alarms,
+    fleet table and the map and dose layer its fetchers took are those of a console started with
+    ``--start`` there (after ``+3``: one started at 3.1 s that seeks on), and the notices of the
+    moments it went back before are gone."""
+    from tests.test_console import screen_text, type_text
+
+    path = tmp_path / "changes.mcap"
+    record_changes(path)
+    source = ReplaySource(path, speed=1e-9)  # still: only the commands move it
+    app, fetchers = replay_app(source)
+    assert app.feed.maps is not None
+
+    def shown() -> dict[str, Any]:
+        return console_state(source, app.fleet, app.lock, app.feed.maps, app.doses)
+
+    async def run() -> None:
+        async with app.run_test(size=SIZE) as pilot:
+            source.start()
+
+            async def seek(text: str, expected: dict[str, Any]) -> dict[str, Any]:
+                await pilot.press("colon")
+                await type_text(pilot, text)
+                await pilot.press("enter")
+                said = f"replay at {expected['at']:.1f} s"
+                await asyncio.to_thread(wait_until, lambda: said in screen_text(app), message=said)
+                # The fetchers ask for the robots the console knows again: until they have.
+                await asyncio.to_thread(
+                    wait_until, lambda: shown()["copies"] == expected["copies"], message=f"{text}: fetched"
+                )
+                await pilot.pause()
+                return shown()
+
+            end = await seek("seek 8", started_at(path, CHANGES_S) | {"at": CHANGES_S})
+            assert end["marks"] and end["copies"] == ({"r1": 8}, {"r1": 4})
+            assert {(a[0], a[1]) for a in end["alarms"]} == {("r1", "estop"), ("r1", "cliff"), ("r2", "bump")}
+            assert "e-stop" in screen_text(app)
+
+            expected = started_at(path, 3.1)
+            assert await seek("seek 3.1", expected | {"at": 3.1}) == expected
+            assert not expected["marks"] and expected["copies"] == ({"r1": 7}, {"r1": 3})
+            assert "e-stop" not in screen_text(app)  # the notices of the moments after 3.1 s are gone
+
+            expected = started_at(path, 3.1, then=6.1)
+            assert await seek("seek +3", expected | {"at": 6.1}) == expected
+            assert "e-stop" in screen_text(app)
+
+            expected = started_at(path, 5.1)
+            assert await seek("seek -1", expected | {"at": 5.1}) == expected
+            assert source.refused == {} and source.skipped == {}
+
+    try:
+        asyncio.run(run())
+    finally:
+        source.close()
+        for fetcher in fetchers:
+            fetcher.stop()
