@@ -22,6 +22,10 @@ map fetcher (operator/maps.py), each on its own thread.
 
 One feed per fleet model: ``attach`` for a model that already has one returns that one, so a
 caller that attached the model (cli, tests) and the app that shows it share it.
+
+A replay (site/replay.py) seeks: while it does, the feed folds in at once on the seeking thread
+(``at_once``), and a seek back first has it forget everything heard (``forget``: the one way a
+console's state goes back to a new console's) before the recording plays again from its start.
 """
 
 from __future__ import annotations

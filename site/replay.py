@@ -18,9 +18,11 @@ and the next message only, so an hour-long recording costs what one chunk does.
 
 Seeking: ``start_s`` (seconds after the first message) fast-forwards through everything before it
 at once, so the fleet model holds the state at that moment, and plays on from there; ``seek(t)``
-does the same forward while playing (each chunk is read once; the fleet model is cumulative, so
-the chunks before the target are needed, the ones after it are not read until played), and
-``set_speed(x)`` changes the speed: the console's ``:seek`` and ``:speed``.
+does the same while playing (the fleet model is cumulative, so the chunks before the target are
+needed, the ones after it are not read until played): forward from where it is, each chunk read
+once; back, from the recording's start again, after the restart listeners (the console's
+``FleetFeed.forget``) forgot what they heard. ``set_speed(x)`` changes the speed: the console's
+``:seek`` and ``:speed``.
 
 Snapshots: the console asks a robot's map and dose layer as it asks a live robot's queryable
 (``fetch_map``, ``fetch_dose``), and gets what the robot would have answered at the time being
