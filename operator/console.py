@@ -1220,37 +1220,45 @@ class ConsoleApp(App[None]):
 
     def replay_control(self, command: Seek | Speed) -> None:
         """``:seek`` and ``:speed``: what a replay's source (site/replay.py ``ReplaySource``) does;
-        a live console says they are not for it. A seek applies everything up to its target at
-        once, as ``--start`` does, on a thread of its own (as the replay's player does), never on
-        the UI thread; a seek back first has the feed forget what was heard (``FleetFeed.forget``,
-        called by the source as it starts again from the recording's start)."""
+        a live console says they are not for it. Both run on a thread of their own, never the UI's:
+        a seek applies everything up to its target at once, as ``--start`` does (a seek back from
+        the recording's start, after the feed forgot what it heard: ``FleetFeed.forget``), and a
+        speed change waits for a seek under way."""
         source: Any = self.source
         seek, set_speed = getattr(source, "seek", None), getattr(source, "set_speed", None)
         if seek is None or set_speed is None:
             self.notice("warning", "seek and speed are for a replay (fleetlink replay FILE)")
             return
         if isinstance(command, Speed):
-            set_speed(command.factor)
-            self.notice("info", f"replay at {command.factor:g}x real time")
-            return
-        # Relative: from where it plays now, back to the start at most (on past the end: the end).
-        target = max(0.0, source.position + command.seconds) if command.relative else command.seconds
+            factor = command.factor
+
+            def work() -> str:
+                set_speed(factor)
+                return f"replay at {factor:g}x real time"
+
+        else:
+            # Relative: from where it plays now, back to the start at most (on past the end: the end).
+            target = max(0.0, source.position + command.seconds) if command.relative else command.seconds
+
+            def work() -> str:
+                with self.feed.at_once():
+                    seek(target)
+                return f"replay at {source.position:.1f} s"
 
         def run() -> None:
             try:
-                with self.feed.at_once():
-                    seek(target)
-            except ValueError as exc:  # not a time in the recording: nothing moved
+                said = work()
+            except ValueError as exc:  # not a time in the recording, not a speed: nothing moved
                 self.call_from_thread(self.notice, "warning", f"{exc}")
                 return
-            self.call_from_thread(self._sought, f"replay at {source.position:.1f} s")
+            self.call_from_thread(self._replay_moved, said)
 
-        threading.Thread(target=run, name="replay-seek", daemon=True).start()
+        threading.Thread(target=run, name="replay-control", daemon=True).start()
 
-    def _sought(self, text: str) -> None:
-        """A seek moved the replay's clock, which paces the frames (back: the next frame was timed
-        for when the clock would pass the last one's time again; on: a frame drawn meanwhile
-        measured the jump as its cost): paced afresh from now."""
+    def _replay_moved(self, text: str) -> None:
+        """A seek or a speed change is done. The replay's clock paces the frames (after a seek
+        back the next frame was timed for when it would pass the last one's time again; a frame
+        drawn during a seek on took the jump as its cost): paced afresh from now."""
         if self._frame_timer is not None:
             self._frame_timer.stop()
             self._frame_timer = None

@@ -443,7 +443,8 @@ def test_the_replayed_console_seeks_forward_and_changes_speed(tmp_path: Path) ->
             await command("seek +10")  # past the end: the end
             await asyncio.to_thread(wait_until, lambda: source.delivered == source.total, message="the rest")
             await command("speed 4")
-            assert source.speed == 4.0 and "replay at 4x" in screen_text(app)
+            await asyncio.to_thread(wait_until, lambda: "replay at 4x" in screen_text(app), message="speed")
+            assert source.speed == 4.0
             await command("speed 0.001")  # all but still again
             for bad in ("seek nan", "seek --1", "seek x"):
                 await command(bad)
