@@ -64,6 +64,8 @@ SENDER = "replay"
 POLL_S = 0.02
 """The link manager's poll period in recorded time: the live console's (operator/links.py, 50 Hz)."""
 MAX_POLL_GAP_S = 5.0
+JUMP_WAIT_S = 5.0
+"""How long a fetch waits for a start or seek under way (then: no answer, asked again later)."""
 
 
 class ReadOnlyReplay(RuntimeError):
@@ -154,6 +156,9 @@ class ReplaySource:
         self._restart_listeners: list[Callable[[], None]] = []
         self._copies_lock = threading.Lock()
         self._player: Worker | None = None
+        self._still = threading.Event()
+        """Clear while a start or seek applies what comes before its target: a fetch waits for it."""
+        self._still.set()
         self._from_the_start()
 
     def _from_the_start(self) -> None:
@@ -241,6 +246,10 @@ class ReplaySource:
         return found if isinstance(found, DoseSnapshot) else None
 
     def _answer(self, robot: str, topic: str) -> MapSnapshot | DoseSnapshot | None:
+        # Not while a seek jumps: the answer would be of a moment passed at once, and an update
+        # played before the console took it would be lost to its copy.
+        if not self._still.wait(JUMP_WAIT_S):
+            return None
         key = (robot, topic)
         with self._copies_lock:
             recorded, copy = self._snapshots.get(key), self._copies.get(key)
@@ -316,10 +325,14 @@ class ReplaySource:
         """Play everything up to ``target`` (epoch s) at once, from the recording's start again if
         it was played past already, then play on from there (``start``, ``seek``)."""
         with self._playing:
-            if target < self._played_to:
-                self._from_the_start()
-            self.play_until(target)
-            self.clock.run(target, self.speed, self.last)
+            self._still.clear()
+            try:
+                if target < self._played_to:
+                    self._from_the_start()
+                self.play_until(target)
+                self.clock.run(target, self.speed, self.last)
+            finally:
+                self._still.set()
         if self._player is not None:
             self._player.wake()  # it may wait at the end
 

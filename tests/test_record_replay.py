@@ -565,9 +565,9 @@ def console_state(source: ReplaySource, fleet: Any, lock: threading.Lock, maps: 
     columns, ages), what the replay answers for r1's map and dose layer and the copies the console
     holds."""
     now = source.clock.now()
+    got_map, got_dose = source.fetch_map("r1"), source.fetch_dose("r1")
     with lock:
         fleet.tick(now)  # (as a console's frame does)
-        got_map, got_dose = source.fetch_map("r1"), source.fetch_dose("r1")
         return {
             "robots": {r: dataclasses.replace(v, trail=list(v.trail)) for r, v in fleet.robots.items()},
             "marks": dict(fleet.marks),
