@@ -136,6 +136,12 @@ class AlarmKeeper:
         if listen is not None:
             listen(self._republish.set)  # on the broker's thread: only a flag
 
+    def forget(self) -> None:
+        """Look at every robot's links afresh (a replay seeking back: its clock went back, the desk
+        was forgotten)."""
+        self._quiet_checked = -math.inf
+        self._quiet_next = 0
+
     def check_links(
         self, wall: float, robots: Iterable[str], links: Callable[[str], Sequence[tuple[str, float | None, str]]]
     ) -> None:

@@ -640,6 +640,14 @@ class AlarmDesk:
         self._published: dict[str, tuple[AckEntry, ...]] = {}
         self._pending: set[str] = set()
 
+    def forget(self) -> None:
+        """Back to a desk that has heard nothing (a replay seeking back: operator/feed.py
+        ``FleetFeed.forget``): a fresh desk's state, kept in this object (the alarm keeper holds
+        it), the alarms' version moved on (views key their caches on it)."""
+        fresh = AlarmDesk(self.operator, renotify_s=self.alarms.renotify_s)
+        fresh.alarms.version = self.alarms.version + 1
+        vars(self).update(vars(fresh))
+
     # -- inputs ---------------------------------------------------------------------------------
 
     def observe(self, msg: Message, now: float) -> str | None:

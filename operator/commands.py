@@ -27,8 +27,8 @@
                              by the selected robot, or shared between the robots named
     sweep room X Y | rect X0 Y0 X1 Y1 | poly X1 Y1 ... [with ROBOT]   a sweeping round
     pause, resume, cancel    the selected robot's round (or goal): hold it, carry on, end it
-    seek S | seek +S         a replay (``fleetlink replay``): jump to S seconds after the recording's
-                             start, or S seconds on (forward only: an earlier moment needs --start)
+    seek S | seek +S | seek -S   a replay (``fleetlink replay``): jump to S seconds after the
+                             recording's start, or S seconds on, or S seconds back
     speed X                  a replay: play at X times real time from now on
 
 ``parse_command(line)`` gives one of the command classes below, ``None`` for a blank line, or a
@@ -76,7 +76,7 @@ __all__ = [
     "parse_command",
 ]
 
-USAGE = "goal X Y [THETA_DEG] | mark KIND X Y [LABEL] | mark here|edit|rm ... | marks [export PATH] | home [set|X Y] | estop [all] | release | policy stop|retrace|home | payload [uv|atomiser|fan] on|off|LEVEL | disinfect|sweep room|rect|poly ... | pause | resume | cancel | stop | ack [ROBOT] [KIND|all] | dose [save DIR] [X1 Y1 X2 Y2] | seek [+]S | speed X (a replay)"
+USAGE = "goal X Y [THETA_DEG] | mark KIND X Y [LABEL] | mark here|edit|rm ... | marks [export PATH] | home [set|X Y] | estop [all] | release | policy stop|retrace|home | payload [uv|atomiser|fan] on|off|LEVEL | disinfect|sweep room|rect|poly ... | pause | resume | cancel | stop | ack [ROBOT] [KIND|all] | dose [save DIR] [X1 Y1 X2 Y2] | seek [+|-]S | speed X (a replay)"
 POLICIES = ("stop", "retrace", "home")
 PAYLOAD_DEVICES = ("uv", "atomiser", "fan")
 MARK_USAGE = "mark KIND X Y [LABEL] | mark here [KIND] [LABEL] | mark edit ID [KIND] [LABEL] | mark rm ID"
@@ -197,7 +197,8 @@ class RoundAction:
 
 @dataclass(frozen=True, slots=True)
 class Seek:
-    """A replay jumps to ``seconds`` after the recording's start, or ``seconds`` on (``relative``)."""
+    """A replay jumps to ``seconds`` after the recording's start, or ``seconds`` on from where it
+    plays (``relative``; back if negative)."""
 
     seconds: float
     relative: bool
@@ -387,12 +388,17 @@ def parse_command(line: str) -> Command | CommandError | None:
     if verb == "dose":
         return _dose(line, args)
     if verb == "seek" and len(args) == 1:
-        nums = _numbers(line, [args[0].removeprefix("+")])
-        if isinstance(nums, CommandError):
-            return nums
-        if nums[0] < 0:
-            return CommandError(line, f"bad command {line!r}: seek S (from the start) or +S (on), S >= 0 seconds")
-        return Seek(nums[0], args[0].startswith("+"))
+        sign = args[0][:1] if args[0][:1] in ("+", "-") else ""
+        number = args[0][len(sign) :]
+        try:
+            seconds = float(number) if number[:1] not in ("+", "-") else math.nan
+        except ValueError:
+            seconds = math.nan
+        if not (math.isfinite(seconds) and seconds >= 0):  # (also "+-5", "--5", "nan", "inf")
+            return CommandError(
+                line, f"bad command {line!r}: seek S (from the start), +S (on) or -S (back), S >= 0 seconds"
+            )
+        return Seek(-seconds if sign == "-" else seconds, bool(sign))
     if verb == "speed" and len(args) == 1:
         nums = _numbers(line, args)
         if isinstance(nums, CommandError):

@@ -112,6 +112,7 @@ from fleetlink.shared.dose import Lamp, j_m2
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.messages import ActionType, Mark, PeopleZones, Zone, ZonePoint
 
+READ_ONLY_NOTICE = "read-only mode: this console watches, it does not command"
 LINK_CHECK_S = 0.1
 """How often the link alarms look at their share of the robots' links (between frames)."""
 DRAIN_SLICE_S = 0.008
@@ -356,10 +357,26 @@ class ConsoleApp(App[None]):
         self._frame_cost = 0.0
         """How long the last frame took to work out (the spacing of the next, ``FRAME_SPACING``)."""
         self._frame_timer: Timer | None = None
+        self._notices_forgotten = False
+        """The feed forgot what was heard (a replay's seek back): the notices shown go at the next."""
         with self.lock:
-            for mark in self.marks.load():
-                self.fleet.apply(mark, "file", self.clock.now())
-            self._saved_marks = self.fleet.marks_version
+            self._load_marks()
+        self.feed.on_forget(self._heard_forgotten)
+
+    def _load_marks(self) -> None:
+        """The marks file into the model (the caller holds ``lock``)."""
+        for mark in self.marks.load():
+            self.fleet.apply(mark, "file", self.clock.now())
+        self._saved_marks = self.fleet.marks_version
+
+    def _heard_forgotten(self) -> None:
+        """The app's part of ``FleetFeed.forget`` (a replay seeking back; the feed's lock held, on
+        the replay's thread): what it keeps besides the model is as at its start: the marks file
+        read again, the link alarms looked at afresh, the notices shown cleared (on the UI thread,
+        before the next one is shown)."""
+        self.alarm_keeper.forget()
+        self._load_marks()
+        self._notices_forgotten = True
 
     # -- layout ---------------------------------------------------------------------------------
 
@@ -398,7 +415,7 @@ class ConsoleApp(App[None]):
         self.set_interval(0.05, self._drive_tick)
         self.set_interval(LINK_CHECK_S, self._check_links)
         if self.read_only:
-            self.notice("info", "read-only mode: this console watches, it does not command")
+            self.notice("info", READ_ONLY_NOTICE)
         self._changed()
 
     def on_unmount(self) -> None:
@@ -518,7 +535,13 @@ class ConsoleApp(App[None]):
 
     def _log_notice(self, n: Notice) -> None:
         style = {"info": "", "warning": "bold yellow", "error": "bold red"}.get(n.severity, "")
-        self.query_one("#notices", RichLog).write(Text(f"{n.severity:7} {n.text}", style=style))
+        log = self.query_one("#notices", RichLog)
+        if self._notices_forgotten:  # the notices of a past the replay went back before
+            self._notices_forgotten = False
+            log.clear()
+            if self.read_only:
+                log.write(Text(f"{'info':7} {READ_ONLY_NOTICE}"))
+        log.write(Text(f"{n.severity:7} {n.text}", style=style))
 
     # -- robot selection ------------------------------------------------------------------------
 
@@ -1197,28 +1220,51 @@ class ConsoleApp(App[None]):
 
     def replay_control(self, command: Seek | Speed) -> None:
         """``:seek`` and ``:speed``: what a replay's source (site/replay.py ``ReplaySource``) does;
-        a live console says they are not for it. A seek delivers everything up to its target at
-        once, on a thread of its own (as the replay's player does), never on the UI thread."""
+        a live console says they are not for it. Both run on a thread of their own, never the UI's:
+        a seek applies everything up to its target at once, as ``--start`` does (a seek back from
+        the recording's start, after the feed forgot what it heard: ``FleetFeed.forget``), and a
+        speed change waits for a seek under way."""
         source: Any = self.source
         seek, set_speed = getattr(source, "seek", None), getattr(source, "set_speed", None)
         if seek is None or set_speed is None:
             self.notice("warning", "seek and speed are for a replay (fleetlink replay FILE)")
             return
         if isinstance(command, Speed):
-            set_speed(command.factor)
-            self.notice("info", f"replay at {command.factor:g}x real time")
-            return
-        target = command.seconds + (source.position if command.relative else 0.0)
+            factor = command.factor
+
+            def work() -> str:
+                set_speed(factor)
+                return f"replay at {factor:g}x real time"
+
+        else:
+            # Relative: from where it plays now, back to the start at most (on past the end: the end).
+            target = max(0.0, source.position + command.seconds) if command.relative else command.seconds
+
+            def work() -> str:
+                with self.feed.at_once():
+                    seek(target)
+                return f"replay at {source.position:.1f} s"
 
         def run() -> None:
             try:
-                seek(target)
-            except ValueError as exc:  # back in time: the replay goes forward only
+                said = work()
+            except ValueError as exc:  # not a time in the recording, not a speed: nothing moved
                 self.call_from_thread(self.notice, "warning", f"{exc}")
                 return
-            self.call_from_thread(self.notice, "info", f"replay at {target:.1f} s")
+            self.call_from_thread(self._replay_moved, said)
 
-        threading.Thread(target=run, name="replay-seek", daemon=True).start()
+        threading.Thread(target=run, name="replay-control", daemon=True).start()
+
+    def _replay_moved(self, text: str) -> None:
+        """A seek or a speed change is done. The replay's clock paces the frames (after a seek
+        back the next frame was timed for when it would pass the last one's time again; a frame
+        drawn during a seek on took the jump as its cost): paced afresh from now."""
+        if self._frame_timer is not None:
+            self._frame_timer.stop()
+            self._frame_timer = None
+        self._last_frame, self._frame_cost = -math.inf, 0.0
+        self.notice("info", text)
+        self._changed()
 
     # -- rounds: disinfection and sweeping (operator/rounds.py, docs/payload.md) ------------------
 

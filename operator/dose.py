@@ -144,6 +144,15 @@ class DoseFollower:
         """Robots whose updates went back in version (their agent restarted, its layer from 0): the
         next snapshot replaces the copy although its version is lower."""
         self._asked: dict[str, float] = {}
+        self.forgotten = 0
+        """Times ``forget`` was called: a snapshot fetched or a merge made before it is dropped."""
+
+    def forget(self) -> None:
+        """No layers, as a fresh follower (a replay seeking back: operator/feed.py
+        ``FleetFeed.forget``); ``version`` moves on (views key their caches on it)."""
+        fresh = DoseFollower(self.fleet, retry_s=self.retry_s, absent_retry_s=self.absent_retry_s)
+        fresh.version, fresh.forgotten = self.version + 1, self.forgotten + 1
+        vars(self).update(vars(fresh))
 
     def on_update(self, msg: DoseUpdate) -> bool:
         """A patch from ``dose/updates``: applied (True), or the copy is marked for a fresh snapshot."""
@@ -234,16 +243,18 @@ class DoseFetcher(SnapshotFetcher[DoseSnapshot]):
         """Sum the layers into ``follower.layer`` if they changed since the last merge (and
         ``merge_s`` has passed, unless ``force``). True if it merged."""
         now = self.clock.now()
-        if not force and now < self._next_merge:
+        if not force and self._next_merge - self.merge_s <= now < self._next_merge:  # (a clock gone back: due)
             return False
         with self.lock:
             f = self.doses
             if not f.layers or (f.layer is not None and f.layer.version == f.version):
                 return False
-            version, copies = f.version, f.copies()
+            version, copies, forgotten = f.version, f.copies(), f.forgotten
         self._next_merge = now + self.merge_s
         layer = merge_layers(copies, version)  # outside the lock: the UI never waits for the sum
         with self.lock:
+            if f.forgotten != forgotten:  # the layers were forgotten meanwhile (a replay's seek back)
+                return False
             if f.layer is None or f.layer.version < version:
                 f.layer = layer
         self.merges += 1

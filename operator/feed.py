@@ -22,16 +22,21 @@ map fetcher (operator/maps.py), each on its own thread.
 
 One feed per fleet model: ``attach`` for a model that already has one returns that one, so a
 caller that attached the model (cli, tests) and the app that shows it share it.
+
+A replay (site/replay.py) seeks: while it does, the feed folds in at once on the seeking thread
+(``at_once``), and a seek back first has it forget everything heard (``forget``: the one way a
+console's state goes back to a new console's) before the recording plays again from its start.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
 import weakref
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
@@ -146,6 +151,51 @@ class FleetFeed:
             add_presence_sink(lambda robot, link, alive, wall: self._put(PresenceHeard(robot, link, alive, wall)))
         clock = getattr(source, "clock", None)
         self._wall: Callable[[], float] | None = getattr(clock, "wall", None)
+        self._at_once = 0
+        """Inside ``at_once``: items are folded in on the source's thread, as unbound."""
+        self._forget_listeners: list[Callable[[], None]] = []
+        add_restart_listener = getattr(source, "add_restart_listener", None)
+        if add_restart_listener is not None:  # a replay seeking back plays again from its start
+            add_restart_listener(self.forget)
+
+    def forget(self) -> None:
+        """Forget everything heard, as a new feed would have heard nothing: what waits in the
+        inbox, the fleet model (robots, marks, alarms, notices), the maps and dose layers, then what
+        the listeners (``on_forget``: the app's alarm keeper and notices) keep, all under ``lock``.
+        The one way a console's state is reset: a replay seeking back (site/replay.py) calls it on
+        its own thread before it plays again from the recording's start."""
+        with self.lock:
+            with self._inbox_lock:
+                self._inbox.clear()
+                self._poses.clear()
+                self._passed.clear()
+            self.fleet.forget()
+            if self.maps is not None:
+                self.maps.forget()
+            if self.doses is not None:
+                self.doses.forget()
+            for listener in self._forget_listeners:
+                listener()
+
+    def on_forget(self, listener: Callable[[], None]) -> None:
+        """``listener()`` is called by ``forget``, with ``lock`` held, on the source's thread."""
+        self._forget_listeners.append(listener)
+
+    @contextlib.contextmanager
+    def at_once(self) -> Iterator[None]:
+        """While inside, what the source says is folded in at once on the thread that says it, as
+        unbound: a replay's seek applies everything up to its target at once, as ``--start`` does,
+        with the replay's clock where it is then (not queued for the UI to fold later). What waited
+        is folded first, under the same hold of ``lock``, so the order holds."""
+        with self.lock:
+            with self._inbox_lock:
+                self._at_once += 1
+            self._fold()
+        try:
+            yield
+        finally:
+            with self._inbox_lock:
+                self._at_once -= 1
 
     # -- the app's side -------------------------------------------------------------------------
 
@@ -171,22 +221,26 @@ class FleetFeed:
         a burst of telemetry waits one slice, not the whole burst."""
         with self._inbox_lock:
             self._wake_pending = False  # cleared first: an item that comes during the drain wakes again
+        with self.lock:
+            return self._fold(budget_s)
+
+    def _fold(self, budget_s: float | None = None) -> int:
+        """``drain``'s work (the caller holds ``lock``)."""
         n = 0
         inbox = self._inbox
         end = None if budget_s is None else time.perf_counter() + budget_s
-        with self.lock:
-            while inbox:
-                item = inbox.popleft()
-                if isinstance(item, tuple):  # a robot's pose: the latest that came
-                    with self._inbox_lock:
-                        slot, item = item, self._poses.pop(item)
-                        passed = self._passed.pop(slot, None)
-                    if passed:  # the poses it took the place of: their points on the trail
-                        self.fleet.trail_through(slot[0], passed)
-                self._apply(item)
-                n += 1
-                if end is not None and n % 32 == 0 and time.perf_counter() >= end:
-                    break
+        while inbox:
+            item = inbox.popleft()
+            if isinstance(item, tuple):  # a robot's pose: the latest that came
+                with self._inbox_lock:
+                    slot, item = item, self._poses.pop(item)
+                    passed = self._passed.pop(slot, None)
+                if passed:  # the poses it took the place of: their points on the trail
+                    self.fleet.trail_through(slot[0], passed)
+            self._apply(item)
+            n += 1
+            if end is not None and n % 32 == 0 and time.perf_counter() >= end:
+                break
         return n
 
     @property
@@ -198,7 +252,7 @@ class FleetFeed:
 
     def _put(self, item: Item) -> None:
         with self._inbox_lock:
-            wake = self._wake
+            wake = self._wake if not self._at_once else None
             if wake is not None:
                 self._queue(item)
                 if self._wake_pending:

@@ -23,6 +23,9 @@ S_contra = TypeVar("S_contra", contravariant=True)
 
 
 class Follower(Protocol[S_contra]):
+    forgotten: int
+    """Bumped when the follower forgets its copies: a snapshot fetched before is not handed over."""
+
     def wanted(self, now: float) -> list[str]: ...
 
     def on_snapshot(self, robot: str, msg: S_contra) -> bool: ...
@@ -61,6 +64,7 @@ class SnapshotFetcher(Generic[S]):
         """One round: fetch what is wanted now, then ``after_poll``. How many snapshots were taken."""
         with self.lock:
             robots = self.follower.wanted(self.clock.now())
+            forgotten = self.follower.forgotten
         taken = 0
         for robot in robots:
             if self._worker.stopping:
@@ -73,6 +77,8 @@ class SnapshotFetcher(Generic[S]):
             if snap is None:
                 continue
             with self.lock:
+                if self.follower.forgotten != forgotten:  # asked before a replay's seek back: too new
+                    break
                 if self.follower.on_snapshot(robot, snap):
                     taken += 1
         self.fetched += taken

@@ -156,6 +156,18 @@ class FleetModel:
         """This console's alarms (operator/alarms.py), fed with the messages and presence the
         feed folds in."""
 
+    def forget(self) -> None:
+        """Back to a model that has heard nothing (a replay seeking back plays again from its
+        start: operator/feed.py ``FleetFeed.forget``): a fresh model's state, with this console's
+        own zones and routes, the alarm desk forgotten in place, the versions moved on (views key
+        their caches on them)."""
+        fresh = FleetModel(self.operator, lost_after_s=self.lost_after_s, uwb_timeout_s=self.uwb_timeout_s)
+        fresh.version, fresh.marks_version = self.version + 1, self.marks_version + 1
+        fresh.zones, fresh.routes = self.zones, self.routes
+        self.alarms.forget()
+        fresh.alarms = self.alarms
+        vars(self).update(vars(fresh))
+
     # -- inputs ---------------------------------------------------------------------------------
 
     def robot(self, robot: str) -> RobotView:

@@ -52,6 +52,14 @@ class MapFollower:
         """Robots heard publishing map updates whose copy is missing or behind: fetch them."""
         self._asked: dict[str, float] = {}
         self.rejected = 0
+        self.forgotten = 0
+        """Times ``forget`` was called: a snapshot fetched before it is dropped (operator/fetcher.py)."""
+
+    def forget(self) -> None:
+        """No copies, as a fresh follower (a replay seeking back: operator/feed.py ``FleetFeed.forget``)."""
+        fresh = MapFollower(self.fleet, retry_s=self.retry_s)
+        fresh.forgotten = self.forgotten + 1
+        vars(self).update(vars(fresh))
 
     def on_update(self, msg: MapUpdate) -> bool:
         """A patch from ``map/updates``: applied (True), or the copy is marked for a fresh snapshot."""

@@ -27,7 +27,7 @@ import os
 import struct
 import threading
 from collections import Counter, deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -657,7 +657,7 @@ class FleetStream:
         self.complete = reader.complete
         self.problem = reader.problem
 
-    def messages(self) -> Iterator[StoredMessage]:
+    def messages(self) -> Generator[StoredMessage, None, None]:
         """The fleet messages in receive-time order (file order among equal times). A file damaged
         where the index said it was not: stops there, ``problem`` says why."""
         if self._reader is None:
@@ -676,7 +676,7 @@ class FleetStream:
         except Exception as exc:  # a chunk that does not read back (its CRC, a compressor's error)
             self.problem = _describe(exc)
 
-    def _recovered(self) -> Iterator[StoredMessage]:
+    def _recovered(self) -> Generator[StoredMessage, None, None]:
         import heapq
 
         reader = RecordingReader(self.path)

@@ -18,9 +18,11 @@ and the next message only, so an hour-long recording costs what one chunk does.
 
 Seeking: ``start_s`` (seconds after the first message) fast-forwards through everything before it
 at once, so the fleet model holds the state at that moment, and plays on from there; ``seek(t)``
-does the same forward while playing (each chunk is read once; the fleet model is cumulative, so
-the chunks before the target are needed, the ones after it are not read until played), and
-``set_speed(x)`` changes the speed: the console's ``:seek`` and ``:speed``.
+does the same while playing (the fleet model is cumulative, so the chunks before the target are
+needed, the ones after it are not read until played): forward from where it is, each chunk read
+once; back, from the recording's start again, after the restart listeners (the console's
+``FleetFeed.forget``) forgot what they heard. ``set_speed(x)`` changes the speed: the console's
+``:seek`` and ``:speed``.
 
 Snapshots: the console asks a robot's map and dose layer as it asks a live robot's queryable
 (``fetch_map``, ``fetch_dose``), and gets what the robot would have answered at the time being
@@ -38,7 +40,7 @@ import logging
 import math
 import threading
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Generator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +64,8 @@ SENDER = "replay"
 POLL_S = 0.02
 """The link manager's poll period in recorded time: the live console's (operator/links.py, 50 Hz)."""
 MAX_POLL_GAP_S = 5.0
+JUMP_WAIT_S = 5.0
+"""How long a fetch waits for a start or seek under way (then: no answer, asked again later)."""
 
 
 class ReadOnlyReplay(RuntimeError):
@@ -135,22 +139,13 @@ class ReplaySource:
         self.speed = speed
         self.total = stream.count
         """Fleet messages in the recording."""
-        self._messages = stream.messages()
-        self._peek: StoredMessage | None = next(self._messages, None)
-        self._delivered = 0
         self.first = stream.first_ns / 1e9
         self.last = max(stream.last_ns / 1e9, _stopped(stream.metadata))
         """Where the recording ends: when the recorder stopped (a crashed one: its last message)."""
         self.start_at = min(self.last, self.first + start_s)
         self.clock = ReplayClock(self.first, real)
-        self.manager = LinkManager(LinkPolicy(redundant=True))
-        """As the consoles' default (redundant sending: the link column says ``both``, nothing fails
-        over); a recording does not say how the recorded console sent."""
         self.refused: Counter[str] = Counter()
         """Commands and publishes the console tried (a read-only console tries none)."""
-        self.skipped: Counter[str] = Counter()
-        """Recorded messages that no longer decode, by reason."""
-        self._polled: float | None = None
         self._lock = threading.Lock()
         self._playing = threading.RLock()
         """Held while messages are read and delivered (the player, a seek from the console)."""
@@ -158,14 +153,46 @@ class ReplaySource:
         self._listeners: list[Callable[[Switch | Failed], None]] = []
         self._anchor_sinks: list[Callable[[str, list[tuple[str, float, float, float]]], None]] = []
         self._presence_sinks: list[Callable[[str, str, bool, float], None]] = []
-        self._snapshots: dict[tuple[str, str], MapSnapshot | DoseSnapshot] = {}
-        """(robot, topic) -> the last recorded snapshot (its header and fields, to answer with)."""
-        self._copies: dict[tuple[str, str], SharedMap | SharedDose] = {}
-        """(robot, topic) -> that snapshot brought up to date with the updates played since."""
-        self._answers: dict[tuple[str, str], MapSnapshot | DoseSnapshot] = {}
-        """(robot, topic) -> the last snapshot built from a copy (rebuilt when the copy's version moved)."""
+        self._restart_listeners: list[Callable[[], None]] = []
         self._copies_lock = threading.Lock()
         self._player: Worker | None = None
+        self._still = threading.Event()
+        """Clear while a start or seek applies what comes before its target: a fetch waits for it."""
+        self._still.set()
+        self._from_the_start()
+
+    def _from_the_start(self) -> None:
+        """Everything played is forgotten and the recording is read again from its first message
+        (a closed file: through its index; a recovered one: in file order again), as when the
+        source was made; then the restart listeners forget what they heard (the console's
+        ``FleetFeed.forget``). The clock waits at the first message, as it does while ``start``
+        fast-forwards, so what is applied now reads as it does in a replay started there."""
+        with self._playing:
+            played = getattr(self, "_messages", None)
+            if played is not None:
+                played.close()  # its chunk let go
+            self._messages: Generator[StoredMessage, None, None] = self.stream.messages()
+            self._peek: StoredMessage | None = next(self._messages, None)
+            self._delivered = 0
+            self._played_to = -math.inf
+            """The latest time played up to (``play_until``): a seek before it starts again."""
+            self._polled: float | None = None
+            with self._lock:
+                self.manager = LinkManager(LinkPolicy(redundant=True))
+                """As the consoles' default (redundant sending: the link column says ``both``,
+                nothing fails over); a recording does not say how the recorded console sent."""
+            self.skipped: Counter[str] = Counter()
+            """Recorded messages that no longer decode, by reason."""
+            with self._copies_lock:
+                self._snapshots: dict[tuple[str, str], MapSnapshot | DoseSnapshot] = {}
+                """(robot, topic) -> the last recorded snapshot (its header and fields, to answer with)."""
+                self._copies: dict[tuple[str, str], SharedMap | SharedDose] = {}
+                """(robot, topic) -> that snapshot brought up to date with the updates played since."""
+                self._answers: dict[tuple[str, str], MapSnapshot | DoseSnapshot] = {}
+                """(robot, topic) -> the last snapshot built from a copy (rebuilt when the copy's version moved)."""
+            self.clock.hold(self.first)
+            for listener in self._restart_listeners:
+                listener()
 
     # -- ConsoleSource --------------------------------------------------------------------------
 
@@ -202,6 +229,11 @@ class ReplaySource:
     def add_presence_sink(self, sink: Callable[[str, str, bool, float], None]) -> None:
         self._presence_sinks.append(sink)
 
+    def add_restart_listener(self, listener: Callable[[], None]) -> None:
+        """``listener()`` is called when a seek back plays the recording again from its start, on
+        the seeking thread, before anything is played again: forget what was heard."""
+        self._restart_listeners.append(listener)
+
     def fetch_map(self, robot: str, timeout: float = 0.0) -> MapSnapshot | None:
         """The robot's map as it would have answered at the time being played: its last recorded
         snapshot with the recorded updates played since applied (None before its first snapshot)."""
@@ -214,6 +246,10 @@ class ReplaySource:
         return found if isinstance(found, DoseSnapshot) else None
 
     def _answer(self, robot: str, topic: str) -> MapSnapshot | DoseSnapshot | None:
+        # Not while a seek jumps: the answer would be of a moment passed at once, and an update
+        # played before the console took it would be lost to its copy.
+        if not self._still.wait(JUMP_WAIT_S):
+            return None
         key = (robot, topic)
         with self._copies_lock:
             recorded, copy = self._snapshots.get(key), self._copies.get(key)
@@ -260,8 +296,7 @@ class ReplaySource:
 
     def start(self) -> ReplaySource:
         """Fast-forward to ``start_s``, then play on a worker at ``speed``."""
-        self.play_until(self.start_at)
-        self.clock.run(self.start_at, self.speed, self.last)
+        self._go(self.start_at)
         self._player = Worker("replay-player", clock=self.clock.real, target=self._play).start()
         return self
 
@@ -278,13 +313,28 @@ class ReplaySource:
         return self.stream.problem
 
     def seek(self, seconds: float) -> None:
-        """Jump to ``seconds`` after the first message (forward only: the fleet model keeps what
-        it has heard; a seek back needs a fresh console)."""
-        target = min(self.last, self.first + max(0.0, seconds))
-        if target < self.clock.now():
-            raise ValueError("a replay seeks forward only (start again with --start to go back)")
-        self.play_until(target)
-        self.clock.run(target, self.speed, self.last)
+        """Jump to ``seconds`` after the first message (past the end: the end), as ``start_s``
+        does: forward, what lies between is played at once; back, the recording is played again
+        from its start up to there (``_from_the_start``: the console forgets what it heard first).
+        ``ValueError`` for a time that is not one (NaN, infinite, negative): nothing moves."""
+        if not (math.isfinite(seconds) and seconds >= 0):
+            raise ValueError(f"seek to {seconds!r} refused: a time of 0 s or more into the recording")
+        self._go(min(self.last, self.first + seconds))
+
+    def _go(self, target: float) -> None:
+        """Play everything up to ``target`` (epoch s) at once, from the recording's start again if
+        it was played past already, then play on from there (``start``, ``seek``)."""
+        with self._playing:
+            self._still.clear()
+            try:
+                if target < self._played_to:
+                    self._from_the_start()
+                self.play_until(target)
+                self.clock.run(target, self.speed, self.last)
+            finally:
+                self._still.set()
+        if self._player is not None:
+            self._player.wake()  # it may wait at the end
 
     def set_speed(self, speed: float) -> None:
         """Play at ``speed`` times real time from now on (the console's ``:speed``)."""
@@ -323,6 +373,7 @@ class ReplaySource:
                 self._deliver(stored)
                 n += 1
             self._poll_until(t)
+            self._played_to = max(self._played_to, t)
         return n
 
     def _poll_until(self, t: float) -> None:
@@ -344,12 +395,14 @@ class ReplaySource:
                     listener(action)
 
     def _play(self, worker: Worker) -> None:
-        while not worker.stopping and not (self.done and self.clock.now() >= self.last):
-            self.play_until(self.clock.now())
-            worker.wait(POLL_S)
-        if self.done:
-            self.play_until(self.last)
-            self.clock.hold(self.last)
+        while not worker.stopping:
+            with self._playing:  # the time read under it: a seek meanwhile has moved it
+                now = self.clock.now()
+                self.play_until(now)
+                ended = self.done and now >= self.last
+                if ended:
+                    self.clock.hold(self.last)
+            worker.wait(None if ended else POLL_S)  # at the end: until a seek wakes it (or close)
 
     def _deliver(self, stored: StoredMessage) -> None:
         t = stored.log_time_ns / 1e9

@@ -52,8 +52,10 @@ def test_mark_with_and_without_label() -> None:
 def test_replay_seek_and_speed() -> None:
     assert parse_command("seek 120") == Seek(120.0, relative=False)
     assert parse_command("seek +30") == Seek(30.0, relative=True)
+    assert parse_command("seek -5") == Seek(-5.0, relative=True)  # back
     assert parse_command("speed 4") == Speed(4.0)
-    for bad in ("seek -5", "seek +-5", "seek x", "speed 0", "speed -1", "speed 1e9", "speed nan"):
+    bad_seeks = ("seek --5", "seek +-5", "seek -+5", "seek x", "seek nan", "seek -nan", "seek inf", "seek 1e999")
+    for bad in (*bad_seeks, "seek", "seek 1 2", "speed 0", "speed -1", "speed 1e9", "speed nan"):
         assert isinstance(parse_command(bad), CommandError), bad
 
 
