@@ -168,6 +168,7 @@ class PilotConfig:
     remembered_orders: int = 256  # order ids kept for idempotency
     # Planned paths (only with a path provider that returned a path):
     max_replans: int = 3  # a go-to barred once more after this many re-plans fails (reason "blocked")
+    max_map_replans: int = 10  # re-plans because a newer map showed the leg ahead barred (not counted above)
     replan_hold_s: float = 2.0  # held by an obstacle ahead this long: back off and re-plan around it
     no_progress_s: float = 8.0  # no waypoint passed and no closer by ``progress_m`` this long: re-plan
     progress_m: float = 0.05
@@ -189,6 +190,7 @@ class PilotConfig:
         return RouteConfig(
             blocked_timeout_s=self.blocked_timeout_s,
             max_replans=self.max_replans,
+            max_map_replans=self.max_map_replans,
             replan_hold_s=self.replan_hold_s,
             no_progress_s=self.no_progress_s,
             progress_m=self.progress_m,

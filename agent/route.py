@@ -15,6 +15,8 @@ Phases (``RoutePhase``)::
                                --barred by something ahead--> BACKING_OFF (as far as the map
                                  behind allows; no room: straight on) --> re-plan: FOLLOWING
                                --drive start refused / no progress--> re-plan: FOLLOWING
+                               --a newer map shows the leg ahead barred--> re-plan: FOLLOWING
+                                 (not counted in ``max_replans``; at most ``max_map_replans``)
                                --re-plans used up / no way around--> [FAILING_BACKOFF -->] RETREATING
     RETREATING --back where it came from, or refused--> end (failed)
     STRAIGHT / FOLLOWING --arrived--> end (reached)
@@ -26,7 +28,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
-from typing import Protocol
+from itertools import pairwise
+from typing import Protocol, runtime_checkable
 
 from fleetlink.agent.guard import Refusal, RefusalReason
 from fleetlink.agent.motion import GoToController, GoToPhase
@@ -72,12 +75,21 @@ class RouteConfig:
     creep_margin_m: float = 0.1
     creep_min_m: float = 0.2
     stop_distance_m: float = 0.4  # the guard's
+    max_map_replans: int = 10
 
 
 MAX_DEVIATION_M = 1.0
 """The largest allowed deviation a go-to takes (``OrderNode.allowedDeviationXY``'s bound)."""
 DEVIATION_STEP_M = 0.05
 """Places within a destination's allowed deviation are tried this far apart, nearest first."""
+
+
+@runtime_checkable
+class WallCheck(Protocol):
+    """A provider that can also say whether a leg runs into a known wall (the A* planner:
+    ``PathPlanner.leg_meets_wall``)."""
+
+    def leg_meets_wall(self, a: Point, b: Point, /) -> bool: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -189,6 +201,8 @@ class Route:
     _leg: int | None = None  # the waypoint index whose leg the trail's last point began
     _trail: list[Point] = field(default_factory=list)  # where the robot stood as each leg began (free)
     _failure: tuple[str, str] | None = None  # (reason, text) reported when the retreat ends
+    _planned_with: PathProvider | None = None  # the provider (the map) the path being driven came from
+    map_replans: int = 0  # re-plans because a newer map showed the leg barred (not in ``replans``)
 
     # -- what the pilot calls --------------------------------------------------------------------
 
@@ -209,6 +223,12 @@ class Route:
                     return _STILL
         if self.phase is RoutePhase.UNPLANNED and not self._plan(now, pose, provider):
             return _STILL
+        if self.phase is RoutePhase.FOLLOWING and provider is not None and provider is not self._planned_with:
+            older, self._planned_with = self._planned_with, provider
+            if older is not None and self.map_replans < c.max_map_replans and self._newly_barred(older, provider, pose):
+                self.map_replans += 1
+                if not self._replan(now, pose, provider, "wall_on_map", counted=False):
+                    return _STILL
         cmd = self.goto.step(now, pose)
         if cmd.phase is GoToPhase.DONE:
             if self._failure is not None:
@@ -313,6 +333,7 @@ class Route:
             self.goto.start([(d.x, d.y)], d.theta)
             return True
         planned = self._ask(provider, pose)
+        self._planned_with = provider
         if isinstance(planned, str):
             self._finish(False, "planner_failed", f"the planner failed ({planned})")
             return False
@@ -396,17 +417,35 @@ class Route:
             self.notes.append(RouteNote(True, text, why, n))
         return True
 
-    def _replan(self, now: float, pose: Pose, provider: PathProvider | None, why: str) -> bool:
-        if self.replans >= self.config.max_replans:
-            self._fail(now, pose, "blocked", f"still blocked ({why}) after {self.replans} re-plans")
-            return False
-        self.replans += 1
+    def _replan(self, now: float, pose: Pose, provider: PathProvider | None, why: str, *, counted: bool = True) -> bool:
+        """Plan again from here. ``counted``: a re-plan because the way was barred (at most
+        ``max_replans``); not counted: because a newer map showed the leg barred before the robot
+        got there (``max_map_replans``, checked by the caller)."""
+        if counted:
+            if self.replans >= self.config.max_replans:
+                self._fail(now, pose, "blocked", f"still blocked ({why}) after {self.replans} re-plans")
+                return False
+            self.replans += 1
         # A provider withdrawn mid-route (the map was dropped) means no map: straight from here.
         path = None if provider is None else self._ask(provider, pose, tuple(self.blocked))
+        self._planned_with = provider
         if isinstance(path, str):
             self._fail(now, pose, "planner_failed", f"the planner failed ({path})")
             return False
         return self._follow(now, pose, path, why)
+
+    def _newly_barred(self, older: PathProvider, newer: PathProvider, pose: Pose) -> bool:
+        """The leg being driven (or the next) runs into a wall on the newer map that the older did
+        not hold: a leg laid into the unknown (a goal beyond the robot's map, e.g. floor only another
+        robot had mapped) or on an older map. The front ultrasonic sees ahead, not a corner beside
+        the robot as it passes (the kitchen's two-robot round, docs/payload.md)."""
+        if not isinstance(newer, WallCheck):
+            return False
+        ahead = [(pose[0], pose[1]), *self.goto.waypoints[self.goto.index : self.goto.index + 2]]
+        for a, b in pairwise(ahead):
+            if newer.leg_meets_wall(a, b) and not (isinstance(older, WallCheck) and older.leg_meets_wall(a, b)):
+                return True
+        return False
 
     def _barred(
         self,

@@ -193,3 +193,20 @@ def test_the_echo_the_map_expects_and_legs_that_clear_its_walls() -> None:
     assert planner.leg_clear((5.3, 1.0), (5.3, 3.0))
     assert not planner.leg_clear((4.0, 2.0), (6.0, 2.0))
     assert not planner.leg_clear((math.nan, 1.0), (5.3, 3.0))
+
+
+def test_leg_meets_wall_sees_known_walls_on_the_leg_only() -> None:
+    """What the route asks of a newer map about the leg it drives: a known wall within the body's
+    radius of the leg (beyond its first 0.1 m) meets it; unknown, a wall off the leg, or one the
+    robot already stands beside, does not."""
+    g = np.zeros((100, 200), dtype=np.int8)  # 10 x 5 m of floor
+    g[40:60, 100] = 100  # a wall cell column at x 5.0-5.05, y 2.0-3.0
+    g[:, 150:] = -1  # unknown beyond x = 7.5
+    p = PathPlanner(g, RES)
+    assert p.leg_meets_wall((1.0, 2.5), (8.0, 2.5))  # straight through the wall
+    assert p.leg_meets_wall((1.0, 3.1), (8.0, 3.1))  # passing its end 0.075 m from the cell's centre
+    assert not p.leg_meets_wall((1.0, 3.3), (8.0, 3.3))  # 0.275 m off: the body passes
+    assert not p.leg_meets_wall((6.0, 1.0), (9.5, 1.0))  # into the unknown: not a wall
+    assert not p.leg_meets_wall((5.2, 2.5), (6.0, 2.5))  # the wall beside the start, behind it
+    assert not p.leg_meets_wall((1.0, 2.5), (1.0, 2.5))  # no leg
+    assert not p.leg_meets_wall((1.0, float("nan")), (8.0, 2.5))

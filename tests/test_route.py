@@ -263,3 +263,64 @@ def test_no_room_behind_means_no_back_off_a_replan_from_where_it_stands() -> Non
     r.refused(0.0, pose, Refusal(RefusalReason.BUMP, "bumper pressed"), provider, lambda p, limit: 0.0)
     assert r.phase is RoutePhase.FOLLOWING and r.replans == 1 and r.notes[-1].replanned
     assert r.step(0.1, pose, provider).v >= 0.0  # never backs into what is behind it
+
+
+class Mapped(Provider):
+    """A provider that also answers ``leg_meets_wall``: a known wall at ``wall`` (a disc of 0.2 m)."""
+
+    def __init__(self, wall: Point | None, *answers: Sequence[Point] | None) -> None:
+        super().__init__(*answers)
+        self.wall = wall
+        self.asked: list[tuple[Point, Point]] = []
+
+    def leg_meets_wall(self, a: Point, b: Point, /) -> bool:
+        self.asked.append((a, b))
+        if self.wall is None:
+            return False
+        (ax, ay), (bx, by), (wx, wy) = a, b, self.wall
+        length = math.hypot(bx - ax, by - ay)
+        t = max(0.0, min(length, ((wx - ax) * (bx - ax) + (wy - ay) * (by - ay)) / length))
+        return math.hypot(wx - (ax + t * (bx - ax) / length), wy - (ay + t * (by - ay) / length)) < 0.2
+
+
+def test_a_newer_map_that_shows_the_leg_ahead_barred_replans_uncounted() -> None:
+    """A leg laid into the unknown (a goal beyond the robot's map): the map the next planner holds
+    has a wall on it, the route plans again from where it is, without using up ``max_replans``."""
+    r = route()
+    old = Mapped(None, [(4.0, 0.0)])
+    r.step(0.0, (0.0, 0.0, 0.0), old)
+    r.notes.clear()
+    r.step(0.1, (0.5, 0.0, 0.0), old)  # the same map: nothing asked
+    assert old.asked == []
+    new = Mapped((2.5, 0.1), [(2.0, 1.0), (4.0, 0.0)])
+    r.step(0.2, (0.5, 0.0, 0.0), new)
+    assert new.asked and new.calls == [((0.5, 0.0), (4.0, 0.0), ())]
+    assert r.replans == 0 and r.map_replans == 1 and r.phase is RoutePhase.FOLLOWING
+    assert r.goto.waypoints == [(2.0, 1.0), (4.0, 0.0)]
+    [note] = r.notes
+    assert (note.replanned, note.reason) == (True, "wall_on_map")
+    # The same wall on the next map too is not news: no further re-plan.
+    again = Mapped((2.5, 0.1), [(2.0, 1.0), (4.0, 0.0)])
+    r.step(0.3, (0.6, 0.1, 0.0), again)
+    assert again.calls == [] and r.map_replans == 1
+
+
+def test_a_wall_the_older_map_held_already_or_off_the_leg_changes_nothing() -> None:
+    r = route()
+    old = Mapped((2.5, 0.1), [(4.0, 0.0)])  # planned on a map that had it (as the planner's margin allows)
+    r.step(0.0, (0.0, 0.0, 0.0), old)
+    new = Mapped((2.5, 0.1), [(2.0, 1.0), (4.0, 0.0)])
+    r.step(0.1, (0.5, 0.0, 0.0), new)
+    assert new.calls == [] and r.map_replans == 0
+    beside = Mapped((2.5, 1.5), [(2.0, 1.0), (4.0, 0.0)])  # a new wall, but not on the leg
+    r.step(0.2, (0.5, 0.0, 0.0), beside)
+    assert beside.calls == [] and r.map_replans == 0 and r.goto.waypoints == [(4.0, 0.0)]
+
+
+def test_map_replans_are_bounded() -> None:
+    r = route(RouteConfig(max_map_replans=2))
+    r.step(0.0, (0.0, 0.0, 0.0), Mapped(None, [(4.0, 0.0)]))
+    for k in range(4):
+        r.step(0.1 * (k + 1), (0.5, 0.0, 0.0), Mapped(None, [(4.0, 0.0)]))  # a clear map between
+        r.step(0.1 * (k + 1) + 0.05, (0.5, 0.0, 0.0), Mapped((2.5, 0.0), [(4.0, 0.0)]))
+    assert r.map_replans == 2 and r.replans == 0 and r.end is None

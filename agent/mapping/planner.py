@@ -36,8 +36,9 @@ the body fits along all the way. A goal the body does not fit at is refused (Non
 A goal beyond what the robot has mapped (off the map, or in a plan cell it has seen nothing of) is
 planned to the reachable edge of the known (a frontier cell) nearest it with no known wall on the
 straight line to it, and that last leg goes on into the unknown: a scout sent to coordinates it has
-not seen yet heads there, the guard watching that leg, and re-plans as the map grows. No such
-frontier: no path.
+not seen yet heads there, the guard watching that leg, and re-plans as the map grows (the route asks
+each newer planner ``leg_meets_wall`` about the leg it drives: agent/route.py). No such frontier: no
+path.
 
 Pure numpy + heapq; no I/O.
 """
@@ -158,6 +159,8 @@ class PathPlanner:
         # What the ultrasonic echoes from, at the map's own resolution (the plan grid is coarser).
         self.echo: npt.NDArray[np.bool_] = np.asarray(blocked, dtype=bool)
         self.echo_resolution = float(resolution)
+        self.wall_cells: npt.NDArray[np.bool_] = np.asarray(walls, dtype=bool)
+        """Known walls at the map's own resolution (occupied, not merely unknown)."""
 
     @staticmethod
     def _coarse(fine: npt.NDArray[np.bool_], f: int, h: int, w: int) -> npt.NDArray[np.bool_]:
@@ -431,6 +434,32 @@ class PathPlanner:
         need = cfg.robot_radius + (cfg.fit_margin if margin is None else margin) + self.echo_resolution / 2.0
         dx, dy = self._blocked_near(p, need)
         return not bool((np.hypot(dx, dy) < need).any())
+
+    def leg_meets_wall(self, a: Point, b: Point, skip_m: float = 0.1) -> bool:
+        """A known wall (an occupied map cell; unknown does not count) touches the body somewhere
+        along a-b beyond its first ``skip_m`` (what it already stands beside is not ahead): a cell's
+        centre within the robot's radius and half a cell of the segment. The pilot's route asks it
+        of each newer map about the leg it drives (agent/route.py): a leg planned into the unknown,
+        or on an older map, that the map now shows running into something."""
+        if not all(math.isfinite(v) for v in (*a, *b)):
+            return False
+        length = math.dist(a, b)
+        if length <= skip_m:
+            return False
+        res = self.echo_resolution
+        need = self.config.robot_radius + res / 2.0
+        c0 = max(0, math.floor((min(a[0], b[0]) - need - self.origin[0]) / res))
+        c1 = math.floor((max(a[0], b[0]) + need - self.origin[0]) / res) + 1
+        r0 = max(0, math.floor((min(a[1], b[1]) - need - self.origin[1]) / res))
+        r1 = math.floor((max(a[1], b[1]) + need - self.origin[1]) / res) + 1
+        rows, cols = np.nonzero(self.wall_cells[r0:r1, c0:c1])
+        if rows.size == 0:
+            return False
+        bx = self.origin[0] + (cols + c0 + 0.5) * res
+        by = self.origin[1] + (rows + r0 + 0.5) * res
+        ux, uy = (b[0] - a[0]) / length, (b[1] - a[1]) / length
+        along = np.clip((bx - a[0]) * ux + (by - a[1]) * uy, skip_m, length)
+        return bool((np.hypot(bx - (a[0] + along * ux), by - (a[1] + along * uy)) < need).any())
 
     def leg_clear(self, a: Point, b: Point) -> bool:
         """The body stays ``back_margin`` clear of every wall the map holds all along a-b (the part
