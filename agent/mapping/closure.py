@@ -117,6 +117,10 @@ class CloserConfig:
     # near it (not its own), in a small window around where the solved graph puts it; each match an edge.
     final_radius: float = 3.0  # m: a submap seen from this near (2 m per radian of heading counted in)
     final_per_node: int = 6  # submaps per node at most, the nearest by view first
+    # ... and besides them this many more, the nearest by distance alone (within ``final_radius``):
+    # a submap mapped facing the other way, which the ranking by view leaves out, though a node passing
+    # back down a corridor sees the same walls beside it (aces' worst revisits were such pairs).
+    final_any_heading: int = 2
     final_window_xy: float = 0.3  # m
     final_window_theta: float = math.radians(4.0)
     final_sigma_xy: float = 0.03  # m
@@ -691,11 +695,19 @@ class LoopCloser:
                 # Per submap, the node that saw most nearly what this one sees (as for candidates).
                 rank = np.minimum.reduceat(d + VIEW_LEVER_M * turn, bounds, axis=1)
                 ks = np.arange(k0, k0 + len(rows))
-                rank[(ks[:, None] >= starts[None, :]) & (ks[:, None] < ends[None, :])] = np.inf  # not its own
+                own = (ks[:, None] >= starts[None, :]) & (ks[:, None] < ends[None, :])
+                rank[own] = np.inf  # not its own
+                dist = np.minimum.reduceat(d, bounds, axis=1)  # and by distance alone, whichever way it faced
+                dist[own] = np.inf
                 for r in range(len(rows)):
                     near = np.flatnonzero(rank[r] <= cfg.final_radius)
                     near = near[np.argsort(rank[r, near], kind="stable")][: cfg.final_per_node]
-                    for j in near.tolist():
+                    chosen = near.tolist()
+                    if cfg.final_any_heading > 0:
+                        more = np.flatnonzero(dist[r] <= cfg.final_radius)
+                        more = more[np.argsort(dist[r, more], kind="stable")]
+                        chosen += [j for j in more.tolist() if j not in chosen][: cfg.final_any_heading]
+                    for j in chosen:
                         pairs.setdefault(full[j], []).append(k0 + r)
         found: list[Closure] = []
         window = (cfg.final_window_xy, cfg.final_window_theta)
