@@ -6,7 +6,8 @@ closure needs (after Cartographer's global SLAM, Hess et al. 2016, on a smaller 
 
 - **Nodes**: the mapper's spaced keyframes (0.3 m / 10 deg apart), each with its scan in the sensor
   frame. Consecutive nodes are joined by the front end's relative pose (an odometry edge whose
-  uncertainty grows with the step).
+  uncertainty grows with the step, and is larger along a direction the front end's match left
+  ill-posed: down a corridor, ``step_degenerate_ratio``).
 - **Submaps**: every ``submap_nodes`` consecutive nodes, drawn (once, when a closure check first
   needs it) into a small log-odds grid and a point-to-line map in the frame of their first node.
 - **Search**: each new node is tried against at most ``attempts_per_node`` finished submaps whose
@@ -61,6 +62,7 @@ __all__ = [
     "Drawn",
     "LoopCloser",
     "NodeScan",
+    "degenerate_direction",
     "run_check",
 ]
 
@@ -95,6 +97,11 @@ class CloserConfig:
     step_sigma_xy_per_m: float = 0.03
     step_sigma_theta: float = math.radians(0.3)
     step_sigma_theta_per_rad: float = 0.02
+    # A front-end step whose match was ill-posed along a direction (the xy information's eigenvalues more
+    # than ``step_degenerate_ratio`` apart: a corridor) is held only loosely along it, sd base + this per
+    # metre (what the odometry seed is worth there), so the final pass's edges can move it (0: off).
+    step_degenerate_ratio: float = 20.0
+    step_degenerate_sigma_per_m: float = 0.1
     closure_sigma_xy: float = 0.03  # m
     closure_sigma_theta: float = math.radians(1.0)
     max_chi2: float = 16.0  # a closure whose error after the solve is above this is dropped
@@ -110,11 +117,18 @@ class CloserConfig:
     # near it (not its own), in a small window around where the solved graph puts it; each match an edge.
     final_radius: float = 3.0  # m: a submap seen from this near (2 m per radian of heading counted in)
     final_per_node: int = 6  # submaps per node at most, the nearest by view first
+    # ... and besides them this many more, the nearest by distance alone (within ``final_radius``):
+    # a submap mapped facing the other way, which the ranking by view leaves out, though a node passing
+    # back down a corridor sees the same walls beside it (aces' worst revisits were such pairs).
+    final_any_heading: int = 2
     final_window_xy: float = 0.3  # m
     final_window_theta: float = math.radians(4.0)
     final_sigma_xy: float = 0.03  # m
     final_sigma_theta: float = math.radians(1.0)
     final_drops: int = 20  # edges the final solve may drop, one at a time
+    # A final-pass match that fails only ``min_weak`` (a corridor: its strong direction passes) is kept
+    # as a partial edge: sd ``final_partial_sigma`` along its weak direction, the usual across (0: off).
+    final_partial_sigma: float = 0.5  # m
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
     # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
@@ -165,6 +179,9 @@ class Closure:
     z: Pose  # the new node's pose in the anchor's frame
     score: float
     inlier_ratio: float
+    # A partial match (final pass, ``final_partial_sigma``): the unit direction, in the anchor's frame,
+    # along which it fixes nothing (a corridor's axis); None: it fixes every direction.
+    weak_dir: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -196,6 +213,7 @@ class Check:
     mount: Pose  # the lidar on the robot
     confirms: Closure | None = None  # a pending closure this check may confirm (else a fresh search)
     owner: object = field(default=None, compare=False)  # the closer that planned it (``take`` ignores others')
+    partial: bool = False  # a match ill-posed along one direction only is kept as a partial closure
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -301,10 +319,19 @@ class LoopCloser:
     def poses(self) -> list[Pose]:
         return self.graph.poses
 
-    def add_node(self, t: float, pose: Pose, scan: NodeScan, site: tuple[float, float, float] | None = None) -> int:
+    def add_node(
+        self,
+        t: float,
+        pose: Pose,
+        scan: NodeScan,
+        site: tuple[float, float, float] | None = None,
+        information: F64 | None = None,
+    ) -> int:
         """A keyframe at the front end's ``pose`` (the current frame); joined to the last node by the
         front end's relative pose. ``site``: (x, y, sd) where the site frame measured the node (a
-        UWB-fused position), a prior that anchors the graph there."""
+        UWB-fused position), a prior that anchors the graph there. ``information``: the front end's
+        match information on (x, y, theta) in the map frame (``icp_refine``), if it matched: where it is
+        ill-posed along a direction (``step_degenerate_ratio``), the step is held loosely along it."""
         cfg = self.config
         if site is not None and not (all(math.isfinite(v) for v in site) and site[2] > 0):
             raise ValueError(f"site must be (x, y, sd) finite with sd > 0, got {site!r}")
@@ -317,7 +344,17 @@ class LoopCloser:
             d = math.hypot(z[0], z[1])
             sxy = cfg.step_sigma_xy + cfg.step_sigma_xy_per_m * d
             sth = cfg.step_sigma_theta + cfg.step_sigma_theta_per_rad * abs(z[2])
-            self.graph.add_edge(k - 1, k, z, np.diag([1.0 / sxy**2, 1.0 / sxy**2, 1.0 / sth**2]))
+            info = np.diag([1.0 / sxy**2, 1.0 / sxy**2, 1.0 / sth**2])
+            weak = None
+            if cfg.step_degenerate_ratio > 0:
+                weak = degenerate_direction(information, cfg.step_degenerate_ratio)
+            if weak is not None:
+                # The edge's error is in the node's own frame: the map-frame direction turned into it.
+                c, s = math.cos(pose[2]), math.sin(pose[2])
+                u = (c * weak[0] + s * weak[1], -s * weak[0] + c * weak[1])
+                along = max(sxy, cfg.step_sigma_xy + cfg.step_degenerate_sigma_per_m * d)
+                info = _weakened(info, u, along)
+            self.graph.add_edge(k - 1, k, z, info)
             self.since_closure += d
         self.times.append(t)
         self.scans.append(scan)
@@ -613,9 +650,14 @@ class LoopCloser:
         sm: _Submap,
         fix: Pose = (0.0, 0.0, 0.0),
         window: tuple[float, float] | None = None,
+        partial: bool = False,
     ) -> Closure | None:
-        """Match node ``k``'s scan against ``sm`` in line (see ``_check``), counted in the stats."""
-        return self._note(run_check(self._with_drawn(self._check(k, sm, fix, window))), attempt=False)
+        """Match node ``k``'s scan against ``sm`` in line (see ``_check``), counted in the stats.
+        ``partial``: a match ill-posed along one direction only is kept as a partial closure."""
+        check = self._check(k, sm, fix, window)
+        if partial:
+            check = replace(check, partial=True)
+        return self._note(run_check(self._with_drawn(check)), attempt=False)
 
     def _with_drawn(self, check: Check) -> Check:
         """In line: the check with its submap drawn here, into the cache (unless the scan has too few
@@ -653,22 +695,36 @@ class LoopCloser:
                 # Per submap, the node that saw most nearly what this one sees (as for candidates).
                 rank = np.minimum.reduceat(d + VIEW_LEVER_M * turn, bounds, axis=1)
                 ks = np.arange(k0, k0 + len(rows))
-                rank[(ks[:, None] >= starts[None, :]) & (ks[:, None] < ends[None, :])] = np.inf  # not its own
+                own = (ks[:, None] >= starts[None, :]) & (ks[:, None] < ends[None, :])
+                rank[own] = np.inf  # not its own
+                dist = np.minimum.reduceat(d, bounds, axis=1)  # and by distance alone, whichever way it faced
+                dist[own] = np.inf
                 for r in range(len(rows)):
                     near = np.flatnonzero(rank[r] <= cfg.final_radius)
                     near = near[np.argsort(rank[r, near], kind="stable")][: cfg.final_per_node]
-                    for j in near.tolist():
+                    chosen = near.tolist()
+                    if cfg.final_any_heading > 0:
+                        more = np.flatnonzero(dist[r] <= cfg.final_radius)
+                        more = more[np.argsort(dist[r, more], kind="stable")]
+                        chosen += [j for j in more.tolist() if j not in chosen][: cfg.final_any_heading]
+                    for j in chosen:
                         pairs.setdefault(full[j], []).append(k0 + r)
         found: list[Closure] = []
         window = (cfg.final_window_xy, cfg.final_window_theta)
         for s_i in sorted(pairs):
             for k in pairs[s_i]:
-                c = self._verify(k, self.submaps[s_i], window=window)
+                c = self._verify(k, self.submaps[s_i], window=window, partial=cfg.final_partial_sigma > 0)
                 if c is not None:
                     found.append(c)
         info = np.diag([1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_theta**2])
         for c in found:
-            self.graph.add_edge(c.anchor, c.node, c.z, info)
+            edge_info = info
+            if c.weak_dir is not None:
+                # The edge's error is in the frame of the node's pose as measured (``c.z``).
+                cz, sz = math.cos(c.z[2]), math.sin(c.z[2])
+                u = (cz * c.weak_dir[0] + sz * c.weak_dir[1], -sz * c.weak_dir[0] + cz * c.weak_dir[1])
+                edge_info = _weakened(info, u, cfg.final_partial_sigma)
+            self.graph.add_edge(c.anchor, c.node, c.z, edge_info)
             self.closures.append(c)
             self._closure_edges.append(len(self.graph.edges) - 1)
         before = len(self.closures)
@@ -756,11 +812,39 @@ def run_check(check: Check) -> CheckResult:
         or abs(wrap(r.pose[2] - found[2])) > cfg.max_disagreement_angle
     ):
         return CheckResult(check, None, "disagreement", drawn)
+    weak_dir: tuple[float, float] | None = None
     if r.weak < cfg.min_weak:
-        return CheckResult(check, None, "degenerate", drawn)
+        # A partial closure (``check.partial``): well posed across (its strong direction passes the
+        # gate), not along: it is kept with no information along its weak direction to speak of.
+        weak_dir = degenerate_direction(r.information, 0.0, cfg.min_weak, cfg.min_weak) if check.partial else None
+        if weak_dir is None:
+            return CheckResult(check, None, "degenerate", drawn)
     robot = compose(r.pose, inverse(check.mount))
     score = field_score(grid, sc.match_points, r.pose)
-    return CheckResult(check, Closure(check.node, check.anchor, robot, score, ratio), "accepted", drawn)
+    closure = Closure(check.node, check.anchor, robot, score, ratio, weak_dir)
+    return CheckResult(check, closure, "accepted", drawn)
+
+
+def degenerate_direction(
+    information: F64 | None, ratio: float, strong: float = 0.0, weak: float = math.inf
+) -> tuple[float, float] | None:
+    """The unit direction (x, y) along which a match's position is ill-posed, or None: the weaker
+    eigenvector of the information's xy block when the stronger eigenvalue is at least ``strong``, the
+    weaker below ``weak``, and (``ratio`` > 0) the stronger more than ``ratio`` times the weaker; None
+    without information."""
+    if information is None:
+        return None
+    ev, vec = np.linalg.eigh(information[:2, :2])
+    if ev[1] < strong or ev[0] >= weak or (ratio > 0 and ev[1] <= ratio * max(float(ev[0]), 1e-12)):
+        return None
+    return float(vec[0, 0]), float(vec[1, 0])
+
+
+def _weakened(info: F64, u: tuple[float, float], sd: float) -> F64:
+    """``info`` (isotropic in x and y) with sd ``sd`` along the unit direction ``u`` instead."""
+    out = info.copy()
+    out[:2, :2] += (1.0 / sd**2 - info[0, 0]) * np.outer(u, u)
+    return out
 
 
 def _inlier_ratio(local: LocalMap, points: F64, pose: Pose, distance: float) -> float:

@@ -298,7 +298,7 @@ class OnboardMapper:
                     self._local.add(compose(pose, cfg.mount), kept, normals)
                 if self.closer is not None:
                     scan = NodeScan(r, a, full_hit, kept, normals, match_pts)
-                    self.closer.add_node(t, pose, scan, site)
+                    self.closer.add_node(t, pose, scan, site, info if matched else None)
                     self._node_pose = pose
                     made_node = True
             self._last_key = (t, pose)
