@@ -169,6 +169,7 @@ class PilotConfig:
     # Planned paths (only with a path provider that returned a path):
     max_replans: int = 3  # a go-to barred once more after this many re-plans fails (reason "blocked")
     max_map_replans: int = 10  # re-plans because a newer map showed the leg ahead barred (not counted above)
+    no_path_wait_s: float = 6.0  # no path to a goal: stand this long for a newer map with one, then fail (no_path)
     replan_hold_s: float = 2.0  # held by an obstacle ahead this long: back off and re-plan around it
     no_progress_s: float = 8.0  # no waypoint passed and no closer by ``progress_m`` this long: re-plan
     progress_m: float = 0.05
@@ -191,6 +192,7 @@ class PilotConfig:
             blocked_timeout_s=self.blocked_timeout_s,
             max_replans=self.max_replans,
             max_map_replans=self.max_map_replans,
+            no_path_wait_s=self.no_path_wait_s,
             replan_hold_s=self.replan_hold_s,
             no_progress_s=self.no_progress_s,
             progress_m=self.progress_m,
@@ -601,7 +603,10 @@ class Pilot:
     def _settle_route(self, now: float, r: Route) -> None:
         """Report what the route noted, and end it if it ended."""
         for note in r.notes:
-            kind = EventKind.REPLANNED if note.replanned else EventKind.PATH_PLANNED
+            if note.replanned:
+                kind = EventKind.REPLANNED
+            else:
+                kind = EventKind.WAITING if note.reason == "waiting" else EventKind.PATH_PLANNED
             self._emit(now, kind, note.text, note.reason, r.dest.order_id, note.waypoints)
         r.notes.clear()
         if r.end is not None:

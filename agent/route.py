@@ -18,6 +18,8 @@ Phases (``RoutePhase``)::
                                --a newer map shows the leg ahead barred--> re-plan: FOLLOWING
                                  (not counted in ``max_replans``; at most ``max_map_replans``)
                                --re-plans used up / no way around--> [FAILING_BACKOFF -->] RETREATING
+    UNPLANNED --no path--> WAITING (standing) --a newer map--> UNPLANNED (asks again)
+              --``no_path_wait_s`` with none--> end (failed: no_path)
     RETREATING --back where it came from, or refused--> end (failed)
     STRAIGHT / FOLLOWING --arrived--> end (reached)
 """
@@ -76,6 +78,7 @@ class RouteConfig:
     creep_min_m: float = 0.2
     stop_distance_m: float = 0.4  # the guard's
     max_map_replans: int = 10
+    no_path_wait_s: float = 6.0
 
 
 MAX_DEVIATION_M = 1.0
@@ -153,6 +156,7 @@ class RoutePhase(StrEnum):
     BACKING_OFF = "backing_off"  # straight back from an obstacle ahead (turning is refused there), then re-plan
     FAILING_BACKOFF = "failing_backoff"  # failed facing an obstacle: straight back first, then retreat
     RETREATING = "retreating"  # failed: back along the way it came, then the end (failed)
+    WAITING = "waiting"  # no path yet: standing, until a newer map has one or ``no_path_wait_s`` passes
 
     @property
     def replannable(self) -> bool:
@@ -203,6 +207,7 @@ class Route:
     _failure: tuple[str, str] | None = None  # (reason, text) reported when the retreat ends
     _planned_with: PathProvider | None = None  # the provider (the map) the path being driven came from
     map_replans: int = 0  # re-plans because a newer map showed the leg barred (not in ``replans``)
+    waiting_since: float | None = None  # no path since (the first plan found none)
 
     # -- what the pilot calls --------------------------------------------------------------------
 
@@ -221,6 +226,14 @@ class Route:
                 self.phase = RoutePhase.FOLLOWING
                 if not self._replan(now, pose, provider, "blocked"):
                     return _STILL
+        if self.phase is RoutePhase.WAITING:
+            if provider is self._planned_with:
+                since = now if self.waiting_since is None else self.waiting_since
+                if now - since >= c.no_path_wait_s:
+                    d = self.dest
+                    self._finish(False, "no_path", f"no path to ({d.x:.2f}, {d.y:.2f}) (waited {now - since:.0f} s)")
+                return _STILL
+            self.phase = RoutePhase.UNPLANNED  # a newer map (or none): ask again
         if self.phase is RoutePhase.UNPLANNED and not self._plan(now, pose, provider):
             return _STILL
         if self.phase is RoutePhase.FOLLOWING and provider is not None and provider is not self._planned_with:
@@ -394,7 +407,23 @@ class Route:
             return True
         if len(path) == 0:
             if why is None:
-                self._finish(False, "no_path", f"no path to ({d.x:.2f}, {d.y:.2f})")
+                # The way may be barred by what moves (another robot, a person): the map that shows
+                # it gone may have a path. Standing until then, or ``no_path_wait_s``.
+                if self.waiting_since is None:
+                    self.waiting_since = now
+                    self.notes.append(
+                        RouteNote(
+                            False,
+                            f"{d.label}: no path to ({d.x:.2f}, {d.y:.2f}) on this map: waiting up to "
+                            f"{self.config.no_path_wait_s:g} s for the way to clear",
+                            "waiting",
+                            0,
+                        )
+                    )
+                if self.config.no_path_wait_s <= 0.0:
+                    self._finish(False, "no_path", f"no path to ({d.x:.2f}, {d.y:.2f})")
+                else:
+                    self.phase = RoutePhase.WAITING
             else:
                 self._fail(now, pose, "blocked", f"blocked ({why}) and no way around")
             return False

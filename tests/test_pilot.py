@@ -333,10 +333,12 @@ def test_path_provider_waypoints_and_no_path() -> None:
     assert math.hypot(body.x - 2.0, body.y - 2.0) < 0.01
     p.order(20.0, "o2", 0, 20.0, 0.0, None, "op")
     out = p.tick(20.0, body.pose, CLEAR)
+    assert [(e.kind, e.reason) for e in out.events] == [(EventKind.WAITING, "waiting")]  # for a newer map
+    out = p.tick(20.0 + p.config.no_path_wait_s, body.pose, CLEAR)
     assert [(e.kind, e.reason) for e in out.events] == [(EventKind.GOAL_FAILED, "no_path")]
     # No map (None): straight to the goal, no path event, exactly as without a provider.
-    p.order(21.0, "o3", 0, 4.0, -1.0, None, "op")
-    _, outs = drive(p, body, 21.0, 15.0)
+    p.order(27.0, "o3", 0, 4.0, -1.0, None, "op")
+    _, outs = drive(p, body, 27.0, 15.0)
     assert [e.kind for o in outs for e in o.events] == [EventKind.GOAL_REACHED]
     assert math.hypot(body.x - 4.0, body.y + 1.0) < 0.01
 

@@ -57,9 +57,41 @@ def test_a_provider_without_a_map_means_straight_and_an_empty_path_fails() -> No
     r.step(0.0, (0.0, 0.0, 0.0), Provider(None))
     assert r.phase is RoutePhase.STRAIGHT and r.end is None and r.notes == []
     r = route()
-    d = r.step(0.0, (0.0, 0.0, 0.0), Provider([]))
+    provider = Provider([])
+    d = r.step(0.0, (0.0, 0.0, 0.0), provider)
     assert (d.v, d.omega) == (0.0, 0.0)
+    assert r.end is None and r.phase is RoutePhase.WAITING  # the way may clear: a newer map may have one
+    [note] = r.notes
+    assert note.reason == "waiting" and "no path to (4.00, 0.00)" in note.text
+    d = r.step(5.9, (0.0, 0.0, 0.0), provider)  # the same map: not asked again
+    assert (d.v, d.omega) == (0.0, 0.0) and r.end is None and len(provider.calls) == 1
+    r.step(6.0, (0.0, 0.0, 0.0), provider)
     assert r.end is not None and not r.end.reached and r.end.reason == "no_path" and "(4.00, 0.00)" in r.end.text
+    assert "waited 6 s" in r.end.text
+    r = route(RouteConfig(no_path_wait_s=0.0))  # no waiting: fails at once
+    r.step(0.0, (0.0, 0.0, 0.0), Provider([]))
+    assert r.end is not None and r.end.reason == "no_path"
+
+
+def test_no_path_waits_for_a_newer_map_and_goes_when_it_has_one() -> None:
+    """Another robot standing in the way: no path on the map of the moment; the next map (it has
+    moved on) has one, and the go-to goes, within ``no_path_wait_s``."""
+    r, body = route(), Unicycle()
+    barred = Provider([])
+    r.step(0.0, body.pose, barred)
+    assert r.phase is RoutePhase.WAITING
+    still = Provider([])  # a newer map, still barred: asked, still waiting, the clock not restarted
+    r.step(2.0, body.pose, still)
+    assert r.phase is RoutePhase.WAITING and len(still.calls) == 1 and r.waiting_since == 0.0
+    clear = Provider([(2.0, 0.5), (4.0, 0.0)])
+    r.step(4.0, body.pose, clear)
+    assert r.phase is RoutePhase.FOLLOWING and r.end is None and r.goto.waypoints == [(2.0, 0.5), (4.0, 0.0)]
+    t = 4.0
+    while r.end is None and t < 40.0:
+        d = r.step(t, body.pose, clear)
+        body.step(d.v, d.omega, 0.02)
+        t += 0.02
+    assert r.end is not None and r.end.reached
 
 
 class WallAt:
@@ -94,11 +126,12 @@ def test_a_goal_that_cannot_be_reached_is_taken_at_the_nearest_place_within_its_
 
 
 def test_no_place_within_the_allowed_deviation_means_no_path_and_none_means_only_the_goal() -> None:
-    r = Route(replace(DEST, deviation=0.05), GoToController(), RouteConfig())
+    now = RouteConfig(no_path_wait_s=0.0)
+    r = Route(replace(DEST, deviation=0.05), GoToController(), now)
     r.step(0.0, (0.0, 0.0, 0.0), WallAt())  # 3.95 is in the margin too
     assert r.end is not None and r.end.reason == "no_path" and "(4.00, 0.00)" in r.end.text
     walls = WallAt()
-    r = route()
+    r = route(now)
     r.step(0.0, (0.0, 0.0, 0.0), walls)
     assert r.end is not None and r.end.reason == "no_path" and walls.calls == [(4.0, 0.0)]
 
