@@ -540,7 +540,7 @@ class Pilot:
         r = self._route
         if r is None or not self._state.driving_route or not pose_ok:
             return Drive()
-        drive = r.step(now, pose, self.path_provider)
+        drive = r.step(now, pose, self.path_provider, self.map_sense)
         self._settle_route(now, r)
         cap = r.dest.max_v
         if cap is not None and abs(drive.v) > cap:

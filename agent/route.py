@@ -206,12 +206,17 @@ class Route:
     _trail: list[Point] = field(default_factory=list)  # where the robot stood as each leg began (free)
     _failure: tuple[str, str] | None = None  # (reason, text) reported when the retreat ends
     _planned_with: PathProvider | None = None  # the provider (the map) the path being driven came from
+    _planned_sense: object | None = None  # that map's ``sense`` (``step``)
+    _sense: object | None = None  # this tick's
     map_replans: int = 0  # re-plans because a newer map showed the leg barred (not in ``replans``)
     waiting_since: float | None = None  # no path since (the first plan found none)
 
     # -- what the pilot calls --------------------------------------------------------------------
 
-    def step(self, now: float, pose: Pose, provider: PathProvider | None) -> Drive:
+    def step(self, now: float, pose: Pose, provider: PathProvider | None, sense: object | None = None) -> Drive:
+        """One control tick. ``sense``: the map's other answers (the planner itself, ``WallCheck``),
+        a new object with each newer map; None: the provider is asked."""
+        self._sense = sense if sense is not None else provider
         c = self.config
         if self._backoff is not None:
             b = self._backoff
@@ -238,7 +243,12 @@ class Route:
             return _STILL
         if self.phase is RoutePhase.FOLLOWING and provider is not None and provider is not self._planned_with:
             older, self._planned_with = self._planned_with, provider
-            if older is not None and self.map_replans < c.max_map_replans and self._newly_barred(older, provider, pose):
+            older_sense, self._planned_sense = self._planned_sense, self._sense
+            if (
+                older is not None
+                and self.map_replans < c.max_map_replans
+                and self._newly_barred(older_sense, self._sense, pose)
+            ):
                 self.map_replans += 1
                 if not self._replan(now, pose, provider, "wall_on_map", counted=False):
                     return _STILL
@@ -346,7 +356,7 @@ class Route:
             self.goto.start([(d.x, d.y)], d.theta)
             return True
         planned = self._ask(provider, pose)
-        self._planned_with = provider
+        self._planned_with, self._planned_sense = provider, self._sense
         if isinstance(planned, str):
             self._finish(False, "planner_failed", f"the planner failed ({planned})")
             return False
@@ -457,13 +467,13 @@ class Route:
             self.replans += 1
         # A provider withdrawn mid-route (the map was dropped) means no map: straight from here.
         path = None if provider is None else self._ask(provider, pose, tuple(self.blocked))
-        self._planned_with = provider
+        self._planned_with, self._planned_sense = provider, self._sense
         if isinstance(path, str):
             self._fail(now, pose, "planner_failed", f"the planner failed ({path})")
             return False
         return self._follow(now, pose, path, why)
 
-    def _newly_barred(self, older: PathProvider, newer: PathProvider, pose: Pose) -> bool:
+    def _newly_barred(self, older: object | None, newer: object | None, pose: Pose) -> bool:
         """The leg being driven (or the next) runs into a wall on the newer map that the older did
         not hold: a leg laid into the unknown (a goal beyond the robot's map, e.g. floor only another
         robot had mapped) or on an older map. The front ultrasonic sees ahead, not a corner beside

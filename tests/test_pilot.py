@@ -444,3 +444,40 @@ def test_a_creeping_robot_creeps_only_where_its_map_vouches_for_the_way(sense: _
         assert all(0.0 < o.v <= 0.05 + 1e-9 for o in outs[5:]) and not any(o.events for o in outs)
     else:
         assert outs[-1].v == 0.0 and EventKind.GUARD_REFUSAL in [e.kind for o in outs for e in o.events]
+
+
+def test_a_newer_map_that_bars_the_leg_replans_through_the_map_sense() -> None:
+    """As the agent hands them over (agent/node.py): the provider is the planner's bound ``route``,
+    the map sense the planner itself, both new with each newer map. The route asks the sense, not
+    the provider (a bound method), whether the leg now meets a wall."""
+
+    class Sense:
+        def __init__(self, wall: bool) -> None:
+            self.wall = wall
+
+        def room_behind(self, pose: tuple[float, float, float], limit: float, /) -> float:
+            return limit
+
+        def echo_ahead(self, pose: tuple[float, float, float], reach: float, /) -> float:
+            return reach
+
+        def leg_clear(self, a: tuple[float, float], b: tuple[float, float], /) -> bool:
+            return True
+
+        def leg_meets_wall(self, a: tuple[float, float], b: tuple[float, float], /) -> bool:
+            return self.wall
+
+        def route(
+            self, start: tuple[float, float], goal: tuple[float, float], blocked: Sequence[tuple[float, float]] = ()
+        ) -> list[tuple[float, float]]:
+            return [start, (1.0, 1.0), goal] if self.wall else [start, goal]
+
+    old = Sense(False)
+    p = Pilot(path_provider=old.route, map_sense=old)
+    body = Unicycle()
+    p.order(0.0, "o1", 0, 3.0, 0.0, None, "op")
+    t, _ = drive(p, body, 0.0, 1.0)
+    new = Sense(True)
+    p.path_provider, p.map_sense = new.route, new
+    _, outs = drive(p, body, t, 0.1)
+    assert [(e.kind, e.reason) for o in outs for e in o.events] == [(EventKind.REPLANNED, "wall_on_map")]
