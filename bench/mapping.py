@@ -466,6 +466,7 @@ def real_log(path: Path, seed: int) -> dict[str, object]:
         "scans_per_cpu_s": len(recs) / cpu,
         "scans_per_cpu_s_without_closure": len(recs) / cpu_open,
         "fallbacks": matched.mapper.fallbacks,
+        "retried": matched.mapper.retried,  # refused at first, matched with a wider prior (retry_prior_scale)
         "closures": {
             "nodes": len(closer) if closer else 0,
             "attempts": closer.stats.attempts if closer else 0,
