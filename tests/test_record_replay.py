@@ -13,6 +13,7 @@ import dataclasses
 import json
 import math
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -74,15 +75,11 @@ class SteppedClock:
         return event.wait(None if timeout is None else min(0.05, max(0.0, timeout)))
 
 
-def record_scene(path: Path) -> tuple[dict[str, Any], Any]:
-    """Record two robots reporting (as tests/test_console_snapshot.py's ``two_robots``), with a
-    live console model listening; returns the live fleet table and model views."""
-    clock = SteppedClock()
-    zb, mb = InProcessBus(LinkName.ZENOH, clock_now=clock.now), InProcessBus(LinkName.MQTT, clock_now=clock.now)
-    recorder = Recorder(path, [zb.endpoint("recorder"), mb.endpoint("recorder")], clock, fetch_maps=False).start()
-    # Sending as a console does by default (both links): the replay cannot know and assumes it.
-    console = OperatorLink(clock, ME, zb.endpoint(ME), mb.endpoint(ME), policy=LinkPolicy(redundant=True)).start()
-    live, lock, _maps, _doses = console_parts(console)
+def robots_talking(
+    zb: InProcessBus, mb: InProcessBus, clock: SteppedClock
+) -> tuple[dict[str, wire.HeaderCounter], Callable[..., None]]:
+    """Robots r1 and r2 on both buses: their header counters, and ``say(msg, both=True)``, which
+    publishes a message on Zenoh (and MQTT) and delivers it."""
     agents = {r: (zb.endpoint(f"agent-{r}"), mb.endpoint(f"agent-{r}")) for r in ("r1", "r2")}
     counters = {r: wire.HeaderCounter(clock, robot=r, sender=f"agent-{r}") for r in agents}
     for z, m in agents.values():
@@ -96,6 +93,20 @@ def record_scene(path: Path) -> tuple[dict[str, Any], Any]:
             m.publish(wire.key_of(msg), wire.encode(msg))
         zb.deliver()
         mb.deliver()
+
+    return counters, say
+
+
+def record_scene(path: Path) -> tuple[dict[str, Any], Any]:
+    """Record two robots reporting (as tests/test_console_snapshot.py's ``two_robots``), with a
+    live console model listening; returns the live fleet table and model views."""
+    clock = SteppedClock()
+    zb, mb = InProcessBus(LinkName.ZENOH, clock_now=clock.now), InProcessBus(LinkName.MQTT, clock_now=clock.now)
+    recorder = Recorder(path, [zb.endpoint("recorder"), mb.endpoint("recorder")], clock, fetch_maps=False).start()
+    # Sending as a console does by default (both links): the replay cannot know and assumes it.
+    console = OperatorLink(clock, ME, zb.endpoint(ME), mb.endpoint(ME), policy=LinkPolicy(redundant=True)).start()
+    live, lock, _maps, _doses = console_parts(console)
+    counters, say = robots_talking(zb, mb, clock)
 
     def pose(robot: str, x: float, y: float, theta: float, stale: bool = False) -> None:
         say(
@@ -142,7 +153,7 @@ def record_scene(path: Path) -> tuple[dict[str, Any], Any]:
     )
     other = wire.HeaderCounter(clock, robot="r1", sender="operator-2")
     mark = other.make(Mark, markId="op2-1", x=5.5, y=3.0, label="victim", kind="casualty", sd_m=0.0, removed=False)
-    agents["r1"][0].publish(wire.key_of(mark), wire.encode(mark))
+    say(mark, both=False)  # on Zenoh only, from r1's endpoint
     zb.deliver()
     clock.advance(0.1)
     console.poll()
@@ -479,19 +490,7 @@ def record_changes(path: Path) -> None:
     clock = SteppedClock()
     zb, mb = InProcessBus(LinkName.ZENOH, clock_now=clock.now), InProcessBus(LinkName.MQTT, clock_now=clock.now)
     recorder = Recorder(path, [zb.endpoint("recorder"), mb.endpoint("recorder")], clock, fetch_maps=False).start()
-    agents = {r: (zb.endpoint(f"agent-{r}"), mb.endpoint(f"agent-{r}")) for r in ("r1", "r2")}
-    counters = {r: wire.HeaderCounter(clock, robot=r, sender=f"agent-{r}") for r in agents}
-    for z, m in agents.values():
-        z.start()
-        m.start()
-
-    def say(msg: wire.Message, both: bool = True) -> None:
-        z, m = agents[msg.header.robot]
-        z.publish(wire.key_of(msg), wire.encode(msg))
-        if both:
-            m.publish(wire.key_of(msg), wire.encode(msg))
-        zb.deliver()
-        mb.deliver()
+    counters, say = robots_talking(zb, mb, clock)
 
     def state(robot: str, x: float, **over: Any) -> State:
         at = AgvPosition(x=x, y=0.0, theta=0.0, mapId="office", positionInitialized=True, localizationScore=0.9)
@@ -550,7 +549,7 @@ def record_changes(path: Path) -> None:
             mark = other.make(
                 Mark, markId="op2-1", x=5.5, y=3.0, label="victim", kind="casualty", sd_m=0.0, removed=False
             )
-            agents["r1"][0].publish(wire.key_of(mark), wire.encode(mark))
+            say(mark, both=False)  # on Zenoh only, from r1's endpoint
             zb.deliver()
             say(counters["r1"].make(Event, kind="cliff", text="cliff ahead", severity=Severity.ERROR, data=()))
         clock.advance(0.25)
