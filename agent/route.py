@@ -89,8 +89,8 @@ DEVIATION_STEP_M = 0.05
 
 @runtime_checkable
 class WallCheck(Protocol):
-    """A provider that can also say whether a leg runs into a known wall (the A* planner:
-    ``PathPlanner.leg_meets_wall``)."""
+    """A map sense that can say whether a leg runs into a known wall (the A* planner the agent
+    hands the pilot as its map sense: ``PathPlanner.leg_meets_wall``)."""
 
     def leg_meets_wall(self, a: Point, b: Point, /) -> bool: ...
 
@@ -232,11 +232,11 @@ class Route:
                 if not self._replan(now, pose, provider, "blocked"):
                     return _STILL
         if self.phase is RoutePhase.WAITING:
-            if provider is self._planned_with:
-                since = now if self.waiting_since is None else self.waiting_since
-                if now - since >= c.no_path_wait_s:
+            if provider is self._planned_with:  # the same map: still no path
+                waited = now - (self.waiting_since if self.waiting_since is not None else now)
+                if waited >= c.no_path_wait_s:
                     d = self.dest
-                    self._finish(False, "no_path", f"no path to ({d.x:.2f}, {d.y:.2f}) (waited {now - since:.0f} s)")
+                    self._finish(False, "no_path", f"no path to ({d.x:.2f}, {d.y:.2f}) (waited {waited:.0f} s)")
                 return _STILL
             self.phase = RoutePhase.UNPLANNED  # a newer map (or none): ask again
         if self.phase is RoutePhase.UNPLANNED and not self._plan(now, pose, provider):

@@ -13,7 +13,7 @@ import dataclasses
 import json
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -95,6 +95,16 @@ def robots_talking(
         mb.deliver()
 
     return counters, say
+
+
+def run_closing(run: Callable[[], Coroutine[Any, Any, None]], source: ReplaySource, fetchers: Sequence[Any]) -> None:
+    """``run()`` (a replayed console's test), then the source closed and the fetchers stopped."""
+    try:
+        asyncio.run(run())
+    finally:
+        source.close()
+        for fetcher in fetchers:
+            fetcher.stop()
 
 
 def record_scene(path: Path) -> tuple[dict[str, Any], Any]:
@@ -465,12 +475,7 @@ def test_the_replayed_console_seeks_forward_and_changes_speed(tmp_path: Path) ->
             await asyncio.to_thread(wait_until, lambda: "replay at 0.0 s" in screen_text(app), message="said")
             assert source.refused == {}
 
-    try:
-        asyncio.run(run())
-    finally:
-        source.close()
-        for fetcher in fetchers:
-            fetcher.stop()
+    run_closing(run, source, fetchers)
 
 
 # -- seeking back ------------------------------------------------------------------------------------
@@ -718,9 +723,4 @@ def test_the_replayed_console_seeks_back_to_what_a_console_started_there_shows(t
             assert await seek("seek -1", expected | {"at": 5.1}) == expected
             assert source.refused == {} and source.skipped == {}
 
-    try:
-        asyncio.run(run())
-    finally:
-        source.close()
-        for fetcher in fetchers:
-            fetcher.stop()
+    run_closing(run, source, fetchers)
