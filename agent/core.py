@@ -84,6 +84,7 @@ from fleetlink.shared.messages import (
     LinkStatus,
     OperatingMode,
     Order,
+    OrderEdge,
     OrderProgress,
     PeopleZones,
     Pose,
@@ -808,6 +809,7 @@ class AgentCore:
                     admitted=True,
                     max_v=st.max_v,
                     deviation=st.deviation,
+                    trajectory=st.trajectory,
                 )
                 if not r.accepted:
                     it.interrupted(now, r.reason[:64] or "refused")
@@ -1376,9 +1378,15 @@ def _stops(msg: Order) -> list[Stop]:
                 for a in n.actions
             ),
             n.allowedDeviationXY,
+            _trajectory(edges[i - 1]) if i > 0 else (),
         )
         for i, n in enumerate(nodes)
     ]
+
+
+def _trajectory(edge: OrderEdge) -> tuple[tuple[float, float], ...]:
+    """The edge's trajectory as waypoints (checked whole when the order was decoded), or ()."""
+    return () if edge.trajectory is None else tuple(edge.trajectory.waypoints())
 
 
 def _within(v: float | None, lo: float, hi: float) -> float | None:

@@ -61,12 +61,14 @@ from fleetlink.shared.dose import Lamp
 from fleetlink.shared.geometry import components, points_in_polygon
 from fleetlink.shared.messages import (
     MAX_ORDER_NODES,
+    MAX_TRAJECTORY_POINTS,
     Action,
     ActionType,
     BlockingType,
     KeyValue,
     OrderEdge,
     OrderNode,
+    Trajectory,
 )
 
 __all__ = [
@@ -881,6 +883,7 @@ def plan_order(
             endNodeId=e.end_node_id,
             released=True,
             maxSpeed=max_speed_mps,
+            trajectory=_trajectory(e),
         )
         for e in plan.edges
     )
@@ -892,6 +895,16 @@ def plan_order(
         "nodes": tuple(nodes),
         "edges": edges,
     }
+
+
+def _trajectory(edge: PlanEdge) -> Trajectory | None:
+    """The edge's path as its trajectory (a polyline): the robot drives the way planned on the map
+    the plan was made on (the fleet's, merged), not only the way its own map knows, which may not
+    yet hold what another robot mapped. None when the path has too many corners for one."""
+    pts = edge.waypoints
+    if not 2 <= len(pts) <= MAX_TRAJECTORY_POINTS:
+        return None
+    return Trajectory.polyline(pts)
 
 
 @dataclass(frozen=True, slots=True)

@@ -81,6 +81,8 @@ class Stop:
     actions: tuple[StopAction, ...] = ()
     deviation: float = 0.0
     """m: reached within this of (x, y) when (x, y) itself cannot be (``OrderNode.allowedDeviationXY``)."""
+    trajectory: tuple[tuple[float, float], ...] = ()
+    """The way here from the node before, as waypoints (the edge's trajectory); (): the robot's own."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -355,11 +355,13 @@ class Pilot:
         admitted: bool = False,
         max_v: float | None = None,
         deviation: float = 0.0,
+        trajectory: Sequence[Point] = (),
     ) -> CommandResult:
         """Go to (x, y[, theta]). ``admitted``: a node of an order ``admit`` has let in already (the
         agent's itinerary drives an order's nodes one by one under its id). ``max_v``: a speed cap
         for this go-to (m/s; an order edge's maxSpeed). ``deviation``: the nearest place within this
-        (m) will do when (x, y) cannot be reached (a node's allowedDeviationXY)."""
+        (m) will do when (x, y) cannot be reached (a node's allowedDeviationXY). ``trajectory``: the
+        way to drive there (an order edge's, as waypoints), followed where the map allows."""
         if not admitted:
             refused = self.admit(order_id, order_update_id)
             if refused is not None:
@@ -370,12 +372,24 @@ class Pilot:
             return _rejected(f"speed cap must be a positive number, got {max_v!r}")
         if not (_finite(deviation) and 0.0 <= deviation <= MAX_DEVIATION_M):
             return _rejected(f"allowed deviation must be 0-{MAX_DEVIATION_M:g} m, got {deviation!r}")
+        if not all(_finite(px, py) for px, py in trajectory):
+            return _rejected("the trajectory's waypoints must be finite")
         extent = self.config.extent_m
         if abs(x) > extent or abs(y) > extent:
             return _rejected(f"goal ({x:.4g}, {y:.4g}) is outside the site's extent (|x|, |y| <= {extent:g} m)")
         held = self._route is not None and self._route.dest.order_id == order_id
         trigger = Trigger.ORDER_UPDATE if held else Trigger.ORDER_NEW
-        dest = Destination(order_id, order_update_id, x, y, theta, sender, max_v=max_v, deviation=deviation)
+        dest = Destination(
+            order_id,
+            order_update_id,
+            x,
+            y,
+            theta,
+            sender,
+            max_v=max_v,
+            deviation=deviation,
+            trajectory=tuple((float(px), float(py)) for px, py in trajectory),
+        )
         result = self._fire(now, trigger, _Command(sender, dest=dest))
         if result.accepted:
             self.remember(order_id, order_update_id)

@@ -85,6 +85,9 @@ MAX_DEVIATION_M = 1.0
 """The largest allowed deviation a go-to takes (``OrderNode.allowedDeviationXY``'s bound)."""
 DEVIATION_STEP_M = 0.05
 """Places within a destination's allowed deviation are tried this far apart, nearest first."""
+TRAJECTORY_JOIN_M = 0.3
+"""A go-to follows its order's trajectory only from within this of it (about the robot's size; a
+robot resumed elsewhere, or that stopped short of the node before, plans its own way)."""
 
 
 @runtime_checkable
@@ -111,6 +114,10 @@ class Destination:
     deviation: float = 0.0
     """m: when (x, y) cannot be reached, the nearest place within this that can will do (an order
     node's allowedDeviationXY)."""
+    trajectory: tuple[Point, ...] = ()
+    """The way the order gives (its edge's trajectory, planned on the fleet's map): followed from
+    where the robot joins it, unless the robot's own map has a wall on it; then, and on every re-plan,
+    the robot plans its own."""
 
     @property
     def label(self) -> str:
@@ -352,6 +359,12 @@ class Route:
         self.phase = RoutePhase.STRAIGHT
         if d.via:
             return self._follow(now, pose, d.via, None)
+        if d.trajectory:
+            joined = self._join_trajectory(pose)
+            if isinstance(joined, list):
+                self._planned_with, self._planned_sense = provider, self._sense
+                return self._follow(now, pose, joined, None, source="trajectory")
+            self.notes.append(RouteNote(False, f"{d.label}: {joined}: planning its own way", "trajectory_refused", 0))
         if provider is None:
             self.goto.start([(d.x, d.y)], d.theta)
             return True
@@ -363,6 +376,26 @@ class Route:
         if planned is not None and len(planned) == 0 and d.deviation > 0.0:
             planned = self._nearby(provider, pose)
         return self._follow(now, pose, planned, None)
+
+    def _join_trajectory(self, pose: Pose) -> list[Point] | str:
+        """The order's trajectory from where the robot joins it (the end of the segment nearest to
+        it), or why the robot will not drive it: it stands more than ``TRAJECTORY_JOIN_M`` off it
+        (the order was resumed elsewhere), or its own map (``sense``) has a wall on the way."""
+        traj = self.dest.trajectory
+        here = (pose[0], pose[1])
+        if len(traj) == 1:
+            best, rest = math.dist(here, traj[0]), list(traj)
+        else:
+            best, k = min((_to_segment(here, a, b), i) for i, (a, b) in enumerate(pairwise(traj)))
+            rest = list(traj[k + 1 :])
+        if best > TRAJECTORY_JOIN_M:
+            return f"the robot stands {best:.2f} m off the order's trajectory"
+        sense = self._sense
+        if isinstance(sense, WallCheck):
+            for i, (a, b) in enumerate(pairwise([here, *rest])):
+                if sense.leg_meets_wall(a, b):
+                    return f"its map has a wall on the order's trajectory ({b[0]:.2f}, {b[1]:.2f}), leg {i + 1}"
+        return rest
 
     def _nearby(self, provider: PathProvider, pose: Pose) -> Sequence[Point]:
         """A path to the nearest place within the destination's allowed deviation that has one
@@ -407,8 +440,11 @@ class Route:
         except Exception as exc:
             return f"{type(exc).__name__}: {exc}"[:120]
 
-    def _follow(self, now: float, pose: Pose, path: Sequence[Point] | None, why: str | None) -> bool:
-        """Start the go-to along ``path`` (None: no map, straight line); False when it failed."""
+    def _follow(
+        self, now: float, pose: Pose, path: Sequence[Point] | None, why: str | None, *, source: str = "planned"
+    ) -> bool:
+        """Start the go-to along ``path`` (None: no map, straight line); False when it failed.
+        ``source``: where a first path came from (``planned``, or the order's ``trajectory``)."""
         d = self.dest
         goal = (d.x, d.y)
         if path is None:
@@ -450,7 +486,8 @@ class Route:
         self.held_since = None
         n = len(pts)
         if why is None:
-            self.notes.append(RouteNote(False, f"{d.label}: planned path, {n} waypoints", "planned", n))
+            text = "planned path" if source == "planned" else "the order's trajectory"
+            self.notes.append(RouteNote(False, f"{d.label}: {text}, {n} waypoints", source, n))
         else:
             text = f"{d.label}: re-planned ({why}, {self.replans}/{self.config.max_replans}), {n} waypoints"
             self.notes.append(RouteNote(True, text, why, n))
@@ -555,3 +592,11 @@ class Route:
             self._progress = _Progress(index, d, now)
             return False
         return now - p.since >= self.config.no_progress_s
+
+
+def _to_segment(p: Point, a: Point, b: Point) -> float:
+    """Distance from ``p`` to the segment a-b."""
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    n = dx * dx + dy * dy
+    k = 0.0 if n <= 0.0 else max(0.0, min(1.0, ((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / n))
+    return math.hypot(p[0] - (a[0] + k * dx), p[1] - (a[1] + k * dy))

@@ -14,6 +14,7 @@ import enum
 from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar
 
+from . import nurbs
 from .wire import Message, bounded, register, sized
 
 MAX_COORDINATE_M = 100_000.0
@@ -39,6 +40,7 @@ __all__ = [
     "MAX_PARAMS",
     "MAX_SCAN_BEAMS",
     "MAX_STATE_ERRORS",
+    "MAX_TRAJECTORY_POINTS",
     "MAX_UWB_ANCHORS",
     "Ack",
     "AckResult",
@@ -55,6 +57,7 @@ __all__ = [
     "Connection",
     "ConnectionState",
     "Contact",
+    "ControlPoint",
     "DoseEncoding",
     "DoseLamp",
     "DoseSnapshot",
@@ -91,6 +94,7 @@ __all__ = [
     "State",
     "StateError",
     "Teleop",
+    "Trajectory",
     "Truth",
     "UwbFix",
     "UwbRange",
@@ -489,9 +493,63 @@ class OrderNode:
     can is; 0: (x, y) or nothing."""
 
 
+MAX_TRAJECTORY_POINTS = 64
+"""Control points of one edge's trajectory (VDA 5050 factsheet ``maxArrayLens.trajectory.controlPoints``)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ControlPoint:
+    x: Coordinate
+    """Metres, site frame."""
+    y: Coordinate
+    weight: Annotated[float, bounded(0.0, 1.0e6)] = 1.0
+    """How hard it pulls on the curve (VDA 5050: >= 0, default 1)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Trajectory:
+    """VDA 5050 ``edge.trajectory``: the way from the edge's start node to its end node as a NURBS
+    curve (shared/nurbs.py). A route planned on the fleet's merged map is a polyline: degree 1, its
+    corners as control points, ``nurbs.polyline_knots``. Checked whole on decode: sizes, knots in
+    [0, 1] and never decreasing, weights that leave the curve defined."""
+
+    degree: Annotated[int, bounded(1, nurbs.MAX_DEGREE)]
+    knotVector: Annotated[
+        tuple[float, ...], sized(MAX_TRAJECTORY_POINTS + nurbs.MAX_DEGREE + 1, item=bounded(0.0, 1.0))
+    ]
+    controlPoints: Annotated[tuple[ControlPoint, ...], sized(MAX_TRAJECTORY_POINTS)]
+
+    def __post_init__(self) -> None:
+        nurbs.check(
+            self.degree,
+            self.knotVector,
+            [(p.x, p.y) for p in self.controlPoints],
+            [p.weight for p in self.controlPoints],
+        )
+
+    @classmethod
+    def polyline(cls, points: tuple[tuple[float, float], ...]) -> Trajectory:
+        """``points`` (at least two) as a degree-1 trajectory through them."""
+        return cls(
+            degree=1,
+            knotVector=nurbs.polyline_knots(points),
+            controlPoints=tuple(ControlPoint(x=float(x), y=float(y)) for x, y in points),
+        )
+
+    def waypoints(self) -> list[tuple[float, float]]:
+        """The curve as waypoints (``nurbs.waypoints``), start to end."""
+        return nurbs.waypoints(
+            self.degree,
+            self.knotVector,
+            [(p.x, p.y) for p in self.controlPoints],
+            [p.weight for p in self.controlPoints],
+        )
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class OrderEdge:
-    """A VDA 5050 edge between two consecutive nodes; the agent plans its own way along it."""
+    """A VDA 5050 edge between two consecutive nodes: the robot follows its trajectory when it has
+    one (and its own map does not bar it), else plans its own way."""
 
     edgeId: Annotated[str, sized(64)]
     sequenceId: Annotated[int, bounded(0)]
@@ -501,6 +559,8 @@ class OrderEdge:
     maxSpeed: Annotated[float, bounded(0.01, 5.0)] | None = None
     """m/s on this edge (a sweep lane, a lamp pass at constant speed); nil: the robot's own limit."""
     actions: Annotated[tuple[Action, ...], sized(MAX_ACTIONS)] = ()
+    trajectory: Trajectory | None = None
+    """The way to drive (VDA 5050 ``trajectory``); nil: the robot plans its own."""
 
 
 @register

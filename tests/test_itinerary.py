@@ -31,6 +31,7 @@ from fleetlink.shared.messages import (
     OrderNode,
     State,
     Teleop,
+    Trajectory,
 )
 
 
@@ -373,6 +374,26 @@ def test_a_nodes_allowed_deviation_reaches_the_go_to_and_one_out_of_bounds_is_re
             wire.decode(Order, msgpack.packb(obj))
 
 
+def test_an_edges_trajectory_reaches_the_go_to_and_the_robot_drives_by_it() -> None:
+    """The edge from (0, 0) to (2, 0) bends through (1, 1) (the way planned on the fleet's map):
+    the robot, whose own map knows nothing of what the bend goes round, drives by (1, 1)."""
+    r = Robot()
+    bend = dataclasses.replace(edge(0), trajectory=Trajectory.polyline(((0.0, 0.0), (1.0, 1.0), (2.0, 0.0))))
+    assert r.send(Order, **order((node(0, 0.0, 0.0), node(1, 2.0, 0.0)), (bend,))).result is AckResult.ACCEPTED
+    r.run(0.1)
+    route = r.core.pilot._route
+    assert route is not None and route.dest.trajectory == ((0.0, 0.0), (1.0, 1.0), (2.0, 0.0))
+    assert route.goto.waypoints == [(1.0, 1.0), (2.0, 0.0)]
+    high = 0.0
+    for _ in range(300):
+        r.run(0.1)
+        high = max(high, r.pose[1])
+        if any("finished" in t for t in r.texts()):
+            break
+    assert any("finished: 2 nodes" in t for t in r.texts())
+    assert high > 0.9  # by the bend, not straight along y = 0
+
+
 def test_the_plans_drive_through_nodes_may_deviate_its_dwell_points_may_not() -> None:
     from fleetlink.agent.coverage import CoveragePlan, PlanEdge, PlanNode, Prediction, plan_order
 
@@ -393,6 +414,9 @@ def test_the_plans_drive_through_nodes_may_deviate_its_dwell_points_may_not() ->
     )
     assert [n.allowedDeviationXY for n in plan_order(plan, "o")["nodes"]] == [0.0, 0.0, 0.0]
     assert [n.allowedDeviationXY for n in plan_order(plan, "o", pass_deviation_m=0.15)["nodes"]] == [0.15, 0.15, 0.0]
+    # Each edge carries its path as the way to drive (a polyline: its waypoints, in order).
+    edges = plan_order(plan, "o")["edges"]
+    assert [e.trajectory.waypoints() for e in edges] == [[(0.0, 0.0), (1.0, 0.0)], [(1.0, 0.0), (2.0, 0.0)]]
 
 
 def test_the_same_order_again_is_a_duplicate_and_an_older_update_is_refused() -> None:

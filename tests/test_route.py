@@ -357,3 +357,62 @@ def test_map_replans_are_bounded() -> None:
         r.step(0.1 * (k + 1), (0.5, 0.0, 0.0), Mapped(None, [(4.0, 0.0)]))  # a clear map between
         r.step(0.1 * (k + 1) + 0.05, (0.5, 0.0, 0.0), Mapped((2.5, 0.0), [(4.0, 0.0)]))
     assert r.map_replans == 2 and r.replans == 0 and r.end is None
+
+
+# -- an order's trajectory ------------------------------------------------------------------------
+
+BEND = ((0.0, 0.0), (2.0, 0.0), (2.0, 2.0), (4.0, 0.0))
+"""An edge's trajectory from (0, 0) to the destination (4, 0), round something the robot's own map
+does not hold (planned on the fleet's merged map)."""
+
+
+def along(trajectory: tuple[Point, ...] = BEND) -> Route:
+    return Route(replace(DEST, trajectory=trajectory), GoToController(), RouteConfig())
+
+
+def test_an_orders_trajectory_is_followed_instead_of_a_planned_path() -> None:
+    r, body, t = along(), Unicycle(), 0.0
+    own = Mapped(None, [(4.0, 0.0)])  # its own map: straight on (it knows nothing in the way)
+    r.step(t, body.pose, own)
+    assert own.calls == [] and r.phase is RoutePhase.FOLLOWING
+    assert r.goto.waypoints == [(2.0, 0.0), (2.0, 2.0), (4.0, 0.0)]
+    [note] = r.notes
+    assert (note.replanned, note.reason, note.waypoints) == (False, "trajectory", 3)
+    assert "the order's trajectory" in note.text
+    corner = False
+    while r.end is None and t < 60.0:
+        d = r.step(t, body.pose, own)
+        body.step(d.v, d.omega, 0.02)
+        corner |= math.hypot(body.x - 2.0, body.y - 2.0) < 0.15
+        t += 0.02
+    assert r.end is not None and r.end.reached and corner  # it went round by (2, 2)
+    assert own.calls == []
+
+
+def test_the_trajectory_is_joined_where_the_robot_stands_on_it() -> None:
+    """Resumed half-way along the second segment: on from the end of that segment."""
+    r = along()
+    r.step(0.0, (2.1, 1.0, 0.0), Mapped(None, [(4.0, 0.0)]))
+    assert r.goto.waypoints == [(2.0, 2.0), (4.0, 0.0)]
+
+
+def test_a_trajectory_the_robot_stands_off_or_its_map_bars_is_planned_afresh() -> None:
+    r = along()
+    own = Mapped(None, [(4.0, 0.0)])
+    r.step(0.0, (0.0, -0.5, 0.0), own)  # 0.5 m off it (more than TRAJECTORY_JOIN_M)
+    assert own.calls == [((0.0, -0.5), (4.0, 0.0), ())] and r.goto.waypoints == [(4.0, 0.0)]
+    assert [n.reason for n in r.notes] == ["trajectory_refused", "planned"]
+    assert "0.50 m off the order's trajectory" in r.notes[0].text
+    r = along()
+    walled = Mapped((2.0, 1.0), [(1.0, -1.0), (4.0, 0.0)])  # its own map has a wall on the trajectory
+    r.step(0.0, (0.0, 0.0, 0.0), walled)
+    assert walled.calls and r.goto.waypoints == [(1.0, -1.0), (4.0, 0.0)]
+    assert "wall on the order's trajectory (2.00, 2.00), leg 2" in r.notes[0].text
+
+
+def test_a_newer_map_that_bars_the_trajectory_ahead_replans() -> None:
+    r = along()
+    r.step(0.0, (0.0, 0.0, 0.0), Mapped(None, [(4.0, 0.0)]))
+    newer = Mapped((2.0, 1.0), [(1.0, -1.0), (4.0, 0.0)])
+    r.step(0.1, (1.0, 0.0, 0.0), newer)
+    assert r.map_replans == 1 and newer.calls and r.goto.waypoints == [(1.0, -1.0), (4.0, 0.0)]

@@ -256,6 +256,39 @@ def test_a_nodes_allowed_deviation_goes_to_the_robot_up_to_a_metre() -> None:
     assert [n.allowedDeviationXY for n in sent["nodes"]] == [0.0, 0.15, 1.0]
 
 
+def test_an_edges_trajectory_goes_to_the_robot_and_one_it_cannot_drive_is_refused_with_the_reason() -> None:
+    rig = Rig()
+    rig.state()
+    nodes = [node("n0", 0, 0.0), node("n1", 2, 2.0)]
+    bend = edge("n0", "n1", 1)
+    # A cubic from (0, 0) to (2, 0) bulging to y > 0 (floats as the standard's text types the degree).
+    bend["trajectory"] = {
+        "degree": 3.0,
+        "knotVector": [0, 0, 0, 0, 1, 1, 1, 1],
+        "controlPoints": [
+            {"x": 0.0, "y": 0.0},
+            {"x": 0.5, "y": 1.0, "weight": 2.0},
+            {"x": 1.5, "y": 1.0},
+            {"x": 2.0, "y": 0.0},
+        ],
+    }
+    outs = rig.send("order", order("o1", 0, nodes, [bend]))
+    [sent] = [o.fields for o in outs if isinstance(o, SendOrder)]
+    traj = sent["edges"][0].trajectory
+    assert traj.degree == 3 and [p.weight for p in traj.controlPoints] == [1.0, 2.0, 1.0, 1.0]
+    pts = traj.waypoints()
+    assert pts[0] == (0.0, 0.0) and pts[-1] == pytest.approx((2.0, 0.0)) and max(y for _, y in pts) > 0.5
+    # Valid against the schema, not a curve: the knot vector one short.
+    rig = Rig()
+    rig.state()
+    bad = edge("n0", "n1", 1)
+    bad["trajectory"] = {**bend["trajectory"], "knotVector": [0, 0, 0, 1, 1, 1, 1]}
+    outs = rig.send("order", order("o2", 0, nodes, [bad]))
+    assert not any(isinstance(o, SendOrder) for o in outs)
+    [err] = errors(rig)
+    assert "trajectory: knotVector has 7 values" in err["errorDescription"]
+
+
 def test_an_update_is_stitched_at_the_decision_point_and_older_updates_are_refused() -> None:
     rig = Rig()
     rig.state()
@@ -459,6 +492,9 @@ def test_connection_factsheet_and_headers_count_per_topic() -> None:
     assert f.retain  # section 6.15: all messages on this topic retained
     types = {x["actionType"] for x in f.doc["protocolFeatures"]["agvActions"]}
     assert {"startPause", "stopPause", "cancelOrder", "stateRequest", "factsheetRequest", "payload", "dwell"} <= types
+    optional = {p["parameter"]: p["support"] for p in f.doc["protocolFeatures"]["optionalParameters"]}
+    assert optional["order.edges.trajectory"] == "SUPPORTED"
+    assert f.doc["protocolLimits"]["maxArrayLens"]["trajectory.controlPoints"] == 64
 
 
 def test_the_duplicate_ack_of_the_other_links_copy_coming_first_does_not_lose_the_real_one() -> None:

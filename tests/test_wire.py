@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SimClock
-from fleetlink.shared.messages import BoardFault, BoardStatus
+from fleetlink.shared.messages import BoardFault, BoardStatus, ControlPoint, Trajectory
 from fleetlink.shared.wire import (
     WIRE,
     Header,
@@ -282,6 +282,26 @@ def strategy_for(tp: Any, limits: Limits) -> st.SearchStrategy[Any]:
             version=st.sampled_from(["1.0.0", "1.2.3", "1.10.0"]),
             robot=ids,
             sender=ids,
+        )
+    if tp is Trajectory:  # its fields are checked together (__post_init__): clamped curves
+        coord = st.floats(-1e5, 1e5, allow_nan=False, allow_infinity=False)
+
+        def clamped(degree: int, pts: list[tuple[float, float]], weights: list[float]) -> Trajectory:
+            n = len(pts)
+            inner = [i / (n - degree) for i in range(1, n - degree)]
+            return Trajectory(
+                degree=degree,
+                knotVector=(0.0,) * (degree + 1) + tuple(inner) + (1.0,) * (degree + 1),
+                controlPoints=tuple(ControlPoint(x=x, y=y, weight=w) for (x, y), w in zip(pts, weights, strict=False)),
+            )
+
+        return st.integers(1, 3).flatmap(
+            lambda d: st.builds(
+                clamped,
+                st.just(d),
+                st.lists(st.tuples(coord, coord), min_size=d + 1, max_size=d + 4),
+                st.lists(st.floats(0.1, 10.0), min_size=d + 4, max_size=d + 4),
+            )
         )
     if typing.get_origin(tp) is typing.Annotated:
         base, *extras = typing.get_args(tp)

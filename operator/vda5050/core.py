@@ -28,14 +28,16 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any, Protocol
 
-from fleetlink.shared import wire
+from fleetlink.shared import nurbs, wire
 from fleetlink.shared.messages import (
+    MAX_TRAJECTORY_POINTS,
     Ack,
     AckResult,
     Action,
     ActionType,
     BlockingType,
     BoardStatus,
+    ControlPoint,
     Event,
     KeyValue,
     Lease,
@@ -43,6 +45,7 @@ from fleetlink.shared.messages import (
     OrderNode,
     Pose,
     State,
+    Trajectory,
 )
 
 __all__ = [
@@ -401,6 +404,10 @@ class VehicleCore:
         for e in doc["edges"]:
             if e["actions"]:
                 return f"edge {e['edgeId']!r}: edge actions are not supported (put them on its start node)"
+            try:
+                _trajectory(e)
+            except (ValueError, TypeError) as exc:
+                return f"edge {e['edgeId']!r}: trajectory: {exc}"
         return None
 
     def _within_deviation(self, node: dict[str, Any]) -> tuple[float, float] | None:
@@ -544,6 +551,7 @@ class VehicleCore:
                 endNodeId=e["endNodeId"],
                 released=e["released"],
                 maxSpeed=None if e.get("maxSpeed") is None else min(5.0, max(0.01, float(e["maxSpeed"]))),
+                trajectory=_trajectory(e),
             )
             for e in edges
         ]
@@ -1159,6 +1167,28 @@ def _node_state(n: dict[str, Any]) -> dict[str, Any]:
     return d
 
 
+def _trajectory(edge: dict[str, Any]) -> Trajectory | None:
+    """A VDA 5050 edge's trajectory (NURBS) as fleetlink's, or None; ValueError with the reason when
+    the robot cannot drive it (sizes, knots, weights: ``Trajectory``'s checks; more control points
+    than the factsheet's ``maxArrayLens``)."""
+    t = edge.get("trajectory")
+    if t is None:
+        return None
+    points = t["controlPoints"]
+    if len(points) > MAX_TRAJECTORY_POINTS:
+        raise ValueError(f"{len(points)} control points; this vehicle takes {MAX_TRAJECTORY_POINTS}")
+    degree = t.get("degree", 1)
+    if isinstance(degree, float) and degree.is_integer():
+        degree = int(degree)  # the standard's text types it float64, its schema integer
+    return Trajectory(
+        degree=degree,
+        knotVector=tuple(float(k) for k in t["knotVector"]),
+        controlPoints=tuple(
+            ControlPoint(x=float(p["x"]), y=float(p["y"]), weight=float(p.get("weight", 1.0))) for p in points
+        ),
+    )
+
+
 def _edge_state(e: dict[str, Any]) -> dict[str, Any]:
     d: dict[str, Any] = {
         "edgeId": e["edgeId"],
@@ -1169,6 +1199,8 @@ def _edge_state(e: dict[str, Any]) -> dict[str, Any]:
     }
     if "maxSpeed" in e:
         d["maxSpeed"] = e["maxSpeed"]
+    if e.get("trajectory") is not None:  # kept for the robot, and echoed in edgeStates (section 6.10.6)
+        d["trajectory"] = e["trajectory"]
     return d
 
 
@@ -1205,7 +1237,7 @@ def factsheet_body(c: VehicleConfig) -> dict[str, Any]:
             "agvClass": "CARRIER",
             "maxLoadMass": 0,
             "localizationTypes": ["NATURAL"],
-            "navigationTypes": ["AUTONOMOUS"],
+            "navigationTypes": ["AUTONOMOUS", "VIRTUAL_LINE_GUIDED"],
         },
         "physicalParameters": {
             "speedMin": 0.0,
@@ -1225,6 +1257,8 @@ def factsheet_body(c: VehicleConfig) -> dict[str, Any]:
                 "edge.actions": 0,
                 "actions.actionsParameters": 8,
                 "instantActions": 16,
+                "trajectory.knotVector": MAX_TRAJECTORY_POINTS + nurbs.MAX_DEGREE + 1,
+                "trajectory.controlPoints": MAX_TRAJECTORY_POINTS,
             },
             "timing": {
                 "minOrderInterval": 0.1,
@@ -1248,6 +1282,12 @@ def factsheet_body(c: VehicleConfig) -> dict[str, Any]:
                     "elsewhere, up to 1 m, the nearest reachable place when the node itself cannot be reached",
                 },
                 {"parameter": "order.edges.maxSpeed", "support": "SUPPORTED"},
+                {
+                    "parameter": "order.edges.trajectory",
+                    "support": "SUPPORTED",
+                    "description": "followed from where the robot joins it (within 0.3 m); where the robot's "
+                    "own map has a wall on it, or the way is barred, the robot plans its own",
+                },
                 {"parameter": "state.agvPosition", "support": "SUPPORTED"},
                 {"parameter": "state.velocity", "support": "SUPPORTED"},
             ],
