@@ -80,8 +80,8 @@ __all__ = [
     "sized",
 ]
 
-WIRE_VERSION = "1.0.0"
-"""Version this code speaks, stamped into every header."""
+WIRE_VERSION = "1.1.0"
+"""Version this code speaks, stamped into every header (1.1.0: ``OrderEdge.trajectory``)."""
 
 SUPPORTED_MAJOR = 1
 """Decode accepts any ``1.x.y``; any other major version is rejected."""

@@ -287,6 +287,23 @@ def test_an_edges_trajectory_goes_to_the_robot_and_one_it_cannot_drive_is_refuse
     assert not any(isinstance(o, SendOrder) for o in outs)
     [err] = errors(rig)
     assert "trajectory: knotVector has 7 values" in err["errorDescription"]
+    # A control point off the site: refused here, not an order that cannot be sent.
+    rig = Rig()
+    rig.state()
+    far = edge("n0", "n1", 1)
+    far["trajectory"] = {
+        "degree": 1,
+        "knotVector": [0, 0, 1, 1],
+        "controlPoints": [{"x": 0, "y": 0}, {"x": 2e5, "y": 0}],
+    }
+    outs = rig.send("order", order("o3", 0, nodes, [far]))
+    assert not any(isinstance(o, SendOrder) for o in outs)
+    assert "controlPoints[1] out of range" in errors(rig)[0]["errorDescription"]
+    # The trajectory an order came with is echoed in its edge state.
+    rig = Rig()
+    rig.state()
+    rig.send("order", order("o4", 0, nodes, [bend]))
+    assert rig.last_state()["edgeStates"][0]["trajectory"] == bend["trajectory"]
 
 
 def test_an_update_is_stitched_at_the_decision_point_and_older_updates_are_refused() -> None:

@@ -809,7 +809,7 @@ def test_header_counter_counts_per_topic() -> None:
     assert counter.header("state").headerId == 0
     clock.advance(0.5)
     h = counter.header("board")
-    assert h == Header(headerId=3, timestamp=clock.wall(), version="1.0.0", robot="r1", sender="agent-r1")
+    assert h == Header(headerId=3, timestamp=clock.wall(), version=wire.WIRE_VERSION, robot="r1", sender="agent-r1")
     assert counter.header("board", robot="r2").headerId == 0
     assert counter.peek("board") == 4 and counter.peek("board", robot="r2") == 1
 

@@ -30,6 +30,7 @@ from typing import Any, Protocol
 
 from fleetlink.shared import nurbs, wire
 from fleetlink.shared.messages import (
+    MAX_COORDINATE_M,
     MAX_TRAJECTORY_POINTS,
     Ack,
     AckResult,
@@ -1177,6 +1178,10 @@ def _trajectory(edge: dict[str, Any]) -> Trajectory | None:
     points = t["controlPoints"]
     if len(points) > MAX_TRAJECTORY_POINTS:
         raise ValueError(f"{len(points)} control points; this vehicle takes {MAX_TRAJECTORY_POINTS}")
+    for i, p in enumerate(points):
+        coords = (float(p["x"]), float(p["y"]))
+        if not all(abs(v) <= MAX_COORDINATE_M for v in coords) or not float(p.get("weight", 1.0)) <= 1.0e6:
+            raise ValueError(f"controlPoints[{i}] out of range (|x|, |y| <= {MAX_COORDINATE_M:g} m, weight <= 1e6)")
     degree = t.get("degree", 1)
     if isinstance(degree, float) and degree.is_integer():
         degree = int(degree)  # the standard's text types it float64, its schema integer
