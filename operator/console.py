@@ -1292,6 +1292,7 @@ class ConsoleApp(App[None]):
             return False
         starts: dict[str, tuple[float, float]] = {}
         grids = []
+        trails: list[tuple[tuple[float, float], ...]] = []
         problem = ""
         with self.lock:
             target = self.target_for(robots) if command.target_mj_cm2 is None else j_m2(command.target_mj_cm2)
@@ -1311,6 +1312,7 @@ class ConsoleApp(App[None]):
                 starts[robot] = (view.pose[0], view.pose[1])
                 if robot in self.fleet.grids:
                     grids.append(self.fleet.grids[robot])
+                    trails.append(tuple(view.trail))  # its body, where another's map saw it, is no wall
         request = RoundRequest(
             "uv" if command.kind == "uv" else "sweep", command.area, robots, target, surveys, looked_from
         )
@@ -1334,7 +1336,7 @@ class ConsoleApp(App[None]):
         def plan() -> None:  # in a worker thread: only the message goes back to the app
             result: RoundPlan | str
             try:
-                cells, resolution, origin = floor_of(grids)
+                cells, resolution, origin = floor_of(grids, trails)
                 result = planner(request, cells, resolution, origin, starts, lamp, ids, prior)
             except ValueError as exc:  # RoundError, or the planner's own reasons
                 result = str(exc)

@@ -30,6 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from fleetlink.shared.dose import DEFAULT_TARGET_J_M2, J_M2_PER_MJ_CM2, DoseGrid, Lamp
+from fleetlink.shared.geometry import components
 from fleetlink.shared.keys import is_valid_id
 from fleetlink.shared.messages import MAX_COORDINATE_M, MAX_ZONE_VERTICES
 
@@ -55,6 +56,7 @@ __all__ = [
     "describe_time",
     "floor_of",
     "mj_cm2",
+    "robots_off",
 ]
 
 Point = tuple[float, float]
@@ -310,7 +312,9 @@ class RoundIds:
 # -- the map ------------------------------------------------------------------------------------
 
 
-def floor_of(grids: Sequence[Grid]) -> tuple[npt.NDArray[np.int8], float, Point]:
+def floor_of(
+    grids: Sequence[Grid], trails: Sequence[Sequence[Point]] | None = None
+) -> tuple[npt.NDArray[np.int8], float, Point]:
     """The maps ``grids`` (drawable: 0 free, 100 occupied, 255 unknown) as one map of int8 cells
     (-1 unknown, 0 free, 100 occupied), its resolution and origin. Several maps that share a
     resolution and a lattice (the onboard maps do: cells on multiples of the resolution) are merged
@@ -319,7 +323,11 @@ def floor_of(grids: Sequence[Grid]) -> tuple[npt.NDArray[np.int8], float, Point]
     maps agree on a wall only to within their alignment (a few centimetres), so where both know a
     cell, "occupied wins" drew every wall and table as thick as both copies: planned on that, room-1's
     round needed 888 s of dwell for one robot, against 704 s on one robot's own map. Maps on another
-    lattice are left out. RoundError without any."""
+    lattice are left out. RoundError without any.
+
+    ``trails``: where the robot whose map is ``grids[i]`` has driven lately (the console's trail of
+    it), one for each map: what another robot's map holds of its body there is taken off
+    (``robots_off``)."""
     if not grids:
         raise RoundError("no map from the round's robots yet (the console shows each robot's map as it arrives)")
     first = grids[0]
@@ -343,7 +351,51 @@ def floor_of(grids: Sequence[Grid]) -> tuple[npt.NDArray[np.int8], float, Point]
         unknown = window == -1
         window[unknown & (cells == 100)] = 100
         window[unknown & (cells == 0)] = 0
+    if trails is not None:
+        for g, trail in zip(grids, trails, strict=True):
+            if any(g is s for s in same):
+                robots_off(out, res, (xs0, ys0), g, trail)
     return out, float(res), (float(xs0), float(ys0))
+
+
+BODY_REACH_M = 0.25
+"""How far from a robot's centre another robot's lidar maps its body: its radius (0.17 m) and the
+cells the hits fall in (up to 0.035 m further), with both robots' pose errors (a few cm)."""
+
+
+def robots_off(cells: npt.NDArray[np.int8], resolution: float, origin: Point, own: Grid, trail: Sequence[Point]) -> int:
+    """Take a robot's body off a merged map (``cells``, in place): every blob of wall (8-connected
+    occupied cells) that lies wholly within ``BODY_REACH_M`` of a point of its ``trail`` and that its
+    own map (``own``) does not hold as wall. A robot's lidar maps another robot it sees like
+    furniture, an arc of cells round where that robot was, and keeps it until it looks there again;
+    the robot itself never sees its own body. Planned on, such an arc casts a shadow that needs
+    dwell and bars the way (the kitchen's two-robot round, docs/payload.md). What stays: a wall or
+    anything joined to one (the blob is larger than a body), and anything the robot's own lidar
+    saw there (a chair leg it passed beside is in its own map). Returns the cells freed."""
+    pts = np.array([p for p in trail if math.isfinite(p[0]) and math.isfinite(p[1])], dtype=np.float64)
+    if pts.size == 0:
+        return 0
+    ox, oy, ores, ow, oh, data = own
+    mine = np.frombuffer(data, dtype=np.uint8).reshape(oh, ow)
+    span = int(2 * BODY_REACH_M / resolution) + 1
+    freed = 0
+    for blob in components(cells == 100):
+        rows, cols = blob[:, 0], blob[:, 1]
+        if int(np.ptp(rows)) + 1 > span or int(np.ptp(cols)) + 1 > span:
+            continue
+        xs = origin[0] + (cols + 0.5) * resolution
+        ys = origin[1] + (rows + 0.5) * resolution
+        d2 = (xs[:, None] - pts[None, :, 0]) ** 2 + (ys[:, None] - pts[None, :, 1]) ** 2
+        if not bool((d2.min(axis=1) <= BODY_REACH_M**2).all()):
+            continue
+        mc = np.floor((xs - ox) / ores).astype(np.intp)
+        mr = np.floor((ys - oy) / ores).astype(np.intp)
+        inside = (mc >= 0) & (mc < ow) & (mr >= 0) & (mr < oh)
+        if bool((mine[mr[inside], mc[inside]] == 100).any()):
+            continue
+        cells[rows, cols] = 0
+        freed += int(rows.size)
+    return freed
 
 
 def _on_lattice(g: Grid, first: Grid) -> bool:

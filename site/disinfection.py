@@ -35,6 +35,7 @@ import dataclasses
 import math
 import re
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -45,6 +46,7 @@ from fleetlink.agent.dose_share import fetch_dose
 from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.field.plans import FloorPlan, load_plan
 from fleetlink.field.scenario import LidarSettings, RobotSpec, Scenario
+from fleetlink.operator.fleet import TRAIL_MIN_STEP_M, TRAIL_POINTS
 from fleetlink.operator.maps import to_grid
 from fleetlink.operator.rounds import MAX_SURVEYS, RectArea, RoundError, RoundRequest, floor_of
 from fleetlink.shared import wire
@@ -200,6 +202,8 @@ class _Crew:
     stuck: int = 0
     """Bumps since the order last got on (``MAX_HAZARD_RESUMES``)."""
     progress_at_bump: tuple[str, int] | None = None
+    trail: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=TRAIL_POINTS))
+    """Its fused positions as the console's trail keeps them (the planner's ``trails``)."""
 
 
 class RoundRun:
@@ -296,6 +300,12 @@ class RoundRun:
             self._planned = self._plan_and_send(t) or t >= PLAN_AT_S + PLAN_RETRY_S
             self._plan_at = t + 2.0
         self._read(t)
+        for name, crew in self.crews.items():
+            pose = self.op.poses.get(name)
+            if isinstance(pose, Pose) and (
+                not crew.trail or math.dist(crew.trail[-1], (pose.x, pose.y)) >= TRAIL_MIN_STEP_M
+            ):
+                crew.trail.append((pose.x, pose.y))
         if t >= self._next_sample:
             self._next_sample = t + SAMPLE_S
             self._sample()
@@ -362,7 +372,7 @@ class RoundRun:
                 self.notes.append(f"t={t:.1f}: {name} has no map to plan on")
                 return False
             grids.append(to_grid(SharedMap.from_snapshot(snap)))  # as the console keeps and merges them
-        cells, res, origin = floor_of(grids)
+        cells, res, origin = floor_of(grids, [tuple(self.crews[n].trail) for n in names])
         starts = {}
         for name in names:
             pose = self.op.poses.get(name)

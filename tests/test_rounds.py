@@ -24,6 +24,7 @@ from fleetlink.operator.rounds import (
     check_request,
     describe_time,
     floor_of,
+    robots_off,
 )
 from fleetlink.shared import wire
 from fleetlink.shared.clock import SimClock
@@ -204,6 +205,53 @@ def test_maps_are_merged_as_the_console_draws_them() -> None:
     assert origin2 == (0.0, 0.0) and cells2.shape == (3, 4) and cells2[2].tolist() == [-1, -1, -1, -1]
     with pytest.raises(RoundError, match="no map"):
         floor_of([])
+
+
+def room_map(res: float = 0.05) -> np.ndarray:
+    """A 3 x 2 m room at 5 cm (drawable cells: 0 free, 100 wall), walls one cell thick."""
+    cells = np.zeros((40, 60), dtype=np.uint8)
+    cells[0, :] = cells[-1, :] = cells[:, 0] = cells[:, -1] = 100
+    return cells
+
+
+def at(res: float, x: float, y: float) -> tuple[int, int]:
+    return int(y / res), int(x / res)
+
+
+def test_another_robots_body_on_a_map_is_taken_off_where_that_robot_drove() -> None:
+    """r2's map holds an arc where r1 drove past it (r1 never sees itself); r1's own map has the
+    floor there. Merged with r1's trail, the arc is floor; the walls and a chair leg r1 saw stay."""
+    res = 0.05
+    mine = room_map()  # r1's own map: the room, a chair leg at (2.5, 1.2) it drove past
+    mine[at(res, 2.5, 1.2)] = 100
+    theirs = room_map()  # r2's: the same, and r1's body as r2 saw it at (1.0, 1.0)
+    theirs[at(res, 2.5, 1.2)] = 100
+    for a in np.linspace(-0.8, 0.8, 7):
+        theirs[at(res, 1.0 + 0.17 * math.cos(math.pi + a), 1.0 + 0.17 * math.sin(math.pi + a))] = 100
+    arc = int(np.count_nonzero(theirs == 100) - np.count_nonzero(mine == 100))
+    assert arc >= 4
+    trail = [(0.4 + 0.05 * k, 1.0) for k in range(50)]  # r1 drove along y = 1 from x = 0.4 to 2.85
+    g_mine = (0.0, 0.0, res, 60, 40, mine.tobytes())
+    g_theirs = (0.0, 0.0, res, 60, 40, theirs.tobytes())
+    # r2's map knows as much as r1's: in charge on a tie if first.
+    cells, _, _ = floor_of([g_theirs, g_mine], [(), trail])
+    assert cells[at(res, 0.83, 1.0)] == 0 and np.count_nonzero(cells == 100) == np.count_nonzero(mine == 100)
+    assert cells[at(res, 2.5, 1.2)] == 100  # r1 saw the chair leg itself: not its body
+    assert cells[0, 30] == 100 and cells[20, 0] == 100  # walls r1 drove beside are joined to more
+    # Without the trail (or with r2's, who stood elsewhere) the arc stays.
+    cells, _, _ = floor_of([g_theirs, g_mine])
+    assert np.count_nonzero(cells == 100) == np.count_nonzero(theirs == 100)
+    cells, _, _ = floor_of([g_theirs, g_mine], [[(2.0, 0.5)], ()])
+    assert np.count_nonzero(cells == 100) == np.count_nonzero(theirs == 100)
+    # Beyond a body's reach of the trail: not r1.
+    far = [(x, y - 0.4) for x, y in trail]
+    cells, _, _ = floor_of([g_theirs, g_mine], [(), far])
+    assert np.count_nonzero(cells == 100) == np.count_nonzero(theirs == 100)
+    # The count of freed cells, and nothing freed on the map of the robot itself.
+    merged = np.where(theirs == 100, 100, 0).astype(np.int8)
+    assert robots_off(merged, res, (0.0, 0.0), g_mine, trail) == arc
+    again = np.where(theirs == 100, 100, 0).astype(np.int8)
+    assert robots_off(again, res, (0.0, 0.0), g_theirs, trail) == 0  # its own map holds the arc: seen, kept
 
 
 def test_the_map_that_knows_most_is_in_charge_where_maps_disagree() -> None:
