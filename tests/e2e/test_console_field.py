@@ -2,14 +2,14 @@
 
 ``fleetlink field --console on`` starts the demo field (simulated boards on TCP), an embedded
 mosquitto, an agent per robot and the console. The test types into the terminal like a person:
-the fleet table shows UWB ok (the UWB
-simulator runs in the field); hold ``i`` and the selected robot's position on screen moves; type a
-goal and it arrives; mark a casualty where it stands (M, a label, Enter); latch its e-stop (E) and
-the drive keys do nothing; release it (R, y); press h and it returns to within 0.2 m of where it
-started; start a UV round of a small square around it (``:disinfect rect ... dose 1``), see its
-progress in the detail, e-stop it (the lamp off at once, the round held), release, ``:resume``:
-the round finishes and the dose layer (``:dose`` over the square) has the target; quit with ctrl+q and the process
-ends.
+the fleet table shows UWB ok (the UWB simulator runs in the field); hold ``i`` and the selected
+robot's position on screen moves; type a goal and it arrives; a goal inside a wall has it stand,
+say it waits for a way, then give the goal up; mark a casualty where it stands (M, a label,
+Enter); latch its e-stop (E) and the drive keys do nothing; release it (R, y); press h and it
+returns to within 0.2 m of where it started; start a UV round of a small square around it
+(``:disinfect rect ... dose 1``), see its progress in the detail, e-stop it (the lamp off at once,
+the round held), release, ``:resume``: the round finishes and the dose layer (``:dose`` over the
+square) has the target; quit with ctrl+q and the process ends.
 """
 
 from __future__ import annotations
@@ -121,6 +121,23 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
             timeout=90,
             message=f"uvc-1 arriving at the goal ({gx}, {gy})",
         )
+        # A goal inside the wall south of it: no path on its map. The robot stands and says it waits
+        # for the way to clear (another robot in a doorway moves on), then gives the goal up.
+        last[0] = None
+        wait_until(still, timeout=30, interval=0.25, message="uvc-1 standing at the goal")
+        arrived = pose(session)
+        assert arrived is not None
+        tmux("send-keys", "-t", session, ":")
+        tmux("send-keys", "-t", session, "-l", f"goal {arrived[0]:.2f} -0.02")
+        tmux("send-keys", "-t", session, "Enter")
+        wait_until(
+            lambda: "no path to" in (shown := screen(session)) and "waiting up to 6 s" in shown,
+            timeout=20,
+            message="uvc-1 waiting for a way to a goal in a wall",
+        )
+        wait_until(lambda: "(waited 6 s)" in screen(session), timeout=30, message="uvc-1 giving the goal up")
+        after_wait = pose(session)
+        assert after_wait is not None and math.dist(after_wait, arrived) < 0.05, (arrived, after_wait)
         # Mark a casualty where the robot stands: M asks for the kind (casualty first) and a label.
         tmux("send-keys", "-t", session, "M")
         wait_until(lambda: "label (Enter" in screen(session), timeout=10, message="the mark dialog")
