@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Sequence
 from dataclasses import dataclass
 
+from fleetlink.shared.geometry import simplify
 from fleetlink.shared.messages import CommsPolicy
 
-__all__ = ["DEFAULT_TIMEOUT_S", "ContactKeeper", "Lost", "Regained", "simplify"]
+__all__ = ["DEFAULT_TIMEOUT_S", "ContactKeeper", "Lost", "Regained"]
 
 DEFAULT_TIMEOUT_S = 6.0
 """Silence after which a held robot counts as out of contact: three missed lease renewals (every
@@ -168,29 +168,3 @@ class ContactKeeper:
         if self._heard_pose is not None and new <= len(trail):
             pts.append(self._heard_pose)
         return tuple(simplify(pts, 0.05))
-
-
-def simplify(points: Sequence[Point], tolerance_m: float) -> list[Point]:
-    """Ramer-Douglas-Peucker: the fewest points whose polyline stays within ``tolerance_m`` of
-    ``points`` (the first and last kept)."""
-    if len(points) < 3:
-        return list(points)
-    keep = [False] * len(points)
-    keep[0] = keep[-1] = True
-    stack = [(0, len(points) - 1)]
-    while stack:
-        i, j = stack.pop()
-        (ax, ay), (bx, by) = points[i], points[j]
-        dx, dy = bx - ax, by - ay
-        norm = math.hypot(dx, dy)
-        worst, at = -1.0, -1
-        for k in range(i + 1, j):
-            px, py = points[k]
-            d = abs(dx * (ay - py) - dy * (ax - px)) / norm if norm > 0 else math.hypot(px - ax, py - ay)
-            if d > worst:
-                worst, at = d, k
-        if worst > tolerance_m:
-            keep[at] = True
-            stack.append((i, at))
-            stack.append((at, j))
-    return [p for p, k in zip(points, keep, strict=True) if k]

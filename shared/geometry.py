@@ -22,6 +22,7 @@ __all__ = [
     "point_segment_distance",
     "points_in_polygon",
     "polygon_distance",
+    "simplify",
 ]
 
 Point = tuple[float, float]
@@ -114,3 +115,29 @@ def components(mask: npt.NDArray[np.bool_]) -> list[npt.NDArray[np.intp]]:
         cols = np.concatenate([np.arange(runs[k][1], runs[k][2] + 1, dtype=np.intp) for k in ks])
         out.append(np.column_stack((rows, cols)))
     return out
+
+
+def simplify(points: Sequence[Point], tolerance_m: float) -> list[Point]:
+    """Ramer-Douglas-Peucker: the fewest points whose polyline stays within ``tolerance_m`` of
+    ``points`` (the first and last kept)."""
+    if len(points) < 3:
+        return list(points)
+    keep = [False] * len(points)
+    keep[0] = keep[-1] = True
+    stack = [(0, len(points) - 1)]
+    while stack:
+        i, j = stack.pop()
+        (ax, ay), (bx, by) = points[i], points[j]
+        dx, dy = bx - ax, by - ay
+        norm = math.hypot(dx, dy)
+        worst, at = -1.0, -1
+        for k in range(i + 1, j):
+            px, py = points[k]
+            d = abs(dx * (ay - py) - dy * (ax - px)) / norm if norm > 0 else math.hypot(px - ax, py - ay)
+            if d > worst:
+                worst, at = d, k
+        if worst > tolerance_m:
+            keep[at] = True
+            stack.append((i, at))
+            stack.append((at, j))
+    return [p for p, k in zip(points, keep, strict=True) if k]

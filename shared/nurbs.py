@@ -18,6 +18,8 @@ import math
 from collections.abc import Sequence
 from itertools import pairwise
 
+from fleetlink.shared.geometry import simplify
+
 __all__ = ["MAX_DEGREE", "MAX_SAMPLES", "Point", "check", "polyline_knots", "waypoints"]
 
 Point = tuple[float, float]
@@ -102,7 +104,7 @@ def waypoints(degree: int, knots: Sequence[float], points: Sequence[Point], weig
                 pts.append(_point(degree, knots, points, weights, i, knots[i] + (knots[i + 1] - knots[i]) * j / per))
         last = spans[-1]
         pts.append(_point(degree, knots, points, weights, last, knots[last + 1]))
-        pts = _thin(pts, TOLERANCE_M)
+        pts = simplify(pts, TOLERANCE_M)
     out: list[Point] = []
     for p in pts:
         if not out or math.dist(out[-1], p) > 1e-9:
@@ -128,28 +130,3 @@ def _point(
     if not w > 0.0:
         raise ValueError(f"the curve's weight is 0 at u = {u:g}: undefined there")
     return (x / w, y / w)
-
-
-def _thin(pts: list[Point], tol: float) -> list[Point]:
-    """Douglas-Peucker: the fewest of ``pts`` (first and last kept) with every dropped point within
-    ``tol`` of the legs kept (iterative: no recursion limit on long curves)."""
-    keep = [False] * len(pts)
-    keep[0] = keep[-1] = True
-    stack = [(0, len(pts) - 1)]
-    while stack:
-        a, b = stack.pop()
-        (ax, ay), (bx, by) = pts[a], pts[b]
-        length = math.hypot(bx - ax, by - ay)
-        worst, at = -1.0, -1
-        for i in range(a + 1, b):
-            px, py = pts[i]
-            if length > 0.0:
-                dist = abs((bx - ax) * (ay - py) - (ax - px) * (by - ay)) / length
-            else:
-                dist = math.hypot(px - ax, py - ay)
-            if dist > worst:
-                worst, at = dist, i
-        if at >= 0 and worst > tol:
-            keep[at] = True
-            stack += [(a, at), (at, b)]
-    return [p for p, k in zip(pts, keep, strict=True) if k]

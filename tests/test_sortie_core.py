@@ -8,12 +8,13 @@ from typing import Any
 
 import pytest
 
-from fleetlink.agent.contact import ContactKeeper, simplify
+from fleetlink.agent.contact import ContactKeeper
 from fleetlink.agent.core import AgentCore, BoardView, Output
 from fleetlink.agent.home import HomeKeeper
 from fleetlink.agent.pilot import Pilot, PilotState
 from fleetlink.shared import wire
 from fleetlink.shared.clock import SimClock
+from fleetlink.shared.geometry import simplify
 from fleetlink.shared.messages import (
     Ack,
     AckResult,

@@ -62,6 +62,13 @@ def screen(session: str) -> str:
     return tmux("capture-pane", "-t", session, "-p")
 
 
+def command(session: str, text: str) -> None:
+    """Type ``:`` and a console command, then Enter."""
+    tmux("send-keys", "-t", session, ":")
+    tmux("send-keys", "-t", session, "-l", text)
+    tmux("send-keys", "-t", session, "Enter")
+
+
 def pose(session: str, shown: str | None = None) -> tuple[float, float] | None:
     m = POSE.search(screen(session) if shown is None else shown)
     return (float(m.group(2)), float(m.group(3))) if m else None
@@ -113,9 +120,7 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
         assert moved is not None
         # A typed goal half a metre further on; it must arrive (position on screen near it).
         gx, gy = round(moved[0] + 0.5, 2), round(moved[1], 2)
-        tmux("send-keys", "-t", session, ":")
-        tmux("send-keys", "-t", session, "-l", f"goal {gx} {gy}")
-        tmux("send-keys", "-t", session, "Enter")
+        command(session, f"goal {gx} {gy}")
         wait_until(
             lambda: (p := pose(session)) is not None and math.dist(p, (gx, gy)) < 0.2,
             timeout=90,
@@ -127,9 +132,7 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
         wait_until(still, timeout=30, interval=0.25, message="uvc-1 standing at the goal")
         arrived = pose(session)
         assert arrived is not None
-        tmux("send-keys", "-t", session, ":")
-        tmux("send-keys", "-t", session, "-l", f"goal {arrived[0]:.2f} -0.02")
-        tmux("send-keys", "-t", session, "Enter")
+        command(session, f"goal {arrived[0]:.2f} -0.02")
         wait_until(
             lambda: "no path to" in (shown := screen(session)) and "waiting up to 6 s" in shown,
             timeout=20,
@@ -201,10 +204,8 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
         here = pose(session)
         assert here is not None
         x, y = here
-        tmux("send-keys", "-t", session, ":")
         area = f"rect {x - 0.6:.2f} {y - 0.6:.2f} {x + 0.6:.2f} {y + 0.6:.2f}"
-        tmux("send-keys", "-t", session, "-l", f"disinfect {area} dose {ROUND_DOSE}")
-        tmux("send-keys", "-t", session, "Enter")
+        command(session, f"disinfect {area} dose {ROUND_DOSE}")
         wait_until(
             lambda: ROUND.search(screen(session)) is not None,
             timeout=60,
@@ -224,9 +225,7 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
         wait_until(lambda: "Release the e-stop" in screen(session), timeout=10, message="the release confirmation")
         tmux("send-keys", "-t", session, "y")
         wait_until(lambda: "E-STOP" not in screen(session), timeout=10, message="uvc-1's e-stop released")
-        tmux("send-keys", "-t", session, ":")
-        tmux("send-keys", "-t", session, "-l", "resume")
-        tmux("send-keys", "-t", session, "Enter")
+        command(session, "resume")
         wait_until(
             lambda: ROUND.search(shown := screen(session)) is None and "finished:" in shown and "lamp off" in shown,
             timeout=180,
@@ -234,12 +233,10 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
             message="uvc-1's round resumed and finished, its lamp off",
         )
         # The dose layer filled where the round stood: the console's summary says how much is at the dose.
-        tmux("send-keys", "-t", session, ":")
         # Judged at the round's own dose (ROUND_DOSE): the layer has it over nearly all the square
         # (the round plans for 99.5 % of the floor its lamp reaches; the agent measures at its fused pose).
         square = f"{x - 0.6:.2f} {y - 0.6:.2f} {x + 0.6:.2f} {y + 0.6:.2f}"
-        tmux("send-keys", "-t", session, "-l", f"dose {square} target {ROUND_DOSE}")
-        tmux("send-keys", "-t", session, "Enter")
+        command(session, f"dose {square} target {ROUND_DOSE}")
         at_target = re.compile(r"at or above target: (\d+\.\d+) m² \((\d+\.\d+) %\)")
         wait_until(
             lambda: (m := at_target.search(screen(session))) is not None and float(m.group(2)) >= 90.0,
