@@ -168,6 +168,42 @@ def test_two_robots_share_the_dwell_points_and_finish_in_under_0_6x(name: str) -
     assert cv.coverage(dose, c.area, TARGET) >= 0.99
 
 
+def test_a_survey_split_weighs_the_driving_in_all_and_sends_no_robot_past_the_other() -> None:
+    """Room-8 at seed 17 (docs/payload.md): a 5.5 x 9 m room with desks across its north part, one
+    robot west of them, one behind their east end, three views. For the makespan alone the west
+    robot takes the east view and the east robot the far south-west one: a second sooner, and the
+    two cross the room past each other. With the driving in all weighed in, the east robot takes
+    both views on its side and the west one the view beside it."""
+    free, org = _box(5.5, 9.0, RES)
+    _fill(free, org, 1.0, 6.5, 4.5, 7.3, False, RES)  # the desks
+    fm = cv.FloorMap(free, RES, org, cv.CoverageConfig())
+    west, east = (0.42, 7.32), (4.4, 7.82)
+    views = [(1.12, 8.33), (4.23, 5.73), (0.62, 2.12)]
+    look = cv._uv_plan(
+        fm,
+        "survey",
+        west,
+        [(fm.plan_cell(v), 1.0) for v in views],
+        0.0,
+        coverage=1.0,
+        area_m2=0.0,
+        unlit_m2=0.0,
+        robot="",
+    )
+
+    north, near_east, far_south = ((x, y) for x, y, _ in look.dwell_points)
+
+    def shares(fleet: cv.FleetPlan) -> list[set[tuple[float, float]]]:
+        return [{(x, y) for x, y, _ in p.dwell_points} for p in fleet.plans]
+
+    fast = cv.split_plan(fm, look, [west, east], ["w", "e"])
+    calm = cv.split_plan(fm, look, [west, east], ["w", "e"], total_weight=0.5)
+    assert shares(fast) == [{north, near_east}, {far_south}]  # the two cross the room past each other
+    assert shares(calm) == [{north}, {near_east, far_south}]
+    total = [sum(p.predicted.total_s for p in f.plans) for f in (fast, calm)]
+    assert total[1] < total[0] and calm.makespan_s <= fast.makespan_s * 1.2
+
+
 def test_a_single_robot_split_is_the_plan() -> None:
     c = case("l_shape")
     fleet = cv.split_plan(c.fm, c.plan, [START])
