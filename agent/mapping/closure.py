@@ -129,6 +129,10 @@ class CloserConfig:
     # A final-pass match that fails only ``min_weak`` (a corridor: its strong direction passes) is kept
     # as a partial edge: sd ``final_partial_sigma`` along its weak direction, the usual across (0: off).
     final_partial_sigma: float = 0.5  # m
+    # A final-pass match more than this (m) from the closed graph's guess is kept only if the guess is
+    # not a match of its own (refined from there, it passes the gates at least this far from the first
+    # answer): two answers in one window are a look-alike, not a correction (intel's doors; 0: off).
+    final_ambiguity_jump: float = 0.1
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
     # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
@@ -214,13 +218,14 @@ class Check:
     confirms: Closure | None = None  # a pending closure this check may confirm (else a fresh search)
     owner: object = field(default=None, compare=False)  # the closer that planned it (``take`` ignores others')
     partial: bool = False  # a match ill-posed along one direction only is kept as a partial closure
+    unique: bool = False  # a match away from the guess is refused when the guess is a match too
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class CheckResult:
     check: Check
     closure: Closure | None
-    outcome: str  # "accepted", "few points", "score", "inliers", "disagreement", "degenerate"
+    outcome: str  # "accepted", "few points", "score", "inliers", "disagreement", "degenerate", "ambiguous"
     drawn: Drawn | None  # the submap as drawn for the check (None: not drawn, too few points)
 
 
@@ -246,6 +251,7 @@ class CloserStats:
     solves: int = 0
     submaps_drawn: int = 0  # drawings (a submap let go and needed again is drawn again)
     final_edges: int = 0  # matches the final pass (``finish``) verified
+    final_ambiguous: int = 0  # ... and not kept: the graph's guess matched as well (``final_ambiguity_jump``)
 
 
 class ClosureSearch(Protocol):
@@ -467,6 +473,8 @@ class LoopCloser:
             st.rejected_disagreement += 1
         elif r.outcome == "degenerate":
             st.rejected_degenerate += 1
+        elif r.outcome == "ambiguous":
+            st.final_ambiguous += 1
         return r.closure
 
     def _classify(self, c: Closure | None, found: list[Closure]) -> None:
@@ -656,7 +664,7 @@ class LoopCloser:
         ``partial``: a match ill-posed along one direction only is kept as a partial closure."""
         check = self._check(k, sm, fix, window)
         if partial:
-            check = replace(check, partial=True)
+            check = replace(check, partial=True, unique=self.config.final_ambiguity_jump > 0)
         return self._note(run_check(self._with_drawn(check)), attempt=False)
 
     def _with_drawn(self, check: Check) -> Check:
@@ -819,6 +827,15 @@ def run_check(check: Check) -> CheckResult:
         weak_dir = degenerate_direction(r.information, 0.0, cfg.min_weak, cfg.min_weak) if check.partial else None
         if weak_dir is None:
             return CheckResult(check, None, "degenerate", drawn)
+    if check.unique and weak_dir is None and math.hypot(r.pose[0] - check.guess[0], r.pose[1] - check.guess[1]) > cfg.final_ambiguity_jump:
+        near, near_score = _refine(grid, sc.match_points, check.guess)
+        if near_score >= cfg.min_score:
+            q = icp_refine(local, sc.points, near, near, (1.0, 1.0), 0.03, 0.15, iterations=12)
+            if (
+                math.hypot(q.pose[0] - r.pose[0], q.pose[1] - r.pose[1]) > cfg.final_ambiguity_jump
+                and _inlier_ratio(local, sc.points, q.pose, cfg.inlier_distance) >= cfg.min_inlier_ratio
+            ):
+                return CheckResult(check, None, "ambiguous", drawn)
     robot = compose(r.pose, inverse(check.mount))
     score = field_score(grid, sc.match_points, r.pose)
     closure = Closure(check.node, check.anchor, robot, score, ratio, weak_dir)
