@@ -121,6 +121,10 @@ class CloserConfig:
     # a submap mapped facing the other way, which the ranking by view leaves out, though a node passing
     # back down a corridor sees the same walls beside it (aces' worst revisits were such pairs).
     final_any_heading: int = 2
+    # Not matched against a submap that starts or ends within this many nodes of the node: the node next
+    # to a submap's first node measured against that submap is mostly their step again, the odometry
+    # edge's own measurement, and held at the closure's sd it overrides a step held loosely down a corridor.
+    final_min_gap_nodes: int = 1
     final_window_xy: float = 0.3  # m
     final_window_theta: float = math.radians(4.0)
     final_sigma_xy: float = 0.03  # m
@@ -703,7 +707,8 @@ class LoopCloser:
                 # Per submap, the node that saw most nearly what this one sees (as for candidates).
                 rank = np.minimum.reduceat(d + VIEW_LEVER_M * turn, bounds, axis=1)
                 ks = np.arange(k0, k0 + len(rows))
-                own = (ks[:, None] >= starts[None, :]) & (ks[:, None] < ends[None, :])
+                gap = cfg.final_min_gap_nodes
+                own = (ks[:, None] >= starts[None, :] - gap) & (ks[:, None] < ends[None, :] + gap)  # or a neighbour
                 rank[own] = np.inf  # not its own
                 dist = np.minimum.reduceat(d, bounds, axis=1)  # and by distance alone, whichever way it faced
                 dist[own] = np.inf
