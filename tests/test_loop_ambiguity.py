@@ -48,8 +48,21 @@ def _check(scan: NodeScan, ghost: tuple[float, float], config: CloserConfig) -> 
     room twice: as seen from the guess, and again ``ghost`` away (a look-alike within the window)."""
     parts = (((0.0, 0.0, 0.0), scan), ((ghost[0], ghost[1], 0.0), scan))
     window = (config.final_window_xy, config.final_window_theta)
-    return Check(1, 0, 0, scan, (0.0, 0.0, 0.0), window, None, parts, config, GridConfig(), (0.0, 0.0, 0.0),
-                 partial=True, unique=config.final_ambiguity_jump > 0)
+    return Check(
+        1,
+        0,
+        0,
+        scan,
+        (0.0, 0.0, 0.0),
+        window,
+        None,
+        parts,
+        config,
+        GridConfig(),
+        (0.0, 0.0, 0.0),
+        partial=True,
+        unique=config.final_ambiguity_jump > 0,
+    )
 
 
 def test_a_match_away_from_the_guess_is_refused_when_the_guess_matches_too() -> None:
@@ -76,8 +89,21 @@ def test_a_correction_is_kept_when_the_guess_does_not_match() -> None:
     scan = _node_scan()
     config = CloserConfig()
     parts = (((0.25, 0.0, 0.0), scan), ((0.25, 0.0, 0.0), scan))
-    check = Check(1, 0, 0, scan, (0.0, 0.0, 0.0), (0.3, math.radians(4.0)), None, parts, config, GridConfig(),
-                  (0.0, 0.0, 0.0), partial=True, unique=True)
+    check = Check(
+        1,
+        0,
+        0,
+        scan,
+        (0.0, 0.0, 0.0),
+        (0.3, math.radians(4.0)),
+        None,
+        parts,
+        config,
+        GridConfig(),
+        (0.0, 0.0, 0.0),
+        partial=True,
+        unique=True,
+    )
     res = run_check(check)
     assert res.closure is not None, res.outcome
     assert abs(res.closure.z[0] - 0.25) < 0.03 and abs(res.closure.z[1]) < 0.03

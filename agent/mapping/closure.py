@@ -832,7 +832,11 @@ def run_check(check: Check) -> CheckResult:
         weak_dir = degenerate_direction(r.information, 0.0, cfg.min_weak, cfg.min_weak) if check.partial else None
         if weak_dir is None:
             return CheckResult(check, None, "degenerate", drawn)
-    if check.unique and weak_dir is None and math.hypot(r.pose[0] - check.guess[0], r.pose[1] - check.guess[1]) > cfg.final_ambiguity_jump:
+    if (
+        check.unique
+        and weak_dir is None
+        and math.hypot(r.pose[0] - check.guess[0], r.pose[1] - check.guess[1]) > cfg.final_ambiguity_jump
+    ):
         near, near_score = _refine(grid, sc.match_points, check.guess)
         if near_score >= cfg.min_score:
             q = icp_refine(local, sc.points, near, near, (1.0, 1.0), 0.03, 0.15, iterations=12)
