@@ -1,6 +1,6 @@
 """The final pass's look-alikes (agent/mapping/closure.py, ``final_ambiguity_jump``): a match found away
-from where the closed graph puts the node is refused when the guess matches as well. Intel's doors
-repeat along its corridors: such matches, 0.3 m off at the window's edge with the graph right, bent
+from where the closed graph puts the node is refused when the guess matches as well. Intel's corridors
+look alike 0.3 m apart in places: such matches, 0.3 m off at the window's edge with the graph right, bent
 whole stretches of the final map."""
 
 from __future__ import annotations

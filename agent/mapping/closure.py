@@ -135,7 +135,7 @@ class CloserConfig:
     final_partial_sigma: float = 0.5  # m
     # A final-pass match more than this (m) from the closed graph's guess is kept only if the guess is
     # not a match of its own (refined from there, it passes the gates at least this far from the first
-    # answer): two answers in one window are a look-alike, not a correction (intel's doors; 0: off).
+    # answer): two answers in one window are a look-alike, not a correction (intel's corridors; 0: off).
     final_ambiguity_jump: float = 0.1
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
@@ -680,9 +680,10 @@ class LoopCloser:
         return replace(check, drawn=self._draw(self.submaps[check.submap]), parts=())
 
     def finish(self) -> int:
-        """The final pass: every node matched against the finished submaps it sees (not its own; the
-        ``final_per_node`` nearest by view within ``final_radius``), each in a small window around
-        where the solved graph puts it; every verified match an edge; then the graph solved again,
+        """The final pass: every node matched against the finished submaps it sees (not its own nor
+        one beside it, ``final_min_gap_nodes``; the ``final_per_node`` nearest by view within
+        ``final_radius``), each in a small window around where the solved graph puts it; every verified
+        match an edge (not one away from the guess where the guess matches too, ``final_ambiguity_jump``); then the graph solved again,
         the worst edges dropped one at a time as for closures (at most ``final_drops``). Dense
         constraints, after Cartographer's global SLAM: a node's pose becomes the average of many
         scan-to-submap matches instead of the front end's chain of steps, and places where no loop
