@@ -48,7 +48,7 @@ import numpy.typing as npt
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.matcher import LocalMap, _refine, field_score, icp_refine
-from fleetlink.agent.mapping.posegraph import PoseGraph
+from fleetlink.agent.mapping.posegraph import Edge, PoseGraph
 from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
 
 __all__ = [
@@ -137,6 +137,11 @@ class CloserConfig:
     # not a match of its own (refined from there, it passes the gates at least this far from the first
     # answer): two answers in one window are a look-alike, not a correction (intel's corridors; 0: off).
     final_ambiguity_jump: float = 0.1
+    # In the final solve, while a front-end step's error is above ``max_chi2`` and above every closure's,
+    # that step is held as loosely as the odometry (sd ``step_sigma_xy`` + ``step_degenerate_sigma_per_m``
+    # per metre, the heading 3x) before a closure is dropped: a step matched wrong but held tight makes
+    # the right matches at its node look like the outliers (aces: a step 0.47 m off, held at 2.6 cm).
+    final_loosen_steps: bool = True
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
     # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
@@ -255,6 +260,7 @@ class CloserStats:
     solves: int = 0
     submaps_drawn: int = 0  # drawings (a submap let go and needed again is drawn again)
     final_edges: int = 0  # matches the final pass (``finish``) verified
+    steps_loosened: int = 0  # front-end steps the final solve held loosely (``final_loosen_steps``)
     final_ambiguous: int = 0  # ... and not kept: the graph's guess matched as well (``final_ambiguity_jump``)
 
 
@@ -743,20 +749,22 @@ class LoopCloser:
             self._closure_edges.append(len(self.graph.edges) - 1)
         before = len(self.closures)
         self.stats.final_edges += len(found)
-        self._solve(max_drops=cfg.final_drops)
+        self._solve(max_drops=cfg.final_drops, loosen=cfg.final_loosen_steps)
         return len(found) - (before - len(self.closures))
 
-    def _solve(self, max_drops: int | None = None) -> None:
+    def _solve(self, max_drops: int | None = None, loosen: bool = False) -> None:
         """Solve; while the worst closure's error is above ``max_chi2``, drop it and solve again (at
         most ``max_drops`` times; the last solve is always after the last drop). One at a time: a
         wrong closure bends the graph and raises its neighbours' errors too, and they come back under
-        the gate once it is gone."""
+        the gate once it is gone. ``loosen``: a front-end step worse than the worst closure is held
+        loosely instead, first (``final_loosen_steps``), each step once; a loosening counts as a drop."""
         cfg = self.config
         drops = cfg.max_drops if max_drops is None else max_drops
         self._solved_at = len(self.graph.poses) - 1
         self._solved_t = self.times[-1] if self.times else -math.inf
         self._unsolved = False
         fixed = None if self.graph.priors else 0  # priors anchor the graph; else its first node does
+        loosened: set[int] = set()
         for attempt in range(drops + 1):
             self.graph.optimize(fixed=fixed, iterations=cfg.iterations, tolerance=1e-5)
             self.stats.solves += 1
@@ -765,12 +773,31 @@ class LoopCloser:
             chi = self.graph.errors()
             worst = max(range(len(self._closure_edges)), key=lambda n: chi[self._closure_edges[n]])
             edge = self._closure_edges[worst]
+            if loosen:
+                closing = set(self._closure_edges)
+                steps = [
+                    i
+                    for i, e in enumerate(self.graph.edges)
+                    if i not in closing and i not in loosened and e.j == e.i + 1
+                ]
+                step = max(steps, key=lambda i: chi[i]) if steps else -1
+                if step >= 0 and chi[step] > max(cfg.max_chi2, chi[edge]):
+                    e = self.graph.edges[step]
+                    d = math.hypot(e.z[0], e.z[1])
+                    sxy = cfg.step_sigma_xy + cfg.step_degenerate_sigma_per_m * d
+                    sth = 3.0 * (cfg.step_sigma_theta + cfg.step_sigma_theta_per_rad * abs(e.z[2]))
+                    info = np.diag([1.0 / sxy**2, 1.0 / sxy**2, 1.0 / sth**2])
+                    self.graph.edges[step] = Edge(e.i, e.j, e.z, info, e.robust)
+                    loosened.add(step)
+                    self.stats.steps_loosened += 1
+                    continue
             if chi[edge] <= cfg.max_chi2:
                 return
             self.stats.dropped_by_solve += 1
             self.graph.remove_edges([edge])
             del self.closures[worst], self._closure_edges[worst]
             self._closure_edges = [e - 1 if e > edge else e for e in self._closure_edges]
+            loosened = {e - 1 if e > edge else e for e in loosened}
 
 
 SUBMAP_GROW_M = 2.0
