@@ -472,6 +472,8 @@ def real_log(path: Path, seed: int) -> dict[str, object]:
             "attempts": closer.stats.attempts if closer else 0,
             "accepted": closer.stats.accepted if closer else 0,
             "final_edges": closer.stats.final_edges if closer else 0,  # the final pass's matches
+            "final_ambiguous": closer.stats.final_ambiguous if closer else 0,  # refused: the guess matched too
+            "steps_loosened": closer.stats.steps_loosened if closer else 0,  # by the final solve
             "kept": len(closer.closures) if closer else 0,  # closures and final edges the solves kept
             "dropped_by_solve": closer.stats.dropped_by_solve if closer else 0,
             "redraws": matched.mapper.redraws,

@@ -108,15 +108,16 @@ def test_steps_matched_down_a_corridor_are_held_loosely_along_it() -> None:
 
 def test_the_final_pass_keeps_corridor_matches_as_partial_edges() -> None:
     """Every node matched against the neighbouring submaps of a corridor with no end in sight: each
-    match is well posed across and not along, rejected whole before; now a partial edge."""
-    m = _corridor_run(CloserConfig())
+    match is well posed across and not along, rejected whole before; now a partial edge. (The submaps
+    beside a node's own included: three submaps in all here.)"""
+    m = _corridor_run(CloserConfig(final_min_gap_nodes=0))
     assert m.closer is not None
     online = len(m.closer.closures)
     added = m.finish()
     assert added >= 3, added  # measured 5 (the others fail the score, inlier and agreement gates)
     for c in m.closer.closures[online:]:
         assert c.weak_dir is not None and abs(c.weak_dir[0]) > 0.99
-    off = _corridor_run(CloserConfig(final_partial_sigma=0.0))
+    off = _corridor_run(CloserConfig(final_partial_sigma=0.0, final_min_gap_nodes=0))
     assert off.finish() == 0 and off.closer is not None  # the same matches, all rejected as degenerate
     assert off.closer.stats.rejected_degenerate == added
     # Across the corridor the partial edges agree with the front end; along it they say little (sd 0.5 m).
@@ -177,3 +178,26 @@ def test_the_final_pass_also_matches_submaps_mapped_facing_the_other_way() -> No
     # Measured: 63 such edges of 83 kept, against 1 of 18 (a node at the turn) without.
     assert _facing_back(off, online_off) <= 3
     assert back >= 20, back
+
+
+def _beside(m: OnboardMapper, online: int) -> int:
+    """Final-pass edges from a node to a submap that starts right after it or ends right before it."""
+    assert m.closer is not None
+    bounds = {sm.first: sm.last for sm in m.closer.submaps}
+    return sum(1 for c in m.closer.closures[online:] if c.node in (c.anchor - 1, bounds[c.anchor]))
+
+
+def test_the_final_pass_does_not_match_a_node_against_the_submap_beside_it() -> None:
+    """Node k against the submap that begins at node k + 1 measures mostly the step k -> k + 1 again,
+    at the closure's sd: down a corridor it would hold the step the graph holds loosely (intel: a match
+    0.4 m off across a corridor's end, kept at chi2 12, moved its node 0.3 m)."""
+    m = _corridor_run(CloserConfig())
+    assert m.closer is not None
+    online = len(m.closer.closures)
+    m.finish()
+    assert _beside(m, online) == 0
+    off = _corridor_run(CloserConfig(final_min_gap_nodes=0))
+    assert off.closer is not None
+    online_off = len(off.closer.closures)
+    off.finish()
+    assert _beside(off, online_off) >= 1

@@ -48,7 +48,7 @@ import numpy.typing as npt
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.matcher import LocalMap, _refine, field_score, icp_refine
-from fleetlink.agent.mapping.posegraph import PoseGraph
+from fleetlink.agent.mapping.posegraph import Edge, PoseGraph
 from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
 
 __all__ = [
@@ -121,6 +121,10 @@ class CloserConfig:
     # a submap mapped facing the other way, which the ranking by view leaves out, though a node passing
     # back down a corridor sees the same walls beside it (aces' worst revisits were such pairs).
     final_any_heading: int = 2
+    # Not matched against a submap that starts or ends within this many nodes of the node: the node next
+    # to a submap's first node measured against that submap is mostly their step again, the odometry
+    # edge's own measurement, and held at the closure's sd it overrides a step held loosely down a corridor.
+    final_min_gap_nodes: int = 1
     final_window_xy: float = 0.3  # m
     final_window_theta: float = math.radians(4.0)
     final_sigma_xy: float = 0.03  # m
@@ -129,6 +133,15 @@ class CloserConfig:
     # A final-pass match that fails only ``min_weak`` (a corridor: its strong direction passes) is kept
     # as a partial edge: sd ``final_partial_sigma`` along its weak direction, the usual across (0: off).
     final_partial_sigma: float = 0.5  # m
+    # A final-pass match more than this (m) from the closed graph's guess is kept only if the guess is
+    # not a match of its own (refined from there, it passes the gates at least this far from the first
+    # answer): two answers in one window are a look-alike, not a correction (intel's corridors; 0: off).
+    final_ambiguity_jump: float = 0.1
+    # In the final solve, while a front-end step's error is above ``max_chi2`` and above every closure's,
+    # that step is held as loosely as the odometry (sd ``step_sigma_xy`` + ``step_degenerate_sigma_per_m``
+    # per metre, the heading 3x) before a closure is dropped: a step matched wrong but held tight makes
+    # the right matches at its node look like the outliers (aces: a step 0.47 m off, held at 2.6 cm).
+    final_loosen_steps: bool = True
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
     # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
@@ -214,13 +227,14 @@ class Check:
     confirms: Closure | None = None  # a pending closure this check may confirm (else a fresh search)
     owner: object = field(default=None, compare=False)  # the closer that planned it (``take`` ignores others')
     partial: bool = False  # a match ill-posed along one direction only is kept as a partial closure
+    unique: bool = False  # a match away from the guess is refused when the guess is a match too
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class CheckResult:
     check: Check
     closure: Closure | None
-    outcome: str  # "accepted", "few points", "score", "inliers", "disagreement", "degenerate"
+    outcome: str  # "accepted", "few points", "score", "inliers", "disagreement", "degenerate", "ambiguous"
     drawn: Drawn | None  # the submap as drawn for the check (None: not drawn, too few points)
 
 
@@ -246,6 +260,8 @@ class CloserStats:
     solves: int = 0
     submaps_drawn: int = 0  # drawings (a submap let go and needed again is drawn again)
     final_edges: int = 0  # matches the final pass (``finish``) verified
+    steps_loosened: int = 0  # front-end steps the final solve held loosely (``final_loosen_steps``)
+    final_ambiguous: int = 0  # ... and not kept: the graph's guess matched as well (``final_ambiguity_jump``)
 
 
 class ClosureSearch(Protocol):
@@ -467,6 +483,8 @@ class LoopCloser:
             st.rejected_disagreement += 1
         elif r.outcome == "degenerate":
             st.rejected_degenerate += 1
+        elif r.outcome == "ambiguous":
+            st.final_ambiguous += 1
         return r.closure
 
     def _classify(self, c: Closure | None, found: list[Closure]) -> None:
@@ -656,7 +674,7 @@ class LoopCloser:
         ``partial``: a match ill-posed along one direction only is kept as a partial closure."""
         check = self._check(k, sm, fix, window)
         if partial:
-            check = replace(check, partial=True)
+            check = replace(check, partial=True, unique=self.config.final_ambiguity_jump > 0)
         return self._note(run_check(self._with_drawn(check)), attempt=False)
 
     def _with_drawn(self, check: Check) -> Check:
@@ -668,9 +686,10 @@ class LoopCloser:
         return replace(check, drawn=self._draw(self.submaps[check.submap]), parts=())
 
     def finish(self) -> int:
-        """The final pass: every node matched against the finished submaps it sees (not its own; the
-        ``final_per_node`` nearest by view within ``final_radius``), each in a small window around
-        where the solved graph puts it; every verified match an edge; then the graph solved again,
+        """The final pass: every node matched against the finished submaps it sees (not its own nor
+        one beside it, ``final_min_gap_nodes``; the ``final_per_node`` nearest by view within
+        ``final_radius``), each in a small window around where the solved graph puts it; every verified
+        match an edge (not one away from the guess where the guess matches too, ``final_ambiguity_jump``); then the graph solved again,
         the worst edges dropped one at a time as for closures (at most ``final_drops``). Dense
         constraints, after Cartographer's global SLAM: a node's pose becomes the average of many
         scan-to-submap matches instead of the front end's chain of steps, and places where no loop
@@ -695,7 +714,8 @@ class LoopCloser:
                 # Per submap, the node that saw most nearly what this one sees (as for candidates).
                 rank = np.minimum.reduceat(d + VIEW_LEVER_M * turn, bounds, axis=1)
                 ks = np.arange(k0, k0 + len(rows))
-                own = (ks[:, None] >= starts[None, :]) & (ks[:, None] < ends[None, :])
+                gap = cfg.final_min_gap_nodes
+                own = (ks[:, None] >= starts[None, :] - gap) & (ks[:, None] < ends[None, :] + gap)  # or a neighbour
                 rank[own] = np.inf  # not its own
                 dist = np.minimum.reduceat(d, bounds, axis=1)  # and by distance alone, whichever way it faced
                 dist[own] = np.inf
@@ -729,20 +749,22 @@ class LoopCloser:
             self._closure_edges.append(len(self.graph.edges) - 1)
         before = len(self.closures)
         self.stats.final_edges += len(found)
-        self._solve(max_drops=cfg.final_drops)
+        self._solve(max_drops=cfg.final_drops, loosen=cfg.final_loosen_steps)
         return len(found) - (before - len(self.closures))
 
-    def _solve(self, max_drops: int | None = None) -> None:
+    def _solve(self, max_drops: int | None = None, loosen: bool = False) -> None:
         """Solve; while the worst closure's error is above ``max_chi2``, drop it and solve again (at
         most ``max_drops`` times; the last solve is always after the last drop). One at a time: a
         wrong closure bends the graph and raises its neighbours' errors too, and they come back under
-        the gate once it is gone."""
+        the gate once it is gone. ``loosen``: a front-end step worse than the worst closure is held
+        loosely instead, first (``final_loosen_steps``), each step once; a loosening counts as a drop."""
         cfg = self.config
         drops = cfg.max_drops if max_drops is None else max_drops
         self._solved_at = len(self.graph.poses) - 1
         self._solved_t = self.times[-1] if self.times else -math.inf
         self._unsolved = False
         fixed = None if self.graph.priors else 0  # priors anchor the graph; else its first node does
+        loosened: set[int] = set()
         for attempt in range(drops + 1):
             self.graph.optimize(fixed=fixed, iterations=cfg.iterations, tolerance=1e-5)
             self.stats.solves += 1
@@ -751,12 +773,31 @@ class LoopCloser:
             chi = self.graph.errors()
             worst = max(range(len(self._closure_edges)), key=lambda n: chi[self._closure_edges[n]])
             edge = self._closure_edges[worst]
+            if loosen:
+                closing = set(self._closure_edges)
+                steps = [
+                    i
+                    for i, e in enumerate(self.graph.edges)
+                    if i not in closing and i not in loosened and e.j == e.i + 1
+                ]
+                step = max(steps, key=lambda i: chi[i]) if steps else -1
+                if step >= 0 and chi[step] > max(cfg.max_chi2, chi[edge]):
+                    e = self.graph.edges[step]
+                    d = math.hypot(e.z[0], e.z[1])
+                    sxy = cfg.step_sigma_xy + cfg.step_degenerate_sigma_per_m * d
+                    sth = 3.0 * (cfg.step_sigma_theta + cfg.step_sigma_theta_per_rad * abs(e.z[2]))
+                    info = np.diag([1.0 / sxy**2, 1.0 / sxy**2, 1.0 / sth**2])
+                    self.graph.edges[step] = Edge(e.i, e.j, e.z, info, e.robust)
+                    loosened.add(step)
+                    self.stats.steps_loosened += 1
+                    continue
             if chi[edge] <= cfg.max_chi2:
                 return
             self.stats.dropped_by_solve += 1
             self.graph.remove_edges([edge])
             del self.closures[worst], self._closure_edges[worst]
             self._closure_edges = [e - 1 if e > edge else e for e in self._closure_edges]
+            loosened = {e - 1 if e > edge else e for e in loosened}
 
 
 SUBMAP_GROW_M = 2.0
@@ -819,6 +860,19 @@ def run_check(check: Check) -> CheckResult:
         weak_dir = degenerate_direction(r.information, 0.0, cfg.min_weak, cfg.min_weak) if check.partial else None
         if weak_dir is None:
             return CheckResult(check, None, "degenerate", drawn)
+    if (
+        check.unique
+        and weak_dir is None
+        and math.hypot(r.pose[0] - check.guess[0], r.pose[1] - check.guess[1]) > cfg.final_ambiguity_jump
+    ):
+        near, near_score = _refine(grid, sc.match_points, check.guess)
+        if near_score >= cfg.min_score:
+            q = icp_refine(local, sc.points, near, near, (1.0, 1.0), 0.03, 0.15, iterations=12)
+            if (
+                math.hypot(q.pose[0] - r.pose[0], q.pose[1] - r.pose[1]) > cfg.final_ambiguity_jump
+                and _inlier_ratio(local, sc.points, q.pose, cfg.inlier_distance) >= cfg.min_inlier_ratio
+            ):
+                return CheckResult(check, None, "ambiguous", drawn)
     robot = compose(r.pose, inverse(check.mount))
     score = field_score(grid, sc.match_points, r.pose)
     closure = Closure(check.node, check.anchor, robot, score, ratio, weak_dir)

@@ -1,0 +1,109 @@
+"""The final pass's look-alikes (agent/mapping/closure.py, ``final_ambiguity_jump``): a match found away
+from where the closed graph puts the node is refused when the guess matches as well. Intel's corridors
+look alike 0.3 m apart in places: such matches, 0.3 m off at the window's edge with the graph right, bent
+whole stretches of the final map."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fleetlink.agent.mapping import scan as scanprep
+from fleetlink.agent.mapping.closure import Check, CloserConfig, NodeScan, run_check
+from fleetlink.agent.mapping.grid import GridConfig
+from fleetlink.agent.mapping.mapper import MapperConfig
+from fleetlink.agent.mapping.matcher import scan_normals
+from fleetlink.field.raycast import Raycaster
+
+# A 6 x 4 m room with a few fins (every direction well posed), the lidar in the middle.
+ROOM = np.array(
+    [
+        [-3.0, -2.0, 3.0, -2.0],
+        [3.0, -2.0, 3.0, 2.0],
+        [3.0, 2.0, -3.0, 2.0],
+        [-3.0, 2.0, -3.0, -2.0],
+        [-1.3, -2.0, -1.3, -1.5],
+        [0.9, 2.0, 0.9, 1.4],
+        [3.0, 0.6, 2.5, 0.6],
+    ]
+)
+N = 361
+
+
+def _node_scan() -> NodeScan:
+    cfg = MapperConfig()
+    angles = np.linspace(-math.pi, math.pi, N, endpoint=False)
+    ranges = Raycaster(ROOM).cast_fan(0.0, 0.0, -math.pi, 2.0 * math.pi / N, N, 12.0)
+    r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, cfg.max_range)
+    pts = scanprep.to_points(r[hit], a[hit])
+    labels = scanprep.segment_labels(pts, cfg.segment_eps, cfg.segment_tau)
+    keep = scanprep.filter_segments(labels, cfg.min_segment_points)
+    kept = pts[keep]
+    return NodeScan(r, a, hit, kept, scan_normals(pts, labels)[keep], scanprep.thin(kept, cfg.match_cell))
+
+
+def _check(scan: NodeScan, ghost: tuple[float, float], config: CloserConfig) -> Check:
+    """The node's scan (taken where the graph's guess says, the origin) against a submap that holds the
+    room twice: as seen from the guess, and again ``ghost`` away (a look-alike within the window)."""
+    parts = (((0.0, 0.0, 0.0), scan), ((ghost[0], ghost[1], 0.0), scan))
+    window = (config.final_window_xy, config.final_window_theta)
+    return Check(
+        1,
+        0,
+        0,
+        scan,
+        (0.0, 0.0, 0.0),
+        window,
+        None,
+        parts,
+        config,
+        GridConfig(),
+        (0.0, 0.0, 0.0),
+        partial=True,
+        unique=config.final_ambiguity_jump > 0,
+    )
+
+
+def test_a_match_away_from_the_guess_is_refused_when_the_guess_matches_too() -> None:
+    scan = _node_scan()
+    ghosts = [(0.25, 0.0), (-0.25, 0.0), (0.0, 0.25), (0.0, -0.25)]
+    on, off = CloserConfig(), CloserConfig(final_ambiguity_jump=0.0)
+    far_off = 0
+    for g in ghosts:
+        res = run_check(_check(scan, g, on))
+        # Either the guess's own answer or no answer: never the look-alike.
+        if res.closure is not None:
+            assert math.hypot(res.closure.z[0], res.closure.z[1]) < 0.1, (g, res.closure)
+        else:
+            assert res.outcome == "ambiguous", (g, res.outcome)
+        plain = run_check(_check(scan, g, off))
+        if plain.closure is not None and math.hypot(plain.closure.z[0], plain.closure.z[1]) > 0.2:
+            far_off += 1
+    assert far_off >= 1  # without the check the look-alike is taken (the search's order picks it)
+
+
+def test_a_correction_is_kept_when_the_guess_does_not_match() -> None:
+    """The graph 0.25 m off (the room drawn only where it is, twice, as a submap's scans overlap): the
+    match moves the node, as before."""
+    scan = _node_scan()
+    config = CloserConfig()
+    parts = (((0.25, 0.0, 0.0), scan), ((0.25, 0.0, 0.0), scan))
+    check = Check(
+        1,
+        0,
+        0,
+        scan,
+        (0.0, 0.0, 0.0),
+        (0.3, math.radians(4.0)),
+        None,
+        parts,
+        config,
+        GridConfig(),
+        (0.0, 0.0, 0.0),
+        partial=True,
+        unique=True,
+    )
+    res = run_check(check)
+    assert res.closure is not None, res.outcome
+    assert abs(res.closure.z[0] - 0.25) < 0.03 and abs(res.closure.z[1]) < 0.03
