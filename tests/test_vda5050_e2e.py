@@ -22,6 +22,7 @@ import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from vda5050 import Action, ActionParameter, BlockingType, MasterClient, MasterConfig, OrderBuilder
+from vda5050.model import ControlPoint, Trajectory
 
 from fleetlink.field.realtime import RealtimeField
 from fleetlink.operator.vda5050.schema import SchemaValidator, load_schemas
@@ -203,19 +204,37 @@ async def master_session(url: str, truth: Any) -> None:
         )
         assert str(getattr(err.error_level, "value", err.error_level)) == "WARNING"
 
-        # 6. A following valid order runs to its end.
+        # 6. A following valid order runs to its end, along its edge's trajectory: a NURBS of degree 1
+        # that bends 0.2 m to the robot's left half-way along the 0.5 m to m1 (the robot drives by it).
         here = latest().agv_position
+        c, s = math.cos(here.theta), math.sin(here.theta)
+        end = (here.x + 0.5 * c, here.y + 0.5 * s)
+        bend = (here.x + 0.25 * c - 0.2 * s, here.y + 0.25 * s + 0.2 * c)
         b = OrderBuilder(order_id="o-2", manufacturer="fleetlink", serial_number=ROBOT)
         b.add_node("m0", x=here.x, y=here.y, map_id=mp, allowed_deviation_xy=0.5)
-        b.add_node("m1", x=here.x + 0.25 * math.cos(here.theta), y=here.y + 0.25 * math.sin(here.theta), map_id=mp)
-        b.add_edge("m0", "m1")
+        b.add_node("m1", x=end[0], y=end[1], map_id=mp)
+        way = Trajectory(
+            degree=1,
+            knot_vector=[0.0, 0.0, 0.5, 1.0, 1.0],
+            control_points=[ControlPoint(x=x, y=y) for x, y in ((here.x, here.y), bend, end)],
+        )
+        b.add_edge("m0", "m1", trajectory=way)
+        # Judged on the true pose: the bend where it lies from the robot (standing) in the true frame.
+        tx0, ty0, tth = truth()
+        tc, ts = math.cos(tth), math.sin(tth)
+        true_bend = (tx0 + 0.25 * tc - 0.2 * ts, ty0 + 0.25 * ts + 0.2 * tc)
         result = await master.dispatch(b.build(), TARGET)
         assert result.accepted, result
-        await wait_for(
-            "o-2 finished",
-            lambda: latest().order_id == "o-2" and latest().last_node_id == "m1" and not latest().node_states,
-        )
+        nearest = [math.inf]
+
+        def finished() -> bool:
+            tx, ty, _ = truth()
+            nearest[0] = min(nearest[0], math.hypot(tx - true_bend[0], ty - true_bend[1]))
+            return latest().order_id == "o-2" and latest().last_node_id == "m1" and not latest().node_states
+
+        await wait_for("o-2 finished", finished)
         assert not any(e.error_type == "validationError" for e in latest().errors)
+        assert nearest[0] < 0.1, f"the robot passed {nearest[0]:.2f} m from the trajectory's bend"
 
         # 7. A base with a horizon: near the base's end the vehicle asks for a new base
         # (newBaseRequest), which the master's SDK takes up as a base request; it extends the base
