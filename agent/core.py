@@ -61,6 +61,7 @@ from fleetlink.shared import wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.messages import (
     MAX_DIAGNOSTIC_COUNTS,
+    TRAJECTORY_END_M,
     AckResult,
     ActionType,
     AgvPosition,
@@ -1362,6 +1363,14 @@ def _stops(msg: Order) -> list[Stop]:
             )
         if e.actions:
             raise ItineraryError(f"edge {e.edgeId!r}: edge actions are not supported (put them on its start node)")
+        # The way must end at the node it leads to (its start may lie where the robot stood for the
+        # node before: the VDA bridge sends a first node reached in place as the robot's position).
+        end = _trajectory(e)[-1:]
+        if end and math.dist(end[0], (b.x, b.y)) > TRAJECTORY_END_M:
+            raise ItineraryError(
+                f"edge {e.edgeId!r}: its trajectory ends at ({end[0][0]:.2f}, {end[0][1]:.2f}), not at node"
+                f" {b.nodeId!r} (within {TRAJECTORY_END_M:g} m)"
+            )
         if e.released and not b.released:
             raise ItineraryError(f"edge {e.edgeId!r} is released but leads to a horizon node")
     return [
@@ -1386,7 +1395,12 @@ def _stops(msg: Order) -> list[Stop]:
 
 def _trajectory(edge: OrderEdge) -> tuple[tuple[float, float], ...]:
     """The edge's trajectory as waypoints (checked whole when the order was decoded), or ()."""
-    return () if edge.trajectory is None else tuple(edge.trajectory.waypoints())
+    if edge.trajectory is None:
+        return ()
+    try:
+        return tuple(edge.trajectory.waypoints())
+    except ValueError as exc:  # decoded, so checked: kept as a refusal, never a crash
+        raise ItineraryError(f"edge {edge.edgeId!r}: trajectory: {exc}") from None
 
 
 def _within(v: float | None, lo: float, hi: float) -> float | None:

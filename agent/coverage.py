@@ -72,6 +72,7 @@ from fleetlink.shared.messages import (
 )
 
 __all__ = [
+    "MAX_ORDER_TRAJECTORY_POINTS",
     "Area",
     "CoverageConfig",
     "CoveragePlan",
@@ -875,6 +876,18 @@ def plan_order(
                 allowedDeviationXY=0.0 if n.dwell_s > 0 else pass_deviation_m,
             )
         )
+    # Trajectories while the order stays well inside one message (MAX_ORDER_TRAJECTORY_POINTS): the
+    # edges past that plan their own way, as every edge did before.
+    budget = MAX_ORDER_TRAJECTORY_POINTS
+    ways: list[Trajectory | None] = []
+    for e in plan.edges:
+        way = _trajectory(e)
+        if way is not None and len(way.controlPoints) <= budget:
+            budget -= len(way.controlPoints)
+            ways.append(way)
+        else:
+            budget = 0
+            ways.append(None)
     edges = tuple(
         OrderEdge(
             edgeId=e.edge_id,
@@ -883,9 +896,9 @@ def plan_order(
             endNodeId=e.end_node_id,
             released=True,
             maxSpeed=max_speed_mps,
-            trajectory=_trajectory(e),
+            trajectory=way,
         )
-        for e in plan.edges
+        for e, way in zip(plan.edges, ways, strict=True)
     )
     return {
         "orderId": order_id,
@@ -895,6 +908,12 @@ def plan_order(
         "nodes": tuple(nodes),
         "edges": edges,
     }
+
+
+MAX_ORDER_TRAJECTORY_POINTS = 600
+"""Control points the trajectories of one order carry at most: an order of ``MAX_ORDER_NODES`` nodes
+encodes to about 166 KB without them, and each point adds about 50 bytes (under the wire's 256 KB
+with room to spare; tests/test_itinerary.py encodes the largest)."""
 
 
 def _trajectory(edge: PlanEdge) -> Trajectory | None:

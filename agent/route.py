@@ -93,9 +93,10 @@ robot resumed elsewhere, or that stopped short of the node before, plans its own
 @runtime_checkable
 class WallCheck(Protocol):
     """A map sense that can say whether a leg runs into a known wall (the A* planner the agent
-    hands the pilot as its map sense: ``PathPlanner.leg_meets_wall``)."""
+    hands the pilot as its map sense: ``PathPlanner.leg_meets_wall``). ``skip_m``: the leg's first
+    metres not checked (what the robot already stands beside)."""
 
-    def leg_meets_wall(self, a: Point, b: Point, /) -> bool: ...
+    def leg_meets_wall(self, a: Point, b: Point, skip_m: float = 0.1, /) -> bool: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -381,19 +382,26 @@ class Route:
         """The order's trajectory from where the robot joins it (the end of the segment nearest to
         it), or why the robot will not drive it: it stands more than ``TRAJECTORY_JOIN_M`` off it
         (the order was resumed elsewhere), or its own map (``sense``) has a wall on the way."""
-        traj = self.dest.trajectory
+        d = self.dest
+        traj = d.trajectory
         here = (pose[0], pose[1])
-        if len(traj) == 1:
-            best, rest = math.dist(here, traj[0]), list(traj)
-        else:
-            best, k = min((_to_segment(here, a, b), i) for i, (a, b) in enumerate(pairwise(traj)))
-            rest = list(traj[k + 1 :])
-        if best > TRAJECTORY_JOIN_M:
-            return f"the robot stands {best:.2f} m off the order's trajectory"
+        # The first segment it stands near, not the nearest anywhere: a curve that comes back near
+        # its start is joined at its start.
+        gaps = [math.dist(here, traj[0])] if len(traj) == 1 else [_to_segment(here, a, b) for a, b in pairwise(traj)]
+        k = next((i for i, g in enumerate(gaps) if g <= TRAJECTORY_JOIN_M), None)
+        if k is None:
+            return f"the robot stands {min(gaps):.2f} m off the order's trajectory"
+        rest = list(traj) if len(traj) == 1 else list(traj[k + 1 :])
         sense = self._sense
         if isinstance(sense, WallCheck):
-            for i, (a, b) in enumerate(pairwise([here, *rest])):
-                if sense.leg_meets_wall(a, b):
+            # Every leg as it will be driven, the last to the node itself; beyond the first (where
+            # the robot stands beside what it stands beside), each whole, however short.
+            way = [here, *rest]
+            if math.dist(way[-1], (d.x, d.y)) > 1e-6:
+                way.append((d.x, d.y))
+            legs = list(pairwise(way))
+            for i, (a, b) in enumerate(legs):
+                if sense.leg_meets_wall(a, b, 0.1 if i == 0 else 0.0):
                     return f"its map has a wall on the order's trajectory ({b[0]:.2f}, {b[1]:.2f}), leg {i + 1}"
         return rest
 

@@ -366,7 +366,7 @@ cells the hits fall in (up to 0.035 m further), with both robots' pose errors (a
 def robots_off(cells: npt.NDArray[np.int8], resolution: float, origin: Point, own: Grid, trail: Sequence[Point]) -> int:
     """Take a robot's body off a merged map (``cells``, in place): every blob of wall (8-connected
     occupied cells) that lies wholly within ``BODY_REACH_M`` of a point of its ``trail`` and that its
-    own map (``own``) does not hold as wall. A robot's lidar maps another robot it sees like
+    own map (``own``) does not hold as wall, on or beside it. A robot's lidar maps another robot it sees like
     furniture, an arc of cells round where that robot was, and keeps it until it looks there again;
     the robot itself never sees its own body. Planned on, such an arc casts a shadow that needs
     dwell and bars the way (the kitchen's two-robot round, docs/payload.md). What stays: a wall or
@@ -390,8 +390,15 @@ def robots_off(cells: npt.NDArray[np.int8], resolution: float, origin: Point, ow
             continue
         mc = np.floor((xs - ox) / ores).astype(np.intp)
         mr = np.floor((ys - oy) / ores).astype(np.intp)
-        inside = (mc >= 0) & (mc < ow) & (mr >= 0) & (mr < oh)
-        if bool((mine[mr[inside], mc[inside]] == 100).any()):
+        # Its own map's wall on or beside the blob (two maps agree on a wall to a cell or so): it saw
+        # something there itself.
+        seen = False
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                r, c = mr + dr, mc + dc
+                inside = (c >= 0) & (c < ow) & (r >= 0) & (r < oh)
+                seen = seen or bool((mine[r[inside], c[inside]] == 100).any())
+        if seen:
             continue
         cells[rows, cols] = 0
         freed += int(rows.size)

@@ -42,6 +42,7 @@ __all__ = [
     "MAX_STATE_ERRORS",
     "MAX_TRAJECTORY_POINTS",
     "MAX_UWB_ANCHORS",
+    "TRAJECTORY_END_M",
     "Ack",
     "AckResult",
     "AckedAlarm",
@@ -495,6 +496,9 @@ class OrderNode:
 
 MAX_TRAJECTORY_POINTS = 64
 """Control points of one edge's trajectory (VDA 5050 factsheet ``maxArrayLens.trajectory.controlPoints``)."""
+TRAJECTORY_END_M = 0.05
+"""An edge's trajectory starts at its start node and ends at its end node (VDA 5050: the control
+points "explicitly including the start and end point"), each within this."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -17,6 +17,7 @@ from fleetlink.agent.pilot import Pilot
 from fleetlink.shared import wire
 from fleetlink.shared.clock import SimClock
 from fleetlink.shared.messages import (
+    MAX_ORDER_NODES,
     Ack,
     AckResult,
     Action,
@@ -419,6 +420,40 @@ def test_the_plans_drive_through_nodes_may_deviate_its_dwell_points_may_not() ->
     assert [e.trajectory.waypoints() for e in edges] == [[(0.0, 0.0), (1.0, 0.0)], [(1.0, 0.0), (2.0, 0.0)]]
 
 
+def test_the_largest_route_with_its_trajectories_still_fits_one_message() -> None:
+    """511 edges of 4 waypoints each: trajectories while they fit (MAX_ORDER_TRAJECTORY_POINTS), the
+    rest left to the robot; the order encodes under the wire's limit."""
+    from fleetlink.agent.coverage import (
+        MAX_ORDER_TRAJECTORY_POINTS,
+        CoveragePlan,
+        PlanEdge,
+        PlanNode,
+        Prediction,
+        plan_order,
+    )
+
+    n = MAX_ORDER_NODES
+    nodes = tuple(PlanNode(f"n{i}", 2 * i, 0.1 * i, 0.0, 1.0 if i else 0.0, True) for i in range(n))
+    edges = tuple(
+        PlanEdge(
+            f"e{i}",
+            2 * i + 1,
+            f"n{i}",
+            f"n{i + 1}",
+            ((0.1 * i, 0.0), (0.1 * i + 0.03, 0.02), (0.1 * i + 0.06, 0.02), (0.1 * i + 0.1, 0.0)),
+            0.1,
+            True,
+        )
+        for i in range(n - 1)
+    )
+    pred = Prediction(coverage=1.0, dwell_s=n - 1.0, travel_s=0.0, total_s=n - 1.0, path_m=51.0, area_m2=1.0)
+    fields = plan_order(CoveragePlan("uv", nodes, edges, 100.0, pred), "big")
+    carried = [e.trajectory for e in fields["edges"] if e.trajectory is not None]
+    assert 0 < len(carried) < n - 1 and sum(len(t.controlPoints) for t in carried) <= MAX_ORDER_TRAJECTORY_POINTS
+    msg = wire.HeaderCounter(SimClock(), robot="r1", sender="op").make(Order, **fields)
+    assert len(wire.encode(msg)) <= wire.MAX_PAYLOAD
+
+
 def test_the_same_order_again_is_a_duplicate_and_an_older_update_is_refused() -> None:
     r = Robot()
     assert r.send(Order, **order(ROUND, upd=1)).result is AckResult.ACCEPTED
@@ -440,6 +475,13 @@ def test_the_same_order_again_is_a_duplicate_and_an_older_update_is_refused() ->
         (order((node(0, 0, 0, act(ActionType.PAYLOAD, "x", device="atomiser", on="true", level="7")),)), "0-3"),
         (order((node(0, 0, 0, act(ActionType.PAYLOAD, "x", device="laser", on="true")),)), "unknown payload device"),
         (order((node(0, 0, 0, act(ActionType.DWELL, "x", duration="1e9")),)), "dwell duration"),
+        (
+            order(
+                (node(0, 0, 0), node(1, 1, 0)),
+                (dataclasses.replace(edge(0), trajectory=Trajectory.polyline(((0.0, 0.0), (0.5, 0.5)))),),
+            ),
+            "its trajectory ends at (0.50, 0.50), not at node 'n1'",
+        ),
     ],
 )
 def test_an_order_that_is_not_one_route_is_refused_with_the_reason_and_nothing_moves(

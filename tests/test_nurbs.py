@@ -56,8 +56,10 @@ def test_a_clamped_cubic_starts_and_ends_at_its_end_points_and_a_straight_one_st
         (1, (0, 0.6, 0.5, 1, 1), [(0, 0), (1, 0), (2, 0)], [1, 1, 1], "knots never decrease"),
         (1, (0, 0.5, 0.5, 1), [(0, 0), (1, 0)], [1, 1], "no length"),
         (1, (0, 0, 1, 1), [(0, 0), (math.nan, 0)], [1, 1], "not finite"),
-        (1, (0, 0, 1, 1), [(0, 0), (1, 0)], [1, -1], "weights are finite and >= 0"),
-        (1, (0, 0, 1, 1), [(0, 0), (1, 0)], [0, 0], "all weigh 0"),
+        (1, (0, 0, 1, 1), [(0, 0), (1, 0)], [1, -1], "finite weights > 0"),
+        (1, (0, 0, 1, 1), [(0, 0), (1, 0)], [0, 0], "finite weights > 0"),
+        # Allowed by the standard, undefined at u = 0 (0/0): refused.
+        (2, (0, 0, 0, 1, 1, 1), [(0, 0), (1, 1), (2, 0)], [0, 1, 1], "finite weights > 0"),
     ],
 )
 def test_what_is_not_a_curve_is_refused_with_the_reason(
@@ -89,7 +91,7 @@ def test_a_trajectory_on_the_wire_is_checked_whole_on_decode() -> None:
     raw["trajectory"]["knotVector"][2] = 0.5
     with pytest.raises(WireError, match="knots never decrease"):
         codec.dec(raw)
-    with pytest.raises(ValueError, match="weights are finite"):
+    with pytest.raises(ValueError, match="finite weights > 0"):
         Trajectory(
             degree=1, knotVector=(0, 0, 1, 1), controlPoints=(ControlPoint(x=0, y=0), ControlPoint(x=1, y=0, weight=-1))
         )

@@ -237,6 +237,12 @@ def test_another_robots_body_on_a_map_is_taken_off_where_that_robot_drove() -> N
     cells, _, _ = floor_of([g_theirs, g_mine], [(), trail])
     assert cells[at(res, 0.83, 1.0)] == 0 and np.count_nonzero(cells == 100) == np.count_nonzero(mine == 100)
     assert cells[at(res, 2.5, 1.2)] == 100  # r1 saw the chair leg itself: not its body
+    # ... also where r1's map has the leg a cell over (two maps agree on a wall to a cell or so).
+    shifted = mine.copy()
+    shifted[at(res, 2.5, 1.2)] = 0
+    shifted[at(res, 2.55, 1.2)] = 100
+    cells, _, _ = floor_of([g_theirs, (0.0, 0.0, res, 60, 40, shifted.tobytes())], [(), trail])
+    assert cells[at(res, 2.5, 1.2)] == 100
     assert cells[0, 30] == 100 and cells[20, 0] == 100  # walls r1 drove beside are joined to more
     # Without the trail (or with r2's, who stood elsewhere) the arc stays.
     cells, _, _ = floor_of([g_theirs, g_mine])

@@ -10,6 +10,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from fleetlink.agent.guard import Refusal, RefusalReason
@@ -306,7 +307,7 @@ class Mapped(Provider):
         self.wall = wall
         self.asked: list[tuple[Point, Point]] = []
 
-    def leg_meets_wall(self, a: Point, b: Point, /) -> bool:
+    def leg_meets_wall(self, a: Point, b: Point, skip_m: float = 0.1, /) -> bool:
         self.asked.append((a, b))
         if self.wall is None:
             return False
@@ -416,3 +417,27 @@ def test_a_newer_map_that_bars_the_trajectory_ahead_replans() -> None:
     newer = Mapped((2.0, 1.0), [(1.0, -1.0), (4.0, 0.0)])
     r.step(0.1, (1.0, 0.0, 0.0), newer)
     assert r.map_replans == 1 and newer.calls and r.goto.waypoints == [(1.0, -1.0), (4.0, 0.0)]
+
+
+def test_every_leg_of_a_trajectory_is_checked_on_the_robots_own_map_however_short() -> None:
+    """A wall across x = 5 m on the robot's own map (a real planner as its map sense): a trajectory
+    through it in 9 cm steps, or one that stops short of the node and leaves the last leg through
+    it, is not driven."""
+    from fleetlink.agent.mapping.planner import PathPlanner
+
+    cells = np.zeros((100, 200), dtype=np.int8)
+    cells[:, 100] = 100
+    planner = PathPlanner(cells, 0.05, (0.0, 0.0))
+    dense = tuple((4.0 + 0.09 * k, 2.0) for k in range(23))  # 4.0 .. 5.98
+    for trajectory, goal in ((dense, dense[-1]), (((4.0, 2.0), (4.5, 2.0)), (6.0, 2.0))):
+        r = Route(replace(DEST, x=goal[0], y=goal[1], trajectory=trajectory), GoToController(), RouteConfig())
+        r.step(0.0, (4.0, 2.0, 0.0), planner.route, planner)
+        assert r.notes and r.notes[0].reason == "trajectory_refused", (trajectory[-1], [n.text for n in r.notes])
+        assert "wall on the order's trajectory" in r.notes[0].text
+
+
+def test_a_trajectory_that_comes_back_past_its_start_is_joined_at_its_start() -> None:
+    loop = ((0.0, 0.0), (2.0, 0.0), (2.0, 1.0), (0.2, 0.2), (0.0, 2.0))
+    r = Route(replace(DEST, x=0.0, y=2.0, trajectory=loop), GoToController(), RouteConfig())
+    r.step(0.0, (0.18, 0.19, 0.0), Mapped(None, [(0.0, 2.0)]))  # 2 cm from the return leg, 19 cm from the first
+    assert r.goto.waypoints == [(2.0, 0.0), (2.0, 1.0), (0.2, 0.2), (0.0, 2.0)]

@@ -299,6 +299,18 @@ def test_an_edges_trajectory_goes_to_the_robot_and_one_it_cannot_drive_is_refuse
     outs = rig.send("order", order("o3", 0, nodes, [far]))
     assert not any(isinstance(o, SendOrder) for o in outs)
     assert "controlPoints[1] out of range" in errors(rig)[0]["errorDescription"]
+    # A curve that does not end at its end node (section 6.6.6: the control points include it).
+    rig = Rig()
+    rig.state()
+    short = edge("n0", "n1", 1)
+    short["trajectory"] = {
+        "degree": 1,
+        "knotVector": [0, 0, 1, 1],
+        "controlPoints": [{"x": 0, "y": 0}, {"x": 1, "y": 0}],
+    }
+    outs = rig.send("order", order("o5", 0, nodes, [short]))
+    assert not any(isinstance(o, SendOrder) for o in outs)
+    assert "its trajectory ends at (1.00, 0.00), not at node 'n1'" in errors(rig)[0]["errorDescription"]
     # The trajectory an order came with is echoed in its edge state.
     rig = Rig()
     rig.state()

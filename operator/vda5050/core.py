@@ -32,6 +32,7 @@ from fleetlink.shared import nurbs, wire
 from fleetlink.shared.messages import (
     MAX_COORDINATE_M,
     MAX_TRAJECTORY_POINTS,
+    TRAJECTORY_END_M,
     Ack,
     AckResult,
     Action,
@@ -406,9 +407,18 @@ class VehicleCore:
             if e["actions"]:
                 return f"edge {e['edgeId']!r}: edge actions are not supported (put them on its start node)"
             try:
-                _trajectory(e)
-            except (ValueError, TypeError) as exc:
+                traj = _trajectory(e)
+                way = traj.waypoints() if traj is not None else []
+            except (ValueError, TypeError, OverflowError) as exc:
                 return f"edge {e['edgeId']!r}: trajectory: {exc}"
+            for end, node_id in ((way[:1], e["startNodeId"]), (way[-1:], e["endNodeId"])):
+                pos = next((n.get("nodePosition") for n in doc["nodes"] if n["nodeId"] == node_id), None)
+                if end and pos is not None and math.dist(end[0], (pos["x"], pos["y"])) > TRAJECTORY_END_M:
+                    return (
+                        f"edge {e['edgeId']!r}: its trajectory ends at ({end[0][0]:.2f}, {end[0][1]:.2f}), not at"
+                        f" node {node_id!r} (within {TRAJECTORY_END_M:g} m; section 6.6.6: the control points include"
+                        " the start and end point)"
+                    )
         return None
 
     def _within_deviation(self, node: dict[str, Any]) -> tuple[float, float] | None:
