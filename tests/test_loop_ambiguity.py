@@ -43,10 +43,14 @@ def _node_scan() -> NodeScan:
     return NodeScan(r, a, hit, kept, scan_normals(pts, labels)[keep], scanprep.thin(kept, cfg.match_cell))
 
 
-def _check(scan: NodeScan, ghost: tuple[float, float], config: CloserConfig) -> Check:
+def _check(
+    scan: NodeScan, ghost: tuple[float, float], config: CloserConfig, drawn_at: tuple[float, float] = (0.0, 0.0)
+) -> Check:
     """The node's scan (taken where the graph's guess says, the origin) against a submap that holds the
-    room twice: as seen from the guess, and again ``ghost`` away (a look-alike within the window)."""
-    parts = (((0.0, 0.0, 0.0), scan), ((ghost[0], ghost[1], 0.0), scan))
+    room twice: as seen from ``drawn_at`` (the guess, unless the graph is off), and again ``ghost``
+    from there (a look-alike within the window; ``ghost`` (0, 0): drawn there twice)."""
+    x, y = drawn_at
+    parts = (((x, y, 0.0), scan), ((x + ghost[0], y + ghost[1], 0.0), scan))
     window = (config.final_window_xy, config.final_window_theta)
     return Check(
         1,
@@ -87,23 +91,7 @@ def test_a_correction_is_kept_when_the_guess_does_not_match() -> None:
     """The graph 0.25 m off (the room drawn only where it is, twice, as a submap's scans overlap): the
     match moves the node, as before."""
     scan = _node_scan()
-    config = CloserConfig()
-    parts = (((0.25, 0.0, 0.0), scan), ((0.25, 0.0, 0.0), scan))
-    check = Check(
-        1,
-        0,
-        0,
-        scan,
-        (0.0, 0.0, 0.0),
-        (0.3, math.radians(4.0)),
-        None,
-        parts,
-        config,
-        GridConfig(),
-        (0.0, 0.0, 0.0),
-        partial=True,
-        unique=True,
-    )
+    check = _check(scan, (0.0, 0.0), CloserConfig(), drawn_at=(0.25, 0.0))
     res = run_check(check)
     assert res.closure is not None, res.outcome
     assert abs(res.closure.z[0] - 0.25) < 0.03 and abs(res.closure.z[1]) < 0.03

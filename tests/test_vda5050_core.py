@@ -256,7 +256,7 @@ def test_a_nodes_allowed_deviation_goes_to_the_robot_up_to_a_metre() -> None:
     assert [n.allowedDeviationXY for n in sent["nodes"]] == [0.0, 0.15, 1.0]
 
 
-def test_an_edges_trajectory_goes_to_the_robot_and_one_it_cannot_drive_is_refused_with_the_reason() -> None:
+def test_an_edges_trajectory_goes_to_the_robot_and_is_echoed_in_its_edge_state() -> None:
     rig = Rig()
     rig.state()
     nodes = [node("n0", 0, 0.0), node("n1", 2, 2.0)]
@@ -278,44 +278,53 @@ def test_an_edges_trajectory_goes_to_the_robot_and_one_it_cannot_drive_is_refuse
     assert traj.degree == 3 and [p.weight for p in traj.controlPoints] == [1.0, 2.0, 1.0, 1.0]
     pts = traj.waypoints()
     assert pts[0] == (0.0, 0.0) and pts[-1] == pytest.approx((2.0, 0.0)) and max(y for _, y in pts) > 0.5
-    # Valid against the schema, not a curve: the knot vector one short.
-    rig = Rig()
-    rig.state()
-    bad = edge("n0", "n1", 1)
-    bad["trajectory"] = {**bend["trajectory"], "knotVector": [0, 0, 0, 1, 1, 1, 1]}
-    outs = rig.send("order", order("o2", 0, nodes, [bad]))
-    assert not any(isinstance(o, SendOrder) for o in outs)
-    [err] = errors(rig)
-    assert "trajectory: knotVector has 7 values" in err["errorDescription"]
-    # A control point off the site: refused here, not an order that cannot be sent.
-    rig = Rig()
-    rig.state()
-    far = edge("n0", "n1", 1)
-    far["trajectory"] = {
-        "degree": 1,
-        "knotVector": [0, 0, 1, 1],
-        "controlPoints": [{"x": 0, "y": 0}, {"x": 2e5, "y": 0}],
-    }
-    outs = rig.send("order", order("o3", 0, nodes, [far]))
-    assert not any(isinstance(o, SendOrder) for o in outs)
-    assert "controlPoints[1] out of range" in errors(rig)[0]["errorDescription"]
-    # A curve that does not end at its end node (section 6.6.6: the control points include it).
-    rig = Rig()
-    rig.state()
-    short = edge("n0", "n1", 1)
-    short["trajectory"] = {
-        "degree": 1,
-        "knotVector": [0, 0, 1, 1],
-        "controlPoints": [{"x": 0, "y": 0}, {"x": 1, "y": 0}],
-    }
-    outs = rig.send("order", order("o5", 0, nodes, [short]))
-    assert not any(isinstance(o, SendOrder) for o in outs)
-    assert "its trajectory ends at (1.00, 0.00), not at node 'n1'" in errors(rig)[0]["errorDescription"]
     # The trajectory an order came with is echoed in its edge state.
     rig = Rig()
     rig.state()
     rig.send("order", order("o4", 0, nodes, [bend]))
     assert rig.last_state()["edgeStates"][0]["trajectory"] == bend["trajectory"]
+
+
+CUBIC = {
+    "degree": 3,
+    "knotVector": [0, 0, 0, 0, 1, 1, 1, 1],
+    "controlPoints": [{"x": 0.0, "y": 0.0}, {"x": 0.5, "y": 1.0}, {"x": 1.5, "y": 1.0}, {"x": 2.0, "y": 0.0}],
+}
+
+
+@pytest.mark.parametrize(
+    ("trajectory", "why"),
+    [
+        # Valid against the schema, not a curve: the knot vector one short.
+        ({**CUBIC, "knotVector": [0, 0, 0, 1, 1, 1, 1]}, "trajectory: knotVector has 7 values"),
+        # A control point off the site: refused here, not an order that cannot be sent.
+        (
+            {"degree": 1, "knotVector": [0, 0, 1, 1], "controlPoints": [{"x": 0, "y": 0}, {"x": 2e5, "y": 0}]},
+            "controlPoints[1] out of range",
+        ),
+        # A curve that does not end at its end node (section 6.6.6: the control points include it).
+        (
+            {"degree": 1, "knotVector": [0, 0, 1, 1], "controlPoints": [{"x": 0, "y": 0}, {"x": 1, "y": 0}]},
+            "its trajectory ends at (1.00, 0.00), not at node 'n1'",
+        ),
+        # A weight of 0 (the standard allows it) leaves this curve undefined at its start.
+        (
+            {**CUBIC, "controlPoints": [{**CUBIC["controlPoints"][0], "weight": 0.0}, *CUBIC["controlPoints"][1:]]},
+            "this vehicle takes finite weights > 0",
+        ),
+    ],
+)
+def test_a_trajectory_the_robot_cannot_drive_refuses_the_order_with_the_reason(
+    trajectory: dict[str, Any], why: str
+) -> None:
+    rig = Rig()
+    rig.state()
+    bad = edge("n0", "n1", 1)
+    bad["trajectory"] = trajectory
+    outs = rig.send("order", order("o2", 0, [node("n0", 0, 0.0), node("n1", 2, 2.0)], [bad]))
+    assert not any(isinstance(o, SendOrder) for o in outs)
+    [err] = errors(rig)
+    assert why in err["errorDescription"]
 
 
 def test_an_update_is_stitched_at_the_decision_point_and_older_updates_are_refused() -> None:
