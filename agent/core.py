@@ -1355,6 +1355,7 @@ def _stops(msg: Order) -> list[Stop]:
     for i, n in enumerate(nodes):
         if n.sequenceId != first + 2 * i:
             raise ItineraryError(f"node {n.nodeId!r}: sequence id {n.sequenceId}, expected {first + 2 * i}")
+    ways: list[tuple[tuple[float, float], ...]] = []  # each edge's trajectory, sampled once
     for i, e in enumerate(edges):
         a, b = nodes[i], nodes[i + 1]
         if e.sequenceId != a.sequenceId + 1 or e.startNodeId != a.nodeId or e.endNodeId != b.nodeId:
@@ -1365,7 +1366,8 @@ def _stops(msg: Order) -> list[Stop]:
             raise ItineraryError(f"edge {e.edgeId!r}: edge actions are not supported (put them on its start node)")
         # The way must end at the node it leads to (its start may lie where the robot stood for the
         # node before: the VDA bridge sends a first node reached in place as the robot's position).
-        end = _trajectory(e)[-1:]
+        ways.append(_trajectory(e))
+        end = ways[i][-1:]
         if end and math.dist(end[0], (b.x, b.y)) > TRAJECTORY_END_M:
             raise ItineraryError(
                 f"edge {e.edgeId!r}: its trajectory ends at ({end[0][0]:.2f}, {end[0][1]:.2f}), not at node"
@@ -1387,7 +1389,7 @@ def _stops(msg: Order) -> list[Stop]:
                 for a in n.actions
             ),
             n.allowedDeviationXY,
-            _trajectory(edges[i - 1]) if i > 0 else (),
+            ways[i - 1] if i > 0 else (),
         )
         for i, n in enumerate(nodes)
     ]

@@ -882,12 +882,10 @@ def plan_order(
     ways: list[Trajectory | None] = []
     for e in plan.edges:
         way = _trajectory(e)
-        if way is not None and len(way.controlPoints) <= budget:
-            budget -= len(way.controlPoints)
-            ways.append(way)
-        else:
-            budget = 0
-            ways.append(None)
+        if way is not None and len(way.controlPoints) > budget:
+            way, budget = None, 0
+        budget -= 0 if way is None else len(way.controlPoints)
+        ways.append(way)
     edges = tuple(
         OrderEdge(
             edgeId=e.edge_id,

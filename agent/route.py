@@ -35,6 +35,7 @@ from typing import Protocol, runtime_checkable
 
 from fleetlink.agent.guard import Refusal, RefusalReason
 from fleetlink.agent.motion import GoToController, GoToPhase
+from fleetlink.shared.geometry import point_segment_distance
 
 __all__ = [
     "Destination",
@@ -387,7 +388,11 @@ class Route:
         here = (pose[0], pose[1])
         # The first segment it stands near, not the nearest anywhere: a curve that comes back near
         # its start is joined at its start.
-        gaps = [math.dist(here, traj[0])] if len(traj) == 1 else [_to_segment(here, a, b) for a, b in pairwise(traj)]
+        gaps = (
+            [math.dist(here, traj[0])]
+            if len(traj) == 1
+            else [point_segment_distance(*here, (*a, *b)) for a, b in pairwise(traj)]
+        )
         k = next((i for i, g in enumerate(gaps) if g <= TRAJECTORY_JOIN_M), None)
         if k is None:
             return f"the robot stands {min(gaps):.2f} m off the order's trajectory"
@@ -600,11 +605,3 @@ class Route:
             self._progress = _Progress(index, d, now)
             return False
         return now - p.since >= self.config.no_progress_s
-
-
-def _to_segment(p: Point, a: Point, b: Point) -> float:
-    """Distance from ``p`` to the segment a-b."""
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    n = dx * dx + dy * dy
-    k = 0.0 if n <= 0.0 else max(0.0, min(1.0, ((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / n))
-    return math.hypot(p[0] - (a[0] + k * dx), p[1] - (a[1] + k * dy))

@@ -40,7 +40,7 @@ from fleetlink.shared.messages import (
 from fleetlink.shared.scan_codec import scan_points
 from fleetlink.shared.wire import Message, WireError
 
-__all__ = ["CONTACT_RENEW_S", "FleetModel", "Grid", "LeaseRenewal", "Notice", "RobotView", "Route"]
+__all__ = ["CONTACT_RENEW_S", "FleetModel", "Grid", "LeaseRenewal", "Notice", "RobotView", "Route", "extend_trail"]
 
 TRAIL_POINTS = 200
 SCAN_STALE_S = 3.0
@@ -51,6 +51,15 @@ Grid = tuple[float, float, float, int, int, bytes]
 """(origin_x, origin_y, resolution, width, height, cells row by row from origin_y up: 0 free,
 100 occupied, 255 unknown)."""
 TRAIL_MIN_STEP_M = 0.05
+
+
+def extend_trail(trail: deque[tuple[float, float]], x: float, y: float) -> bool:
+    """(x, y) onto a robot's trail if it is ``TRAIL_MIN_STEP_M`` from the last point (True then)."""
+    if trail and math.hypot(x - trail[-1][0], y - trail[-1][1]) < TRAIL_MIN_STEP_M:
+        return False
+    trail.append((x, y))
+    return True
+
 
 Route = tuple[str, tuple[tuple[float, float, float], ...]]
 """A round this console sent a robot: its order id and its nodes' (x, y, dwell_s), in order."""
@@ -251,8 +260,7 @@ class FleetModel:
 
     @staticmethod
     def _trail(view: RobotView, x: float, y: float) -> None:
-        if not view.trail or math.hypot(x - view.trail[-1][0], y - view.trail[-1][1]) >= TRAIL_MIN_STEP_M:
-            view.trail.append((x, y))
+        if extend_trail(view.trail, x, y):
             view.trail_added += 1
 
     def trail_through(self, robot: str, points: Iterable[tuple[float, float]]) -> None:

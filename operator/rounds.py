@@ -376,7 +376,14 @@ def robots_off(cells: npt.NDArray[np.int8], resolution: float, origin: Point, ow
     if pts.size == 0:
         return 0
     ox, oy, ores, ow, oh, data = own
-    mine = np.frombuffer(data, dtype=np.uint8).reshape(oh, ow)
+    # Its own map's walls and the cells beside them (two maps agree on a wall to a cell or so): a
+    # blob on any of them is something it saw there itself.
+    walls = np.frombuffer(data, dtype=np.uint8).reshape(oh, ow) == 100
+    mine = np.zeros((oh + 2, ow + 2), dtype=bool)
+    for dr in range(3):
+        for dc in range(3):
+            mine[dr : dr + oh, dc : dc + ow] |= walls
+    mine = mine[1:-1, 1:-1]
     span = int(2 * BODY_REACH_M / resolution) + 1
     freed = 0
     for blob in components(cells == 100):
@@ -390,15 +397,8 @@ def robots_off(cells: npt.NDArray[np.int8], resolution: float, origin: Point, ow
             continue
         mc = np.floor((xs - ox) / ores).astype(np.intp)
         mr = np.floor((ys - oy) / ores).astype(np.intp)
-        # Its own map's wall on or beside the blob (two maps agree on a wall to a cell or so): it saw
-        # something there itself.
-        seen = False
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                r, c = mr + dr, mc + dc
-                inside = (c >= 0) & (c < ow) & (r >= 0) & (r < oh)
-                seen = seen or bool((mine[r[inside], c[inside]] == 100).any())
-        if seen:
+        inside = (mc >= 0) & (mc < ow) & (mr >= 0) & (mr < oh)
+        if bool(mine[mr[inside], mc[inside]].any()):
             continue
         cells[rows, cols] = 0
         freed += int(rows.size)

@@ -46,7 +46,7 @@ from fleetlink.agent.dose_share import fetch_dose
 from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.field.plans import FloorPlan, load_plan
 from fleetlink.field.scenario import LidarSettings, RobotSpec, Scenario
-from fleetlink.operator.fleet import TRAIL_MIN_STEP_M, TRAIL_POINTS
+from fleetlink.operator.fleet import TRAIL_POINTS, extend_trail
 from fleetlink.operator.maps import to_grid
 from fleetlink.operator.rounds import MAX_SURVEYS, RectArea, RoundError, RoundRequest, floor_of
 from fleetlink.shared import wire
@@ -302,10 +302,8 @@ class RoundRun:
         self._read(t)
         for name, crew in self.crews.items():
             pose = self.op.poses.get(name)
-            if isinstance(pose, Pose) and (
-                not crew.trail or math.dist(crew.trail[-1], (pose.x, pose.y)) >= TRAIL_MIN_STEP_M
-            ):
-                crew.trail.append((pose.x, pose.y))
+            if isinstance(pose, Pose):
+                extend_trail(crew.trail, pose.x, pose.y)
         if t >= self._next_sample:
             self._next_sample = t + SAMPLE_S
             self._sample()

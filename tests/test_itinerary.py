@@ -18,6 +18,7 @@ from fleetlink.shared import wire
 from fleetlink.shared.clock import SimClock
 from fleetlink.shared.messages import (
     MAX_ORDER_NODES,
+    MAX_TRAJECTORY_POINTS,
     Ack,
     AckResult,
     Action,
@@ -452,6 +453,21 @@ def test_the_largest_route_with_its_trajectories_still_fits_one_message() -> Non
     assert 0 < len(carried) < n - 1 and sum(len(t.controlPoints) for t in carried) <= MAX_ORDER_TRAJECTORY_POINTS
     msg = wire.HeaderCounter(SimClock(), robot="r1", sender="op").make(Order, **fields)
     assert len(wire.encode(msg)) <= wire.MAX_PAYLOAD
+
+
+def test_an_edge_with_more_corners_than_a_trajectory_carries_leaves_the_others_theirs() -> None:
+    from fleetlink.agent.coverage import CoveragePlan, PlanEdge, PlanNode, Prediction, plan_order
+
+    winding = tuple((0.01 * k, 0.01 * (k % 2)) for k in range(MAX_TRAJECTORY_POINTS + 1))
+    nodes = (PlanNode("n0", 0, 0.0, 0.0, 0.0, False), PlanNode("n1", 2, winding[-1][0], winding[-1][1], 1.0, True))
+    nodes += (PlanNode("n2", 4, 1.0, 1.0, 1.0, True),)
+    edges = (
+        PlanEdge("e1", 1, "n0", "n1", winding, 0.7, True),
+        PlanEdge("e2", 3, "n1", "n2", (winding[-1], (1.0, 1.0)), 1.0, True),
+    )
+    pred = Prediction(coverage=1.0, dwell_s=2.0, travel_s=0.0, total_s=2.0, path_m=1.7, area_m2=1.0)
+    e1, e2 = plan_order(CoveragePlan("uv", nodes, edges, 100.0, pred), "o")["edges"]
+    assert e1.trajectory is None and e2.trajectory is not None
 
 
 def test_the_same_order_again_is_a_duplicate_and_an_older_update_is_refused() -> None:
