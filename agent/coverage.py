@@ -1927,15 +1927,22 @@ def _runs(row: BoolGrid) -> list[tuple[int, int]]:
 
 
 STRIP_STEP_M = 1.0
+NUB_M = 1.0
+"""``plan_sweep`` also tries its lane grid spaced over the rows whose longest run of stand cells is
+at least this long (or half the longest row's), leaving a nub past them (a doorway's floor, a ragged
+row along a wall) to the fill lanes: spaced over the nub too, the lanes of the wide floor below it
+end a few centimetres short of its far wall (the kitchen's and the living room's north walls,
+docs/payload.md)."""
 """A lane whose interval ends this much further in (or out) than the one before it, at either end,
 starts a strip of its own (measured, bench/coverage.py: the bedroom's sweep 93.9 -> 95.1 %)."""
 
 
 def _decompose(
-    stand: BoolGrid, res: float, ox: float, oy: float, width: float, spread: float | None = None
+    stand: BoolGrid, res: float, ox: float, oy: float, width: float, spread: float | None = None, nub_m: float = 0.0
 ) -> list[_Strip]:
     """Boustrophedon decomposition of ``stand`` (rows along y, lanes along x): lanes one tool width
-    apart (evenly over the stand rows' extent), each split into intervals of stand cells; intervals
+    apart (evenly over the stand rows' extent; with ``nub_m`` > 0, over the rows whose longest run
+    is that long or half the longest row's, see ``NUB_M``), each split into intervals of stand cells; intervals
     on consecutive lanes that overlap one-to-one continue the same cell, anything else (a split
     around an obstacle, a merge, or an interval whose end moves by more than ``STRIP_STEP_M``: a
     doorway's nub, the floor beside a wardrobe ending) starts new cells. A strip that ends at such a
@@ -1944,8 +1951,12 @@ def _decompose(
     rows = np.nonzero(stand.any(axis=1))[0]
     if rows.size == 0:
         return []
-    y0 = oy + (rows.min() + 0.5) * res
-    y1 = oy + (rows.max() + 0.5) * res
+    wide = rows
+    if nub_m > 0:
+        longest = np.array([max((b - a + 1 for a, b in _runs(stand[r])), default=0) for r in rows]) * res
+        wide = rows[longest >= min(nub_m, 0.5 * float(longest.max())) - 1e-9]
+    y0 = oy + (wide.min() + 0.5) * res
+    y1 = oy + (wide.max() + 0.5) * res
     nl = max(1, math.ceil((y1 - y0) / width - 1e-9) + 1)
     ys = np.linspace(y0, y1, nl) if nl > 1 else np.array([0.5 * (y0 + y1)])
     lanes: list[tuple[float, list[tuple[int, int]]]] = []
@@ -2076,7 +2087,9 @@ def plan_sweep(
     each cell is swept lane by lane, turning at alternate ends, its lanes spread to its own floor
     (``_edge_lanes``); cells are taken in the order whose ways between them are shortest, each entered
     at any of its four corners (``_strip_order``), joined by shortest stand paths.
-    ``axis=None`` tries both and keeps the shorter route (usually lanes along the longest side).
+    ``axis=None`` tries both axes, each with the lane grid spaced over all rows and over the wide
+    ones only (``NUB_M``), and keeps the route with the least path plus ``SWEEP_MISS_WEIGHT`` times
+    the ideal path for the floor it leaves.
     ``predicted.coverage``: share of the floor the tool can reach at all (``swept_m2``: target cells
     within half a tool width of a stand cell) that the route passes within half a tool width of;
     ``path_m`` counts the route from the first lane on (the drive there is in ``travel_s``), and
@@ -2089,35 +2102,20 @@ def plan_sweep(
     reach = np.isfinite(fm.geodesic(s_cell)) & area.stand
     if not reach.any():
         raise ValueError("sweep: the robot cannot reach the area from its start")
-    axes = [axis] if axis is not None else [0, 1]
-    best: tuple[float, int, list[tuple[Point, str]]] | None = None
-    for ax in axes:
-        way = _sweep_route(fm, reach, s_cell, width, ax)
-        length = sum(math.dist(p, q) for (p, _), (q, _) in itertools.pairwise(way))
-        if best is None or length < best[0] - 1e-9:
-            best = (length, ax, way)
-    assert best is not None
-    _, ax, way = best
     # Swept floor: the target cells the tool can reach at all (within half its width of a stand cell's
     # centre, where lanes run).
     rad = width / 2.0
     can = _near_centres(fm, reach, rad) & area.target
-    end = fm.config.lane_end_clearance_m
-    route = _lane_ends_short(_distinct(way), end)
-    if end > 0:
-        # The lanes stop short of the walls they run into: the floor there is swept by lanes across
-        # them (along those walls, where the guard does not stop the robot), as a robot vacuum's
-        # edge pass does.
-        missed = can & ~swept_cells(fm, [p for p, _ in route], rad)
-        if missed.sum() * fm.cell_area >= 0.1:
-            edge = _stand_near(fm, missed, rad) & reach
-            last = fm.escape(route[-1][0])
-            if edge.any() and last is not None:
-                more = _lane_ends_short(_distinct(_sweep_route(fm, edge, last, width, 1 - ax)), end)
-                link = fm.route(route[-1][0], more[0][0])[1:-1]
-                route = _distinct([*route, *((q, "transit") for q in link), (more[0][0], "transit"), *more[1:]])
-    route = _fill_gaps(fm, route, can, reach, rad)
-    swept = swept_cells(fm, [p for p, _ in route], rad) & can
+    best: tuple[float, list[tuple[Point, str]], BoolGrid] | None = None
+    for ax in [axis] if axis is not None else [0, 1]:
+        for nub_m in (0.0, NUB_M) if NUB_M > 0 else (0.0,):
+            route, swept = _sweep_candidate(fm, reach, s_cell, width, ax, nub_m, can, rad)
+            path = sum(math.dist(p, q) for (p, _), (q, _) in itertools.pairwise(route))
+            score = path + SWEEP_MISS_WEIGHT * float((can & ~swept).sum()) * fm.cell_area / width
+            if best is None or score < best[0] - 1e-9:
+                best = (score, route, swept)
+    assert best is not None
+    _, route, swept = best
     s0 = (float(start[0]), float(start[1]))
     head = fm.route(s0, route[0][0])
     nodes = [PlanNode("n0", 0, s0[0], s0[1], 0.0, False)]
@@ -2143,6 +2141,36 @@ def plan_sweep(
         swept_m2=swept_m2,
     )
     return CoveragePlan("sweep", tuple(nodes), tuple(edges), 0.0, pred, robot)
+
+
+def _sweep_candidate(
+    fm: FloorMap, reach: BoolGrid, s_cell: Cell, width: float, ax: int, nub_m: float, can: BoolGrid, rad: float
+) -> tuple[list[tuple[Point, str]], BoolGrid]:
+    """One sweep route over ``reach`` (lanes along ``ax``, the lane grid spaced over rows at least
+    ``nub_m`` long, see ``_decompose``), lane ends and fill lanes included, and the cells of ``can``
+    it sweeps."""
+    end = fm.config.lane_end_clearance_m
+    route = _lane_ends_short(_distinct(_sweep_route(fm, reach, s_cell, width, ax, nub_m)), end)
+    if end > 0:
+        # The lanes stop short of the walls they run into: the floor there is swept by lanes across
+        # them (along those walls, where the guard does not stop the robot), as a robot vacuum's
+        # edge pass does.
+        missed = can & ~swept_cells(fm, [p for p, _ in route], rad)
+        if missed.sum() * fm.cell_area >= 0.1:
+            edge = _stand_near(fm, missed, rad) & reach
+            last = fm.escape(route[-1][0])
+            if edge.any() and last is not None:
+                more = _lane_ends_short(_distinct(_sweep_route(fm, edge, last, width, 1 - ax, nub_m)), end)
+                link = fm.route(route[-1][0], more[0][0])[1:-1]
+                route = _distinct([*route, *((q, "transit") for q in link), (more[0][0], "transit"), *more[1:]])
+    route = _fill_gaps(fm, route, can, reach, rad)
+    return route, swept_cells(fm, [p for p, _ in route], rad) & can
+
+
+SWEEP_MISS_WEIGHT = 6.0
+"""``plan_sweep`` keeps the candidate route with the least path plus this many times the path an
+ideal sweep would need for the floor it leaves (m² / tool width): leaving floor is what the sweep
+is for, not saving way (measured, docs/payload.md "Sweeps that choose by what they leave")."""
 
 
 FILL_MIN_M2 = 0.05
@@ -2285,20 +2313,22 @@ def _near_centres(fm: FloorMap, cells: BoolGrid, radius: float) -> BoolGrid:
     return out
 
 
-def _sweep_route(fm: FloorMap, reach: BoolGrid, s_cell: Cell, width: float, axis: int) -> list[tuple[Point, str]]:
+def _sweep_route(
+    fm: FloorMap, reach: BoolGrid, s_cell: Cell, width: float, axis: int, nub_m: float = 0.0
+) -> list[tuple[Point, str]]:
     """Waypoints (and the kind of the edge that leads to each) of the boustrophedon over ``reach``,
     lanes ``width`` apart; a strip's lanes may spread to half way between that and the tool's own
     width (``_edge_lanes``: the overlap kept for the robot's centimetres off its lane halves)."""
     res = fm.plan_resolution
     ox, oy = fm.origin
-    spread = width + max(0.0, fm.config.tool_width_m - width) / 2.0
+    spread = width + max(0.0, fm.config.tool_width_m - width) * LANE_SPREAD
     if axis == 0:
-        strips = _decompose(reach, res, ox, oy, width, spread)
+        strips = _decompose(reach, res, ox, oy, width, spread, nub_m)
 
         def xy(u: float, v: float) -> Point:
             return (u, v)
     else:
-        strips = _decompose(reach.T, res, oy, ox, width, spread)
+        strips = _decompose(reach.T, res, oy, ox, width, spread, nub_m)
 
         def xy(u: float, v: float) -> Point:
             return (v, u)
@@ -2320,6 +2350,8 @@ def _sweep_route(fm: FloorMap, reach: BoolGrid, s_cell: Cell, width: float, axis
             right = not right
     return way
 
+
+LANE_SPREAD = 0.5
 
 STRIP_ORDER_EXACT = 12
 """Up to this many strips, the order that sweeps them is the shortest (by the stand paths between
