@@ -382,20 +382,29 @@ def _room_with_a_doorway(h: float) -> tuple[cv.FloorMap, cv.Area]:
     return fm, cv.rectangle(fm, 0.0, 0.0, 5.0, h + 0.3)
 
 
-def test_a_doorways_nub_does_not_pull_the_lanes_off_the_wall_beside_it(monkeypatch: pytest.MonkeyPatch) -> None:
+def _candidate_coverage(fm: cv.FloorMap, area: cv.Area, axis: int, nub_m: float, width: float = 0.316) -> float:
+    """Share of the sweepable floor one of ``plan_sweep``'s candidate routes sweeps."""
+    s_cell = cv._start_cell(fm, START)
+    fm.focus(area.stand, s_cell)
+    reach = np.isfinite(fm.geodesic(s_cell)) & area.stand
+    can = cv._near_centres(fm, reach, width / 2) & area.target
+    _, swept = cv._sweep_candidate(fm, reach, s_cell, width, axis, nub_m, can, width / 2)
+    return float(swept.sum() / can.sum())
+
+
+def test_a_doorways_nub_does_not_pull_the_lanes_off_the_wall_beside_it() -> None:
     # Lanes spaced over the doorway's rows too end a few centimetres short of the north wall on
     # the room's whole width (the apartment's kitchen and living room: 97 and 47 cells of the
-    # truth's sweepable floor, docs/payload.md); spaced over the wide rows, they run along it.
+    # truth's sweepable floor, docs/payload.md); spaced without them, they run along it.
     fm, area = _room_with_a_doorway(3.2)
-
-    def along_x() -> float:
-        return cv.plan_sweep(fm, area, START, tool_width_m=0.316, axis=0).predicted.coverage
-
-    spaced_over_the_wide_rows = along_x()
-    monkeypatch.setattr(cv, "NUB_M", 0.0)
-    spaced_over_all_rows = along_x()
-    assert spaced_over_all_rows < 0.96
-    assert spaced_over_the_wide_rows >= spaced_over_all_rows + 0.03
+    over_all_rows = _candidate_coverage(fm, area, 0, 0.0)
+    without_the_nub = _candidate_coverage(fm, area, 0, cv.NUB_M)
+    assert over_all_rows < 0.96
+    assert without_the_nub >= over_all_rows + 0.03
+    # The edge pass along the walls the lanes run into keeps every row (a band of bits along walls).
+    edged = cv.FloorMap(fm.free, fm.resolution, fm.origin, cv.CoverageConfig(lane_end_clearance_m=0.2))
+    area = cv.rectangle(edged, 0.0, 0.0, 5.0, 3.5)
+    assert _candidate_coverage(edged, area, 1, cv.NUB_M) == _candidate_coverage(edged, area, 1, 0.0)
 
 
 def test_a_sweep_keeps_the_route_that_leaves_least_floor_for_its_way(monkeypatch: pytest.MonkeyPatch) -> None:
