@@ -47,7 +47,7 @@ import numpy.typing as npt
 
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
-from fleetlink.agent.mapping.matcher import LocalMap, _refine, field_score, icp_refine
+from fleetlink.agent.mapping.matcher import IcpResult, LocalMap, _refine, field_score, icp_refine
 from fleetlink.agent.mapping.posegraph import Edge, PoseGraph
 from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
 
@@ -142,6 +142,22 @@ class CloserConfig:
     # per metre, the heading 3x) before a closure is dropped: a step matched wrong but held tight makes
     # the right matches at its node look like the outliers (aces: a step 0.47 m off, held at 2.6 cm).
     final_loosen_steps: bool = True
+    # Scan to scan (Lu and Milios' constraints, beside the submap matches): each node matched against
+    # up to this many earlier nodes' own scans (0: off), at least ``final_pair_gap_nodes`` before it,
+    # within ``final_pair_radius`` m and ``final_pair_turn`` rad, nearest by view first; kept when well
+    # posed (``final_pair_weak``) with half its points on a line, within the final window of the graph's
+    # guess. A submap carries any wrong step inside it into every match against it; two scans carry none.
+    final_pair_per_node: int = 4
+    final_pair_gap_nodes: int = 1
+    final_pair_radius: float = 2.0
+    final_pair_turn: float = math.radians(60.0)
+    final_pair_weak: float = 10000.0
+    # A pair the point-to-line refuses from the graph's guess, its nodes at most ``final_pair_search_nodes``
+    # apart, is refined again from guesses moved along their step, 0.1 m apart up to this far (m; 0:
+    # not): a front-end step matched 0.3 m short down a corridor (intel seed 1, 736-737) is beyond one
+    # refinement's reach of the graph's guess, and the pairs beside it carry the same error.
+    final_pair_search: float = 0.4
+    final_pair_search_nodes: int = 10
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
     # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
@@ -195,6 +211,8 @@ class Closure:
     # A partial match (final pass, ``final_partial_sigma``): the unit direction, in the anchor's frame,
     # along which it fixes nothing (a corridor's axis); None: it fixes every direction.
     weak_dir: tuple[float, float] | None = None
+    # A final-pass scan pair (``final_pair_per_node``): ``anchor`` is then the other node, not a submap's first.
+    pair: bool = False
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -254,6 +272,8 @@ class CloserStats:
     rejected_inliers: int = 0
     rejected_disagreement: int = 0
     rejected_degenerate: int = 0
+    final_pairs: int = 0  # the final pass's scan-to-scan edges (``final_pair_per_node``)
+    final_pairs_searched: int = 0  # of them, found by the search (``final_pair_search``)
     dropped_by_solve: int = 0
     pending: int = 0  # large corrections held for a second closure
     confirmed: int = 0
@@ -736,6 +756,8 @@ class LoopCloser:
                 c = self._verify(k, self.submaps[s_i], window=window, partial=cfg.final_partial_sigma > 0)
                 if c is not None:
                     found.append(c)
+        if cfg.final_pair_per_node > 0:
+            found += self._scan_pairs(xyt)
         info = np.diag([1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_theta**2])
         for c in found:
             edge_info = info
@@ -751,6 +773,82 @@ class LoopCloser:
         self.stats.final_edges += len(found)
         self._solve(max_drops=cfg.final_drops, loosen=cfg.final_loosen_steps)
         return len(found) - (before - len(self.closures))
+
+    def _scan_pairs(self, xyt: F64) -> list[Closure]:
+        """The final pass's scan-to-scan matches (``final_pair_per_node``): node k against earlier
+        nodes' scans near it, point-to-line from the graph's guess (searched along the step for a
+        near pair the guess is too far off for, ``final_pair_search``); each kept one an edge j -> k."""
+        cfg = self.config
+        out: list[Closure] = []
+        references: dict[int, LocalMap] = {}
+        inv_mount = inverse(self.mount)
+        for k in range(cfg.final_pair_gap_nodes, len(xyt)):
+            sk = self.scans[k]
+            if len(sk.points) < 10:
+                continue
+            other = xyt[: k - cfg.final_pair_gap_nodes + 1]
+            d = np.hypot(other[:, 0] - xyt[k, 0], other[:, 1] - xyt[k, 1])
+            turn = np.abs(np.remainder(other[:, 2] - xyt[k, 2] + math.pi, 2.0 * math.pi) - math.pi)
+            near = np.flatnonzero((d <= cfg.final_pair_radius) & (turn <= cfg.final_pair_turn))
+            near = near[np.argsort(d[near] + VIEW_LEVER_M * turn[near], kind="stable")][: cfg.final_pair_per_node]
+            for j in near.tolist():
+                sj = self.scans[j]
+                if len(sj.points) < 10:
+                    continue
+                reference = references.get(j)
+                if reference is None:
+                    reference = references[j] = LocalMap(1, 0.05)
+                    reference.add((0.0, 0.0, 0.0), sj.points, sj.normals)
+                pj = (float(xyt[j, 0]), float(xyt[j, 1]), float(xyt[j, 2]))
+                pk = (float(xyt[k, 0]), float(xyt[k, 1]), float(xyt[k, 2]))
+                guess = relative(compose(pj, self.mount), compose(pk, self.mount))  # sensor k in sensor j
+                found = self._pair_match(reference, sk, guess)
+                if found is None and cfg.final_pair_search > 0 and k - j <= cfg.final_pair_search_nodes:
+                    found = self._pair_search(reference, sk, guess)
+                    self.stats.final_pairs_searched += found is not None
+                if found is not None:
+                    z = compose(compose(self.mount, found.pose), inv_mount)  # node k in node j's frame
+                    out.append(Closure(k, j, z, 1.0, found.inliers / len(sk.points), pair=True))
+        self.stats.final_pairs += len(out)
+        return out
+
+    def _pair_match(self, reference: LocalMap, scan: NodeScan, guess: Pose) -> IcpResult | None:
+        """``scan`` refined against ``reference`` from ``guess``: the answer if well posed, with half
+        its points on a line, within the final window of the guess."""
+        cfg = self.config
+        m = icp_refine(reference, scan.points, guess, guess, (1.0, 1.0), 0.03, 0.15, iterations=20)
+        if (
+            m.inliers < 0.5 * len(scan.points)
+            or m.weak < cfg.final_pair_weak
+            or math.hypot(m.pose[0] - guess[0], m.pose[1] - guess[1]) > cfg.final_window_xy
+            or abs(wrap(m.pose[2] - guess[2])) > cfg.final_window_theta
+        ):
+            return None
+        return m
+
+    def _pair_search(self, reference: LocalMap, scan: NodeScan, guess: Pose) -> IcpResult | None:
+        """Refined again from guesses moved along the step (``PAIR_SEARCH_STEP_M`` apart, up to
+        ``final_pair_search``): the answer with most inliers, unless another well-posed answer apart
+        from it has nearly as many (a look-alike down a corridor)."""
+        cfg = self.config
+        d = math.hypot(guess[0], guess[1])
+        ux, uy = (guess[0] / d, guess[1] / d) if d > 1e-6 else (1.0, 0.0)
+        answers: list[IcpResult] = []
+        for q in range(1, int(cfg.final_pair_search / PAIR_SEARCH_STEP_M + 1e-9) + 1):
+            for sign in (-1.0, 1.0):
+                off = sign * q * PAIR_SEARCH_STEP_M
+                g = (guess[0] + off * ux, guess[1] + off * uy, guess[2])
+                m = icp_refine(reference, scan.points, g, g, (1.0, 1.0), 0.03, 0.15, iterations=20)
+                if m.inliers >= 0.5 * len(scan.points) and m.weak >= cfg.final_pair_weak:
+                    answers.append(m)
+        if not answers:
+            return None
+        best = max(answers, key=lambda a: a.inliers)
+        for a in answers:
+            apart = math.hypot(a.pose[0] - best.pose[0], a.pose[1] - best.pose[1])
+            if apart > PAIR_AMBIGUITY_M and a.inliers >= 0.9 * best.inliers:
+                return None
+        return best
 
     def _solve(self, max_drops: int | None = None, loosen: bool = False) -> None:
         """Solve; while the worst closure's error is above ``max_chi2``, drop it and solve again (at
@@ -808,6 +906,12 @@ _FINAL_ROWS = 256
 """A closure's turn counts towards ``confirm_above`` as the arc it moves a wall this far away."""
 VIEW_LEVER_M = 2.0
 """Ranking candidates: a node facing another way counts as this many metres further per radian."""
+PAIR_SEARCH_STEP_M = 0.1
+"""A scan pair's search (``final_pair_search``) starts the refinement this far apart along the step:
+within the point-to-line's 0.15 m reach of any answer in between."""
+PAIR_AMBIGUITY_M = 0.1
+"""Two answers of a scan pair's search this far apart, the second with nine tenths of the first's
+inliers or more, are a look-alike: the pair is not kept."""
 
 
 def draw_submap(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, depth: int) -> Drawn:
