@@ -474,7 +474,7 @@ def real_log(path: Path, seed: int) -> dict[str, object]:
             "final_edges": closer.stats.final_edges if closer else 0,  # the final pass's matches
             "final_ambiguous": closer.stats.final_ambiguous if closer else 0,  # refused: the guess matched too
             "final_pairs": closer.stats.final_pairs if closer else 0,  # scan-to-scan edges (final_pair_per_node)
-            "final_pairs_searched": closer.stats.final_pairs_searched if closer else 0,  # of them, searched along the step
+            "final_pairs_searched": closer.stats.final_pairs_searched if closer else 0,  # of them, searched
             "steps_loosened": closer.stats.steps_loosened if closer else 0,  # by the final solve
             "kept": len(closer.closures) if closer else 0,  # closures and final edges the solves kept
             "dropped_by_solve": closer.stats.dropped_by_solve if closer else 0,
