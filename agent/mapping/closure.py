@@ -146,7 +146,8 @@ class CloserConfig:
     # up to this many earlier nodes' own scans (0: off), at least ``final_pair_gap_nodes`` before it,
     # within ``final_pair_radius`` m and ``final_pair_turn`` rad, nearest by view first; kept when well
     # posed (``final_pair_weak``) with ``final_pair_inliers`` of its points on a line, within the final
-    # window of the graph's guess. A submap carries any wrong step inside it into every match against it; two scans carry none.
+    # window of the graph's guess. A submap carries any wrong step inside it into every match against
+    # it; two scans carry none.
     final_pair_per_node: int = 4
     final_pair_gap_nodes: int = 1
     final_pair_radius: float = 2.0
@@ -819,13 +820,22 @@ class LoopCloser:
         """``scan`` refined against ``reference`` from ``guess``: the answer if well posed, with
         ``final_pair_inliers`` of its points on a line, within the final window of the guess."""
         cfg = self.config
-        m = icp_refine(reference, scan.points, guess, guess, (1.0, 1.0), 0.03, 0.15, iterations=20)
+        m = self._pair_refine(reference, scan, guess)
         if (
-            m.inliers < cfg.final_pair_inliers * len(scan.points)
-            or m.weak < cfg.final_pair_weak
+            m is None
             or math.hypot(m.pose[0] - guess[0], m.pose[1] - guess[1]) > cfg.final_window_xy
             or abs(wrap(m.pose[2] - guess[2])) > cfg.final_window_theta
         ):
+            return None
+        return m
+
+    def _pair_refine(self, reference: LocalMap, scan: NodeScan, start: Pose) -> IcpResult | None:
+        """Point-to-line of ``scan`` against ``reference`` from ``start`` (no prior to speak of: the
+        pair's own geometry decides); the answer if well posed with ``final_pair_inliers`` of its
+        points on a line (within the refinement's 0.15 m reach), else None."""
+        cfg = self.config
+        m = icp_refine(reference, scan.points, start, start, (1.0, 1.0), 0.03, 0.15, iterations=20)
+        if m.inliers < cfg.final_pair_inliers * len(scan.points) or m.weak < cfg.final_pair_weak:
             return None
         return m
 
@@ -840,9 +850,8 @@ class LoopCloser:
         for q in range(1, int(cfg.final_pair_search / PAIR_SEARCH_STEP_M + 1e-9) + 1):
             for sign in (-1.0, 1.0):
                 off = sign * q * PAIR_SEARCH_STEP_M
-                g = (guess[0] + off * ux, guess[1] + off * uy, guess[2])
-                m = icp_refine(reference, scan.points, g, g, (1.0, 1.0), 0.03, 0.15, iterations=20)
-                if m.inliers >= cfg.final_pair_inliers * len(scan.points) and m.weak >= cfg.final_pair_weak:
+                m = self._pair_refine(reference, scan, (guess[0] + off * ux, guess[1] + off * uy, guess[2]))
+                if m is not None:
                     answers.append(m)
         if not answers:
             return None
