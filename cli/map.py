@@ -243,7 +243,12 @@ def run_replay(args: argparse.Namespace) -> int:
     print(f"{args.log}: {stats.summary()}")
     closed = ""
     if m.closer is not None:
-        closed = f"; {len(m.closer)} nodes, {len(m.closer.closures)} loop closures of {m.closer.stats.attempts} checked"
+        st = m.closer.stats
+        closed = (
+            f"; {len(m.closer)} nodes, {st.accepted} loop closures of {st.attempts} checked,"
+            f" final pass {st.final_edges - st.final_pairs} submap matches and {st.final_pairs} scan pairs"
+            f" ({len(m.closer.closures)} edges kept)"
+        )
     print(
         f"{len(result.rows)} scans mapped ({m.matched} matched, {m.fallbacks} on odometry{closed});"
         f" wrote {out}/map.pgm, map.yaml, trajectory.txt"

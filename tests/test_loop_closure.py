@@ -379,3 +379,24 @@ def test_a_small_window_builds_only_the_levels_it_needs() -> None:
     assert search(full, pts, (0.0, 0.0, 0.0), 0.3, math.radians(2.0), min_score=0.0) == found
     with pytest.raises(ValueError):
         grids.level(7)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "says"),
+    [
+        ("search_xy", math.nan, "search_xy must be a finite number > 0"),
+        ("final_window_xy", 0.0, "final_window_xy must be a finite number > 0"),
+        ("final_pair_turn", math.inf, "final_pair_turn must be a finite number > 0"),
+        ("final_pair_per_node", -1, "final_pair_per_node must be a finite number >= 0"),
+        ("final_pair_search", math.nan, "final_pair_search must be a finite number >= 0"),
+        ("final_drops", -2, "final_drops must be a finite number >= 0"),
+        ("final_pair_gap_nodes", 0, "final_pair_gap_nodes >= 1"),
+        ("final_pair_inliers", 1.5, "final_pair_inliers <= 1"),
+    ],
+)
+def test_a_closer_configured_out_of_range_is_refused_with_the_setting_named(
+    field: str, value: float, says: str
+) -> None:
+    with pytest.raises(ValueError, match=says):
+        CloserConfig(**{field: value})
+    CloserConfig(final_pair_per_node=0, final_pair_search=0.0, final_partial_sigma=0.0)  # 0: off, allowed

@@ -184,10 +184,36 @@ class CloserConfig:
             "step_sigma_xy",
             "step_sigma_theta",
             "max_chi2",
+            "final_radius",
+            "final_window_xy",
+            "final_window_theta",
+            "final_sigma_xy",
+            "final_sigma_theta",
+            "final_pair_radius",
+            "final_pair_turn",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        for name in (  # 0 turns these off
+            "final_per_node",
+            "final_any_heading",
+            "final_min_gap_nodes",
+            "final_drops",
+            "final_partial_sigma",
+            "final_ambiguity_jump",
+            "final_pair_per_node",
+            "final_pair_weak",
+            "final_pair_search",
+            "final_pair_search_nodes",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        if self.final_pair_gap_nodes < 1 or not 0.0 <= self.final_pair_inliers <= 1.0:
+            raise ValueError(
+                "need final_pair_gap_nodes >= 1 (not a node against itself) and 0 <= final_pair_inliers <= 1"
+            )
         if self.max_search_xy < self.search_xy or self.max_search_theta < self.search_theta:
             raise ValueError("the search caps must be at least the base windows")
 
@@ -210,7 +236,7 @@ class Closure:
     node: int  # the new node
     anchor: int  # the first node of the submap it was matched against
     z: Pose  # the new node's pose in the anchor's frame
-    score: float
+    score: float  # the field score on the submap (a scan pair: its inlier share, ``Closure.pair``)
     inlier_ratio: float
     # A partial match (final pass, ``final_partial_sigma``): the unit direction, in the anchor's frame,
     # along which it fixes nothing (a corridor's axis); None: it fixes every direction.
@@ -812,7 +838,9 @@ class LoopCloser:
                     self.stats.final_pairs_searched += found is not None
                 if found is not None:
                     z = compose(compose(self.mount, found.pose), inv_mount)  # node k in node j's frame
-                    out.append(Closure(k, j, z, 1.0, found.inliers / len(sk.points), pair=True))
+                    # No submap is drawn for a pair, so no field score: its inlier share stands in.
+                    share = found.inliers / len(sk.points)
+                    out.append(Closure(k, j, z, share, share, pair=True))
         self.stats.final_pairs += len(out)
         return out
 
