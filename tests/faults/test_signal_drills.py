@@ -90,7 +90,9 @@ def _drive_and_terminate(agent: AgentProcess, clock: SystemClock, mosquitto: Mos
         halted_after = time.monotonic() - t0
         stop_driving.set()  # the operator lets go (commands after the signal are refused anyway)
         out, _ = proc.communicate(timeout=10)
-        assert halted_after < 0.1, f"wheels zero {halted_after * 1e3:.0f} ms after SIGTERM"
+        # Sooner than the last teleop's 0.5 s time-to-live or the board's 1 s watchdog would stop them:
+        # the agent's own halt (a loaded machine takes its 100-200 ms to schedule it).
+        assert halted_after < 0.4, f"wheels zero {halted_after * 1e3:.0f} ms after SIGTERM"
         assert not board.state.uv_lamp
         assert proc.returncode == 0, out.decode(errors="replace")  # a clean stop
         assert _retained_connection(mosquitto.port) == [ConnectionState.OFFLINE]
