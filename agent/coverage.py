@@ -1576,11 +1576,13 @@ def _uv_plan(
     area_m2: float,
     unlit_m2: float,
     robot: str,
+    lit: bool | None = None,
 ) -> CoveragePlan:
     """The plan value: the start node, then a node per dwell point in ``route`` order, each reached
-    by an edge along the shortest stand path; the lamp on at every dwell point but a survey's."""
+    by an edge along the shortest stand path; the lamp on at every dwell point (``lit``; by default
+    all but a survey's)."""
     cfg = fm.config
-    lit = kind != "survey"
+    lit = kind != "survey" if lit is None else lit
     nodes = [PlanNode("n0", 0, float(start[0]), float(start[1]), 0.0, False)]
     edges: list[PlanEdge] = []
     prev_pt = (float(start[0]), float(start[1]))
@@ -1708,10 +1710,12 @@ def plan_survey(
     enough: float = 0.9,
     robot: str = "",
     looked_from: Sequence[Point] = (),
+    lit: bool = False,
 ) -> CoveragePlan | None:
     """View points from which the lidar sees into the area's ``unseen`` pockets, toured from
-    ``start`` (kind ``survey``: no lamp, ``SURVEY_DWELL_S`` at each); None when the area has no
-    unseen pocket a candidate stand point sees into.
+    ``start`` (kind ``survey``, ``SURVEY_DWELL_S`` at each; the lamp on from the first view to the
+    last if ``lit``: the views stand in the area, so a UV round's survey already doses it); None
+    when the area has no unseen pocket a candidate stand point sees into.
 
     A candidate sees an unseen cell within ``view_range_m`` (the range at which the lidar's beams
     are still closer together than a map cell) when the straight line to it crosses no known
@@ -1784,6 +1788,7 @@ def plan_survey(
         area_m2=float(hid.sum()) * fm.cell_area,
         unlit_m2=0.0,
         robot=robot,
+        lit=lit,
     )
 
 
@@ -1901,6 +1906,7 @@ def split_plan(
                 area_m2=pr.area_m2,
                 unlit_m2=pr.unlit_m2,
                 robot=names[r],
+                lit=any(node.lamp for node in plan.nodes),
             )
         )
     return FleetPlan(tuple(plans), plan.predicted.coverage)

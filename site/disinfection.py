@@ -379,7 +379,9 @@ class RoundRun:
                 return False
             starts[name] = (pose.x, pose.y)
         prior = None
-        if self.passes:  # what the robots' own layers say the floor has had (as the console sums them)
+        if self.passes or (self.surveys and s.mode == "uv"):
+            # What the robots' own layers say the floor has had (as the console sums them): a pass's,
+            # or a survey's (the lamp is on between its views).
             layers = [fetch_dose(self.op.zenoh, name) for name in names]
             dose_grids = [SharedDose.from_snapshot(d).grid() for d in layers if d is not None]
             prior = DoseGrid.merged(dose_grids) if dose_grids else None

@@ -134,7 +134,7 @@ def plan_round(
         raise RoundError(left_out[0][1])
     points = [starts[r] for r in robots]
     if request.surveys > 0:
-        survey = _survey(fm, cells, area, robots, points, request.looked_from)
+        survey = _survey(fm, cells, area, robots, points, request.looked_from, lit=request.kind == "uv")
         if survey is not None:
             plans_, area_m2, seen = survey
             looks = tuple(
@@ -234,11 +234,14 @@ def _survey(
     robots: list[str],
     points: list[Point],
     looked_from: Sequence[Point] = (),
+    *,
+    lit: bool = False,
 ) -> tuple[tuple[cv.CoveragePlan, ...], float, float] | None:
     """The survey's plans (one per robot), the unseen m² and the share of it the views see; None
-    when nothing worth a look is hidden."""
+    when nothing worth a look is hidden. ``lit``: a UV round's survey, the lamp on between its views
+    (they stand in the area), so the round planned after it (on the dose layers, ``prior``) owes less."""
     unknown = np.asarray(cells, dtype=np.int8) < 0
-    look = cv.plan_survey(fm, unknown, area, points[0], robot=robots[0], looked_from=looked_from)
+    look = cv.plan_survey(fm, unknown, area, points[0], robot=robots[0], looked_from=looked_from, lit=lit)
     if look is None or look.predicted.area_m2 * look.predicted.coverage < SURVEY_WORTH_M2:
         return None
     if len(robots) == 1:

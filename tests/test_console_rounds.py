@@ -375,7 +375,10 @@ async def test_a_round_over_floor_the_map_has_not_seen_surveys_first_then_plans_
         await command(pilot, "disinfect rect -0.9 -0.9 1.9 1.3 dose 2")
         (look,) = await until(pilot, lambda: orders(rig))
         assert look.orderId.startswith("uv-r1-") and look.orderId.endswith("-survey")
-        assert {a.actionType for n in look.nodes for a in n.actions} == {ActionType.DWELL}  # lamp off throughout
+        # A UV round's survey: the lamp on from the first view (they stand in the area) to the last.
+        lamp = [a for n in look.nodes for a in n.actions if a.actionType is ActionType.PAYLOAD]
+        assert [kv.value for a in lamp for kv in a.actionParameters if kv.key == "on"] == ["true", "false"]
+        assert lamp[0] in look.nodes[1].actions and lamp[1] in look.nodes[-1].actions
         assert all(n.x > 0.5 for n in look.nodes[1:])  # looking past the cabinet
         said = notices(rig)
         assert "survey before the UV round of the rectangle" in said and "view points" in said

@@ -335,7 +335,7 @@ def test_order_ids_stay_new_and_times_read_as_people_say_them() -> None:
 
 def test_a_round_over_a_pocket_the_map_has_not_seen_is_a_survey_first() -> None:
     """An unknown 1.2 x 1.2 m pocket behind a wall stub in the left room: a request that allows a
-    survey gets one (view points, lamp off, the orders' ids marked); with none left it plans the
+    survey gets one (view points, the lamp on between them, the orders' ids marked; a sweep's dark); with none left it plans the
     round on the map as it is; two robots share the looking."""
     cells = CELLS.copy()
     cells[5:18, 30] = 100  # a stub wall x 3.0, y 0.5..1.8
@@ -347,7 +347,21 @@ def test_a_round_over_a_pocket_the_map_has_not_seen_is_a_survey_first() -> None:
     (r,) = look.rounds
     assert r.order_id == "uv-r1-3-survey" and r.dwell_points >= 1
     assert all(n.x > 3.0 for n in r.route[1:]), r.route  # past the stub
-    assert set(action_types(as_order(r.order))) == {"dwell"}
+    # The views stand in the area: the lamp goes on at the first (before its dwell) and off at the last.
+    order = as_order(r.order)
+    lamp = [
+        (n.nodeId, a.actionParameters[1].value)
+        for n in order.nodes
+        for a in n.actions
+        if a.actionType.value == "payload"
+    ]
+    assert lamp == [(order.nodes[1].nodeId, "true"), (order.nodes[-1].nodeId, "false")], lamp
+    assert [a.actionType.value for a in order.nodes[1].actions][:2] == ["payload", "dwell"]
+    # A sweep's survey looks with the lamp off.
+    sweep = plan_round(
+        RoundRequest("sweep", area, ("r1",), 100.0, surveys=1), cells, RES, (0.0, 0.0), {"r1": A}, DEFAULT_LAMP
+    )
+    assert sweep.survey and set(action_types(as_order(sweep.rounds[0].order))) == {"dwell"}
     assert "survey before the UV round of the rectangle" in look.summary() and "view points" in look.summary()
     # No survey left: the round itself, on the map as it is (the pocket is not floor on it).
     uv = plan_round(RoundRequest("uv", area, ("r1",), 100.0), cells, RES, (0.0, 0.0), {"r1": A}, DEFAULT_LAMP)
@@ -356,6 +370,7 @@ def test_a_round_over_a_pocket_the_map_has_not_seen_is_a_survey_first() -> None:
     both = RoundRequest("uv", area, ("r1", "r2"), 100.0, surveys=1)
     shared = plan_round(both, cells, RES, (0.0, 0.0), {"r1": A, "r2": B}, DEFAULT_LAMP)
     assert shared.survey and {r.robot for r in shared.rounds} <= {"r1", "r2"}
+    assert all("payload" in action_types(as_order(r.order)) for r in shared.rounds)  # each share lit
     # The same map fully seen: no survey, whatever is allowed.
     seen = plan_round(request, CELLS, RES, (0.0, 0.0), {"r1": A}, DEFAULT_LAMP)
     assert not seen.survey
