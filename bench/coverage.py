@@ -51,7 +51,7 @@ ROOMS: dict[
     "apartment/kitchen": ("apartment", "kitchen", (6.0, 0.0, 10.0, 4.5), (6.5, 3.5, 0.0), (8.8, 0.6, 180.0)),
     "apartment/bedroom": ("apartment", "bedroom", (0.0, 5.7, 6.5, 8.0), (2.2, 6.2, 0.0), (6.0, 6.6, 180.0)),
     "office/room-1": ("office", "room-1", (6.0, 0.0, 11.5, 8.5), (6.8, 7.6, -45.0), (10.8, 2.5, 120.0)),
-    "office/room-8": ("office", "room-8", (11.5, 11.0, 17.0, 20.0), (12.5, 12.0, 60.0), (16.0, 19.0, -120.0)),
+    "office/room-8": ("office", "room-8", (11.5, 11.0, 17.0, 20.0), (12.5, 12.0, 60.0), (16.0, 19.0, 180.0)),
 }
 QUICK = ("apartment/living",)
 MODES = ("uv", "uv2", "park", "lawnmower", "sweep")
