@@ -99,6 +99,7 @@ from fleetlink.operator.rounds import (
     RoundPlan,
     RoundPlanner,
     RoundRequest,
+    RoomArea,
     check_request,
     describe_area,
     floor_of,
@@ -148,11 +149,14 @@ class RoundPlanned(Message):
 
 
 class ConfirmClick(ModalScreen[str]):
-    """A click on the map: y = send the robot there, m = mark it, n/Esc = nothing."""
+    """A click on the map: y = send the robot there, m = mark it, d = a UV round of the room
+    there, s = a sweep of it, n/Esc = nothing."""
 
     BINDINGS: ClassVar = [
         Binding("y", "choose('goal')", "goal"),
         Binding("m", "choose('mark')", "mark"),
+        Binding("d", "choose('disinfect')", "disinfect the room"),
+        Binding("s", "choose('sweep')", "sweep the room"),
         Binding("n", "choose('')", "cancel"),
         Binding("escape", "choose('')", "cancel"),
     ]
@@ -164,7 +168,8 @@ class ConfirmClick(ModalScreen[str]):
     def compose(self) -> ComposeResult:
         who = f"send {self.robot} to" if self.robot else "(no robot selected)"
         yield Static(
-            f"({self.x:.2f}, {self.y:.2f}) m\n\n[b]y[/b] {who} this point   [b]m[/b] mark it   [b]n[/b] cancel",
+            f"({self.x:.2f}, {self.y:.2f}) m\n\n[b]y[/b] {who} this point   [b]m[/b] mark it\n"
+            "[b]d[/b] disinfect the room here   [b]s[/b] sweep it   [b]n[/b] cancel",
             id="confirm",
         )
 
@@ -1040,6 +1045,8 @@ class ConsoleApp(App[None]):
                 self.send_goal(x, y)
             elif what == "mark":
                 self.add_mark(x, y)
+            elif what in ("disinfect", "sweep"):  # as ``:disinfect room X Y`` / ``:sweep room X Y``
+                self.start_round(StartRound("uv" if what == "disinfect" else "sweep", RoomArea(x, y)))
 
         self.push_screen(ConfirmClick(self.selected, x, y), chosen)
 

@@ -222,6 +222,32 @@ async def test_disinfect_sends_an_order_with_nodes_and_the_detail_and_map_follow
 
 
 @run_async
+async def test_a_click_on_the_map_then_d_or_s_plans_a_round_of_the_room_there(rig: Rig) -> None:
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await mapped(rig, pilot, "r1")
+        mv = rig.app.query_one(MapView)
+        mv.geometry.center_x, mv.geometry.center_y, mv.geometry.scale = 0.5, 0.2, 0.05
+        w, h = mv.content_size.width, mv.content_size.height
+        col, row = w // 2, h // 2  # (0.5, 0.2) within a cell: inside the room
+        await pilot.click("#map", offset=(col + 1, row + 1))  # +1: the map's border
+        await pilot.pause()
+        await pilot.press("d")
+        (order,) = await until(pilot, lambda: orders(rig))
+        assert order.orderId.startswith("uv-r1-")
+        assert ActionType.PAYLOAD in {a.actionType for n in order.nodes for a in n.actions}
+        assert "UV round of the room at (0.5" in notices(rig)
+        rig.zenoh.inject(state(rig.counter("r1"), orderId=order.orderId, driveMode="idle"))  # done
+        await pilot.click("#map", offset=(col + 1, row + 1))
+        await pilot.pause()
+        await pilot.press("s")
+        assert await until(pilot, lambda: len(orders(rig)) == 2)
+        sweep = orders(rig)[1]
+        assert sweep.orderId.startswith("sweep-r1-")
+        assert ActionType.PAYLOAD not in {a.actionType for n in sweep.nodes for a in n.actions}
+        assert "sweep of the room at (0.5" in notices(rig)
+
+
+@run_async
 async def test_pause_resume_and_cancel_go_to_the_selected_robot_and_p_toggles(rig: Rig) -> None:
     async with rig.app.run_test(size=(140, 44)) as pilot:
         await mapped(rig, pilot, "r1")
