@@ -838,6 +838,7 @@ class AgentCore:
             return
         if ev.kind is EventKind.GOAL_REACHED:
             it.arrived(now)
+            self._owed_lamp(it, now, out)
         elif ev.kind is EventKind.GOAL_FAILED and ev.reason not in _HAZARDS:
             cur = it.current
             near = NODE_NEAR_M if cur is None or cur.actions else NODE_PASS_M
@@ -849,6 +850,7 @@ class AgentCore:
                 self._itinerary_note(
                     it, f"node {cur.node_id}: came within {gap:.2f} m (as near as the guard allows)", out
                 )
+                self._owed_lamp(it, now, out)
                 return
             stop = it.failed(now)
             if stop is not None:
@@ -862,12 +864,17 @@ class AgentCore:
                 )
                 # Its payload switches still apply (not its dwell): the route after it expects the
                 # lamp as they leave it, and a skipped "lamp on" would run the rest of a round dark.
+                # The lamp's switch-off at once; its switch-on at the next node reached, not here:
+                # where the robot gave up may be outside the area (``_owed_lamp``).
                 for a in stop.actions:
                     if a.kind == "payload":
-                        r = self._payload_action(a.params, now, it.sender)
                         device, on, _ = _payload_params(a.params)
+                        if device == "uv" and on:
+                            it.lamp_owed = True
+                            continue
+                        self._payload_action(a.params, now, it.sender)
                         if device == "uv":
-                            it.lamp = on and r.accepted
+                            it.lamp = it.lamp_owed = False
         elif ev.kind is EventKind.GOAL_FAILED:  # a hazard: hold for the operator
             cur = it.current
             near = NODE_NEAR_M if cur is None or cur.actions else NODE_PASS_M
@@ -879,11 +886,27 @@ class AgentCore:
                 gap = it.closest_m
                 it.arrived(now)
                 it.hold(now, ev.reason or "hazard")
+                if it.lamp_owed:  # the resume switches it on, here
+                    it.lamp, it.lamp_owed = True, False
                 self._itinerary_note(it, f"node {cur.node_id}: came within {gap:.2f} m before the {ev.reason}", out)
             else:
                 it.interrupted(now, ev.reason or "cancelled")
         elif ev.kind is EventKind.GOAL_CANCELLED:
             it.interrupted(now, ev.reason or "cancelled")
+
+    def _owed_lamp(self, it: Itinerary, now: float, out: Output) -> None:
+        """At a node reached: the lamp a skipped node would have switched on (``lamp_owed``), before
+        this node's own actions; refused, the order waits for the operator as for a node's own."""
+        if not it.lamp_owed:
+            return
+        it.lamp_owed = False
+        r = self._payload_action({"device": "uv", "on": "true"}, now, it.sender)
+        it.lamp = r.accepted
+        if not r.accepted:
+            it.hold(now, "lamp refused")
+            it.lamp = True  # a resume tries again
+            where = it.last.node_id if it.last is not None else "?"
+            self._itinerary_note(it, f"node {where}: the lamp a skipped node switches on: {r.reason}", out)
 
     def _itinerary_action(self, kind: ActionType, now: float, sender: str, out: Output) -> CommandResult:
         """stop, cancel, pause, resume and e-stop while an order with nodes runs."""

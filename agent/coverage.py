@@ -49,7 +49,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -84,6 +84,7 @@ __all__ = [
     "Prediction",
     "coverage",
     "dose_map",
+    "lit_within",
     "park_in_middle",
     "plan_order",
     "plan_sweep",
@@ -788,7 +789,7 @@ class Prediction:
 class CoveragePlan:
     """One robot's plan: ``nodes[0]`` is where it starts (dwell 0, lamp off), each edge leads to the
     next node. ``kind``: ``uv`` (dwell points), ``park`` (the park-in-the-middle baseline), ``sweep``,
-    ``survey`` (view points, no lamp: ``plan_survey``)."""
+    ``survey`` (view points: ``plan_survey``; lit for a UV round's)."""
 
     kind: str
     nodes: tuple[PlanNode, ...]
@@ -1662,6 +1663,30 @@ def park_in_middle(
         unlit_m2=0.0,
         robot=robot,
     )
+
+
+def lit_within(plan: CoveragePlan, fm: FloorMap, area: Area) -> CoveragePlan:
+    """``plan`` with the lamp off on every edge whose way leaves the area (a waypoint, or a point
+    between two, on a plan cell more than a cell from where the robot may stand in it): the shortest
+    way between two places in the area may run outside it, through a doorway or round a desk, and
+    the lamp is for the area. ``plan_order`` then switches it off before such an edge and on again at
+    the next lit dwell."""
+    if not any(e.lamp for e in plan.edges):
+        return plan
+    inside = _dilate(area.stand, 1.0)
+    step = fm.plan_resolution / 2.0
+
+    def stays(way: Sequence[Point]) -> bool:
+        for a, b in itertools.pairwise(way):
+            n = max(1, math.ceil(math.dist(a, b) / step))
+            for k in range(n + 1):
+                rc = fm.plan_cell((a[0] + (b[0] - a[0]) * k / n, a[1] + (b[1] - a[1]) * k / n))
+                if not (fm.plan_inside(rc) and inside[rc]):
+                    return False
+        return True
+
+    edges = tuple(replace(e, lamp=False) if e.lamp and not stays(e.waypoints) else e for e in plan.edges)
+    return plan if edges == plan.edges else replace(plan, edges=edges)
 
 
 # --------------------------------------------------------------------------------------------------

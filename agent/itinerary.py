@@ -137,6 +137,9 @@ class Itinerary:
     """"" while it runs; else what holds it until a resume (paused, e-stop, stopped, teleop, ...)."""
     lamp: bool = False
     """The UV lamp as this order last switched it."""
+    lamp_owed: bool = False
+    """A skipped node's lamp-on, switched on at the next node reached rather than where the robot
+    gave up (which may be outside the area: a survey's robot still in the corridor)."""
     _phase: _Phase = _Phase.DRIVE
     _asked: bool = False
     _action: int = 0
@@ -196,6 +199,7 @@ class Itinerary:
         newer.skipped = list(self.skipped)
         newer.last = self.last
         newer.lamp = self.lamp
+        newer.lamp_owed = self.lamp_owed
         newer.waiting = self.waiting if self.waiting != "horizon" else ""
         newer._t = self._t
         if start >= len(newer.stops):

@@ -138,7 +138,7 @@ def plan_round(
         if survey is not None:
             plans_, area_m2, seen = survey
             looks = tuple(
-                _robot_round(p, f"{ids[p.robot][:56]}-survey", fm.config.pass_deviation_m)
+                _robot_round(cv.lit_within(p, fm, area), f"{ids[p.robot][:56]}-survey", fm.config.pass_deviation_m)
                 for p in plans_
                 if len(p.nodes) > 1
             )
@@ -185,7 +185,11 @@ def plan_round(
         if prior is not None and request.kind == "uv" and coverage > 0:
             raise RoundError(f"{where}: {100 * coverage:.1f} % of it has the dose already: nothing to top up")
         raise RoundError(f"{where}: nothing to do there (no floor the lamp or the tool reaches)")
-    rounds = tuple(_robot_round(share, ids[share.robot or robots[0]], fm.config.pass_deviation_m) for share in plans)
+    # The lamp only on the ways that stay in the area (a shortest way may leave it through a door).
+    rounds = tuple(
+        _robot_round(cv.lit_within(share, fm, area), ids[share.robot or robots[0]], fm.config.pass_deviation_m)
+        for share in plans
+    )
     return RoundPlan(request, area.area_m2, coverage, area_unlit(plans), rounds, left_out=tuple(left_out))
 
 

@@ -523,18 +523,41 @@ def test_dwell_as_an_instant_action_is_refused() -> None:
     assert ack.result is AckResult.REJECTED and "node action" in ack.reason
 
 
-def test_a_skipped_nodes_lamp_switch_still_applies_so_the_rest_of_the_round_is_not_run_dark() -> None:
+def test_a_skipped_nodes_lamp_on_applies_at_the_next_node_reached_so_the_rest_is_not_run_dark() -> None:
+    """Not where the robot gave up (outside the area, maybe: a survey's robot still in the corridor)."""
     r = Robot()
     far = node(1, 80.0, 0.0, uv(True), act(ActionType.DWELL, "d", duration="5"))  # off the map's reach
     r.core.pilot.path_provider = lambda start, goal, blocked=(): [] if goal[0] > 50 else None  # type: ignore[assignment,misc]
-    assert r.send(Order, **order((node(0, 0.0, 0.0), far, node(2, 0.5, 0.0, uv(False))))).result is AckResult.ACCEPTED
-    for _ in range(200):
+    n2 = node(2, 1.0, 0.0, act(ActionType.DWELL, "d2", duration="2"))
+    assert (
+        r.send(Order, **order((node(0, 0.0, 0.0), far, n2, node(3, 1.5, 0.0, uv(False))))).result is AckResult.ACCEPTED
+    )
+    skipped_at = None
+    for _ in range(400):
         r.run(0.05)
+        if skipped_at is None and any("n1 skipped" in t for t in r.texts()):
+            skipped_at = tuple(r.pose[:2])
         if r.lamp_requests:
             break
-    assert r.lamp_requests[:1] == [True] and any("n1 skipped" in t for t in r.texts())
+    assert skipped_at is not None and math.hypot(*skipped_at) < 0.1  # it gave up where it stood
+    assert r.lamp_requests == [True]
+    assert math.hypot(r.pose[0] - 1.0, r.pose[1]) < 0.3, r.pose  # on at n2, before n2's dwell
     r.run(20.0)
-    assert r.lamp_requests == [True, False] and any("finished: 3 nodes, 1 skipped" in t for t in r.texts()), r.texts()
+    assert r.lamp_requests == [True, False] and any("finished: 4 nodes, 1 skipped" in t for t in r.texts()), r.texts()
+
+
+def test_a_skipped_nodes_lamp_off_applies_at_once() -> None:
+    r = Robot()
+    far = node(2, 80.0, 0.0, uv(False))
+    r.core.pilot.path_provider = lambda start, goal, blocked=(): [] if goal[0] > 50 else None  # type: ignore[assignment,misc]
+    lit = node(1, 0.5, 0.0, uv(True), act(ActionType.DWELL, "d", duration="1"))
+    assert r.send(Order, **order((node(0, 0.0, 0.0), lit, far, node(3, 1.0, 0.0)))).result is AckResult.ACCEPTED
+    for _ in range(400):
+        r.run(0.05)
+        if any("n2 skipped" in t for t in r.texts()):
+            break
+    r.run(0.05)
+    assert r.lamp_requests == [True, False] and not r.lamp  # off where it gave up, not at n3
 
 
 def test_a_dwell_longer_than_an_hour_goes_out_as_several_dwell_actions() -> None:

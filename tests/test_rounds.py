@@ -374,3 +374,33 @@ def test_a_round_over_a_pocket_the_map_has_not_seen_is_a_survey_first() -> None:
     # The same map fully seen: no survey, whatever is allowed.
     seen = plan_round(request, CELLS, RES, (0.0, 0.0), {"r1": A}, DEFAULT_LAMP)
     assert not seen.survey
+
+
+def test_the_lamp_is_off_on_any_way_that_leaves_the_area() -> None:
+    """A rectangle across the wall between the two rooms (x 3-7, y 0.1-1.5): the way from its left
+    part to its right one runs out of it, through the door (y 1.8-2.7). The lamp goes off before
+    that edge and on again at the next dwell, in the round and in a UV round's survey."""
+    cells = CELLS.copy()
+    cells[1:6, 38] = 100  # stubs hiding unknown pockets on each side (for the survey)
+    cells[1:6, 39:44] = -1
+    cells[1:6, 62] = 100
+    cells[1:6, 57:62] = -1
+    area = RectArea(3.0, 0.1, 7.0, 1.5)
+    for surveys in (1, 0):
+        request = RoundRequest("uv", area, ("r1",), 100.0, surveys=surveys)
+        p = plan_round(request, cells, RES, (0.0, 0.0), {"r1": (1.0, 3.5)}, DEFAULT_LAMP)
+        assert p.survey == (surveys == 1)
+        order = as_order(p.rounds[0].order)
+        lamp, lit_edges = False, 0
+        for n, e in zip(order.nodes, (*order.edges, None), strict=True):
+            for a in n.actions:
+                if a.actionType is ActionType.PAYLOAD:
+                    lamp = [kv.value for kv in a.actionParameters if kv.key == "on"] == ["true"]
+            if e is None or not lamp:
+                continue
+            lit_edges += 1
+            assert e.trajectory is not None
+            for c in e.trajectory.controlPoints:
+                assert 2.9 <= c.x <= 7.1 and 0.0 <= c.y <= 1.6, (surveys, e.edgeId, c)
+        assert lit_edges >= (0 if surveys else 3)
+        assert any(kv.value == "false" for n in order.nodes[1:-1] for a in n.actions for kv in a.actionParameters)

@@ -62,15 +62,17 @@ class Stick:
             )
 
     def received(self) -> set[int]:
-        """Commands the agent has: ACCEPTED on a link, or DUPLICATE (``already received on`` the other).
-        A copy ACCEPTED on MQTT just before the broker dies loses its ack with the broker; the Zenoh
-        copy's DUPLICATE is then the agent's word that it ran."""
+        """Commands the agent ran: ACCEPTED on a link, or DUPLICATE (``already received on`` the other)
+        and not REJECTED on either. A copy ACCEPTED on MQTT just before the broker dies loses its ack
+        with the broker; the Zenoh copy's DUPLICATE is then the agent's word that it had it."""
         with self.op.lock:
-            return {
-                a.commandHeaderId
-                for _, a in self.op.acks
-                if a.commandTopic == "teleop" and a.result in (AckResult.ACCEPTED, AckResult.DUPLICATE)
-            }
+            teleops = [a for _, a in self.op.acks if a.commandTopic == "teleop"]
+        refused = {a.commandHeaderId for a in teleops if a.result is AckResult.REJECTED}
+        return {
+            a.commandHeaderId
+            for a in teleops
+            if a.result is AckResult.ACCEPTED or (a.result is AckResult.DUPLICATE and a.commandHeaderId not in refused)
+        }
 
     def acked_since(self, link: str, n: int) -> bool:
         """A command sent after the first ``n`` was acked on ``link``."""

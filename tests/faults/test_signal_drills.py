@@ -69,7 +69,7 @@ def _drive_and_terminate(agent: AgentProcess, clock: SystemClock, mosquitto: Mos
 
     def drive() -> None:  # an operator holding the key: teleop every 0.1 s
         while not stop_driving.wait(0.1):
-            msg = counter.make(Teleop, v=0.2, omega=0.5, ttl_s=0.5)
+            msg = counter.make(Teleop, v=0.2, omega=0.5, ttl_s=2.0)  # the pilot's longest: expiry is no stop
             op.publish(wire.key_of(msg), wire.encode(msg), qos=1)
 
     driver = threading.Thread(target=drive, daemon=True)
@@ -90,7 +90,7 @@ def _drive_and_terminate(agent: AgentProcess, clock: SystemClock, mosquitto: Mos
         halted_after = time.monotonic() - t0
         stop_driving.set()  # the operator lets go (commands after the signal are refused anyway)
         out, _ = proc.communicate(timeout=10)
-        # Sooner than the last teleop's 0.5 s time-to-live or the board's 1 s watchdog would stop them:
+        # Sooner than the last teleop's 2 s time-to-live or the board's 1 s watchdog would stop them:
         # the agent's own halt (a loaded machine takes its 100-200 ms to schedule it).
         assert halted_after < 0.4, f"wheels zero {halted_after * 1e3:.0f} ms after SIGTERM"
         assert not board.state.uv_lamp
