@@ -626,7 +626,7 @@ class ConsoleApp(App[None]):
         if self.selected is None or self.read_only or self._priority_key(event.key):
             return False
         stack = self._screen_stack
-        if len(stack) != 1 or not isinstance(stack[-1].focused, MapView):
+        if len(stack) != 1 or not isinstance(stack[-1].focused, MapView) or stack[-1].focused.click_pending:
             return False
         # Read without the model's lock (a frame may hold it for tens of ms): one robot's lease
         # holder, as the app's own check reads it; the robot enforces its lease either way.
@@ -661,6 +661,8 @@ class ConsoleApp(App[None]):
     def on_key(self, event: events.Key) -> None:
         if isinstance(self.focused, Input) or len(self.screen_stack) > 1:
             return
+        if isinstance(self.focused, MapView) and self.focused.click_pending:
+            return  # the click's dialog is on its way: the key is its answer
         key = drive_key(event)
         if not self.drive.handles(key):
             return
@@ -1048,7 +1050,10 @@ class ConsoleApp(App[None]):
             elif what in ("disinfect", "sweep"):  # as ``:disinfect room X Y`` / ``:sweep room X Y``
                 self.start_round(StartRound("uv" if what == "disinfect" else "sweep", RoomArea(x, y)))
 
-        self.push_screen(ConfirmClick(self.selected, x, y), chosen)
+        try:
+            self.push_screen(ConfirmClick(self.selected, x, y), chosen)
+        finally:
+            self.query_one(MapView).click_pending = False  # the dialog is up: keys go to it
 
     def action_fit(self) -> None:
         with self.lock:

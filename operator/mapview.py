@@ -60,6 +60,9 @@ class MapView(Widget, can_focus=True):
         """The legend on the bottom lines (``L`` hides and shows it)."""
         self._strips: dict[int, tuple[object, Strip]] = {}
         """Rendered lines by row, with the row's key when rendered."""
+        self.click_pending = False
+        """A click posted (``Clicked``) that the app has not yet answered with its dialog: a key
+        typed meanwhile is the dialog's (``d``, ``s``, ``m``), not a drive key."""
 
     @property
     def frames(self) -> int:
@@ -144,6 +147,7 @@ class MapView(Widget, can_focus=True):
             return
         self._sync_size()
         x, y = self.geometry.to_world(offset.x, offset.y)
+        self.click_pending = True
         self.post_message(self.Clicked(x, y))
 
     def on_mouse_scroll_up(self, event: events.MouseScrollUp) -> None:

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from textual import events
 from textual.widgets import Input, Static
 
 from fleetlink.operator.console import ConsoleApp
@@ -131,6 +132,30 @@ async def test_drive_repeats_at_10hz_then_auto_stop(rig: Rig) -> None:
         await pilot.pause()
         last = rig.zenoh.messages(Teleop)[-1]
         assert (last.v, last.omega) == (0.0, 0.0)
+
+
+@run_async
+async def test_a_key_typed_between_a_click_and_its_dialog_does_not_drive(rig: Rig) -> None:
+    """``d``, ``s`` and ``m`` answer the click's dialog and also drive: typed before the dialog is
+    up (the click's message still on its way to the app), they must not send a teleop."""
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        mv = rig.app.query_one(MapView)
+        before = len(rig.zenoh.messages(Teleop))
+        mv.click_pending = True  # as MapView.on_click leaves it until the app has put the dialog up
+        await pilot.press("d")
+        await pilot.pause()
+        assert rig.app._drive_key_now(events.Key("s", "s")) is False  # the input thread's path too
+        assert len(rig.zenoh.messages(Teleop)) == before
+        # A click answered (its dialog up, then closed): the keys drive again.
+        await pilot.click("#map", offset=(3, 3))
+        await pilot.pause()
+        assert not mv.click_pending
+        await pilot.press("n")
+        await pilot.pause()
+        await pilot.press("w")
+        await pilot.pause()
+        assert len(rig.zenoh.messages(Teleop)) > before
 
 
 @run_async
