@@ -1736,6 +1736,7 @@ def plan_survey(
     robot: str = "",
     looked_from: Sequence[Point] = (),
     lit: bool = False,
+    occupied: Sequence[Point] = (),
 ) -> CoveragePlan | None:
     """View points from which the lidar sees into the area's ``unseen`` pockets, toured from
     ``start`` (kind ``survey``, ``SURVEY_DWELL_S`` at each; the lamp on from the first view to the
@@ -1748,8 +1749,10 @@ def plan_survey(
     may stand in it; a second survey looks again). Cells the robot's start sees so already were
     in its view, not hidden: not counted; nor are cells an earlier survey looked for from
     ``looked_from`` (still unseen: what hides them is not on the map, e.g. the side of a desk the
-    lidar has not seen, and looking from there again would not show them). Greedy set cover, most unseen cells first, until
-    ``enough`` of what any candidate sees is seen or ``max_views`` points."""
+    lidar has not seen, and looking from there again would not show them). No view where a robot
+    stands (``occupied``: within two bodies of it; another robot of the round there is in the way).
+    Greedy set cover, most unseen cells first, until ``enough`` of what any candidate sees is seen
+    or ``max_views`` points."""
     hid = unseen(fm, unknown, area, min_pocket_m2=min_pocket_m2)
     if not hid.any():
         return None
@@ -1758,6 +1761,8 @@ def plan_survey(
     from_start = fm.geodesic(s_cell)
     # A survey looks from where the robot stands freely (it drives in among what it has not seen).
     cands = [rc for rc in _candidates(fm, area.stand, corridors=False, narrow=True) if math.isfinite(from_start[rc])]
+    body = 2.0 * fm.config.robot_radius_m + fm.config.margin_m
+    cands = [rc for rc in cands if all(math.dist(fm.plan_centre(rc), q) > body for q in occupied)]
     if not cands:
         return None
     rows, cols = np.nonzero(hid)

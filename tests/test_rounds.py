@@ -404,3 +404,22 @@ def test_the_lamp_is_off_on_any_way_that_leaves_the_area() -> None:
                 assert 2.9 <= c.x <= 7.1 and 0.0 <= c.y <= 1.6, (surveys, e.edgeId, c)
         assert lit_edges >= (0 if surveys else 3)
         assert any(kv.value == "false" for n in order.nodes[1:-1] for a in n.actions for kv in a.actionParameters)
+
+
+def test_a_survey_sends_no_robot_to_look_from_where_another_round_robot_stands() -> None:
+    """The best view behind the stub, with a second robot of the round standing on it: the views
+    go elsewhere (a robot sent there would wait for the other to move, then give the view up)."""
+    cells = CELLS.copy()
+    cells[5:18, 30] = 100
+    cells[5:17, 31:43] = -1
+    area = RectArea(0.1, 0.1, 5.0, 4.0)
+    alone = plan_round(
+        RoundRequest("uv", area, ("r1",), 100.0, surveys=1), cells, RES, (0.0, 0.0), {"r1": A}, DEFAULT_LAMP
+    )
+    best = alone.rounds[0].route[1]
+    spot = (best.x, best.y)
+    both = RoundRequest("uv", area, ("r1", "r2"), 100.0, surveys=1)
+    shared = plan_round(both, cells, RES, (0.0, 0.0), {"r1": A, "r2": spot}, DEFAULT_LAMP)
+    assert shared.survey
+    views = [(n.x, n.y) for r in shared.rounds for n in r.route[1:]]
+    assert views and all(math.dist(v, spot) > 0.39 and math.dist(v, A) > 0.39 for v in views), (spot, views)
