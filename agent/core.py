@@ -818,15 +818,20 @@ class AgentCore:
                 continue
             if isinstance(step, RunAction):
                 a = step.action
-                r = self._payload_action(a.params, now, it.sender)
-                device, on, _ = _payload_params(a.params)
-                if device == "uv":
-                    it.lamp = on and r.accepted
-                if not r.accepted:
-                    if device == "uv" and on:  # no dose without the lamp: wait for the operator
-                        it.hold(now, "lamp refused")
-                        it.lamp = True  # a resume tries again
-                    self._itinerary_note(it, f"node {step.stop.node_id}, action {a.action_id}: {r.reason}", out)
+                self._node_payload(it, a.params, now, out, f"node {step.stop.node_id}, action {a.action_id}")
+
+    def _node_payload(self, it: Itinerary, params: Mapping[str, str], now: float, out: Output, what: str) -> None:
+        """An order's payload switch (``what`` names it in a note when refused): the lamp as the order
+        left it (``it.lamp``, for a resume); a lamp refused holds the order for the operator."""
+        r = self._payload_action(params, now, it.sender)
+        device, on, _ = _payload_params(params)
+        if device == "uv":
+            it.lamp = on and r.accepted
+        if not r.accepted:
+            if device == "uv" and on:  # no dose without the lamp: wait for the operator
+                it.hold(now, "lamp refused")
+                it.lamp = True  # a resume tries again
+            self._itinerary_note(it, f"{what}: {r.reason}", out)
 
     def _itinerary_event(self, ev: PilotEvent, now: float, out: Output) -> None:
         """The pilot's go-to to the current node ended: reached, failed (skip, or hold on a hazard),
@@ -869,12 +874,10 @@ class AgentCore:
                 for a in stop.actions:
                     if a.kind == "payload":
                         device, on, _ = _payload_params(a.params)
-                        if device == "uv" and on:
-                            it.lamp_owed = True
-                            continue
-                        self._payload_action(a.params, now, it.sender)
                         if device == "uv":
-                            it.lamp = it.lamp_owed = False
+                            it.lamp_owed = on
+                        if not (device == "uv" and on):
+                            self._node_payload(it, a.params, now, out, f"node {stop.node_id}, action {a.action_id}")
         elif ev.kind is EventKind.GOAL_FAILED:  # a hazard: hold for the operator
             cur = it.current
             near = NODE_NEAR_M if cur is None or cur.actions else NODE_PASS_M
@@ -900,13 +903,8 @@ class AgentCore:
         if not it.lamp_owed:
             return
         it.lamp_owed = False
-        r = self._payload_action({"device": "uv", "on": "true"}, now, it.sender)
-        it.lamp = r.accepted
-        if not r.accepted:
-            it.hold(now, "lamp refused")
-            it.lamp = True  # a resume tries again
-            where = it.last.node_id if it.last is not None else "?"
-            self._itinerary_note(it, f"node {where}: the lamp a skipped node switches on: {r.reason}", out)
+        where = it.last.node_id if it.last is not None else "?"
+        self._node_payload(it, {"device": "uv", "on": "true"}, now, out, f"node {where}, a skipped node's lamp")
 
     def _itinerary_action(self, kind: ActionType, now: float, sender: str, out: Output) -> CommandResult:
         """stop, cancel, pause, resume and e-stop while an order with nodes runs."""

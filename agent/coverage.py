@@ -358,22 +358,23 @@ class FloorMap:
             i = j
         return out
 
-    def clear_xy(self, a: Point, b: Point) -> bool:
-        """The segment a-b (sampled at a fifth of a plan cell) stays on stand cells; a sample on a
-        cell's edge or corner must be clear on every side of it (a line exactly through a corner
-        touches all four cells)."""
+    def clear_xy(self, a: Point, b: Point, cells: BoolGrid | None = None) -> bool:
+        """The segment a-b (sampled at a fifth of a plan cell) stays on stand cells (or on ``cells``,
+        a mask of plan cells); a sample on a cell's edge or corner must be clear on every side of it
+        (a line exactly through a corner touches all four cells)."""
+        mask = self.stand if cells is None else cells
         n = max(2, math.ceil(math.dist(a, b) / (self.plan_resolution / 5)) + 1)
         t = np.linspace(0.0, 1.0, n)
         y = (a[1] + (b[1] - a[1]) * t - self.origin[1]) / self.plan_resolution
         x = (a[0] + (b[0] - a[0]) * t - self.origin[0]) / self.plan_resolution
-        h, w = self.stand.shape
+        h, w = mask.shape
         for dy in (-1e-9, 1e-9):
             r = np.floor(y + dy).astype(np.intp)
             for dx in (-1e-9, 1e-9):
                 c = np.floor(x + dx).astype(np.intp)
                 if (r < 0).any() or (r >= h).any() or (c < 0).any() or (c >= w).any():
                     return False
-                if not self.stand[r, c].all():
+                if not mask[r, c].all():
                     return False
         return True
 
@@ -1666,24 +1667,17 @@ def park_in_middle(
 
 
 def lit_within(plan: CoveragePlan, fm: FloorMap, area: Area) -> CoveragePlan:
-    """``plan`` with the lamp off on every edge whose way leaves the area (a waypoint, or a point
-    between two, on a plan cell more than a cell from where the robot may stand in it): the shortest
-    way between two places in the area may run outside it, through a doorway or round a desk, and
-    the lamp is for the area. ``plan_order`` then switches it off before such an edge and on again at
+    """``plan`` with the lamp off on every edge whose way leaves the area (passes a plan cell more
+    than a cell from where the robot may stand in it, ``FloorMap.clear_xy``): the shortest way
+    between two places in the area may run outside it, through a doorway or round a desk, and the
+    lamp is for the area. ``plan_order`` then switches it off before such an edge and on again at
     the next lit dwell."""
     if not any(e.lamp for e in plan.edges):
         return plan
     inside = _dilate(area.stand, 1.0)
-    step = fm.plan_resolution / 2.0
 
     def stays(way: Sequence[Point]) -> bool:
-        for a, b in itertools.pairwise(way):
-            n = max(1, math.ceil(math.dist(a, b) / step))
-            for k in range(n + 1):
-                rc = fm.plan_cell((a[0] + (b[0] - a[0]) * k / n, a[1] + (b[1] - a[1]) * k / n))
-                if not (fm.plan_inside(rc) and inside[rc]):
-                    return False
-        return True
+        return all(fm.clear_xy(a, b, inside) for a, b in itertools.pairwise(way))
 
     edges = tuple(replace(e, lamp=False) if e.lamp and not stays(e.waypoints) else e for e in plan.edges)
     return plan if edges == plan.edges else replace(plan, edges=edges)
