@@ -221,7 +221,7 @@ def board_view(snap: BoardSnapshot, odom_t: float | None = None) -> BoardView:
         has_payload=pay is not None,
         tank_percent=float(pay.tank_percent) if pay else None,
         health_flags=snap.health.flags if snap.health else 0,
-        bumper_bits=sum(1 << i for i in range(8 * b.width) if b.triggered(i)) if b else 0,
+        bumper_bits=b.triggered_bits if b else 0,
         sensors_m=tuple(d for d in snap.sensors.distances if d > 0)[:16] if snap.sensors else (),
         battery_known=snap.status is not None,
     )

@@ -234,6 +234,12 @@ def test_reply_layouts() -> None:
     # BumperData: u8 or u32.
     assert p.BumperData.decode(b"\xfe") == p.BumperData(0xFE, 1)
     assert p.BumperData.decode(b"\xfe\xff\xff\xff").triggered(0)
+    # triggered_bits: the triggered sensors as set bits, within the received width only.
+    assert p.BumperData(0xFE, 1).triggered_bits == 0x01
+    assert p.BumperData(0xFFFFFFF5, 4).triggered_bits == 0x0A
+    for bitmap, width in ((0x00, 1), (0x5A, 1), (0xFFFF_FFFF, 4), (0x1234_5678, 4)):
+        b = p.BumperData(bitmap, width)
+        assert b.triggered_bits == sum(1 << i for i in range(8 * width) if b.triggered(i))
     # PendingBaseCommand: empty or one byte.
     assert p.PendingBaseCommand.decode(b"") == p.PendingBaseCommand(None)
     assert p.PendingBaseCommand.decode(b"\x01") == p.PendingBaseCommand(p.PendingCommandCode.GO_HOME)

@@ -490,6 +490,11 @@ class BumperData(NamedTuple):
     def triggered(self, bit: int) -> bool:
         return not (self.bitmap >> bit) & 1
 
+    @property
+    def triggered_bits(self) -> int:
+        """Bit i set when sensor i is triggered (the bitmap inverted within its width)."""
+        return ~self.bitmap & ((1 << (8 * self.width)) - 1)
+
     def encode(self) -> bytes:
         return self.bitmap.to_bytes(self.width, "little")
 
