@@ -102,7 +102,11 @@ class AgentRuntime:
             if mapping.closer is not None:  # loop closure's checks on a thread of their own
                 self._search = SearchWorker(f"closure-{self.config.robot}", clock=self.clock).start()
             self.node.open_map(MapKeeper(mapping, search=self._search))
-            self._lidar = Worker(f"lidar-{self.config.robot}", clock=self.clock, target=self._lidar_loop).start()
+            # Mapping at a lower priority: on a host short of CPU, poses, commands and the board's
+            # polls go first; a scan mapped late is only a map a little behind.
+            self._lidar = Worker(
+                f"lidar-{self.config.robot}", clock=self.clock, target=self._lidar_loop, background=True
+            ).start()
         return self
 
     def stop(self) -> None:

@@ -8,6 +8,9 @@ checks ``self.stopping`` and sleeps with ``self.wait(seconds)``. The wait is the
 (``Clock.wait``), so it is cut short by ``stop()`` or ``wake()`` in real and in simulated time
 alike. An exception that escapes ``run`` is logged once with its traceback and kept in
 ``self.error``; it ends the thread, never the process. ``stop()`` is idempotent and joins.
+``background=True`` runs the thread at a lower scheduling priority (``BACKGROUND_NICE``): work that
+can lag (an agent's mapping) gives way, when the host is short of CPU, to what cannot (control,
+links).
 
     class Ticker(Worker):
         def run(self) -> None:
@@ -31,6 +34,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing as mp
+import os
 import pickle
 import threading
 import traceback
@@ -41,11 +45,16 @@ from typing import Any, Self
 
 from fleetlink.shared.clock import Clock, SystemClock
 
-__all__ = ["ProcessWorker", "Worker"]
+__all__ = ["BACKGROUND_NICE", "ProcessWorker", "Worker"]
 
 log = logging.getLogger(__name__)
 
 JOIN_TIMEOUT_S = 5.0
+
+BACKGROUND_NICE = 10
+"""How much lower a background worker's thread runs (Linux nice, per thread; unprivileged: a
+thread may always lower its own priority). At +10 the scheduler gives it about a tenth of the
+share of a normal thread while both want the CPU, and all it wants when nothing else does."""
 
 
 class Worker:
@@ -58,11 +67,13 @@ class Worker:
         clock: Clock | None = None,
         target: Callable[[Worker], None] | None = None,
         daemon: bool = True,
+        background: bool = False,
     ) -> None:
         self.name = name
         self.clock: Clock = clock or SystemClock()
         self._target = target
         self._daemon = daemon
+        self.background = background
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._thread: threading.Thread | None = None
@@ -123,11 +134,22 @@ class Worker:
         self._target(self)
 
     def _main(self) -> None:
+        if self.background:
+            _lower_priority(self.name)
         try:
             self.run()
         except BaseException as exc:  # the thread ends; the process and the other workers go on
             self.error = exc
             log.exception("worker %s failed: %s", self.name, exc)
+
+
+def _lower_priority(name: str) -> None:
+    """This thread BACKGROUND_NICE lower (Linux: a nice value is per thread); elsewhere nothing."""
+    tid = threading.get_native_id()
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + BACKGROUND_NICE))
+    except (AttributeError, OSError) as exc:  # no setpriority (Windows), or refused: run as it is
+        log.debug("worker %s keeps its priority: %s", name, exc)
 
 
 _READY, _REPLY, _FAILED, _STOP = "ready", "reply", "failed", "stop"

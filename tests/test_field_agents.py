@@ -85,6 +85,7 @@ def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -
         agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[listen])
         agent = agents.start()["uvc-1"]
         wait_until(lambda: agent.scans >= 15, timeout=20.0, message="lidar scans into the mapper")
+        assert agent._lidar is not None and agent._lidar.background  # mapping gives way to control
 
         asker = ZenohEndpoint(session=session)  # fetch_map asks through a link (the session stays ours)
         asker.start()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -11,7 +12,7 @@ from fleetlink.links.base import Link, key_matches, to_mqtt_filter
 from fleetlink.links.inprocess import InProcessBus
 from fleetlink.shared.clock import SimClock, SystemClock
 from fleetlink.shared.messages import LinkName
-from fleetlink.shared.worker import Worker
+from fleetlink.shared.worker import BACKGROUND_NICE, Worker
 
 
 def test_system_clock_wait_returns_early_when_set() -> None:
@@ -74,6 +75,35 @@ def test_worker_logs_and_keeps_an_error(caplog: pytest.LogCaptureFixture) -> Non
     assert isinstance(w.error, RuntimeError)
     assert "worker boom failed: board unplugged" in caplog.text
     w.stop()
+
+
+@pytest.mark.skipif(not hasattr(os, "setpriority"), reason="no per-thread priorities here")
+def test_a_background_worker_runs_at_a_lower_priority_than_its_process() -> None:
+    """Only its own thread is lowered (Linux nice is per thread): the owner's stays as it was."""
+    seen: list[int] = []
+
+    def look(worker: Worker) -> None:
+        seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+
+    own = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    for background in (False, True):
+        w = Worker("look", target=look, background=background).start()
+        for _ in range(200):
+            if not w.running:
+                break
+            time.sleep(0.01)
+        w.stop()
+    assert seen == [own, min(19, own + BACKGROUND_NICE)]
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == own
+
+
+def test_the_agents_closure_search_runs_in_the_background() -> None:
+    """The closure search is a background worker (the lidar worker too: tests/test_field_agents.py):
+    on a host short of CPU, control and links go first."""
+    from fleetlink.agent.mapping.worker import SearchWorker
+
+    assert SearchWorker("closure-r1").background
+    assert not Worker("agent-r1").background
 
 
 def test_key_matching_and_mqtt_filters() -> None:

@@ -135,7 +135,7 @@ class SearchWorker(Worker):
     found nothing. ``start()`` before use, ``stop()`` after (``Worker``)."""
 
     def __init__(self, name: str, clock: Clock | None = None) -> None:
-        super().__init__(name, clock=clock)
+        super().__init__(name, clock=clock, background=True)  # closures can wait: control cannot
         self._lock = threading.Lock()
         self._queue: deque[list[Check]] = deque()
         self._done: list[CheckResult] = []
