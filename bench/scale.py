@@ -3,6 +3,7 @@
     .venv/bin/python bench/scale.py [--robots 50] [--seconds 300] [--lidar-hz 1] [--lidar-samples 720]
                                     [--drive] [--no-mqtt] [--json FILE]
     .venv/bin/python bench/scale.py --light --robots 500 [--seconds 60] [--command-robots 50] [--json FILE]
+    .venv/bin/python bench/scale.py --light --lossy 0,1,5,10 --robots 50 [--seconds 20] [--json FILE]
 
 The site as docs/operations.md lays it out: the real-time field (``RealtimeField``, the hall-50
 scenario cut to N robots) serves every robot's simulated board (and lidar, at ``--lidar-hz``; 0:
@@ -40,6 +41,12 @@ the console on router A (one router: the baseline) and on router B (the mesh), e
 p50/p99 and the share acked). Beside them the CPU of the light fleet's process, each router and
 this process (the console), which is where a larger fleet breaks. ``--light --robots 500`` is the
 goal's configuration.
+
+``--light --lossy 0,1,5,10``: the light robots behind a lossy link instead (tests/harness/lossy.py: a
+network namespace made for the run, its veth's packets dropped at random by the kernel, each way;
+root, ``ip`` and ``nft`` needed), clients of one router on the link's host end, the console on that
+router; one phase of ``--seconds`` per loss rate, on the same fleet: delivery, staleness and teleop
+acks as above, and the packets the link dropped.
 
 Goals: >= 99.9 % delivered, staleness p99 <= 100 ms, agent RSS <= 80 MB. The table shows each
 figure beside its goal. Every robot has a simulated lidar (``--lidar-hz`` turns a second, sending
@@ -517,6 +524,85 @@ def run_light(n: int, seconds: float, command_robots: int, warmup_timeout: float
     }
 
 
+def run_lossy(
+    n: int, seconds: float, losses: list[float], command_robots: int, warmup_timeout: float
+) -> dict[str, Any]:
+    """``--light --lossy``: ``n`` light robots behind a lossy link (tests/harness/lossy.py: a network
+    namespace whose packets the kernel drops at random, each way), a client of one router on the
+    link's host end; the console on that router. One phase per loss rate, the same fleet."""
+    from fleetlink.site.brokers import free_port
+    from fleetlink.site.mesh import ZenohRouter
+    from tests.harness.lossy import LossyLink
+
+    why = LossyLink.unavailable()
+    if why is not None:
+        raise SystemExit(f"--lossy: {why}")
+    tmp = Path(tempfile.mkdtemp(prefix="fleetlink-scale-lossy-"))
+    exe = str(Path(sys.executable).parent / "fleetlink")
+    phases: list[dict[str, Any]] = []
+    with LossyLink() as link:
+        router = ZenohRouter(f"tcp/{link.host_ip}:{free_port(link.host_ip)}").start()
+        log_path = tmp / "light.log"
+        try:
+            with log_path.open("wb") as log:
+                argv = link.argv([exe, "field", "--light", str(n), "--zenoh-connect", router.listen])
+                fleet = subprocess.Popen(
+                    [*argv, "--zenoh-listen", "none"], stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT
+                )
+            try:
+                pids = {"light_fleet": fleet.pid, "router": router.pid, "console": os.getpid()}
+                for loss in losses:
+                    link.set_loss(loss)
+                    dropped0 = link.dropped()
+                    phase = light_phase(
+                        f"{loss:g} % loss", router.listen, n, seconds, command_robots, pids, warmup_timeout
+                    )
+                    phase["loss_ratio"] = loss / 100.0
+                    phase["packets_dropped"] = link.dropped() - dropped0
+                    phases.append(phase)
+            finally:
+                fleet.terminate()
+                try:
+                    fleet.wait(10)
+                except subprocess.TimeoutExpired:
+                    fleet.kill()
+                    fleet.wait()
+        finally:
+            router.stop()
+    return {
+        "robots": n,
+        "light": True,
+        "lossy": True,
+        "command_robots": command_robots,
+        "teleop_rate_hz": TELEOP_HZ,
+        "host_cpus": os.cpu_count() or 0,
+        "load_average_1min": os.getloadavg()[0],
+        "phases": phases,
+    }
+
+
+def lossy_table(r: dict[str, Any]) -> str:
+    head = (
+        f"{r['robots']} light robots behind a lossy link (a network namespace, packets dropped at random each "
+        f"way by the kernel; no added delay), clients of one router; the console on it; teleops to "
+        f"{r['command_robots']} robots at {r['teleop_rate_hz']:g} Hz each; {r['host_cpus']} CPUs, load average "
+        f"{r['load_average_1min']:.1f} at the end"
+    )
+    lines = [
+        head,
+        f"{'loss':>6} {'delivered':>10} {'by seq':>9} {'stale p50':>10} {'p99':>8} {'max':>8} "
+        f"{'acked':>8} {'ack p50':>8} {'ack p99':>8} {'dropped':>8}",
+    ]
+    for p in r["phases"]:
+        lines.append(
+            f"{p['loss_ratio'] * 100:5.1f}% {p['delivered_ratio'] * 100:9.3f}% {p['delivered_by_sequence_ratio'] * 100:8.3f}% "
+            f"{p['staleness_p50_s'] * 1e3:8.1f}ms {p['staleness_p99_s'] * 1e3:6.0f}ms {p['staleness_max_s'] * 1e3:6.0f}ms "
+            f"{p['acked_ratio'] * 100:7.2f}% {p['ack_rtt_p50_s'] * 1e3:6.1f}ms {p['ack_rtt_p99_s'] * 1e3:6.0f}ms "
+            f"{p['packets_dropped']:8d}"
+        )
+    return "\n".join(lines)
+
+
 def light_table(r: dict[str, Any]) -> str:
     one, two = r["one_router"], r["mesh"]
     rows: list[tuple[str, Any, str]] = [
@@ -612,8 +698,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup-timeout", type=float, default=120.0)
     ap.add_argument("--light", action="store_true", help="light robots through a two-router mesh, no agents")
     ap.add_argument("--command-robots", type=int, default=50, help="with --light: robots sent teleops (4 Hz each)")
+    ap.add_argument(
+        "--lossy",
+        metavar="PERCENTS",
+        help="with --light: the robots behind a lossy link, one phase per loss rate (e.g. 0,1,5,10; needs root, ip, nft)",
+    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    if args.light and args.lossy:
+        losses = [float(x) for x in args.lossy.split(",")]
+        r = run_lossy(args.robots, args.seconds, losses, min(args.command_robots, args.robots), args.warmup_timeout)
+        print(lossy_table(r))
+        if args.json:
+            args.json.write_text(json.dumps(r, indent=2) + "\n")
+        return 0
     if args.light:
         r = run_light(args.robots, args.seconds, min(args.command_robots, args.robots), args.warmup_timeout)
         print(light_table(r))

@@ -31,7 +31,7 @@ import pytest
 from tests.harness import wait_until
 
 TMUX = shutil.which("tmux")
-# .ci/install-tmux installs tmux, so under CI this test must run: there a missing tmux fails it.
+# .ci/install-tool installs tmux, so under CI this test must run: there a missing tmux fails it.
 pytestmark = pytest.mark.skipif(
     TMUX is None and not os.environ.get("CI"), reason="tmux not installed (./dev test installs it with apt-get)"
 )

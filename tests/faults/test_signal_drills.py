@@ -134,7 +134,7 @@ def test_sigterm_on_a_secured_field_leaves_no_secrets(tmp_path: Path) -> None:
             proc.wait(5)
 
 
-# As the tmux e2e test: .ci/install-tmux installs tmux, so under CI this drill must run (a missing
+# As the tmux e2e test: .ci/install-tool installs tmux, so under CI this drill must run (a missing
 # tmux fails it there); only a developer's machine without tmux skips it.
 @pytest.mark.skipif(
     TMUX is None and not os.environ.get("CI"), reason="tmux not installed (./dev test installs it with apt-get)"
