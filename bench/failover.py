@@ -1,6 +1,6 @@
 """Losing the primary link (Zenoh): what it costs with redundant sending and with failover only.
 
-    python bench/failover.py [--cuts 10] [--mode both|redundant|failover|stall] [--json FILE]
+    python bench/failover.py [--cuts 10] [--mode both|redundant|failover|stall|lossy] [--loss 10] [--json FILE]
 
 Real parts on loopback: a private Mosquitto (tests/harness), the operator's OperatorLink
 (Zenoh peer + paho client, link manager polling at 50 Hz) and a robot made of the agent's real
@@ -27,6 +27,12 @@ Two modes, the same load and the same cuts:
   after the other, as before issue 18). Goal for ``stall``: added delay p99 <= 20 ms, 0 lost, 0
   run twice, no deadman stop.
 
+* **lossy** (``--mode lossy --loss P``): no cuts; for as long as the cuts would have taken, P % of
+  Zenoh's packets are dropped at random each way (tests/harness/lossy.py: the robot's session a
+  client of a router inside a network namespace whose veth loses them; MQTT clean), once with
+  redundant sending and once with failover only. Shown, not judged: goal delay, the longest gap
+  between drives, deadman stops (docs/operations.md, "A lossy link"). Needs root, ``ip``, ``nft``.
+
 *Added delay*: each goal's time from send to execution; the p99 of the goals sent in the first
 second after each cut, minus the p99 of the goals sent while both links were up and had been for
 a second (the same run).
@@ -36,6 +42,7 @@ a second (the same run).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import logging
@@ -55,9 +62,10 @@ from fleetlink.operator.commander import TELEOP_TTL_S  # noqa: E402
 from fleetlink.operator.linkmanager import FALLBACK, PRIMARY, LinkPolicy  # noqa: E402
 from fleetlink.shared.clock import SystemClock  # noqa: E402
 from fleetlink.shared.messages import LinkName, Order, Teleop  # noqa: E402
-from fleetlink.site.brokers import MosquittoBroker  # noqa: E402
+from fleetlink.site.brokers import MosquittoBroker, free_port  # noqa: E402
 from tests.harness import wait_until  # noqa: E402
 from tests.harness.link_robot import LinkRobot, goal, open_operator  # noqa: E402
+from tests.harness.lossy import LossyLink  # noqa: E402
 
 GOAL_PERIOD_S = 0.04
 """With a drive every 50 ms: 45 commands/s, within the agent's rate of 50 per sender (agent/links/
@@ -75,19 +83,39 @@ def pct(values: list[float], q: float) -> float:
     return s[min(len(s) - 1, round(q * (len(s) - 1)))]
 
 
-def run(mode: str, cuts: int, period: float, port: int, clock: SystemClock) -> dict[str, Any]:
-    redundant = mode != "failover"
+def run(mode: str, cuts: int, period: float, port: int, clock: SystemClock, loss: float = 0.0) -> dict[str, Any]:
+    with contextlib.ExitStack() as stack:
+        return _run(mode, cuts, period, port, clock, loss, stack)
+
+
+def _run(
+    mode: str, cuts: int, period: float, port: int, clock: SystemClock, loss: float, stack: contextlib.ExitStack
+) -> dict[str, Any]:
+    redundant = mode not in ("failover", "lossy-failover")
     stalls = mode.startswith("stall")
+    lossy = mode.startswith("lossy")
     policy = LinkPolicy(state_window_s=0.35, ack_timeout_s=0.25, holdoff_s=0.3, redundant=redundant)
-    op, endpoint = open_operator(port, policy, sender=f"bench-{mode}", stalling=stalls, inline=mode == "stall-inline")
+    listen = None
+    if lossy:  # Zenoh through a router in a namespace whose packets the kernel drops; MQTT clean
+        link = stack.enter_context(LossyLink())
+        listen = f"tcp/{link.host_ip}:{free_port(link.host_ip)}"
+    op, endpoint = open_operator(
+        port, policy, sender=f"bench-{mode}", stalling=stalls, inline=mode == "stall-inline", listen=listen
+    )
+    if lossy:
+        endpoint = stack.enter_context(link.router(endpoint))
+        link.set_loss(loss)
     stalling: Any = op.links[LinkName.ZENOH] if stalls else None
-    robot = LinkRobot("r1", endpoint, port, clock)
+    robot = LinkRobot("r1", endpoint, port, clock, zenoh_mode="client" if lossy else "peer")
     sent_at: dict[str, float] = {}
     cut_times: list[float] = []
     open_times: list[float] = []
     stop = threading.Event()
 
     def cutter() -> None:
+        if lossy:  # no cuts: the loss runs as long as the cuts would have
+            stop.wait(cuts * period)
+            return
         for _ in range(cuts):
             if stop.wait(period / 2):
                 return
@@ -168,6 +196,7 @@ def run(mode: str, cuts: int, period: float, port: int, clock: SystemClock) -> d
     gaps = [b - a for a, b in itertools.pairwise(drives)]
     return {
         "mode": mode,
+        "loss_ratio": loss / 100.0 if lossy else 0.0,
         "cuts_count": len(cut_times),
         "goals_sent_count": len(sent_at),
         "drives_run_count": len(drives),
@@ -194,8 +223,8 @@ def run(mode: str, cuts: int, period: float, port: int, clock: SystemClock) -> d
 
 def verdict(f: dict[str, Any]) -> bool:
     clean = f["lost_count"] == 0 and f["executed_twice_count"] == 0
-    if f["mode"] == "stall-inline":
-        return True  # the baseline: shown, not judged
+    if f["mode"] in ("stall-inline", "lossy-redundant", "lossy-failover"):
+        return True  # a baseline, or a measurement without a goal: shown, not judged
     if f["mode"] in ("redundant", "stall"):
         return clean and f["added_delay_p99_s"] <= GOALS["added_delay_p99_s"] and f["deadman_stop_count"] == 0
     return clean and f["failover_p99_s"] <= GOALS["failover_p99_s"]
@@ -221,7 +250,8 @@ ROWS = (
 
 def table(results: dict[str, dict[str, Any]]) -> str:
     modes = list(results)
-    head = f"{'':38}" + "".join(f"{m:>13}" for m in modes)
+    w = max(13, *(len(m) + 2 for m in modes))
+    head = f"{'':38}" + "".join(f"{m:>{w}}" for m in modes)
     if len(modes) == 2:
         head += f"{'ratio':>9}"
     lines = [head]
@@ -230,11 +260,11 @@ def table(results: dict[str, dict[str, Any]]) -> str:
         for m in modes:
             v = results[m].get(key)
             if v is None or v != v:
-                cells.append(f"{'-':>13}")
+                cells.append(f"{'-':>{w}}")
             elif isinstance(v, int):
-                cells.append(f"{v:>11d}{unit:>2}")
+                cells.append(f"{v:>{w - 2}d}{unit:>2}")
             else:
-                cells.append(f"{v * scale:>11.1f}{unit:>2}")
+                cells.append(f"{v * scale:>{w - 2}.1f}{unit:>2}")
         line = f"{label:38}" + "".join(cells)
         if len(modes) == 2:
             a, b = results[modes[0]].get(key), results[modes[1]].get(key)
@@ -248,30 +278,45 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--cuts", type=int, default=10, help="primary cuts per mode")
     parser.add_argument("--period", type=float, default=3.0, help="seconds between cuts (down half of it)")
-    parser.add_argument("--mode", choices=("both", "redundant", "failover", "stall"), default="both")
+    parser.add_argument("--mode", choices=("both", "redundant", "failover", "stall", "lossy"), default="both")
+    parser.add_argument(
+        "--loss", type=float, default=10.0, help="with --mode lossy: percent of Zenoh's packets dropped, each way"
+    )
     parser.add_argument("--json", type=Path, help="also write the figures as JSON (SI units)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)  # the link switches of failover mode are expected
     clock = SystemClock()
-    modes = {"both": ["redundant", "failover"], "stall": ["stall", "stall-inline"]}.get(args.mode, [args.mode])
+    modes = {
+        "both": ["redundant", "failover"],
+        "stall": ["stall", "stall-inline"],
+        "lossy": ["lossy-redundant", "lossy-failover"],
+    }.get(args.mode, [args.mode])
+    if args.mode == "lossy" and (why := LossyLink.unavailable()) is not None:
+        raise SystemExit(f"--mode lossy: {why}")
     results: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory() as tmp, MosquittoBroker(Path(tmp)) as broker:
         for mode in modes:
             print(f"{mode}: {args.cuts} cuts, every {args.period:g} s ...", file=sys.stderr)
-            results[mode] = run(mode, args.cuts, args.period, broker.port, clock)
+            results[mode] = run(mode, args.cuts, args.period, broker.port, clock, args.loss)
     load = os.getloadavg()
     print(
         f"primary (Zenoh) cut {args.cuts} times per mode, every {args.period:g} s for {args.period / 2:g} s; "
         f"a goal every {GOAL_PERIOD_S * 1e3:.0f} ms, a drive every {DRIVE_PERIOD_S * 1e3:.0f} ms (ttl "
-        f"{TELEOP_TTL_S:g} s)" + (" -- the primary stalls (its publish blocks) instead" if args.mode == "stall" else "")
+        f"{TELEOP_TTL_S:g} s)"
+        + (" -- the primary stalls (its publish blocks) instead" if args.mode == "stall" else "")
+        + (
+            f" -- no cuts: for as long, {args.loss:g} % of Zenoh's packets dropped each way (MQTT clean)"
+            if args.mode == "lossy"
+            else ""
+        )
     )
     ratio = f"\n(ratio: {modes[0]} / {modes[1]})" if len(results) == 2 else ""
     print(table(results) + ratio)
     print(f"machine: {os.cpu_count()} cores, load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     met = {m: verdict(f) for m, f in results.items()}
     for m, ok in met.items():
-        if m == "stall-inline":
-            continue
+        if m in ("stall-inline", "lossy-redundant", "lossy-failover"):
+            continue  # shown, not judged
         goal_text = (
             "added delay p99 <= 20 ms, 0 lost, 0 run twice, no deadman stop"
             if m in ("redundant", "stall")

@@ -46,10 +46,15 @@ class Execution:
 class LinkRobot:
     """A robot's two links and its command gate; records every command it executes."""
 
-    def __init__(self, robot: str, zenoh_connect: str, mqtt_port: int, clock: SystemClock) -> None:
+    def __init__(
+        self, robot: str, zenoh_connect: str, mqtt_port: int, clock: SystemClock, *, zenoh_mode: str = "peer"
+    ) -> None:
+        """``zenoh_mode`` "client": the robot's session talks only through the router it connects
+        to (a peer would also reach the operator directly once the router told it where)."""
         self.robot = robot
         self.clock = clock
         self.zenoh_connect = zenoh_connect
+        self.zenoh_mode = zenoh_mode
         self.gate = CommandGate(robot)
         self.counter = wire.HeaderCounter(clock, robot=robot, sender=f"agent-{robot}")
         self.executed: list[Execution] = []
@@ -70,7 +75,7 @@ class LinkRobot:
         self._thread.start()
 
     def open_primary(self) -> None:
-        session = zenoh.open(zenoh_config(connect=[self.zenoh_connect], scouting_delay_ms=0))
+        session = zenoh.open(zenoh_config(connect=[self.zenoh_connect], mode=self.zenoh_mode, scouting_delay_ms=0))
         subs = [
             session.declare_subscriber(
                 keys.sender_filter(self.robot, t),
@@ -179,13 +184,19 @@ class StallingLink:
 
 
 def open_operator(
-    mqtt_port: int, policy: LinkPolicy, sender: str = "operator-1", *, stalling: bool = False, inline: bool = False
+    mqtt_port: int,
+    policy: LinkPolicy,
+    sender: str = "operator-1",
+    *,
+    stalling: bool = False,
+    inline: bool = False,
+    listen: str | None = None,
 ) -> tuple[OperatorLink, str]:
-    """An operator link listening on a fresh loopback Zenoh endpoint (robots connect to it).
-    ``stalling``: its Zenoh endpoint is a ``StallingLink`` (``op.links[ZENOH]``); ``inline``: no
-    send threads, every copy published on the caller's thread one after the other (as before
-    issue 18: the baseline of bench/failover.py's stall mode)."""
-    endpoint = loopback_endpoint()
+    """An operator link listening on a fresh loopback Zenoh endpoint (robots connect to it), or on
+    ``listen``. ``stalling``: its Zenoh endpoint is a ``StallingLink`` (``op.links[ZENOH]``);
+    ``inline``: no send threads, every copy published on the caller's thread one after the other
+    (as before issue 18: the baseline of bench/failover.py's stall mode)."""
+    endpoint = listen or loopback_endpoint()
     primary: Any = ZenohEndpoint(listen=[endpoint])
     if stalling:
         primary = StallingLink(primary)

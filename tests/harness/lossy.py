@@ -14,11 +14,13 @@ actions (``gact``): nftables is what it has. Delay is not modelled.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import shutil
 import subprocess
-from collections.abc import Sequence
+import sys
+from collections.abc import Iterator, Sequence
 from typing import Self
 
 __all__ = ["LossyLink"]
@@ -120,6 +122,28 @@ class LossyLink:
     def argv(self, command: Sequence[str]) -> list[str]:
         """``command`` run inside the namespace."""
         return [*self._ns(), *command]
+
+    @contextlib.contextmanager
+    def router(self, connect: str, port: int = 7447) -> Iterator[str]:
+        """A Zenoh router inside the namespace (``python -m fleetlink.site.mesh``), linked to
+        ``connect`` (an endpoint on the host end); yields its endpoint. A client session connecting
+        to it has every packet to and from ``connect`` cross the lossy veth twice."""
+        listen = f"tcp/{self.ns_ip}:{port}"
+        argv = self.argv([sys.executable, "-m", "fleetlink.site.mesh", "--listen", listen, "--connect", connect])
+        proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        try:
+            assert proc.stdout is not None
+            if proc.stdout.readline().strip() != b"ready":
+                raise RuntimeError("the router in the lossy namespace did not start")
+            yield listen
+        finally:
+            assert proc.stdin is not None
+            proc.stdin.close()
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
 
     def close(self) -> None:
         if not self._up:
