@@ -32,14 +32,25 @@ def _sh(*argv: str, check: bool = True) -> subprocess.CompletedProcess[str]:
     return subprocess.run(list(argv), capture_output=True, text=True, check=check, timeout=10)
 
 
+def _free_subnet(start: int) -> int:
+    """A 10.231.k.0/24 no interface of the host uses yet (test processes make links side by side)."""
+    used = _sh("ip", "-o", "-4", "addr", "show", check=False).stdout
+    for i in range(250):
+        k = (start + i) % 250
+        if f"10.231.{k}." not in used:
+            return k
+    raise RuntimeError("no free 10.231.k.0/24 subnet for a lossy link")
+
+
 class LossyLink:
     """One namespace, one veth pair, a loss rule. Closing removes them all (the namespace first)."""
 
     def __init__(self, name: str | None = None) -> None:
-        k = next(_SUBNETS) % 200
-        self.name = name or f"fl-lossy-{os.getpid()}-{k}"
-        self._host_if = f"flh{os.getpid() % 10000}x{k}"[:15]
-        self._ns_if = f"fln{os.getpid() % 10000}x{k}"[:15]
+        n = next(_SUBNETS)
+        self.name = name or f"fl-lossy-{os.getpid()}-{n}"
+        self._host_if = f"flh{os.getpid() % 100000}x{n}"[:15]
+        self._ns_if = f"fln{os.getpid() % 100000}x{n}"[:15]
+        k = _free_subnet(os.getpid() + n)
         self.host_ip = f"10.231.{k}.1"
         self.ns_ip = f"10.231.{k}.2"
         self.loss = 0.0
