@@ -10,7 +10,7 @@ holds a teleop key (a drive command every 50 ms, time-to-live 0.5 s: the robot's
 ``--period`` seconds the primary is cut -- the robot's Zenoh session closed, like a dead radio --
 for half the period, then opened again.
 
-Two modes, the same load and the same cuts:
+The modes, the same load and the same cuts:
 
 * **redundant** (the consoles' default): every command goes out on both links at once; the robot
   runs the first copy and acks each on its link. Goals: added delay p99 <= 20 ms, 0 lost, 0 run
@@ -102,6 +102,7 @@ def _run(
     op, endpoint = open_operator(
         port, policy, sender=f"bench-{mode}", stalling=stalls, inline=mode == "stall-inline", listen=listen
     )
+    stack.callback(op.close)  # after the robot (closed below), and if what follows fails
     if lossy:
         endpoint = stack.enter_context(link.router(endpoint))
         link.set_loss(loss)
@@ -162,7 +163,6 @@ def _run(
         if stalling is not None:
             stalling.resume()
         robot.close()
-        op.close()
     executed = list(robot.executed)
     orders = [e for e in executed if e.order is not None]
     ran = [e.order[0] for e in orders if e.order is not None]

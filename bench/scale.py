@@ -705,6 +705,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    if args.lossy and not args.light:
+        ap.error("--lossy needs --light")
     if args.light and args.lossy:
         losses = [float(x) for x in args.lossy.split(",")]
         r = run_lossy(args.robots, args.seconds, losses, min(args.command_robots, args.robots), args.warmup_timeout)
