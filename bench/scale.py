@@ -83,20 +83,6 @@ GOALS = {"delivered_ratio": 0.999, "staleness_p99_s": 0.100, "agent_rss_max_byte
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 PAGE = os.sysconf("SC_PAGE_SIZE")
 
-ROUTER_SCRIPT = r"""
-import json, sys, zenoh
-c = zenoh.Config()
-c.insert_json5("mode", '"router"')
-c.insert_json5("scouting/multicast/enabled", "false")
-c.insert_json5("listen/endpoints", json.dumps([sys.argv[1]]))
-c.insert_json5("connect/endpoints", "[]")
-s = zenoh.open(c)
-print("ready", flush=True)
-sys.stdin.read()
-s.close()
-"""
-
-
 FIELD_SCRIPT = r"""
 import json, sys
 from dataclasses import replace
@@ -116,9 +102,12 @@ fld.stop()
 
 
 def end_child(proc: subprocess.Popen[bytes]) -> None:
-    """A child reading its stdin until EOF (the router, the field): close it, wait, kill if it hangs."""
-    assert proc.stdin is not None
-    proc.stdin.close()
+    """End a child: close its stdin if we hold it (the field ends at EOF), else terminate it (the
+    light fleet); wait, and kill it if it hangs."""
+    if proc.stdin is not None:
+        proc.stdin.close()
+    else:
+        proc.terminate()
     try:
         proc.wait(10)
     except subprocess.TimeoutExpired:
@@ -229,6 +218,7 @@ def run(
     from fleetlink.field.scenario import load_scenario
     from fleetlink.links.zenoh import peer_config
     from fleetlink.site.brokers import MosquittoBroker, free_port
+    from fleetlink.site.mesh import ZenohRouter
 
     scenario = ROOT / "field" / "scenarios" / "hall-50.toml"
     if n > len(load_scenario(scenario).robots):
@@ -241,14 +231,10 @@ def run(
     session = None
     stop_driving = threading.Event()
     teleops = [0]
-    router = fld = None
+    router = ZenohRouter(router_ep)
+    fld = None
     try:
-        router = subprocess.Popen(
-            [sys.executable, "-c", ROUTER_SCRIPT, router_ep], stdin=subprocess.PIPE, stdout=subprocess.PIPE
-        )
-        assert router.stdout is not None
-        if router.stdout.readline().strip() != b"ready":
-            raise SystemExit("the zenoh router did not start")
+        router.start()
         if use_mqtt:
             broker = MosquittoBroker(tmp / "broker").start()
         # The field in a process of its own, as hardware is: in this process its physics and fifty
@@ -359,9 +345,9 @@ def run(
                 p.wait()
         if session is not None:
             session.close()
-        for child in (fld, router):
-            if child is not None:
-                end_child(child)
+        if fld is not None:
+            end_child(fld)
+        router.stop()
         if broker is not None:
             broker.stop()
 
@@ -502,12 +488,7 @@ def run_light(n: int, seconds: float, command_robots: int, warmup_timeout: float
             one = light_phase("router A", mesh.a.listen, n, seconds, command_robots, pids, warmup_timeout)
             two = light_phase("router B", mesh.b.listen, n, seconds, command_robots, pids, warmup_timeout)
         finally:
-            fleet.terminate()
-            try:
-                fleet.wait(10)
-            except subprocess.TimeoutExpired:
-                fleet.kill()
-                fleet.wait()
+            end_child(fleet)
     status = [line for line in log_path.read_text(errors="replace").splitlines() if line.startswith("t=")]
     return {
         "robots": n,
@@ -561,12 +542,7 @@ def run_lossy(
                     phase["packets_dropped"] = link.dropped() - dropped0
                     phases.append(phase)
             finally:
-                fleet.terminate()
-                try:
-                    fleet.wait(10)
-                except subprocess.TimeoutExpired:
-                    fleet.kill()
-                    fleet.wait()
+                end_child(fleet)
         finally:
             router.stop()
     return {

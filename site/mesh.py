@@ -35,10 +35,15 @@ START_TIMEOUT_S = 20.0
 class ZenohRouter:
     """A Zenoh router in a child process: listens on ``listen``, links to the routers in ``connect``."""
 
-    def __init__(self, listen: str, connect: Sequence[str] = (), *, config: Path | None = None) -> None:
+    def __init__(
+        self, listen: str, connect: Sequence[str] = (), *, config: Path | None = None, wrap: Sequence[str] = ()
+    ) -> None:
+        """``wrap``: what the router's command runs under (``ip netns exec NS``: a router inside a
+        network namespace, tests/harness/lossy.py)."""
         self.listen = listen
         self.connect = tuple(connect)
         self.config = config
+        self.wrap = tuple(wrap)
         self._proc: subprocess.Popen[bytes] | None = None
 
     @property
@@ -50,7 +55,7 @@ class ZenohRouter:
     def start(self) -> Self:
         if self._proc is not None:
             return self
-        argv = [sys.executable, "-m", "fleetlink.site.mesh", "--listen", self.listen]
+        argv = [*self.wrap, sys.executable, "-m", "fleetlink.site.mesh", "--listen", self.listen]
         for ep in self.connect:
             argv += ["--connect", ep]
         if self.config is not None:

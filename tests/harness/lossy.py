@@ -18,10 +18,8 @@ import contextlib
 import fcntl
 import itertools
 import os
-import select
 import shutil
 import subprocess
-import sys
 from collections.abc import Iterator, Sequence
 from typing import Self
 
@@ -29,9 +27,6 @@ __all__ = ["LossyLink"]
 
 _SUBNETS = itertools.count(0)
 
-
-ROUTER_START_S = 15.0
-"""How long a router in the namespace may take to say it is ready."""
 
 _LOCK = "/tmp/fleetlink-lossy.lock"
 """Held while a link picks its subnet and takes it (test workers make links side by side)."""
@@ -165,26 +160,13 @@ class LossyLink:
 
     @contextlib.contextmanager
     def router(self, connect: str, port: int = 7447) -> Iterator[str]:
-        """A Zenoh router inside the namespace (``python -m fleetlink.site.mesh``), linked to
-        ``connect`` (an endpoint on the host end); yields its endpoint. A client session connecting
-        to it has every packet to and from ``connect`` cross the lossy veth twice."""
-        listen = f"tcp/{self.ns_ip}:{port}"
-        argv = self.argv([sys.executable, "-m", "fleetlink.site.mesh", "--listen", listen, "--connect", connect])
-        proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
-        try:
-            assert proc.stdout is not None
-            ready, _, _ = select.select([proc.stdout], [], [], ROUTER_START_S)
-            if not ready or proc.stdout.readline().strip() != b"ready":
-                raise RuntimeError(f"the router in the lossy namespace did not start within {ROUTER_START_S:g} s")
-            yield listen
-        finally:
-            assert proc.stdin is not None
-            proc.stdin.close()
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        """A Zenoh router inside the namespace (``site.mesh.ZenohRouter``), linked to ``connect`` (an
+        endpoint on the host end); yields its endpoint. A client session connecting to it has every
+        packet to and from ``connect`` cross the lossy veth twice."""
+        from fleetlink.site.mesh import ZenohRouter
+
+        with ZenohRouter(f"tcp/{self.ns_ip}:{port}", [connect], wrap=self._ns()) as router:
+            yield router.listen
 
     def close(self) -> None:
         if not self._up:
