@@ -76,6 +76,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from tests.harness import end_child  # noqa: E402
+
 POSE_HZ = 20.0
 TELEOP_HZ = 4.0  # per robot, with --drive
 DRIVE_OMEGA = 0.3  # rad/s, turning in place
@@ -99,20 +101,6 @@ print(json.dumps({k: [e.board, e.lidar] for k, e in endpoints.items()}), flush=T
 sys.stdin.read()
 fld.stop()
 """
-
-
-def end_child(proc: subprocess.Popen[bytes]) -> None:
-    """End a child: close its stdin if we hold it (the field ends at EOF), else terminate it (the
-    light fleet); wait, and kill it if it hangs."""
-    if proc.stdin is not None:
-        proc.stdin.close()
-    else:
-        proc.terminate()
-    try:
-        proc.wait(10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
 
 
 def cpu_seconds(pid: int) -> float:

@@ -5,6 +5,7 @@ The pytest fixtures live in the submodules and are registered by ``tests/conftes
 
 from __future__ import annotations
 
+import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -17,11 +18,26 @@ __all__ = [
     "MosquittoNotFound",
     "MosquittoStartError",
     "ZenohPeers",
+    "end_child",
     "find_mosquitto",
     "leaked_threads",
     "wait_until",
     "zenoh_config",
 ]
+
+
+def end_child(proc: subprocess.Popen[bytes]) -> None:
+    """End a child process: close its stdin if we hold it (a child that ends at EOF), else terminate
+    it; wait, and kill it if it hangs."""
+    if proc.stdin is not None:
+        proc.stdin.close()
+    else:
+        proc.terminate()
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 def wait_until(
