@@ -154,7 +154,19 @@ def test_a_held_key_through_a_lossy_primary_keeps_driving_with_redundant_sending
                 robot = LinkRobot("r1", via, broker.port, clock, zenoh_mode="client")
                 try:
                     wait_until(lambda: all(h.age_s is not None for h in op.health("r1")), message="both links")
-                    time.sleep(0.5)  # the robot's Zenoh subscriptions reach the console
+                    probes: list[str] = []
+
+                    def acked_on_both() -> bool:  # the robot's Zenoh subscriptions are in place
+                        if all(h.rtt_s is not None for h in op.health("r1")):
+                            return True
+                        fields = goal(1000 + len(probes))
+                        probes.append(fields["orderId"])
+                        op.send(Order, "r1", **fields)
+                        return False
+
+                    wait_until(acked_on_both, timeout=10, interval=0.2, message="a goal acked on both links")
+                    wait_until(lambda: op.pending("r1") == 0, timeout=10, message="the probes acked")
+                    dup0 = robot.gate.stats.duplicates
                     link.set_loss(20.0)
                     sent = []
                     for i in range(120):  # 6 s: a drive every 50 ms, a goal every 200 ms
@@ -167,14 +179,16 @@ def test_a_held_key_through_a_lossy_primary_keeps_driving_with_redundant_sending
                     wait_until(lambda: op.pending("r1") == 0, timeout=10, message="every goal acked")
                     # Every command came on both links (TCP resends what the primary lost): the
                     # first copy ran, the second was the gate's duplicate.
-                    wait_until(lambda: robot.gate.stats.duplicates >= 120 + len(sent), timeout=10, message="every copy")
+                    wait_until(
+                        lambda: robot.gate.stats.duplicates - dup0 >= 120 + len(sent), timeout=10, message="every copy"
+                    )
                     assert link.dropped() > 0
                 finally:
                     robot.close()
         finally:
             op.close()
     runs = [e.order[0] for e in robot.executed if e.order is not None]
-    assert sorted(runs) == sorted(sent)  # each goal once: none lost, none twice
+    assert sorted(runs) == sorted(sent + probes)  # each goal once: none lost, none twice
     drives = [e.at for e in robot.executed if e.topic == "teleop"]
     assert len(drives) == 120
     assert max(b - a for a, b in itertools.pairwise(drives)) < TELEOP_TTL_S  # no deadman stop
