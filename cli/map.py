@@ -75,6 +75,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rel.add_argument(
         "--max-distance", type=float, default=3.0, metavar="M", help="pair scans at most M metres apart (default 3)"
     )
+    rel.add_argument(
+        "--match",
+        action="store_true",
+        help="measure each relation again by matching its two scans and keep only the unambiguous ones"
+        " (as the published Freiburg relations were made; docs/mapping.md)",
+    )
     rel.set_defaults(_run=run_relations)
 
     sco = sub.add_parser("score", help="score a trajectory against relations (relation errors)")
@@ -290,6 +296,18 @@ def run_relations(args: argparse.Namespace) -> int:
         max_range=max(r.max_range for r in scans),
         mount=scans[0].laser_offset,  # one mount for the log (ROBOTLASER1 could vary it per record)
     )
+    if args.match:
+        from fleetlink.agent.mapping.pairmatch import match_relations
+
+        matched = match_relations(
+            relations,
+            [r.timestamp for r in scans],
+            [(d, r.angles) for d, r in zip(ranges, scans, strict=True)],
+            max_range=max(r.max_range for r in scans),
+            mount=scans[0].laser_offset,
+        )
+        print(matched.summary())
+        relations = matched.relations
     try:
         Path(args.out).write_text(format_relations(relations), encoding="ascii")
     except OSError as exc:
