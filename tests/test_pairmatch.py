@@ -133,6 +133,24 @@ def test_a_match_far_from_the_reference_is_refused() -> None:
     assert out.relations == [] and out.refused == {"far from the reference": 1}
 
 
+def test_a_match_its_neighbours_do_not_bear_out_is_refused() -> None:
+    # The scan at t=11 was taken 2 deg further round than the log says (a match elsewhere than the
+    # pair's neighbours put it: the stand-in for a second fit the pair alone cannot rule out).
+    rc = Raycaster(ROOM)
+    logged: list[Pose] = [(1.5, 1.2, 0.2), (2.0, 1.5, 0.3), (2.2, 1.6, 0.4), (2.4, 1.7, 0.5)]
+    scanned = list(logged)
+    scanned[2] = (2.2, 1.6, 0.4 + math.radians(2.0))
+    times = [0.0, 10.0, 11.0, 12.0]
+    scans = [_scan(rc, p) for p in scanned]
+    refs = [Relation(times[0], times[k], *relation(logged[0], logged[k])) for k in (1, 2, 3)]
+    out = match_relations(refs, times, scans, max_range=MAX_RANGE)
+    assert [(r.t1, r.t2) for r in out.relations] == [(0.0, 10.0), (0.0, 12.0)]
+    assert out.refused == {"its neighbours disagree": 1}
+    # Alone, the same pair is kept: nothing beside it to say otherwise.
+    alone = match_relations(refs[1:2], times, scans, max_range=MAX_RANGE)
+    assert len(alone.relations) == 1 and not alone.refused
+
+
 def test_match_relations_is_deterministic() -> None:
     rc = Raycaster(ROOM)
     poses: list[Pose] = [(1.0 + 0.4 * k, 1.0 + 0.25 * k, 0.1 * k) for k in range(8)]

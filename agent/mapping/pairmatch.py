@@ -22,7 +22,11 @@ onto the first and the first onto the second), and the pair kept only when:
   along its length is not: its position along the corridor is a guess);
 - the two ways agree within ``agree_m`` / ``agree_rad`` (a look-alike seldom fits both ways alike);
 - the match lies within ``max_shift_m`` / ``max_shift_rad`` of the reference relation: the corrected
-  log is right to a few centimetres, so a match far from it found another place that looks alike.
+  log is right to a few centimetres, so a match far from it found another place that looks alike;
+- no second answer nearly as good lies along the weakest direction (``probe_m``): down a corridor
+  two scans often fit at two places 0.2-0.3 m apart, and the pair cannot say which is true;
+- its neighbours do not all disagree: the pairs a scan or two beside either end, matched on their
+  own, predict this one through the reference's short step between them.
 
 Pure: numpy and scipy's k-d tree, no clock; the same input gives the same output.
 """
@@ -71,6 +75,12 @@ class PairMatchConfig:
     probe_m: tuple[float, ...] = (-0.25, 0.25)
     rival_m: float = 0.05
     rival_inliers: float = 0.9
+    # Neighbours: pairs up to this many scans beside either end; a match must agree with one of
+    # their predictions within neighbour_m / neighbour_rad (when any was kept).
+    neighbours: int = 2
+    neighbour_m: float = 0.1
+    neighbour_rad: float = math.radians(1.5)
+    neighbour_step_m: float = 0.5  # and whose scan is this close to this pair's by the reference
     probe_iterations: int = 15  # enough to settle in a basin; a probe only asks whether one exists
 
 
@@ -258,52 +268,92 @@ def match_relations(
     sorted_t = np.asarray(times, dtype=np.float64)[order]
     cache: dict[int, LineScan] = {}
 
-    def scan_at(t: float) -> LineScan | None:
+    def index_at(t: float) -> int | None:
         k = int(np.searchsorted(sorted_t, t))
-        best = min((c for c in (k - 1, k) if 0 <= c < len(sorted_t)), key=lambda c: abs(sorted_t[c] - t), default=None)
-        if best is None or abs(sorted_t[best] - t) > tolerance_s:
-            return None
-        i = int(order[best])
-        if i not in cache:
-            cache[i] = LineScan.from_ranges(
+        near = [c for c in (k - 1, k) if 0 <= c < len(sorted_t)]
+        best = min(near, key=lambda c: abs(sorted_t[c] - t), default=None)
+        return None if best is None or abs(sorted_t[best] - t) > tolerance_s else best  # in time order
+
+    def scan(k: int) -> LineScan:
+        if k not in cache:
+            i = int(order[k])
+            cache[k] = LineScan.from_ranges(
                 scans[i][0], scans[i][1], max_range=max_range, mount=mount, join_m=config.join_m
             )
-        return cache[i]
+        return cache[k]
 
-    out = MatchedRelations([])
+    refused: dict[str, int] = {}
+    kept: dict[tuple[int, int], tuple[Relation, Pose]] = {}  # (i, j) in time order -> (reference, match)
     for rel in relations:
-        first, second = scan_at(rel.t1), scan_at(rel.t2)
-        if first is None or second is None:
+        i, j = index_at(rel.t1), index_at(rel.t2)
+        if i is None or j is None:
             reason: str | None = "no scan at its time"
         else:
             z = (rel.dx, rel.dy, rel.dtheta)
+            first, second = scan(i), scan(j)
             there = match_pair(first, second, z, config)
             reason = _refusal(there, config)
             back = match_pair(second, first, inverse(z), config) if reason is None else None
             reason = reason or _refusal(back, config)
-            if reason is None and there is not None and _rival(first, second, there, config):
-                reason = "ambiguous"
             if reason is None and there is not None and back is not None:
                 loop = compose(there.pose, back.pose)  # identity when the two ways agree
                 shift = compose(inverse(z), there.pose)
-                if (
-                    math.hypot(loop[0], loop[1]) > config.agree_m
-                    or abs(math.remainder(loop[2], 2 * math.pi)) > config.agree_rad
-                ):
+                if _beyond(loop, config.agree_m, config.agree_rad):
                     reason = "the two ways disagree"
-                elif (
-                    math.hypot(shift[0], shift[1]) > config.max_shift_m
-                    or abs(math.remainder(shift[2], 2 * math.pi)) > config.max_shift_rad
-                ):
+                elif _beyond(shift, config.max_shift_m, config.max_shift_rad):
                     reason = "far from the reference"
+                elif _rival(first, second, there, config):
+                    reason = "ambiguous"
                 else:
                     # Halfway between the two ways' answers: the pair's relation does not depend on
                     # which scan was matched onto which.
                     dx, dy, dth = relative(there.pose, inverse(back.pose))
-                    half = compose(there.pose, (0.5 * dx, 0.5 * dy, 0.5 * dth))
-                    out.relations.append(
-                        Relation(rel.t1, rel.t2, half[0], half[1], math.remainder(half[2], 2 * math.pi))
-                    )
+                    kept[(i, j)] = (rel, compose(there.pose, (0.5 * dx, 0.5 * dy, 0.5 * dth)))
         if reason is not None:
-            out.refused[reason] = out.refused.get(reason, 0) + 1
+            refused[reason] = refused.get(reason, 0) + 1
+    out = MatchedRelations([], refused)
+    for (i, j), (rel, pose) in kept.items():
+        if _neighbours_disagree(i, j, kept, config):
+            refused["its neighbours disagree"] = refused.get("its neighbours disagree", 0) + 1
+            continue
+        out.relations.append(Relation(rel.t1, rel.t2, pose[0], pose[1], math.remainder(pose[2], 2 * math.pi)))
     return out
+
+
+def _beyond(p: Pose, metres: float, radians: float) -> bool:
+    return math.hypot(p[0], p[1]) > metres or abs(math.remainder(p[2], 2.0 * math.pi)) > radians
+
+
+def _neighbours_disagree(
+    i: int, j: int, kept: dict[tuple[int, int], tuple[Relation, Pose]], config: PairMatchConfig
+) -> bool:
+    """A match that none of its neighbours' matches bears out. The scans a step or two beside either
+    end, matched on their own, predict this pair's relation through the reference's short step
+    between the neighbour and this scan (a corrected log is good to a few centimetres over a step):
+    a match that disagrees with every such prediction picked a second fit the pair alone could not
+    rule out. Only neighbours within ``neighbour_step_m`` count (the reference's error grows with
+    the step); with none the match stands on its own. A good match whose only neighbour is wrong
+    goes with it: a reference is better a relation short than one wrong."""
+    rel, match = kept[(i, j)]
+    ref = (rel.dx, rel.dy, rel.dtheta)
+    seen = 0
+    for d in range(-config.neighbours, config.neighbours + 1):
+        if d == 0:
+            continue
+        for a, b in ((i, j + d), (i + d, j)):
+            other = kept.get((a, b))
+            if other is None:
+                continue
+            oref = (other[0].dx, other[0].dy, other[0].dtheta)
+            if a == i:  # same first scan: (i, j) = (i, j') then the reference's step j' -> j
+                step = compose(inverse(oref), ref)
+                predicted = compose(other[1], step)
+            else:  # same second scan: (i, j) = the reference's step i -> i' then (i', j)
+                step = compose(ref, inverse(oref))
+                predicted = compose(step, other[1])
+            if _beyond(step, config.neighbour_step_m, math.pi):
+                continue  # a long step: the reference is not good enough over it to judge by
+            seen += 1
+            if not _beyond(relative(match, predicted), config.neighbour_m, config.neighbour_rad):
+                return False
+    return seen > 0
