@@ -12,6 +12,7 @@ import pytest
 
 from fleetlink.agent.mapping.pairmatch import LineScan, PairMatchConfig, match_pair, match_relations
 from fleetlink.agent.mapping.relations import Relation, parse_relations, relation
+from fleetlink.agent.mapping.se2 import compose, inverse
 from fleetlink.cli.main import main
 from fleetlink.field.raycast import Raycaster
 
@@ -149,6 +150,79 @@ def test_a_match_its_neighbours_do_not_bear_out_is_refused() -> None:
     # Alone, the same pair is kept: nothing beside it to say otherwise.
     alone = match_relations(refs[1:2], times, scans, max_range=MAX_RANGE)
     assert len(alone.relations) == 1 and not alone.refused
+
+
+def test_the_relation_is_halfway_between_the_two_ways() -> None:
+    # With range noise the two ways' answers differ by millimetres: the relation is their midpoint,
+    # the same whichever scan is called first.
+    rc = Raycaster(ROOM)
+    rng = np.random.default_rng(4)
+    a, b = (1.5, 1.2, 0.2), (2.3, 1.7, 0.45)
+    (ra, aa), (rb, ab) = _scan(rc, a), _scan(rc, b)
+    ra, rb = ra + rng.normal(0.0, 0.01, ra.shape), rb + rng.normal(0.0, 0.01, rb.shape)
+    z = relation(a, b)
+    first, second = LineScan.from_ranges(ra, aa, max_range=MAX_RANGE), LineScan.from_ranges(rb, ab, max_range=MAX_RANGE)
+    there, back = match_pair(first, second, z), match_pair(second, first, inverse(z))
+    assert there is not None and back is not None
+    other = inverse(back.pose)
+    assert 1e-5 < math.hypot(there.pose[0] - other[0], there.pose[1] - other[1]) < 0.02
+    out = match_relations([Relation(0.0, 1.0, *z)], [0.0, 1.0], [(ra, aa), (rb, ab)], max_range=MAX_RANGE)
+    got = out.relations[0]
+    for k, v in enumerate((got.dx, got.dy, got.dtheta)):
+        assert v == pytest.approx((there.pose[k] + other[k]) / 2.0, abs=1e-6)
+    # The two ways held to agree within a micrometre, the same pair is refused for it.
+    strict = PairMatchConfig(agree_m=1e-6)
+    refused = match_relations(
+        [Relation(0.0, 1.0, *z)], [0.0, 1.0], [(ra, aa), (rb, ab)], max_range=MAX_RANGE, config=strict
+    )
+    assert refused.relations == [] and refused.refused == {"the two ways disagree": 1}
+
+
+def test_a_mounted_sensor_gives_relations_between_the_robot_poses() -> None:
+    rc = Raycaster(ROOM)
+    mount = (0.3, 0.1, 0.2)
+    poses: list[Pose] = [(1.5, 1.2, 0.2), (2.3, 1.7, 0.9)]
+    scans = [_scan(rc, compose(p, mount)) for p in poses]
+    z = relation(poses[0], poses[1])
+    rough = Relation(0.0, 1.0, z[0] + 0.05, z[1] - 0.04, z[2] + 0.02)
+    on = match_relations([rough], [0.0, 1.0], scans, max_range=MAX_RANGE, mount=mount).relations
+    assert len(on) == 1 and math.hypot(on[0].dx - z[0], on[0].dy - z[1]) < 0.005
+    assert abs(on[0].dtheta - z[2]) < math.radians(0.1)
+    # Taken as if the sensor sat at the robot's centre, the same scans give the sensors' relation.
+    off = match_relations([rough], [0.0, 1.0], scans, max_range=MAX_RANGE).relations
+    assert off and math.hypot(off[0].dx - z[0], off[0].dy - z[1]) > 0.05
+
+
+def test_neighbours_of_the_second_kind_judge_a_pair_too() -> None:
+    # The first scans differ (three poses 0.2 m apart), the second is shared and faces another way:
+    # (i, j) is predicted from (i +- 1, j) through the reference's step i -> i +- 1.
+    rc = Raycaster(ROOM)
+    logged: list[Pose] = [(1.5, 1.2, 0.2), (1.7, 1.3, 0.3), (1.9, 1.4, 0.4), (4.0, 3.6, -2.0)]
+    scanned = list(logged)
+    scanned[1] = (1.7, 1.3, 0.3 + math.radians(2.0))
+    times = [0.0, 1.0, 2.0, 30.0]
+    scans = [_scan(rc, p) for p in scanned]
+    refs = [Relation(times[k], times[3], *relation(logged[k], logged[3])) for k in (0, 1, 2)]
+    out = match_relations(refs, times, scans, max_range=MAX_RANGE)
+    assert [(r.t1, r.t2) for r in out.relations] == [(0.0, 30.0), (2.0, 30.0)]
+    assert out.refused == {"its neighbours disagree": 1}
+
+
+def test_repeats_and_odd_beams() -> None:
+    rc = Raycaster(ROOM)
+    poses: list[Pose] = [(1.5, 1.2, 0.2), (2.3, 1.7, 0.45)]
+    scans = [_scan(rc, p) for p in poses]
+    rel = Relation(0.0, 1.0, *relation(poses[0], poses[1]))
+    out = match_relations([rel, rel, Relation(1.0, 1.0, 0.0, 0.0, 0.0)], [0.0, 1.0], scans, max_range=MAX_RANGE)
+    assert len(out.relations) == 1 and out.refused == {"a repeat": 1, "one scan at both times": 1}
+    assert "1 of 3 relations kept" in out.summary()
+    r, a = scans[0]
+    a = a.copy()
+    a[10] = np.nan  # a beam without an angle is dropped, not fed to the tree
+    assert (
+        len(LineScan.from_ranges(r, a, max_range=MAX_RANGE).points)
+        == len(LineScan.from_ranges(r, scans[0][1], max_range=MAX_RANGE).points) - 1
+    )
 
 
 def test_match_relations_is_deterministic() -> None:

@@ -131,7 +131,8 @@ class LineScan:
         r, a = r[order], a[order]
         beam = np.arange(len(r))
         with np.errstate(invalid="ignore"):
-            hit = np.isfinite(r) & (r > 0.0) & (r < max_range)  # the mapper's "no return" convention
+            # The mapper's "no return" convention; a beam without a finite angle is dropped too.
+            hit = np.isfinite(r) & (r > 0.0) & (r < max_range) & np.isfinite(a)
         r, a, beam = r[hit], a[hit], beam[hit]
         c, s = math.cos(mount[2]), math.sin(mount[2])
         lx, ly = r * np.cos(a), r * np.sin(a)
@@ -288,6 +289,10 @@ def match_relations(
         i, j = index_at(rel.t1), index_at(rel.t2)
         if i is None or j is None:
             reason: str | None = "no scan at its time"
+        elif i == j:
+            reason = "one scan at both times"
+        elif (i, j) in kept:
+            reason = "a repeat"  # the same pair again: one relation is measured once
         else:
             z = (rel.dx, rel.dy, rel.dtheta)
             first, second = scan(i), scan(j)
