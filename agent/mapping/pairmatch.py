@@ -75,13 +75,13 @@ class PairMatchConfig:
     probe_m: tuple[float, ...] = (-0.25, 0.25)
     rival_m: float = 0.05
     rival_inliers: float = 0.9
+    probe_iterations: int = 15  # enough to settle in a basin; a probe only asks whether one exists
     # Neighbours: pairs up to this many scans beside either end; a match must agree with one of
     # their predictions within neighbour_m / neighbour_rad (when any was kept).
     neighbours: int = 2
     neighbour_m: float = 0.1
     neighbour_rad: float = math.radians(1.5)
     neighbour_step_m: float = 0.5  # and whose scan is this close to this pair's by the reference
-    probe_iterations: int = 15  # enough to settle in a basin; a probe only asks whether one exists
 
 
 @dataclass(frozen=True, slots=True)
@@ -181,11 +181,10 @@ def match_pair(
         q = _transform(scan.points, (x, y, th))
         reach = max(config.reach_end_m, config.reach_start_m - (config.reach_start_m - config.reach_end_m) * it / 5)
         a, normal, has = _lines(ref, q, reach)
-        use = has
-        if np.count_nonzero(use) < 3:
+        if np.count_nonzero(has) < 3:
             return None
-        nu, qu = normal[use], q[use]
-        r = np.einsum("ij,ij->i", qu - a[use], nu)
+        nu, qu = normal[has], q[has]
+        r = np.einsum("ij,ij->i", qu - a[has], nu)
         lever = nu[:, 1] * (qu[:, 0] - x) - nu[:, 0] * (qu[:, 1] - y)  # d(residual)/d(theta)
         jac = np.column_stack((nu, lever))
         w = 1.0 / (1.0 + (r / config.cauchy_m) ** 2)
@@ -356,7 +355,7 @@ def _neighbours_disagree(
             else:  # same second scan: (i, j) = the reference's step i -> i' then (i', j)
                 step = compose(ref, inverse(oref))
                 predicted = compose(step, other[1])
-            if _beyond(step, config.neighbour_step_m, math.pi):
+            if math.hypot(step[0], step[1]) > config.neighbour_step_m:
                 continue  # a long step: the reference is not good enough over it to judge by
             seen += 1
             if not _beyond(relative(match, predicted), config.neighbour_m, config.neighbour_rad):
