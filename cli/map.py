@@ -1,11 +1,13 @@
 """Maps. ``save`` fetches a robot's map over Zenoh (the queryable ``fleetlink/v1/<robot>/map``) and
 writes it as a ROS map_server map (PGM + YAML); ``load`` reads a map_server map and prints a summary
 (``fleetlink field`` takes the same file as a floor plan); ``replay`` builds a map offline from a
-CARMEN log (FLASER, ROBOTLASER1, ODOM lines; .gz accepted), writing DIR/map.pgm, DIR/map.yaml and
-DIR/trajectory.txt (``ipc_timestamp x y theta`` per scan, the timestamp copied from the log).
-``relations`` writes a complete relation set (Kümmerle et al. 2009) from a corrected log's poses;
-``score`` scores a trajectory against one (mean ± sd translational and rotational error, all pairs,
-local pairs and revisits).
+CARMEN log (FLASER, ROBOTLASER1, ODOM lines; .gz accepted), writing DIR/map.pgm, DIR/map.yaml,
+DIR/trajectory.txt (``ipc_timestamp x y theta`` per scan, the timestamp copied from the log) and
+DIR/corrected.log (the input log with each scan's pose replaced by the mapper's: the SLAM result as
+the Freiburg ``metricEvaluator`` reads it). ``relations`` writes a complete relation set (Kümmerle
+et al. 2009) from a corrected log's poses; ``score`` scores a trajectory (``trajectory.txt`` or a
+corrected CARMEN log) against one (mean ± sd translational and rotational error, all pairs, local
+pairs and revisits).
 
 Examples:
   fleetlink map save --robot r1 --out maps/r1 --connect tcp/127.0.0.1:7447
@@ -13,6 +15,7 @@ Examples:
   fleetlink map replay ../shared/data/intel-corrected.log.gz --out out/intel
   fleetlink map relations --log ../shared/data/intel-corrected.log.gz --out out/intel.relations
   fleetlink map score --trajectory out/intel/trajectory.txt --relations out/intel.relations
+  fleetlink map score --trajectory out/intel/corrected.log --relations out/intel.relations
 """
 
 from __future__ import annotations
@@ -54,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     rep = sub.add_parser("replay", help="build a map from a CARMEN log")
     rep.add_argument("log", help="CARMEN log (plain or .gz)")
-    rep.add_argument("--out", required=True, help="output folder: map.pgm, map.yaml, trajectory.txt")
+    rep.add_argument("--out", required=True, help="output folder: map.pgm, map.yaml, trajectory.txt, corrected.log")
     rep.add_argument("--resolution", type=float, default=0.05, help="metres per cell (default 0.05)")
     rep.add_argument("--no-matching", action="store_true", help="map at the odometry poses (no scan matching)")
     rep.add_argument(
@@ -85,7 +88,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     sco = sub.add_parser("score", help="score a trajectory against relations (relation errors)")
     sco.add_argument(
-        "--trajectory", required=True, metavar="FILE", help="t x y theta per line (replay's trajectory.txt)"
+        "--trajectory",
+        required=True,
+        metavar="FILE",
+        help="t x y theta per line (replay's trajectory.txt), or a corrected CARMEN log (replay's corrected.log)",
     )
     sco.add_argument("--relations", required=True, metavar="FILE", help="t1 t2 x y z roll pitch yaw per line")
     sco.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
@@ -216,7 +222,7 @@ def run_load(args: argparse.Namespace) -> int:
 def run_replay(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from fleetlink.agent.mapping.carmen import CarmenStats, open_log, read_records
+    from fleetlink.agent.mapping.carmen import CarmenStats, corrected_lines, open_log, read_records
     from fleetlink.agent.mapping.grid import GridConfig
     from fleetlink.agent.mapping.mapper import MapperConfig
     from fleetlink.agent.mapping.replay import format_trajectory, replay
@@ -246,6 +252,12 @@ def run_replay(args: argparse.Namespace) -> int:
         return 1
     cells, res, origin = m.occupancy()
     write_map(cells, res, (origin[0], origin[1], 0.0), out, "map")
+    try:
+        with open_log(args.log) as f, (out / "corrected.log").open("w", encoding="utf-8", newline="") as w:
+            w.writelines(corrected_lines(f, dict(zip(result.lines, (p for _, p in result.rows), strict=True))))
+    except (OSError, ValueError) as exc:  # the log changed under us, or cannot be read twice
+        print(f"fleetlink map replay: cannot write {out}/corrected.log: {exc}", file=sys.stderr)
+        return 1
     print(f"{args.log}: {stats.summary()}")
     closed = ""
     if m.closer is not None:
@@ -257,7 +269,7 @@ def run_replay(args: argparse.Namespace) -> int:
         )
     print(
         f"{len(result.rows)} scans mapped ({m.matched} matched, {m.fallbacks} on odometry{closed});"
-        f" wrote {out}/map.pgm, map.yaml, trajectory.txt"
+        f" wrote {out}/map.pgm, map.yaml, trajectory.txt, corrected.log"
     )
     return 0
 
@@ -325,12 +337,19 @@ def run_relations(args: argparse.Namespace) -> int:
 def run_score(args: argparse.Namespace) -> int:
     import json
 
+    from fleetlink.agent.mapping.carmen import LaserRecord, open_log, read_records
     from fleetlink.agent.mapping.relations import format_score, parse_relations, parse_trajectory, score
 
     name = "fleetlink map score"
     try:
-        with open(args.trajectory, encoding="utf-8", errors="replace") as f:
-            times, poses = parse_trajectory(f)
+        with open_log(args.trajectory) as f:
+            lines = f.readlines()
+        if any(line.split(None, 1)[:1] in (["FLASER"], ["ROBOTLASER1"]) for line in lines):
+            # A corrected CARMEN log (replay's corrected.log, or any SLAM result in that form).
+            scans = [r for r in read_records(lines) if isinstance(r, LaserRecord)]
+            times, poses = [r.timestamp for r in scans], [r.pose for r in scans]
+        else:
+            times, poses = parse_trajectory(lines)
     except (OSError, ValueError) as exc:
         print(f"{name}: cannot read {args.trajectory}: {exc}", file=sys.stderr)
         return 1

@@ -4,13 +4,14 @@ back by the map_server rules and as a field floor plan."""
 from __future__ import annotations
 
 import gzip
+import json
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping.carmen import CarmenStats, LaserRecord, OdomRecord, read_records
+from fleetlink.agent.mapping.carmen import CarmenStats, LaserRecord, OdomRecord, corrected_lines, read_records
 from fleetlink.agent.mapping.mapper import MapperConfig, compose, relative
 from fleetlink.agent.mapping.replay import replay
 from fleetlink.cli.main import main
@@ -95,6 +96,41 @@ def test_robotlaser1_is_read_with_its_own_geometry() -> None:
     assert rec.laser_offset == pytest.approx((0.1 * math.cos(0.5), -0.1 * math.sin(0.5), 0.0))
 
 
+def test_corrected_lines_replace_the_pose_and_nothing_else() -> None:
+    """A SLAM result in the form the Freiburg metricEvaluator reads: the same log, each laser line
+    carrying the new robot pose (ROBOTLASER1: its laser pose moved with it, the mount kept)."""
+    robot = (
+        "ROBOTLASER1 0 -1.0 2.0 0.5 30.0 0.01 0 5 1 2 3 4 5 2 7 8 "
+        "1.0 2.0 -2.7831853 0.8 2.1 3.0 0.2 0.0 0.5 0.2 0.0 77.125 host 77.2\n"
+    )
+    lines = [*_log_lines()[:9], robot, "ODOM 1 2 3 0 0 0 78.0 host 78.0"]
+    recs = [r for r in read_records(lines) if isinstance(r, LaserRecord)]
+    assert [r.kind for r in recs] == ["FLASER", "FLASER", "ROBOTLASER1"]
+    new = {r.line: (5.0 + k, -1.0 - k, 3.0 - k) for k, r in enumerate(recs)}
+    out = list(corrected_lines(lines, new))
+    assert len(out) == len(lines)
+    for number, (before, after) in enumerate(zip(lines, out, strict=True), start=1):
+        if number not in new:
+            assert after == before  # ODOM, PARAM, comments, NEFF: verbatim
+    again = [r for r in read_records(out) if isinstance(r, LaserRecord)]
+    for old, r in zip(recs, again, strict=True):
+        assert r.pose == pytest.approx(new[old.line], abs=1e-6)
+        assert r.ipc_timestamp == old.ipc_timestamp and r.kind == old.kind
+        assert np.array_equal(r.ranges, old.ranges) and np.array_equal(r.angles, old.angles)
+        assert r.laser_offset == pytest.approx(old.laser_offset, abs=1e-6)
+        if r.kind == "FLASER":
+            assert r.odom == old.odom  # the raw odometry fields stay
+    assert out[-2].endswith("\n") and out[-2].split()[-3:] == ["77.125", "host", "77.2"]
+    # The laser pose: the new robot pose composed with the mount (turned 0.5 rad: 1.0 + 0.5, unwrapped).
+    assert recs[2].laser_offset[2] == pytest.approx(0.5)
+    laser = compose(new[recs[2].line], recs[2].laser_offset)
+    assert [float(v) for v in out[-2].split()[17:20]] == pytest.approx([laser[0], laser[1], 1.5], abs=1e-6)
+    wrapped = list(corrected_lines(lines, {recs[2].line: (0.0, 0.0, 3.0)}))[-2].split()[19]
+    assert float(wrapped) == pytest.approx(3.5 - 2 * math.pi, abs=1e-6)  # 3.0 + 0.5 wrapped past pi
+    with pytest.raises(ValueError, match="line 1: not a laser line"):
+        list(corrected_lines(lines, {1: (0.0, 0.0, 0.0)}))
+
+
 def test_replay_recovers_the_path_despite_drifting_odometry() -> None:
     result = replay(read_records(_log_lines()))
     est = [p for _, p in result.rows]
@@ -142,6 +178,37 @@ def test_cli_replay_writes_map_server_files_and_a_verbatim_trajectory(tmp_path: 
     bare = tmp_path / "bare"
     assert main(["map", "replay", str(log), "--out", str(bare), "--no-closure"]) == 0
     assert [r.split()[0] for r in (bare / "trajectory.txt").read_text().splitlines()] == TIMESTAMPS
+    # corrected.log: the input, line for line, with the trajectory's poses on the laser lines; the
+    # scorer reads it as it reads trajectory.txt.
+    text = (out / "corrected.log").read_text()
+    assert len(text.splitlines()) == len(_log_lines())
+    again = [r for r in read_records(text.splitlines()) if isinstance(r, LaserRecord)]
+    assert [r.ipc_timestamp for r in again] == TIMESTAMPS
+    for r, row in zip(again, rows, strict=True):
+        assert r.pose == pytest.approx(tuple(float(v) for v in row.split()[1:]), abs=1e-6)
+    rel = tmp_path / "room.relations"
+    rel.write_text(
+        f"{TIMESTAMPS[0]} {TIMESTAMPS[-1]} 0.84 0.35 0 0 0 0.7\n{TIMESTAMPS[2]} {TIMESTAMPS[5]} 0.3 0.1 0 0 0 0.3\n"
+    )
+    scored = []
+    for name in ("trajectory.txt", "corrected.log"):
+        assert (
+            main(
+                [
+                    "map",
+                    "score",
+                    "--trajectory",
+                    str(out / name),
+                    "--relations",
+                    str(rel),
+                    "--json",
+                    str(tmp_path / "s.json"),
+                ]
+            )
+            == 0
+        )
+        scored.append(json.loads((tmp_path / "s.json").read_text()))
+    assert scored[0]["all"] == scored[1]["all"] and scored[0]["all"]["count"] == 2
 
 
 def test_cli_replay_rejects_a_log_without_scans(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -16,6 +16,9 @@ logging robot believed (the corrected pose in Radish's corrected logs); ``odom_*
 odometry, which is what replay seeds the matcher with. ``ipc_timestamp`` is kept as the text found
 in the log so it can be written back verbatim.
 
+``corrected_lines`` writes a log back with each laser line's pose replaced (a SLAM result as the
+Freiburg ``metricEvaluator`` reads it: FLASER or ROBOTLASER1 lines carrying the corrected pose).
+
 Anything else (unknown message types such as NEFF, blank lines, comments) is skipped and counted;
 malformed lines are skipped and counted by reason, and the first few are kept for a log message.
 Pure: parses text; ``open_log`` is the one helper that opens a file (plain or .gz).
@@ -27,7 +30,7 @@ import gzip
 import io
 import math
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
@@ -35,7 +38,16 @@ from typing import TextIO
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["CarmenStats", "LaserRecord", "OdomRecord", "guess_fov", "guess_increment", "open_log", "read_records"]
+__all__ = [
+    "CarmenStats",
+    "LaserRecord",
+    "OdomRecord",
+    "corrected_lines",
+    "guess_fov",
+    "guess_increment",
+    "open_log",
+    "read_records",
+]
 
 Pose = tuple[float, float, float]
 MAX_BEAMS = 100_000
@@ -236,6 +248,45 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
                 st.examples.append(f"line {number}: {reason}")
             continue
         yield rec
+
+
+def _fmt(pose: Pose) -> list[str]:
+    return [f"{pose[0]:.6f}", f"{pose[1]:.6f}", f"{pose[2]:.6f}"]
+
+
+def corrected_lines(lines: Iterable[str], poses: Mapping[int, Pose]) -> Iterator[str]:
+    """The log's lines with the robot pose of each laser line numbered in ``poses`` (1-based, as
+    ``LaserRecord.line``) replaced: FLASER's ``x y theta`` (read back as ``LaserRecord.pose``; the
+    raw odometry fields stay), ROBOTLASER1's robot pose and its laser pose (the robot pose composed
+    with the line's own laser offset). Every other line, and every other field, is passed through
+    verbatim, so ODOM, PARAM and the timestamps are the input's. A numbered line that is not a
+    well-formed laser line raises ValueError (the numbers must come from ``read_records`` on the
+    same text)."""
+    for number, raw in enumerate(lines, start=1):
+        pose = poses.get(number)
+        if pose is None:
+            yield raw
+            continue
+        end = raw[len(raw.rstrip("\r\n")) :]
+        toks = raw.split()
+        try:
+            if toks and toks[0] == "FLASER":
+                k = 2 + _flaser(toks, number, (0.0, 0.0, 0.0)).ranges.size
+                toks[k : k + 3] = _fmt(pose)
+            elif toks and toks[0] == "ROBOTLASER1":
+                rec = _robotlaser(toks, number)
+                k = 9 + rec.ranges.size
+                k += 1 + int(toks[k])
+                dx, dy, dth = rec.laser_offset
+                c, s = math.cos(pose[2]), math.sin(pose[2])
+                heading = (pose[2] + dth + math.pi) % (2 * math.pi) - math.pi
+                laser = (pose[0] + c * dx - s * dy, pose[1] + s * dx + c * dy, heading)
+                toks[k : k + 6] = _fmt(laser) + _fmt(pose)
+            else:
+                raise _Bad(f"not a laser line ({toks[0] if toks else 'blank'})")
+        except _Bad as exc:
+            raise ValueError(f"line {number}: {exc}") from None
+        yield " ".join(toks) + end
 
 
 def open_log(path: str | Path) -> TextIO:

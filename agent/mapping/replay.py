@@ -26,6 +26,7 @@ class ReplayResult:
     mapper: OnboardMapper
     rows: list[tuple[str, Pose]] = field(default_factory=list)  # (ipc_timestamp text, robot pose)
     logged: list[Pose] = field(default_factory=list)  # the log's own pose per scan (corrected logs: reference)
+    lines: list[int] = field(default_factory=list)  # each row's line in the log (``carmen.corrected_lines``)
     online: list[tuple[str, Pose]] = field(default_factory=list)  # each scan's pose when it was mapped
     # Each scan where the last online solve put it, before the final pass (``OnboardMapper.finish``).
     before_final: list[tuple[str, Pose]] = field(default_factory=list)
@@ -50,6 +51,7 @@ def replay(
         res = result.mapper.add_scan_odometry(rec.timestamp, ranges, rec.angles, rec.odom)
         result.rows.append((rec.ipc_timestamp, res.pose))
         result.logged.append(rec.pose)
+        result.lines.append(rec.line)
     if result is None:
         return ReplayResult(OnboardMapper(config))
     # With loop closure the past moves after each solve: the trajectory and the map written are the
