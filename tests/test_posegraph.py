@@ -145,6 +145,8 @@ def test_another_fixed_node_holds_that_node_still() -> None:
         (lambda g: g.add_edge(0, 1, (1.0, 0.0, 0.0), np.diag([1.0, -1.0, 1.0])), "positive definite"),
         (lambda g: g.add_edge(0, 1, (1.0, 0.0, 0.0), [[1.0, 2.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), "symmetric"),
         (lambda g: g.optimize(fixed=9), "no such node"),
+        (lambda g: g.replace_edge(0, INFO), "no such edge"),
+        (lambda g: g.remove_edges([0]), "no such edge"),
     ],
 )
 def test_bad_input_is_refused_with_the_reason(call: object, why: str) -> None:
@@ -154,6 +156,34 @@ def test_bad_input_is_refused_with_the_reason(call: object, why: str) -> None:
     with pytest.raises(ValueError, match=why):
         call(g)  # type: ignore[operator]
     assert len(g.poses) == 2 and g.edges == []  # nothing half-added
+
+
+def test_edges_replaced_and_removed_solve_as_a_graph_built_without_them() -> None:
+    """The solve reads the edges from arrays kept beside the list: after a replacement and a removal
+    it must give, to the bit, what a graph built afresh with the edges left gives."""
+    truth = _square()
+    g, _ = _drifted(truth, yaw_bias=0.02)
+    n = len(truth)
+    wrong = (0.0, 0.0, 0.0)
+    g.add_edge(0, n - 1, relative(truth[0], truth[-1]), INFO * 4)
+    g.add_edge(3, n - 4, wrong, INFO, robust=True)  # a false closure, to be removed
+    g.add_edge(5, n - 6, relative(truth[5], truth[-6]), INFO, robust=True)
+    loose = np.diag([25.0, 25.0, 400.0])
+    g.replace_edge(7, loose)  # a step held loosely (the final pass does this)
+    g.remove_edges([n])  # the false closure: edges 0..n-2 are the steps, n-1 .. n+1 the closures
+    with pytest.raises(ValueError, match="positive definite"):
+        g.replace_edge(0, np.diag([1.0, 0.0, 1.0]))
+    fresh = PoseGraph()
+    for p in g.poses:
+        fresh.add_node(p)
+    for k, e in enumerate(g.edges):
+        assert k != 7 or np.array_equal(e.info, loose)
+        fresh.add_edge(e.i, e.j, e.z, e.info, robust=e.robust)
+    assert len(g.edges) == n + 1 and not any(e.z == wrong for e in g.edges)
+    assert np.array_equal(g.errors(), fresh.errors())
+    a, b = g.optimize(), fresh.optimize()
+    assert a.poses == b.poses and a.chi2_after == b.chi2_after
+    assert _worst(g, truth) < 0.1
 
 
 def test_position_priors_pull_a_graph_into_their_frame() -> None:

@@ -84,8 +84,36 @@ class PoseGraph:
             raise ValueError(f"cauchy_c must be a finite number > 0, got {cauchy_c!r}")
         self.cauchy_c = cauchy_c
         self.poses: list[Pose] = []
-        self.edges: list[Edge] = []
+        self._edges: list[Edge] = []
         self.priors: list[Prior] = []
+        # The edges as arrays, kept beside the list (a row written per edge added): a solve and
+        # ``errors`` read them whole, and packing 10 000+ edges again each time cost more than the
+        # solve on long replays. Capacity doubles; only the first len(edges) rows mean anything.
+        self._ii = np.zeros(0, dtype=np.int64)
+        self._jj = np.zeros(0, dtype=np.int64)
+        self._zz = np.zeros((0, 3))
+        self._om = np.zeros((0, 3, 3))
+        self._robust = np.zeros(0, dtype=bool)
+
+    @property
+    def edges(self) -> Sequence[Edge]:
+        """The edges, in the order added (change them with ``add_edge``, ``replace_edge`` and
+        ``remove_edges``, which keep the solve's arrays in step)."""
+        return self._edges
+
+    def _packed(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64, F64, npt.NDArray[np.bool_]]:
+        m = len(self._edges)
+        return self._ii[:m], self._jj[:m], self._zz[:m], self._om[:m], self._robust[:m]
+
+    def _write(self, k: int, e: Edge) -> None:
+        if k >= len(self._ii):
+            cap = max(64, 2 * len(self._ii))
+            self._ii = np.resize(self._ii, cap)
+            self._jj = np.resize(self._jj, cap)
+            self._zz = np.resize(self._zz, (cap, 3))
+            self._om = np.resize(self._om, (cap, 3, 3))
+            self._robust = np.resize(self._robust, cap)
+        self._ii[k], self._jj[k], self._zz[k], self._om[k], self._robust[k] = e.i, e.j, e.z, e.info, e.robust
 
     def add_prior(self, i: int, xy: Sequence[float], sigma: float) -> Prior:
         """Node ``i`` measured at ``xy`` (each coordinate with sd ``sigma``) in the graph's frame: what
@@ -116,23 +144,36 @@ class PoseGraph:
             raise ValueError(f"edge {i}->{j}: a node cannot constrain itself")
         if len(z) != 3 or not all(math.isfinite(float(v)) for v in z):
             raise ValueError(f"edge {i}->{j}: measurement must be three finite numbers, got {tuple(z)!r}")
-        om = np.array(info, dtype=np.float64)
-        if om.shape != (3, 3) or not np.all(np.isfinite(om)) or not np.allclose(om, om.T, atol=1e-9):
-            raise ValueError(f"edge {i}->{j}: information must be a finite symmetric 3x3 matrix")
-        try:
-            np.linalg.cholesky(om)
-        except np.linalg.LinAlgError:
-            raise ValueError(f"edge {i}->{j}: information must be positive definite") from None
+        om = _information(info, i, j)
         e = Edge(i, j, (float(z[0]), float(z[1]), wrap(float(z[2]))), om, robust)
-        self.edges.append(e)
+        self._write(len(self._edges), e)
+        self._edges.append(e)
+        return e
+
+    def replace_edge(self, k: int, info: npt.ArrayLike) -> Edge:
+        """Edge ``k`` with another information matrix (a step held more loosely); the same checks as
+        ``add_edge``."""
+        if not 0 <= k < len(self._edges):
+            raise ValueError(f"no such edge {k} (the graph has {len(self._edges)})")
+        old = self._edges[k]
+        e = Edge(old.i, old.j, old.z, _information(info, old.i, old.j), old.robust)
+        self._edges[k] = e
+        self._write(k, e)
         return e
 
     def remove_edges(self, indices: Collection[int]) -> None:
         """Drop the edges at ``indices`` (a closure the solve found wrong); the others keep their order."""
         drop = set(indices)
-        if any(not 0 <= k < len(self.edges) for k in drop):
-            raise ValueError(f"no such edge among {sorted(drop)} (the graph has {len(self.edges)})")
-        self.edges = [ed for k, ed in enumerate(self.edges) if k not in drop]
+        if any(not 0 <= k < len(self._edges) for k in drop):
+            raise ValueError(f"no such edge among {sorted(drop)} (the graph has {len(self._edges)})")
+        m = len(self._edges)
+        keep = np.ones(m, dtype=bool)
+        keep[list(drop)] = False
+        self._edges = [ed for k, ed in enumerate(self._edges) if k not in drop]
+        n = len(self._edges)
+        for name in ("_ii", "_jj", "_zz", "_om", "_robust"):
+            arr = getattr(self, name)
+            arr[:n] = arr[:m][keep]
 
     # -- the solve ----------------------------------------------------------------------------------
 
@@ -174,16 +215,12 @@ class PoseGraph:
             raise ValueError(f"fixed node {fixed}: no such node (the graph has {n})")
         poses = list(self.poses)
         before = self.chi2(poses)
-        if not self.edges and not self.priors:
+        if not self._edges and not self.priors:
             return Solve(poses, 0, before, before, True)
-        if not self.edges:  # priors only: each node with one goes to its mean
+        if not self._edges:  # priors only: each node with one goes to its mean
             self.poses = _prior_means(poses, self.priors)
             return Solve(self.poses, 1, before, self.chi2(self.poses), True)
-        ii = np.array([ed.i for ed in self.edges], dtype=np.int64)
-        jj = np.array([ed.j for ed in self.edges], dtype=np.int64)
-        zz = np.array([ed.z for ed in self.edges], dtype=np.float64)
-        om = np.stack([ed.info for ed in self.edges])
-        robust = np.array([ed.robust for ed in self.edges], dtype=bool)
+        ii, jj, zz, om, robust = self._packed()
         x = np.array(poses, dtype=np.float64)
         # Sparse layout of H: the 3x3 blocks (i,i), (i,j), (j,i), (j,j) of every edge, then the fixed
         # node's and the loose nodes' diagonals; duplicates are summed by the COO -> CSC conversion.
@@ -193,7 +230,7 @@ class PoseGraph:
         blk_r, blk_c = np.broadcast_to(blk_r, (len(ii), 4, 3, 3)), np.broadcast_to(blk_c, (len(ii), 4, 3, 3))
         done = 0
         converged = False
-        w = np.ones(len(self.edges))
+        w = np.ones(len(self._edges))
         for step in range(1, iterations + 1):
             done = step
             e, a, b = _errors(x[ii], x[jj], zz)
@@ -256,16 +293,25 @@ class PoseGraph:
 
     def errors(self, poses: Sequence[Pose] | None = None) -> F64:
         """Each edge's e^T Omega e at ``poses`` (default: the graph's; no kernel), in edge order."""
-        if not self.edges:
+        if not self._edges:
             return np.zeros(0)
         x = np.array(self.poses if poses is None else poses, dtype=np.float64)
-        ii = np.array([ed.i for ed in self.edges], dtype=np.int64)
-        jj = np.array([ed.j for ed in self.edges], dtype=np.int64)
-        zz = np.array([ed.z for ed in self.edges], dtype=np.float64)
-        om = np.stack([ed.info for ed in self.edges])
+        ii, jj, zz, om, _ = self._packed()
         e, _, _ = _errors(x[ii], x[jj], zz)
         out: F64 = np.einsum("ek,ekl,el->e", e, om, e)
         return out
+
+
+def _information(info: npt.ArrayLike, i: int, j: int) -> F64:
+    """An edge's information matrix, checked: finite, symmetric 3x3, positive definite."""
+    om = np.array(info, dtype=np.float64)
+    if om.shape != (3, 3) or not np.all(np.isfinite(om)) or not np.allclose(om, om.T, atol=1e-9):
+        raise ValueError(f"edge {i}->{j}: information must be a finite symmetric 3x3 matrix")
+    try:
+        np.linalg.cholesky(om)
+    except np.linalg.LinAlgError:
+        raise ValueError(f"edge {i}->{j}: information must be positive definite") from None
+    return om
 
 
 def _prior_means(poses: list[Pose], priors: list[Prior]) -> list[Pose]:
