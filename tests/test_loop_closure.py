@@ -149,6 +149,21 @@ def test_closures_are_found_and_pull_the_trajectory_onto_the_truth() -> None:
     assert m.redraws >= 1
 
 
+def test_small_corrections_wait_for_a_solve_in_a_long_replay() -> None:
+    """``lazy_solve_share``: a closure that moves its node little is solved with a later one, so the
+    solves are spaced as the graph grows (here: at most one per fifth of the graph's nodes, unless a
+    closure moves its node 0.1 m or more), and the loop is as closed."""
+    truth, _, _ = _drive()
+    eager_m, _, open_ = _with_and_without()  # the defaults: below 1 000 nodes nothing waits
+    lazy_cfg = CloserConfig(lazy_solve_below=0.1, lazy_solve_share=0.2)
+    m, lazy = _run(MapperConfig(matching=False, closer=lazy_cfg))
+    assert m.closer is not None and eager_m.closer is not None
+    assert m.closer.stats.accepted >= 5
+    assert m.closer.stats.solves < eager_m.closer.stats.solves / 2, (m.closer.stats, eager_m.closer.stats)
+    drift = _ate(open_, truth)
+    assert _ate(lazy, truth) < 0.2 * drift
+
+
 def test_the_grid_is_drawn_again_when_read_not_after_every_solve() -> None:
     m, _ = _run(MapperConfig(matching=False, closer=CloserConfig()))
     assert m.closer is not None and m.closer.stats.solves >= 2
@@ -392,6 +407,8 @@ def test_a_small_window_builds_only_the_levels_it_needs() -> None:
         ("final_drops", -2, "final_drops must be a finite number >= 0"),
         ("final_pair_gap_nodes", 0, "final_pair_gap_nodes >= 1"),
         ("final_pair_inliers", 1.5, "final_pair_inliers <= 1"),
+        ("lazy_solve_share", -0.1, "lazy_solve_share must be a finite number >= 0"),
+        ("lazy_solve_below", math.inf, "lazy_solve_below must be a finite number >= 0"),
     ],
 )
 def test_a_closer_configured_out_of_range_is_refused_with_the_setting_named(
@@ -399,4 +416,4 @@ def test_a_closer_configured_out_of_range_is_refused_with_the_setting_named(
 ) -> None:
     with pytest.raises(ValueError, match=says):
         CloserConfig(**{field: value})
-    CloserConfig(final_pair_per_node=0, final_pair_search=0.0, final_partial_sigma=0.0)  # 0: off, allowed
+    CloserConfig(final_pair_per_node=0, final_pair_search=0.0, final_partial_sigma=0.0, lazy_solve_share=0.0)  # 0: off
