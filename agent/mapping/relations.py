@@ -65,8 +65,13 @@ DEFAULT_OCCLUSION_M = 0.3  # an endpoint this far behind the other scan's readin
 DEFAULT_MAX_RELATIONS = 20_000
 DEFAULT_LOCAL_S = 20.0
 # Trajectory and relation times are the same log timestamps written as text (6 decimals in CARMEN
-# logs): 1 ms absorbs rounding and stays far below any lidar's scan period.
+# logs): a relation's time takes the nearest trajectory time within 1 ms, which absorbs rounding.
+# Scans can be nearer than that (the published intel.clf has 1 479 pairs of FLASER lines < 1 ms
+# apart, 6 us at the least: IPC stamps of a burst), so the nearest decides; two trajectory times the
+# text cannot tell apart (``RESOLUTION_S``) are an error, and a relation time as near to two
+# trajectory times as that resolution can tell is counted missing.
 DEFAULT_TOLERANCE_S = 1e-3
+RESOLUTION_S = 1e-6
 
 RELATION_FIELDS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
 TRAJECTORY_FIELDS = ("t", "x", "y", "theta")
@@ -359,13 +364,16 @@ class RelationScore:
 
 
 def _lookup(sorted_times: FloatArray, t: FloatArray, tolerance_s: float) -> npt.NDArray[np.intp]:
-    """Index into sorted_times of the time nearest each t, or -1 where none is within tolerance."""
+    """Index into sorted_times of the time nearest each t, or -1 where none is within tolerance or
+    two are equally near (to ``RESOLUTION_S``)."""
     if len(sorted_times) == 0:
         return np.full(len(t), -1, dtype=np.intp)
     hi = np.clip(np.searchsorted(sorted_times, t), 0, len(sorted_times) - 1)
     lo = np.maximum(hi - 1, 0)
-    best = np.where(np.abs(sorted_times[lo] - t) <= np.abs(sorted_times[hi] - t), lo, hi)
-    return np.where(np.abs(sorted_times[best] - t) <= tolerance_s, best, -1)
+    d_lo, d_hi = np.abs(sorted_times[lo] - t), np.abs(sorted_times[hi] - t)
+    best = np.where(d_lo <= d_hi, lo, hi)
+    tied = (lo != hi) & (np.abs(d_lo - d_hi) < RESOLUTION_S)
+    return np.where((np.minimum(d_lo, d_hi) <= tolerance_s) & ~tied, best, -1)
 
 
 def score(
@@ -377,9 +385,10 @@ def score(
     tolerance_s: float = DEFAULT_TOLERANCE_S,
 ) -> RelationScore:
     """Score a trajectory against relations. A relation's times must each match a trajectory time
-    within ``tolerance_s`` (no interpolation: the relations are made at scan times); one that does
-    not is counted in ``missing``. Trajectory times may come in any order but must lie more than
-    ``tolerance_s`` apart, or a relation could not tell which pose it means (ValueError)."""
+    within ``tolerance_s``, the nearest (no interpolation: the relations are made at scan times); one
+    that does not, or lies as near to two, is counted in ``missing``. Trajectory times may come in any
+    order but must lie at least ``RESOLUTION_S`` apart, or no relation could tell which pose it means
+    (ValueError)."""
     n = len(trajectory_times)
     if len(trajectory_poses) != n:
         raise ValueError(f"trajectory times and poses differ in length: {n} and {len(trajectory_poses)}")
@@ -391,11 +400,11 @@ def score(
         raise ValueError("the trajectory has non-finite times or poses")
     order = np.argsort(t, kind="stable")
     t, p = t[order], p[order]
-    close = np.nonzero(np.diff(t) <= tolerance_s)[0]
+    close = np.nonzero(np.diff(t) < RESOLUTION_S)[0]
     if len(close):
         k = int(close[0])
         raise ValueError(
-            f"trajectory times {float(t[k])!r} and {float(t[k + 1])!r} are within {tolerance_s:g} s of each other: "
+            f"trajectory times {float(t[k])!r} and {float(t[k + 1])!r} are less than {RESOLUTION_S:g} s apart: "
             "a relation could not tell which pose it means"
         )
     r = np.array([(x.t1, x.t2, x.dx, x.dy, x.dtheta) for x in relations], dtype=np.float64).reshape(-1, 5)
