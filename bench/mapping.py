@@ -39,6 +39,12 @@
    map) and for the fleet map (site/fleetmap.py: registered, solved, merged). Goal: the fleet map's
    median <= 0.05 m. Cells are 0.05 m and the plan's walls lie on the cells' lattice, so the median
    moves in steps of 0.025-0.05 m; the mean is the finer figure.
+6. ``--freiburg DIR`` (alone): the Freiburg SLAM benchmark as published (Kuemmerle et al. 2009), the
+   form in which SLAM systems report on it: every ``NAME.relations`` in DIR with its raw log
+   (``NAME.clf``; the files of the benchmark's site), replayed with the log's own odometry, and the
+   final trajectory scored against the hand-checked relations; beside it the front end alone and the
+   log's odometry, in the same run. The logs are not in this repository (docs/mapping.md, "Against
+   the published relations").
 
 Goals: >= 200 scans/s at 360 samples; office ATE <= 0.05 m; intel mean translational relation
 error <= 0.14 m (2x the published RBPF figure, 0.070 m); 10 Hz mapping <= 25 % of one core; with
@@ -570,9 +576,18 @@ def main(argv: list[str] | None = None) -> int:
         "--onboard-only", action="store_true", help="only section 1b (the on-board patrol, closures off and on)"
     )
     ap.add_argument("--loops", type=int, default=1, help="section 1b: the tour this many times (a long run)")
+    ap.add_argument(
+        "--freiburg",
+        metavar="DIR",
+        type=Path,
+        help="only section 6: the published benchmark, every NAME.relations in DIR with its log (NAME.clf or .log,"
+        " optionally .gz), replayed as recorded and scored against the published relations",
+    )
     args = ap.parse_args(argv)
     if args.onboard_only:
         return onboard_main(args)
+    if args.freiburg is not None:
+        return freiburg_main(args)
     duration = 60.0 if args.quick else 200.0
     results: dict[str, object] = {}
 
@@ -758,6 +773,97 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2, default=float))
+    return 0
+
+
+# Published figures on the Freiburg relations (mean translational error, m), as issue 17 quotes them:
+# graph mapping (Kuemmerle et al. 2009) on intel and aces.
+PUBLISHED_GRAPH_MAPPING_M = {"intel": 0.031, "aces": 0.044}
+
+
+def freiburg_logs(folder: Path) -> list[tuple[str, Path, Path]]:
+    """(name, log, relations) for every NAME.relations in ``folder`` with a log beside it: NAME.clf,
+    NAME.log (optionally .gz), or else the one NAME*.clf / NAME*.log there (fr-clinic_robotlaser.clf)."""
+    out = []
+    for rel in sorted(folder.glob("*.relations")):
+        name = rel.stem
+        found = [folder / f"{name}{ext}" for ext in (".clf", ".log", ".clf.gz", ".log.gz")]
+        logs = [p for p in found if p.exists()] or sorted(
+            p for p in folder.glob(f"{name}*") if p.suffix in (".clf", ".log", ".gz") and p != rel
+        )
+        if logs:
+            out.append((name, logs[0], rel))
+        else:
+            print(f"{rel}: no log beside it, skipped")
+    return out
+
+
+def freiburg_log(log: Path, relations: Path) -> dict[str, object]:
+    """A published log replayed as recorded (its own odometry, no perturbation), closures on and off,
+    and the recorded odometry itself, each scored against the published relations."""
+    from fleetlink.agent.mapping.carmen import LaserRecord, open_log, read_records
+    from fleetlink.agent.mapping.mapper import MapperConfig
+    from fleetlink.agent.mapping.relations import parse_relations
+    from fleetlink.agent.mapping.replay import replay
+
+    with open_log(log) as f:
+        recs = [r for r in read_records(f) if isinstance(r, LaserRecord)]
+    with relations.open() as f:
+        rels = parse_relations(f)
+    times = [r.timestamp for r in recs]
+    c0 = time.process_time()
+    res = replay(recs)
+    cpu = time.process_time() - c0
+    c1 = time.process_time()
+    open_loop = replay(recs, MapperConfig(closer=None))
+    cpu_open = time.process_time() - c1
+    return {
+        "scans": len(recs),
+        "relations": len(rels),
+        "scans_per_cpu_s": len(recs) / cpu,
+        "scans_per_cpu_s_without_closure": len(recs) / cpu_open,
+        "mapper": relation_error(times, [p for _, p in res.rows], rels),
+        "mapper_online": relation_error(times, [p for _, p in res.online], rels),
+        "no_closure": relation_error(times, [p for _, p in open_loop.rows], rels),
+        "odometry": relation_error(times, [r.odom for r in recs], rels),
+    }
+
+
+def freiburg_main(args: argparse.Namespace) -> int:
+    """Section 6: the Freiburg SLAM benchmark (Kuemmerle et al. 2009) as published: the raw logs with
+    their own odometry and the hand-checked relation files, the form in which SLAM systems report on it."""
+    results: dict[str, object] = {}
+    logs = freiburg_logs(args.freiburg)
+    if not logs:
+        print(f"{args.freiburg}: no NAME.relations with a log beside it")
+        return 1
+    print("published logs, replayed as recorded, against the published relations (translational error, m)")
+    print(
+        f"{'log':>14} {'scans':>6} {'rel':>5} {'mapper':>15} {'rot deg':>7} {'local':>7} {'revisit':>8}"
+        f" {'worst rev':>9} {'worst':>7} {'no closure':>10} {'odometry':>9} {'ratio':>6} {'scans/CPU s':>11}"
+    )
+    for name, log, rel in logs:
+        r = freiburg_log(log, rel)
+        results[name] = r
+        m, o, n = r["mapper"], r["odometry"], r["no_closure"]
+        r["vs_odometry_ratio"] = m["trans_mean_m"] / o["trans_mean_m"]
+        print(
+            f"{name:>14} {r['scans']:>6} {m['pairs']:>5} {m['trans_mean_m']:>7.3f}±{m['trans_sd_m']:<7.3f}"
+            f" {math.degrees(m['rot_mean_rad']):>7.2f} {m['local']['trans_mean_m']:>7.3f}"
+            f" {m['revisit']['trans_mean_m'] or math.nan:>8.3f} {m['revisit']['trans_max_m'] or math.nan:>9.3f}"
+            f" {m['trans_max_m']:>7.3f} {n['trans_mean_m']:>10.3f} {o['trans_mean_m']:>9.3f}"
+            f" {r['vs_odometry_ratio']:>6.2f} {r['scans_per_cpu_s']:>11.0f}"
+        )
+        if m["missing"]:
+            print(f"{'':>14} {m['missing']} relations name a time the log does not have")
+    known = ", ".join(f"{k} {v:.3f}" for k, v in PUBLISHED_GRAPH_MAPPING_M.items())
+    print(
+        f"(mapper: the final graph; no closure: the same front end alone; odometry: the log's own; ratio: mapper /"
+        f" odometry, this run. Published graph mapping: {known} m. Goal: <= 0.03 m mean on intel and aces, no revisit"
+        " relation (>= 20 s apart) worse than 0.20 m)"
+    )
+    if args.json:
+        Path(args.json).write_text(json.dumps({"freiburg": results}, indent=2, default=float))
     return 0
 
 

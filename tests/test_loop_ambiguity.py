@@ -95,3 +95,18 @@ def test_a_correction_is_kept_when_the_guess_does_not_match() -> None:
     res = run_check(check)
     assert res.closure is not None, res.outcome
     assert abs(res.closure.z[0] - 0.25) < 0.03 and abs(res.closure.z[1]) < 0.03
+
+
+def test_a_match_refined_beyond_its_search_window_is_refused() -> None:
+    """The search weighs answers within its window only; refinements that slide further (down a
+    corridor, on the published aces log: 0.68 m from the guess in a 0.3 m window) reach a place it
+    never compared with the guess. The room 0.25 m from the guess: found within a 0.3 m window, refused
+    from a 0.1 m one (0.1 + ``max_disagreement`` short of it), though the refinements reach it."""
+    scan = _node_scan()
+    wide = run_check(_check(scan, (0.0, 0.0), CloserConfig(final_window_xy=0.3), drawn_at=(0.25, 0.0)))
+    assert wide.closure is not None and abs(wide.closure.z[0] - 0.25) < 0.03, wide.outcome
+    narrow = run_check(_check(scan, (0.0, 0.0), CloserConfig(final_window_xy=0.1), drawn_at=(0.25, 0.0)))
+    assert narrow.closure is None and narrow.outcome == "outside"
+    # Within the window and its margin, the same refinement is kept.
+    edge = run_check(_check(scan, (0.0, 0.0), CloserConfig(final_window_xy=0.2), drawn_at=(0.25, 0.0)))
+    assert edge.closure is not None, edge.outcome
