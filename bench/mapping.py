@@ -852,7 +852,7 @@ def freiburg_main(args: argparse.Namespace) -> int:
             f" {math.degrees(m['rot_mean_rad']):>7.2f} {m['local']['trans_mean_m']:>7.3f}"
             f" {m['revisit']['trans_mean_m'] or math.nan:>8.3f} {m['revisit']['trans_max_m'] or math.nan:>9.3f}"
             f" {m['trans_max_m']:>7.3f} {n['trans_mean_m']:>10.3f} {o['trans_mean_m']:>9.3f}"
-            f" {r['vs_odometry_ratio']:>6.2f} {r['scans_per_cpu_s']:>11.0f}"
+            f" {r['vs_odometry_ratio']:>6.3f} {r['scans_per_cpu_s']:>11.0f}"
         )
         if m["missing"]:
             print(f"{'':>14} {m['missing']} relations name a time the log does not have")
