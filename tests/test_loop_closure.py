@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
-from fleetlink.agent.mapping.closure import CloserConfig, Closure, compose, relative
+from fleetlink.agent.mapping.closure import CloserConfig, Closure, LoopCloser, NodeScan, compose, relative
+from fleetlink.agent.mapping.grid import GridConfig
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
 from fleetlink.field.raycast import Raycaster
 
@@ -417,3 +418,30 @@ def test_a_closer_configured_out_of_range_is_refused_with_the_setting_named(
     with pytest.raises(ValueError, match=says):
         CloserConfig(**{field: value})
     CloserConfig(final_pair_per_node=0, final_pair_search=0.0, final_partial_sigma=0.0, lazy_solve_share=0.0)  # 0: off
+
+
+def test_a_large_correction_is_not_confirmed_by_the_very_next_node() -> None:
+    """The next node sees what the first one saw and agrees with a look-alike as readily: on the
+    published MIT CSAIL log two neighbours 0.4 m apart both matched 1.57 m along one long wall, and
+    each confirmed the other. A second opinion comes from ``confirm_gap_nodes`` on (2: not the next)."""
+    empty = NodeScan(
+        np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
+    )
+    closer = LoopCloser(CloserConfig(), GridConfig())
+    for k in range(30):
+        closer.add_node(float(k), (0.3 * k, 0.0, 0.0), empty, information=np.diag([1.0e5, 1.0e5, 1.0e3]))
+
+    def shifted(k: int) -> Closure:  # node k matched 1.5 m further along than the graph has it
+        return Closure(k, 0, (0.3 * k + 1.5, 0.0, 0.0), 0.9, 0.9)
+
+    first, found = shifted(20), []
+    closer._classify(first, found)
+    assert found == [] and closer._pending == [first]  # more than confirm_above: it waits
+    assert closer._confirm_checks(21, first) == []  # none planned for the next node
+    closer._classify(shifted(21), found)
+    assert found == []  # the next node's agreement does not count
+    later = shifted(22)
+    closer._classify(later, found)
+    assert found == [first, later]
+    with pytest.raises(ValueError, match="confirm_gap_nodes"):
+        CloserConfig(confirm_gap_nodes=0)
