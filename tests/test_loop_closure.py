@@ -420,14 +420,14 @@ def test_a_closer_configured_out_of_range_is_refused_with_the_setting_named(
     CloserConfig(final_pair_per_node=0, final_pair_search=0.0, final_partial_sigma=0.0, lazy_solve_share=0.0)  # 0: off
 
 
-def test_a_large_correction_is_not_confirmed_by_the_very_next_node() -> None:
+def test_a_large_correction_can_wait_for_a_node_beyond_the_next() -> None:
     """The next node sees what the first one saw and agrees with a look-alike as readily: on the
     published MIT CSAIL log two neighbours 0.4 m apart both matched 1.57 m along one long wall, and
-    each confirmed the other. A second opinion comes from ``confirm_gap_nodes`` on (2: not the next)."""
+    each confirmed the other. With ``confirm_gap_nodes`` 2 a second opinion comes from the node after."""
     empty = NodeScan(
         np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
     )
-    closer = LoopCloser(CloserConfig(), GridConfig())
+    closer = LoopCloser(CloserConfig(confirm_gap_nodes=2), GridConfig())
     for k in range(30):
         closer.add_node(float(k), (0.3 * k, 0.0, 0.0), empty, information=np.diag([1.0e5, 1.0e5, 1.0e3]))
 
@@ -437,11 +437,19 @@ def test_a_large_correction_is_not_confirmed_by_the_very_next_node() -> None:
     first, found = shifted(20), []
     closer._classify(first, found)
     assert found == [] and closer._pending == [first]  # more than confirm_above: it waits
-    assert closer._confirm_checks(21, first) == []  # none planned for the next node
     closer._classify(shifted(21), found)
     assert found == []  # the next node's agreement does not count
     later = shifted(22)
     closer._classify(later, found)
     assert found == [first, later]
+    # The default (1) takes the next node's agreement.
+    plain = LoopCloser(CloserConfig(), GridConfig())
+    for k in range(30):
+        plain.add_node(float(k), (0.3 * k, 0.0, 0.0), empty, information=np.diag([1.0e5, 1.0e5, 1.0e3]))
+    first, found = shifted(20), []
+    plain._classify(first, found)
+    nxt = shifted(21)
+    plain._classify(nxt, found)
+    assert found == [first, nxt]
     with pytest.raises(ValueError, match="confirm_gap_nodes"):
         CloserConfig(confirm_gap_nodes=0)

@@ -110,10 +110,12 @@ class CloserConfig:
     iterations: int = 10
     confirm_above: float = 0.5  # m: a closure moving its node more than this waits for a second one
     confirm_nodes: int = 10  # ... within this many nodes
-    # ... from a node at least this many nodes on: the very next node sees what the first one saw, and
-    # agrees with a look-alike as readily (the published MIT CSAIL log: nodes 522 and 523, 0.4 m apart,
-    # both matched 1.57 m along a long wall of the hall, confirmed, kept: revisits 1.45 m off).
-    confirm_gap_nodes: int = 2
+    # ... from a node at least this many nodes on. The very next node sees much what the first saw and
+    # can agree with a look-alike (the published MIT CSAIL log: nodes 522 and 523, 0.4 m apart, both
+    # matched 1.57 m along one wall, confirmed, kept: revisits 1.45 m off; 2 fixes that, but costs the
+    # perturbed-odometry bench and the Freiburg hospital log more: docs/mapping.md, "Against the
+    # published relations"). 1: the next node may confirm.
+    confirm_gap_nodes: int = 1
     confirm_distance: float = 0.2  # m: two closures agree when their corrections differ by less
     confirm_angle: float = math.radians(2.0)
     bnb_depth: int = 6  # branch-and-bound levels: the top blocks are 2^6 cells (3.2 m at 5 cm)
