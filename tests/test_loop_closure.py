@@ -420,36 +420,48 @@ def test_a_closer_configured_out_of_range_is_refused_with_the_setting_named(
     CloserConfig(final_pair_per_node=0, final_pair_search=0.0, final_partial_sigma=0.0, lazy_solve_share=0.0)  # 0: off
 
 
-def test_a_large_correction_can_wait_for_a_node_beyond_the_next() -> None:
-    """The next node sees what the first one saw and agrees with a look-alike as readily: on the
+def test_a_large_correction_is_not_confirmed_by_a_node_seeing_what_its_node_saw() -> None:
+    """A node near the first one sees much what it saw and agrees with a look-alike as readily: on the
     published MIT CSAIL log two neighbours 0.4 m apart both matched 1.57 m along one long wall, and
-    each confirmed the other. With ``confirm_gap_nodes`` 2 a second opinion comes from the node after."""
+    each confirmed the other. A second opinion comes from ``confirm_apart_m`` (0.5 m) away, or from a
+    node turned ``confirm_apart_rad`` (20 deg); nodes 0.3 m apart here."""
     empty = NodeScan(
         np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
     )
-    closer = LoopCloser(CloserConfig(confirm_gap_nodes=2), GridConfig())
-    for k in range(30):
-        closer.add_node(float(k), (0.3 * k, 0.0, 0.0), empty, information=np.diag([1.0e5, 1.0e5, 1.0e3]))
 
-    def shifted(k: int) -> Closure:  # node k matched 1.5 m further along than the graph has it
-        return Closure(k, 0, (0.3 * k + 1.5, 0.0, 0.0), 0.9, 0.9)
+    def chain(config: CloserConfig, turn_at: int = -1) -> LoopCloser:
+        closer = LoopCloser(config, GridConfig())
+        for k in range(30):
+            heading = 0.4 if k >= turn_at >= 0 else 0.0
+            closer.add_node(float(k), (0.3 * k, 0.0, heading), empty, information=np.diag([1.0e5, 1.0e5, 1.0e3]))
+        return closer
 
-    first, found = shifted(20), []
+    def shifted(closer: LoopCloser, k: int) -> Closure:  # node k matched 1.5 m further along
+        at = closer.poses[k]
+        return Closure(k, 0, (at[0] + 1.5, at[1], at[2]), 0.9, 0.9)
+
+    closer = chain(CloserConfig())
+    first, found = shifted(closer, 20), []
     closer._classify(first, found)
     assert found == [] and closer._pending == [first]  # more than confirm_above: it waits
-    closer._classify(shifted(21), found)
-    assert found == []  # the next node's agreement does not count
-    later = shifted(22)
+    closer._classify(shifted(closer, 21), found)
+    assert found == []  # 0.3 m on: its agreement does not count
+    later = shifted(closer, 22)
     closer._classify(later, found)
-    assert found == [first, later]
-    # The default (1) takes the next node's agreement.
-    plain = LoopCloser(CloserConfig(), GridConfig())
-    for k in range(30):
-        plain.add_node(float(k), (0.3 * k, 0.0, 0.0), empty, information=np.diag([1.0e5, 1.0e5, 1.0e3]))
-    first, found = shifted(20), []
+    assert found == [first, later]  # 0.6 m on
+    # A node turned 23 deg from the first sees other walls: it may confirm, however near.
+    turned = chain(CloserConfig(), turn_at=21)
+    first, found = shifted(turned, 20), []
+    turned._classify(first, found)
+    nxt = shifted(turned, 21)
+    turned._classify(nxt, found)
+    assert found == [first, nxt]
+    # Off (0), any later node may.
+    plain = chain(CloserConfig(confirm_apart_m=0.0, confirm_apart_rad=0.0))
+    first, found = shifted(plain, 20), []
     plain._classify(first, found)
-    nxt = shifted(21)
+    nxt = shifted(plain, 21)
     plain._classify(nxt, found)
     assert found == [first, nxt]
-    with pytest.raises(ValueError, match="confirm_gap_nodes"):
-        CloserConfig(confirm_gap_nodes=0)
+    with pytest.raises(ValueError, match="confirm_apart_m"):
+        CloserConfig(confirm_apart_m=-1.0)

@@ -110,12 +110,13 @@ class CloserConfig:
     iterations: int = 10
     confirm_above: float = 0.5  # m: a closure moving its node more than this waits for a second one
     confirm_nodes: int = 10  # ... within this many nodes
-    # ... from a node at least this many nodes on. The very next node sees much what the first saw and
-    # can agree with a look-alike (the published MIT CSAIL log: nodes 522 and 523, 0.4 m apart, both
-    # matched 1.57 m along one wall, confirmed, kept: revisits 1.45 m off; 2 fixes that, but costs the
-    # perturbed-odometry bench and the Freiburg hospital log more: docs/mapping.md, "Against the
-    # published relations"). 1: the next node may confirm.
-    confirm_gap_nodes: int = 1
+    # ... from a node at least this far from the first one's, or turned this much: a node nearer sees
+    # much what the first saw and agrees with a look-alike as readily (the published MIT CSAIL log:
+    # nodes 522 and 523, 0.4 m apart, both matched 1.57 m along one long wall, confirmed each other:
+    # revisits 1.45 m off). Scans of the corrected logs are 0.5-1 m apart or turned ~30 deg: there the
+    # next node still confirms (0: any later node may).
+    confirm_apart_m: float = 0.5
+    confirm_apart_rad: float = math.radians(20.0)
     confirm_distance: float = 0.2  # m: two closures agree when their corrections differ by less
     confirm_angle: float = math.radians(2.0)
     bnb_depth: int = 6  # branch-and-bound levels: the top blocks are 2^6 cells (3.2 m at 5 cm)
@@ -223,6 +224,8 @@ class CloserConfig:
             "final_pair_search_nodes",
             "lazy_solve_below",
             "lazy_solve_share",
+            "confirm_apart_m",
+            "confirm_apart_rad",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -233,10 +236,6 @@ class CloserConfig:
             )
         if self.max_search_xy < self.search_xy or self.max_search_theta < self.search_theta:
             raise ValueError("the search caps must be at least the base windows")
-        if not 1 <= self.confirm_gap_nodes <= self.confirm_nodes:
-            raise ValueError(
-                f"need 1 <= confirm_gap_nodes <= confirm_nodes, got {self.confirm_gap_nodes} and {self.confirm_nodes}"
-            )
 
 
 @dataclass(frozen=True, slots=True)
@@ -526,9 +525,19 @@ class LoopCloser:
         self._pending = [p for p in self._pending if k - p.node <= cfg.confirm_nodes]
         return self._conclude(k, found, paced=True)
 
+    def _apart(self, a: int, b: int) -> bool:
+        """Are nodes ``a`` and ``b`` far enough apart (``confirm_apart_m`` / ``_rad``) for ``b`` to confirm a
+        closure of ``a``?"""
+        cfg = self.config
+        pa, pb = self.graph.poses[a], self.graph.poses[b]
+        return (
+            math.hypot(pa[0] - pb[0], pa[1] - pb[1]) >= cfg.confirm_apart_m
+            or abs(wrap(pa[2] - pb[2])) >= cfg.confirm_apart_rad
+        )
+
     def _confirm_checks(self, k: int, p: Closure) -> list[Check]:
         cfg = self.config
-        if k - p.node < cfg.confirm_gap_nodes:
+        if not self._apart(p.node, k):
             return []  # a node this near sees what the pending closure's node saw: no second opinion
         fix = self._correction(p)
         at = compose(fix, self.graph.poses[k])
@@ -572,8 +581,7 @@ class LoopCloser:
         if self._jump(c) <= self.config.confirm_above:
             found.append(c)
             return
-        cfg = self.config
-        agree = [p for p in self._pending if c.node - p.node >= cfg.confirm_gap_nodes and self._agree(p, c)]
+        agree = [p for p in self._pending if self._apart(p.node, c.node) and self._agree(p, c)]
         if agree:
             found.extend([*agree, c])
             self._pending = [p for p in self._pending if p not in agree]
