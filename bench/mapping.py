@@ -829,6 +829,10 @@ def freiburg_log(log: Path, relations: Path) -> dict[str, object]:
     }
 
 
+def _or_nan(v: float | None) -> float:
+    return math.nan if v is None else v
+
+
 def freiburg_main(args: argparse.Namespace) -> int:
     """Section 6: the Freiburg SLAM benchmark (Kuemmerle et al. 2009) as published: the raw logs with
     their own odometry and the hand-checked relation files, the form in which SLAM systems report on it."""
@@ -850,7 +854,7 @@ def freiburg_main(args: argparse.Namespace) -> int:
         print(
             f"{name:>14} {r['scans']:>6} {m['pairs']:>5} {m['trans_mean_m']:>7.3f}±{m['trans_sd_m']:<7.3f}"
             f" {math.degrees(m['rot_mean_rad']):>7.2f} {m['local']['trans_mean_m']:>7.3f}"
-            f" {m['revisit']['trans_mean_m'] or math.nan:>8.3f} {m['revisit']['trans_max_m'] or math.nan:>9.3f}"
+            f" {_or_nan(m['revisit']['trans_mean_m']):>8.3f} {_or_nan(m['revisit']['trans_max_m']):>9.3f}"
             f" {m['trans_max_m']:>7.3f} {n['trans_mean_m']:>10.3f} {o['trans_mean_m']:>9.3f}"
             f" {r['vs_odometry_ratio']:>6.3f} {r['scans_per_cpu_s']:>11.0f}"
         )
