@@ -8,9 +8,11 @@ loss of either link costs no time at all. Unacked commands are re-sent on both l
 healthy. The primary turns unhealthy when the robot has not been heard on it for
 ``state_window_s`` (three missed 10 Hz states) or when a command sent on it has gone unacked for
 ``ack_timeout_s``. Then, at the next ``poll``, the robot's commands move to the fallback (MQTT)
-and every command still waiting for its ack is re-sent there, byte for byte: the agent dedupes on
+-- if the fallback itself has been heard within ``state_window_s``: a move to a link as silent
+as the one left gains nothing -- and every command still waiting for its ack is re-sent there, byte for byte: the agent dedupes on
 (sender, topic, headerId) and orders on (orderId, orderUpdateId), so the copy is harmless. Once
-the primary has been healthy again for ``holdoff_s`` the robot moves back.
+the primary has been healthy again for ``holdoff_s`` the robot moves back (at once if the
+fallback has gone silent meanwhile).
 
 The adapter (operator/links.py) feeds in what it hears (``heard``, ``acked``), asks where a new
 command goes (``command``), and calls ``poll`` a few dozen times a second; the returned ``Send``
@@ -354,8 +356,14 @@ class LinkManager:
                     state.primary_healthy_since = now
             else:
                 state.primary_healthy_since = None
-            if state.active == PRIMARY and not primary_ok:
+            # A move needs somewhere better to go: with the fallback silent too (or never heard)
+            # commands stay where they are, so re-sends keep going on the link that comes back first.
+            fallback_ok, fallback_reason = self._link_ok(state, FALLBACK, now)
+            if state.active == PRIMARY and not primary_ok and fallback_ok:
                 out.append(self._switch(robot, state, FALLBACK, f"primary {reason}", now))
+                out.extend(self._resend_all(robot, state, now))
+            elif state.active == FALLBACK and primary_ok and not fallback_ok:
+                out.append(self._switch(robot, state, PRIMARY, f"fallback {fallback_reason}", now))
                 out.extend(self._resend_all(robot, state, now))
             elif (
                 state.active == FALLBACK

@@ -70,6 +70,32 @@ def test_ack_timeout_alone_switches() -> None:
     assert switched and "ack timeout" in switched[0].reason
 
 
+def test_no_move_to_a_fallback_as_silent_as_the_primary() -> None:
+    # The fallback was never heard (a console without MQTT, a broker down): a stall on the primary
+    # keeps commands there, and re-sends on it are acked when it comes back.
+    lm = LinkManager(POLICY)
+    t = _feed(lm, "r1", (PRIMARY,), 0.0, 1.0)
+    lm.command("r1", "teleop", 0, b"drive", t)
+    resent: list[Send] = []
+    for i in range(1, 8):  # 0.35 s of silence on the primary, nothing on the fallback either
+        out = lm.poll(t + i * 0.05)
+        assert not [o for o in out if isinstance(o, Switch)]
+        resent += [o for o in out if isinstance(o, Send)]
+    assert lm.active("r1") == PRIMARY and [s.link for s in resent] == [PRIMARY]
+    t = _feed(lm, "r1", (PRIMARY,), t + 0.4, t + 0.5)
+    assert lm.acked("r1", PRIMARY, "teleop", 0, t) and lm.pending("r1") == 0
+
+
+def test_a_silent_fallback_hands_commands_back_to_a_healthy_primary_at_once() -> None:
+    lm = LinkManager(POLICY)
+    t = _feed(lm, "r1", (PRIMARY, FALLBACK), 0.0, 1.0)
+    t = _feed(lm, "r1", (FALLBACK,), t, 1.5)
+    assert lm.active("r1") == FALLBACK
+    t = _feed(lm, "r1", (PRIMARY,), t, 2.0)  # the primary is back, the fallback falls silent
+    assert lm.active("r1") == PRIMARY  # well before the 2 s hold-off
+    assert lm.switches("r1") == 2
+
+
 def test_failback_waits_for_holdoff() -> None:
     lm = LinkManager(POLICY)
     t = _feed(lm, "r1", (PRIMARY, FALLBACK), 0.0, 1.0)
