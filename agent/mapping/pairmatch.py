@@ -41,7 +41,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from fleetlink.agent.mapping.relations import Relation
+from fleetlink.agent.mapping.relations import Relation, nearest_times
 from fleetlink.agent.mapping.se2 import compose, inverse, relative
 
 __all__ = ["LineScan", "MatchedRelations", "PairMatch", "PairMatchConfig", "match_pair", "match_relations"]
@@ -269,10 +269,8 @@ def match_relations(
     cache: dict[int, LineScan] = {}
 
     def index_at(t: float) -> int | None:
-        k = int(np.searchsorted(sorted_t, t))
-        near = [c for c in (k - 1, k) if 0 <= c < len(sorted_t)]
-        best = min(near, key=lambda c: abs(sorted_t[c] - t), default=None)
-        return None if best is None or abs(sorted_t[best] - t) > tolerance_s else best  # in time order
+        best = int(nearest_times(sorted_t, np.array([t]), tolerance_s)[0])  # in time order
+        return None if best < 0 else best
 
     def scan(k: int) -> LineScan:
         if k not in cache:

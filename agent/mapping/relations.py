@@ -40,6 +40,7 @@ __all__ = [
     "format_relations",
     "format_score",
     "generate_relations",
+    "nearest_times",
     "parse_relations",
     "parse_trajectory",
     "relation",
@@ -363,7 +364,7 @@ class RelationScore:
         }
 
 
-def _lookup(sorted_times: FloatArray, t: FloatArray, tolerance_s: float) -> npt.NDArray[np.intp]:
+def nearest_times(sorted_times: FloatArray, t: FloatArray, tolerance_s: float) -> npt.NDArray[np.intp]:
     """Index into sorted_times of the time nearest each t, or -1 where none is within tolerance or
     two are equally near (to ``RESOLUTION_S``)."""
     if len(sorted_times) == 0:
@@ -408,7 +409,7 @@ def score(
             "a relation could not tell which pose it means"
         )
     r = np.array([(x.t1, x.t2, x.dx, x.dy, x.dtheta) for x in relations], dtype=np.float64).reshape(-1, 5)
-    i1, i2 = _lookup(t, r[:, 0], tolerance_s), _lookup(t, r[:, 1], tolerance_s)
+    i1, i2 = nearest_times(t, r[:, 0], tolerance_s), nearest_times(t, r[:, 1], tolerance_s)
     found = (i1 >= 0) & (i2 >= 0)
     r, a, b = r[found], p[i1[found]], p[i2[found]]
     # The estimated relation a^-1 ⊕ b, then error = ref^-1 ⊕ est.
