@@ -98,7 +98,8 @@ def test_robotlaser1_is_read_with_its_own_geometry() -> None:
 
 def test_corrected_lines_replace_the_pose_and_nothing_else() -> None:
     """A SLAM result in the form the Freiburg metricEvaluator reads: the same log, each laser line
-    carrying the new robot pose (ROBOTLASER1: its laser pose moved with it, the mount kept)."""
+    carrying the new robot pose (FLASER: in both triples, as a corrected log; ROBOTLASER1: its laser
+    pose moved with it, the mount kept)."""
     robot = (
         "ROBOTLASER1 0 -1.0 2.0 0.5 30.0 0.01 0 5 1 2 3 4 5 2 7 8 "
         "1.0 2.0 -2.7831853 0.8 2.1 3.0 0.2 0.0 0.5 0.2 0.0 77.125 host 77.2\n"
@@ -118,8 +119,8 @@ def test_corrected_lines_replace_the_pose_and_nothing_else() -> None:
         assert r.ipc_timestamp == old.ipc_timestamp and r.kind == old.kind
         assert np.array_equal(r.ranges, old.ranges) and np.array_equal(r.angles, old.angles)
         assert r.laser_offset == pytest.approx(old.laser_offset, abs=1e-6)
-        if r.kind == "FLASER":
-            assert r.odom == old.odom  # the raw odometry fields stay
+        if r.kind == "FLASER":  # both triples: metricEvaluator reads the robot pose from odom_*
+            assert r.odom == pytest.approx(new[old.line], abs=1e-6)
     assert out[-2].endswith("\n") and out[-2].split()[-3:] == ["77.125", "host", "77.2"]
     # The laser pose: the new robot pose composed with the mount (turned 0.5 rad: 1.0 + 0.5, unwrapped).
     assert recs[2].laser_offset[2] == pytest.approx(0.5)
@@ -129,6 +130,33 @@ def test_corrected_lines_replace_the_pose_and_nothing_else() -> None:
     assert float(wrapped) == pytest.approx(3.5 - 2 * math.pi, abs=1e-6)  # 3.0 + 0.5 wrapped past pi
     with pytest.raises(ValueError, match="line 1: not a laser line"):
         list(corrected_lines(lines, {1: (0.0, 0.0, 0.0)}))
+
+
+def test_flaser_poses_are_the_laser_s_then_the_robot_s_as_carmen_writes_them() -> None:
+    """A front laser 0.3 m ahead (PARAM robot_frontlaser_offset): FLASER's ``x y theta`` is the laser's
+    pose, ``odom_*`` the robot's (CARMEN's log2log writes laser_pose then robot_pose); metricEvaluator
+    scores the second. The record's pose is the robot's; a corrected log writes both."""
+    robot, odom = (2.0, 1.0, math.pi / 2), (7.0, -4.0, 0.25)
+    laser = (2.0, 1.3, math.pi / 2)
+    ranges = " ".join(["1.0"] * 181)
+    lines = [
+        "PARAM robot_frontlaser_offset 0.3 nohost 0",
+        f"FLASER 181 {ranges} {laser[0]} {laser[1]} {laser[2]} {odom[0]} {odom[1]} {odom[2]} 5.5 nohost 5.5",
+    ]
+    (rec,) = [r for r in read_records(lines) if isinstance(r, LaserRecord)]
+    assert rec.laser_offset == (0.3, 0.0, 0.0)
+    assert rec.pose == pytest.approx(robot, abs=1e-9) and rec.odom == odom
+    new = (-1.0, 4.0, math.pi)  # facing -x: the laser 0.3 m towards -x
+    out = list(corrected_lines(lines, {rec.line: new}))
+    assert out[0] == lines[0]
+    fields = [float(v) for v in out[1].split()[183:189]]
+    assert (
+        fields[:2] == pytest.approx([-1.3, 4.0], abs=1e-6)
+        and abs(math.remainder(fields[2] - math.pi, 2 * math.pi)) < 1e-6
+    )
+    assert fields[3:] == pytest.approx(list(new), abs=1e-6)  # the robot pose, where metricEvaluator reads it
+    (again,) = [r for r in read_records(out) if isinstance(r, LaserRecord)]
+    assert again.pose[:2] == pytest.approx(new[:2], abs=1e-6) and again.odom == pytest.approx(new, abs=1e-6)
 
 
 def test_replay_recovers_the_path_despite_drifting_odometry() -> None:

@@ -11,13 +11,17 @@ Line-oriented, whitespace-separated, ``#`` comments (CARMEN's ``carmen/src/globa
 
 FLASER beams follow CARMEN's guesses for an under-specified SICK: start at -90 degrees, field of
 view and spacing from ``carmen_laser_guess_fov`` / ``carmen_laser_guess_angle_increment`` (180
-beams: 1 degree apart, -90 .. +89), maximum range 80 m. The FLASER ``x y theta`` is the pose the
-logging robot believed (the corrected pose in Radish's corrected logs); ``odom_*`` is the raw
-odometry, which is what replay seeds the matcher with. ``ipc_timestamp`` is kept as the text found
-in the log so it can be written back verbatim.
+beams: 1 degree apart, -90 .. +89), maximum range 80 m. A FLASER line carries two poses, as CARMEN
+writes them (``log2log``: ``laser_pose`` then ``robot_pose``): ``x y theta`` is the laser's, the robot
+pose moved ``robot_frontlaser_offset`` (a PARAM line) ahead; ``odom_*`` is the robot's, its raw
+odometry in a raw log. Radish's corrected logs carry the corrected pose in both (their offset is 0).
+``LaserRecord.pose`` is the robot pose the first triple gives (the offset taken back off: the
+logged, or corrected, pose); ``LaserRecord.odom`` the second, which replay seeds the matcher with.
+``ipc_timestamp`` is kept as the text found in the log so it can be written back verbatim.
 
-``corrected_lines`` writes a log back with each laser line's pose replaced (a SLAM result as the
-Freiburg ``metricEvaluator`` reads it: FLASER or ROBOTLASER1 lines carrying the corrected pose).
+``corrected_lines`` writes a log back with each laser line's poses replaced: a SLAM result as the
+Freiburg ``metricEvaluator`` reads it, which takes the robot pose -- FLASER's second triple,
+ROBOTLASER1's ``robot_*`` -- and the ``ipc_timestamp`` of every laser line.
 
 Anything else (unknown message types such as NEFF, blank lines, comments) is skipped and counted;
 malformed lines are skipped and counted by reason, and the first few are kept for a log message.
@@ -26,6 +30,7 @@ Pure: parses text; ``open_log`` is the one helper that opens a file (plain or .g
 
 from __future__ import annotations
 
+import contextlib
 import gzip
 import io
 import math
@@ -37,6 +42,8 @@ from typing import TextIO
 
 import numpy as np
 import numpy.typing as npt
+
+from fleetlink.agent.mapping.se2 import compose, inverse
 
 __all__ = [
     "CarmenStats",
@@ -59,8 +66,8 @@ class LaserRecord:
     ranges: npt.NDArray[np.float64]
     angles: npt.NDArray[np.float64]  # rad, sensor frame
     max_range: float
-    pose: Pose  # the logged robot pose (corrected, in corrected logs)
-    odom: Pose  # raw odometry of the robot
+    pose: Pose  # the logged robot pose (corrected, in corrected logs; FLASER: x y theta less the offset)
+    odom: Pose  # raw odometry of the robot (FLASER: odom_*; corrected logs: the corrected pose again)
     laser_offset: Pose  # the laser on the robot (ROBOTLASER1: from laser vs robot pose)
     ipc_timestamp: str  # verbatim
     timestamp: float
@@ -165,12 +172,12 @@ def _flaser(toks: list[str], line: int, offset: Pose) -> LaserRecord:
         raise _Bad("FLASER: too few fields")
     ranges = _ranges(toks, 2, n)
     k = 2 + n
-    pose = _pose(toks, k, "pose")
+    robot = compose(_pose(toks, k, "pose"), inverse(offset))  # x y theta is the laser's pose
     odom = _pose(toks, k + 3, "odometry")
     ts_text = toks[k + 6]
     ts = _num(ts_text, "ipc_timestamp")
     angles = -math.pi / 2.0 + guess_increment(n) * np.arange(n, dtype=np.float64)
-    return LaserRecord("FLASER", ranges, angles, 80.0, pose, odom, offset, ts_text, ts, line)
+    return LaserRecord("FLASER", ranges, angles, 80.0, robot, odom, offset, ts_text, ts, line)
 
 
 def _robotlaser(toks: list[str], line: int) -> LaserRecord:
@@ -256,32 +263,34 @@ def _fmt(pose: Pose) -> list[str]:
 
 def corrected_lines(lines: Iterable[str], poses: Mapping[int, Pose]) -> Iterator[str]:
     """The log's lines with the robot pose of each laser line numbered in ``poses`` (1-based, as
-    ``LaserRecord.line``) replaced: FLASER's ``x y theta`` (read back as ``LaserRecord.pose``; the
-    raw odometry fields stay), ROBOTLASER1's robot pose and its laser pose (the robot pose composed
-    with the line's own laser offset). Every other line, and every other field, is passed through
-    verbatim, so ODOM, PARAM and the timestamps are the input's. A numbered line that is not a
-    well-formed laser line raises ValueError (the numbers must come from ``read_records`` on the
-    same text)."""
+    ``LaserRecord.line``) written in: FLASER's both triples -- ``odom_*`` the robot pose (where
+    ``metricEvaluator`` reads it), ``x y theta`` the laser's (the pose moved the PARAM
+    ``robot_frontlaser_offset`` ahead), as a corrected log has them -- and ROBOTLASER1's robot pose
+    and its laser pose (the robot pose composed with the line's own laser offset). Every other line,
+    and every other field, is passed through verbatim, so ODOM, PARAM and the timestamps are the
+    input's. A numbered line that is not a well-formed laser line raises ValueError (the numbers
+    must come from ``read_records`` on the same text)."""
+    front_offset: Pose = (0.0, 0.0, 0.0)
     for number, raw in enumerate(lines, start=1):
         pose = poses.get(number)
         if pose is None:
+            toks = raw.split(None, 3)
+            if len(toks) >= 3 and toks[0] == "PARAM" and toks[1] == "robot_frontlaser_offset":
+                with contextlib.suppress(_Bad):  # read_records counted it; the offset stays
+                    front_offset = (_num(toks[2], "robot_frontlaser_offset"), 0.0, 0.0)
             yield raw
             continue
         end = raw[len(raw.rstrip("\r\n")) :]
         toks = raw.split()
         try:
             if toks and toks[0] == "FLASER":
-                k = 2 + _flaser(toks, number, (0.0, 0.0, 0.0)).ranges.size
-                toks[k : k + 3] = _fmt(pose)
+                k = 2 + _flaser(toks, number, front_offset).ranges.size
+                toks[k : k + 6] = _fmt(compose(pose, front_offset)) + _fmt(pose)
             elif toks and toks[0] == "ROBOTLASER1":
                 rec = _robotlaser(toks, number)
                 k = 9 + rec.ranges.size
                 k += 1 + int(toks[k])
-                dx, dy, dth = rec.laser_offset
-                c, s = math.cos(pose[2]), math.sin(pose[2])
-                heading = (pose[2] + dth + math.pi) % (2 * math.pi) - math.pi
-                laser = (pose[0] + c * dx - s * dy, pose[1] + s * dx + c * dy, heading)
-                toks[k : k + 6] = _fmt(laser) + _fmt(pose)
+                toks[k : k + 6] = _fmt(compose(pose, rec.laser_offset)) + _fmt(pose)
             else:
                 raise _Bad(f"not a laser line ({toks[0] if toks else 'blank'})")
         except _Bad as exc:
