@@ -214,6 +214,17 @@ def test_cli_replay_writes_map_server_files_and_a_verbatim_trajectory(tmp_path: 
     assert [r.ipc_timestamp for r in again] == TIMESTAMPS
     for r, row in zip(again, rows, strict=True):
         assert r.pose == pytest.approx(tuple(float(v) for v in row.split()[1:]), abs=1e-6)
+    # As metricEvaluator's logutil reads a FLASER line: skip n ranges and the laser pose, then the
+    # robot pose and the ipc_timestamp. It must find the trajectory there, not the raw odometry.
+    read_as_evaluator = []
+    for line in text.splitlines():
+        toks = line.split()
+        if toks[:1] == ["FLASER"] and toks[1] == "181" and len(toks) == 2 + 181 + 9:
+            k = 2 + 181 + 3
+            read_as_evaluator.append([toks[k + 3], *toks[k : k + 3]])
+    assert [r[0] for r in read_as_evaluator] == TIMESTAMPS
+    for got, row in zip(read_as_evaluator, rows, strict=True):
+        assert [float(v) for v in got[1:]] == pytest.approx([float(v) for v in row.split()[1:]], abs=1e-6)
     rel = tmp_path / "room.relations"
     rel.write_text(
         f"{TIMESTAMPS[0]} {TIMESTAMPS[-1]} 0.84 0.35 0 0 0 0.7\n{TIMESTAMPS[2]} {TIMESTAMPS[5]} 0.3 0.1 0 0 0 0.3\n"
