@@ -367,6 +367,30 @@ def test_the_front_end_keeps_matching_when_site_priors_move_the_map() -> None:
     assert float(np.sqrt(np.mean(np.square(err)))) < 0.1, max(err)
 
 
+def test_a_drawn_submap_keeps_its_field_and_lets_its_grid_go() -> None:
+    """A check reads a drawn submap's field only: the drawing keeps that (the very field a grid drawn
+    from the same scans holds), not the log-odds and seen cells behind it."""
+    from dataclasses import replace
+
+    from fleetlink.agent.mapping.closure import SUBMAP_GROW_M, SubmapField, draw_submap
+    from fleetlink.agent.mapping.grid import LogOddsGrid
+
+    mapper, _, _ = _with_and_without()
+    closer = mapper.closer
+    assert closer is not None and closer.submaps
+    sm = closer.submaps[len(closer.submaps) // 2]
+    parts = closer._parts(sm)
+    drawn = draw_submap(parts, closer.grid_config, closer.config.bnb_depth)
+    assert isinstance(drawn.grid, SubmapField) and not hasattr(drawn.grid, "logodds")
+    grid = LogOddsGrid(replace(closer.grid_config, grow_step=SUBMAP_GROW_M))
+    for sensor, sc in parts:
+        grid.integrate(sensor, sc.ranges, sc.angles, sc.hit)
+    assert np.array_equal(drawn.grid.field, grid.field) and drawn.grid.origin == grid.origin
+    assert drawn.grid.field.flags.c_contiguous  # flattened by the lookups: a view would be copied each time
+    pad = drawn.grids.pad
+    assert np.array_equal(drawn.grids.level(0)[pad:-pad, pad:-pad], grid.field)
+
+
 def test_each_level_holds_the_maximum_of_its_window() -> None:
     """Branch and bound's levels: level d at (r, c) is the maximum of the padded field over the 2^d x 2^d
     cells from (r, c) up and to the right (cut off at the array's edge)."""

@@ -30,6 +30,7 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -37,6 +38,7 @@ import numpy.typing as npt
 from fleetlink.agent.mapping.grid import LogOddsGrid
 
 __all__ = [
+    "FieldMap",
     "IcpResult",
     "LocalMap",
     "Match",
@@ -50,6 +52,21 @@ __all__ = [
 
 FloatArray = npt.NDArray[np.float64]
 Pose = tuple[float, float, float]
+
+
+class FieldMap(Protocol):
+    """What the field's scoring and refinement read: a likelihood field (row ``v``, column ``u``;
+    cell (0, 0) has its corner at ``origin``) and its cell size. A ``LogOddsGrid`` is one; so is a
+    drawn submap's field kept alone (``closure.SubmapField``)."""
+
+    @property
+    def field(self) -> npt.NDArray[np.float32]: ...
+
+    @property
+    def origin(self) -> tuple[float, float]: ...
+
+    @property
+    def resolution(self) -> float: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,7 +107,7 @@ def _transform(points: FloatArray, x: float, y: float, th: float) -> FloatArray:
     return np.column_stack((x + c * points[:, 0] - s * points[:, 1], y + s * points[:, 0] + c * points[:, 1]))
 
 
-def field_score(grid: LogOddsGrid, points: FloatArray, pose: Pose) -> float:
+def field_score(grid: FieldMap, points: FloatArray, pose: Pose) -> float:
     """Mean field value (bilinearly interpolated) of ``points`` (sensor frame) seen from ``pose``."""
     if len(points) == 0:
         return 0.0
@@ -342,13 +359,13 @@ def _inside(shape: tuple[int, int], reach: float, x: float, y: float, origin: tu
     return u0 - r >= 1.0 and u0 + r <= w - 3.0 and v0 - r >= 1.0 and v0 + r <= h - 3.0
 
 
-def refine(grid: LogOddsGrid, points: FloatArray, pose: Pose, iterations: int = 8) -> Pose:
+def refine(grid: FieldMap, points: FloatArray, pose: Pose, iterations: int = 8) -> Pose:
     """Gauss-Newton on the interpolated field from ``pose``, with step halving: a step is taken only
     if it raises the mean field value (the field is peaked, so full steps overshoot)."""
     return _refine(grid, points, pose, iterations)[0]
 
 
-def _refine(grid: LogOddsGrid, points: FloatArray, pose: Pose, iterations: int = 8) -> tuple[Pose, float]:
+def _refine(grid: FieldMap, points: FloatArray, pose: Pose, iterations: int = 8) -> tuple[Pose, float]:
     """``refine``, and ``field_score`` at the pose it returns (which it computed on the way: -1 when it
     ran no iteration). The halved steps are scored together, in one pass over (4, N) arrays, and the
     field's corners at the pose taken are kept for the next iteration's gradient: element by element
