@@ -563,7 +563,15 @@ def _area_from_region(
     cc = np.minimum(np.arange(pw) * f + f // 2, w - 1)
     stand = fm.stand & region[rr][:, cc]
     if not stand.any():
-        raise ValueError(f"{kind}: the robot can stand nowhere inside it (narrower than the robot, or all wall)")
+        # How much of it the map holds as floor says which: an unmapped area (none), a strip along a
+        # wall (some), a room the map draws smaller than it is.
+        cell_m2 = fm.resolution * fm.resolution
+        floor_m2 = float(np.count_nonzero(region & fm.free)) * cell_m2
+        area_m2 = float(np.count_nonzero(region)) * cell_m2
+        raise ValueError(
+            f"{kind}: the robot can stand nowhere inside it (narrower than the robot, or all wall):"
+            f" {floor_m2:.2f} of its {area_m2:.2f} m² is floor on the map"
+        )
     stand_fine = stand[np.arange(h) // f][:, np.arange(w) // f] & fm.free
     steps = max(1, math.ceil(fm.config.lamp_reach_m / fm.resolution))
     reach = _grow(stand_fine, fm.free, steps)

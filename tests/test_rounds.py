@@ -158,6 +158,19 @@ def test_bad_input_is_refused_with_its_reason(kind: str, area: Any, robots: Any,
         plan(kind, area, robots, target_j_m2=target)
 
 
+def test_an_area_with_nowhere_to_stand_says_how_much_of_it_the_map_holds_as_floor() -> None:
+    # Along a wall (x 5.0-5.1 of it is wall): some floor, too narrow to stand on.
+    with pytest.raises(RoundError, match=r"stand nowhere inside it .*: 0\.30 of its 0\.40 m² is floor on the map"):
+        plan("uv", RectArea(4.85, 0.5, 5.25, 1.5), {"r1": A})
+    # Mostly unmapped: the map knows only its bottom 0.2 m as floor (the operator's cue that the area
+    # was not mapped, not that it is too small; none known at all is "contains no floor").
+    unmapped = CELLS.copy()
+    unmapped[7:16, 9:22] = -1  # y 0.7-1.6 never seen
+    request = RoundRequest("uv", RectArea(1.0, 0.5, 2.0, 1.5), ("r1",), 100.0)
+    with pytest.raises(RoundError, match=r"stand nowhere inside it .*: 0\.20 of its 1\.00 m² is floor on the map"):
+        plan_round(request, unmapped, RES, (0.0, 0.0), {"r1": (4.0, 1.0)}, DEFAULT_LAMP)
+
+
 def test_a_robot_that_cannot_take_part_is_left_out_and_the_others_share_the_round() -> None:
     # r1 stands off the map (as a robot backed into a corner by a bump may stand where no round
     # starts), r2 in the sealed closet: r3 does the room alone, and the plan says why the others
