@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -259,6 +260,12 @@ def run_replay(args: argparse.Namespace) -> int:
         print(f"fleetlink map replay: cannot write {out}/corrected.log: {exc}", file=sys.stderr)
         return 1
     print(f"{args.log}: {stats.summary()}")
+    mx, my, mth = m.config.mount
+    if (mx, my, mth) != (0.0, 0.0, 0.0):
+        print(
+            f"laser mounted at ({mx:.3f}, {my:.3f}) m, {math.degrees(mth):.1f} deg on the robot: trajectory.txt holds"
+            " the robot's pose, as corrected.log's robot fields do (its laser fields: the laser's)"
+        )
     closed = ""
     if m.closer is not None:
         st = m.closer.stats
@@ -275,8 +282,6 @@ def run_replay(args: argparse.Namespace) -> int:
 
 
 def run_relations(args: argparse.Namespace) -> int:
-    import math
-
     import numpy as np
 
     from fleetlink.agent.mapping.carmen import CarmenStats, LaserRecord, open_log, read_records

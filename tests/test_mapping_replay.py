@@ -250,6 +250,35 @@ def test_cli_replay_writes_map_server_files_and_a_verbatim_trajectory(tmp_path: 
     assert scored[0]["all"] == scored[1]["all"] and scored[0]["all"]["count"] == 2
 
 
+def test_cli_replay_of_a_log_with_a_front_laser_offset_says_which_pose_it_writes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The room's log with its laser 0.25 m ahead of the robot: the FLASER x y theta are the laser's.
+    lines = []
+    for line in _log_lines():
+        toks = line.split()
+        if toks[:2] == ["PARAM", "robot_frontlaser_offset"]:
+            line = "PARAM robot_frontlaser_offset 0.25 nohost 0"
+        lines.append(line)
+    log = tmp_path / "room.log"
+    log.write_text("\n".join(lines) + "\n")
+    assert main(["map", "replay", str(log), "--out", str(tmp_path / "out")]) == 0
+    printed = capsys.readouterr().out
+    assert "laser mounted at (0.250, 0.000) m, 0.0 deg on the robot: trajectory.txt holds the robot's pose" in printed
+    rows = (tmp_path / "out" / "trajectory.txt").read_text().splitlines()
+    again = [
+        r
+        for r in read_records((tmp_path / "out" / "corrected.log").read_text().splitlines())
+        if isinstance(r, LaserRecord)
+    ]
+    for r, row in zip(again, rows, strict=True):  # both read back as the robot's pose
+        assert r.odom == pytest.approx(tuple(float(v) for v in row.split()[1:]), abs=1e-6)
+        assert (
+            r.pose[:2] == pytest.approx(r.odom[:2], abs=1e-6)
+            and abs(math.remainder(r.pose[2] - r.odom[2], 2 * math.pi)) < 1e-6
+        )
+
+
 def test_cli_replay_rejects_a_log_without_scans(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     log = tmp_path / "empty.log"
     log.write_text("# nothing\nODOM 0 0 0 0 0 0 1.0 h 1.0\nGARBAGE\n")
