@@ -8,9 +8,10 @@ loss of either link costs no time at all. Unacked commands are re-sent on both l
 healthy. The primary turns unhealthy when the robot has not been heard on it for
 ``state_window_s`` (three missed 10 Hz states) or when a command sent on it has gone unacked for
 ``ack_timeout_s``. Then, at the next ``poll``, the robot's commands move to the fallback (MQTT)
--- if the fallback itself has been heard within ``state_window_s``: a move to a link as silent
-as the one left gains nothing -- and every command still waiting for its ack is re-sent there, byte for byte: the agent dedupes on
-(sender, topic, headerId) and orders on (orderId, orderUpdateId), so the copy is harmless. Once
+-- if the fallback itself has been heard within ``state_window_s``: a move to a link as silent as
+the one left gains nothing -- and every command still waiting for its ack is re-sent there, byte
+for byte: the agent dedupes on (sender, topic, headerId) and orders on (orderId, orderUpdateId),
+so the copy is harmless. Once
 the primary has been healthy again for ``holdoff_s`` the robot moves back (at once if the
 fallback has gone silent meanwhile).
 

@@ -213,6 +213,14 @@ def _odom(toks: list[str], line: int) -> OdomRecord:
     return OdomRecord(pose, _num(toks[4], "tv"), _num(toks[5], "rv"), toks[7], _num(toks[7], "ipc_timestamp"), line)
 
 
+def _front_offset(toks: list[str], current: Pose) -> Pose:
+    """The front laser's mount after a PARAM line (``toks``: name, value, ...): its value if it is
+    ``robot_frontlaser_offset`` (metres ahead of the robot), else ``current``."""
+    if toks[1] != "robot_frontlaser_offset":
+        return current
+    return (_num(toks[2], "robot_frontlaser_offset"), 0.0, 0.0)
+
+
 def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iterator[LaserRecord | OdomRecord]:
     """Laser and odometry records from log lines; everything else is counted in ``stats``."""
     st = stats if stats is not None else CarmenStats()
@@ -242,8 +250,7 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
                 if len(toks) < 3:
                     raise _Bad("PARAM: too few fields")
                 st.params[toks[1]] = toks[2]
-                if toks[1] == "robot_frontlaser_offset":
-                    front_offset = (_num(toks[2], "robot_frontlaser_offset"), 0.0, 0.0)
+                front_offset = _front_offset(toks, front_offset)
                 continue
             else:
                 st.unknown[kind[:32]] += 1
@@ -275,9 +282,9 @@ def corrected_lines(lines: Iterable[str], poses: Mapping[int, Pose]) -> Iterator
         pose = poses.get(number)
         if pose is None:
             toks = raw.split(None, 3)
-            if len(toks) >= 3 and toks[0] == "PARAM" and toks[1] == "robot_frontlaser_offset":
+            if len(toks) >= 3 and toks[0] == "PARAM":
                 with contextlib.suppress(_Bad):  # read_records counted it; the offset stays
-                    front_offset = (_num(toks[2], "robot_frontlaser_offset"), 0.0, 0.0)
+                    front_offset = _front_offset(toks, front_offset)
             yield raw
             continue
         end = raw[len(raw.rstrip("\r\n")) :]
