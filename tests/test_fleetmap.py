@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping.fleetmap import FleetMap, FleetMapConfig, RobotMap
+from fleetlink.agent.mapping.fleetmap import FleetMap, FleetMapConfig, RobotMap, Submap
 from fleetlink.agent.mapping.se2 import Pose, compose, inverse
 from fleetlink.field.plans import nearest_segment_distances
 
@@ -188,3 +188,76 @@ def test_a_restarted_robot_whose_versions_repeat_is_registered_again() -> None:
     again = fm.build()
     assert again is not None
     assert again.corrections["b"][0] > 0.0 > first.corrections["b"][0]  # registered anew, not from the cache
+
+
+def submap(index: int, box: tuple[float, float, float, float], error: Pose = (0.0, 0.0, 0.0)) -> Submap:
+    """A submap that saw the part ``box`` of the floor from a frame at the box's lower-left corner,
+    which its robot's graph put ``error`` off (in the site frame): walls occupied, the rest of the
+    box free, in the submap's own frame."""
+    x0, y0, x1, y1 = box
+    frame = (x0, y0, math.radians(3.0 * index))  # each submap's frame turned a little: not the site's axes
+    whole = robot_map(box)
+    pts = walls_of(whole.cells, whole.origin, RES)
+    local = undo(frame, pts)  # site -> the frame's coordinates
+    lo = local.min(axis=0) - 0.5
+    w = int((local[:, 0].max() - lo[0] + 0.5) / RES) + 1
+    h = int((local[:, 1].max() - lo[1] + 0.5) / RES) + 1
+    cells = np.full((h, w), -1, dtype=np.int8)
+    gx, gy = np.meshgrid(lo[0] + (np.arange(w) + 0.5) * RES, lo[1] + (np.arange(h) + 0.5) * RES)
+    site = undo(inverse(frame), np.column_stack((gx.ravel(), gy.ravel()))).reshape(h, w, 2)
+    inside = (site[..., 0] >= x0) & (site[..., 0] <= x1) & (site[..., 1] >= y0) & (site[..., 1] <= y1)
+    cells[inside] = 0
+    cols = np.floor((local[:, 0] - lo[0]) / RES).astype(int)
+    rows = np.floor((local[:, 1] - lo[1]) / RES).astype(int)
+    cells[rows, cols] = 100
+    return Submap(index, 1, compose(error, frame), cells, RES, (float(lo[0]), float(lo[1])))
+
+
+def with_submaps(submaps: tuple[Submap, ...], version: int = 1) -> RobotMap:
+    """A robot's map drawn from its submaps where its graph put them (as the robot shares it)."""
+    alone = FleetMap()
+    first = submaps[0]
+    assert alone.put("x", RobotMap(first.cells, RES, first.origin, version, submaps))
+    drawn = alone.build()
+    assert drawn is not None
+    return RobotMap(drawn.cells, drawn.resolution, drawn.origin, version, submaps)
+
+
+BENT = (
+    submap(0, (0.0, 0.0, 3.5, 6.0)),
+    submap(1, (3.0, 0.0, 6.5, 6.0), (0.10, 0.05, math.radians(1.0))),
+    submap(2, (6.0, 0.0, 9.0, 6.0), (0.22, 0.12, math.radians(2.0))),
+)
+"""A map bent along the way: each submap further off than the one before (a heading drift its robot's
+graph never closed)."""
+
+
+def test_a_bent_map_is_straightened_submap_by_submap_against_another_robots_map() -> None:
+    fm = FleetMap()
+    fm.put("a", robot_map((0.0, 0.0, 9.0, 6.0)))
+    fm.put("b", with_submaps(BENT))
+    result = fm.build()
+    assert result is not None
+    onto_a = {r.b_piece for r in result.registrations if (r.a, r.b) == ("a", "b")}
+    assert onto_a == {0, 1, 2}  # every submap of b found on a's map
+    # In a's frame (the two maps met halfway; a's placement was right), the walls are where the
+    # floor's are, and each submap moved back by (about) its own error: pieces of one map, corrected apart.
+    ca = result.corrections["a"]
+    d = distance_to_walls(undo(ca, walls_of(result.cells, result.origin, result.resolution)))
+    assert np.median(d) <= 0.03 and np.mean(d > 0.1) < 0.01
+    errors = ((0.0, 0.0, 0.0), (0.10, 0.05, math.radians(1.0)), (0.22, 0.12, math.radians(2.0)))
+    for sm, err in zip(BENT, errors, strict=True):
+        fixed = compose(inverse(ca), compose(result.piece_corrections["b"][sm.index], sm.pose))
+        true = compose(inverse(err), sm.pose)
+        assert math.hypot(fixed[0] - true[0], fixed[1] - true[1]) < 0.05, (sm.index, fixed, true)
+        assert abs(fixed[2] - true[2]) < math.radians(0.5)
+    # Merged whole (one rigid correction for b), the far end stays off: the registration can fit one
+    # part of a bent map, not all of it.
+    whole = FleetMap()
+    whole.put("a", robot_map((0.0, 0.0, 9.0, 6.0)))
+    bent = with_submaps(BENT)
+    whole.put("b", RobotMap(bent.cells, bent.resolution, bent.origin, bent.version))
+    rigid = whole.build()
+    assert rigid is not None
+    d_rigid = distance_to_walls(undo(rigid.corrections["a"], walls_of(rigid.cells, rigid.origin, rigid.resolution)))
+    assert np.mean(d_rigid > 0.1) > 0.05

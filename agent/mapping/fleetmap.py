@@ -32,6 +32,7 @@ The fleet map's version counts builds whose cells changed. Time is not needed; n
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -43,7 +44,7 @@ from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.posegraph import PoseGraph
 from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative
 
-__all__ = ["FleetMap", "FleetMapConfig", "FleetResult", "Registration", "RobotMap"]
+__all__ = ["FleetMap", "FleetMapConfig", "FleetResult", "Registration", "RobotMap", "Submap"]
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -77,49 +78,94 @@ class FleetMapConfig:
     placement_sigma_theta_rad: float = math.radians(2.0)
     registration_sigma_xy_m: float = 0.02
     registration_sigma_theta_rad: float = math.radians(0.3)
+    chain_sigma_xy_m: float = 0.10
+    chain_sigma_theta_rad: float = math.radians(2.0)
+    """How far one submap may move against the next of the same robot: what its own graph is good for
+    between two submaps a few metres apart (its relations: a few centimetres, tenths of a degree)."""
+    max_searches_per_build: int = 64
+    """Registrations searched per build at most (a new piece first, in order; refusals tried again
+    after the other map changed): a build's cost stays bounded however many submaps arrive at once."""
 
     def __post_init__(self) -> None:
         for name in (
             "resolution_m", "field_sigma_m", "window_xy_m", "window_theta_rad", "angle_step_rad",
             "placement_sigma_xy_m", "placement_sigma_theta_rad", "registration_sigma_xy_m",
-            "registration_sigma_theta_rad",
+            "registration_sigma_theta_rad", "chain_sigma_xy_m", "chain_sigma_theta_rad",
         ):  # fmt: skip
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"fleet map: {name} must be a finite number > 0, got {v!r}")
         if not 0 < self.min_score <= 1:
             raise ValueError(f"fleet map: min_score must be in (0, 1], got {self.min_score!r}")
+        if self.max_searches_per_build < 1:
+            raise ValueError(f"fleet map: max_searches_per_build must be >= 1, got {self.max_searches_per_build!r}")
         if self.min_overlap_points < 1 or self.max_points < self.min_overlap_points:
             raise ValueError("fleet map: need 1 <= min_overlap_points <= max_points")
 
 
 @dataclass(frozen=True, slots=True)
+class Submap:
+    """One piece of a robot's map as its pose graph has it: the cells its nodes drew, in the frame of
+    its first node, and where the robot's optimised graph puts that frame in its map frame (the site
+    frame once UWB placed the robot). Cells -1 unknown, 0 free, 100 occupied, row 0 at the bottom."""
+
+    index: int
+    version: int
+    """+1 each time it is drawn again (the open submap, as nodes join it)."""
+    pose: Pose
+    cells: I8
+    resolution: float
+    origin: tuple[float, float]
+    """The lower-left corner of cell (0, 0) in the submap's own frame."""
+
+    def __post_init__(self) -> None:
+        if self.index < 0 or self.version < 0:
+            raise ValueError(f"submap: index and version must be >= 0, got {self.index}, {self.version}")
+        if len(self.pose) != 3 or not all(math.isfinite(v) for v in self.pose):
+            raise ValueError(f"submap {self.index}: pose must be three finite numbers, got {self.pose!r}")
+        _check_cells(self.cells, self.resolution, self.origin, f"submap {self.index}")
+
+
+@dataclass(frozen=True, slots=True)
 class RobotMap:
-    """One robot's map as it shares it: cells -1 unknown, 0 free, 100 occupied (row 0 at the bottom)."""
+    """One robot's map as it shares it: cells -1 unknown, 0 free, 100 occupied (row 0 at the bottom),
+    and the submaps it was drawn from, if the robot shares them (``submaps``, in index order). A map
+    without submaps is placed and merged as one rigid piece."""
 
     cells: I8
     resolution: float
     origin: tuple[float, float]
     version: int
+    submaps: tuple[Submap, ...] = ()
 
     def __post_init__(self) -> None:
-        if self.cells.ndim != 2 or self.cells.size == 0:
-            raise ValueError("robot map: cells must be a non-empty 2D array")
-        if not (math.isfinite(self.resolution) and self.resolution > 0):
-            raise ValueError(f"robot map: resolution must be a finite number > 0, got {self.resolution!r}")
-        if not all(math.isfinite(v) for v in self.origin):
-            raise ValueError(f"robot map: origin must be finite, got {self.origin!r}")
+        _check_cells(self.cells, self.resolution, self.origin, "robot map")
+        indices = [s.index for s in self.submaps]
+        if indices != sorted(set(indices)):
+            raise ValueError("robot map: submaps must come in increasing index order, each once")
+
+
+def _check_cells(cells: I8, resolution: float, origin: tuple[float, float], what: str) -> None:
+    if cells.ndim != 2 or cells.size == 0:
+        raise ValueError(f"{what}: cells must be a non-empty 2D array")
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"{what}: resolution must be a finite number > 0, got {resolution!r}")
+    if not all(math.isfinite(v) for v in origin):
+        raise ValueError(f"{what}: origin must be finite, got {origin!r}")
 
 
 @dataclass(frozen=True, slots=True)
 class Registration:
-    """Map ``b``'s centre frame seen from map ``a``'s, as the overlap measured it."""
+    """Robot ``b``'s piece ``b_piece`` seen from the frame of robot ``a``'s piece ``a_piece``, as
+    matching the first onto ``a``'s map measured it (a map shared whole is its robot's piece 0)."""
 
     a: str
     b: str
     z: Pose
     score: float
     points: int
+    a_piece: int = 0
+    b_piece: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -129,20 +175,39 @@ class FleetResult:
     origin: tuple[float, float]
     version: int
     corrections: dict[str, Pose]
-    """Per robot: the rigid motion (site frame) applied to its map."""
+    """Per robot: the rigid motion (site frame) applied to its map; for a map of several submaps,
+    the mean of its pieces' (``piece_corrections``)."""
     registrations: tuple[Registration, ...]
+    piece_corrections: dict[str, dict[int, Pose]] = field(default_factory=dict)
+    """Per robot, per piece index: the rigid motion applied to that piece."""
+
+
+@dataclass
+class _Piece:
+    index: int
+    version: int
+    placed: Pose
+    """Its frame in the site frame, as its robot placed it."""
+    cells: I8
+    resolution: float
+    origin: tuple[float, float]
+    local: F64
+    """Its walls in its own frame, at most ``max_points``."""
 
 
 @dataclass
 class _Prepared:
     map: RobotMap
-    serial: int
-    """Which ``put`` this is (a restarted agent's versions repeat: the cache keys on this)."""
-    centre: Pose
-    walls: F64
-    """Wall points (site frame, as placed), at most max_points."""
+    epoch: int
+    """+1 when a robot's versions start again (a restarted agent): registrations are keyed on it."""
     grids: PrecomputedGrids
-    known: npt.NDArray[np.bool_]
+    near_known: npt.NDArray[np.bool_]
+    """The map's known cells grown by the search window: where another's walls may be matched."""
+    pieces: list[_Piece]
+
+
+_RegKey = tuple[str, int, str, int, int, int]
+"""(a, a's epoch, b, b's epoch, b's piece index, its version)."""
 
 
 @dataclass
@@ -151,8 +216,8 @@ class FleetMap:
     maps: dict[str, _Prepared] = field(default_factory=dict)
     refused: int = 0
     """Registrations tried and refused (too little overlap, too low a score)."""
-    _pairs: dict[tuple[str, int, str, int], Registration | None] = field(default_factory=dict)
-    _puts: int = 0
+    _regs: dict[_RegKey, tuple[Registration | None, int]] = field(default_factory=dict)
+    _epochs: dict[str, int] = field(default_factory=dict)
     _version: int = 0
     _last: FleetResult | None = None
 
@@ -161,34 +226,50 @@ class FleetMap:
         old = self.maps.get(robot)
         if old is not None and old.map.version == m.version and old.map.cells.shape == m.cells.shape:
             return False
-        walls = _wall_points(m, self.config.max_points)
-        if not len(walls):
+        cfg = self.config
+        pieces = _pieces(m, cfg.max_points)
+        if not any(len(p.local) for p in pieces):
             return False
-        h, w = m.cells.shape
-        cx, cy = m.origin[0] + 0.5 * w * m.resolution, m.origin[1] + 0.5 * h * m.resolution
-        self._puts += 1
-        self.maps[robot] = _Prepared(
-            m, self._puts, (cx, cy, 0.0), walls, _field_grids(m, self.config.field_sigma_m), m.cells != UNKNOWN
-        )
+        if old is not None and m.version <= old.map.version:
+            self._epochs[robot] = self._epochs.get(robot, 0) + 1
+        known = m.cells != UNKNOWN
+        reach = math.ceil(cfg.window_xy_m / m.resolution)
+        near_known = ndimage.binary_dilation(known, iterations=reach) if reach else known
+        grids = _field_grids(m, cfg.field_sigma_m)
+        self.maps[robot] = _Prepared(m, self._epochs.get(robot, 0), grids, near_known, pieces)
         return True
 
     def forget(self, robot: str) -> None:
         self.maps.pop(robot, None)
 
     def build(self) -> FleetResult | None:
-        """The fleet map from the maps held (None: none yet). Deterministic for the same maps."""
+        """The fleet map from the maps held (None: none yet). Deterministic for the same maps taken in
+        the same order."""
         if not self.maps:
             return None
         robots = sorted(self.maps)
-        regs = []
+        regs: list[Registration] = []
+        used: set[_RegKey] = set()
+        budget = [self.config.max_searches_per_build]
         for i, a in enumerate(robots):
             for b in robots[i + 1 :]:
-                reg = self._register(a, b)
-                if reg is not None:
-                    regs.append(reg)
-        poses = self._solve(robots, regs)
-        corrections = {r: compose(poses[r], inverse(self.maps[r].centre)) for r in robots}
-        cells, origin = self._merge(robots, corrections)
+                # b's pieces onto a's map; and a's onto b's, unless both are single pieces (the same
+                # overlap measured twice).
+                pairs = [(a, b)]
+                if len(self.maps[a].pieces) > 1 or len(self.maps[b].pieces) > 1:
+                    pairs.append((b, a))
+                for x, y in pairs:
+                    for piece in self.maps[y].pieces:
+                        reg = self._register(x, y, piece, used, budget)
+                        if reg is not None:
+                            regs.append(reg)
+        self._regs = {k: v for k, v in self._regs.items() if k in used}
+        solved = self._solve(robots, regs)
+        piece_corrections = {
+            r: {p.index: compose(solved[(r, p.index)], inverse(p.placed)) for p in self.maps[r].pieces} for r in robots
+        }
+        corrections = {r: _mean_pose(list(piece_corrections[r].values())) for r in robots}
+        cells, origin = self._merge(robots, solved)
         res = self.config.resolution_m
         last = self._last
         if (
@@ -198,41 +279,52 @@ class FleetMap:
             or not np.array_equal(last.cells, cells)
         ):
             self._version += 1
-        self._last = FleetResult(cells, res, origin, self._version, corrections, tuple(regs))
+        self._last = FleetResult(cells, res, origin, self._version, corrections, tuple(regs), piece_corrections)
         return self._last
 
     # -- inter-robot closures --------------------------------------------------------------------
 
-    def _register(self, a: str, b: str) -> Registration | None:
+    def _register(self, a: str, b: str, piece: _Piece, used: set[_RegKey], budget: list[int]) -> Registration | None:
+        """``b``'s ``piece`` matched onto ``a``'s map, from the cache where it still holds: a match
+        stands while the piece and ``a``'s piece it is tied to are the same; a refusal is tried again
+        when ``a``'s map has changed, within the build's search budget."""
         pa, pb = self.maps[a], self.maps[b]
-        key = (a, pa.serial, b, pb.serial)
-        if key in self._pairs:
-            return self._pairs[key]
-        reg = self._search(a, pa, b, pb)
+        key = (a, pa.epoch, b, pb.epoch, piece.index, piece.version)
+        used.add(key)
+        cached = self._regs.get(key)
+        if cached is not None:
+            reg, a_version = cached
+            if reg is not None and any(p.index == reg.a_piece for p in pa.pieces):
+                return reg
+            if reg is None and (a_version == pa.map.version or budget[0] <= 0):
+                return None
+        if budget[0] <= 0:
+            return None
+        budget[0] -= 1
+        reg = self._search(a, pa, b, piece)
         if reg is None:
             self.refused += 1
-        self._pairs = {k: v for k, v in self._pairs.items() if (k[0], k[2]) != (a, b)}
-        self._pairs[key] = reg
+        self._regs[key] = (reg, pa.map.version)
         return reg
 
-    def _search(self, a: str, pa: _Prepared, b: str, pb: _Prepared) -> Registration | None:
+    def _search(self, a: str, pa: _Prepared, b: str, piece: _Piece) -> Registration | None:
         cfg = self.config
-        # b's walls on a's known floor (grown by the window): the only ones a can vouch for.
+        if not len(piece.local):
+            return None
+        # The piece's walls on a's known floor (grown by the window): the only ones a can vouch for.
         m = pa.map
-        reach = math.ceil(cfg.window_xy_m / m.resolution)
-        known = ndimage.binary_dilation(pa.known, iterations=reach) if reach else pa.known
-        c = np.floor((pb.walls[:, 0] - m.origin[0]) / m.resolution).astype(np.int64)
-        r = np.floor((pb.walls[:, 1] - m.origin[1]) / m.resolution).astype(np.int64)
-        h, w = known.shape
+        placed = _transform(piece.placed, piece.local)
+        c = np.floor((placed[:, 0] - m.origin[0]) / m.resolution).astype(np.int64)
+        r = np.floor((placed[:, 1] - m.origin[1]) / m.resolution).astype(np.int64)
+        h, w = pa.near_known.shape
         inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
         on = np.zeros(len(c), dtype=bool)
-        on[inside] = known[r[inside], c[inside]]
+        on[inside] = pa.near_known[r[inside], c[inside]]
         if int(on.sum()) < cfg.min_overlap_points:
             return None
-        centre = pb.centre
-        local = pb.walls[on] - np.array(centre[:2])  # in b's centre frame (theta 0)
+        local = piece.local[on]
         found = search(
-            pa.grids, local, centre, cfg.window_xy_m, cfg.window_theta_rad, cfg.min_score, cfg.angle_step_rad
+            pa.grids, local, piece.placed, cfg.window_xy_m, cfg.window_theta_rad, cfg.min_score, cfg.angle_step_rad
         )
         if found is None:
             return None
@@ -240,74 +332,90 @@ class FleetMap:
         score = _score(pa.grids, local, pose)
         if score < cfg.min_score:
             return None
-        return Registration(a, b, relative(pa.centre, pose), score, int(on.sum()))
+        # Tied to a's piece whose frame lies nearest: the measurement holds while that piece stays as
+        # a's graph drew it, whatever a's later closures do to its pieces far from here.
+        anchor = min(pa.pieces, key=lambda p: (p.placed[0] - pose[0]) ** 2 + (p.placed[1] - pose[1]) ** 2)
+        return Registration(a, b, relative(anchor.placed, pose), score, int(on.sum()), anchor.index, piece.index)
 
     # -- the site frame --------------------------------------------------------------------------
 
-    def _solve(self, robots: list[str], regs: list[Registration]) -> dict[str, Pose]:
-        placed = {r: self.maps[r].centre for r in robots}
+    def _solve(self, robots: list[str], regs: list[Registration]) -> dict[tuple[str, int], Pose]:
+        placed = {(r, p.index): p.placed for r in robots for p in self.maps[r].pieces}
         if not regs:
             return placed
         cfg = self.config
         g = PoseGraph()
         site = g.add_node((0.0, 0.0, 0.0))
-        index = {r: g.add_node(placed[r]) for r in robots}
-        prior = np.diag([cfg.placement_sigma_xy_m**-2, cfg.placement_sigma_xy_m**-2, cfg.placement_sigma_theta_rad**-2])
-        for r in robots:
-            g.add_edge(site, index[r], placed[r], prior)
+        index = {k: g.add_node(pose) for k, pose in placed.items()}
+        base_prior = np.diag(
+            [cfg.placement_sigma_xy_m**-2, cfg.placement_sigma_xy_m**-2, cfg.placement_sigma_theta_rad**-2]
+        )
+        chain = np.diag([cfg.chain_sigma_xy_m**-2, cfg.chain_sigma_xy_m**-2, cfg.chain_sigma_theta_rad**-2])
         tie = np.diag(
             [cfg.registration_sigma_xy_m**-2, cfg.registration_sigma_xy_m**-2, cfg.registration_sigma_theta_rad**-2]
         )
+
+        def add_fixed(graph: PoseGraph) -> None:
+            for r in robots:
+                pieces = self.maps[r].pieces
+                # One placement per robot, shared among its pieces: UWB placed the map, not each piece.
+                prior = base_prior / len(pieces)
+                for p in pieces:
+                    graph.add_edge(site, index[(r, p.index)], p.placed, prior)
+                for p, q in itertools.pairwise(pieces):
+                    graph.add_edge(index[(r, p.index)], index[(r, q.index)], relative(p.placed, q.placed), chain)
+
         # First plain least squares, then robust from there: started where the robots put their
         # maps, a registration a few decimetres off is tens of sigmas off, and a Cauchy weight
         # would all but drop it (measured: a 0.45 m offset only a third corrected).
+        add_fixed(g)
         for reg in regs:
-            g.add_edge(index[reg.a], index[reg.b], reg.z, tie)
+            g.add_edge(index[(reg.a, reg.a_piece)], index[(reg.b, reg.b_piece)], reg.z, tie)
         g.optimize(fixed=site)
         if len(regs) > 1:  # a false closure can only disagree with others where maps form loops
             robust = PoseGraph()
             for pose in g.poses:
                 robust.add_node(pose)
-            for r in robots:
-                robust.add_edge(site, index[r], placed[r], prior)
+            add_fixed(robust)
             for reg in regs:
-                robust.add_edge(index[reg.a], index[reg.b], reg.z, tie, robust=True)
+                robust.add_edge(index[(reg.a, reg.a_piece)], index[(reg.b, reg.b_piece)], reg.z, tie, robust=True)
             robust.optimize(fixed=site)
             g = robust
-        return {r: g.poses[index[r]] for r in robots}
+        return {k: g.poses[i] for k, i in index.items()}
 
     # -- merge -----------------------------------------------------------------------------------
 
-    def _merge(self, robots: list[str], corrections: dict[str, Pose]) -> tuple[I8, tuple[float, float]]:
+    def _merge(self, robots: list[str], solved: dict[tuple[str, int], Pose]) -> tuple[I8, tuple[float, float]]:
         res = self.config.resolution_m
-        boxes = {r: _placed_box(self.maps[r].map, corrections[r]) for r in robots}
+        placed = [(p, solved[(r, p.index)]) for r in robots for p in self.maps[r].pieces]
+        boxes = [_placed_box(p, pose) for p, pose in placed]
         # On the first map's lattice (the onboard maps share one): resampling a map onto its own
         # lattice moves no wall by half a cell.
         px, py = self.maps[robots[0]].map.origin
-        x0 = px + math.floor((min(b[0] for b in boxes.values()) - px) / res) * res
-        y0 = py + math.floor((min(b[1] for b in boxes.values()) - py) / res) * res
-        w = math.ceil((max(b[2] for b in boxes.values()) - x0) / res)
-        h = math.ceil((max(b[3] for b in boxes.values()) - y0) / res)
+        x0 = px + math.floor((min(b[0] for b in boxes) - px) / res) * res
+        y0 = py + math.floor((min(b[1] for b in boxes) - py) / res) * res
+        w = math.ceil((max(b[2] for b in boxes) - x0) / res)
+        h = math.ceil((max(b[3] for b in boxes) - y0) / res)
         walls = np.zeros((h, w), dtype=np.int16)
         free = np.zeros((h, w), dtype=np.int16)
-        for r in robots:
-            m = self.maps[r].map
-            bx0, by0, bx1, by1 = boxes[r]
+        for (p, pose), (bx0, by0, bx1, by1) in zip(placed, boxes, strict=True):
             c0, c1 = max(0, math.floor((bx0 - x0) / res)), min(w, math.ceil((bx1 - x0) / res))
             r0, r1 = max(0, math.floor((by0 - y0) / res)), min(h, math.ceil((by1 - y0) / res))
+            if c1 <= c0 or r1 <= r0:
+                continue
             xs = x0 + (np.arange(c0, c1) + 0.5) * res
             ys = y0 + (np.arange(r0, r1) + 0.5) * res
             gx, gy = np.meshgrid(xs, ys)
-            ix, iy, ith = inverse(corrections[r])
+            ix, iy, ith = inverse(pose)
             cs, sn = math.cos(ith), math.sin(ith)
             sx = ix + cs * gx - sn * gy
             sy = iy + sn * gx + cs * gy
-            sc = np.floor((sx - m.origin[0]) / m.resolution).astype(np.int64)
-            sr = np.floor((sy - m.origin[1]) / m.resolution).astype(np.int64)
-            mh, mw = m.cells.shape
+            sc = np.floor((sx - p.origin[0]) / p.resolution).astype(np.int64)
+            sr = np.floor((sy - p.origin[1]) / p.resolution).astype(np.int64)
+            mh, mw = p.cells.shape
             ok = (sr >= 0) & (sr < mh) & (sc >= 0) & (sc < mw)
             src = np.full(sc.shape, UNKNOWN, dtype=np.int8)
-            src[ok] = m.cells[sr[ok], sc[ok]]
+            src[ok] = p.cells[sr[ok], sc[ok]]
             walls[r0:r1, c0:c1] += src >= 65
             free[r0:r1, c0:c1] += (src >= 0) & (src <= 25)
         out = np.full((h, w), UNKNOWN, dtype=np.int8)
@@ -316,14 +424,57 @@ class FleetMap:
         return out, (float(x0), float(y0))
 
 
-def _wall_points(m: RobotMap, max_points: int) -> F64:
-    rows, cols = np.nonzero(m.cells >= 65)
+def _pieces(m: RobotMap, max_points: int) -> list[_Piece]:
+    """The map's pieces: its submaps, or the whole map as one piece in a frame at its centre."""
+    if m.submaps:
+        return [
+            _Piece(
+                s.index,
+                s.version,
+                s.pose,
+                s.cells,
+                s.resolution,
+                s.origin,
+                _wall_points(s.cells, s.resolution, s.origin, max_points),
+            )
+            for s in m.submaps
+        ]
+    h, w = m.cells.shape
+    cx, cy = m.origin[0] + 0.5 * w * m.resolution, m.origin[1] + 0.5 * h * m.resolution
+    origin = (m.origin[0] - cx, m.origin[1] - cy)
+    return [
+        _Piece(
+            0,
+            m.version,
+            (cx, cy, 0.0),
+            m.cells,
+            m.resolution,
+            origin,
+            _wall_points(m.cells, m.resolution, origin, max_points),
+        )
+    ]
+
+
+def _transform(pose: Pose, pts: F64) -> F64:
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return np.column_stack((pose[0] + c * pts[:, 0] - s * pts[:, 1], pose[1] + s * pts[:, 0] + c * pts[:, 1]))
+
+
+def _mean_pose(poses: list[Pose]) -> Pose:
+    xs = [p[0] for p in poses]
+    ys = [p[1] for p in poses]
+    th = math.atan2(sum(math.sin(p[2]) for p in poses), sum(math.cos(p[2]) for p in poses))
+    return (sum(xs) / len(xs), sum(ys) / len(ys), th)
+
+
+def _wall_points(cells: I8, resolution: float, origin: tuple[float, float], max_points: int) -> F64:
+    rows, cols = np.nonzero(cells >= 65)
     if len(rows) > max_points:  # evenly subsampled, deterministic
         keep = np.linspace(0, len(rows) - 1, max_points).round().astype(np.int64)
         rows, cols = rows[keep], cols[keep]
-    return np.column_stack(
-        (m.origin[0] + (cols + 0.5) * m.resolution, m.origin[1] + (rows + 0.5) * m.resolution)
-    ).astype(np.float64)
+    return np.column_stack((origin[0] + (cols + 0.5) * resolution, origin[1] + (rows + 0.5) * resolution)).astype(
+        np.float64
+    )
 
 
 def _field_grids(m: RobotMap, sigma: float) -> PrecomputedGrids:
@@ -371,9 +522,9 @@ def _refine(grids: PrecomputedGrids, local: F64, pose: Pose, res: float, step: f
     return best, best_score
 
 
-def _placed_box(m: RobotMap, correction: Pose) -> tuple[float, float, float, float]:
-    h, w = m.cells.shape
-    xs = (m.origin[0], m.origin[0] + w * m.resolution)
-    ys = (m.origin[1], m.origin[1] + h * m.resolution)
-    pts = [compose(correction, (x, y, 0.0)) for x in xs for y in ys]
-    return (min(p[0] for p in pts), min(p[1] for p in pts), max(p[0] for p in pts), max(p[1] for p in pts))
+def _placed_box(p: _Piece, pose: Pose) -> tuple[float, float, float, float]:
+    h, w = p.cells.shape
+    xs = (p.origin[0], p.origin[0] + w * p.resolution)
+    ys = (p.origin[1], p.origin[1] + h * p.resolution)
+    pts = [compose(pose, (x, y, 0.0)) for x in xs for y in ys]
+    return (min(q[0] for q in pts), min(q[1] for q in pts), max(q[0] for q in pts), max(q[1] for q in pts))
