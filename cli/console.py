@@ -342,7 +342,7 @@ def fleet_map_service(link: Any, maps: Any, lock: Any, clock: Any, operator: str
     if primary is not None:
         share = MapShare(primary, keys.FLEET_MAP, clock, sender=operator)
         share.start()
-    return FleetMapService(maps, lock, clock, share=share)
+    return FleetMapService(maps, lock, clock, share=share, query=primary)
 
 
 def round_options(settings: ConsoleSettings) -> dict[str, Any]:

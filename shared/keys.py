@@ -32,6 +32,7 @@ import re
 __all__ = [
     "ALIVE_PREFIX",
     "ID_PATTERN",
+    "INDEXED_TOPICS",
     "MAX_TOPIC_SEGMENTS",
     "MQTT_ALL",
     "MQTT_ALL_TRUTH",
@@ -47,6 +48,7 @@ __all__ = [
     "check_id",
     "check_robot_id",
     "check_topic",
+    "indexed_key",
     "is_truth_key",
     "is_valid_id",
     "key",
@@ -57,6 +59,7 @@ __all__ = [
     "parse_truth_key",
     "sender_filter",
     "sender_key",
+    "split_index",
     "split_sender",
     "topic_of",
     "truth_key",
@@ -88,6 +91,14 @@ SENDER_TOPICS = frozenset({"order", "actions", "teleop", "lease/request", "zones
 """Topics people publish (commands, lease requests, marks and each console's retained set of
 marks, alarm acknowledgements): their keys end in the sender's login, ``fleetlink/v1/<robot>/<topic>/<sender>``, so the
 transport's access control vouches for it."""
+
+INDEXED_TOPICS = frozenset({"map/submap"})
+"""Topics with one key per item: ``fleetlink/v1/<robot>/<topic>/<n>`` (``indexed_key``), ``n`` the
+message's ``index`` in decimal. A query on ``<topic>/*`` asks for every item, on ``<topic>/<n>``
+for one (a robot's submaps: a console fetches only those it lacks)."""
+
+MAX_INDEX = 999_999_999
+"""The largest item index a key may carry (nine digits)."""
 
 ZENOH_ALL = f"{PREFIX}/**"
 """Zenoh key expression matching every fleetlink key (including the sim namespace)."""
@@ -227,13 +238,42 @@ def split_sender(topic: str) -> tuple[str, str | None]:
     return topic, None
 
 
+def indexed_key(robot: str, topic: str, index: int | str) -> str:
+    """``fleetlink/v1/<robot>/<topic>/<index>`` for an ``INDEXED_TOPICS`` topic; ``index`` may be
+    ``*`` (every item, as a key expression to ask for)."""
+    if topic not in INDEXED_TOPICS:
+        raise ValueError(f"topic {_show(topic)} is not keyed by item")
+    if index != "*" and not (isinstance(index, int) and not isinstance(index, bool) and 0 <= index <= MAX_INDEX):
+        raise ValueError(f"invalid item index {_show(index)}: expected 0-{MAX_INDEX} or '*'")
+    return f"{key(robot, topic)}/{index}"
+
+
+def split_index(topic: str) -> tuple[str, int | None]:
+    """A parsed key's topic as (message topic, item index): ``map/submap/12`` -> (``map/submap``, 12).
+
+    Other topics come back whole with index None -- and so does an ``INDEXED_TOPICS`` topic without
+    a decimal index (no sign, no leading zero, at most nine digits; the caller refuses it)."""
+    head, sep, tail = topic.rpartition("/")
+    if (
+        sep
+        and head in INDEXED_TOPICS
+        and 0 < len(tail) <= 9
+        and tail.isascii()
+        and tail.isdigit()
+        and (tail == "0" or tail[0] != "0")
+    ):
+        return head, int(tail)
+    return topic, None
+
+
 def topic_of(key_expr: str) -> str:
     """The message topic of ``fleetlink/v1/<robot>/<topic>[/<sender>]`` ("" for any other key);
     cheap (no validation): the links pick a quality of service by it for every message."""
     parts = key_expr.split("/", 3)
     if len(parts) != 4 or not key_expr.startswith(_PREFIX_SLASH):
         return ""
-    return split_sender(parts[3])[0]
+    topic, sender = split_sender(parts[3])
+    return topic if sender is not None else split_index(topic)[0]
 
 
 def truth_key(robot: str) -> str:

@@ -78,6 +78,8 @@ __all__ = [
     "LinkStatus",
     "MapEncoding",
     "MapSnapshot",
+    "MapSubmap",
+    "MapSubmaps",
     "MapUpdate",
     "Mark",
     "MarkEntry",
@@ -94,6 +96,7 @@ __all__ = [
     "Severity",
     "State",
     "StateError",
+    "SubmapEntry",
     "Teleop",
     "Trajectory",
     "Truth",
@@ -1016,6 +1019,71 @@ class MapUpdate(Message):
     row: Annotated[int, bounded(0, 65_535)]
     patch_width: Annotated[int, bounded(0, 65_535)]
     patch_height: Annotated[int, bounded(0, 65_535)]
+    encoding: MapEncoding
+    cells: Annotated[bytes, sized(MAX_MAP_DATA)]
+
+
+MAX_SUBMAPS = 2000
+"""Submaps listed per robot (one per ~3 m of travel: 6 km of mapping)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SubmapEntry:
+    """One submap of a robot's map and where its pose graph puts it now."""
+
+    index: Annotated[int, bounded(0, 999_999_999)]
+    version: Annotated[int, bounded(0)]
+    """+1 each time the submap is drawn again (the open one, as nodes join it)."""
+    x: Coordinate
+    """Metres, map frame: the submap's own frame (its first node's pose)."""
+    y: Coordinate
+    theta: Annotated[float, bounded(-3.2, 3.2)]
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MapSubmaps(Message):
+    """The submaps a robot's map is drawn from, the reply of the queryable
+    ``fleetlink/v1/<robot>/map/submaps`` (after Cartographer's ``SubmapList``): each one's index,
+    version and pose in the map frame as the robot's optimised pose graph has them now. A console
+    fetches the submaps whose version it lacks from ``fleetlink/v1/<robot>/map/submap/<index>``."""
+
+    TOPIC: ClassVar[str] = "map/submaps"
+
+    began: Annotated[float, bounded(0.0)]
+    """When this map began (seconds, the agent's clock): a map begun again (placed in the site frame,
+    or a restarted agent) numbers its submaps from 0 again, so indices are of one map only."""
+    site_frame: bool
+    """The map is in the site (UWB) frame."""
+    submaps: Annotated[tuple[SubmapEntry, ...], sized(MAX_SUBMAPS)]
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MapSubmap(Message):
+    """One submap's cells, the reply of the queryable ``fleetlink/v1/<robot>/map/submap/<index>``
+    (``.../submap/*``: every submap, one reply each; after Cartographer's ``SubmapQuery``).
+
+    ``cells`` is the zlib-compressed int8 grid (row-major, row 0 at the bottom) in the submap's own
+    frame, as in ``MapSnapshot``; ``x``, ``y``, ``theta`` place that frame in the map frame as the
+    robot's pose graph had it when the reply was made (``MapSubmaps`` gives it as it is now).
+    """
+
+    TOPIC: ClassVar[str] = "map/submap"
+
+    began: Annotated[float, bounded(0.0)]
+    """As ``MapSubmaps.began``: which map this submap is of."""
+    index: Annotated[int, bounded(0, 999_999_999)]
+    version: Annotated[int, bounded(0)]
+    x: Coordinate
+    y: Coordinate
+    theta: Annotated[float, bounded(-3.2, 3.2)]
+    resolution: Annotated[float, bounded(0.001, 10.0)]
+    origin_x: Coordinate
+    """Metres, the submap's own frame: the lower-left corner of cell (0, 0)."""
+    origin_y: Coordinate
+    width: Annotated[int, bounded(0, 65_535)]
+    height: Annotated[int, bounded(0, 65_535)]
     encoding: MapEncoding
     cells: Annotated[bytes, sized(MAX_MAP_DATA)]
 

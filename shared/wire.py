@@ -883,6 +883,8 @@ def key_of(msg: Message) -> str:
         return keys.truth_key(msg.header.robot)
     if msg.TOPIC in keys.SENDER_TOPICS:
         return keys.sender_key(msg.header.robot, msg.TOPIC, msg.header.sender)
+    if msg.TOPIC in keys.INDEXED_TOPICS:
+        return keys.indexed_key(msg.header.robot, msg.TOPIC, msg.index)  # type: ignore[attr-defined]
     return keys.key(msg.header.robot, msg.TOPIC)
 
 
@@ -982,17 +984,25 @@ def decode_key_unpacked(key_expr: str, data: bytes, *, max_payload: int = MAX_PA
     changed): for a receiver that also needs the message's wire form (the flight recorder's JSON,
     shared/wire_json.py) without unpacking it twice. Raises only WireError."""
     sender: str | None = None
+    index: int | None = None
     try:
         if keys.is_truth_key(key_expr):
             robot, topic = keys.parse_truth_key(key_expr), keys.TRUTH_TOPIC
         else:
             robot, topic = keys.parse_key(key_expr)
             topic, sender = keys.split_sender(topic)
+            if sender is None:
+                topic, index = keys.split_index(topic)
     except ValueError as exc:
         raise WireError(str(exc), "key") from None
     if sender is None and topic in keys.SENDER_TOPICS:
         raise WireError(
             f"a {topic!r} message must be published on {keys.PREFIX}/<robot>/{topic}/<sender>, not {_show(key_expr)}",
+            "key",
+        )
+    if index is None and topic in keys.INDEXED_TOPICS:
+        raise WireError(
+            f"a {topic!r} message must be published on {keys.PREFIX}/<robot>/{topic}/<index>, not {_show(key_expr)}",
             "key",
         )
     _load_builtin_messages()
@@ -1007,6 +1017,8 @@ def decode_key_unpacked(key_expr: str, data: bytes, *, max_payload: int = MAX_PA
         raise WireError(
             f"{msg.header.sender!r} does not match the key's sender {sender!r} (who published it)", "header.sender"
         )
+    if index is not None and getattr(msg, "index", None) != index:
+        raise WireError(f"index {getattr(msg, 'index', None)!r} does not match the key's {index}", "index")
     return msg, obj
 
 

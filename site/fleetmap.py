@@ -1,7 +1,7 @@
 """The fleet map service: one map of the site, built from every robot's onboard map and served on
 the link like a robot's map (``fleetlink/v1/fleet/map``, patches on ``.../fleet/map/updates``).
 
-    service = FleetMapService(follower, lock, clock, share=MapShare(link, keys.FLEET_MAP, clock))
+    service = FleetMapService(follower, lock, clock, share=MapShare(link, keys.FLEET_MAP, clock), query=link)
     fetcher = MapFetcher(follower, fetch, clock, lock, after_poll=service.step)   # operator/maps.py
 
 The robots' maps are followed as the console follows them (``MapFollower``: a snapshot per robot,
@@ -10,6 +10,13 @@ every ``period_s``) copies the maps that changed under the lock, hands them to t
 (agent/mapping/fleetmap.py: inter-robot registration, the site frame, the merge) outside it, puts
 the result in the fleet model as the grid ``keys.FLEET_MAP`` (the console's map draws it instead
 of the robots' own maps) and publishes it on ``share`` when its cells changed.
+
+With ``query`` (a link that answers queries), each robot's map goes to the core with its submaps:
+the build asks each robot for its submap list (``fleetlink/v1/<robot>/map/submaps``: index, version
+and pose of each, as its pose graph has them now) and fetches only the submaps whose version it
+lacks (``.../map/submap/<index>``, or ``.../submap/*`` for many), so the fleet map is merged from the
+robots' optimised submaps, each placed on its own. A robot that lists no submaps (no loop closure)
+is merged whole.
 
 Two hosts: the console (cli/console.py), on its own link, so the demo's console serves the fleet
 map that ``fleetlink map save --fleet`` fetches; and ``fleetlink map fleet``, a process of its own
@@ -21,12 +28,14 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from fleetlink.agent.mapping.fleetmap import FleetMap, FleetMapConfig, FleetResult, RobotMap
+from fleetlink.agent.mapping.fleetmap import FleetMap, FleetMapConfig, FleetResult, RobotMap, Submap
 from fleetlink.agent.mapping.keeper import MapPublication
-from fleetlink.agent.mapping.share import MapShare
+from fleetlink.agent.mapping.share import MapShare, fetch_submap, fetch_submaps, submap_of
+from fleetlink.links.base import QueryLink
 from fleetlink.operator.maps import MapFollower, to_grid
 from fleetlink.shared import keys
 from fleetlink.shared.clock import Clock
@@ -38,6 +47,17 @@ log = logging.getLogger(__name__)
 
 PERIOD_S = 2.0
 """Seconds between builds while the robots' maps change (each robot shares its map every second)."""
+QUERY_TIMEOUT_S = 2.0
+ONE_BY_ONE = 4
+"""Missing submaps fetched one query each up to this many; more (a robot first heard of): all at once."""
+
+
+@dataclass
+class _Submaps:
+    """A robot's submaps as fetched: of the map begun at ``began``, by index."""
+
+    began: float
+    held: dict[int, Submap] = field(default_factory=dict)
 
 
 class FleetMapService:
@@ -51,6 +71,7 @@ class FleetMapService:
         period_s: float = PERIOD_S,
         config: FleetMapConfig | None = None,
         on_built: Callable[[FleetResult], None] | None = None,
+        query: QueryLink | None = None,
     ) -> None:
         self.follower = follower
         self.lock = lock
@@ -64,6 +85,10 @@ class FleetMapService:
         self._next = -float("inf")
         self._seen: dict[str, int] = {}
         self._published: MapPublication | None = None
+        self.query = query
+        self._submaps: dict[str, _Submaps] = {}
+        self.submaps_fetched = 0
+        self.submaps_refused = 0
 
     def step(self) -> bool:
         """Build and publish if the robots' maps changed and ``period_s`` has passed. True if built."""
@@ -79,9 +104,11 @@ class FleetMapService:
         self._next = now + self.period_s
         for robot in set(self.core.maps) - set(copies):
             self.core.forget(robot)
+        for robot in set(self._submaps) - set(copies):
+            del self._submaps[robot]
         for robot, m in copies.items():
             try:
-                self.core.put(robot, RobotMap(m.cells, m.resolution, m.origin, m.version))
+                self.core.put(robot, RobotMap(m.cells, m.resolution, m.origin, m.version, self._fetch(robot)))
             except ValueError as exc:
                 log.warning("fleet map: %s's map left out: %s", robot, exc)
         result = self.core.build()
@@ -102,6 +129,40 @@ class FleetMapService:
         if self.on_built is not None:
             self.on_built(result)
         return True
+
+    def _fetch(self, robot: str) -> tuple[Submap, ...]:
+        """``robot``'s submaps at the poses its graph gives them now; () when it lists none (its map is
+        then merged whole). Only the submaps whose version is not held are fetched."""
+        if self.query is None:
+            return ()
+        listing = fetch_submaps(self.query, robot, QUERY_TIMEOUT_S)
+        if listing is None or not listing.submaps:
+            return ()
+        known = self._submaps.get(robot)
+        if known is None or known.began != listing.began:
+            if known is not None:
+                self.core.forget(robot)  # a map begun again: nothing registered of the old one holds
+            known = self._submaps[robot] = _Submaps(listing.began)
+        listed = {e.index: e for e in listing.submaps}
+        for i in set(known.held) - set(listed):
+            del known.held[i]
+        missing = [
+            e.index for e in listing.submaps if e.index not in known.held or known.held[e.index].version != e.version
+        ]
+        asked: list[int | str] = list(missing) if len(missing) <= ONE_BY_ONE else ["*"]
+        for index in asked:
+            for msg in fetch_submap(self.query, robot, index, QUERY_TIMEOUT_S):
+                if msg.began != known.began or msg.index not in listed:
+                    continue
+                try:
+                    known.held[msg.index] = submap_of(msg)
+                    self.submaps_fetched += 1
+                except ValueError as exc:
+                    self.submaps_refused += 1
+                    log.warning("fleet map: %s's submap %d left out: %s", robot, msg.index, exc)
+        return tuple(
+            replace(known.held[i], pose=(e.x, e.y, e.theta)) for i, e in sorted(listed.items()) if i in known.held
+        )
 
 
 def publication_of(result: FleetResult, previous: MapPublication | None) -> MapPublication:

@@ -33,7 +33,7 @@ from fleetlink.site.fleetmap import FleetMapService
 from tests.harness import wait_until
 from tests.harness.console_rig import Rig
 from tests.test_console import run_async
-from tests.test_fleetmap import distance_to_walls, robot_map, undo, walls_of
+from tests.test_fleetmap import BENT, RES, distance_to_walls, robot_map, undo, walls_of, with_submaps
 
 
 def publish_pose(link: ZenohEndpoint, counter: wire.HeaderCounter, x: float, y: float) -> None:
@@ -213,3 +213,57 @@ def test_the_fleet_map_service_process_builds_and_serves_the_fleet_map(zenoh_pee
         robots_side.close()
     assert service.returncode == 0, err[-2000:]
     assert "serving fleetlink/v1/fleet/map" in out
+
+
+def test_a_robot_s_bent_map_is_merged_from_its_submaps_fetched_over_the_link(zenoh_peers: Any) -> None:
+    """r2 shares a map bent along the way (its submaps each further off) with its submap list: the
+    console's service fetches the submaps, straightens them one by one against r1's map, and fetches
+    none again while only their poses change."""
+    clock = SystemClock()
+    peers = zenoh_peers(2)
+    robots_side = ZenohEndpoint(session=peers[1])
+    robots_side.start()
+    console_side = ZenohEndpoint(session=peers[0])
+    console_side.start()
+    fleet = FleetModel("op-fleet")
+    lock = threading.Lock()
+    follower = MapFollower(fleet, retry_s=0.5)
+    service = FleetMapService(follower, lock, clock, period_s=0.0, query=console_side)
+    r1, r2 = robot_map((0.0, 0.0, 9.0, 6.0)), with_submaps(BENT)
+    shares = {r: MapShare(robots_side, r, clock) for r in ("r1", "r2")}
+    poses = tuple((s.index, s.version, s.pose) for s in BENT)
+    try:
+        for share in shares.values():
+            share.start()
+        shares["r1"].publish(MapPublication(r1.version, r1.cells, RES, r1.origin, None, site_frame=True))
+        shares["r2"].publish(
+            MapPublication(r2.version, r2.cells, RES, r2.origin, None, True, 5.0, BENT, submap_poses=poses)
+        )
+        with lock:
+            for r, m in (("r1", r1), ("r2", r2)):
+                follower.maps[r] = SharedMap(m.cells.copy(), m.resolution, m.origin, m.version)
+        wait_until(service.step, timeout=10, message="a fleet map built")
+        result = service.result
+        assert result is not None and service.submaps_fetched == 3
+        assert {r.b_piece for r in result.registrations if r.b == "r2"} == {0, 1, 2}
+        d = distance_to_walls(undo(result.corrections["r1"], walls_of(result.cells, result.origin, result.resolution)))
+        assert np.median(d) <= 0.03 and np.mean(d > 0.1) < 0.01
+        # r2's graph moves its submaps (a closure): the list says so; the cells are not fetched again.
+        moved = tuple((i, v, (p[0] + 0.01, p[1], p[2])) for i, v, p in poses)
+        shares["r2"].publish(MapPublication(r2.version + 1, r2.cells, RES, r2.origin, None, True, 5.0, (), moved))
+        with lock:
+            follower.maps["r2"] = SharedMap(r2.cells.copy(), RES, r2.origin, r2.version + 1)
+        assert service.step()
+        assert service.submaps_fetched == 3
+        assert service.core.maps["r2"].pieces[0].placed == moved[0][2]
+        # r2's map begun again (its agent restarted): every submap is fetched anew.
+        shares["r2"].publish(MapPublication(r2.version + 2, r2.cells, RES, r2.origin, None, True, 9.0, BENT, poses))
+        with lock:
+            follower.maps["r2"] = SharedMap(r2.cells.copy(), RES, r2.origin, r2.version + 2)
+        assert service.step()
+        assert service.submaps_fetched == 6
+    finally:
+        for share in shares.values():
+            share.stop()
+        robots_side.close()
+        console_side.close()

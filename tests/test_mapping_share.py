@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping.keeper import MapPublication
+from fleetlink.agent.mapping.keeper import MapKeeper, MapPublication, Turn
 from fleetlink.agent.mapping.mapper import OnboardMapper
 from fleetlink.agent.mapping.share import MapShare, fetch_map
 from fleetlink.cli.main import main
@@ -123,3 +123,88 @@ def test_codec_rejects_bad_cells() -> None:
         decode_cells(zlib.compress(bytes(5)), 2, 2)  # one cell too many
     with pytest.raises(ValueError):
         decode_cells(zlib.compress(bytes([120, 0, 0, 0])), 2, 2)  # 120 is not a cell value
+
+
+def _keeper_publications() -> list[MapPublication]:
+    """A keeper with loop closure driven up and down the room: its publications, submaps and all."""
+    keeper = MapKeeper(share_period=0.5)
+    pubs = []
+    t = 0.0
+    for leg in range(4):
+        for k in range(26):
+            x = 0.8 + 0.17 * k if leg % 2 == 0 else 5.2 - 0.17 * k
+            pose = (x, 1.5 + 0.3 * leg, 0.0 if leg % 2 == 0 else math.pi)
+            up = keeper.add(Turn(t, _scan(pose), ANGLES, pose, placed=True, driving=True, now=t))
+            if up.publication is not None:
+                pubs.append(up.publication)
+            t += 0.5
+    return pubs
+
+
+def test_the_map_s_submaps_are_listed_and_fetched_one_by_one_or_all(zenoh_peers) -> None:  # type: ignore[no-untyped-def]
+    from fleetlink.agent.mapping.share import fetch_submap, fetch_submaps, submap_of
+    from fleetlink.field.plans import nearest_segment_distances
+
+    pubs = _keeper_publications()
+    last = pubs[-1]
+    assert len(last.submap_poses) >= 3
+    # Each submap drawn when it changed: a finished one once, however many publications follow.
+    drawn = [sm.index for p in pubs for sm in p.submaps]
+    finished = [i for i, v, _ in last.submap_poses if v == 10]
+    assert finished and all(drawn.count(i) <= 10 for i in finished)
+    assert {sm.index for p in pubs for sm in p.submaps} == {i for i, _, _ in last.submap_poses}
+
+    peers = zenoh_peers(2)
+    agent, other = (ZenohEndpoint(session=s) for s in peers)
+    agent.start()
+    other.start()
+    share = MapShare(agent, "r1", SimClock())
+    share.start()
+    try:
+        for p in pubs:
+            share.publish(p)
+        listing = _until(lambda: fetch_submaps(other, "r1", timeout=2.0))
+        assert listing is not None and listing.site_frame and listing.began == last.began
+        assert [(e.index, e.version) for e in listing.submaps] == [(i, v) for i, v, _ in last.submap_poses]
+        one = fetch_submap(other, "r1", 1, timeout=2.0)
+        assert [m.index for m in one] == [1]
+        every = fetch_submap(other, "r1", "*", timeout=2.0)
+        assert sorted(m.index for m in every) == [e.index for e in listing.submaps]
+        assert fetch_submap(other, "r1", 999, timeout=2.0) == []
+        # A submap's walls, placed where the list puts its frame, lie on the room's walls.
+        for msg in every:
+            e = listing.submaps[msg.index]
+            sm = submap_of(msg, (e.x, e.y, e.theta))
+            rows, cols = np.nonzero(sm.cells >= 65)
+            assert len(rows) > 50
+            px = sm.origin[0] + (cols + 0.5) * sm.resolution
+            py = sm.origin[1] + (rows + 0.5) * sm.resolution
+            c, s = math.cos(sm.pose[2]), math.sin(sm.pose[2])
+            site = np.column_stack((sm.pose[0] + c * px - s * py, sm.pose[1] + s * px + c * py))
+            assert np.median(nearest_segment_distances(site, ROOM)) < 0.05
+    finally:
+        share.stop()
+    assert fetch_submaps(other, "r1", timeout=0.5) is None  # stopped: nothing answers
+
+
+def test_a_submap_s_key_names_its_index() -> None:
+    from fleetlink.shared.map_codec import snapshot_fields
+    from fleetlink.shared.messages import MapSubmap
+
+    counter = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
+    fields = snapshot_fields(np.zeros((2, 3), dtype=np.int8), 0.05, (0.0, 0.0), 3)
+    msg = counter.make(MapSubmap, began=1.0, index=7, x=0.0, y=0.0, theta=0.0, **fields)
+    assert wire.key_of(msg) == "fleetlink/v1/r1/map/submap/7"
+    data = wire.encode(msg)
+    assert wire.decode_key("fleetlink/v1/r1/map/submap/7", data) == msg
+    for bad, reason in (
+        ("fleetlink/v1/r1/map/submap/8", "index"),
+        ("fleetlink/v1/r1/map/submap", "index"),
+        ("fleetlink/v1/r1/map/submap/07", "key"),
+    ):
+        with pytest.raises(wire.WireError) as err:
+            wire.decode_key(bad, data)
+        assert err.value.field in (reason, "key", "topic"), (bad, err.value)
+    assert keys.topic_of("fleetlink/v1/r1/map/submap/7") == "map/submap"
+    with pytest.raises(ValueError):
+        keys.indexed_key("r1", "map", 1)

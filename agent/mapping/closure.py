@@ -709,6 +709,23 @@ class LoopCloser:
         self._touch(sm)
         return sm.drawn
 
+    def draw_occupancy(self, i: int) -> tuple[npt.NDArray[np.int8], float, tuple[float, float]]:
+        """Submap ``i``'s map_server cells (-1 unknown, 0-100), drawn from its nodes' scans at the
+        graph's poses now, in its first node's frame, cropped to the cells seen: what a robot shares
+        of it (agent/mapping/keeper.py ``SubmapPublication``; the fleet map merges submaps)."""
+        sm = self.submaps[i]
+        g = LogOddsGrid(replace(self.grid_config, grow_step=SUBMAP_GROW_M))
+        for sensor, sc in self._parts(sm):
+            g.integrate(sensor, sc.ranges, sc.angles, sc.hit, refresh=False)
+        cells = g.occupancy()
+        rows = np.flatnonzero((cells != -1).any(axis=1))
+        cols = np.flatnonzero((cells != -1).any(axis=0))
+        if not len(rows):
+            return np.full((1, 1), -1, dtype=np.int8), g.resolution, g.origin
+        r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+        res = g.resolution
+        return np.ascontiguousarray(cells[r0:r1, c0:c1]), res, (g.origin[0] + c0 * res, g.origin[1] + r0 * res)
+
     def _touch(self, sm: _Submap) -> None:
         """``sm`` used now: last in the cache's order; the least recently used beyond the cache let go."""
         if sm in self._drawn:

@@ -240,7 +240,9 @@ class FleetMap:
         return True
 
     def forget(self, robot: str) -> None:
-        self.maps.pop(robot, None)
+        """Let ``robot``'s map go (gone, or begun again: what was registered of it no longer holds)."""
+        if self.maps.pop(robot, None) is not None:
+            self._epochs[robot] = self._epochs.get(robot, 0) + 1
 
     def build(self) -> FleetResult | None:
         """The fleet map from the maps held (None: none yet). Deterministic for the same maps taken in

@@ -34,16 +34,17 @@ the cells, so it may be used on another thread, or in another process than the k
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
 
 from fleetlink.agent.mapping.closure import CloserConfig, ClosureSearch, DeferredSearch
+from fleetlink.agent.mapping.fleetmap import Submap
 from fleetlink.agent.mapping.grid import Box
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig, SensorCone
-from fleetlink.agent.mapping.se2 import compose
+from fleetlink.agent.mapping.se2 import Pose, compose
 from fleetlink.agent.mapping.se2 import inverse as inverse_pose
 
 __all__ = [
@@ -160,6 +161,12 @@ class MapPublication:
     site_frame: bool = False
     """The map is in the site (UWB) frame: the robot was placed before it began (the dose layer
     takes its floor only from such a map)."""
+    began: float = 0.0
+    """When this map began (the keeper's clock): its submaps are numbered within it."""
+    submaps: tuple[Submap, ...] = ()
+    """The submaps drawn since the previous publication (new ones, and the open one as it grew)."""
+    submap_poses: tuple[tuple[int, int, Pose], ...] = ()
+    """Every submap's (index, version, pose in the map frame) as the pose graph has them now."""
 
     @classmethod
     def of(cls, mapper: OnboardMapper, *, site_frame: bool = False, base: int = 0) -> MapPublication:
@@ -277,6 +284,8 @@ class MapKeeper:
         self._next_planner = -math.inf
         self._shared_version = -1
         self._next_share = -math.inf
+        self._began: float | None = None  # when the current map began
+        self._submap_versions: dict[int, int] = {}  # the version of each submap last published
 
     def add(self, turn: Turn) -> Update:
         """One revolution, seen from ``turn.pose`` (the fused map pose)."""
@@ -294,8 +303,11 @@ class MapKeeper:
                 self._anchored = False
                 self._planned_version = -1
                 self._shared_version, self._next_share = -1, -math.inf
+                self._began, self._submap_versions = None, {}
                 self.restarts += 1
                 restarted = True
+        if self._began is None:
+            self._began = now
         if not self._due(t, pose):
             self.skipped += 1
             return Update(restarted=restarted, publication=self._publication(now))
@@ -347,7 +359,21 @@ class MapKeeper:
             return None
         self._shared_version = mapper.version
         self._next_share = now + self.share_period
-        return MapPublication.of(mapper, site_frame=self.in_site_frame, base=self._version_base)
+        pub = MapPublication.of(mapper, site_frame=self.in_site_frame, base=self._version_base)
+        closer = mapper.closer
+        if closer is None:
+            return pub
+        # The submaps as the graph has them now: each drawn again only when nodes joined it (a
+        # finished submap once; Cartographer's submaps too stay as drawn when finished).
+        drawn, poses = [], []
+        for i, sm in enumerate(closer.submaps):
+            version, pose = sm.last - sm.first, closer.poses[sm.first]
+            poses.append((i, version, pose))
+            if self._submap_versions.get(i) != version:
+                cells, res, origin = closer.draw_occupancy(i)
+                drawn.append(Submap(i, version, pose, cells, res, origin))
+                self._submap_versions[i] = version
+        return replace(pub, began=self._began or 0.0, submaps=tuple(drawn), submap_poses=tuple(poses))
 
     def _due(self, t: float, pose: tuple[float, float, float]) -> bool:
         if self._last is None:

@@ -12,22 +12,36 @@ mapper). A receiver that missed an update (``base_version`` mismatch) or sees th
 a snapshot (``codec.SharedMap.apply`` returns False); a map too large for one message whole goes
 out coarser, and then no patch is sent (the receivers' copy is coarser: it would not apply).
 
-``fetch_map(link, robot)`` is the asking side (used by ``fleetlink map save``).
+The share also serves the submaps the map is drawn from (after Cartographer's ``SubmapList`` and
+``SubmapQuery``): ``fleetlink/v1/<robot>/map/submaps`` answers the list (``MapSubmaps``: each
+submap's index, version and pose as the pose graph has it now), ``.../map/submap/<index>`` one
+submap's cells (``MapSubmap``; ``.../map/submap/*`` every one). Nothing is published for them: the
+fleet map (site/fleetmap.py) asks for the list as it builds and fetches only the submaps it lacks.
+
+``fetch_map(link, robot)`` is the asking side (used by ``fleetlink map save``); ``fetch_submaps``
+and ``fetch_submap`` for the submaps.
 """
 
 from __future__ import annotations
 
+import logging
+import math
+import threading
 from collections.abc import Mapping
 from typing import Any
 
 from fleetlink.agent.layer_share import LayerShare, fetch
+from fleetlink.agent.mapping.fleetmap import Submap
 from fleetlink.agent.mapping.keeper import MapPublication
 from fleetlink.links.base import QueryLink
+from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
-from fleetlink.shared.map_codec import fits_whole, patch_fields, snapshot_fields
-from fleetlink.shared.messages import MapSnapshot, MapUpdate
+from fleetlink.shared.map_codec import decode_cells, fits_whole, patch_fields, snapshot_fields
+from fleetlink.shared.messages import MAX_SUBMAPS, MapSnapshot, MapSubmap, MapSubmaps, MapUpdate, SubmapEntry
 
-__all__ = ["MapShare", "fetch_map"]
+__all__ = ["MapShare", "fetch_map", "fetch_submap", "fetch_submaps", "submap_of"]
+
+log = logging.getLogger(__name__)
 
 
 def _snapshot(pub: MapPublication) -> Mapping[str, Any]:
@@ -45,8 +59,110 @@ class MapShare(LayerShare[MapPublication]):
         super().__init__(
             link, robot, clock, MapSnapshot, MapUpdate, snapshot_of=_snapshot, patch_of=_patch, sender=sender
         )
+        self.list_key = keys.key(robot, MapSubmaps.TOPIC)
+        self.submap_keys = keys.indexed_key(robot, MapSubmap.TOPIC, "*")
+        self._sub_lock = threading.Lock()
+        self._began = 0.0
+        self._site_frame = False
+        self._submaps: dict[int, Submap] = {}  # the latest drawing of each
+        self._encoded: dict[int, bytes] = {}  # each submap's reply, made when first asked for
+        self._poses: tuple[tuple[int, int, tuple[float, float, float]], ...] = ()
+        self._list: bytes | None = None
+        self.submap_queries = 0
+
+    def start(self) -> None:
+        if self._started:
+            return
+        super().start()
+        self.link.serve(self.list_key, self._answer_list)
+        self.link.serve(self.submap_keys, self._answer_submaps)
+
+    def stop(self) -> None:
+        was = self._serving
+        super().stop()
+        if was:
+            self.link.unserve(self.list_key)
+            self.link.unserve(self.submap_keys)
+
+    def publish(self, pub: MapPublication) -> None:
+        with self._sub_lock:
+            if pub.submap_poses or pub.submaps:
+                self._began, self._site_frame = pub.began, pub.site_frame
+                for sm in pub.submaps:
+                    self._submaps[sm.index] = sm
+                    self._encoded.pop(sm.index, None)
+                self._poses, self._list = pub.submap_poses[-MAX_SUBMAPS:], None
+        super().publish(pub)
+
+    def _answer_list(self, _key_expr: str) -> list[tuple[str, bytes]]:
+        if not self._serving:
+            return []
+        with self._sub_lock:
+            if not self._poses:
+                return []
+            if self._list is None:
+                entries = tuple(
+                    SubmapEntry(index=i, version=v, x=p[0], y=p[1], theta=math.remainder(p[2], math.tau))
+                    for i, v, p in self._poses
+                )
+                msg = self.counter.make(MapSubmaps, began=self._began, site_frame=self._site_frame, submaps=entries)
+                self._list = wire.encode(msg)
+            return [(self.list_key, self._list)]
+
+    def _answer_submaps(self, key_expr: str) -> list[tuple[str, bytes]]:
+        """``.../map/submap/<index>``: that submap; any other expression (``*``): every one."""
+        if not self._serving:
+            return []
+        _, asked = keys.split_index(keys.parse_key(key_expr)[1]) if not key_expr.endswith("*") else ("", None)
+        with self._sub_lock:
+            self.submap_queries += 1
+            wanted = sorted(self._submaps) if asked is None else [asked] if asked in self._submaps else []
+            replies = []
+            for i in wanted:
+                data = self._encoded.get(i)
+                if data is None:
+                    sm = self._submaps[i]
+                    fields = snapshot_fields(sm.cells, sm.resolution, sm.origin, sm.version)
+                    x, y, th = sm.pose
+                    msg = self.counter.make(
+                        MapSubmap, began=self._began, index=i, x=x, y=y, theta=math.remainder(th, math.tau), **fields
+                    )
+                    data = self._encoded[i] = wire.encode(msg)
+                replies.append((keys.indexed_key(self.robot, MapSubmap.TOPIC, i), data))
+            return replies
 
 
 def fetch_map(link: QueryLink, robot: str, timeout: float = 5.0) -> MapSnapshot | None:
     """Ask ``fleetlink/v1/<robot>/map``; the first valid snapshot, or None (bad replies are logged)."""
     return fetch(link, robot, MapSnapshot, timeout)
+
+
+def fetch_submaps(link: QueryLink, robot: str, timeout: float = 5.0) -> MapSubmaps | None:
+    """Ask ``fleetlink/v1/<robot>/map/submaps``: the robot's submap list, or None (none, or no
+    answer: an agent without loop closure, or one that predates submaps, shares its map whole)."""
+    return fetch(link, robot, MapSubmaps, timeout)
+
+
+def fetch_submap(link: QueryLink, robot: str, index: int | str = "*", timeout: float = 5.0) -> list[MapSubmap]:
+    """Ask ``fleetlink/v1/<robot>/map/submap/<index>`` (``*``: every submap): the valid replies (bad
+    ones are logged and left out)."""
+    key = keys.indexed_key(robot, MapSubmap.TOPIC, index)
+    out = []
+    for reply_key, payload in link.query(key, timeout):
+        try:
+            msg = wire.decode_key(reply_key, payload)
+        except wire.WireError as exc:
+            log.warning("submap query %s: rejected reply: %s", key, exc.reason)
+            continue
+        if isinstance(msg, MapSubmap) and msg.header.robot == robot:
+            out.append(msg)
+    return out
+
+
+def submap_of(msg: MapSubmap, pose: tuple[float, float, float] | None = None) -> Submap:
+    """The submap a ``MapSubmap`` carries, at ``pose`` (the list's, newer) or its own; ValueError for
+    cells that do not decode."""
+    cells = decode_cells(msg.cells, msg.width, msg.height)
+    return Submap(
+        msg.index, msg.version, pose or (msg.x, msg.y, msg.theta), cells, msg.resolution, (msg.origin_x, msg.origin_y)
+    )
