@@ -261,3 +261,27 @@ def test_a_bent_map_is_straightened_submap_by_submap_against_another_robots_map(
     assert rigid is not None
     d_rigid = distance_to_walls(undo(rigid.corrections["a"], walls_of(rigid.cells, rigid.origin, rigid.resolution)))
     assert np.mean(d_rigid > 0.1) > 0.05
+
+
+def test_a_build_searches_within_its_budget_and_the_next_builds_catch_up() -> None:
+    def fleet(budget: int) -> FleetMap:
+        fm = FleetMap(FleetMapConfig(max_searches_per_build=budget))
+        fm.put("a", robot_map((0.0, 0.0, 9.0, 6.0)))
+        fm.put("b", with_submaps(BENT))
+        return fm
+
+    slow, fast = fleet(2), fleet(100)
+    counts = []
+    for _ in range(3):
+        r = slow.build()
+        assert r is not None
+        counts.append(len(r.registrations))
+    # Two searches per build: b's three submaps onto a, then a's map onto b's (refused: b's map is
+    # bent, a fits no part of it well enough; not tried again while b's map stays the same).
+    assert counts == [2, 3, 3] and slow.refused == 1
+    whole = fast.build()
+    assert whole is not None and len(whole.registrations) == 3
+    assert np.array_equal(r.cells, whole.cells) and r.piece_corrections == whole.piece_corrections
+    # Matches are kept: a build with nothing new searches nothing.
+    refused, before = slow.refused, dict(slow._regs)
+    assert slow.build() is not None and slow._regs == before and slow.refused == refused
