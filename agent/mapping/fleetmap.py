@@ -38,7 +38,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from scipy import ndimage
 
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.posegraph import PoseGraph
@@ -239,6 +238,8 @@ class FleetMap:
             self._epochs[robot] = self._epochs.get(robot, 0) + 1
         known = m.cells != UNKNOWN
         reach = math.ceil(cfg.window_xy_m / m.resolution)
+        from scipy import ndimage  # here, not at import: agents import this module for ``Submap``
+
         near_known = ndimage.binary_dilation(known, iterations=reach) if reach else known
         grids = _field_grids(m, cfg.field_sigma_m)
         self.maps[robot] = _Prepared(m, self._epochs.get(robot, 0), grids, near_known, pieces)
@@ -486,6 +487,8 @@ def _wall_points(cells: I8, resolution: float, origin: tuple[float, float], max_
 
 
 def _field_grids(m: RobotMap, sigma: float) -> PrecomputedGrids:
+    from scipy import ndimage
+
     d = ndimage.distance_transform_edt(m.cells < 65) * m.resolution
     lik = np.exp(-0.5 * (np.asarray(d, dtype=np.float64) / sigma) ** 2).astype(np.float32)
     lik[m.cells == UNKNOWN] = 0.0
