@@ -285,3 +285,24 @@ def test_a_build_searches_within_its_budget_and_the_next_builds_catch_up() -> No
     # Matches are kept: a build with nothing new searches nothing.
     refused, before = slow.refused, dict(slow._regs)
     assert slow.build() is not None and slow._regs == before and slow.refused == refused
+
+
+def test_a_match_onto_a_map_that_grew_is_not_taken_from_the_cache() -> None:
+    """A map shared whole is placed in a frame at its centre, which moves as it grows: a match tied to
+    it is made again, not reused (reused, it pulled a robot that had stopped 0.7 m off)."""
+    off = (0.1, 0.05, math.radians(1.0))
+    fm = FleetMap()
+    fm.put("a", robot_map((0.0, 0.0, 6.5, 4.0)))
+    fm.put("b", robot_map((2.5, 0.0, 9.0, 6.0), off))
+    assert fm.build() is not None
+    grown = robot_map((0.0, 0.0, 6.5, 6.0), version=2)
+    fm.put("a", grown)
+    again = fm.build()
+    fresh = FleetMap()
+    fresh.put("a", grown)
+    fresh.put("b", robot_map((2.5, 0.0, 9.0, 6.0), off))
+    want = fresh.build()
+    assert again is not None and want is not None
+    for r in ("a", "b"):
+        c, w = again.corrections[r], want.corrections[r]
+        assert math.hypot(c[0] - w[0], c[1] - w[1]) < 0.01 and abs(c[2] - w[2]) < 0.002, (r, c, w)

@@ -159,15 +159,16 @@ def _check_cells(cells: I8, resolution: float, origin: tuple[float, float], what
 @dataclass(frozen=True, slots=True)
 class Registration:
     """Robot ``b``'s piece ``b_piece`` seen from the frame of robot ``a``'s piece ``a_piece``, as
-    matching the first onto ``a``'s map measured it (a map shared whole is its robot's piece 0)."""
+    matching the first onto ``a``'s map measured it (a map shared whole is its robot's piece
+    ``WHOLE``, -1)."""
 
     a: str
     b: str
     z: Pose
     score: float
     points: int
-    a_piece: int = 0
-    b_piece: int = 0
+    a_piece: int = -1
+    b_piece: int = -1
 
 
 @dataclass(frozen=True, slots=True)
@@ -202,14 +203,23 @@ class _Prepared:
     map: RobotMap
     epoch: int
     """+1 when a robot's versions start again (a restarted agent): registrations are keyed on it."""
+    cells: I8
+    """What the others' pieces are matched onto: the map drawn from its pieces where its robot put
+    them (so the match and the poses it is tied to are of one moment), or the map as shared."""
+    origin: tuple[float, float]
     grids: PrecomputedGrids
     near_known: npt.NDArray[np.bool_]
-    """The map's known cells grown by the search window: where another's walls may be matched."""
+    """The cells known, grown by the search window: where another's walls may be matched."""
     pieces: list[_Piece]
+    signature: tuple[object, ...]
+    """What was put: a map of the same signature again changes nothing."""
 
 
 _RegKey = tuple[str, int, str, int, int, int]
 """(a, a's epoch, b, b's epoch, b's piece index, its version)."""
+
+WHOLE = -1
+"""The piece index of a map shared whole (submaps count from 0)."""
 
 
 @dataclass
@@ -218,31 +228,44 @@ class FleetMap:
     maps: dict[str, _Prepared] = field(default_factory=dict)
     refused: int = 0
     """Registrations tried and refused (too little overlap, too low a score)."""
-    _regs: dict[_RegKey, tuple[Registration | None, int, int]] = field(default_factory=dict)
-    """Per piece matched onto a map: the answer, that map's version then, and the build it was made in."""
+    _regs: dict[_RegKey, tuple[Registration | None, int, int, int]] = field(default_factory=dict)
+    """Per piece matched onto a map: the answer, that map's version then, the build it was made in,
+    and the version of the other's piece it is tied to."""
     _builds: int = 0
     _epochs: dict[str, int] = field(default_factory=dict)
     _version: int = 0
     _last: FleetResult | None = None
 
     def put(self, robot: str, m: RobotMap) -> bool:
-        """Take ``robot``'s map (a newer version replaces the old). False: not newer, or no walls yet."""
+        """Take ``robot``'s map (a newer version replaces the old). False: nothing new, or no walls
+        yet. ValueError for submaps that would draw a map over ``MAX_CELLS``."""
         old = self.maps.get(robot)
-        if old is not None and old.map.version == m.version and old.map.cells.shape == m.cells.shape:
+        signature = (m.version, m.cells.shape, tuple((s.index, s.version, s.pose) for s in m.submaps))
+        if old is not None and old.signature == signature:
             return False
         cfg = self.config
         pieces = _pieces(m, cfg.max_points)
         if not any(len(p.local) for p in pieces):
             return False
-        if old is not None and m.version <= old.map.version:
+        if old is not None and (
+            m.version < old.map.version or (m.version == old.map.version and not m.submaps and not old.map.submaps)
+        ):
+            # Versions that go back, or a whole map of the same version that is not the same map:
+            # a restarted agent, whose pieces' (index, version) mean other pieces now.
             self._epochs[robot] = self._epochs.get(robot, 0) + 1
-        known = m.cells != UNKNOWN
+        if m.submaps:
+            # Drawn from its pieces at the poses given with them: a match onto it is then tied to
+            # those poses, not to a shared map of another moment (a closure solved in between).
+            cells, origin = _draw([(p, p.placed) for p in pieces], m.resolution, m.origin)
+        else:
+            cells, origin = m.cells, m.origin
+        known = cells != UNKNOWN
         reach = math.ceil(cfg.window_xy_m / m.resolution)
         from scipy import ndimage  # here, not at import: agents import this module for ``Submap``
 
         near_known = ndimage.binary_dilation(known, iterations=reach) if reach else known
-        grids = _field_grids(m, cfg.field_sigma_m)
-        self.maps[robot] = _Prepared(m, self._epochs.get(robot, 0), grids, near_known, pieces)
+        grids = _field_grids(cells, m.resolution, origin, cfg.field_sigma_m)
+        self.maps[robot] = _Prepared(m, self._epochs.get(robot, 0), cells, origin, grids, near_known, pieces, signature)
         return True
 
     def forget(self, robot: str) -> None:
@@ -252,7 +275,8 @@ class FleetMap:
 
     def build(self) -> FleetResult | None:
         """The fleet map from the maps held (None: none yet). Deterministic for the same maps taken in
-        the same order."""
+        the same order. ValueError for maps placed so far apart that the fleet map would hold more
+        than ``MAX_CELLS`` cells."""
         if not self.maps:
             return None
         robots = sorted(self.maps)
@@ -278,8 +302,11 @@ class FleetMap:
             r: {p.index: compose(solved[(r, p.index)], inverse(p.placed)) for p in self.maps[r].pieces} for r in robots
         }
         corrections = {r: _mean_pose(list(piece_corrections[r].values())) for r in robots}
-        cells, origin = self._merge(robots, solved)
-        res = self.config.resolution_m
+        # On the first map's lattice (the onboard maps share one): resampling a map onto its own
+        # lattice moves no wall by half a cell.
+        first = self.maps[robots[0]].map
+        placed = [(p, solved[(r, p.index)]) for r in robots for p in self.maps[r].pieces]
+        cells, origin = _draw(placed, self.config.resolution_m, first.origin)
         last = self._last
         if (
             last is None
@@ -288,6 +315,7 @@ class FleetMap:
             or not np.array_equal(last.cells, cells)
         ):
             self._version += 1
+        res = self.config.resolution_m
         self._last = FleetResult(cells, res, origin, self._version, corrections, tuple(regs), piece_corrections)
         return self._last
 
@@ -295,36 +323,40 @@ class FleetMap:
 
     def _register(self, a: str, b: str, piece: _Piece, used: set[_RegKey], budget: list[int]) -> Registration | None:
         """``b``'s ``piece`` matched onto ``a``'s map, from the cache where it still holds: a match
-        stands while the piece and ``a``'s piece it is tied to are the same; a refusal is tried again
-        when ``a``'s map has changed (``retry_builds``), within the build's search budget."""
+        stands while the piece and the piece of ``a`` it is tied to are as they were drawn; a refusal
+        is tried again when ``a``'s map has changed (``retry_builds``), within the build's search
+        budget."""
         pa, pb = self.maps[a], self.maps[b]
         key = (a, pa.epoch, b, pb.epoch, piece.index, piece.version)
         used.add(key)
         cached = self._regs.get(key)
         if cached is not None:
-            reg, a_version, built = cached
-            if reg is not None and any(p.index == reg.a_piece for p in pa.pieces):
+            reg, a_version, built, anchor_version = cached
+            if reg is not None and any(p.index == reg.a_piece and p.version == anchor_version for p in pa.pieces):
                 return reg
             if reg is None and (a_version == pa.map.version or self._builds - built < self.config.retry_builds):
                 return None
         if budget[0] <= 0:
             return None
         budget[0] -= 1
-        reg = self._search(a, pa, b, piece)
-        if reg is None:
+        found = self._search(a, pa, b, piece)
+        if found is None:
             self.refused += 1
-        self._regs[key] = (reg, pa.map.version, self._builds)
+            self._regs[key] = (None, pa.map.version, self._builds, 0)
+            return None
+        reg, anchor_version = found
+        self._regs[key] = (reg, pa.map.version, self._builds, anchor_version)
         return reg
 
-    def _search(self, a: str, pa: _Prepared, b: str, piece: _Piece) -> Registration | None:
+    def _search(self, a: str, pa: _Prepared, b: str, piece: _Piece) -> tuple[Registration, int] | None:
         cfg = self.config
         if not len(piece.local):
             return None
         # The piece's walls on a's known floor (grown by the window): the only ones a can vouch for.
-        m = pa.map
+        res = pa.map.resolution
         placed = _transform(piece.placed, piece.local)
-        c = np.floor((placed[:, 0] - m.origin[0]) / m.resolution).astype(np.int64)
-        r = np.floor((placed[:, 1] - m.origin[1]) / m.resolution).astype(np.int64)
+        c = np.floor((placed[:, 0] - pa.origin[0]) / res).astype(np.int64)
+        r = np.floor((placed[:, 1] - pa.origin[1]) / res).astype(np.int64)
         h, w = pa.near_known.shape
         inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
         on = np.zeros(len(c), dtype=bool)
@@ -337,14 +369,13 @@ class FleetMap:
         )
         if found is None:
             return None
-        pose, _ = _refine(pa.grids, local, found[0], m.resolution, cfg.angle_step_rad)
+        pose, _ = _refine(pa.grids, local, found[0], res, cfg.angle_step_rad)
         score = _score(pa.grids, local, pose)
         if score < cfg.min_score:
             return None
-        # Tied to a's piece whose frame lies nearest: the measurement holds while that piece stays as
-        # a's graph drew it, whatever a's later closures do to its pieces far from here.
-        anchor = min(pa.pieces, key=lambda p: (p.placed[0] - pose[0]) ** 2 + (p.placed[1] - pose[1]) ** 2)
-        return Registration(a, b, relative(anchor.placed, pose), score, int(on.sum()), anchor.index, piece.index)
+        anchor = _anchor(pa.pieces, _transform(pose, local), pose)
+        reg = Registration(a, b, relative(anchor.placed, pose), score, int(on.sum()), anchor.index, piece.index)
+        return reg, anchor.version
 
     # -- the site frame --------------------------------------------------------------------------
 
@@ -363,6 +394,12 @@ class FleetMap:
         tie = np.diag(
             [cfg.registration_sigma_xy_m**-2, cfg.registration_sigma_xy_m**-2, cfg.registration_sigma_theta_rad**-2]
         )
+        # An overlap matched both ways (b's pieces onto a's map and a's onto b's) is measured twice
+        # from the same walls: each match counts half.
+        both = {(reg.a, reg.b) for reg in regs} & {(reg.b, reg.a) for reg in regs}
+
+        def info(reg: Registration) -> npt.NDArray[np.float64]:
+            return tie / 2 if (reg.a, reg.b) in both else tie
 
         def add_fixed(graph: PoseGraph) -> None:
             for r in robots:
@@ -379,7 +416,7 @@ class FleetMap:
         # would all but drop it (measured: a 0.45 m offset only a third corrected).
         add_fixed(g)
         for reg in regs:
-            g.add_edge(index[(reg.a, reg.a_piece)], index[(reg.b, reg.b_piece)], reg.z, tie)
+            g.add_edge(index[(reg.a, reg.a_piece)], index[(reg.b, reg.b_piece)], reg.z, info(reg))
         g.optimize(fixed=site)
         if len(regs) > 1:  # a false closure can only disagree with others where maps form loops
             robust = PoseGraph()
@@ -387,54 +424,82 @@ class FleetMap:
                 robust.add_node(pose)
             add_fixed(robust)
             for reg in regs:
-                robust.add_edge(index[(reg.a, reg.a_piece)], index[(reg.b, reg.b_piece)], reg.z, tie, robust=True)
+                robust.add_edge(index[(reg.a, reg.a_piece)], index[(reg.b, reg.b_piece)], reg.z, info(reg), robust=True)
             robust.optimize(fixed=site)
             g = robust
         return {k: g.poses[i] for k, i in index.items()}
 
-    # -- merge -----------------------------------------------------------------------------------
 
-    def _merge(self, robots: list[str], solved: dict[tuple[str, int], Pose]) -> tuple[I8, tuple[float, float]]:
-        res = self.config.resolution_m
-        placed = [(p, solved[(r, p.index)]) for r in robots for p in self.maps[r].pieces]
-        boxes = [_placed_box(p, pose) for p, pose in placed]
-        # On the first map's lattice (the onboard maps share one): resampling a map onto its own
-        # lattice moves no wall by half a cell.
-        px, py = self.maps[robots[0]].map.origin
-        x0 = px + math.floor((min(b[0] for b in boxes) - px) / res) * res
-        y0 = py + math.floor((min(b[1] for b in boxes) - py) / res) * res
-        w = math.ceil((max(b[2] for b in boxes) - x0) / res)
-        h = math.ceil((max(b[3] for b in boxes) - y0) / res)
-        walls = np.zeros((h, w), dtype=np.int16)
-        free = np.zeros((h, w), dtype=np.int16)
-        for (p, pose), (bx0, by0, bx1, by1) in zip(placed, boxes, strict=True):
-            c0, c1 = max(0, math.floor((bx0 - x0) / res)), min(w, math.ceil((bx1 - x0) / res))
-            r0, r1 = max(0, math.floor((by0 - y0) / res)), min(h, math.ceil((by1 - y0) / res))
-            if c1 <= c0 or r1 <= r0:
-                continue
-            xs = x0 + (np.arange(c0, c1) + 0.5) * res
-            ys = y0 + (np.arange(r0, r1) + 0.5) * res
-            gx, gy = np.meshgrid(xs, ys)
-            ix, iy, ith = inverse(pose)
-            cs, sn = math.cos(ith), math.sin(ith)
-            sx = ix + cs * gx - sn * gy
-            sy = iy + sn * gx + cs * gy
-            sc = np.floor((sx - p.origin[0]) / p.resolution).astype(np.int64)
-            sr = np.floor((sy - p.origin[1]) / p.resolution).astype(np.int64)
-            mh, mw = p.cells.shape
-            ok = (sr >= 0) & (sr < mh) & (sc >= 0) & (sc < mw)
-            src = np.full(sc.shape, UNKNOWN, dtype=np.int8)
-            src[ok] = p.cells[sr[ok], sc[ok]]
-            walls[r0:r1, c0:c1] += src >= 65
-            free[r0:r1, c0:c1] += (src >= 0) & (src <= 25)
-        out = np.full((h, w), UNKNOWN, dtype=np.int8)
-        out[free > walls] = FREE
-        out[(walls > 0) & (walls >= free)] = WALL
-        return out, (float(x0), float(y0))
+MAX_CELLS = 16_000_000
+"""The most cells a drawn map may hold (the wire's ``MAX_MAP_CELLS``: 200 m x 200 m at 5 cm)."""
+
+
+def _draw(
+    placed: list[tuple[_Piece, Pose]], res: float, lattice: tuple[float, float]
+) -> tuple[I8, tuple[float, float]]:
+    """``placed`` pieces, each resampled (nearest cell) at its pose onto the lattice of cells of
+    ``res`` through ``lattice``: a wall where at least one sees a wall and at least as many see a
+    wall as see floor, floor where more see floor, unknown where none knows it."""
+    boxes = [_placed_box(p, pose) for p, pose in placed]
+    px, py = lattice
+    x0 = px + math.floor((min(b[0] for b in boxes) - px) / res) * res
+    y0 = py + math.floor((min(b[1] for b in boxes) - py) / res) * res
+    w = math.ceil((max(b[2] for b in boxes) - x0) / res)
+    h = math.ceil((max(b[3] for b in boxes) - y0) / res)
+    if w * h > MAX_CELLS:
+        raise ValueError(f"the pieces span {w * res:.0f} x {h * res:.0f} m, over {MAX_CELLS} cells")
+    walls = np.zeros((h, w), dtype=np.int16)
+    free = np.zeros((h, w), dtype=np.int16)
+    for (p, pose), (bx0, by0, bx1, by1) in zip(placed, boxes, strict=True):
+        c0, c1 = max(0, math.floor((bx0 - x0) / res)), min(w, math.ceil((bx1 - x0) / res))
+        r0, r1 = max(0, math.floor((by0 - y0) / res)), min(h, math.ceil((by1 - y0) / res))
+        if c1 <= c0 or r1 <= r0:
+            continue
+        xs = x0 + (np.arange(c0, c1) + 0.5) * res
+        ys = y0 + (np.arange(r0, r1) + 0.5) * res
+        gx, gy = np.meshgrid(xs, ys)
+        ix, iy, ith = inverse(pose)
+        cs, sn = math.cos(ith), math.sin(ith)
+        sx = ix + cs * gx - sn * gy
+        sy = iy + sn * gx + cs * gy
+        sc = np.floor((sx - p.origin[0]) / p.resolution).astype(np.int64)
+        sr = np.floor((sy - p.origin[1]) / p.resolution).astype(np.int64)
+        mh, mw = p.cells.shape
+        ok = (sr >= 0) & (sr < mh) & (sc >= 0) & (sc < mw)
+        src = np.full(sc.shape, UNKNOWN, dtype=np.int8)
+        src[ok] = p.cells[sr[ok], sc[ok]]
+        walls[r0:r1, c0:c1] += src >= 65
+        free[r0:r1, c0:c1] += (src >= 0) & (src <= 25)
+    out = np.full((h, w), UNKNOWN, dtype=np.int8)
+    out[free > walls] = FREE
+    out[(walls > 0) & (walls >= free)] = WALL
+    return out, (float(x0), float(y0))
+
+
+def _anchor(pieces: list[_Piece], matched: F64, pose: Pose) -> _Piece:
+    """The piece a match onto its robot's map is tied to: the one whose own walls hold most of the
+    matched walls (``matched``, in its robot's map frame), the one whose frame lies nearest the match
+    on a tie. The match holds while that piece stays as drawn, whatever its robot's later closures
+    do to the pieces elsewhere."""
+
+    def held(p: _Piece) -> int:
+        x, y, th = inverse(p.placed)
+        c, s = math.cos(th), math.sin(th)
+        lx = x + c * matched[:, 0] - s * matched[:, 1]
+        ly = y + s * matched[:, 0] + c * matched[:, 1]
+        col = np.floor((lx - p.origin[0]) / p.resolution).astype(np.int64)
+        row = np.floor((ly - p.origin[1]) / p.resolution).astype(np.int64)
+        h, w = p.cells.shape
+        ok = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+        return int(np.count_nonzero(p.cells[row[ok], col[ok]] >= 65))
+
+    if len(pieces) == 1:
+        return pieces[0]
+    return min(pieces, key=lambda p: (-held(p), (p.placed[0] - pose[0]) ** 2 + (p.placed[1] - pose[1]) ** 2))
 
 
 def _pieces(m: RobotMap, max_points: int) -> list[_Piece]:
-    """The map's pieces: its submaps, or the whole map as one piece in a frame at its centre."""
+    """The map's pieces: its submaps, or the whole map as one piece (``WHOLE``) in a frame at its centre."""
     if m.submaps:
         return [
             _Piece(
@@ -451,17 +516,8 @@ def _pieces(m: RobotMap, max_points: int) -> list[_Piece]:
     h, w = m.cells.shape
     cx, cy = m.origin[0] + 0.5 * w * m.resolution, m.origin[1] + 0.5 * h * m.resolution
     origin = (m.origin[0] - cx, m.origin[1] - cy)
-    return [
-        _Piece(
-            0,
-            m.version,
-            (cx, cy, 0.0),
-            m.cells,
-            m.resolution,
-            origin,
-            _wall_points(m.cells, m.resolution, origin, max_points),
-        )
-    ]
+    local = _wall_points(m.cells, m.resolution, origin, max_points)
+    return [_Piece(WHOLE, m.version, (cx, cy, 0.0), m.cells, m.resolution, origin, local)]
 
 
 def _transform(pose: Pose, pts: F64) -> F64:
@@ -486,13 +542,13 @@ def _wall_points(cells: I8, resolution: float, origin: tuple[float, float], max_
     )
 
 
-def _field_grids(m: RobotMap, sigma: float) -> PrecomputedGrids:
+def _field_grids(cells: I8, resolution: float, origin: tuple[float, float], sigma: float) -> PrecomputedGrids:
     from scipy import ndimage
 
-    d = ndimage.distance_transform_edt(m.cells < 65) * m.resolution
+    d = ndimage.distance_transform_edt(cells < 65) * resolution
     lik = np.exp(-0.5 * (np.asarray(d, dtype=np.float64) / sigma) ** 2).astype(np.float32)
-    lik[m.cells == UNKNOWN] = 0.0
-    return PrecomputedGrids(lik, m.origin, m.resolution, depth=4)
+    lik[cells == UNKNOWN] = 0.0
+    return PrecomputedGrids(lik, origin, resolution, depth=4)
 
 
 def _score(grids: PrecomputedGrids, local: F64, pose: Pose) -> float:
