@@ -1033,7 +1033,8 @@ class SubmapEntry:
 
     index: Annotated[int, bounded(0, 999_999_999)]
     version: Annotated[int, bounded(0)]
-    """+1 each time the submap is drawn again (the open one, as nodes join it)."""
+    """How many nodes it was drawn from (a finished submap holds 10): it changes only while it is the
+    open one, each time a node joins it and it is drawn again."""
     x: Coordinate
     """Metres, map frame: the submap's own frame (its first node's pose)."""
     y: Coordinate
@@ -1066,7 +1067,7 @@ class MapSubmap(Message):
 
     ``cells`` is the zlib-compressed int8 grid (row-major, row 0 at the bottom) in the submap's own
     frame, as in ``MapSnapshot``; ``x``, ``y``, ``theta`` place that frame in the map frame as the
-    robot's pose graph had it when the reply was made (``MapSubmaps`` gives it as it is now).
+    robot's pose graph had it when the submap was drawn (``MapSubmaps`` gives it as it is now).
     """
 
     TOPIC: ClassVar[str] = "map/submap"

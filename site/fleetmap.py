@@ -48,8 +48,12 @@ log = logging.getLogger(__name__)
 PERIOD_S = 2.0
 """Seconds between builds while the robots' maps change (each robot shares its map every second)."""
 QUERY_TIMEOUT_S = 2.0
-ONE_BY_ONE = 4
-"""Missing submaps fetched one query each up to this many; more (a robot first heard of): all at once."""
+FETCH_PER_BUILD = 16
+"""Submaps fetched per robot per build at most (one query each): a console that meets a robot with
+hundreds of submaps catches up over a few builds, merging its map whole meanwhile."""
+POSE_MARGIN_M = 10.0
+"""How far outside its robot's shared map a listed submap may lie (its cells reach its sensor's
+range from its frame): a list that puts one further is not believed (the map is merged whole)."""
 
 
 @dataclass
@@ -58,6 +62,8 @@ class _Submaps:
 
     began: float
     held: dict[int, Submap] = field(default_factory=dict)
+    bad: set[tuple[int, int]] = field(default_factory=set)
+    """(index, version) whose cells did not decode: not asked for again until redrawn."""
 
 
 class FleetMapService:
@@ -89,6 +95,9 @@ class FleetMapService:
         self._submaps: dict[str, _Submaps] = {}
         self.submaps_fetched = 0
         self.submaps_refused = 0
+        """Submap replies left out: cells that do not decode, a bad reply, another map's or robot's."""
+        self._logged: set[tuple[str, str]] = set()
+        self._incomplete = False  # some robot's listed submaps are still being fetched: build again
 
     def step(self) -> bool:
         """Build and publish if the robots' maps changed and ``period_s`` has passed. True if built."""
@@ -98,7 +107,7 @@ class FleetMapService:
         with self.lock:
             maps = {r: m for r, m in self.follower.maps.items() if r != keys.FLEET_MAP}
             versions = {r: m.version for r, m in maps.items()}
-            if versions == self._seen:
+            if versions == self._seen and not self._incomplete:
                 return False
             copies = {r: SharedMap(m.cells.copy(), m.resolution, m.origin, m.version) for r, m in maps.items()}
         self._next = now + self.period_s
@@ -106,13 +115,18 @@ class FleetMapService:
             self.core.forget(robot)
         for robot in set(self._submaps) - set(copies):
             del self._submaps[robot]
+        self._incomplete = False
         for robot, m in copies.items():
             try:
-                self.core.put(robot, RobotMap(m.cells, m.resolution, m.origin, m.version, self._fetch(robot)))
+                self.core.put(robot, RobotMap(m.cells, m.resolution, m.origin, m.version, self._fetch(robot, m)))
             except ValueError as exc:
-                log.warning("fleet map: %s's map left out: %s", robot, exc)
-        result = self.core.build()
-        self._seen = versions  # built (a build that raised is tried again next time)
+                self._log_once(robot, "put", f"its map left out: {exc}")
+        try:
+            result = self.core.build()
+        except ValueError as exc:  # maps placed absurdly far apart: wait for them to change
+            self._log_once("*", "build", f"not built: {exc}")
+            result = None
+        self._seen = versions
         if result is None:
             return False
         self.result = result
@@ -130,13 +144,26 @@ class FleetMapService:
             self.on_built(result)
         return True
 
-    def _fetch(self, robot: str) -> tuple[Submap, ...]:
-        """``robot``'s submaps at the poses its graph gives them now; () when it lists none (its map is
-        then merged whole). Only the submaps whose version is not held are fetched."""
+    def _fetch(self, robot: str, m: SharedMap) -> tuple[Submap, ...]:
+        """``robot``'s submaps at the poses its graph gives them now, once every listed one is held;
+        () until then, and when it lists none (its map is then merged whole). Only the submaps whose
+        version is not held are fetched, at most ``FETCH_PER_BUILD`` a build. Bad replies are left out,
+        counted and logged once per robot and reason; a link that fails leaves the map whole."""
         if self.query is None:
             return ()
-        listing = fetch_submaps(self.query, robot, QUERY_TIMEOUT_S)
+        try:
+            listing = fetch_submaps(self.query, robot, QUERY_TIMEOUT_S)
+        except Exception as exc:  # one robot's failed query must not stop the build for the others
+            self._log_once(robot, "list", f"its submap list could not be asked for: {exc}")
+            return ()
         if listing is None or not listing.submaps:
+            return ()
+        h, w = m.cells.shape
+        x0, y0 = m.origin[0] - POSE_MARGIN_M, m.origin[1] - POSE_MARGIN_M
+        x1, y1 = m.origin[0] + w * m.resolution + POSE_MARGIN_M, m.origin[1] + h * m.resolution + POSE_MARGIN_M
+        far = [e.index for e in listing.submaps if not (x0 <= e.x <= x1 and y0 <= e.y <= y1)]
+        if far:
+            self._log_once(robot, "far", f"its list puts submap {far[0]} outside its map: merged whole")
             return ()
         known = self._submaps.get(robot)
         if known is None or known.began != listing.began:
@@ -147,22 +174,45 @@ class FleetMapService:
         for i in set(known.held) - set(listed):
             del known.held[i]
         missing = [
-            e.index for e in listing.submaps if e.index not in known.held or known.held[e.index].version != e.version
+            e.index
+            for e in listing.submaps
+            if (e.index not in known.held or known.held[e.index].version != e.version)
+            and (e.index, e.version) not in known.bad
         ]
-        asked: list[int | str] = list(missing) if len(missing) <= ONE_BY_ONE else ["*"]
-        for index in asked:
-            for msg in fetch_submap(self.query, robot, index, QUERY_TIMEOUT_S):
-                if msg.began != known.began or msg.index not in listed:
+        rejected: list[str] = []
+        for index in missing[:FETCH_PER_BUILD]:
+            try:
+                replies = fetch_submap(self.query, robot, index, QUERY_TIMEOUT_S, rejected=rejected)
+            except Exception as exc:
+                self._log_once(robot, "fetch", f"its submaps could not be asked for: {exc}")
+                break
+            for msg in replies:
+                if msg.began != known.began or msg.index != index or msg.version != listed[index].version:
+                    rejected.append(f"submap {msg.index} version {msg.version} of the map begun at {msg.began}")
                     continue
                 try:
-                    known.held[msg.index] = submap_of(msg)
+                    known.held[index] = submap_of(msg)
                     self.submaps_fetched += 1
                 except ValueError as exc:
-                    self.submaps_refused += 1
-                    log.warning("fleet map: %s's submap %d left out: %s", robot, msg.index, exc)
-        return tuple(
-            replace(known.held[i], pose=(e.x, e.y, e.theta)) for i, e in sorted(listed.items()) if i in known.held
-        )
+                    known.bad.add((index, msg.version))
+                    rejected.append(f"submap {index}: {exc}")
+        if rejected:
+            self.submaps_refused += len(rejected)
+            self._log_once(robot, "rejected", f"submap reply left out: {rejected[0]} (further ones counted)")
+        pending = [
+            (i, e.version) for i, e in listed.items() if i not in known.held or known.held[i].version != e.version
+        ]
+        if pending:
+            # Not all held yet: merged whole meanwhile, and built again at the next period even if no
+            # map changes (a robot standing still); one that does not decode waits for its redrawing.
+            self._incomplete |= any(p not in known.bad for p in pending)
+            return ()
+        return tuple(replace(known.held[i], pose=(e.x, e.y, e.theta)) for i, e in sorted(listed.items()))
+
+    def _log_once(self, robot: str, kind: str, text: str) -> None:
+        if (robot, kind) not in self._logged:
+            self._logged.add((robot, kind))
+            log.warning("fleet map: %s: %s", robot, text)
 
 
 def publication_of(result: FleetResult, previous: MapPublication | None) -> MapPublication:

@@ -267,3 +267,107 @@ def test_a_robot_s_bent_map_is_merged_from_its_submaps_fetched_over_the_link(zen
             share.stop()
         robots_side.close()
         console_side.close()
+
+
+def test_bad_submap_replies_leave_the_map_whole_and_are_counted_and_logged_once(zenoh_peers: Any, caplog: Any) -> None:
+    """r2 lists three submaps but answers with cells that do not inflate, and one of another map:
+    its map is merged whole, the replies are counted, logged once, not asked for again; the build
+    goes on for everyone."""
+    import zlib
+
+    from fleetlink.shared.map_codec import snapshot_fields
+    from fleetlink.shared.messages import MapSubmap, MapSubmaps, SubmapEntry
+
+    clock = SystemClock()
+    peers = zenoh_peers(2)
+    robots_side, console_side = ZenohEndpoint(session=peers[1]), ZenohEndpoint(session=peers[0])
+    robots_side.start()
+    console_side.start()
+    counter = wire.HeaderCounter(clock, robot="r2", sender="agent-r2")
+    asked: list[str] = []
+
+    def listing(_key: str) -> list[tuple[str, bytes]]:
+        entries = tuple(
+            SubmapEntry(index=s.index, version=s.version, x=s.pose[0], y=s.pose[1], theta=s.pose[2]) for s in BENT
+        )
+        return [
+            (
+                keys.key("r2", MapSubmaps.TOPIC),
+                wire.encode(counter.make(MapSubmaps, began=5.0, site_frame=True, submaps=entries)),
+            )
+        ]
+
+    def submap(key: str) -> list[tuple[str, bytes]]:
+        asked.append(key)
+        i = int(key.rpartition("/")[2])
+        sm = BENT[i]
+        fields = dict(snapshot_fields(sm.cells, RES, sm.origin, sm.version))
+        if i == 1:
+            fields["cells"] = zlib.compress(b"\x00" * 7)  # not width x height cells
+        began = 6.0 if i == 2 else 5.0  # another map's submap
+        msg = counter.make(MapSubmap, began=began, index=i, x=sm.pose[0], y=sm.pose[1], theta=sm.pose[2], **fields)
+        return [(key, wire.encode(msg))]
+
+    robots_side.serve(keys.key("r2", MapSubmaps.TOPIC), listing)
+    robots_side.serve(keys.indexed_key("r2", "map/submap", "*"), submap)
+    fleet = FleetModel("op-fleet")
+    lock = threading.Lock()
+    follower = MapFollower(fleet, retry_s=0.5)
+    service = FleetMapService(follower, lock, clock, period_s=0.0, query=console_side)
+    r1, r2 = robot_map((0.0, 0.0, 9.0, 6.0)), with_submaps(BENT)
+    try:
+        with lock:
+            for r, m in (("r1", r1), ("r2", r2)):
+                follower.maps[r] = SharedMap(m.cells.copy(), m.resolution, m.origin, m.version)
+        with caplog.at_level("WARNING", logger="fleetlink.site.fleetmap"):
+            assert service.step()
+            result = service.result
+            assert result is not None and set(result.piece_corrections["r2"]) == {-1}  # merged whole
+            assert service.submaps_fetched == 1 and service.submaps_refused == 2
+            with lock:
+                follower.maps["r2"] = SharedMap(r2.cells.copy(), RES, r2.origin, r2.version + 1)
+            assert service.step()  # the build goes on; submap 1 (cells bad) is not asked for again
+        assert sum(k.endswith("/1") for k in asked) == 1 and sum(k.endswith("/2") for k in asked) == 2
+        assert service.submaps_refused == 3
+        assert len([r for r in caplog.records if "left out" in r.getMessage()]) == 1
+    finally:
+        robots_side.close()
+        console_side.close()
+
+
+def test_a_robot_standing_still_has_its_submaps_fetched_over_several_builds(zenoh_peers: Any, monkeypatch: Any) -> None:
+    import fleetlink.site.fleetmap as service_module
+
+    monkeypatch.setattr(service_module, "FETCH_PER_BUILD", 1)
+    clock = SystemClock()
+    peers = zenoh_peers(2)
+    robots_side, console_side = ZenohEndpoint(session=peers[1]), ZenohEndpoint(session=peers[0])
+    robots_side.start()
+    console_side.start()
+    share = MapShare(robots_side, "r2", clock)
+    fleet = FleetModel("op-fleet")
+    lock = threading.Lock()
+    follower = MapFollower(fleet, retry_s=0.5)
+    service = FleetMapService(follower, lock, clock, period_s=0.0, query=console_side)
+    r1, r2 = robot_map((0.0, 0.0, 9.0, 6.0)), with_submaps(BENT)
+    try:
+        share.start()
+        poses = tuple((s.index, s.version, s.pose) for s in BENT)
+        share.publish(MapPublication(r2.version, r2.cells, RES, r2.origin, None, True, 5.0, BENT, poses))
+        with lock:
+            for r, m in (("r1", r1), ("r2", r2)):
+                follower.maps[r] = SharedMap(m.cells.copy(), m.resolution, m.origin, m.version)
+        pieces = []
+        for _ in range(4):  # the maps do not change: the builds go on while submaps are missing
+            built = service.step()
+            pieces.append(
+                sorted(service.core.maps["r2"].pieces[i].index for i in range(len(service.core.maps["r2"].pieces)))
+                if built
+                else None
+            )
+        assert pieces == [[-1], [-1], [0, 1, 2], None]
+        assert service.submaps_fetched == 3
+    finally:
+        share.stop()
+        robots_side.close()
+        console_side.close()

@@ -171,6 +171,8 @@ def test_the_map_s_submaps_are_listed_and_fetched_one_by_one_or_all(zenoh_peers)
         every = fetch_submap(other, "r1", "*", timeout=2.0)
         assert sorted(m.index for m in every) == [e.index for e in listing.submaps]
         assert fetch_submap(other, "r1", 999, timeout=2.0) == []
+        assert other.query("fleetlink/v1/r1/map/submap/01", 2.0) == []  # not an index as keys write it
+        assert [k for k, _ in other.query("fleetlink/v1/*/map/submap/1", 2.0)] == ["fleetlink/v1/r1/map/submap/1"]
         # A submap's walls, placed where the list puts its frame, lie on the room's walls.
         for msg in every:
             e = listing.submaps[msg.index]

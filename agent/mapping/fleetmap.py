@@ -113,7 +113,7 @@ class Submap:
 
     index: int
     version: int
-    """+1 each time it is drawn again (the open submap, as nodes join it)."""
+    """Changes each time it is drawn again (on a robot: the nodes drawn into it; the open submap's grows)."""
     pose: Pose
     cells: I8
     resolution: float

@@ -91,7 +91,15 @@ class MapShare(LayerShare[MapPublication]):
                 for sm in pub.submaps:
                     self._submaps[sm.index] = sm
                     self._encoded.pop(sm.index, None)
-                self._poses, self._list = pub.submap_poses[-MAX_SUBMAPS:], None
+                # The newest MAX_SUBMAPS (a list that fits one message; a robot maps ~3 m per submap),
+                # and only poses that can go on the wire (the mapper refuses non-finite poses: this is
+                # so that one bad pose cannot silence the whole list).
+                poses = [e for e in pub.submap_poses if all(math.isfinite(v) for v in e[2])][-MAX_SUBMAPS:]
+                self._poses, self._list = tuple(poses), None
+                listed = {i for i, _, _ in poses}
+                for i in [i for i in self._submaps if i not in listed]:
+                    del self._submaps[i]
+                    self._encoded.pop(i, None)
         super().publish(pub)
 
     def _answer_list(self, _key_expr: str) -> list[tuple[str, bytes]]:
@@ -110,26 +118,35 @@ class MapShare(LayerShare[MapPublication]):
             return [(self.list_key, self._list)]
 
     def _answer_submaps(self, key_expr: str) -> list[tuple[str, bytes]]:
-        """``.../map/submap/<index>``: that submap; any other expression (``*``): every one."""
+        """``.../map/submap/<index>``: that submap; ``.../map/submap/*`` (or ``**``): every one; any
+        other last segment (not an index as keys write it): none."""
         if not self._serving:
             return []
-        _, asked = keys.split_index(keys.parse_key(key_expr)[1]) if not key_expr.endswith("*") else ("", None)
+        last = key_expr.rpartition("/")[2]
+        asked = None if last in ("*", "**") else keys.split_index(f"{MapSubmap.TOPIC}/{last}")[1]
         with self._sub_lock:
             self.submap_queries += 1
+            if asked is None and last not in ("*", "**"):
+                return []
             wanted = sorted(self._submaps) if asked is None else [asked] if asked in self._submaps else []
-            replies = []
-            for i in wanted:
-                data = self._encoded.get(i)
-                if data is None:
-                    sm = self._submaps[i]
-                    fields = snapshot_fields(sm.cells, sm.resolution, sm.origin, sm.version)
-                    x, y, th = sm.pose
-                    msg = self.counter.make(
-                        MapSubmap, began=self._began, index=i, x=x, y=y, theta=math.remainder(th, math.tau), **fields
-                    )
-                    data = self._encoded[i] = wire.encode(msg)
-                replies.append((keys.indexed_key(self.robot, MapSubmap.TOPIC, i), data))
-            return replies
+            todo = [(i, self._submaps[i], self._encoded.get(i)) for i in wanted]
+            began = self._began
+        # Compressed outside the lock (a first "every one" may be hundreds of submaps: the keeper's
+        # publish must not wait for it); the bytes are kept unless a newer drawing came meanwhile.
+        replies = []
+        for i, sm, data in todo:
+            if data is None:
+                fields = snapshot_fields(sm.cells, sm.resolution, sm.origin, sm.version)
+                x, y, th = sm.pose
+                msg = self.counter.make(
+                    MapSubmap, began=began, index=i, x=x, y=y, theta=math.remainder(th, math.tau), **fields
+                )
+                data = wire.encode(msg)
+                with self._sub_lock:
+                    if self._submaps.get(i) is sm:
+                        self._encoded[i] = data
+            replies.append((keys.indexed_key(self.robot, MapSubmap.TOPIC, i), data))
+        return replies
 
 
 def fetch_map(link: QueryLink, robot: str, timeout: float = 5.0) -> MapSnapshot | None:
@@ -143,19 +160,28 @@ def fetch_submaps(link: QueryLink, robot: str, timeout: float = 5.0) -> MapSubma
     return fetch(link, robot, MapSubmaps, timeout)
 
 
-def fetch_submap(link: QueryLink, robot: str, index: int | str = "*", timeout: float = 5.0) -> list[MapSubmap]:
-    """Ask ``fleetlink/v1/<robot>/map/submap/<index>`` (``*``: every submap): the valid replies (bad
-    ones are logged and left out)."""
+def fetch_submap(
+    link: QueryLink, robot: str, index: int | str = "*", timeout: float = 5.0, *, rejected: list[str] | None = None
+) -> list[MapSubmap]:
+    """Ask ``fleetlink/v1/<robot>/map/submap/<index>`` (``*``: every submap): the valid replies. The
+    reason for each reply left out goes to ``rejected`` if given (the caller counts and logs), else
+    to the log."""
     key = keys.indexed_key(robot, MapSubmap.TOPIC, index)
     out = []
     for reply_key, payload in link.query(key, timeout):
         try:
             msg = wire.decode_key(reply_key, payload)
         except wire.WireError as exc:
-            log.warning("submap query %s: rejected reply: %s", key, exc.reason)
-            continue
-        if isinstance(msg, MapSubmap) and msg.header.robot == robot:
-            out.append(msg)
+            reason = f"rejected reply on {reply_key}: {exc.reason}"
+        else:
+            if isinstance(msg, MapSubmap) and msg.header.robot == robot:
+                out.append(msg)
+                continue
+            reason = f"a {type(msg).__name__} about {msg.header.robot!r} on {reply_key}"
+        if rejected is not None:
+            rejected.append(reason)
+        else:
+            log.warning("submap query %s: %s", key, reason)
     return out
 
 
