@@ -107,7 +107,7 @@ class FleetMapService:
         with self.lock:
             maps = {r: m for r, m in self.follower.maps.items() if r != keys.FLEET_MAP}
             versions = {r: m.version for r, m in maps.items()}
-            if versions == self._seen and not self._incomplete:
+            if versions == self._seen and not self._incomplete and not self.core.pending:
                 return False
             copies = {r: SharedMap(m.cells.copy(), m.resolution, m.origin, m.version) for r, m in maps.items()}
         self._next = now + self.period_s

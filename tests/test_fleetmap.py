@@ -271,11 +271,13 @@ def test_a_build_searches_within_its_budget_and_the_next_builds_catch_up() -> No
         return fm
 
     slow, fast = fleet(2), fleet(100)
-    counts = []
+    counts, pending = [], []
     for _ in range(3):
         r = slow.build()
         assert r is not None
         counts.append(len(r.registrations))
+        pending.append(slow.pending)
+    assert pending == [2, 0, 0]  # what a build left over (a service builds again for it)
     # Two searches per build: b's three submaps onto a, then a's map onto b's (refused: b's map is
     # bent, a fits no part of it well enough; not tried again while b's map stays the same).
     assert counts == [2, 3, 3] and slow.refused == 1

@@ -232,6 +232,8 @@ class FleetMap:
     """Per piece matched onto a map: the answer, that map's version then, the build it was made in,
     and the version of the other's piece it is tied to."""
     _builds: int = 0
+    pending: int = 0
+    """Searches the last build left for later (over its budget): build again, even if nothing changed."""
     _epochs: dict[str, int] = field(default_factory=dict)
     _version: int = 0
     _last: FleetResult | None = None
@@ -297,6 +299,7 @@ class FleetMap:
                         if reg is not None:
                             regs.append(reg)
         self._regs = {k: v for k, v in self._regs.items() if k in used}
+        self.pending = -budget[0] if budget[0] < 0 else 0
         solved = self._solve(robots, regs)
         piece_corrections = {
             r: {p.index: compose(solved[(r, p.index)], inverse(p.placed)) for p in self.maps[r].pieces} for r in robots
@@ -336,9 +339,9 @@ class FleetMap:
                 return reg
             if reg is None and (a_version == pa.map.version or self._builds - built < self.config.retry_builds):
                 return None
-        if budget[0] <= 0:
-            return None
         budget[0] -= 1
+        if budget[0] < 0:
+            return None  # over the budget: counted in ``pending``, searched at a later build
         found = self._search(a, pa, b, piece)
         if found is None:
             self.refused += 1
