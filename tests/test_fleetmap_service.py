@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import math
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from fleetlink.agent.mapping.fleetmap import RobotMap
 from fleetlink.agent.mapping.keeper import MapPublication
 from fleetlink.agent.mapping.share import MapShare
 from fleetlink.cli.console import fleet_map_service
@@ -215,33 +217,50 @@ def test_the_fleet_map_service_process_builds_and_serves_the_fleet_map(zenoh_pee
     assert "serving fleetlink/v1/fleet/map" in out
 
 
+@dataclass
+class SubmapRig:
+    """Two Zenoh endpoints (robots' side, console's side) and a console's fleet map service that
+    already follows r1's whole map and r2's map bent along the way (``BENT``)."""
+
+    robots_side: ZenohEndpoint
+    console_side: ZenohEndpoint
+    lock: threading.Lock
+    follower: MapFollower
+    service: FleetMapService
+    r2: RobotMap
+
+    def close(self) -> None:
+        self.robots_side.close()
+        self.console_side.close()
+
+
+def submap_rig(zenoh_peers: Any) -> SubmapRig:
+    peers = zenoh_peers(2)
+    robots_side, console_side = ZenohEndpoint(session=peers[1]), ZenohEndpoint(session=peers[0])
+    robots_side.start()
+    console_side.start()
+    lock = threading.Lock()
+    follower = MapFollower(FleetModel("op-fleet"), retry_s=0.5)
+    service = FleetMapService(follower, lock, SystemClock(), period_s=0.0, query=console_side)
+    r1, r2 = robot_map((0.0, 0.0, 9.0, 6.0)), with_submaps(BENT)
+    for r, m in (("r1", r1), ("r2", r2)):
+        follower.maps[r] = SharedMap(m.cells.copy(), m.resolution, m.origin, m.version)
+    return SubmapRig(robots_side, console_side, lock, follower, service, r2)
+
+
 def test_a_robot_s_bent_map_is_merged_from_its_submaps_fetched_over_the_link(zenoh_peers: Any) -> None:
     """r2 shares a map bent along the way (its submaps each further off) with its submap list: the
     console's service fetches the submaps, straightens them one by one against r1's map, and fetches
     none again while only their poses change."""
-    clock = SystemClock()
-    peers = zenoh_peers(2)
-    robots_side = ZenohEndpoint(session=peers[1])
-    robots_side.start()
-    console_side = ZenohEndpoint(session=peers[0])
-    console_side.start()
-    fleet = FleetModel("op-fleet")
-    lock = threading.Lock()
-    follower = MapFollower(fleet, retry_s=0.5)
-    service = FleetMapService(follower, lock, clock, period_s=0.0, query=console_side)
-    r1, r2 = robot_map((0.0, 0.0, 9.0, 6.0)), with_submaps(BENT)
-    shares = {r: MapShare(robots_side, r, clock) for r in ("r1", "r2")}
+    rig = submap_rig(zenoh_peers)
+    service, follower, lock, r2 = rig.service, rig.follower, rig.lock, rig.r2
+    shares = {"r2": MapShare(rig.robots_side, "r2", SystemClock())}
     poses = tuple((s.index, s.version, s.pose) for s in BENT)
     try:
-        for share in shares.values():
-            share.start()
-        shares["r1"].publish(MapPublication(r1.version, r1.cells, RES, r1.origin, None, site_frame=True))
+        shares["r2"].start()
         shares["r2"].publish(
             MapPublication(r2.version, r2.cells, RES, r2.origin, None, True, 5.0, BENT, submap_poses=poses)
         )
-        with lock:
-            for r, m in (("r1", r1), ("r2", r2)):
-                follower.maps[r] = SharedMap(m.cells.copy(), m.resolution, m.origin, m.version)
         wait_until(service.step, timeout=10, message="a fleet map built")
         result = service.result
         assert result is not None and service.submaps_fetched == 3
@@ -265,8 +284,7 @@ def test_a_robot_s_bent_map_is_merged_from_its_submaps_fetched_over_the_link(zen
     finally:
         for share in shares.values():
             share.stop()
-        robots_side.close()
-        console_side.close()
+        rig.close()
 
 
 def test_bad_submap_replies_leave_the_map_whole_and_are_counted_and_logged_once(zenoh_peers: Any, caplog: Any) -> None:
@@ -278,12 +296,9 @@ def test_bad_submap_replies_leave_the_map_whole_and_are_counted_and_logged_once(
     from fleetlink.shared.map_codec import snapshot_fields
     from fleetlink.shared.messages import MapSubmap, MapSubmaps, SubmapEntry
 
-    clock = SystemClock()
-    peers = zenoh_peers(2)
-    robots_side, console_side = ZenohEndpoint(session=peers[1]), ZenohEndpoint(session=peers[0])
-    robots_side.start()
-    console_side.start()
-    counter = wire.HeaderCounter(clock, robot="r2", sender="agent-r2")
+    rig = submap_rig(zenoh_peers)
+    service, follower, lock, r2 = rig.service, rig.follower, rig.lock, rig.r2
+    counter = wire.HeaderCounter(SystemClock(), robot="r2", sender="agent-r2")
     asked: list[str] = []
 
     def listing(_key: str) -> list[tuple[str, bytes]]:
@@ -308,17 +323,9 @@ def test_bad_submap_replies_leave_the_map_whole_and_are_counted_and_logged_once(
         msg = counter.make(MapSubmap, began=began, index=i, x=sm.pose[0], y=sm.pose[1], theta=sm.pose[2], **fields)
         return [(key, wire.encode(msg))]
 
-    robots_side.serve(keys.key("r2", MapSubmaps.TOPIC), listing)
-    robots_side.serve(keys.indexed_key("r2", "map/submap", "*"), submap)
-    fleet = FleetModel("op-fleet")
-    lock = threading.Lock()
-    follower = MapFollower(fleet, retry_s=0.5)
-    service = FleetMapService(follower, lock, clock, period_s=0.0, query=console_side)
-    r1, r2 = robot_map((0.0, 0.0, 9.0, 6.0)), with_submaps(BENT)
+    rig.robots_side.serve(keys.key("r2", MapSubmaps.TOPIC), listing)
+    rig.robots_side.serve(keys.indexed_key("r2", "map/submap", "*"), submap)
     try:
-        with lock:
-            for r, m in (("r1", r1), ("r2", r2)):
-                follower.maps[r] = SharedMap(m.cells.copy(), m.resolution, m.origin, m.version)
         with caplog.at_level("WARNING", logger="fleetlink.site.fleetmap"):
             assert service.step()
             result = service.result
@@ -331,32 +338,20 @@ def test_bad_submap_replies_leave_the_map_whole_and_are_counted_and_logged_once(
         assert service.submaps_refused == 3
         assert len([r for r in caplog.records if "left out" in r.getMessage()]) == 1
     finally:
-        robots_side.close()
-        console_side.close()
+        rig.close()
 
 
 def test_a_robot_standing_still_has_its_submaps_fetched_over_several_builds(zenoh_peers: Any, monkeypatch: Any) -> None:
     import fleetlink.site.fleetmap as service_module
 
     monkeypatch.setattr(service_module, "FETCH_PER_BUILD", 1)
-    clock = SystemClock()
-    peers = zenoh_peers(2)
-    robots_side, console_side = ZenohEndpoint(session=peers[1]), ZenohEndpoint(session=peers[0])
-    robots_side.start()
-    console_side.start()
-    share = MapShare(robots_side, "r2", clock)
-    fleet = FleetModel("op-fleet")
-    lock = threading.Lock()
-    follower = MapFollower(fleet, retry_s=0.5)
-    service = FleetMapService(follower, lock, clock, period_s=0.0, query=console_side)
-    r1, r2 = robot_map((0.0, 0.0, 9.0, 6.0)), with_submaps(BENT)
+    rig = submap_rig(zenoh_peers)
+    service, r2 = rig.service, rig.r2
+    share = MapShare(rig.robots_side, "r2", SystemClock())
     try:
         share.start()
         poses = tuple((s.index, s.version, s.pose) for s in BENT)
         share.publish(MapPublication(r2.version, r2.cells, RES, r2.origin, None, True, 5.0, BENT, poses))
-        with lock:
-            for r, m in (("r1", r1), ("r2", r2)):
-                follower.maps[r] = SharedMap(m.cells.copy(), m.resolution, m.origin, m.version)
         pieces = []
         for _ in range(4):  # the maps do not change: the builds go on while submaps are missing
             built = service.step()
@@ -369,5 +364,4 @@ def test_a_robot_standing_still_has_its_submaps_fetched_over_several_builds(zeno
         assert service.submaps_fetched == 3
     finally:
         share.stop()
-        robots_side.close()
-        console_side.close()
+        rig.close()
