@@ -179,9 +179,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         def built(result: object) -> None:
             log.info("fleet map version %s built", getattr(result, "version", "?"))
 
-        service = FleetMapService(
-            follower, lock, clock, share=share, period_s=args.period, on_built=built, query=link
-        )
+        service = FleetMapService(follower, lock, clock, share=share, period_s=args.period, on_built=built, query=link)
         link.subscribe(f"{keys.PREFIX}/*/{State.TOPIC}", hear)
         link.subscribe(f"{keys.PREFIX}/*/{MapUpdate.TOPIC}", hear)
         fetcher = MapFetcher(follower, lambda r: fetch_map(link, r), clock, lock, after_poll=service.step).start()
