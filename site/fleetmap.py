@@ -98,6 +98,8 @@ class FleetMapService:
         """Submap replies left out: cells that do not decode, a bad reply, another map's or robot's."""
         self._logged: set[tuple[str, str]] = set()
         self._incomplete = False  # some robot's listed submaps are still being fetched: build again
+        # Per robot: its map as last asked about (version, shape, origin) and the answer then.
+        self._answered: dict[str, tuple[object, tuple[Submap, ...]]] = {}
 
     def step(self) -> bool:
         """Build and publish if the robots' maps changed and ``period_s`` has passed. True if built."""
@@ -115,6 +117,8 @@ class FleetMapService:
             self.core.forget(robot)
         for robot in set(self._submaps) - set(copies):
             del self._submaps[robot]
+        for robot in set(self._answered) - set(copies):
+            del self._answered[robot]
         self._incomplete = False
         for robot, m in copies.items():
             try:
@@ -151,12 +155,19 @@ class FleetMapService:
         counted and logged once per robot and reason; a link that fails leaves the map whole."""
         if self.query is None:
             return ()
+        # A robot's submaps change only as its map does (a solve that moves them redraws the map):
+        # while its map keeps its version, the answer stands and the robot is not asked again.
+        seen = (m.version, m.cells.shape, m.origin)
+        memo = self._answered.get(robot)
+        if memo is not None and memo[0] == seen:
+            return memo[1]
         try:
             listing = fetch_submaps(self.query, robot, QUERY_TIMEOUT_S)
         except Exception as exc:  # one robot's failed query must not stop the build for the others
             self._log_once(robot, "list", f"its submap list could not be asked for: {exc}")
             return ()
         if listing is None or not listing.submaps:
+            self._answered[robot] = (seen, ())
             return ()
         h, w = m.cells.shape
         x0, y0 = m.origin[0] - POSE_MARGIN_M, m.origin[1] - POSE_MARGIN_M
@@ -207,7 +218,9 @@ class FleetMapService:
             # map changes (a robot standing still); one that does not decode waits for its redrawing.
             self._incomplete |= any(p not in known.bad for p in pending)
             return ()
-        return tuple(replace(known.held[i], pose=(e.x, e.y, e.theta)) for i, e in sorted(listed.items()))
+        out = tuple(replace(known.held[i], pose=(e.x, e.y, e.theta)) for i, e in sorted(listed.items()))
+        self._answered[robot] = (seen, out)
+        return out
 
     def _log_once(self, robot: str, kind: str, text: str) -> None:
         if (robot, kind) not in self._logged:

@@ -267,6 +267,12 @@ def test_a_robot_s_bent_map_is_merged_from_its_submaps_fetched_over_the_link(zen
         assert {r.b_piece for r in result.registrations if r.b == "r2"} == {0, 1, 2}
         d = distance_to_walls(undo(result.corrections["r1"], walls_of(result.cells, result.origin, result.resolution)))
         assert np.median(d) <= 0.03 and np.mean(d > 0.1) < 0.01
+        # Only r1's map changes: r2's submaps, unchanged with its map, are not asked about again.
+        asked = shares["r2"].list_queries
+        with lock:
+            r1 = follower.maps["r1"]
+            follower.maps["r1"] = SharedMap(r1.cells.copy(), r1.resolution, r1.origin, r1.version + 1)
+        assert service.step() and shares["r2"].list_queries == asked
         # r2's graph moves its submaps (a closure): the list says so; the cells are not fetched again.
         moved = tuple((i, v, (p[0] + 0.01, p[1], p[2])) for i, v, p in poses)
         shares["r2"].publish(MapPublication(r2.version + 1, r2.cells, RES, r2.origin, None, True, 5.0, (), moved))

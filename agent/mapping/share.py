@@ -69,6 +69,7 @@ class MapShare(LayerShare[MapPublication]):
         self._poses: tuple[tuple[int, int, tuple[float, float, float]], ...] = ()
         self._list: bytes | None = None
         self.submap_queries = 0
+        self.list_queries = 0
 
     def start(self) -> None:
         if self._started:
@@ -106,6 +107,7 @@ class MapShare(LayerShare[MapPublication]):
         if not self._serving:
             return []
         with self._sub_lock:
+            self.list_queries += 1
             if not self._poses:
                 return []
             if self._list is None:
