@@ -29,7 +29,7 @@ from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Ack, AckResult, LinkName, Pose, State, Teleop
 from fleetlink.site.brokers import free_port
 from fleetlink.site.mesh import ZenohRouter
-from tests.harness import end_child, wait_until
+from tests.harness import StallWatch, end_child, wait_until
 from tests.harness.lossy import LossyLink
 from tests.test_light_fleet import NoLink
 
@@ -144,6 +144,7 @@ def test_a_held_key_through_a_lossy_primary_keeps_driving_with_redundant_sending
     from tests.harness.link_robot import LinkRobot, goal, open_operator
 
     clock = SystemClock()
+    watch = StallWatch()
     policy = LinkPolicy(state_window_s=0.35, ack_timeout_s=0.25, holdoff_s=0.3, redundant=True)
     with tempfile.TemporaryDirectory() as tmp, MosquittoBroker(Path(tmp)) as broker:
         op, endpoint = open_operator(
@@ -170,16 +171,17 @@ def test_a_held_key_through_a_lossy_primary_keeps_driving_with_redundant_sending
                     link.set_loss(20.0)
                     sent = []
                     drive_sent: dict[int, float] = {}  # headerId -> when the drive was sent
-                    for i in range(120):  # 6 s: a drive every 50 ms, a goal every 200 ms
-                        at = time.monotonic()  # the harness robot's clock (SystemClock.now)
-                        msg = op.send(Teleop, "r1", expect_ack=False, v=0.2, omega=0.0, ttl_s=TELEOP_TTL_S)
-                        drive_sent[msg.header.headerId] = at
-                        if i % 4 == 0:
-                            fields = goal(i)
-                            sent.append(fields["orderId"])
-                            op.send(Order, "r1", **fields)
-                        time.sleep(0.05)
-                    wait_until(lambda: op.pending("r1") == 0, timeout=10, message="every goal acked")
+                    with watch:
+                        for i in range(120):  # 6 s: a drive every 50 ms, a goal every 200 ms
+                            at = time.monotonic()  # the harness robot's clock (SystemClock.now)
+                            msg = op.send(Teleop, "r1", expect_ack=False, v=0.2, omega=0.0, ttl_s=TELEOP_TTL_S)
+                            drive_sent[msg.header.headerId] = at
+                            if i % 4 == 0:
+                                fields = goal(i)
+                                sent.append(fields["orderId"])
+                                op.send(Order, "r1", **fields)
+                            time.sleep(0.05)
+                        wait_until(lambda: op.pending("r1") == 0, timeout=10, message="every goal acked")
                     # Every command came on both links (TCP resends what the primary lost): the
                     # first copy ran, the second was the gate's duplicate.
                     wait_until(
@@ -197,6 +199,9 @@ def test_a_held_key_through_a_lossy_primary_keeps_driving_with_redundant_sending
     # No deadman stop the links made: between two drives run, the time the links added to the time
     # between their sends stays under the time-to-live less the key's repeat period. (The gap as run
     # alone also counts this process's own stalls, up to 0.73 s on a loaded CI host with the sender
-    # asleep as long.)
-    added = [(b_at - a_at) - (b_sent - a_sent) for (a_at, a_sent), (b_at, b_sent) in itertools.pairwise(drives)]
+    # asleep as long; and a stall of the receiving threads, 0.60 s once in CI, shows in the watch.)
+    added = [
+        (b_at - a_at) - (b_sent - a_sent) - watch.stalled(a_at, b_at)
+        for (a_at, a_sent), (b_at, b_sent) in itertools.pairwise(drives)
+    ]
     assert max(added) < TELEOP_TTL_S - 0.05

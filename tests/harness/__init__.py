@@ -17,6 +17,7 @@ __all__ = [
     "MosquittoBroker",
     "MosquittoNotFound",
     "MosquittoStartError",
+    "StallWatch",
     "ZenohPeers",
     "end_child",
     "find_mosquitto",
@@ -71,3 +72,41 @@ def leaked_threads(before: Iterable[threading.Thread], grace: float = 2.0) -> li
     for t in suspects:
         t.join(max(0.0, deadline - time.monotonic()))
     return [t for t in suspects if t.is_alive()]
+
+
+class StallWatch:
+    """Notes when this process itself stalls (a thread that sleeps ``period_s`` and wakes late: CPU
+    starvation on a loaded host, a long GIL hold), so a timing test can tell a gap its links made
+    from one the whole process suffered (the sender, the links' threads and the receiver alike).
+
+        with StallWatch() as watch:
+            ...                                  # the timed part
+        watch.stalled(t0, t1)                    # seconds of [t0, t1] (monotonic) the process stalled
+    """
+
+    def __init__(self, period_s: float = 0.005, late_s: float = 0.03) -> None:
+        self.period_s = period_s
+        self.late_s = late_s
+        self.stalls: list[tuple[float, float]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="stall-watch", daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            t0 = time.monotonic()
+            time.sleep(self.period_s)
+            t1 = time.monotonic()
+            if t1 - t0 > self.period_s + self.late_s:
+                self.stalls.append((t0 + self.period_s, t1))
+
+    def stalled(self, a: float, b: float) -> float:
+        """Seconds of [a, b] that fall in a stall this watch noticed."""
+        return sum(max(0.0, min(b, s1) - max(a, s0)) for s0, s1 in self.stalls)
+
+    def __enter__(self) -> StallWatch:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
