@@ -29,7 +29,7 @@ from fleetlink.links.base import QueryLink
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
 
-__all__ = ["LayerShare", "fetch"]
+__all__ = ["LayerShare", "fetch", "fetch_all"]
 
 log = logging.getLogger(__name__)
 
@@ -122,13 +122,28 @@ class LayerShare(Generic[P]):
 def fetch(link: QueryLink, robot: str, cls: type[M], timeout: float = 5.0) -> M | None:
     """Ask ``fleetlink/v1/<robot>/<cls.TOPIC>``; the first valid ``cls`` reply, or None (bad replies
     are logged)."""
-    key = keys.key(robot, cls.TOPIC)
-    for reply_key, payload in link.query(key, timeout):
+    replies = fetch_all(link, keys.key(robot, cls.TOPIC), cls, timeout)
+    return replies[0] if replies else None
+
+
+def fetch_all(
+    link: QueryLink, key_expr: str, cls: type[M], timeout: float = 5.0, *, rejected: list[str] | None = None
+) -> list[M]:
+    """Ask ``key_expr``; every valid ``cls`` reply, in the order they came. Why each other reply was
+    left out goes to ``rejected`` if given (the caller counts and logs), else to the log."""
+    out: list[M] = []
+    for reply_key, payload in link.query(key_expr, timeout):
         try:
             msg = wire.decode_key(reply_key, payload)
         except wire.WireError as exc:
-            log.warning("%s query %s: rejected reply: %s", cls.TOPIC, key, exc.reason)
-            continue
-        if isinstance(msg, cls):
-            return msg
-    return None
+            reason = f"rejected reply on {reply_key}: {exc.reason}"
+        else:
+            if isinstance(msg, cls):
+                out.append(msg)
+                continue
+            reason = f"a {type(msg).__name__} on {reply_key}, not a {cls.__name__}"
+        if rejected is not None:
+            rejected.append(reason)
+        else:
+            log.warning("%s query %s: %s", cls.TOPIC, key_expr, reason)
+    return out

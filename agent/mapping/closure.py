@@ -712,11 +712,8 @@ class LoopCloser:
     def draw_occupancy(self, i: int) -> tuple[npt.NDArray[np.int8], float, tuple[float, float]]:
         """Submap ``i``'s map_server cells (-1 unknown, 0-100), drawn from its nodes' scans at the
         graph's poses now, in its first node's frame, cropped to the cells seen: what a robot shares
-        of it (agent/mapping/keeper.py ``SubmapPublication``; the fleet map merges submaps)."""
-        sm = self.submaps[i]
-        g = LogOddsGrid(replace(self.grid_config, grow_step=SUBMAP_GROW_M))
-        for sensor, sc in self._parts(sm):
-            g.integrate(sensor, sc.ranges, sc.angles, sc.hit, refresh=False)
+        of it (agent/mapping/keeper.py ``MapPublication.submaps``; the fleet map merges submaps)."""
+        g = _submap_grid(self._parts(self.submaps[i]), self.grid_config)
         cells = g.occupancy()
         rows = np.flatnonzero((cells != -1).any(axis=1))
         cols = np.flatnonzero((cells != -1).any(axis=0))
@@ -1025,14 +1022,21 @@ PAIR_AMBIGUITY_M = 0.1
 inliers or more, are a look-alike: the pair is not kept."""
 
 
-def draw_submap(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, depth: int) -> Drawn:
-    """A submap drawn from its scans at their sensor poses in its frame."""
+def _submap_grid(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig) -> LogOddsGrid:
+    """A submap's log-odds grid, its scans integrated at their sensor poses in its frame; its field
+    left stale (refreshed once, over what the scans changed, by whoever reads it: the same field as
+    refreshed per scan)."""
     # A small growth step: the mapper's 8 m padding would make every submap a big grid.
     g = LogOddsGrid(replace(grid, grow_step=SUBMAP_GROW_M))
-    local = LocalMap(max(1, len(parts)), cell=0.05)
     for sensor, sc in parts:
-        # The field once at the end, over what the scans changed: the same field as refreshed per scan.
         g.integrate(sensor, sc.ranges, sc.angles, sc.hit, refresh=False)
+    return g
+
+
+def draw_submap(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, depth: int) -> Drawn:
+    """A submap drawn from its scans at their sensor poses in its frame."""
+    g = _submap_grid(parts, grid)
+    local = LocalMap(max(1, len(parts)), cell=0.05)
     g.refresh_stale()
     local.extend([(sensor, sc.points, sc.normals) for sensor, sc in parts])  # fused once, not per scan
     # The field kept, the rest of the grid (log-odds, seen cells, the coarse field) let go. (The field

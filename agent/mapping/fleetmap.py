@@ -1,31 +1,40 @@
-"""The fleet map: the robots' onboard maps registered to one another where they see the same
-place, placed in the site frame by a small pose graph, and merged into one map. Pure.
+"""The fleet map: the robots' maps, piece by piece, registered to one another where they see the
+same place, placed in the site frame by one pose graph, and merged into one map. Pure.
 
 Each robot builds its map in the site frame (its keeper restarts the map once UWB fixes place the
 robot), but only as well as the fused pose placed its first turns: on the apartment two robots'
 maps were measured 0.16 m and 1.5 degrees apart, and the console's overlay draws every wall twice.
+And a map can be bent along the way (a drift its own graph never closed), which no rigid correction
+of the whole map undoes.
 
-``FleetMap.put(robot, RobotMap)`` takes a robot's latest map; ``build()`` returns the fleet map:
+``FleetMap.put(robot, RobotMap)`` takes a robot's latest map, with its submaps if it shares them;
+``build()`` returns the fleet map:
 
-1. **Walls and fields.** Each map's occupied cells are its walls (points, at most ``max_points``,
-   evenly subsampled); its likelihood field is a Gaussian of the distance to its nearest wall
-   (sd ``field_sigma_m``), zero where the map knows nothing.
-2. **Inter-robot closures.** For every pair of maps, the walls of one that fall on the other's
-   known floor (the overlap) are searched against the other's field by branch and bound
-   (``bnb.search``, Hess et al. 2016) within ``window_xy_m`` / ``window_theta_rad`` of where they
-   are, then refined on the interpolated field. A registration is kept when the overlap holds at
-   least ``min_overlap_points`` walls and its score reaches ``min_score``; each is computed once per
-   pair of maps taken (``put``).
+1. **Pieces.** A robot's pieces are its submaps (cells in each one's frame, and where its optimised
+   graph puts that frame), or its whole map as one piece (``WHOLE``) in a frame at its centre. The
+   target the others' pieces are matched onto is its map: drawn from its submaps at the poses given
+   with them, or as shared. Its likelihood field is a Gaussian of the distance to its nearest wall
+   (sd ``field_sigma_m``), zero where the map knows nothing; a piece's points are its walls (at most
+   ``max_points``, evenly subsampled).
+2. **Inter-robot closures.** Each piece of one robot is matched onto every other robot's map: its
+   walls on that map's known floor (grown by the window) are searched by branch and bound
+   (``bnb.search``, Hess et al. 2016) within ``window_xy_m`` / ``window_theta_rad`` of where its robot
+   put it, then refined on the interpolated field; kept when the overlap holds at least
+   ``min_overlap_points`` walls and the score reaches ``min_score``, and tied to the other robot's
+   piece whose walls hold most of the matched walls. A match stands while both pieces keep their
+   versions; a refused one is tried again once the other map changed (``retry_builds``); a build
+   searches at most ``max_searches_per_build`` (``pending``: what it left for the next).
 3. **The site frame.** A pose graph (``posegraph.PoseGraph``): node 0 is the site frame, held
-   still; each map is a node at its centre, tied to where its robot placed it by a prior edge
-   (``placement_sigma``: what UWB placement is good for) and to the maps it overlaps by each
-   registration (``registration_sigma``): solved as plain least squares, then again Cauchy-robust
-   from there when the maps form loops (only there can a false closure disagree with the others).
-   Maps that overlap nobody stay where their robots put them; a pair pulls both halfway, weighted
-   by the priors.
-4. **Merge.** Each map is resampled (nearest cell) at its corrected pose onto one lattice of
-   ``resolution_m``; a cell is a wall where at least one map sees a wall and at least as many see a
-   wall as see free floor, free where more see floor, unknown where none knows it.
+   still; each piece a node where its robot put it, tied there by its robot's placement
+   (``placement_sigma``, what UWB placement is good for, shared among the robot's pieces), to the
+   robot's next piece by their relative pose (``chain_sigma``), and to other robots' pieces by each
+   match (``registration_sigma``; half where an overlap is matched both ways): solved as plain least
+   squares, then again Cauchy-robust from there when there is more than one match (only then can a
+   false closure disagree with the others). Maps that overlap nobody stay where their robots put
+   them; a pair pulls both halfway, weighted by the priors.
+4. **Merge.** Each piece is resampled (nearest cell) at its solved pose onto one lattice of
+   ``resolution_m``; a cell is a wall where at least one piece sees a wall and at least as many see
+   a wall as see free floor, free where more see floor, unknown where none knows it.
 
 The fleet map's version counts builds whose cells changed. Time is not needed; no I/O.
 """

@@ -24,7 +24,9 @@ keeper decides:
   given only in the site frame, for a match that is well posed in every direction).
 * **What to share.** Every ``share_period`` seconds, if the map changed, a ``MapPublication``: the
   cells copied at one version and the box changed since the last one, for the shell's ``MapShare``
-  to serve and patch.
+  to serve and patch; with loop closure also every submap's pose as the graph has it now and the
+  submaps drawn since the last one (a finished submap once, the open one as nodes join it), which
+  the share serves for the fleet map.
 
 Time is an argument. What the keeper hands out (planner, publication) is built over copies of
 the cells, so it may be used on another thread, or in another process than the keeper's

@@ -30,7 +30,7 @@ import threading
 from collections.abc import Mapping
 from typing import Any
 
-from fleetlink.agent.layer_share import LayerShare, fetch
+from fleetlink.agent.layer_share import LayerShare, fetch, fetch_all
 from fleetlink.agent.mapping.fleetmap import Submap
 from fleetlink.agent.mapping.keeper import MapPublication
 from fleetlink.links.base import QueryLink
@@ -169,22 +169,7 @@ def fetch_submap(
     reason for each reply left out goes to ``rejected`` if given (the caller counts and logs), else
     to the log."""
     key = keys.indexed_key(robot, MapSubmap.TOPIC, index)
-    out = []
-    for reply_key, payload in link.query(key, timeout):
-        try:
-            msg = wire.decode_key(reply_key, payload)
-        except wire.WireError as exc:
-            reason = f"rejected reply on {reply_key}: {exc.reason}"
-        else:
-            if isinstance(msg, MapSubmap) and msg.header.robot == robot:
-                out.append(msg)
-                continue
-            reason = f"a {type(msg).__name__} about {msg.header.robot!r} on {reply_key}"
-        if rejected is not None:
-            rejected.append(reason)
-        else:
-            log.warning("submap query %s: %s", key, reason)
-    return out
+    return fetch_all(link, key, MapSubmap, timeout, rejected=rejected)
 
 
 def submap_of(msg: MapSubmap, pose: tuple[float, float, float] | None = None) -> Submap:
