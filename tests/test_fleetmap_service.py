@@ -15,7 +15,7 @@ import numpy as np
 
 from fleetlink.agent.mapping.fleetmap import RobotMap
 from fleetlink.agent.mapping.keeper import MapPublication
-from fleetlink.agent.mapping.share import MapShare
+from fleetlink.agent.mapping.share import MapShare, fetch_submap, fetch_submaps
 from fleetlink.cli.console import fleet_map_service
 from fleetlink.cli.main import main
 from fleetlink.field.mapserver import read_map
@@ -248,6 +248,21 @@ def submap_rig(zenoh_peers: Any) -> SubmapRig:
     return SubmapRig(robots_side, console_side, lock, follower, service, r2)
 
 
+def wait_served(rig: SubmapRig, robot: str, *, cells: bool = True) -> None:
+    """Until the console's side hears ``robot``'s submap queryables: a query sent before a
+    declaration has reached the other peer goes unanswered (on a loaded machine a build began at once
+    found no list and merged the map whole). ``cells``: probe the submap cells (declared after the
+    list, in order on the one link); else the list (declared last by the caller)."""
+    if cells:
+        wait_until(lambda: fetch_submap(rig.console_side, robot, timeout=1.0), timeout=10, message=f"{robot}'s submaps")
+    else:
+        wait_until(
+            lambda: fetch_submaps(rig.console_side, robot, timeout=1.0) is not None,
+            timeout=10,
+            message=f"{robot}'s submap list",
+        )
+
+
 def test_a_robot_s_bent_map_is_merged_from_its_submaps_fetched_over_the_link(zenoh_peers: Any) -> None:
     """r2 shares a map bent along the way (its submaps each further off) with its submap list: the
     console's service fetches the submaps, straightens them one by one against r1's map, and fetches
@@ -261,6 +276,7 @@ def test_a_robot_s_bent_map_is_merged_from_its_submaps_fetched_over_the_link(zen
         shares["r2"].publish(
             MapPublication(r2.version, r2.cells, RES, r2.origin, None, True, 5.0, BENT, submap_poses=poses)
         )
+        wait_served(rig, "r2")
         wait_until(service.step, timeout=10, message="a fleet map built")
         result = service.result
         assert result is not None and service.submaps_fetched == 3
@@ -329,9 +345,10 @@ def test_bad_submap_replies_leave_the_map_whole_and_are_counted_and_logged_once(
         msg = counter.make(MapSubmap, began=began, index=i, x=sm.pose[0], y=sm.pose[1], theta=sm.pose[2], **fields)
         return [(key, wire.encode(msg))]
 
-    rig.robots_side.serve(keys.key("r2", MapSubmaps.TOPIC), listing)
     rig.robots_side.serve(keys.indexed_key("r2", "map/submap", "*"), submap)
+    rig.robots_side.serve(keys.key("r2", MapSubmaps.TOPIC), listing)
     try:
+        wait_served(rig, "r2", cells=False)
         with caplog.at_level("WARNING", logger="fleetlink.site.fleetmap"):
             assert service.step()
             result = service.result
@@ -358,6 +375,7 @@ def test_a_robot_standing_still_has_its_submaps_fetched_over_several_builds(zeno
         share.start()
         poses = tuple((s.index, s.version, s.pose) for s in BENT)
         share.publish(MapPublication(r2.version, r2.cells, RES, r2.origin, None, True, 5.0, BENT, poses))
+        wait_served(rig, "r2")
         pieces = []
         for _ in range(4):  # the maps do not change: the builds go on while submaps are missing
             built = service.step()

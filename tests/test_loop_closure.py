@@ -489,3 +489,42 @@ def test_a_large_correction_is_not_confirmed_by_a_node_seeing_what_its_node_saw(
     assert found == [first, nxt]
     with pytest.raises(ValueError, match="confirm_apart_m"):
         CloserConfig(confirm_apart_m=-1.0)
+
+
+def test_a_scan_between_two_nodes_takes_both_nodes_corrections() -> None:
+    """``corrected_trajectory``: where the graph moves a node against the one before it, the scans
+    between them take the share of its correction that their place along the step says (a scan at
+    half the step, half of it), so the trajectory has no seam at the moved node; a node's own scan
+    is where its node is, and scans beyond the neighbouring nodes do not move."""
+    _, odom, scans = _drive()
+    m = OnboardMapper(MapperConfig(matching=False, closer=CloserConfig()))
+    for i in range(40):
+        m.add_scan_odometry(0.1 * i, scans[i][0], scans[i][1], odom[i])
+    closer = m.closer
+    assert closer is not None and len(closer) >= 8
+    before = m.corrected_trajectory()
+    times = [t for t, _ in before]
+    j = 5
+    x, y, th = closer.graph.poses[j]
+    closer.graph.poses[j] = (x, y + 0.2, th)  # as a solve would: node j moved 0.2 m across its step
+    after = m.corrected_trajectory()
+    first, mine, last = (times.index(closer.times[k]) for k in (j - 1, j, j + 1))
+    assert last - first >= 4  # scans between the nodes on both sides (0.15 m steps, nodes 0.3 m apart)
+
+    def share(i: int, a: int, b: int) -> float:  # how far scan i lies along the step from scan a to b
+        pa, pb, p = (np.array(before[k][1][:2]) for k in (a, b, i))
+        d = pb - pa
+        return float(np.dot(p - pa, d) / np.dot(d, d))
+
+    moved = [after[i][1][1] - before[i][1][1] for i in range(len(before))]
+    assert moved[mine] == pytest.approx(0.2, abs=1e-9)
+    for i in range(first + 1, mine):
+        w = share(i, first, mine)
+        assert 0.0 < w < 1.0
+        assert moved[i] == pytest.approx(0.2 * w, abs=1e-6)
+    for i in range(mine + 1, last):
+        w = share(i, mine, last)
+        assert moved[i] == pytest.approx(0.2 * (1.0 - w), abs=1e-6)
+    assert all(abs(v) < 1e-9 for v in moved[: first + 1] + moved[last:])
+    # Along the step nothing moved: the correction was across it.
+    assert all(abs(a[1][0] - b[1][0]) < 1e-9 for a, b in zip(after, before, strict=True))
