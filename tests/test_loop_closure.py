@@ -514,17 +514,42 @@ def test_a_scan_between_two_nodes_takes_both_nodes_corrections() -> None:
     def share(i: int, a: int, b: int) -> float:  # how far scan i lies along the step from scan a to b
         pa, pb, p = (np.array(before[k][1][:2]) for k in (a, b, i))
         d = pb - pa
-        return float(np.dot(p - pa, d) / np.dot(d, d))
+        return float(np.dot(p - pa, d) / np.dot(d, d))  # (the mapper counts the step's turn too: ~0 here)
 
     moved = [after[i][1][1] - before[i][1][1] for i in range(len(before))]
     assert moved[mine] == pytest.approx(0.2, abs=1e-9)
     for i in range(first + 1, mine):
         w = share(i, first, mine)
         assert 0.0 < w < 1.0
-        assert moved[i] == pytest.approx(0.2 * w, abs=1e-6)
+        assert moved[i] == pytest.approx(0.2 * w, abs=1e-4)
     for i in range(mine + 1, last):
         w = share(i, mine, last)
-        assert moved[i] == pytest.approx(0.2 * (1.0 - w), abs=1e-6)
+        assert moved[i] == pytest.approx(0.2 * (1.0 - w), abs=1e-4)
     assert all(abs(v) < 1e-9 for v in moved[: first + 1] + moved[last:])
     # Along the step nothing moved: the correction was across it.
     assert all(abs(a[1][0] - b[1][0]) < 1e-9 for a, b in zip(after, before, strict=True))
+
+
+def test_a_scan_in_a_turn_in_place_takes_the_share_its_turn_says() -> None:
+    """Between two nodes made by turning on the spot, how far along the step a scan lies is how far
+    it has turned: half the turn, half the next node's correction."""
+    m = OnboardMapper(MapperConfig(matching=False, closer=CloserConfig()))
+    _, _, scans = _drive()
+    r, a = scans[0]
+    turn = math.radians(6.0)  # per scan; a node every 10 degrees or so (``local_spacing_angle``)
+    for i in range(12):
+        m.add_scan_odometry(0.1 * i, r, a, (0.0, 0.0, turn * i))
+    closer = m.closer
+    assert closer is not None and len(closer) >= 4
+    before = m.corrected_trajectory()
+    times = [t for t, _ in before]
+    j = 2
+    x, y, th = closer.graph.poses[j]
+    closer.graph.poses[j] = (x + 0.1, y, th)
+    after = m.corrected_trajectory()
+    first, mine = times.index(closer.times[j - 1]), times.index(closer.times[j])
+    assert mine - first >= 2
+    for i in range(first + 1, mine):
+        w = (before[i][1][2] - before[first][1][2]) / (before[mine][1][2] - before[first][1][2])
+        assert 0.0 < w < 1.0
+        assert after[i][1][0] - before[i][1][0] == pytest.approx(0.1 * w, abs=1e-6)

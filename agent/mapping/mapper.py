@@ -516,12 +516,11 @@ class OnboardMapper:
                 # node's correction: where the final pass moved a node against its neighbour down a
                 # corridor, the scans before it stayed behind (aces, published relations: scan 5118,
                 # 0.15 m off its neighbours both ways, the worst revisit 0.223 m; blended 0.185 m).
+                # How far along the step: the offset projected on it in (x, y, a metre's arc per radian),
+                # so a turn in place is measured by its turn and a straight step by its length.
                 step = self._steps[node + 1]
-                d2 = step[0] ** 2 + step[1] ** 2
-                if d2 > 1e-6:
-                    w = (offset[0] * step[0] + offset[1] * step[1]) / d2
-                else:
-                    w = offset[2] / step[2] if abs(step[2]) > 1e-6 else 0.0
+                d2 = step[0] ** 2 + step[1] ** 2 + step[2] ** 2
+                w = (offset[0] * step[0] + offset[1] * step[1] + offset[2] * step[2]) / d2 if d2 > 1e-12 else 0.0
                 w = min(1.0, max(0.0, w))
                 if w > 0.0:
                     other = compose(poses[node + 1], relative(step, offset))
