@@ -491,6 +491,21 @@ def test_a_large_correction_is_not_confirmed_by_a_node_seeing_what_its_node_saw(
         CloserConfig(confirm_apart_m=-1.0)
 
 
+def _node_moved(
+    m: OnboardMapper, j: int, dx: float, dy: float
+) -> tuple[list[tuple[float, Pose]], list[tuple[float, Pose]], list[int]]:
+    """``m``'s corrected trajectory before and after its node ``j`` is moved by (dx, dy), as a solve
+    would move it, and the trajectory index of each of nodes j - 1, j, j + 1 (-1: none)."""
+    closer = m.closer
+    assert closer is not None and len(closer) > j
+    before = m.corrected_trajectory()
+    times = [t for t, _ in before]
+    x, y, th = closer.graph.poses[j]
+    closer.graph.poses[j] = (x + dx, y + dy, th)
+    at = [times.index(closer.times[k]) if k < len(closer) else -1 for k in (j - 1, j, j + 1)]
+    return before, m.corrected_trajectory(), at
+
+
 def test_a_scan_between_two_nodes_takes_both_nodes_corrections() -> None:
     """``corrected_trajectory``: where the graph moves a node against the one before it, the scans
     between them take the share of its correction that their place along the step says (a scan at
@@ -500,15 +515,7 @@ def test_a_scan_between_two_nodes_takes_both_nodes_corrections() -> None:
     m = OnboardMapper(MapperConfig(matching=False, closer=CloserConfig()))
     for i in range(40):
         m.add_scan_odometry(0.1 * i, scans[i][0], scans[i][1], odom[i])
-    closer = m.closer
-    assert closer is not None and len(closer) >= 8
-    before = m.corrected_trajectory()
-    times = [t for t, _ in before]
-    j = 5
-    x, y, th = closer.graph.poses[j]
-    closer.graph.poses[j] = (x, y + 0.2, th)  # as a solve would: node j moved 0.2 m across its step
-    after = m.corrected_trajectory()
-    first, mine, last = (times.index(closer.times[k]) for k in (j - 1, j, j + 1))
+    before, after, (first, mine, last) = _node_moved(m, 5, 0.0, 0.2)  # node 5 moved 0.2 m across its step
     assert last - first >= 4  # scans between the nodes on both sides (0.15 m steps, nodes 0.3 m apart)
 
     def share(i: int, a: int, b: int) -> float:  # how far scan i lies along the step from scan a to b
@@ -539,15 +546,7 @@ def test_a_scan_in_a_turn_in_place_takes_the_share_its_turn_says() -> None:
     turn = math.radians(6.0)  # per scan; a node every 10 degrees or so (``local_spacing_angle``)
     for i in range(12):
         m.add_scan_odometry(0.1 * i, r, a, (0.0, 0.0, turn * i))
-    closer = m.closer
-    assert closer is not None and len(closer) >= 4
-    before = m.corrected_trajectory()
-    times = [t for t, _ in before]
-    j = 2
-    x, y, th = closer.graph.poses[j]
-    closer.graph.poses[j] = (x + 0.1, y, th)
-    after = m.corrected_trajectory()
-    first, mine = times.index(closer.times[j - 1]), times.index(closer.times[j])
+    before, after, (first, mine, _) = _node_moved(m, 2, 0.1, 0.0)
     assert mine - first >= 2
     for i in range(first + 1, mine):
         w = (before[i][1][2] - before[first][1][2]) / (before[mine][1][2] - before[first][1][2])
