@@ -122,15 +122,22 @@ class LayerShare(Generic[P]):
 def fetch(link: QueryLink, robot: str, cls: type[M], timeout: float = 5.0) -> M | None:
     """Ask ``fleetlink/v1/<robot>/<cls.TOPIC>``; the first valid ``cls`` reply, or None (bad replies
     are logged)."""
-    replies = fetch_all(link, keys.key(robot, cls.TOPIC), cls, timeout)
+    replies = fetch_all(link, keys.key(robot, cls.TOPIC), cls, timeout, robot=robot)
     return replies[0] if replies else None
 
 
 def fetch_all(
-    link: QueryLink, key_expr: str, cls: type[M], timeout: float = 5.0, *, rejected: list[str] | None = None
+    link: QueryLink,
+    key_expr: str,
+    cls: type[M],
+    timeout: float = 5.0,
+    *,
+    robot: str | None = None,
+    rejected: list[str] | None = None,
 ) -> list[M]:
-    """Ask ``key_expr``; every valid ``cls`` reply, in the order they came. Why each other reply was
-    left out goes to ``rejected`` if given (the caller counts and logs), else to the log."""
+    """Ask ``key_expr``; every valid ``cls`` reply (about ``robot``, if given), in the order they came.
+    Why each other reply was left out goes to ``rejected`` if given (the caller counts and logs), else
+    to the log."""
     out: list[M] = []
     for reply_key, payload in link.query(key_expr, timeout):
         try:
@@ -138,10 +145,10 @@ def fetch_all(
         except wire.WireError as exc:
             reason = f"rejected reply on {reply_key}: {exc.reason}"
         else:
-            if isinstance(msg, cls):
+            if isinstance(msg, cls) and (robot is None or msg.header.robot == robot):
                 out.append(msg)
                 continue
-            reason = f"a {type(msg).__name__} on {reply_key}, not a {cls.__name__}"
+            reason = f"a {type(msg).__name__} about {msg.header.robot!r} on {reply_key}, not a {cls.__name__} about {robot!r}"
         if rejected is not None:
             rejected.append(reason)
         else:

@@ -210,3 +210,26 @@ def test_a_submap_s_key_names_its_index() -> None:
     assert keys.topic_of("fleetlink/v1/r1/map/submap/7") == "map/submap"
     with pytest.raises(ValueError):
         keys.indexed_key("r1", "map", 1)
+
+
+def test_a_submap_reply_about_another_robot_is_left_out() -> None:
+    """A link that answers a query about r2 with r1's submap (a valid message on r1's own key) gives
+    only r2's: the other is left out with its reason."""
+    from fleetlink.agent.mapping.share import fetch_submap
+    from fleetlink.shared.map_codec import snapshot_fields
+    from fleetlink.shared.messages import MapSubmap
+
+    def submap(robot: str, index: int) -> tuple[str, bytes]:
+        counter = wire.HeaderCounter(SimClock(), robot=robot, sender=f"agent-{robot}")
+        fields = snapshot_fields(np.zeros((2, 3), dtype=np.int8), 0.05, (0.0, 0.0), 3)
+        msg = counter.make(MapSubmap, began=1.0, index=index, x=0.0, y=0.0, theta=0.0, **fields)
+        return wire.key_of(msg), wire.encode(msg)
+
+    class Answering:
+        def query(self, key_expr: str, timeout: float) -> list[tuple[str, bytes]]:
+            return [submap("r1", 0), submap("r2", 1)]
+
+    rejected: list[str] = []
+    got = fetch_submap(Answering(), "r2", "*", rejected=rejected)  # type: ignore[arg-type]
+    assert [(m.header.robot, m.index) for m in got] == [("r2", 1)]
+    assert len(rejected) == 1 and "'r1'" in rejected[0]

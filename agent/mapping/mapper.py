@@ -305,7 +305,9 @@ class OnboardMapper:
                 if self.closer is not None:
                     scan = NodeScan(r, a, full_hit, kept, normals, match_pts)
                     self.closer.add_node(t, pose, scan, site, info if matched else None)
-                    self._steps.append(relative(self._node_pose, pose) if self._node_pose is not None else pose)
+                    self._steps.append(
+                        relative(self._node_pose, pose) if self._node_pose is not None else (0.0, 0.0, 0.0)
+                    )
                     self._node_pose = pose
                     made_node = True
             self._last_key = (t, pose)

@@ -169,7 +169,7 @@ def fetch_submap(
     reason for each reply left out goes to ``rejected`` if given (the caller counts and logs), else
     to the log."""
     key = keys.indexed_key(robot, MapSubmap.TOPIC, index)
-    return fetch_all(link, key, MapSubmap, timeout, rejected=rejected)
+    return fetch_all(link, key, MapSubmap, timeout, robot=robot, rejected=rejected)
 
 
 def submap_of(msg: MapSubmap, pose: tuple[float, float, float] | None = None) -> Submap:
