@@ -15,7 +15,7 @@ import pytest
 
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.closure import CloserConfig, Closure, LoopCloser, NodeScan, compose, relative
-from fleetlink.agent.mapping.grid import GridConfig
+from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
 from fleetlink.field.raycast import Raycaster
 
@@ -552,3 +552,38 @@ def test_a_scan_in_a_turn_in_place_takes_the_share_its_turn_says() -> None:
         w = (before[i][1][2] - before[first][1][2]) / (before[mine][1][2] - before[first][1][2])
         assert 0.0 < w < 1.0
         assert after[i][1][0] - before[i][1][0] == pytest.approx(0.1 * w, abs=1e-6)
+
+
+def test_the_grid_draws_each_keyframe_where_the_trajectory_places_it() -> None:
+    """After a solve the grid is drawn again with each keyframe where ``corrected_trajectory`` has
+    its scan, those between two nodes included: one placement for the map and the trajectory (a
+    keyframe hung off the node before alone leaves a second copy of a wall beside the moved one)."""
+    _, odom, scans = _drive()
+    m = OnboardMapper(MapperConfig(matching=False, closer=CloserConfig()))
+    for i in range(40):
+        m.add_scan_odometry(0.1 * i, scans[i][0], scans[i][1], odom[i])
+    _, after, _ = _node_moved(m, 5, 0.0, 0.2)
+    assert m.redraw(0.0)
+    drawn = m._drawn
+    assert len(drawn) == len(after)  # every scan here is a keyframe (0.15 m apart)
+
+    def walls(grid: LogOddsGrid) -> set[tuple[float, float]]:
+        rows, cols = np.nonzero(grid.occupancy() >= 65)
+        res, (ox, oy) = grid.resolution, grid.origin
+        return {
+            (round(ox + (c + 0.5) * res, 6), round(oy + (r + 0.5) * res, 6)) for r, c in zip(rows, cols, strict=True)
+        }
+
+    reference = LogOddsGrid(m.config.grid)
+    for (_, pose), (_, _, r, a, hit) in zip(after, drawn, strict=True):
+        reference.integrate(compose(pose, m.config.mount), r.astype(np.float64), a.astype(np.float64), hit)
+    got = walls(m.grid)
+    assert got == walls(reference)
+    # The check can tell: the keyframes between the moved node and its neighbours hung off the node
+    # before alone draw other walls.
+    assert m.closer is not None
+    alone = LogOddsGrid(m.config.grid)
+    for node, offset, r, a, hit in drawn:
+        sensor = compose(compose(m.closer.poses[node], offset), m.config.mount)
+        alone.integrate(sensor, r.astype(np.float64), a.astype(np.float64), hit)
+    assert got != walls(alone)

@@ -461,16 +461,16 @@ class OnboardMapper:
         return float(np.max(np.hypot(now[:, 0] - was[:, 0], now[:, 1] - was[:, 1]) + REDRAW_LEVER_M * turn))
 
     def _redraw_step(self, batch: int) -> None:
-        """Draw the next ``batch`` keyframes into the grid being redrawn, at their nodes' poses now;
-        once every keyframe is in it (those integrated meanwhile too), it takes the grid's place: the
-        version goes on from the old grid's, and all of it is marked changed."""
+        """Draw the next ``batch`` keyframes into the grid being redrawn, placed from their nodes' poses
+        now (``_placed``); once every keyframe is in it (those integrated meanwhile too), it takes the
+        grid's place: the version goes on from the old grid's, and all of it is marked changed."""
         back = self._back
         assert back is not None and self.closer is not None
         poses = self.closer.poses
         mount = self.config.mount
         stop = min(len(self._drawn), self._back_next + batch)
         for node, offset, r, a, hit in self._drawn[self._back_next : stop]:
-            sensor = compose(compose(poses[node], offset), mount)
+            sensor = compose(self._placed(poses, node, offset), mount)
             back.integrate(sensor, r.astype(np.float64), a.astype(np.float64), hit, refresh=False)
             if node >= len(self._back_at):
                 self._back_at.extend(poses[len(self._back_at) : node + 1])
@@ -488,51 +488,55 @@ class OnboardMapper:
     def _draw(
         self, entries: list[tuple[int, Pose, npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_]]]
     ) -> None:
-        """Integrate ``entries`` (the tail of ``_drawn``) into the grid at their nodes' poses now; the
-        field is left stale (refreshed when read). Each node's pose is remembered as drawn."""
+        """Integrate ``entries`` (the tail of ``_drawn``) into the grid, placed from their nodes' poses
+        now (``_placed``); the field is left stale (refreshed when read). Each node's pose is remembered
+        as drawn."""
         poses = self.closer.poses if self.closer is not None else []
         mount = self.config.mount
         for node, offset, r, a, hit in entries:
-            sensor = compose(compose(poses[node], offset), mount)
+            sensor = compose(self._placed(poses, node, offset), mount)
             self._grid.integrate(sensor, r.astype(np.float64), a.astype(np.float64), hit, refresh=False)
         self._undrawn = len(self._drawn)
         self._drawn_at.extend(poses[len(self._drawn_at) :])
 
     def corrected_trajectory(self) -> list[tuple[float, Pose]]:
         """Every scan's pose as the optimised graph has it now (the online poses were each the best
-        estimate at their time; after a closure the past moves too). A scan between two nodes is
-        placed from both: from the node before it by the front end's offset, and from the next node by
-        the same offset taken back along the front end's step between them, weighted by how far along
-        that step it lies. Without loop closure: the trajectory as it was."""
+        estimate at their time; after a closure the past moves too), placed as ``_placed`` says.
+        Without loop closure: the trajectory as it was."""
         if self.closer is None:
             return list(self.trajectory)
         poses = self.closer.poses
-        out: list[tuple[float, Pose]] = []
-        for (t, _), (node, offset) in zip(self.trajectory, self._links, strict=True):
-            if node < 0:
-                out.append((t, offset))
-                continue
-            pose = compose(poses[node], offset)
-            if node + 1 < len(poses):
-                # Hung off the node before alone, a scan just short of the next node kept none of that
-                # node's correction: where the final pass moved a node against its neighbour down a
-                # corridor, the scans before it stayed behind (aces, published relations: scan 5118,
-                # 0.15 m off its neighbours both ways, the worst revisit 0.223 m; blended 0.185 m).
-                # How far along the step: the offset projected on it in (x, y, a metre's arc per radian),
-                # so a turn in place is measured by its turn and a straight step by its length.
-                step = self._steps[node + 1]
-                d2 = step[0] ** 2 + step[1] ** 2 + step[2] ** 2
-                w = (offset[0] * step[0] + offset[1] * step[1] + offset[2] * step[2]) / d2 if d2 > 1e-12 else 0.0
-                w = min(1.0, max(0.0, w))
-                if w > 0.0:
-                    other = compose(poses[node + 1], relative(step, offset))
-                    pose = (
-                        pose[0] + w * (other[0] - pose[0]),
-                        pose[1] + w * (other[1] - pose[1]),
-                        wrap(pose[2] + w * wrap(other[2] - pose[2])),
-                    )
-            out.append((t, pose))
-        return out
+        return [
+            (t, offset if node < 0 else self._placed(poses, node, offset))
+            for (t, _), (node, offset) in zip(self.trajectory, self._links, strict=True)
+        ]
+
+    def _placed(self, poses: list[Pose], node: int, offset: Pose) -> Pose:
+        """Where a scan taken ``offset`` from node ``node`` (the front end's) lies with the nodes at
+        ``poses``: between two nodes, placed from both, from the node before by the offset and from the
+        next node by the same offset taken back along the front end's step between them, weighted by
+        how far along that step it lies. The trajectory and the grid's keyframes are placed alike."""
+        pose = compose(poses[node], offset)
+        if node + 1 >= len(poses):
+            return pose
+        # Hung off the node before alone, a scan just short of the next node kept none of that node's
+        # correction: where the final pass moved a node against its neighbour down a corridor, the
+        # scans before it stayed behind (aces, published relations: scan 5118, 0.15 m off its
+        # neighbours both ways, the worst revisit 0.223 m; blended 0.185 m). How far along the step:
+        # the offset projected on it in (x, y, a metre's arc per radian), so a turn in place is
+        # measured by its turn and a straight step by its length.
+        step = self._steps[node + 1]
+        d2 = step[0] ** 2 + step[1] ** 2 + step[2] ** 2
+        w = (offset[0] * step[0] + offset[1] * step[1] + offset[2] * step[2]) / d2 if d2 > 1e-12 else 0.0
+        w = min(1.0, max(0.0, w))
+        if w <= 0.0:
+            return pose
+        other = compose(poses[node + 1], relative(step, offset))
+        return (
+            pose[0] + w * (other[0] - pose[0]),
+            pose[1] + w * (other[1] - pose[1]),
+            wrap(pose[2] + w * wrap(other[2] - pose[2])),
+        )
 
     def _match_grid(self) -> tuple[LogOddsGrid, Pose]:
         """What the front end matches against and the transform from the map frame into its frame:
