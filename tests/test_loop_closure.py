@@ -218,6 +218,46 @@ def test_a_false_closure_is_dropped_by_the_solve() -> None:
     assert moved < 0.02, moved
 
 
+def test_a_look_alike_seen_from_behind_its_walls_is_no_closure() -> None:
+    """On the ring corridor the block's outer corner, seen from inside the block, looks like the
+    outer walls' corner: a 180-degree scan at the start corner, coming back, fits the first submap 2 m
+    along both axes from where it is, with the walls matched from their far side. The search window
+    has grown that far by then (27 m without a closure), so only the side the walls were seen from
+    tells: no closure is accepted off the truth, and the map keeps its shape (before: three such
+    closures, agreeing with each other, moved the start 2.8 m)."""
+    rng = np.random.default_rng(2)
+    rc = Raycaster(WALLS)
+    truth = _route()
+    angles = np.linspace(-math.pi / 2, math.pi / 2, 181)
+    m = OnboardMapper(MapperConfig())
+    odom: Pose = (0.0, 0.0, 0.0)
+    for i, pose in enumerate(truth):
+        if i:
+            dx, dy, dth = relative(truth[i - 1], pose)
+            d = math.hypot(dx, dy)
+            odom = compose(
+                odom,
+                (
+                    dx * (1.0 + rng.normal(0, 0.03)),
+                    dy + rng.normal(0, 0.01 * d),
+                    dth + math.radians(0.5) * d + rng.normal(0, 0.02 * abs(dth) + 0.003),
+                ),
+            )
+        r = rc.cast_fan(pose[0], pose[1], pose[2] - math.pi / 2, math.pi / 180, 181, MAX_RANGE)
+        r = np.where(np.isfinite(r), r + rng.normal(0, 0.01, 181), np.nan)
+        m.add_scan_odometry(0.1 * i, r, angles, odom)
+    closer = m.closer
+    assert closer is not None and len(closer.closures) >= 5  # the true closures are still made
+    assert closer.stats.rejected_behind >= 1  # the look-alike was found, and refused for it
+    at = {round(t / 0.1): p for t, p in m.corrected_trajectory()}
+    for c in closer.closures:
+        i, j = (round(closer.times[k] / 0.1) for k in (c.node, c.anchor))
+        true_z = relative(truth[j], truth[i])
+        assert math.hypot(c.z[0] - true_z[0], c.z[1] - true_z[1]) < 0.3, (i, j, c.z, true_z)
+    worst = max(math.dist(relative(truth[0], truth[i])[:2], relative(at[0], at[i])[:2]) for i in range(len(truth)))
+    assert worst < 0.2, worst
+
+
 def test_the_same_input_maps_the_same_way() -> None:
     a, ta, _ = _with_and_without()
     b, tb = _run(MapperConfig(matching=False, closer=CloserConfig()))
@@ -434,6 +474,8 @@ def test_a_small_window_builds_only_the_levels_it_needs() -> None:
         ("final_pair_inliers", 1.5, "final_pair_inliers <= 1"),
         ("lazy_solve_share", -0.1, "lazy_solve_share must be a finite number >= 0"),
         ("lazy_solve_below", math.inf, "lazy_solve_below must be a finite number >= 0"),
+        ("min_facing_share", 1.5, "min_facing_share must be in"),
+        ("min_facing_share", math.nan, "min_facing_share must be in"),
     ],
 )
 def test_a_closer_configured_out_of_range_is_refused_with_the_setting_named(

@@ -90,6 +90,13 @@ class CloserConfig:
     angle_step: float = math.radians(0.5)  # the branch-and-bound's rotations
     min_inlier_ratio: float = 0.6
     inlier_distance: float = 0.1  # m
+    # A match that moves its node more than ``confirm_above`` needs at least this share of its inliers
+    # on submap points seen from the side this scan sees them from (their normals face this sensor).
+    # A field match cannot tell a wall's sides apart: on a ring corridor round a block, the block's
+    # corner seen from inside it fits the outer walls' corner 2 m off, every inlier matched from
+    # behind. Small corrections are exempt: true matches across thin partitions (intel's office) have
+    # most of their inliers on the partition's far side, 5 cm away.
+    min_facing_share: float = 0.5
     max_disagreement: float = 0.1  # m between the correlative and the refined answer
     max_disagreement_angle: float = math.radians(2.0)
     min_weak: float = 10000.0  # smallest eigenvalue of the refinement's information (1/m^2)
@@ -236,6 +243,8 @@ class CloserConfig:
             )
         if self.max_search_xy < self.search_xy or self.max_search_theta < self.search_theta:
             raise ValueError("the search caps must be at least the base windows")
+        if not 0.0 <= self.min_facing_share <= 1.0:
+            raise ValueError(f"min_facing_share must be in [0, 1], got {self.min_facing_share!r}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -312,7 +321,8 @@ class Check:
 class CheckResult:
     check: Check
     closure: Closure | None
-    # "accepted", "few points", "score", "inliers", "disagreement", "outside", "degenerate", "ambiguous"
+    # "accepted", "few points", "score", "inliers", "behind", "disagreement", "outside", "degenerate",
+    # "ambiguous"
     outcome: str
     drawn: Drawn | None  # the submap as drawn for the check (None: not drawn, too few points)
 
@@ -331,6 +341,7 @@ class CloserStats:
     accepted: int = 0
     rejected_score: int = 0
     rejected_inliers: int = 0
+    rejected_behind: int = 0  # its walls matched from their far side (``min_facing_share``)
     rejected_disagreement: int = 0
     rejected_degenerate: int = 0
     rejected_outside: int = 0  # refined beyond the search window (slid down a corridor)
@@ -573,6 +584,8 @@ class LoopCloser:
             st.rejected_score += r.outcome == "score"
         elif r.outcome == "inliers":
             st.rejected_inliers += 1
+        elif r.outcome == "behind":
+            st.rejected_behind += 1
         elif r.outcome == "disagreement":
             st.rejected_disagreement += 1
         elif r.outcome == "outside":
@@ -1009,9 +1022,9 @@ class LoopCloser:
 SUBMAP_GROW_M = 2.0
 """A submap grid grows in steps of this many metres (the mapper's grid uses 8 m)."""
 JUMP_LEVER_M = 3.0
+"""A closure's turn counts towards ``confirm_above`` as the arc it moves a wall this far away."""
 _FINAL_ROWS = 256
 """Nodes ranked against every submap at once in the final pass."""
-"""A closure's turn counts towards ``confirm_above`` as the arc it moves a wall this far away."""
 VIEW_LEVER_M = 2.0
 """Ranking candidates: a node facing another way counts as this many metres further per radian."""
 PAIR_SEARCH_STEP_M = 0.1
@@ -1020,6 +1033,10 @@ within the point-to-line's 0.15 m reach of any answer in between."""
 PAIR_AMBIGUITY_M = 0.1
 """Two answers of a scan pair's search this far apart, the second with nine tenths of the first's
 inliers or more, are a look-alike: the pair is not kept."""
+FACING_SLACK = 0.1
+"""An inlier's submap point may face away from the scan's sensor by this much (the cosine between its
+normal and the ray back to the sensor, about 6 degrees past grazing: normals of walls seen edge-on are
+noisy) and still count as seen from the same side."""
 
 
 def _submap_grid(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig) -> LogOddsGrid:
@@ -1069,9 +1086,15 @@ def run_check(check: Check) -> CheckResult:
     if score < cfg.min_score:
         return CheckResult(check, None, "score", drawn)
     r = icp_refine(local, sc.points, found, found, (1.0, 1.0), 0.03, 0.15, iterations=12)
-    ratio = _inlier_ratio(local, sc.points, r.pose, cfg.inlier_distance)
+    ratio, facing = _inliers(local, sc.points, r.pose, cfg.inlier_distance)
     if ratio < cfg.min_inlier_ratio:
         return CheckResult(check, None, "inliers", drawn)
+    moved = math.hypot(r.pose[0] - check.guess[0], r.pose[1] - check.guess[1])
+    if (
+        facing < cfg.min_facing_share
+        and moved + JUMP_LEVER_M * abs(wrap(r.pose[2] - check.guess[2])) > cfg.confirm_above
+    ):
+        return CheckResult(check, None, "behind", drawn)
     if (
         math.hypot(r.pose[0] - found[0], r.pose[1] - found[1]) > cfg.max_disagreement
         or abs(wrap(r.pose[2] - found[2])) > cfg.max_disagreement_angle
@@ -1141,8 +1164,22 @@ def _weakened(info: F64, u: tuple[float, float], sd: float) -> F64:
 
 
 def _inlier_ratio(local: LocalMap, points: F64, pose: Pose, distance: float) -> float:
+    return _inliers(local, points, pose, distance)[0]
+
+
+def _inliers(local: LocalMap, points: F64, pose: Pose, distance: float) -> tuple[float, float]:
+    """The share of ``points`` (sensor frame; ``pose`` the sensor's) within ``distance`` of a submap
+    point, and of those the share whose submap point was seen from the side this scan sees it from:
+    its normal (facing the sensors that saw it) faces this sensor too, to within ``FACING_SLACK``."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
     wx = pose[0] + c * points[:, 0] - s * points[:, 1]
     wy = pose[1] + s * points[:, 0] + c * points[:, 1]
-    _, dist = local.nearest_xy(wx, wy)
-    return float(np.count_nonzero(dist <= distance)) / max(1, len(points))
+    idx, dist = local.nearest_xy(wx, wy)
+    near = dist <= distance
+    count = int(np.count_nonzero(near))
+    if not count:
+        return 0.0, 0.0
+    n = local.normals[idx[near]]
+    rx, ry = pose[0] - wx[near], pose[1] - wy[near]
+    facing = n[:, 0] * rx + n[:, 1] * ry > -FACING_SLACK * np.hypot(rx, ry)
+    return count / max(1, len(points)), float(np.count_nonzero(facing)) / count
