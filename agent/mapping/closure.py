@@ -1089,11 +1089,10 @@ def run_check(check: Check) -> CheckResult:
     ratio, facing = _inliers(local, sc.points, r.pose, cfg.inlier_distance)
     if ratio < cfg.min_inlier_ratio:
         return CheckResult(check, None, "inliers", drawn)
-    moved = math.hypot(r.pose[0] - check.guess[0], r.pose[1] - check.guess[1])
-    if (
-        facing < cfg.min_facing_share
-        and moved + JUMP_LEVER_M * abs(wrap(r.pose[2] - check.guess[2])) > cfg.confirm_above
-    ):
+    # How far it moves the node (the robot, as ``LoopCloser._jump`` measures it), not the sensor.
+    at, was = compose(r.pose, inverse(check.mount)), compose(check.guess, inverse(check.mount))
+    moved = math.hypot(at[0] - was[0], at[1] - was[1]) + JUMP_LEVER_M * abs(wrap(at[2] - was[2]))
+    if facing < cfg.min_facing_share and moved > cfg.confirm_above:
         return CheckResult(check, None, "behind", drawn)
     if (
         math.hypot(r.pose[0] - found[0], r.pose[1] - found[1]) > cfg.max_disagreement
