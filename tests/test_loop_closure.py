@@ -596,16 +596,26 @@ def test_a_scan_in_a_turn_in_place_takes_the_share_its_turn_says() -> None:
         assert after[i][1][0] - before[i][1][0] == pytest.approx(0.1 * w, abs=1e-6)
 
 
-def test_the_grid_draws_each_keyframe_where_the_trajectory_places_it() -> None:
+@pytest.mark.parametrize("batch", [0, 7])
+def test_the_grid_draws_each_keyframe_where_the_trajectory_places_it(batch: int) -> None:
     """After a solve the grid is drawn again with each keyframe where ``corrected_trajectory`` has
     its scan, those between two nodes included: one placement for the map and the trajectory (a
-    keyframe hung off the node before alone leaves a second copy of a wall beside the moved one)."""
+    keyframe hung off the node before alone leaves a second copy of a wall beside the moved one).
+    The same when the redraw goes a batch of keyframes per read of the grid, as on board."""
     _, odom, scans = _drive()
-    m = OnboardMapper(MapperConfig(matching=False, closer=CloserConfig()))
+    m = OnboardMapper(MapperConfig(matching=False, closer=CloserConfig(), redraw_batch=batch))
     for i in range(40):
         m.add_scan_odometry(0.1 * i, scans[i][0], scans[i][1], odom[i])
+    m.grid  # noqa: B018 (every keyframe drawn as it was placed)
     _, after, _ = _node_moved(m, 5, 0.0, 0.2)
-    assert m.redraw(0.0)
+    if batch:
+        m._redraw_due = True  # as a solve leaves it
+        before = m.redraws
+        for _ in range(len(after) // batch + 2):
+            m.grid  # noqa: B018 (each read draws the next batch)
+        assert m.redraws == before + 1
+    else:
+        assert m.redraw(0.0)
     drawn = m._drawn
     assert len(drawn) == len(after)  # every scan here is a keyframe (0.15 m apart)
 
