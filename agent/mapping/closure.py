@@ -19,7 +19,8 @@ closure needs (after Cartographer's global SLAM, Hess et al. 2016, on a smaller 
   against the submap's points. Accepted when the field score is at least ``min_score``, at least
   ``min_inlier_ratio`` of the points found a line within 0.1 m, the two answers agree within
   ``max_disagreement`` and the refined pose is constrained in every direction (``min_weak``: a
-  corridor seen end-on fixes no position along it).
+  corridor seen end-on fixes no position along it); one that moves its node far also needs most of
+  its inliers on walls seen from the side it sees them from (``min_facing_share``).
 - **Solve**: accepted closures join the graph; it is optimised at once (Gauss-Newton, sparse), then
   every closure whose error is above ``max_chi2`` (e^T Omega e, 3 degrees of freedom) is dropped and
   the graph solved again: a verified but wrong closure is rejected, a right one absorbed.
@@ -1131,7 +1132,7 @@ def run_check(check: Check) -> CheckResult:
             q = icp_refine(local, sc.points, near, near, (1.0, 1.0), 0.03, 0.15, iterations=12)
             if (
                 math.hypot(q.pose[0] - r.pose[0], q.pose[1] - r.pose[1]) > cfg.final_ambiguity_jump
-                and _inlier_ratio(local, sc.points, q.pose, cfg.inlier_distance) >= cfg.min_inlier_ratio
+                and _inliers(local, sc.points, q.pose, cfg.inlier_distance)[0] >= cfg.min_inlier_ratio
             ):
                 return CheckResult(check, None, "ambiguous", drawn)
     robot = compose(r.pose, inverse(check.mount))
@@ -1160,10 +1161,6 @@ def _weakened(info: F64, u: tuple[float, float], sd: float) -> F64:
     out = info.copy()
     out[:2, :2] += (1.0 / sd**2 - info[0, 0]) * np.outer(u, u)
     return out
-
-
-def _inlier_ratio(local: LocalMap, points: F64, pose: Pose, distance: float) -> float:
-    return _inliers(local, points, pose, distance)[0]
 
 
 def _inliers(local: LocalMap, points: F64, pose: Pose, distance: float) -> tuple[float, float]:
