@@ -469,6 +469,8 @@ def real_log(path: Path, seed: int) -> dict[str, object]:
             "steps_loosened": closer.stats.steps_loosened if closer else 0,  # by the final solve
             "kept": len(closer.closures) if closer else 0,  # closures and final edges the solves kept
             "dropped_by_solve": closer.stats.dropped_by_solve if closer else 0,
+            # large corrections refused: their walls matched from the far side (``min_facing_share``)
+            "rejected_behind": closer.stats.rejected_behind if closer else 0,
             "redraws": matched.mapper.redraws,
         },
     }
