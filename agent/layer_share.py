@@ -148,7 +148,11 @@ def fetch_all(
             if isinstance(msg, cls) and (robot is None or msg.header.robot == robot):
                 out.append(msg)
                 continue
-            reason = f"a {type(msg).__name__} about {msg.header.robot!r} on {reply_key}, not a {cls.__name__} about {robot!r}"
+            reason = (
+                f"a {type(msg).__name__} on {reply_key}, not a {cls.__name__}"
+                if not isinstance(msg, cls)
+                else f"a {cls.__name__} about {msg.header.robot!r} on {reply_key}, not about {robot!r}"
+            )
         if rejected is not None:
             rejected.append(reason)
         else:

@@ -662,9 +662,7 @@ class LoopCloser:
 
     def _jump(self, c: Closure) -> float:
         """How far the closure moves its node (m, a turn counted as its arc at ``JUMP_LEVER_M``)."""
-        at = compose(self.graph.poses[c.anchor], c.z)
-        now = self.graph.poses[c.node]
-        return math.hypot(at[0] - now[0], at[1] - now[1]) + JUMP_LEVER_M * abs(wrap(at[2] - now[2]))
+        return _move(self.graph.poses[c.node], compose(self.graph.poses[c.anchor], c.z))
 
     def _agree(self, a: Closure, b: Closure) -> bool:
         """Do two closures ask for the same correction? Both applied to ``b``'s node, compared."""
@@ -1091,9 +1089,8 @@ def run_check(check: Check) -> CheckResult:
     if ratio < cfg.min_inlier_ratio:
         return CheckResult(check, None, "inliers", drawn)
     # How far it moves the node (the robot, as ``LoopCloser._jump`` measures it), not the sensor.
-    at, was = compose(r.pose, inverse(check.mount)), compose(check.guess, inverse(check.mount))
-    moved = math.hypot(at[0] - was[0], at[1] - was[1]) + JUMP_LEVER_M * abs(wrap(at[2] - was[2]))
-    if facing < cfg.min_facing_share and moved > cfg.confirm_above:
+    robot = compose(r.pose, inverse(check.mount))
+    if facing < cfg.min_facing_share and _move(compose(check.guess, inverse(check.mount)), robot) > cfg.confirm_above:
         return CheckResult(check, None, "behind", drawn)
     if (
         math.hypot(r.pose[0] - found[0], r.pose[1] - found[1]) > cfg.max_disagreement
@@ -1135,7 +1132,6 @@ def run_check(check: Check) -> CheckResult:
                 and _inliers(local, sc.points, q.pose, cfg.inlier_distance)[0] >= cfg.min_inlier_ratio
             ):
                 return CheckResult(check, None, "ambiguous", drawn)
-    robot = compose(r.pose, inverse(check.mount))
     score = field_score(grid, sc.match_points, r.pose)
     closure = Closure(check.node, check.anchor, robot, score, ratio, weak_dir)
     return CheckResult(check, closure, "accepted", drawn)
@@ -1161,6 +1157,11 @@ def _weakened(info: F64, u: tuple[float, float], sd: float) -> F64:
     out = info.copy()
     out[:2, :2] += (1.0 / sd**2 - info[0, 0]) * np.outer(u, u)
     return out
+
+
+def _move(was: Pose, at: Pose) -> float:
+    """How far a node moves from ``was`` to ``at`` (m, a turn counted as its arc at ``JUMP_LEVER_M``)."""
+    return math.hypot(at[0] - was[0], at[1] - was[1]) + JUMP_LEVER_M * abs(wrap(at[2] - was[2]))
 
 
 def _inliers(local: LocalMap, points: F64, pose: Pose, distance: float) -> tuple[float, float]:
