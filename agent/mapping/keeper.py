@@ -333,7 +333,8 @@ class MapKeeper:
         if self._map_anchored() and result.matched and info is not None and result.weak >= SEEN_MIN_WEAK:
             seen = Seen(t, result.pose, seen_covariance(info, result.pose, self.config.mount))
 
-        # The grid is read (drawn up to date: agent/mapping/mapper.py) only when a planner may be due.
+        # The grid is read (drawn up to date: agent/mapping/mapper.py) only when a planner may be due
+        # here, or a share in ``_publication`` (at most every ``share_period``).
         renew = self._planned_version < 0 or (driving and now >= self._next_planner)
         planner = None
         if renew:

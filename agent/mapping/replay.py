@@ -18,7 +18,7 @@ from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper, Pose
 
 __all__ = ["ReplayResult", "format_trajectory", "replay"]
 
-REPLAY_MAX_RANGE = 40.0  # m: longer beams (SICK "no return" is ~81.9 m) only clear space up to here
+REPLAY_MAX_RANGE = 40.0  # m: a longer reading (short of the log's maximum, "no return") only clears space up to here
 
 
 @dataclass(slots=True)
