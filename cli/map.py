@@ -28,6 +28,9 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
+PROGRESS_SCANS = 1000
+"""``replay`` says on stderr how many scans it has mapped every this many (a long log takes minutes)."""
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="map_command", metavar="ACTION", required=True)
@@ -236,9 +239,17 @@ def run_replay(args: argparse.Namespace) -> int:
     if args.no_closure:
         cfg = replace(cfg, closer=None)
     stats = CarmenStats()
+
+    def progress(stage: str, n: int) -> None:
+        # On stderr, so the summary on stdout stays what it was; a long log takes minutes.
+        if stage == "final":
+            print(f"{args.log}: final pass over {n} nodes", file=sys.stderr, flush=True)
+        elif n % PROGRESS_SCANS == 0:
+            print(f"{args.log}: {n} scans mapped", file=sys.stderr, flush=True)
+
     try:
         with open_log(args.log) as f:
-            result = replay(read_records(f, stats), cfg)
+            result = replay(read_records(f, stats), cfg, progress=progress)
     except OSError as exc:
         print(f"fleetlink map replay: cannot read {args.log}: {exc}", file=sys.stderr)
         return 1

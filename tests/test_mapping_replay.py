@@ -160,7 +160,10 @@ def test_flaser_poses_are_the_laser_s_then_the_robot_s_as_carmen_writes_them() -
 
 
 def test_replay_recovers_the_path_despite_drifting_odometry() -> None:
-    result = replay(read_records(_log_lines()))
+    heard: list[tuple[str, int]] = []
+    result = replay(read_records(_log_lines()), progress=lambda stage, n: heard.append((stage, n)))
+    # Progress: every scan as it is mapped, then the final pass with the graph's nodes.
+    assert heard == [("scans", k) for k in range(1, len(TIMESTAMPS) + 1)] + [("final", len(result.mapper.closer or []))]
     est = [p for _, p in result.rows]
     truth = _poses()
     assert [ts for ts, _ in result.rows] == TIMESTAMPS
@@ -176,12 +179,15 @@ def test_replay_recovers_the_path_despite_drifting_odometry() -> None:
     assert math.hypot(r_odo[0] - r_true[0], r_odo[1] - r_true[1]) > 0.12
 
 
-def test_cli_replay_writes_map_server_files_and_a_verbatim_trajectory(tmp_path: Path) -> None:
+def test_cli_replay_writes_map_server_files_and_a_verbatim_trajectory(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     log = tmp_path / "room.log.gz"
     with gzip.open(log, "wt") as f:
         f.write("\n".join(_log_lines()) + "\n")
     out = tmp_path / "out"
     assert main(["map", "replay", str(log), "--out", str(out)]) == 0
+    assert f"{log}: final pass over " in capsys.readouterr().err  # progress on stderr, not in the summary
     rows = (out / "trajectory.txt").read_text().splitlines()
     assert [r.split()[0] for r in rows] == TIMESTAMPS
     assert all(len(r.split()) == 4 for r in rows)

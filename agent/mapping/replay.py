@@ -8,7 +8,7 @@ Pure: records in, mapper and rows out.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -33,9 +33,14 @@ class ReplayResult:
 
 
 def replay(
-    records: Iterable[LaserRecord | OdomRecord], config: MapperConfig | None = None, max_range: float = REPLAY_MAX_RANGE
+    records: Iterable[LaserRecord | OdomRecord],
+    config: MapperConfig | None = None,
+    max_range: float = REPLAY_MAX_RANGE,
+    progress: Callable[[str, int], None] | None = None,
 ) -> ReplayResult:
-    """Map every laser record in order. The mapper is made at the first scan (its mount and range)."""
+    """Map every laser record in order. The mapper is made at the first scan (its mount and range).
+    ``progress`` hears ("scans", n) after each scan mapped and ("final", nodes) before the final pass
+    (a long log takes minutes: the caller says how far it has got)."""
     result: ReplayResult | None = None
     for rec in records:
         if not isinstance(rec, LaserRecord):
@@ -52,6 +57,8 @@ def replay(
         result.rows.append((rec.ipc_timestamp, res.pose))
         result.logged.append(rec.pose)
         result.lines.append(rec.line)
+        if progress is not None:
+            progress("scans", len(result.rows))
     if result is None:
         return ReplayResult(OnboardMapper(config))
     # With loop closure the past moves after each solve: the trajectory and the map written are the
@@ -61,6 +68,8 @@ def replay(
     result.before_final = [
         (ts, p) for (ts, _), (_, p) in zip(result.online, result.mapper.corrected_trajectory(), strict=True)
     ]
+    if progress is not None and result.mapper.closer is not None:
+        progress("final", len(result.mapper.closer))
     result.mapper.finish()
     final = result.mapper.corrected_trajectory()
     result.rows = [(ts, p) for (ts, _), (_, p) in zip(result.online, final, strict=True)]
