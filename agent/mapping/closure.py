@@ -177,11 +177,13 @@ class CloserConfig:
     # refinement's reach of the graph's guess, and the pairs beside it carry the same error.
     final_pair_search: float = 0.4
     final_pair_search_nodes: int = 10
-    # Each pair is also refined from the graph's guess turned this much either way (rad; 0: not), and
-    # the answer with most points on a line taken (refused if outside the final window): where the two
-    # scans leave a plateau of poor fits the refinement hardly turns from where it starts (aces seed 2,
-    # scans 333-334, a 31-degree turn the front end had 9 degrees short: from the graph's guess the pair
-    # stayed 6.4 degrees short with 75 of 126 points on a line, from 3 degrees over it found 98).
+    # A near pair (at most ``final_pair_search_nodes`` apart: the front end's steps again) is also refined
+    # from the graph's guess turned this much either way (rad; 0: not), and the answer with most points
+    # on a line taken (refused if outside the final window): where the two scans leave a plateau of poor
+    # fits the refinement hardly turns from where it starts (aces seed 2, scans 333-334, a 31-degree turn
+    # the front end had 9 degrees short: from the graph's guess the pair stayed 6.4 degrees short with 75
+    # of 126 points on a line, from 3 degrees over it found 98). Every pair probed cost intel's replay a
+    # third more CPU and bought nothing more on the bench.
     final_pair_turn_probe: float = math.radians(3.0)
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
@@ -917,7 +919,7 @@ class LoopCloser:
                 pj = (float(xyt[j, 0]), float(xyt[j, 1]), float(xyt[j, 2]))
                 pk = (float(xyt[k, 0]), float(xyt[k, 1]), float(xyt[k, 2]))
                 guess = relative(compose(pj, self.mount), compose(pk, self.mount))  # sensor k in sensor j
-                found = self._pair_match(reference, sk, guess)
+                found = self._pair_match(reference, sk, guess, probe=k - j <= cfg.final_pair_search_nodes)
                 if found is None and cfg.final_pair_search > 0 and k - j <= cfg.final_pair_search_nodes:
                     found = self._pair_search(reference, sk, guess)
                     self.stats.final_pairs_searched += found is not None
@@ -929,12 +931,13 @@ class LoopCloser:
         self.stats.final_pairs += len(out)
         return out
 
-    def _pair_match(self, reference: LocalMap, scan: NodeScan, guess: Pose) -> IcpResult | None:
-        """``scan`` refined against ``reference`` from ``guess``: the answer if well posed, with
-        ``final_pair_inliers`` of its points on a line, within the final window of the guess."""
+    def _pair_match(self, reference: LocalMap, scan: NodeScan, guess: Pose, probe: bool = True) -> IcpResult | None:
+        """``scan`` refined against ``reference`` from ``guess`` (and, ``probe``, from it turned
+        ``final_pair_turn_probe`` either way: the answer with most points on a line): the answer if well
+        posed, with ``final_pair_inliers`` of its points on a line, within the final window of the guess."""
         cfg = self.config
         m = self._pair_refine(reference, scan, guess)
-        if cfg.final_pair_turn_probe > 0:
+        if probe and cfg.final_pair_turn_probe > 0:
             for turn in (-cfg.final_pair_turn_probe, cfg.final_pair_turn_probe):
                 q = self._pair_refine(reference, scan, (guess[0], guess[1], guess[2] + turn))
                 if q is not None and (m is None or q.inliers > m.inliers):
