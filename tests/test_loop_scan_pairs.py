@@ -40,6 +40,11 @@ def _scan(x: float, y: float) -> NodeScan:
     """What a 360-beam lidar at (x, y), facing +x, sees of the room and its pillar."""
     angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
     ranges = np.array([_ray(x, y, math.cos(a), math.sin(a), [ROOM, PILLAR]) for a in angles])
+    return _prepared(ranges, angles)
+
+
+def _prepared(ranges: np.ndarray, angles: np.ndarray) -> NodeScan:
+    """A node's scan from ranges and angles (NaN: no return), prepared as the mapper prepares one."""
     r, a, hit = prep.prepare(ranges, angles, 0.15, 40.0)
     pts = prep.to_points(r[hit], a[hit])
     labels = prep.segment_labels(pts, 0.3, 5.0)
@@ -93,14 +98,8 @@ def test_the_search_does_not_change_a_step_by_more_than_half() -> None:
 
 
 def _logged(rec: LaserRecord) -> NodeScan:
-    """A log's scan prepared as the helper above prepares the room's."""
-    ranges = np.where(rec.ranges >= rec.max_range, np.nan, rec.ranges)
-    r, a, hit = prep.prepare(ranges, rec.angles, 0.15, 40.0)
-    pts = prep.to_points(r[hit], a[hit])
-    labels = prep.segment_labels(pts, 0.3, 5.0)
-    keep = prep.filter_segments(labels, 3)
-    points, normals = pts[keep], scan_normals(pts, labels)[keep]
-    return NodeScan(r, a, hit, points, normals, points[::2])
+    """A log's scan, a reading at its maximum range taken as no return (as replay takes it)."""
+    return _prepared(np.where(rec.ranges >= rec.max_range, np.nan, rec.ranges), rec.angles)
 
 
 def test_a_pair_is_refined_from_turned_starts_too() -> None:

@@ -919,8 +919,9 @@ class LoopCloser:
                 pj = (float(xyt[j, 0]), float(xyt[j, 1]), float(xyt[j, 2]))
                 pk = (float(xyt[k, 0]), float(xyt[k, 1]), float(xyt[k, 2]))
                 guess = relative(compose(pj, self.mount), compose(pk, self.mount))  # sensor k in sensor j
-                found = self._pair_match(reference, sk, guess, probe=k - j <= cfg.final_pair_search_nodes)
-                if found is None and cfg.final_pair_search > 0 and k - j <= cfg.final_pair_search_nodes:
+                steps = k - j <= cfg.final_pair_search_nodes  # a near pair: the front end's steps again
+                found = self._pair_match(reference, sk, guess, probe=steps)
+                if found is None and cfg.final_pair_search > 0 and steps:
                     found = self._pair_search(reference, sk, guess)
                     self.stats.final_pairs_searched += found is not None
                 if found is not None:
