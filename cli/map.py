@@ -88,6 +88,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="measure each relation again by matching its two scans and keep only the unambiguous ones"
         " (as the published Freiburg relations were made; docs/mapping.md)",
     )
+    rel.add_argument(
+        "--by-index",
+        action="store_true",
+        help="name scans by their order in the log (0, 1, ...) instead of their times: for corrected logs"
+        " whose scans share one time (written with %%g, or all 0); score with --by-index too",
+    )
     rel.set_defaults(_run=run_relations)
 
     sco = sub.add_parser("score", help="score a trajectory against relations (relation errors)")
@@ -98,6 +104,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="t x y theta per line (replay's trajectory.txt), or a corrected CARMEN log (replay's corrected.log)",
     )
     sco.add_argument("--relations", required=True, metavar="FILE", help="t1 t2 x y z roll pitch yaw per line")
+    sco.add_argument(
+        "--by-index",
+        action="store_true",
+        help="the relations name scans by index (written by relations --by-index): the trajectory's rows,"
+        " or the corrected log's scans, are taken in order as scans 0, 1, ...; local means fewer than 20"
+        " scans apart",
+    )
     sco.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     sco.set_defaults(_run=run_score)
 
@@ -296,7 +309,12 @@ def run_relations(args: argparse.Namespace) -> int:
     import numpy as np
 
     from fleetlink.agent.mapping.carmen import CarmenStats, LaserRecord, open_log, read_records
-    from fleetlink.agent.mapping.relations import DEFAULT_LOCAL_S, format_relations, generate_relations
+    from fleetlink.agent.mapping.relations import (
+        DEFAULT_LOCAL_S,
+        format_relations,
+        generate_relations,
+        indistinct_times,
+    )
 
     name = "fleetlink map relations"
     if not (math.isfinite(args.max_distance) and args.max_distance > 0):
@@ -314,10 +332,15 @@ def run_relations(args: argparse.Namespace) -> int:
     if len(scans) < 2:
         print(f"{name}: fewer than two scans in {args.log} ({stats.summary()})", file=sys.stderr)
         return 1
+    times = [float(i) for i in range(len(scans))] if args.by_index else [r.timestamp for r in scans]
+    problem = indistinct_times(times)
+    if problem:
+        print(f"{name}: {args.log}: scan {problem}; name scans by index with --by-index", file=sys.stderr)
+        return 1
     # Each record's own maximum means "no return" (NaN here), so one maximum range serves them all.
     ranges = [np.where(r.ranges >= r.max_range, np.nan, r.ranges) for r in scans]
     relations = generate_relations(
-        [r.timestamp for r in scans],
+        times,
         [r.pose for r in scans],
         max_distance_m=args.max_distance,
         scans=[(d, r.angles) for d, r in zip(ranges, scans, strict=True)],
@@ -329,7 +352,7 @@ def run_relations(args: argparse.Namespace) -> int:
 
         matched = match_relations(
             relations,
-            [r.timestamp for r in scans],
+            times,
             [(d, r.angles) for d, r in zip(ranges, scans, strict=True)],
             max_range=max(r.max_range for r in scans),
             mount=scans[0].laser_offset,
@@ -342,10 +365,12 @@ def run_relations(args: argparse.Namespace) -> int:
         print(f"{name}: cannot write {args.out}: {exc}", file=sys.stderr)
         return 1
     local = sum(abs(r.t2 - r.t1) < DEFAULT_LOCAL_S for r in relations)
+    unit = "scans" if args.by_index else "s"
     print(f"{args.log}: {stats.summary()}")
     print(
-        f"{len(relations)} relations from {len(scans)} scans ({local} within {DEFAULT_LOCAL_S:g} s,"
+        f"{len(relations)} relations from {len(scans)} scans ({local} within {DEFAULT_LOCAL_S:g} {unit},"
         f" {len(relations) - local} revisits); wrote {args.out}"
+        + ("; its times are scan indices" if args.by_index else "")
     )
     return 0
 
@@ -354,7 +379,13 @@ def run_score(args: argparse.Namespace) -> int:
     import json
 
     from fleetlink.agent.mapping.carmen import LaserRecord, open_log, read_records
-    from fleetlink.agent.mapping.relations import format_score, parse_relations, parse_trajectory, score
+    from fleetlink.agent.mapping.relations import (
+        format_score,
+        indistinct_times,
+        parse_relations,
+        parse_trajectory,
+        score,
+    )
 
     name = "fleetlink map score"
     try:
@@ -366,6 +397,8 @@ def run_score(args: argparse.Namespace) -> int:
             times, poses = [r.timestamp for r in scans], [r.pose for r in scans]
         else:
             times, poses = parse_trajectory(lines)
+        if args.by_index:
+            times = [float(i) for i in range(len(poses))]
     except (OSError, ValueError) as exc:
         print(f"{name}: cannot read {args.trajectory}: {exc}", file=sys.stderr)
         return 1
@@ -378,14 +411,23 @@ def run_score(args: argparse.Namespace) -> int:
     if not relations:
         print(f"{name}: no relations in {args.relations}", file=sys.stderr)
         return 1
+    problem = indistinct_times(times)
+    if problem:
+        print(f"{name}: {args.trajectory}: {problem}; name scans by index with --by-index", file=sys.stderr)
+        return 1
     try:
         result = score(times, poses, relations)
     except ValueError as exc:
         print(f"{name}: {args.trajectory}: {exc}", file=sys.stderr)
         return 1
-    print(format_score(result), end="")
+    print(format_score(result, "scans" if args.by_index else "s"), end="")
     if args.json:
-        doc = {"trajectory": args.trajectory, "relations": args.relations, **result.as_dict()}
+        doc = {
+            "trajectory": args.trajectory,
+            "relations": args.relations,
+            "by_index": args.by_index,
+            **result.as_dict(),
+        }
         try:
             Path(args.json).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
         except OSError as exc:

@@ -189,6 +189,12 @@ def test_relations_at_times_not_in_the_trajectory_are_counted_missing() -> None:
     assert score(times[::-1], poses[::-1], rels).count == 2
 
 
+def test_generate_relations_refuses_indistinct_times() -> None:
+    # A corrected log written with %g stamps: every scan at "1.01893e+09".
+    with pytest.raises(ValueError, match=r"times 1018930000\.0 and 1018930000\.0 are less than 1e-06 s apart \(2 such"):
+        generate_relations([1.01893e09] * 3, [(0.0, 0.0, 0.0), (0.5, 0.0, 0.0), (1.0, 0.0, 0.0)])
+
+
 def test_score_refuses_a_trajectory_with_indistinct_times() -> None:
     with pytest.raises(ValueError, match=r"trajectory times 1\.0 and 1\.0000004 are less than 1e-06 s apart"):
         score([0.0, 1.0, 1.0000004], [(0.0, 0.0, 0.0)] * 3, [])
@@ -326,10 +332,10 @@ def _log_poses() -> list[Pose]:
     return [(0.8 + 0.2 * i, 1.5, 0.0) for i in range(12)] + [(0.8 + 0.2 * i, 2.5, 0.0) for i in range(12)]
 
 
-def _write_log(path: Path) -> None:
+def _write_log(path: Path, times: list[str] = TIMES) -> None:
     rc = Raycaster(ROOMS)
     lines = ["# synthetic corrected log", "PARAM robot_frontlaser_offset 0.0 nohost 0"]
-    for ts, pose in zip(TIMES, _log_poses(), strict=True):
+    for ts, pose in zip(times, _log_poses(), strict=True):
         r, _ = _scan(rc, pose)
         r = np.where(r >= 30.0, 81.91, r)  # no return, as a SICK reports it
         ranges = " ".join(f"{v:.3f}" for v in r)
@@ -391,3 +397,48 @@ def test_cli_score_and_relations_refuse_bad_input(tmp_path: Path, capsys: pytest
     log.write_text("ODOM 0 0 0 0 0 0 1.0 h 1.0\n")
     assert main(["map", "relations", "--log", str(log), "--out", out]) == 1
     assert "fewer than two scans" in capsys.readouterr().err
+
+
+def test_cli_names_scans_by_index_where_the_log_has_no_usable_times(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Corrected logs in circulation (belgioioso, csail: "%g" stamps; orebro, the Freiburg campus: 0)
+    # give every scan one time; relations by time could not name them, so they are refused, and named
+    # by their order in the log on request, the same order replay's outputs keep.
+    log, rel_file = tmp_path / "zero.log", tmp_path / "zero.relations"
+    _write_log(log, ["0"] * len(TIMES))
+    assert main(["map", "relations", "--log", str(log), "--out", str(rel_file)]) == 1
+    err = capsys.readouterr().err
+    assert "scan times 0.0 and 0.0 are less than 1e-06 s apart (23 such neighbours)" in err
+    assert "--by-index" in err and not rel_file.exists()
+
+    assert main(["map", "relations", "--log", str(log), "--out", str(rel_file), "--by-index"]) == 0
+    out = capsys.readouterr().out
+    rels = parse_relations(rel_file.read_text().splitlines())
+    assert "its times are scan indices" in out and f"{len(rels)} relations from 24 scans" in out
+    assert all(r.t1 == int(r.t1) and 0 <= r.t1 < r.t2 <= 23 for r in rels)
+    assert any(r.t2 >= 12 > r.t1 for r in rels)  # the second pass against the first
+
+    # The log itself is a corrected log: scored by index it scores zero; by time it is refused.
+    assert main(["map", "score", "--trajectory", str(log), "--relations", str(rel_file)]) == 1
+    assert "name scans by index with --by-index" in capsys.readouterr().err
+    js = tmp_path / "score.json"
+    assert (
+        main(["map", "score", "--trajectory", str(log), "--relations", str(rel_file), "--by-index", "--json", str(js)])
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert f"{len(rels)} relations scored, 0 missing" in out and "revisit (>= 20 scans)" in out
+    doc = json.loads(js.read_text())
+    assert doc["by_index"] is True and doc["all"]["trans_max_m"] == pytest.approx(0.0, abs=1e-5)
+
+    # A trajectory with its rows in the log's order, the second pass turned: the revisits see it.
+    bent = tmp_path / "bent.txt"
+    poses = [(x, y, th + (0.05 if i >= 12 else 0.0)) for i, (x, y, th) in enumerate(_log_poses())]
+    bent.write_text(format_trajectory(zip(["0"] * len(TIMES), poses, strict=True)))
+    assert (
+        main(["map", "score", "--trajectory", str(bent), "--relations", str(rel_file), "--by-index", "--json", str(js)])
+        == 0
+    )
+    doc = json.loads(js.read_text())
+    assert doc["missing"] == 0 and doc["all"]["rot_max_rad"] == pytest.approx(0.05, abs=1e-5)

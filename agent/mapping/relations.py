@@ -40,6 +40,7 @@ __all__ = [
     "format_relations",
     "format_score",
     "generate_relations",
+    "indistinct_times",
     "nearest_times",
     "parse_relations",
     "parse_trajectory",
@@ -237,7 +238,8 @@ def generate_relations(
     robot, readings >= ``max_range`` are no return), ``view_overlap`` >= ``min_overlap``; without,
     headings within ``max_heading_rad``. Pairs come in log order (i < j, by i then j); beyond
     ``max_relations`` every k-th is kept (k the smallest stride that fits), which thins them evenly
-    over the log and gives the same set every time.
+    over the log and gives the same set every time. Times must be distinct (``indistinct_times``;
+    ValueError): a relation names its two scans by them.
     """
     n = len(times)
     if len(poses) != n:
@@ -252,6 +254,9 @@ def generate_relations(
         raise ValueError(f"max_relations must be >= 1, got {max_relations}")
     if not max_range > 0:
         raise ValueError(f"max_range must be > 0, got {max_range}")
+    problem = indistinct_times(times)
+    if problem:
+        raise ValueError(problem)
     if n < 2:
         return []
     p = np.asarray(poses, dtype=np.float64).reshape(n, 3)
@@ -377,6 +382,21 @@ def nearest_times(sorted_times: FloatArray, t: FloatArray, tolerance_s: float) -
     return np.where((np.minimum(d_lo, d_hi) <= tolerance_s) & ~tied, best, -1)
 
 
+def indistinct_times(times: Sequence[float] | FloatArray) -> str | None:
+    """Why these times cannot name poses (two less than ``RESOLUTION_S`` apart: a relation could not
+    tell which it means), or None. Corrected logs written with ``%g`` stamps (every scan
+    ``1.01893e+09``) or none (every scan 0) have such times; their scans can be named by index."""
+    t = np.sort(np.asarray(times, dtype=np.float64).reshape(-1))
+    close = np.nonzero(np.diff(t) < RESOLUTION_S)[0]
+    if not len(close):
+        return None
+    k = int(close[0])
+    return (
+        f"times {float(t[k])!r} and {float(t[k + 1])!r} are less than {RESOLUTION_S:g} s apart"
+        f" ({len(close)} such neighbours): a relation could not tell which pose it means"
+    )
+
+
 def score(
     trajectory_times: Sequence[float],
     trajectory_poses: Sequence[Pose],
@@ -401,13 +421,9 @@ def score(
         raise ValueError("the trajectory has non-finite times or poses")
     order = np.argsort(t, kind="stable")
     t, p = t[order], p[order]
-    close = np.nonzero(np.diff(t) < RESOLUTION_S)[0]
-    if len(close):
-        k = int(close[0])
-        raise ValueError(
-            f"trajectory times {float(t[k])!r} and {float(t[k + 1])!r} are less than {RESOLUTION_S:g} s apart: "
-            "a relation could not tell which pose it means"
-        )
+    problem = indistinct_times(t)
+    if problem:
+        raise ValueError(f"trajectory {problem}")
     r = np.array([(x.t1, x.t2, x.dx, x.dy, x.dtheta) for x in relations], dtype=np.float64).reshape(-1, 5)
     i1, i2 = nearest_times(t, r[:, 0], tolerance_s), nearest_times(t, r[:, 1], tolerance_s)
     found = (i1 >= 0) & (i2 >= 0)
@@ -431,16 +447,17 @@ def score(
     )
 
 
-def format_score(result: RelationScore) -> str:
-    """The table ``fleetlink map score`` prints."""
+def format_score(result: RelationScore, unit: str = "s") -> str:
+    """The table ``fleetlink map score`` prints; ``unit``: what the times count (``scans`` when the
+    relations name scans by index)."""
     lines = [
         f"{result.count} relations scored, {result.missing} missing (a time not in the trajectory)",
         f"{'':<22} {'count':>6} {'translational m':>17} {'max m':>7} {'rotational deg':>15}",
     ]
     for name, stats in (
         ("all", result.all),
-        (f"local (< {result.local_s:g} s)", result.local),
-        (f"revisit (>= {result.local_s:g} s)", result.revisit),
+        (f"local (< {result.local_s:g} {unit})", result.local),
+        (f"revisit (>= {result.local_s:g} {unit})", result.revisit),
     ):
         if stats.count:
             trans = f"{stats.trans_mean_m:.3f} ± {stats.trans_std_m:.3f}"
