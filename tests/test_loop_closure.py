@@ -502,9 +502,9 @@ def test_a_large_correction_is_not_confirmed_by_a_node_seeing_what_its_node_saw(
             closer.add_node(float(k), (0.3 * k, 0.0, heading), empty, information=np.diag([1.0e5, 1.0e5, 1.0e3]))
         return closer
 
-    def shifted(closer: LoopCloser, k: int) -> Closure:  # node k matched 1.5 m further along
+    def shifted(closer: LoopCloser, k: int, by: float = 1.5) -> Closure:  # node k matched further along
         at = closer.poses[k]
-        return Closure(k, 0, (at[0] + 1.5, at[1], at[2]), 0.9, 0.9)
+        return Closure(k, 0, (at[0] + by, at[1], at[2]), 0.9, 0.9)
 
     closer = chain(CloserConfig())
     first, found = shifted(closer, 20), []
@@ -522,8 +522,26 @@ def test_a_large_correction_is_not_confirmed_by_a_node_seeing_what_its_node_saw(
     nxt = shifted(turned, 21)
     turned._classify(nxt, found)
     assert found == [first, nxt]
+    # A correction of metres asks for a second opinion ``confirm_apart_share`` (0.1) of it away: in the
+    # FHW museum two nodes 0.8 m apart both matched the repeated partitions 10.8 m off.
+    far = chain(CloserConfig())
+    first, found = shifted(far, 20, by=10.0), []
+    far._classify(first, found)
+    for k in (22, 23):  # 0.6 and 0.9 m on
+        far._classify(shifted(far, k, by=10.0), found)
+        assert found == []
+    later = shifted(far, 24, by=10.0)  # 1.2 m on
+    far._classify(later, found)
+    assert found == [first, later]
+    # ... unless turned: then it sees other walls, however near (aces: 7.8 m confirmed 0.27 m on, 40 deg).
+    turned = chain(CloserConfig(), turn_at=21)
+    first, found = shifted(turned, 20, by=10.0), []
+    turned._classify(first, found)
+    nxt = shifted(turned, 21, by=10.0)
+    turned._classify(nxt, found)
+    assert found == [first, nxt]
     # Off (0), any later node may.
-    plain = chain(CloserConfig(confirm_apart_m=0.0, confirm_apart_rad=0.0))
+    plain = chain(CloserConfig(confirm_apart_m=0.0, confirm_apart_rad=0.0, confirm_apart_share=0.0))
     first, found = shifted(plain, 20), []
     plain._classify(first, found)
     nxt = shifted(plain, 21)
@@ -531,6 +549,8 @@ def test_a_large_correction_is_not_confirmed_by_a_node_seeing_what_its_node_saw(
     assert found == [first, nxt]
     with pytest.raises(ValueError, match="confirm_apart_m"):
         CloserConfig(confirm_apart_m=-1.0)
+    with pytest.raises(ValueError, match="confirm_apart_share"):
+        CloserConfig(confirm_apart_share=math.nan)
 
 
 def _node_moved(

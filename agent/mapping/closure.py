@@ -125,6 +125,12 @@ class CloserConfig:
     # next node still confirms (0: any later node may).
     confirm_apart_m: float = 0.5
     confirm_apart_rad: float = math.radians(20.0)
+    # ... or, unturned, at least this share of the correction apart (m): a correction of metres asks as
+    # much of its second opinion. Repeated rooms fool neighbouring views alike (the FHW museum's
+    # corrected log: nodes 194 and 195, 0.8 m apart, both matched the partitions 10.8 m off and
+    # confirmed each other; the map folded). A node turned as far sees other walls (aces: a 7.8 m
+    # correction confirmed by a node 0.27 m on, turned 40 degrees).
+    confirm_apart_share: float = 0.1
     confirm_distance: float = 0.2  # m: two closures agree when their corrections differ by less
     confirm_angle: float = math.radians(2.0)
     bnb_depth: int = 6  # branch-and-bound levels: the top blocks are 2^6 cells (3.2 m at 5 cm)
@@ -243,6 +249,7 @@ class CloserConfig:
             "lazy_solve_share",
             "confirm_apart_m",
             "confirm_apart_rad",
+            "confirm_apart_share",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -556,19 +563,19 @@ class LoopCloser:
         self._pending = [p for p in self._pending if k - p.node <= cfg.confirm_nodes]
         return self._conclude(k, found, paced=True)
 
-    def _apart(self, a: int, b: int) -> bool:
-        """Are nodes ``a`` and ``b`` far enough apart (``confirm_apart_m`` / ``_rad``) for ``b`` to confirm a
-        closure of ``a``?"""
+    def _apart(self, p: Closure, b: int) -> bool:
+        """Is node ``b`` far enough from the node of pending closure ``p`` to confirm it: turned
+        ``confirm_apart_rad``, or ``confirm_apart_m`` and ``confirm_apart_share`` of the correction away?"""
         cfg = self.config
-        pa, pb = self.graph.poses[a], self.graph.poses[b]
-        return (
-            math.hypot(pa[0] - pb[0], pa[1] - pb[1]) >= cfg.confirm_apart_m
-            or abs(wrap(pa[2] - pb[2])) >= cfg.confirm_apart_rad
+        pa, pb = self.graph.poses[p.node], self.graph.poses[b]
+        d = math.hypot(pa[0] - pb[0], pa[1] - pb[1])
+        return d >= max(cfg.confirm_apart_m, cfg.confirm_apart_share * self._jump(p)) or (
+            abs(wrap(pa[2] - pb[2])) >= cfg.confirm_apart_rad
         )
 
     def _confirm_checks(self, k: int, p: Closure) -> list[Check]:
         cfg = self.config
-        if not self._apart(p.node, k):
+        if not self._apart(p, k):
             return []  # a node this near sees what the pending closure's node saw: no second opinion
         fix = self._correction(p)
         at = compose(fix, self.graph.poses[k])
@@ -614,7 +621,7 @@ class LoopCloser:
         if self._jump(c) <= self.config.confirm_above:
             found.append(c)
             return
-        agree = [p for p in self._pending if self._apart(p.node, c.node) and self._agree(p, c)]
+        agree = [p for p in self._pending if self._apart(p, c.node) and self._agree(p, c)]
         if agree:
             found.extend([*agree, c])
             self._pending = [p for p in self._pending if p not in agree]
