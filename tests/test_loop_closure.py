@@ -659,3 +659,52 @@ def test_the_grid_draws_each_keyframe_where_the_trajectory_places_it(batch: int)
         sensor = compose(compose(m.closer.poses[node], offset), m.config.mount)
         alone.integrate(sensor, r.astype(np.float64), a.astype(np.float64), hit)
     assert got != walls(alone)
+
+
+def test_a_large_correction_is_refused_where_the_guess_matches_too() -> None:
+    """Two identical rooms side by side (MIT's infinite corridor: doorways every few metres; its
+    corrected log replayed on its own poses had nodes matched two periods along, where the graph's
+    guess was right). A scan from room A, the graph's guess in A, and a submap holding both rooms, B
+    drawn crisper: the search's best answer is B, 4 m off; searched again nearer the guess, A passes
+    too. Two answers are a look-alike: refused (``large_unique``); without the test, taken."""
+    from dataclasses import replace
+
+    from fleetlink.agent.mapping.closure import Check, draw_submap, run_check
+
+    room = np.array(
+        [
+            [0.0, 0.0, 3.0, 0.0],
+            [3.0, 0.0, 3.0, 3.0],
+            [3.0, 3.0, 0.0, 3.0],
+            [0.0, 3.0, 0.0, 0.0],
+            [0.6, 2.2, 1.0, 2.2],  # a shelf and a pillar, so the room has no symmetry of its own
+            [2.2, 0.5, 2.2, 0.9],
+            [2.2, 0.9, 2.5, 0.9],
+        ]
+    )
+    rc = Raycaster(np.vstack([room, room + [4.0, 0.0, 4.0, 0.0]]))
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    m = OnboardMapper(MapperConfig())
+    for i in range(40):  # turning in place in room A: one node every 10 degrees
+        pose = (1.5, 1.4, math.radians(5.0 * i))
+        r = rc.cast_fan(pose[0], pose[1], pose[2] - math.pi, 2 * math.pi / 360, 360, MAX_RANGE)
+        m.add_scan_odometry(0.1 * i, np.where(np.isfinite(r), r, np.nan), angles, pose)
+    closer = m.closer
+    assert closer is not None and len(closer.scans) >= 12
+    poses, scans = closer.poses, closer.scans
+    # Room B from eight scans where they were taken, moved 4 m; room A from two, 4 cm apart: blurred.
+    b = tuple(((p[0] + 4.0, p[1], p[2]), sc) for p, sc in zip(poses[:8], scans[:8], strict=True))
+    a = tuple(((p[0] + d, p[1], p[2]), sc) for p, sc, d in zip(poses[8:10], scans[8:10], (-0.02, 0.02), strict=True))
+    cfg = CloserConfig()
+    drawn = draw_submap(a + b, GridConfig(), cfg.bnb_depth)
+    node = poses[11]
+    guess = (node[0] + 0.1, node[1], node[2])
+    check = Check(11, 0, 0, scans[11], guess, (5.0, math.radians(10.0)), drawn, (), cfg, GridConfig(), (0.0, 0.0, 0.0))
+    off = replace(check, config=replace(cfg, large_unique=False))
+    taken = run_check(off)
+    assert taken.outcome == "accepted" and taken.closure is not None
+    assert taken.closure.z[0] == pytest.approx(node[0] + 4.0, abs=0.1)  # room B: 4 m off
+    refused = run_check(check)
+    assert refused.outcome == "ambiguous" and refused.closure is None
+    # A confirmation's guess carries its correction already: it is not asked again.
+    assert run_check(replace(check, confirms=taken.closure)).outcome == "accepted"

@@ -117,6 +117,12 @@ class CloserConfig:
     max_drops: int = 3  # closures dropped per solve at most (each costs a solve)
     iterations: int = 10
     confirm_above: float = 0.5  # m: a closure moving its node more than this waits for a second one
+    # ... and is refused outright where the node's scan also matches the submap nearer where the graph
+    # puts it (searched within half the correction of the guess, it passes the gates there, away from
+    # the first answer): two answers, a look-alike, as in the final pass (``final_ambiguity_jump``). MIT's infinite corridor (its corrected log, replayed
+    # on its own poses): doorways every few metres, nodes 297 and 302 both matched two periods (7 m)
+    # along and confirmed each other, where the graph's guess was right; the map broke (7.2 m mean).
+    large_unique: bool = True
     confirm_nodes: int = 10  # ... within this many nodes
     # ... from a node at least this far from the first one's, or turned this much: a node nearer sees
     # much what the first saw and agrees with a look-alike as readily (the published MIT CSAIL log:
@@ -362,6 +368,7 @@ class CloserStats:
     rejected_disagreement: int = 0
     rejected_degenerate: int = 0
     rejected_outside: int = 0  # refined beyond the search window (slid down a corridor)
+    rejected_ambiguous: int = 0  # a large correction where the graph's guess matched too (``large_unique``)
     final_pairs: int = 0  # the final pass's scan-to-scan edges (``final_pair_per_node``)
     final_pairs_searched: int = 0  # of them, found by the search (``final_pair_search``)
     dropped_by_solve: int = 0
@@ -609,8 +616,10 @@ class LoopCloser:
             st.rejected_outside += 1
         elif r.outcome == "degenerate":
             st.rejected_degenerate += 1
-        elif r.outcome == "ambiguous":
+        elif r.outcome == "ambiguous" and r.check.unique:
             st.final_ambiguous += 1
+        elif r.outcome == "ambiguous":
+            st.rejected_ambiguous += 1
         return r.closure
 
     def _classify(self, c: Closure | None, found: list[Closure]) -> None:
@@ -1142,12 +1151,26 @@ def run_check(check: Check) -> CheckResult:
         or abs(wrap(r.pose[2] - check.guess[2])) > wth + cfg.max_disagreement_angle
     ):
         return CheckResult(check, None, "outside", drawn)
-    if (
-        check.unique
-        and weak_dir is None
-        and math.hypot(r.pose[0] - check.guess[0], r.pose[1] - check.guess[1]) > cfg.final_ambiguity_jump
+    # Two answers are a look-alike, not a correction. The final pass's matches away from the graph's
+    # guess (``unique``): refined from the guess itself, does it pass too? A fresh search's large
+    # correction (``large_unique``; a confirmation's guess carries the correction already): searched
+    # again nearer the guess than the answer (half its distance), does anything there pass?
+    moved = math.hypot(r.pose[0] - check.guess[0], r.pose[1] - check.guess[1])
+    second: Pose | None = None
+    if weak_dir is None and check.unique and moved > cfg.final_ambiguity_jump:
+        second = check.guess
+    elif (
+        weak_dir is None
+        and cfg.large_unique
+        and check.confirms is None
+        and _move(compose(check.guess, inverse(check.mount)), robot) > cfg.confirm_above
     ):
-        near, near_score = _refine(grid, sc.match_points, check.guess)
+        nearer = search(
+            drawn.grids, sc.match_points, check.guess, min(wxy, 0.5 * moved), wth, cfg.search_min_score, cfg.angle_step
+        )
+        second = None if nearer is None else nearer[0]
+    if second is not None:
+        near, near_score = _refine(grid, sc.match_points, second)
         if near_score >= cfg.min_score:
             q = icp_refine(local, sc.points, near, near, (1.0, 1.0), 0.03, 0.15, iterations=12)
             if (
