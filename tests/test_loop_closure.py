@@ -682,7 +682,7 @@ def test_a_large_correction_is_refused_where_the_guess_matches_too() -> None:
             [2.2, 0.9, 2.5, 0.9],
         ]
     )
-    rc = Raycaster(np.vstack([room, room + [4.0, 0.0, 4.0, 0.0]]))
+    rc = Raycaster(np.vstack([room, room + np.array([4.0, 0.0, 4.0, 0.0])]))
     angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
     m = OnboardMapper(MapperConfig())
     for i in range(40):  # turning in place in room A: one node every 10 degrees
