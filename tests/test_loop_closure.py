@@ -7,7 +7,9 @@ candidate finds."""
 
 from __future__ import annotations
 
+import itertools
 import math
+from dataclasses import replace
 from functools import cache
 
 import numpy as np
@@ -410,8 +412,6 @@ def test_the_front_end_keeps_matching_when_site_priors_move_the_map() -> None:
 def test_a_drawn_submap_keeps_its_field_and_lets_its_grid_go() -> None:
     """A check reads a drawn submap's field only: the drawing keeps that (the very field a grid drawn
     from the same scans holds), not the log-odds and seen cells behind it."""
-    from dataclasses import replace
-
     from fleetlink.agent.mapping.closure import SUBMAP_GROW_M, SubmapField, draw_submap
     from fleetlink.agent.mapping.grid import LogOddsGrid
 
@@ -667,8 +667,6 @@ def test_a_large_correction_is_refused_where_the_guess_matches_too() -> None:
     guess was right). A scan from room A, the graph's guess in A, and a submap holding both rooms, B
     drawn crisper: the search's best answer is B, 4 m off; searched again nearer the guess, A passes
     too. Two answers are a look-alike: refused (``large_unique``); without the test, taken."""
-    from dataclasses import replace
-
     from fleetlink.agent.mapping.closure import Check, draw_submap, run_check
 
     room = np.array(
@@ -708,3 +706,49 @@ def test_a_large_correction_is_refused_where_the_guess_matches_too() -> None:
     assert refused.outcome == "ambiguous" and refused.closure is None
     # A confirmation's guess carries its correction already: it is not asked again.
     assert run_check(replace(check, confirms=taken.closure)).outcome == "accepted"
+
+
+def test_a_tail_that_comes_back_off_the_final_window_is_searched_wider() -> None:
+    """A robot that comes back to its start only at the end, no online closure after it (here none
+    at all, and an odometry slip of 0.6 m on the way): its tail lies further from the first submaps
+    than the final pass's window (0.3 m), so no match ties it there. The nodes no submap took are searched again in ``final_wide_window_xy``
+    (1 m): the tail is pulled onto the start (the corrected belgioioso log: its last scan, 1 m off,
+    0.105 m after; its complete set's mean 0.048 -> 0.024 m)."""
+    rc = Raycaster(WALLS)
+    corners = [(1.0, 1.0), (13.0, 1.0), (13.0, 8.0), (1.0, 8.0), (1.0, 1.0), (4.0, 1.0)]
+    truth: list[Pose] = []
+    for (x0, y0), (x1, y1) in itertools.pairwise(corners):
+        th = math.atan2(y1 - y0, x1 - x0)
+        if truth:
+            th0 = truth[-1][2]
+            turn = math.remainder(th - th0, 2 * math.pi)
+            truth += [(x0, y0, math.remainder(th0 + turn * k / 8, 2 * math.pi)) for k in range(1, 9)]
+        n = round(math.hypot(x1 - x0, y1 - y0) / STEP)
+        truth += [(x0 + (x1 - x0) * k / n, y0 + (y1 - y0) * k / n, th) for k in range(n)]
+    angles = np.linspace(-math.pi, math.pi, BEAMS, endpoint=False)
+    scans = []
+    # The odometry exact but for one slip of 0.6 m at the far corner (a wheel spinning on a threshold).
+    slip = next(i for i, p in enumerate(truth) if p[:2] == (13.0, 8.0))
+    odom: list[Pose] = [(x + (0.6 if i >= slip else 0.0), y, th) for i, (x, y, th) in enumerate(truth)]
+    for pose in truth:
+        r = rc.cast_fan(pose[0], pose[1], pose[2] - math.pi, 2 * math.pi / BEAMS, BEAMS, MAX_RANGE)
+        scans.append((np.where(np.isfinite(r), r, np.nan), angles))
+
+    def tail_error(closer: CloserConfig) -> float:
+        m = OnboardMapper(MapperConfig(matching=False, closer=closer))
+        for i, ((r, a), o) in enumerate(zip(scans, odom, strict=True)):
+            m.add_scan_odometry(0.1 * i, r, a, o)
+        m.finish()
+        est = [p for _, p in m.corrected_trajectory()]
+        return max(
+            math.dist(relative(truth[0], truth[i])[:2], relative(est[0], est[i])[:2])
+            for i in range(len(truth) - 15, len(truth))
+        )
+
+    # No closure online, and in the final pass only submaps 100 nodes or more away (and no scan pairs),
+    # so what ties the tail is its match with the start, not its neighbours' repairs of the chain.
+    no_online = CloserConfig(min_gap_nodes=10**6, final_min_gap_nodes=100, final_pair_per_node=0)
+    narrow = tail_error(replace(no_online, final_wide_window_xy=0.0))
+    wide = tail_error(no_online)
+    assert narrow > 0.35, narrow  # beyond the final window: left where the chain put it
+    assert wide < 0.1, wide

@@ -154,6 +154,11 @@ class CloserConfig:
     final_min_gap_nodes: int = 1
     final_window_xy: float = 0.3  # m
     final_window_theta: float = math.radians(4.0)
+    # A node no submap took within the final window is searched again this far (m; the heading window
+    # as before; 0: not): a tail that comes back to the start after the last online closure lies
+    # further off than the window (the corrected belgioioso log's last scans, 0.5-1 m). Wider in heading
+    # too (10 deg), single scans of the csail log were turned 8 degrees off their neighbours.
+    final_wide_window_xy: float = 1.0
     final_sigma_xy: float = 0.03  # m
     final_sigma_theta: float = math.radians(1.0)
     final_drops: int = 20  # edges the final solve may drop, one at a time
@@ -251,6 +256,7 @@ class CloserConfig:
             "final_pair_search",
             "final_pair_turn_probe",
             "final_pair_search_nodes",
+            "final_wide_window_xy",
             "lazy_solve_below",
             "lazy_solve_share",
             "confirm_apart_m",
@@ -379,6 +385,7 @@ class CloserStats:
     final_edges: int = 0  # matches the final pass (``finish``) verified
     steps_loosened: int = 0  # front-end steps the final solve held loosely (``final_loosen_steps``)
     final_ambiguous: int = 0  # ... and not kept: the graph's guess matched as well (``final_ambiguity_jump``)
+    final_wide: int = 0  # of the final pass's matches, found only in the wider window (``final_wide_window_xy``)
 
 
 class ClosureSearch(Protocol):
@@ -820,12 +827,14 @@ class LoopCloser:
         fix: Pose = (0.0, 0.0, 0.0),
         window: tuple[float, float] | None = None,
         partial: bool = False,
+        unique: bool = False,
     ) -> Closure | None:
         """Match node ``k``'s scan against ``sm`` in line (see ``_check``), counted in the stats.
-        ``partial``: a match ill-posed along one direction only is kept as a partial closure."""
+        ``partial``: a match ill-posed along one direction only is kept as a partial closure; it and
+        ``unique``: refused where the guess is a match too (``final_ambiguity_jump``)."""
         check = self._check(k, sm, fix, window)
-        if partial:
-            check = replace(check, partial=True, unique=self.config.final_ambiguity_jump > 0)
+        if partial or unique:
+            check = replace(check, partial=partial, unique=self.config.final_ambiguity_jump > 0)
         return self._note(run_check(self._with_drawn(check)), attempt=False)
 
     def _with_drawn(self, check: Check) -> Check:
@@ -889,6 +898,17 @@ class LoopCloser:
                 c = self._verify(k, self.submaps[s_i], window=window, partial=cfg.final_partial_sigma > 0)
                 if c is not None:
                     found.append(c)
+        if cfg.final_wide_window_xy > cfg.final_window_xy:
+            # A node no submap took in the small window, with submaps near it: searched again wider.
+            anchored = {c.node for c in found}
+            wide = (cfg.final_wide_window_xy, cfg.final_window_theta)
+            for s_i in sorted(pairs):
+                for k in pairs[s_i]:
+                    if k not in anchored:
+                        c = self._verify(k, self.submaps[s_i], window=wide, unique=True)
+                        if c is not None:
+                            found.append(c)
+                            self.stats.final_wide += 1
         if cfg.final_pair_per_node > 0:
             found += self._scan_pairs(xyt)
         info = np.diag([1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_theta**2])
