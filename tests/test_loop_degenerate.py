@@ -110,14 +110,16 @@ def test_the_final_pass_keeps_corridor_matches_as_partial_edges() -> None:
     """Every node matched against the neighbouring submaps of a corridor with no end in sight: each
     match is well posed across and not along, rejected whole before; now a partial edge. (The submaps
     beside a node's own included: three submaps in all here.)"""
-    m = _corridor_run(CloserConfig(final_min_gap_nodes=0))
+    # Without the wider second search (``final_wide_window_xy``), which would try the refused nodes
+    # again and count them twice.
+    m = _corridor_run(CloserConfig(final_min_gap_nodes=0, final_wide_window_xy=0.0))
     assert m.closer is not None
     online = len(m.closer.closures)
     added = m.finish()
     assert added >= 3, added  # measured 5 (the others fail the score, inlier and agreement gates)
     for c in m.closer.closures[online:]:
         assert c.weak_dir is not None and abs(c.weak_dir[0]) > 0.99
-    off = _corridor_run(CloserConfig(final_partial_sigma=0.0, final_min_gap_nodes=0))
+    off = _corridor_run(CloserConfig(final_partial_sigma=0.0, final_min_gap_nodes=0, final_wide_window_xy=0.0))
     assert off.finish() == 0 and off.closer is not None  # the same matches, all rejected as degenerate
     assert off.closer.stats.rejected_degenerate == added
     # Across the corridor the partial edges agree with the front end; along it they say little (sd 0.5 m).
