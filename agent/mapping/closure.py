@@ -117,11 +117,12 @@ class CloserConfig:
     max_drops: int = 3  # closures dropped per solve at most (each costs a solve)
     iterations: int = 10
     confirm_above: float = 0.5  # m: a closure moving its node more than this waits for a second one
-    # ... and is refused outright where the node's scan also matches the submap nearer where the graph
-    # puts it (searched within half the correction of the guess, it passes the gates there, away from
-    # the first answer): two answers, a look-alike, as in the final pass (``final_ambiguity_jump``). MIT's infinite corridor (its corrected log, replayed
-    # on its own poses): doorways every few metres, nodes 297 and 302 both matched two periods (7 m)
-    # along and confirmed each other, where the graph's guess was right; the map broke (7.2 m mean).
+    # ... and is refused outright where the node's scan also fits the submap nearer where the graph
+    # puts it (searched within half the correction of the guess, something there passes the gates,
+    # away from the first answer): two answers are a look-alike, as in the final pass
+    # (``final_ambiguity_jump``). MIT's infinite corridor (its corrected log on its own poses):
+    # doorways every few metres; nodes 297 and 302 both matched two periods (7 m) along and confirmed
+    # each other where the graph's guess was right, and the map broke (7.2 m mean).
     large_unique: bool = True
     confirm_nodes: int = 10  # ... within this many nodes
     # ... from a node at least this far from the first one's, or turned this much: a node nearer sees
@@ -154,10 +155,10 @@ class CloserConfig:
     final_min_gap_nodes: int = 1
     final_window_xy: float = 0.3  # m
     final_window_theta: float = math.radians(4.0)
-    # A node no submap took within the final window is searched again this far (m; the heading window
-    # as before; 0: not): a tail that comes back to the start after the last online closure lies
-    # further off than the window (the corrected belgioioso log's last scans, 0.5-1 m). Wider in heading
-    # too (10 deg), single scans of the csail log were turned 8 degrees off their neighbours.
+    # A node no submap took within the final window is searched again this far (m; 0: not): a tail
+    # that comes back to the start after the last online closure lies further off than the window
+    # (the corrected belgioioso log's last scans, 0.5-1 m). The heading window stays the final one:
+    # 10 degrees turned single scans of the csail log 8 degrees off their neighbours.
     final_wide_window_xy: float = 1.0
     final_sigma_xy: float = 0.03  # m
     final_sigma_theta: float = math.radians(1.0)
