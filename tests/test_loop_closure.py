@@ -752,3 +752,73 @@ def test_a_tail_that_comes_back_off_the_final_window_is_searched_wider() -> None
     wide = tail_error(no_online)
     assert narrow > 0.35, narrow  # beyond the final window: left where the chain put it
     assert wide < 0.1, wide
+
+
+def test_the_search_window_follows_the_front_ends_disagreement_with_the_odometry() -> None:
+    """A look-alike metres away is searched only when the map may have drifted that far. With the
+    odometry beside the front end (a replay), the window grows by ``odometry_gain`` (3) x how far the
+    front end has moved from it since the last closure, at least ``odometry_floor`` (2 %) of the path,
+    at most the path's ``drift_rate`` (10 %) share, up to ``odometry_max_search_xy`` (30 m) rather than
+    ``max_search_xy`` (10 m). MIT's infinite corridor on its own poses: 6.5 m look-alikes refused where
+    the two agreed to 0.9 m, and its 330 m loop, 10-20 m off, found."""
+    empty = NodeScan(
+        np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
+    )
+    path = [(float(k), 0.0, 0.0) for k in range(320)]  # along a corridor, nodes 1 m apart
+
+    def window(odometry: list[Pose] | None, config: CloserConfig | None = None, upto: int = 80) -> tuple[float, float]:
+        closer = LoopCloser(config or CloserConfig(), GridConfig())
+        for k in range(upto):
+            closer.add_node(float(k), path[k], empty, odometry=None if odometry is None else odometry[k])
+        gxy, gth = closer._growth()
+        cfg = closer.config
+        return cfg.search_xy + gxy, math.degrees(cfg.search_theta + gth)
+
+    cfg = CloserConfig()
+    # Odometry in its own frame (only its differences count), agreeing with the front end: 2 % of 79 m.
+    agreeing = [compose((5.0, -3.0, 1.0), p) for p in path]
+    xy, th = window(agreeing)
+    assert xy == pytest.approx(cfg.search_xy + 0.02 * 79)  # 2.6 m, not 8.9 m
+    assert th == pytest.approx(math.degrees(cfg.search_theta) + 0.03 * 79)
+    # No odometry (the agent, whose guess follows the map): the path's share alone, as before.
+    xy, th = window(None)
+    assert xy == pytest.approx(cfg.search_xy + 0.1 * 79)
+    assert th == pytest.approx(math.degrees(cfg.max_search_theta))
+    # A wheel that slipped 1.5 m at node 40: 3 x 1.5 m.
+    slipped = [(p[0] - (1.5 if k >= 40 else 0.0), p[1], p[2]) for k, p in enumerate(path)]
+    assert window(slipped)[0] == pytest.approx(cfg.search_xy + 4.5)
+    # Odometry turning 0.2 deg per metre: after 319 m, the front end tens of metres from it: the
+    # whole 30 m window, beyond max_search_xy (10 m would never reach where a long loop comes back).
+    bent = [(0.0, 0.0, 0.0)]
+    for _ in path[1:]:
+        bent.append(compose(bent[-1], (1.0, 0.0, math.radians(0.2))))
+    assert window(bent, upto=320)[0] == pytest.approx(cfg.odometry_max_search_xy)
+    assert window(None, upto=320)[0] == pytest.approx(cfg.max_search_xy)
+    # ... yet never more than the path's drift_rate share: 5 m after the slip, 10 % of 44 m.
+    assert window(slipped, upto=45)[0] == pytest.approx(cfg.search_xy + 4.4)
+    # Off (gain 0): as without odometry.
+    assert window(agreeing, CloserConfig(odometry_gain=0.0))[0] == pytest.approx(cfg.search_xy + 0.1 * 79)
+    with pytest.raises(ValueError, match="odometry_max_search_xy"):
+        CloserConfig(odometry_max_search_xy=0.5)
+    with pytest.raises(ValueError, match="odometry_gain"):
+        CloserConfig(odometry_gain=math.nan)
+    closer = LoopCloser(CloserConfig(), GridConfig())
+    with pytest.raises(ValueError, match="odometry must be finite"):
+        closer.add_node(0.0, (0.0, 0.0, 0.0), empty, odometry=(0.0, math.nan, 0.0))
+
+
+def test_after_a_closure_the_window_counts_the_disagreement_from_there() -> None:
+    """The disagreement is the front end's path since the last accepted closure against the
+    odometry's over the same nodes: a slip before it is forgiven."""
+    empty = NodeScan(
+        np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
+    )
+    closer = LoopCloser(CloserConfig(), GridConfig())
+    for k in range(60):
+        pose = (float(k), 0.0, 0.0)
+        odometry = (float(k) - (2.0 if k >= 10 else 0.0), 0.0, 0.0)  # a 2 m slip at node 10
+        closer.add_node(float(k), pose, empty, odometry=odometry)
+        if k == 40:
+            closer._add([Closure(40, 0, relative(closer.poses[0], pose), 0.9, 0.9)])
+    gxy, _ = closer._growth()
+    assert gxy == pytest.approx(0.02 * 19)  # 19 m since node 40, odometry and front end agreeing

@@ -86,6 +86,18 @@ class CloserConfig:
     drift_theta_per_m: float = math.radians(0.5)
     max_search_xy: float = 10.0  # m
     max_search_theta: float = math.radians(35.0)
+    # Where the nodes carry the odometry's own poses (``add_node``'s ``odometry``: a replay), the growth
+    # is held to ``odometry_gain`` x how far the front end has moved from the odometry since the last
+    # closure (at least ``odometry_floor`` / ``odometry_theta_floor`` per metre travelled; 0: off). Two
+    # independent sensors that agree say the map has not drifted far, so a look-alike metres away is
+    # not searched: MIT's infinite corridor on its own poses (the front end 0.9 m from them after 160
+    # m) had nodes matched 6.5 m off, doorways two periods along, in a 10 m window. Where they disagree
+    # the window may grow to ``odometry_max_search_xy``: the corridor's 330 m loop comes back 10-20 m
+    # off, beyond ``max_search_xy`` (complete relations 3.42 -> 0.06 m).
+    odometry_gain: float = 3.0
+    odometry_floor: float = 0.02
+    odometry_theta_floor: float = math.radians(0.03)
+    odometry_max_search_xy: float = 30.0  # m
     min_score: float = 0.5  # mean likelihood-field value of the scan's points on the submap, refined
     search_min_score: float = 0.4  # the branch-and-bound's floor (on the lattice)
     angle_step: float = math.radians(0.5)  # the branch-and-bound's rotations
@@ -263,10 +275,15 @@ class CloserConfig:
             "confirm_apart_m",
             "confirm_apart_rad",
             "confirm_apart_share",
+            "odometry_gain",
+            "odometry_floor",
+            "odometry_theta_floor",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        if not self.odometry_max_search_xy >= self.search_xy:  # also refuses NaN
+            raise ValueError(f"odometry_max_search_xy must be >= search_xy, got {self.odometry_max_search_xy!r}")
         if self.final_pair_gap_nodes < 1 or not 0.0 <= self.final_pair_inliers <= 1.0:
             raise ValueError(
                 "need final_pair_gap_nodes >= 1 (not a node against itself) and 0 <= final_pair_inliers <= 1"
@@ -452,6 +469,8 @@ class LoopCloser:
         self._solved_t = -math.inf  # the newest node's time at the last solve
         self._unsolved = False  # closures added (or priors due) since the last solve
         self.since_closure = 0.0  # m travelled (node to node) since the last accepted closure
+        self.odometry: list[Pose | None] = []  # the odometry's pose per node, where given (``add_node``)
+        self._closed_at = 0  # the newest node when the last closure was accepted
 
     def __len__(self) -> int:
         return len(self.graph.poses)
@@ -467,15 +486,21 @@ class LoopCloser:
         scan: NodeScan,
         site: tuple[float, float, float] | None = None,
         information: F64 | None = None,
+        odometry: Pose | None = None,
     ) -> int:
         """A keyframe at the front end's ``pose`` (the current frame); joined to the last node by the
         front end's relative pose. ``site``: (x, y, sd) where the site frame measured the node (a
         UWB-fused position), a prior that anchors the graph there. ``information``: the front end's
         match information on (x, y, theta) in the map frame (``icp_refine``), if it matched: where it is
-        ill-posed along a direction (``step_degenerate_ratio``), the step is held loosely along it."""
+        ill-posed along a direction (``step_degenerate_ratio``), the step is held loosely along it.
+        ``odometry``: the odometry's own pose here (any frame; only its differences count), independent
+        of the scans: the search window follows how far the front end has moved from it
+        (``odometry_gain``)."""
         cfg = self.config
         if site is not None and not (all(math.isfinite(v) for v in site) and site[2] > 0):
             raise ValueError(f"site must be (x, y, sd) finite with sd > 0, got {site!r}")
+        if odometry is not None and not all(math.isfinite(v) for v in odometry):
+            raise ValueError(f"odometry must be finite, got {odometry!r}")
         k = self.graph.add_node(pose)
         if site is not None:
             self.graph.add_prior(k, site[:2], site[2])
@@ -499,6 +524,7 @@ class LoopCloser:
             self.since_closure += d
         self.times.append(t)
         self.scans.append(scan)
+        self.odometry.append(odometry)
         if k % cfg.submap_nodes == 0:
             self.submaps.append(_Submap(k, k + 1))
         else:
@@ -688,6 +714,7 @@ class LoopCloser:
             self._closure_edges.append(len(self.graph.edges) - 1)
             self.stats.accepted += 1
         self.since_closure = 0.0
+        self._closed_at = len(self.graph.poses) - 1
 
     def _correction(self, c: Closure) -> Pose:
         """The map-frame move the closure asks of its node: where it puts the node, from where it is."""
@@ -736,9 +763,27 @@ class LoopCloser:
         return [sm for _, _, sm in near[:limit]]
 
     def _growth(self) -> tuple[float, float]:
-        """How much wider than the base the search is now (m, rad), from the drift since the last closure."""
+        """How much wider than the base the search is now (m, rad), from the drift since the last closure
+        (and, where the nodes carry it, the front end's disagreement with the odometry)."""
         cfg = self.config
         d = self.since_closure
+        c, k = self._closed_at, len(self.graph.poses) - 1
+        if cfg.odometry_gain > 0 and k >= 0:
+            oc, ok = self.odometry[c], self.odometry[k]
+            if oc is not None and ok is not None:
+                # The front end's path since the last closure seen from the odometry's.
+                e = relative(relative(oc, ok), relative(self.graph.poses[c], self.graph.poses[k]))
+                gxy = min(
+                    cfg.drift_rate * d,
+                    max(cfg.odometry_floor * d, cfg.odometry_gain * math.hypot(e[0], e[1])),
+                    cfg.odometry_max_search_xy - cfg.search_xy,
+                )
+                gth = min(
+                    cfg.drift_theta_per_m * d,
+                    max(cfg.odometry_theta_floor * d, cfg.odometry_gain * abs(wrap(e[2]))),
+                    cfg.max_search_theta - cfg.search_theta,
+                )
+                return max(0.0, gxy), max(0.0, gth)
         return (
             min(cfg.drift_rate * d, cfg.max_search_xy - cfg.search_xy),
             min(cfg.drift_theta_per_m * d, cfg.max_search_theta - cfg.search_theta),

@@ -223,7 +223,7 @@ class OnboardMapper:
                 cfg.odom_sigma_theta + cfg.odom_sigma_theta_per_m * d + cfg.odom_sigma_theta_per_rad * abs(inc[2]),
             )
         self._last_odom = odom
-        return self.add_scan(t, ranges, angles, guess, prior, site)
+        return self.add_scan(t, ranges, angles, guess, prior, site, odometry=odom)
 
     def add_scan(
         self,
@@ -233,6 +233,7 @@ class OnboardMapper:
         pose_guess: Pose,
         prior: tuple[float, float] | None = None,
         site: tuple[float, float, float] | None = None,
+        odometry: Pose | None = None,
     ) -> ScanResult:
         """One lidar turn (ranges m, angles rad CCW in the sensor frame) near ``pose_guess``; returns the pose.
 
@@ -246,6 +247,9 @@ class OnboardMapper:
         if not all(math.isfinite(v) for v in guess) or not math.isfinite(t):
             self.rejected += 1
             raise ValueError(f"non-finite pose guess {pose_guess!r} or time {t!r}")
+        if odometry is not None and not all(math.isfinite(float(v)) for v in odometry):
+            self.rejected += 1
+            raise ValueError(f"non-finite odometry {odometry!r}")
         if site is not None and not (
             len(site) == 3 and all(math.isfinite(float(v)) for v in site) and float(site[2]) > 0
         ):
@@ -304,7 +308,7 @@ class OnboardMapper:
                     self._local.add(compose(pose, cfg.mount), kept, normals)
                 if self.closer is not None:
                     scan = NodeScan(r, a, full_hit, kept, normals, match_pts)
-                    self.closer.add_node(t, pose, scan, site, info if matched else None)
+                    self.closer.add_node(t, pose, scan, site, info if matched else None, odometry)
                     self._steps.append(
                         relative(self._node_pose, pose) if self._node_pose is not None else (0.0, 0.0, 0.0)
                     )
