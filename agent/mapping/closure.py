@@ -783,7 +783,7 @@ class LoopCloser:
                     max(cfg.odometry_theta_floor * d, cfg.odometry_gain * abs(wrap(e[2]))),
                     cfg.max_search_theta - cfg.search_theta,
                 )
-                return max(0.0, gxy), max(0.0, gth)
+                return gxy, gth
         return (
             min(cfg.drift_rate * d, cfg.max_search_xy - cfg.search_xy),
             min(cfg.drift_theta_per_m * d, cfg.max_search_theta - cfg.search_theta),
