@@ -420,7 +420,8 @@ def test_a_drawn_submap_keeps_its_field_and_lets_its_grid_go() -> None:
     assert closer is not None and closer.submaps
     sm = closer.submaps[len(closer.submaps) // 2]
     parts = closer._parts(sm)
-    drawn = draw_submap(parts, closer.grid_config, closer.config.bnb_depth)
+    # Drawn as seen (no surface fill): the field of a grid that integrated the scans one by one.
+    drawn = draw_submap(parts, closer.grid_config, replace(closer.config, fill_max_gap=0.0))
     assert isinstance(drawn.grid, SubmapField) and not hasattr(drawn.grid, "logodds")
     grid = LogOddsGrid(replace(closer.grid_config, grow_step=SUBMAP_GROW_M))
     for sensor, sc in parts:
@@ -694,7 +695,7 @@ def test_a_large_correction_is_refused_where_the_guess_matches_too() -> None:
     b = tuple(((p[0] + 4.0, p[1], p[2]), sc) for p, sc in zip(poses[:8], scans[:8], strict=True))
     a = tuple(((p[0] + d, p[1], p[2]), sc) for p, sc, d in zip(poses[8:10], scans[8:10], (-0.02, 0.02), strict=True))
     cfg = CloserConfig()
-    drawn = draw_submap(a + b, GridConfig(), cfg.bnb_depth)
+    drawn = draw_submap(a + b, GridConfig(), cfg)
     node = poses[11]
     guess = (node[0] + 0.1, node[1], node[2])
     check = Check(11, 0, 0, scans[11], guess, (5.0, math.radians(10.0)), drawn, (), cfg, GridConfig(), (0.0, 0.0, 0.0))

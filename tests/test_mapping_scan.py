@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from fleetlink.agent.mapping.scan import filter_segments, prepare, segment_labels, thin, to_points
+from fleetlink.agent.mapping.scan import filter_segments, prepare, segment_labels, surface_fill, thin, to_points
 
 
 def test_prepare_drops_invalid_and_marks_max_range_as_no_hit() -> None:
@@ -62,3 +62,33 @@ def test_thin_keeps_the_first_point_of_each_cell_in_scan_order() -> None:
     _, first = np.unique(keys[:, 0] * 1_000_003 + keys[:, 1], return_index=True)
     assert np.array_equal(thin(pts, 0.25), pts[np.sort(first)])
     assert thin(pts[:1], 0.25).tolist() == pts[:1].tolist()
+
+
+def test_surface_fill_puts_points_on_a_far_wall_between_its_beams() -> None:
+    # A wall at x = 10 seen by 1-degree beams: hits 0.17 m apart, filled every 5 cm on the wall itself.
+    ang = np.radians(np.arange(-10, 11, 1.0))
+    r = 10.0 / np.cos(ang)
+    fr, fa = surface_fill(r, ang, np.ones(r.size, dtype=bool), 0.5, 0.05, 0.1, 0.05)
+    pts = to_points(fr, fa)
+    assert np.allclose(pts[:, 0], 10.0)
+    ys = np.sort(np.concatenate((pts[:, 1], 10.0 * np.tan(ang))))
+    assert np.diff(ys).max() <= 0.05 + 1e-9  # no gap wider than a cell left
+    assert fr.size == 20 * 3  # 0.175 m gaps: three points strictly between each pair
+
+
+def test_surface_fill_bridges_no_depth_jump_no_miss_and_no_wide_gap() -> None:
+    ang = np.radians(np.arange(0, 8, 1.0))
+    # Wall at 3 m, then a beam that returned nothing, then the same wall, then a wall 2 m behind.
+    r = np.array([3.0, 3.0, 3.0, 12.0, 3.0, 3.0, 5.0, 5.0])
+    hit = np.array([True, True, True, False, True, True, True, True])
+    fr, fa = surface_fill(r, ang, hit, 0.5, 0.05, 0.1, 0.05)
+    # Only (0,1), (1,2), (4,5) and (6,7) are one surface: each gets its in-between points.
+    between = np.degrees(fa)
+    for lo, hi in ((2, 4), (5, 6)):
+        assert not ((between > lo) & (between < hi)).any(), (lo, hi)
+    assert ((between > 6) & (between < 7)).sum() == 1  # 5 m at 1 degree: 0.087 m, one point between
+    # Too far apart (> max_gap), or off: nothing.
+    assert surface_fill(r * 10, ang, hit, 0.5, 0.05, 0.1, 0.05)[0].size == 0
+    assert surface_fill(r, ang, hit, 0.0, 0.05, 0.1, 0.05)[0].size == 0
+    empty = np.zeros(0)
+    assert surface_fill(empty, empty, np.zeros(0, dtype=bool), 0.5, 0.05, 0.1, 0.05)[0].size == 0

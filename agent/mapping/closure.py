@@ -50,6 +50,7 @@ from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.matcher import IcpResult, LocalMap, _refine, field_score, icp_refine
 from fleetlink.agent.mapping.posegraph import PoseGraph
+from fleetlink.agent.mapping.scan import surface_fill
 from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
 
 __all__ = [
@@ -100,6 +101,14 @@ class CloserConfig:
     odometry_max_search_xy: float = 30.0  # m
     min_score: float = 0.5  # mean likelihood-field value of the scan's points on the submap, refined
     search_min_score: float = 0.4  # the branch-and-bound's floor (on the lattice)
+    # A submap is drawn with each scan's surfaces filled between neighbouring hits (``scan.surface_fill``:
+    # endpoints under ``fill_max_gap`` m apart, ranges within ``fill_depth_share`` x range +
+    # ``fill_depth_m``; 0: off). Beams 1 degree apart leave a wall 10 m off a dotted line 0.17 m a dot,
+    # wider than the field's blur: a node scored 0.55 on its own submap in the Acapulco convention hall
+    # (intel 0.76) and no closure passed there. Filled: 0.80.
+    fill_max_gap: float = 0.5
+    fill_depth_share: float = 0.05
+    fill_depth_m: float = 0.1
     angle_step: float = math.radians(0.5)  # the branch-and-bound's rotations
     min_inlier_ratio: float = 0.6
     inlier_distance: float = 0.1  # m
@@ -278,6 +287,9 @@ class CloserConfig:
             "odometry_gain",
             "odometry_floor",
             "odometry_theta_floor",
+            "fill_max_gap",
+            "fill_depth_share",
+            "fill_depth_m",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -794,7 +806,7 @@ class LoopCloser:
         (the least recently used is let go and drawn again if asked for): each holds a grid and its
         search levels, megabytes apiece."""
         if sm.drawn is None:
-            sm.drawn = draw_submap(self._parts(sm), self.grid_config, self.config.bnb_depth)
+            sm.drawn = draw_submap(self._parts(sm), self.grid_config, self.config)
             self.stats.submaps_drawn += 1
         self._touch(sm)
         return sm.drawn
@@ -1136,20 +1148,32 @@ normal and the ray back to the sensor, about 6 degrees past grazing: normals of 
 noisy) and still count as seen from the same side."""
 
 
-def _submap_grid(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig) -> LogOddsGrid:
+def _submap_grid(
+    parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, fill: CloserConfig | None = None
+) -> LogOddsGrid:
     """A submap's log-odds grid, its scans integrated at their sensor poses in its frame; its field
     left stale (refreshed once, over what the scans changed, by whoever reads it: the same field as
-    refreshed per scan)."""
+    refreshed per scan). With ``fill``, each scan's surfaces are filled between neighbouring hits
+    (``CloserConfig.fill_max_gap``): for matching against; a shared map shows only what was seen."""
     # A small growth step: the mapper's 8 m padding would make every submap a big grid.
     g = LogOddsGrid(replace(grid, grow_step=SUBMAP_GROW_M))
     for sensor, sc in parts:
-        g.integrate(sensor, sc.ranges, sc.angles, sc.hit, refresh=False)
+        r, a, hit = sc.ranges, sc.angles, sc.hit
+        if fill is not None:
+            fr, fa = surface_fill(
+                r, a, hit, fill.fill_max_gap, fill.fill_depth_share, fill.fill_depth_m, grid.resolution
+            )
+            if fr.size:
+                r, a = np.concatenate((r, fr)), np.concatenate((a, fa))
+                hit = np.concatenate((hit, np.ones(fr.size, dtype=bool)))
+        g.integrate(sensor, r, a, hit, refresh=False)
     return g
 
 
-def draw_submap(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, depth: int) -> Drawn:
-    """A submap drawn from its scans at their sensor poses in its frame."""
-    g = _submap_grid(parts, grid)
+def draw_submap(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, config: CloserConfig) -> Drawn:
+    """A submap drawn from its scans at their sensor poses in its frame, for matching against."""
+    depth = config.bnb_depth
+    g = _submap_grid(parts, grid, config)
     local = LocalMap(max(1, len(parts)), cell=0.05)
     g.refresh_stale()
     local.extend([(sensor, sc.points, sc.normals) for sensor, sc in parts])  # fused once, not per scan
@@ -1171,7 +1195,7 @@ def run_check(check: Check) -> CheckResult:
     sc = check.scan
     if len(sc.match_points) < 10 or len(sc.points) < 10:
         return CheckResult(check, None, "few points", None)
-    drawn = check.drawn or draw_submap(check.parts, check.grid_config, cfg.bnb_depth)
+    drawn = check.drawn or draw_submap(check.parts, check.grid_config, cfg)
     grid, local = drawn.grid, drawn.local
     wxy, wth = check.window
     # The lattice answer scores lower than the refined one (far points are off by the angle step):

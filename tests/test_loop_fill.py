@@ -1,0 +1,96 @@
+"""Submaps drawn for matching with each scan's surfaces filled between neighbouring hits
+(``CloserConfig.fill_max_gap``, ``scan.surface_fill``). In a hall, 1-degree beams draw the far walls
+as dotted lines, sparser than the likelihood field's blur; a node then scores under the gate on a
+submap of the very place it stands in, and no loop closes (the Acapulco convention hall's log: 1
+check of 414 passed)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from fleetlink.agent.mapping import scan as scanprep
+from fleetlink.agent.mapping.closure import Check, CloserConfig, NodeScan, draw_submap, run_check
+from fleetlink.agent.mapping.grid import GridConfig
+from fleetlink.agent.mapping.mapper import MapperConfig
+from fleetlink.agent.mapping.matcher import field_score, scan_normals
+from fleetlink.agent.mapping.se2 import relative
+from fleetlink.field.raycast import Raycaster
+
+# A 36 x 24 m hall with two stands in it: most walls 10-18 m from the lidar.
+HALL = np.array(
+    [
+        [-18.0, -12.0, 18.0, -12.0],
+        [18.0, -12.0, 18.0, 12.0],
+        [18.0, 12.0, -18.0, 12.0],
+        [-18.0, 12.0, -18.0, -12.0],
+        [-9.0, -12.0, -9.0, -8.0],
+        [6.0, 12.0, 6.0, 9.0],
+        [18.0, 3.0, 14.0, 3.0],
+        [-18.0, -2.0, -15.0, -2.0],
+        # two stands nearer by
+        [4.0, -3.0, 4.0, -1.5],
+        [4.0, -1.5, 5.0, -1.5],
+        [-5.0, 3.0, -3.5, 3.0],
+        [-3.5, 3.0, -3.5, 4.0],
+    ]
+)
+N = 360
+
+
+def _scan_at(x: float, y: float, theta: float) -> NodeScan:
+    cfg = MapperConfig()
+    angles = np.linspace(-math.pi, math.pi, N, endpoint=False)
+    ranges = Raycaster(HALL).cast_fan(x, y, theta - math.pi, 2.0 * math.pi / N, N, 30.0)
+    r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, 30.0)
+    pts = scanprep.to_points(r[hit], a[hit])
+    labels = scanprep.segment_labels(pts, cfg.segment_eps, cfg.segment_tau)
+    keep = scanprep.filter_segments(labels, cfg.min_segment_points)
+    kept = pts[keep]
+    return NodeScan(r, a, hit, kept, scan_normals(pts, labels)[keep], scanprep.thin(kept, cfg.match_cell))
+
+
+POSES = [(-1.0, -0.5, 0.0), (-0.4, -0.3, 0.2), (0.3, 0.0, 0.35), (0.9, 0.4, 0.5)]
+NODE = (0.2, 1.2, -0.6)  # the revisit: a pose inside the submap's area, turned away
+
+
+def _parts() -> tuple[tuple[tuple[float, float, float], NodeScan], ...]:
+    anchor = POSES[0]
+    return tuple((relative(anchor, p), _scan_at(*p)) for p in POSES)
+
+
+def test_far_walls_filled_lift_a_true_match_over_the_gate() -> None:
+    config = CloserConfig()
+    scan = _scan_at(*NODE)
+    truth = relative(POSES[0], NODE)
+    filled = draw_submap(_parts(), GridConfig(), config)
+    dotted = draw_submap(_parts(), GridConfig(), replace(config, fill_max_gap=0.0))
+    on_filled = field_score(filled.grid, scan.match_points, truth)
+    on_dotted = field_score(dotted.grid, scan.match_points, truth)
+    assert on_filled >= config.min_score > on_dotted, (on_filled, on_dotted)
+
+    guess = (truth[0] + 0.4, truth[1] - 0.3, truth[2] + math.radians(4.0))
+    verdicts = {}
+    for name, cfg in (("filled", config), ("dotted", replace(config, fill_max_gap=0.0))):
+        check = Check(3, 0, 0, scan, guess, (1.0, math.radians(10.0)), None, _parts(), cfg, GridConfig(), (0.0, 0.0, 0.0))
+        verdicts[name] = run_check(check)
+    assert verdicts["dotted"].outcome == "score"
+    found = verdicts["filled"].closure
+    assert verdicts["filled"].outcome == "accepted" and found is not None
+    assert math.dist(found.z[:2], truth[:2]) < 0.05 and abs(found.z[2] - truth[2]) < math.radians(1.0)
+
+
+def test_a_filled_drawing_is_deterministic_and_fill_is_validated() -> None:
+    a = draw_submap(_parts(), GridConfig(), CloserConfig())
+    b = draw_submap(_parts(), GridConfig(), CloserConfig())
+    assert np.array_equal(a.grid.field, b.grid.field) and a.grid.origin == b.grid.origin
+    for name in ("fill_max_gap", "fill_depth_share", "fill_depth_m"):
+        for bad in (-0.1, math.nan, math.inf):
+            try:
+                CloserConfig(**{name: bad})
+            except ValueError as e:
+                assert name in str(e)
+            else:
+                raise AssertionError(f"{name}={bad} accepted")
