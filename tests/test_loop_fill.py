@@ -74,7 +74,9 @@ def test_far_walls_filled_lift_a_true_match_over_the_gate() -> None:
     guess = (truth[0] + 0.4, truth[1] - 0.3, truth[2] + math.radians(4.0))
     verdicts = {}
     for name, cfg in (("filled", config), ("dotted", replace(config, fill_max_gap=0.0))):
-        check = Check(3, 0, 0, scan, guess, (1.0, math.radians(10.0)), None, _parts(), cfg, GridConfig(), (0.0, 0.0, 0.0))
+        check = Check(
+            3, 0, 0, scan, guess, (1.0, math.radians(10.0)), None, _parts(), cfg, GridConfig(), (0.0, 0.0, 0.0)
+        )
         verdicts[name] = run_check(check)
     assert verdicts["dotted"].outcome == "score"
     found = verdicts["filled"].closure
@@ -94,3 +96,28 @@ def test_a_filled_drawing_is_deterministic_and_fill_is_validated() -> None:
                 assert name in str(e)
             else:
                 raise AssertionError(f"{name}={bad} accepted")
+
+
+def test_a_large_correction_asks_a_higher_score() -> None:
+    """``large_min_score``: a fresh match moving its node more than ``confirm_above`` must score this much;
+    the same match found near the guess needs only ``min_score``."""
+    scan = _scan_at(*NODE)
+    truth = relative(POSES[0], NODE)
+    strict = CloserConfig(large_min_score=0.999)  # above what the true match scores here (~0.99)
+
+    def verdict(off: float, cfg: CloserConfig) -> str:
+        guess = (truth[0] + off, truth[1], truth[2])
+        check = Check(
+            3, 0, 0, scan, guess, (1.5, math.radians(10.0)), None, _parts(), cfg, GridConfig(), (0.0, 0.0, 0.0)
+        )
+        return run_check(check).outcome
+
+    assert verdict(0.2, strict) == "accepted"
+    assert verdict(1.0, strict) == "score"
+    assert verdict(1.0, CloserConfig()) == "accepted"
+    try:
+        CloserConfig(large_min_score=1.5)
+    except ValueError as e:
+        assert "large_min_score" in str(e)
+    else:
+        raise AssertionError("large_min_score=1.5 accepted")

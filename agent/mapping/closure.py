@@ -107,6 +107,11 @@ class CloserConfig:
     # wider than the field's blur: a node scored 0.55 on its own submap in the Acapulco convention hall
     # (intel 0.76) and no closure passed there. Filled: 0.80.
     fill_max_gap: float = 0.5
+    # Hits closer than this are left as they are: the field's blur (5 taps, +-0.1 m at 5 cm cells)
+    # joins them already, and filling them too drew every near wall solid, which let more marginal
+    # matches through (intel and aces on perturbed odometry: worst re-matched revisits 0.17-0.19 ->
+    # up to 0.33 m with every gap filled).
+    fill_min_gap: float = 0.1
     fill_depth_share: float = 0.05
     fill_depth_m: float = 0.1
     angle_step: float = math.radians(0.5)  # the branch-and-bound's rotations
@@ -145,6 +150,12 @@ class CloserConfig:
     # doorways every few metres; nodes 297 and 302 both matched two periods (7 m) along and confirmed
     # each other where the graph's guess was right, and the map broke (7.2 m mean).
     large_unique: bool = True
+    # ... and a fresh search's correction larger than ``confirm_above`` must score at least this (the
+    # refined field score; Cartographer likewise asks more of a global match, 0.6, than of a local
+    # one, 0.55). Filled submaps (``fill_max_gap``) lift every score: MIT's infinite corridor then took
+    # a doorway 8.6 m along at 0.52, confirmed by the next node at 0.58 (complete relations 0.06 ->
+    # 0.24 m).
+    large_min_score: float = 0.6
     confirm_nodes: int = 10  # ... within this many nodes
     # ... from a node at least this far from the first one's, or turned this much: a node nearer sees
     # much what the first saw and agrees with a look-alike as readily (the published MIT CSAIL log:
@@ -288,6 +299,7 @@ class CloserConfig:
             "odometry_floor",
             "odometry_theta_floor",
             "fill_max_gap",
+            "fill_min_gap",
             "fill_depth_share",
             "fill_depth_m",
         ):
@@ -304,6 +316,8 @@ class CloserConfig:
             raise ValueError("the search caps must be at least the base windows")
         if not 0.0 <= self.min_facing_share <= 1.0:
             raise ValueError(f"min_facing_share must be in [0, 1], got {self.min_facing_share!r}")
+        if not 0.0 <= self.large_min_score <= 1.0:
+            raise ValueError(f"large_min_score must be in [0, 1], got {self.large_min_score!r}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -1161,7 +1175,14 @@ def _submap_grid(
         r, a, hit = sc.ranges, sc.angles, sc.hit
         if fill is not None:
             fr, fa = surface_fill(
-                r, a, hit, fill.fill_max_gap, fill.fill_depth_share, fill.fill_depth_m, grid.resolution
+                r,
+                a,
+                hit,
+                fill.fill_max_gap,
+                fill.fill_depth_share,
+                fill.fill_depth_m,
+                grid.resolution,
+                fill.fill_min_gap,
             )
             if fr.size:
                 r, a = np.concatenate((r, fr)), np.concatenate((a, fa))
@@ -1212,8 +1233,11 @@ def run_check(check: Check) -> CheckResult:
         return CheckResult(check, None, "inliers", drawn)
     # How far it moves the node (the robot, as ``LoopCloser._jump`` measures it), not the sensor.
     robot = compose(r.pose, inverse(check.mount))
-    if facing < cfg.min_facing_share and _move(compose(check.guess, inverse(check.mount)), robot) > cfg.confirm_above:
+    large = _move(compose(check.guess, inverse(check.mount)), robot) > cfg.confirm_above
+    if facing < cfg.min_facing_share and large:
         return CheckResult(check, None, "behind", drawn)
+    if large and check.confirms is None and score < cfg.large_min_score:
+        return CheckResult(check, None, "score", drawn)
     if (
         math.hypot(r.pose[0] - found[0], r.pose[1] - found[1]) > cfg.max_disagreement
         or abs(wrap(r.pose[2] - found[2])) > cfg.max_disagreement_angle
@@ -1249,12 +1273,7 @@ def run_check(check: Check) -> CheckResult:
     second: Pose | None = None
     if weak_dir is None and check.unique and moved > cfg.final_ambiguity_jump:
         second = check.guess
-    elif (
-        weak_dir is None
-        and cfg.large_unique
-        and check.confirms is None
-        and _move(compose(check.guess, inverse(check.mount)), robot) > cfg.confirm_above
-    ):
+    elif weak_dir is None and cfg.large_unique and check.confirms is None and large:
         nearer = search(
             drawn.grids, sc.match_points, check.guess, min(wxy, 0.5 * moved), wth, cfg.search_min_score, cfg.angle_step
         )
