@@ -67,6 +67,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rep.add_argument(
         "--no-closure", action="store_true", help="no loop closure: the front end's poses as they were mapped"
     )
+    rep.add_argument(
+        "--open-space",
+        action="store_true",
+        help="loop closure tuned for halls and outdoors (walls 10-80 m off): submaps with their surfaces filled,"
+        " large corrections asked a higher score (docs/mapping.md, 'Open spaces')",
+    )
     rep.set_defaults(_run=run_replay)
 
     rel = sub.add_parser("relations", help="write a complete relation set from a corrected CARMEN log")
@@ -240,6 +246,7 @@ def run_replay(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from fleetlink.agent.mapping.carmen import CarmenStats, corrected_lines, open_log, read_records
+    from fleetlink.agent.mapping.closure import open_space
     from fleetlink.agent.mapping.grid import GridConfig
     from fleetlink.agent.mapping.mapper import MapperConfig
     from fleetlink.agent.mapping.replay import format_trajectory, replay
@@ -251,6 +258,8 @@ def run_replay(args: argparse.Namespace) -> int:
     cfg = MapperConfig(grid=GridConfig(resolution=args.resolution), matching=not args.no_matching)
     if args.no_closure:
         cfg = replace(cfg, closer=None)
+    elif args.open_space:
+        cfg = replace(cfg, closer=open_space(cfg.closer))
     stats = CarmenStats()
 
     def progress(stage: str, n: int) -> None:

@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 
 from fleetlink.agent.mapping import scan as scanprep
-from fleetlink.agent.mapping.closure import Check, CloserConfig, NodeScan, draw_submap, run_check
+from fleetlink.agent.mapping.closure import Check, CloserConfig, NodeScan, draw_submap, open_space, run_check
 from fleetlink.agent.mapping.grid import GridConfig
 from fleetlink.agent.mapping.mapper import MapperConfig
 from fleetlink.agent.mapping.matcher import field_score, scan_normals
@@ -62,7 +62,8 @@ def _parts() -> tuple[tuple[tuple[float, float, float], NodeScan], ...]:
 
 
 def test_far_walls_filled_lift_a_true_match_over_the_gate() -> None:
-    config = CloserConfig()
+    config = open_space()
+    assert CloserConfig().fill_max_gap == 0.0 and config.fill_max_gap > 0.0  # off unless asked for
     scan = _scan_at(*NODE)
     truth = relative(POSES[0], NODE)
     filled = draw_submap(_parts(), GridConfig(), config)
@@ -85,8 +86,8 @@ def test_far_walls_filled_lift_a_true_match_over_the_gate() -> None:
 
 
 def test_a_filled_drawing_is_deterministic_and_fill_is_validated() -> None:
-    a = draw_submap(_parts(), GridConfig(), CloserConfig())
-    b = draw_submap(_parts(), GridConfig(), CloserConfig())
+    a = draw_submap(_parts(), GridConfig(), open_space())
+    b = draw_submap(_parts(), GridConfig(), open_space())
     assert np.array_equal(a.grid.field, b.grid.field) and a.grid.origin == b.grid.origin
     for name in ("fill_max_gap", "fill_depth_share", "fill_depth_m"):
         for bad in (-0.1, math.nan, math.inf):
@@ -103,7 +104,7 @@ def test_a_large_correction_asks_a_higher_score() -> None:
     the same match found near the guess needs only ``min_score``."""
     scan = _scan_at(*NODE)
     truth = relative(POSES[0], NODE)
-    strict = CloserConfig(large_min_score=0.999)  # above what the true match scores here (~0.99)
+    strict = replace(open_space(), large_min_score=0.999)  # above what the true match scores here (~0.99)
 
     def verdict(off: float, cfg: CloserConfig) -> str:
         guess = (truth[0] + off, truth[1], truth[2])
@@ -114,7 +115,7 @@ def test_a_large_correction_asks_a_higher_score() -> None:
 
     assert verdict(0.2, strict) == "accepted"
     assert verdict(1.0, strict) == "score"
-    assert verdict(1.0, CloserConfig()) == "accepted"
+    assert verdict(1.0, open_space()) == "accepted"
     try:
         CloserConfig(large_min_score=1.5)
     except ValueError as e:

@@ -293,3 +293,31 @@ def test_cli_replay_rejects_a_log_without_scans(tmp_path: Path, capsys: pytest.C
     log.write_text("# nothing\nODOM 0 0 0 0 0 0 1.0 h 1.0\nGARBAGE\n")
     assert main(["map", "replay", str(log), "--out", str(tmp_path / "o")]) == 1
     assert "no usable scans" in capsys.readouterr().err
+
+
+def test_cli_replay_open_space_maps_with_filled_submaps(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--open-space``: the closer of ``closure.open_space`` (filled submaps, a higher score for large
+    corrections); the same scans and timestamps, and a map of the same room."""
+    from fleetlink.agent.mapping import replay as replay_module
+    from fleetlink.agent.mapping.closure import open_space
+
+    seen: list[MapperConfig | None] = []
+    real = replay_module.replay
+
+    def spy(records, config=None, **kw):  # type: ignore[no-untyped-def]
+        seen.append(config)
+        return real(records, config, **kw)
+
+    monkeypatch.setattr(replay_module, "replay", spy)
+    log = tmp_path / "room.log"
+    log.write_text("\n".join(_log_lines()) + "\n")
+    plain, wide = tmp_path / "plain", tmp_path / "wide"
+    assert main(["map", "replay", str(log), "--out", str(plain)]) == 0
+    assert main(["map", "replay", str(log), "--out", str(wide), "--open-space"]) == 0
+    assert seen[0] is not None and seen[0].closer is not None and seen[0].closer.fill_max_gap == 0.0
+    assert seen[1] is not None and seen[1].closer == open_space()
+    a = [r.split() for r in (plain / "trajectory.txt").read_text().splitlines()]
+    b = [r.split() for r in (wide / "trajectory.txt").read_text().splitlines()]
+    assert [r[0] for r in b] == [r[0] for r in a] == TIMESTAMPS
+    for ra, rb in zip(a, b, strict=True):  # a small room: no closure either way, the same path to centimetres
+        assert math.dist([float(v) for v in ra[1:3]], [float(v) for v in rb[1:3]]) < 0.05

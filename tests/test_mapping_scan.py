@@ -92,14 +92,3 @@ def test_surface_fill_bridges_no_depth_jump_no_miss_and_no_wide_gap() -> None:
     assert surface_fill(r, ang, hit, 0.0, 0.05, 0.1, 0.05)[0].size == 0
     empty = np.zeros(0)
     assert surface_fill(empty, empty, np.zeros(0, dtype=bool), 0.5, 0.05, 0.1, 0.05)[0].size == 0
-
-
-def test_surface_fill_leaves_hits_closer_than_min_gap() -> None:
-    # A wall at 3 m: 1-degree beams 0.052 m apart, within the field's blur: left alone at min_gap 0.1;
-    # the same wall at 12 m (0.21 m apart) filled.
-    ang = np.radians(np.arange(0, 10, 1.0))
-    hit = np.ones(ang.size, dtype=bool)
-    near = 3.0 / np.cos(ang)
-    assert surface_fill(near, ang, hit, 0.5, 0.05, 0.1, 0.05, min_gap=0.1)[0].size == 0
-    assert surface_fill(near, ang, hit, 0.5, 0.05, 0.1, 0.05)[0].size == 9
-    assert surface_fill(4 * near, ang, hit, 0.5, 0.05, 0.1, 0.05, min_gap=0.1)[0].size == 9 * 4

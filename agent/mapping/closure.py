@@ -101,17 +101,15 @@ class CloserConfig:
     odometry_max_search_xy: float = 30.0  # m
     min_score: float = 0.5  # mean likelihood-field value of the scan's points on the submap, refined
     search_min_score: float = 0.4  # the branch-and-bound's floor (on the lattice)
-    # A submap is drawn with each scan's surfaces filled between neighbouring hits (``scan.surface_fill``:
-    # endpoints under ``fill_max_gap`` m apart, ranges within ``fill_depth_share`` x range +
-    # ``fill_depth_m``; 0: off). Beams 1 degree apart leave a wall 10 m off a dotted line 0.17 m a dot,
-    # wider than the field's blur: a node scored 0.55 on its own submap in the Acapulco convention hall
-    # (intel 0.76) and no closure passed there. Filled: 0.80.
-    fill_max_gap: float = 0.5
-    # Hits closer than this are left as they are: the field's blur (5 taps, +-0.1 m at 5 cm cells)
-    # joins them already, and filling them too drew every near wall solid, which let more marginal
-    # matches through (intel and aces on perturbed odometry: worst re-matched revisits 0.17-0.19 ->
-    # up to 0.33 m with every gap filled).
-    fill_min_gap: float = 0.1
+    # A submap may be drawn with each scan's surfaces filled between neighbouring hits
+    # (``scan.surface_fill``: endpoints under ``fill_max_gap`` m apart, ranges within
+    # ``fill_depth_share`` x range + ``fill_depth_m``; 0: off, the default). Beams 1 degree apart leave
+    # a wall 10 m off a dotted line 0.17 m a dot, wider than the field's blur: a node scored 0.55 on its
+    # own submap in the Acapulco convention hall (intel 0.76) and no closure passed there; filled, 0.80.
+    # Off by default because it costs the offices: filled, every score rises, look-alikes with it, and
+    # aces' published worst revisit went 0.180 -> 0.188-0.232 m (``open_space`` turns it on for halls
+    # and outdoors, with the higher score it then needs; docs/mapping.md, "Open spaces").
+    fill_max_gap: float = 0.0
     fill_depth_share: float = 0.05
     fill_depth_m: float = 0.1
     angle_step: float = math.radians(0.5)  # the branch-and-bound's rotations
@@ -151,11 +149,13 @@ class CloserConfig:
     # each other where the graph's guess was right, and the map broke (7.2 m mean).
     large_unique: bool = True
     # ... and a fresh search's correction larger than ``confirm_above`` must score at least this (the
-    # refined field score; Cartographer likewise asks more of a global match, 0.6, than of a local
-    # one, 0.55). Filled submaps (``fill_max_gap``) lift every score: MIT's infinite corridor then took
-    # a doorway 8.6 m along at 0.52, confirmed by the next node at 0.58 (complete relations 0.06 ->
-    # 0.24 m).
-    large_min_score: float = 0.6
+    # refined field score; Cartographer likewise asks more of a global match, 0.6, than of a local one,
+    # 0.55). By default the gate of every check, ``min_score``: asked of unfilled submaps, 0.55-0.6
+    # cost aces' published worst revisit 0.185 -> 0.201 m. Filled submaps (``open_space``) lift every
+    # score, and MIT's infinite corridor took a doorway 7 m along at 0.60, confirmed by the next node
+    # at 0.58 (complete relations 0.06 -> 0.16 m); true large closures there and on the other logs
+    # scored 0.63 and up.
+    large_min_score: float = 0.5
     confirm_nodes: int = 10  # ... within this many nodes
     # ... from a node at least this far from the first one's, or turned this much: a node nearer sees
     # much what the first saw and agrees with a look-alike as readily (the published MIT CSAIL log:
@@ -299,7 +299,6 @@ class CloserConfig:
             "odometry_floor",
             "odometry_theta_floor",
             "fill_max_gap",
-            "fill_min_gap",
             "fill_depth_share",
             "fill_depth_m",
         ):
@@ -318,6 +317,17 @@ class CloserConfig:
             raise ValueError(f"min_facing_share must be in [0, 1], got {self.min_facing_share!r}")
         if not 0.0 <= self.large_min_score <= 1.0:
             raise ValueError(f"large_min_score must be in [0, 1], got {self.large_min_score!r}")
+
+
+def open_space(config: CloserConfig | None = None) -> CloserConfig:
+    """``config`` (default: the defaults) for halls and outdoors, where walls lie 10-80 m off: submaps
+    drawn with their surfaces filled (``fill_max_gap`` 0.5 m), and a fresh large correction asked to
+    score 0.62 (``large_min_score``). Measured on corrected logs replayed on their own poses (complete
+    relations, mean / worst revisit): the Acapulco convention hall 0.162 / 6.60 -> 0.070 / 2.62 m, the
+    Freiburg campus 0.082 / 2.18 -> 0.048 / 1.24 m, MIT's infinite corridor 0.059 / 0.93 -> 0.051 /
+    0.37 m; the offices' published relations a little worse (aces' worst revisit 0.180 -> 0.199 m,
+    intel's 0.093 -> 0.096 m). ``fleetlink map replay --open-space``."""
+    return replace(config or CloserConfig(), fill_max_gap=0.5, large_min_score=0.62)
 
 
 @dataclass(frozen=True, slots=True)
@@ -1182,7 +1192,6 @@ def _submap_grid(
                 fill.fill_depth_share,
                 fill.fill_depth_m,
                 grid.resolution,
-                fill.fill_min_gap,
             )
             if fr.size:
                 r, a = np.concatenate((r, fr)), np.concatenate((a, fa))

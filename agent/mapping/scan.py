@@ -100,7 +100,6 @@ def surface_fill(
     depth_share: float,
     depth_m: float,
     step: float,
-    min_gap: float = 0.0,
 ) -> tuple[FloatArray, FloatArray]:
     """Beams (ranges, angles) filling the surface between neighbouring hits, ``step`` apart.
 
@@ -108,9 +107,8 @@ def surface_fill(
     ranges differ by less than ``depth_share`` x the nearer range + ``depth_m``, saw one surface: the
     straight line between their endpoints is filled with returns at most ``step`` apart. A far wall
     seen by 1-degree beams is otherwise a dotted line (beams 0.17 m apart at 10 m, 0.35 m at 20 m),
-    which a likelihood field blurred over a few cells reads as mostly empty. Pairs closer than
-    ``min_gap`` are left as they are. Non-positive ``max_gap``: nothing. Input as ``prepare``
-    returns it, in scan order.
+    which a likelihood field blurred over a few cells reads as mostly empty. Non-positive
+    ``max_gap``: nothing. Input as ``prepare`` returns it, in scan order.
     """
     empty = np.zeros(0, dtype=np.float64)
     if max_gap <= 0 or step <= 0 or ranges.size < 2:
@@ -120,7 +118,7 @@ def surface_fill(
     a, b = p[pair], p[pair + 1]
     gap = np.hypot(b[:, 0] - a[:, 0], b[:, 1] - a[:, 1])
     r0, r1 = ranges[pair], ranges[pair + 1]
-    same = (gap < max_gap) & (gap >= min_gap) & (np.abs(r1 - r0) < depth_share * np.minimum(r0, r1) + depth_m)
+    same = (gap < max_gap) & (np.abs(r1 - r0) < depth_share * np.minimum(r0, r1) + depth_m)
     inner = np.where(same, np.ceil(gap / step).astype(np.int64) - 1, 0)  # points strictly between
     inner = np.maximum(inner, 0)
     total = int(inner.sum())
