@@ -600,6 +600,12 @@ def main(argv: list[str] | None = None) -> int:
         help="only section 7: every corrected CARMEN log in DIR (*.log, *.clf, optionally .gz) replayed on its own"
         " poses as fleetlink map replay would, scored against complete relation sets from those poses",
     )
+    ap.add_argument(
+        "--open-space",
+        action="store_true",
+        help="sections 6 and 7: replay with the closer for halls and outdoors (closure.open_space, fleetlink map"
+        " replay --open-space)",
+    )
     args = ap.parse_args(argv)
     if args.corrected is not None:
         return corrected_main(args)
@@ -807,9 +813,10 @@ def freiburg_logs(folder: Path) -> list[tuple[str, Path, Path]]:
     return out
 
 
-def freiburg_log(log: Path, relations: Path) -> dict[str, object]:
+def freiburg_log(log: Path, relations: Path, open_space: bool = False) -> dict[str, object]:
     """A published log replayed as recorded (its own odometry, no perturbation), closures on and off,
-    and the recorded odometry itself, each scored against the published relations."""
+    and the recorded odometry itself, each scored against the published relations. ``open_space``:
+    the closer of ``closure.open_space`` (``fleetlink map replay --open-space``)."""
     from fleetlink.agent.mapping.carmen import LaserRecord, open_log, read_records
     from fleetlink.agent.mapping.mapper import MapperConfig
     from fleetlink.agent.mapping.relations import parse_relations
@@ -821,7 +828,7 @@ def freiburg_log(log: Path, relations: Path) -> dict[str, object]:
         rels = parse_relations(f)
     times = [r.timestamp for r in recs]
     c0 = time.process_time()
-    res = replay(recs)
+    res = replay(recs, _replay_config(open_space))
     cpu = time.process_time() - c0
     c1 = time.process_time()
     open_loop = replay(recs, MapperConfig(closer=None))
@@ -850,13 +857,16 @@ def freiburg_main(args: argparse.Namespace) -> int:
     if not logs:
         print(f"{args.freiburg}: no NAME.relations with a log beside it")
         return 1
-    print("published logs, replayed as recorded, against the published relations (translational error, m)")
+    print(
+        "published logs, replayed as recorded, against the published relations (translational error, m)"
+        + (", closer for open spaces" if args.open_space else "")
+    )
     print(
         f"{'log':>14} {'scans':>6} {'rel':>5} {'mapper':>15} {'rot deg':>7} {'local':>7} {'revisit':>8}"
         f" {'worst rev':>9} {'worst':>7} {'no closure':>10} {'odometry':>9} {'ratio':>6} {'scans/CPU s':>11}"
     )
     for name, log, rel in logs:
-        r = freiburg_log(log, rel)
+        r = freiburg_log(log, rel, args.open_space)
         results[name] = r
         m, o, n = r["mapper"], r["odometry"], r["no_closure"]
         r["vs_odometry_ratio"] = m["trans_mean_m"] / o["trans_mean_m"]
@@ -876,11 +886,21 @@ def freiburg_main(args: argparse.Namespace) -> int:
         " relation (>= 20 s apart) worse than 0.20 m)"
     )
     if args.json:
-        Path(args.json).write_text(json.dumps({"freiburg": results}, indent=2, default=float))
+        Path(args.json).write_text(
+            json.dumps({"freiburg": results, "open_space": args.open_space}, indent=2, default=float)
+        )
     return 0
 
 
-def corrected_log(path: Path) -> dict[str, object]:
+def _replay_config(open_space: bool):  # type: ignore[no-untyped-def]
+    """The replay's mapper configuration: the defaults, or with ``closure.open_space``'s closer."""
+    from fleetlink.agent.mapping.closure import open_space as open_closer
+    from fleetlink.agent.mapping.mapper import MapperConfig
+
+    return MapperConfig(closer=open_closer()) if open_space else MapperConfig()
+
+
+def corrected_log(path: Path, open_space: bool = False) -> dict[str, object]:
     """A corrected log replayed as ``fleetlink map replay`` replays it (its poses as the odometry: no
     perturbation), the final graph, the online poses and the front end alone scored against the complete
     sets of ``relation_sets``; ``corrected_log``: the log's own poses against the re-matched set (how far
@@ -899,7 +919,7 @@ def corrected_log(path: Path) -> dict[str, object]:
     times = [r.timestamp for r in recs]
     sets = relation_sets(recs)
     c0 = time.process_time()
-    res = replay(recs)
+    res = replay(recs, _replay_config(open_space))
     cpu = time.process_time() - c0
     front = replay(recs, MapperConfig(closer=None))
     out: dict[str, object] = {"scans": len(recs), "by_index": by_index, "scans_per_cpu_s": len(recs) / cpu}
@@ -920,7 +940,10 @@ def corrected_main(args: argparse.Namespace) -> int:
     if not logs:
         print(f"{args.corrected}: no corrected CARMEN logs (*.log, *.clf, optionally .gz)")
         return 1
-    print("corrected logs replayed on their own poses: complete relation sets, mean / worst revisit (m)")
+    print(
+        "corrected logs replayed on their own poses: complete relation sets, mean / worst revisit (m)"
+        + (", closer for open spaces" if args.open_space else "")
+    )
     print(
         f"{'log':>34} {'scans':>6} {'mapper':>13} {'matched':>13} {'online':>13} {'no closure':>13}"
         f" {'log vs matched':>14} {'scans/CPU s':>11}"
@@ -931,7 +954,7 @@ def corrected_main(args: argparse.Namespace) -> int:
         return f"{e['trans_mean_m']:.3f}/{_or_nan(e['revisit']['trans_max_m']):.3f}"
 
     for path in logs:
-        r = corrected_log(path)
+        r = corrected_log(path, args.open_space)
         results[path.name] = r
         print(
             f"{path.name:>34} {r['scans']:>6} {cell(r['mapper']['complete']):>13}"  # type: ignore[index]
@@ -945,7 +968,9 @@ def corrected_main(args: argparse.Namespace) -> int:
         " error. Goal on intel and aces: <= 0.03 m mean, no revisit worse than 0.20 m)"
     )
     if args.json:
-        Path(args.json).write_text(json.dumps({"corrected": results}, indent=2, default=float))
+        Path(args.json).write_text(
+            json.dumps({"corrected": results, "open_space": args.open_space}, indent=2, default=float)
+        )
     return 0
 
 
