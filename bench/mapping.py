@@ -603,8 +603,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--open-space",
         action="store_true",
-        help="sections 6 and 7: replay with the closer for halls and outdoors (closure.open_space, fleetlink map"
-        " replay --open-space)",
+        help="sections 6 and 7: replay with every submap filled (closure.open_space, fleetlink map replay"
+        " --open-space)",
     )
     args = ap.parse_args(argv)
     if args.corrected is not None:
@@ -859,7 +859,7 @@ def freiburg_main(args: argparse.Namespace) -> int:
         return 1
     print(
         "published logs, replayed as recorded, against the published relations (translational error, m)"
-        + (", closer for open spaces" if args.open_space else "")
+        + (", every submap filled (--open-space)" if args.open_space else "")
     )
     print(
         f"{'log':>14} {'scans':>6} {'rel':>5} {'mapper':>15} {'rot deg':>7} {'local':>7} {'revisit':>8}"
@@ -942,7 +942,7 @@ def corrected_main(args: argparse.Namespace) -> int:
         return 1
     print(
         "corrected logs replayed on their own poses: complete relation sets, mean / worst revisit (m)"
-        + (", closer for open spaces" if args.open_space else "")
+        + (", every submap filled (--open-space)" if args.open_space else "")
     )
     print(
         f"{'log':>34} {'scans':>6} {'mapper':>13} {'matched':>13} {'online':>13} {'no closure':>13}"

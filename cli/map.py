@@ -70,8 +70,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rep.add_argument(
         "--open-space",
         action="store_true",
-        help="loop closure tuned for halls and outdoors (walls 10-80 m off): submaps with their surfaces filled,"
-        " large corrections asked a higher score (docs/mapping.md, 'Open spaces')",
+        help="every submap drawn with its surfaces filled and large corrections asked a higher score there (by"
+        " default only submaps whose walls were seen 5 m off or more: halls, outdoors; docs/mapping.md, 'Open"
+        " spaces')",
     )
     rep.set_defaults(_run=run_replay)
 

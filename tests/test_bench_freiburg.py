@@ -46,10 +46,10 @@ def test_published_logs_are_found_replayed_and_scored(tmp_path: Path, capsys: py
     printed = capsys.readouterr().out
     assert "orphan.relations: no log beside it, skipped" in printed and "room" in printed
     assert bench.main(["--freiburg", str(tmp_path / "nothing-here")]) == 1
-    # --open-space: the closer for halls and outdoors; the same room, the same answer within centimetres.
+    # --open-space: every submap filled; the same room, the same answer within centimetres.
     wide = tmp_path / "open.json"
     assert bench.main(["--freiburg", str(tmp_path), "--open-space", "--json", str(wide)]) == 0
     figures = json.loads(wide.read_text())
     assert figures["open_space"] is True and json.loads(out.read_text())["open_space"] is False
     assert figures["freiburg"]["room"]["mapper"]["trans_mean_m"] < 0.02
-    assert "closer for open spaces" in capsys.readouterr().out
+    assert "every submap filled (--open-space)" in capsys.readouterr().out

@@ -62,8 +62,7 @@ def _parts() -> tuple[tuple[tuple[float, float, float], NodeScan], ...]:
 
 
 def test_far_walls_filled_lift_a_true_match_over_the_gate() -> None:
-    config = open_space()
-    assert CloserConfig().fill_max_gap == 0.0 and config.fill_max_gap > 0.0  # off unless asked for
+    config = CloserConfig()  # the hall's walls are seen 5 m off and more: its submaps are filled by default
     scan = _scan_at(*NODE)
     truth = relative(POSES[0], NODE)
     filled = draw_submap(_parts(), GridConfig(), config)
@@ -86,10 +85,11 @@ def test_far_walls_filled_lift_a_true_match_over_the_gate() -> None:
 
 
 def test_a_filled_drawing_is_deterministic_and_fill_is_validated() -> None:
-    a = draw_submap(_parts(), GridConfig(), open_space())
-    b = draw_submap(_parts(), GridConfig(), open_space())
+    a = draw_submap(_parts(), GridConfig(), CloserConfig())
+    b = draw_submap(_parts(), GridConfig(), CloserConfig())
+    assert a.filled
     assert np.array_equal(a.grid.field, b.grid.field) and a.grid.origin == b.grid.origin
-    for name in ("fill_max_gap", "fill_depth_share", "fill_depth_m"):
+    for name in ("fill_max_gap", "fill_from_range", "fill_depth_share", "fill_depth_m"):
         for bad in (-0.1, math.nan, math.inf):
             try:
                 CloserConfig(**{name: bad})
@@ -104,7 +104,7 @@ def test_a_large_correction_asks_a_higher_score() -> None:
     the same match found near the guess needs only ``min_score``."""
     scan = _scan_at(*NODE)
     truth = relative(POSES[0], NODE)
-    strict = replace(open_space(), large_min_score=0.999)  # above what the true match scores here (~0.99)
+    strict = CloserConfig(large_min_score=0.999)  # above what the true match scores here (~0.99)
 
     def verdict(off: float, cfg: CloserConfig) -> str:
         guess = (truth[0] + off, truth[1], truth[2])
@@ -115,10 +115,66 @@ def test_a_large_correction_asks_a_higher_score() -> None:
 
     assert verdict(0.2, strict) == "accepted"
     assert verdict(1.0, strict) == "score"
-    assert verdict(1.0, open_space()) == "accepted"
+    assert verdict(1.0, CloserConfig()) == "accepted"
     try:
         CloserConfig(large_min_score=1.5)
     except ValueError as e:
         assert "large_min_score" in str(e)
     else:
         raise AssertionError("large_min_score=1.5 accepted")
+
+
+# A 5 x 4 m office: walls 1-3 m off, 1-degree beams 2-5 cm apart, already solid under the field's blur.
+OFFICE = np.array(
+    [
+        [-2.5, -2.0, 2.5, -2.0],
+        [2.5, -2.0, 2.5, 2.0],
+        [2.5, 2.0, -2.5, 2.0],
+        [-2.5, 2.0, -2.5, -2.0],
+        [0.5, 2.0, 0.5, 1.0],
+    ]
+)
+
+
+def test_only_submaps_that_saw_far_walls_are_filled() -> None:
+    """An office's submap is drawn as seen unless every submap is asked for (``open_space``); the hall's
+    is filled. Drawn as seen, the field is the one an unfilled closer draws, to the bit."""
+    cfg = MapperConfig()
+    angles = np.linspace(-math.pi, math.pi, N, endpoint=False)
+
+    def office_scan(x: float, y: float, theta: float) -> NodeScan:
+        ranges = Raycaster(OFFICE).cast_fan(x, y, theta - math.pi, 2.0 * math.pi / N, N, 30.0)
+        r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, 30.0)
+        pts = scanprep.to_points(r[hit], a[hit])
+        labels = scanprep.segment_labels(pts, cfg.segment_eps, cfg.segment_tau)
+        keep = scanprep.filter_segments(labels, cfg.min_segment_points)
+        kept = pts[keep]
+        return NodeScan(r, a, hit, kept, scan_normals(pts, labels)[keep], scanprep.thin(kept, cfg.match_cell))
+
+    poses = [(-1.0, -0.5, 0.0), (-0.5, -0.3, 0.3), (0.0, 0.0, 0.6)]
+    office = tuple((relative(poses[0], p), office_scan(*p)) for p in poses)
+    default = draw_submap(office, GridConfig(), CloserConfig())
+    assert not default.filled
+    unfilled = draw_submap(office, GridConfig(), CloserConfig(fill_max_gap=0.0))
+    assert np.array_equal(default.grid.field, unfilled.grid.field)
+    everywhere = draw_submap(office, GridConfig(), open_space())
+    assert everywhere.filled and not np.array_equal(everywhere.grid.field, unfilled.grid.field)
+    assert draw_submap(_parts(), GridConfig(), CloserConfig()).filled
+    assert not draw_submap(_parts(), GridConfig(), CloserConfig(fill_from_range=50.0)).filled
+
+    # ``large_min_score`` is asked only of filled submaps: a large correction in the office, drawn as
+    # seen, needs ``min_score`` alone; filled (``open_space``), the higher score.
+    node = (-0.2, 0.4, 0.9)
+    scan, truth = office_scan(*node), relative(poses[0], node)
+    guess = (truth[0] + 0.8, truth[1], truth[2])
+    outcome = {}
+    for name, c in (("default", CloserConfig()), ("everywhere", open_space())):
+        strict = replace(c, large_min_score=0.999)
+        check = Check(
+            3, 0, 0, scan, guess, (1.5, math.radians(10.0)), None, office, strict, GridConfig(), (0.0, 0.0, 0.0)
+        )
+        result = run_check(check)
+        outcome[name] = result.outcome
+        if result.closure is not None:
+            assert math.dist(result.closure.z[:2], truth[:2]) < 0.05
+    assert outcome == {"default": "accepted", "everywhere": "score"}, outcome

@@ -296,8 +296,8 @@ def test_cli_replay_rejects_a_log_without_scans(tmp_path: Path, capsys: pytest.C
 
 
 def test_cli_replay_open_space_maps_with_filled_submaps(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``--open-space``: the closer of ``closure.open_space`` (filled submaps, a higher score for large
-    corrections); the same scans and timestamps, and a map of the same room."""
+    """``--open-space``: the closer of ``closure.open_space`` (every submap filled, not only those that saw
+    far walls); the same scans and timestamps, and a map of the same room."""
     from fleetlink.agent.mapping import replay as replay_module
     from fleetlink.agent.mapping.closure import open_space
 
@@ -314,7 +314,7 @@ def test_cli_replay_open_space_maps_with_filled_submaps(tmp_path: Path, monkeypa
     plain, wide = tmp_path / "plain", tmp_path / "wide"
     assert main(["map", "replay", str(log), "--out", str(plain)]) == 0
     assert main(["map", "replay", str(log), "--out", str(wide), "--open-space"]) == 0
-    assert seen[0] is not None and seen[0].closer is not None and seen[0].closer.fill_max_gap == 0.0
+    assert seen[0] is not None and seen[0].closer is not None and seen[0].closer.fill_from_range > 0.0
     assert seen[1] is not None and seen[1].closer == open_space()
     a = [r.split() for r in (plain / "trajectory.txt").read_text().splitlines()]
     b = [r.split() for r in (wide / "trajectory.txt").read_text().splitlines()]

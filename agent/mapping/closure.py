@@ -101,15 +101,18 @@ class CloserConfig:
     odometry_max_search_xy: float = 30.0  # m
     min_score: float = 0.5  # mean likelihood-field value of the scan's points on the submap, refined
     search_min_score: float = 0.4  # the branch-and-bound's floor (on the lattice)
-    # A submap may be drawn with each scan's surfaces filled between neighbouring hits
-    # (``scan.surface_fill``: endpoints under ``fill_max_gap`` m apart, ranges within
-    # ``fill_depth_share`` x range + ``fill_depth_m``; 0: off, the default). Beams 1 degree apart leave
-    # a wall 10 m off a dotted line 0.17 m a dot, wider than the field's blur: a node scored 0.55 on its
-    # own submap in the Acapulco convention hall (intel 0.76) and no closure passed there; filled, 0.80.
-    # Off by default because it costs the offices: filled, every score rises, look-alikes with it, and
-    # aces' published worst revisit went 0.180 -> 0.188-0.232 m (``open_space`` turns it on for halls
-    # and outdoors, with the higher score it then needs; docs/mapping.md, "Open spaces").
-    fill_max_gap: float = 0.0
+    # A submap that saw its walls far off is drawn with each scan's surfaces filled between
+    # neighbouring hits (``scan.surface_fill``: endpoints under ``fill_max_gap`` m apart, ranges within
+    # ``fill_depth_share`` x range + ``fill_depth_m``; 0: never). Beams 1 degree apart leave a wall
+    # 10 m off a dotted line 0.17 m a dot, wider than the field's blur: a node scored 0.55 on its own
+    # submap in the Acapulco convention hall (intel 0.76) and no closure passed there; filled, 0.80.
+    fill_max_gap: float = 0.5
+    # ... when its scans saw their walls at least this far off (the median over its scans of each
+    # scan's median hit range; 0: every submap). Offices sit at 2 m (intel, aces, MIT's corridors), the
+    # hall at 8 m, the campus at 13 m. Filled, every score rises, a look-alike's too: filling the offices'
+    # submaps as well cost aces' published worst revisit 0.180 -> 0.188-0.232 m and broke the infinite
+    # corridor unless large corrections scored more (``open_space`` does both).
+    fill_from_range: float = 5.0
     fill_depth_share: float = 0.05
     fill_depth_m: float = 0.1
     angle_step: float = math.radians(0.5)  # the branch-and-bound's rotations
@@ -148,14 +151,13 @@ class CloserConfig:
     # doorways every few metres; nodes 297 and 302 both matched two periods (7 m) along and confirmed
     # each other where the graph's guess was right, and the map broke (7.2 m mean).
     large_unique: bool = True
-    # ... and a fresh search's correction larger than ``confirm_above`` must score at least this (the
-    # refined field score; Cartographer likewise asks more of a global match, 0.6, than of a local one,
-    # 0.55). By default the gate of every check, ``min_score``: asked of unfilled submaps, 0.55-0.6
-    # cost aces' published worst revisit 0.185 -> 0.201 m. Filled submaps (``open_space``) lift every
-    # score, and MIT's infinite corridor took a doorway 7 m along at 0.60, confirmed by the next node
-    # at 0.58 (complete relations 0.06 -> 0.16 m); true large closures there and on the other logs
-    # scored 0.63 and up.
-    large_min_score: float = 0.5
+    # ... and a fresh search's correction larger than ``confirm_above`` on a filled submap must score at
+    # least this (the refined field score; Cartographer likewise asks more of a global match, 0.6, than
+    # of a local one, 0.55). Filled submaps lift every score: MIT's infinite corridor, every submap
+    # filled, took a doorway 7 m along at 0.60, confirmed by the next node at 0.58 (complete relations
+    # 0.06 -> 0.16 m); the true large closures there and on the other logs scored 0.63 and up. Asked of
+    # unfilled submaps too, 0.55-0.6 cost aces' published worst revisit 0.185 -> 0.201 m.
+    large_min_score: float = 0.62
     confirm_nodes: int = 10  # ... within this many nodes
     # ... from a node at least this far from the first one's, or turned this much: a node nearer sees
     # much what the first saw and agrees with a look-alike as readily (the published MIT CSAIL log:
@@ -299,6 +301,7 @@ class CloserConfig:
             "odometry_floor",
             "odometry_theta_floor",
             "fill_max_gap",
+            "fill_from_range",
             "fill_depth_share",
             "fill_depth_m",
         ):
@@ -320,14 +323,14 @@ class CloserConfig:
 
 
 def open_space(config: CloserConfig | None = None) -> CloserConfig:
-    """``config`` (default: the defaults) for halls and outdoors, where walls lie 10-80 m off: submaps
-    drawn with their surfaces filled (``fill_max_gap`` 0.5 m), and a fresh large correction asked to
-    score 0.62 (``large_min_score``). Measured on corrected logs replayed on their own poses (complete
-    relations, mean / worst revisit): the Acapulco convention hall 0.162 / 6.60 -> 0.070 / 2.62 m, the
-    Freiburg campus 0.082 / 2.18 -> 0.048 / 1.24 m, MIT's infinite corridor 0.059 / 0.93 -> 0.051 /
-    0.37 m; the offices' published relations a little worse (aces' worst revisit 0.180 -> 0.199 m,
-    intel's 0.093 -> 0.096 m). ``fleetlink map replay --open-space``."""
-    return replace(config or CloserConfig(), fill_max_gap=0.5, large_min_score=0.62)
+    """``config`` (default: the defaults) with every submap drawn filled, whatever the range its walls
+    were seen at (``fill_from_range`` 0), and a fresh large correction asked to score 0.62 there. By
+    default only submaps that saw their walls 5 m off or more are filled. Measured on corrected logs
+    replayed on their own poses (complete relations, mean / worst revisit, default -> this): the Acapulco
+    convention hall 0.079 / 3.18 -> 0.070 / 2.62 m, MIT's infinite corridor 0.059 / 0.93 -> 0.051 /
+    0.37 m, the Freiburg campus the same; the offices' published relations a little worse (aces' worst
+    revisit 0.180 -> 0.199 m, intel's 0.093 -> 0.096 m). ``fleetlink map replay --open-space``."""
+    return replace(config or CloserConfig(), fill_max_gap=0.5, fill_from_range=0.0, large_min_score=0.62)
 
 
 @dataclass(frozen=True, slots=True)
@@ -375,6 +378,7 @@ class Drawn:
     grid: SubmapField
     local: LocalMap
     grids: PrecomputedGrids
+    filled: bool = False  # drawn with its surfaces filled (``CloserConfig.fill_max_gap``)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -1203,7 +1207,8 @@ def _submap_grid(
 def draw_submap(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, config: CloserConfig) -> Drawn:
     """A submap drawn from its scans at their sensor poses in its frame, for matching against."""
     depth = config.bnb_depth
-    g = _submap_grid(parts, grid, config)
+    filled = config.fill_max_gap > 0 and _seen_from(parts) >= config.fill_from_range
+    g = _submap_grid(parts, grid, config if filled else None)
     local = LocalMap(max(1, len(parts)), cell=0.05)
     g.refresh_stale()
     local.extend([(sensor, sc.points, sc.normals) for sensor, sc in parts])  # fused once, not per scan
@@ -1211,8 +1216,18 @@ def draw_submap(parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, conf
     # as a view into the levels' padded copy would save as much again, but a view is not contiguous
     # and the field's lookups flatten it: a copy per lookup, +14 % CPU on the aces replay.)
     return Drawn(
-        SubmapField(g.field, g.origin, g.resolution), local, PrecomputedGrids(g.field, g.origin, g.resolution, depth)
+        SubmapField(g.field, g.origin, g.resolution),
+        local,
+        PrecomputedGrids(g.field, g.origin, g.resolution, depth),
+        filled,
     )
+
+
+def _seen_from(parts: tuple[tuple[Pose, NodeScan], ...]) -> float:
+    """How far off a submap's scans saw their walls: the median over its scans of each one's median hit
+    range (0 when none hit anything)."""
+    medians = [float(np.median(sc.ranges[sc.hit])) for _, sc in parts if sc.hit.any()]
+    return float(np.median(medians)) if medians else 0.0
 
 
 def run_check(check: Check) -> CheckResult:
@@ -1245,7 +1260,7 @@ def run_check(check: Check) -> CheckResult:
     large = _move(compose(check.guess, inverse(check.mount)), robot) > cfg.confirm_above
     if facing < cfg.min_facing_share and large:
         return CheckResult(check, None, "behind", drawn)
-    if large and check.confirms is None and score < cfg.large_min_score:
+    if large and check.confirms is None and drawn.filled and score < cfg.large_min_score:
         return CheckResult(check, None, "score", drawn)
     if (
         math.hypot(r.pose[0] - found[0], r.pose[1] - found[1]) > cfg.max_disagreement
