@@ -40,10 +40,10 @@ HALL = np.array(
 N = 360
 
 
-def _scan_at(x: float, y: float, theta: float) -> NodeScan:
+def _scan_at(x: float, y: float, theta: float, walls: np.ndarray = HALL) -> NodeScan:
     cfg = MapperConfig()
     angles = np.linspace(-math.pi, math.pi, N, endpoint=False)
-    ranges = Raycaster(HALL).cast_fan(x, y, theta - math.pi, 2.0 * math.pi / N, N, 30.0)
+    ranges = Raycaster(walls).cast_fan(x, y, theta - math.pi, 2.0 * math.pi / N, N, 30.0)
     r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, 30.0)
     pts = scanprep.to_points(r[hit], a[hit])
     labels = scanprep.segment_labels(pts, cfg.segment_eps, cfg.segment_tau)
@@ -139,20 +139,8 @@ OFFICE = np.array(
 def test_only_submaps_that_saw_far_walls_are_filled() -> None:
     """An office's submap is drawn as seen unless every submap is asked for (``open_space``); the hall's
     is filled. Drawn as seen, the field is the one an unfilled closer draws, to the bit."""
-    cfg = MapperConfig()
-    angles = np.linspace(-math.pi, math.pi, N, endpoint=False)
-
-    def office_scan(x: float, y: float, theta: float) -> NodeScan:
-        ranges = Raycaster(OFFICE).cast_fan(x, y, theta - math.pi, 2.0 * math.pi / N, N, 30.0)
-        r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, 30.0)
-        pts = scanprep.to_points(r[hit], a[hit])
-        labels = scanprep.segment_labels(pts, cfg.segment_eps, cfg.segment_tau)
-        keep = scanprep.filter_segments(labels, cfg.min_segment_points)
-        kept = pts[keep]
-        return NodeScan(r, a, hit, kept, scan_normals(pts, labels)[keep], scanprep.thin(kept, cfg.match_cell))
-
     poses = [(-1.0, -0.5, 0.0), (-0.5, -0.3, 0.3), (0.0, 0.0, 0.6)]
-    office = tuple((relative(poses[0], p), office_scan(*p)) for p in poses)
+    office = tuple((relative(poses[0], p), _scan_at(*p, OFFICE)) for p in poses)
     default = draw_submap(office, GridConfig(), CloserConfig())
     assert not default.filled
     unfilled = draw_submap(office, GridConfig(), CloserConfig(fill_max_gap=0.0))
@@ -165,7 +153,7 @@ def test_only_submaps_that_saw_far_walls_are_filled() -> None:
     # ``large_min_score`` is asked only of filled submaps: a large correction in the office, drawn as
     # seen, needs ``min_score`` alone; filled (``open_space``), the higher score.
     node = (-0.2, 0.4, 0.9)
-    scan, truth = office_scan(*node), relative(poses[0], node)
+    scan, truth = _scan_at(*node, OFFICE), relative(poses[0], node)
     guess = (truth[0] + 0.8, truth[1], truth[2])
     outcome = {}
     for name, c in (("default", CloserConfig()), ("everywhere", open_space())):

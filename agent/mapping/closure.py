@@ -324,13 +324,13 @@ class CloserConfig:
 
 def open_space(config: CloserConfig | None = None) -> CloserConfig:
     """``config`` (default: the defaults) with every submap drawn filled, whatever the range its walls
-    were seen at (``fill_from_range`` 0), and a fresh large correction asked to score 0.62 there. By
+    were seen at (``fill_from_range`` 0), a fresh large correction asked ``large_min_score`` there. By
     default only submaps that saw their walls 5 m off or more are filled. Measured on corrected logs
     replayed on their own poses (complete relations, mean / worst revisit, default -> this): the Acapulco
     convention hall 0.079 / 3.18 -> 0.070 / 2.62 m, MIT's infinite corridor 0.059 / 0.93 -> 0.051 /
     0.37 m, the Freiburg campus the same; the offices' published relations a little worse (aces' worst
     revisit 0.180 -> 0.199 m, intel's 0.093 -> 0.096 m). ``fleetlink map replay --open-space``."""
-    return replace(config or CloserConfig(), fill_max_gap=0.5, fill_from_range=0.0, large_min_score=0.62)
+    return replace(config or CloserConfig(), fill_from_range=0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -1189,13 +1189,7 @@ def _submap_grid(
         r, a, hit = sc.ranges, sc.angles, sc.hit
         if fill is not None:
             fr, fa = surface_fill(
-                r,
-                a,
-                hit,
-                fill.fill_max_gap,
-                fill.fill_depth_share,
-                fill.fill_depth_m,
-                grid.resolution,
+                r, a, hit, fill.fill_max_gap, fill.fill_depth_share, fill.fill_depth_m, grid.resolution
             )
             if fr.size:
                 r, a = np.concatenate((r, fr)), np.concatenate((a, fa))
