@@ -83,6 +83,23 @@ def test_hall_fits_fifty_robots_on_a_grid() -> None:
     assert d.min() >= 1.0
 
 
+def test_expos_patrol_places_see_their_walls_five_metres_off_or_more() -> None:
+    # What the plan is for: open-space mapping (docs/mapping.md "Open spaces"), where the closer fills a
+    # submap whose scans saw their walls 5 m off or more; from every patrol place a 12 m lidar sees them
+    # that far (the median hit range of a turn: measured 5.9-7.3 m), most beams returning.
+    from fleetlink.field.raycast import Raycaster
+
+    plan = load_plan("expo")
+    assert plan.width == 40 and plan.height == 25 and len(plan.anchors) >= 8
+    caster = Raycaster(plan.segments())
+    for name in ("sw", "s", "se", "ne", "n", "nw"):
+        p = plan.starts[name]
+        hits = caster.cast_fan(p.x, p.y, 0.0, math.radians(1.0), 360, 12.0)
+        seen = hits[np.isfinite(hits)]
+        assert 5.0 <= float(np.median(seen)) <= 12.0, name
+        assert seen.size > 120, name  # a third of the beams or more return (measured 165-267 of 360)
+
+
 def test_segments_add_closed_doors_and_refuse_unknown_ones() -> None:
     plan = load_plan("apartment")
     base = plan.segments()

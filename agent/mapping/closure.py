@@ -440,6 +440,7 @@ class CloserStats:
     confirmed: int = 0
     solves: int = 0
     submaps_drawn: int = 0  # drawings (a submap let go and needed again is drawn again)
+    submaps_filled: int = 0  # ... of them, drawn with their surfaces filled (``fill_from_range``)
     final_edges: int = 0  # matches the final pass (``finish``) verified
     steps_loosened: int = 0  # front-end steps the final solve held loosely (``final_loosen_steps``)
     final_ambiguous: int = 0  # ... and not kept: the graph's guess matched as well (``final_ambiguity_jump``)
@@ -678,6 +679,7 @@ class LoopCloser:
         st.attempts += attempt
         if r.drawn is not None and r.check.drawn is None:
             st.submaps_drawn += 1
+            st.submaps_filled += r.drawn.filled
         if r.outcome in ("score", "few points"):
             st.rejected_score += r.outcome == "score"
         elif r.outcome == "inliers":
@@ -836,6 +838,7 @@ class LoopCloser:
         if sm.drawn is None:
             sm.drawn = draw_submap(self._parts(sm), self.grid_config, self.config)
             self.stats.submaps_drawn += 1
+            self.stats.submaps_filled += sm.drawn.filled
         self._touch(sm)
         return sm.drawn
 
