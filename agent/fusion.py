@@ -280,6 +280,7 @@ class Fusion:
         self.frame_shifts = 0  # shift_frame calls applied
         self._pending_map: list[PoseObservation] = []  # map poses measured after the last odometry pose
         self._out: _Output | None = None
+        self._own_frame: tuple[float, float, float] | None = None  # ``set_own_frame``
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -384,6 +385,18 @@ class Fusion:
                 self._step(self._nodes[j - 1], self._nodes[j])
         assert node.verdict is not None
         return node.verdict
+
+    def set_own_frame(self, tf: tuple[float, float, float] | None) -> None:
+        """Until UWB places the robot: ``tf`` (x, y, theta) takes an odometry pose to the robot's pose in
+        its onboard map's own frame (the map keeper's ``Update.odom_frame``: where the map's last match
+        put the robot, less the odometry there), so the pose published and driven on is the map's, and
+        the pilot steers among the walls it plans on instead of the odometry's drifting copy of them
+        (robot_localization's map->odom from a SLAM node). None: odometry alone again. Once the
+        position is known the site frame rules and this is not used; the sd stay unknown either way
+        (the robot is not placed)."""
+        if tf is not None and not all(math.isfinite(float(v)) for v in tf):
+            raise ValueError(f"set_own_frame needs a finite transform, got {tf!r}")
+        self._own_frame = None if tf is None else (float(tf[0]), float(tf[1]), float(tf[2]))
 
     def shift_frame(self, tf: tuple[float, float, float]) -> None:
         """The map frame moved: ``tf`` (x, y, theta) takes a pose in the old frame to the new one (a
@@ -494,7 +507,8 @@ class Fusion:
         n = self._nodes[-1]
         o = n.odom
         if not n.disc.pos_init:
-            return MapPose(o.t, o.x, o.y, o.theta, o.v, o.omega, math.inf, math.inf, math.inf)
+            x0, y0, th0 = self._unplaced(o)
+            return MapPose(o.t, x0, y0, th0, o.v, o.omega, math.inf, math.inf, math.inf)
         x, P = n.x, n.P
         sd_th = math.sqrt(P[_TH, _TH]) if n.disc.heading_init else math.inf
         return MapPose(
@@ -509,10 +523,18 @@ class Fusion:
             sd_th,
         )
 
+    def _unplaced(self, o: OdomPose) -> tuple[float, float, float]:
+        """The pose of an unplaced robot: the odometry, in the onboard map's own frame where one is set."""
+        if self._own_frame is None:
+            return o.x, o.y, o.theta
+        tx, ty, phi = self._own_frame
+        c, s = math.cos(phi), math.sin(phi)
+        return tx + c * o.x - s * o.y, ty + s * o.x + c * o.y, wrap_angle(phi + o.theta)
+
     def map_from_odom(self) -> tuple[float, float, float]:
         """(tx, ty, phi): map_pose = R(phi) * odom + t at the newest time (robot_localization's map->odom)."""
         if not self._nodes or not self._nodes[-1].disc.pos_init:
-            return 0.0, 0.0, 0.0
+            return self._own_frame or (0.0, 0.0, 0.0)
         o, p = self._nodes[-1].odom, self.map_pose()
         phi = wrap_angle(p.theta - o.theta)
         c, s = math.cos(phi), math.sin(phi)

@@ -356,9 +356,13 @@ class AgentNode:
             o = self.core.fusion.odom_at(t)
             anchored = not self.core.fusion.uwb_stale(now)
             follows = self._follows
+            # Without a UWB position the fused pose is the odometry and nothing else: the map is then
+            # built in its own frame on the odometry, and the robot localised on it (``Turn.odometry``).
+            odometry = None if self.core.fusion.position_initialized else (o.x, o.y, o.theta)
         # The fused pose now, moved back by the odometry to the turn's start.
         seen = compose((p.x, p.y, p.theta), relative((o_now.x, o_now.y, o_now.theta), (o.x, o.y, o.theta)))
-        update = keeper.add(Turn(t, rev.distances_m, rev.angles_rad, seen, placed, driving, now, anchored, follows))
+        turn = Turn(t, rev.distances_m, rev.angles_rad, seen, placed, driving, now, anchored, follows, odometry)
+        update = keeper.add(turn)
         self.scans += 1
         self._share_scan(rev, seen, now)
         if update is not None:
@@ -378,7 +382,7 @@ class AgentNode:
     def _use_map(self, update: Update) -> None:
         if update.restarted:
             self._follows = None
-        if update.moved is not None or update.seen is not None:
+        if update.moved is not None or update.seen is not None or update.odom_frame is not None:
             self._localise(update)
         if update.restarted:
             log.info("%s: UWB frame established; the map restarts in it", self.robot)
@@ -397,9 +401,12 @@ class AgentNode:
     def _localise(self, update: Update) -> None:
         """Loop closure moved the map (``moved``): the fused pose moves with it, at once; the turn's
         pose as matched in the map (``seen``) is a pose measurement for the fusion, so the pose the
-        pilot drives on stays where the map it plans on says it is (docs/localisation.md)."""
+        pilot drives on stays where the map it plans on says it is (docs/localisation.md). Before UWB
+        places the robot, ``odom_frame`` puts the odometry on the map's own frame."""
         with self._lock:
             fusion = self.core.fusion
+            if update.odom_frame is not None:  # unplaced: the robot on its map's own frame
+                fusion.set_own_frame(update.odom_frame)
             if update.moved is not None:
                 fusion.shift_frame(update.moved)
             s = update.seen

@@ -12,8 +12,9 @@
   ones, pumped between steps;
 * a scripted operator (``ScriptedOperator``) that sends what the scenario's events ask for
   (teleop bursts, goals, instant actions, marks), turns a robot's ``script`` into teleop and sends a
-  wandering robot to its plan's named places one after another; it sends on Zenoh, and on MQTT
-  while its Zenoh link is cut (the fallback).
+  wandering robot to its plan's named places one after another (without UWB, as the robot's own map
+  has them: its frame begins where the robot started); it sends on Zenoh, and on MQTT while its
+  Zenoh link is cut (the fallback).
 
 Every step runs in a fixed order (events, physics, radio, links, each agent: board, control, lidar;
 UWB; links; truth), every random stream is seeded from the scenario, and time comes only from the
@@ -47,6 +48,7 @@ from fleetlink.agent.board.session import BoardSession, PollRates
 from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.lidar.driver import LidarDriver
 from fleetlink.agent.mapping.keeper import MapKeeper
+from fleetlink.agent.mapping.mapper import MapperConfig
 from fleetlink.agent.mapping.worker import DeferredKeeper, MapWorker
 from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed, mapper_config
 from fleetlink.devices.controlbus.snapshot import BoardSnapshot
@@ -208,6 +210,9 @@ class _Robot:
     script: tuple[tuple[float, float, float], ...] = ()
     wander: bool = False
     wander_goal_at: float = -math.inf
+    own_frame: tuple[float, float, float] | None = None
+    """Without UWB (fewer than three anchors): the site pose the robot started from, where its map's own
+    frame begins; the scripted operator picks places on that map, as a person at the console would."""
     log: list[str] = field(default_factory=list)
 
 
@@ -220,12 +225,15 @@ class MissionRun:
         mapping: bool = True,
         record: bool = True,
         map_worker: bool | None = None,
+        mapper: MapperConfig | None = None,
     ) -> None:
         """``mapping``: agents with a lidar build and share their onboard maps (as on a robot);
         ``record``: keep every message about each robot for the agent logs; ``map_worker``: the
         keepers run in a second process (None: when there are two cores and two robots mapping).
         Either way a turn's map update reaches its agent with the next turn (agent/mapping/worker.py),
-        so the outputs do not depend on ``map_worker``."""
+        so the outputs do not depend on ``map_worker``. ``mapper``: every agent's mapping configuration
+        instead of its own (``mapper_config``; a benchmark's variant)."""
+        self._mapper = mapper
         self.scenario = scenario
         self.plan = plan or load_plan(scenario.plan)
         self.field = FieldRun(scenario, self.plan, open_loop=False, on_command=self._command)
@@ -260,6 +268,10 @@ class MissionRun:
         self._radio_step(self.clock.now(), update_radio=False)
         self.uwb = self._uwb_gateway()
         self._next_uwb = UWB_START_S
+        if self.uwb is None:
+            for r, rig in zip(self.robots, self.field.rigs, strict=True):
+                st = rig.robot.board.state
+                r.own_frame = (st.x, st.y, st.theta)
         if record:
             for bus in (self.zenoh, self.mqtt):
                 tap = bus.endpoint(f"recorder-{bus.name.value}")
@@ -297,7 +309,7 @@ class MissionRun:
         mqtt.start()
         feed = None
         if rig.device is not None and mapping:
-            mapping_config = mapper_config(config)
+            mapping_config = self._mapper or mapper_config(config)
             node.open_map(
                 self.map_worker.keeper(name, mapping_config)
                 if self.map_worker is not None
@@ -460,6 +472,10 @@ class MissionRun:
     def _next_wander_goal(self, r: _Robot, t: float) -> None:
         _, (x, y, _th) = self._places[self._rng.randrange(len(self._places))]
         r.wander_goal_at = t + WANDER_GOAL_TIMEOUT_S
+        if r.own_frame is not None:  # the place as the robot's own map has it
+            ox, oy, oth = r.own_frame
+            c, s = math.cos(oth), math.sin(oth)
+            x, y = c * (x - ox) + s * (y - oy), -s * (x - ox) + c * (y - oy)
         self.operator.goal(r.name, float(x), float(y), None, self._id("wander"))
 
     def _robot_event(self, ev: Event) -> None:

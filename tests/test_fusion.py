@@ -437,3 +437,32 @@ def test_seed_reset_jumps_to_every_fix() -> None:
     assert (seed.map_pose().x, seed.map_pose().y) == pytest.approx((5.5, 5.0))
     seed.add_fix(FixObservation(1.0, 9.0, 1.0, 0.1, 0.1, 90, "test"), 1.0)  # an outlier: taken as is
     assert (seed.map_pose().x, seed.map_pose().y) == pytest.approx((9.0, 1.0))
+
+
+def test_without_a_uwb_position_the_pose_is_the_odometry_on_the_maps_own_frame() -> None:
+    sim, fusion = Sim(), Fusion()
+    for _ in sim.run(fusion, 2.0, fixes=False):
+        pass
+    o, p = fusion.odom_pose(), fusion.map_pose()
+    assert (p.x, p.y, p.theta) == (o.x, o.y, o.theta) and math.isinf(p.sd_x)  # odometry alone
+    tf = (1.0, -2.0, 0.5)  # the map keeper's map->odometry transform (Update.odom_frame)
+    fusion.set_own_frame(tf)
+    p = fusion.map_pose()
+    c, s = math.cos(0.5), math.sin(0.5)
+    assert p.x == pytest.approx(1.0 + c * o.x - s * o.y) and p.y == pytest.approx(-2.0 + s * o.x + c * o.y)
+    assert p.theta == pytest.approx(math.remainder(o.theta + 0.5, math.tau))
+    assert math.isinf(p.sd_x) and not fusion.heading_initialized  # on its map, not placed in the site frame
+    assert fusion.map_from_odom() == tf
+    with pytest.raises(ValueError, match="finite"):
+        fusion.set_own_frame((math.nan, 0.0, 0.0))
+    fusion.set_own_frame(None)
+    assert fusion.map_pose().x == fusion.odom_pose().x
+
+
+def test_once_uwb_gives_a_position_the_own_frame_is_not_used() -> None:
+    sim, fusion = Sim(), Fusion()
+    fusion.set_own_frame((50.0, 50.0, 1.0))  # far off: were it used, the pose would be there
+    for _ in sim.run(fusion, 40.0):
+        pass
+    assert fusion.position_initialized
+    assert sim.error(fusion) < 0.1

@@ -193,3 +193,75 @@ def test_the_process_worker_replies_in_order_and_survives_bad_requests() -> None
     finally:
         worker.close()
     worker.close()  # idempotent
+
+
+def _drifting_drive() -> tuple[list[tuple[float, float, float]], list[tuple[float, float, float]]]:
+    """A drive round the room and the odometry of it (its frame: where the drive starts), whose heading
+    drifts 0.004 rad a step (a gyro bias): 0.4 rad by the end."""
+    truth: list[tuple[float, float, float]] = []
+    x, y, th = 1.0, 1.0, 0.0
+    for i in range(100):
+        truth.append((x, y, th))
+        turn = 0.12 if 20 <= i < 33 or 60 <= i < 73 else 0.0  # two half turns
+        x, y, th = x + 0.08 * math.cos(th), y + 0.08 * math.sin(th), th + turn
+        x, y = min(max(x, 0.8), 5.2), min(max(y, 0.8), 3.2)
+    odom = [(0.0, 0.0, 0.0)]
+    for i in range(1, len(truth)):
+        a, b = truth[i - 1], truth[i]
+        c, s = math.cos(a[2]), math.sin(a[2])
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        fwd, lat, dth = c * dx + s * dy, -s * dx + c * dy, b[2] - a[2] + 0.004
+        o = odom[-1]
+        co, so = math.cos(o[2]), math.sin(o[2])
+        odom.append((o[0] + co * fwd - so * lat, o[1] + so * fwd + co * lat, o[2] + dth))
+    return truth, odom
+
+
+def _in_start_frame(truth: list[tuple[float, float, float]]) -> list[tuple[float, float, float]]:
+    x0, y0, t0 = truth[0]
+    c, s = math.cos(t0), math.sin(t0)
+    return [(c * (x - x0) + s * (y - y0), -s * (x - x0) + c * (y - y0), th - t0) for x, y, th in truth]
+
+
+@pytest.mark.parametrize("own_frame", [True, False])
+def test_without_a_uwb_position_the_map_is_built_in_its_own_frame_on_the_odometry(own_frame: bool) -> None:
+    # Without UWB the fused pose is the odometry. Given it as the turn's odometry (the agent does while
+    # the fusion has no position), the map matches each turn where its last pose moved by the odometry
+    # puts it and stays in the frame it began in; seeded with the drifting pose itself (before), it
+    # follows the drift.
+    truth, odom = _drifting_drive()
+    want = _in_start_frame(truth)
+    keeper = MapKeeper()
+    last = Update()
+    for i, (p, o) in enumerate(zip(truth, odom, strict=True)):
+        turn = Turn(0.1 * i, _scan(p), ANGLES, o, placed=False, driving=True, now=0.1 * i)
+        last = keeper.add(Turn(**{**_fields(turn), "odometry": o}) if own_frame else turn)
+    mapped = keeper.mapper.trajectory
+    err = [math.hypot(q[0] - want[round(t * 10)][0], q[1] - want[round(t * 10)][1]) for t, q in mapped]
+    drift = max(math.hypot(o[0] - w[0], o[1] - w[1]) for o, w in zip(odom, want, strict=True))
+    assert drift > 0.5  # what the odometry alone would show
+    if own_frame:
+        assert max(err) < 0.05, max(err)
+        # The transform that puts the odometry on the map: the map's last pose of the robot.
+        assert last.odom_frame is not None and keeper.mapper.pose is not None
+        c, s = math.cos(last.odom_frame[2]), math.sin(last.odom_frame[2])
+        o = odom[-1]
+        placed = (last.odom_frame[0] + c * o[0] - s * o[1], last.odom_frame[1] + s * o[0] + c * o[1])
+        assert math.dist(placed, keeper.mapper.pose[:2]) < 1e-9
+    else:
+        assert max(err) > 0.2, max(err)
+        assert last.odom_frame is None
+
+
+def test_placed_turns_are_mapped_at_the_fused_pose_and_carry_no_odom_frame() -> None:
+    keeper = MapKeeper()
+    up = keeper.add(
+        Turn(0.0, _scan((1.0, 1.0, 0.0)), ANGLES, (0.0, 0.0, 0.0), False, True, 0.0, odometry=(0.0, 0.0, 0.0))
+    )
+    assert up.odom_frame == (0.0, 0.0, 0.0)
+    up = keeper.add(Turn(0.1, _scan((1.2, 1.0, 0.0)), ANGLES, (1.2, 1.0, 0.0), True, True, 0.1))
+    assert up.restarted and up.odom_frame is None and keeper.in_site_frame
+
+
+def _fields(turn: Turn) -> dict[str, object]:
+    return {name: getattr(turn, name) for name in Turn.__dataclass_fields__}

@@ -81,8 +81,8 @@ class CloserConfig:
     search_xy: float = 1.0  # m, half-width of the verification's translation window
     search_theta: float = math.radians(20.0)
     # The pose drifts while no closure holds it: both the radius and the window grow by this share of
-    # the path travelled since the last accepted closure (and the heading window by drift_theta per
-    # metre), up to the caps.
+    # the path travelled since the last accepted closure or site prior (and the heading window by
+    # drift_theta per metre), up to the caps.
     drift_rate: float = 0.1
     drift_theta_per_m: float = math.radians(0.5)
     max_search_xy: float = 10.0  # m
@@ -509,7 +509,7 @@ class LoopCloser:
         self._token = object()  # marks this closer's checks: a search host shared with a successor
         self._solved_t = -math.inf  # the newest node's time at the last solve
         self._unsolved = False  # closures added (or priors due) since the last solve
-        self.since_closure = 0.0  # m travelled (node to node) since the last accepted closure
+        self.since_closure = 0.0  # m travelled (node to node) since the last accepted closure or site prior
         self.odometry: list[Pose | None] = []  # the odometry's pose per node, where given (``add_node``)
         self._closed_at = 0  # the newest node when the last closure was accepted
 
@@ -545,6 +545,10 @@ class LoopCloser:
         k = self.graph.add_node(pose)
         if site is not None:
             self.graph.add_prior(k, site[:2], site[2])
+            # A node the site frame measured is an anchor as good as a closure: the drift the window
+            # allows for counts from here (a robot under UWB searches the base window only).
+            self.since_closure = 0.0
+            self._closed_at = k
         if k > 0:
             prev = self.graph.poses[k - 1]
             z = relative(prev, pose)

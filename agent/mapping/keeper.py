@@ -88,10 +88,6 @@ SHARE_PERIOD_S = 1.0
 ONBOARD_CLOSER = CloserConfig(
     search_xy=0.3,
     search_theta=math.radians(5.0),
-    drift_rate=0.0,
-    drift_theta_per_m=0.0,
-    max_search_xy=0.3,
-    max_search_theta=math.radians(5.0),
     confirm_above=0.15,
     bnb_depth=4,
     check_period=1.0,
@@ -100,12 +96,15 @@ ONBOARD_CLOSER = CloserConfig(
 )
 """Loop closure on a robot: the front end is seeded by the fused pose, which UWB holds within a few
 centimetres of the site frame, so the map never drifts far from where a closure would put it: the
-search window is small and does not grow with the path (+-0.3 m, +-5 deg; a replay's grows to 10 m,
-and on board such windows accepted look-alike places 0.5 m off, which bent the map under the robot),
-a closure that would move its node more than 0.15 m waits for a second one that agrees, a node is
-searched at most once a second (the search's rate, whatever the speed), and the graph is solved at
-most once per (nodes / 500) s (1 s at 500 nodes, 10 s at 5 000: a solve's cost grows with the graph,
-its share of a core does not). Site priors solved every 10 nodes (``SITE_SIGMA_M``)."""
+search window is small (+-0.3 m, +-5 deg) and grows only with the path since the last anchor, a
+closure or a node UWB placed (with UWB fresh, never: on board 10 m windows under UWB accepted
+look-alike places 0.5 m off, which bent the map under the robot). Without UWB, or through an outage,
+it grows as a replay's does (0.1 m per metre, 0.5 deg per metre, to 10 m and 35 deg; held to 3x how
+far the map has left the odometry since). A closure that would move its node more than 0.15 m waits
+for a second one that agrees, a node is searched at most once a second (the search's rate, whatever
+the speed), and the graph is solved at most once per (nodes / 500) s (1 s at 500 nodes, 10 s at
+5 000: a solve's cost grows with the graph, its share of a core does not). Site priors solved every
+10 nodes (``SITE_SIGMA_M``)."""
 ONBOARD_REDRAW_BATCH = 50
 """Keyframes drawn again per read of the map while a redraw is under way (the map is read every second
 or two on a robot): what a read costs stays bounded however long the robot has mapped."""
@@ -148,6 +147,13 @@ class Turn:
     """The covariance (3 x 3 row-major, map frame) of the last map pose the fusion took
     (``Update.seen`` accepted), or None: the fused pose has not been following the map, and a solve
     moves the map alone (``Update.moved`` stays None)."""
+    odometry: tuple[float, float, float] | None = None
+    """The odometry's own pose at the turn (its frame; only differences count), given while the fusion
+    has no UWB position (the fused pose is then the odometry, drift and all), else None. The map is
+    then built in its own frame: each turn is matched near the map's last pose moved by the odometry
+    since, not at the fused pose, and ``Update.odom_frame`` puts the robot on that map. The loop
+    closer also gets it (its search window follows how far the map has left the odometry since the
+    last closure: ``CloserConfig.odometry_gain``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -252,6 +258,11 @@ class Update:
     from the old frame to the new one), or None. Localisation moves with it."""
     seen: Seen | None = None
     """The turn's pose as matched in the map (site frame only), or None."""
+    odom_frame: tuple[float, float, float] | None = None
+    """While the map is in its own frame (UWB has not placed the robot) and turns carry their odometry:
+    the transform taking an odometry pose to the map's pose of the robot (its last match and the
+    solves since, less the odometry there), for localisation to put the robot on its map
+    (``Fusion.set_own_frame``); None in the site frame."""
 
 
 class MapKeeper:
@@ -280,6 +291,7 @@ class MapKeeper:
         self.mapper = OnboardMapper(self.config, self.search)
         self._anchored = False
         self.in_site_frame = False
+        self._odom_frame: Pose | None = None  # map pose = compose(this, odometry), in the map's own frame
         self.restarts = 0
         self._version_base = 0
         self._planned_version = -1
@@ -296,6 +308,7 @@ class MapKeeper:
         if placed and not self.in_site_frame:
             self.in_site_frame = True
             self._last = None
+            self._odom_frame = None
             if not self.mapper.grid.empty:
                 # The new map's versions go on from the old one's: a console holding the old map
                 # takes the first newer one it hears of as the map to fetch (a version it has
@@ -310,16 +323,27 @@ class MapKeeper:
                 restarted = True
         if self._began is None:
             self._began = now
+        odom = turn.odometry
+        own = not self.in_site_frame and odom is not None
         if not self._due(t, pose):
             self.skipped += 1
-            return Update(restarted=restarted, publication=self._publication(now))
+            return Update(
+                restarted=restarted, publication=self._publication(now), odom_frame=self._odom_frame if own else None
+            )
         self._last = (t, *pose)
         # Once UWB has placed the robot, its fused position anchors the map's pose graph in the site
         # frame (loop closures then straighten the map without pulling it off the anchors' frame).
         site = (pose[0], pose[1], SITE_SIGMA_M) if placed and turn.anchored else None
         was_anchored = self._map_anchored()
-        result = self.mapper.add_scan(t, turn.distances_m, turn.angles_rad, pose, site=site)
+        guess = pose
+        if own and odom is not None:
+            # In its own frame the map is its own reference: the turn is sought where the map's last
+            # pose moved by the odometry puts it (at first the odometry's frame is the map's).
+            guess = odom if self._odom_frame is None else compose(self._odom_frame, odom)
+        result = self.mapper.add_scan(t, turn.distances_m, turn.angles_rad, guess, site=site, odometry=odom)
         moved = self.mapper.take_moved()
+        if own and odom is not None and self.mapper.pose is not None:
+            self._odom_frame = compose(self.mapper.pose, inverse_pose(odom))  # after the solves, if any
         seen = None
         if not was_anchored or moved is None or turn.follows is None:
             # Before the map is anchored the fusion has not followed it, so the solve that anchors it
@@ -343,7 +367,7 @@ class MapKeeper:
                 self._next_planner = now + self.planner_period
                 self._planned_version = grid.version
                 planner = self.mapper.planner()
-        return Update(restarted, planner, self._publication(now), moved, seen)
+        return Update(restarted, planner, self._publication(now), moved, seen, self._odom_frame if own else None)
 
     def _map_anchored(self) -> bool:
         """The map is in the site frame and its pose graph has been solved with ``ANCHOR_PRIORS``
