@@ -57,7 +57,7 @@
    from its aisles, for 300 s; 120 s with --quick). With UWB, the agent as it is against the same run
    with the surface fill off (the baseline): the map's pose of the robot in the site frame, the walls
    of the map served to the console against the plan's, closures accepted and checks refused on score,
-   submaps drawn filled. Without UWB (the plan's anchors removed): the map in its own frame against
+   submaps drawn filled. Without UWB (``expo-dark.toml``: the same, the site's UWB off): the map in its own frame against
    the odometry at its nodes (the baseline: where the robot would be without a map), both after the
    best rigid alignment, the own frame against the start's, the walls moved by the same alignment.
 
@@ -1000,16 +1000,15 @@ def expo_patrol(duration: float, uwb: bool, fill: bool = True) -> dict[str, Any]
     from fleetlink.shared.map_codec import SharedMap
     from fleetlink.site.lockstep import MissionRun
 
-    scenario = load_scenario(ROOT / "field" / "scenarios" / "expo-patrol.toml")
+    scenario = load_scenario(ROOT / "field" / "scenarios" / ("expo-patrol.toml" if uwb else "expo-dark.toml"))
     plan = load_plan(scenario.plan)
-    if not uwb:
-        plan = replace(plan, anchors=())
     robot = scenario.robots[0].name
     mapping = mapper_config(AgentConfig(robot=robot, board="inprocess://b", lidar="inprocess://l"))
     if not fill and mapping.closer is not None:
         mapping = replace(mapping, closer=replace(mapping.closer, fill_max_gap=0.0))
     wall0 = time.perf_counter()
     with MissionRun(scenario, plan, record=False, map_worker=False, mapper=mapping) as run:
+        assert (run.uwb is None) != uwb
         st = run.field.rigs[0].robot.board.state
         start = (st.x, st.y, st.theta)
         result = run.run(duration)

@@ -364,6 +364,12 @@ class Scenario:
         tuple[tuple[str, float, float, float], ...],
         Setting(read_as=tuple[AnchorSpec, ...], convert=_anchor_rows, doc="replaces the plan's UWB anchors"),
     ] = ()  # (id, x, y, z); overrides the plan's when given
+    uwb: Annotated[
+        bool,
+        Setting(
+            doc="false: the site's UWB system is off (no fixes): robots map and localise in their own maps' frames"
+        ),
+    ] = True
     noise: Noise = field(default_factory=Noise)
     lidar: LidarSettings = field(default_factory=LidarSettings)
     events: tuple[Event, ...] = ()
@@ -374,6 +380,15 @@ class Scenario:
     )
     description: str = ""
     source: Annotated[str, Setting(read=False)] = "<memory>"
+
+    def uwb_anchors(
+        self, plan_anchors: typing.Iterable[tuple[str, float, float, float]]
+    ) -> tuple[tuple[str, float, float, float], ...]:
+        """The anchors the field's UWB system ranges from: the scenario's, else its plan's (``plan_anchors``);
+        none when ``uwb`` is off. The field runs no UWB with fewer than three."""
+        if not self.uwb:
+            return ()
+        return self.anchors or tuple((a[0], float(a[1]), float(a[2]), float(a[3])) for a in plan_anchors)
 
     def validate(self) -> None:
         names: set[str] = set()

@@ -312,12 +312,13 @@ class FieldSite:
 
 def uwb_gateway(scenario: Scenario, plan: FloorPlan, mqtt: MqttSettings, clock: Clock) -> UwbGateway | None:
     """The UWB simulator for the field: the scenario's anchors (else its plan's), a tag per robot;
-    fed in-process from the field's truth, fixes out on MQTT. None with fewer than 3 anchors."""
+    fed in-process from the field's truth, fixes out on MQTT. None with fewer than 3 anchors, or with
+    the scenario's ``uwb`` off."""
     from fleetlink.positioning.anchors import Anchor
     from fleetlink.positioning.config import GatewayConfig
     from fleetlink.positioning.publisher import UwbGateway
 
-    anchors = tuple(Anchor(*a) for a in scenario.anchors) or tuple(Anchor(a.id, a.x, a.y, a.z) for a in plan.anchors)
+    anchors = tuple(Anchor(*a) for a in scenario.uwb_anchors(plan.anchors))
     if len(anchors) < 3:
         return None
     config = GatewayConfig(anchors=anchors, auto_tags=True, walls=plan.segments(), mqtt=mqtt, gateway_id="field-uwb")

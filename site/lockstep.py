@@ -211,8 +211,9 @@ class _Robot:
     wander: bool = False
     wander_goal_at: float = -math.inf
     own_frame: tuple[float, float, float] | None = None
-    """Without UWB (fewer than three anchors): the site pose the robot started from, where its map's own
-    frame begins; the scripted operator picks places on that map, as a person at the console would."""
+    """Without UWB (the scenario's ``uwb`` off, or fewer than three anchors): the site pose the robot
+    started from, where its map's own frame begins; the scripted operator picks places on that map, as a
+    person at the console would."""
     log: list[str] = field(default_factory=list)
 
 
@@ -332,7 +333,7 @@ class MissionRun:
         from fleetlink.positioning.gateway import GatewayCore
 
         sc, plan = self.scenario, self.plan
-        anchors = tuple(Anchor(*a) for a in sc.anchors) or tuple(Anchor(a.id, a.x, a.y, a.z) for a in plan.anchors)
+        anchors = tuple(Anchor(*a) for a in sc.uwb_anchors(plan.anchors))
         if len(anchors) < 3:
             return None
         config = GatewayConfig(

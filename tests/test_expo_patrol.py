@@ -1,6 +1,6 @@
 """Open-space mapping as a mission: a scout patrols the exhibition hall (field/scenarios/expo-patrol.toml)
 with its whole agent in lockstep, and its map is scored against the plan and the truth; then again in a
-hall without UWB, where the map is the robot's only reference.
+hall without UWB (field/scenarios/expo-dark.toml), where the map is the robot's only reference.
 
 The hall's walls are 5-12 m from its aisles, where a one-degree scanner draws them as dotted lines; the
 loop closer then draws its submaps with their surfaces filled for matching (``CloserConfig.fill_from_range``,
@@ -20,7 +20,6 @@ plan's, and the robot failed or gave up half its goals.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +29,7 @@ from fleetlink.agent.mapping.keeper import MapKeeper
 from fleetlink.agent.mapping.se2 import relative
 from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.agent.mapping.worker import DeferredKeeper
-from fleetlink.field.plans import load_plan, nearest_segment_distances
+from fleetlink.field.plans import nearest_segment_distances
 from fleetlink.field.scenario import load_scenario
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.site.lockstep import MissionResult, MissionRun
@@ -40,6 +39,7 @@ WITH_UWB = pytest.mark.xdist_group("expo_patrol")
 WITHOUT_UWB = pytest.mark.xdist_group("expo_patrol_own_frame")
 
 SCENARIO = Path(__file__).resolve().parents[1] / "field" / "scenarios" / "expo-patrol.toml"
+DARK = SCENARIO.with_name("expo-dark.toml")  # the same patrol with the site's UWB off
 PATROL_S = 300.0
 
 
@@ -67,12 +67,9 @@ class Patrol:
         )
 
 
-def _patrol(uwb: bool) -> Patrol:
-    scenario = load_scenario(SCENARIO)
-    plan = load_plan(scenario.plan)
-    if not uwb:
-        plan = replace(plan, anchors=())
-    with MissionRun(scenario, plan, record=False, map_worker=False) as run:
+def _patrol(path: Path) -> Patrol:
+    with MissionRun(load_scenario(path), record=False, map_worker=False) as run:
+        assert (run.uwb is None) == (path == DARK)
         st = run.field.rigs[0].robot.board.state
         start = (st.x, st.y, st.theta)
         result = run.run(PATROL_S)
@@ -85,12 +82,12 @@ def _patrol(uwb: bool) -> Patrol:
 
 @pytest.fixture(scope="module")
 def patrol() -> Patrol:
-    return _patrol(uwb=True)
+    return _patrol(SCENARIO)
 
 
 @pytest.fixture(scope="module")
 def patrol_without_uwb() -> Patrol:
-    return _patrol(uwb=False)
+    return _patrol(DARK)
 
 
 @WITH_UWB

@@ -20,6 +20,16 @@ def test_minimal_scenario_gets_documented_defaults() -> None:
     assert sc.noise.wheel_scale_sd == 0.01
 
 
+def test_the_sites_uwb_can_be_off_whatever_the_anchors() -> None:
+    plan_anchors = [("A1", 0.0, 0.0, 2.4), ("A2", 5.0, 0.0, 2.4), ("A3", 0.0, 5.0, 2.4)]
+    on = parse_scenario(MINIMAL)
+    assert on.uwb and on.uwb_anchors(plan_anchors) == tuple(plan_anchors)  # the plan's
+    own = parse_scenario({**MINIMAL, "anchors": [{"id": "B1", "x": 1.0, "y": 2.0, "z": 3.0}]})
+    assert own.uwb_anchors(plan_anchors) == (("B1", 1.0, 2.0, 3.0),)  # the scenario's instead
+    off = parse_scenario({**MINIMAL, "uwb": False, "anchors": [{"id": "B1", "x": 1.0, "y": 2.0, "z": 3.0}]})
+    assert not off.uwb and off.uwb_anchors(plan_anchors) == ()
+
+
 def test_full_scenario_parses_every_field(tmp_path: Path) -> None:
     path = tmp_path / "drill.toml"
     path.write_text(
@@ -88,6 +98,7 @@ polygon = [[1, 1], [2, 1], [2, 2]]
         ({"noise": {"lidar_dropout": 2.0}}, "probability"),
         ({"lidar": {"rate_hz": 100.0}}, "lidar.rate_hz"),
         ({"lidar": {"samples_per_second": 10.0}}, "lidar.samples_per_second"),
+        ({"uwb": "off"}, "uwb"),
     ],
 )
 def test_bad_scenarios_are_refused_with_the_key_and_reason(change: dict[str, object], message: str) -> None:
