@@ -80,6 +80,8 @@ from typing import Any
 
 import numpy as np
 
+from fleetlink.agent.mapping.relations import align_se2 as align
+from fleetlink.agent.mapping.relations import transform_xy as apply
 from fleetlink.field.plans import nearest_segment_distances
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -161,23 +163,6 @@ def run_mapper(times: list[float], scans: list[tuple[np.ndarray, np.ndarray]], o
     m = OnboardMapper(MapperConfig(matching=matching))
     poses = [m.add_scan_odometry(t, d, a, o).pose for t, (d, a), o in zip(times, scans, odom, strict=True)]
     return m, poses
-
-
-def align(est: list[Pose], ref: list[Pose]) -> tuple[float, float, float]:
-    """SE(2) transform (x, y, theta) taking est positions onto ref (least squares, Umeyama without scale)."""
-    a = np.array([p[:2] for p in est])
-    b = np.array([p[:2] for p in ref])
-    ma, mb = a.mean(axis=0), b.mean(axis=0)
-    h = (a - ma).T @ (b - mb)
-    th = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
-    c, s = math.cos(th), math.sin(th)
-    t = mb - np.array([[c, -s], [s, c]]) @ ma
-    return float(t[0]), float(t[1]), th
-
-
-def apply(tf: tuple[float, float, float], xy: np.ndarray) -> np.ndarray:
-    c, s = math.cos(tf[2]), math.sin(tf[2])
-    return np.column_stack((tf[0] + c * xy[:, 0] - s * xy[:, 1], tf[1] + s * xy[:, 0] + c * xy[:, 1]))
 
 
 def ate(est: list[Pose], ref: list[Pose]) -> float:

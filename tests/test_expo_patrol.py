@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from fleetlink.agent.mapping.keeper import MapKeeper
+from fleetlink.agent.mapping.relations import align_se2, transform_xy
 from fleetlink.agent.mapping.se2 import relative
 from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.agent.mapping.worker import DeferredKeeper
@@ -136,22 +137,6 @@ def test_the_map_and_the_pose_in_it_are_where_the_truth_has_them(patrol: Patrol)
     assert float(np.median(d)) <= 0.05 and float(d.mean()) < 0.07, (float(np.median(d)), float(d.mean()))
 
 
-def _align(est: list[Pose], ref: list[Pose]) -> Pose:
-    """The SE(2) transform taking ``est``'s positions onto ``ref``'s (least squares)."""
-    a, b = np.array([p[:2] for p in est]), np.array([p[:2] for p in ref])
-    ma, mb = a.mean(axis=0), b.mean(axis=0)
-    h = (a - ma).T @ (b - mb)
-    th = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
-    c, s = math.cos(th), math.sin(th)
-    t = mb - np.array([[c, -s], [s, c]]) @ ma
-    return float(t[0]), float(t[1]), th
-
-
-def _moved(tf: Pose, xy: np.ndarray) -> np.ndarray:
-    c, s = math.cos(tf[2]), math.sin(tf[2])
-    return np.column_stack((tf[0] + c * xy[:, 0] - s * xy[:, 1], tf[1] + s * xy[:, 0] + c * xy[:, 1]))
-
-
 @WITHOUT_UWB
 @pytest.mark.slow
 def test_without_uwb_the_map_holds_together_in_its_own_frame_and_the_robot_drives_on_it(
@@ -168,25 +153,25 @@ def test_without_uwb_the_map_holds_together_in_its_own_frame_and_the_robot_drive
     truth = [p.truth_at(t) for t, _ in traj]
     # Consistent: after the one best rigid transform, the map's poses of the robot are where the truth
     # has them (measured 0.021 m RMSE; 3.2 m before the map was built in its own frame) ...
-    tf = _align(est, truth)
-    xy = _moved(tf, np.array([q[:2] for q in est]))
+    tf = align_se2(est, truth)
+    xy = transform_xy(tf, np.array([q[:2] for q in est]))
     err = np.hypot(xy[:, 0] - [q[0] for q in truth], xy[:, 1] - [q[1] for q in truth])
     assert math.sqrt(float(np.mean(err**2))) <= 0.05
     # ... and the frame is the one it started in (measured 0.24 m RMSE from the start's over the hall:
     # the map turned a fraction of a degree while its first metres were all it had).
-    own = _moved(p.start, np.array([q[:2] for q in est]))
+    own = transform_xy(p.start, np.array([q[:2] for q in est]))
     drift = np.hypot(own[:, 0] - [q[0] for q in truth], own[:, 1] - [q[1] for q in truth])
     assert math.sqrt(float(np.mean(drift**2))) <= 0.5
     # The map served to the console, moved by the same transform onto the plan: walls on its walls.
     m = p.map
     rows, cols = np.nonzero(m.cells >= 65)
     cells = np.column_stack((m.origin[0] + (cols + 0.5) * m.resolution, m.origin[1] + (rows + 0.5) * m.resolution))
-    d = nearest_segment_distances(_moved(tf, cells), p.segments)
+    d = nearest_segment_distances(transform_xy(tf, cells), p.segments)
     assert len(d) > 5000
     assert float(np.median(d)) <= 0.06 and float(d.mean()) < 0.08, (float(np.median(d)), float(d.mean()))
     # The pose the robot publishes (and drives on) is its map's: at the end of the run, on the map's
     # own pose of it, moved onto the truth by the same transform.
     pose = p.result.poses["scout-1"]
-    end = _moved(tf, np.array([[pose.x, pose.y]]))[0]
+    end = transform_xy(tf, np.array([[pose.x, pose.y]]))[0]
     x, y, _ = p.truth_at(p.result.field.sim_seconds)  # published within a twentieth of a second of it
     assert math.hypot(end[0] - x, end[1] - y) <= 0.1, (end, (x, y))

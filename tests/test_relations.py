@@ -13,6 +13,7 @@ import pytest
 from fleetlink.agent.mapping.relations import (
     ErrorStats,
     Relation,
+    align_se2,
     format_relations,
     format_score,
     generate_relations,
@@ -20,6 +21,7 @@ from fleetlink.agent.mapping.relations import (
     parse_trajectory,
     relation,
     score,
+    transform_xy,
     view_overlap,
 )
 from fleetlink.agent.mapping.replay import format_trajectory
@@ -442,3 +444,15 @@ def test_cli_names_scans_by_index_where_the_log_has_no_usable_times(
     )
     doc = json.loads(js.read_text())
     assert doc["missing"] == 0 and doc["all"]["rot_max_rad"] == pytest.approx(0.05, abs=1e-5)
+
+
+def test_the_ate_alignment_recovers_a_rigid_transform_by_hand() -> None:
+    # Three points turned a quarter turn and moved by (2, -1): (0,0) -> (2,-1), (1,0) -> (2,0), (0,2) -> (0,-1).
+    est = [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 2.0, 0.0)]
+    ref = [(2.0, -1.0, 0.0), (2.0, 0.0, 0.0), (0.0, -1.0, 0.0)]
+    tf = align_se2(est, ref)
+    assert tf == pytest.approx((2.0, -1.0, math.pi / 2))
+    moved = transform_xy(tf, np.array([p[:2] for p in est]))
+    assert moved == pytest.approx(np.array([p[:2] for p in ref]))
+    with pytest.raises(ValueError, match="as many poses"):
+        align_se2(est, ref[:2])

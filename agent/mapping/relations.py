@@ -9,6 +9,8 @@ by computing the same relative pose from its own poses at ``t1`` and ``t2`` and 
     rotational error    = |wrap(est_theta - ref_theta)|   (rad)
 
 Only relative poses are compared, so the trajectory may live in any frame: no alignment is needed.
+The absolute trajectory error (ATE) does need one: ``align_se2`` gives the rigid transform that
+takes a trajectory's positions onto the reference's (least squares), ``transform_xy`` applies it.
 
 Text formats (relations as in the Freiburg relation files; trajectories as replay writes them):
 
@@ -37,6 +39,7 @@ __all__ = [
     "ErrorStats",
     "Relation",
     "RelationScore",
+    "align_se2",
     "format_relations",
     "format_score",
     "generate_relations",
@@ -46,6 +49,7 @@ __all__ = [
     "parse_trajectory",
     "relation",
     "score",
+    "transform_xy",
     "view_overlap",
 ]
 
@@ -466,3 +470,25 @@ def format_score(result: RelationScore, unit: str = "s") -> str:
         else:
             lines.append(f"{name:<22} {0:>6} {'-':>17} {'-':>7} {'-':>15}")
     return "\n".join(lines) + "\n"
+
+
+def align_se2(est: Sequence[Sequence[float]], ref: Sequence[Sequence[float]]) -> Pose:
+    """The SE(2) transform (x, y, theta) taking ``est``'s positions onto ``ref``'s, pair by pair, in
+    the least-squares sense (Umeyama's method without scale): the alignment before an ATE, or to put a
+    map built in its own frame onto the site's."""
+    a = np.array([p[:2] for p in est], dtype=np.float64)
+    b = np.array([p[:2] for p in ref], dtype=np.float64)
+    if a.shape != b.shape or len(a) == 0:
+        raise ValueError(f"need as many poses on both sides and at least one, got {len(a)} and {len(b)}")
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    h = (a - ma).T @ (b - mb)
+    th = math.atan2(float(h[0, 1] - h[1, 0]), float(h[0, 0] + h[1, 1]))
+    c, s = math.cos(th), math.sin(th)
+    t = mb - np.array([[c, -s], [s, c]]) @ ma
+    return float(t[0]), float(t[1]), th
+
+
+def transform_xy(tf: Sequence[float], xy: FloatArray) -> FloatArray:
+    """Points (N, 2) moved by the SE(2) transform ``tf`` (x, y, theta)."""
+    c, s = math.cos(tf[2]), math.sin(tf[2])
+    return np.column_stack((tf[0] + c * xy[:, 0] - s * xy[:, 1], tf[1] + s * xy[:, 0] + c * xy[:, 1]))
