@@ -46,6 +46,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
+from fleetlink.agent.mapping.se2 import compose
 from fleetlink.agent.odometry import OdomPose, wrap_angle
 from fleetlink.agent.uwb_input import FixObservation
 
@@ -527,9 +528,7 @@ class Fusion:
         """The pose of an unplaced robot: the odometry, in the onboard map's own frame where one is set."""
         if self._own_frame is None:
             return o.x, o.y, o.theta
-        tx, ty, phi = self._own_frame
-        c, s = math.cos(phi), math.sin(phi)
-        return tx + c * o.x - s * o.y, ty + s * o.x + c * o.y, wrap_angle(phi + o.theta)
+        return compose(self._own_frame, (o.x, o.y, o.theta))
 
     def map_from_odom(self) -> tuple[float, float, float]:
         """(tx, ty, phi): map_pose = R(phi) * odom + t at the newest time (robot_localization's map->odom)."""

@@ -49,6 +49,7 @@ from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.lidar.driver import LidarDriver
 from fleetlink.agent.mapping.keeper import MapKeeper
 from fleetlink.agent.mapping.mapper import MapperConfig
+from fleetlink.agent.mapping.se2 import relative
 from fleetlink.agent.mapping.worker import DeferredKeeper, MapWorker
 from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed, mapper_config
 from fleetlink.devices.controlbus.snapshot import BoardSnapshot
@@ -474,9 +475,7 @@ class MissionRun:
         _, (x, y, _th) = self._places[self._rng.randrange(len(self._places))]
         r.wander_goal_at = t + WANDER_GOAL_TIMEOUT_S
         if r.own_frame is not None:  # the place as the robot's own map has it
-            ox, oy, oth = r.own_frame
-            c, s = math.cos(oth), math.sin(oth)
-            x, y = c * (x - ox) + s * (y - oy), -s * (x - ox) + c * (y - oy)
+            x, y, _ = relative(r.own_frame, (x, y, 0.0))
         self.operator.goal(r.name, float(x), float(y), None, self._id("wander"))
 
     def _robot_event(self, ev: Event) -> None:

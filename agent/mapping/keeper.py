@@ -99,8 +99,8 @@ centimetres of the site frame, so the map never drifts far from where a closure 
 search window is small (+-0.3 m, +-5 deg) and grows only with the path since the last anchor, a
 closure or a node UWB placed (with UWB fresh, never: on board 10 m windows under UWB accepted
 look-alike places 0.5 m off, which bent the map under the robot). Without UWB, or through an outage,
-it grows as a replay's does (0.1 m per metre, 0.5 deg per metre, to 10 m and 35 deg; held to 3x how
-far the map has left the odometry since). A closure that would move its node more than 0.15 m waits
+it grows as a replay's does (0.1 m per metre, 0.5 deg per metre, to 10 m and 35 deg; before a UWB
+position, when turns carry the odometry, also held to 3x how far the map has left it since). A closure that would move its node more than 0.15 m waits
 for a second one that agrees, a node is searched at most once a second (the search's rate, whatever
 the speed), and the graph is solved at most once per (nodes / 500) s (1 s at 500 nodes, 10 s at
 5 000: a solve's cost grows with the graph, its share of a core does not). Site priors solved every
@@ -323,12 +323,14 @@ class MapKeeper:
                 restarted = True
         if self._began is None:
             self._began = now
-        odom = turn.odometry
-        own = not self.in_site_frame and odom is not None
+        # In its own frame (no UWB position: the turn carries its odometry) the map is its own reference.
+        odom = turn.odometry if not self.in_site_frame else None
         if not self._due(t, pose):
             self.skipped += 1
             return Update(
-                restarted=restarted, publication=self._publication(now), odom_frame=self._odom_frame if own else None
+                restarted=restarted,
+                publication=self._publication(now),
+                odom_frame=self._odom_frame if odom is not None else None,
             )
         self._last = (t, *pose)
         # Once UWB has placed the robot, its fused position anchors the map's pose graph in the site
@@ -336,13 +338,13 @@ class MapKeeper:
         site = (pose[0], pose[1], SITE_SIGMA_M) if placed and turn.anchored else None
         was_anchored = self._map_anchored()
         guess = pose
-        if own and odom is not None:
-            # In its own frame the map is its own reference: the turn is sought where the map's last
-            # pose moved by the odometry puts it (at first the odometry's frame is the map's).
+        if odom is not None:
+            # The turn is sought where the map's last pose moved by the odometry puts it (at first the
+            # odometry's frame is the map's), not at the fused pose (the odometry, drift and all).
             guess = odom if self._odom_frame is None else compose(self._odom_frame, odom)
         result = self.mapper.add_scan(t, turn.distances_m, turn.angles_rad, guess, site=site, odometry=odom)
         moved = self.mapper.take_moved()
-        if own and odom is not None and self.mapper.pose is not None:
+        if odom is not None and self.mapper.pose is not None:
             self._odom_frame = compose(self.mapper.pose, inverse_pose(odom))  # after the solves, if any
         seen = None
         if not was_anchored or moved is None or turn.follows is None:
@@ -367,7 +369,9 @@ class MapKeeper:
                 self._next_planner = now + self.planner_period
                 self._planned_version = grid.version
                 planner = self.mapper.planner()
-        return Update(restarted, planner, self._publication(now), moved, seen, self._odom_frame if own else None)
+        return Update(
+            restarted, planner, self._publication(now), moved, seen, self._odom_frame if odom is not None else None
+        )
 
     def _map_anchored(self) -> bool:
         """The map is in the site frame and its pose graph has been solved with ``ANCHOR_PRIORS``
