@@ -19,15 +19,23 @@ WALLS = (
     (0.0, 2.0, 2.5, 2.0), (3.5, 2.0, 5.5, 2.0), (6.5, 2.0, 9.0, 2.0),
     (3.0, 2.0, 3.0, 0.0), (6.0, 2.0, 6.0, 0.0), (4.0, 6.0, 4.0, 4.5), (1.5, 4.0, 2.5, 4.0),
 )  # fmt: skip
+# The floor with what furnishes it, for the maps the global search places: the bare rooms are nearly
+# the same turned half a turn (a map of one end fits the other end about as well as where it belongs).
+FURNISHED = (*WALLS, (7.0, 3.5, 8.2, 4.8), (5.0, 4.0, 5.6, 4.0), (0.8, 2.8, 0.8, 3.6), (4.2, 1.0, 4.8, 1.0))
 
 
-def robot_map(box: tuple[float, float, float, float], motion: Pose = (0.0, 0.0, 0.0), version: int = 1) -> RobotMap:
+def robot_map(
+    box: tuple[float, float, float, float],
+    motion: Pose = (0.0, 0.0, 0.0),
+    version: int = 1,
+    floor: tuple[tuple[float, float, float, float], ...] = WALLS,
+) -> RobotMap:
     """What a robot that saw the part ``box`` of the floor would share, its map placed ``motion``
     off the site frame (a rigid error of its UWB placement): walls occupied, the rest of the box
     free, the rest unknown, on the lattice of cells centred at multiples of RES."""
     x0, y0, x1, y1 = box
     pts = []
-    for a, b, c, d in WALLS:
+    for a, b, c, d in floor:
         n = max(2, int(math.hypot(c - a, d - b) / (RES / 4)))
         t = np.linspace(0.0, 1.0, n)
         pts.append(np.column_stack((a + (c - a) * t, b + (d - b) * t)))
@@ -65,8 +73,8 @@ def undo(correction: Pose, points: np.ndarray) -> np.ndarray:
     return np.column_stack((x + c * points[:, 0] - s * points[:, 1], y + s * points[:, 0] + c * points[:, 1]))
 
 
-def distance_to_walls(points: np.ndarray) -> np.ndarray:
-    return nearest_segment_distances(points, np.array(WALLS))
+def distance_to_walls(points: np.ndarray, floor: tuple[tuple[float, float, float, float], ...] = WALLS) -> np.ndarray:
+    return nearest_segment_distances(points, np.array(floor))
 
 
 def test_two_overlapping_maps_are_registered_and_meet_halfway() -> None:
@@ -308,3 +316,83 @@ def test_a_match_onto_a_map_that_grew_is_not_taken_from_the_cache() -> None:
     for r in ("a", "b"):
         c, w = again.corrections[r], want.corrections[r]
         assert math.hypot(c[0] - w[0], c[1] - w[1]) < 0.01 and abs(c[2] - w[2]) < 0.002, (r, c, w)
+
+
+# -- maps in their own frames (robots without UWB) --------------------------------------------------
+
+
+def own_frame(box: tuple[float, float, float, float], start: Pose, version: int = 1) -> RobotMap:
+    """What a robot without UWB that started at ``start`` (site frame) and saw ``box`` of the
+    furnished floor shares: its map in its own frame (its start pose), drawn there as ``robot_map``
+    draws one in the site frame."""
+    x0, y0, x1, y1 = box
+    pts = []
+    for a, b, c, d in FURNISHED:
+        n = max(2, int(math.hypot(c - a, d - b) / (RES / 4)))
+        t = np.linspace(0.0, 1.0, n)
+        pts.append(np.column_stack((a + (c - a) * t, b + (d - b) * t)))
+    walls = np.vstack(pts)
+    walls = undo(start, walls[(walls[:, 0] >= x0) & (walls[:, 0] <= x1) & (walls[:, 1] >= y0) & (walls[:, 1] <= y1)])
+    corners = undo(start, np.array([(x0, y0), (x1, y0), (x0, y1), (x1, y1)]))
+    ox, oy = (np.floor((corners.min(axis=0) - 1.0) / RES) * RES - RES / 2).tolist()
+    w, h = (np.ceil((corners.max(axis=0) - corners.min(axis=0) + 2.0) / RES).astype(int) + 1).tolist()
+    gx, gy = np.meshgrid(ox + (np.arange(w) + 0.5) * RES, oy + (np.arange(h) + 0.5) * RES)
+    site = undo(inverse(start), np.column_stack((gx.ravel(), gy.ravel()))).reshape(h, w, 2)
+    cells = np.full((h, w), -1, dtype=np.int8)
+    cells[(site[..., 0] >= x0) & (site[..., 0] <= x1) & (site[..., 1] >= y0) & (site[..., 1] <= y1)] = 0
+    cols = np.floor((walls[:, 0] - ox) / RES).astype(int)
+    rows = np.floor((walls[:, 1] - oy) / RES).astype(int)
+    cells[rows, cols] = 100
+    return RobotMap(cells, RES, (ox, oy), version, site_frame=False)
+
+
+def close_to(got: Pose, want: Pose, xy: float = 0.05, theta: float = math.radians(0.5)) -> bool:
+    d = compose(inverse(want), got)
+    return math.hypot(d[0], d[1]) <= xy and abs(math.remainder(d[2], math.tau)) <= theta
+
+
+def test_a_map_in_its_own_frame_is_found_on_a_site_map_at_any_heading() -> None:
+    fm = FleetMap()
+    assert fm.put("a", robot_map((0.0, 0.0, 7.5, 6.0), floor=FURNISHED))
+    start = (7.5, 1.0, math.radians(137.0))  # nothing but the maps says where b began
+    assert fm.put("b", own_frame((1.5, 0.0, 9.0, 6.0), start))
+    result = fm.build()
+    assert result is not None and result.unframed == ()
+    assert set(result.frames) == {"b"}  # a is in the site frame: no frame to report
+    assert close_to(result.frames["b"], start), result.frames["b"]
+    pts = walls_of(result.cells, result.origin, result.resolution)
+    assert float(np.median(distance_to_walls(pts, FURNISHED))) <= 0.03
+
+
+def test_without_any_site_map_the_first_robots_frame_is_the_fleet_maps() -> None:
+    fm = FleetMap()
+    start_a, start_b = (1.0, 1.0, 0.3), (8.0, 5.0, -2.5)
+    assert fm.put("b", own_frame((1.5, 0.0, 9.0, 6.0), start_b))  # put first: its frame is the fleet map's
+    assert fm.put("a", own_frame((0.0, 0.0, 7.5, 6.0), start_a))
+    result = fm.build()
+    assert result is not None and set(result.frames) == {"a", "b"}
+    assert close_to(result.frames["b"], (0.0, 0.0, 0.0), 0.03)
+    assert close_to(result.frames["a"], compose(inverse(start_b), start_a)), result.frames["a"]
+    # In the site frame (b's start composed on), every merged wall lies on the floor's.
+    pts = undo(inverse(start_b), walls_of(result.cells, result.origin, result.resolution))
+    assert float(np.median(distance_to_walls(pts, FURNISHED))) <= 0.03
+    assert {(r.a, r.b) for r in result.registrations} == {("a", "b")}
+
+
+def test_a_map_in_its_own_frame_that_fits_nowhere_is_left_out_and_named() -> None:
+    fm = FleetMap()
+    assert fm.put("a", robot_map((0.0, 0.0, 5.0, 6.0), floor=FURNISHED))
+    assert fm.put("b", own_frame((6.2, 2.2, 9.0, 6.0), (7.0, 3.0, 1.0)))  # a room a never saw
+    result = fm.build()
+    assert result is not None and result.unframed == ("b",) and "b" not in result.corrections
+    assert result.registrations == ()
+    # a's map alone, where a put it.
+    pts = walls_of(result.cells, result.origin, result.resolution)
+    assert float(np.max(distance_to_walls(pts, FURNISHED))) <= 0.05
+    # Not searched again until a map changes; found once the rooms overlap.
+    assert fm.build() is not None and fm.refused == 0
+    assert fm.put("b", own_frame((0.5, 0.0, 9.0, 6.0), (7.0, 3.0, 1.0), version=2))
+    for _ in range(FleetMapConfig().retry_builds):
+        result = fm.build()
+    assert result is not None and result.unframed == ()
+    assert close_to(result.frames["b"], (7.0, 3.0, 1.0))
