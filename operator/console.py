@@ -711,7 +711,9 @@ class ConsoleApp(App[None]):
             return False
         assert robot is not None
         self._drive_stop()  # the order replaces driving: no auto-stop may cancel it later
-        order_id = self.commander.goal(robot, x, y, theta)
+        # On the map drawn; a robot mapping in its own frame is sent it in that frame.
+        rx, ry, rtheta = self.fleet.to_robot(robot, x, y, theta)
+        order_id = self.commander.goal(robot, rx, ry, rtheta)
         self.notice("info", f"{robot}: goal ({x:.2f}, {y:.2f}) sent as order {order_id}")
         return True
 

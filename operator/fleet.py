@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from fleetlink.agent.mapping.se2 import compose, inverse
 from fleetlink.operator.alarms import AlarmDesk
 from fleetlink.operator.marks import marks_of_set, supersedes
 from fleetlink.shared.messages import (
@@ -81,6 +82,10 @@ class RobotView:
     battery: float | None = None
     charging: bool = False
     pose: tuple[float, float, float] | None = None
+    """Where it is on the map drawn: as it reports it, or through its frame on the fleet map
+    (``FleetModel.frames``) for a robot mapping in its own frame."""
+    reported: tuple[float, float, float] | None = None
+    """Its pose as it reported it, in its own map's frame."""
     pose_sd_m: float | None = None
     """The fused pose's position uncertainty: the larger of its x and y standard deviations,
     metres (None until a ``Pose`` said; a ``State`` carries none)."""
@@ -153,6 +158,10 @@ class FleetModel:
         self.anchors: dict[str, tuple[float, float]] = {}
         self.grids: dict[str, Grid] = {}
         """robot -> its onboard map, drawn merged under the poses."""
+        self.frames: dict[str, tuple[float, float, float]] = {}
+        """robot -> where its map's frame lies on the fleet map, for a robot mapping in its own frame
+        (no UWB), as the fleet map service found it (site/fleetmap.py): its poses, goals and scans are
+        drawn through it, and goals typed on the fleet map sent back through it (``to_robot``)."""
         self.routes: dict[str, Route] = {}
         """robot -> the round this console last sent it (drawn while the robot runs that order)."""
         self.zones: dict[str, tuple[tuple[float, float], ...]] = {}
@@ -255,8 +264,39 @@ class FleetModel:
         return True
 
     def _pose(self, view: RobotView, x: float, y: float, theta: float) -> None:
-        view.pose = (x, y, theta)
-        self._trail(view, x, y)
+        view.reported = (x, y, theta)
+        view.pose = self._placed(view.robot, view.reported)
+        self._trail(view, view.pose[0], view.pose[1])
+
+    def _placed(self, robot: str, pose: tuple[float, float, float]) -> tuple[float, float, float]:
+        frame = self.frames.get(robot)
+        return pose if frame is None else compose(frame, pose)
+
+    def set_frames(self, frames: dict[str, tuple[float, float, float]]) -> None:
+        """Where each robot mapping in its own frame lies on the fleet map (the fleet map service,
+        after each build). A robot whose frame moves is drawn there at once; its trail, drawn where
+        it was, starts again."""
+        if frames == self.frames:
+            return
+        moved = {r for r in set(frames) | set(self.frames) if frames.get(r) != self.frames.get(r)}
+        self.frames = dict(frames)
+        for robot in moved:
+            view = self.robots.get(robot)
+            if view is None or view.reported is None:
+                continue
+            view.pose = self._placed(robot, view.reported)
+            view.trail.clear()
+            view.trail_added += TRAIL_POINTS + 1  # more than the trail holds: drawn again whole
+            self._trail(view, view.pose[0], view.pose[1])
+        self.version += 1
+
+    def to_robot(self, robot: str, x: float, y: float, theta: float | None = None) -> tuple[float, float, float | None]:
+        """A point (and heading) on the map drawn, in ``robot``'s own map frame: what it is sent."""
+        frame = self.frames.get(robot)
+        if frame is None:
+            return x, y, theta
+        rx, ry, rth = compose(inverse(frame), (x, y, theta or 0.0))
+        return rx, ry, (math.remainder(rth, math.tau) if theta is not None else None)
 
     @staticmethod
     def _trail(view: RobotView, x: float, y: float) -> None:
@@ -294,7 +334,7 @@ class FleetModel:
         view.contact_lost = msg.contact.lost
         view.contact_action = msg.contact.action
         had_goal = view.goal is not None
-        view.goal = (msg.goal.x, msg.goal.y) if msg.goal is not None else None
+        view.goal = self._placed(view.robot, (msg.goal.x, msg.goal.y, 0.0))[:2] if msg.goal is not None else None
         # (A round's goal is each node in turn, none between two: its end is the agent's ``order`` event.)
         if had_goal and view.goal is None and msg.orderId and msg.progress is None:
             self.notify(now, "info", f"{view.robot}: order {msg.orderId} finished")
@@ -353,6 +393,12 @@ class FleetModel:
     def set_scan(self, robot: str, points: npt.NDArray[np.float64], now: float) -> None:
         """A robot's latest lidar scan, its points in the site frame (``(N, 2)`` metres)."""
         view = self.robot(robot)
+        frame = self.frames.get(robot)
+        if frame is not None and len(points):
+            c, sn = math.cos(frame[2]), math.sin(frame[2])
+            points = np.column_stack(
+                (frame[0] + c * points[:, 0] - sn * points[:, 1], frame[1] + sn * points[:, 0] + c * points[:, 1])
+            )
         view.scan = points
         view.scan_at = now
         self.version += 1

@@ -99,7 +99,7 @@ class FleetMapService:
         self._logged: set[tuple[str, str]] = set()
         self._incomplete = False  # some robot's listed submaps are still being fetched: build again
         # Per robot: its map as last asked about (version, shape, origin) and the answer then.
-        self._answered: dict[str, tuple[object, tuple[Submap, ...]]] = {}
+        self._answered: dict[str, tuple[object, tuple[Submap, ...], bool]] = {}
 
     def step(self) -> bool:
         """Build and publish if the robots' maps changed and ``period_s`` has passed. True if built."""
@@ -122,7 +122,8 @@ class FleetMapService:
         self._incomplete = False
         for robot, m in copies.items():
             try:
-                self.core.put(robot, RobotMap(m.cells, m.resolution, m.origin, m.version, self._fetch(robot, m)))
+                submaps, site_frame = self._fetch(robot, m)
+                self.core.put(robot, RobotMap(m.cells, m.resolution, m.origin, m.version, submaps, site_frame))
             except ValueError as exc:
                 self._log_once(robot, "put", f"its map left out: {exc}")
         try:
@@ -139,6 +140,7 @@ class FleetMapService:
             self.follower.fleet.set_grid(
                 keys.FLEET_MAP, to_grid(SharedMap(result.cells, result.resolution, result.origin, result.version))
             )
+            self.follower.fleet.set_frames(result.frames)
         if self.share is not None:
             pub = publication_of(result, self._published)
             if self._published is None or pub.version != self._published.version:
@@ -148,34 +150,37 @@ class FleetMapService:
             self.on_built(result)
         return True
 
-    def _fetch(self, robot: str, m: SharedMap) -> tuple[Submap, ...]:
+    def _fetch(self, robot: str, m: SharedMap) -> tuple[tuple[Submap, ...], bool]:
         """``robot``'s submaps at the poses its graph gives them now, once every listed one is held;
-        () until then, and when it lists none (its map is then merged whole). Only the submaps whose
-        version is not held are fetched, at most ``FETCH_PER_BUILD`` a build. Bad replies are left out,
-        counted and logged once per robot and reason; a link that fails leaves the map whole."""
+        () until then, and when it lists none (its map is then merged whole); and whether its map is
+        in the site frame, as its list says (a robot that lists nothing is taken to be). Only the
+        submaps whose version is not held are fetched, at most ``FETCH_PER_BUILD`` a build. Bad
+        replies are left out, counted and logged once per robot and reason; a link that fails
+        leaves the map whole."""
         if self.query is None:
-            return ()
+            return (), True
         # A robot's submaps change only as its map does (a solve that moves them redraws the map):
         # while its map keeps its version, the answer stands and the robot is not asked again.
         seen = (m.version, m.cells.shape, m.origin)
         memo = self._answered.get(robot)
         if memo is not None and memo[0] == seen:
-            return memo[1]
+            return memo[1], memo[2]
         try:
             listing = fetch_submaps(self.query, robot, QUERY_TIMEOUT_S)
         except Exception as exc:  # one robot's failed query must not stop the build for the others
             self._log_once(robot, "list", f"its submap list could not be asked for: {exc}")
-            return ()
+            return (), True
         if listing is None or not listing.submaps:
-            self._answered[robot] = (seen, ())
-            return ()
+            site_frame = listing is None or listing.site_frame
+            self._answered[robot] = (seen, (), site_frame)
+            return (), site_frame
         h, w = m.cells.shape
         x0, y0 = m.origin[0] - POSE_MARGIN_M, m.origin[1] - POSE_MARGIN_M
         x1, y1 = m.origin[0] + w * m.resolution + POSE_MARGIN_M, m.origin[1] + h * m.resolution + POSE_MARGIN_M
         far = [e.index for e in listing.submaps if not (x0 <= e.x <= x1 and y0 <= e.y <= y1)]
         if far:
             self._log_once(robot, "far", f"its list puts submap {far[0]} outside its map: merged whole")
-            return ()
+            return (), listing.site_frame
         known = self._submaps.get(robot)
         if known is None or known.began != listing.began:
             if known is not None:
@@ -217,10 +222,10 @@ class FleetMapService:
             # Not all held yet: merged whole meanwhile, and built again at the next period even if no
             # map changes (a robot standing still); one that does not decode waits for its redrawing.
             self._incomplete |= any(p not in known.bad for p in pending)
-            return ()
+            return (), listing.site_frame
         out = tuple(replace(known.held[i], pose=(e.x, e.y, e.theta)) for i, e in sorted(listed.items()))
-        self._answered[robot] = (seen, out)
-        return out
+        self._answered[robot] = (seen, out, listing.site_frame)
+        return out, listing.site_frame
 
     def _log_once(self, robot: str, kind: str, text: str) -> None:
         if (robot, kind) not in self._logged:

@@ -1,0 +1,141 @@
+"""One fleet map from robots without UWB, as a mission: two scouts sent into the exhibition hall with
+the site's UWB down (field/scenarios/expo-dark-team.toml), whole agents in lockstep. Each maps and
+localises in its own map's frame, which begins where it started; neither knows where the other began.
+The console's fleet map service (site/fleetmap.py) fetches their maps and submaps over the link and
+finds each map on the other's by a global search (every heading, anywhere: agent/mapping/fleetmap.py
+``_global_match``), then registers them submap by submap and merges them.
+
+Scored against the truth: both robots' trajectories, each put on the fleet map through the frame the
+service found for it, against the truth after one rigid motion for both (the fleet map's frame is the
+first robot's own, so one motion is all the alignment allowed); the fleet map's walls against the
+plan's, through the same motion. The console's overlay before this (each robot's own map drawn as if
+its frame were the site's) is the baseline: its two trajectories cannot be aligned by any one motion.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fleetlink.agent.mapping.fleetmap import FleetResult
+from fleetlink.agent.mapping.relations import align_se2, transform_xy
+from fleetlink.agent.mapping.se2 import Pose, compose
+from fleetlink.agent.mapping.share import fetch_map
+from fleetlink.agent.mapping.worker import DeferredKeeper
+from fleetlink.field.plans import nearest_segment_distances
+from fleetlink.field.scenario import load_scenario
+from fleetlink.operator.fleet import FleetModel
+from fleetlink.operator.maps import MapFollower
+from fleetlink.shared.clock import SimClock
+from fleetlink.shared.map_codec import SharedMap
+from fleetlink.site.fleetmap import FleetMapService
+from fleetlink.site.lockstep import MissionResult, MissionRun
+
+TEAM = Path(__file__).resolve().parents[1] / "field" / "scenarios" / "expo-dark-team.toml"
+RUN_S = 200.0
+
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("fleet_own_frames")]
+
+
+@dataclass
+class Team:
+    result: MissionResult
+    fleet: FleetResult
+    model: FleetModel
+    trajectories: dict[str, list[tuple[float, Pose]]]
+    """Per robot: its map's pose of it at every mapped turn, in its own frame."""
+    segments: np.ndarray
+
+    def truth_at(self, robot: str, t: float) -> Pose:
+        truth = np.array([row[:4] for row in self.result.field.truth[robot]])
+        th = np.unwrap(truth[:, 3])
+        return (
+            float(np.interp(t, truth[:, 0], truth[:, 1])),
+            float(np.interp(t, truth[:, 0], truth[:, 2])),
+            float(np.interp(t, truth[:, 0], th)),
+        )
+
+
+@pytest.fixture(scope="module")
+def team() -> Team:
+    with MissionRun(load_scenario(TEAM), record=False, map_worker=False) as run:
+        assert run.uwb is None
+        result = run.run(RUN_S)
+        trajectories = {}
+        for r in run.robots:
+            host = r.node.keeper
+            assert isinstance(host, DeferredKeeper)
+            assert not host.keeper.in_site_frame, r.name  # never placed: its own frame throughout
+            trajectories[r.name] = host.keeper.mapper.corrected_trajectory()
+        # The fleet map as the console builds it: maps followed, submaps fetched over the link.
+        model = FleetModel("op-test")
+        follower = MapFollower(model)
+        for r in run.robots:
+            snap = fetch_map(run.operator.zenoh, r.name, timeout=2.0)
+            assert snap is not None, r.name
+            follower.maps[r.name] = SharedMap.from_snapshot(snap)
+        service = FleetMapService(follower, threading.Lock(), SimClock(), period_s=0.0, query=run.operator.zenoh)
+        builds = 0
+        while service.step() and builds < 10:
+            builds += 1
+        assert service.result is not None
+        return Team(result, service.result, model, trajectories, run.plan.segments())
+
+
+def test_both_scouts_patrol_in_their_own_frames(team: Team) -> None:
+    for robot in ("scout-1", "scout-2"):
+        reached = [e for e in team.result.events if e.kind == "goal_reached" and e.header.robot == robot]
+        assert len(reached) >= 3, robot  # measured 6 and 4 in 200 s
+
+
+def test_each_map_is_found_on_the_other_and_merged_from_its_submaps(team: Team) -> None:
+    fleet = team.fleet
+    assert fleet.unframed == () and set(fleet.frames) == {"scout-1", "scout-2"}
+    for robot in ("scout-1", "scout-2"):  # merged submap by submap, not whole
+        assert len(fleet.piece_corrections[robot]) > 5 and -1 not in fleet.piece_corrections[robot], robot
+    pairs = {(r.a, r.b) for r in fleet.registrations}
+    assert pairs == {("scout-1", "scout-2"), ("scout-2", "scout-1")}
+    assert len(fleet.registrations) >= 10  # measured 54
+    # The console's model draws each robot through its frame, and sends goals back through it.
+    assert team.model.frames == fleet.frames
+    x, y, th = team.model.to_robot("scout-2", 20.0, 10.0, 0.5)
+    assert th is not None
+    back = compose(fleet.frames["scout-2"], (x, y, th))
+    assert math.hypot(back[0] - 20.0, back[1] - 10.0) < 1e-9 and abs(back[2] - 0.5) < 1e-9
+
+
+def _on_fleet_map(team: Team, frames: dict[str, Pose]) -> tuple[list[Pose], list[Pose]]:
+    est, ref = [], []
+    for robot, traj in team.trajectories.items():
+        for t, p in traj[::5]:
+            est.append(compose(frames[robot], p))
+            ref.append(team.truth_at(robot, t))
+    return est, ref
+
+
+def test_both_robots_and_the_walls_are_where_the_truth_has_them_up_to_one_motion(team: Team) -> None:
+    est, ref = _on_fleet_map(team, team.fleet.frames)
+    tf = align_se2(est, ref)
+    xy = transform_xy(tf, np.array([p[:2] for p in est]))
+    err = np.hypot(xy[:, 0] - np.array([q[0] for q in ref]), xy[:, 1] - np.array([q[1] for q in ref]))
+    rmse = math.sqrt(float(np.mean(err**2)))
+    assert rmse <= 0.05, rmse
+    # The overlay before: both maps drawn as if their frames were one (each robot's own frame is where
+    # it started; they began 2 m and 50 degrees apart).
+    est0, ref0 = _on_fleet_map(team, {"scout-1": (0.0, 0.0, 0.0), "scout-2": (0.0, 0.0, 0.0)})
+    tf0 = align_se2(est0, ref0)
+    xy0 = transform_xy(tf0, np.array([p[:2] for p in est0]))
+    err0 = np.hypot(xy0[:, 0] - np.array([q[0] for q in ref0]), xy0[:, 1] - np.array([q[1] for q in ref0]))
+    assert math.sqrt(float(np.mean(err0**2))) > 20 * rmse
+    # The fleet map's walls, through the same motion, against the plan's.
+    m = team.fleet
+    rows, cols = np.nonzero(m.cells >= 65)
+    pts = np.column_stack((m.origin[0] + (cols + 0.5) * m.resolution, m.origin[1] + (rows + 0.5) * m.resolution))
+    d = nearest_segment_distances(transform_xy(tf, pts), team.segments)
+    assert len(d) > 3000
+    assert float(np.median(d)) <= 0.05 and float(d.mean()) < 0.08, (float(np.median(d)), float(d.mean()))
