@@ -680,8 +680,9 @@ def _global_match(pa: _Prepared, pb: _Prepared, cfg: FleetMapConfig) -> Pose | N
        FFT per heading). The field is one coarse cell wide about ``pa``'s walls, zero where ``pa``
        knows nothing and -1/2 on its known floor away from walls: the sum counts walls matched less
        walls drawn across ``pa``'s floor, whatever part of ``pb`` overlaps.
-    2. The best ``GLOBAL_CANDIDATES`` peaks at least 1 m or 10 degrees apart, each searched again
-       within two coarse cells and angle steps at full resolution and refined, then scored both ways
+    2. The best ``GLOBAL_CANDIDATES`` peaks (``PEAKS_PER_HEADING`` local maxima a heading) at least
+       1 m or 10 degrees apart, each searched again within two coarse cells and angle steps at full
+       resolution and refined, then scored both ways
        (``pb``'s walls on ``pa``'s field and ``pa``'s on ``pb``'s, each over the walls on the other's
        known floor): a floor of repeating rooms fits one room over as well one way, not both.
     3. Of those whose mean field value both ways reaches ``min_score`` with
@@ -689,7 +690,9 @@ def _global_match(pa: _Prepared, pb: _Prepared, cfg: FleetMapConfig) -> Pose | N
        walls (field >= 1/2) both ways; kept unless another peak far from it, within 0.1 of
        ``min_score``, matches ``GLOBAL_MARGIN`` as many (two places fit about as well: wait for
        more of either map). On the bare test floor a map of one end fits the other end turned half a
-       turn at the same mean (0.76) but with 827 walls against 1096."""
+       turn at the same mean (0.76) but with 827 walls against 1096. In the exhibition hall, two
+       scouts 80 s in (one mapped the west, the other the east, between them the pillars' 10 m
+       grid) fit in several places about as well, and are left apart; at 120 s they are found."""
     from scipy import ndimage
     from scipy.fft import irfft2, next_fast_len, rfft2
 
@@ -723,7 +726,7 @@ def _global_match(pa: _Prepared, pb: _Prepared, cfg: FleetMapConfig) -> Pose | N
         # Each heading's best few local maxima (a repeating floor fits in several places at once).
         tops = corr == ndimage.maximum_filter(corr, size=peak_cells, mode="constant", cval=-np.inf)
         rows, cols = np.nonzero(tops & (corr > 0))
-        for i in np.argsort(-corr[rows, cols], kind="stable")[:GLOBAL_CANDIDATES]:
+        for i in np.argsort(-corr[rows, cols], kind="stable")[:PEAKS_PER_HEADING]:
             r, cc = int(rows[i]), int(cols[i])
             # corr[r, cc]: the walls' centroid on cell (r - reach, cc - reach) of pa's field.
             x = pa.origin[0] + (cc - (side - 1) + reach + 0.5) * gres
@@ -767,8 +770,11 @@ def _global_match(pa: _Prepared, pb: _Prepared, cfg: FleetMapConfig) -> Pose | N
     return pose
 
 
-GLOBAL_CANDIDATES = 8
-"""Peaks of the coarse correlation verified at full resolution."""
+GLOBAL_CANDIDATES = 32
+"""Peaks of the coarse correlation verified at full resolution (each a few milliseconds)."""
+PEAKS_PER_HEADING = 4
+"""Local maxima taken from each heading's correlation (a hall's pillars in a grid fit in several
+places at once)."""
 GLOBAL_MARGIN = 0.8
 """The most walls matched (both ways) another peak far from the best may have, as a share of the
 best's: more, and the two maps fit in two places about as well."""
