@@ -578,7 +578,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--onboard-only", action="store_true", help="only section 1b (the on-board patrol, closures off and on)"
     )
-    ap.add_argument("--fleet-only", action="store_true", help="only section 5 (the fleet map of two robots)")
+    ap.add_argument(
+        "--fleet-only", action="store_true", help="only section 5 (the fleet map of two robots, with UWB and without)"
+    )
     ap.add_argument("--loops", type=int, default=1, help="section 1b: the tour this many times (a long run)")
     ap.add_argument(
         "--freiburg",
@@ -786,6 +788,7 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     results["fleet_map"] = print_fleet_map(fleet_map(120.0 if args.quick else 240.0))
+    results["fleet_own_frames"] = print_fleet_own_frames(fleet_own_frames(160.0 if args.quick else 240.0))
 
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2, default=float))
@@ -1132,11 +1135,123 @@ def print_fleet_map(fm: dict[str, Any]) -> dict[str, Any]:
 
 
 def fleet_main(args: argparse.Namespace) -> int:
-    """Section 5 alone (``--fleet-only``)."""
+    """Section 5 alone (``--fleet-only``): the apartment with UWB, the hall without."""
     fm = print_fleet_map(fleet_map(120.0 if args.quick else 240.0))
+    own = print_fleet_own_frames(fleet_own_frames(160.0 if args.quick else 240.0))
     if args.json:
-        Path(args.json).write_text(json.dumps({"fleet_map": fm}, indent=2, default=float))
+        Path(args.json).write_text(json.dumps({"fleet_map": fm, "own_frames": own}, indent=2, default=float))
     return 0
+
+
+def fleet_own_frames(duration: float, every: float = 4.0) -> dict[str, Any]:
+    """Section 5b: two scouts in the exhibition hall without UWB (field/scenarios/expo-dark-team.toml),
+    whole agents in lockstep, each in its own map's frame. Every ``every`` s the console's fleet map
+    service (period 0) takes their maps and submaps over the link, as a console would: when it first
+    finds the second robot's frame on the first's map, and at the end both trajectories on the fleet
+    map (each robot's map poses through the frame found for it) against the truth after one rigid
+    motion, beside the overlay (both frames taken as one, what the console drew before)."""
+    import threading
+
+    from fleetlink.agent.mapping.relations import align_se2, transform_xy
+    from fleetlink.agent.mapping.se2 import compose
+    from fleetlink.agent.mapping.share import fetch_map
+    from fleetlink.agent.mapping.worker import DeferredKeeper
+    from fleetlink.field.scenario import load_scenario
+    from fleetlink.operator.fleet import FleetModel
+    from fleetlink.operator.maps import MapFollower
+    from fleetlink.shared.clock import SimClock
+    from fleetlink.shared.map_codec import SharedMap
+    from fleetlink.site.fleetmap import FleetMapService
+    from fleetlink.site.lockstep import MissionRun
+
+    scenario = load_scenario(ROOT / "field" / "scenarios" / "expo-dark-team.toml")
+    follower = MapFollower(FleetModel("bench"))
+    found_at: float | None = None
+    build_s: list[float] = []
+    t0 = time.perf_counter()
+    with MissionRun(scenario, record=False, map_worker=False) as run:
+        service = FleetMapService(follower, threading.Lock(), SimClock(), period_s=0.0, query=run.operator.zenoh)
+        t = 0.0
+        while t < duration - 1e-9:
+            t = min(duration, t + every)
+            result = run.run(t)
+            for r in run.robots:
+                snap = fetch_map(run.operator.zenoh, r.name, timeout=2.0)
+                if snap is not None:
+                    follower.maps[r.name] = SharedMap.from_snapshot(snap)
+            for _ in range(10):  # until nothing new, as the console's periods would
+                b0 = time.perf_counter()
+                built = service.step()
+                build_s.append(time.perf_counter() - b0)
+                if not built:
+                    break
+            if found_at is None and service.result is not None and not service.result.unframed:
+                found_at = t
+        trajectories = {}
+        for r in run.robots:
+            host = r.node.keeper
+            assert isinstance(host, DeferredKeeper)
+            trajectories[r.name] = host.keeper.mapper.corrected_trajectory()
+        segs = run.plan.segments()
+    fleet = service.result
+    assert fleet is not None
+    truth = {n: np.array([row[:4] for row in result.field.truth[n]]) for n in trajectories}
+
+    def at(robot: str, t: float) -> Pose:
+        tr = truth[robot]
+        return (float(np.interp(t, tr[:, 0], tr[:, 1])), float(np.interp(t, tr[:, 0], tr[:, 2])), 0.0)
+
+    def rmse(frames: dict[str, Pose]) -> tuple[float, Pose]:
+        est = [compose(frames[n], p) for n, traj in trajectories.items() for _, p in traj]
+        ref = [at(n, tt) for n, traj in trajectories.items() for tt, _ in traj]
+        tf = align_se2(est, ref)
+        xy = transform_xy(tf, np.array([p[:2] for p in est]))
+        return float(np.sqrt(np.mean(np.sum((xy - np.array([q[:2] for q in ref])) ** 2, axis=1)))), tf
+
+    if fleet.unframed:
+        fleet_rmse, tf = math.nan, (0.0, 0.0, 0.0)
+    else:
+        fleet_rmse, tf = rmse(fleet.frames)
+    overlay_rmse, _ = rmse({n: (0.0, 0.0, 0.0) for n in trajectories})
+    rows, cols = np.nonzero(fleet.cells >= 65)
+    pts = np.column_stack(
+        (fleet.origin[0] + (cols + 0.5) * fleet.resolution, fleet.origin[1] + (rows + 0.5) * fleet.resolution)
+    )
+    d = nearest_segment_distances(transform_xy(tf, pts), segs)
+    return {
+        "sim_s": duration,
+        "wall_s": time.perf_counter() - t0,
+        "found_at_s": found_at,
+        "fleet_rmse_m": fleet_rmse,
+        "overlay_rmse_m": overlay_rmse,
+        "rmse_ratio": fleet_rmse / overlay_rmse,
+        "median_wall_distance_m": float(np.median(d)),
+        "mean_wall_distance_m": float(d.mean()),
+        "registrations": len(fleet.registrations),
+        "builds": service.builds,
+        "build_p99_s": float(np.percentile(build_s, 99)),
+        "build_max_s": max(build_s),
+        "frames": {k: list(v) for k, v in fleet.frames.items()},
+    }
+
+
+def print_fleet_own_frames(r: dict[str, Any]) -> dict[str, Any]:
+    print(
+        f"\nfleet map without UWB: two scouts in the exhibition hall for {r['sim_s']:.0f} s, each in its own frame,"
+        f" the fleet map built every 4 s"
+    )
+    found = "never" if r["found_at_s"] is None else f"{r['found_at_s']:.0f} s"
+    print(f"{'':>28} {'RMSE m':>7} {'wall med':>9} {'wall mean':>9} {'matches':>8} {'found at':>9} {'build max s':>11}")
+    print(
+        f"{'fleet map (frames found)':>28} {r['fleet_rmse_m']:>7.3f} {r['median_wall_distance_m']:>9.3f}"
+        f" {r['mean_wall_distance_m']:>9.3f} {r['registrations']:>8} {found:>9} {r['build_max_s']:>11.2f}"
+    )
+    print(f"{'overlay (frames as one)':>28} {r['overlay_rmse_m']:>7.3f}")
+    print(
+        f"fleet map / overlay: {r['rmse_ratio']:.3f}   (RMSE: both robots' map poses on the map drawn against the truth"
+        " after one rigid motion; walls through the same motion against the plan's)"
+    )
+    return r
 
 
 def fleet_map(duration: float) -> dict[str, Any]:
