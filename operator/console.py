@@ -715,6 +715,9 @@ class ConsoleApp(App[None]):
         rx, ry, rtheta = self.fleet.to_robot(robot, x, y, theta)
         order_id = self.commander.goal(robot, rx, ry, rtheta)
         self.notice("info", f"{robot}: goal ({x:.2f}, {y:.2f}) sent as order {order_id}")
+        view = self.fleet.robots.get(robot)
+        if view is not None and view.off_fleet_map:
+            self.notice("warning", f"{robot} is not on the fleet map yet: the goal is in its own map's frame")
         return True
 
     def action_home(self) -> None:

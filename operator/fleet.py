@@ -86,6 +86,9 @@ class RobotView:
     (``FleetModel.frames``) for a robot mapping in its own frame."""
     reported: tuple[float, float, float] | None = None
     """Its pose as it reported it, in its own map's frame."""
+    off_fleet_map: bool = False
+    """It maps in its own frame (no UWB) and the fleet map has not found that frame yet: its pose,
+    goals and scans are in its own frame, not the fleet map's."""
     pose_sd_m: float | None = None
     """The fused pose's position uncertainty: the larger of its x and y standard deviations,
     metres (None until a ``Pose`` said; a ``State`` carries none)."""
@@ -272,22 +275,29 @@ class FleetModel:
         frame = self.frames.get(robot)
         return pose if frame is None else compose(frame, pose)
 
-    def set_frames(self, frames: dict[str, tuple[float, float, float]]) -> None:
-        """Where each robot mapping in its own frame lies on the fleet map (the fleet map service,
-        after each build). A robot whose frame moves is drawn there at once; its trail, drawn where
-        it was, starts again."""
+    def set_frames(self, frames: dict[str, tuple[float, float, float]], unframed: Iterable[str] = ()) -> None:
+        """Where each robot mapping in its own frame lies on the fleet map, and which such robots it
+        has not found yet (the fleet map service, after each build). A robot whose frame moves is
+        drawn there at once; its trail, drawn where it was, starts again."""
+        off = set(unframed)
+        for robot, view in self.robots.items():
+            if view.off_fleet_map != (robot in off):
+                view.off_fleet_map = robot in off
+                self.version += 1
+        for robot in off - set(self.robots):
+            self.robot(robot).off_fleet_map = True
         if frames == self.frames:
             return
         moved = {r for r in set(frames) | set(self.frames) if frames.get(r) != self.frames.get(r)}
         self.frames = dict(frames)
         for robot in moved:
-            view = self.robots.get(robot)
-            if view is None or view.reported is None:
+            placed = self.robots.get(robot)
+            if placed is None or placed.reported is None:
                 continue
-            view.pose = self._placed(robot, view.reported)
-            view.trail.clear()
-            view.trail_added += TRAIL_POINTS + 1  # more than the trail holds: drawn again whole
-            self._trail(view, view.pose[0], view.pose[1])
+            placed.pose = self._placed(robot, placed.reported)
+            placed.trail.clear()
+            placed.trail_added += TRAIL_POINTS + 1  # more than the trail holds: drawn again whole
+            self._trail(placed, placed.pose[0], placed.pose[1])
         self.version += 1
 
     def to_robot(self, robot: str, x: float, y: float, theta: float | None = None) -> tuple[float, float, float | None]:

@@ -140,7 +140,7 @@ class FleetMapService:
             self.follower.fleet.set_grid(
                 keys.FLEET_MAP, to_grid(SharedMap(result.cells, result.resolution, result.origin, result.version))
             )
-            self.follower.fleet.set_frames(result.frames)
+            self.follower.fleet.set_frames(result.frames, result.unframed)
         if self.share is not None:
             pub = publication_of(result, self._published)
             if self._published is None or pub.version != self._published.version:

@@ -319,3 +319,42 @@ def test_health_cell_shows_a_degraded_primary_and_a_fallback_that_is_not_fine() 
     down = LinkHealth("mqtt", False, 2.0, 0.0, None, "silent")
     cell = health_cell((degr, down))
     assert str(cell) == "degr 20% 1ms m✗" and cell.style == "bold yellow"
+
+
+def test_a_robot_in_its_own_frame_is_drawn_on_the_fleet_map_through_the_frame_found_for_it() -> None:
+    """A robot without UWB reports poses in its own map's frame; once the fleet map service found
+    that frame (``FleetResult.frames``), the console draws the robot, its trail and its scan on the
+    fleet map, and a goal typed there goes to the robot in its own frame (``to_robot``)."""
+    import math
+
+    import numpy as np
+
+    from fleetlink.operator.detail import detail_text
+
+    fleet = FleetModel(ME)
+    agent = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
+    fleet.apply(agent.make(Pose, x=1.0, y=0.0, theta=0.0, sd_x_m=0.1, sd_y_m=0.1, sd_theta_rad=0.1,
+                           odom_x=0.0, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=True), "zenoh", 0.0)  # fmt: skip
+    fleet.set_frames({}, unframed=("r1",))
+    view = fleet.robots["r1"]
+    assert view.pose == (1.0, 0.0, 0.0) and view.off_fleet_map
+    assert "not on the fleet map yet" in detail_text("r1", view, ())
+    trail_before = view.trail_added
+    # Found: its frame lies at (5, 2), turned a quarter turn, on the fleet map.
+    fleet.set_frames({"r1": (5.0, 2.0, math.pi / 2)})
+    assert not view.off_fleet_map and "not on the fleet map" not in detail_text("r1", view, ())
+    assert view.pose is not None and view.reported == (1.0, 0.0, 0.0)
+    assert math.hypot(view.pose[0] - 5.0, view.pose[1] - 3.0) < 1e-9 and abs(view.pose[2] - math.pi / 2) < 1e-9
+    assert list(view.trail) == [(view.pose[0], view.pose[1])] and view.trail_added > trail_before + len(view.trail)
+    # Later poses and scans come through the frame too.
+    fleet.apply(agent.make(Pose, x=2.0, y=0.0, theta=0.0, sd_x_m=0.1, sd_y_m=0.1, sd_theta_rad=0.1,
+                           odom_x=0.0, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=True), "zenoh", 0.1)  # fmt: skip
+    assert math.hypot(view.pose[0] - 5.0, view.pose[1] - 4.0) < 1e-9
+    fleet.set_scan("r1", np.array([[3.0, 0.0]]), 0.1)
+    assert view.scan is not None and np.allclose(view.scan, [[5.0, 5.0]])
+    # A goal at (5, 6) on the fleet map is (4, 0) in its own frame, facing its own heading 0 when
+    # asked to face the fleet map's north.
+    x, y, th = fleet.to_robot("r1", 5.0, 6.0, math.pi / 2)
+    assert math.hypot(x - 4.0, y) < 1e-9 and th is not None and abs(th) < 1e-9
+    assert fleet.to_robot("r1", 5.0, 6.0)[2] is None
+    assert fleet.to_robot("r2", 5.0, 6.0, 1.0) == (5.0, 6.0, 1.0)  # a robot in the site frame: as typed
