@@ -814,7 +814,11 @@ class ConsoleApp(App[None]):
         if not self._command_ok(robot, "set home"):
             return
         assert robot is not None
-        self.commander.set_home(robot, at)
+        sent = at
+        if at is not None:  # on the map drawn; a robot mapping in its own frame is sent it in that frame
+            hx, hy, _ = self.fleet.to_robot(robot, at[0], at[1])
+            sent = (hx, hy)
+        self.commander.set_home(robot, sent)
         where = "where it stands" if at is None else f"({at[0]:.2f}, {at[1]:.2f})"
         self.notice("info", f"{robot}: home set {where} sent")
 
@@ -1405,6 +1409,11 @@ class ConsoleApp(App[None]):
         for robot, why in result.left_out:
             self.notice("warning", f"{robot} left out of the {what}: {why}")
         for r in result.rounds:
+            view = self.fleet.robots.get(r.robot)
+            if r.robot in self.fleet.frames or (view is not None and view.off_fleet_map):
+                # Its orders would be read in its own map's frame: rounds are planned in the site frame.
+                self.notice("warning", f"{r.robot} left out of the {what}: it maps in its own frame (no UWB)")
+                continue
             try:
                 self.commander.order(r.robot, r.order)
             except ValueError as exc:  # the wire refused it (a size, a range)
