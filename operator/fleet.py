@@ -338,7 +338,7 @@ class FleetModel:
             self.notify(now, "error", f"{view.robot}: e-stop ({msg.safetyState.eStop.value})")
         view.estop = estop
         view.estop_source = msg.safetyState.eStop.value if estop else ""
-        view.home = None if msg.home is None else (msg.home.x, msg.home.y)
+        view.home = None if msg.home is None else self._placed(view.robot, (msg.home.x, msg.home.y, 0.0))[:2]
         view.home_source = "" if msg.home is None else msg.home.source.value
         view.comms_policy = msg.contact.policy.value
         view.contact_lost = msg.contact.lost
