@@ -36,6 +36,13 @@ of the whole map undoes.
    ``resolution_m``; a cell is a wall where at least one piece sees a wall and at least as many see
    a wall as see free floor, free where more see floor, unknown where none knows it.
 
+A robot that maps in its own frame (no UWB: ``RobotMap.site_frame`` false) has no placement to go
+on: the fleet map's frame is the site frame if any robot is in it, else the first robot's own, and
+every other robot is found on the maps already placed by a global search (``_global_match``: every
+heading, anywhere, verified both ways at full resolution, refused when two places fit about as
+well), then taken as placed there (``FleetResult.frames``); until found it is left out
+(``FleetResult.unframed``).
+
 The fleet map's version counts builds whose cells changed. Time is not needed; no I/O.
 """
 
