@@ -46,9 +46,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
-from fleetlink.agent.mapping.se2 import compose
 from fleetlink.agent.odometry import OdomPose, wrap_angle
 from fleetlink.agent.uwb_input import FixObservation
+from fleetlink.shared.se2 import compose
 
 __all__ = ["FixVerdict", "Fusion", "FusionConfig", "MapPose", "Pose2D", "PoseObservation", "SeedReset"]
 

@@ -35,7 +35,6 @@ from fleetlink.agent.fusion import Fusion, PoseObservation
 from fleetlink.agent.home import HomeKeeper
 from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update, onboard_mapper_config
 from fleetlink.agent.mapping.mapper import MapperConfig
-from fleetlink.agent.mapping.se2 import compose, relative
 from fleetlink.agent.mapping.worker import KeeperHost
 from fleetlink.agent.odometry import Odometry
 from fleetlink.agent.pilot import PayloadRequest, Pilot, PilotConfig
@@ -45,6 +44,7 @@ from fleetlink.shared.clock import Clock
 from fleetlink.shared.dose import FloorMask
 from fleetlink.shared.messages import Connection, ConnectionState, LeaseRequest, LinkName, LinkStatus, Scan, UwbFix
 from fleetlink.shared.scan_codec import scan_fields
+from fleetlink.shared.se2 import compose, relative
 
 __all__ = ["INPUTS", "LINK_STATUS_PERIOD_S", "POLL_RATES", "AgentNode", "input_keys", "pilot_config"]
 

@@ -1153,7 +1153,6 @@ def fleet_own_frames(duration: float, every: float = 4.0) -> dict[str, Any]:
     import threading
 
     from fleetlink.agent.mapping.relations import align_se2, transform_xy
-    from fleetlink.agent.mapping.se2 import compose
     from fleetlink.agent.mapping.share import fetch_map
     from fleetlink.agent.mapping.worker import DeferredKeeper
     from fleetlink.field.scenario import load_scenario
@@ -1161,6 +1160,7 @@ def fleet_own_frames(duration: float, every: float = 4.0) -> dict[str, Any]:
     from fleetlink.operator.maps import MapFollower
     from fleetlink.shared.clock import SimClock
     from fleetlink.shared.map_codec import SharedMap
+    from fleetlink.shared.se2 import compose
     from fleetlink.site.fleetmap import FleetMapService
     from fleetlink.site.lockstep import MissionRun
 

@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from fleetlink.agent.mapping.se2 import compose, inverse
 from fleetlink.operator.alarms import AlarmDesk
 from fleetlink.operator.marks import marks_of_set, supersedes
 from fleetlink.shared.messages import (
@@ -39,6 +38,7 @@ from fleetlink.shared.messages import (
     UwbFix,
 )
 from fleetlink.shared.scan_codec import scan_points
+from fleetlink.shared.se2 import compose, inverse
 from fleetlink.shared.wire import Message, WireError
 
 __all__ = ["CONTACT_RENEW_S", "FleetModel", "Grid", "LeaseRenewal", "Notice", "RobotView", "Route", "extend_trail"]

@@ -49,7 +49,6 @@ from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.lidar.driver import LidarDriver
 from fleetlink.agent.mapping.keeper import MapKeeper
 from fleetlink.agent.mapping.mapper import MapperConfig
-from fleetlink.agent.mapping.se2 import relative
 from fleetlink.agent.mapping.worker import DeferredKeeper, MapWorker
 from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed, mapper_config
 from fleetlink.devices.controlbus.snapshot import BoardSnapshot
@@ -72,6 +71,7 @@ from fleetlink.shared.messages import (
     Order,
     Teleop,
 )
+from fleetlink.shared.se2 import relative
 from fleetlink.site.agents import field_limits, field_uv
 
 __all__ = [

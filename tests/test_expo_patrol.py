@@ -27,12 +27,12 @@ import pytest
 
 from fleetlink.agent.mapping.keeper import MapKeeper
 from fleetlink.agent.mapping.relations import align_se2, transform_xy
-from fleetlink.agent.mapping.se2 import relative
 from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.agent.mapping.worker import DeferredKeeper
 from fleetlink.field.plans import nearest_segment_distances
 from fleetlink.field.scenario import load_scenario
 from fleetlink.shared.map_codec import SharedMap
+from fleetlink.shared.se2 import relative
 from fleetlink.site.lockstep import MissionResult, MissionRun
 
 # Each patrol's tests on one worker (its module-scoped run once there), the two patrols on two.

@@ -24,7 +24,6 @@ import pytest
 
 from fleetlink.agent.mapping.fleetmap import FleetResult
 from fleetlink.agent.mapping.relations import align_se2, transform_xy
-from fleetlink.agent.mapping.se2 import Pose, compose
 from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.agent.mapping.worker import DeferredKeeper
 from fleetlink.field.plans import nearest_segment_distances
@@ -33,6 +32,7 @@ from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.maps import MapFollower
 from fleetlink.shared.clock import SimClock
 from fleetlink.shared.map_codec import SharedMap
+from fleetlink.shared.se2 import Pose, compose
 from fleetlink.site.fleetmap import FleetMapService
 from fleetlink.site.lockstep import MissionResult, MissionRun
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from fleetlink.agent.mapping.fleetmap import FleetMap, FleetMapConfig, RobotMap, Submap
-from fleetlink.agent.mapping.se2 import Pose, compose, inverse
 from fleetlink.field.plans import nearest_segment_distances
+from fleetlink.shared.se2 import Pose, compose, inverse
 
 RES = 0.05
 

@@ -16,8 +16,8 @@ import math
 import numpy as np
 
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
-from fleetlink.agent.mapping.se2 import wrap
 from fleetlink.field.raycast import Raycaster
+from fleetlink.shared.se2 import wrap
 
 # A 15 x 10 m room with an alcove and a pillar: no symmetry a turn could be mistaken for, and walls
 # far enough that a turn 12 deg wrong leaves next to no point on a line (so the match is refused).

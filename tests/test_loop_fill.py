@@ -16,8 +16,8 @@ from fleetlink.agent.mapping.closure import Check, CloserConfig, NodeScan, draw_
 from fleetlink.agent.mapping.grid import GridConfig
 from fleetlink.agent.mapping.mapper import MapperConfig
 from fleetlink.agent.mapping.matcher import field_score, scan_normals
-from fleetlink.agent.mapping.se2 import relative
 from fleetlink.field.raycast import Raycaster
+from fleetlink.shared.se2 import relative
 
 # A 36 x 24 m hall with two stands in it: most walls 10-18 m from the lidar.
 HALL = np.array(

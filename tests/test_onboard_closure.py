@@ -24,11 +24,11 @@ from fleetlink.agent.fusion import Fusion, PoseObservation
 from fleetlink.agent.mapping.closure import Check, CloserConfig, DeferredSearch, LoopCloser, run_check
 from fleetlink.agent.mapping.keeper import MapKeeper, Turn, followed_part, onboard_mapper_config
 from fleetlink.agent.mapping.mapper import MapperConfig
-from fleetlink.agent.mapping.se2 import compose
 from fleetlink.agent.mapping.worker import SearchWorker
 from fleetlink.agent.node import PLACE_SD_THETA_RAD
 from fleetlink.agent.odometry import OdomPose
 from fleetlink.agent.uwb_input import FixObservation
+from fleetlink.shared.se2 import compose
 from tests.test_loop_closure import STEP, _drive, _run
 
 Pose = tuple[float, float, float]

@@ -12,9 +12,9 @@ import pytest
 
 from fleetlink.agent.mapping.pairmatch import LineScan, PairMatchConfig, match_pair, match_relations
 from fleetlink.agent.mapping.relations import Relation, parse_relations, relation
-from fleetlink.agent.mapping.se2 import compose, inverse
 from fleetlink.cli.main import main
 from fleetlink.field.raycast import Raycaster
+from fleetlink.shared.se2 import compose, inverse
 
 Pose = tuple[float, float, float]
 FAN = -math.pi / 2 + math.pi / 180 * np.arange(181)  # a SICK: 181 beams over 180 deg

@@ -43,7 +43,7 @@ from typing import TextIO
 import numpy as np
 import numpy.typing as npt
 
-from fleetlink.agent.mapping.se2 import compose, inverse
+from fleetlink.shared.se2 import compose, inverse
 
 __all__ = [
     "CarmenStats",

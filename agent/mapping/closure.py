@@ -51,7 +51,7 @@ from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.matcher import IcpResult, LocalMap, _refine, field_score, icp_refine
 from fleetlink.agent.mapping.posegraph import PoseGraph
 from fleetlink.agent.mapping.scan import surface_fill
-from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
+from fleetlink.shared.se2 import Pose, compose, inverse, relative, wrap
 
 __all__ = [
     "Check",

@@ -57,7 +57,7 @@ import numpy.typing as npt
 
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.posegraph import PoseGraph
-from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative
+from fleetlink.shared.se2 import Pose, compose, inverse, relative
 
 __all__ = ["FleetMap", "FleetMapConfig", "FleetResult", "Registration", "RobotMap", "Submap"]
 

@@ -46,8 +46,8 @@ from fleetlink.agent.mapping.fleetmap import Submap
 from fleetlink.agent.mapping.grid import Box
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig, SensorCone
-from fleetlink.agent.mapping.se2 import Pose, compose
-from fleetlink.agent.mapping.se2 import inverse as inverse_pose
+from fleetlink.shared.se2 import Pose, compose
+from fleetlink.shared.se2 import inverse as inverse_pose
 
 __all__ = [
     "ONBOARD_CLOSER",

@@ -33,7 +33,7 @@ from fleetlink.agent.mapping.closure import CloserConfig, ClosureSearch, LoopClo
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
 from fleetlink.agent.mapping.matcher import LocalMap, MatchConfig, field_score, icp_refine, match_scan, scan_normals
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig
-from fleetlink.agent.mapping.se2 import Pose, compose, inverse, relative, wrap
+from fleetlink.shared.se2 import Pose, compose, inverse, relative, wrap
 
 __all__ = ["MapperConfig", "OnboardMapper", "Pose", "ScanResult", "compose", "relative"]
 

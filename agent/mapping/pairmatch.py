@@ -42,7 +42,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from fleetlink.agent.mapping.relations import Relation, nearest_times
-from fleetlink.agent.mapping.se2 import compose, inverse, relative
+from fleetlink.shared.se2 import compose, inverse, relative
 
 __all__ = ["LineScan", "MatchedRelations", "PairMatch", "PairMatchConfig", "match_pair", "match_relations"]
 

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from fleetlink.agent.mapping.se2 import Pose, relative, wrap
+from fleetlink.shared.se2 import Pose, relative, wrap
 
 __all__ = ["Edge", "PoseGraph", "Prior", "Solve", "relative"]
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from fleetlink.agent.mapping.se2 import compose, relative
+from fleetlink.shared.se2 import compose, relative
 
 __all__ = [
     "DEFAULT_LOCAL_S",

@@ -1,4 +1,5 @@
-"""Planar poses ``(x, y, theta)``: the composition and inverse every mapping module uses.
+"""Planar poses ``(x, y, theta)``: the composition and inverse the mapping modules, the fusion and
+the console (a robot drawn through its frame on the fleet map) use.
 
     compose(a, b)    a (+) b: pose b given in a's frame, expressed in a's parent frame
     relative(a, b)   a^-1 (+) b: pose b seen from a
