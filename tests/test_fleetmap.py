@@ -24,6 +24,20 @@ WALLS = (
 FURNISHED = (*WALLS, (7.0, 3.5, 8.2, 4.8), (5.0, 4.0, 5.6, 4.0), (0.8, 2.8, 0.8, 3.6), (4.2, 1.0, 4.8, 1.0))
 
 
+def wall_samples(
+    box: tuple[float, float, float, float], floor: tuple[tuple[float, float, float, float], ...]
+) -> np.ndarray:
+    """Points a quarter cell apart along the floor's walls, those inside ``box`` (site frame)."""
+    x0, y0, x1, y1 = box
+    pts = []
+    for a, b, c, d in floor:
+        n = max(2, int(math.hypot(c - a, d - b) / (RES / 4)))
+        t = np.linspace(0.0, 1.0, n)
+        pts.append(np.column_stack((a + (c - a) * t, b + (d - b) * t)))
+    walls = np.vstack(pts)
+    return walls[(walls[:, 0] >= x0) & (walls[:, 0] <= x1) & (walls[:, 1] >= y0) & (walls[:, 1] <= y1)]
+
+
 def robot_map(
     box: tuple[float, float, float, float],
     motion: Pose = (0.0, 0.0, 0.0),
@@ -34,13 +48,7 @@ def robot_map(
     off the site frame (a rigid error of its UWB placement): walls occupied, the rest of the box
     free, the rest unknown, on the lattice of cells centred at multiples of RES."""
     x0, y0, x1, y1 = box
-    pts = []
-    for a, b, c, d in floor:
-        n = max(2, int(math.hypot(c - a, d - b) / (RES / 4)))
-        t = np.linspace(0.0, 1.0, n)
-        pts.append(np.column_stack((a + (c - a) * t, b + (d - b) * t)))
-    walls = np.vstack(pts)
-    walls = walls[(walls[:, 0] >= x0) & (walls[:, 0] <= x1) & (walls[:, 1] >= y0) & (walls[:, 1] <= y1)]
+    walls = wall_samples(box, floor)
     c, s = math.cos(motion[2]), math.sin(motion[2])
     placed = np.column_stack(
         (motion[0] + c * walls[:, 0] - s * walls[:, 1], motion[1] + s * walls[:, 0] + c * walls[:, 1])
@@ -326,13 +334,7 @@ def own_frame(box: tuple[float, float, float, float], start: Pose, version: int 
     furnished floor shares: its map in its own frame (its start pose), drawn there as ``robot_map``
     draws one in the site frame."""
     x0, y0, x1, y1 = box
-    pts = []
-    for a, b, c, d in FURNISHED:
-        n = max(2, int(math.hypot(c - a, d - b) / (RES / 4)))
-        t = np.linspace(0.0, 1.0, n)
-        pts.append(np.column_stack((a + (c - a) * t, b + (d - b) * t)))
-    walls = np.vstack(pts)
-    walls = undo(start, walls[(walls[:, 0] >= x0) & (walls[:, 0] <= x1) & (walls[:, 1] >= y0) & (walls[:, 1] <= y1)])
+    walls = undo(start, wall_samples(box, FURNISHED))
     corners = undo(start, np.array([(x0, y0), (x1, y0), (x0, y1), (x1, y1)]))
     ox, oy = (np.floor((corners.min(axis=0) - 1.0) / RES) * RES - RES / 2).tolist()
     w, h = (np.ceil((corners.max(axis=0) - corners.min(axis=0) + 2.0) / RES).astype(int) + 1).tolist()

@@ -469,13 +469,7 @@ class FleetMap:
         # The piece's walls on a's known floor (grown by the window): the only ones a can vouch for.
         res = pa.map.resolution
         guess = compose(inverse(self._frame(a)), compose(self._frame(b), piece.placed))  # in a's map frame
-        placed = _transform(guess, piece.local)
-        c = np.floor((placed[:, 0] - pa.origin[0]) / res).astype(np.int64)
-        r = np.floor((placed[:, 1] - pa.origin[1]) / res).astype(np.int64)
-        h, w = pa.near_known.shape
-        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-        on = np.zeros(len(c), dtype=bool)
-        on[inside] = pa.near_known[r[inside], c[inside]]
+        on = _on_known(pa, _transform(guess, piece.local))
         if int(on.sum()) < cfg.min_overlap_points:
             return None
         local = piece.local[on]
