@@ -329,12 +329,17 @@ def test_a_match_onto_a_map_that_grew_is_not_taken_from_the_cache() -> None:
 # -- maps in their own frames (robots without UWB) --------------------------------------------------
 
 
-def own_frame(box: tuple[float, float, float, float], start: Pose, version: int = 1) -> RobotMap:
+def own_frame(
+    box: tuple[float, float, float, float],
+    start: Pose,
+    version: int = 1,
+    floor: tuple[tuple[float, float, float, float], ...] = FURNISHED,
+) -> RobotMap:
     """What a robot without UWB that started at ``start`` (site frame) and saw ``box`` of the
     furnished floor shares: its map in its own frame (its start pose), drawn there as ``robot_map``
     draws one in the site frame."""
     x0, y0, x1, y1 = box
-    walls = undo(start, wall_samples(box, FURNISHED))
+    walls = undo(start, wall_samples(box, floor))
     corners = undo(start, np.array([(x0, y0), (x1, y0), (x0, y1), (x1, y1)]))
     ox, oy = (np.floor((corners.min(axis=0) - 1.0) / RES) * RES - RES / 2).tolist()
     w, h = (np.ceil((corners.max(axis=0) - corners.min(axis=0) + 2.0) / RES).astype(int) + 1).tolist()
@@ -398,3 +403,25 @@ def test_a_map_in_its_own_frame_that_fits_nowhere_is_left_out_and_named() -> Non
         result = fm.build()
     assert result is not None and result.unframed == ()
     assert close_to(result.frames["b"], (7.0, 3.0, 1.0))
+
+
+def test_a_map_that_fits_two_places_as_well_is_not_placed() -> None:
+    # Two identical furnished rooms side by side; b saw only one of them (its own frame's start inside
+    # it): its map fits either, so it is left out rather than put in one by chance. The same with one
+    # piece of furniture moved in the other room: b is placed, where it belongs.
+    room = ((0.0, 0.0, 6.0, 0.0), (6.0, 0.0, 6.0, 5.0), (6.0, 5.0, 0.0, 5.0), (0.0, 5.0, 0.0, 0.0),
+            (1.0, 1.0, 2.5, 1.0), (4.5, 2.5, 4.5, 4.0), (0.5, 3.5, 1.5, 3.5))  # fmt: skip
+    twins = room + tuple((a + 8.0, b, c + 8.0, d) for a, b, c, d in room)
+    start = (10.0, 1.5, 0.3)
+    for floor, placed in ((twins, False), ((*twins[:-1], (8.5, 2.0, 11.5, 2.0)), True)):
+        fm = FleetMap()
+        assert fm.put("a", robot_map((-0.1, -0.1, 14.1, 5.1), floor=floor))
+        b = own_frame((7.9, -0.1, 14.1, 5.1), start, floor=floor)
+        assert int((b.cells >= 65).sum()) > 1.5 * FleetMapConfig().global_min_overlap_points  # walls enough
+        assert fm.put("b", b)
+        result = fm.build()
+        assert result is not None
+        if placed:
+            assert result.unframed == () and close_to(result.frames["b"], start)
+        else:
+            assert result.unframed == ("b",) and result.registrations == ()

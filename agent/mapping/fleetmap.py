@@ -686,14 +686,16 @@ def _global_match(pa: _Prepared, pb: _Prepared, cfg: FleetMapConfig) -> Pose | N
        resolution and refined, then scored both ways
        (``pb``'s walls on ``pa``'s field and ``pa``'s on ``pb``'s, each over the walls on the other's
        known floor): a floor of repeating rooms fits one room over as well one way, not both.
-    3. The one that matches the most walls (field >= 1/2) both ways, kept when those are at least
-       ``GLOBAL_MIN_SHARE`` of both maps' walls, their mean field value is within
-       ``GLOBAL_SCORE_SLACK`` of ``min_score``, and no other peak far from it, its mean as close,
-       matches ``GLOBAL_MARGIN`` as many (two places fit about as well: wait for more). The
-       mean alone does not tell: in the exhibition hall, a map placed 25 m off, where a few of its
-       walls lie on the other's known floor along one wall, scores 0.74 against 0.68-0.71 where it
-       belongs, but matches 0.19 of the walls against 0.62. Two scouts 80 s in (one mapped the
-       west, the other the east, between them the pillars' 10 m grid) are left apart."""
+    3. The one that matches the most walls (field >= 1/2) both ways, less the walls it draws across
+       the other's known floor away from its walls, is kept when those are at least
+       ``GLOBAL_MIN_SHARE`` of both maps' walls, its mean field value is within
+       ``GLOBAL_SCORE_SLACK`` of ``min_score``, and no other peak far from it matches
+       ``GLOBAL_MARGIN`` as many at a mean within ``GLOBAL_MEAN_MARGIN`` of its own (two places fit
+       about as well: wait for more of either map). The mean alone does not tell: in the exhibition
+       hall, a map placed 25 m off, where a few of its walls lie on the other's known floor along
+       one wall, scores 0.74 against 0.68-0.71 where it belongs, but matches 0.19 of the walls
+       against 0.62. Two scouts 80 s in (one mapped the west, the other the east, between them the
+       pillars' 10 m grid) are left apart."""
     from scipy import ndimage
     from scipy.fft import irfft2, next_fast_len, rfft2
 
@@ -761,7 +763,11 @@ def _global_match(pa: _Prepared, pb: _Prepared, cfg: FleetMapConfig) -> Pose | N
             continue
         there = _values(pa.grids, walls_b[on], pose)
         here = _values(pb.grids, walls_a[back], inverse(pose))
-        support = int(np.count_nonzero(there >= 0.5) + np.count_nonzero(here >= 0.5))
+        # Walls matched, less walls drawn across the other's known floor away from its walls.
+        crossing = _on_floor(pa, _transform(pose, walls_b[on]), there) + _on_floor(
+            pb, _transform(inverse(pose), walls_a[back]), here
+        )
+        support = int(np.count_nonzero(there >= 0.5) + np.count_nonzero(here >= 0.5)) - crossing
         scored.append((support, min(float(there.mean()), float(here.mean())), pose))
     if not scored:
         return None
@@ -771,7 +777,7 @@ def _global_match(pa: _Prepared, pb: _Prepared, cfg: FleetMapConfig) -> Pose | N
         return None
     if any(
         other > GLOBAL_MARGIN * support
-        and mean >= cfg.min_score - GLOBAL_SCORE_SLACK
+        and mean > score - GLOBAL_MEAN_MARGIN
         and _apart(pose, q, 1.0, math.radians(10.0))
         for other, mean, q in scored
     ):
@@ -795,10 +801,27 @@ where they belong; the share of walls matched is what tells the places apart."""
 GLOBAL_MARGIN = 0.8
 """The most walls matched (both ways) another peak far from the best may have, as a share of the
 best's: more, and the two maps fit in two places about as well."""
+GLOBAL_MEAN_MARGIN = 0.05
+"""... and fits them about as well: its mean field value (both ways) within this of the best's. Two
+identical rooms side by side fit a map of one of them at 0.882 each; with a 3 m partition in one, a
+map of that room fits the other 0.78 against 0.88, matching 0.81 as many walls."""
 
 
 def _apart(p: Pose, q: Pose, xy: float, theta: float) -> bool:
     return math.hypot(p[0] - q[0], p[1] - q[1]) > xy or abs(math.remainder(p[2] - q[2], math.tau)) > theta
+
+
+def _on_floor(p: _Prepared, pts: F64, field: F64) -> int:
+    """How many of ``pts`` (its map frame; ``field`` their values there) lie on ``p``'s known free
+    floor, away from its walls (field < 0.05: over 12 cm off at 5 cm spread)."""
+    res = p.map.resolution
+    c = np.floor((pts[:, 0] - p.origin[0]) / res).astype(np.int64)
+    r = np.floor((pts[:, 1] - p.origin[1]) / res).astype(np.int64)
+    h, w = p.cells.shape
+    inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    free = np.zeros(len(c), dtype=bool)
+    free[inside] = p.cells[r[inside], c[inside]] == FREE
+    return int(np.count_nonzero(free & (field < 0.05)))
 
 
 def _on_known(p: _Prepared, pts: F64) -> npt.NDArray[np.bool_]:
