@@ -371,19 +371,22 @@ def test_a_map_in_its_own_frame_is_found_on_a_site_map_at_any_heading() -> None:
     assert float(np.median(distance_to_walls(pts, FURNISHED))) <= 0.03
 
 
-def test_without_any_site_map_the_first_robots_frame_is_the_fleet_maps() -> None:
-    fm = FleetMap()
-    start_a, start_b = (1.0, 1.0, 0.3), (8.0, 5.0, -2.5)
-    assert fm.put("b", own_frame((1.5, 0.0, 9.0, 6.0), start_b))  # put first: its frame is the fleet map's
-    assert fm.put("a", own_frame((0.0, 0.0, 7.5, 6.0), start_a))
-    result = fm.build()
-    assert result is not None and set(result.frames) == {"a", "b"}
-    assert close_to(result.frames["b"], (0.0, 0.0, 0.0), 0.03)
-    assert close_to(result.frames["a"], compose(inverse(start_b), start_a)), result.frames["a"]
-    # In the site frame (b's start composed on), every merged wall lies on the floor's.
-    pts = undo(inverse(start_b), walls_of(result.cells, result.origin, result.resolution))
-    assert float(np.median(distance_to_walls(pts, FURNISHED))) <= 0.03
-    assert {(r.a, r.b) for r in result.registrations} == {("a", "b")}
+def test_without_any_site_map_the_frame_of_the_robot_first_by_name_is_the_fleet_maps() -> None:
+    start_a, start_b = (8.0, 5.0, -2.5), (1.0, 1.0, 0.3)
+    for order in (("a", "b"), ("b", "a")):  # whichever map comes first
+        fm = FleetMap()
+        boxes = {"a": (1.5, 0.0, 9.0, 6.0), "b": (0.0, 0.0, 7.5, 6.0)}
+        starts = {"a": start_a, "b": start_b}
+        for robot in order:
+            assert fm.put(robot, own_frame(boxes[robot], starts[robot]))
+        result = fm.build()
+        assert result is not None and set(result.frames) == {"a", "b"}
+        assert close_to(result.frames["a"], (0.0, 0.0, 0.0), 0.03)
+        assert close_to(result.frames["b"], compose(inverse(start_a), start_b)), result.frames["b"]
+        # In the site frame (a's start composed on), every merged wall lies on the floor's.
+        pts = undo(inverse(start_a), walls_of(result.cells, result.origin, result.resolution))
+        assert float(np.median(distance_to_walls(pts, FURNISHED))) <= 0.03
+        assert {(r.a, r.b) for r in result.registrations} == {("a", "b")}
 
 
 def test_a_map_in_its_own_frame_that_fits_nowhere_is_left_out_and_named() -> None:

@@ -37,7 +37,8 @@ of the whole map undoes.
    a wall as see free floor, free where more see floor, unknown where none knows it.
 
 A robot that maps in its own frame (no UWB: ``RobotMap.site_frame`` false) has no placement to go
-on: the fleet map's frame is the site frame if any robot is in it, else the first robot's own, and
+on: the fleet map's frame is the site frame if any robot is in it, else the own frame of the robot
+first in name order (whatever order the maps came in), and
 every other robot is found on the maps already placed by a global search (``_global_match``: every
 heading, anywhere, verified both ways at full resolution, refused when two places fit about as
 well), then taken as placed there (``FleetResult.frames``); until found it is left out
@@ -219,7 +220,7 @@ class FleetResult:
     """Per robot whose map is in its own frame and was found on the others': where that frame lies
     in the fleet map's (its ``corrections``): a pose the robot reports, composed onto this, is on
     the fleet map. The fleet map's frame is the site frame, or with no robot in it, the own frame
-    of the first robot put."""
+    of the robot first in name order."""
     unframed: tuple[str, ...] = ()
     """Robots in their own frames not (yet) found on the others' maps: left out of the fleet map."""
 
@@ -280,7 +281,7 @@ class FleetMap:
     """Per robot in its own frame that the global search placed: (its epoch then, where its frame
     lies in the fleet map's frame)."""
     _reference: tuple[str, ...] = ()
-    """The robots whose frame is the fleet map's: those in the site frame, or the first one put."""
+    """The robots whose frame is the fleet map's: those in the site frame, or the first by name."""
     _global_tried: dict[tuple[str, int, str, int], tuple[int, int, int]] = field(default_factory=dict)
     """(b, its epoch, a, its epoch) -> a refused global search of b's map onto a's: both versions
     then and the build."""
@@ -386,11 +387,12 @@ class FleetMap:
 
     def _framed(self, budget: list[int]) -> list[str]:
         """The robots whose maps can be placed in the fleet map's frame, sorted: those in the site
-        frame; with none, the first robot put, whose own frame becomes the fleet map's; and each
+        frame; with none, the robot first in name order (whichever map came first: a console's view
+        the same every time), whose own frame becomes the fleet map's; and each
         robot in its own frame whose map the global search found on one of theirs (once found, kept
         while its map is of the same epoch and the reference is the same)."""
         site = tuple(sorted(r for r, p in self.maps.items() if p.map.site_frame))
-        reference = site or (next(iter(self.maps)),)
+        reference = site or (min(self.maps),)
         if reference != self._reference:
             self._reference, self._frames = reference, {}
         framed = set(reference)

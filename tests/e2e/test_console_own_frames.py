@@ -1,0 +1,105 @@
+"""End to end: two scouts without UWB in the real console (``fleetlink field --scenario
+expo-dark-team``), real time, real agents. Each maps in its own frame. The test types like a person:
+scout-2's detail says it is not on the fleet map yet, and a goal sent to it then warns that it is in
+the robot's own frame; both scouts are driven into the hall; once their maps share enough of it the
+console's fleet map finds scout-2's frame (the detail line says nothing more about it), and a goal
+typed on the fleet map for scout-2 is reached there: where scout-1 stood after its first goal.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import uuid
+from pathlib import Path
+
+import pytest
+
+from tests.e2e.test_console_field import alive, command, screen, tmux, tmux_cmd
+from tests.harness import wait_until
+
+pytestmark = pytest.mark.skipif(
+    subprocess.run(["which", "tmux"], capture_output=True).returncode != 0 and not os.environ.get("CI"),
+    reason="tmux not installed (./dev test installs it with apt-get)",
+)
+
+POSE = re.compile(r"(scout-\d) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
+OFF_MAP = "not on the fleet map yet"
+
+
+def shown_pose(session: str, robot: str) -> tuple[float, float] | None:
+    m = POSE.search(screen(session))
+    return (float(m.group(2)), float(m.group(3))) if m and m.group(1) == robot else None
+
+
+@pytest.mark.slow
+def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path: Path) -> None:
+    session = f"fl-e2e-{uuid.uuid4().hex[:8]}"
+    fleetlink = Path(sys.executable).parent / "fleetlink"
+    cmd = f"cd {tmp_path} && {fleetlink} field --scenario expo-dark-team --console on --zenoh-listen none"
+    tmux("new-session", "-d", "-s", session, "-x", "200", "-y", "56", cmd)
+    pane_pid: int | None = None
+    try:
+        pane_pid = int(tmux("list-panes", "-t", session, "-F", "#{pane_pid}").split()[0])
+        wait_until(lambda: shown_pose(session, "scout-1") is not None, timeout=60, message="scout-1 selected, its pose")
+        tmux("send-keys", "-t", session, "Tab")
+        wait_until(
+            lambda: shown_pose(session, "scout-2") is not None and OFF_MAP in screen(session),
+            timeout=60,
+            message="scout-2 selected, not on the fleet map yet",
+        )
+        # In its own frame: the middle of the hall, 8.7 m on and 6.4 m to its right from where it started.
+        command(session, "goal 8.7 -6.4")
+        wait_until(
+            lambda: "scout-2 is not on the fleet map yet" in screen(session),
+            timeout=10,
+            message="the console warning that the goal is in scout-2's own frame",
+        )
+        tmux("send-keys", "-t", session, "Tab")
+        wait_until(lambda: shown_pose(session, "scout-1") is not None, timeout=10, message="scout-1 selected")
+        command(session, "goal 6 0")  # scout-1's frame is the fleet map's: 6 m into the hall
+        wait_until(
+            lambda: (p := shown_pose(session, "scout-1")) is not None and math.dist(p, (6.0, 0.0)) < 0.2,
+            timeout=90,
+            message="scout-1 at (6, 0)",
+        )
+        command(session, "goal 18.5 0.5")  # on, past the middle, to the north of the hall
+        wait_until(
+            lambda: "scout-1: goal (18.50, 0.50) sent" in screen(session), timeout=10, message="scout-1's goal sent"
+        )
+        tmux("send-keys", "-t", session, "Tab")
+        wait_until(
+            lambda: shown_pose(session, "scout-2") is not None and OFF_MAP not in screen(session),
+            timeout=240,
+            message="scout-2 found on the fleet map (its detail no longer saying it is not)",
+        )
+        # A goal on the fleet map: where scout-1 stood after its first goal.
+        command(session, "goal 6 0")
+        wait_until(
+            lambda: (p := shown_pose(session, "scout-2")) is not None and math.dist(p, (6.0, 0.0)) < 0.2,
+            timeout=120,
+            message="scout-2 at (6, 0) on the fleet map",
+        )
+        tmux("send-keys", "-t", session, "C-q")
+        wait_until(
+            lambda: subprocess.run(tmux_cmd("has-session", "-t", session), capture_output=True).returncode != 0,
+            timeout=60,
+            message="the field and console exiting on ctrl+q",
+        )
+        wait_until(lambda: not alive(pane_pid), timeout=30, message="the field process gone")
+    except AssertionError as exc:
+        try:
+            shown = screen(session)
+        except subprocess.CalledProcessError:
+            shown = "(the tmux session has ended)"
+        raise AssertionError(f"{exc}\n--- screen ---\n{shown}") from None
+    finally:
+        subprocess.run(tmux_cmd("kill-session", "-t", session), capture_output=True)
+        if pane_pid is not None and alive(pane_pid):  # a hung field: kill what this test started
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pane_pid, signal.SIGKILL)
