@@ -62,6 +62,7 @@ from fleetlink.shared.clock import Clock
 from fleetlink.shared.messages import (
     MAX_DIAGNOSTIC_COUNTS,
     TRAJECTORY_END_M,
+    UNKNOWN_SD_M,
     AckResult,
     ActionType,
     AgvPosition,
@@ -102,7 +103,7 @@ __all__ = ["AgentCore", "BoardView", "Output", "board_view"]
 
 COMMAND_TOPICS = (Order.TOPIC, InstantActions.TOPIC, Teleop.TOPIC)
 INPUT_TOPICS = (*COMMAND_TOPICS, LeaseRequest.TOPIC, PeopleZones.TOPIC, UwbFix.TOPIC)
-UNKNOWN_SD = 1000.0
+UNKNOWN_SD = UNKNOWN_SD_M
 """What ``pose.sd_*`` say before the fusion knows the position or heading (the wire has no inf)."""
 DIAGNOSTICS_PERIOD_S = 5.0
 """At most one ``Diagnostics`` message this often, and only when a count moved."""

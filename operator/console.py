@@ -716,7 +716,7 @@ class ConsoleApp(App[None]):
         order_id = self.commander.goal(robot, rx, ry, rtheta)
         self.notice("info", f"{robot}: goal ({x:.2f}, {y:.2f}) sent as order {order_id}")
         view = self.fleet.robots.get(robot)
-        if view is not None and view.off_fleet_map:
+        if view is not None and view.off_fleet_map and view.in_own_frame:
             self.notice("warning", f"{robot} is not on the fleet map yet: the goal is in its own map's frame")
         return True
 
@@ -1409,11 +1409,6 @@ class ConsoleApp(App[None]):
         for robot, why in result.left_out:
             self.notice("warning", f"{robot} left out of the {what}: {why}")
         for r in result.rounds:
-            view = self.fleet.robots.get(r.robot)
-            if r.robot in self.fleet.frames or (view is not None and view.off_fleet_map):
-                # Its orders would be read in its own map's frame: rounds are planned in the site frame.
-                self.notice("warning", f"{r.robot} left out of the {what}: it maps in its own frame (no UWB)")
-                continue
             try:
                 self.commander.order(r.robot, r.order)
             except ValueError as exc:  # the wire refused it (a size, a range)

@@ -19,6 +19,7 @@ import numpy.typing as npt
 from fleetlink.operator.alarms import AlarmDesk
 from fleetlink.operator.marks import marks_of_set, supersedes
 from fleetlink.shared.messages import (
+    UNKNOWN_SD_M,
     Ack,
     AckResult,
     AlarmAck,
@@ -87,8 +88,15 @@ class RobotView:
     reported: tuple[float, float, float] | None = None
     """Its pose as it reported it, in its own map's frame."""
     off_fleet_map: bool = False
-    """It maps in its own frame (no UWB) and the fleet map has not found that frame yet: its pose,
-    goals and scans are in its own frame, not the fleet map's."""
+    """Its map is in its own frame and the fleet map has not found that frame yet."""
+
+    @property
+    def in_own_frame(self) -> bool:
+        """Its poses are in its own map's frame, not the site's: it has no UWB position (its ``Pose``
+        says so with ``UNKNOWN_SD_M``). Only then does the fleet map's frame for it apply (a robot
+        with UWB whose map has not yet restarted in the site frame reports site poses)."""
+        return self.pose_sd_m is not None and self.pose_sd_m >= UNKNOWN_SD_M
+
     pose_sd_m: float | None = None
     """The fused pose's position uncertainty: the larger of its x and y standard deviations,
     metres (None until a ``Pose`` said; a ``State`` carries none)."""
@@ -232,8 +240,8 @@ class FleetModel:
             view.lost = False
             self.notify(now, "info", f"{h.robot}: back (heard on {link})")
         if isinstance(msg, Pose):
-            self._pose(view, msg.x, msg.y, msg.theta)
             view.pose_sd_m = max(msg.sd_x_m, msg.sd_y_m)
+            self._pose(view, msg.x, msg.y, msg.theta)
             view.uwb_stale = msg.uwbStale
         elif isinstance(msg, State):
             self._state(view, msg, now)
@@ -271,8 +279,14 @@ class FleetModel:
         view.pose = self._placed(view.robot, view.reported)
         self._trail(view, view.pose[0], view.pose[1])
 
+    def _frame(self, robot: str) -> tuple[float, float, float] | None:
+        """Where ``robot``'s reports lie on the fleet map: its frame there while it reports poses
+        in its own frame; None (as reported) otherwise."""
+        view = self.robots.get(robot)
+        return self.frames.get(robot) if view is not None and view.in_own_frame else None
+
     def _placed(self, robot: str, pose: tuple[float, float, float]) -> tuple[float, float, float]:
-        frame = self.frames.get(robot)
+        frame = self._frame(robot)
         return pose if frame is None else compose(frame, pose)
 
     def set_frames(self, frames: dict[str, tuple[float, float, float]], unframed: Iterable[str] = ()) -> None:
@@ -302,7 +316,7 @@ class FleetModel:
 
     def to_robot(self, robot: str, x: float, y: float, theta: float | None = None) -> tuple[float, float, float | None]:
         """A point (and heading) on the map drawn, in ``robot``'s own map frame: what it is sent."""
-        frame = self.frames.get(robot)
+        frame = self._frame(robot)
         if frame is None:
             return x, y, theta
         rx, ry, rth = compose(inverse(frame), (x, y, theta or 0.0))
@@ -403,7 +417,7 @@ class FleetModel:
     def set_scan(self, robot: str, points: npt.NDArray[np.float64], now: float) -> None:
         """A robot's latest lidar scan, its points in the site frame (``(N, 2)`` metres)."""
         view = self.robot(robot)
-        frame = self.frames.get(robot)
+        frame = self._frame(robot)
         if frame is not None and len(points):
             c, sn = math.cos(frame[2]), math.sin(frame[2])
             points = np.column_stack(

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Final
 
 from . import nurbs
 from .wire import Message, bounded, register, sized
@@ -43,6 +43,7 @@ __all__ = [
     "MAX_TRAJECTORY_POINTS",
     "MAX_UWB_ANCHORS",
     "TRAJECTORY_END_M",
+    "UNKNOWN_SD_M",
     "Ack",
     "AckResult",
     "AckedAlarm",
@@ -435,10 +436,17 @@ class State(Message):
     """Along the current order with nodes; nil without one."""
 
 
+UNKNOWN_SD_M: Final = 1000.0
+"""What a ``Pose``'s standard deviations say when they are not known (the wire has no inf): the
+robot is not placed in the site frame."""
+
+
 @register
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Pose(Message):
-    """The fused pose at 20 Hz: ``fleetlink/v1/<robot>/pose``."""
+    """The fused pose at 20 Hz: ``fleetlink/v1/<robot>/pose``. Its ``sd_x_m`` / ``sd_y_m`` are
+    ``UNKNOWN_SD_M`` while the robot has no position in the site frame (no UWB yet, or none on the
+    site): ``x``, ``y``, ``theta`` are then in its own map's frame, which begins where it started."""
 
     TOPIC: ClassVar[str] = "pose"
 

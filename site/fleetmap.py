@@ -26,6 +26,7 @@ for a site with a router (cli/map.py ``run_fleet``).
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -100,6 +101,7 @@ class FleetMapService:
         self._incomplete = False  # some robot's listed submaps are still being fetched: build again
         # Per robot: its map as last asked about (version, shape, origin) and the answer then.
         self._answered: dict[str, tuple[object, tuple[Submap, ...], bool]] = {}
+        self._frame_states: dict[str, str] = {}  # per robot: what was last logged of its frame
 
     def step(self) -> bool:
         """Build and publish if the robots' maps changed and ``period_s`` has passed. True if built."""
@@ -141,6 +143,7 @@ class FleetMapService:
                 keys.FLEET_MAP, to_grid(SharedMap(result.cells, result.resolution, result.origin, result.version))
             )
             self.follower.fleet.set_frames(result.frames, result.unframed)
+        self._log_frames(result, copies)
         if self.share is not None:
             pub = publication_of(result, self._published)
             if self._published is None or pub.version != self._published.version:
@@ -226,6 +229,18 @@ class FleetMapService:
         out = tuple(replace(known.held[i], pose=(e.x, e.y, e.theta)) for i, e in sorted(listed.items()))
         self._answered[robot] = (seen, out, listing.site_frame)
         return out, listing.site_frame
+
+    def _log_frames(self, result: FleetResult, copies: dict[str, SharedMap]) -> None:
+        """Say when a robot's map changes frames, and when one in its own frame is found or lost."""
+        for robot in copies:
+            held = self.core.maps.get(robot)
+            own = held is not None and not held.map.site_frame
+            state = "unframed" if robot in result.unframed else ("own frame" if own else "site frame")
+            if self._frame_states.get(robot) != state:
+                self._frame_states[robot] = state
+                where = result.frames.get(robot)
+                at = "" if where is None else f" at ({where[0]:.2f}, {where[1]:.2f}, {math.degrees(where[2]):.1f} deg)"
+                log.info("fleet map: %s: %s%s", robot, state, at)
 
     def _log_once(self, robot: str, kind: str, text: str) -> None:
         if (robot, kind) not in self._logged:

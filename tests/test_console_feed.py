@@ -330,10 +330,11 @@ def test_a_robot_in_its_own_frame_is_drawn_on_the_fleet_map_through_the_frame_fo
     import numpy as np
 
     from fleetlink.operator.detail import detail_text
+    from fleetlink.shared.messages import UNKNOWN_SD_M
 
     fleet = FleetModel(ME)
     agent = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
-    fleet.apply(agent.make(Pose, x=1.0, y=0.0, theta=0.0, sd_x_m=0.1, sd_y_m=0.1, sd_theta_rad=0.1,
+    fleet.apply(agent.make(Pose, x=1.0, y=0.0, theta=0.0, sd_x_m=UNKNOWN_SD_M, sd_y_m=UNKNOWN_SD_M, sd_theta_rad=UNKNOWN_SD_M,
                            odom_x=0.0, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=True), "zenoh", 0.0)  # fmt: skip
     fleet.set_frames({}, unframed=("r1",))
     view = fleet.robots["r1"]
@@ -347,7 +348,7 @@ def test_a_robot_in_its_own_frame_is_drawn_on_the_fleet_map_through_the_frame_fo
     assert math.hypot(view.pose[0] - 5.0, view.pose[1] - 3.0) < 1e-9 and abs(view.pose[2] - math.pi / 2) < 1e-9
     assert list(view.trail) == [(view.pose[0], view.pose[1])] and view.trail_added > trail_before + len(view.trail)
     # Later poses and scans come through the frame too.
-    fleet.apply(agent.make(Pose, x=2.0, y=0.0, theta=0.0, sd_x_m=0.1, sd_y_m=0.1, sd_theta_rad=0.1,
+    fleet.apply(agent.make(Pose, x=2.0, y=0.0, theta=0.0, sd_x_m=UNKNOWN_SD_M, sd_y_m=UNKNOWN_SD_M, sd_theta_rad=UNKNOWN_SD_M,
                            odom_x=0.0, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=True), "zenoh", 0.1)  # fmt: skip
     assert math.hypot(view.pose[0] - 5.0, view.pose[1] - 4.0) < 1e-9
     fleet.set_scan("r1", np.array([[3.0, 0.0]]), 0.1)
@@ -357,4 +358,9 @@ def test_a_robot_in_its_own_frame_is_drawn_on_the_fleet_map_through_the_frame_fo
     x, y, th = fleet.to_robot("r1", 5.0, 6.0, math.pi / 2)
     assert math.hypot(x - 4.0, y) < 1e-9 and th is not None and abs(th) < 1e-9
     assert fleet.to_robot("r1", 5.0, 6.0)[2] is None
-    assert fleet.to_robot("r2", 5.0, 6.0, 1.0) == (5.0, 6.0, 1.0)  # a robot in the site frame: as typed
+    assert fleet.to_robot("r2", 5.0, 6.0, 1.0) == (5.0, 6.0, 1.0)  # a robot the fleet map has no frame for
+    # A robot with a UWB position reports site poses (even while its map is still in its own frame,
+    # before it restarts in the site frame): the frame found for its map does not move them.
+    fleet.apply(agent.make(Pose, x=2.0, y=0.0, theta=0.0, sd_x_m=0.1, sd_y_m=0.1, sd_theta_rad=0.1,
+                           odom_x=0.0, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=False), "zenoh", 0.2)  # fmt: skip
+    assert view.pose == (2.0, 0.0, 0.0) and fleet.to_robot("r1", 5.0, 6.0, 1.0) == (5.0, 6.0, 1.0)
