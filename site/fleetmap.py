@@ -101,7 +101,7 @@ class FleetMapService:
         self._incomplete = False  # some robot's listed submaps are still being fetched: build again
         # Per robot: its map as last asked about (version, shape, origin) and the answer then.
         self._answered: dict[str, tuple[object, tuple[Submap, ...], bool]] = {}
-        self._frame_states: dict[str, str] = {}  # per robot: what was last logged of its frame
+        self._frame_states: dict[str, tuple[str, str]] = {}  # per robot: what was last logged of its frame
 
     def step(self) -> bool:
         """Build and publish if the robots' maps changed and ``period_s`` has passed. True if built."""
@@ -236,11 +236,12 @@ class FleetMapService:
             held = self.core.maps.get(robot)
             own = held is not None and not held.map.site_frame
             state = "unframed" if robot in result.unframed else ("own frame" if own else "site frame")
-            if self._frame_states.get(robot) != state:
-                self._frame_states[robot] = state
+            why = self.core.global_why.get(robot, "")
+            if self._frame_states.get(robot) != (state, why):
+                self._frame_states[robot] = (state, why)
                 where = result.frames.get(robot)
                 at = "" if where is None else f" at ({where[0]:.2f}, {where[1]:.2f}, {math.degrees(where[2]):.1f} deg)"
-                log.info("fleet map: %s: %s%s", robot, state, at)
+                log.info("fleet map: %s: %s%s%s", robot, state, at, f" ({why})" if why else "")
 
     def _log_once(self, robot: str, kind: str, text: str) -> None:
         if (robot, kind) not in self._logged:
