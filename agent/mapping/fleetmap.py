@@ -824,26 +824,24 @@ def _apart(p: Pose, q: Pose, xy: float, theta: float) -> bool:
 def _on_floor(p: _Prepared, pts: F64, field: F64) -> int:
     """How many of ``pts`` (its map frame; ``field`` their values there) lie on ``p``'s known free
     floor, away from its walls (field < 0.05: over 12 cm off at 5 cm spread)."""
-    res = p.map.resolution
-    c = np.floor((pts[:, 0] - p.origin[0]) / res).astype(np.int64)
-    r = np.floor((pts[:, 1] - p.origin[1]) / res).astype(np.int64)
-    h, w = p.cells.shape
-    inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-    free = np.zeros(len(c), dtype=bool)
-    free[inside] = p.cells[r[inside], c[inside]] == FREE
-    return int(np.count_nonzero(free & (field < 0.05)))
+    return int(np.count_nonzero(_cells_at(p, p.cells == FREE, pts) & (field < 0.05)))
 
 
 def _on_known(p: _Prepared, pts: F64) -> npt.NDArray[np.bool_]:
     """Which of ``pts`` (its map frame) lie on ``p``'s known floor, grown by the search window."""
+    return _cells_at(p, p.near_known, pts)
+
+
+def _cells_at(p: _Prepared, mask: npt.NDArray[np.bool_], pts: F64) -> npt.NDArray[np.bool_]:
+    """``mask`` (on ``p``'s cells) under each of ``pts`` (its map frame); False off the map."""
     res = p.map.resolution
     c = np.floor((pts[:, 0] - p.origin[0]) / res).astype(np.int64)
     r = np.floor((pts[:, 1] - p.origin[1]) / res).astype(np.int64)
-    h, w = p.near_known.shape
+    h, w = mask.shape
     inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-    on = np.zeros(len(c), dtype=bool)
-    on[inside] = p.near_known[r[inside], c[inside]]
-    return on
+    out = np.zeros(len(c), dtype=bool)
+    out[inside] = mask[r[inside], c[inside]]
+    return out
 
 
 def _score(grids: PrecomputedGrids, local: F64, pose: Pose) -> float:

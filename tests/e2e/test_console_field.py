@@ -250,18 +250,9 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
             timeout=30,
             message="the dose layer at the round's dose over at least 90 % of the round's square",
         )
-        tmux("send-keys", "-t", session, "C-q")
-        wait_until(
-            lambda: subprocess.run(tmux_cmd("has-session", "-t", session), capture_output=True).returncode != 0,
-            timeout=60,
-            message="the field and console exiting on ctrl+q",
-        )
-        wait_until(lambda: not alive(pane_pid), timeout=30, message="the field process gone")
+        quit_field(session, pane_pid)
     except AssertionError as exc:
-        try:
-            shown = screen(session)
-        except subprocess.CalledProcessError:
-            shown = "(the tmux session has ended)"
+        shown = last_screen(session)
         log = tmp_path / "field.log"
         tail = "\n".join(log.read_text().splitlines()[-20:]) if log.exists() else "(no field.log)"
         raise AssertionError(f"{exc}\n--- screen ---\n{shown}\n--- field.log ---\n{tail}") from None
@@ -270,6 +261,24 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
         if pane_pid is not None and alive(pane_pid):  # a hung field: kill what this test started
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pane_pid, signal.SIGKILL)
+
+
+def quit_field(session: str, pane_pid: int) -> None:
+    """ctrl+q, then the session and the field's process gone."""
+    tmux("send-keys", "-t", session, "C-q")
+    wait_until(
+        lambda: subprocess.run(tmux_cmd("has-session", "-t", session), capture_output=True).returncode != 0,
+        timeout=60,
+        message="the field and console exiting on ctrl+q",
+    )
+    wait_until(lambda: not alive(pane_pid), timeout=30, message="the field process gone")
+
+
+def last_screen(session: str) -> str:
+    try:
+        return screen(session)
+    except subprocess.CalledProcessError:
+        return "(the tmux session has ended)"
 
 
 def alive(pid: int) -> bool:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.e2e.test_console_field import alive, command, screen, tmux, tmux_cmd
+from tests.e2e.test_console_field import alive, command, last_screen, quit_field, screen, tmux, tmux_cmd
 from tests.harness import wait_until
 
 pytestmark = pytest.mark.skipif(
@@ -101,18 +101,9 @@ def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path:
             timeout=120,
             message="scout-2 at (6, 0) on the fleet map",
         )
-        tmux("send-keys", "-t", session, "C-q")
-        wait_until(
-            lambda: subprocess.run(tmux_cmd("has-session", "-t", session), capture_output=True).returncode != 0,
-            timeout=60,
-            message="the field and console exiting on ctrl+q",
-        )
-        wait_until(lambda: not alive(pane_pid), timeout=30, message="the field process gone")
+        quit_field(session, pane_pid)
     except AssertionError as exc:
-        try:
-            shown = screen(session)
-        except subprocess.CalledProcessError:
-            shown = "(the tmux session has ended)"
+        shown = last_screen(session)
         log = tmp_path / "field.log"
         said = [line for line in log.read_text().splitlines() if "fleet map:" in line] if log.exists() else []
         raise AssertionError(f"{exc}\n--- screen ---\n{shown}\n--- the fleet map ---\n" + "\n".join(said)) from None
