@@ -31,10 +31,11 @@ import pytest
 from tests.harness import wait_until
 
 TMUX = shutil.which("tmux")
-# .ci/install-tool installs tmux, so under CI this test must run: there a missing tmux fails it.
-pytestmark = pytest.mark.skipif(
+# .ci/install-tool installs tmux, so under CI these tests must run: there a missing tmux fails them.
+needs_tmux = pytest.mark.skipif(
     TMUX is None and not os.environ.get("CI"), reason="tmux not installed (./dev test installs it with apt-get)"
 )
+pytestmark = needs_tmux
 
 POSE = re.compile(r"(uvc-1) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
 UWB_OK = re.compile(r"uvc-1 .* ok +\S+ *│")  # the uwb column (health says "ok N%" then more)
@@ -77,13 +78,8 @@ def pose(session: str, shown: str | None = None) -> tuple[float, float] | None:
 
 @pytest.mark.slow
 def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
-    session = f"fl-e2e-{uuid.uuid4().hex[:8]}"
-    fleetlink = Path(sys.executable).parent / "fleetlink"
-    cmd = f"cd {tmp_path} && {fleetlink} field --console on --zenoh-listen none"
-    tmux("new-session", "-d", "-s", session, "-x", "160", "-y", "48", cmd)
-    pane_pid: int | None = None
+    session, pane_pid = start_field(tmp_path, "", 160, 48)
     try:
-        pane_pid = int(tmux("list-panes", "-t", session, "-F", "#{pane_pid}").split()[0])
         wait_until(lambda: pose(session) is not None, timeout=60, message="the console showing uvc-1's pose")
         wait_until(lambda: "zenoh" in screen(session), timeout=30, message="the link column")
         # The UWB simulator runs in the field: the fleet table says so for uvc-1.
@@ -258,9 +254,19 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
         raise AssertionError(f"{exc}\n--- screen ---\n{shown}\n--- field.log ---\n{tail}") from None
     finally:
         subprocess.run(tmux_cmd("kill-session", "-t", session), capture_output=True)
-        if pane_pid is not None and alive(pane_pid):  # a hung field: kill what this test started
+        if alive(pane_pid):  # a hung field: kill what this test started
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pane_pid, signal.SIGKILL)
+
+
+def start_field(tmp_path: Path, args: str, width: int, height: int) -> tuple[str, int]:
+    """``fleetlink field ARGS --console on`` in a tmux session of its own, in ``tmp_path``: the
+    session's name and the pane's process."""
+    session = f"fl-e2e-{uuid.uuid4().hex[:8]}"
+    fleetlink = Path(sys.executable).parent / "fleetlink"
+    cmd = f"cd {tmp_path} && {fleetlink} field {args} --console on --zenoh-listen none"
+    tmux("new-session", "-d", "-s", session, "-x", str(width), "-y", str(height), cmd)
+    return session, int(tmux("list-panes", "-t", session, "-F", "#{pane_pid}").split()[0])
 
 
 def quit_field(session: str, pane_pid: int) -> None:

@@ -14,19 +14,24 @@ import os
 import re
 import signal
 import subprocess
-import sys
-import uuid
 from pathlib import Path
 
 import pytest
 
-from tests.e2e.test_console_field import alive, command, last_screen, quit_field, screen, tmux, tmux_cmd
+from tests.e2e.test_console_field import (
+    alive,
+    command,
+    last_screen,
+    needs_tmux,
+    quit_field,
+    screen,
+    start_field,
+    tmux,
+    tmux_cmd,
+)
 from tests.harness import wait_until
 
-pytestmark = pytest.mark.skipif(
-    subprocess.run(["which", "tmux"], capture_output=True).returncode != 0 and not os.environ.get("CI"),
-    reason="tmux not installed (./dev test installs it with apt-get)",
-)
+pytestmark = needs_tmux  # the console's e2e tests' rule: under CI it must run
 
 POSE = re.compile(r"(scout-\d) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
 OFF_MAP = "not on the fleet map yet"
@@ -39,13 +44,8 @@ def shown_pose(session: str, robot: str) -> tuple[float, float] | None:
 
 @pytest.mark.slow
 def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path: Path) -> None:
-    session = f"fl-e2e-{uuid.uuid4().hex[:8]}"
-    fleetlink = Path(sys.executable).parent / "fleetlink"
-    cmd = f"cd {tmp_path} && {fleetlink} field --scenario expo-dark-team --console on --zenoh-listen none"
-    tmux("new-session", "-d", "-s", session, "-x", "200", "-y", "56", cmd)
-    pane_pid: int | None = None
+    session, pane_pid = start_field(tmp_path, "--scenario expo-dark-team", 200, 56)
     try:
-        pane_pid = int(tmux("list-panes", "-t", session, "-F", "#{pane_pid}").split()[0])
         wait_until(lambda: shown_pose(session, "scout-1") is not None, timeout=60, message="scout-1 selected, its pose")
         tmux("send-keys", "-t", session, "Tab")
         wait_until(
@@ -109,6 +109,6 @@ def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path:
         raise AssertionError(f"{exc}\n--- screen ---\n{shown}\n--- the fleet map ---\n" + "\n".join(said)) from None
     finally:
         subprocess.run(tmux_cmd("kill-session", "-t", session), capture_output=True)
-        if pane_pid is not None and alive(pane_pid):  # a hung field: kill what this test started
+        if alive(pane_pid):  # a hung field: kill what this test started
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pane_pid, signal.SIGKILL)
