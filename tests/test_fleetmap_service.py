@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,7 +37,18 @@ from fleetlink.site.fleetmap import FleetMapService
 from tests.harness import wait_until
 from tests.harness.console_rig import Rig
 from tests.test_console import run_async
-from tests.test_fleetmap import BENT, RES, distance_to_walls, robot_map, undo, walls_of, with_submaps
+from tests.test_fleetmap import (
+    BENT,
+    FURNISHED,
+    RES,
+    close_to,
+    distance_to_walls,
+    own_frame,
+    robot_map,
+    undo,
+    walls_of,
+    with_submaps,
+)
 
 
 def publish_pose(link: ZenohEndpoint, counter: wire.HeaderCounter, x: float, y: float) -> None:
@@ -46,11 +59,33 @@ def publish_pose(link: ZenohEndpoint, counter: wire.HeaderCounter, x: float, y: 
     link.publish(wire.key_of(msg), wire.encode(msg))
 
 
-def test_two_robots_maps_become_one_fleet_map_that_the_cli_saves(
-    zenoh_peers: Any, mosquitto: Any, tmp_path: Path
-) -> None:
+@dataclass
+class Following:
+    """A console following robots' maps over real links (its own wiring, ``fleet_map_service``),
+    and the robots' side of the link with a ``MapShare`` each."""
+
+    link: OperatorLink
+    robots_side: ZenohEndpoint
+    fleet: FleetModel
+    lock: threading.Lock
+    service: FleetMapService
+    shares: dict[str, MapShare]
+    counters: dict[str, wire.HeaderCounter]
+
+    def publish(self, robot: str, m: RobotMap) -> None:
+        self.shares[robot].publish(
+            MapPublication(m.version, m.cells, m.resolution, m.origin, None, site_frame=m.site_frame)
+        )
+
+    def heard(self, x: float, y: float) -> None:
+        """Every robot's pose heard: the console fetches their maps."""
+        for r in self.shares:
+            publish_pose(self.robots_side, self.counters[r], x, y)
+
+
+@contextmanager
+def following(peers: Any, mosquitto: Any, robots: tuple[str, ...]) -> Iterator[Following]:
     clock = SystemClock()
-    peers = zenoh_peers(2)
     robots_side = ZenohEndpoint(session=peers[1])
     robots_side.start()
     link = OperatorLink(
@@ -67,26 +102,44 @@ def test_two_robots_maps_become_one_fleet_map_that_the_cli_saves(
     service.period_s = 0.2
     fetcher = MapFetcher(follower, lambda r: link.fetch_map(r, timeout=2.0), clock, lock, period_s=0.1,
                          after_poll=service.step).start()  # fmt: skip
+    shares = {r: MapShare(robots_side, r, clock) for r in robots}
+    counters = {r: wire.HeaderCounter(clock, robot=r, sender=f"agent-{r}") for r in robots}
+    try:
+        for share in shares.values():
+            share.start()
+        yield Following(link, robots_side, fleet, lock, service, shares, counters)
+    finally:
+        fetcher.stop()
+        for share in shares.values():
+            share.stop()
+        if service.share is not None:
+            service.share.stop()
+        robots_side.close()
+        link.close()
+
+
+def test_two_robots_maps_become_one_fleet_map_that_the_cli_saves(
+    zenoh_peers: Any, mosquitto: Any, tmp_path: Path
+) -> None:
+    peers = zenoh_peers(2)
     off = (0.0, 0.2, math.radians(1.0))  # r2's map 0.2 m and a degree off r1's
     maps = {"r1": robot_map((0.0, 0.0, 6.5, 6.0)), "r2": robot_map((2.5, 0.0, 9.0, 6.0), off)}
-    shares = {r: MapShare(robots_side, r, clock) for r in maps}
-    counters = {r: wire.HeaderCounter(clock, robot=r, sender=f"agent-{r}") for r in maps}
-    try:
+    with following(peers, mosquitto, tuple(maps)) as f:
         for r, m in maps.items():
-            shares[r].start()
-            shares[r].publish(MapPublication(m.version, m.cells, m.resolution, m.origin, None, site_frame=True))
+            f.publish(r, m)
 
         def built() -> bool:
-            for r in maps:
-                publish_pose(robots_side, counters[r], 3.0, 1.0)  # heard: the console fetches their maps
-            with lock:
+            f.heard(3.0, 1.0)
+            with f.lock:
                 return (
-                    keys.FLEET_MAP in fleet.grids and service.result is not None and bool(service.result.registrations)
+                    keys.FLEET_MAP in f.fleet.grids
+                    and f.service.result is not None
+                    and bool(f.service.result.registrations)
                 )
 
         wait_until(built, timeout=30, message="the fleet map built from both robots' maps")
-        assert service.share is not None
-        result = service.result
+        assert f.service.share is not None
+        result = f.service.result
         assert result is not None
         # The fleet map's walls are single: its own walls lie on the floor's, once a's placement is undone.
         merged = walls_of(result.cells, result.origin, result.resolution)
@@ -102,14 +155,31 @@ def test_two_robots_maps_become_one_fleet_map_that_the_cli_saves(
         assert saved.origin[:2] == tuple(round(v, 6) for v in result.origin) or np.allclose(
             saved.origin[:2], result.origin
         )
-    finally:
-        fetcher.stop()
-        for share in shares.values():
-            share.stop()
-        if service.share is not None:
-            service.share.stop()
-        robots_side.close()
-        link.close()
+
+
+def test_a_map_shared_whole_in_its_own_frame_is_found_not_taken_for_the_site_s(
+    zenoh_peers: Any, mosquitto: Any
+) -> None:
+    """A robot without UWB and without loop closure shares its map whole, no submaps: its (empty)
+    submap list still says the map is in its own frame, and the console's fleet map finds it there."""
+    peers = zenoh_peers(2)
+    start = (7.5, 1.0, math.radians(137.0))  # where r2 began, in the site frame
+    maps = {"r1": robot_map((0.0, 0.0, 7.5, 6.0), floor=FURNISHED), "r2": own_frame((1.5, 0.0, 9.0, 6.0), start)}
+    with following(peers, mosquitto, tuple(maps)) as f:
+        for r, m in maps.items():
+            f.publish(r, m)
+        listing = fetch_submaps(f.link.query_link(), "r2", timeout=2.0)
+        assert listing is not None and listing.submaps == () and not listing.site_frame
+
+        def found() -> bool:
+            f.heard(3.0, 1.0)
+            with f.lock:
+                return "r2" in f.fleet.frames
+
+        wait_until(found, timeout=30, message="r2's own frame found on the fleet map")
+        with f.lock:
+            assert close_to(f.fleet.frames["r2"], start), f.fleet.frames["r2"]
+            assert "r1" not in f.fleet.frames  # in the site frame: drawn as it reports
 
 
 def wall_runs(view: MapView, x: float, y0: float, y1: float) -> int:

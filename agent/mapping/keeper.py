@@ -391,6 +391,7 @@ class MapKeeper:
         self._shared_version = mapper.version
         self._next_share = now + self.share_period
         pub = MapPublication.of(mapper, site_frame=self.in_site_frame, base=self._version_base)
+        pub = replace(pub, began=self._began or 0.0)
         closer = mapper.closer
         if closer is None:
             return pub
@@ -404,7 +405,7 @@ class MapKeeper:
                 cells, res, origin = closer.draw_occupancy(i)
                 drawn.append(Submap(i, version, pose, cells, res, origin))
                 self._submap_versions[i] = version
-        return replace(pub, began=self._began or 0.0, submaps=tuple(drawn), submap_poses=tuple(poses))
+        return replace(pub, submaps=tuple(drawn), submap_poses=tuple(poses))
 
     def _due(self, t: float, pose: tuple[float, float, float]) -> bool:
         if self._last is None:

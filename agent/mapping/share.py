@@ -17,6 +17,8 @@ The share also serves the submaps the map is drawn from (after Cartographer's ``
 submap's index, version and pose as the pose graph has it now), ``.../map/submap/<index>`` one
 submap's cells (``MapSubmap``; ``.../map/submap/*`` every one). Nothing is published for them: the
 fleet map (site/fleetmap.py) asks for the list as it builds and fetches only the submaps it lacks.
+A map without submaps (loop closure off) answers an empty list: it still says the map's frame, so
+the fleet map places a map in its own frame (no UWB) by search instead of taking it as the site's.
 
 ``fetch_map(link, robot)`` is the asking side (used by ``fleetlink map save``); ``fetch_submaps``
 and ``fetch_submap`` for the submaps.
@@ -64,6 +66,7 @@ class MapShare(LayerShare[MapPublication]):
         self._sub_lock = threading.Lock()
         self._began = 0.0
         self._site_frame = False
+        self._published = False  # a map has been shared: the list can say its frame, with or without submaps
         self._submaps: dict[int, Submap] = {}  # the latest drawing of each
         self._encoded: dict[int, bytes] = {}  # each submap's reply, made when first asked for
         self._poses: tuple[tuple[int, int, tuple[float, float, float]], ...] = ()
@@ -87,8 +90,9 @@ class MapShare(LayerShare[MapPublication]):
 
     def publish(self, pub: MapPublication) -> None:
         with self._sub_lock:
+            if (pub.began, pub.site_frame) != (self._began, self._site_frame) or not self._published:
+                self._began, self._site_frame, self._published, self._list = pub.began, pub.site_frame, True, None
             if pub.submap_poses or pub.submaps:
-                self._began, self._site_frame = pub.began, pub.site_frame
                 for sm in pub.submaps:
                     self._submaps[sm.index] = sm
                     self._encoded.pop(sm.index, None)
@@ -108,7 +112,7 @@ class MapShare(LayerShare[MapPublication]):
             return []
         with self._sub_lock:
             self.list_queries += 1
-            if not self._poses:
+            if not self._published:
                 return []
             if self._list is None:
                 entries = tuple(
@@ -157,8 +161,9 @@ def fetch_map(link: QueryLink, robot: str, timeout: float = 5.0) -> MapSnapshot 
 
 
 def fetch_submaps(link: QueryLink, robot: str, timeout: float = 5.0) -> MapSubmaps | None:
-    """Ask ``fleetlink/v1/<robot>/map/submaps``: the robot's submap list, or None (none, or no
-    answer: an agent without loop closure, or one that predates submaps, shares its map whole)."""
+    """Ask ``fleetlink/v1/<robot>/map/submaps``: the robot's submap list (empty from an agent
+    without loop closure: its map is shared whole, the list says its frame), or None (no answer: no
+    map shared yet, or an agent that predates submaps)."""
     return fetch(link, robot, MapSubmaps, timeout)
 
 
