@@ -1330,9 +1330,16 @@ class ConsoleApp(App[None]):
                 if view.lost or view.pose is None:
                     problem = f"{robot}: {'lost, its last pose is stale' if view.lost else 'no fused pose yet'}"
                     break
+                if view.in_own_frame and view.off_fleet_map:
+                    problem = f"{robot} maps in its own frame and is not on the fleet map yet (its detail says why)"
+                    break
+                if view.in_own_frame and command.kind == "uv":
+                    problem = f"{robot} has no site position (no UWB): its lamp's dose could not be placed on the floor"
+                    break
                 starts[robot] = (view.pose[0], view.pose[1])
-                if robot in self.fleet.grids:
-                    grids.append(self.fleet.grids[robot])
+                grid = self.fleet.map_of(robot)  # on the fleet map: through its frame if in its own
+                if grid is not None:
+                    grids.append(grid)
                     trails.append(tuple(view.trail))  # its body, where another's map saw it, is no wall
         request = RoundRequest(
             "uv" if command.kind == "uv" else "sweep", command.area, robots, target, surveys, looked_from
@@ -1409,8 +1416,10 @@ class ConsoleApp(App[None]):
         for robot, why in result.left_out:
             self.notice("warning", f"{robot} left out of the {what}: {why}")
         for r in result.rounds:
-            try:
-                self.commander.order(r.robot, r.order)
+            try:  # planned on the map drawn: sent in the robot's own frame if it maps in one
+                with self.lock:
+                    order = self.fleet.order_to_robot(r.robot, r.order)
+                self.commander.order(r.robot, order)
             except ValueError as exc:  # the wire refused it (a size, a range)
                 self.notice("warning", f"{r.robot}: {what} not sent: {exc}")
                 continue

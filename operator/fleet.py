@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterable
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -28,9 +29,12 @@ from fleetlink.shared.messages import (
     ConnectionState,
     Diagnostics,
     Event,
+    Goal,
     Lease,
     Mark,
     MarkSet,
+    OrderEdge,
+    OrderNode,
     OrderProgress,
     Pose,
     Scan,
@@ -42,7 +46,17 @@ from fleetlink.shared.scan_codec import scan_points
 from fleetlink.shared.se2 import compose, inverse
 from fleetlink.shared.wire import Message, WireError
 
-__all__ = ["CONTACT_RENEW_S", "FleetModel", "Grid", "LeaseRenewal", "Notice", "RobotView", "Route", "extend_trail"]
+__all__ = [
+    "CONTACT_RENEW_S",
+    "FleetModel",
+    "Grid",
+    "LeaseRenewal",
+    "Notice",
+    "RobotView",
+    "Route",
+    "extend_trail",
+    "grid_through",
+]
 
 TRAIL_POINTS = 200
 SCAN_STALE_S = 3.0
@@ -53,6 +67,38 @@ Grid = tuple[float, float, float, int, int, bytes]
 """(origin_x, origin_y, resolution, width, height, cells row by row from origin_y up: 0 free,
 100 occupied, 255 unknown)."""
 TRAIL_MIN_STEP_M = 0.05
+
+
+def grid_through(grid: Grid, frame: tuple[float, float, float]) -> Grid:
+    """``grid`` (in a robot's own map frame) as it lies on the fleet map, ``frame`` being where its
+    frame lies there: resampled on the lattice it was on (every onboard map shares one), so it merges
+    with the others' cells. Each cell takes the source cell under its centre; each wall cell is also
+    carried forward onto the cell its centre lands in, so a wall one cell thick stays unbroken
+    (8-connected) at any heading."""
+    ox, oy, res, w, h, data = grid
+    cells = np.frombuffer(data, dtype=np.uint8).reshape(h, w)
+    fx, fy, fth = frame
+    c, s = math.cos(fth), math.sin(fth)
+    corners = np.array([(ox, oy), (ox + w * res, oy), (ox, oy + h * res), (ox + w * res, oy + h * res)])
+    px = fx + c * corners[:, 0] - s * corners[:, 1]
+    py = fy + s * corners[:, 0] + c * corners[:, 1]
+    offx, offy = ox - math.floor(ox / res) * res, oy - math.floor(oy / res) * res
+    x0 = offx + math.floor((float(px.min()) - offx) / res) * res
+    y0 = offy + math.floor((float(py.min()) - offy) / res) * res
+    nw = math.ceil((float(px.max()) - x0) / res)
+    nh = math.ceil((float(py.max()) - y0) / res)
+    gx, gy = np.meshgrid(x0 + (np.arange(nw) + 0.5) * res - fx, y0 + (np.arange(nh) + 0.5) * res - fy)
+    cols = np.floor((c * gx + s * gy - ox) / res).astype(np.int64)
+    rows = np.floor((-s * gx + c * gy - oy) / res).astype(np.int64)
+    inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+    out = np.full((nh, nw), 255, dtype=np.uint8)
+    out[inside] = cells[rows[inside], cols[inside]]
+    wr, wc = np.nonzero(cells == 100)
+    wx, wy = ox + (wc + 0.5) * res, oy + (wr + 0.5) * res
+    tc = np.clip(np.floor((fx + c * wx - s * wy - x0) / res).astype(np.int64), 0, nw - 1)
+    tr = np.clip(np.floor((fy + s * wx + c * wy - y0) / res).astype(np.int64), 0, nh - 1)
+    out[tr, tc] = 100
+    return (x0, y0, res, nw, nh, out.tobytes())
 
 
 def extend_trail(trail: deque[tuple[float, float]], x: float, y: float) -> bool:
@@ -173,6 +219,7 @@ class FleetModel:
         """robot -> where its map's frame lies on the fleet map, for a robot mapping in its own frame
         (no UWB), as the fleet map service found it (site/fleetmap.py): its poses, goals and scans are
         drawn through it, and goals typed on the fleet map sent back through it (``to_robot``)."""
+        self._placed_grids: dict[str, tuple[Grid, tuple[float, float, float], Grid]] = {}
         self.routes: dict[str, Route] = {}
         """robot -> the round this console last sent it (drawn while the robot runs that order)."""
         self.zones: dict[str, tuple[tuple[float, float], ...]] = {}
@@ -321,6 +368,45 @@ class FleetModel:
             return x, y, theta
         rx, ry, rth = compose(inverse(frame), (x, y, theta or 0.0))
         return rx, ry, (math.remainder(rth, math.tau) if theta is not None else None)
+
+    def map_of(self, robot: str) -> Grid | None:
+        """``robot``'s map on the map drawn: as it shares it, or through its frame on the fleet map
+        while it maps in its own frame (``grid_through``, kept until the map or the frame changes).
+        None until its map arrives."""
+        grid = self.grids.get(robot)
+        frame = self._frame(robot)
+        if grid is None or frame is None:
+            return grid
+        held = self._placed_grids.get(robot)
+        if held is None or held[0] is not grid or held[1] != frame:
+            held = self._placed_grids[robot] = (grid, frame, grid_through(grid, frame))
+        return held[2]
+
+    def order_to_robot(self, robot: str, fields: Mapping[str, Any]) -> Mapping[str, Any]:
+        """An order's fields (``Order``'s: a round as the planner gives it) planned on the map drawn,
+        in ``robot``'s own map frame: its goal, its nodes and its edges' trajectories (``to_robot``)."""
+        if self._frame(robot) is None:
+            return fields
+
+        def node(n: OrderNode) -> OrderNode:
+            x, y, theta = self.to_robot(robot, n.x, n.y, n.theta)
+            return replace(n, x=x, y=y, theta=theta)
+
+        def edge(e: OrderEdge) -> OrderEdge:
+            if e.trajectory is None:
+                return e
+            points = tuple(replace(p, x=x, y=y) for p in e.trajectory.controlPoints
+                           for x, y, _ in (self.to_robot(robot, p.x, p.y),))  # fmt: skip
+            return replace(e, trajectory=replace(e.trajectory, controlPoints=points))
+
+        out = dict(fields)
+        goal: Goal | None = out.get("goal")
+        if goal is not None:
+            x, y, theta = self.to_robot(robot, goal.x, goal.y, goal.theta)
+            out["goal"] = replace(goal, x=x, y=y, theta=theta)
+        out["nodes"] = tuple(node(n) for n in out.get("nodes", ()))
+        out["edges"] = tuple(edge(e) for e in out.get("edges", ()))
+        return out
 
     @staticmethod
     def _trail(view: RobotView, x: float, y: float) -> None:

@@ -16,7 +16,7 @@ from textual.widgets import Input, RichLog
 from fleetlink.cli.console import load_settings
 from fleetlink.operator.commands import CommandError, RoundAction, StartRound, parse_command
 from fleetlink.operator.detail import RobotDetail, detail_text
-from fleetlink.operator.fleet import FleetModel
+from fleetlink.operator.fleet import FleetModel, grid_through
 from fleetlink.operator.maprender import ROUTE_DONE_STYLE, ROUTE_STYLE, ZONE_STYLE
 from fleetlink.operator.mapview import MapView
 from fleetlink.operator.rounds import DEFAULT_LAMP, PolyArea, RectArea, RoomArea
@@ -24,11 +24,14 @@ from fleetlink.shared import wire
 from fleetlink.shared.clock import SimClock
 from fleetlink.shared.config import ConfigError
 from fleetlink.shared.dose import Lamp
+from fleetlink.shared.geometry import components
 from fleetlink.shared.messages import ActionType, Goal, Lease, Order, OrderProgress
+from fleetlink.shared.se2 import compose, inverse
 from tests.harness.console_rig import Rig
 from tests.harness.messages import state
 from tests.test_console import run_async, screen_text, settle, with_robots
 from tests.test_console_sortie import actions, sent
+from tests.test_fleetmap import undo
 
 # -- parsing ------------------------------------------------------------------------------------
 
@@ -324,6 +327,70 @@ async def test_a_robot_without_a_pose_or_a_map_or_whose_lease_is_anothers_gets_n
         await command(pilot, "sweep room 0 0")
         assert await until(pilot, lambda: "r1: control lease held by op-other" in notices(rig))
         assert orders(rig) == []
+
+
+def test_a_grid_through_a_frame_keeps_its_walls_whole_and_where_they_were() -> None:
+    frame = (2.0, -1.0, math.radians(37.0))
+    ox, oy, res, w, h, data = grid_through(room_grid(), frame)
+    cells = np.frombuffer(data, dtype=np.uint8).reshape(h, w)
+    assert (ox - 0.0) / res == pytest.approx(round(ox / res))  # on the lattice the room was on
+    walls = cells == 100
+    assert len(components(walls)) == 1  # the four walls, unbroken at 37 degrees
+    rows, cols = np.nonzero(walls)
+    back = undo(frame, np.column_stack((ox + (cols + 0.5) * res, oy + (rows + 0.5) * res)))
+    x0, y0 = ORIGIN[0] + RES / 2, ORIGIN[1] + RES / 2  # the room's wall cells' centres
+    x1, y1 = x0 + 31 * RES, y0 + 25 * RES
+    to_wall = np.minimum(
+        np.minimum(abs(back[:, 0] - x0), abs(back[:, 0] - x1)), np.minimum(abs(back[:, 1] - y0), abs(back[:, 1] - y1))
+    )
+    assert float(to_wall.max()) <= res  # every wall cell lies on the room's walls, to a cell
+    assert np.count_nonzero(cells == 0) == pytest.approx(30 * 24, rel=0.05)  # the floor, as much of it
+
+
+@run_async
+async def test_a_robot_in_its_own_frame_sweeps_a_room_drawn_on_the_fleet_map(rig: Rig) -> None:
+    """A robot without UWB maps and reports in its own frame; the fleet map found that frame. A
+    sweep of a room drawn on the fleet map is planned there, on its map put through the frame, and
+    sent in its own frame. Until the fleet map has found it, and for a UV round (no site position,
+    no dose on the floor), nothing is sent and the console says why."""
+    frame = (2.0, -1.0, 0.7)  # where r1's own frame lies on the fleet map
+    own = compose(inverse(frame), (0.0, 0.0, 0.0))  # it stands at (0, 0) of the fleet map
+    rig.unplaced.add("r1")
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        rig.voices["r1"] = (own[0], own[1])
+        assert await until(
+            pilot, lambda: rig.fleet.robots.get("r1") is not None and rig.fleet.robots["r1"].in_own_frame
+        )
+        with rig.lock:
+            rig.fleet.set_grid("r1", grid_through(room_grid(), inverse(frame)))  # its map, in its frame
+            rig.fleet.set_frames({}, ["r1"])
+        await command(pilot, "sweep rect -0.6 -0.6 1.7 1.1 with r1")
+        assert await until(pilot, lambda: "r1 maps in its own frame and is not on the fleet map yet" in notices(rig))
+        with rig.lock:
+            rig.fleet.set_frames({"r1": frame})
+        assert await until(pilot, lambda: math.hypot(*rig.fleet.robots["r1"].pose[:2]) < 1e-6)  # type: ignore[index]
+        await command(pilot, "disinfect rect -0.6 -0.6 1.7 1.1 with r1")
+        assert await until(pilot, lambda: "r1 has no site position (no UWB)" in notices(rig))
+        await command(pilot, "sweep rect -0.6 -0.6 1.7 1.1 with r1")
+        got = await until(pilot, lambda: orders(rig))
+        assert got, notices(rig)
+        (order,) = got
+        nodes = np.array([(n.x, n.y) for n in order.nodes])
+        assert nodes[0] == pytest.approx(own[:2], abs=1e-6)  # where it stands, as it reports it
+        on_map = undo(inverse(frame), nodes)  # its own frame's nodes where the fleet map has them
+        assert len(nodes) > 4 and on_map[1:].min(axis=0).tolist() >= [-0.75, -0.75]
+        assert on_map[1:].max(axis=0).tolist() <= [1.85, 1.25]  # in the rectangle, lanes 0.15 m in
+        way = undo(
+            inverse(frame),
+            np.array([(p.x, p.y) for e in order.edges if e.trajectory for p in e.trajectory.controlPoints]),
+        )
+        assert len(way) and way.min(axis=0).tolist() >= [-0.9, -0.9] and way.max(axis=0).tolist() <= [2.1, 1.5]
+        with rig.lock:  # the round is drawn where it was planned: on the fleet map
+            route = rig.fleet.routes["r1"]
+        assert route[0] == order.orderId and (route[1][1][0], route[1][1][1]) == pytest.approx(
+            tuple(on_map[1]), abs=1e-6
+        )
 
 
 @run_async

@@ -20,7 +20,7 @@ from fleetlink.operator.linkmanager import LinkPolicy
 from fleetlink.operator.links import OperatorLink
 from fleetlink.shared import wire
 from fleetlink.shared.clock import Clock, SystemClock
-from fleetlink.shared.messages import Ack, AckResult, InstantActions, LinkName, Order, Pose, Teleop
+from fleetlink.shared.messages import UNKNOWN_SD_M, Ack, AckResult, InstantActions, LinkName, Order, Pose, Teleop
 from fleetlink.site.rounds import plan_round
 
 __all__ = ["CALM", "ME", "PROMPT", "MemoryTransport", "Rig"]
@@ -123,6 +123,8 @@ class Rig:
         self.agents: dict[str, wire.HeaderCounter] = {}
         self.zenoh.responder = self.mqtt.responder = self._ack
         self.voices: dict[str, tuple[float, float]] = {}
+        self.unplaced: set[str] = set()
+        """Robots whose voices say their position is unknown (no UWB: they map in their own frames)."""
         """Robots that keep talking (pose at 20 Hz) on ``self.up`` links, like a live agent."""
         self.up: tuple[str, ...] = ("zenoh", "mqtt")
         self._stop = threading.Event()
@@ -153,7 +155,7 @@ class Rig:
     def _talk(self) -> None:
         while not self._stop.wait(0.05):
             for robot, (x, y) in list(self.voices.items()):
-                self.pose(robot, x, y, links=self.up)
+                self.pose(robot, x, y, links=self.up, sd_m=UNKNOWN_SD_M if robot in self.unplaced else 0.05)
 
     def counter(self, robot: str) -> wire.HeaderCounter:
         if robot not in self.agents:
@@ -172,10 +174,16 @@ class Rig:
         return found[-1]
 
     def pose(
-        self, robot: str, x: float, y: float, theta: float = 0.0, links: tuple[str, ...] = ("zenoh", "mqtt")
+        self,
+        robot: str,
+        x: float,
+        y: float,
+        theta: float = 0.0,
+        links: tuple[str, ...] = ("zenoh", "mqtt"),
+        sd_m: float = 0.05,
     ) -> None:
         msg = self.counter(robot).make(
-            Pose, x=x, y=y, theta=theta, sd_x_m=0.05, sd_y_m=0.05, sd_theta_rad=0.01, odom_x=x, odom_y=y,
+            Pose, x=x, y=y, theta=theta, sd_x_m=sd_m, sd_y_m=sd_m, sd_theta_rad=0.01, odom_x=x, odom_y=y,
             odom_theta=theta, vx=0.0, omega=0.0, uwbStale=False,
         )  # fmt: skip
         for link in links:
