@@ -26,14 +26,14 @@ import numpy as np
 import pytest
 
 from fleetlink.agent.mapping.keeper import MapKeeper
-from fleetlink.agent.mapping.relations import align_se2, transform_xy
+from fleetlink.agent.mapping.relations import transform_xy
 from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.agent.mapping.worker import DeferredKeeper
-from fleetlink.field.plans import nearest_segment_distances
 from fleetlink.field.scenario import load_scenario
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.se2 import relative
 from fleetlink.site.lockstep import MissionResult, MissionRun
+from tests.harness.scoring import aligned_rmse, wall_distances
 
 # Each patrol's tests on one worker (its module-scoped run once there), the two patrols on two.
 WITH_UWB = pytest.mark.xdist_group("expo_patrol")
@@ -130,9 +130,7 @@ def test_the_map_and_the_pose_in_it_are_where_the_truth_has_them(patrol: Patrol)
     # The map served to the console: its occupied cells against the plan's walls (5 cm cells on the
     # plan's lattice). Measured median 0.05 m, mean 0.056 m.
     m = patrol.map
-    rows, cols = np.nonzero(m.cells >= 65)
-    pts = np.column_stack((m.origin[0] + (cols + 0.5) * m.resolution, m.origin[1] + (rows + 0.5) * m.resolution))
-    d = nearest_segment_distances(pts, patrol.segments)
+    d = wall_distances(m.cells, m.origin, m.resolution, patrol.segments)
     assert len(d) > 5000  # the hall's walls, its pillars, the stage and the stands
     assert float(np.median(d)) <= 0.05 and float(d.mean()) < 0.07, (float(np.median(d)), float(d.mean()))
 
@@ -153,10 +151,8 @@ def test_without_uwb_the_map_holds_together_in_its_own_frame_and_the_robot_drive
     truth = [p.truth_at(t) for t, _ in traj]
     # Consistent: after the one best rigid transform, the map's poses of the robot are where the truth
     # has them (measured 0.021 m RMSE; 3.2 m before the map was built in its own frame) ...
-    tf = align_se2(est, truth)
-    xy = transform_xy(tf, np.array([q[:2] for q in est]))
-    err = np.hypot(xy[:, 0] - [q[0] for q in truth], xy[:, 1] - [q[1] for q in truth])
-    assert math.sqrt(float(np.mean(err**2))) <= 0.05
+    rmse, tf = aligned_rmse(est, truth)
+    assert rmse <= 0.05, rmse
     # ... and the frame is the one it started in (measured 0.24 m RMSE from the start's over the hall:
     # the map turned a fraction of a degree while its first metres were all it had).
     own = transform_xy(p.start, np.array([q[:2] for q in est]))
@@ -164,9 +160,7 @@ def test_without_uwb_the_map_holds_together_in_its_own_frame_and_the_robot_drive
     assert math.sqrt(float(np.mean(drift**2))) <= 0.5
     # The map served to the console, moved by the same transform onto the plan: walls on its walls.
     m = p.map
-    rows, cols = np.nonzero(m.cells >= 65)
-    cells = np.column_stack((m.origin[0] + (cols + 0.5) * m.resolution, m.origin[1] + (rows + 0.5) * m.resolution))
-    d = nearest_segment_distances(transform_xy(tf, cells), p.segments)
+    d = wall_distances(m.cells, m.origin, m.resolution, p.segments, tf)
     assert len(d) > 5000
     assert float(np.median(d)) <= 0.06 and float(d.mean()) < 0.08, (float(np.median(d)), float(d.mean()))
     # The pose the robot publishes (and drives on) is its map's: at the end of the run, on the map's

@@ -14,7 +14,6 @@ its frame were the site's) is the baseline: its two trajectories cannot be align
 
 from __future__ import annotations
 
-import math
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,10 +22,8 @@ import numpy as np
 import pytest
 
 from fleetlink.agent.mapping.fleetmap import FleetResult
-from fleetlink.agent.mapping.relations import align_se2, transform_xy
 from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.agent.mapping.worker import DeferredKeeper
-from fleetlink.field.plans import nearest_segment_distances
 from fleetlink.field.scenario import load_scenario
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.maps import MapFollower
@@ -35,6 +32,7 @@ from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.se2 import Pose, compose
 from fleetlink.site.fleetmap import FleetMapService
 from fleetlink.site.lockstep import MissionResult, MissionRun
+from tests.harness.scoring import aligned_rmse, wall_distances
 
 TEAM = Path(__file__).resolve().parents[1] / "field" / "scenarios" / "expo-dark-team.toml"
 RUN_S = 200.0
@@ -116,23 +114,14 @@ def _on_fleet_map(team: Team, frames: dict[str, Pose]) -> tuple[list[Pose], list
 
 
 def test_both_robots_and_the_walls_are_where_the_truth_has_them_up_to_one_motion(team: Team) -> None:
-    est, ref = _on_fleet_map(team, team.fleet.frames)
-    tf = align_se2(est, ref)
-    xy = transform_xy(tf, np.array([p[:2] for p in est]))
-    err = np.hypot(xy[:, 0] - np.array([q[0] for q in ref]), xy[:, 1] - np.array([q[1] for q in ref]))
-    rmse = math.sqrt(float(np.mean(err**2)))
+    rmse, tf = aligned_rmse(*_on_fleet_map(team, team.fleet.frames))
     assert rmse <= 0.05, rmse
     # The overlay before: both maps drawn as if their frames were one (each robot's own frame is where
     # it started; they began 2 m and 50 degrees apart).
-    est0, ref0 = _on_fleet_map(team, {"scout-1": (0.0, 0.0, 0.0), "scout-2": (0.0, 0.0, 0.0)})
-    tf0 = align_se2(est0, ref0)
-    xy0 = transform_xy(tf0, np.array([p[:2] for p in est0]))
-    err0 = np.hypot(xy0[:, 0] - np.array([q[0] for q in ref0]), xy0[:, 1] - np.array([q[1] for q in ref0]))
-    assert math.sqrt(float(np.mean(err0**2))) > 20 * rmse
+    overlay, _ = aligned_rmse(*_on_fleet_map(team, {"scout-1": (0.0, 0.0, 0.0), "scout-2": (0.0, 0.0, 0.0)}))
+    assert overlay > 20 * rmse
     # The fleet map's walls, through the same motion, against the plan's.
     m = team.fleet
-    rows, cols = np.nonzero(m.cells >= 65)
-    pts = np.column_stack((m.origin[0] + (cols + 0.5) * m.resolution, m.origin[1] + (rows + 0.5) * m.resolution))
-    d = nearest_segment_distances(transform_xy(tf, pts), team.segments)
+    d = wall_distances(m.cells, m.origin, m.resolution, team.segments, tf)
     assert len(d) > 3000
     assert float(np.median(d)) <= 0.05 and float(d.mean()) < 0.08, (float(np.median(d)), float(d.mean()))

@@ -10,6 +10,7 @@ import pytest
 from fleetlink.agent.mapping.fleetmap import FleetMap, FleetMapConfig, RobotMap, Submap
 from fleetlink.field.plans import nearest_segment_distances
 from fleetlink.shared.se2 import Pose, compose, inverse
+from tests.harness.scoring import wall_points as walls_of
 
 RES = 0.05
 
@@ -67,11 +68,6 @@ def robot_map(
     ok = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
     cells[rows[ok], cols[ok]] = 100
     return RobotMap(cells, RES, (ox, oy), version)
-
-
-def walls_of(cells: np.ndarray, origin: tuple[float, float], res: float) -> np.ndarray:
-    rows, cols = np.nonzero(cells == 100)
-    return np.column_stack((origin[0] + (cols + 0.5) * res, origin[1] + (rows + 0.5) * res))
 
 
 def undo(correction: Pose, points: np.ndarray) -> np.ndarray:

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from fleetlink.agent.mapping.share import fetch_map
-from fleetlink.field.plans import nearest_segment_distances
 from fleetlink.field.scenario import load_scenario
 from fleetlink.operator.fleet import FleetModel
 from fleetlink.operator.maps import MapFollower
@@ -19,15 +18,9 @@ from fleetlink.shared.clock import SimClock
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.site.fleetmap import FleetMapService
 from fleetlink.site.lockstep import MissionRun
+from tests.harness.scoring import wall_distances
 
 DEMO = Path(__file__).resolve().parents[1] / "field" / "scenarios" / "demo.toml"
-
-
-def wall_distances(m: SharedMap, segs: np.ndarray) -> np.ndarray:
-    """Each occupied cell's distance to the plan's nearest wall or obstacle edge."""
-    rows, cols = np.nonzero(m.cells >= 65)
-    pts = np.column_stack((m.origin[0] + (cols + 0.5) * m.resolution, m.origin[1] + (rows + 0.5) * m.resolution))
-    return nearest_segment_distances(pts, segs)
 
 
 @pytest.mark.slow
@@ -51,14 +44,15 @@ def test_two_wandering_robots_draw_the_apartments_walls_where_the_plan_has_them(
     for robot in snaps:  # every robot's map merged from its submaps, not whole
         assert len(result.piece_corrections[robot]) > 5 and -1 not in result.piece_corrections[robot], robot
     assert {(r.a, r.b) for r in result.registrations} == {("uvc-1", "uvc-2"), ("uvc-2", "uvc-1")}
-    fleet = wall_distances(SharedMap(result.cells, result.resolution, result.origin, result.version), segs)
+    fleet = wall_distances(result.cells, result.origin, result.resolution, segs)
     assert float(np.median(fleet)) <= 0.05 and float(fleet.mean()) < 0.06, (
         float(np.median(fleet)),
         float(fleet.mean()),
     )
     for robot, snap in snaps.items():
         assert snap is not None, robot
-        d = wall_distances(SharedMap.from_snapshot(snap), segs)
+        m = SharedMap.from_snapshot(snap)
+        d = wall_distances(m.cells, m.origin, m.resolution, segs)
         assert len(d) > 1000, robot  # rooms' worth of walls
         # Measured 0.045 and 0.036 m (mean); with each turn at the pose of its stamp, a turn after
         # it began, 0.070 and 0.183 m: walls seen while turning drawn two or three times, fanned out.
