@@ -1311,36 +1311,10 @@ class ConsoleApp(App[None]):
         if self.planning is not None:
             self.notice("warning", f"still planning {describe_area(self.planning.area)}: {what} not planned")
             return False
-        starts: dict[str, tuple[float, float]] = {}
-        grids = []
-        trails: list[tuple[tuple[float, float], ...]] = []
-        problem = ""
         with self.lock:
             target = self.target_for(robots) if command.target_mj_cm2 is None else j_m2(command.target_mj_cm2)
-            for robot in robots:
-                view = self.fleet.robots.get(robot)
-                if view is None:
-                    known = ", ".join(sorted(self.fleet.robots)) or "none yet"
-                    problem = f"unknown robot {robot!r} (known: {known})"
-                    break
-                ok, reason = self.fleet.may_drive(robot)
-                if not ok:
-                    problem = reason
-                    break
-                if view.lost or view.pose is None:
-                    problem = f"{robot}: {'lost, its last pose is stale' if view.lost else 'no fused pose yet'}"
-                    break
-                if view.in_own_frame and view.off_fleet_map:
-                    problem = f"{robot} maps in its own frame and is not on the fleet map yet (its detail says why)"
-                    break
-                if view.in_own_frame and command.kind == "uv":
-                    problem = f"{robot} has no site position (no UWB): its lamp's dose could not be placed on the floor"
-                    break
-                starts[robot] = (view.pose[0], view.pose[1])
-                grid = self.fleet.map_of(robot)  # on the fleet map: through its frame if in its own
-                if grid is not None:
-                    grids.append(grid)
-                    trails.append(tuple(view.trail))  # its body, where another's map saw it, is no wall
+            floor = self.fleet.round_floor(robots, command.kind)
+        problem, (starts, grids, trails) = (floor, ({}, [], [])) if isinstance(floor, str) else ("", floor)
         request = RoundRequest(
             "uv" if command.kind == "uv" else "sweep", command.area, robots, target, surveys, looked_from
         )

@@ -369,6 +369,36 @@ class FleetModel:
         rx, ry, rth = compose(inverse(frame), (x, y, theta or 0.0))
         return rx, ry, (math.remainder(rth, math.tau) if theta is not None else None)
 
+    def round_floor(
+        self, robots: Iterable[str], kind: str
+    ) -> tuple[dict[str, tuple[float, float]], list[Grid], list[tuple[tuple[float, float], ...]]] | str:
+        """What a round (``kind`` "uv" or "sweep") of ``robots`` is planned from, on the map drawn:
+        where each stands, the maps it is planned on (each robot's, through its frame if it maps in its
+        own: ``map_of``) and each map's robot's trail (its body, where another's map saw it, is no
+        wall: ``operator/rounds.py`` ``floor_of``); or why the round cannot be planned for them."""
+        starts: dict[str, tuple[float, float]] = {}
+        grids: list[Grid] = []
+        trails: list[tuple[tuple[float, float], ...]] = []
+        for robot in robots:
+            view = self.robots.get(robot)
+            if view is None:
+                return f"unknown robot {robot!r} (known: {', '.join(sorted(self.robots)) or 'none yet'})"
+            ok, reason = self.may_drive(robot)
+            if not ok:
+                return reason
+            if view.lost or view.pose is None:
+                return f"{robot}: {'lost, its last pose is stale' if view.lost else 'no fused pose yet'}"
+            if view.in_own_frame and view.off_fleet_map:
+                return f"{robot} maps in its own frame and is not on the fleet map yet (its detail says why)"
+            if view.in_own_frame and kind == "uv":
+                return f"{robot} has no site position (no UWB): its lamp's dose could not be placed on the floor"
+            starts[robot] = (view.pose[0], view.pose[1])
+            grid = self.map_of(robot)
+            if grid is not None:
+                grids.append(grid)
+                trails.append(tuple(view.trail))
+        return starts, grids, trails
+
     def map_of(self, robot: str) -> Grid | None:
         """``robot``'s map on the map drawn: as it shares it, or through its frame on the fleet map
         while it maps in its own frame (``grid_through``, kept until the map or the frame changes).

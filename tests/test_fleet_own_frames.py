@@ -22,16 +22,19 @@ import numpy as np
 import pytest
 
 from fleetlink.agent.mapping.fleetmap import FleetResult
+from fleetlink.agent.mapping.relations import transform_xy
 from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.agent.mapping.worker import DeferredKeeper
 from fleetlink.field.scenario import load_scenario
 from fleetlink.operator.fleet import FleetModel
-from fleetlink.operator.maps import MapFollower
+from fleetlink.operator.maps import MapFollower, to_grid
+from fleetlink.operator.rounds import DEFAULT_LAMP, RectArea, RoundRequest, floor_of
 from fleetlink.shared.clock import SimClock
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.se2 import Pose, compose
 from fleetlink.site.fleetmap import FleetMapService
 from fleetlink.site.lockstep import MissionResult, MissionRun
+from fleetlink.site.rounds import plan_round
 from tests.harness.scoring import aligned_rmse, wall_distances
 
 TEAM = Path(__file__).resolve().parents[1] / "field" / "scenarios" / "expo-dark-team.toml"
@@ -82,6 +85,9 @@ def team() -> Team:
         while service.step() and builds < 10:
             builds += 1
         assert service.result is not None
+        for r in run.robots:  # and what the console holds of each robot: its map, its last pose
+            model.set_grid(r.name, to_grid(follower.maps[r.name]))
+            model.apply(result.poses[r.name], "zenoh", result.field.sim_seconds)
         return Team(result, service.result, model, trajectories, run.plan.segments())
 
 
@@ -125,3 +131,35 @@ def test_both_robots_and_the_walls_are_where_the_truth_has_them_up_to_one_motion
     d = wall_distances(m.cells, m.origin, m.resolution, team.segments, tf)
     assert len(d) > 3000
     assert float(np.median(d)) <= 0.05 and float(d.mean()) < 0.08, (float(np.median(d)), float(d.mean()))
+
+
+def test_a_sweep_drawn_on_the_fleet_map_is_sent_where_it_lies_in_the_hall(team: Team) -> None:
+    """The operator draws a sweep round scout-2 on the fleet map (scout-1's frame). The console plans
+    it on scout-2's map put through its frame and sends it back through that frame, in scout-2's own:
+    each node, where scout-2 will drive to it (its own frame on the truth), is where the operator drew
+    it (the fleet map on the truth). Sent as planned, it would be metres off."""
+    model = team.model
+    view = model.robots["scout-2"]
+    assert view.in_own_frame and view.pose is not None and not view.off_fleet_map
+    x, y = view.pose[:2]
+    area = RectArea(x - 1.5, y - 1.5, x + 1.5, y + 1.5)
+    floor = model.round_floor(("scout-2",), "sweep")
+    assert not isinstance(floor, str), floor
+    starts, grids, trails = floor
+    cells, res, origin = floor_of(grids, trails)
+    plan = plan_round(RoundRequest("sweep", area, ("scout-2",)), cells, res, origin, starts, DEFAULT_LAMP)
+    (sweep,) = plan.rounds
+    planned = np.array([(n.x, n.y) for n in sweep.order["nodes"]])
+    sent = np.array([(n.x, n.y) for n in model.order_to_robot("scout-2", sweep.order)["nodes"]])
+    assert len(planned) >= 4
+    # Each frame onto the hall, by the truth: the fleet map's (both robots' trajectories on it) and
+    # scout-2's own (its trajectory as it mapped it).
+    _, fleet_on_truth = aligned_rmse(*_on_fleet_map(team, team.fleet.frames))
+    own = team.trajectories["scout-2"]
+    _, own_on_truth = aligned_rmse([p for _, p in own], [team.truth_at("scout-2", t) for t, _ in own])
+    drawn = transform_xy(fleet_on_truth, planned)
+    driven = transform_xy(own_on_truth, sent)
+    off = np.hypot(*(driven - drawn).T)
+    assert float(off.max()) <= 0.1, off  # measured 0.013 m at most (33 nodes): the frames agree
+    as_planned = np.hypot(*(transform_xy(own_on_truth, planned) - drawn).T)
+    assert float(as_planned.min()) > 1.0, as_planned  # measured 9.0 m at least
