@@ -343,6 +343,9 @@ class AgentCore:
         self._last_out: PilotOutput | None = None
         self._velocity = (0.0, 0.0)
         self.itinerary: Itinerary | None = None
+        self._replaced_by_itinerary: str | None = None
+        """The order the itinerary's own go-to replaced on the pilot (a goal still being driven): its
+        cancellation is the itinerary starting, not an interruption of it."""
         """The order with nodes being run (agent/itinerary.py), None without one."""
 
     # -- inputs ---------------------------------------------------------------------------------
@@ -800,6 +803,9 @@ class AgentCore:
                 return
             if isinstance(step, GoTo):
                 st = step.stop
+                held = self.pilot.order_id if self.pilot.state.has_route else None
+                if held is not None and held != it.order_id:
+                    self._replaced_by_itinerary = held
                 r = self.pilot.order(
                     now,
                     it.order_id,
@@ -839,7 +845,13 @@ class AgentCore:
         cancelled (hold: a stop, an e-stop, a teleop, the comms-loss policy took over)."""
         it = self.itinerary
         if it is None or not it.driving or ev.order_id != it.order_id:
-            if it is not None and it.driving and ev.kind is EventKind.GOAL_CANCELLED:
+            if (
+                ev.kind is EventKind.GOAL_CANCELLED
+                and ev.order_id is not None
+                and ev.order_id == self._replaced_by_itinerary
+            ):
+                self._replaced_by_itinerary = None  # the goal the itinerary's go-to replaced: it goes on
+            elif it is not None and it.driving and ev.kind is EventKind.GOAL_CANCELLED:
                 it.interrupted(now, ev.reason or "cancelled")  # replaced by return home or a retrace
             return
         if ev.kind is EventKind.GOAL_REACHED:

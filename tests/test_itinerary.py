@@ -286,6 +286,20 @@ def test_an_order_with_nodes_drives_each_node_switches_the_lamp_and_dwells_then_
     assert r.outcomes() == [("round-1", "finished")]
 
 
+def test_a_round_sent_while_a_goal_is_still_being_driven_replaces_it_and_runs_to_the_end() -> None:
+    # The goal it replaces ends "replaced" (the pilot's doing, on the round's first go-to): that is
+    # the round starting, not something that interrupts it (it once held the round, waiting).
+    r = Robot()
+    goal = r.send(Order, orderId="goal-1", orderUpdateId=0, goal=Goal(x=3.0, y=0.0, theta=None), returnHome=False)
+    assert goal.result is AckResult.ACCEPTED, goal.reason
+    r.run(1.0)
+    assert r.core.pilot.order_id == "goal-1"
+    r.send(Order, **order(ROUND))
+    r.run(30.0)
+    assert r.outcomes() == [("round-1", "finished")], (r.texts(), r.state().progress)
+    assert math.hypot(r.pose[0] - 1.0, r.pose[1] - 1.0) < 0.15
+
+
 def test_progress_says_which_node_was_reached_last_and_how_long_the_dwell_still_runs() -> None:
     r = Robot()
     r.send(Order, **order(ROUND))

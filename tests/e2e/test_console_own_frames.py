@@ -3,7 +3,8 @@ expo-dark-team``), real time, real agents. Each maps in its own frame. The test 
 scout-2's detail says it is not on the fleet map yet, and a goal sent to it then warns that it is in
 the robot's own frame; both scouts are driven into the hall; once their maps share enough of it the
 console's fleet map finds scout-2's frame (the detail line says nothing more about it), and a goal
-typed on the fleet map for scout-2 is reached there: where scout-1 stood after its first goal.
+typed on the fleet map for scout-2 is reached there: where scout-1 stood after its first goal; a
+sweep of a rectangle drawn there is run by scout-2 inside it.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ pytestmark = needs_tmux  # the console's e2e tests' rule: under CI it must run
 
 POSE = re.compile(r"(scout-\d) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
 OFF_MAP = "not on the fleet map yet"
+ROUND = re.compile(r"round sweep-scout-2-\S+: (\d+)/(\d+) nodes done")
 
 
 def shown_pose(session: str, robot: str) -> tuple[float, float] | None:
@@ -101,6 +103,22 @@ def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path:
             timeout=120,
             message="scout-2 at (6, 0) on the fleet map",
         )
+        # A sweep drawn on the fleet map: planned on scout-2's map through its frame, sent in its own.
+        command(session, "sweep rect 5 -1 7 1")
+        wait_until(
+            lambda: re.search(r"scout-2: sweep sent as order sweep-scout-2-\S+ \(\d+ nodes\)", screen(session)),
+            timeout=60,
+            message="scout-2's sweep sent",
+        )
+
+        def sweeping() -> bool:
+            text = screen(session)
+            done = ROUND.search(text)
+            p = shown_pose(session, "scout-2")
+            inside = p is not None and 4.7 <= p[0] <= 7.3 and -1.3 <= p[1] <= 1.3
+            return done is not None and int(done.group(1)) >= 3 and inside
+
+        wait_until(sweeping, timeout=120, message="scout-2 three nodes into its sweep, inside the rectangle")
         quit_field(session, pane_pid)
     except AssertionError as exc:
         shown = last_screen(session)
