@@ -343,10 +343,10 @@ class AgentCore:
         self._last_out: PilotOutput | None = None
         self._velocity = (0.0, 0.0)
         self.itinerary: Itinerary | None = None
+        """The order with nodes being run (agent/itinerary.py), None without one."""
         self._replaced_by_itinerary: str | None = None
         """The order the itinerary's own go-to replaced on the pilot (a goal still being driven): its
         cancellation is the itinerary starting, not an interruption of it."""
-        """The order with nodes being run (agent/itinerary.py), None without one."""
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -804,8 +804,6 @@ class AgentCore:
             if isinstance(step, GoTo):
                 st = step.stop
                 held = self.pilot.order_id if self.pilot.state.has_route else None
-                if held is not None and held != it.order_id:
-                    self._replaced_by_itinerary = held
                 r = self.pilot.order(
                     now,
                     it.order_id,
@@ -819,6 +817,8 @@ class AgentCore:
                     deviation=st.deviation,
                     trajectory=st.trajectory,
                 )
+                if r.accepted and held is not None and held != it.order_id:
+                    self._replaced_by_itinerary = held
                 if not r.accepted:
                     it.interrupted(now, r.reason[:64] or "refused")
                     self._itinerary_note(it, f"node {st.node_id}: {r.reason}; resume tries again", out)
@@ -963,7 +963,7 @@ class AgentCore:
         it = self.itinerary
         if it is None:
             return
-        self.itinerary = None
+        self.itinerary, self._replaced_by_itinerary = None, None
         if it.lamp:
             out.payload.append(PayloadRequest(False, None, it.sender, "uv"))
         if it.driving and self.pilot.order_id == it.order_id:

@@ -348,6 +348,9 @@ class ConsoleApp(App[None]):
         """The round being planned in a worker thread (one at a time)."""
         self._plan_dropped = False
         """``:cancel`` came while it was being planned: nothing is sent when it is ready."""
+        self._planned_frames: dict[str, tuple[float, float, float]] = {}
+        """The frames the round being planned was planned through (``RoundFloor.frames``): its orders
+        go out through them, and not at all if a robot's frame moved meanwhile."""
         self.survey: tuple[RoundRequest, dict[str, str], tuple[tuple[float, float], ...]] | None = None
         """A survey under way before a round: the request to plan again when every robot has
         finished its survey order, those orders' ids by robot, and where the survey looks from
@@ -1314,7 +1317,7 @@ class ConsoleApp(App[None]):
         with self.lock:
             target = self.target_for(robots) if command.target_mj_cm2 is None else j_m2(command.target_mj_cm2)
             floor = self.fleet.round_floor(robots, command.kind)
-        problem, (starts, grids, trails) = (floor, ({}, [], [])) if isinstance(floor, str) else ("", floor)
+        problem = floor if isinstance(floor, str) else ""
         request = RoundRequest(
             "uv" if command.kind == "uv" else "sweep", command.area, robots, target, surveys, looked_from
         )
@@ -1323,9 +1326,10 @@ class ConsoleApp(App[None]):
                 check_request(request)
             except RoundError as exc:
                 problem = str(exc)
-        if problem:
+        if problem or isinstance(floor, str):
             self.notice("warning", f"{what} not planned: {problem}")
             return False
+        self._planned_frames = floor.frames
         wall = self.clock.wall()
         ids = {robot: self.round_ids.next(request.kind, robot, wall) for robot in robots}
         planner, lamp = self.planner, self.lamp_for(robots)
@@ -1338,8 +1342,8 @@ class ConsoleApp(App[None]):
         def plan() -> None:  # in a worker thread: only the message goes back to the app
             result: RoundPlan | str
             try:
-                cells, resolution, origin = floor_of(grids, trails)
-                result = planner(request, cells, resolution, origin, starts, lamp, ids, prior)
+                cells, resolution, origin = floor_of(floor.grids(), floor.trails)
+                result = planner(request, cells, resolution, origin, floor.starts, lamp, ids, prior)
             except ValueError as exc:  # RoundError, or the planner's own reasons
                 result = str(exc)
             except Exception as exc:  # a planner bug must not leave the console planning forever
@@ -1380,8 +1384,10 @@ class ConsoleApp(App[None]):
             return
         if self.read_only:
             return
-        with self.lock:  # the lease may have moved while it was planned
+        frames = self._planned_frames
+        with self.lock:  # the lease may have moved while it was planned, and a robot's frame
             refusals = [why for ok, why in (self.fleet.may_drive(r.robot) for r in result.rounds) if not ok]
+            refusals += [why for r in result.rounds if (why := self.fleet.frame_moved(r.robot, frames.get(r.robot)))]
         if refusals:
             self.notice("warning", f"{what} not sent: {refusals[0]}")
             return
@@ -1391,9 +1397,7 @@ class ConsoleApp(App[None]):
             self.notice("warning", f"{robot} left out of the {what}: {why}")
         for r in result.rounds:
             try:  # planned on the map drawn: sent in the robot's own frame if it maps in one
-                with self.lock:
-                    order = self.fleet.order_to_robot(r.robot, r.order)
-                self.commander.order(r.robot, order)
+                self.commander.order(r.robot, self.fleet.order_through(frames.get(r.robot), r.order))
             except ValueError as exc:  # the wire refused it (a size, a range)
                 self.notice("warning", f"{r.robot}: {what} not sent: {exc}")
                 continue

@@ -53,6 +53,7 @@ __all__ = [
     "LeaseRenewal",
     "Notice",
     "RobotView",
+    "RoundFloor",
     "Route",
     "extend_trail",
     "grid_through",
@@ -119,6 +120,46 @@ class Notice:
     severity: str
     """info, warning or error."""
     text: str
+
+
+Frame = tuple[float, float, float]
+"""Where a robot's own map frame lies on the fleet map: (x, y, theta)."""
+
+
+def into_frame(
+    frame: Frame | None, x: float, y: float, theta: float | None = None
+) -> tuple[float, float, float | None]:
+    """A point (and heading, None: any) on the fleet map in the frame that lies at ``frame`` on it
+    (None: as it is)."""
+    if frame is None:
+        return x, y, theta
+    rx, ry, rth = compose(inverse(frame), (x, y, theta or 0.0))
+    return rx, ry, (math.remainder(rth, math.tau) if theta is not None else None)
+
+
+FRAME_MOVED_M = 0.1
+FRAME_MOVED_RAD = math.radians(2.0)
+"""A round planned through a robot's frame is not sent if the frame moved more than this meanwhile."""
+
+
+@dataclass(frozen=True, slots=True)
+class RoundFloor:
+    """What a round is planned from (``FleetModel.round_floor``), taken under the console's lock."""
+
+    starts: dict[str, tuple[float, float]]
+    """Where each robot stands on the map drawn."""
+    maps: tuple[tuple[Grid, Frame | None], ...]
+    """Each robot's map and where its frame lies on the fleet map (None: it is the site's)."""
+    trails: tuple[tuple[tuple[float, float], ...], ...]
+    """Each map's robot's trail on the map drawn."""
+    frames: dict[str, Frame]
+    """The robots that map and report in their own frames: each one's frame, as planned through;
+    its order goes out through it (``FleetModel.order_through``)."""
+
+    def grids(self) -> list[Grid]:
+        """The maps on the map drawn (``grid_through``: the planner's worker thread calls this, not
+        the UI)."""
+        return [grid if frame is None else grid_through(grid, frame) for grid, frame in self.maps]
 
 
 @dataclass(slots=True)
@@ -219,7 +260,6 @@ class FleetModel:
         """robot -> where its map's frame lies on the fleet map, for a robot mapping in its own frame
         (no UWB), as the fleet map service found it (site/fleetmap.py): its poses, goals and scans are
         drawn through it, and goals typed on the fleet map sent back through it (``to_robot``)."""
-        self._placed_grids: dict[str, tuple[Grid, tuple[float, float, float], Grid]] = {}
         self.routes: dict[str, Route] = {}
         """robot -> the round this console last sent it (drawn while the robot runs that order)."""
         self.zones: dict[str, tuple[tuple[float, float], ...]] = {}
@@ -363,22 +403,17 @@ class FleetModel:
 
     def to_robot(self, robot: str, x: float, y: float, theta: float | None = None) -> tuple[float, float, float | None]:
         """A point (and heading) on the map drawn, in ``robot``'s own map frame: what it is sent."""
-        frame = self._frame(robot)
-        if frame is None:
-            return x, y, theta
-        rx, ry, rth = compose(inverse(frame), (x, y, theta or 0.0))
-        return rx, ry, (math.remainder(rth, math.tau) if theta is not None else None)
+        return into_frame(self._frame(robot), x, y, theta)
 
-    def round_floor(
-        self, robots: Iterable[str], kind: str
-    ) -> tuple[dict[str, tuple[float, float]], list[Grid], list[tuple[tuple[float, float], ...]]] | str:
-        """What a round (``kind`` "uv" or "sweep") of ``robots`` is planned from, on the map drawn:
-        where each stands, the maps it is planned on (each robot's, through its frame if it maps in its
-        own: ``map_of``) and each map's robot's trail (its body, where another's map saw it, is no
-        wall: ``operator/rounds.py`` ``floor_of``); or why the round cannot be planned for them."""
+    def round_floor(self, robots: Iterable[str], kind: str) -> RoundFloor | str:
+        """What a round (``kind`` "uv" or "sweep") of ``robots`` is planned from, on the map drawn
+        (``RoundFloor``), or why the round cannot be planned for them. A robot that maps and reports
+        in its own frame is planned for through its frame on the fleet map, and refused until the
+        fleet map has found it (its map and the area drawn would not be in one frame)."""
         starts: dict[str, tuple[float, float]] = {}
-        grids: list[Grid] = []
+        maps: list[tuple[Grid, Frame | None]] = []
         trails: list[tuple[tuple[float, float], ...]] = []
+        frames: dict[str, Frame] = {}
         for robot in robots:
             view = self.robots.get(robot)
             if view is None:
@@ -393,46 +428,57 @@ class FleetModel:
             if view.in_own_frame and kind == "uv":
                 return f"{robot} has no site position (no UWB): its lamp's dose could not be placed on the floor"
             starts[robot] = (view.pose[0], view.pose[1])
-            grid = self.map_of(robot)
+            frame = self._frame(robot)
+            if frame is not None:
+                frames[robot] = frame
+            grid = self.grids.get(robot)
             if grid is not None:
-                grids.append(grid)
-                trails.append(tuple(view.trail))
-        return starts, grids, trails
+                # Its map through its frame whenever the fleet map has one for it: also for a robot
+                # with UWB whose map has not yet restarted in the site frame.
+                maps.append((grid, self.frames.get(robot)))
+                trails.append(tuple(view.trail))  # its body, where another's map saw it, is no wall
+        return RoundFloor(starts, tuple(maps), tuple(trails), frames)
 
-    def map_of(self, robot: str) -> Grid | None:
-        """``robot``'s map on the map drawn: as it shares it, or through its frame on the fleet map
-        while it maps in its own frame (``grid_through``, kept until the map or the frame changes).
-        None until its map arrives."""
-        grid = self.grids.get(robot)
-        frame = self._frame(robot)
-        if grid is None or frame is None:
-            return grid
-        held = self._placed_grids.get(robot)
-        if held is None or held[0] is not grid or held[1] != frame:
-            held = self._placed_grids[robot] = (grid, frame, grid_through(grid, frame))
-        return held[2]
+    def frame_moved(self, robot: str, planned: Frame | None) -> str:
+        """Why an order planned through ``planned`` (``RoundFloor.frames``) may not be sent to
+        ``robot`` now, or "": its frame on the fleet map moved (more than ``FRAME_MOVED_M`` or
+        ``FRAME_MOVED_RAD``), came or went while it was planned."""
+        now = self._frame(robot)
+        if now is None and planned is None:
+            return ""
+        if now is None or planned is None:
+            return f"{robot}'s frame on the fleet map {'came' if planned is None else 'went'} while it was planned"
+        d = compose(inverse(planned), now)
+        if math.hypot(d[0], d[1]) > FRAME_MOVED_M or abs(math.remainder(d[2], math.tau)) > FRAME_MOVED_RAD:
+            return f"{robot}'s frame on the fleet map moved {math.hypot(d[0], d[1]):.2f} m while it was planned"
+        return ""
 
-    def order_to_robot(self, robot: str, fields: Mapping[str, Any]) -> Mapping[str, Any]:
+    @staticmethod
+    def order_through(frame: Frame | None, fields: Mapping[str, Any]) -> Mapping[str, Any]:
         """An order's fields (``Order``'s: a round as the planner gives it) planned on the map drawn,
-        in ``robot``'s own map frame: its goal, its nodes and its edges' trajectories (``to_robot``)."""
-        if self._frame(robot) is None:
+        in the frame of a robot whose own frame lies at ``frame`` on it (None: as they are): its
+        goal, its nodes (headings too) and its edges' trajectories."""
+        if frame is None:
             return fields
 
+        def moved(x: float, y: float, theta: float | None) -> tuple[float, float, float | None]:
+            return into_frame(frame, x, y, theta)
+
         def node(n: OrderNode) -> OrderNode:
-            x, y, theta = self.to_robot(robot, n.x, n.y, n.theta)
+            x, y, theta = moved(n.x, n.y, n.theta)
             return replace(n, x=x, y=y, theta=theta)
 
         def edge(e: OrderEdge) -> OrderEdge:
             if e.trajectory is None:
                 return e
             points = tuple(replace(p, x=x, y=y) for p in e.trajectory.controlPoints
-                           for x, y, _ in (self.to_robot(robot, p.x, p.y),))  # fmt: skip
+                           for x, y, _ in (moved(p.x, p.y, None),))  # fmt: skip
             return replace(e, trajectory=replace(e.trajectory, controlPoints=points))
 
         out = dict(fields)
         goal: Goal | None = out.get("goal")
         if goal is not None:
-            x, y, theta = self.to_robot(robot, goal.x, goal.y, goal.theta)
+            x, y, theta = moved(goal.x, goal.y, goal.theta)
             out["goal"] = replace(goal, x=x, y=y, theta=theta)
         out["nodes"] = tuple(node(n) for n in out.get("nodes", ()))
         out["edges"] = tuple(edge(e) for e in out.get("edges", ()))

@@ -101,6 +101,7 @@ class FleetMapService:
         self._incomplete = False  # some robot's listed submaps are still being fetched: build again
         # Per robot: its map as last asked about (version, shape, origin) and the answer then.
         self._answered: dict[str, tuple[object, tuple[Submap, ...], bool]] = {}
+        self._site_frames: dict[str, bool] = {}  # each robot's map frame as its list last said
         self._frame_states: dict[str, tuple[str, str]] = {}  # per robot: what was last logged of its frame
 
     def step(self) -> bool:
@@ -121,6 +122,8 @@ class FleetMapService:
             del self._submaps[robot]
         for robot in set(self._answered) - set(copies):
             del self._answered[robot]
+        for robot in set(self._site_frames) - set(copies):
+            del self._site_frames[robot]
         self._incomplete = False
         for robot, m in copies.items():
             try:
@@ -156,7 +159,8 @@ class FleetMapService:
     def _fetch(self, robot: str, m: SharedMap) -> tuple[tuple[Submap, ...], bool]:
         """``robot``'s submaps at the poses its graph gives them now, once every listed one is held;
         () until then, and when it lists none (its map is then merged whole); and whether its map is
-        in the site frame, as its list says (a robot that lists nothing is taken to be). Only the
+        in the site frame, as its list says (a robot that does not answer, as it last said; the site's
+        if it never did). Only the
         submaps whose version is not held are fetched, at most ``FETCH_PER_BUILD`` a build. Bad
         replies are left out, counted and logged once per robot and reason; a link that fails
         leaves the map whole."""
@@ -172,9 +176,13 @@ class FleetMapService:
             listing = fetch_submaps(self.query, robot, QUERY_TIMEOUT_S)
         except Exception as exc:  # one robot's failed query must not stop the build for the others
             self._log_once(robot, "list", f"its submap list could not be asked for: {exc}")
-            return (), True
+            return (), self._site_frames.get(robot, True)
+        if listing is not None:
+            self._site_frames[robot] = listing.site_frame
         if listing is None or not listing.submaps:
-            site_frame = listing is None or listing.site_frame
+            # No answer (lost, or an agent that predates the list): its frame as last heard, the
+            # site's if never; an empty list (loop closure off) says it.
+            site_frame = self._site_frames.get(robot, True)
             self._answered[robot] = (seen, (), site_frame)
             return (), site_frame
         h, w = m.cells.shape

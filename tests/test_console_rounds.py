@@ -25,7 +25,7 @@ from fleetlink.shared.clock import SimClock
 from fleetlink.shared.config import ConfigError
 from fleetlink.shared.dose import Lamp
 from fleetlink.shared.geometry import components
-from fleetlink.shared.messages import ActionType, Goal, Lease, Order, OrderProgress
+from fleetlink.shared.messages import ActionType, Goal, Lease, Order, OrderEdge, OrderNode, OrderProgress, Trajectory
 from fleetlink.shared.se2 import compose, inverse
 from tests.harness.console_rig import Rig
 from tests.harness.messages import state
@@ -126,6 +126,11 @@ def test_a_round_between_two_nodes_is_not_said_to_be_finished() -> None:
 
 
 # -- the console --------------------------------------------------------------------------------
+
+
+def node_at(i: int, x: float, y: float, theta: float | None) -> OrderNode:
+    return OrderNode(nodeId=f"n{i}", sequenceId=2 * i, released=True, x=x, y=y, theta=theta)
+
 
 RES = 0.1
 ORIGIN = (-1.0, -1.0)
@@ -391,6 +396,61 @@ async def test_a_robot_in_its_own_frame_sweeps_a_room_drawn_on_the_fleet_map(rig
         assert route[0] == order.orderId and (route[1][1][0], route[1][1][1]) == pytest.approx(
             tuple(on_map[1]), abs=1e-6
         )
+
+
+@run_async
+async def test_a_round_whose_robot_s_frame_moved_while_it_was_planned_is_not_sent(rig: Rig) -> None:
+    frame = (2.0, -1.0, 0.7)
+    own = compose(inverse(frame), (0.0, 0.0, 0.0))
+    rig.unplaced.add("r1")
+    planner = rig.app.planner
+    assert planner is not None
+
+    def moving(*args: Any) -> Any:  # the fleet map moves r1's frame while the round is planned
+        with rig.lock:
+            rig.fleet.set_frames({"r1": (2.5, -1.0, 0.7)})
+        return planner(*args)
+
+    async with rig.app.run_test(size=(140, 44)) as pilot:
+        await with_robots(rig, pilot, "r1")
+        rig.voices["r1"] = (own[0], own[1])
+        assert await until(
+            pilot, lambda: rig.fleet.robots.get("r1") is not None and rig.fleet.robots["r1"].in_own_frame
+        )
+        with rig.lock:
+            rig.fleet.set_grid("r1", grid_through(room_grid(), inverse(frame)))
+            rig.fleet.set_frames({"r1": frame})
+        rig.app.planner = moving
+        await command(pilot, "sweep rect -0.6 -0.6 1.7 1.1 with r1")
+        said = "sweep not sent: r1's frame on the fleet map moved 0.50 m while it was planned"
+        assert await until(pilot, lambda: said in notices(rig)), notices(rig)
+        await settle(pilot, 0.3)
+        assert orders(rig) == []
+
+
+def test_an_order_through_a_frame_moves_its_nodes_headings_and_trajectories() -> None:
+    frame = (1.0, 2.0, 0.7)
+    nodes = (node_at(0, 3.0, 2.0, None), node_at(1, 1.0, 4.0, 0.5))
+    way = Trajectory.polyline(((3.0, 2.0), (2.0, 3.0), (1.0, 4.0)))
+    e = OrderEdge(edgeId="e0", sequenceId=1, startNodeId="n0", endNodeId="n1", released=True, trajectory=way)
+    fields = {
+        "orderId": "sweep-r1-1",
+        "orderUpdateId": 0,
+        "goal": None,
+        "returnHome": False,
+        "nodes": nodes,
+        "edges": (e,),
+    }
+    sent = FleetModel.order_through(frame, fields)
+    assert FleetModel.order_through(None, fields) is fields  # in the site frame: as planned
+    for planned, got in zip(nodes, sent["nodes"], strict=True):
+        back = compose(frame, (got.x, got.y, got.theta or 0.0))
+        assert back[:2] == pytest.approx((planned.x, planned.y), abs=1e-9)
+        assert (got.theta is None) == (planned.theta is None)
+    assert sent["nodes"][1].theta == pytest.approx(0.5 - 0.7)
+    points = [(p.x, p.y) for p in sent["edges"][0].trajectory.controlPoints]
+    assert undo(inverse(frame), np.array(points)) == pytest.approx(np.array([(3.0, 2.0), (2.0, 3.0), (1.0, 4.0)]))
+    assert sent["edges"][0].trajectory.knotVector == way.knotVector
 
 
 @run_async

@@ -145,12 +145,11 @@ def test_a_sweep_drawn_on_the_fleet_map_is_sent_where_it_lies_in_the_hall(team: 
     area = RectArea(x - 1.5, y - 1.5, x + 1.5, y + 1.5)
     floor = model.round_floor(("scout-2",), "sweep")
     assert not isinstance(floor, str), floor
-    starts, grids, trails = floor
-    cells, res, origin = floor_of(grids, trails)
-    plan = plan_round(RoundRequest("sweep", area, ("scout-2",)), cells, res, origin, starts, DEFAULT_LAMP)
+    cells, res, origin = floor_of(floor.grids(), floor.trails)
+    plan = plan_round(RoundRequest("sweep", area, ("scout-2",)), cells, res, origin, floor.starts, DEFAULT_LAMP)
     (sweep,) = plan.rounds
     planned = np.array([(n.x, n.y) for n in sweep.order["nodes"]])
-    sent = np.array([(n.x, n.y) for n in model.order_to_robot("scout-2", sweep.order)["nodes"]])
+    sent = np.array([(n.x, n.y) for n in model.order_through(floor.frames["scout-2"], sweep.order)["nodes"]])
     assert len(planned) >= 4
     # Each frame onto the hall, by the truth: the fleet map's (both robots' trajectories on it) and
     # scout-2's own (its trajectory as it mapped it).

@@ -30,9 +30,9 @@ from fleetlink.operator.maprender import WALL
 from fleetlink.operator.maps import MapFetcher, MapFollower, to_grid
 from fleetlink.operator.mapview import MapView
 from fleetlink.shared import keys, wire
-from fleetlink.shared.clock import SystemClock
+from fleetlink.shared.clock import SimClock, SystemClock
 from fleetlink.shared.map_codec import SharedMap, decode_cells
-from fleetlink.shared.messages import Pose
+from fleetlink.shared.messages import MapSubmaps, Pose
 from fleetlink.site.fleetmap import FleetMapService
 from tests.harness import wait_until
 from tests.harness.console_rig import Rig
@@ -459,3 +459,28 @@ def test_a_robot_standing_still_has_its_submaps_fetched_over_several_builds(zeno
     finally:
         share.stop()
         rig.close()
+
+
+def test_a_robot_whose_submap_list_goes_unanswered_keeps_the_frame_it_last_said() -> None:
+    """A lost reply is not news about the robot's frame: its map stays in the frame its list last said
+    (its own, here), and only a robot never heard from is taken to be in the site frame."""
+
+    class Answers:
+        def __init__(self) -> None:
+            self.replies: list[tuple[str, bytes]] = []
+
+        def query(self, key_expr: str, timeout: float) -> list[tuple[str, bytes]]:
+            return list(self.replies)
+
+    clock = SimClock()
+    link = Answers()
+    listing = wire.HeaderCounter(clock, robot="r2", sender="agent-r2").make(
+        MapSubmaps, began=1.0, site_frame=False, submaps=()
+    )
+    link.replies = [(wire.key_of(listing), wire.encode(listing))]
+    service = FleetMapService(MapFollower(FleetModel("op")), threading.Lock(), clock, period_s=0.0, query=link)  # type: ignore[arg-type]
+    m = robot_map((0.0, 0.0, 6.5, 6.0))
+    assert service._fetch("r2", SharedMap(m.cells, m.resolution, m.origin, 1)) == ((), False)
+    link.replies = []  # the next reply lost, the map moved on
+    assert service._fetch("r2", SharedMap(m.cells, m.resolution, m.origin, 2)) == ((), False)
+    assert service._fetch("r9", SharedMap(m.cells, m.resolution, m.origin, 2)) == ((), True)

@@ -123,9 +123,9 @@ class Rig:
         self.agents: dict[str, wire.HeaderCounter] = {}
         self.zenoh.responder = self.mqtt.responder = self._ack
         self.voices: dict[str, tuple[float, float]] = {}
+        """Robots that keep talking (pose at 20 Hz) on ``self.up`` links, like a live agent."""
         self.unplaced: set[str] = set()
         """Robots whose voices say their position is unknown (no UWB: they map in their own frames)."""
-        """Robots that keep talking (pose at 20 Hz) on ``self.up`` links, like a live agent."""
         self.up: tuple[str, ...] = ("zenoh", "mqtt")
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._talk, daemon=True)
