@@ -1218,10 +1218,12 @@ def fleet_own_frames(duration: float, every: float = 4.0) -> dict[str, Any]:
         (fleet.origin[0] + (cols + 0.5) * fleet.resolution, fleet.origin[1] + (rows + 0.5) * fleet.resolution)
     )
     d = nearest_segment_distances(transform_xy(tf, pts), segs)
+    sweep = _own_frame_sweep(follower, fleet, result, trajectories, tf, at)
     return {
         "sim_s": duration,
         "wall_s": time.perf_counter() - t0,
         "found_at_s": found_at,
+        **sweep,
         "fleet_rmse_m": fleet_rmse,
         "overlay_rmse_m": overlay_rmse,
         "rmse_ratio": fleet_rmse / overlay_rmse,
@@ -1232,6 +1234,46 @@ def fleet_own_frames(duration: float, every: float = 4.0) -> dict[str, Any]:
         "build_p99_s": float(np.percentile(build_s, 99)),
         "build_max_s": max(build_s),
         "frames": {k: list(v) for k, v in fleet.frames.items()},
+    }
+
+
+def _own_frame_sweep(
+    follower: Any, fleet: Any, result: Any, trajectories: Any, on_truth: Pose, at: Any
+) -> dict[str, Any]:
+    """A sweep drawn round the second scout on the fleet map, planned and sent as the console does
+    (``FleetModel.round_floor``, ``order_through``): how far each node as sent lies, where the robot
+    will drive to it (its own frame on the truth), from where it was drawn (the fleet map on the
+    truth); beside the nodes sent as planned (no frame)."""
+    from fleetlink.agent.mapping.relations import align_se2, transform_xy
+    from fleetlink.operator.maps import to_grid
+    from fleetlink.operator.rounds import DEFAULT_LAMP, RectArea, RoundRequest, floor_of
+    from fleetlink.site.rounds import plan_round
+
+    robot = sorted(trajectories)[-1]
+    model = follower.fleet
+    for name in trajectories:
+        model.set_grid(name, to_grid(follower.maps[name]))
+        model.apply(result.poses[name], "zenoh", result.field.sim_seconds)
+    model.set_frames(fleet.frames, fleet.unframed)
+    view = model.robots[robot]
+    floor = model.round_floor((robot,), "sweep")
+    if isinstance(floor, str) or view.pose is None:
+        return {"sweep_error_max_m": math.nan, "sweep_as_planned_min_m": math.nan, "sweep_nodes": 0}
+    x, y = view.pose[:2]
+    cells, res, origin = floor_of(floor.grids(), floor.trails)
+    request = RoundRequest("sweep", RectArea(x - 1.5, y - 1.5, x + 1.5, y + 1.5), (robot,))
+    (plan,) = plan_round(request, cells, res, origin, floor.starts, DEFAULT_LAMP).rounds
+    planned = np.array([(n.x, n.y) for n in plan.order["nodes"]])
+    sent = np.array([(n.x, n.y) for n in model.order_through(floor.frames.get(robot), plan.order)["nodes"]])
+    own = trajectories[robot]
+    own_on_truth = align_se2([p for _, p in own], [at(robot, t) for t, _ in own])
+    drawn = transform_xy(on_truth, planned)
+    off = np.hypot(*(transform_xy(own_on_truth, sent) - drawn).T)
+    as_planned = np.hypot(*(transform_xy(own_on_truth, planned) - drawn).T)
+    return {
+        "sweep_nodes": len(planned),
+        "sweep_error_max_m": float(off.max()),
+        "sweep_as_planned_min_m": float(as_planned.min()),
     }
 
 
@@ -1250,6 +1292,11 @@ def print_fleet_own_frames(r: dict[str, Any]) -> dict[str, Any]:
     print(
         f"fleet map / overlay: {r['rmse_ratio']:.3f}   (RMSE: both robots' map poses on the map drawn against the truth"
         " after one rigid motion; walls through the same motion against the plan's)"
+    )
+    print(
+        f"a sweep drawn round the second scout on the fleet map ({r['sweep_nodes']} nodes), where it will drive"
+        f" to each node against where it was drawn: {r['sweep_error_max_m']:.3f} m at most;"
+        f" sent as planned, {r['sweep_as_planned_min_m']:.2f} m at least"
     )
     return r
 
