@@ -32,7 +32,9 @@ def detail_text(selected: str | None, view: RobotView | None, health: Sequence[L
         else f"pose {view.pose[0]:+.2f} {view.pose[1]:+.2f} {math.degrees(view.pose[2]):+.0f}°"
     )
     if view.off_fleet_map and view.in_own_frame:
-        pose += "\nits own frame: not on the fleet map yet"
+        pose += "\nits own frame: not on the fleet map yet" + (
+            f" ({view.off_fleet_map_why})" if view.off_fleet_map_why else ""
+        )
     goal = "" if view.goal is None else f"  goal {view.goal[0]:+.2f} {view.goal[1]:+.2f}"
     links = "  ".join(h.describe() for h in health)
     refused = ""

@@ -176,6 +176,8 @@ class RobotView:
     """Its pose as it reported it, in its own map's frame."""
     off_fleet_map: bool = False
     """Its map is in its own frame and the fleet map has not found that frame yet."""
+    off_fleet_map_why: str = ""
+    """Why not, as the fleet map's search last said ("" if it has not said)."""
 
     @property
     def in_own_frame(self) -> bool:
@@ -376,17 +378,23 @@ class FleetModel:
         frame = self._frame(robot)
         return pose if frame is None else compose(frame, pose)
 
-    def set_frames(self, frames: dict[str, tuple[float, float, float]], unframed: Iterable[str] = ()) -> None:
+    def set_frames(
+        self,
+        frames: dict[str, tuple[float, float, float]],
+        unframed: Iterable[str] = (),
+        why: Mapping[str, str] | None = None,
+    ) -> None:
         """Where each robot mapping in its own frame lies on the fleet map, and which such robots it
-        has not found yet (the fleet map service, after each build). A robot whose frame moves is
-        drawn there at once; its trail, drawn where it was, starts again."""
+        has not found yet, with why not (the fleet map service, after each build). A robot whose frame
+        moves is drawn there at once; its trail, drawn where it was, starts again."""
         off = set(unframed)
-        for robot, view in self.robots.items():
-            if view.off_fleet_map != (robot in off):
-                view.off_fleet_map = robot in off
-                self.version += 1
         for robot in off - set(self.robots):
-            self.robot(robot).off_fleet_map = True
+            self.robot(robot)
+        for robot, view in self.robots.items():
+            reason = (why or {}).get(robot, "") if robot in off else ""
+            if (view.off_fleet_map, view.off_fleet_map_why) != (robot in off, reason):
+                view.off_fleet_map, view.off_fleet_map_why = robot in off, reason
+                self.version += 1
         if frames == self.frames:
             return
         moved = {r for r in set(frames) | set(self.frames) if frames.get(r) != self.frames.get(r)}

@@ -145,7 +145,7 @@ class FleetMapService:
             self.follower.fleet.set_grid(
                 keys.FLEET_MAP, to_grid(SharedMap(result.cells, result.resolution, result.origin, result.version))
             )
-            self.follower.fleet.set_frames(result.frames, result.unframed)
+            self.follower.fleet.set_frames(result.frames, result.unframed, self.core.global_why)
         self._log_frames(result, copies)
         if self.share is not None:
             pub = publication_of(result, self._published)

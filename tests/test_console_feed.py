@@ -340,6 +340,9 @@ def test_a_robot_in_its_own_frame_is_drawn_on_the_fleet_map_through_the_frame_fo
     view = fleet.robots["r1"]
     assert view.pose == (1.0, 0.0, 0.0) and view.off_fleet_map
     assert "not on the fleet map yet" in detail_text("r1", view, ())
+    why = "on r2's map: 336 walls, fewer than the overlap needs"
+    fleet.set_frames({}, unframed=("r1",), why={"r1": why})  # the fleet map's search says why
+    assert f"its own frame: not on the fleet map yet ({why})" in detail_text("r1", view, ())
     trail_before = view.trail_added
     # Found: its frame lies at (5, 2), turned a quarter turn, on the fleet map.
     fleet.set_frames({"r1": (5.0, 2.0, math.pi / 2)})
