@@ -2,9 +2,11 @@
 poses, maps and scans without a plug-in.
 
 Schemas as Foxglove publishes them (github.com/foxglove/schemas, ``schemas/jsonschema``):
-``foxglove.PoseInFrame``, ``foxglove.Grid`` (an occupancy map is a grid of one ``INT8`` field) and
-``foxglove.LaserScan``. Builders return plain dicts ready for ``json.dumps``. Times are seconds
-since the Unix epoch (``{sec, nsec}``); frames are fleetlink's: ``map`` is the site (UWB) frame.
+``foxglove.PoseInFrame``, ``foxglove.Grid`` (an occupancy map is a grid of one ``INT8`` field),
+``foxglove.LaserScan`` and ``foxglove.FrameTransforms``. Builders return plain dicts ready for
+``json.dumps``. Times are seconds since the Unix epoch (``{sec, nsec}``); frames are fleetlink's:
+``map`` is the fleet map's frame (the site (UWB) frame, when any robot maps in it), ``<robot>/map``
+the own map frame of a robot without UWB.
 
 Pure Python, no I/O.
 """
@@ -21,6 +23,7 @@ import orjson
 
 __all__ = [
     "FLOAT32",
+    "FRAME_TRANSFORMS",
     "GRID",
     "INT8",
     "LASER_SCAN",
@@ -28,6 +31,7 @@ __all__ = [
     "POSE_IN_FRAME",
     "SCHEMAS",
     "dumps",
+    "frame_transforms",
     "grid",
     "laser_scan",
     "pose_in_frame",
@@ -39,8 +43,10 @@ __all__ = [
 POSE_IN_FRAME: Final = "foxglove.PoseInFrame"
 GRID: Final = "foxglove.Grid"
 LASER_SCAN: Final = "foxglove.LaserScan"
+FRAME_TRANSFORMS: Final = "foxglove.FrameTransforms"
 MAP_FRAME: Final = "map"
-"""The site frame (the UWB frame every pose, goal and map origin is in)."""
+"""The fleet map's frame: the site frame (the UWB frame every pose, goal and map origin is in) when
+any robot maps in it."""
 INT8: Final = 2
 """``foxglove.NumericType.INT8``."""
 FLOAT32: Final = 7
@@ -132,6 +138,38 @@ SCHEMAS: Final[dict[str, dict[str, Any]]] = {
                 },
             },
             "data": {"type": "string", "contentEncoding": "base64", "description": "Grid cell data, row-major"},
+        },
+    ),
+    FRAME_TRANSFORMS: _message(
+        FRAME_TRANSFORMS,
+        "An array of FrameTransform messages",
+        {
+            "transforms": {
+                "type": "array",
+                "description": "Array of transforms",
+                "items": {
+                    "title": "foxglove.FrameTransform",
+                    "type": "object",
+                    "description": "A transform between two reference frames in 3D space",
+                    "properties": {
+                        "timestamp": _time("Timestamp of transform"),
+                        "parent_frame_id": {"type": "string", "description": "Name of the parent frame"},
+                        "child_frame_id": {"type": "string", "description": "Name of the child frame"},
+                        "translation": {
+                            "title": "foxglove.Vector3",
+                            "type": "object",
+                            "description": "Translation component of the transform",
+                            "properties": {axis: _num(f"{axis} coordinate length") for axis in "xyz"},
+                        },
+                        "rotation": {
+                            "title": "foxglove.Quaternion",
+                            "type": "object",
+                            "description": "Rotation component of the transform",
+                            "properties": {axis: _num(f"{axis} value") for axis in "xyzw"},
+                        },
+                    },
+                },
+            }
         },
     ),
     LASER_SCAN: _message(
@@ -258,3 +296,21 @@ def laser_scan(
         "ranges": list(ranges),
         "intensities": list(intensities),
     }
+
+
+def frame_transforms(t: float, transforms: Sequence[tuple[str, str, float, float, float]]) -> dict[str, Any]:
+    """``foxglove.FrameTransforms``: each ``(parent, child, x, y, theta)`` puts frame ``child`` at the
+    planar pose (x, y, heading theta) in ``parent``."""
+    out = []
+    for parent, child, x, y, theta in transforms:
+        half = theta / 2.0
+        out.append(
+            {
+                "timestamp": timestamp(t),
+                "parent_frame_id": parent,
+                "child_frame_id": child,
+                "translation": {"x": x, "y": y, "z": 0.0},
+                "rotation": {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)},
+            }
+        )
+    return {"transforms": out}

@@ -32,6 +32,7 @@ __all__ = [
     "MAX_DOSE_DATA",
     "MAX_DOSE_J_M2",
     "MAX_EVENT_DATA",
+    "MAX_FRAMED_ROBOTS",
     "MAX_MAP_CELLS",
     "MAX_MAP_DATA",
     "MAX_MARK_LABEL",
@@ -68,6 +69,7 @@ __all__ = [
     "ErrorLevel",
     "Event",
     "FixStatus",
+    "FleetFrames",
     "Goal",
     "Home",
     "HomeSource",
@@ -92,6 +94,7 @@ __all__ = [
     "OrderProgress",
     "PeopleZones",
     "Pose",
+    "RobotFrame",
     "SafetyState",
     "Scan",
     "Severity",
@@ -1095,6 +1098,38 @@ class MapSubmap(Message):
     height: Annotated[int, bounded(0, 65_535)]
     encoding: MapEncoding
     cells: Annotated[bytes, sized(MAX_MAP_DATA)]
+
+
+MAX_FRAMED_ROBOTS = 1000
+"""Robots one ``FleetFrames`` names (each way: found, not found)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RobotFrame:
+    """Where a robot's own map frame lies on the fleet map."""
+
+    robot: Annotated[str, sized(64)]
+    """A robot id (as a header's ``robot``)."""
+    x: Coordinate
+    """Metres, the fleet map's frame."""
+    y: Coordinate
+    theta: Annotated[float, bounded(-3.2, 3.2)]
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FleetFrames(Message):
+    """Where the robots that map in their own frames (no UWB) lie on the fleet map, as a fleet map
+    service found them: ``fleetlink/v1/fleet/frames``, published when they change and every few
+    seconds. The fleet map's frame is the site frame if any robot maps in it, else the own frame of
+    the robot first by name (docs/mapping.md, "Robots in their own frames"). A client draws such a
+    robot's poses, scans and map (all in its own frame) through its frame here."""
+
+    TOPIC: ClassVar[str] = "frames"
+
+    frames: Annotated[tuple[RobotFrame, ...], sized(MAX_FRAMED_ROBOTS)]
+    unframed: Annotated[tuple[str, ...], sized(MAX_FRAMED_ROBOTS, item=sized(64))]
+    """Robots in their own frames that the fleet map has not found yet (left out of it)."""
 
 
 # -- UV dose layers (docs/payload.md, "Dose layer") --------------------------------------------

@@ -38,9 +38,10 @@ from fleetlink.agent.mapping.keeper import MapPublication
 from fleetlink.agent.mapping.share import MapShare, fetch_submap, fetch_submaps, submap_of
 from fleetlink.links.base import QueryLink
 from fleetlink.operator.maps import MapFollower, to_grid
-from fleetlink.shared import keys
+from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.map_codec import SharedMap, fits_whole
+from fleetlink.shared.messages import FleetFrames, RobotFrame
 
 __all__ = ["FleetMapService", "publication_of"]
 
@@ -49,6 +50,8 @@ log = logging.getLogger(__name__)
 PERIOD_S = 2.0
 """Seconds between builds while the robots' maps change (each robot shares its map every second)."""
 QUERY_TIMEOUT_S = 2.0
+FRAMES_PERIOD_S = 5.0
+"""``FleetFrames`` go out when they change and at least this often (a client that joins later)."""
 FETCH_PER_BUILD = 16
 """Submaps fetched per robot per build at most (one query each): a console that meets a robot with
 hundreds of submaps catches up over a few builds, merging its map whole meanwhile."""
@@ -103,10 +106,14 @@ class FleetMapService:
         self._answered: dict[str, tuple[object, tuple[Submap, ...], bool]] = {}
         self._site_frames: dict[str, bool] = {}  # each robot's map frame as its list last said
         self._frame_states: dict[str, tuple[str, str]] = {}  # per robot: what was last logged of its frame
+        self._frames_sent: tuple[dict[str, tuple[float, float, float]], tuple[str, ...]] | None = None
+        self._frames_next = -float("inf")
 
     def step(self) -> bool:
         """Build and publish if the robots' maps changed and ``period_s`` has passed. True if built."""
         now = self.clock.now()
+        if self.result is not None and now >= self._frames_next:
+            self._publish_frames(self.result, now)  # again now and then: for whoever joined since
         if now < self._next:
             return False
         with self.lock:
@@ -147,6 +154,8 @@ class FleetMapService:
             )
             self.follower.fleet.set_frames(result.frames, result.unframed, self.core.global_why)
         self._log_frames(result, copies)
+        if (dict(result.frames), tuple(result.unframed)) != self._frames_sent:
+            self._publish_frames(result, now)
         if self.share is not None:
             pub = publication_of(result, self._published)
             if self._published is None or pub.version != self._published.version:
@@ -155,6 +164,20 @@ class FleetMapService:
         if self.on_built is not None:
             self.on_built(result)
         return True
+
+    def _publish_frames(self, result: FleetResult, now: float) -> None:
+        """``FleetFrames`` on ``fleetlink/v1/fleet/frames`` (on the share's link): where the robots in
+        their own frames lie on the fleet map, for clients that draw them (Foxglove, a recorder)."""
+        self._frames_next = now + FRAMES_PERIOD_S
+        self._frames_sent = (dict(result.frames), tuple(result.unframed))
+        if self.share is None:
+            return
+        frames = tuple(
+            RobotFrame(robot=r, x=f[0], y=f[1], theta=math.remainder(f[2], math.tau))
+            for r, f in sorted(result.frames.items())
+        )
+        msg = self.share.counter.make(FleetFrames, frames=frames, unframed=tuple(sorted(result.unframed)))
+        self.share.link.publish(wire.key_of(msg), wire.encode(msg))
 
     def _fetch(self, robot: str, m: SharedMap) -> tuple[tuple[Submap, ...], bool]:
         """``robot``'s submaps at the poses its graph gives them now, once every listed one is held;

@@ -32,7 +32,16 @@ __all__ = ["DRAWN_SUFFIXES", "GRID_PERIOD_S", "LiveCore"]
 
 GRID_PERIOD_S: Final = 1.0
 """Seconds between two sends of one grid (map, fleet map, dose layer) while it changes."""
-DRAWN_SUFFIXES: Final = ("/pose", "/truth", "/scan", "/map", "/map/updates", "/dose", "/dose/updates")
+DRAWN_SUFFIXES: Final = (
+    "/pose",
+    "/truth",
+    "/scan",
+    "/map",
+    "/map/updates",
+    "/dose",
+    "/dose/updates",
+    "/frames",
+)
 """The keys worth decoding: the rest of the fleet's traffic (commands, state, acks) is not drawn."""
 RECENT: Final = 2048
 """Messages remembered to recognise their copy on the other link (a fleet's poses of ~1 s)."""

@@ -7,7 +7,11 @@ same in a recording and live.
 
 * ``/foxglove/<robot>/pose`` (``foxglove.PoseInFrame``): the fused pose in the site frame ``map``,
   once per pose (the copy that came on the second link, recognised by its header's counter, is not
-  drawn again).
+  drawn again). A robot without UWB (its ``Pose`` says its position is unknown: ``UNKNOWN_SD_M``)
+  maps and reports in its own frame: its pose, scan and map are in frame ``<robot>/map``.
+* ``/foxglove/fleet/frames`` (``foxglove.FrameTransforms``): where those frames lie in ``map`` (the
+  fleet map's frame), from a fleet map service's ``FleetFrames``; a robot not found yet has none,
+  and Foxglove draws it only in its own frame.
 * ``/foxglove/sim/<robot>/truth`` (``foxglove.PoseInFrame``): the simulated field's ground truth.
 * ``/foxglove/<robot>/scan`` (``foxglove.LaserScan``): the robot's latest lidar turn (the wire's
   ``Scan``, at most ``[rates] scan_hz``), in frame ``map`` at the pose it was taken from.
@@ -38,13 +42,24 @@ from fleetlink.operator.dose import merge_layers
 from fleetlink.shared import foxglove, keys, wire
 from fleetlink.shared.dose_codec import SharedDose
 from fleetlink.shared.map_codec import SharedMap
-from fleetlink.shared.messages import DoseSnapshot, DoseUpdate, MapSnapshot, MapUpdate, Pose, Scan, Truth
+from fleetlink.shared.messages import (
+    UNKNOWN_SD_M,
+    DoseSnapshot,
+    DoseUpdate,
+    FleetFrames,
+    MapSnapshot,
+    MapUpdate,
+    Pose,
+    Scan,
+    Truth,
+)
 from fleetlink.shared.scan_codec import scan_ranges
 
 __all__ = [
     "DOSE",
     "FLEET_DOSE_TOPIC",
     "FOXGLOVE_PREFIX",
+    "FRAMES_TOPIC",
     "MAP",
     "RESTART_GAP",
     "Channel",
@@ -53,6 +68,7 @@ __all__ = [
     "map_topic",
     "ns",
     "pose_topic",
+    "robot_frame",
     "scan_topic",
     "truth_topic",
 ]
@@ -121,6 +137,14 @@ def truth_topic(robot: str) -> str:
     return f"{FOXGLOVE_PREFIX}/{keys.SIM}/{robot}/truth"
 
 
+def robot_frame(robot: str) -> str:
+    """The Foxglove frame of a robot's own map (a robot without UWB reports in it)."""
+    return f"{robot}/{MAP}"
+
+
+FRAMES_TOPIC: Final = f"{FOXGLOVE_PREFIX}/{keys.FLEET_MAP}/frames"
+
+
 def map_topic(robot: str) -> str:
     """A robot's map, or the fleet map's (``robot == keys.FLEET_MAP``)."""
     return f"{FOXGLOVE_PREFIX}/{robot}/map"
@@ -155,6 +179,8 @@ class FoxgloveScene:
         """Robots whose dose patches went back in version (a restarted agent): the next snapshot
         replaces the copy although its version is lower."""
         self._dose_version = 0
+        self.own_frames: set[str] = set()
+        """Robots whose latest pose is in their own map frame (no UWB position)."""
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -171,7 +197,11 @@ class FoxgloveScene:
             last = self._last_pose.get(robot)
             if last is None or last[0] != header.sender or hid > last[1] or hid + RESTART_GAP < last[1]:
                 self._last_pose[robot] = (header.sender, hid)
-                data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
+                if msg.sd_x_m >= UNKNOWN_SD_M:
+                    self.own_frames.add(robot)
+                else:
+                    self.own_frames.discard(robot)
+                data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta, self._frame(robot))
                 channel = self._channels.get(f"{FOXGLOVE_PREFIX}/{robot}/pose") or self.channel(
                     pose_topic(robot), foxglove.POSE_IN_FRAME
                 )
@@ -201,9 +231,15 @@ class FoxgloveScene:
                     start_angle=msg.start_angle,
                     end_angle=msg.start_angle + step * (msg.count - 1),
                     ranges=np.nan_to_num(ranges, nan=0.0).tolist(),  # no return: 0 (JSON has no NaN)
+                    frame=self._frame(header.robot),
                 )
             )
             channel = self.channel(scan_topic(header.robot), foxglove.LASER_SCAN)
+            return [Record(channel, data, ns(wall), ns(header.timestamp))]
+        elif isinstance(msg, FleetFrames):
+            moves = [(foxglove.MAP_FRAME, robot_frame(f.robot), f.x, f.y, f.theta) for f in msg.frames]
+            data = _dumps(foxglove.frame_transforms(header.timestamp, moves))
+            channel = self.channel(FRAMES_TOPIC, foxglove.FRAME_TRANSFORMS)
             return [Record(channel, data, ns(wall), ns(header.timestamp))]
         elif isinstance(msg, MapSnapshot | MapUpdate):
             if self._map(msg):
@@ -281,9 +317,14 @@ class FoxgloveScene:
                     resolution=held.resolution,
                     width=int(cells8.shape[1]),
                     cells=cells8.tobytes(),
+                    frame=self._frame(robot),
                 )
             )
         return Record(self.channel(topic, foxglove.GRID), data, ns(wall), ns(t))
+
+    def _frame(self, robot: str) -> str:
+        """The frame ``robot``'s pose, scan and map are drawn in: its own map's while it reports in it."""
+        return robot_frame(robot) if robot in self.own_frames else foxglove.MAP_FRAME
 
     def channel(self, topic: str, schema: str) -> Channel:
         """The Foxglove channel ``topic`` of schema ``schema`` (made once)."""

@@ -32,7 +32,7 @@ from fleetlink.operator.mapview import MapView
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SimClock, SystemClock
 from fleetlink.shared.map_codec import SharedMap, decode_cells
-from fleetlink.shared.messages import MapSubmaps, Pose
+from fleetlink.shared.messages import FleetFrames, MapSubmaps, Pose
 from fleetlink.site.fleetmap import FleetMapService
 from tests.harness import wait_until
 from tests.harness.console_rig import Rig
@@ -166,6 +166,11 @@ def test_a_map_shared_whole_in_its_own_frame_is_found_not_taken_for_the_site_s(
     start = (7.5, 1.0, math.radians(137.0))  # where r2 began, in the site frame
     maps = {"r1": robot_map((0.0, 0.0, 7.5, 6.0), floor=FURNISHED), "r2": own_frame((1.5, 0.0, 9.0, 6.0), start)}
     with following(peers, mosquitto, tuple(maps)) as f:
+        heard: list[FleetFrames] = []
+        f.robots_side.subscribe(
+            keys.key(keys.FLEET_MAP, FleetFrames.TOPIC),
+            lambda key, payload: heard.append(wire.decode_key(key, payload)),  # type: ignore[arg-type]
+        )
         for r, m in maps.items():
             f.publish(r, m)
         listing = fetch_submaps(f.link.query_link(), "r2", timeout=2.0)
@@ -180,6 +185,10 @@ def test_a_map_shared_whole_in_its_own_frame_is_found_not_taken_for_the_site_s(
         with f.lock:
             assert close_to(f.fleet.frames["r2"], start), f.fleet.frames["r2"]
             assert "r1" not in f.fleet.frames  # in the site frame: drawn as it reports
+        # ... and says so on the link, for Foxglove and the recorder (FleetFrames).
+        wait_until(lambda: any(m.frames for m in heard), timeout=10, message="FleetFrames with r2's frame")
+        (sent,) = next(m for m in heard if m.frames).frames
+        assert sent.robot == "r2" and close_to((sent.x, sent.y, sent.theta), start)
 
 
 def wall_runs(view: MapView, x: float, y0: float, y1: float) -> int:

@@ -28,11 +28,11 @@ from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.shared import foxglove, keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.map_codec import SharedMap, snapshot_fields
-from fleetlink.shared.messages import MapSnapshot, Pose, Scan, Truth
+from fleetlink.shared.messages import UNKNOWN_SD_M, FleetFrames, MapSnapshot, Pose, RobotFrame, Scan, Truth
 from fleetlink.shared.scan_codec import BEAMS, scan_fields, scan_points, scan_ranges
 from fleetlink.site.agents import FieldAgents
 from fleetlink.site.foxglove_live import LiveCore
-from fleetlink.site.foxglove_scene import FLEET_DOSE_TOPIC, map_topic, pose_topic, scan_topic
+from fleetlink.site.foxglove_scene import FLEET_DOSE_TOPIC, FRAMES_TOPIC, map_topic, pose_topic, robot_frame, scan_topic
 from fleetlink.site.foxglove_server import FoxgloveLive
 from fleetlink.site.recorder import open_recorder_links
 from tests.harness import wait_until
@@ -140,6 +140,46 @@ def test_a_dose_layer_is_served_as_a_float_grid() -> None:
     assert g["fields"] == [{"name": "dose_j_m2", "offset": 0, "type": foxglove.FLOAT32}]
     got = np.frombuffer(base64.b64decode(g["data"]), dtype="<f4").reshape(-1, g["column_count"])
     assert got.max() == 12.5 and g["cell_stride"] == 4 and g["row_stride"] == 4 * g["column_count"]
+
+
+def test_a_robot_without_uwb_is_drawn_in_its_own_frame_placed_where_the_fleet_map_found_it() -> None:
+    import jsonschema
+
+    clock = SystemClock()
+    core = LiveCore()
+    c = wire.HeaderCounter(clock, robot="r2", sender="agent-r2")
+    for topic in (pose_topic("r2"), scan_topic("r2"), map_topic("r2"), FRAMES_TOPIC):
+        core.subscribe(topic, 0.0, 1.0)
+
+    def records(msg: wire.Message, wall: float) -> list[Any]:
+        return core.receive(wire.key_of(msg), wire.encode(msg), wall)
+
+    dark = c.make(
+        Pose, x=1.0, y=0.5, theta=0.2, sd_x_m=UNKNOWN_SD_M, sd_y_m=UNKNOWN_SD_M, sd_theta_rad=UNKNOWN_SD_M,
+        odom_x=1.0, odom_y=0.5, odom_theta=0.2, vx=0.0, omega=0.0, uwbStale=True,
+    )  # fmt: skip
+    (p,) = records(dark, 1.0)
+    assert json.loads(p.data)["frame_id"] == robot_frame("r2") == "r2/map"
+    (s,) = records(c.make(Scan, **scan_fields(np.array([0.0]), np.array([2.0]), (1.0, 0.5, 0.2))), 1.1)
+    assert json.loads(s.data)["frame_id"] == "r2/map"
+    records(map_snapshot(c, 1), 1.2)
+    (g,) = core.due(10.0, 1.3)
+    assert json.loads(g.data)["frame_id"] == "r2/map"
+    # The fleet map service says where that frame lies: a transform from the fleet map's frame.
+    frames = wire.HeaderCounter(clock, robot=keys.FLEET_MAP, sender="op-1").make(
+        FleetFrames, frames=(RobotFrame(robot="r2", x=7.5, y=1.0, theta=2.4),), unframed=("r3",)
+    )
+    (tf,) = records(frames, 1.4)
+    assert tf.channel.topic == FRAMES_TOPIC and tf.channel.schema_name == foxglove.FRAME_TRANSFORMS
+    got = json.loads(tf.data)
+    jsonschema.validate(got, foxglove.SCHEMAS[foxglove.FRAME_TRANSFORMS])
+    (t,) = got["transforms"]
+    assert (t["parent_frame_id"], t["child_frame_id"]) == ("map", "r2/map")
+    assert t["translation"] == {"x": 7.5, "y": 1.0, "z": 0.0}
+    assert math.isclose(2 * math.atan2(t["rotation"]["z"], t["rotation"]["w"]), 2.4)
+    # Placed by UWB later: its poses are in the site frame again.
+    (p2,) = records(pose(c, 3.0), 1.5)
+    assert json.loads(p2.data)["frame_id"] == "map"
 
 
 def test_a_scan_keeps_the_nearest_return_of_each_beam_and_its_points_land_where_they_were_seen() -> None:
@@ -279,7 +319,8 @@ def test_a_field_robot_live_in_a_foxglove_client(mosquitto: Any) -> None:
                 continue  # heard by the server before the test's listener was connected
             p = published[near[0]]
             pos, q = got["pose"]["position"], got["pose"]["orientation"]
-            assert got["frame_id"] == "map"
+            # In the site frame once UWB placed it; in its own map's before (its position unknown).
+            assert got["frame_id"] == ("map" if p.sd_x_m < UNKNOWN_SD_M else "uvc-1/map")
             assert (pos["x"], pos["y"]) == (p.x, p.y)
             assert abs(math.remainder(2 * math.atan2(q["z"], q["w"]) - p.theta, math.tau)) < 1e-9
             matched += 1
