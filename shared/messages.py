@@ -1127,6 +1127,10 @@ class FleetFrames(Message):
 
     TOPIC: ClassVar[str] = "frames"
 
+    reference: Annotated[str, sized(64)]
+    """"" when the fleet map's frame is the site frame; else the robot whose own frame it is (no robot
+    maps in the site frame). Two services may briefly disagree (one has not heard a site-frame map
+    yet): a client prefers the site-referenced one."""
     frames: Annotated[tuple[RobotFrame, ...], sized(MAX_FRAMED_ROBOTS)]
     unframed: Annotated[tuple[str, ...], sized(MAX_FRAMED_ROBOTS, item=sized(64))]
     """Robots in their own frames that the fleet map has not found yet (left out of it)."""

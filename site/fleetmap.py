@@ -52,6 +52,9 @@ PERIOD_S = 2.0
 QUERY_TIMEOUT_S = 2.0
 FRAMES_PERIOD_S = 5.0
 """``FleetFrames`` go out when they change and at least this often (a client that joins later)."""
+FRAMES_MOVED_M = 0.01
+FRAMES_MOVED_RAD = math.radians(0.1)
+"""A frame that moved less than this is not a change worth sending at once."""
 FETCH_PER_BUILD = 16
 """Submaps fetched per robot per build at most (one query each): a console that meets a robot with
 hundreds of submaps catches up over a few builds, merging its map whole meanwhile."""
@@ -154,7 +157,7 @@ class FleetMapService:
             )
             self.follower.fleet.set_frames(result.frames, result.unframed, self.core.global_why)
         self._log_frames(result, copies)
-        if (dict(result.frames), tuple(result.unframed)) != self._frames_sent:
+        if self._frames_changed(result):
             self._publish_frames(result, now)
         if self.share is not None:
             pub = publication_of(result, self._published)
@@ -165,18 +168,35 @@ class FleetMapService:
             self.on_built(result)
         return True
 
+    def _frames_changed(self, result: FleetResult) -> bool:
+        """The frames moved (beyond ``FRAMES_MOVED_M`` / ``FRAMES_MOVED_RAD``: every build refines them
+        by millimetres), came, went, or the robots not found changed since last published."""
+        sent = self._frames_sent
+        if sent is None or set(sent[0]) != set(result.frames) or sent[1] != tuple(sorted(result.unframed)):
+            return True
+        for r, f in result.frames.items():
+            g = sent[0][r]
+            turn = abs(math.remainder(f[2] - g[2], math.tau))
+            if math.hypot(f[0] - g[0], f[1] - g[1]) > FRAMES_MOVED_M or turn > FRAMES_MOVED_RAD:
+                return True
+        return False
+
     def _publish_frames(self, result: FleetResult, now: float) -> None:
         """``FleetFrames`` on ``fleetlink/v1/fleet/frames`` (on the share's link): where the robots in
         their own frames lie on the fleet map, for clients that draw them (Foxglove, a recorder)."""
         self._frames_next = now + FRAMES_PERIOD_S
-        self._frames_sent = (dict(result.frames), tuple(result.unframed))
+        self._frames_sent = (dict(result.frames), tuple(sorted(result.unframed)))
         if self.share is None:
             return
         frames = tuple(
             RobotFrame(robot=r, x=f[0], y=f[1], theta=math.remainder(f[2], math.tau))
             for r, f in sorted(result.frames.items())
         )
-        msg = self.share.counter.make(FleetFrames, frames=frames, unframed=tuple(sorted(result.unframed)))
+        site = any(r not in result.frames for r in result.corrections)
+        reference = "" if site or not result.frames else min(result.frames)
+        msg = self.share.counter.make(
+            FleetFrames, reference=reference, frames=frames, unframed=tuple(sorted(result.unframed))
+        )
         self.share.link.publish(wire.key_of(msg), wire.encode(msg))
 
     def _fetch(self, robot: str, m: SharedMap) -> tuple[tuple[Submap, ...], bool]:

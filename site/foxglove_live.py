@@ -131,6 +131,9 @@ class LiveCore:
         while), nothing for a pose (the next one comes within 50 ms)."""
         self.subscribed[topic] += 1
         channel = self.channels.get(topic)
+        if channel is not None and channel.schema_name == foxglove.FRAME_TRANSFORMS:
+            held = self.scene.frames_record  # sent every 5 s: the latest at once
+            return self._count([held]) if held is not None else []
         if channel is None or channel.schema_name != foxglove.GRID:
             return []
         self._grid_sent[topic] = now

@@ -78,6 +78,9 @@ MAP: Final = "map"
 DOSE: Final = "dose"
 """The wire topics of the snapshots ``wanted()`` names (``fleetlink/v1/<robot>/map``, ``.../dose``)."""
 FLEET_DOSE_TOPIC: Final = f"{FOXGLOVE_PREFIX}/{keys.FLEET_MAP}/dose"
+SITE_FRAMES_HOLD_S: Final = 15.0
+"""``FleetFrames`` whose fleet map is a robot's own frame are passed over while ones in the site frame
+(another service that has a site-frame map) came within this."""
 RESTART_GAP: Final = 1000
 """A pose counted this far below the newest drawn is from a restarted agent (drawn), not a late copy."""
 
@@ -181,6 +184,9 @@ class FoxgloveScene:
         self._dose_version = 0
         self.own_frames: set[str] = set()
         """Robots whose latest pose is in their own map frame (no UWB position)."""
+        self.frames_record: Record | None = None
+        """The latest transforms of those frames (a client that subscribes late gets it at once)."""
+        self._site_frames_at: float | None = None
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -237,10 +243,16 @@ class FoxgloveScene:
             channel = self.channel(scan_topic(header.robot), foxglove.LASER_SCAN)
             return [Record(channel, data, ns(wall), ns(header.timestamp))]
         elif isinstance(msg, FleetFrames):
+            if msg.reference:
+                if self._site_frames_at is not None and wall - self._site_frames_at < SITE_FRAMES_HOLD_S:
+                    return []  # another service has the site frame: its placements hold
+            else:
+                self._site_frames_at = wall
             moves = [(foxglove.MAP_FRAME, robot_frame(f.robot), f.x, f.y, f.theta) for f in msg.frames]
             data = _dumps(foxglove.frame_transforms(header.timestamp, moves))
             channel = self.channel(FRAMES_TOPIC, foxglove.FRAME_TRANSFORMS)
-            return [Record(channel, data, ns(wall), ns(header.timestamp))]
+            self.frames_record = Record(channel, data, ns(wall), ns(header.timestamp))
+            return [self.frames_record]
         elif isinstance(msg, MapSnapshot | MapUpdate):
             if self._map(msg):
                 topic = map_topic(header.robot)

@@ -167,7 +167,7 @@ def test_a_robot_without_uwb_is_drawn_in_its_own_frame_placed_where_the_fleet_ma
     assert json.loads(g.data)["frame_id"] == "r2/map"
     # The fleet map service says where that frame lies: a transform from the fleet map's frame.
     frames = wire.HeaderCounter(clock, robot=keys.FLEET_MAP, sender="op-1").make(
-        FleetFrames, frames=(RobotFrame(robot="r2", x=7.5, y=1.0, theta=2.4),), unframed=("r3",)
+        FleetFrames, reference="", frames=(RobotFrame(robot="r2", x=7.5, y=1.0, theta=2.4),), unframed=("r3",)
     )
     (tf,) = records(frames, 1.4)
     assert tf.channel.topic == FRAMES_TOPIC and tf.channel.schema_name == foxglove.FRAME_TRANSFORMS
@@ -177,6 +177,14 @@ def test_a_robot_without_uwb_is_drawn_in_its_own_frame_placed_where_the_fleet_ma
     assert (t["parent_frame_id"], t["child_frame_id"]) == ("map", "r2/map")
     assert t["translation"] == {"x": 7.5, "y": 1.0, "z": 0.0}
     assert math.isclose(2 * math.atan2(t["rotation"]["z"], t["rotation"]["w"]), 2.4)
+    # Another console that has no site-frame map yet (its fleet map is r2's own frame) is passed
+    # over while this one speaks; a late subscriber gets the latest at once.
+    other = wire.HeaderCounter(clock, robot=keys.FLEET_MAP, sender="op-2").make(
+        FleetFrames, reference="r2", frames=(RobotFrame(robot="r2", x=0.0, y=0.0, theta=0.0),), unframed=()
+    )
+    assert records(other, 2.0) == []
+    core.unsubscribe(FRAMES_TOPIC)
+    assert core.subscribe(FRAMES_TOPIC, 2.1, 2.1) == [tf]
     # Placed by UWB later: its poses are in the site frame again.
     (p2,) = records(pose(c, 3.0), 1.5)
     assert json.loads(p2.data)["frame_id"] == "map"
