@@ -137,6 +137,19 @@ def test_core_channels_per_type_and_link_and_one_foxglove_pose_per_copy() -> Non
     assert core.robots == {"r1"}
 
 
+def test_core_records_fleet_frames_as_sent_and_as_foxglove_transforms() -> None:
+    from fleetlink.shared.messages import FleetFrames, RobotFrame
+
+    core = RecordingCore()
+    c = wire.HeaderCounter(SystemClock(), robot=keys.FLEET_MAP, sender="op-1")
+    msg = c.make(FleetFrames, reference="", frames=(RobotFrame(robot="r2", x=1.0, y=2.0, theta=0.3),), unframed=())
+    recs = core.receive("zenoh", wire.key_of(msg), wire.encode(msg), 100.0)
+    assert [r.channel.topic for r in recs] == ["/fleetlink/zenoh/frames", "/foxglove/fleet/frames"]
+    (t,) = json.loads(recs[1].data)["transforms"]
+    assert (t["parent_frame_id"], t["child_frame_id"], t["translation"]["x"]) == ("map", "r2/map", 1.0)
+    assert core.robots == set()  # the fleet map's service is no robot
+
+
 def test_core_draws_a_whole_map_from_a_snapshot_and_its_updates() -> None:
     core = RecordingCore()
     c = wire.HeaderCounter(SystemClock(), robot="r1", sender="agent-r1")
