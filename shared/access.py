@@ -28,7 +28,15 @@ import json
 from collections.abc import Iterable, Sequence
 from typing import Any
 
-from fleetlink.shared.keys import PREFIX, SENDER_TOPICS, ZENOH_ALL_ALIVE, alive_key, check_id, check_robot_id
+from fleetlink.shared.keys import (
+    FLEET_MAP,
+    PREFIX,
+    SENDER_TOPICS,
+    ZENOH_ALL_ALIVE,
+    alive_key,
+    check_id,
+    check_robot_id,
+)
 
 __all__ = [
     "AGENT_READS",
@@ -86,6 +94,8 @@ GATEWAY_WRITES_MQTT: tuple[str, ...] = (
 )
 
 _SUBTREE = frozenset({"map", "dose"})  # topics that own a subtree of keys
+FLEET_FRAMES = "frames"
+"""The fleet map service's ``FleetFrames`` topic (under the id ``fleet``)."""
 
 
 def check_robot_username(robot: str) -> str:
@@ -259,6 +269,16 @@ def zenoh_access_control(
         ),
         # Consoles that start late ask every console for its marks (operator/links.py MARKS_QUERY).
         _rule("operator-marks-queries", ["egress"], ["query"], [_zenoh("*", "marks")]),
+        # Each console builds the fleet map (site/fleetmap.py) and shares it as a robot shares its
+        # map, under the id ``fleet``, with where the robots in their own frames lie on it.
+        _rule(
+            "operator-fleet-map",
+            ["ingress"],
+            ["put", "delete"],
+            [_zenoh(FLEET_MAP, "map"), _zenoh(FLEET_MAP, FLEET_FRAMES)],
+        ),
+        _rule("operator-serve-fleet-map", ["ingress"], ["declare_queryable", "reply"], [_zenoh(FLEET_MAP, "map")]),
+        _rule("operator-fleet-map-queries", ["egress"], ["query"], [_zenoh(FLEET_MAP, "map")]),
     ]
     for i, op in enumerate(ops):
         # One subject per operator: it writes commands and marks only under its own name, and

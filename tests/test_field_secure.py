@@ -295,3 +295,50 @@ def test_a_late_console_gets_the_marks_another_console_holds(secured: Secured) -
     finally:
         late.close()
         holder.close()
+
+
+def test_a_consoles_fleet_map_and_frames_reach_another_console(secured: Secured) -> None:
+    """The generated ACL lets a console share the fleet map it builds (served under the id ``fleet``,
+    as a robot serves its map) and say where the robots without UWB lie on it (``FleetFrames``)."""
+    import numpy as np
+
+    from fleetlink.agent.mapping.keeper import MapPublication
+    from fleetlink.agent.mapping.share import fetch_map
+    from fleetlink.cli.console import fleet_map_service
+    from fleetlink.shared.messages import FleetFrames, RobotFrame
+
+    s = secured
+    holder = s.fs.operator_link(SECOND_OPERATOR)
+    late = s.fs.operator_link(THIRD_OPERATOR)
+    service = None
+    try:
+        holder.start()
+        late.start()
+        service = fleet_map_service(holder, None, threading.Lock(), SystemClock(), SECOND_OPERATOR)
+        assert service.share is not None
+        cells = np.zeros((20, 30), dtype=np.int8)
+        cells[0, :] = 100
+        service.share.publish(MapPublication(3, cells, 0.05, (-1.0, -0.5), None, site_frame=True))
+        frames: list[FleetFrames] = []
+        late.add_sink(lambda m, _l, _t: frames.append(m) if isinstance(m, FleetFrames) else None)
+        msg = service.share.counter.make(
+            FleetFrames, reference="", frames=(RobotFrame(robot="uvc-2", x=1.0, y=2.0, theta=0.5),), unframed=()
+        )
+        query = late.query_link()
+        wait_until(
+            lambda: (snap := fetch_map(query, keys.FLEET_MAP, timeout=0.5)) is not None and snap.version == 3,
+            timeout=15,
+            message="the fleet map fetched by another console",
+        )
+
+        def heard() -> bool:
+            service.share.link.publish(wire.key_of(msg), wire.encode(msg))  # type: ignore[union-attr]
+            return bool(frames)
+
+        wait_until(heard, timeout=15, message="FleetFrames heard by another console")
+        assert frames[0].frames[0].robot == "uvc-2"
+    finally:
+        if service is not None and service.share is not None:
+            service.share.stop()
+        late.close()
+        holder.close()
