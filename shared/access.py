@@ -106,6 +106,8 @@ def check_robot_username(robot: str) -> str:
             f"invalid robot id {robot!r}: ids starting with {OPERATOR_PREFIX!r} or {ROUTER_PREFIX!r} "
             f"and {GATEWAY_USER!r} are broker usernames of other roles"
         )
+    if robot == FLEET_MAP:
+        raise ValueError(f"invalid robot id {robot!r}: the consoles share the fleet map under it")
     return robot
 
 

@@ -119,6 +119,9 @@ def test_acls_let_each_operator_write_only_under_its_own_name() -> None:
         "fleetlink/v1/r1/actions/*",
         "fleetlink/v1/r1/teleop/*",
     ]
+    # The fleet map is shared under the id "fleet": no robot may log in as it.
+    with pytest.raises(ValueError, match="fleet map"):
+        zenoh_access_control(["fleet"], ["op-alice"])
 
 
 def test_a_console_logged_in_sends_as_its_login(tmp_path: Path) -> None:
