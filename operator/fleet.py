@@ -441,9 +441,10 @@ class FleetModel:
                 frames[robot] = frame
             grid = self.grids.get(robot)
             if grid is not None:
-                # Its map through its frame whenever the fleet map has one for it: also for a robot
-                # with UWB whose map has not yet restarted in the site frame.
-                maps.append((grid, self.frames.get(robot)))
+                # Through its frame only while it reports in its own frame: a robot with UWB plans on
+                # its map as it is (the fleet map's frame for it may lag its map's restart in the site
+                # frame, and a stale one moved uvc-1's whole map off its floor: the e2e round refused).
+                maps.append((grid, frame))
                 trails.append(tuple(view.trail))  # its body, where another's map saw it, is no wall
         return RoundFloor(starts, tuple(maps), tuple(trails), frames)
 

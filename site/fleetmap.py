@@ -220,14 +220,14 @@ class FleetMapService:
         except Exception as exc:  # one robot's failed query must not stop the build for the others
             self._log_once(robot, "list", f"its submap list could not be asked for: {exc}")
             return (), self._site_frames.get(robot, True)
-        if listing is not None:
-            self._site_frames[robot] = listing.site_frame
-        if listing is None or not listing.submaps:
+        if listing is None:
             # No answer (lost, or an agent that predates the list): its frame as last heard, the
-            # site's if never; an empty list (loop closure off) says it.
-            site_frame = self._site_frames.get(robot, True)
-            self._answered[robot] = (seen, (), site_frame)
-            return (), site_frame
+            # site's if never; asked again at the next build (an answer lost is not remembered).
+            return (), self._site_frames.get(robot, True)
+        self._site_frames[robot] = listing.site_frame
+        if not listing.submaps:  # loop closure off: its map whole, in the frame the list says
+            self._answered[robot] = (seen, (), listing.site_frame)
+            return (), listing.site_frame
         h, w = m.cells.shape
         x0, y0 = m.origin[0] - POSE_MARGIN_M, m.origin[1] - POSE_MARGIN_M
         x1, y1 = m.origin[0] + w * m.resolution + POSE_MARGIN_M, m.origin[1] + h * m.resolution + POSE_MARGIN_M
