@@ -352,6 +352,18 @@ def test_a_grid_through_a_frame_keeps_its_walls_whole_and_where_they_were() -> N
     assert np.count_nonzero(cells == 0) == pytest.approx(30 * 24, rel=0.05)  # the floor, as much of it
 
 
+async def with_robot_in_its_own_frame(rig: Rig, pilot: Any, frame: tuple[float, float, float]) -> None:
+    """r1 without UWB, reporting in its own frame, which lies at ``frame`` on the fleet map; it stands
+    at (0, 0) of the fleet map, and its map is the room's, in its own frame."""
+    own = compose(inverse(frame), (0.0, 0.0, 0.0))
+    rig.unplaced.add("r1")
+    await with_robots(rig, pilot, "r1")
+    rig.voices["r1"] = (own[0], own[1])
+    assert await until(pilot, lambda: rig.fleet.robots.get("r1") is not None and rig.fleet.robots["r1"].in_own_frame)
+    with rig.lock:
+        rig.fleet.set_grid("r1", grid_through(room_grid(), inverse(frame)))
+
+
 @run_async
 async def test_a_robot_in_its_own_frame_sweeps_a_room_drawn_on_the_fleet_map(rig: Rig) -> None:
     """A robot without UWB maps and reports in its own frame; the fleet map found that frame. A
@@ -360,15 +372,9 @@ async def test_a_robot_in_its_own_frame_sweeps_a_room_drawn_on_the_fleet_map(rig
     no dose on the floor), nothing is sent and the console says why."""
     frame = (2.0, -1.0, 0.7)  # where r1's own frame lies on the fleet map
     own = compose(inverse(frame), (0.0, 0.0, 0.0))  # it stands at (0, 0) of the fleet map
-    rig.unplaced.add("r1")
     async with rig.app.run_test(size=(140, 44)) as pilot:
-        await with_robots(rig, pilot, "r1")
-        rig.voices["r1"] = (own[0], own[1])
-        assert await until(
-            pilot, lambda: rig.fleet.robots.get("r1") is not None and rig.fleet.robots["r1"].in_own_frame
-        )
+        await with_robot_in_its_own_frame(rig, pilot, frame)
         with rig.lock:
-            rig.fleet.set_grid("r1", grid_through(room_grid(), inverse(frame)))  # its map, in its frame
             rig.fleet.set_frames({}, ["r1"])
         await command(pilot, "sweep rect -0.6 -0.6 1.7 1.1 with r1")
         assert await until(pilot, lambda: "r1 maps in its own frame and is not on the fleet map yet" in notices(rig))
@@ -401,8 +407,6 @@ async def test_a_robot_in_its_own_frame_sweeps_a_room_drawn_on_the_fleet_map(rig
 @run_async
 async def test_a_round_whose_robot_s_frame_moved_while_it_was_planned_is_not_sent(rig: Rig) -> None:
     frame = (2.0, -1.0, 0.7)
-    own = compose(inverse(frame), (0.0, 0.0, 0.0))
-    rig.unplaced.add("r1")
     planner = rig.app.planner
     assert planner is not None
 
@@ -412,13 +416,8 @@ async def test_a_round_whose_robot_s_frame_moved_while_it_was_planned_is_not_sen
         return planner(*args)
 
     async with rig.app.run_test(size=(140, 44)) as pilot:
-        await with_robots(rig, pilot, "r1")
-        rig.voices["r1"] = (own[0], own[1])
-        assert await until(
-            pilot, lambda: rig.fleet.robots.get("r1") is not None and rig.fleet.robots["r1"].in_own_frame
-        )
+        await with_robot_in_its_own_frame(rig, pilot, frame)
         with rig.lock:
-            rig.fleet.set_grid("r1", grid_through(room_grid(), inverse(frame)))
             rig.fleet.set_frames({"r1": frame})
         rig.app.planner = moving
         await command(pilot, "sweep rect -0.6 -0.6 1.7 1.1 with r1")
