@@ -1317,17 +1317,15 @@ class ConsoleApp(App[None]):
         with self.lock:
             target = self.target_for(robots) if command.target_mj_cm2 is None else j_m2(command.target_mj_cm2)
             floor = self.fleet.round_floor(robots, command.kind)
-        problem = floor if isinstance(floor, str) else ""
         request = RoundRequest(
             "uv" if command.kind == "uv" else "sweep", command.area, robots, target, surveys, looked_from
         )
-        if not problem:
-            try:
-                check_request(request)
-            except RoundError as exc:
-                problem = str(exc)
-        if problem or isinstance(floor, str):
-            self.notice("warning", f"{what} not planned: {problem}")
+        try:
+            if isinstance(floor, str):
+                raise RoundError(floor)
+            check_request(request)
+        except RoundError as exc:
+            self.notice("warning", f"{what} not planned: {exc}")
             return False
         self._planned_frames = floor.frames
         wall = self.clock.wall()

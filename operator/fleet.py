@@ -43,7 +43,7 @@ from fleetlink.shared.messages import (
     UwbFix,
 )
 from fleetlink.shared.scan_codec import scan_points
-from fleetlink.shared.se2 import compose, inverse
+from fleetlink.shared.se2 import apart, compose, inverse
 from fleetlink.shared.wire import Message, WireError
 
 __all__ = [
@@ -149,7 +149,7 @@ class RoundFloor:
     starts: dict[str, tuple[float, float]]
     """Where each robot stands on the map drawn."""
     maps: tuple[tuple[Grid, Frame | None], ...]
-    """Each robot's map and where its frame lies on the fleet map (None: it is the site's)."""
+    """Each robot's map and where its frame lies on the fleet map (None: taken as it is)."""
     trails: tuple[tuple[tuple[float, float], ...], ...]
     """Each map's robot's trail on the map drawn."""
     frames: dict[str, Frame]
@@ -441,9 +441,8 @@ class FleetModel:
                 frames[robot] = frame
             grid = self.grids.get(robot)
             if grid is not None:
-                # Through its frame only while it reports in its own frame: a robot with UWB plans on
-                # its map as it is (the fleet map's frame for it may lag its map's restart in the site
-                # frame, and a stale one moved uvc-1's whole map off its floor: the e2e round refused).
+                # Through its frame only while it reports in its own frame: a robot with UWB reports
+                # site poses and plans on its map as it is.
                 maps.append((grid, frame))
                 trails.append(tuple(view.trail))  # its body, where another's map saw it, is no wall
         return RoundFloor(starts, tuple(maps), tuple(trails), frames)
@@ -457,9 +456,9 @@ class FleetModel:
             return ""
         if now is None or planned is None:
             return f"{robot}'s frame on the fleet map {'came' if planned is None else 'went'} while it was planned"
-        d = compose(inverse(planned), now)
-        if math.hypot(d[0], d[1]) > FRAME_MOVED_M or abs(math.remainder(d[2], math.tau)) > FRAME_MOVED_RAD:
-            return f"{robot}'s frame on the fleet map moved {math.hypot(d[0], d[1]):.2f} m while it was planned"
+        if apart(planned, now, FRAME_MOVED_M, FRAME_MOVED_RAD):
+            moved = math.hypot(now[0] - planned[0], now[1] - planned[1])
+            return f"{robot}'s frame on the fleet map moved {moved:.2f} m while it was planned"
         return ""
 
     @staticmethod

@@ -5,6 +5,7 @@ the console (a robot drawn through its frame on the fleet map) use.
     relative(a, b)   a^-1 (+) b: pose b seen from a
     inverse(p)       p^-1
     wrap(a)          an angle into [-pi, pi)
+    apart(p, q, xy, theta)  p and q more than xy metres or theta radians apart
 
 Pure; no I/O.
 """
@@ -13,7 +14,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["Pose", "compose", "inverse", "relative", "wrap"]
+__all__ = ["Pose", "apart", "compose", "inverse", "relative", "wrap"]
 
 Pose = tuple[float, float, float]
 
@@ -39,3 +40,8 @@ def inverse(p: Pose) -> Pose:
     """p^-1: the parent frame seen from p."""
     c, s = math.cos(p[2]), math.sin(p[2])
     return (-(c * p[0] + s * p[1]), -(-s * p[0] + c * p[1]), wrap(-p[2]))
+
+
+def apart(p: Pose, q: Pose, xy: float, theta: float) -> bool:
+    """``p`` and ``q`` more than ``xy`` metres apart, or their headings more than ``theta`` radians."""
+    return math.hypot(p[0] - q[0], p[1] - q[1]) > xy or abs(math.remainder(p[2] - q[2], math.tau)) > theta

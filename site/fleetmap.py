@@ -42,6 +42,7 @@ from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.map_codec import SharedMap, fits_whole
 from fleetlink.shared.messages import FleetFrames, RobotFrame
+from fleetlink.shared.se2 import apart
 
 __all__ = ["FleetMapService", "publication_of"]
 
@@ -174,12 +175,7 @@ class FleetMapService:
         sent = self._frames_sent
         if sent is None or set(sent[0]) != set(result.frames) or sent[1] != tuple(sorted(result.unframed)):
             return True
-        for r, f in result.frames.items():
-            g = sent[0][r]
-            turn = abs(math.remainder(f[2] - g[2], math.tau))
-            if math.hypot(f[0] - g[0], f[1] - g[1]) > FRAMES_MOVED_M or turn > FRAMES_MOVED_RAD:
-                return True
-        return False
+        return any(apart(f, sent[0][r], FRAMES_MOVED_M, FRAMES_MOVED_RAD) for r, f in result.frames.items())
 
     def _publish_frames(self, result: FleetResult, now: float) -> None:
         """``FleetFrames`` on ``fleetlink/v1/fleet/frames`` (on the share's link): where the robots in

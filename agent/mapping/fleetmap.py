@@ -58,7 +58,7 @@ import numpy.typing as npt
 
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.posegraph import PoseGraph
-from fleetlink.shared.se2 import Pose, compose, inverse, relative
+from fleetlink.shared.se2 import Pose, apart, compose, inverse, relative
 
 __all__ = ["FleetMap", "FleetMapConfig", "FleetResult", "Registration", "RobotMap", "Submap"]
 
@@ -723,7 +723,7 @@ def _global_match(pa: _Prepared, pb: _Prepared, cfg: FleetMapConfig) -> tuple[Po
     shape = (next_fast_len(h + side - 1, real=True), next_fast_len(w + side - 1, real=True))
     spectrum = rfft2(value.astype(np.float32), shape)  # single precision: a third of the time
     thetas = np.arange(-math.pi, math.pi, cfg.global_angle_step_rad)
-    apart = math.ceil(1.0 / gres)  # peaks 1 m apart
+    spacing = math.ceil(1.0 / gres)  # peaks 1 m apart
     peaks: list[tuple[float, Pose]] = []
     for th in thetas:
         c, s = math.cos(th), math.sin(th)
@@ -740,7 +740,7 @@ def _global_match(pa: _Prepared, pb: _Prepared, cfg: FleetMapConfig) -> tuple[Po
             v = float(corr[r, cc])
             if not v > 0:
                 break
-            corr[max(0, r - apart) : r + apart + 1, max(0, cc - apart) : cc + apart + 1] = -np.inf
+            corr[max(0, r - spacing) : r + spacing + 1, max(0, cc - spacing) : cc + spacing + 1] = -np.inf
             # corr[r, cc]: the walls' centroid on cell (r - reach, cc - reach) of pa's field.
             x = pa.origin[0] + (cc - (side - 1) + reach + 0.5) * gres
             y = pa.origin[1] + (r - (side - 1) + reach + 0.5) * gres
@@ -750,7 +750,7 @@ def _global_match(pa: _Prepared, pb: _Prepared, cfg: FleetMapConfig) -> tuple[Po
     for _, pose in peaks:
         if len(chosen) == GLOBAL_CANDIDATES:
             break
-        if all(_apart(pose, q, 1.0, math.radians(10.0)) for q in chosen):
+        if all(apart(pose, q, 1.0, math.radians(10.0)) for q in chosen):
             chosen.append(pose)
     walls_b = _wall_points(pb.cells, pb.map.resolution, pb.origin, cfg.max_points)
     walls_a = _wall_points(pa.cells, res, pa.origin, cfg.max_points)
@@ -787,7 +787,7 @@ def _global_match(pa: _Prepared, pb: _Prepared, cfg: FleetMapConfig) -> tuple[Po
         for other, mean, q in scored
         if other > GLOBAL_MARGIN * support
         and mean > score - GLOBAL_MEAN_MARGIN
-        and _apart(pose, q, 1.0, math.radians(10.0))
+        and apart(pose, q, 1.0, math.radians(10.0))
     ]
     if rival:  # another place fits about as much of both maps as well: wait for more of either
         return None, f"{best}, another {rival[0][0] / support:.2f} as many at {rival[0][1]:.2f}"
@@ -815,10 +815,6 @@ GLOBAL_MEAN_MARGIN = 0.05
 """... and fits them about as well: its mean field value (both ways) within this of the best's. Two
 identical rooms side by side fit a map of one of them at 0.882 each; with a 3 m partition in one, a
 map of that room fits the other 0.78 against 0.88, matching 0.81 as many walls."""
-
-
-def _apart(p: Pose, q: Pose, xy: float, theta: float) -> bool:
-    return math.hypot(p[0] - q[0], p[1] - q[1]) > xy or abs(math.remainder(p[2] - q[2], math.tau)) > theta
 
 
 def _on_floor(p: _Prepared, pts: F64, field: F64) -> int:
