@@ -639,6 +639,9 @@ class AlarmDesk:
         self._ack_stamp: dict[tuple[str, str], tuple[float, int]] = {}
         self._published: dict[str, tuple[AckEntry, ...]] = {}
         self._pending: set[str] = set()
+        self._own_frame: dict[str, str | None] = {}
+        """Robots mapping in their own frame (no UWB): None once the fleet map has placed that frame,
+        else why it has not (``own_frame``)."""
 
     def forget(self) -> None:
         """Back to a desk that has heard nothing (a replay seeking back: operator/feed.py
@@ -664,8 +667,31 @@ class AlarmDesk:
             self.presence(robot, "mqtt", alive, now)
             return None
         for obs in derive(msg, lambda kind, source: self._prior(robot, kind, source)):
+            if obs.kind is AlarmKind.LOCALISATION and isinstance(msg, State):
+                obs = self._own_frame_localisation(robot, msg, obs)
             self._apply(robot, obs, now, msg.header.timestamp)
         return None
+
+    def own_frame(self, robot: str, unplaced_why: str | None, *, mapping: bool = True) -> None:
+        """The fleet map's word on a robot that maps in its own frame (no UWB position): placed on the
+        fleet map (``unplaced_why`` None) or not yet, and why not. Such a robot never has a site
+        position, so "position not initialised" would stand for as long as it runs; while it is
+        placed, its localisation is its own map's on the fleet map and raises nothing, and until then
+        the warning says the fleet map has not found it. ``mapping`` False: no longer such a robot.
+        Applied with the robot's next ``State``."""
+        if mapping:
+            self._own_frame[robot] = unplaced_why
+        else:
+            self._own_frame.pop(robot, None)
+
+    def _own_frame_localisation(self, robot: str, msg: State, obs: Observation) -> Observation:
+        if robot not in self._own_frame or msg.agvPosition.positionInitialized:
+            return obs
+        why = self._own_frame[robot]
+        if why is None:
+            return Observation(obs.kind, obs.source, None, "localisation: its own map, placed on the fleet map")
+        text = "localisation: its own map, not on the fleet map yet" + (f" ({why})" if why else "")
+        return Observation(obs.kind, obs.source, AlarmSeverity.WARNING, text)
 
     def presence(self, robot: str, source: str, alive: bool, now: float) -> None:
         """``source`` (``zenoh``: the liveliness token; ``mqtt``: the retained ``Connection``) says

@@ -395,6 +395,8 @@ class FleetModel:
             if (view.off_fleet_map, view.off_fleet_map_why) != (robot in off, reason):
                 view.off_fleet_map, view.off_fleet_map_why = robot in off, reason
                 self.version += 1
+            # Its localisation alarm speaks of the fleet map, not of a site position it never has.
+            self.alarms.own_frame(robot, reason if robot in off else None, mapping=robot in off or robot in frames)
         if frames == self.frames:
             return
         moved = {r for r in set(frames) | set(self.frames) if frames.get(r) != self.frames.get(r)}

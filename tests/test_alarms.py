@@ -137,6 +137,31 @@ def test_localisation_degraded_with_hysteresis() -> None:
         assert (K.LOCALISATION in active(desk)) is on, score
 
 
+def test_a_robot_in_its_own_frame_is_localised_once_the_fleet_map_places_it() -> None:
+    """A robot without UWB never has a site position: "position not initialised" would stand all
+    its life. Once the fleet map says where its own frame lies, its localisation is that, and the
+    alarm clears; while the fleet map has not found it, the warning says so, and why."""
+    desk, r = AlarmDesk("op-a"), Robot()
+    dark = AgvPosition(x=1, y=2, theta=0, mapId="m", positionInitialized=False, localizationScore=0.0)
+    heard(desk, r.state(agvPosition=dark, uwbStale=True))
+    assert "not initialised" in desk.alarms.get("r1", K.LOCALISATION).text  # type: ignore[union-attr]
+    desk.own_frame("r1", "on r2's map: too few walls")
+    heard(desk, r.state(agvPosition=dark, uwbStale=True))
+    alarm = desk.alarms.get("r1", K.LOCALISATION)
+    assert alarm is not None and alarm.severity is AlarmSeverity.WARNING
+    assert alarm.text == "localisation: its own map, not on the fleet map yet (on r2's map: too few walls)"
+    desk.own_frame("r1", None)  # placed
+    heard(desk, r.state(agvPosition=dark, uwbStale=True))
+    assert K.LOCALISATION not in active(desk)
+    # It gets a site position after all (UWB came back): judged as any robot again.
+    heard(desk, r.state(agvPosition=dataclasses.replace(dark, positionInitialized=True, localizationScore=0.2)))
+    assert "score 0.20" in desk.alarms.get("r1", K.LOCALISATION).text  # type: ignore[union-attr]
+    # No longer mapping in its own frame: an uninitialised position warns again.
+    desk.own_frame("r1", None, mapping=False)
+    heard(desk, r.state(agvPosition=dark, uwbStale=True))
+    assert "not initialised" in desk.alarms.get("r1", K.LOCALISATION).text  # type: ignore[union-attr]
+
+
 def test_link_lost_from_the_robot_and_from_the_console() -> None:
     desk, r = AlarmDesk("op-a"), Robot()
     heard(desk, r.state(contact=Contact(policy=CommsPolicy.RETRACE, lost=True, action="retracing", silent_s=12.0)))

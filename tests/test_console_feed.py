@@ -329,8 +329,10 @@ def test_a_robot_in_its_own_frame_is_drawn_on_the_fleet_map_through_the_frame_fo
 
     import numpy as np
 
+    from fleetlink.operator.alarms import AlarmKind
     from fleetlink.operator.detail import detail_text
-    from fleetlink.shared.messages import UNKNOWN_SD_M
+    from fleetlink.shared.messages import UNKNOWN_SD_M, AgvPosition, State
+    from tests.harness.messages import state_fields
 
     fleet = FleetModel(ME)
     agent = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
@@ -345,8 +347,15 @@ def test_a_robot_in_its_own_frame_is_drawn_on_the_fleet_map_through_the_frame_fo
     assert f"its own frame: not on the fleet map yet ({why})" in detail_text("r1", view, ())
     trail_before = view.trail_added
     # Found: its frame lies at (5, 2), turned a quarter turn, on the fleet map.
+    # Its localisation alarm speaks of the fleet map, not of the site position it never has.
+    dark = AgvPosition(x=1.0, y=0.0, theta=0.0, mapId="", positionInitialized=False, localizationScore=0.0)
+    fleet.alarms.observe(agent.make(State, **state_fields(agvPosition=dark, uwbStale=True)), 1.0)
+    alarm = fleet.alarms.alarms.get("r1", AlarmKind.LOCALISATION)
+    assert alarm is not None and alarm.text == f"localisation: its own map, not on the fleet map yet ({why})"
     fleet.set_frames({"r1": (5.0, 2.0, math.pi / 2)})
     assert not view.off_fleet_map and "not on the fleet map" not in detail_text("r1", view, ())
+    fleet.alarms.observe(agent.make(State, **state_fields(agvPosition=dark, uwbStale=True)), 2.0)
+    assert fleet.alarms.alarms.get("r1", AlarmKind.LOCALISATION) is None
     assert view.pose is not None and view.reported == (1.0, 0.0, 0.0)
     assert math.hypot(view.pose[0] - 5.0, view.pose[1] - 3.0) < 1e-9 and abs(view.pose[2] - math.pi / 2) < 1e-9
     assert list(view.trail) == [(view.pose[0], view.pose[1])] and view.trail_added > trail_before + len(view.trail)
