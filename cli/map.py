@@ -1,7 +1,7 @@
 """Maps. ``save`` fetches a robot's map over Zenoh (the queryable ``fleetlink/v1/<robot>/map``) and
 writes it as a ROS map_server map (PGM + YAML); ``load`` reads a map_server map and prints a summary
 (``fleetlink field`` takes the same file as a floor plan); ``replay`` builds a map offline from a
-CARMEN log (FLASER, ROBOTLASER1, ODOM lines; .gz accepted), writing DIR/map.pgm, DIR/map.yaml,
+CARMEN log (FLASER, ROBOTLASER1, RAWLASER1, ODOM lines; .gz accepted), writing DIR/map.pgm, DIR/map.yaml,
 DIR/trajectory.txt (``ipc_timestamp x y theta`` per scan, the timestamp copied from the log) and
 DIR/corrected.log (the input log with each scan's pose replaced by the mapper's: the SLAM result as
 the Freiburg ``metricEvaluator`` reads it). ``relations`` writes a complete relation set (Kümmerle

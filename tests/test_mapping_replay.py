@@ -159,6 +159,71 @@ def test_flaser_poses_are_the_laser_s_then_the_robot_s_as_carmen_writes_them() -
     assert again.pose[:2] == pytest.approx(new[:2], abs=1e-6) and again.odom == pytest.approx(new, abs=1e-6)
 
 
+def _rawlaser_lines(with_flaser: bool = False) -> list[str]:
+    """The room log as a CARMEN logger writes a bare laser: RAWLASER1 lines (no pose, 181 beams from
+    -90 degrees at 1 degree, 80 m) between ODOM lines that are not at the scans' times; the robot's
+    odometry there is the true path, sampled 0.05 s before and after each scan. ``with_flaser``: the
+    logger wrote each scan as a FLASER line too."""
+    rc = Raycaster(ROOM)
+    lines = ["PARAM robot_frontlaser_offset 0.0 nohost 0"]
+    poses = _poses()
+    for i, (pose, ts) in enumerate(zip(poses, TIMESTAMPS, strict=True)):
+        t = float(ts)
+        nxt = poses[min(i + 1, len(poses) - 1)]
+        # The robot moves 1/4 of the way to the next pose in 0.05 s (scans are 0.2 s apart).
+        ahead = tuple(a + 0.25 * (b - a) for a, b in zip(pose, nxt, strict=True))
+        behind = tuple(a - 0.25 * (b - a) for a, b in zip(pose, nxt, strict=True))
+        lines.append(f"ODOM {behind[0]} {behind[1]} {behind[2]} 0.1 0.0 0.0 {t - 0.05:.3f} nohost {t:.3f}")
+        r = rc.cast_fan(pose[0], pose[1], pose[2] - math.pi / 2, math.pi / 180, 181, 80.0)
+        r = np.where(np.isfinite(r), r, 81.91)
+        ranges = " ".join(f"{v:.3f}" for v in r)
+        lines.append(f"RAWLASER1 0 -1.5707963 3.1415927 0.0174533 81.91 0.01 0 181 {ranges} 0 {ts} nohost {ts}")
+        if with_flaser:
+            lines.append(_flaser(rc, pose, pose, ts))
+        lines.append(f"ODOM {ahead[0]} {ahead[1]} {ahead[2]} 0.1 0.0 0.0 {t + 0.05:.3f} nohost {t:.3f}")
+    return lines
+
+
+def test_rawlaser1_is_placed_by_the_odometry_at_its_time_and_maps() -> None:
+    """A log of bare RAWLASER1 scans and ODOM lines: each scan's pose is the odometry interpolated to
+    its time; replayed, the room's path comes back; written back, each becomes the ROBOTLASER1 line
+    of the same scan with the SLAM pose (what metricEvaluator reads)."""
+    stats = CarmenStats()
+    lines = _rawlaser_lines()
+    recs = [r for r in read_records(lines, stats) if isinstance(r, LaserRecord)]
+    assert [r.kind for r in recs] == ["RAWLASER1"] * len(TIMESTAMPS) == ["RAWLASER1"] * stats.scans
+    assert [r.ipc_timestamp for r in recs] == TIMESTAMPS and stats.odom == 2 * len(TIMESTAMPS)
+    for r, pose in zip(recs, _poses(), strict=True):  # (the ODOM lines' times are rounded to 1 ms)
+        assert r.pose == pytest.approx(pose, abs=1e-3) and r.odom == r.pose
+    assert recs[0].angles[0] == pytest.approx(-math.pi / 2) and recs[0].max_range == pytest.approx(81.91)
+    result = replay(iter(recs))
+    est, truth = [p for _, p in result.rows], _poses()
+    for e, t in zip(est, truth, strict=True):
+        r_est, r_true = relative(est[0], e), relative(truth[0], t)
+        assert math.hypot(r_est[0] - r_true[0], r_est[1] - r_true[1]) < 0.03
+    new = {r.line: (5.0 + k, -1.0, 0.5) for k, r in enumerate(recs)}
+    out = list(corrected_lines(lines, new))
+    assert len(out) == len(lines)
+    again = [r for r in read_records(out) if isinstance(r, LaserRecord)]
+    assert [r.kind for r in again] == ["ROBOTLASER1"] * len(recs)
+    for old, r in zip(recs, again, strict=True):
+        assert r.pose == pytest.approx(new[old.line], abs=1e-6) and r.ipc_timestamp == old.ipc_timestamp
+        assert np.array_equal(r.ranges, old.ranges) and np.allclose(r.angles, old.angles)
+
+
+def test_rawlaser1_beside_flaser_lines_is_not_mapped_twice() -> None:
+    stats = CarmenStats()
+    recs = [r for r in read_records(_rawlaser_lines(with_flaser=True), stats) if isinstance(r, LaserRecord)]
+    assert [r.kind for r in recs] == ["FLASER"] * len(TIMESTAMPS) and stats.scans == len(TIMESTAMPS)
+    assert stats.unknown == {"RAWLASER1 (the same scans as FLASER/ROBOTLASER1)": len(TIMESTAMPS)}
+    # Without odometry a bare scan is at the origin (the matcher alone places it).
+    (rec,) = read_records([_rawlaser_lines()[2]])
+    assert isinstance(rec, LaserRecord) and rec.pose == (0.0, 0.0, 0.0)
+    bad = CarmenStats()
+    assert list(read_records(["RAWLASER1 0 -1.57 3.14 0.0175 80 0.01 0 3 1 2"], bad)) == []
+    assert bad.malformed == {"RAWLASER1: too few fields": 1}
+
+
 def test_replay_recovers_the_path_despite_drifting_odometry() -> None:
     heard: list[tuple[str, int]] = []
     result = replay(read_records(_log_lines()), progress=lambda stage, n: heard.append((stage, n)))

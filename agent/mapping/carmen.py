@@ -1,4 +1,4 @@
-"""CARMEN log reader (FLASER, ROBOTLASER1, ODOM, PARAM), and replay of a log into a map.
+"""CARMEN log reader (FLASER, ROBOTLASER1, RAWLASER1, ODOM, PARAM), and replay of a log into a map.
 
 Line-oriented, whitespace-separated, ``#`` comments (CARMEN's ``carmen/src/global/readlog.c``):
 
@@ -6,6 +6,8 @@ Line-oriented, whitespace-separated, ``#`` comments (CARMEN's ``carmen/src/globa
     ROBOTLASER1 laser_type start_angle fov angular_resolution max_range accuracy remission_mode
                 n r1 .. rn m rem1 .. remm laser_x laser_y laser_theta robot_x robot_y robot_theta
                 tv rv forward_safety_dist side_safety_dist turn_axis ipc_timestamp ipc_hostname logger_timestamp
+    RAWLASER1 laser_type start_angle fov angular_resolution max_range accuracy remission_mode
+              n r1 .. rn m rem1 .. remm ipc_timestamp ipc_hostname logger_timestamp
     ODOM x y theta tv rv accel ipc_timestamp ipc_hostname logger_timestamp
     PARAM name value [ipc_hostname logger_timestamp]
 
@@ -19,9 +21,16 @@ odometry in a raw log. Radish's corrected logs carry the corrected pose in both 
 logged, or corrected, pose); ``LaserRecord.odom`` the second, which replay seeds the matcher with.
 ``ipc_timestamp`` is kept as the text found in the log so it can be written back verbatim.
 
+RAWLASER1 (the front laser's raw scan, as CARMEN's logger writes it beside the odometry) carries no
+pose: its robot pose is the odometry at the scan's time, interpolated between the ODOM lines either
+side (held at the first or last one beyond them; zero in a log without odometry), and its mount
+``robot_frontlaser_offset``. A logger that also wrote the scans as FLASER or ROBOTLASER1 lines wrote
+each one twice: once such a line is seen, the RAWLASER1 lines are skipped (and counted).
+
 ``corrected_lines`` writes a log back with each laser line's poses replaced: a SLAM result as the
 Freiburg ``metricEvaluator`` reads it, which takes the robot pose -- FLASER's second triple,
-ROBOTLASER1's ``robot_*`` -- and the ``ipc_timestamp`` of every laser line.
+ROBOTLASER1's ``robot_*`` -- and the ``ipc_timestamp`` of every laser line (a RAWLASER1 line, which
+has no pose to replace, is written as the ROBOTLASER1 line of the same scan).
 
 Anything else (unknown message types such as NEFF, blank lines, comments) is skipped and counted;
 malformed lines are skipped and counted by reason, and the first few are kept for a log message.
@@ -36,7 +45,7 @@ import io
 import math
 from collections import Counter
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
@@ -58,11 +67,12 @@ __all__ = [
 
 Pose = tuple[float, float, float]
 MAX_BEAMS = 100_000
+RAW_BESIDE_POSED = "RAWLASER1 (the same scans as FLASER/ROBOTLASER1)"
 
 
 @dataclass(frozen=True, slots=True)
 class LaserRecord:
-    kind: str  # FLASER or ROBOTLASER1
+    kind: str  # FLASER, ROBOTLASER1 or RAWLASER1
     ranges: npt.NDArray[np.float64]
     angles: npt.NDArray[np.float64]  # rad, sensor frame
     max_range: float
@@ -181,29 +191,57 @@ def _flaser(toks: list[str], line: int, offset: Pose) -> LaserRecord:
 
 
 def _robotlaser(toks: list[str], line: int) -> LaserRecord:
-    if len(toks) < 9:
-        raise _Bad("ROBOTLASER1: too few fields")
-    start = _num(toks[2], "start_angle")
-    res = _num(toks[4], "angular_resolution")
-    max_range = _num(toks[5], "maximum_range")
-    n = _count(toks[8], "ROBOTLASER1 beam count")
-    k = 9 + n
-    if len(toks) < k + 1:
-        raise _Bad("ROBOTLASER1: too few fields")
-    ranges = _ranges(toks, 9, n)
-    m = _count(toks[k], "remission count")
-    k += 1 + m
+    ranges, angles, max_range, k = _laser_head(toks, "ROBOTLASER1")
     if len(toks) < k + 12:
         raise _Bad("ROBOTLASER1: too few fields")
     laser = _pose(toks, k, "laser pose")
     robot = _pose(toks, k + 3, "robot pose")
     ts_text = toks[k + 11]
     ts = _num(ts_text, "ipc_timestamp")
-    angles = start + res * np.arange(n, dtype=np.float64)
     c, s = math.cos(robot[2]), math.sin(robot[2])
     dx, dy = laser[0] - robot[0], laser[1] - robot[1]
     offset = (c * dx + s * dy, -s * dx + c * dy, (laser[2] - robot[2] + math.pi) % (2 * math.pi) - math.pi)
     return LaserRecord("ROBOTLASER1", ranges, angles, max_range, robot, robot, offset, ts_text, ts, line)
+
+
+def _laser_head(toks: list[str], kind: str) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], float, int]:
+    """The laser fields ROBOTLASER1 and RAWLASER1 share: ranges, beam angles, maximum range, and the
+    index of the first field after the remissions."""
+    if len(toks) < 9:
+        raise _Bad(f"{kind}: too few fields")
+    start = _num(toks[2], "start_angle")
+    res = _num(toks[4], "angular_resolution")
+    max_range = _num(toks[5], "maximum_range")
+    n = _count(toks[8], f"{kind} beam count")
+    k = 9 + n
+    if len(toks) < k + 1:
+        raise _Bad(f"{kind}: too few fields")
+    ranges = _ranges(toks, 9, n)
+    m = _count(toks[k], "remission count")
+    return ranges, start + res * np.arange(n, dtype=np.float64), max_range, k + 1 + m
+
+
+def _rawlaser(toks: list[str], line: int, offset: Pose) -> LaserRecord:
+    """A RAWLASER1 line, its pose not yet known (the odometry's at its time: ``_RawScans``)."""
+    ranges, angles, max_range, k = _laser_head(toks, "RAWLASER1")
+    if len(toks) < k + 3:
+        raise _Bad("RAWLASER1: too few fields")
+    ts_text = toks[k]
+    ts = _num(ts_text, "ipc_timestamp")
+    zero = (0.0, 0.0, 0.0)
+    return LaserRecord("RAWLASER1", ranges, angles, max_range, zero, zero, offset, ts_text, ts, line)
+
+
+def _odometry_at(before: OdomRecord | None, after: OdomRecord | None, t: float) -> Pose:
+    """The odometry at time ``t`` between two ODOM records (either may be missing: held at the other)."""
+    if before is None or after is None:
+        known = before or after
+        return known.pose if known is not None else (0.0, 0.0, 0.0)
+    span = after.timestamp - before.timestamp
+    u = 0.0 if span <= 0.0 else min(1.0, max(0.0, (t - before.timestamp) / span))
+    (x0, y0, t0), (x1, y1, t1) = before.pose, after.pose
+    turn = math.remainder(t1 - t0, 2.0 * math.pi)
+    return (x0 + u * (x1 - x0), y0 + u * (y1 - y0), math.remainder(t0 + u * turn, 2.0 * math.pi))
 
 
 def _odom(toks: list[str], line: int) -> OdomRecord:
@@ -225,6 +263,19 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
     """Laser and odometry records from log lines; everything else is counted in ``stats``."""
     st = stats if stats is not None else CarmenStats()
     front_offset: Pose = (0.0, 0.0, 0.0)
+    # RAWLASER1 scans wait for the ODOM line after their time (their pose lies between it and the
+    # one before); ``posed``: the log writes its scans with poses (FLASER, ROBOTLASER1) too.
+    waiting: list[LaserRecord] = []
+    last_odom: OdomRecord | None = None
+    posed = False
+
+    def placed(upto: OdomRecord | None) -> Iterator[LaserRecord]:
+        while waiting and (upto is None or waiting[0].timestamp <= upto.timestamp):
+            rec = waiting.pop(0)
+            pose = _odometry_at(last_odom, upto, rec.timestamp)
+            st.scans += 1
+            yield replace(rec, pose=pose, odom=pose)
+
     for number, raw in enumerate(lines, start=1):
         st.lines += 1
         text = raw.strip()
@@ -243,9 +294,17 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
             elif kind == "ROBOTLASER1":
                 rec = _robotlaser(toks, number)
                 st.scans += 1
+            elif kind == "RAWLASER1":
+                if posed:
+                    st.unknown[RAW_BESIDE_POSED] += 1
+                else:
+                    waiting.append(_rawlaser(toks, number, front_offset))
+                continue
             elif kind == "ODOM":
                 rec = _odom(toks, number)
                 st.odom += 1
+                yield from placed(rec)
+                last_odom = rec
             elif kind == "PARAM":
                 if len(toks) < 3:
                     raise _Bad("PARAM: too few fields")
@@ -261,7 +320,13 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
             if len(st.examples) < 5:
                 st.examples.append(f"line {number}: {reason}")
             continue
+        if isinstance(rec, LaserRecord) and not posed:
+            posed = True  # the same scans again, with poses: the raw ones are not mapped twice
+            if waiting:
+                st.unknown[RAW_BESIDE_POSED] += len(waiting)
+                waiting.clear()
         yield rec
+    yield from placed(None)
 
 
 def _fmt(pose: Pose) -> list[str]:
@@ -298,6 +363,12 @@ def corrected_lines(lines: Iterable[str], poses: Mapping[int, Pose]) -> Iterator
                 k = 9 + rec.ranges.size
                 k += 1 + int(toks[k])
                 toks[k : k + 6] = _fmt(compose(pose, rec.laser_offset)) + _fmt(pose)
+            elif toks and toks[0] == "RAWLASER1":
+                # No pose to replace: the same scan as a ROBOTLASER1 line, laser and robot pose
+                # written in (velocities, safety distances and turn axis unknown: 0).
+                _, _, _, k = _laser_head(toks, "RAWLASER1")
+                laser = compose(pose, front_offset)
+                toks = ["ROBOTLASER1", *toks[1:k], *_fmt(laser), *_fmt(pose), "0", "0", "0", "0", "0", *toks[k:]]
             else:
                 raise _Bad(f"not a laser line ({toks[0] if toks else 'blank'})")
         except _Bad as exc:
