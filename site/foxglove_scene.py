@@ -11,7 +11,9 @@ same in a recording and live.
   maps and reports in its own frame: its pose, scan and map are in frame ``<robot>/map``.
 * ``/foxglove/fleet/frames`` (``foxglove.FrameTransforms``): where those frames lie in ``map`` (the
   fleet map's frame), from a fleet map service's ``FleetFrames``; a robot not found yet has none,
-  and Foxglove draws it only in its own frame.
+  and Foxglove draws it only in its own frame. A frame the fleet map placed and then lost (the
+  robot's map began again) is not drawn in ``map`` again: the robot goes on in ``<robot>/map.1``
+  (``.2``, ...), placed once the fleet map finds it (Foxglove cannot take a transform back).
 * ``/foxglove/sim/<robot>/truth`` (``foxglove.PoseInFrame``): the simulated field's ground truth.
 * ``/foxglove/<robot>/scan`` (``foxglove.LaserScan``): the robot's latest lidar turn (the wire's
   ``Scan``, at most ``[rates] scan_hz``), in frame ``map`` at the pose it was taken from.
@@ -140,9 +142,10 @@ def truth_topic(robot: str) -> str:
     return f"{FOXGLOVE_PREFIX}/{keys.SIM}/{robot}/truth"
 
 
-def robot_frame(robot: str) -> str:
-    """The Foxglove frame of a robot's own map (a robot without UWB reports in it)."""
-    return f"{robot}/{MAP}"
+def robot_frame(robot: str, placing: int = 0) -> str:
+    """The Foxglove frame of a robot's own map (a robot without UWB reports in it): ``<robot>/map``,
+    and ``<robot>/map.<n>`` once the fleet map has lost its placing ``n`` times (``FoxgloveScene``)."""
+    return f"{robot}/{MAP}" if placing == 0 else f"{robot}/{MAP}.{placing}"
 
 
 FRAMES_TOPIC: Final = f"{FOXGLOVE_PREFIX}/{keys.FLEET_MAP}/frames"
@@ -187,6 +190,14 @@ class FoxgloveScene:
         self.frames_record: Record | None = None
         """The latest transforms of those frames (a client that subscribes late gets it at once)."""
         self._site_frames_at: float | None = None
+        self._placed: set[str] = set()
+        """Robots whose own frame the last ``FleetFrames`` placed."""
+        self._placings: dict[str, int] = {}
+        """Robot -> how often the fleet map lost its frame (``robot_frame``'s ``placing``). Foxglove
+        keeps a transform until another replaces it and none can be taken back: a robot whose map
+        began again (its agent restarted) would be drawn where its old map lay. So a frame no longer
+        placed is not drawn in ``map`` again: the robot's records move to a new frame, which is placed
+        once the fleet map finds it."""
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -248,7 +259,14 @@ class FoxgloveScene:
                     return []  # another service has the site frame: its placements hold
             else:
                 self._site_frames_at = wall
-            moves = [(foxglove.MAP_FRAME, robot_frame(f.robot), f.x, f.y, f.theta) for f in msg.frames]
+            placed = {f.robot for f in msg.frames}
+            for robot in self._placed - placed:
+                self._placings[robot] = self._placings.get(robot, 0) + 1
+            self._placed = placed
+            moves = [
+                (foxglove.MAP_FRAME, robot_frame(f.robot, self._placings.get(f.robot, 0)), f.x, f.y, f.theta)
+                for f in msg.frames
+            ]
             data = _dumps(foxglove.frame_transforms(header.timestamp, moves))
             channel = self.channel(FRAMES_TOPIC, foxglove.FRAME_TRANSFORMS)
             self.frames_record = Record(channel, data, ns(wall), ns(header.timestamp))
@@ -336,7 +354,7 @@ class FoxgloveScene:
 
     def _frame(self, robot: str) -> str:
         """The frame ``robot``'s pose, scan and map are drawn in: its own map's while it reports in it."""
-        return robot_frame(robot) if robot in self.own_frames else foxglove.MAP_FRAME
+        return robot_frame(robot, self._placings.get(robot, 0)) if robot in self.own_frames else foxglove.MAP_FRAME
 
     def channel(self, topic: str, schema: str) -> Channel:
         """The Foxglove channel ``topic`` of schema ``schema`` (made once)."""

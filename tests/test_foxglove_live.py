@@ -185,6 +185,25 @@ def test_a_robot_without_uwb_is_drawn_in_its_own_frame_placed_where_the_fleet_ma
     assert records(other, 2.0) == []
     core.unsubscribe(FRAMES_TOPIC)
     assert core.subscribe(FRAMES_TOPIC, 2.1, 2.1) == [tf]
+    # Its agent restarted, its map began again: the fleet map no longer places it. Foxglove keeps
+    # the old transform of r2/map (none can be taken back), so r2 goes on in a frame of its own that
+    # has none yet, and is not drawn where its old map lay; placed again, that frame is.
+    service = wire.HeaderCounter(clock, robot=keys.FLEET_MAP, sender="op-1")
+    lost = service.make(FleetFrames, reference="", frames=(), unframed=("r2",))
+    (tf_lost,) = records(lost, 2.2)
+    assert json.loads(tf_lost.data)["transforms"] == []
+    again = c.make(
+        Pose, x=0.1, y=0.0, theta=0.0, sd_x_m=UNKNOWN_SD_M, sd_y_m=UNKNOWN_SD_M, sd_theta_rad=UNKNOWN_SD_M,
+        odom_x=0.1, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=True,
+    )  # fmt: skip
+    (p_again,) = records(again, 2.3)
+    assert json.loads(p_again.data)["frame_id"] == robot_frame("r2", 1) == "r2/map.1"
+    found = service.make(
+        FleetFrames, reference="", frames=(RobotFrame(robot="r2", x=-3.0, y=2.0, theta=0.0),), unframed=()
+    )
+    (tf_found,) = records(found, 2.4)
+    (t2,) = json.loads(tf_found.data)["transforms"]
+    assert (t2["parent_frame_id"], t2["child_frame_id"]) == ("map", "r2/map.1")
     # Placed by UWB later: its poses are in the site frame again.
     (p2,) = records(pose(c, 3.0), 1.5)
     assert json.loads(p2.data)["frame_id"] == "map"
