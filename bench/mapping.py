@@ -385,7 +385,7 @@ def relation_sets(recs) -> dict[str, list]:  # type: ignore[no-untyped-def,type-
     out["complete"] = generate_relations(
         times,
         ref,
-        scans=[(np.where(r.ranges >= r.max_range, np.nan, r.ranges), r.angles) for r in recs],
+        scans=[(r.measured(), r.angles) for r in recs],
         max_range=max(r.max_range for r in recs),
         mount=recs[0].laser_offset,
     )
@@ -404,7 +404,7 @@ def matched_relations(recs, relations: list):  # type: ignore[no-untyped-def,typ
     return match_relations(
         relations,
         [r.timestamp for r in recs],
-        [(np.where(r.ranges >= r.max_range, np.nan, r.ranges), r.angles) for r in recs],
+        [(r.measured(), r.angles) for r in recs],
         max_range=max(r.max_range for r in recs),
         mount=recs[0].laser_offset,
     )

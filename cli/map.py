@@ -316,8 +316,6 @@ def run_replay(args: argparse.Namespace) -> int:
 
 
 def run_relations(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from fleetlink.agent.mapping.carmen import CarmenStats, LaserRecord, open_log, read_records
     from fleetlink.agent.mapping.relations import (
         DEFAULT_LOCAL_S,
@@ -348,7 +346,7 @@ def run_relations(args: argparse.Namespace) -> int:
         print(f"{name}: {args.log}: scan {problem}; name scans by index with --by-index", file=sys.stderr)
         return 1
     # Each record's own maximum means "no return" (NaN here), so one maximum range serves them all.
-    ranges = [np.where(r.ranges >= r.max_range, np.nan, r.ranges) for r in scans]
+    ranges = [r.measured() for r in scans]
     relations = generate_relations(
         times,
         [r.pose for r in scans],

@@ -99,7 +99,7 @@ def test_the_search_does_not_change_a_step_by_more_than_half() -> None:
 
 def _logged(rec: LaserRecord) -> NodeScan:
     """A log's scan, a reading at its maximum range taken as no return (as replay takes it)."""
-    return _prepared(np.where(rec.ranges >= rec.max_range, np.nan, rec.ranges), rec.angles)
+    return _prepared(rec.measured(), rec.angles)
 
 
 def test_a_pair_is_refined_from_turned_starts_too() -> None:

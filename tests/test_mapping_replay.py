@@ -96,6 +96,21 @@ def test_robotlaser1_is_read_with_its_own_geometry() -> None:
     assert rec.laser_offset == pytest.approx((0.1 * math.cos(0.5), -0.1 * math.sin(0.5), 0.0))
 
 
+def test_a_sick_s_error_codes_under_its_maximum_are_no_return() -> None:
+    """A SICK LMS 2xx in centimetre mode reports 81.83 m ("over range") to 81.91 m as codes; a
+    ROBOTLASER1 line gives 81.9 m as its maximum. None of them is a wall 81.83 m off (mapped, it
+    would clear every cell along the beam); a reading short of them is."""
+    line = (
+        "ROBOTLASER1 0 -1.5707963 3.1415927 0.0174533 81.9 0.01 0 5 3.5 81.83 81.91 81.0 79.5 0 "
+        "0.22 0.0 0.0 0.0 0.0 0.0 0.0 0.0 0.5 0.2 0.0 77.125 host 77.2"
+    )
+    (rec,) = list(read_records([line]))
+    assert isinstance(rec, LaserRecord)
+    got = rec.measured()
+    assert np.isnan(got[[1, 2]]).all() and got[[0, 3, 4]].tolist() == [3.5, 81.0, 79.5]
+    assert rec.ranges[1] == 81.83  # the record itself keeps what the log says
+
+
 def test_corrected_lines_replace_the_pose_and_nothing_else() -> None:
     """A SLAM result in the form the Freiburg metricEvaluator reads: the same log, each laser line
     carrying the new robot pose (FLASER: in both triples, as a corrected log; ROBOTLASER1: its laser

@@ -68,6 +68,8 @@ __all__ = [
 Pose = tuple[float, float, float]
 MAX_BEAMS = 100_000
 RAW_BESIDE_POSED = "RAWLASER1 (the same scans as FLASER/ROBOTLASER1)"
+NO_RETURN_BAND_M = 0.1
+"""Readings this close under a log's maximum range are no return too (``LaserRecord.measured``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,6 +84,13 @@ class LaserRecord:
     ipc_timestamp: str  # verbatim
     timestamp: float
     line: int
+
+    def measured(self) -> npt.NDArray[np.float64]:
+        """The ranges with every "no return" as NaN: a reading at the maximum range (glass, an open
+        door, nothing within reach), or less than ``NO_RETURN_BAND_M`` under it, which a SICK LMS
+        2xx uses for its error codes (centimetre mode: 81.83 "over range" to 81.91 m, a ROBOTLASER1
+        line's maximum 81.9 m). Such a reading says nothing reliable, so it neither marks nor clears."""
+        return np.where(self.ranges >= self.max_range - NO_RETURN_BAND_M, np.nan, self.ranges)
 
 
 @dataclass(frozen=True, slots=True)

@@ -11,8 +11,6 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 
-import numpy as np
-
 from fleetlink.agent.mapping.carmen import LaserRecord, OdomRecord
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper, Pose
 
@@ -49,10 +47,9 @@ def replay(
             base = config or MapperConfig()
             cfg = replace(base, mount=rec.laser_offset, max_range=min(max_range, rec.max_range, base.max_range * 10))
             result = ReplayResult(OnboardMapper(cfg))
-        # A reading at the sensor's maximum is "no return" (glass, an open door, a SICK's 81.9 m): it
-        # says nothing reliable, so it neither marks nor clears. Clearing along it fans free space far
-        # outside the building on real logs.
-        ranges = np.where(rec.ranges >= rec.max_range, np.nan, rec.ranges)
+        # "No return" neither marks nor clears: clearing along it fans free space far outside the
+        # building on real logs, and a SICK's error codes would erase the walls they were dazzled by.
+        ranges = rec.measured()
         res = result.mapper.add_scan_odometry(rec.timestamp, ranges, rec.angles, rec.odom)
         result.rows.append((rec.ipc_timestamp, res.pose))
         result.logged.append(rec.pose)
