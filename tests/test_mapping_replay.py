@@ -226,14 +226,29 @@ def test_rawlaser1_is_placed_by_the_odometry_at_its_time_and_maps() -> None:
         assert np.array_equal(r.ranges, old.ranges) and np.allclose(r.angles, old.angles)
 
 
+def test_a_log_without_odometry_is_mapped_by_the_scans_alone() -> None:
+    """A bare laser's log (RAWLASER1, no ODOM lines): no step is known, so none is assumed to be zero
+    (held to a centimetre, the matcher would keep the robot where it started); the last step is
+    guessed again and the matcher's own prior decides."""
+    lines = [line for line in _rawlaser_lines() if not line.startswith("ODOM")]
+    recs = [r for r in read_records(lines) if isinstance(r, LaserRecord)]
+    assert len(recs) == len(TIMESTAMPS) and not any(r.has_odometry for r in recs)
+    result = replay(iter(recs))
+    est, truth = [p for _, p in result.rows], _poses()
+    for e, t in zip(est, truth, strict=True):
+        r_est, r_true = relative(est[0], e), relative(truth[0], t)
+        assert math.hypot(r_est[0] - r_true[0], r_est[1] - r_true[1]) < 0.03
+        assert abs(math.remainder(r_est[2] - r_true[2], 2 * math.pi)) < math.radians(1.0)
+
+
 def test_rawlaser1_beside_flaser_lines_is_not_mapped_twice() -> None:
     stats = CarmenStats()
     recs = [r for r in read_records(_rawlaser_lines(with_flaser=True), stats) if isinstance(r, LaserRecord)]
     assert [r.kind for r in recs] == ["FLASER"] * len(TIMESTAMPS) and stats.scans == len(TIMESTAMPS)
     assert stats.unknown == {"RAWLASER1 (the same scans as FLASER/ROBOTLASER1)": len(TIMESTAMPS)}
-    # Without odometry a bare scan is at the origin (the matcher alone places it).
+    # Without odometry a bare scan has none (the matcher alone places it).
     (rec,) = read_records([_rawlaser_lines()[2]])
-    assert isinstance(rec, LaserRecord) and rec.pose == (0.0, 0.0, 0.0)
+    assert isinstance(rec, LaserRecord) and rec.pose == (0.0, 0.0, 0.0) and not rec.has_odometry
     bad = CarmenStats()
     assert list(read_records(["RAWLASER1 0 -1.57 3.14 0.0175 80 0.01 0 3 1 2"], bad)) == []
     assert bad.malformed == {"RAWLASER1: too few fields": 1}

@@ -23,7 +23,8 @@ logged, or corrected, pose); ``LaserRecord.odom`` the second, which replay seeds
 
 RAWLASER1 (the front laser's raw scan, as CARMEN's logger writes it beside the odometry) carries no
 pose: its robot pose is the odometry at the scan's time, interpolated between the ODOM lines either
-side (held at the first or last one beyond them; zero in a log without odometry), and its mount
+side (held at the first or last one beyond them; none in a log without odometry:
+``LaserRecord.has_odometry``), and its mount
 ``robot_frontlaser_offset``. A logger that also wrote the scans as FLASER or ROBOTLASER1 lines wrote
 each one twice: once such a line is seen, the RAWLASER1 lines are skipped (and counted).
 
@@ -84,6 +85,9 @@ class LaserRecord:
     ipc_timestamp: str  # verbatim
     timestamp: float
     line: int
+    # False: the log has no odometry for it (a RAWLASER1 line in a log without ODOM lines); ``odom``
+    # and ``pose`` are then zero, and a replay matches the scan on its own.
+    has_odometry: bool = True
 
     def measured(self) -> npt.NDArray[np.float64]:
         """The ranges with every "no return" as NaN: a reading at the maximum range (glass, an open
@@ -283,7 +287,7 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
             rec = waiting.pop(0)
             pose = _odometry_at(last_odom, upto, rec.timestamp)
             st.scans += 1
-            yield replace(rec, pose=pose, odom=pose)
+            yield replace(rec, pose=pose, odom=pose, has_odometry=last_odom is not None or upto is not None)
 
     for number, raw in enumerate(lines, start=1):
         st.lines += 1

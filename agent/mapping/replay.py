@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 
 from fleetlink.agent.mapping.carmen import LaserRecord, OdomRecord
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper, Pose
+from fleetlink.shared.se2 import compose, relative
 
 __all__ = ["ReplayResult", "format_trajectory", "replay"]
 
@@ -50,7 +51,16 @@ def replay(
         # "No return" neither marks nor clears: clearing along it fans free space far outside the
         # building on real logs, and a SICK's error codes would erase the walls they were dazzled by.
         ranges = rec.measured()
-        res = result.mapper.add_scan_odometry(rec.timestamp, ranges, rec.angles, rec.odom)
+        if rec.has_odometry:
+            res = result.mapper.add_scan_odometry(rec.timestamp, ranges, rec.angles, rec.odom)
+        else:
+            # No odometry: the last step again (a lidar's turns come at a steady rate), with the
+            # matcher's own prior, not a zero step held to a centimetre.
+            rows = result.rows
+            guess = rows[-1][1] if rows else (0.0, 0.0, 0.0)
+            if len(rows) > 1:
+                guess = compose(guess, relative(rows[-2][1], rows[-1][1]))
+            res = result.mapper.add_scan(rec.timestamp, ranges, rec.angles, guess)
         result.rows.append((rec.ipc_timestamp, res.pose))
         result.logged.append(rec.pose)
         result.lines.append(rec.line)
