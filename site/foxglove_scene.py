@@ -148,6 +148,9 @@ def robot_frame(robot: str, placing: int = 0) -> str:
     return f"{robot}/{MAP}" if placing == 0 else f"{robot}/{MAP}.{placing}"
 
 
+MAX_FRAME_SENDERS: Final = 64
+"""Fleet map services whose placings a scene remembers (``FoxgloveScene._placed_by``)."""
+
 FRAMES_TOPIC: Final = f"{FOXGLOVE_PREFIX}/{keys.FLEET_MAP}/frames"
 
 
@@ -190,14 +193,16 @@ class FoxgloveScene:
         self.frames_record: Record | None = None
         """The latest transforms of those frames (a client that subscribes late gets it at once)."""
         self._site_frames_at: float | None = None
-        self._placed: set[str] = set()
-        """Robots whose own frame the last ``FleetFrames`` placed."""
+        self._placed_by: dict[str, set[str]] = {}
+        """Sender (a console's fleet map service) -> the robots whose own frames its last
+        ``FleetFrames`` placed (at most ``MAX_FRAME_SENDERS`` senders remembered)."""
         self._placings: dict[str, int] = {}
-        """Robot -> how often the fleet map lost its frame (``robot_frame``'s ``placing``). Foxglove
+        """Robot -> how often a fleet map lost its frame (``robot_frame``'s ``placing``). Foxglove
         keeps a transform until another replaces it and none can be taken back: a robot whose map
-        began again (its agent restarted) would be drawn where its old map lay. So a frame no longer
-        placed is not drawn in ``map`` again: the robot's records move to a new frame, which is placed
-        once the fleet map finds it."""
+        began again (its agent restarted) would be drawn where its old map lay. So a frame that a
+        service placed and then says it has not found (its ``unframed``) is not drawn in ``map``
+        again: the robot's records move to a new frame, placed once the fleet map finds it. (Another
+        console that has not found it yet says nothing about the first one's placing.)"""
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -260,9 +265,12 @@ class FoxgloveScene:
             else:
                 self._site_frames_at = wall
             placed = {f.robot for f in msg.frames}
-            for robot in self._placed - placed:
+            before = self._placed_by.get(header.sender)
+            if before is None and len(self._placed_by) >= MAX_FRAME_SENDERS:
+                self._placed_by.clear()  # (consoles come and go: forget the old ones)
+            for robot in (before or set()) & set(msg.unframed):
                 self._placings[robot] = self._placings.get(robot, 0) + 1
-            self._placed = placed
+            self._placed_by[header.sender] = placed
             moves = [
                 (foxglove.MAP_FRAME, robot_frame(f.robot, self._placings.get(f.robot, 0)), f.x, f.y, f.theta)
                 for f in msg.frames

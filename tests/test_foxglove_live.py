@@ -189,6 +189,14 @@ def test_a_robot_without_uwb_is_drawn_in_its_own_frame_placed_where_the_fleet_ma
     # the old transform of r2/map (none can be taken back), so r2 goes on in a frame of its own that
     # has none yet, and is not drawn where its old map lay; placed again, that frame is.
     service = wire.HeaderCounter(clock, robot=keys.FLEET_MAP, sender="op-1")
+    # A second console that has not found r2 yet says nothing about op-1's placing of it.
+    late = wire.HeaderCounter(clock, robot=keys.FLEET_MAP, sender="op-3")
+    records(late.make(FleetFrames, reference="", frames=(), unframed=("r2",)), 2.15)
+    (p_still,) = records(c.make(
+        Pose, x=1.1, y=0.5, theta=0.2, sd_x_m=UNKNOWN_SD_M, sd_y_m=UNKNOWN_SD_M, sd_theta_rad=UNKNOWN_SD_M,
+        odom_x=1.1, odom_y=0.5, odom_theta=0.2, vx=0.0, omega=0.0, uwbStale=True,
+    ), 2.16)  # fmt: skip
+    assert json.loads(p_still.data)["frame_id"] == "r2/map"
     lost = service.make(FleetFrames, reference="", frames=(), unframed=("r2",))
     (tf_lost,) = records(lost, 2.2)
     assert json.loads(tf_lost.data)["transforms"] == []

@@ -174,11 +174,11 @@ def test_flaser_poses_are_the_laser_s_then_the_robot_s_as_carmen_writes_them() -
     assert again.pose[:2] == pytest.approx(new[:2], abs=1e-6) and again.odom == pytest.approx(new, abs=1e-6)
 
 
-def _rawlaser_lines(with_flaser: bool = False) -> list[str]:
+def _rawlaser_lines(with_flaser: bool = False, flaser_late: bool = False) -> list[str]:
     """The room log as a CARMEN logger writes a bare laser: RAWLASER1 lines (no pose, 181 beams from
     -90 degrees at 1 degree, 80 m) between ODOM lines that are not at the scans' times; the robot's
     odometry there is the true path, sampled 0.05 s before and after each scan. ``with_flaser``: the
-    logger wrote each scan as a FLASER line too."""
+    logger wrote each scan as a FLASER line too (``flaser_late``: after the next ODOM line)."""
     rc = Raycaster(ROOM)
     lines = ["PARAM robot_frontlaser_offset 0.0 nohost 0"]
     poses = _poses()
@@ -193,9 +193,11 @@ def _rawlaser_lines(with_flaser: bool = False) -> list[str]:
         r = np.where(np.isfinite(r), r, 81.91)
         ranges = " ".join(f"{v:.3f}" for v in r)
         lines.append(f"RAWLASER1 0 -1.5707963 3.1415927 0.0174533 81.91 0.01 0 181 {ranges} 0 {ts} nohost {ts}")
-        if with_flaser:
+        if with_flaser and not flaser_late:
             lines.append(_flaser(rc, pose, pose, ts))
         lines.append(f"ODOM {ahead[0]} {ahead[1]} {ahead[2]} 0.1 0.0 0.0 {t + 0.05:.3f} nohost {t:.3f}")
+        if with_flaser and flaser_late:
+            lines.append(_flaser(rc, pose, pose, ts))
     return lines
 
 
@@ -246,6 +248,25 @@ def test_rawlaser1_beside_flaser_lines_is_not_mapped_twice() -> None:
     recs = [r for r in read_records(_rawlaser_lines(with_flaser=True), stats) if isinstance(r, LaserRecord)]
     assert [r.kind for r in recs] == ["FLASER"] * len(TIMESTAMPS) and stats.scans == len(TIMESTAMPS)
     assert stats.unknown == {"RAWLASER1 (the same scans as FLASER/ROBOTLASER1)": len(TIMESTAMPS)}
+    # The robot module's FLASER line after the next ODOM line: the first scan's RAWLASER1 line was
+    # placed (and given out) by then, so its FLASER line is the copy left out; then FLASER throughout.
+    late = CarmenStats()
+    recs = [
+        r for r in read_records(_rawlaser_lines(with_flaser=True, flaser_late=True), late) if isinstance(r, LaserRecord)
+    ]
+    assert [r.kind for r in recs] == ["RAWLASER1"] + ["FLASER"] * (len(TIMESTAMPS) - 1)
+    assert [r.ipc_timestamp for r in recs] == TIMESTAMPS and late.scans == len(TIMESTAMPS)
+    assert late.unknown == {
+        "FLASER (the same scan as a RAWLASER1 line before it)": 1,
+        "RAWLASER1 (the same scans as FLASER/ROBOTLASER1)": len(TIMESTAMPS) - 1,
+    }
+    # Scans whose times go back are placed each at its own time.
+    lines = _rawlaser_lines()
+    lines[2], lines[5] = lines[5], lines[2]  # the first two RAWLASER1 lines swapped
+    first_two = [r for r in read_records(lines) if isinstance(r, LaserRecord)][:2]
+    assert [r.ipc_timestamp for r in first_two] == TIMESTAMPS[:2]
+    for r, pose in zip(first_two, _poses(), strict=False):
+        assert r.pose == pytest.approx(pose, abs=1e-3)
     # Without odometry a bare scan has none (the matcher alone places it).
     (rec,) = read_records([_rawlaser_lines()[2]])
     assert isinstance(rec, LaserRecord) and rec.pose == (0.0, 0.0, 0.0) and not rec.has_odometry

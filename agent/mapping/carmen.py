@@ -40,6 +40,7 @@ Pure: parses text; ``open_log`` is the one helper that opens a file (plain or .g
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import gzip
 import io
@@ -69,6 +70,9 @@ __all__ = [
 Pose = tuple[float, float, float]
 MAX_BEAMS = 100_000
 RAW_BESIDE_POSED = "RAWLASER1 (the same scans as FLASER/ROBOTLASER1)"
+ODOMETRY_KEPT = 4096
+ODOMETRY_KEPT_S = 60.0
+"""ODOM records kept to place RAWLASER1 scans by: the last minute (once there are this many)."""
 NO_RETURN_BAND_M = 0.1
 """Readings this close under a log's maximum range are no return too (``LaserRecord.measured``)."""
 
@@ -235,7 +239,7 @@ def _laser_head(toks: list[str], kind: str) -> tuple[npt.NDArray[np.float64], np
 
 
 def _rawlaser(toks: list[str], line: int, offset: Pose) -> LaserRecord:
-    """A RAWLASER1 line, its pose not yet known (the odometry's at its time: ``_RawScans``)."""
+    """A RAWLASER1 line, its pose not yet known (the odometry's at its time: ``read_records``)."""
     ranges, angles, max_range, k = _laser_head(toks, "RAWLASER1")
     if len(toks) < k + 3:
         raise _Bad("RAWLASER1: too few fields")
@@ -276,18 +280,27 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
     """Laser and odometry records from log lines; everything else is counted in ``stats``."""
     st = stats if stats is not None else CarmenStats()
     front_offset: Pose = (0.0, 0.0, 0.0)
-    # RAWLASER1 scans wait for the ODOM line after their time (their pose lies between it and the
-    # one before); ``posed``: the log writes its scans with poses (FLASER, ROBOTLASER1) too.
+    # RAWLASER1 scans wait, in time order, for an ODOM line at or after their time; each is then
+    # placed between the ODOM lines either side of it by time (a log's lines can go back in time,
+    # so the odometry of the last minute is kept in time order). ``posed``: the log writes its scans
+    # with poses (FLASER, ROBOTLASER1) too; ``raw_times``: raw scans given out before that was known.
     waiting: list[LaserRecord] = []
-    last_odom: OdomRecord | None = None
+    odometry: list[OdomRecord] = []
     posed = False
+    raw_times: set[float] = set()
 
-    def placed(upto: OdomRecord | None) -> Iterator[LaserRecord]:
-        while waiting and (upto is None or waiting[0].timestamp <= upto.timestamp):
-            rec = waiting.pop(0)
-            pose = _odometry_at(last_odom, upto, rec.timestamp)
+    def placed(upto: float | None) -> Iterator[LaserRecord]:
+        n = len(waiting) if upto is None else bisect.bisect_right(waiting, upto, key=_time_of)
+        ready = waiting[:n]
+        del waiting[:n]
+        for rec in ready:
+            i = bisect.bisect_left(odometry, rec.timestamp, key=_time_of)
+            before = odometry[i - 1] if i > 0 else None
+            after = odometry[i] if i < len(odometry) else None
+            pose = _odometry_at(before, after, rec.timestamp)
             st.scans += 1
-            yield replace(rec, pose=pose, odom=pose, has_odometry=last_odom is not None or upto is not None)
+            raw_times.add(round(rec.timestamp, 6))
+            yield replace(rec, pose=pose, odom=pose, has_odometry=bool(odometry))
 
     for number, raw in enumerate(lines, start=1):
         st.lines += 1
@@ -303,21 +316,21 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
         try:
             if kind == "FLASER":
                 rec: LaserRecord | OdomRecord = _flaser(toks, number, front_offset)
-                st.scans += 1
             elif kind == "ROBOTLASER1":
                 rec = _robotlaser(toks, number)
-                st.scans += 1
             elif kind == "RAWLASER1":
                 if posed:
                     st.unknown[RAW_BESIDE_POSED] += 1
                 else:
-                    waiting.append(_rawlaser(toks, number, front_offset))
+                    bisect.insort(waiting, _rawlaser(toks, number, front_offset), key=_time_of)
                 continue
             elif kind == "ODOM":
                 rec = _odom(toks, number)
                 st.odom += 1
-                yield from placed(rec)
-                last_odom = rec
+                bisect.insort(odometry, rec, key=_time_of)
+                if len(odometry) > ODOMETRY_KEPT and odometry[0].timestamp < odometry[-1].timestamp - ODOMETRY_KEPT_S:
+                    del odometry[: bisect.bisect_left(odometry, odometry[-1].timestamp - ODOMETRY_KEPT_S, key=_time_of)]
+                yield from placed(rec.timestamp)
             elif kind == "PARAM":
                 if len(toks) < 3:
                     raise _Bad("PARAM: too few fields")
@@ -333,13 +346,24 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
             if len(st.examples) < 5:
                 st.examples.append(f"line {number}: {reason}")
             continue
-        if isinstance(rec, LaserRecord) and not posed:
-            posed = True  # the same scans again, with poses: the raw ones are not mapped twice
-            if waiting:
+        if isinstance(rec, LaserRecord):
+            if not posed:
+                posed = True  # the same scans again, with poses: the raw ones are not mapped twice
                 st.unknown[RAW_BESIDE_POSED] += len(waiting)
                 waiting.clear()
+            if round(rec.timestamp, 6) in raw_times:
+                # Its RAWLASER1 line was given out already (the ODOM line after it came first).
+                st.unknown[f"{kind} (the same scan as a RAWLASER1 line before it)"] += 1
+                continue
+            st.scans += 1
         yield rec
     yield from placed(None)
+    if not st.unknown[RAW_BESIDE_POSED]:
+        del st.unknown[RAW_BESIDE_POSED]
+
+
+def _time_of(rec: LaserRecord | OdomRecord) -> float:
+    return rec.timestamp
 
 
 def _fmt(pose: Pose) -> list[str]:
@@ -373,8 +397,7 @@ def corrected_lines(lines: Iterable[str], poses: Mapping[int, Pose]) -> Iterator
                 toks[k : k + 6] = _fmt(compose(pose, front_offset)) + _fmt(pose)
             elif toks and toks[0] == "ROBOTLASER1":
                 rec = _robotlaser(toks, number)
-                k = 9 + rec.ranges.size
-                k += 1 + int(toks[k])
+                k = _laser_head(toks, "ROBOTLASER1")[3]
                 toks[k : k + 6] = _fmt(compose(pose, rec.laser_offset)) + _fmt(pose)
             elif toks and toks[0] == "RAWLASER1":
                 # No pose to replace: the same scan as a ROBOTLASER1 line, laser and robot pose

@@ -1,6 +1,7 @@
 """Replay a CARMEN log through the onboard mapper (the offline path of ``fleetlink map replay``).
 
-Each laser record's raw odometry seeds the matcher (``OnboardMapper.add_scan_odometry``); the
+Each laser record's raw odometry seeds the matcher (``OnboardMapper.add_scan_odometry``; a log
+without odometry: the last pose, with the matcher's own prior); the
 trajectory keeps the record's ``ipc_timestamp`` text verbatim. With loop closure (the default) the
 trajectory and the map are the final pose graph's: every scan where the last solve put it.
 Pure: records in, mapper and rows out.
@@ -13,7 +14,6 @@ from dataclasses import dataclass, field, replace
 
 from fleetlink.agent.mapping.carmen import LaserRecord, OdomRecord
 from fleetlink.agent.mapping.mapper import MapperConfig, OnboardMapper, Pose
-from fleetlink.shared.se2 import compose, relative
 
 __all__ = ["ReplayResult", "format_trajectory", "replay"]
 
@@ -54,12 +54,9 @@ def replay(
         if rec.has_odometry:
             res = result.mapper.add_scan_odometry(rec.timestamp, ranges, rec.angles, rec.odom)
         else:
-            # No odometry: the last step again (a lidar's turns come at a steady rate), with the
-            # matcher's own prior, not a zero step held to a centimetre.
-            rows = result.rows
-            guess = rows[-1][1] if rows else (0.0, 0.0, 0.0)
-            if len(rows) > 1:
-                guess = compose(guess, relative(rows[-2][1], rows[-1][1]))
+            # No odometry: from the last pose with the matcher's own prior, not a zero step held to
+            # a centimetre. (The last pose is in the frame the map is in now, after any solve.)
+            guess = result.rows[-1][1] if result.rows else (0.0, 0.0, 0.0)
             res = result.mapper.add_scan(rec.timestamp, ranges, rec.angles, guess)
         result.rows.append((rec.ipc_timestamp, res.pose))
         result.logged.append(rec.pose)
