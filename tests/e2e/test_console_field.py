@@ -78,7 +78,9 @@ def pose(session: str, shown: str | None = None) -> tuple[float, float] | None:
 
 @pytest.mark.slow
 def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
-    session, pane_pid = start_field(tmp_path, "", 160, 48)
+    # 80 x 24: the size these tests have run at (see start_field), and the smallest a person's
+    # terminal gives: what is read off the screen is what such a terminal shows.
+    session, pane_pid = start_field(tmp_path, "", 80, 24)
     try:
         wait_until(lambda: pose(session) is not None, timeout=60, message="the console showing uvc-1's pose")
         wait_until(lambda: "zenoh" in screen(session), timeout=30, message="the link column")
@@ -275,7 +277,12 @@ def start_field(tmp_path: Path, args: str, width: int, height: int) -> tuple[str
     session's name and the pane's process."""
     session = f"fl-e2e-{uuid.uuid4().hex[:8]}"
     fleetlink = Path(sys.executable).parent / "fleetlink"
-    cmd = f"cd {tmp_path} && {fleetlink} field {args} --console on --zenoh-listen none"
+    # COLUMNS and LINES said: Python's terminal size (and so the console's) takes them before the
+    # pane's own, and a tmux server started under pytest here hands its panes COLUMNS=80 LINES=24
+    # whatever -x and -y say (measured 2026-12-04): the size asked for is then the size drawn.
+    cmd = (
+        f"cd {tmp_path} && env COLUMNS={width} LINES={height} {fleetlink} field {args} --console on --zenoh-listen none"
+    )
     tmux("new-session", "-d", "-s", session, "-x", str(width), "-y", str(height), cmd)
     return session, int(tmux("list-panes", "-t", session, "-F", "#{pane_pid}").split()[0])
 

@@ -46,7 +46,7 @@ def shown_pose(session: str, robot: str) -> tuple[float, float] | None:
 
 @pytest.mark.slow
 def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path: Path) -> None:
-    session, pane_pid = start_field(tmp_path, "--scenario expo-dark-team", 200, 56)
+    session, pane_pid = start_field(tmp_path, "--scenario expo-dark-team", 80, 24)  # (see start_field)
     try:
         wait_until(lambda: shown_pose(session, "scout-1") is not None, timeout=60, message="scout-1 selected, its pose")
         tmux("send-keys", "-t", session, "Tab")
