@@ -78,9 +78,7 @@ def pose(session: str, shown: str | None = None) -> tuple[float, float] | None:
 
 @pytest.mark.slow
 def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
-    # 80 x 24: the size these tests have run at (see start_field), and the smallest a person's
-    # terminal gives: what is read off the screen is what such a terminal shows.
-    session, pane_pid = start_field(tmp_path, "", 80, 24)
+    session, pane_pid = start_field(tmp_path, "", 160, 48)
     try:
         wait_until(lambda: pose(session) is not None, timeout=60, message="the console showing uvc-1's pose")
         wait_until(lambda: "zenoh" in screen(session), timeout=30, message="the link column")
@@ -181,7 +179,7 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
         tmux("send-keys", "-t", session, "R")
         wait_until(lambda: "Release the e-stop" in screen(session), timeout=10, message="the release confirmation")
         tmux("send-keys", "-t", session, "y")
-        wait_until(lambda: "E-STOP" not in screen(session), timeout=10, message="uvc-1's e-stop released")
+        wait_until(lambda: "E-STOP (" not in screen(session), timeout=10, message="uvc-1's e-stop released")
         # h: back home, where it first localised (where it stood when the test began).
         tmux("send-keys", "-t", session, "h")
         pressed = [time.monotonic()]
@@ -240,7 +238,7 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
         tmux("send-keys", "-t", session, "R")
         wait_until(lambda: "Release the e-stop" in screen(session), timeout=10, message="the release confirmation")
         tmux("send-keys", "-t", session, "y")
-        wait_until(lambda: "E-STOP" not in screen(session), timeout=10, message="uvc-1's e-stop released")
+        wait_until(lambda: "E-STOP (" not in screen(session), timeout=10, message="uvc-1's e-stop released")
         command(session, "resume")
         wait_until(
             lambda: ROUND.search(shown := screen(session)) is None and "finished:" in shown and "lamp off" in shown,
@@ -279,7 +277,8 @@ def start_field(tmp_path: Path, args: str, width: int, height: int) -> tuple[str
     fleetlink = Path(sys.executable).parent / "fleetlink"
     # COLUMNS and LINES said: Python's terminal size (and so the console's) takes them before the
     # pane's own, and a tmux server started under pytest here hands its panes COLUMNS=80 LINES=24
-    # whatever -x and -y say (measured 2026-12-04): the size asked for is then the size drawn.
+    # whatever -x and -y say (measured 2026-12-04; the tests then read an 80 x 24 console, and the
+    # footer's key hints, "E-STOP" among them, were cut off): the size asked for is the size drawn.
     cmd = (
         f"cd {tmp_path} && env COLUMNS={width} LINES={height} {fleetlink} field {args} --console on --zenoh-listen none"
     )

@@ -1,8 +1,9 @@
 """End to end: two scouts without UWB in the real console (``fleetlink field --scenario
 expo-dark-team``), real time, real agents. Each maps in its own frame. The test types like a person:
-scout-2's detail says it is not on the fleet map yet, and a goal sent to it then warns that it is in
-the robot's own frame; both scouts are driven into the hall; once their maps share enough of it the
-console's fleet map finds scout-2's frame (the detail line says nothing more about it), and a goal
+scout-2's detail and its localisation alarm say it is not on the fleet map yet, and a goal sent to
+it then warns that it is in the robot's own frame; both scouts are driven into the hall; once their
+maps share enough of it the console's fleet map finds scout-2's frame (the detail line says nothing
+more about it, the alarm clears), and a goal
 typed on the fleet map for scout-2 is reached there: where scout-1 stood after its first goal; a
 sweep of a rectangle drawn there is run by scout-2 inside it.
 """
@@ -36,6 +37,7 @@ pytestmark = needs_tmux  # the console's e2e tests' rule: under CI it must run
 
 POSE = re.compile(r"(scout-\d) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
 OFF_MAP = "not on the fleet map yet"
+LOCALISATION_ALARM = re.compile(r"WARN\s+scout-2\s+localisation")
 ROUND = re.compile(r"round sweep-scout-2-\S+: (\d+)/(\d+) nodes done")
 
 
@@ -46,7 +48,7 @@ def shown_pose(session: str, robot: str) -> tuple[float, float] | None:
 
 @pytest.mark.slow
 def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path: Path) -> None:
-    session, pane_pid = start_field(tmp_path, "--scenario expo-dark-team", 80, 24)  # (see start_field)
+    session, pane_pid = start_field(tmp_path, "--scenario expo-dark-team", 200, 56)
     try:
         wait_until(lambda: shown_pose(session, "scout-1") is not None, timeout=60, message="scout-1 selected, its pose")
         tmux("send-keys", "-t", session, "Tab")
@@ -54,6 +56,12 @@ def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path:
             lambda: shown_pose(session, "scout-2") is not None and OFF_MAP in screen(session),
             timeout=60,
             message="scout-2 selected, not on the fleet map yet",
+        )
+        # Its localisation warns: the fleet map has not found it (it never has a site position).
+        wait_until(
+            lambda: LOCALISATION_ALARM.search(screen(session)) is not None,
+            timeout=20,
+            message="scout-2's localisation alarm while it is not on the fleet map",
         )
         # In its own frame: the middle of the hall, 8.7 m on and 6.4 m to its right from where it started.
         command(session, "goal 8.7 -6.4")
@@ -96,6 +104,11 @@ def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path:
                     message=f"scout-2 at {leg} in its own frame",
                 )
         wait_until(found, timeout=60, message="scout-2 found on the fleet map (its detail no longer saying it is not)")
+        wait_until(
+            lambda: LOCALISATION_ALARM.search(screen(session)) is None,
+            timeout=20,
+            message="scout-2's localisation alarm cleared once the fleet map placed it",
+        )
         # A goal on the fleet map: where scout-1 stood after its first goal.
         command(session, "goal 6 0")
         wait_until(
