@@ -349,8 +349,9 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
         if isinstance(rec, LaserRecord):
             if not posed:
                 posed = True  # the same scans again, with poses: the raw ones are not mapped twice
-                st.unknown[RAW_BESIDE_POSED] += len(waiting)
-                waiting.clear()
+                if waiting:
+                    st.unknown[RAW_BESIDE_POSED] += len(waiting)
+                    waiting.clear()
             if round(rec.timestamp, 6) in raw_times:
                 # Its RAWLASER1 line was given out already (the ODOM line after it came first).
                 st.unknown[f"{kind} (the same scan as a RAWLASER1 line before it)"] += 1
@@ -358,8 +359,6 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
             st.scans += 1
         yield rec
     yield from placed(None)
-    if not st.unknown[RAW_BESIDE_POSED]:
-        del st.unknown[RAW_BESIDE_POSED]
 
 
 def _time_of(rec: LaserRecord | OdomRecord) -> float:
