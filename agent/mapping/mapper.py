@@ -82,7 +82,7 @@ class MapperConfig:
     # Gaussian sd) times ``odom_learn_margin``, never wider than the default nor narrower than
     # ``odom_learn_min_scale`` of it. A corrected log's poses (GMapping's: a few tenths of a degree
     # from the scans a step of 0.7-1 m) are worth far more than 2 degrees a metre, and held at the
-    # default the front end moved them by its own drift (aces' complete relations 0.041 -> 0.029 m).
+    # default the front end moved them by its own drift (aces' complete relations 0.041 -> 0.030 m).
     # Logs of short steps (the raw Freiburg logs, 0.06-0.2 m a scan) learn nothing and keep the
     # default (0: off).
     odom_learn_scans: int = 100
@@ -257,6 +257,7 @@ class OnboardMapper:
         if prior is None:
             return self.add_scan(t, ranges, angles, guess, prior, site, odometry=odom)
         self._refine_scale = self.odom_scale
+        moved = self._moved
         try:
             res = self.add_scan(t, ranges, angles, guess, prior, site, odometry=odom)
         finally:
@@ -265,8 +266,10 @@ class OnboardMapper:
         # in place mixes in the wheels' slip and the matcher's own turn), and long enough that the
         # distance's share of the guess's sd is at least its fixed share: on shorter steps the
         # matcher's own noise is all there is to see.
+        # (Not a scan whose node a solve moved: its pose is in the corrected frame, the guess is not.)
         if (
             res.matched
+            and self._moved is moved
             and res.weak > 0.0
             and cfg.odom_learn_scans
             and cfg.odom_sigma_theta_per_m * d >= cfg.odom_sigma_theta
