@@ -471,6 +471,7 @@ def test_a_small_window_builds_only_the_levels_it_needs() -> None:
         ("final_pair_per_node", -1, "final_pair_per_node must be a finite number >= 0"),
         ("final_pair_search", math.nan, "final_pair_search must be a finite number >= 0"),
         ("final_drops", -2, "final_drops must be a finite number >= 0"),
+        ("final_wide_min_gap_nodes", -1, "final_wide_min_gap_nodes must be a finite number >= 0"),
         ("final_pair_gap_nodes", 0, "final_pair_gap_nodes >= 1"),
         ("final_pair_inliers", 1.5, "final_pair_inliers <= 1"),
         ("lazy_solve_share", -0.1, "lazy_solve_share must be a finite number >= 0"),
@@ -713,8 +714,10 @@ def test_a_tail_that_comes_back_off_the_final_window_is_searched_wider() -> None
     """A robot that comes back to its start only at the end, no online closure after it (here none
     at all, and an odometry slip of 0.6 m on the way): its tail lies further from the first submaps
     than the final pass's window (0.3 m), so no match ties it there. The nodes no submap took are searched again in ``final_wide_window_xy``
-    (1 m): the tail is pulled onto the start (the corrected belgioioso log: its last scan, 1 m off,
-    0.105 m after; its complete set's mean 0.048 -> 0.024 m)."""
+    (1.25 m): the tail is pulled onto the start (the corrected belgioioso log: its last scan, 1 m off,
+    0.105 m after; its complete set's mean 0.048 -> 0.024 m). Only against submaps at least
+    ``final_wide_min_gap_nodes`` away in the chain: the start is far from the tail there, and with the
+    gap longer than the loop nothing ties it."""
     rc = Raycaster(WALLS)
     corners = [(1.0, 1.0), (13.0, 1.0), (13.0, 8.0), (1.0, 8.0), (1.0, 1.0), (4.0, 1.0)]
     truth: list[Pose] = []
@@ -753,6 +756,7 @@ def test_a_tail_that_comes_back_off_the_final_window_is_searched_wider() -> None
     wide = tail_error(no_online)
     assert narrow > 0.35, narrow  # beyond the final window: left where the chain put it
     assert wide < 0.1, wide
+    assert tail_error(replace(no_online, final_wide_min_gap_nodes=10**6)) > 0.35
 
 
 def test_the_search_window_follows_the_front_ends_disagreement_with_the_odometry() -> None:

@@ -124,3 +124,24 @@ def test_a_pair_is_refined_from_turned_starts_too() -> None:
     found = probing._pair_match(reference, second, near)
     assert found is not None and abs(found.pose[2] - turn) < math.radians(0.3)
     assert found.inliers > stuck.inliers
+
+
+def test_the_search_does_not_move_a_pair_across_its_step(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Two scans of the CSAIL log 1.1 m apart (GMapping has the step at (1.114, 0.198) m, 24.9 degrees).
+    From the graph's guess the point-to-line is ill-posed, so the pair is searched along the step; from
+    guesses moved along it the refinement slid 0.26 m across, to (0.909, -0.138) m with 243 points on a
+    line against the right answer's 233, and that edge put the node 0.39 m off its neighbours (worst
+    revisit 0.20 -> 0.36 m). Answers are kept only within ``PAIR_ACROSS_M`` across the step."""
+    import fleetlink.agent.mapping.closure as closure
+
+    with open(Path(__file__).parent / "data" / "csail-across.clf") as f:
+        first, second = (_logged(r) for r in read_records(f) if isinstance(r, LaserRecord))
+    reference = LocalMap(1, 0.05)
+    reference.add((0.0, 0.0, 0.0), first.points, first.normals)
+    guess = (1.078, 0.151, 0.431)  # where the solved graph put the pair
+    closer = LoopCloser(CloserConfig(), GridConfig())
+    found = closer._pair_search(reference, second, guess)
+    assert found is None or math.hypot(found.pose[0] - 1.114, found.pose[1] - 0.198) < 0.1
+    monkeypatch.setattr(closure, "PAIR_ACROSS_M", math.inf)  # the search as it was
+    slid = closer._pair_search(reference, second, guess)
+    assert slid is not None and math.hypot(slid.pose[0] - 1.114, slid.pose[1] - 0.198) > 0.3
