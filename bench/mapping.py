@@ -663,7 +663,7 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 f"{name:>16} relations, {what:>6}: {e['trans_mean_m']:.3f}±{e['trans_sd_m']:.3f} m"
                 f" {math.degrees(e['rot_mean_rad']):.2f}°, local {e['local']['trans_mean_m']:.3f} m,"
-                f" revisits {e['revisit']['trans_mean_m']:.3f} m (worst {e['revisit']['trans_max_m']:.3f} m)"
+                f" revisits {_or_nan(e['revisit']['trans_mean_m']):.3f} m (worst {_or_nan(e['revisit']['trans_max_m']):.3f} m)"
             )
     print(
         f"(relations: the complete set from the truth, {office['complete_relations']} pairs within 3 m whose views"
@@ -704,7 +704,7 @@ def main(argv: list[str] | None = None) -> int:
                 e = r[est][rel]
                 print(
                     f"{rel:>16} {est:>40}: {e['trans_mean_m']:.3f} m, local {e['local']['trans_mean_m']:.3f} m,"
-                    f" revisits {e['revisit']['trans_mean_m']:.3f} m (worst {e['revisit']['trans_max_m']:.3f} m)"
+                    f" revisits {_or_nan(e['revisit']['trans_mean_m']):.3f} m (worst {_or_nan(e['revisit']['trans_max_m']):.3f} m)"
                 )
         print(
             f"{'relation':>12} {'noisy odometry':>22} {'mapper (noisy odom)':>22} {'no closure (noisy)':>22}"
@@ -752,8 +752,8 @@ def main(argv: list[str] | None = None) -> int:
         r["matched_vs_corrected_log_ratio"] = m["trans_mean_m"] / e["trans_mean_m"]
         print(
             f"{'':>12} the corrected log itself against complete_matched: {e['trans_mean_m']:.3f} m"
-            f" (worst revisit {e['revisit']['trans_max_m']:.3f} m); the mapper {m['trans_mean_m']:.3f} m"
-            f" (worst revisit {m['revisit']['trans_max_m']:.3f} m), ratio {r['matched_vs_corrected_log_ratio']:.2f}"
+            f" (worst revisit {_or_nan(e['revisit']['trans_max_m']):.3f} m); the mapper {m['trans_mean_m']:.3f} m"
+            f" (worst revisit {_or_nan(m['revisit']['trans_max_m']):.3f} m), ratio {r['matched_vs_corrected_log_ratio']:.2f}"
         )
     print(
         "(published on intel, consecutive-scan relations: scan matching 0.220, RBPF 0.070, graph 0.031 m; goal <= 0.14 m)"
