@@ -208,9 +208,11 @@ def test_a_stalled_zenoh_does_not_delay_the_mqtt_copy_to_a_real_agent(mosquitto:
 
             os.kill(peer.pid, signal.SIGKILL)  # the stall ends: the queued Zenoh copies go out
             wait_until(lambda: op.flush(0.1), timeout=10.0, message="the Zenoh copies handed on")
+            # Nothing lost is the point here, not how soon: a CI run with the other worker on a
+            # 150 s e2e test once took longer than 5 s for the last of these answers.
             wait_until(
                 lambda: sum(1 for lk, a in list(acks) if lk == "zenoh" and a.commandHeaderId in sent) == len(sent),
-                timeout=5.0,
+                timeout=15.0,
                 message="every Zenoh copy answered",
             )
             results: dict[int, list[AckResult]] = {h: [] for h in sent}
