@@ -174,7 +174,6 @@ class OnboardMapper:
         # the guess's sd, the newest last; and the scale its prior is held at in the refinement now.
         self._odom_spread: deque[float] = deque(maxlen=max(cfg.odom_learn_scans, 1))
         self.odom_scale = 1.0
-        self._refine_scale = 1.0  # of the motion prior, in the refinement of the scan being matched
         self._planner: PathPlanner | None = None
         self._local = LocalMap(cfg.local_keyframes, cfg.local_cell)
         self._last_local: Pose | None = None
@@ -256,12 +255,8 @@ class OnboardMapper:
         self._last_odom = odom
         if prior is None:
             return self.add_scan(t, ranges, angles, guess, prior, site, odometry=odom)
-        self._refine_scale = self.odom_scale
         moved = self._moved
-        try:
-            res = self.add_scan(t, ranges, angles, guess, prior, site, odometry=odom)
-        finally:
-            self._refine_scale = 1.0
+        res = self.add_scan(t, ranges, angles, guess, prior, site, odometry=odom, refine_scale=self.odom_scale)
         # Learned from steps along the way, where holding the heading is what the prior is for (a turn
         # in place mixes in the wheels' slip and the matcher's own turn), and long enough that the
         # distance's share of the guess's sd is at least its fixed share: on shorter steps the
@@ -296,13 +291,16 @@ class OnboardMapper:
         prior: tuple[float, float] | None = None,
         site: tuple[float, float, float] | None = None,
         odometry: Pose | None = None,
+        refine_scale: float = 1.0,
     ) -> ScanResult:
         """One lidar turn (ranges m, angles rad CCW in the sensor frame) near ``pose_guess``; returns the pose.
 
         ``prior``: (sd xy m, sd theta rad) of the guess; None: ``MatchConfig.prior_sigma_*``.
         ``site``: (x, y, sd) a site-frame position measured at this scan (a UWB fix, or the fused
         pose once UWB has placed the robot); with loop closure, a node made from this scan takes it
-        as a prior, so the map is pulled into the site frame and stays there through closures."""
+        as a prior, so the map is pulled into the site frame and stays there through closures.
+        ``refine_scale``: the prior's sd in the point-to-line refinement is this share of it
+        (``add_scan_odometry``: what the odometry is worth, learned)."""
         cfg = self.config
         self.scans += 1
         guess = (float(pose_guess[0]), float(pose_guess[1]), wrap(float(pose_guess[2])))
@@ -333,11 +331,13 @@ class OnboardMapper:
         target, to_target = self._match_grid()
         if cfg.matching and not target.empty and len(match_pts) >= cfg.min_points:
             sd = prior if prior is not None else (cfg.match.prior_sigma_xy, cfg.match.prior_sigma_theta)
-            found, score, good, weak, info = self._match(target, to_target, match_pts, kept, sensor_guess, sd)
+            found, score, good, weak, info = self._match(
+                target, to_target, match_pts, kept, sensor_guess, sd, refine_scale
+            )
             if not (good or score >= cfg.min_score) and cfg.retry_prior_scale > 0:
                 k = cfg.retry_prior_scale
                 found2, score2, good2, weak2, info2 = self._match(
-                    target, to_target, match_pts, kept, sensor_guess, (sd[0] * k, sd[1] * k)
+                    target, to_target, match_pts, kept, sensor_guess, (sd[0] * k, sd[1] * k), refine_scale
                 )
                 if good2:
                     found, score, good, weak, info = found2, score2, good2, weak2, info2
@@ -405,8 +405,10 @@ class OnboardMapper:
         kept: FloatArray,
         sensor_guess: Pose,
         sd: tuple[float, float],
+        refine_scale: float,
     ) -> tuple[Pose, float, bool, float, FloatArray | None]:
-        """The front end's match of one scan near ``sensor_guess`` with motion-prior sd ``sd``: the sensor
+        """The front end's match of one scan near ``sensor_guess`` with motion-prior sd ``sd`` (held at
+        ``refine_scale`` of it in the point-to-line refinement): the sensor
         pose found, its field score, whether the refinement found lines for enough points, the
         refinement's weakest information and its information matrix (None: not refined)."""
         cfg = self.config
@@ -418,7 +420,7 @@ class OnboardMapper:
         info: FloatArray | None = None
         if cfg.refine_local and len(self._local):
             icp_pts = scanprep.thin(kept, cfg.icp_cell)
-            k = self._refine_scale
+            k = refine_scale
             r_ = icp_refine(
                 self._local, icp_pts, found, sensor_guess, (sd[0] * k, sd[1] * k), cfg.icp_sigma, cfg.icp_max_distance
             )
