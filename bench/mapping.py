@@ -525,6 +525,11 @@ def throughput(drive: dict, beams: int, limit: int) -> dict[str, float]:  # type
     ours = time.perf_counter() - t0
     # CPU seconds of this process: "on one core" even when other work shares the machine.
     ours_cpu = time.process_time() - c0
+    # A replay ends with the final pass (every node matched again, the graph solved): counted apart,
+    # since a robot mapping online never runs it, and with the scans as a replay's whole cost.
+    c1 = time.process_time()
+    m.finish()
+    final_cpu = time.process_time() - c1
     # Baseline on a few scans against the finished map (its cost does not depend on the map).
     cfg = MapperConfig()
     k = min(15, len(scans))
@@ -541,6 +546,8 @@ def throughput(drive: dict, beams: int, limit: int) -> dict[str, float]:  # type
         "scans": len(scans),
         "per_s": len(scans) / ours,
         "per_cpu_s": len(scans) / ours_cpu,
+        "final_cpu_s": final_cpu,
+        "replay_per_cpu_s": len(scans) / (ours_cpu + final_cpu),  # the final pass included
         "baseline_per_s": 1.0 / base,
         "speedup_ratio": (len(scans) / ours) * base,
     }
@@ -768,17 +775,22 @@ def main(argv: list[str] | None = None) -> int:
 
     limit = 150 if args.quick else 400
     print(f"\nthroughput along the office trajectory ({limit} scans), one core")
-    print(f"{'samples':>8} {'scans/s':>9} {'per CPU s':>10} {'exhaustive scans/s':>19} {'speedup':>8}")
+    print(
+        f"{'samples':>8} {'scans/s':>9} {'per CPU s':>10} {'with final pass':>16} {'exhaustive scans/s':>19}"
+        f" {'speedup':>8}"
+    )
     tp = []
     for beams in (180, 360, 720):
         r = throughput(drive, beams, limit)
         tp.append(r)
         print(
-            f"{beams:>8} {r['per_s']:>9.0f} {r['per_cpu_s']:>10.0f} {r['baseline_per_s']:>19.1f} {r['speedup_ratio']:>7.0f}x"
+            f"{beams:>8} {r['per_s']:>9.0f} {r['per_cpu_s']:>10.0f} {r['replay_per_cpu_s']:>16.0f}"
+            f" {r['baseline_per_s']:>19.1f} {r['speedup_ratio']:>7.0f}x"
         )
     results["throughput"] = tp
     print(
-        "(goal: >= 200 scans/s at 360 samples on one core: the 'per CPU s' column, which a loaded machine does not skew)"
+        "(goal: >= 200 scans/s at 360 samples on one core: the 'per CPU s' column, which a loaded machine does not"
+        " skew, scan by scan as on a robot; 'with final pass': a replay's whole cost, its final pass included)"
     )
 
     cs = cpu_share(drive, 60.0 if not args.quick else 30.0)

@@ -654,12 +654,14 @@ def icp_refine(
     sigma: float = 0.03,
     max_distance: float = 0.15,
     iterations: int = 8,
+    tolerance: float = 1e-4,
 ) -> IcpResult:
     """Point-to-line Gauss-Newton of ``points`` (sensor frame) against ``local`` from ``pose``, with a
     Gaussian prior at ``prior_pose`` ((sd xy, sd theta)). Correspondences (nearest fused point within
     ``max_distance``) are found again at every iteration; residuals are Cauchy-weighted (scale
     ``sigma``). Along a direction the points do not constrain (a corridor) the data information is ~0
-    and the prior holds the pose there: the fallback to odometry happens per direction."""
+    and the prior holds the pose there: the fallback to odometry happens per direction. Stops once a
+    step moves less than ``tolerance`` (m, and rad)."""
     x, y, th = pose
     px, py = points[:, 0], points[:, 1]
     sxy, sth = max(prior[0], 1e-3), max(prior[1], 1e-4)
@@ -718,7 +720,7 @@ def icp_refine(
         step = -sol
         x, y, th = x + float(step[0]), y + float(step[1]), th + float(step[2])
         hd_last = hd
-        if math.hypot(step[0], step[1]) < 1e-4 and abs(step[2]) < 1e-4:
+        if math.hypot(step[0], step[1]) < tolerance and abs(step[2]) < tolerance:
             break
     weak = 0.0 if hd_last is None else float(np.linalg.eigvalsh(hd_last)[0])
     return IcpResult((x, y, th), inliers, weak, hd_last)
