@@ -11,7 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping.carmen import CarmenStats, LaserRecord, OdomRecord, corrected_lines, read_records
+from fleetlink.agent.mapping.carmen import (
+    OTHER_KINDS,
+    UNKNOWN_KINDS_KEPT,
+    CarmenStats,
+    LaserRecord,
+    OdomRecord,
+    corrected_lines,
+    read_records,
+)
 from fleetlink.agent.mapping.mapper import MapperConfig, compose, relative
 from fleetlink.agent.mapping.replay import replay
 from fleetlink.cli.main import main
@@ -66,6 +74,25 @@ def _log_lines() -> list[str]:
         if i == 3:
             lines += ["FLASER 181 1.0 2.0", "FLASER abc", "FLASER 3 1 2 3 a b c 0 0 0 1.0 nohost 1.0", "ODOM 1 2"]
     return lines
+
+
+def test_a_file_of_garbage_is_counted_in_a_few_names_and_its_scans_still_read() -> None:
+    """Lines of binary junk and of made-up kinds between a log's own: every scan is read, the skipped
+    lines are counted under at most ``UNKNOWN_KINDS_KEPT`` names (the rest together, junk that is no
+    record name apart), and the summary stays one short line instead of naming every line."""
+    rng = np.random.default_rng(5)
+    junk = [bytes(rng.integers(33, 256, 40, dtype=np.uint8)).decode("latin-1") for _ in range(200)]
+    made_up = [f"KIND{i} 1 2 3" for i in range(100)]
+    lines = _log_lines() + junk + made_up
+    stats = CarmenStats()
+    lasers = [r for r in read_records(lines, stats) if isinstance(r, LaserRecord)]
+    assert len(lasers) == len(TIMESTAMPS)
+    assert len(stats.unknown) <= UNKNOWN_KINDS_KEPT + 2  # + the other kinds and the unreadable
+    assert sum(stats.unknown.values()) == len(TIMESTAMPS) + 1 + len(junk) + len(made_up)  # NEFF, SYNC too
+    assert stats.unknown[OTHER_KINDS] >= len(made_up) - UNKNOWN_KINDS_KEPT
+    summary = stats.summary()
+    assert len(summary) < 400 and "NEFF" in summary and "other kinds" in summary
+    assert all(ch.isprintable() for ch in summary)
 
 
 def test_reader_skips_and_counts_what_it_cannot_use() -> None:

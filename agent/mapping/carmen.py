@@ -73,6 +73,13 @@ RAW_BESIDE_POSED = "RAWLASER1 (the same scans as FLASER/ROBOTLASER1)"
 ODOMETRY_KEPT = 4096
 ODOMETRY_KEPT_S = 60.0
 """ODOM records kept to place RAWLASER1 scans by: the last minute (once there are this many)."""
+UNKNOWN_KINDS_KEPT = 16
+"""Kinds of line skipped counted by name, at most this many; the rest together as ``OTHER_KINDS``: a
+file that is not a CARMEN log at all would otherwise name (and keep) every one of its lines."""
+OTHER_KINDS = f"(kinds past the first {UNKNOWN_KINDS_KEPT})"
+UNREADABLE = "unreadable (not a record name)"
+SUMMARY_KINDS = 6
+"""Kinds of line skipped the summary names, the most frequent first."""
 NO_RETURN_BAND_M = 0.1
 """Readings this close under a log's maximum range are no return too (``LaserRecord.measured``)."""
 
@@ -123,10 +130,23 @@ class CarmenStats:
     malformed: Counter[str] = field(default_factory=Counter)
     examples: list[str] = field(default_factory=list)  # the first few malformed lines, with reasons
 
+    def skip(self, kind: str) -> None:
+        """Count a line of a kind this reader does not map (``UNKNOWN_KINDS_KEPT`` names at most)."""
+        if not (kind.isascii() and kind.isprintable() and kind[:1].isalpha()):
+            kind = UNREADABLE
+        elif kind not in self.unknown and len(self.unknown) >= UNKNOWN_KINDS_KEPT:
+            kind = OTHER_KINDS
+        self.unknown[kind[:32]] += 1
+
     def summary(self) -> str:
         parts = [f"{self.lines} lines", f"{self.scans} scans", f"{self.odom} odometry"]
         if self.unknown:
-            parts.append("skipped " + ", ".join(f"{n} {k}" for k, n in sorted(self.unknown.items())))
+            ranked = sorted(self.unknown.items(), key=lambda kv: (-kv[1], kv[0]))
+            named = [f"{n} {k}" for k, n in ranked[:SUMMARY_KINDS]]
+            if len(ranked) > SUMMARY_KINDS:
+                rest = ranked[SUMMARY_KINDS:]
+                named.append(f"{sum(n for _, n in rest)} more of {len(rest)} other kinds")
+            parts.append("skipped " + ", ".join(named))
         if self.malformed:
             parts.append("malformed " + ", ".join(f"{n} ({k})" for k, n in sorted(self.malformed.items())))
         return "; ".join(parts)
@@ -338,7 +358,7 @@ def read_records(lines: Iterable[str], stats: CarmenStats | None = None) -> Iter
                 front_offset = _front_offset(toks, front_offset)
                 continue
             else:
-                st.unknown[kind[:32]] += 1
+                st.skip(kind)
                 continue
         except _Bad as exc:
             reason = str(exc)
