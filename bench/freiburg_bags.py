@@ -1,0 +1,248 @@
+"""The Freiburg benchmark's raw logs put together again from ROS bags, for ``bench/mapping.py --freiburg``.
+
+    python bench/freiburg_bags.py BAG... --out DIR
+
+The relation files of Kuemmerle et al. (2009) score the raw CARMEN logs, which are not always found
+beside them. INESCTEC/ricoslam (``inesctec_mrdt_slam_2d_datasets``) keeps the relation files and each
+raw log as ROS 1 bags converted from it: ``NAME.orig.bag`` holds the log's messages in the log's line
+order, each header stamped with its line's ``ipc_timestamp``. This reads such a bag record by record
+in the file's order (the bag format 2.0, its bz2 or uncompressed chunks, and the three message types
+it needs, by hand: the standard library and numpy only) and writes ``DIR/NAME.clf``:
+
+- an ODOM line for every ``/odom`` message;
+- a laser line for every ``/scan`` message, posed at the last ``/odom`` before it in the file: intel,
+  aces and fr079 keep only the log's ODOM lines (interpolated to the scan's time instead, intel scores
+  0.017 m, not the 0.013 m of docs/mapping.md; an ODOM line stamped as a scan but written after it is
+  not its pose either: aces' figure moves), and where the converter kept each scan's own odometry
+  (``save_odom``: the hospital) it comes just before its scan;
+- FLASER lines, or ROBOTLASER1 lines for a bag named ``*_robotlaser*`` (the Freiburg hospital, whose
+  SICK interleaves four start angles and sits 0.22 m ahead of the robot: each scan's own angles, and
+  the ``/tf_static`` base-to-laser transform as the laser pose).
+
+Then copy ``NAME.relations`` into DIR (``fr-clinic.relations`` finds ``fr-clinic_robotlaser.clf``) and
+run ``python bench/mapping.py --freiburg DIR``. Put together so (2026-12-05), the logs reproduce the
+figures of docs/mapping.md ("Against the published relations") to the digit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import bz2
+import math
+import struct
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+MAGIC = b"#ROSBAG V2.0\n"
+OP_MESSAGE, OP_CHUNK, OP_CONNECTION = 0x02, 0x05, 0x07
+
+
+class BagError(ValueError):
+    pass
+
+
+@dataclass(frozen=True, slots=True)
+class Stamp:
+    sec: int
+    nsec: int
+
+    def text(self) -> str:
+        """Seconds to the microsecond, as CARMEN writes an ``ipc_timestamp``."""
+        us = (self.nsec + 500) // 1000
+        return f"{self.sec + us // 1_000_000}.{us % 1_000_000:06d}"
+
+
+@dataclass(frozen=True, slots=True)
+class Scan:
+    stamp: Stamp
+    angle_min: float
+    angle_increment: float
+    range_max: float
+    ranges: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class Odom:
+    stamp: Stamp
+    pose: tuple[float, float, float]
+
+
+def _fields(header: bytes) -> dict[bytes, bytes]:
+    out: dict[bytes, bytes] = {}
+    i = 0
+    while i < len(header):
+        (n,) = struct.unpack_from("<I", header, i)
+        name, sep, value = header[i + 4 : i + 4 + n].partition(b"=")
+        if not sep:
+            raise BagError("a record header field without '='")
+        out[name] = value
+        i += 4 + n
+    return out
+
+
+def _records(buf: bytes, at: int = 0) -> Iterator[tuple[dict[bytes, bytes], bytes]]:
+    while at < len(buf):
+        if at + 4 > len(buf):
+            raise BagError("a record cut short")
+        (hl,) = struct.unpack_from("<I", buf, at)
+        header = _fields(buf[at + 4 : at + 4 + hl])
+        at += 4 + hl
+        (dl,) = struct.unpack_from("<I", buf, at)
+        yield header, buf[at + 4 : at + 4 + dl]
+        at += 4 + dl
+
+
+def messages(data: bytes) -> Iterator[tuple[str, bytes]]:
+    """(topic, serialized message) for every message of a bag, in the order the file holds them."""
+    if not data.startswith(MAGIC):
+        raise BagError("not a ROS bag, version 2.0")
+    topics: dict[int, str] = {}
+
+    def walk(buf: bytes) -> Iterator[tuple[str, bytes]]:
+        for header, body in _records(buf):
+            op = header.get(b"op", b"\0")[0]
+            if op == OP_CONNECTION:
+                topics[struct.unpack("<I", header[b"conn"])[0]] = header[b"topic"].decode()
+            elif op == OP_MESSAGE:
+                yield topics[struct.unpack("<I", header[b"conn"])[0]], body
+            elif op == OP_CHUNK:
+                kind = header[b"compression"]
+                if kind == b"bz2":
+                    body = bz2.decompress(body)
+                elif kind != b"none":
+                    raise BagError(f"chunks compressed with {kind.decode()!r}: only bz2 and none are read")
+                yield from walk(body)
+
+    yield from walk(data[len(MAGIC) :])
+
+
+class _Reader:
+    """ROS 1 serialization, read field by field."""
+
+    def __init__(self, buf: bytes) -> None:
+        self.buf, self.at = buf, 0
+
+    def take(self, fmt: str) -> tuple[float | int, ...]:
+        out = struct.unpack_from(fmt, self.buf, self.at)
+        self.at += struct.calcsize(fmt)
+        return out
+
+    def string(self) -> str:
+        (n,) = self.take("<I")
+        s = self.buf[self.at : self.at + int(n)].decode()
+        self.at += int(n)
+        return s
+
+    def stamp(self) -> Stamp:
+        """A std_msgs/Header: its stamp (the sequence number and frame skipped)."""
+        _seq, sec, nsec = self.take("<3I")
+        self.string()
+        return Stamp(int(sec), int(nsec))
+
+
+def laser_scan(buf: bytes) -> Scan:
+    r = _Reader(buf)
+    stamp = r.stamp()
+    angle_min, _angle_max, increment, _dt, _scan_time, _range_min, range_max = r.take("<7f")
+    (n,) = r.take("<I")
+    ranges = np.frombuffer(buf, dtype="<f4", count=int(n), offset=r.at)
+    return Scan(stamp, float(angle_min), float(increment), float(range_max), ranges)
+
+
+def _yaw(qx: float, qy: float, qz: float, qw: float) -> float:
+    return math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+
+
+def odometry(buf: bytes) -> Odom:
+    r = _Reader(buf)
+    stamp = r.stamp()
+    r.string()  # child_frame_id
+    x, y, _z, qx, qy, qz, qw = (float(v) for v in r.take("<7d"))
+    return Odom(stamp, (x, y, _yaw(qx, qy, qz, qw)))
+
+
+def laser_mount(buf: bytes) -> tuple[float, float, float] | None:
+    """The first transform of a tf2_msgs/TFMessage (the converter's one static base-to-laser one)."""
+    r = _Reader(buf)
+    (n,) = r.take("<I")
+    if not n:
+        return None
+    r.stamp()
+    r.string()  # child_frame_id
+    x, y, _z, qx, qy, qz, qw = (float(v) for v in r.take("<7d"))
+    return x, y, _yaw(qx, qy, qz, qw)
+
+
+def _ranges(scan: Scan) -> str:
+    # Each float32 as the shortest text that reads back to it (the logs' "46.56", not 46.560001373...).
+    return " ".join(np.format_float_positional(v, unique=True, trim="-") for v in scan.ranges)
+
+
+def _pose(p: tuple[float, float, float]) -> str:
+    return f"{p[0]:.6f} {p[1]:.6f} {p[2]:.6f}"
+
+
+def log_lines(data: bytes, robotlaser: bool) -> Iterator[str]:
+    """A bag's CARMEN lines (see the module's docstring)."""
+    mount = (0.0, 0.0, 0.0)
+    last: Odom | None = None
+    pending: list[Scan] = []  # scans before any odometry: placed at the first
+
+    def line(scan: Scan, odom: Odom) -> str:
+        t = scan.stamp.text()
+        if not robotlaser:
+            return f"FLASER {len(scan.ranges)} {_ranges(scan)} {_pose(odom.pose)} {_pose(odom.pose)} {t} bag {t}"
+        x, y, th = odom.pose
+        c, s = math.cos(th), math.sin(th)
+        laser = (x + c * mount[0] - s * mount[1], y + s * mount[0] + c * mount[1], th + mount[2])
+        fov = scan.angle_increment * (len(scan.ranges) - 1)
+        return (
+            f"ROBOTLASER1 0 {scan.angle_min:.6f} {fov:.6f} {scan.angle_increment:.6f} {scan.range_max:.2f} 0.01 0"
+            f" {len(scan.ranges)} {_ranges(scan)} 0 {_pose(laser)} {_pose(odom.pose)} 0 0 0 0 0 {t} bag {t}"
+        )
+
+    items = list(messages(data))
+    for topic, body in items:  # the laser's mount first: the converter writes it once, anywhere
+        if topic == "/tf_static":
+            mount = laser_mount(body) or mount
+    for topic, body in items:
+        if topic == "/odom":
+            last = odometry(body)
+            yield f"ODOM {_pose(last.pose)} 0 0 0 {last.stamp.text()} bag {last.stamp.text()}"
+            for scan in pending:
+                yield line(scan, last)
+            pending.clear()
+        elif topic == "/scan":
+            scan = laser_scan(body)
+            if last is None:
+                pending.append(scan)
+            else:
+                yield line(scan, last)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("bags", nargs="+", type=Path, help="NAME.orig.bag files (INESCTEC/ricoslam)")
+    ap.add_argument("--out", type=Path, required=True, help="folder for NAME.clf")
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    for bag in args.bags:
+        name = bag.name.split(".")[0]
+        try:
+            data = bag.read_bytes()
+            lines = list(log_lines(data, robotlaser="_robotlaser" in name))
+        except (OSError, BagError, struct.error, UnicodeDecodeError) as exc:
+            print(f"{bag}: {exc}", file=sys.stderr)
+            return 1
+        (args.out / f"{name}.clf").write_text("\n".join(lines) + "\n")
+        scans = sum(1 for s in lines if not s.startswith("ODOM"))
+        print(f"{bag} -> {args.out / (name + '.clf')}: {scans} scans, {len(lines) - scans} odometry lines")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

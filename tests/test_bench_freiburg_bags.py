@@ -1,0 +1,160 @@
+"""bench/freiburg_bags.py: the Freiburg raw logs put together again from ROS 1 bags. A small bag is
+written here by hand in the published bag format 2.0 (a bz2 chunk holding connection and message
+records, the messages serialized as ROS 1 does) and read back as CARMEN lines, which the log reader
+then takes as the replay would."""
+
+from __future__ import annotations
+
+import bz2
+import importlib.util
+import math
+import struct
+import sys
+from pathlib import Path
+
+import pytest
+
+from fleetlink.agent.mapping.carmen import LaserRecord, OdomRecord, read_records
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _tool():  # type: ignore[no-untyped-def]
+    spec = importlib.util.spec_from_file_location("bench_freiburg_bags", ROOT / "bench" / "freiburg_bags.py")
+    assert spec is not None and spec.loader is not None
+    tool = importlib.util.module_from_spec(spec)
+    sys.modules["bench_freiburg_bags"] = tool
+    spec.loader.exec_module(tool)
+    return tool
+
+
+def _field(name: str, value: bytes) -> bytes:
+    item = name.encode() + b"=" + value
+    return struct.pack("<I", len(item)) + item
+
+
+def _record(fields: dict[str, bytes], body: bytes) -> bytes:
+    header = b"".join(_field(k, v) for k, v in fields.items())
+    return struct.pack("<I", len(header)) + header + struct.pack("<I", len(body)) + body
+
+
+def _string(s: str) -> bytes:
+    return struct.pack("<I", len(s)) + s.encode()
+
+
+def _header(sec: int, nsec: int, frame: str) -> bytes:
+    return struct.pack("<3I", 0, sec, nsec) + _string(frame)
+
+
+def _quat(yaw: float) -> tuple[float, float, float, float]:
+    return 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)
+
+
+def _odom(sec: int, nsec: int, x: float, y: float, yaw: float) -> bytes:
+    pose = struct.pack("<7d", x, y, 0.0, *_quat(yaw)) + struct.pack("<36d", *([0.0] * 36))
+    twist = struct.pack("<6d", *([0.0] * 6)) + struct.pack("<36d", *([0.0] * 36))
+    return _header(sec, nsec, "odom") + _string("base_link") + pose + twist
+
+
+def _scan(sec: int, nsec: int, angle_min: float, ranges: list[float]) -> bytes:
+    inc = math.radians(1.0)
+    head = struct.pack("<7f", angle_min, angle_min + inc * (len(ranges) - 1), inc, 0.0, 0.0, 0.1, 81.9)
+    return (
+        _header(sec, nsec, "laser")
+        + head
+        + struct.pack(f"<I{len(ranges)}f", len(ranges), *ranges)
+        + struct.pack("<I", 0)
+    )
+
+
+def _tf(x: float, yaw: float) -> bytes:
+    return (
+        struct.pack("<I", 1)
+        + _header(0, 0, "base_link")
+        + _string("laser")
+        + struct.pack("<7d", x, 0.0, 0.0, *_quat(yaw))
+    )
+
+
+def _bag(messages: list[tuple[str, bytes]]) -> bytes:
+    topics = {t: i for i, t in enumerate(dict.fromkeys(t for t, _ in messages))}
+    inner = b"".join(
+        _record({"op": b"\x07", "conn": struct.pack("<I", i), "topic": t.encode()}, _field("type", b"x/y"))
+        for t, i in topics.items()
+    )
+    inner += b"".join(
+        _record({"op": b"\x02", "conn": struct.pack("<I", topics[t]), "time": b"\0" * 8}, body) for t, body in messages
+    )
+    chunk = _record({"op": b"\x05", "compression": b"bz2", "size": struct.pack("<I", len(inner))}, bz2.compress(inner))
+    return b"#ROSBAG V2.0\n" + chunk
+
+
+RANGES = [1.5, 2.25, 3.0, 81.91]
+
+
+def test_scans_take_the_last_odometry_before_them_in_the_files_order() -> None:
+    """As the log's lines ran: each scan at the last ODOM line before it (an ODOM line stamped like a
+    scan but written after it is the next scan's), its time to the microsecond, its ranges as
+    written; a scan before any odometry waits for the first."""
+    tool = _tool()
+    bag = _bag(
+        [
+            ("/scan", _scan(99, 0, -math.pi / 2, RANGES)),
+            ("/odom", _odom(100, 0, 1.0, 2.0, 0.5)),
+            ("/scan", _scan(100, 123_456_789, -math.pi / 2, RANGES)),
+            ("/odom", _odom(100, 123_456_789, 1.5, 2.0, 0.6)),
+            ("/odom", _odom(101, 0, 2.0, 2.0, 0.7)),
+            ("/scan", _scan(101, 500_000_000, -math.pi / 2, RANGES)),
+        ]
+    )
+    lines = list(tool.log_lines(bag, robotlaser=False))
+    recs = list(read_records(lines))
+    lasers = [r for r in recs if isinstance(r, LaserRecord)]
+    assert sum(isinstance(r, OdomRecord) for r in recs) == 3
+    assert [r.kind for r in lasers] == ["FLASER"] * 3
+    assert [r.ipc_timestamp for r in lasers] == ["99.000000", "100.123457", "101.500000"]
+    assert [r.odom for r in lasers] == [
+        pytest.approx((1.0, 2.0, 0.5)),
+        pytest.approx((1.0, 2.0, 0.5)),
+        pytest.approx((2.0, 2.0, 0.7)),
+    ]
+    assert lasers[1].ranges.tolist() == RANGES
+    assert "1.5 2.25 3 81.91" in lines[1]  # float32 written as the shortest text that reads back
+
+
+def test_a_robotlaser_bag_keeps_each_scans_angles_and_the_lasers_mount() -> None:
+    """The hospital's form: ROBOTLASER1 lines with each scan's own start angle and the static
+    base-to-laser transform as the laser's place on the robot (0.22 m ahead)."""
+    tool = _tool()
+    bag = _bag(
+        [
+            ("/tf_static", _tf(0.22, 0.0)),
+            ("/odom", _odom(5, 0, 1.0, 0.0, math.pi / 2)),
+            ("/scan", _scan(5, 0, -math.pi / 2, RANGES)),
+            ("/odom", _odom(6, 0, 1.0, 1.0, math.pi / 2)),
+            ("/scan", _scan(6, 0, math.radians(-89.75), RANGES)),
+        ]
+    )
+    lasers = [r for r in read_records(list(tool.log_lines(bag, robotlaser=True))) if isinstance(r, LaserRecord)]
+    assert [r.kind for r in lasers] == ["ROBOTLASER1"] * 2
+    assert lasers[0].laser_offset == pytest.approx((0.22, 0.0, 0.0), abs=1e-6)
+    assert lasers[1].odom == pytest.approx((1.0, 1.0, math.pi / 2), abs=1e-6)
+    assert lasers[0].angles[0] == pytest.approx(-math.pi / 2, abs=1e-6)
+    assert lasers[1].angles[0] == pytest.approx(math.radians(-89.75), abs=1e-6)
+    assert lasers[0].max_range == pytest.approx(81.9)
+
+
+def test_what_is_not_a_bag_is_refused_with_a_reason(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    tool = _tool()
+    (tmp_path / "x.orig.bag").write_bytes(b"not a bag at all")
+    lz4 = _bag([("/odom", _odom(1, 0, 0.0, 0.0, 0.0))]).replace(b"compression=bz2", b"compression=lz4")
+    (tmp_path / "y.orig.bag").write_bytes(lz4)
+    assert tool.main([str(tmp_path / "x.orig.bag"), "--out", str(tmp_path / "out")]) == 1
+    assert "not a ROS bag" in capsys.readouterr().err
+    assert tool.main([str(tmp_path / "y.orig.bag"), "--out", str(tmp_path / "out")]) == 1
+    assert "only bz2 and none" in capsys.readouterr().err
+    good = _bag([("/odom", _odom(1, 0, 0.0, 0.0, 0.0)), ("/scan", _scan(1, 0, -math.pi / 2, RANGES))])
+    (tmp_path / "room.orig.bag").write_bytes(good)
+    assert tool.main([str(tmp_path / "room.orig.bag"), "--out", str(tmp_path / "out")]) == 0
+    assert "1 scans, 1 odometry lines" in capsys.readouterr().out
+    assert (tmp_path / "out" / "room.clf").read_text().count("FLASER") == 1
