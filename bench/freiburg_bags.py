@@ -15,9 +15,15 @@ it needs, by hand: the standard library and numpy only) and writes ``DIR/NAME.cl
   0.017 m, not the 0.013 m of docs/mapping.md; an ODOM line stamped as a scan but written after it is
   not its pose either: aces' figure moves), and where the converter kept each scan's own odometry
   (``save_odom``: the hospital) it comes just before its scan;
-- FLASER lines, or ROBOTLASER1 lines for a bag named ``*_robotlaser*`` (the Freiburg hospital, whose
-  SICK interleaves four start angles and sits 0.22 m ahead of the robot: each scan's own angles, and
-  the ``/tf_static`` base-to-laser transform as the laser pose).
+- FLASER lines (beams from -90 degrees as far apart as CARMEN guesses from their count, or the bag is
+  refused; no mount: fr079's bag has one, 0.04 m, which the published relations do not fit,
+  docs/mapping.md), or
+  ROBOTLASER1 lines for a bag named ``*_robotlaser*`` (the Freiburg hospital, whose SICK interleaves
+  four start angles and sits 0.22 m ahead of the robot: each scan's own angles, and the
+  ``/tf_static`` base-to-laser transform as the laser pose).
+
+NAME is the bag's name less ``.orig.bag``. A time-sorted conversion (``*.sort.bag``) is refused: a
+scan and the odometry stamped with it come in either order there.
 
 Then copy ``NAME.relations`` into DIR (``fr-clinic.relations`` finds ``fr-clinic_robotlaser.clf``) and
 run ``python bench/mapping.py --freiburg DIR``. Put together so (2026-12-05), the logs reproduce the
@@ -36,6 +42,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from fleetlink.agent.mapping.carmen import guess_increment
 
 MAGIC = b"#ROSBAG V2.0\n"
 OP_MESSAGE, OP_CHUNK, OP_CONNECTION = 0x02, 0x05, 0x07
@@ -60,6 +68,7 @@ class Stamp:
 class Scan:
     stamp: Stamp
     angle_min: float
+    angle_max: float
     angle_increment: float
     range_max: float
     ranges: np.ndarray
@@ -69,6 +78,8 @@ class Scan:
 class Odom:
     stamp: Stamp
     pose: tuple[float, float, float]
+    tv: float = 0.0  # m/s, the twist's linear x
+    rv: float = 0.0  # rad/s, its angular z
 
 
 def _fields(header: bytes) -> dict[bytes, bytes]:
@@ -91,7 +102,11 @@ def _records(buf: bytes, at: int = 0) -> Iterator[tuple[dict[bytes, bytes], byte
         (hl,) = struct.unpack_from("<I", buf, at)
         header = _fields(buf[at + 4 : at + 4 + hl])
         at += 4 + hl
+        if at + 4 > len(buf):
+            raise BagError("a record cut short")
         (dl,) = struct.unpack_from("<I", buf, at)
+        if at + 4 + dl > len(buf):
+            raise BagError("a record's data cut short")
         yield header, buf[at + 4 : at + 4 + dl]
         at += 4 + dl
 
@@ -147,10 +162,12 @@ class _Reader:
 def laser_scan(buf: bytes) -> Scan:
     r = _Reader(buf)
     stamp = r.stamp()
-    angle_min, _angle_max, increment, _dt, _scan_time, _range_min, range_max = r.take("<7f")
+    angle_min, angle_max, increment, _dt, _scan_time, _range_min, range_max = r.take("<7f")
     (n,) = r.take("<I")
+    if r.at + 4 * int(n) > len(buf):
+        raise BagError(f"a LaserScan of {n} ranges cut short")
     ranges = np.frombuffer(buf, dtype="<f4", count=int(n), offset=r.at)
-    return Scan(stamp, float(angle_min), float(increment), float(range_max), ranges)
+    return Scan(stamp, float(angle_min), float(angle_max), float(increment), float(range_max), ranges)
 
 
 def _yaw(qx: float, qy: float, qz: float, qw: float) -> float:
@@ -162,7 +179,9 @@ def odometry(buf: bytes) -> Odom:
     stamp = r.stamp()
     r.string()  # child_frame_id
     x, y, _z, qx, qy, qz, qw = (float(v) for v in r.take("<7d"))
-    return Odom(stamp, (x, y, _yaw(qx, qy, qz, qw)))
+    r.take("<36d")  # the pose's covariance
+    tv, _vy, _vz, _wx, _wy, rv = (float(v) for v in r.take("<6d"))
+    return Odom(stamp, (x, y, _yaw(qx, qy, qz, qw)), tv, rv)
 
 
 def laser_mount(buf: bytes) -> tuple[float, float, float] | None:
@@ -195,11 +214,21 @@ def log_lines(data: bytes, robotlaser: bool) -> Iterator[str]:
     def line(scan: Scan, odom: Odom) -> str:
         t = scan.stamp.text()
         if not robotlaser:
-            return f"FLASER {len(scan.ranges)} {_ranges(scan)} {_pose(odom.pose)} {_pose(odom.pose)} {t} bag {t}"
+            # A FLASER line has no angles: a reader takes its beams from -90 degrees, as far apart as
+            # CARMEN guesses from their count, and no mount (fr079's bag has one, 0.04 m: docs/mapping.md).
+            n = len(scan.ranges)
+            guess = guess_increment(n)
+            if abs(scan.angle_min + math.pi / 2) > 1e-4 or abs(scan.angle_increment - guess) > 0.01 * guess:
+                raise BagError(
+                    f"a scan of {n} beams from {math.degrees(scan.angle_min):.2f} degrees,"
+                    f" {math.degrees(scan.angle_increment):.3f} apart, is no FLASER line (a reader would take"
+                    f" {math.degrees(guess):.3f} from -90): name the bag *_robotlaser*"
+                )
+            return f"FLASER {n} {_ranges(scan)} {_pose(odom.pose)} {_pose(odom.pose)} {t} bag {t}"
         x, y, th = odom.pose
         c, s = math.cos(th), math.sin(th)
         laser = (x + c * mount[0] - s * mount[1], y + s * mount[0] + c * mount[1], th + mount[2])
-        fov = scan.angle_increment * (len(scan.ranges) - 1)
+        fov = scan.angle_max - scan.angle_min
         return (
             f"ROBOTLASER1 0 {scan.angle_min:.6f} {fov:.6f} {scan.angle_increment:.6f} {scan.range_max:.2f} 0.01 0"
             f" {len(scan.ranges)} {_ranges(scan)} 0 {_pose(laser)} {_pose(odom.pose)} 0 0 0 0 0 {t} bag {t}"
@@ -212,7 +241,8 @@ def log_lines(data: bytes, robotlaser: bool) -> Iterator[str]:
     for topic, body in items:
         if topic == "/odom":
             last = odometry(body)
-            yield f"ODOM {_pose(last.pose)} 0 0 0 {last.stamp.text()} bag {last.stamp.text()}"
+            t = last.stamp.text()
+            yield f"ODOM {_pose(last.pose)} {last.tv:.6f} {last.rv:.6f} 0 {t} bag {t}"
             for scan in pending:
                 yield line(scan, last)
             pending.clear()
@@ -222,6 +252,8 @@ def log_lines(data: bytes, robotlaser: bool) -> Iterator[str]:
                 pending.append(scan)
             else:
                 yield line(scan, last)
+    if pending:
+        raise BagError(f"{len(pending)} scans and no /odom to place them by")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -229,17 +261,31 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("bags", nargs="+", type=Path, help="NAME.orig.bag files (INESCTEC/ricoslam)")
     ap.add_argument("--out", type=Path, required=True, help="folder for NAME.clf")
     args = ap.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
+    names: dict[str, Path] = {}
     for bag in args.bags:
-        name = bag.name.split(".")[0]
+        if bag.name.endswith(".sort.bag"):
+            # Time order: a scan and the odometry stamped with it come in either order there, and the
+            # last odometry before a scan is then, half the time, the scan before's.
+            print(f"{bag}: a time-sorted conversion; give the NAME.orig.bag (the log's line order)", file=sys.stderr)
+            return 1
+        name = bag.name.removesuffix(".bag").removesuffix(".orig")
+        if name in names:
+            print(f"{bag} and {names[name]} would both be {name}.clf", file=sys.stderr)
+            return 1
+        names[name] = bag
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name, bag in names.items():
         try:
             data = bag.read_bytes()
             lines = list(log_lines(data, robotlaser="_robotlaser" in name))
-        except (OSError, BagError, struct.error, UnicodeDecodeError) as exc:
-            print(f"{bag}: {exc}", file=sys.stderr)
+        except (OSError, BagError, struct.error, UnicodeDecodeError, ValueError, KeyError, IndexError) as exc:
+            print(f"{bag}: not read: {type(exc).__name__}: {exc}", file=sys.stderr)
+            return 1
+        scans = sum(1 for s in lines if not s.startswith("ODOM"))
+        if not scans:
+            print(f"{bag}: no /scan messages", file=sys.stderr)
             return 1
         (args.out / f"{name}.clf").write_text("\n".join(lines) + "\n")
-        scans = sum(1 for s in lines if not s.startswith("ODOM"))
         print(f"{bag} -> {args.out / (name + '.clf')}: {scans} scans, {len(lines) - scans} odometry lines")
     return 0
 

@@ -525,10 +525,12 @@ def throughput(drive: dict, beams: int, limit: int) -> dict[str, float]:  # type
     ours = time.perf_counter() - t0
     # CPU seconds of this process: "on one core" even when other work shares the machine.
     ours_cpu = time.process_time() - c0
-    # A replay ends with the final pass (every node matched again, the graph solved): counted apart,
-    # since a robot mapping online never runs it, and with the scans as a replay's whole cost.
+    # A replay ends with the final pass (every node matched again, the graph solved) and the map drawn
+    # again at the final poses, as ``replay`` does: counted apart, since a robot mapping online never
+    # runs them, and with the scans as a replay's whole cost.
     c1 = time.process_time()
     m.finish()
+    m.redraw()
     final_cpu = time.process_time() - c1
     # Baseline on a few scans against the finished map (its cost does not depend on the map).
     cfg = MapperConfig()

@@ -67,32 +67,42 @@ def _scan(sec: int, nsec: int, angle_min: float, ranges: list[float]) -> bytes:
     )
 
 
-def _tf(x: float, yaw: float) -> bytes:
-    return (
-        struct.pack("<I", 1)
-        + _header(0, 0, "base_link")
-        + _string("laser")
-        + struct.pack("<7d", x, 0.0, 0.0, *_quat(yaw))
-    )
+def _tf(x: float, y: float, yaw: float) -> bytes:
+    transform = struct.pack("<7d", x, y, 0.0, *_quat(yaw))
+    return struct.pack("<I", 1) + _header(0, 0, "base_link") + _string("laser") + transform
 
 
-def _bag(messages: list[tuple[str, bytes]]) -> bytes:
+def _bag(messages: list[tuple[str, bytes]], compression: str = "bz2", per_chunk: int = 2) -> bytes:
+    """A bag as the format has it: the bag header record, then chunks (each with its connections and
+    messages, and an index data record after it), then the connections again and the chunk infos."""
     topics = {t: i for i, t in enumerate(dict.fromkeys(t for t, _ in messages))}
-    inner = b"".join(
-        _record({"op": b"\x07", "conn": struct.pack("<I", i), "topic": t.encode()}, _field("type", b"x/y"))
-        for t, i in topics.items()
-    )
-    inner += b"".join(
-        _record({"op": b"\x02", "conn": struct.pack("<I", topics[t]), "time": b"\0" * 8}, body) for t, body in messages
-    )
-    chunk = _record({"op": b"\x05", "compression": b"bz2", "size": struct.pack("<I", len(inner))}, bz2.compress(inner))
-    return b"#ROSBAG V2.0\n" + chunk
+
+    def conn(t: str) -> bytes:
+        fields = {"op": b"\x07", "conn": struct.pack("<I", topics[t]), "topic": t.encode()}
+        return _record(fields, _field("type", b"x/y"))
+
+    header = {"op": b"\x03", "index_pos": b"\0" * 8, "conn_count": b"\0" * 4, "chunk_count": b"\0" * 4}
+    out = [_record(header, b" " * 16)]
+    for k in range(0, len(messages), per_chunk):
+        part = messages[k : k + per_chunk]
+        inner = b"".join(conn(t) for t in dict.fromkeys(t for t, _ in part))
+        inner += b"".join(
+            _record({"op": b"\x02", "conn": struct.pack("<I", topics[t]), "time": b"\0" * 8}, body) for t, body in part
+        )
+        data = bz2.compress(inner) if compression == "bz2" else inner
+        fields = {"op": b"\x05", "compression": compression.encode(), "size": struct.pack("<I", len(inner))}
+        out.append(_record(fields, data))
+        out.append(_record({"op": b"\x04", "ver": b"\1\0\0\0", "conn": b"\0" * 4, "count": b"\0" * 4}, b""))
+    out += [conn(t) for t in topics]
+    out.append(_record({"op": b"\x06", "ver": b"\1\0\0\0", "chunk_pos": b"\0" * 8}, b""))
+    return b"#ROSBAG V2.0\n" + b"".join(out)
 
 
-RANGES = [1.5, 2.25, 3.0, 81.91]
+RANGES = [1.5, 2.25, 3.0, 81.91] + [4.0] * 176  # a SICK's 180 beams, 1 degree apart from -90
 
 
-def test_scans_take_the_last_odometry_before_them_in_the_files_order() -> None:
+@pytest.mark.parametrize("compression", ["bz2", "none"])
+def test_scans_take_the_last_odometry_before_them_in_the_files_order(compression: str) -> None:
     """As the log's lines ran: each scan at the last ODOM line before it (an ODOM line stamped like a
     scan but written after it is the next scan's), its time to the microsecond, its ranges as
     written; a scan before any odometry waits for the first."""
@@ -105,7 +115,8 @@ def test_scans_take_the_last_odometry_before_them_in_the_files_order() -> None:
             ("/odom", _odom(100, 123_456_789, 1.5, 2.0, 0.6)),
             ("/odom", _odom(101, 0, 2.0, 2.0, 0.7)),
             ("/scan", _scan(101, 500_000_000, -math.pi / 2, RANGES)),
-        ]
+        ],
+        compression,
     )
     lines = list(tool.log_lines(bag, robotlaser=False))
     recs = list(read_records(lines))
@@ -118,17 +129,17 @@ def test_scans_take_the_last_odometry_before_them_in_the_files_order() -> None:
         pytest.approx((1.0, 2.0, 0.5)),
         pytest.approx((2.0, 2.0, 0.7)),
     ]
-    assert lasers[1].ranges.tolist() == RANGES
-    assert "1.5 2.25 3 81.91" in lines[1]  # float32 written as the shortest text that reads back
+    assert lasers[1].ranges.tolist()[:3] == RANGES[:3] and lasers[1].ranges[3] == pytest.approx(81.91)
+    assert "1.5 2.25 3 81.91 4 4" in lines[1]  # float32 written as the shortest text that reads back
 
 
 def test_a_robotlaser_bag_keeps_each_scans_angles_and_the_lasers_mount() -> None:
     """The hospital's form: ROBOTLASER1 lines with each scan's own start angle and the static
-    base-to-laser transform as the laser's place on the robot (0.22 m ahead)."""
+    base-to-laser transform as the laser's place on the robot."""
     tool = _tool()
     bag = _bag(
         [
-            ("/tf_static", _tf(0.22, 0.0)),
+            ("/tf_static", _tf(0.22, 0.05, math.radians(5.0))),
             ("/odom", _odom(5, 0, 1.0, 0.0, math.pi / 2)),
             ("/scan", _scan(5, 0, -math.pi / 2, RANGES)),
             ("/odom", _odom(6, 0, 1.0, 1.0, math.pi / 2)),
@@ -137,24 +148,39 @@ def test_a_robotlaser_bag_keeps_each_scans_angles_and_the_lasers_mount() -> None
     )
     lasers = [r for r in read_records(list(tool.log_lines(bag, robotlaser=True))) if isinstance(r, LaserRecord)]
     assert [r.kind for r in lasers] == ["ROBOTLASER1"] * 2
-    assert lasers[0].laser_offset == pytest.approx((0.22, 0.0, 0.0), abs=1e-6)
+    assert lasers[0].laser_offset == pytest.approx((0.22, 0.05, math.radians(5.0)), abs=1e-6)
     assert lasers[1].odom == pytest.approx((1.0, 1.0, math.pi / 2), abs=1e-6)
     assert lasers[0].angles[0] == pytest.approx(-math.pi / 2, abs=1e-6)
     assert lasers[1].angles[0] == pytest.approx(math.radians(-89.75), abs=1e-6)
     assert lasers[0].max_range == pytest.approx(81.9)
 
 
-def test_what_is_not_a_bag_is_refused_with_a_reason(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_what_cannot_be_read_right_is_refused_with_a_reason(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     tool = _tool()
-    (tmp_path / "x.orig.bag").write_bytes(b"not a bag at all")
+    out = str(tmp_path / "out")
+
+    def refused(name: str, data: bytes, reason: str) -> None:
+        (tmp_path / name).write_bytes(data)
+        assert tool.main([str(tmp_path / name), "--out", out]) == 1
+        assert reason in capsys.readouterr().err
+
     lz4 = _bag([("/odom", _odom(1, 0, 0.0, 0.0, 0.0))]).replace(b"compression=bz2", b"compression=lz4")
-    (tmp_path / "y.orig.bag").write_bytes(lz4)
-    assert tool.main([str(tmp_path / "x.orig.bag"), "--out", str(tmp_path / "out")]) == 1
-    assert "not a ROS bag" in capsys.readouterr().err
-    assert tool.main([str(tmp_path / "y.orig.bag"), "--out", str(tmp_path / "out")]) == 1
-    assert "only bz2 and none" in capsys.readouterr().err
+    no_odometry = _bag([("/scan", _scan(1, 0, -math.pi / 2, RANGES))], "none")
+    refused("x.orig.bag", b"not a bag at all", "not a ROS bag")
+    refused("y.orig.bag", lz4, "only bz2 and none")
+    refused("z.orig.bag", no_odometry, "no /odom to place them by")
+    # The hospital's angles need ROBOTLASER1 lines (a bag named *_robotlaser*).
+    hospital = _bag([("/odom", _odom(1, 0, 0.0, 0.0, 0.0)), ("/scan", _scan(1, 0, math.radians(-89.75), RANGES))])
+    refused("w.orig.bag", hospital, "is no FLASER line")
+    refused("cut.orig.bag", no_odometry[:-60], "cut short")
+    # Time order: a scan's own odometry may come before or after it there.
+    refused("room.sort.bag", no_odometry, "time-sorted")
+    assert not list(tmp_path.glob("out/*.clf"))  # nothing written for a bag refused
     good = _bag([("/odom", _odom(1, 0, 0.0, 0.0, 0.0)), ("/scan", _scan(1, 0, -math.pi / 2, RANGES))])
     (tmp_path / "room.orig.bag").write_bytes(good)
-    assert tool.main([str(tmp_path / "room.orig.bag"), "--out", str(tmp_path / "out")]) == 0
+    (tmp_path / "room.bag").write_bytes(good)
+    assert tool.main([str(tmp_path / "room.orig.bag"), str(tmp_path / "room.bag"), "--out", out]) == 1
+    assert "would both be room.clf" in capsys.readouterr().err
+    assert tool.main([str(tmp_path / "room.orig.bag"), "--out", out]) == 0
     assert "1 scans, 1 odometry lines" in capsys.readouterr().out
     assert (tmp_path / "out" / "room.clf").read_text().count("FLASER") == 1

@@ -83,12 +83,14 @@ def test_a_file_of_garbage_is_counted_in_a_few_names_and_its_scans_still_read() 
     rng = np.random.default_rng(5)
     junk = [bytes(rng.integers(33, 256, 40, dtype=np.uint8)).decode("latin-1") for _ in range(200)]
     made_up = [f"KIND{i} 1 2 3" for i in range(100)]
-    lines = _log_lines() + junk + made_up
+    long_kind = "X" * 40  # counted under its first 32 characters, the same name each time
+    lines = [long_kind, *_log_lines(), *junk, *made_up, long_kind]
     stats = CarmenStats()
     lasers = [r for r in read_records(lines, stats) if isinstance(r, LaserRecord)]
     assert len(lasers) == len(TIMESTAMPS)
     assert len(stats.unknown) <= UNKNOWN_KINDS_KEPT + 2  # + the other kinds and the unreadable
-    assert sum(stats.unknown.values()) == len(TIMESTAMPS) + 1 + len(junk) + len(made_up)  # NEFF, SYNC too
+    assert sum(stats.unknown.values()) == len(TIMESTAMPS) + 1 + len(junk) + len(made_up) + 2  # NEFF, SYNC too
+    assert stats.unknown["X" * 32] == 2
     assert stats.unknown[OTHER_KINDS] >= len(made_up) - UNKNOWN_KINDS_KEPT
     summary = stats.summary()
     assert len(summary) < 400 and "NEFF" in summary and "other kinds" in summary

@@ -132,11 +132,12 @@ class CarmenStats:
 
     def skip(self, kind: str) -> None:
         """Count a line of a kind this reader does not map (``UNKNOWN_KINDS_KEPT`` names at most)."""
+        kind = kind[:32]
         if not (kind.isascii() and kind.isprintable() and kind[:1].isalpha()):
             kind = UNREADABLE
         elif kind not in self.unknown and len(self.unknown) >= UNKNOWN_KINDS_KEPT:
             kind = OTHER_KINDS
-        self.unknown[kind[:32]] += 1
+        self.unknown[kind] += 1
 
     def summary(self) -> str:
         parts = [f"{self.lines} lines", f"{self.scans} scans", f"{self.odom} odometry"]
