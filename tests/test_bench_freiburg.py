@@ -4,26 +4,18 @@ true poses stand in for the benchmark's files, which are not in this repository.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
 from fleetlink.agent.mapping.relations import Relation, format_relations, relation
+from tests.harness.bench import load_bench
 from tests.test_mapping_replay import TIMESTAMPS, _log_lines, _poses
-
-ROOT = Path(__file__).resolve().parent.parent
 
 
 def _bench():  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location("bench_mapping", ROOT / "bench" / "mapping.py")
-    assert spec is not None and spec.loader is not None
-    bench = importlib.util.module_from_spec(spec)
-    sys.modules["bench_mapping"] = bench
-    spec.loader.exec_module(bench)
-    return bench
+    return load_bench("mapping")
 
 
 def test_published_logs_are_found_replayed_and_scored(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -6,26 +6,18 @@ then takes as the replay would."""
 from __future__ import annotations
 
 import bz2
-import importlib.util
 import math
 import struct
-import sys
 from pathlib import Path
 
 import pytest
 
 from fleetlink.agent.mapping.carmen import LaserRecord, OdomRecord, read_records
-
-ROOT = Path(__file__).resolve().parent.parent
+from tests.harness.bench import load_bench
 
 
 def _tool():  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location("bench_freiburg_bags", ROOT / "bench" / "freiburg_bags.py")
-    assert spec is not None and spec.loader is not None
-    tool = importlib.util.module_from_spec(spec)
-    sys.modules["bench_freiburg_bags"] = tool
-    spec.loader.exec_module(tool)
-    return tool
+    return load_bench("freiburg_bags")
 
 
 def _field(name: str, value: bytes) -> bytes:

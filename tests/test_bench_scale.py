@@ -4,22 +4,16 @@ how fast (the figures come from the bench itself, docs/operations.md)."""
 
 from __future__ import annotations
 
-import importlib.util
 import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+from tests.harness.bench import load_bench
 
 
 @pytest.mark.slow
 def test_scale_bench_runs_mapping_agents_and_drives_them() -> None:
-    spec = importlib.util.spec_from_file_location("bench_scale", ROOT / "bench" / "scale.py")
-    assert spec is not None and spec.loader is not None
-    scale = importlib.util.module_from_spec(spec)
-    sys.modules["bench_scale"] = scale
-    spec.loader.exec_module(scale)
+    scale = load_bench("scale")
 
     r = scale.run(2, 3.0, 1.0, True, 60.0, 720.0, True)
     assert r["robots"] == 2 and r["agents_crashed"] == 0 and r["bad_poses"] == 0
