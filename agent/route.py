@@ -16,7 +16,10 @@ Phases (``RoutePhase``)::
                                  behind allows; no room: straight on) --> re-plan: FOLLOWING
                                --drive start refused / no progress--> re-plan: FOLLOWING
                                --a newer map shows the leg ahead barred--> re-plan: FOLLOWING
-                                 (not counted in ``max_replans``; at most ``max_map_replans``)
+                                 (not counted in ``max_replans``; at most ``max_map_replans``);
+                                 no path on it: WAITING
+                               --barred, no way around, the map alone has one--> WAITING
+                                 (what barred it may move; then the marks are forgotten)
                                --re-plans used up / no way around--> [FAILING_BACKOFF -->] RETREATING
     UNPLANNED --no path--> WAITING (standing) --a newer map--> UNPLANNED (asks again)
               --``no_path_wait_s`` with none--> end (failed: no_path)
@@ -218,7 +221,8 @@ class Route:
     _planned_sense: object | None = None  # that map's ``sense`` (``step``)
     _sense: object | None = None  # this tick's
     map_replans: int = 0  # re-plans because a newer map showed the leg barred (not in ``replans``)
-    waiting_since: float | None = None  # no path since (the first plan found none)
+    waiting_since: float | None = None  # no path since (the first plan, or a map re-plan, found none)
+    _waiting_on_marks: bool = False  # waiting because only where it was barred (``blocked``) bars the way
 
     # -- what the pilot calls --------------------------------------------------------------------
 
@@ -241,13 +245,21 @@ class Route:
                 if not self._replan(now, pose, provider, "blocked"):
                     return _STILL
         if self.phase is RoutePhase.WAITING:
-            if provider is self._planned_with:  # the same map: still no path
-                waited = now - (self.waiting_since if self.waiting_since is not None else now)
+            waited = now - (self.waiting_since if self.waiting_since is not None else now)
+            if waited >= c.no_path_wait_s and self.blocked and self._waiting_on_marks:
+                # Barred by something the map does not hold, which has had its time to move: the
+                # marks are forgotten and the map's own path driven again (the guard stops the
+                # robot if it is still there, and that re-plan counts in ``max_replans``).
+                self.blocked.clear()
+                self._waiting_on_marks = False
+                self.phase = RoutePhase.UNPLANNED
+            elif provider is self._planned_with:  # the same map: still no path
                 if waited >= c.no_path_wait_s:
                     d = self.dest
                     self._finish(False, "no_path", f"no path to ({d.x:.2f}, {d.y:.2f}) (waited {waited:.0f} s)")
                 return _STILL
-            self.phase = RoutePhase.UNPLANNED  # a newer map (or none): ask again
+            else:
+                self.phase = RoutePhase.UNPLANNED  # a newer map (or none): ask again
         if self.phase is RoutePhase.UNPLANNED and not self._plan(now, pose, provider):
             return _STILL
         if self.phase is RoutePhase.FOLLOWING and provider is not None and provider is not self._planned_with:
@@ -370,7 +382,7 @@ class Route:
         if provider is None:
             self.goto.start([(d.x, d.y)], d.theta)
             return True
-        planned = self._ask(provider, pose)
+        planned = self._ask(provider, pose, tuple(self.blocked))  # marks: asked again while waiting
         self._planned_with, self._planned_sense = provider, self._sense
         if isinstance(planned, str):
             self._finish(False, "planner_failed", f"the planner failed ({planned})")
@@ -465,24 +477,15 @@ class Route:
             self.goto.start([goal], d.theta)
             return True
         if len(path) == 0:
-            if why is None:
-                # The way may be barred by what moves (another robot, a person): the map that shows
-                # it gone may have a path. Standing until then, or ``no_path_wait_s``.
-                if self.waiting_since is None:
-                    self.waiting_since = now
-                    self.notes.append(
-                        RouteNote(
-                            False,
-                            f"{d.label}: no path to ({d.x:.2f}, {d.y:.2f}) on this map: waiting up to "
-                            f"{self.config.no_path_wait_s:g} s for the way to clear",
-                            "waiting",
-                            0,
-                        )
-                    )
-                if self.config.no_path_wait_s <= 0.0:
-                    self._finish(False, "no_path", f"no path to ({d.x:.2f}, {d.y:.2f})")
-                else:
-                    self.phase = RoutePhase.WAITING
+            # No path on the first map, or on a newer map that shows the way barred (nothing has
+            # stopped the robot): what bars it may move (another robot, a person; a robot that
+            # stood on the goal is drawn there by every scan that saw it, and cleared only by scans
+            # that see through the place since), and the map that shows it gone may have a path.
+            # Standing until then, or ``no_path_wait_s``. Barred in front of the robot (the guard's
+            # refusals): backing off and trying around, as ``_barred`` does.
+            if why is None or (why == "wall_on_map" and self.config.no_path_wait_s > 0.0):
+                on = "this map" if why is None or self._waiting_on_marks else "the newer map"
+                self._wait(now, f"no path to ({d.x:.2f}, {d.y:.2f}) on {on}")
             else:
                 self._fail(now, pose, "blocked", f"blocked ({why}) and no way around")
             return False
@@ -497,6 +500,8 @@ class Route:
         self._progress = _Progress(since=now)
         self._leg = None
         self.held_since = None
+        self.waiting_since = None  # a later wait is for whatever bars the way then
+        self._waiting_on_marks = False
         n = len(pts)
         if why is None:
             text = "planned path" if source == "planned" else "the order's trajectory"
@@ -505,6 +510,19 @@ class Route:
             text = f"{d.label}: re-planned ({why}, {self.replans}/{self.config.max_replans}), {n} waypoints"
             self.notes.append(RouteNote(True, text, why, n))
         return True
+
+    def _wait(self, now: float, text: str) -> None:
+        """Stand (``WAITING``) for a newer map with a path, at most ``no_path_wait_s`` since the wait
+        began (0: the route fails at once, ``no_path``)."""
+        d = self.dest
+        if self.waiting_since is None:
+            self.waiting_since = now
+            wait = f"waiting up to {self.config.no_path_wait_s:g} s for the way to clear"
+            self.notes.append(RouteNote(False, f"{d.label}: {text}: {wait}", "waiting", 0))
+        if self.config.no_path_wait_s <= 0.0:
+            self._finish(False, "no_path", f"no path to ({d.x:.2f}, {d.y:.2f})")
+        else:
+            self.phase = RoutePhase.WAITING
 
     def _replan(self, now: float, pose: Pose, provider: PathProvider | None, why: str, *, counted: bool = True) -> bool:
         """Plan again from here. ``counted``: a re-plan because the way was barred (at most
@@ -521,6 +539,17 @@ class Route:
         if isinstance(path, str):
             self._fail(now, pose, "planner_failed", f"the planner failed ({path})")
             return False
+        if why == "blocked" and path is not None and len(path) == 0 and self.config.no_path_wait_s > 0.0:
+            # No way around where the robot was barred, but the map alone has one: what barred it is
+            # not on the map (a wall would be: ``unknown_marks``), so it may move. A robot met head
+            # on where its goal lies, a person standing there: wait for it rather than fail.
+            assert provider is not None
+            own = self._ask(provider, pose)
+            if not isinstance(own, str) and own:
+                d = self.dest
+                self._waiting_on_marks = True
+                self._wait(now, f"barred on the way to ({d.x:.2f}, {d.y:.2f}) by something not on the map")
+                return False
         return self._follow(now, pose, path, why)
 
     def _newly_barred(self, older: object | None, newer: object | None, pose: Pose) -> bool:

@@ -162,6 +162,56 @@ def test_a_refused_drive_start_marks_the_echo_and_replans_around_it() -> None:
     assert "re-planned (blocked, 1/3)" in note.text
 
 
+class BarredOnlyByMarks(Provider):
+    """A map with a straight way to the goal; no way at all with any marks (something met on the
+    goal itself: a robot head on, a person standing there)."""
+
+    def __call__(self, start: Point, goal: Point, /, blocked: Sequence[Point] = ()) -> Sequence[Point] | None:
+        self.calls.append((start, goal, tuple(blocked)))
+        return [] if blocked else [goal]
+
+
+def test_barred_with_no_way_around_by_what_the_map_does_not_hold_waits_then_tries_again() -> None:
+    """Two scouts met head on, the goal of one behind the other (CI's two-scout console test in
+    lockstep): the guard bars the way, the mark covers the goal, so no way around, but the map alone
+    has one. What barred it may move: the route waits ``no_path_wait_s``, then forgets its marks and
+    drives again (barred again, that counts as a re-plan, and the bound still ends it)."""
+    provider = BarredOnlyByMarks()
+    r = route()
+    r.step(0.0, (0.0, 0.0, 0.0), provider)
+    r.notes.clear()
+    r.refused(1.0, (3.0, 0.0, 0.0), IN_PATH, provider)
+    assert r.replans == 1 and r.phase is RoutePhase.WAITING and r.end is None and r.blocked
+    [note] = r.notes
+    assert note.reason == "waiting"
+    assert "barred on the way to (4.00, 0.00) by something not on the map: waiting up to 6 s" in note.text
+    assert r.step(4.0, (3.0, 0.0, 0.0), provider).v == 0.0 and r.phase is RoutePhase.WAITING
+    newer = BarredOnlyByMarks()  # a newer map within the wait: asked with the marks, still waiting
+    r.step(5.0, (3.0, 0.0, 0.0), newer)
+    assert r.phase is RoutePhase.WAITING and newer.calls[-1][2] == tuple(r.blocked)
+    r.step(7.0, (3.0, 0.0, 0.0), newer)
+    assert r.phase is RoutePhase.FOLLOWING and r.blocked == [] and r.end is None
+    assert r.goto.waypoints == [(4.0, 0.0)] and r.waiting_since is None
+    # Still there: barred again, and again, until the re-plans are used up.
+    r.refused(8.0, (3.0, 0.0, 0.0), IN_PATH, newer)
+    assert r.replans == 2 and r.phase is RoutePhase.WAITING
+    r.step(14.0, (3.0, 0.0, 0.0), newer)
+    r.refused(15.0, (3.0, 0.0, 0.0), IN_PATH, newer)
+    r.step(21.0, (3.0, 0.0, 0.0), newer)
+    r.refused(22.0, (3.0, 0.0, 0.0), IN_PATH, newer)
+    assert r.replans == 3 and (r.phase.failing or r.end is not None)
+    assert r._failure is not None and "still blocked after 3 re-plans" in r._failure[1]
+
+
+def test_barred_with_no_way_around_on_the_map_itself_fails_as_before() -> None:
+    provider = Provider([(4.0, 0.0)], [])  # the map has no way either (planned on, then a wall)
+    r = route()
+    r.step(0.0, (0.0, 0.0, 0.0), provider)
+    r.refused(1.0, (3.0, 0.0, 0.0), IN_PATH, provider)
+    assert r.phase.failing or r.end is not None
+    assert r._failure is not None and r._failure[1] == "blocked (blocked) and no way around"
+
+
 def test_on_a_straight_route_a_refused_drive_start_fails_it() -> None:
     r = route()
     r.step(0.0, (0.0, 0.0, 0.0), None)
@@ -337,6 +387,48 @@ def test_a_newer_map_that_shows_the_leg_ahead_barred_replans_uncounted() -> None
     again = Mapped((2.5, 0.1), [(2.0, 1.0), (4.0, 0.0)])
     r.step(0.3, (0.6, 0.1, 0.0), again)
     assert again.calls == [] and r.map_replans == 1
+
+
+def test_a_newer_map_that_bars_the_goal_itself_waits_for_one_that_shows_it_clear() -> None:
+    """Another robot stood on the goal as the robot drove up (CI's two-scout console test): the newer
+    map shows the leg barred and has no path at all. Nothing has stopped the robot, and what bars the
+    way may move on: it stands and waits, as for a first plan with none, then goes on the map that
+    shows the goal clear, and reaches it. A second wait later on the same route gets its own
+    ``no_path_wait_s``."""
+    r, body = route(), Unicycle()
+    old = Mapped(None, [(4.0, 0.0)])
+    r.step(0.0, body.pose, old)
+    t = 0.0
+    while body.x < 3.0:
+        d = r.step(t, body.pose, old)
+        body.step(d.v, d.omega, 0.02)
+        t += 0.02
+    r.notes.clear()
+    barred = Mapped((4.0, 0.0), [])
+    d = r.step(t, body.pose, barred)
+    assert (d.v, d.omega) == (0.0, 0.0) and r.end is None and r.phase is RoutePhase.WAITING
+    assert r.waiting_since == t and r.map_replans == 1 and r.replans == 0
+    [note] = r.notes
+    assert note.reason == "waiting" and "no path to (4.00, 0.00) on the newer map" in note.text
+    assert r.step(t + 3.0, body.pose, barred).v == 0.0 and r.end is None  # the same map: still waiting
+    clear = Mapped(None, [(4.0, 0.0)])
+    r.step(t + 4.0, body.pose, clear)
+    assert r.phase is RoutePhase.FOLLOWING and r.waiting_since is None
+    # Barred again further on: a fresh wait, which runs out on a map that never clears.
+    again = Mapped((4.0, 0.0), [])
+    r.step(t + 5.0, body.pose, again)
+    assert r.phase is RoutePhase.WAITING and r.waiting_since == t + 5.0 and r.end is None
+    r.step(t + 5.0 + 6.0, body.pose, again)
+    assert r.end is not None and not r.end.reached and r.end.reason == "no_path" and "waited 6 s" in r.end.text
+
+
+def test_a_newer_map_with_no_path_fails_at_once_without_waiting() -> None:
+    """``no_path_wait_s`` 0: as before waiting existed, the route fails as barred (and backs off)."""
+    r = route(RouteConfig(no_path_wait_s=0.0))
+    r.step(0.0, (0.0, 0.0, 0.0), Mapped(None, [(4.0, 0.0)]))
+    r.step(0.1, (1.0, 0.0, 0.0), Mapped((3.0, 0.0), []))
+    assert r.phase.failing or r.end is not None
+    assert r._failure is not None and r._failure[1] == "blocked (wall_on_map) and no way around"
 
 
 def test_a_wall_the_older_map_held_already_or_off_the_leg_changes_nothing() -> None:
