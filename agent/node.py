@@ -350,6 +350,7 @@ class AgentNode:
             # that far askew, and a round planned on it sends the robot into them.
             placed = self.core.fusion.heading_initialized and p.sd_theta <= PLACE_SD_THETA_RAD
             driving = self.core.driving
+            waiting = self.core.pilot.waiting_for_way
             now = self.clock.now()
             t = (rev.stamp if rev.stamp is not None else now) - turn_s
             o_now = self.core.fusion.odom_pose()
@@ -361,7 +362,9 @@ class AgentNode:
             odometry = None if self.core.fusion.position_initialized else (o.x, o.y, o.theta)
         # The fused pose now, moved back by the odometry to the turn's start.
         seen = compose((p.x, p.y, p.theta), relative((o_now.x, o_now.y, o_now.theta), (o.x, o.y, o.theta)))
-        turn = Turn(t, rev.distances_m, rev.angles_rad, seen, placed, driving, now, anchored, follows, odometry)
+        turn = Turn(
+            t, rev.distances_m, rev.angles_rad, seen, placed, driving, now, anchored, follows, odometry, waiting
+        )
         update = keeper.add(turn)
         self.scans += 1
         self._share_scan(rev, seen, now)

@@ -445,6 +445,12 @@ class Pilot:
         return self._fire(now, Trigger.HALT, _Command(sender))
 
     @property
+    def waiting_for_way(self) -> bool:
+        """The go-to held stands waiting for the way to clear (``RoutePhase.WAITING``): the map is
+        to look more often (``Turn.waiting``), so that it shows the way clear once it is."""
+        return self._route is not None and self._route.phase is RoutePhase.WAITING
+
+    @property
     def retracing(self) -> bool:
         """The go-to held is a retrace (the comms-loss policy's way back), not an order or home."""
         return self._route is not None and bool(self._route.dest.via)

@@ -6,11 +6,12 @@ from __future__ import annotations
 import math
 import pickle
 import threading
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update
+from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update, onboard_mapper_config
 from fleetlink.agent.mapping.worker import DeferredKeeper, MapWorker
 from fleetlink.field.raycast import Raycaster
 from fleetlink.shared.worker import ProcessWorker
@@ -265,3 +266,42 @@ def test_placed_turns_are_mapped_at_the_fused_pose_and_carry_no_odom_frame() -> 
 
 def _fields(turn: Turn) -> dict[str, object]:
     return {name: getattr(turn, name) for name in Turn.__dataclass_fields__}
+
+
+HALL = np.array([[0.0, 0.0, 40.0, 0.0], [0.0, 6.0, 40.0, 6.0], [0.0, 0.0, 0.0, 6.0], [40.0, 0.0, 40.0, 6.0]])
+GHOST = np.array(  # another robot standing 1.2 m ahead, a 0.3 m box
+    [[3.05, 2.85, 3.35, 2.85], [3.35, 2.85, 3.35, 3.15], [3.35, 3.15, 3.05, 3.15], [3.05, 3.15, 3.05, 2.85]]
+)
+
+
+def _hall_scan(pose: tuple[float, float, float], ghost: bool) -> np.ndarray:
+    caster = Raycaster(np.vstack([HALL, GHOST]) if ghost else HALL)
+    r = caster.cast_fan(pose[0], pose[1], pose[2], 2 * math.pi / 360, 360, 12.0)
+    return np.where(np.isfinite(r), r, 0.0)  # the RPLIDAR's "nothing within 12 m"
+
+
+def _ghost_left(keeper: MapKeeper, *, waiting: bool, seconds: float = 3.0) -> bool:
+    """Drive up the hall towards another robot standing ahead (the far wall 38 m off: beyond it nothing
+    returns), stop 1 m short; it leaves; stand ``seconds`` looking. True if the map still holds it."""
+    t = 0.0
+    for k in range(16):
+        pose = (0.5 + 0.1 * k, 3.0, 0.0)
+        keeper.add(Turn(t, _hall_scan(pose, True), ANGLES, pose, placed=True, driving=True, now=t))
+        t += 0.1
+    while t < 1.6 + seconds:
+        keeper.add(Turn(t, _hall_scan(pose, False), ANGLES, pose, placed=True, driving=True, now=t, waiting=waiting))
+        t += 0.1
+    cells, res, origin = keeper.mapper.occupancy()
+    face = cells[int((3.0 - origin[1]) / res), int((3.07 - origin[0]) / res)]
+    return bool(face >= 65)
+
+
+def test_a_robot_waiting_for_the_way_to_clear_sees_through_where_another_stood_in_an_open_hall() -> None:
+    """The two-scout console test's goal where the other scout had just stood: the pilot waits for the
+    way to clear (``Turn.waiting``); the map then integrates a turn every ``keyframe_period_waiting``,
+    and the beams that return nothing within the lidar's range (a sector of the RPLIDAR's 0) clear
+    their first ``missing_ray`` metres. Either alone leaves the other robot on the map: standing, a
+    turn joins the map every 5 s; with no wall within 12 m behind it, no beam through it returns."""
+    assert not _ghost_left(MapKeeper(), waiting=True)
+    assert _ghost_left(MapKeeper(), waiting=False)
+    assert _ghost_left(MapKeeper(replace(onboard_mapper_config(), missing_ray=0.0)), waiting=True)

@@ -92,3 +92,18 @@ def test_surface_fill_bridges_no_depth_jump_no_miss_and_no_wide_gap() -> None:
     assert surface_fill(r, ang, hit, 0.0, 0.05, 0.1, 0.05)[0].size == 0
     empty = np.zeros(0)
     assert surface_fill(empty, empty, np.zeros(0, dtype=bool), 0.5, 0.05, 0.1, 0.05)[0].size == 0
+
+
+def test_prepare_turns_a_sector_with_no_return_into_free_beams_and_ignores_dropouts() -> None:
+    """The RPLIDAR's 0 (and ROS's +inf) is "nothing within range": in a run of ``missing_run`` it is a
+    free beam ``missing_ray`` long; a shorter run (a dark spot on a wall) says nothing."""
+    a = np.radians(np.arange(12, dtype=np.float64))
+    r = np.array([2.0, 0.0, 2.0, 0.0, 0.0, 0.0, np.inf, 0.0, 2.5, 0.0, 0.0, np.nan])
+    rr, aa, hit = prepare(r, a, 0.15, 12.0)  # off: every no-return dropped, as before
+    assert list(rr) == [2.0, 2.0, 2.5] and hit.all()
+    rr, aa, hit = prepare(r, a, 0.15, 12.0, missing_ray=3.0, missing_run=3)
+    assert list(np.degrees(aa).round()) == [0, 2, 3, 4, 5, 6, 7, 8]  # the run 3-7 kept, lone 1 and 9-10 not
+    assert list(rr) == [2.0, 2.0, 3.0, 3.0, 3.0, 3.0, 3.0, 2.5]
+    assert list(hit) == [True, True, False, False, False, False, False, True]
+    rr, _, hit = prepare(r, a, 0.15, 2.2, missing_ray=3.0, missing_run=3)  # never beyond max_range
+    assert rr.max() == 2.2 and not hit[2:7].any()

@@ -332,9 +332,12 @@ def test_path_provider_waypoints_and_no_path() -> None:
     assert EventKind.GOAL_REACHED in [e.kind for o in outs for e in o.events]
     assert math.hypot(body.x - 2.0, body.y - 2.0) < 0.01
     p.order(20.0, "o2", 0, 20.0, 0.0, None, "op")
+    assert not p.waiting_for_way
     out = p.tick(20.0, body.pose, CLEAR)
     assert [(e.kind, e.reason) for e in out.events] == [(EventKind.WAITING, "waiting")]  # for a newer map
+    assert p.waiting_for_way  # the map is to look more often meanwhile (agent/node.py: Turn.waiting)
     out = p.tick(20.0 + p.config.no_path_wait_s, body.pose, CLEAR)
+    assert not p.waiting_for_way
     assert [(e.kind, e.reason) for e in out.events] == [(EventKind.GOAL_FAILED, "no_path")]
     # No map (None): straight to the goal, no path event, exactly as without a provider.
     p.order(27.0, "o3", 0, 4.0, -1.0, None, "op")

@@ -10,7 +10,9 @@ keeper decides:
 * **Which turns to map.** A turn seen from where the last mapped turn was seen adds nothing the
   map lacks, yet matching it costs milliseconds; so a turn is mapped only once the fused pose has
   moved ``min_move_m`` or turned ``min_turn_rad`` since the last mapped turn, or ``max_gap_s`` has
-  passed (a robot standing still still sees a door close), as Cartographer's motion filter does.
+  passed (a robot standing still still sees a door close), as Cartographer's motion filter does;
+  every ``MapperConfig.keyframe_period_waiting`` while the pilot waits for the way to clear
+  (``Turn.waiting``: what stood in the way is cleared from the map by the scans that see it gone).
   The mapper integrates keyframes at these same spacings, so the map loses nothing; a robot
   driving at 0.35 m/s maps three or four turns a second instead of ten.
 * **Planner renewal.** The first planner as soon as the map has cells; then a fresh one every
@@ -108,6 +110,12 @@ the speed), and the graph is solved at most once per (nodes / 500) s (1 s at 500
 ONBOARD_REDRAW_BATCH = 50
 """Keyframes drawn again per read of the map while a redraw is under way (the map is read every second
 or two on a robot): what a read costs stays bounded however long the robot has mapped."""
+ONBOARD_MISSING_RAY_M = 3.0
+"""How far a sector with no return (5 samples or more in a row, ``MapperConfig.missing_run``) clears
+on board (``MapperConfig.missing_ray``): the RPLIDAR reports nothing within its 12 m as 0. In an open
+hall the floor where another robot stood is seen through only by such beams; 3 m is where the
+ultrasonic guard and the planner's legs look, and less than Cartographer's 5 m
+(``missing_data_ray_length``), as a dark wall may return nothing over a few degrees."""
 
 
 def onboard_mapper_config(*, cone: bool = True, closures: bool = True) -> MapperConfig:
@@ -120,6 +128,8 @@ def onboard_mapper_config(*, cone: bool = True, closures: bool = True) -> Mapper
     sensor = SensorCone() if cone else None
     return MapperConfig(
         planner=PlannerConfig(unknown_is_blocked=False, sensor=sensor),
+        # The RPLIDAR reports "nothing within 12 m" as 0: a sector of those clears its first metres.
+        missing_ray=ONBOARD_MISSING_RAY_M,
         closer=ONBOARD_CLOSER if closures else None,
         redraw_batch=ONBOARD_REDRAW_BATCH,
     )
@@ -154,6 +164,9 @@ class Turn:
     since, not at the fused pose, and ``Update.odom_frame`` puts the robot on that map. The loop
     closer also gets it (its search window follows how far the map has left the odometry since the
     last closure: ``CloserConfig.odometry_gain``)."""
+    waiting: bool = False
+    """The pilot stands waiting for the way to clear (agent/route.py ``RoutePhase.WAITING``): the map
+    is to look, a turn mapped and integrated every ``MapperConfig.keyframe_period_waiting``."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -325,7 +338,7 @@ class MapKeeper:
             self._began = now
         # In its own frame (no UWB position: the turn carries its odometry) the map is its own reference.
         odom = turn.odometry if not self.in_site_frame else None
-        if not self._due(t, pose):
+        if not self._due(t, pose, turn.waiting):
             self.skipped += 1
             return Update(
                 restarted=restarted,
@@ -342,7 +355,9 @@ class MapKeeper:
             # The turn is sought where the map's last pose moved by the odometry puts it (at first the
             # odometry's frame is the map's), not at the fused pose (the odometry, drift and all).
             guess = odom if self._odom_frame is None else compose(self._odom_frame, odom)
-        result = self.mapper.add_scan(t, turn.distances_m, turn.angles_rad, guess, site=site, odometry=odom)
+        result = self.mapper.add_scan(
+            t, turn.distances_m, turn.angles_rad, guess, site=site, odometry=odom, waiting=turn.waiting
+        )
         moved = self.mapper.take_moved()
         if odom is not None and self.mapper.pose is not None:
             self._odom_frame = compose(self.mapper.pose, inverse_pose(odom))  # after the solves, if any
@@ -407,10 +422,11 @@ class MapKeeper:
                 self._submap_versions[i] = version
         return replace(pub, submaps=tuple(drawn), submap_poses=tuple(poses))
 
-    def _due(self, t: float, pose: tuple[float, float, float]) -> bool:
+    def _due(self, t: float, pose: tuple[float, float, float], waiting: bool = False) -> bool:
         if self._last is None:
             return True
         t0, x0, y0, th0 = self._last
         turned = abs(math.remainder(pose[2] - th0, math.tau))
         moved = math.hypot(pose[0] - x0, pose[1] - y0)
-        return moved >= self.min_move_m or turned >= self.min_turn_rad or t - t0 >= self.max_gap_s
+        gap = min(self.max_gap_s, self.config.keyframe_period_waiting) if waiting else self.max_gap_s
+        return moved >= self.min_move_m or turned >= self.min_turn_rad or t - t0 >= gap

@@ -9,7 +9,10 @@ points for matching, match against the map seeded by ``pose_guess`` (the fused p
 to the guess when the match is poor (score below ``min_score``, too few points, or no map yet). The
 scan is integrated into the grid when the robot has moved ``keyframe_distance`` / turned
 ``keyframe_angle`` since the last integrated scan (the matcher needs no new map between nearby
-scans, and ray updates are the costly part), or when ``keyframe_period`` seconds have passed.
+scans, and ray updates are the costly part), or when ``keyframe_period`` seconds have passed;
+``keyframe_period_waiting`` while the pilot stands waiting for the way to clear (``add_scan``'s
+``waiting``): a robot that saw another stand on its goal holds it as a wall until enough scans have
+seen through the place, and one a turn every 5 s takes 40 s to clear a cell hit at its clamp.
 
 ``add_scan_odometry(t, ranges, angles, odom_pose)`` is the same with an odometry pose (in its own
 frame) instead of a map-frame guess: the guess is the last matched pose moved by the odometry
@@ -49,6 +52,8 @@ class MapperConfig:
     matching: bool = True  # False: map at the guess (odometry / fused pose only)
     min_range: float = 0.15  # m
     max_range: float = 12.0  # m; readings at/over it only clear space
+    missing_ray: float = 0.0  # m: a sector with no return clears this far (0: off; scan.prepare)
+    missing_run: int = 5  # samples with no return in a row that make a sector (fewer: dropouts)
     segment_eps: float = 0.3  # m, absolute break distance
     segment_tau: float = 5.0  # break where a gap is tau times its neighbour
     min_segment_points: int = 3
@@ -58,6 +63,7 @@ class MapperConfig:
     keyframe_distance: float = 0.1  # m
     keyframe_angle: float = math.radians(5.0)
     keyframe_period: float = 5.0  # s
+    keyframe_period_waiting: float = 0.2  # s, while the pilot waits for the way to clear (``add_scan``)
     mount: Pose = (0.0, 0.0, 0.0)  # lidar on the robot: x, y, yaw
     refine_local: bool = True  # point-to-line refinement against the last keyframes (False: field only)
     local_keyframes: int = 5
@@ -118,6 +124,10 @@ class MapperConfig:
             raise ValueError("need 0 <= min_range < max_range")
         if self.segment_eps <= 0 or self.segment_tau <= 1.0:
             raise ValueError("need segment_eps > 0 and segment_tau > 1")
+        if not (self.missing_ray >= 0.0 and self.missing_run >= 1):
+            raise ValueError(f"need missing_ray >= 0 and missing_run >= 1, got {self.missing_ray}, {self.missing_run}")
+        if not (self.keyframe_period > 0.0 and self.keyframe_period_waiting > 0.0):
+            raise ValueError("need keyframe_period and keyframe_period_waiting > 0")
         if not 0.0 <= self.min_score <= 1.0:
             raise ValueError("min_score must be in [0, 1]")
         if self.odom_learn_scans < 0 or not (
@@ -292,6 +302,7 @@ class OnboardMapper:
         site: tuple[float, float, float] | None = None,
         odometry: Pose | None = None,
         refine_scale: float = 1.0,
+        waiting: bool = False,
     ) -> ScanResult:
         """One lidar turn (ranges m, angles rad CCW in the sensor frame) near ``pose_guess``; returns the pose.
 
@@ -300,7 +311,9 @@ class OnboardMapper:
         pose once UWB has placed the robot); with loop closure, a node made from this scan takes it
         as a prior, so the map is pulled into the site frame and stays there through closures.
         ``refine_scale``: the prior's sd in the point-to-line refinement is this share of it
-        (``add_scan_odometry``: what the odometry is worth, learned)."""
+        (``add_scan_odometry``: what the odometry is worth, learned). ``waiting``: the pilot stands
+        waiting for the way to clear; a standing robot's scans join the grid every
+        ``keyframe_period_waiting`` instead of ``keyframe_period``."""
         cfg = self.config
         self.scans += 1
         guess = (float(pose_guess[0]), float(pose_guess[1]), wrap(float(pose_guess[2])))
@@ -315,7 +328,7 @@ class OnboardMapper:
         ):
             self.rejected += 1
             raise ValueError(f"site must be (x, y, sd) finite with sd > 0, got {site!r}")
-        r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, cfg.max_range)
+        r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, cfg.max_range, cfg.missing_ray, cfg.missing_run)
         pts = scanprep.to_points(r[hit], a[hit])
         keep_hit = np.ones(len(pts), dtype=bool)
         labels = np.zeros(len(pts), dtype=np.int64)
@@ -352,7 +365,7 @@ class OnboardMapper:
             self.fallbacks += 1
 
         integrated = False
-        if r.size and self._is_keyframe(t, pose):
+        if r.size and self._is_keyframe(t, pose, waiting):
             # Drop the noise segments' endpoints from the map, but keep their beams' free space.
             full_hit = hit.copy()
             idx = np.flatnonzero(hit)
@@ -646,7 +659,7 @@ class OnboardMapper:
             or abs(wrap(pose[2] - p0[2])) >= cfg.local_spacing_angle
         )
 
-    def _is_keyframe(self, t: float, pose: Pose) -> bool:
+    def _is_keyframe(self, t: float, pose: Pose, waiting: bool = False) -> bool:
         if self._last_key is None:
             return True
         cfg = self.config
@@ -654,7 +667,7 @@ class OnboardMapper:
         return (
             math.hypot(pose[0] - p0[0], pose[1] - p0[1]) >= cfg.keyframe_distance
             or abs(wrap(pose[2] - p0[2])) >= cfg.keyframe_angle
-            or t - t0 >= cfg.keyframe_period
+            or t - t0 >= (cfg.keyframe_period_waiting if waiting else cfg.keyframe_period)
         )
 
     # -- outputs -------------------------------------------------------------------------------

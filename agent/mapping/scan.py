@@ -25,22 +25,51 @@ IntArray = npt.NDArray[np.int64]
 
 
 def prepare(
-    ranges: npt.ArrayLike, angles: npt.ArrayLike, min_range: float, max_range: float
+    ranges: npt.ArrayLike,
+    angles: npt.ArrayLike,
+    min_range: float,
+    max_range: float,
+    missing_ray: float = 0.0,
+    missing_run: int = 1,
 ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_]]:
     """Valid beams: (ranges, angles, hit). Drops NaN/inf/negative/zero and below ``min_range``.
 
     Readings at or beyond ``max_range`` are kept as *no-hit* beams (``hit`` False, range clipped to
     ``max_range``): they say the space in front is free but mark no obstacle. Angles are radians,
     counter-clockwise in the sensor frame; the order of the input is kept.
+
+    ``missing_ray`` > 0 (m): a sample with no return (0, as the RPLIDAR reports it, or +inf, as ROS
+    does: REP 117) in a run of at least ``missing_run`` of them in scan order is a no-hit beam that
+    long. Nothing in a whole sector within the sensor's range is open space, and says the near part
+    of it is free (Cartographer's ``missing_data_ray_length``): without it a robot in an open hall
+    never clears where another robot stood. A shorter run is a dropout (a dark spot on a wall) and
+    says nothing.
     """
     r = np.asarray(ranges, dtype=np.float64).ravel()
     a = np.asarray(angles, dtype=np.float64).ravel()
     if r.shape != a.shape:
         raise ValueError(f"ranges and angles differ in length: {r.size} vs {a.size}")
     ok = np.isfinite(r) & np.isfinite(a) & (r >= max(min_range, 1e-9))
-    r, a = r[ok], a[ok]
-    hit = r < max_range
+    missing = np.zeros(r.shape, dtype=bool)
+    if missing_ray > 0.0:
+        missing = _runs_of(((r == 0.0) | np.isposinf(r)) & np.isfinite(a), missing_run)
+        r = np.where(missing, min(missing_ray, max_range), r)
+        ok |= missing
+    r, a, missing = r[ok], a[ok], missing[ok]
+    hit = (r < max_range) & ~missing
     return np.minimum(r, max_range), a, hit
+
+
+def _runs_of(mask: npt.NDArray[np.bool_], n: int) -> npt.NDArray[np.bool_]:
+    """``mask`` where it is True in a run of at least ``n`` consecutive elements."""
+    if n <= 1 or not mask.any():
+        return mask
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
+    out = np.zeros_like(mask)
+    for start, end in zip(edges[::2], edges[1::2], strict=True):
+        if end - start >= n:
+            out[start:end] = True
+    return out
 
 
 def to_points(ranges: FloatArray, angles: FloatArray) -> FloatArray:
