@@ -186,11 +186,16 @@ def test_a_link_that_delivers_late_is_degraded_and_raises_an_alarm(redundant_pai
         op.send(Order, "r1", **goal(sent))
         sent += 1
         time.sleep(0.03)
-    wait_until(lambda: {h.link: h for h in op.health("r1")}[FALLBACK].degraded != "", message="MQTT degraded")
+    # Degraded (RTT p95 over the threshold; on a loaded machine the held acks may pass the ack timeout
+    # too, and then it is the loss that says so first) and still healthy: a loaded CI machine once
+    # held the robot's states past the 0.35 s window at the moment the test looked (age 0.52 s).
+    wait_until(
+        lambda: (
+            (h := {h.link: h for h in op.health("r1")}[FALLBACK]).healthy and h.degraded.startswith(("rtt p95", "loss"))
+        ),
+        message="MQTT degraded, and healthy",
+    )
     health = {h.link: h for h in op.health("r1")}
-    # (RTT p95 over the threshold; on a loaded machine the held acks may pass the ack timeout too,
-    # and then it is the loss that says so first)
-    assert health[FALLBACK].healthy and health[FALLBACK].degraded.startswith(("rtt p95", "loss"))
     assert not health[PRIMARY].degraded
     assert health[PRIMARY].first_pct is not None and health[PRIMARY].first_pct > 50.0
     keeper.frame(1.0, ["r1"], op.link_states)
