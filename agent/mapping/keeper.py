@@ -110,12 +110,11 @@ the speed), and the graph is solved at most once per (nodes / 500) s (1 s at 500
 ONBOARD_REDRAW_BATCH = 50
 """Keyframes drawn again per read of the map while a redraw is under way (the map is read every second
 or two on a robot): what a read costs stays bounded however long the robot has mapped."""
-ONBOARD_MISSING_RAY_M = 3.0
+ONBOARD_MISSING_RAY_M = 5.0
 """How far a sector with no return (5 samples or more in a row, ``MapperConfig.missing_run``) clears
 on board (``MapperConfig.missing_ray``): the RPLIDAR reports nothing within its 12 m as 0. In an open
-hall the floor where another robot stood is seen through only by such beams; 3 m is where the
-ultrasonic guard and the planner's legs look, and less than Cartographer's 5 m
-(``missing_data_ray_length``), as a dark wall may return nothing over a few degrees."""
+hall the floor where another robot stood is seen through only by such beams. Cartographer's
+``missing_data_ray_length``; measured against 0, 2 and 3 m on the hall's patrols (docs/mapping.md)."""
 
 
 def onboard_mapper_config(*, cone: bool = True, closures: bool = True) -> MapperConfig:
