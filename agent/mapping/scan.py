@@ -53,7 +53,7 @@ def prepare(
     missing = np.zeros(r.shape, dtype=bool)
     if missing_ray > 0.0:
         missing = _runs_of(((r == 0.0) | np.isposinf(r)) & np.isfinite(a), missing_run)
-        r = np.where(missing, min(missing_ray, max_range), r)
+        r = np.where(missing, missing_ray, r)  # clipped to max_range below, as any reading
         ok |= missing
     r, a, missing = r[ok], a[ok], missing[ok]
     hit = (r < max_range) & ~missing
