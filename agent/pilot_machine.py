@@ -63,7 +63,7 @@ class EventKind(StrEnum):
     FAULT = "FAULT"
     PATH_PLANNED = "PATH_PLANNED"  # a go-to follows a planned path (``waypoints``: how many)
     REPLANNED = "REPLANNED"  # the way was barred (or no progress): a new path from here
-    WAITING = "WAITING"  # a go-to found no path: it stands until a newer map has one (``no_path_wait_s``)
+    WAITING = "WAITING"  # a go-to found no path: it stands (a far goal: nearer it first) until a newer map has one (``no_path_wait_s``)
 
 
 class CommandStatus(StrEnum):

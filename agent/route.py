@@ -23,6 +23,9 @@ Phases (``RoutePhase``)::
                                --re-plans used up / no way around--> [FAILING_BACKOFF -->] RETREATING
     UNPLANNED --no path--> WAITING (standing) --a newer map--> UNPLANNED (asks again)
               --``no_path_wait_s`` with none--> end (failed: no_path)
+    UNPLANNED --no path, the goal farther than ``approach_m``--> APPROACHING (once a go-to: to
+              within ``approach_m`` of the goal) --a newer map with a path--> FOLLOWING
+              --arrived, barred or no progress--> WAITING (the wait counts from there)
     RETREATING --back where it came from, or refused--> end (failed)
     STRAIGHT / FOLLOWING --arrived--> end (reached)
 """
@@ -83,6 +86,7 @@ class RouteConfig:
     stop_distance_m: float = 0.4  # the guard's
     max_map_replans: int = 10
     no_path_wait_s: float = 6.0
+    approach_m: float = 2.0
 
 
 MAX_DEVIATION_M = 1.0
@@ -90,6 +94,10 @@ MAX_DEVIATION_M = 1.0
 DEVIATION_STEP_M = 0.05
 """Places within a destination's allowed deviation are tried this far apart, nearest first."""
 TRAJECTORY_JOIN_M = 0.3
+APPROACH_PLACES = 16
+"""Places on the ring about a goal the route tries to approach it (``_approach``)."""
+APPROACH_MIN_GAIN_M = 0.5
+"""A goal less than this beyond ``approach_m`` is waited for where the robot stands."""
 """A go-to follows its order's trajectory only from within this of it (about the robot's size; a
 robot resumed elsewhere, or that stopped short of the node before, plans its own way)."""
 
@@ -169,6 +177,7 @@ class RoutePhase(StrEnum):
     FAILING_BACKOFF = "failing_backoff"  # failed facing an obstacle: straight back first, then retreat
     RETREATING = "retreating"  # failed: back along the way it came, then the end (failed)
     WAITING = "waiting"  # no path yet: standing, until a newer map has one or ``no_path_wait_s`` passes
+    APPROACHING = "approaching"  # no path yet to a far goal: going nearer it to look, then WAITING
 
     @property
     def replannable(self) -> bool:
@@ -223,6 +232,7 @@ class Route:
     map_replans: int = 0  # re-plans because a newer map showed the leg barred (not in ``replans``)
     waiting_since: float | None = None  # no path since (the first plan, or a map re-plan, found none)
     _waiting_on_marks: bool = False  # waiting because only where it was barred (``blocked``) bars the way
+    _approached: bool = False  # the one approach a go-to makes has been made (``APPROACHING``)
 
     # -- what the pilot calls --------------------------------------------------------------------
 
@@ -260,6 +270,8 @@ class Route:
                 return _STILL
             else:
                 self.phase = RoutePhase.UNPLANNED  # a newer map (or none): ask again
+        if self.phase is RoutePhase.APPROACHING:
+            return self._approach_step(now, pose, provider)
         if self.phase is RoutePhase.UNPLANNED and not self._plan(now, pose, provider):
             return _STILL
         if self.phase is RoutePhase.FOLLOWING and provider is not None and provider is not self._planned_with:
@@ -337,6 +349,9 @@ class Route:
             return
         reason = refusal.reason
         barred = reason in (RefusalReason.OBSTACLE_IN_PATH, RefusalReason.OBSTACLE_AHEAD, RefusalReason.BUMP)
+        if self.phase is RoutePhase.APPROACHING and barred:
+            self._stand(now)  # as near as it gets: it looks from here
+            return
         if self.phase.replannable and barred:
             # Plan around it: at once when the drive start is refused or the bumper is pressed (the
             # robot touches what it ran into: only backing out is allowed, so back out first), after
@@ -485,7 +500,7 @@ class Route:
             # refusals): backing off and trying around, as ``_barred`` does.
             if why is None or (why == "wall_on_map" and self.config.no_path_wait_s > 0.0):
                 on = "this map" if why is None or self._waiting_on_marks else "the newer map"
-                self._wait(now, f"no path to ({d.x:.2f}, {d.y:.2f}) on {on}")
+                self._wait(now, f"no path to ({d.x:.2f}, {d.y:.2f}) on {on}", pose)
             else:
                 self._fail(now, pose, "blocked", f"blocked ({why}) and no way around")
             return False
@@ -511,18 +526,83 @@ class Route:
             self.notes.append(RouteNote(True, text, why, n))
         return True
 
-    def _wait(self, now: float, text: str) -> None:
+    def _wait(self, now: float, text: str, pose: Pose | None = None) -> None:
         """Stand (``WAITING``) for a newer map with a path, at most ``no_path_wait_s`` since the wait
-        began (0: the route fails at once, ``no_path``)."""
+        began (0: the route fails at once, ``no_path``). With ``pose``, a goal farther than
+        ``approach_m`` is first approached (``_approach``)."""
         d = self.dest
+        c = self.config
         if self.waiting_since is None:
+            wait = f"waiting up to {c.no_path_wait_s:g} s for the way to clear"
+            if c.no_path_wait_s > 0.0 and pose is not None and self._approach(now, pose):
+                wait = f"going within {c.approach_m:g} m of it to look, then {wait}"
+                self.notes.append(RouteNote(False, f"{d.label}: {text}: {wait}", "waiting", len(self.goto.waypoints)))
+                return
             self.waiting_since = now
-            wait = f"waiting up to {self.config.no_path_wait_s:g} s for the way to clear"
             self.notes.append(RouteNote(False, f"{d.label}: {text}: {wait}", "waiting", 0))
-        if self.config.no_path_wait_s <= 0.0:
+        if c.no_path_wait_s <= 0.0:
             self._finish(False, "no_path", f"no path to ({d.x:.2f}, {d.y:.2f})")
         else:
             self.phase = RoutePhase.WAITING
+
+    def _approach(self, now: float, pose: Pose) -> bool:
+        """Start going to within ``approach_m`` of a goal the map has no path to (once per go-to):
+        the map of a far place may be stale. What stood there and went (another robot on the goal)
+        is cleared only by beams through the place since, and from far off few pass near it, none
+        at all across an open hall where nothing returns them (a no-return sector clears only 5 m:
+        agent/mapping/scan.py). From nearer the robot looks again; a newer map with a path ends
+        the approach. Places on a ring ``approach_m`` about the goal are tried nearest the robot
+        first; False: the goal is near already, or none of them has a path either."""
+        c, d = self.config, self.dest
+        provider = self._planned_with
+        if self._approached or provider is None or c.approach_m <= 0.0:
+            return False
+        if math.hypot(d.x - pose[0], d.y - pose[1]) <= c.approach_m + APPROACH_MIN_GAIN_M:
+            return False
+        self._approached = True
+        toward = math.atan2(pose[1] - d.y, pose[0] - d.x)  # the first place: on the line to the robot
+        k = [0, *(s * j for j in range(1, APPROACH_PLACES // 2 + 1) for s in (1, -1))][:APPROACH_PLACES]
+        angles = [toward + 2.0 * math.pi * j / APPROACH_PLACES for j in k]
+        ring = [(d.x + c.approach_m * math.cos(a), d.y + c.approach_m * math.sin(a)) for a in angles]
+        for q in ring:
+            try:
+                path = provider((pose[0], pose[1]), q)
+            except Exception:
+                continue
+            if not path:
+                continue
+            pts = [(float(px), float(py)) for px, py in path]
+            while pts and math.hypot(pts[0][0] - pose[0], pts[0][1] - pose[1]) < 0.05:
+                pts.pop(0)
+            if not pts:
+                return False  # already there
+            self.goto.start(pts, None)
+            self.phase = RoutePhase.APPROACHING
+            self._progress = _Progress(since=now)
+            self.held_since = None
+            return True
+        return False
+
+    def _approach_step(self, now: float, pose: Pose, provider: PathProvider | None) -> Drive:
+        """One tick of the approach: a newer map with a path to the goal takes the route there;
+        arrived, or no nearer for ``no_progress_s``: stand and wait from here."""
+        if provider is not self._planned_with:
+            self._planned_with, self._planned_sense = provider, self._sense
+            path = None if provider is None else self._ask(provider, pose, tuple(self.blocked))
+            if path is None or (not isinstance(path, str) and len(path) > 0):
+                self.waiting_since = None
+                self._follow(now, pose, path, None)  # driven from the next tick
+                return _STILL
+        cmd = self.goto.step(now, pose)
+        if cmd.phase is GoToPhase.DONE or self._stalled(now, pose, cmd.waypoint_index):
+            self._stand(now)
+            return _STILL
+        return Drive(cmd.v, cmd.omega, cmd.drive_distance_m)
+
+    def _stand(self, now: float) -> None:
+        """The approach ends where the robot stands: the wait for a newer map counts from now."""
+        self.phase = RoutePhase.WAITING
+        self.waiting_since = now
 
     def _replan(self, now: float, pose: Pose, provider: PathProvider | None, why: str, *, counted: bool = True) -> bool:
         """Plan again from here. ``counted``: a re-plan because the way was barred (at most

@@ -64,8 +64,9 @@ def test_a_provider_without_a_map_means_straight_and_an_empty_path_fails() -> No
     assert r.end is None and r.phase is RoutePhase.WAITING  # the way may clear: a newer map may have one
     [note] = r.notes
     assert note.reason == "waiting" and "no path to (4.00, 0.00)" in note.text
+    asked = len(provider.calls)  # the goal, and places nearer it to approach (none has a path either)
     d = r.step(5.9, (0.0, 0.0, 0.0), provider)  # the same map: not asked again
-    assert (d.v, d.omega) == (0.0, 0.0) and r.end is None and len(provider.calls) == 1
+    assert (d.v, d.omega) == (0.0, 0.0) and r.end is None and len(provider.calls) == asked
     r.step(6.0, (0.0, 0.0, 0.0), provider)
     assert r.end is not None and not r.end.reached and r.end.reason == "no_path" and "(4.00, 0.00)" in r.end.text
     assert "waited 6 s" in r.end.text
@@ -93,6 +94,102 @@ def test_no_path_waits_for_a_newer_map_and_goes_when_it_has_one() -> None:
         body.step(d.v, d.omega, 0.02)
         t += 0.02
     assert r.end is not None and r.end.reached
+
+
+class GoalBarred(Provider):
+    """A map on which the goal itself is barred (another robot drawn standing on it) and every other
+    place has a straight path; ``clear``: the goal too (a newer map that saw the place empty)."""
+
+    def __init__(self, goal: Point = (8.0, 0.0), clear: bool = False) -> None:
+        super().__init__([])
+        self.goal, self.clear = goal, clear
+
+    def __call__(self, start: Point, goal: Point, /, blocked: Sequence[Point] = ()) -> Sequence[Point] | None:
+        self.calls.append((start, goal, tuple(blocked)))
+        return [goal] if self.clear or math.dist(goal, self.goal) > 0.5 else []
+
+
+FAR = Destination("o1", 0, 8.0, 0.0, None, "op")
+
+
+def drive(r: Route, body: Unicycle, t: float, provider: Provider, until: float, phase: RoutePhase) -> float:
+    """Step the route on ``provider`` while it stays in ``phase`` (up to ``until``); the time reached."""
+    while r.phase is phase and r.end is None and t < until:
+        d = r.step(t, body.pose, provider)
+        body.step(d.v, d.omega, 0.02)
+        t += 0.02
+    return t
+
+
+def test_no_path_to_a_far_goal_goes_nearer_to_look_then_waits_from_there() -> None:
+    """The map of a place 8 m off shows it barred (another robot stood there, and from afar no beam
+    has passed through it since it went): the robot first goes to within ``approach_m`` of it, nearest
+    place on the ring first, then stands and waits ``no_path_wait_s`` from where it arrived. A newer
+    map still barred there changes nothing: the approach is made once."""
+    r, body = Route(FAR, GoToController(), RouteConfig()), Unicycle()
+    barred = GoalBarred()
+    r.step(0.0, body.pose, barred)
+    assert r.phase is RoutePhase.APPROACHING and r.end is None and r.waiting_since is None
+    [note] = r.notes
+    assert note.reason == "waiting" and "going within 2 m of it to look" in note.text
+    [(x, y)] = r.goto.waypoints  # the ring's place nearest the robot
+    assert (x, y) == pytest.approx((6.0, 0.0))
+    t = drive(r, body, 0.0, barred, 30.0, RoutePhase.APPROACHING)
+    assert r.phase is RoutePhase.WAITING and r.end is None and r.waiting_since == pytest.approx(t, abs=0.03)
+    assert math.hypot(body.x - 6.0, body.y) < 0.1
+    arrived = t
+    still = GoalBarred()  # a newer map, the goal still barred: asked once, no second approach
+    assert r.step(t, body.pose, still).v == 0.0 and r.phase is RoutePhase.WAITING and len(still.calls) == 1
+    r.step(arrived + 5.9, body.pose, still)
+    assert r.end is None
+    r.step(arrived + 6.0, body.pose, still)
+    assert r.end is not None and r.end.reason == "no_path" and "waited 6 s" in r.end.text
+
+
+def test_a_newer_map_with_a_path_ends_the_approach_and_the_goal_is_reached() -> None:
+    """Half way there the robot's map shows the goal clear: it goes on to the goal itself."""
+    r, body = Route(FAR, GoToController(), RouteConfig()), Unicycle()
+    barred = GoalBarred()
+    r.step(0.0, body.pose, barred)
+    t = 0.0
+    while body.x < 3.0:
+        d = r.step(t, body.pose, barred)
+        body.step(d.v, d.omega, 0.02)
+        t += 0.02
+    assert r.phase is RoutePhase.APPROACHING
+    r.notes.clear()
+    clear = GoalBarred(clear=True)
+    assert r.step(t, body.pose, clear).v == 0.0
+    assert r.phase is RoutePhase.FOLLOWING and r.goto.waypoints == [(8.0, 0.0)]
+    assert [n.reason for n in r.notes] == ["planned"]
+    drive(r, body, t, clear, 60.0, RoutePhase.FOLLOWING)
+    assert r.end is not None and r.end.reached and math.hypot(body.x - 8.0, body.y) < 0.05
+
+
+def test_barred_on_the_approach_it_waits_where_it_stands() -> None:
+    """The guard bars the approach (something in the way): no marks, no re-plans, no failure; the
+    robot looks from where it stands, and the wait counts from then."""
+    r, body = Route(FAR, GoToController(), RouteConfig()), Unicycle()
+    barred = GoalBarred()
+    r.step(0.0, body.pose, barred)
+    r.refused(1.0, body.pose, IN_PATH, barred)
+    assert r.phase is RoutePhase.WAITING and r.waiting_since == 1.0 and r.end is None
+    assert r.blocked == [] and r.replans == 0
+    r.step(6.9, body.pose, barred)
+    assert r.end is None
+    r.step(7.0, body.pose, barred)
+    assert r.end is not None and r.end.reason == "no_path"
+
+
+def test_a_near_goal_or_no_approach_distance_waits_where_it_stands() -> None:
+    for dest, config in (
+        (Destination("o1", 0, 2.4, 0.0, None, "op"), RouteConfig()),
+        (FAR, RouteConfig(approach_m=0.0)),
+    ):
+        r = Route(dest, GoToController(), config)
+        provider = GoalBarred((dest.x, dest.y))
+        r.step(0.0, (0.0, 0.0, 0.0), provider)
+        assert r.phase is RoutePhase.WAITING and r.waiting_since == 0.0 and len(provider.calls) == 1
 
 
 class WallAt:
