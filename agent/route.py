@@ -23,8 +23,9 @@ Phases (``RoutePhase``)::
                                --re-plans used up / no way around--> [FAILING_BACKOFF -->] RETREATING
     UNPLANNED --no path--> WAITING (standing) --a newer map--> UNPLANNED (asks again)
               --``no_path_wait_s`` with none--> end (failed: no_path)
-    UNPLANNED --no path, the goal farther than ``approach_m``--> APPROACHING (once a go-to: to
-              within ``approach_m`` of the goal) --a newer map with a path--> FOLLOWING
+    UNPLANNED --no path, the goal farther than ``approach_m`` and barred only by something the size
+              of a robot--> APPROACHING (once a go-to: to within ``approach_m`` of the goal)
+              --a newer map with a path--> FOLLOWING
               --arrived, barred or no progress--> WAITING (the wait counts from there)
     RETREATING --back where it came from, or refused--> end (failed)
     STRAIGHT / FOLLOWING --arrived--> end (reached)
@@ -46,6 +47,7 @@ from fleetlink.shared.geometry import point_segment_distance
 __all__ = [
     "Destination",
     "Drive",
+    "MovableCheck",
     "PathProvider",
     "RoomBehind",
     "Route",
@@ -109,6 +111,14 @@ class WallCheck(Protocol):
     metres not checked (what the robot already stands beside)."""
 
     def leg_meets_wall(self, a: Point, b: Point, skip_m: float = 0.1, /) -> bool: ...
+
+
+@runtime_checkable
+class MovableCheck(Protocol):
+    """A map sense that can say whether a goal is barred only by something the size of a robot or a
+    person, which may have moved since the map drew it (``PathPlanner.barred_by_movable``)."""
+
+    def barred_by_movable(self, p: Point, /) -> bool: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -546,18 +556,22 @@ class Route:
             self.phase = RoutePhase.WAITING
 
     def _approach(self, now: float, pose: Pose) -> bool:
-        """Start going to within ``approach_m`` of a goal the map has no path to (once per go-to):
-        the map of a far place may be stale. What stood there and went (another robot on the goal)
-        is cleared only by beams through the place since, and from far off few pass near it, none
-        at all across an open hall where nothing returns them (a no-return sector clears only 5 m:
-        agent/mapping/scan.py). From nearer the robot looks again; a newer map with a path ends
-        the approach. Places on a ring ``approach_m`` about the goal are tried nearest the robot
-        first; False: the goal is near already, or none of them has a path either."""
+        """Start going to within ``approach_m`` of a goal the map has no path to, barred only by
+        something the size of a robot or a person (``MovableCheck``; once per go-to): the map of a
+        far place may be stale. What stood there and went (another robot on the goal) is cleared
+        only by beams through the place since, and from far off few pass near it, none at all
+        across an open hall where nothing returns them (a no-return sector clears only 5 m:
+        agent/mapping/scan.py). From nearer the robot looks again; a newer map with a path ends the
+        approach. A goal in a wall is not driven at. Places on a ring ``approach_m`` about the goal
+        are tried nearest the robot first; False: no approach (the goal is near already, barred by
+        a wall, or none of the places has a path either)."""
         c, d = self.config, self.dest
-        provider = self._planned_with
+        provider, sense = self._planned_with, self._planned_sense
         if self._approached or provider is None or c.approach_m <= 0.0:
             return False
         if math.hypot(d.x - pose[0], d.y - pose[1]) <= c.approach_m + APPROACH_MIN_GAIN_M:
+            return False
+        if not isinstance(sense, MovableCheck) or not sense.barred_by_movable((d.x, d.y)):
             return False
         self._approached = True
         toward = math.atan2(pose[1] - d.y, pose[0] - d.x)  # the first place: on the line to the robot

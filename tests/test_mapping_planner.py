@@ -210,3 +210,27 @@ def test_leg_meets_wall_sees_known_walls_on_the_leg_only() -> None:
     assert not p.leg_meets_wall((5.2, 2.5), (6.0, 2.5))  # the wall beside the start, behind it
     assert not p.leg_meets_wall((1.0, 2.5), (1.0, 2.5))  # no leg
     assert not p.leg_meets_wall((1.0, float("nan")), (8.0, 2.5))
+
+
+def test_barred_by_movable_tells_a_robot_drawn_on_the_goal_from_a_wall() -> None:
+    """A goal with a robot-sized blob of occupied cells on it (another robot drawn standing there)
+    is barred by something that may move; one in or beside a wall, by a wall; a free goal is not
+    barred at all; a blob bigger than a person, or one joined to a wall, is not movable."""
+    g = _room_with_gap()
+    g[20:26, 150:156] = 100  # a robot, 0.3 m across, standing at (7.65, 1.15)
+    g[60:80, 30:32] = 100  # a crate 1 m long at x 1.5-1.6, y 3-4
+    g[30:35, 96:100] = 100  # a blob touching the wall at x = 5 m
+    planner = PathPlanner(g, RES, (0.0, 0.0), PlannerConfig())
+    robot = (7.65, 1.15)
+    assert planner((1.0, 1.0), robot) is None  # no path: the goal is barred
+    assert planner.barred_by_movable(robot)
+    assert planner.barred_by_movable((7.65 + 0.3, 1.15))  # beside it, within the margin
+    assert not planner.barred_by_movable((5.02, 2.5))  # in the dividing wall
+    assert not planner.barred_by_movable((1.55, 3.5))  # on the crate
+    assert not planner.barred_by_movable((4.85, 1.6))  # on the blob that joins the wall
+    assert not planner.barred_by_movable((7.0, 3.0))  # free: not barred by anything
+    assert not planner.barred_by_movable((math.nan, 1.0))
+    g2 = g.copy()
+    g2[:, -1] = 0
+    g2[20:26, 194:200] = 100  # a robot at the map's edge: what lies beyond is not known
+    assert not PathPlanner(g2, RES, (0.0, 0.0), PlannerConfig()).barred_by_movable((9.85, 1.15))

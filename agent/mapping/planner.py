@@ -52,8 +52,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
+from scipy import ndimage
 
-__all__ = ["MOVES8", "PathPlanner", "PlannerConfig", "SensorCone"]
+__all__ = ["MOVABLE_SIZE_M", "MOVES8", "PathPlanner", "PlannerConfig", "SensorCone"]
 
 Point = tuple[float, float]
 _SQRT2 = math.sqrt(2.0)
@@ -427,6 +428,38 @@ class PathPlanner:
         dy = np.asarray(self.origin[1] + (rows + r0 + 0.5) * res - p[1], dtype=np.float64)
         return dx, dy
 
+    def barred_by_movable(self, p: Point) -> bool:
+        """``p`` (a goal) is barred by known walls within the inflation of it, and every one of them
+        lies in a piece of occupied cells no bigger than ``MOVABLE_SIZE_M`` (8-connected, looked for
+        within that of them): the size of a robot or a person, which may have moved since the map
+        drew it, not a wall of the building, which runs on. The route goes nearer such a goal to
+        look again before it gives up on it (agent/route.py ``_approach``)."""
+        if not (math.isfinite(p[0]) and math.isfinite(p[1])):
+            return False
+        res, reach = self.echo_resolution, self.config.inflation + self.echo_resolution
+        span = reach + MOVABLE_SIZE_M + res
+        h, w = self.wall_cells.shape
+        c0, c1 = math.floor((p[0] - span - self.origin[0]) / res), math.floor((p[0] + span - self.origin[0]) / res) + 1
+        r0, r1 = math.floor((p[1] - span - self.origin[1]) / res), math.floor((p[1] + span - self.origin[1]) / res) + 1
+        if r0 < 0 or c0 < 0 or r1 > h or c1 > w:
+            return False  # near the map's edge (or off it): what lies beyond is not known
+        window = self.wall_cells[r0:r1, c0:c1]
+        ys = self.origin[1] + (np.arange(r0, r1) + 0.5) * res - p[1]
+        xs = self.origin[0] + (np.arange(c0, c1) + 0.5) * res - p[0]
+        near = window & (np.hypot(xs[None, :], ys[:, None]) <= reach)
+        if not near.any():
+            return False  # not barred by walls near it (unknown floor, or no way there)
+        labels, _ = ndimage.label(window, structure=np.ones((3, 3), dtype=bool))
+        edge = np.zeros_like(window)
+        edge[[0, -1], :] = edge[:, [0, -1]] = True
+        for k in np.unique(labels[near]):
+            rows, cols = np.nonzero(labels == k)
+            if edge[rows, cols].any():
+                return False  # runs on beyond the window: a wall
+            if (max(np.ptp(rows), np.ptp(cols)) + 1) * res > MOVABLE_SIZE_M:
+                return False
+        return True
+
     def _body_fits(self, p: Point, margin: float | None = None) -> bool:
         """The robot's body, centred at ``p``, stays ``margin`` (``fit_margin``) clear of every
         blocked map cell."""
@@ -651,6 +684,9 @@ class PathPlanner:
         return bool(free[rows, cols].all() and (dist[rows, cols] >= need).all())
 
 
+MOVABLE_SIZE_M = 0.6
+"""A piece of occupied cells no longer than this (a robot here is 0.34 m across, a person about
+0.5 m) may be something that moves: ``barred_by_movable``."""
 _MARK_ECHO_M = 0.12  # a marked point (10 cm behind the echo the pilot met) echoes as a disc this size
 
 
