@@ -52,7 +52,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from scipy import ndimage
 
 __all__ = ["MOVABLE_SIZE_M", "MOVES8", "PathPlanner", "PlannerConfig", "SensorCone"]
 
@@ -449,14 +448,27 @@ class PathPlanner:
         near = window & (np.hypot(xs[None, :], ys[:, None]) <= reach)
         if not near.any():
             return False  # not barred by walls near it (unknown floor, or no way there)
-        labels, _ = ndimage.label(window, structure=np.ones((3, 3), dtype=bool))
-        edge = np.zeros_like(window)
-        edge[[0, -1], :] = edge[:, [0, -1]] = True
-        for k in np.unique(labels[near]):
-            rows, cols = np.nonzero(labels == k)
-            if edge[rows, cols].any():
+        occupied = window.tolist()
+        wh, ww = window.shape
+        seen: set[tuple[int, int]] = set()
+        for seed in zip(*np.nonzero(near), strict=True):
+            first = (int(seed[0]), int(seed[1]))
+            if first in seen:
+                continue
+            seen.add(first)
+            piece, todo = [first], [first]
+            while todo:  # the 8-connected piece of occupied cells it lies in
+                r, c = todo.pop()
+                for dr, dc, _ in MOVES8:
+                    q = (r + dr, c + dc)
+                    if 0 <= q[0] < wh and 0 <= q[1] < ww and occupied[q[0]][q[1]] and q not in seen:
+                        seen.add(q)
+                        piece.append(q)
+                        todo.append(q)
+            rows, cols = [q[0] for q in piece], [q[1] for q in piece]
+            if min(rows) == 0 or min(cols) == 0 or max(rows) == wh - 1 or max(cols) == ww - 1:
                 return False  # runs on beyond the window: a wall
-            if (max(np.ptp(rows), np.ptp(cols)) + 1) * res > MOVABLE_SIZE_M:
+            if (max(max(rows) - min(rows), max(cols) - min(cols)) + 1) * res > MOVABLE_SIZE_M:
                 return False
         return True
 
