@@ -236,7 +236,11 @@ def test_the_two_router_mesh_carries_light_telemetry_and_commands(mesh: RouterMe
                 return [m for m in heard if isinstance(m, Ack) and m.commandHeaderId == sent.header.headerId]
 
         assert wait_for(lambda: bool(acked()))
-        assert [(a.result, a.link, a.commandSender) for a in acked()] == [(AckResult.ACCEPTED, LinkName.ZENOH, "op-a")]
+        first, *copies = [(a.result, a.link, a.commandSender) for a in acked()]
+        assert first == (AckResult.ACCEPTED, LinkName.ZENOH, "op-a")
+        # An ack later than the link's ack timeout (0.25 s, a loaded machine) has the command sent
+        # again: that copy is acked as a duplicate, never run twice.
+        assert all(c == (AckResult.DUPLICATE, LinkName.ZENOH, "op-a") for c in copies), copies
         assert wait_for(
             lambda: any(isinstance(m, Pose) and m.header.robot == "L0003" and m.x > x0 + 0.1 for m in list(heard))
         )
@@ -312,7 +316,12 @@ def test_a_full_agent_and_light_robots_on_router_a_are_driven_from_router_b(mesh
 
         assert wait_for(drive, 20.0)
         agent_acks = [m for m in list(heard) if isinstance(m, Ack) and m.header.robot == "uvc-1"]
-        assert len(agent_acks) > acks_before and all(a.result is AckResult.ACCEPTED for a in agent_acks)
+        assert len(agent_acks) > acks_before
+        # Re-sent copies (an ack later than the link's 0.25 s timeout, on a loaded machine) are acked
+        # as duplicates; nothing is refused.
+        results = [(a.result, a.reason) for a in agent_acks]
+        assert all(r in (AckResult.ACCEPTED, AckResult.DUPLICATE) for r, _ in results), results
+        assert any(r is AckResult.ACCEPTED for r, _ in results)
     finally:
         link.close()
         if light is not None:

@@ -122,7 +122,11 @@ def _drive_light_robots(link: LossyLink, router: ZenohRouter, stack: contextlib.
             return [m for m in heard if isinstance(m, Ack) and m.commandHeaderId == sent.header.headerId]
 
     wait_until(lambda: bool(acks()), 10.0, message="the teleop acked through the loss")
-    assert [(a.result, a.link) for a in acks()] == [(AckResult.ACCEPTED, LinkName.ZENOH)]
+    first, *copies = [(a.result, a.link) for a in acks()]
+    assert first == (AckResult.ACCEPTED, LinkName.ZENOH)
+    # TCP recovers a lost segment in 0.2 s or more: an ack that late has the command sent again (the
+    # link's 0.25 s ack timeout), and that copy is acked as a duplicate, never run twice.
+    assert all(c == (AckResult.DUPLICATE, LinkName.ZENOH) for c in copies), copies
 
     def moved() -> bool:
         with lock:
