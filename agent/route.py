@@ -96,8 +96,6 @@ MAX_DEVIATION_M = 1.0
 DEVIATION_STEP_M = 0.05
 """Places within a destination's allowed deviation are tried this far apart, nearest first."""
 TRAJECTORY_JOIN_M = 0.3
-APPROACH_PLACES = 16
-"""Places on the ring about a goal the route tries to approach it (``_approach``)."""
 APPROACH_MIN_GAIN_M = 0.5
 """A goal less than this beyond ``approach_m`` is waited for where the robot stands."""
 """A go-to follows its order's trajectory only from within this of it (about the robot's size; a
@@ -116,9 +114,12 @@ class WallCheck(Protocol):
 @runtime_checkable
 class MovableCheck(Protocol):
     """A map sense that can say whether a goal is barred only by something the size of a robot or a
-    person, which may have moved since the map drew it (``PathPlanner.barred_by_movable``)."""
+    person, which may have moved since the map drew it (``PathPlanner.barred_by_movable``), and
+    where near it the robot can go to look (``PathPlanner.place_near``)."""
 
     def barred_by_movable(self, p: Point, /) -> bool: ...
+
+    def place_near(self, start: Point, goal: Point, radius: float, /) -> Point | None: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -562,9 +563,9 @@ class Route:
         only by beams through the place since, and from far off few pass near it, none at all
         across an open hall where nothing returns them (a no-return sector clears only 5 m:
         agent/mapping/scan.py). From nearer the robot looks again; a newer map with a path ends the
-        approach. A goal in a wall is not driven at. Places on a ring ``approach_m`` about the goal
-        are tried nearest the robot first; False: no approach (the goal is near already, barred by
-        a wall, or none of the places has a path either)."""
+        approach. A goal in a wall is not driven at. The robot goes to the place on a ring
+        ``approach_m`` about the goal nearest it that it can reach (``MovableCheck.place_near``);
+        False: no approach (the goal is near already, barred by a wall, or no such place)."""
         c, d = self.config, self.dest
         provider, sense = self._planned_with, self._planned_sense
         if self._approached or provider is None or c.approach_m <= 0.0:
@@ -574,28 +575,24 @@ class Route:
         if not isinstance(sense, MovableCheck) or not sense.barred_by_movable((d.x, d.y)):
             return False
         self._approached = True
-        toward = math.atan2(pose[1] - d.y, pose[0] - d.x)  # the first place: on the line to the robot
-        k = [0, *(s * j for j in range(1, APPROACH_PLACES // 2 + 1) for s in (1, -1))][:APPROACH_PLACES]
-        angles = [toward + 2.0 * math.pi * j / APPROACH_PLACES for j in k]
-        ring = [(d.x + c.approach_m * math.cos(a), d.y + c.approach_m * math.sin(a)) for a in angles]
-        for q in ring:
-            try:
-                path = provider((pose[0], pose[1]), q)
-            except Exception:
-                continue
-            if not path:
-                continue
-            pts = [(float(px), float(py)) for px, py in path]
-            while pts and math.hypot(pts[0][0] - pose[0], pts[0][1] - pose[1]) < 0.05:
-                pts.pop(0)
-            if not pts:
-                return False  # already there
-            self.goto.start(pts, None)
-            self.phase = RoutePhase.APPROACHING
-            self._progress = _Progress(since=now)
-            self.held_since = None
-            return True
-        return False
+        here = (pose[0], pose[1])
+        try:
+            place = sense.place_near(here, (d.x, d.y), c.approach_m)
+            path = None if place is None else provider(here, place)
+        except Exception:
+            return False  # the wait, as without an approach
+        if not path:
+            return False
+        pts = [(float(px), float(py)) for px, py in path]
+        while pts and math.hypot(pts[0][0] - pose[0], pts[0][1] - pose[1]) < 0.05:
+            pts.pop(0)
+        if not pts:
+            return False  # already there
+        self.goto.start(pts, None)
+        self.phase = RoutePhase.APPROACHING
+        self._progress = _Progress(since=now)
+        self.held_since = None
+        return True
 
     def _approach_step(self, now: float, pose: Pose, provider: PathProvider | None) -> Drive:
         """One tick of the approach: a newer map with a path to the goal takes the route there;

@@ -6,6 +6,7 @@ import itertools
 import math
 
 import numpy as np
+import pytest
 
 from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig
 
@@ -234,3 +235,21 @@ def test_barred_by_movable_tells_a_robot_drawn_on_the_goal_from_a_wall() -> None
     g2[:, -1] = 0
     g2[20:26, 194:200] = 100  # a robot at the map's edge: what lies beyond is not known
     assert not PathPlanner(g2, RES, (0.0, 0.0), PlannerConfig()).barred_by_movable((9.85, 1.15))
+
+
+def test_place_near_is_the_reachable_place_on_the_ring_nearest_the_start() -> None:
+    """On the line to the start when the robot can stand there; else the next round the ring it can
+    reach; None when the goal is shut away (one flood, no failed searches)."""
+    g = _room_with_gap()
+    planner = PathPlanner(g, RES, (0.0, 0.0), PlannerConfig())
+    q = planner.place_near((1.0, 1.0), (7.0, 1.0), 2.0)  # beyond the wall, through the gap
+    assert q is not None and math.dist(q, (7.0, 1.0)) == pytest.approx(2.0)
+    assert q[0] > 5.2 and planner.route((1.0, 1.0), q)  # on the goal's side of the wall: x 5 is the wall
+    q = planner.place_near((9.0, 1.0), (7.0, 1.0), 2.0)  # the start in the goal's room: on the line
+    assert q == pytest.approx((9.0, 1.0))
+    shut = g.copy()
+    shut[70:90, 100] = 100  # the gap closed: the right-hand room cannot be reached from the left
+    planner = PathPlanner(shut, RES, (0.0, 0.0), PlannerConfig())
+    q = planner.place_near((1.0, 1.0), (8.5, 2.5), 1.0)
+    assert q is None
+    assert planner.place_near((1.0, 1.0), (math.nan, 1.0), 1.0) is None

@@ -111,6 +111,10 @@ class GoalBarred(Provider):
     def barred_by_movable(self, p: Point, /) -> bool:
         return not self.clear and not self.wall and math.dist(p, self.goal) < 1e-9
 
+    def place_near(self, start: Point, goal: Point, radius: float, /) -> Point | None:
+        d = math.dist(start, goal)
+        return (goal[0] + radius * (start[0] - goal[0]) / d, goal[1] + radius * (start[1] - goal[1]) / d)
+
 
 FAR = Destination("o1", 0, 8.0, 0.0, None, "op")
 

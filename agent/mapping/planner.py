@@ -237,18 +237,7 @@ class PathPlanner:
         """A traversable cell reachable from ``start`` (4-connected, as A* moves without cutting
         corners) at the edge of the known (next to unseen space or the map's border), nearest
         ``goal`` among those with no known wall on the straight line to it."""
-        seen = np.zeros_like(free)
-        seen[start] = True
-        while True:  # flood fill, ~20 ms on an office-sized map
-            grow = seen.copy()
-            grow[1:, :] |= seen[:-1, :]
-            grow[:-1, :] |= seen[1:, :]
-            grow[:, 1:] |= seen[:, :-1]
-            grow[:, :-1] |= seen[:, 1:]
-            grow &= free
-            if np.array_equal(grow, seen):
-                break
-            seen = grow
+        seen = _flood(start, free)
         # Next to unseen space (off the map counts), or as near it as the inflation lets a robot
         # stand when unseen space is planned as blocked.
         reach = 1 + (math.ceil(self.config.inflation / self.resolution) if self.config.unknown_is_blocked else 0)
@@ -471,6 +460,26 @@ class PathPlanner:
             if (max(max(rows) - min(rows), max(cols) - min(cols)) + 1) * res > MOVABLE_SIZE_M:
                 return False
         return True
+
+    def place_near(self, start: Point, goal: Point, radius: float, places: int = 16) -> Point | None:
+        """The place on a ring ``radius`` about ``goal`` nearest ``start`` (``places`` about it, the
+        one on the line to the start first) that a path from ``start`` reaches; None: none does.
+        One flood fill finds what the start reaches, so a goal shut away costs no failed searches."""
+        if not all(math.isfinite(v) for v in (*start, *goal, radius)):
+            return None
+        first = self._escape(self.cell(start), self.free)
+        if first is None:
+            return None
+        seen = _flood(first, self.free)
+        toward = math.atan2(start[1] - goal[1], start[0] - goal[0])
+        order = [0, *(k * j for j in range(1, places // 2 + 1) for k in (1, -1))][:places]
+        for j in order:
+            a = toward + 2.0 * math.pi * j / places
+            q = (goal[0] + radius * math.cos(a), goal[1] + radius * math.sin(a))
+            rc = self.cell(q)
+            if self._inside(rc) and seen[rc]:
+                return q
+        return None
 
     def _body_fits(self, p: Point, margin: float | None = None) -> bool:
         """The robot's body, centred at ``p``, stays ``margin`` (``fit_margin``) clear of every
@@ -700,6 +709,23 @@ MOVABLE_SIZE_M = 0.6
 """A piece of occupied cells no longer than this (a robot here is 0.34 m across, a person about
 0.5 m) may be something that moves: ``barred_by_movable``."""
 _MARK_ECHO_M = 0.12  # a marked point (10 cm behind the echo the pilot met) echoes as a disc this size
+
+
+def _flood(start: tuple[int, int], free: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
+    """The ``free`` cells reachable from ``start`` 4-connected (as A* moves without cutting
+    corners); ~20 ms on an office-sized map."""
+    seen = np.zeros_like(free)
+    seen[start] = True
+    while True:
+        grow = seen.copy()
+        grow[1:, :] |= seen[:-1, :]
+        grow[:-1, :] |= seen[1:, :]
+        grow[:, 1:] |= seen[:, :-1]
+        grow[:, :-1] |= seen[:, 1:]
+        grow &= free
+        if np.array_equal(grow, seen):
+            return seen
+        seen = grow
 
 
 def _distance(blocked: npt.NDArray[np.bool_], res: float, reach: float) -> npt.NDArray[np.float64]:
