@@ -194,6 +194,12 @@ def test_the_echo_the_map_expects_and_legs_that_clear_its_walls() -> None:
     assert planner.leg_clear((5.3, 1.0), (5.3, 3.0))
     assert not planner.leg_clear((4.0, 2.0), (6.0, 2.0))
     assert not planner.leg_clear((math.nan, 1.0), (5.3, 3.0))
+    # Standing touching the wall on the map (its face at x 5.05, the body's edge at 5.10 with the
+    # map's half cell): a leg straight away from it clears it; along it or into it, it does not.
+    assert not planner._body_fits((5.22, 2.0), planner.config.back_margin)
+    assert planner.leg_clear((5.22, 2.0), (5.6, 2.0))
+    assert not planner.leg_clear((5.22, 2.0), (5.22, 3.0))
+    assert not planner.leg_clear((5.22, 2.0), (5.15, 2.0))
 
 
 def test_leg_meets_wall_sees_known_walls_on_the_leg_only() -> None:

@@ -517,18 +517,31 @@ class PathPlanner:
 
     def leg_clear(self, a: Point, b: Point) -> bool:
         """The body stays ``back_margin`` clear of every wall the map holds all along a-b (the part
-        within the ultrasonic's range of ``a``: what the guard is asked to creep past)."""
+        within the ultrasonic's range of ``a``: what the guard is asked to creep past), or at least
+        comes no nearer to it than at ``a``: a robot that stands touching a table on the map (a goal
+        the body just fits at, beside it: ``_near_goal``) may creep away from it. Otherwise such a
+        robot, facing a sofa inside the stop distance with the table behind it, could neither go on
+        nor back off (the living room's two-robot round at seed 18, docs/motion.md)."""
         if not all(math.isfinite(v) for v in (*a, *b)):
             return False
         length = math.dist(a, b)
         reach = (self.config.sensor or SensorCone()).max_range
         t_end = 1.0 if length <= reach else reach / length
         n = max(2, math.ceil(min(length, reach) / (self.echo_resolution / 2.0)) + 1)
-        margin = self.config.back_margin
-        return all(
-            self._body_fits((a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])), margin)
-            for t in np.linspace(0.0, t_end, n)
-        )
+        cfg = self.config
+        need = cfg.robot_radius + cfg.back_margin + self.echo_resolution / 2.0
+        for t in np.linspace(0.0, t_end, n):
+            q = (a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]))
+            dx, dy = self._blocked_near(q, need)
+            near = np.hypot(dx, dy)
+            touching = near < need
+            if not touching.any():
+                continue
+            # Touching at q: only cells the body was at least as near to at a (it stood there).
+            from_a = np.hypot(dx[touching] + q[0] - a[0], dy[touching] + q[1] - a[1])
+            if bool((near[touching] < from_a - 1e-9).any()):
+                return False
+        return True
 
     def _near_goal(self, goal: Point, free: npt.NDArray[np.bool_], marks: Sequence[Point]) -> tuple[int, int] | None:
         """For a goal in known space inside the inflation margin but where the body fits (a sweep's
