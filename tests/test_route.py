@@ -7,7 +7,7 @@ times passed in; no pilot, no guard.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -119,9 +119,10 @@ class GoalBarred(Provider):
 FAR = Destination("o1", 0, 8.0, 0.0, None, "op")
 
 
-def drive(r: Route, body: Unicycle, t: float, provider: Provider, until: float, phase: RoutePhase) -> float:
-    """Step the route on ``provider`` while it stays in ``phase`` (up to ``until``); the time reached."""
-    while r.phase is phase and r.end is None and t < until:
+def drive(r: Route, body: Unicycle, t: float, provider: Provider, until: float, go_on: Callable[[], bool]) -> float:
+    """Step the route on ``provider`` while ``go_on()`` and it has not ended (up to ``until``); the
+    time reached."""
+    while go_on() and r.end is None and t < until:
         d = r.step(t, body.pose, provider)
         body.step(d.v, d.omega, 0.02)
         t += 0.02
@@ -141,7 +142,7 @@ def test_no_path_to_a_far_goal_goes_nearer_to_look_then_waits_from_there() -> No
     assert note.reason == "waiting" and "going within 2 m of it to look" in note.text
     [(x, y)] = r.goto.waypoints  # the ring's place nearest the robot
     assert (x, y) == pytest.approx((6.0, 0.0))
-    t = drive(r, body, 0.0, barred, 30.0, RoutePhase.APPROACHING)
+    t = drive(r, body, 0.0, barred, 30.0, lambda: r.phase is RoutePhase.APPROACHING)
     assert r.phase is RoutePhase.WAITING and r.end is None and r.waiting_since == pytest.approx(t, abs=0.03)
     assert math.hypot(body.x - 6.0, body.y) < 0.1
     arrived = t
@@ -158,18 +159,14 @@ def test_a_newer_map_with_a_path_ends_the_approach_and_the_goal_is_reached() -> 
     r, body = Route(FAR, GoToController(), RouteConfig()), Unicycle()
     barred = GoalBarred()
     r.step(0.0, body.pose, barred)
-    t = 0.0
-    while body.x < 3.0:
-        d = r.step(t, body.pose, barred)
-        body.step(d.v, d.omega, 0.02)
-        t += 0.02
+    t = drive(r, body, 0.0, barred, 30.0, lambda: body.x < 3.0)
     assert r.phase is RoutePhase.APPROACHING
     r.notes.clear()
     clear = GoalBarred(clear=True)
     assert r.step(t, body.pose, clear).v == 0.0
     assert r.phase is RoutePhase.FOLLOWING and r.goto.waypoints == [(8.0, 0.0)]
     assert [n.reason for n in r.notes] == ["planned"]
-    drive(r, body, t, clear, 60.0, RoutePhase.FOLLOWING)
+    drive(r, body, t, clear, 60.0, lambda: r.phase is RoutePhase.FOLLOWING)
     assert r.end is not None and r.end.reached and math.hypot(body.x - 8.0, body.y) < 0.05
 
 
@@ -512,11 +509,7 @@ def test_a_newer_map_that_bars_the_goal_itself_waits_for_one_that_shows_it_clear
     r, body = route(), Unicycle()
     old = Mapped(None, [(4.0, 0.0)])
     r.step(0.0, body.pose, old)
-    t = 0.0
-    while body.x < 3.0:
-        d = r.step(t, body.pose, old)
-        body.step(d.v, d.omega, 0.02)
-        t += 0.02
+    t = drive(r, body, 0.0, old, 30.0, lambda: body.x < 3.0)
     r.notes.clear()
     barred = Mapped((4.0, 0.0), [])
     d = r.step(t, body.pose, barred)
