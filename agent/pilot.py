@@ -609,7 +609,7 @@ class Pilot:
         the unknown, through a wall seen since, does not), and the front reading is a wall it holds
         (something it lacks, a box or a person, gets the seed's rules)."""
         sense = self.map_sense
-        if r.phase is not RoutePhase.FOLLOWING or sense is None:
+        if r.phase not in (RoutePhase.FOLLOWING, RoutePhase.APPROACHING) or sense is None:
             return False
         d = self.guard.obstacle_m(inputs)
         if d is None:

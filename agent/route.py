@@ -96,10 +96,10 @@ MAX_DEVIATION_M = 1.0
 DEVIATION_STEP_M = 0.05
 """Places within a destination's allowed deviation are tried this far apart, nearest first."""
 TRAJECTORY_JOIN_M = 0.3
-APPROACH_MIN_GAIN_M = 0.5
-"""A goal less than this beyond ``approach_m`` is waited for where the robot stands."""
 """A go-to follows its order's trajectory only from within this of it (about the robot's size; a
 robot resumed elsewhere, or that stopped short of the node before, plans its own way)."""
+APPROACH_MIN_GAIN_M = 0.5
+"""A goal less than this beyond ``approach_m`` is waited for where the robot stands."""
 
 
 @runtime_checkable
@@ -328,7 +328,7 @@ class Route:
         door frame at the cone's edge has dropped out of the cone and an obstacle really ahead
         still bars it."""
         c = self.config
-        if self.phase is not RoutePhase.FOLLOWING:
+        if self.phase not in (RoutePhase.FOLLOWING, RoutePhase.APPROACHING):
             return leg
         if seen_m is None or seen_m >= leg + c.stop_distance_m:
             return leg
@@ -361,8 +361,13 @@ class Route:
         reason = refusal.reason
         barred = reason in (RefusalReason.OBSTACLE_IN_PATH, RefusalReason.OBSTACLE_AHEAD, RefusalReason.BUMP)
         if self.phase is RoutePhase.APPROACHING and barred:
-            self._stand(now)  # as near as it gets: it looks from here
-            return
+            # As near as it gets: it looks from here (something in front, a person passing by, is
+            # first given ``replan_hold_s`` to go, as on a path).
+            held = 0.0 if self.held_since is None else now - self.held_since
+            if reason is not RefusalReason.OBSTACLE_AHEAD or held >= c.replan_hold_s:
+                self.held_since = None
+                self._stand(now)
+                return
         if self.phase.replannable and barred:
             # Plan around it: at once when the drive start is refused or the bumper is pressed (the
             # robot touches what it ran into: only backing out is allowed, so back out first), after

@@ -253,6 +253,9 @@ def test_place_near_is_the_reachable_place_on_the_ring_nearest_the_start() -> No
     assert q[0] > 5.2 and planner.route((1.0, 1.0), q)  # on the goal's side of the wall: x 5 is the wall
     q = planner.place_near((9.0, 1.0), (7.0, 1.0), 2.0)  # the start in the goal's room: on the line
     assert q == pytest.approx((9.0, 1.0))
+    # The nearest place the robot reaches, (4.45, 1.15), is behind the wall from the goal: not it.
+    q = planner.place_near((1.0, 1.15), (6.45, 1.15), 2.0)
+    assert q is not None and q[0] > 5.1
     shut = g.copy()
     shut[70:90, 100] = 100  # the gap closed: the right-hand room cannot be reached from the left
     planner = PathPlanner(shut, RES, (0.0, 0.0), PlannerConfig())

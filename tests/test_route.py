@@ -185,6 +185,51 @@ def test_barred_on_the_approach_it_waits_where_it_stands() -> None:
     assert r.end is not None and r.end.reason == "no_path"
 
 
+class BarredAgain(GoalBarred):
+    """A newer map on which the goal is barred again and the leg ahead meets a wall (``WallCheck``)."""
+
+    def leg_meets_wall(self, a: Point, b: Point, skip_m: float = 0.1, /) -> bool:
+        return True
+
+
+def test_the_approach_is_made_once_a_go_to() -> None:
+    """Approached, then a map with a path, then one barring the goal again further off than
+    ``approach_m``: the robot waits where it is, it does not go nearer a second time."""
+    r, body = Route(FAR, GoToController(), RouteConfig()), Unicycle()
+    r.step(0.0, body.pose, GoalBarred())
+    assert r.phase is RoutePhase.APPROACHING
+    clear = GoalBarred(clear=True)
+    r.step(0.1, body.pose, clear)
+    assert r.phase is RoutePhase.FOLLOWING
+    t = drive(r, body, 0.1, clear, 30.0, lambda: body.x < 1.0)
+    again = BarredAgain()
+    r.step(t, body.pose, again)
+    assert r.phase is RoutePhase.WAITING and r.waiting_since == t and r.map_replans == 1
+    assert math.dist((body.x, body.y), (8.0, 0.0)) > 2.5  # far enough for an approach, had it been the first
+
+
+def test_no_progress_on_the_approach_or_something_in_front_for_long_ends_it_where_the_robot_stands() -> None:
+    """Wheels that do not turn (a body that never moves) for ``no_progress_s``; something in front
+    (held ``replan_hold_s`` first, as on a path): the robot stands and waits from then."""
+    r = Route(FAR, GoToController(), RouteConfig())
+    barred = GoalBarred()
+    r.step(0.0, (0.0, 0.0, 0.0), barred)
+    t = 0.0
+    while r.phase is RoutePhase.APPROACHING and t < 20.0:
+        t += 0.1
+        r.step(t, (0.0, 0.0, 0.0), barred)
+    assert r.phase is RoutePhase.WAITING and r.end is None
+    assert RouteConfig().no_progress_s <= r.waiting_since <= RouteConfig().no_progress_s + 0.2
+    r = Route(FAR, GoToController(), RouteConfig())
+    r.step(0.0, (0.0, 0.0, 0.0), barred)
+    r.refused(1.0, (0.0, 0.0, 0.0), AHEAD, barred)
+    assert r.phase is RoutePhase.APPROACHING and r.held_since == 1.0  # held: it may go away
+    r.refused(2.9, (0.0, 0.0, 0.0), AHEAD, barred)
+    assert r.phase is RoutePhase.APPROACHING
+    r.refused(3.0, (0.0, 0.0, 0.0), AHEAD, barred)
+    assert r.phase is RoutePhase.WAITING and r.waiting_since == 3.0 and r.blocked == []
+
+
 def test_a_goal_in_a_wall_a_near_goal_or_no_approach_distance_waits_where_it_stands() -> None:
     """A goal in a wall is not driven at (tests/test_vda5050_e2e.py: a node inside a wall is
     skipped at once); nor is one already near, or any with ``approach_m`` 0."""

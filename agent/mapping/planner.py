@@ -463,8 +463,10 @@ class PathPlanner:
 
     def place_near(self, start: Point, goal: Point, radius: float, places: int = 16) -> Point | None:
         """The place on a ring ``radius`` about ``goal`` nearest ``start`` (``places`` about it, the
-        one on the line to the start first) that a path from ``start`` reaches; None: none does.
-        One flood fill finds what the start reaches, so a goal shut away costs no failed searches."""
+        one on the line to the start first) that a path from ``start`` reaches and that sees the
+        goal (no known wall on the way to it but what lies within the inflation of the goal: what
+        bars it); None: none does. One flood fill finds what the start reaches, so a goal shut away
+        costs no failed searches."""
         if not all(math.isfinite(v) for v in (*start, *goal, radius)):
             return None
         first = self._escape(self.cell(start), self.free)
@@ -477,7 +479,9 @@ class PathPlanner:
             a = toward + 2.0 * math.pi * j / places
             q = (goal[0] + radius * math.cos(a), goal[1] + radius * math.sin(a))
             rc = self.cell(q)
-            if self._inside(rc) and seen[rc]:
+            short = max(0.0, 1.0 - (self.config.inflation + self.resolution) / radius)
+            near_goal = (q[0] + short * (goal[0] - q[0]), q[1] + short * (goal[1] - q[1]))
+            if self._inside(rc) and seen[rc] and self._clear_of_walls(q, near_goal):
                 return q
         return None
 
