@@ -170,7 +170,9 @@ class PilotConfig:
     max_replans: int = 3  # a go-to barred once more after this many re-plans fails (reason "blocked")
     max_map_replans: int = 10  # re-plans because a newer map showed the leg ahead barred (not counted above)
     no_path_wait_s: float = 6.0  # no path to a goal: stand this long for a newer map with one, then fail (no_path)
-    approach_m: float = 2.0  # ... a goal farther off is first approached to within this, to look from there (0: not)
+    approach_m: float = (
+        2.0  # no path to a goal farther off, barred by something robot-sized: go within this first, to look (0: not)
+    )
     replan_hold_s: float = 2.0  # held by an obstacle ahead this long: back off and re-plan around it
     no_progress_s: float = 8.0  # no waypoint passed and no closer by ``progress_m`` this long: re-plan
     progress_m: float = 0.05

@@ -520,10 +520,8 @@ class Route:
             else:
                 self._fail(now, pose, "blocked", f"blocked ({why}) and no way around")
             return False
-        pts = [(float(px), float(py)) for px, py in path]
-        # Drop waypoints at the start; make sure the goal itself ends the list.
-        while pts and math.hypot(pts[0][0] - pose[0], pts[0][1] - pose[1]) < 0.05:
-            pts.pop(0)
+        pts = _ahead(path, pose)
+        # The goal itself ends the list.
         if not pts or math.hypot(pts[-1][0] - d.x, pts[-1][1] - d.y) > 1e-6:
             pts.append(goal)
         self.goto.start(pts, d.theta)
@@ -588,9 +586,7 @@ class Route:
             return False  # the wait, as without an approach
         if not path:
             return False
-        pts = [(float(px), float(py)) for px, py in path]
-        while pts and math.hypot(pts[0][0] - pose[0], pts[0][1] - pose[1]) < 0.05:
-            pts.pop(0)
+        pts = _ahead(path, pose)
         if not pts:
             return False  # already there
         self.goto.start(pts, None)
@@ -730,3 +726,11 @@ class Route:
             self._progress = _Progress(index, d, now)
             return False
         return now - p.since >= self.config.no_progress_s
+
+
+def _ahead(path: Sequence[Point], pose: Pose) -> list[Point]:
+    """``path``'s waypoints without those where the robot already stands (within 5 cm) at its start."""
+    pts = [(float(px), float(py)) for px, py in path]
+    while pts and math.hypot(pts[0][0] - pose[0], pts[0][1] - pose[1]) < 0.05:
+        pts.pop(0)
+    return pts
