@@ -93,9 +93,9 @@ def test_the_search_does_not_change_a_step_by_more_than_half() -> None:
     first = _scan(5.0, 2.0)
     reference.add((0.0, 0.0, 0.0), first.points, first.normals)
     second = _scan(5.3, 2.0)
-    found = closer._pair_search(reference, second, (0.5, 0.0, 0.0))
+    (found,) = closer._pairs_search([(reference, second, (0.5, 0.0, 0.0))])
     assert found is not None and abs(found.pose[0] - 0.3) < 0.02 and abs(found.pose[1]) < 0.02
-    assert closer._pair_search(reference, second, (0.7, 0.0, 0.0)) is None
+    assert closer._pairs_search([(reference, second, (0.7, 0.0, 0.0))]) == [None]
 
 
 def _logged(rec: LaserRecord) -> NodeScan:
@@ -118,11 +118,11 @@ def test_a_pair_is_refined_from_turned_starts_too() -> None:
     probing = LoopCloser(CloserConfig(), GridConfig())
     plain = LoopCloser(CloserConfig(final_pair_turn_probe=0.0), GridConfig())
     short = (0.82, 0.13, turn - math.radians(6.4))
-    stuck = plain._pair_match(reference, second, short)
+    (stuck,) = plain._pairs_match([(reference, second, short, True)])
     assert stuck is not None and abs(stuck.pose[2] - short[2]) < math.radians(1.0)  # the wrong turn, kept
-    assert probing._pair_match(reference, second, short) is None
+    assert probing._pairs_match([(reference, second, short, True)]) == [None]
     near = (0.82, 0.13, turn - math.radians(2.0))
-    found = probing._pair_match(reference, second, near)
+    (found,) = probing._pairs_match([(reference, second, near, True)])
     assert found is not None and abs(found.pose[2] - turn) < math.radians(0.3)
     assert found.inliers > stuck.inliers
 
@@ -135,23 +135,23 @@ def test_only_a_pair_on_a_plateau_is_probed(monkeypatch) -> None:  # type: ignor
         first, second = (_logged(r) for r in read_records(f) if isinstance(r, LaserRecord))
     closer = LoopCloser(CloserConfig(), GridConfig())
     calls: list[Pose] = []
-    refine = closer._pair_refine
+    refine = closer._pairs_refine
 
-    def counted(reference: LocalMap, scan: NodeScan, start: Pose) -> IcpResult | None:
-        calls.append(start)
-        return refine(reference, scan, start)
+    def counted(tasks: list[tuple[LocalMap, NodeScan, Pose]]) -> list[IcpResult | None]:
+        calls.extend(start for _, _, start in tasks)
+        return refine(tasks)
 
-    monkeypatch.setattr(closer, "_pair_refine", counted)
+    monkeypatch.setattr(closer, "_pairs_refine", counted)
     itself = LocalMap(1, 0.05)
     itself.add((0.0, 0.0, 0.0), second.points, second.normals)
-    found = closer._pair_match(itself, second, (0.02, -0.01, math.radians(0.5)))
+    (found,) = closer._pairs_match([(itself, second, (0.02, -0.01, math.radians(0.5)), True)])
     assert found is not None and found.inliers >= PAIR_PROBE_BELOW * len(second.points)
     assert abs(found.pose[0]) < 0.01 and abs(found.pose[1]) < 0.01 and abs(found.pose[2]) < math.radians(0.2)
     assert len(calls) == 1
     calls.clear()
     reference = LocalMap(1, 0.05)
     reference.add((0.0, 0.0, 0.0), first.points, first.normals)
-    closer._pair_match(reference, second, (0.82, 0.13, math.radians(30.94 - 6.4)))
+    closer._pairs_match([(reference, second, (0.82, 0.13, math.radians(30.94 - 6.4)), True)])
     assert len(calls) == 3
 
 
@@ -169,8 +169,8 @@ def test_the_search_does_not_move_a_pair_across_its_step(monkeypatch) -> None:  
     reference.add((0.0, 0.0, 0.0), first.points, first.normals)
     guess = (1.078, 0.151, 0.431)  # where the solved graph put the pair
     closer = LoopCloser(CloserConfig(), GridConfig())
-    found = closer._pair_search(reference, second, guess)
+    (found,) = closer._pairs_search([(reference, second, guess)])
     assert found is None or math.hypot(found.pose[0] - 1.114, found.pose[1] - 0.198) < 0.1
     monkeypatch.setattr(closure, "PAIR_ACROSS_M", math.inf)  # the search as it was
-    slid = closer._pair_search(reference, second, guess)
+    (slid,) = closer._pairs_search([(reference, second, guess)])
     assert slid is not None and math.hypot(slid.pose[0] - 1.114, slid.pose[1] - 0.198) > 0.3

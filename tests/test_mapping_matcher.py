@@ -304,3 +304,63 @@ def test_point_to_line_is_the_one_that_looks_every_correspondence_up_again() -> 
         )
         assert got.pose == pose and got.inliers == inliers and got.weak == weak, k
         assert info is not None and got.information is not None and np.array_equal(got.information, info)
+
+
+def test_many_refinements_at_once_are_each_refined_alone(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """``icp_refine_many`` (a replay's final pass: thousands of scan pairs) is ``icp_refine`` of each task:
+    the same pose, inliers, weakest information and information to rounding (its sums over the points
+    are taken in another order), tasks sharing a reference or not, a reference or a scan with nothing
+    in it, a start too far off for three points to find a wall, more iterations for some tasks than
+    others; and the answers do not depend on how the tasks are cut into batches."""
+    import fleetlink.agent.mapping.matcher as matcher
+    from fleetlink.agent.mapping.matcher import LocalMap, icp_refine, icp_refine_many, scan_normals
+    from fleetlink.agent.mapping.scan import segment_labels, to_points
+
+    rc = Raycaster(ROOM)
+
+    def seen(pose: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+        r = _scan(rc, pose)
+        pts = to_points(r[r > 0], ANGLES[r > 0])
+        return pts, scan_normals(pts, segment_labels(pts, 0.3, 5.0))
+
+    views = [(2.0, 1.2, 0.3), (5.5, 3.0, -1.0), (6.8, 1.0, 2.5)]
+    refs = []
+    for v in views:
+        pts, nrm = seen(v)
+        ref = LocalMap(1, 0.05)
+        ref.add((0.0, 0.0, 0.0), pts, nrm)
+        refs.append(ref)
+    rng = np.random.default_rng(4)
+    tasks = []
+    for k in range(24):
+        i = k % len(views)
+        moved = (
+            views[i][0] + rng.normal(0, 0.15),
+            views[i][1] + rng.normal(0, 0.15),
+            views[i][2] + rng.normal(0, 0.05),
+        )
+        pts, _ = seen(moved)
+        dx, dy = moved[0] - views[i][0], moved[1] - views[i][1]
+        c, s = math.cos(-views[i][2]), math.sin(-views[i][2])
+        truth = (c * dx - s * dy, s * dx + c * dy, moved[2] - views[i][2])  # the scan in the reference's frame
+        start = (truth[0] + rng.normal(0, 0.05), truth[1] + rng.normal(0, 0.05), truth[2] + rng.normal(0, 0.02))
+        tasks.append((refs[i], pts, start))
+    tasks.append((LocalMap(1, 0.05), tasks[0][1], (0.0, 0.0, 0.0)))  # an empty reference
+    tasks.append((refs[0], np.zeros((0, 2)), (0.1, 0.0, 0.0)))  # no points
+    tasks.append((refs[1], tasks[1][1], (40.0, -30.0, 0.0)))  # nothing within reach
+    alone = [
+        icp_refine(ref, pts, st, st, (1.0, 1.0), 0.03, 0.15, iterations=20, tolerance=1e-3) for ref, pts, st in tasks
+    ]
+    together = icp_refine_many(tasks, (1.0, 1.0), 0.03, 0.15, iterations=20, tolerance=1e-3)
+    assert len(together) == len(tasks)
+    assert len({a.inliers for a in alone[:24]}) > 1 and alone[-1].inliers < 3 and alone[-3].inliers == 0
+    for a, b in zip(alone, together, strict=True):
+        assert b.inliers == a.inliers
+        assert b.pose == pytest.approx(a.pose, abs=1e-9)
+        assert b.weak == pytest.approx(a.weak, rel=1e-9, abs=1e-9)
+        assert (a.information is None) == (b.information is None)
+        if a.information is not None:
+            assert np.allclose(a.information, b.information, rtol=1e-9)
+    monkeypatch.setattr(matcher, "_MANY_POINTS", 300)  # a batch of a task or two
+    cut = icp_refine_many(tasks, (1.0, 1.0), 0.03, 0.15, iterations=20, tolerance=1e-3)
+    assert [(r.pose, r.inliers, r.weak) for r in cut] == [(r.pose, r.inliers, r.weak) for r in together]

@@ -40,6 +40,7 @@ the last one), so the search costs at most so much per second however fast nodes
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
@@ -48,7 +49,7 @@ import numpy.typing as npt
 
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
-from fleetlink.agent.mapping.matcher import IcpResult, LocalMap, _refine, field_score, icp_refine
+from fleetlink.agent.mapping.matcher import IcpResult, LocalMap, _refine, field_score, icp_refine, icp_refine_many
 from fleetlink.agent.mapping.posegraph import PoseGraph
 from fleetlink.agent.mapping.scan import surface_fill
 from fleetlink.shared.se2 import Pose, compose, inverse, relative, wrap
@@ -1033,11 +1034,12 @@ class LoopCloser:
     def _scan_pairs(self, xyt: F64) -> list[Closure]:
         """The final pass's scan-to-scan matches (``final_pair_per_node``): node k against earlier
         nodes' scans near it, point-to-line from the graph's guess (searched along the step for a
-        near pair the guess is too far off for, ``final_pair_search``); each kept one an edge j -> k."""
+        near pair the guess is too far off for, ``final_pair_search``); each kept one an edge j -> k.
+        The pairs do not depend on one another: all are refined together (``icp_refine_many``)."""
         cfg = self.config
-        out: list[Closure] = []
         references: dict[int, LocalMap] = {}
         inv_mount = inverse(self.mount)
+        pairs: list[tuple[int, int, Pose, bool]] = []  # (k, j, guess, near pair)
         for k in range(cfg.final_pair_gap_nodes, len(xyt)):
             sk = self.scans[k]
             if len(sk.points) < 10:
@@ -1051,72 +1053,103 @@ class LoopCloser:
                 sj = self.scans[j]
                 if len(sj.points) < 10:
                     continue
-                reference = references.get(j)
-                if reference is None:
-                    reference = references[j] = LocalMap(1, 0.05)
-                    reference.add((0.0, 0.0, 0.0), sj.points, sj.normals)
+                if j not in references:
+                    references[j] = LocalMap(1, 0.05)
+                    references[j].add((0.0, 0.0, 0.0), sj.points, sj.normals)
                 pj = (float(xyt[j, 0]), float(xyt[j, 1]), float(xyt[j, 2]))
                 pk = (float(xyt[k, 0]), float(xyt[k, 1]), float(xyt[k, 2]))
                 guess = relative(compose(pj, self.mount), compose(pk, self.mount))  # sensor k in sensor j
-                steps = k - j <= cfg.final_pair_search_nodes  # a near pair: the front end's steps again
-                found = self._pair_match(reference, sk, guess, probe=steps)
-                if found is None and cfg.final_pair_search > 0 and steps:
-                    found = self._pair_search(reference, sk, guess)
-                    self.stats.final_pairs_searched += found is not None
-                if found is not None:
-                    z = compose(compose(self.mount, found.pose), inv_mount)  # node k in node j's frame
-                    # No submap is drawn for a pair, so no field score: its inlier share stands in.
-                    share = found.inliers / len(sk.points)
-                    out.append(Closure(k, j, z, share, share, pair=True))
+                pairs.append((k, j, guess, k - j <= cfg.final_pair_search_nodes))  # near: the front end's steps again
+        found = self._pairs_match([(references[j], self.scans[k], g, steps) for k, j, g, steps in pairs])
+        if cfg.final_pair_search > 0:
+            again = [i for i, (m, p) in enumerate(zip(found, pairs, strict=True)) if m is None and p[3]]
+            searched = self._pairs_search(
+                [(references[pairs[i][1]], self.scans[pairs[i][0]], pairs[i][2]) for i in again]
+            )
+            for i, m in zip(again, searched, strict=True):
+                found[i] = m
+                self.stats.final_pairs_searched += m is not None
+        out: list[Closure] = []
+        for (k, j, _, _), m in zip(pairs, found, strict=True):
+            if m is not None:
+                z = compose(compose(self.mount, m.pose), inv_mount)  # node k in node j's frame
+                # No submap is drawn for a pair, so no field score: its inlier share stands in.
+                share = m.inliers / len(self.scans[k].points)
+                out.append(Closure(k, j, z, share, share, pair=True))
         self.stats.final_pairs += len(out)
         return out
 
-    def _pair_match(self, reference: LocalMap, scan: NodeScan, guess: Pose, probe: bool = True) -> IcpResult | None:
-        """``scan`` refined against ``reference`` from ``guess`` (and, ``probe``, from it turned
-        ``final_pair_turn_probe`` either way: the answer with most points on a line): the answer if well
-        posed, with ``final_pair_inliers`` of its points on a line, within the final window of the guess."""
+    def _pairs_match(self, pairs: Sequence[tuple[LocalMap, NodeScan, Pose, bool]]) -> list[IcpResult | None]:
+        """Each (reference, scan, guess, probe) of ``pairs``: ``scan`` refined against ``reference`` from
+        ``guess`` (and, ``probe``, from it turned ``final_pair_turn_probe`` either way: the answer with
+        most points on a line): the answer if well posed, with ``final_pair_inliers`` of its points on a
+        line, within the final window of the guess."""
         cfg = self.config
-        m = self._pair_refine(reference, scan, guess)
+        found = self._pairs_refine([(ref, sc, g) for ref, sc, g, _ in pairs])
         # Only an answer with fewer than ``PAIR_PROBE_BELOW`` of its points on a line may lie on a
         # plateau of poor fits; past that a probe gains a point or two and lands on the same pose.
-        plateau = m is None or m.inliers < PAIR_PROBE_BELOW * len(scan.points)
-        if probe and plateau and cfg.final_pair_turn_probe > 0:
-            for turn in (-cfg.final_pair_turn_probe, cfg.final_pair_turn_probe):
-                q = self._pair_refine(reference, scan, (guess[0], guess[1], guess[2] + turn))
-                if q is not None and (m is None or q.inliers > m.inliers):
-                    m = q
-        if (
-            m is None
-            or math.hypot(m.pose[0] - guess[0], m.pose[1] - guess[1]) > cfg.final_window_xy
-            or abs(wrap(m.pose[2] - guess[2])) > cfg.final_window_theta
-        ):
-            return None
-        return m
+        plateau = [
+            i
+            for i, (m, (_, sc, _, probe)) in enumerate(zip(found, pairs, strict=True))
+            if probe and (m is None or m.inliers < PAIR_PROBE_BELOW * len(sc.points))
+        ]
+        if plateau and cfg.final_pair_turn_probe > 0:
+            turns = (-cfg.final_pair_turn_probe, cfg.final_pair_turn_probe)
+            probes = self._pairs_refine(
+                [
+                    (pairs[i][0], pairs[i][1], (pairs[i][2][0], pairs[i][2][1], pairs[i][2][2] + t))
+                    for i in plateau
+                    for t in turns
+                ]
+            )
+            for n, i in enumerate(plateau):
+                for q in probes[n * len(turns) : (n + 1) * len(turns)]:
+                    m = found[i]
+                    if q is not None and (m is None or q.inliers > m.inliers):
+                        found[i] = q
+        for i, (m, (_, _, guess, _)) in enumerate(zip(found, pairs, strict=True)):
+            if m is not None and (
+                math.hypot(m.pose[0] - guess[0], m.pose[1] - guess[1]) > cfg.final_window_xy
+                or abs(wrap(m.pose[2] - guess[2])) > cfg.final_window_theta
+            ):
+                found[i] = None
+        return found
 
-    def _pair_refine(self, reference: LocalMap, scan: NodeScan, start: Pose) -> IcpResult | None:
-        """Point-to-line of ``scan`` against ``reference`` from ``start`` (no prior to speak of: the
-        pair's own geometry decides); the answer if well posed with ``final_pair_inliers`` of its
-        points on a line (within the refinement's 0.15 m reach), else None."""
+    def _pairs_refine(self, tasks: Sequence[tuple[LocalMap, NodeScan, Pose]]) -> list[IcpResult | None]:
+        """Point-to-line of each (reference, scan, start) of ``tasks`` (no prior to speak of: the pair's
+        own geometry decides); each answer if well posed with ``final_pair_inliers`` of its points on a
+        line (within the refinement's 0.15 m reach), else None."""
         cfg = self.config
-        m = icp_refine(
-            reference, scan.points, start, start, (1.0, 1.0), 0.03, 0.15, iterations=20, tolerance=PAIR_TOLERANCE
+        answers = icp_refine_many(
+            [(ref, sc.points, start) for ref, sc, start in tasks], (1.0, 1.0), 0.03, 0.15, 20, PAIR_TOLERANCE
         )
-        if m.inliers < cfg.final_pair_inliers * len(scan.points) or m.weak < cfg.final_pair_weak:
-            return None
-        return m
+        return [
+            m if m.inliers >= cfg.final_pair_inliers * len(sc.points) and m.weak >= cfg.final_pair_weak else None
+            for m, (_, sc, _) in zip(answers, tasks, strict=True)
+        ]
 
-    def _pair_search(self, reference: LocalMap, scan: NodeScan, guess: Pose) -> IcpResult | None:
-        """Refined again from guesses moved along the step (``PAIR_SEARCH_STEP_M`` apart, up to
-        ``final_pair_search``): the answer with most inliers, unless another well-posed answer apart
-        from it has nearly as many (a look-alike down a corridor)."""
+    def _pairs_search(self, pairs: Sequence[tuple[LocalMap, NodeScan, Pose]]) -> list[IcpResult | None]:
+        """Each (reference, scan, guess) of ``pairs`` refined again from guesses moved along the step
+        (``PAIR_SEARCH_STEP_M`` apart, up to ``final_pair_search``): the answer with most inliers, unless
+        another well-posed answer apart from it has nearly as many (a look-alike down a corridor)."""
         cfg = self.config
-        d = math.hypot(guess[0], guess[1])
-        ux, uy = (guess[0] / d, guess[1] / d) if d > 1e-6 else (1.0, 0.0)
-        answers: list[IcpResult] = []
-        for q in range(1, int(cfg.final_pair_search / PAIR_SEARCH_STEP_M + 1e-9) + 1):
-            for sign in (-1.0, 1.0):
-                off = sign * q * PAIR_SEARCH_STEP_M
-                m = self._pair_refine(reference, scan, (guess[0] + off * ux, guess[1] + off * uy, guess[2]))
+        offsets = [
+            sign * q * PAIR_SEARCH_STEP_M
+            for q in range(1, int(cfg.final_pair_search / PAIR_SEARCH_STEP_M + 1e-9) + 1)
+            for sign in (-1.0, 1.0)
+        ]
+        steps: list[tuple[float, float, float]] = []  # each guess's length and direction
+        tasks: list[tuple[LocalMap, NodeScan, Pose]] = []
+        for ref, sc, guess in pairs:
+            d = math.hypot(guess[0], guess[1])
+            ux, uy = (guess[0] / d, guess[1] / d) if d > 1e-6 else (1.0, 0.0)
+            steps.append((d, ux, uy))
+            tasks += [(ref, sc, (guess[0] + off * ux, guess[1] + off * uy, guess[2])) for off in offsets]
+        tried = self._pairs_refine(tasks)
+        out: list[IcpResult | None] = []
+        for n, ((_, _, guess), (d, ux, uy)) in enumerate(zip(pairs, steps, strict=True)):
+            answers: list[IcpResult] = []
+            for m in tried[n * len(offsets) : (n + 1) * len(offsets)]:
                 if m is None:
                     continue
                 # Not a step shortened or lengthened by more than half: two scans taken a few tenths
@@ -1126,14 +1159,8 @@ class LoopCloser:
                 mx, my = m.pose[0] - guess[0], m.pose[1] - guess[1]
                 if math.hypot(mx, my) <= 0.5 * d and abs(ux * my - uy * mx) <= PAIR_ACROSS_M:
                     answers.append(m)
-        if not answers:
-            return None
-        best = max(answers, key=lambda a: a.inliers)
-        for a in answers:
-            apart = math.hypot(a.pose[0] - best.pose[0], a.pose[1] - best.pose[1])
-            if apart > PAIR_AMBIGUITY_M and a.inliers >= 0.9 * best.inliers:
-                return None
-        return best
+            out.append(_unambiguous(answers))
+        return out
 
     def _solve(self, max_drops: int | None = None, loosen: bool = False) -> None:
         """Solve; while the worst closure's error is above ``max_chi2``, drop it and solve again (at
@@ -1371,6 +1398,19 @@ def degenerate_direction(
     if ev[1] < strong or ev[0] >= weak or (ratio > 0 and ev[1] <= ratio * max(float(ev[0]), 1e-12)):
         return None
     return float(vec[0, 0]), float(vec[1, 0])
+
+
+def _unambiguous(answers: Sequence[IcpResult]) -> IcpResult | None:
+    """The answer with most inliers, unless another well-posed answer ``PAIR_AMBIGUITY_M`` apart from it
+    has nearly as many (0.9 of them: a look-alike down a corridor); None when there is none."""
+    if not answers:
+        return None
+    best = max(answers, key=lambda a: a.inliers)
+    for a in answers:
+        apart = math.hypot(a.pose[0] - best.pose[0], a.pose[1] - best.pose[1])
+        if apart > PAIR_AMBIGUITY_M and a.inliers >= 0.9 * best.inliers:
+            return None
+    return best
 
 
 def _weakened(info: F64, u: tuple[float, float], sd: float) -> F64:

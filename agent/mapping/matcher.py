@@ -18,7 +18,8 @@ corridor scores the same all along, and the prior keeps the guess there.
 
 ``icp_refine`` then refines against a ``LocalMap`` (the last keyframes' points and normals):
 point-to-line Gauss-Newton with the same prior, so a direction the points do not constrain stays
-at the guess while the others follow the walls.
+at the guess while the others follow the walls. ``icp_refine_many`` runs many such problems that do
+not depend on one another (a replay's final pass: thousands of scan pairs) as one, array-wide.
 The caller decides what a poor score means (the mapper falls back to odometry).
 
 Pure numpy; no I/O.
@@ -45,6 +46,7 @@ __all__ = [
     "MatchConfig",
     "field_score",
     "icp_refine",
+    "icp_refine_many",
     "match_scan",
     "refine",
     "scan_normals",
@@ -724,3 +726,171 @@ def icp_refine(
             break
     weak = 0.0 if hd_last is None else float(np.linalg.eigvalsh(hd_last)[0])
     return IcpResult((x, y, th), inliers, weak, hd_last)
+
+
+# Points per batch of ``icp_refine_many``: its (points x 9) neighbour tables stay a few tens of MB.
+_MANY_POINTS = 60_000
+
+
+def icp_refine_many(
+    tasks: Sequence[tuple[LocalMap, FloatArray, Pose]],
+    prior: tuple[float, float],
+    sigma: float = 0.03,
+    max_distance: float = 0.15,
+    iterations: int = 8,
+    tolerance: float = 1e-4,
+) -> list[IcpResult]:
+    """``icp_refine`` of each (reference, points, start) of ``tasks``, the prior at its start: the same
+    iterations, correspondences, weights, steps and stops, task by task, computed for all tasks at once.
+    A replay's final pass refines thousands of small independent pairs (150 points, 10 iterations);
+    one at a time, numpy's per-call cost is most of it. The sums over each task's points are taken in
+    another order than ``icp_refine`` takes them, so an answer may differ from it in the last bits."""
+    out: list[IcpResult | None] = [None] * len(tasks)
+    live = []
+    for t, (local, points, start) in enumerate(tasks):
+        if len(local) == 0 or len(points) == 0:
+            out[t] = IcpResult(start, 0, 0.0, None)
+        else:
+            live.append(t)
+    batch: list[int] = []
+    size = 0
+    for t in live:
+        batch.append(t)
+        size += len(tasks[t][1])
+        if size >= _MANY_POINTS:
+            _refine_batch(tasks, batch, out, prior, sigma, max_distance, iterations, tolerance)
+            batch, size = [], 0
+    if batch:
+        _refine_batch(tasks, batch, out, prior, sigma, max_distance, iterations, tolerance)
+    return [r for r in out if r is not None]
+
+
+def _refine_batch(
+    tasks: Sequence[tuple[LocalMap, FloatArray, Pose]],
+    batch: list[int],
+    out: list[IcpResult | None],
+    prior: tuple[float, float],
+    sigma: float,
+    max_distance: float,
+    iterations: int,
+    tolerance: float,
+) -> None:
+    """``icp_refine_many`` of the tasks ``batch`` (each with points and a reference), into ``out``."""
+    # The references' tables and points joined into one: a task's cell indexes its reference's part of
+    # the table, and every "none" reads one point at infinity after all the references' points.
+    ref_of: dict[int, int] = {}
+    refs: list[LocalMap] = []
+    for t in batch:
+        if id(tasks[t][0]) not in ref_of:
+            ref_of[id(tasks[t][0])] = len(refs)
+            refs.append(tasks[t][0])
+    p_off = np.cumsum([0] + [len(r) for r in refs])
+    none = int(p_off[-1])
+    t_off = np.cumsum([0] + [len(r._table) for r in refs])
+    table = np.concatenate([np.where(r._table >= 0, r._table + p_off[i], none) for i, r in enumerate(refs)])
+    gx_all = np.concatenate([r.points[:, 0] for r in refs] + [np.array([np.inf])])
+    gy_all = np.concatenate([r.points[:, 1] for r in refs] + [np.array([np.inf])])
+    stacked = np.hstack([r.stacked for r in refs] + [np.zeros((4, 1))])
+    ri = np.array([ref_of[id(tasks[t][0])] for t in batch])
+    cell = np.array([r.cell for r in refs])[ri]
+    tx0 = np.array([r._tx0 for r in refs], dtype=np.int64)[ri]
+    ty0 = np.array([r._ty0 for r in refs], dtype=np.int64)[ri]
+    tw = np.array([r._tw for r in refs], dtype=np.int64)[ri]
+    th_ = np.array([r._th for r in refs], dtype=np.int64)[ri]
+    toff = t_off[:-1][ri]
+    noff = _NY[None, :] * tw[:, None] + _NX[None, :]  # (T, 9)
+    counts = np.array([len(tasks[t][1]) for t in batch])
+    pts = np.vstack([tasks[t][1] for t in batch])
+    start = np.array([tasks[t][2] for t in batch], dtype=np.float64)
+    pose = start.copy()
+    lam = np.array([1.0 / max(prior[0], 1e-3) ** 2] * 2 + [1.0 / max(prior[1], 1e-4) ** 2])
+    inliers = np.zeros(len(batch), dtype=np.int64)
+    hd_last = np.zeros((len(batch), 3, 3))
+    has_hd = np.zeros(len(batch), dtype=bool)
+    active = np.ones(len(batch), dtype=bool)
+    # The points of the tasks still refining (dropped in bulk as tasks stop): each one's task, its
+    # sensor-frame coordinates, its cell and the 3 x 3 cells' fused points (their index and coordinates,
+    # gathered again only where the cell changed: most keep theirs, the steps are millimetres).
+    tp = np.repeat(np.arange(len(batch)), counts)
+    px, py = pts[:, 0].copy(), pts[:, 1].copy()
+    last = np.full(len(tp), -1, dtype=np.int64)
+    near = np.empty((len(tp), 9), dtype=np.intp)
+    gx, gy = np.empty((len(tp), 9)), np.empty((len(tp), 9))
+    for _ in range(iterations):
+        if np.count_nonzero(active[tp]) < 0.75 * len(tp):
+            keep = active[tp]
+            tp, last, near = tp[keep], last[keep], near[keep]
+            px, py, gx, gy = px[keep], py[keep], gx[keep], gy[keep]
+        c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+        cp, sp = c[tp], s[tp]
+        wx = px * cp + pose[tp, 0] - sp * py  # as icp_refine: x + c px - s py
+        wy = px * sp + pose[tp, 1] + cp * py
+        ix = np.floor(wx / cell[tp]).astype(np.int64) - tx0[tp]
+        iy = np.floor(wy / cell[tp]).astype(np.int64) - ty0[tp]
+        inside = (ix >= 2) & (ix < tw[tp] - 2) & (iy >= 2) & (iy < th_[tp] - 2)
+        cells = np.where(inside, iy * tw[tp] + ix, tw[tp] + 1) + toff[tp]
+        moved = np.flatnonzero(cells != last)
+        if moved.size:
+            i = table[cells[moved, None] + noff[tp[moved]]]
+            near[moved], gx[moved], gy[moved] = i, gx_all[i], gy_all[i]
+            last = cells
+        dx = gx - wx[:, None]
+        dy = gy - wy[:, None]
+        dx *= dx
+        dy *= dy
+        dx += dy
+        best = near[np.arange(len(tp)), dx.argmin(axis=1)]
+        dist = np.hypot(gx_all[best] - wx, gy_all[best] - wy)
+        ok = dist <= max_distance
+        n_ok = np.bincount(tp[ok], minlength=len(batch))
+        inliers[active] = n_ok[active]
+        active &= n_ok >= 3
+        if not active.any():
+            break
+        use = ok & active[tp]
+        to = tp[use]
+        lpx, lpy, nx, ny = stacked[:, best[use]]
+        wxo, wyo, pxo, pyo = wx[use], wy[use], px[use], py[use]
+        r = nx * (wxo - lpx) + ny * (wyo - lpy)
+        w = 1.0 / (1.0 + (r / sigma) ** 2) / sigma**2
+        co, so = c[to], s[to]
+        dth = nx * (-so * pxo - co * pyo) + ny * (co * pxo - so * pyo)
+        n = len(batch)
+        wnx, wny, wdth = w * nx, w * ny, w * dth
+        hd = np.empty((n, 3, 3))
+        hd[:, 0, 0] = np.bincount(to, wnx * nx, n)
+        hd[:, 0, 1] = hd[:, 1, 0] = np.bincount(to, wnx * ny, n)
+        hd[:, 0, 2] = hd[:, 2, 0] = np.bincount(to, wnx * dth, n)
+        hd[:, 1, 1] = np.bincount(to, wny * ny, n)
+        hd[:, 1, 2] = hd[:, 2, 1] = np.bincount(to, wny * dth, n)
+        hd[:, 2, 2] = np.bincount(to, wdth * dth, n)
+        grad: FloatArray = np.column_stack([np.bincount(to, v * r, n) for v in (wnx, wny, wdth)])
+        dev = pose - start
+        dev[:, 2] -= 2.0 * math.pi * np.round(dev[:, 2] / (2.0 * math.pi))
+        grad += lam * dev
+        hess = hd + np.diag(lam)
+        act = np.flatnonzero(active)
+        step = np.zeros((n, 3))
+        try:
+            step[act] = -np.linalg.solve(hess[act], grad[act, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:  # one of them singular: each alone, as icp_refine would
+            for k in act.tolist():
+                sol = _solve(hess[k], grad[k])
+                if sol is None:
+                    active[k] = False
+                else:
+                    step[k] = -sol
+        pose[active] += step[active]
+        hd_last[active] = hd[active]
+        has_hd |= active
+        done = active & (np.hypot(step[:, 0], step[:, 1]) < tolerance) & (np.abs(step[:, 2]) < tolerance)
+        active &= ~done
+        if not active.any():
+            break
+    weak = np.zeros(len(batch))
+    if has_hd.any():
+        weak[has_hd] = np.linalg.eigvalsh(hd_last[has_hd])[:, 0]
+    for k, t in enumerate(batch):
+        info = hd_last[k].copy() if has_hd[k] else None
+        p = (float(pose[k, 0]), float(pose[k, 1]), float(pose[k, 2]))
+        out[t] = IcpResult(p, int(inliers[k]), float(weak[k]), info)
