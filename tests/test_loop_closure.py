@@ -710,6 +710,48 @@ def test_a_large_correction_is_refused_where_the_guess_matches_too() -> None:
     assert run_check(replace(check, confirms=taken.closure)).outcome == "accepted"
 
 
+def test_checks_run_together_are_the_checks_run_one_by_one() -> None:
+    """``run_checks`` (the final pass: every node checked against a submap, the point-to-line of all at
+    once) gives each check ``run_check``'s verdict, and its closure to rounding: accepted, refused
+    for its score, a look-alike refused, and a scan with too few points, in one batch."""
+    from fleetlink.agent.mapping.closure import Check, draw_submap, run_check, run_checks
+
+    rc = Raycaster(WALLS)
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    m = OnboardMapper(MapperConfig())
+    for i in range(40):
+        pose = (1.0 + 0.12 * i, 1.0, math.radians(2.0 * math.sin(0.3 * i)))
+        r = rc.cast_fan(pose[0], pose[1], pose[2] - math.pi, 2 * math.pi / 360, 360, MAX_RANGE)
+        m.add_scan_odometry(0.1 * i, np.where(np.isfinite(r), r, np.nan), angles, pose)
+    closer = m.closer
+    assert closer is not None and len(closer.scans) >= 12
+    poses, scans = closer.poses, closer.scans
+    cfg = CloserConfig()
+    drawn = draw_submap(tuple(zip(poses[:8], scans[:8], strict=True)), GridConfig(), cfg)
+    window = (0.5, math.radians(5.0))
+    checks = []
+    for k in range(8, len(scans)):
+        node = poses[k]
+        guess = (node[0] + 0.08, node[1] - 0.05, node[2] + 0.02)
+        checks.append(Check(k, 0, 0, scans[k], guess, window, drawn, (), cfg, GridConfig(), (0.0, 0.0, 0.0)))
+    far = checks[0].guess
+    checks.append(replace(checks[0], guess=(far[0] + 3.0, far[1] - 2.0, far[2] + 1.5)))  # nothing there
+    few = replace(scans[9], points=scans[9].points[:5], match_points=scans[9].match_points[:5])
+    checks.append(replace(checks[1], scan=few))
+    checks.append(replace(checks[2], unique=True, guess=(far[0] + 0.4, far[1], far[2])))
+    alone = [run_check(c) for c in checks]
+    together = run_checks(checks)
+    outcomes = [r.outcome for r in alone]
+    assert "accepted" in outcomes and "score" in outcomes and "few points" in outcomes
+    assert [r.outcome for r in together] == outcomes
+    for a, b in zip(alone, together, strict=True):
+        assert (a.closure is None) == (b.closure is None)
+        if a.closure is not None and b.closure is not None:
+            assert b.closure.z == pytest.approx(a.closure.z, abs=1e-9)
+            assert b.closure.score == pytest.approx(a.closure.score, abs=1e-9)
+            assert b.closure.inlier_ratio == pytest.approx(a.closure.inlier_ratio, abs=1e-9)
+
+
 def test_a_tail_that_comes_back_off_the_final_window_is_searched_wider() -> None:
     """A robot that comes back to its start only at the end, no online closure after it (here none
     at all, and an odometry slip of 0.6 m on the way): its tail lies further from the first submaps

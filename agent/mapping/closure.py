@@ -922,22 +922,20 @@ class LoopCloser:
             self._token,
         )
 
-    def _verify(
-        self,
-        k: int,
-        sm: _Submap,
-        fix: Pose = (0.0, 0.0, 0.0),
-        window: tuple[float, float] | None = None,
-        partial: bool = False,
-        unique: bool = False,
-    ) -> Closure | None:
-        """Match node ``k``'s scan against ``sm`` in line (see ``_check``), counted in the stats.
+    def _verify_all(
+        self, ks: Sequence[int], sm: _Submap, window: tuple[float, float], partial: bool = False, unique: bool = False
+    ) -> list[Closure]:
+        """Each node of ``ks`` matched against ``sm`` in line (the final pass: see ``_check``; all
+        together, ``run_checks``), counted in the stats; the closures found, in the order of ``ks``.
         ``partial``: a match ill-posed along one direction only is kept as a partial closure; it and
         ``unique``: refused where the guess is a match too (``final_ambiguity_jump``)."""
-        check = self._check(k, sm, fix, window)
-        if partial or unique:
-            check = replace(check, partial=partial, unique=self.config.final_ambiguity_jump > 0)
-        return self._note(run_check(self._with_drawn(check)), attempt=False)
+        checks = []
+        for k in ks:  # one by one: the first draws the submap, the rest find it drawn
+            check = self._check(k, sm, window=window)
+            if partial or unique:
+                check = replace(check, partial=partial, unique=self.config.final_ambiguity_jump > 0)
+            checks.append(self._with_drawn(check))
+        return [c for r in run_checks(checks) if (c := self._note(r, attempt=False)) is not None]
 
     def _with_drawn(self, check: Check) -> Check:
         """In line: the check with its submap drawn here, into the cache (unless the scan has too few
@@ -996,10 +994,7 @@ class LoopCloser:
         found: list[Closure] = []
         window = (cfg.final_window_xy, cfg.final_window_theta)
         for s_i in sorted(pairs):
-            for k in pairs[s_i]:
-                c = self._verify(k, self.submaps[s_i], window=window, partial=cfg.final_partial_sigma > 0)
-                if c is not None:
-                    found.append(c)
+            found += self._verify_all(pairs[s_i], self.submaps[s_i], window, partial=cfg.final_partial_sigma > 0)
         if cfg.final_wide_window_xy > cfg.final_window_xy:
             # A node no submap took in the small window, with submaps near it: searched again wider.
             anchored = {c.node for c in found}
@@ -1007,12 +1002,10 @@ class LoopCloser:
             gap = cfg.final_wide_min_gap_nodes
             for s_i in sorted(pairs):
                 sm = self.submaps[s_i]
-                for k in pairs[s_i]:
-                    if k not in anchored and not sm.first - gap < k < sm.last + gap:
-                        c = self._verify(k, sm, window=wide, unique=True)
-                        if c is not None:
-                            found.append(c)
-                            self.stats.final_wide += 1
+                loose = [k for k in pairs[s_i] if k not in anchored and not sm.first - gap < k < sm.last + gap]
+                wider = self._verify_all(loose, sm, wide, unique=True)
+                found += wider
+                self.stats.final_wide += len(wider)
         if cfg.final_pair_per_node > 0:
             found += self._scan_pairs(xyt)
         info = np.diag([1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_theta**2])
@@ -1305,22 +1298,54 @@ def run_check(check: Check) -> CheckResult:
     points; accepted when the refined score, the inlier share, the two answers' agreement and the
     weakest information all pass (``CloserConfig``). The submap is drawn first if the check carries
     only its parts."""
+    head = _check_search(check)
+    if isinstance(head, CheckResult):
+        return head
+    drawn, found, score = head
+    r = icp_refine(drawn.local, check.scan.points, found, found, (1.0, 1.0), 0.03, 0.15, iterations=12)
+    return _check_judge(check, drawn, found, score, r)
+
+
+def run_checks(checks: Sequence[Check]) -> list[CheckResult]:
+    """``run_check`` of each of ``checks`` (a replay's final pass: every node checked against a submap),
+    their point-to-line refinements all at once (``icp_refine_many``: the same answers to rounding)."""
+    heads = [_check_search(c) for c in checks]
+    todo = [(i, h) for i, h in enumerate(heads) if not isinstance(h, CheckResult)]
+    refined = icp_refine_many(
+        [(h[0].local, checks[i].scan.points, h[1]) for i, h in todo], (1.0, 1.0), 0.03, 0.15, iterations=12
+    )
+    out: list[CheckResult | None] = [h if isinstance(h, CheckResult) else None for h in heads]
+    for (i, (drawn, found, score)), r in zip(todo, refined, strict=True):
+        out[i] = _check_judge(checks[i], drawn, found, score, r)
+    return [r for r in out if r is not None]
+
+
+def _check_search(check: Check) -> CheckResult | tuple[Drawn, Pose, float]:
+    """``run_check``'s first half: the branch and bound and the Gauss-Newton on the field; the verdict if
+    that refuses the check, else the submap drawn, the pose found and its field score."""
     cfg = check.config
     sc = check.scan
     if len(sc.match_points) < 10 or len(sc.points) < 10:
         return CheckResult(check, None, "few points", None)
     drawn = check.drawn or draw_submap(check.parts, check.grid_config, cfg)
-    grid, local = drawn.grid, drawn.local
     wxy, wth = check.window
     # The lattice answer scores lower than the refined one (far points are off by the angle step):
     # search with a lower floor, and gate on the refined score.
     hit = search(drawn.grids, sc.match_points, check.guess, wxy, wth, cfg.search_min_score, cfg.angle_step)
     if hit is None:
         return CheckResult(check, None, "score", drawn)
-    found, score = _refine(grid, sc.match_points, hit[0])  # and the field score there
+    found, score = _refine(drawn.grid, sc.match_points, hit[0])  # and the field score there
     if score < cfg.min_score:
         return CheckResult(check, None, "score", drawn)
-    r = icp_refine(local, sc.points, found, found, (1.0, 1.0), 0.03, 0.15, iterations=12)
+    return drawn, found, score
+
+
+def _check_judge(check: Check, drawn: Drawn, found: Pose, score: float, r: IcpResult) -> CheckResult:
+    """``run_check``'s second half: the verdict on ``r``, the point-to-line answer from ``found``."""
+    cfg = check.config
+    sc = check.scan
+    grid, local = drawn.grid, drawn.local
+    wxy, wth = check.window
     ratio, facing = _inliers(local, sc.points, r.pose, cfg.inlier_distance)
     if ratio < cfg.min_inlier_ratio:
         return CheckResult(check, None, "inliers", drawn)
