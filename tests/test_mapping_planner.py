@@ -237,6 +237,10 @@ def test_barred_by_movable_tells_a_robot_drawn_on_the_goal_from_a_wall() -> None
     assert not planner.barred_by_movable((4.85, 1.6))  # on the blob that joins the wall
     assert not planner.barred_by_movable((7.0, 3.0))  # free: not barred by anything
     assert not planner.barred_by_movable((math.nan, 1.0))
+    g3 = g.copy()
+    for k in range(11):  # a stub of wall on the diagonal, 0.76 m long, in a box 0.55 m a side
+        g3[70 + k, 160 + k] = 100
+    assert not PathPlanner(g3, RES, (0.0, 0.0), PlannerConfig()).barred_by_movable((8.275, 3.775))
     g2 = g.copy()
     g2[:, -1] = 0
     g2[20:26, 194:200] = 100  # a robot at the map's edge: what lies beyond is not known

@@ -418,8 +418,8 @@ class PathPlanner:
 
     def barred_by_movable(self, p: Point) -> bool:
         """``p`` (a goal) is barred by known walls within the inflation of it, and every one of them
-        lies in a piece of occupied cells no bigger than ``MOVABLE_SIZE_M`` (8-connected, looked for
-        within that of them): the size of a robot or a person, which may have moved since the map
+        lies in a piece of occupied cells no longer than ``MOVABLE_SIZE_M`` any way across (8-connected,
+        looked for within that of them): the size of a robot or a person, which may have moved since the map
         drew it, not a wall of the building, which runs on. The route goes nearer such a goal to
         look again before it gives up on it (agent/route.py ``_approach``)."""
         if not (math.isfinite(p[0]) and math.isfinite(p[1])):
@@ -446,6 +446,12 @@ class PathPlanner:
             if rows.min() == 0 or cols.min() == 0 or rows.max() == wh - 1 or cols.max() == ww - 1:
                 return False  # runs on beyond the window: a wall
             if (max(np.ptp(rows), np.ptp(cols)) + 1) * res > MOVABLE_SIZE_M:
+                return False
+            # Its longest extent, not its box's side: a stub of wall on the diagonal fits a 0.6 m box
+            # at 0.85 m long. (A piece that fits the box has a few hundred cells at most.)
+            if (
+                float(np.hypot(rows[:, None] - rows[None, :], cols[:, None] - cols[None, :]).max()) + 1
+            ) * res > MOVABLE_SIZE_M:
                 return False
             left &= ~piece
         return True
