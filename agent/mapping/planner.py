@@ -448,7 +448,8 @@ class PathPlanner:
             if (max(np.ptp(rows), np.ptp(cols)) + 1) * res > MOVABLE_SIZE_M:
                 return False
             # Its longest extent, not its box's side: a stub of wall on the diagonal fits a 0.6 m box
-            # at 0.85 m long. (A piece that fits the box has a few hundred cells at most.)
+            # at 0.85 m long. So does a crate 0.5 m square (0.71 m corner to corner), now a wall too;
+            # a robot (0.34 m round) or a person fits. (A piece that fits the box has a few hundred cells.)
             if (
                 float(np.hypot(rows[:, None] - rows[None, :], cols[:, None] - cols[None, :]).max()) + 1
             ) * res > MOVABLE_SIZE_M:
