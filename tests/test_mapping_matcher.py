@@ -364,3 +364,34 @@ def test_many_refinements_at_once_are_each_refined_alone(monkeypatch) -> None:  
     monkeypatch.setattr(matcher, "_MANY_POINTS", 300)  # a batch of a task or two
     cut = icp_refine_many(tasks, (1.0, 1.0), 0.03, 0.15, iterations=20, tolerance=1e-3)
     assert [(r.pose, r.inliers, r.weak) for r in cut] == [(r.pose, r.inliers, r.weak) for r in together]
+
+
+def test_many_field_refinements_at_once_are_each_refined_alone() -> None:
+    """``_refine_many`` (the final pass: a submap's checks together) is ``_refine`` of each (points,
+    pose): the same pose and score to rounding, starts near and far (points past the grid's edge),
+    scans of different lengths, one with no points (kept where it is, score -1) and no iterations."""
+    from fleetlink.agent.mapping.matcher import _refine, _refine_many
+
+    rc = Raycaster(ROOM)
+    m = OnboardMapper(MapperConfig(closer=None))
+    truth = (2.0, 1.2, 0.3)
+    m.add_scan(0.0, _scan(rc, truth), ANGLES, truth)
+    rng = np.random.default_rng(5)
+    pts = np.column_stack((np.cos(ANGLES), np.sin(ANGLES))) * _scan(rc, truth)[:, None]
+    pts = pts[np.hypot(pts[:, 0], pts[:, 1]) > 0]
+    tasks = []
+    for k in range(30):
+        start = (truth[0] + rng.normal(0, 0.08), truth[1] + rng.normal(0, 0.08), truth[2] + rng.normal(0, 0.04))
+        if k % 10 == 9:  # far off: points past the grid's edge
+            start = (start[0] - 9.0, start[1], start[2])
+        tasks.append((pts[k % 3 :: 2 + k % 4], start))
+    tasks.append((np.zeros((0, 2)), truth))
+    together = _refine_many(m.grid, tasks)
+    assert together[-1] == (truth, -1.0)
+    moved = 0
+    for (p, start), (pose, score) in zip(tasks[:-1], together[:-1], strict=True):
+        ref_pose, ref_score = _refine(m.grid, p, start)
+        assert pose == pytest.approx(ref_pose, abs=1e-9) and score == pytest.approx(ref_score, abs=1e-9)
+        moved += math.dist(pose[:2], start[:2]) > 0.01
+    assert moved > 10
+    assert _refine_many(m.grid, tasks[:3], iterations=0) == [(t[1], -1.0) for t in tasks[:3]]

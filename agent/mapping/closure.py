@@ -49,7 +49,15 @@ import numpy.typing as npt
 
 from fleetlink.agent.mapping.bnb import PrecomputedGrids, search
 from fleetlink.agent.mapping.grid import GridConfig, LogOddsGrid
-from fleetlink.agent.mapping.matcher import IcpResult, LocalMap, _refine, field_score, icp_refine, icp_refine_many
+from fleetlink.agent.mapping.matcher import (
+    IcpResult,
+    LocalMap,
+    _refine,
+    _refine_many,
+    field_score,
+    icp_refine,
+    icp_refine_many,
+)
 from fleetlink.agent.mapping.posegraph import PoseGraph
 from fleetlink.agent.mapping.scan import surface_fill
 from fleetlink.shared.se2 import Pose, compose, inverse, relative, wrap
@@ -1298,31 +1306,50 @@ def run_check(check: Check) -> CheckResult:
     points; accepted when the refined score, the inlier share, the two answers' agreement and the
     weakest information all pass (``CloserConfig``). The submap is drawn first if the check carries
     only its parts."""
-    head = _check_search(check)
-    if isinstance(head, CheckResult):
-        return head
-    drawn, found, score = head
+    hit = _check_search(check)
+    if isinstance(hit, CheckResult):
+        return hit
+    drawn = hit[0]
+    found, score = _refine(drawn.grid, check.scan.match_points, hit[1])  # and the field score there
+    if score < check.config.min_score:
+        return CheckResult(check, None, "score", drawn)
     r = icp_refine(drawn.local, check.scan.points, found, found, (1.0, 1.0), 0.03, 0.15, iterations=12)
     return _check_judge(check, drawn, found, score, r)
 
 
 def run_checks(checks: Sequence[Check]) -> list[CheckResult]:
     """``run_check`` of each of ``checks`` (a replay's final pass: every node checked against a submap),
-    their point-to-line refinements all at once (``icp_refine_many``: the same answers to rounding)."""
-    heads = [_check_search(c) for c in checks]
-    todo = [(i, h) for i, h in enumerate(heads) if not isinstance(h, CheckResult)]
-    refined = icp_refine_many(
-        [(h[0].local, checks[i].scan.points, h[1]) for i, h in todo], (1.0, 1.0), 0.03, 0.15, iterations=12
+    the Gauss-Newton on the field of those against one submap together (``_refine_many``) and the
+    point-to-line refinements of all at once (``icp_refine_many``): the same answers to rounding."""
+    out: list[CheckResult | None] = [None] * len(checks)
+    hits: dict[int, list[tuple[int, Drawn, Pose]]] = {}  # per submap drawn, its checks' hits
+    for i, c in enumerate(checks):
+        hit = _check_search(c)
+        if isinstance(hit, CheckResult):
+            out[i] = hit
+        else:
+            hits.setdefault(id(hit[0]), []).append((i, *hit))
+    passed: list[tuple[int, Drawn, Pose, float]] = []
+    for group in hits.values():
+        drawn = group[0][1]
+        refined = _refine_many(drawn.grid, [(checks[i].scan.match_points, p) for i, _, p in group])
+        for (i, _, _), (found, score) in zip(group, refined, strict=True):
+            if score < checks[i].config.min_score:
+                out[i] = CheckResult(checks[i], None, "score", drawn)
+            else:
+                passed.append((i, drawn, found, score))
+    passed.sort(key=lambda p: p[0])
+    answers = icp_refine_many(
+        [(d.local, checks[i].scan.points, f) for i, d, f, _ in passed], (1.0, 1.0), 0.03, 0.15, iterations=12
     )
-    out: list[CheckResult | None] = [h if isinstance(h, CheckResult) else None for h in heads]
-    for (i, (drawn, found, score)), r in zip(todo, refined, strict=True):
+    for (i, drawn, found, score), r in zip(passed, answers, strict=True):
         out[i] = _check_judge(checks[i], drawn, found, score, r)
     return [r for r in out if r is not None]
 
 
-def _check_search(check: Check) -> CheckResult | tuple[Drawn, Pose, float]:
-    """``run_check``'s first half: the branch and bound and the Gauss-Newton on the field; the verdict if
-    that refuses the check, else the submap drawn, the pose found and its field score."""
+def _check_search(check: Check) -> CheckResult | tuple[Drawn, Pose]:
+    """``run_check``'s branch and bound: the verdict if it refuses the check, else the submap drawn and
+    the best pose on its lattice."""
     cfg = check.config
     sc = check.scan
     if len(sc.match_points) < 10 or len(sc.points) < 10:
@@ -1334,14 +1361,12 @@ def _check_search(check: Check) -> CheckResult | tuple[Drawn, Pose, float]:
     hit = search(drawn.grids, sc.match_points, check.guess, wxy, wth, cfg.search_min_score, cfg.angle_step)
     if hit is None:
         return CheckResult(check, None, "score", drawn)
-    found, score = _refine(drawn.grid, sc.match_points, hit[0])  # and the field score there
-    if score < cfg.min_score:
-        return CheckResult(check, None, "score", drawn)
-    return drawn, found, score
+    return drawn, hit[0]
 
 
 def _check_judge(check: Check, drawn: Drawn, found: Pose, score: float, r: IcpResult) -> CheckResult:
-    """``run_check``'s second half: the verdict on ``r``, the point-to-line answer from ``found``."""
+    """``run_check``'s last part: the verdict on ``r``, the point-to-line answer from ``found`` (the
+    field's Gauss-Newton answer, scoring ``score``)."""
     cfg = check.config
     sc = check.scan
     grid, local = drawn.grid, drawn.local

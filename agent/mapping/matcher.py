@@ -895,3 +895,117 @@ def _refine_batch(
         info = hd_last[k].copy() if has_hd[k] else None
         p = (float(pose[k, 0]), float(pose[k, 1]), float(pose[k, 2]))
         out[t] = IcpResult(p, int(inliers[k]), float(weak[k]), info)
+
+
+def _refine_many(
+    grid: FieldMap, tasks: Sequence[tuple[FloatArray, Pose]], iterations: int = 8
+) -> list[tuple[Pose, float]]:
+    """``_refine`` of each (points, pose) of ``tasks`` on one field, all at once: the same steps,
+    halvings and stops task by task, its sums over each task's points taken in another order (so an
+    answer may differ from ``_refine``'s in the last bits). A task with no points keeps its pose
+    (score -1)."""
+    res, origin, field = grid.resolution, grid.origin, grid.field
+    out: list[tuple[Pose, float]] = [(p, -1.0) for _, p in tasks]
+    live = [t for t, (pts, _) in enumerate(tasks) if len(pts)]
+    if not live:
+        return out
+    n_t = len(live)
+    counts = np.array([len(tasks[t][0]) for t in live])
+    tp = np.repeat(np.arange(n_t), counts)
+    pts = np.vstack([tasks[t][0] for t in live])
+    px, py = pts[:, 0], pts[:, 1]
+    n = counts.astype(np.float64)
+    pose = np.array([tasks[t][1] for t in live], dtype=np.float64)
+    current = np.full(n_t, -1.0)
+    active = np.ones(n_t, dtype=bool)
+
+    def corners(x: FloatArray, y: FloatArray, c: FloatArray, s: FloatArray) -> tuple[FloatArray, ...]:
+        """Per point (its task's pose per point): the field's four corners and the fractions."""
+        u = (x + c * px - s * py - origin[0]) / res - 0.5
+        v = (y + s * px + c * py - origin[1]) / res - 0.5
+        uf, vf = np.floor(u), np.floor(v)
+        u0, v0 = uf.astype(np.int64), vf.astype(np.int64)
+        return (
+            _lookup(field, v0, u0),
+            _lookup(field, v0, u0 + 1),
+            _lookup(field, v0 + 1, u0),
+            _lookup(field, v0 + 1, u0 + 1),
+            u - uf,
+            v - vf,
+        )
+
+    def trig(th: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return np.array([math.cos(a) for a in th]), np.array([math.sin(a) for a in th])
+
+    for _ in range(iterations):
+        c, s = trig(pose[:, 2])
+        m00, m10, m01, m11, fu, fv = corners(pose[tp, 0], pose[tp, 1], c[tp], s[tp])
+        gu, gv = 1 - fu, 1 - fv
+        val = gv * (gu * m00 + fu * m10) + fv * (gu * m01 + fu * m11)
+        du = gv * (m10 - m00) + fv * (m11 - m01)
+        dv = gu * (m01 - m00) + fu * (m11 - m10)
+        first = current < 0.0
+        current[first] = (np.bincount(tp, val, n_t) / n)[first]
+        gx, gy = du / res, dv / res
+        j2 = gx * (-s[tp] * px - c[tp] * py) + gy * (c[tp] * px - s[tp] * py)
+        hess = np.empty((n_t, 3, 3))
+        cols = (gx, gy, j2)
+        for a in range(3):
+            for b in range(a, 3):
+                hess[:, a, b] = hess[:, b, a] = np.bincount(tp, cols[a] * cols[b], n_t)
+        e = 1.0 - val
+        grad = np.column_stack([np.bincount(tp, col * e, n_t) for col in cols])
+        diag = hess[:, [0, 1, 2], [0, 1, 2]]
+        active &= np.isfinite(hess.sum(axis=(1, 2))) & (diag.sum(axis=1) >= 1e-9)
+        if not active.any():
+            break
+        hess[:, [0, 1, 2], [0, 1, 2]] = diag + (np.maximum(diag, 1e-6) * 0.1 + 1e-6)
+        act = np.flatnonzero(active)
+        step = np.zeros((n_t, 3))
+        try:
+            step[act] = np.linalg.solve(hess[act], grad[act, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:  # one of them singular: each alone, as _refine would
+            for k in act.tolist():
+                sol = _solve(hess[k], grad[k])
+                if sol is None:
+                    active[k] = False
+                else:
+                    step[k] = sol
+        bound = np.maximum(
+            1.0, np.maximum(np.hypot(step[:, 0], step[:, 1]) / res, np.abs(step[:, 2]) / math.radians(1.0))
+        )
+        step /= bound[:, None]
+        # Four halvings of each step, scored together: (task, halving) per column of the points.
+        scores = np.full((n_t, 4), -np.inf)
+        cand = np.empty((n_t, 4, 3))
+        sel = np.flatnonzero(active[tp])
+        for h_ in range(4):
+            cand[:, h_] = pose + step / (2.0**h_)
+            cc, ss = trig(cand[:, h_, 2])
+            q = tp[sel]
+            px_s, py_s = px[sel], py[sel]
+            u = (cand[q, h_, 0] + cc[q] * px_s - ss[q] * py_s - origin[0]) / res - 0.5
+            v = (cand[q, h_, 1] + ss[q] * px_s + cc[q] * py_s - origin[1]) / res - 0.5
+            uf, vf = np.floor(u), np.floor(v)
+            u0, v0 = uf.astype(np.int64), vf.astype(np.int64)
+            fu_, fv_ = u - uf, v - vf
+            g_u = 1 - fu_
+            blend = (1 - fv_) * (g_u * _lookup(field, v0, u0) + fu_ * _lookup(field, v0, u0 + 1)) + fv_ * (
+                g_u * _lookup(field, v0 + 1, u0) + fu_ * _lookup(field, v0 + 1, u0 + 1)
+            )
+            scores[:, h_] = np.bincount(q, blend, n_t) / n
+        better = scores > current[:, None]
+        moved = active & better.any(axis=1)
+        k = better.argmax(axis=1)
+        active &= moved  # no step along this direction helps: at the optimum
+        idx = np.flatnonzero(moved)
+        new_score = scores[idx, k[idx]]
+        gain = new_score - current[idx]
+        pose[idx] = cand[idx, k[idx]]
+        current[idx] = new_score
+        active[idx[gain < 1e-5]] = False
+        if not active.any():
+            break
+    for i, t in enumerate(live):
+        out[t] = ((float(pose[i, 0]), float(pose[i, 1]), float(pose[i, 2])), float(current[i]))
+    return out
