@@ -447,6 +447,23 @@ def _solve(a: FloatArray, b: FloatArray) -> FloatArray | None:
     return out
 
 
+def _solve_each(a: FloatArray, b: FloatArray, active: npt.NDArray[np.bool_]) -> FloatArray:
+    """``_solve`` of each (3, 3) system ``a[k] x = b[k]`` that is ``active``, at once (0 for the rest);
+    a singular one, as ``_solve`` finds it alone, is made inactive instead (its solution 0)."""
+    out = np.zeros(b.shape)
+    act = np.flatnonzero(active)
+    try:
+        out[act] = np.linalg.solve(a[act], b[act, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:  # one of them singular: each alone
+        for k in act.tolist():
+            sol = _solve(a[k], b[k])
+            if sol is None:
+                active[k] = False
+            else:
+                out[k] = sol
+    return out
+
+
 def _corners_at(
     field: npt.NDArray[np.float32],
     px: FloatArray,
@@ -870,17 +887,7 @@ def _refine_batch(
         dev[:, 2] -= 2.0 * math.pi * np.round(dev[:, 2] / (2.0 * math.pi))
         grad += lam * dev
         hess = hd + np.diag(lam)
-        act = np.flatnonzero(active)
-        step = np.zeros((n, 3))
-        try:
-            step[act] = -np.linalg.solve(hess[act], grad[act, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:  # one of them singular: each alone, as icp_refine would
-            for k in act.tolist():
-                sol = _solve(hess[k], grad[k])
-                if sol is None:
-                    active[k] = False
-                else:
-                    step[k] = -sol
+        step = -_solve_each(hess, grad, active)
         pose[active] += step[active]
         hd_last[active] = hd[active]
         has_hd |= active
@@ -954,23 +961,13 @@ def _refine_many(
             for b in range(a, 3):
                 hess[:, a, b] = hess[:, b, a] = np.bincount(tp, cols[a] * cols[b], n_t)
         e = 1.0 - val
-        grad = np.column_stack([np.bincount(tp, col * e, n_t) for col in cols])
+        grad: FloatArray = np.column_stack([np.bincount(tp, col * e, n_t) for col in cols])
         diag = hess[:, [0, 1, 2], [0, 1, 2]]
         active &= np.isfinite(hess.sum(axis=(1, 2))) & (diag.sum(axis=1) >= 1e-9)
         if not active.any():
             break
         hess[:, [0, 1, 2], [0, 1, 2]] = diag + (np.maximum(diag, 1e-6) * 0.1 + 1e-6)
-        act = np.flatnonzero(active)
-        step = np.zeros((n_t, 3))
-        try:
-            step[act] = np.linalg.solve(hess[act], grad[act, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:  # one of them singular: each alone, as _refine would
-            for k in act.tolist():
-                sol = _solve(hess[k], grad[k])
-                if sol is None:
-                    active[k] = False
-                else:
-                    step[k] = sol
+        step = _solve_each(hess, grad, active)
         bound = np.maximum(
             1.0, np.maximum(np.hypot(step[:, 0], step[:, 1]) / res, np.abs(step[:, 2]) / math.radians(1.0))
         )
