@@ -926,27 +926,21 @@ def _refine_many(
     current = np.full(n_t, -1.0)
     active = np.ones(n_t, dtype=bool)
 
-    def corners(x: FloatArray, y: FloatArray, c: FloatArray, s: FloatArray) -> tuple[FloatArray, ...]:
-        """Per point (its task's pose per point): the field's four corners and the fractions."""
-        u = (x + c * px - s * py - origin[0]) / res - 0.5
-        v = (y + s * px + c * py - origin[1]) / res - 0.5
-        uf, vf = np.floor(u), np.floor(v)
-        u0, v0 = uf.astype(np.int64), vf.astype(np.int64)
-        return (
-            _lookup(field, v0, u0),
-            _lookup(field, v0, u0 + 1),
-            _lookup(field, v0 + 1, u0),
-            _lookup(field, v0 + 1, u0 + 1),
-            u - uf,
-            v - vf,
-        )
-
     def trig(th: FloatArray) -> tuple[FloatArray, FloatArray]:
         return np.array([math.cos(a) for a in th]), np.array([math.sin(a) for a in th])
 
+    def corners(at: FloatArray, which: npt.NDArray[np.intp]) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``_corners`` of the points ``which``, each seen from its task's pose in ``at``."""
+        c, s = trig(at[:, 2])
+        q, x, y = tp[which], px[which], py[which]
+        u = (at[q, 0] + c[q] * x - s[q] * y - origin[0]) / res - 0.5
+        v = (at[q, 1] + s[q] * x + c[q] * y - origin[1]) / res - 0.5
+        return _corners(field, u, v)
+
+    every = np.arange(len(tp))
     for _ in range(iterations):
         c, s = trig(pose[:, 2])
-        m00, m10, m01, m11, fu, fv = corners(pose[tp, 0], pose[tp, 1], c[tp], s[tp])
+        (m00, m10, m01, m11), fu, fv = corners(pose, every)
         gu, gv = 1 - fu, 1 - fv
         val = gv * (gu * m00 + fu * m10) + fv * (gu * m01 + fu * m11)
         du = gv * (m10 - m00) + fv * (m11 - m01)
@@ -972,25 +966,13 @@ def _refine_many(
             1.0, np.maximum(np.hypot(step[:, 0], step[:, 1]) / res, np.abs(step[:, 2]) / math.radians(1.0))
         )
         step /= bound[:, None]
-        # Four halvings of each step, scored together: (task, halving) per column of the points.
-        scores = np.full((n_t, 4), -np.inf)
+        # Four halvings of each step, each scored for every task still refining (the rest: never taken).
+        scores = np.empty((n_t, 4))
         cand = np.empty((n_t, 4, 3))
         sel = np.flatnonzero(active[tp])
         for h_ in range(4):
             cand[:, h_] = pose + step / (2.0**h_)
-            cc, ss = trig(cand[:, h_, 2])
-            q = tp[sel]
-            px_s, py_s = px[sel], py[sel]
-            u = (cand[q, h_, 0] + cc[q] * px_s - ss[q] * py_s - origin[0]) / res - 0.5
-            v = (cand[q, h_, 1] + ss[q] * px_s + cc[q] * py_s - origin[1]) / res - 0.5
-            uf, vf = np.floor(u), np.floor(v)
-            u0, v0 = uf.astype(np.int64), vf.astype(np.int64)
-            fu_, fv_ = u - uf, v - vf
-            g_u = 1 - fu_
-            blend = (1 - fv_) * (g_u * _lookup(field, v0, u0) + fu_ * _lookup(field, v0, u0 + 1)) + fv_ * (
-                g_u * _lookup(field, v0 + 1, u0) + fu_ * _lookup(field, v0 + 1, u0 + 1)
-            )
-            scores[:, h_] = np.bincount(q, blend, n_t) / n
+            scores[:, h_] = np.bincount(tp[sel], _blend(*corners(cand[:, h_], sel)), n_t) / n
         better = scores > current[:, None]
         moved = active & better.any(axis=1)
         k = better.argmax(axis=1)
