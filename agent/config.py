@@ -7,6 +7,7 @@ lidar = "socket://127.0.0.1:7002"           # optional
 tag = "r1"                                  # UWB tag / PANS node id
 map_id = "office"
 operators = ["op-alice", "op-bob"]          # who may command this robot (header sender); [] = anyone
+peers = ["r2", "r3"]                        # the other robots on the floor: standing ones are planned around
 
 [zenoh]
 listen = []
@@ -201,6 +202,9 @@ class AgentConfig:
     uv: UvTable | None = None
     """The UV-C lamp (None: no lamp, no dose layer)."""
     mapping: MappingTable = field(default_factory=MappingTable)
+    peers: tuple[str, ...] = ()
+    """The other robots on the floor, whose fused poses the agent hears (agent/peers.py): where one
+    stands still in the site frame, the robot's legs are planned around it."""
 
 
 def _robot_id(robot: str) -> str:
@@ -223,6 +227,10 @@ class RobotFile:
         tuple[Annotated[str, Setting(min_len=1, max_len=64)], ...],
         Setting(what="a list of operator ids", doc="who may command this robot; [] = anyone"),
     ] = ()
+    peers: Annotated[
+        tuple[Annotated[str, Setting(convert=_robot_id)], ...],
+        Setting(what="a list of robot ids", doc="the other robots on the floor, planned around where they stand"),
+    ] = ()
     zenoh: ZenohTable | None = None
     mqtt: MqttTable | None = None
     limits: Limits = field(default_factory=Limits)
@@ -235,6 +243,8 @@ class RobotFile:
     def validate(self) -> None:
         if self.zenoh is None and self.mqtt is None:
             raise Invalid("", "needs a [zenoh] or an [mqtt] table (or both): the agent must hear its operator")
+        if self.robot in self.peers:
+            raise Invalid("peers", f"lists the robot itself ({self.robot!r}): peers are the other robots")
 
 
 def load_agent_config(path: str | Path) -> AgentConfig:
@@ -274,4 +284,5 @@ def parse_agent_config(
         f.comms,
         f.uv,
         f.mapping,
+        tuple(dict.fromkeys(f.peers)),
     )

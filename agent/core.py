@@ -29,9 +29,9 @@ at the state rate.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 from fleetlink.agent.contact import ContactKeeper
 from fleetlink.agent.fusion import Fusion
@@ -42,6 +42,7 @@ from fleetlink.agent.itinerary import Finished, GoTo, Itinerary, ItineraryError,
 from fleetlink.agent.lease import DRIVE_LEASE_S, LeaseKeeper
 from fleetlink.agent.links.gate import Accepted, CommandGate, Duplicate, Rejected, always_allowed
 from fleetlink.agent.odometry import Odometry, OdomPose
+from fleetlink.agent.peers import PeerBodies
 from fleetlink.agent.pilot import (
     ActionKind,
     CommandResult,
@@ -55,9 +56,10 @@ from fleetlink.agent.pilot import (
     PilotOutput,
 )
 from fleetlink.agent.pilot import OperatingMode as PilotMode
+from fleetlink.agent.route import BodyAwareProvider
 from fleetlink.agent.uwb_input import FixObservation, fix_from_pans, fix_from_uwb
 from fleetlink.devices.controlbus.snapshot import BoardSnapshot
-from fleetlink.shared import wire
+from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.messages import (
     MAX_DIAGNOSTIC_COUNTS,
@@ -276,6 +278,7 @@ class AgentCore:
         home: HomeKeeper | None = None,
         contact: ContactKeeper | None = None,
         lamp_radius_m: float = LAMP_RADIUS_M,
+        peers: PeerBodies | None = None,
     ) -> None:
         self.robot = robot
         self.clock = clock
@@ -287,6 +290,10 @@ class AgentCore:
         self.lease = lease or LeaseKeeper()
         self.home = home or HomeKeeper()
         self.contact = contact or ContactKeeper()
+        self.peers = peers or PeerBodies()
+        """The other robots' poses (robot.toml's ``peers``): the standing ones are planned around."""
+        self._plan_now = -math.inf
+        """The control step's time, for the path provider the pilot calls inside it."""
         if self.home.home is not None:
             h = self.home.home
             self.pilot.set_home((h.x, h.y, h.theta))
@@ -400,6 +407,27 @@ class AgentCore:
         self._control(now, out)
         return out
 
+    def on_peer(self, link: LinkName, key: str, payload: bytes, now: float) -> Output:
+        """A peer's fused pose (``fleetlink/v1/<peer>/pose``): kept to plan around, never a command
+        and no contact with an operator. Anything else, or what does not decode, is refused and counted."""
+        out = Output()
+        try:
+            robot, topic = keys.parse_key(key)
+        except ValueError as exc:
+            self._rejected(self.gate.reject(link, "?", f"key: {exc}"), out)
+            return out
+        if topic != Pose.TOPIC or robot not in self.peers.peers:
+            self._rejected(self.gate.reject(link, topic, f"key: not a peer's pose for agent {self.robot}: {key}"), out)
+            return out
+        try:
+            msg = wire.decode_key(key, payload)
+        except wire.WireError as exc:
+            self._rejected(self.gate.reject(link, topic, exc.reason, exc.field), out)
+            return out
+        assert isinstance(msg, Pose)  # decode_key checks the message against its key's topic
+        self.peers.hear(robot, msg, now)
+        return out
+
     def on_pans(self, link: LinkName, topic: str, payload: bytes, now: float) -> Output:
         """A PANS JSON location (``dwm/node/<tag>/uplink/location``)."""
         out = Output()
@@ -457,9 +485,26 @@ class AgentCore:
         ``OnboardMapper.plan`` (None while the map is still empty, so the pilot drives straight,
         exactly as without a map; [] when there is no path). None: no map, straight lines.
         ``sense``: what else the map says (room to back off, the echo to expect, clear legs; None:
-        the pilot backs off blind and never creeps)."""
-        self.pilot.path_provider = plan
+        the pilot backs off blind and never creeps). A ``BodyAwareProvider`` (the planner's
+        ``route``) is also handed the peers standing still (agent/peers.py)."""
+        self.pilot.path_provider = plan if plan is None or not self.peers.peers else self._among_peers(plan)
         self.pilot.map_sense = sense
+
+    def _among_peers(self, plan: PathProvider) -> PathProvider:
+        """``plan`` with the peers standing still in the site frame planned around as bodies, once
+        this robot is placed in that frame too. A new provider for each map: the route tells a newer
+        map by the provider's identity."""
+        aware = cast("BodyAwareProvider", plan)
+
+        def provider(
+            start: tuple[float, float], goal: tuple[float, float], /, blocked: Sequence[tuple[float, float]] = ()
+        ) -> Sequence[tuple[float, float]] | None:
+            bodies = self.peers.standing(self._plan_now) if self.fusion.position_initialized else ()
+            if bodies:
+                return aware(start, goal, blocked=blocked, bodies=bodies)
+            return plan(start, goal, blocked=blocked) if blocked else plan(start, goal)
+
+        return provider
 
     def lidar_status(self, fault: str | None, url: str) -> Output:
         """The lidar stopped delivering scans (``fault``: why) or delivers again (None): an event
@@ -585,6 +630,7 @@ class AgentCore:
         }
 
     def _control(self, now: float, out: Output) -> None:
+        self._plan_now = now
         self._itinerary_steps(now, out)
         if self.itinerary is not None and self.itinerary.driving:
             x, y, _ = self._map_pose()

@@ -37,12 +37,22 @@ from fleetlink.agent.mapping.keeper import MapKeeper, Turn, Update, onboard_mapp
 from fleetlink.agent.mapping.mapper import MapperConfig
 from fleetlink.agent.mapping.worker import KeeperHost
 from fleetlink.agent.odometry import Odometry
+from fleetlink.agent.peers import PeerBodies
 from fleetlink.agent.pilot import PayloadRequest, Pilot, PilotConfig
 from fleetlink.links.base import Link, QueryLink
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.dose import FloorMask
-from fleetlink.shared.messages import Connection, ConnectionState, LeaseRequest, LinkName, LinkStatus, Scan, UwbFix
+from fleetlink.shared.messages import (
+    Connection,
+    ConnectionState,
+    LeaseRequest,
+    LinkName,
+    LinkStatus,
+    Pose,
+    Scan,
+    UwbFix,
+)
 from fleetlink.shared.scan_codec import scan_fields
 from fleetlink.shared.se2 import compose, relative
 
@@ -166,6 +176,7 @@ class AgentNode:
             contact=ContactKeeper(
                 config.comms.policy, config.comms.timeout_s, payload_on_loss=config.comms.payload_on_loss
             ),
+            peers=PeerBodies(config.peers),
         )
         self.links: list[Link] = list(links)
         self.map_link = map_link
@@ -216,6 +227,12 @@ class AgentNode:
             for topic in INPUTS:
                 for key in input_keys(self.robot, topic, self.config.operators):
                     link.subscribe(key, receive)
+
+            def peer(key: str, payload: bytes, name: LinkName = name) -> None:
+                self.on_peer(name, key, payload)
+
+            for robot in self.config.peers:
+                link.subscribe(keys.key(robot, Pose.TOPIC), peer)
             if name is LinkName.MQTT:
                 link.subscribe(self.pans_topic, receive)
 
@@ -258,6 +275,12 @@ class AgentNode:
         if started and self.on_started is not None:
             self.on_started()
         return started
+
+    def on_peer(self, link: LinkName, key: str, payload: bytes) -> None:
+        """A peer's pose from a link (agent/peers.py): kept for planning, never a command."""
+        with self._lock:
+            if not self.halted:
+                self._apply(self.core.on_peer(link, key, payload, self.clock.now()))
 
     # -- the control step -------------------------------------------------------------------------
 

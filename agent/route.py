@@ -45,6 +45,7 @@ from fleetlink.agent.motion import GoToController, GoToPhase
 from fleetlink.shared.geometry import point_segment_distance
 
 __all__ = [
+    "BodyAwareProvider",
     "Destination",
     "Drive",
     "MovableCheck",
@@ -67,6 +68,16 @@ class PathProvider(Protocol):
     the robot found its way barred during this go-to (to be planned around)."""
 
     def __call__(self, start: Point, goal: Point, /, blocked: Sequence[Point] = ()) -> Sequence[Point] | None: ...
+
+
+class BodyAwareProvider(Protocol):
+    """A ``PathProvider`` that also plans around ``bodies``: the centres of other robots standing
+    where they report themselves (agent/peers.py), taken as they are (a ``blocked`` point near a
+    wall on the map is that wall; a robot standing by its own face on the map is not)."""
+
+    def __call__(
+        self, start: Point, goal: Point, /, blocked: Sequence[Point] = (), bodies: Sequence[Point] = ()
+    ) -> Sequence[Point] | None: ...
 
 
 @dataclass(frozen=True, slots=True)

@@ -20,7 +20,8 @@ links then pass nothing while it says False (``AgentRuntime(reachable=...)``).
 
 The disinfection robots (named ``uvc-*``) carry ``FIELD_LAMP`` (``field_uv``), so their agents keep
 a UV dose layer, here and in lockstep runs (site/lockstep.py); they are round bases that may turn in
-place beside furniture (``field_limits``).
+place beside furniture (``field_limits``). Each agent hears the other robots' poses and plans
+around the ones standing still (``field_peers``, agent/peers.py).
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from fleetlink.shared.messages import LinkName
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FIELD_LAMP", "FieldAgents", "field_limits", "field_uv"]
+__all__ = ["FIELD_LAMP", "FIELD_PEERS_MAX", "FieldAgents", "field_limits", "field_peers", "field_uv"]
 
 FIELD_LAMP = UvTable(uvc_power_w=40.0, height_m=0.6, dose_resolution_m=0.05)
 """The simulated disinfection robots' lamp: 40 W of UV-C (four 36 W low-pressure tubes, ~10 W of
@@ -61,6 +62,19 @@ def field_limits(robot: str) -> Limits:
     domestic bases, which may turn in place beside furniture; the scouts keep the seed's rule."""
     domestic = robot.startswith("uvc-")
     return Limits(round_base=domestic, creep_speed_mps=CREEP_SPEED_MPS if domestic else 0.0)
+
+
+FIELD_PEERS_MAX = 8
+"""Up to this many robots on the field, each agent hears every other's pose (``field_peers``). Each
+pose is 20 Hz, so n robots cost n(n-1) x 20 decodes a second in all: a larger fleet (the scale
+bench's 50) shares no poses, as a real site would name each robot's peers on its floor in
+robot.toml."""
+
+
+def field_peers(robot: str, robots: Sequence[str]) -> tuple[str, ...]:
+    """The robots whose poses ``robot``'s agent hears to plan around: the field's other robots,
+    when there are at most ``FIELD_PEERS_MAX`` of them in all."""
+    return tuple(r for r in robots if r != robot) if len(robots) <= FIELD_PEERS_MAX else ()
 
 
 class FieldAgents:
@@ -111,6 +125,7 @@ class FieldAgents:
                     operators=tuple(operators),
                     uv=field_uv(name),
                     limits=field_limits(name),
+                    peers=field_peers(name, list(endpoints)),
                 )
             )
         self.agents: dict[str, AgentRuntime] = {}

@@ -72,7 +72,7 @@ from fleetlink.shared.messages import (
     Teleop,
 )
 from fleetlink.shared.se2 import relative
-from fleetlink.site.agents import field_limits, field_uv
+from fleetlink.site.agents import field_limits, field_peers, field_uv
 
 __all__ = [
     "SESSION_POLL",
@@ -295,6 +295,7 @@ class MissionRun:
             tag=name,
             uv=field_uv(name),
             limits=field_limits(name),
+            peers=field_peers(name, [r.spec.name for r in self.field.rigs]),
         )
         peer = self.field.board_peer(index)
         session = BoardSession(

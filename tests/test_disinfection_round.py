@@ -113,3 +113,21 @@ def test_after_a_bump_the_operator_backs_the_robot_out_before_resuming() -> None
     assert min(backs) >= 10.0 + BACK_OUT_AFTER_S - 1e-9 and max(backs) < 10.0 + BACK_OUT_AFTER_S + BACK_OUT_FOR_S
     assert resumes == [pytest.approx(10.0 + HAZARD_RESUME_S)]
     assert max(backs) < resumes[0]
+
+
+@pytest.mark.slow
+def test_two_robots_in_the_bedroom_plan_around_each_other_where_they_stand() -> None:
+    """The bench's two-robot bedroom round at seed 16 (bench/coverage.py): uvc-1's dwell point lay
+    0.1 m from where uvc-2 stood, finished; the map held only uvc-2's near face, and uvc-1 drove
+    into it. Each agent now hears the other's pose and plans around it as a body (agent/peers.py)."""
+    bedroom = (0.0, 5.7, 6.5, 8.0)
+    robots = (("uvc-1", 2.2, 6.2, 0.0), ("uvc-2", 6.0, 6.6, 180.0))
+    setup = RoundSetup("apartment", "bedroom", bedroom, robots, mode="uv", seed=16, deadline_s=1200.0)
+    with RoundRun(setup) as run:
+        result = run.run()
+        heard = {r.name: r.node.core.peers.peers for r in run.mission.robots}
+    assert heard == {"uvc-1": frozenset({"uvc-2"}), "uvc-2": frozenset({"uvc-1"})}
+    assert result.finished, result.notes
+    assert result.bumps == 0, result.notes
+    assert result.coverage >= 0.99, (result.coverage, result.notes)
+    assert result.lamp_outside_s == 0.0

@@ -690,13 +690,14 @@ class OnboardMapper:
         start_xy: tuple[float, float],
         goal_xy: tuple[float, float],
         blocked: Sequence[tuple[float, float]] = (),
+        bodies: Sequence[tuple[float, float]] = (),
     ) -> list[tuple[float, float]] | None:
         """The path provider the pilot takes: waypoints from start to goal, [] when there is no path,
         None when there is no map yet (the pilot then drives straight). ``blocked``: points where the
-        robot found the way barred, planned around."""
+        robot found the way barred, planned around; ``bodies``: other robots standing there."""
         if self.grid.empty:
             return None
-        return self.planner().route(start_xy, goal_xy, blocked)
+        return self.planner().route(start_xy, goal_xy, blocked, bodies)
 
 
 REDRAW_LEVER_M = 3.0

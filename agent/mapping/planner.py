@@ -26,7 +26,9 @@ None turns the check off).
 are planned around as discs of ``blocked_radius``, inflated like walls, for that call only (the
 caller keeps them for as long as they matter: the pilot, for the order that met them). A point
 within ``known_tolerance`` of a wall already on the map is that wall, seen by the cone: ignored
-(otherwise one echo off a door frame closes the doorway).
+(otherwise one echo off a door frame closes the doorway). ``bodies`` (other robots where they
+report themselves standing: agent/peers.py) are such discs too, but never ignored: the lidar maps a
+robot's near face, and its centre stands a radius behind it.
 
 A start inside the inflated zone (a robot parked near a wall) is moved to the nearest traversable
 cell within ``escape`` metres, which becomes the first waypoint. A goal there is reached the same
@@ -96,6 +98,7 @@ class PlannerConfig:
     escape: float = 0.5  # m a blocked start may be moved
     max_expansions: int = 2_000_000
     blocked_radius: float = 0.25  # m: a ``blocked`` point is planned around as a disc this size
+    body_radius: float = 0.17  # m: another robot's body (``bodies``): the fleet's robots are alike
     known_tolerance: float = 0.15  # m: a ``blocked`` point this near a mapped wall is that wall: ignored
     back_margin: float = 0.02  # m: backing straight (``room_behind``) stops this short of what the map blocks
     fit_margin: float = 0.02  # m: a goal inside the inflation is reached if the body stays this clear there
@@ -188,11 +191,15 @@ class PathPlanner:
         rc = self.cell(p)
         return self._inside(rc) and bool(self.free[rc])
 
-    def __call__(self, start_xy: Point, goal_xy: Point, blocked: Sequence[Point] = ()) -> list[Point] | None:
+    def __call__(
+        self, start_xy: Point, goal_xy: Point, blocked: Sequence[Point] = (), bodies: Sequence[Point] = ()
+    ) -> list[Point] | None:
         if not all(math.isfinite(v) for v in (*start_xy, *goal_xy)):
             return None
         marks = self.unknown_marks(blocked)
-        free, cost, dist = self._with_blocked(marks)
+        robots = [(float(x), float(y)) for x, y in bodies if math.isfinite(x) and math.isfinite(y)]
+        free, cost, dist = self._with_blocked(marks, robots)
+        marks += robots  # what the ultrasonic will see (the legs' checks)
         goal = self.cell(goal_xy)
         first = self.cell(start_xy)
         start = self._escape(first, free)
@@ -203,7 +210,7 @@ class PathPlanner:
         if self._inside(goal) and free[goal]:
             cells = self._astar(start, goal, free, cost)
             return None if cells is None else self._lay(s, g, cells, free, dist, marks, escaped=start != first)
-        near = self._near_goal(g, free, marks)
+        near = self._near_goal(g, free, marks, robots)
         if near is not None:
             cells = self._astar(start, near, free, cost)
             if cells is None:
@@ -269,9 +276,11 @@ class PathPlanner:
         inside = (r >= 0) & (r < self.walls.shape[0]) & (c >= 0) & (c < self.walls.shape[1])
         return not bool(self.walls[r[inside], c[inside]].any())
 
-    def route(self, start_xy: Point, goal_xy: Point, blocked: Sequence[Point] = ()) -> list[Point]:
+    def route(
+        self, start_xy: Point, goal_xy: Point, blocked: Sequence[Point] = (), bodies: Sequence[Point] = ()
+    ) -> list[Point]:
         """The pilot's path provider form: waypoints, or [] when there is no path."""
-        return self(start_xy, goal_xy, blocked) or []
+        return self(start_xy, goal_xy, blocked, bodies) or []
 
     def unknown_marks(self, blocked: Sequence[Point]) -> list[Point]:
         """The ``blocked`` points the map does not already explain: finite, and farther than
@@ -288,16 +297,18 @@ class PathPlanner:
         return out
 
     def _with_blocked(
-        self, pts: Sequence[Point]
+        self, pts: Sequence[Point], bodies: Sequence[Point] = ()
     ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """(free, cost, distance) with ``pts`` added as discs (the planner's own arrays without any)."""
-        if not pts:
+        """(free, cost, distance) with ``pts`` added as discs of ``blocked_radius`` and ``bodies``
+        as discs of ``body_radius`` (the planner's own arrays without any)."""
+        if not pts and not bodies:
             return self.free, self.cost, self.distance
         cfg, res = self.config, self.resolution
         dist = self.distance.copy()
-        reach = cfg.blocked_radius + cfg.inflation + cfg.cost_radius + res
         h, w = dist.shape
-        for x, y in pts:
+        discs = [(x, y, cfg.blocked_radius) for x, y in pts] + [(x, y, cfg.body_radius) for x, y in bodies]
+        for x, y, radius in discs:
+            reach = radius + cfg.inflation + cfg.cost_radius + res
             r0, c0 = self.cell((x - reach, y - reach))
             r1, c1 = self.cell((x + reach, y + reach))
             r0, c0, r1, c1 = max(r0, 0), max(c0, 0), min(r1 + 1, h), min(c1 + 1, w)
@@ -305,7 +316,7 @@ class PathPlanner:
                 continue
             ys = self.origin[1] + (np.arange(r0, r1) + 0.5) * res
             xs = self.origin[0] + (np.arange(c0, c1) + 0.5) * res
-            d = np.hypot(xs[None, :] - x, ys[:, None] - y) - cfg.blocked_radius
+            d = np.hypot(xs[None, :] - x, ys[:, None] - y) - radius
             np.minimum(dist[r0:r1, c0:c1], np.maximum(d, 0.0), out=dist[r0:r1, c0:c1])
         free = np.asarray(dist - res / 2.0 >= cfg.inflation, dtype=bool)
         cr = max(cfg.cost_radius, 1e-9)
@@ -543,7 +554,9 @@ class PathPlanner:
                 return False
         return True
 
-    def _near_goal(self, goal: Point, free: npt.NDArray[np.bool_], marks: Sequence[Point]) -> tuple[int, int] | None:
+    def _near_goal(
+        self, goal: Point, free: npt.NDArray[np.bool_], marks: Sequence[Point], bodies: Sequence[Point] = ()
+    ) -> tuple[int, int] | None:
         """For a goal in known space inside the inflation margin but where the body fits (a sweep's
         lane end beside a wall, a few centimetres nearer it than the margin): the nearest traversable
         cell within ``escape``, from which a straight leg, the body clear all along it, reaches it."""
@@ -552,6 +565,8 @@ class PathPlanner:
         if not self._inside(rc) or not self.known[rc] or not self._body_fits(goal):
             return None
         if any(math.dist(goal, m) < cfg.blocked_radius + cfg.robot_radius for m in marks):
+            return None
+        if any(math.dist(goal, b) < cfg.body_radius + cfg.robot_radius + cfg.fit_margin for b in bodies):
             return None
         near = self._escape(rc, free)
         if near is None:

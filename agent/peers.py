@@ -1,0 +1,83 @@
+"""The other robots of the site as bodies to plan around (pure, no I/O).
+
+An agent hears the fused poses its peers publish (``fleetlink/v1/<peer>/pose``, the robots named in
+robot.toml's ``peers``) and keeps the latest of each. When its pilot plans a leg, the peers that
+stand still, in the site frame, are handed to the planner as ``blocked`` points (discs of the
+planner's ``blocked_radius``), as the places where its own way was barred are.
+
+Why: the lidar sees only a robot's near face, and a robot's map takes a standing robot in a turn
+every few seconds; a leg laid before then, or to a goal just behind that face, ran into it (the
+bedroom's two-robot UV round at seed 16: uvc-1's last leg to a dwell point 0.1 m from where uvc-2
+stood, finished, passed 0.24 m from its centre, off the ultrasonic's axis). Where a peer says it
+stands is known to the centimetre with UWB.
+
+Only standing peers count: a moving one is somewhere else by the time the leg is driven, and would
+bar doorways it has already left (the guard and the re-plans answer a moving robot). Only poses in
+the site frame count, and only while the robot itself is placed in it: an unplaced robot's pose is
+in its own map's frame, which no one else shares.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from fleetlink.shared.messages import UNKNOWN_SD_M, Pose
+
+__all__ = ["PeerBodies", "PeerConfig"]
+
+Point = tuple[float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class PeerConfig:
+    fresh_s: float = 1.0
+    """A peer's pose older than this (by the receiver's clock) is forgotten: poses come at 20 Hz."""
+    standing_mps: float = 0.02
+    """At most this forward speed ..."""
+    standing_radps: float = 0.05
+    """... and this turn rate, a peer stands."""
+    placed_sd_m: float = 0.5
+    """A pose whose position sd is over this is not placed in the site frame (``UNKNOWN_SD_M``)."""
+
+
+@dataclass(frozen=True, slots=True)
+class _Heard:
+    at: float  # the receiver's clock
+    stamp: float  # the peer's header timestamp (a late copy on the other link does not go back)
+    x: float
+    y: float
+    standing: bool
+    placed: bool
+
+
+class PeerBodies:
+    """The latest pose of each peer; ``standing(now)``: where the placed, still ones stand."""
+
+    def __init__(self, peers: tuple[str, ...] = (), config: PeerConfig | None = None) -> None:
+        self.peers = frozenset(peers)
+        self.config = config or PeerConfig()
+        self._heard: dict[str, _Heard] = {}
+
+    def hear(self, robot: str, pose: Pose, now: float) -> bool:
+        """``robot``'s fused pose, received at ``now``. False (ignored) for a robot that is not a
+        peer, or a copy older than the pose already kept (the same pose sent on both links)."""
+        if robot not in self.peers:
+            return False
+        last = self._heard.get(robot)
+        stamp = pose.header.timestamp
+        if last is not None and stamp <= last.stamp and now - last.at <= self.config.fresh_s:
+            return False  # (once the kept one is stale, any pose replaces it: a peer restarted)
+        c = self.config
+        standing = abs(pose.vx) <= c.standing_mps and abs(pose.omega) <= c.standing_radps
+        placed = max(pose.sd_x_m, pose.sd_y_m) <= min(c.placed_sd_m, UNKNOWN_SD_M)
+        ok = math.isfinite(pose.x) and math.isfinite(pose.y)  # the wire contract's Coordinate says so too
+        self._heard[robot] = _Heard(now, stamp, pose.x, pose.y, standing and ok, placed and ok)
+        return True
+
+    def standing(self, now: float) -> tuple[Point, ...]:
+        """Where the peers heard within ``fresh_s`` stand still in the site frame, by robot name."""
+        fresh = self.config.fresh_s
+        return tuple(
+            (h.x, h.y) for _, h in sorted(self._heard.items()) if h.standing and h.placed and 0.0 <= now - h.at <= fresh
+        )

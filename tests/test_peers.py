@@ -1,0 +1,176 @@
+"""Other robots as bodies to plan around (agent/peers.py): what a peer's pose counts for, the planner
+keeping clear of a robot standing behind its own mapped face, and the agent core hearing peers
+without taking them for commands."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from fleetlink.agent.core import AgentCore
+from fleetlink.agent.fusion import Fusion
+from fleetlink.agent.mapping.planner import PathPlanner, PlannerConfig
+from fleetlink.agent.peers import PeerBodies
+from fleetlink.agent.pilot import Pilot
+from fleetlink.shared import keys, wire
+from fleetlink.shared.clock import SimClock
+from fleetlink.shared.messages import UNKNOWN_SD_M, LinkName, Pose
+
+RES = 0.05
+
+
+def _pose(robot: str, x: float, y: float, *, t: float, vx: float = 0.0, omega: float = 0.0, sd: float = 0.02) -> Pose:
+    counter = wire.HeaderCounter(SimClock(t), robot=robot, sender=f"agent-{robot}")
+    return counter.make(
+        Pose,
+        x=x,
+        y=y,
+        theta=0.0,
+        sd_x_m=sd,
+        sd_y_m=sd,
+        sd_theta_rad=0.01,
+        odom_x=0.0,
+        odom_y=0.0,
+        odom_theta=0.0,
+        vx=vx,
+        omega=omega,
+        uwbStale=False,
+    )
+
+
+def test_only_peers_standing_still_in_the_site_frame_and_heard_lately_count() -> None:
+    peers = PeerBodies(("r2", "r3", "r4", "r5"))
+    assert peers.hear("r2", _pose("r2", 1.0, 2.0, t=10.0), now=10.0)
+    assert peers.hear("r3", _pose("r3", 3.0, 1.0, t=10.0, vx=0.3), now=10.0)  # driving
+    assert peers.hear("r4", _pose("r4", 5.0, 1.0, t=10.0, sd=UNKNOWN_SD_M), now=10.0)  # not placed
+    assert peers.hear("r5", _pose("r5", 6.0, 1.0, t=10.0, omega=0.4), now=10.0)  # turning in place
+    assert not peers.hear("r9", _pose("r9", 0.0, 0.0, t=10.0), now=10.0)  # not a peer
+    assert peers.standing(10.5) == ((1.0, 2.0),)
+    assert peers.standing(11.5) == ()  # nothing heard for more than a second: forgotten
+
+
+def test_a_late_copy_does_not_move_a_peer_back_and_a_stale_one_is_replaced() -> None:
+    peers = PeerBodies(("r2",))
+    assert peers.hear("r2", _pose("r2", 1.0, 1.0, t=20.0), now=20.0)
+    assert not peers.hear("r2", _pose("r2", 0.0, 0.0, t=19.9), now=20.05)  # the older pose, on the other link
+    assert peers.standing(20.1) == ((1.0, 1.0),)
+    assert peers.hear("r2", _pose("r2", 2.0, 2.0, t=5.0), now=30.0)  # a restarted peer's clock
+    assert peers.standing(30.0) == ((2.0, 2.0),)
+
+
+def _room_with_peer_face() -> np.ndarray:
+    """6 x 3 m, walled, known free; the near face of a robot standing at (3.0, 1.5) as the lidar
+    maps it: a short arc of cells on the side facing x = 0."""
+    g = np.zeros((60, 120), dtype=np.int8)
+    g[0, :] = g[-1, :] = 100
+    g[:, 0] = g[:, -1] = 100
+    for a in np.linspace(math.radians(130), math.radians(230), 12):
+        x, y = 3.0 + 0.17 * math.cos(a), 1.5 + 0.17 * math.sin(a)
+        g[int(y / RES), int(x / RES)] = 100
+    return g
+
+
+def _clearance_to(pts: list[tuple[float, float]], c: tuple[float, float]) -> float:
+    best = math.inf
+    for (x0, y0), (x1, y1) in itertools.pairwise(pts):
+        for t in np.linspace(0.0, 1.0, 200):
+            best = min(best, math.dist((x0 + (x1 - x0) * t, y0 + (y1 - y0) * t), c))
+    return best
+
+
+def test_a_robot_standing_behind_its_mapped_face_is_planned_around_as_a_body() -> None:
+    cfg = PlannerConfig()
+    planner = PathPlanner(_room_with_peer_face(), RES, (0.0, 0.0), cfg)
+    peer = (3.0, 1.5)
+    start = (1.0, 1.5)
+    # A goal just past the face: the map alone says the body fits there, beside the other robot.
+    goal = (3.2, 1.25)
+    alone = planner(start, goal)
+    assert alone is not None and _clearance_to([start, *alone], peer) < 2 * cfg.robot_radius + 0.05
+    # The same peer handed over as a ``blocked`` mark is taken for the mapped face and ignored ...
+    assert planner.unknown_marks([peer]) == []
+    # ... as a body it is not: no goal where the two bodies would touch.
+    assert planner(start, goal, bodies=[peer]) is None
+    assert planner.route(start, goal, bodies=[peer]) == []
+    # A goal beyond it is reached by a path that keeps the body clear of the other robot's.
+    far = (5.0, 1.5)
+    around = planner(start, far, bodies=[peer])
+    assert around is not None and around[-1] == far
+    assert _clearance_to([start, *around], peer) >= cfg.robot_radius + cfg.body_radius + cfg.margin - RES
+    # Non-finite bodies are dropped, not planned around.
+    assert planner(start, far, bodies=[(math.nan, 1.0)]) == planner(start, far)
+
+
+class _Placed(Fusion):
+    placed = True
+
+    @property
+    def position_initialized(self) -> bool:
+        return self.placed
+
+
+def test_the_core_hands_standing_peers_to_the_planner_once_placed_and_never_takes_them_for_commands() -> None:
+    clock = SimClock(100.0)
+    fusion = _Placed()
+    core = AgentCore("r1", clock, Pilot(), fusion=fusion, peers=PeerBodies(("r2",)))
+    asked: list[tuple[object, ...]] = []
+
+    def provider(
+        start: tuple[float, float],
+        goal: tuple[float, float],
+        /,
+        blocked: object = (),
+        bodies: object = (),
+    ) -> list[tuple[float, float]]:
+        asked.append((tuple(blocked), tuple(bodies)))  # type: ignore[call-overload]
+        return [goal]
+
+    core.use_map(provider)
+    plan = core.pilot.path_provider
+    assert plan is not None
+    key = keys.key("r2", Pose.TOPIC)
+    core.on_peer(LinkName.ZENOH, key, wire.encode(_pose("r2", 2.0, 3.0, t=100.0)), 100.0)
+    core._plan_now = 100.2  # the control step's time (set by every tick)
+    plan((0.0, 0.0), (5.0, 5.0))
+    plan((0.0, 0.0), (5.0, 5.0), blocked=[(1.0, 1.0)])
+    fusion.placed = False  # unplaced: its frame is its own map's, which no peer shares
+    plan((0.0, 0.0), (5.0, 5.0))
+    assert asked == [((), ((2.0, 3.0),)), (((1.0, 1.0),), ((2.0, 3.0),)), ((), ())]
+    assert core.contact._heard_at is None  # a peer's pose is no word from an operator
+    # A new provider for each map (the route tells a newer map by identity).
+    core.use_map(provider)
+    assert core.pilot.path_provider is not plan
+
+    # Garbage, another robot's pose and another topic are refused and counted, nothing else changes.
+    before = sum(core.gate.stats.rejected.values())
+    out = core.on_peer(LinkName.ZENOH, key, b"\x00garbage", 100.3)
+    core.on_peer(LinkName.ZENOH, keys.key("r7", Pose.TOPIC), wire.encode(_pose("r7", 1.0, 1.0, t=100.3)), 100.3)
+    core.on_peer(LinkName.MQTT, keys.key("r2", "state"), b"", 100.3)
+    core.on_peer(LinkName.MQTT, "not/a/key", b"", 100.3)
+    assert sum(core.gate.stats.rejected.values()) == before + 4
+    assert any(m.TOPIC == "events" for m, _ in out.messages)  # logged once, as every rejected input
+    assert core.peers.standing(100.3) == ((2.0, 3.0),)
+
+
+def test_without_peers_the_map_provider_is_handed_to_the_pilot_as_it_is() -> None:
+    core = AgentCore("r1", SimClock(0.0), Pilot())
+
+    def provider(start: tuple[float, float], goal: tuple[float, float], /, blocked: object = ()) -> list[object]:
+        return []
+
+    core.use_map(provider)
+    assert core.pilot.path_provider is provider
+
+
+@pytest.mark.parametrize("peers", [("r1",), ("fleet",)])
+def test_robot_toml_refuses_peers_that_are_not_other_robots(peers: tuple[str, ...]) -> None:
+    from fleetlink.agent.config import parse_agent_config
+    from fleetlink.shared.config import ConfigError
+
+    with pytest.raises(ConfigError, match="peers"):
+        parse_agent_config({"robot": "r1", "board": "socket://h:1", "zenoh": {}, "peers": list(peers)})
+    cfg = parse_agent_config({"robot": "r1", "board": "socket://h:1", "zenoh": {}, "peers": ["r2", "r3", "r2"]})
+    assert cfg.peers == ("r2", "r3")
