@@ -635,8 +635,12 @@ class AgentCore:
         if self.itinerary is not None and self.itinerary.driving:
             x, y, _ = self._map_pose()
             self.itinerary.approach(x, y)
-        inputs = GuardInputs(ultrasonic_m=self.board.ultrasonic_m, cliff=self.board.cliff, bumped=self.board.bumped)
-        p = self.pilot.tick(now, self._map_pose(), inputs)
+        pose = self._map_pose()
+        ahead = self.peers.gap_ahead(now, pose) if self.peers.peers and self.fusion.position_initialized else None
+        inputs = GuardInputs(
+            ultrasonic_m=self.board.ultrasonic_m, cliff=self.board.cliff, bumped=self.board.bumped, robot_ahead_m=ahead
+        )
+        p = self.pilot.tick(now, pose, inputs)
         self._last_out = p
         self._velocity = (p.v, p.omega)
         out.velocity = (p.v, p.omega)

@@ -10,7 +10,11 @@ The rescue-robot seed's rules:
 * go-to, once turned toward the goal: refuse to drive when the obstacle ahead is nearer than the
   drive distance plus ``stop_distance_m`` (the robot would end up inside the safety margin);
 * cliff: stop; forward and turning refused, backing away allowed (the cliff sensors look ahead);
-* bump: stop; forward and turning refused, backing out allowed.
+* bump: stop; forward and turning refused, backing out allowed;
+* another robot (where it reports itself, agent/peers.py) whose body lies in the robot's way ahead
+  nearer than the robot needs to stop short of it at its speed: forward refused (turning in place and backing allowed; a round body
+  turning sweeps nothing new). Never crept into: the ultrasonic sees nothing inside its 0.25 m
+  minimum, and the bumper is no way to meet a robot.
 
 A reading of ``None`` or outside the sensor's range (0.25-1.5 m on the US-100) means "nothing
 seen": the sensor reports no echo as 0 and clamps at its minimum, so an out-of-range value is not
@@ -54,9 +58,22 @@ class GuardConfig:
     # (m/s) instead of stopping, and a drive start is not refused for what the cone sees; the
     # bumper is the last stop. 0: the seed's rule (stop at the stop distance).
     creep_speed_mps: float = 0.0
+    # Another robot ahead (``GuardInputs.robot_ahead_m``): forward at v refused once the gap is
+    # under robot_gap_m + v^2 / (2 brake_mps2) + v robot_latency_s, what it takes to stop short of
+    # it (the peer's pose is up to 50 ms old, ours a control tick): 0.2 m at 0.5 m/s, 4 cm at 0.1.
+    robot_gap_m: float = 0.03
+    brake_mps2: float = 1.0
+    robot_latency_s: float = 0.1
 
     def __post_init__(self) -> None:
-        for name in ("stop_distance_m", "sensor_min_m", "sensor_max_m", "creep_speed_mps"):
+        for name in (
+            "stop_distance_m",
+            "sensor_min_m",
+            "sensor_max_m",
+            "creep_speed_mps",
+            "robot_gap_m",
+            "robot_latency_s",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"GuardConfig.{name} must be a finite distance >= 0, got {v!r}")
@@ -64,6 +81,8 @@ class GuardConfig:
             raise ValueError(
                 f"GuardConfig: sensor_min_m ({self.sensor_min_m}) must be below sensor_max_m ({self.sensor_max_m})"
             )
+        if not (math.isfinite(self.brake_mps2) and self.brake_mps2 > 0):
+            raise ValueError(f"GuardConfig.brake_mps2 must be a finite deceleration > 0, got {self.brake_mps2!r}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,6 +90,7 @@ class GuardInputs:
     ultrasonic_m: float | None = None  # front range; None or out of range = clear
     cliff: bool = False
     bumped: bool = False
+    robot_ahead_m: float | None = None  # gap to the nearest other robot in the way ahead; None: none
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,6 +146,19 @@ class CollisionGuard:
             return GuardDecision(0.0, 0.0, Refusal(RefusalReason.CLIFF, "cliff ahead: only backing away is allowed"))
         if inputs.bumped and moving:
             return GuardDecision(0.0, 0.0, Refusal(RefusalReason.BUMP, "bumper pressed: only backing out is allowed"))
+        gap = inputs.robot_ahead_m
+        need = cfg.robot_gap_m + v * v / (2.0 * cfg.brake_mps2) + v * cfg.robot_latency_s
+        if forward and gap is not None and not gap >= need:  # (NaN: refused too)
+            return GuardDecision(
+                0.0,
+                0.0,
+                Refusal(
+                    RefusalReason.OBSTACLE_AHEAD,
+                    f"another robot {gap:.2f} m ahead (< {need:.2f} m at {v:.2f} m/s): driving forward refused,"
+                    " turning and backing away allowed",
+                    max(0.0, gap) if math.isfinite(gap) else 0.0,
+                ),
+            )
         d = self.obstacle_m(inputs)
         creeping = on_path and cfg.creep_speed_mps > 0.0
         if d is not None and d < cfg.stop_distance_m and forward and creeping:

@@ -130,6 +130,7 @@ def pilot_config(cfg: AgentConfig) -> PilotConfig:
             stop_distance_m=lim.stop_distance_m,
             allow_turn_in_place=lim.round_base,
             creep_speed_mps=lim.creep_speed_mps,
+            brake_mps2=lim.a_max,
         ),
         limits=MotionLimits(v_max=lim.v_max, omega_max=lim.omega_max, a_max=lim.a_max, alpha_max=lim.alpha_max),
         teleop_ttl_s=lim.teleop_ttl_s,

@@ -1,4 +1,4 @@
-"""The other robots of the site as bodies to plan around (pure, no I/O).
+"""The other robots of the site as bodies to plan around and not to drive into (pure, no I/O).
 
 An agent hears the fused poses its peers publish (``fleetlink/v1/<peer>/pose``, the robots named in
 robot.toml's ``peers``) and keeps the latest of each. When its pilot plans a leg, the peers that
@@ -11,7 +11,11 @@ bedroom's two-robot UV round at seed 16: uvc-1's last leg to a dwell point 0.1 m
 stood, finished, passed 0.24 m from its centre, off the ultrasonic's axis). Where a peer says it
 stands is known to the centimetre with UWB.
 
-Only standing peers count: a moving one is somewhere else by the time the leg is driven, and would
+The collision guard is also handed how far the robot can drive straight on before its body would
+touch a peer's (``gap_ahead``, any placed peer, moving or not: agent/guard.py), since the front
+ultrasonic sees nothing inside its 0.25 m minimum and a robot is no wall the map vouches for.
+
+Only standing peers are planned around: a moving one is somewhere else by the time the leg is driven, and would
 bar doorways it has already left (the guard and the re-plans answer a moving robot). Only poses in
 the site frame count, and only while the robot itself is placed in it: an unplaced robot's pose is
 in its own map's frame, which no one else shares.
@@ -39,6 +43,10 @@ class PeerConfig:
     """... and this turn rate, a peer stands."""
     placed_sd_m: float = 0.5
     """A pose whose position sd is over this is not placed in the site frame (``UNKNOWN_SD_M``)."""
+    body_radius_m: float = 0.17
+    """Every robot's body, this one's too (the fleet's robots are alike: the planner's radius)."""
+    lane_margin_m: float = 0.02
+    """``gap_ahead`` counts a robot in the way if the bodies would pass closer than this (pose error)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,6 +82,32 @@ class PeerBodies:
         ok = math.isfinite(pose.x) and math.isfinite(pose.y)  # the wire contract's Coordinate says so too
         self._heard[robot] = _Heard(now, stamp, pose.x, pose.y, standing and ok, placed and ok)
         return True
+
+    def gap_ahead(self, now: float, pose: tuple[float, float, float]) -> float | None:
+        """Driving straight on from ``pose`` (site frame), how far the body goes before it touches
+        the nearest placed peer heard within ``fresh_s``, standing or moving (its pose now); None
+        when no peer lies in the way ahead. 0 when the bodies already touch (ahead or beside)."""
+        c = self.config
+        x, y, th = pose
+        if not all(math.isfinite(v) for v in pose):
+            return None
+        cos, sin = math.cos(th), math.sin(th)
+        reach = 2.0 * c.body_radius_m + c.lane_margin_m  # centre to centre, bodies just apart
+        best: float | None = None
+        for h in self._heard.values():
+            if not h.placed or not 0.0 <= now - h.at <= c.fresh_s:
+                continue
+            dx, dy = h.x - x, h.y - y
+            ahead, side = cos * dx + sin * dy, -sin * dx + cos * dy
+            if math.hypot(ahead, side) < reach:
+                gap = 0.0 if ahead > 0.0 else None  # touching: forward refused unless it lies behind
+            elif ahead > 0.0 and abs(side) < reach:
+                gap = ahead - math.sqrt(reach * reach - side * side)
+            else:
+                gap = None
+            if gap is not None and (best is None or gap < best):
+                best = gap
+        return best
 
     def standing(self, now: float) -> tuple[Point, ...]:
         """Where the peers heard within ``fresh_s`` stand still in the site frame, by robot name."""

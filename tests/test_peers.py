@@ -174,3 +174,37 @@ def test_robot_toml_refuses_peers_that_are_not_other_robots(peers: tuple[str, ..
         parse_agent_config({"robot": "r1", "board": "socket://h:1", "zenoh": {}, "peers": list(peers)})
     cfg = parse_agent_config({"robot": "r1", "board": "socket://h:1", "zenoh": {}, "peers": ["r2", "r3", "r2"]})
     assert cfg.peers == ("r2", "r3")
+
+
+def test_the_gap_ahead_is_how_far_the_body_drives_before_it_touches_a_peer() -> None:
+    peers = PeerBodies(("r2", "r3"))
+    reach = 2 * 0.17 + 0.02
+    peers.hear("r2", _pose("r2", 2.0, 0.0, t=1.0, vx=0.3), now=1.0)  # moving ones count too
+    assert peers.gap_ahead(1.0, (0.0, 0.0, 0.0)) == pytest.approx(2.0 - reach)
+    side = 0.2
+    peers.hear("r2", _pose("r2", 1.0, side, t=1.1), now=1.1)
+    assert peers.gap_ahead(1.1, (0.0, 0.0, 0.0)) == pytest.approx(1.0 - math.sqrt(reach**2 - side**2))
+    assert peers.gap_ahead(1.1, (0.0, 0.0, math.pi)) is None  # behind
+    assert peers.gap_ahead(1.1, (0.0, 0.0, math.pi / 2)) is None  # beside, passing clear
+    assert peers.gap_ahead(1.1, (0.0, 0.0, -math.pi / 2)) is None
+    assert peers.gap_ahead(1.1, (0.75, 0.0, 0.0)) == 0.0  # touching, ahead
+    assert peers.gap_ahead(1.1, (1.25, 0.0, 0.0)) is None  # touching, behind: it may drive away
+    peers.hear("r3", _pose("r3", 0.5, 0.0, t=1.1, sd=UNKNOWN_SD_M), now=1.1)  # not placed: not known where
+    assert peers.gap_ahead(1.1, (0.0, 0.0, 0.0)) == pytest.approx(1.0 - math.sqrt(reach**2 - side**2))
+    assert peers.gap_ahead(3.0, (0.0, 0.0, 0.0)) is None  # stale
+    assert peers.gap_ahead(1.1, (math.nan, 0.0, 0.0)) is None
+
+
+def test_the_guard_refuses_driving_into_another_robot_and_allows_turning_and_backing() -> None:
+    from fleetlink.agent.guard import CollisionGuard, GuardConfig, GuardInputs, RefusalReason
+
+    guard = CollisionGuard(GuardConfig(creep_speed_mps=0.05, allow_turn_in_place=True))
+    near = GuardInputs(robot_ahead_m=0.1)  # at 0.3 m/s it needs 0.03 + 0.045 + 0.03 m
+    d = guard.filter(0.3, 0.0, near, on_path=True)  # never crept into, on a path or not
+    assert d.v == 0.0 and d.refusal is not None and d.refusal.reason is RefusalReason.OBSTACLE_AHEAD
+    assert "another robot" in d.refusal.text and d.refusal.distance_m == pytest.approx(0.1)
+    assert guard.filter(0.0, 0.8, near).refusal is None  # a round body turning sweeps nothing new
+    assert guard.filter(-0.1, 0.0, near).refusal is None
+    assert guard.filter(0.3, 0.0, GuardInputs(robot_ahead_m=0.11)).refusal is None
+    assert guard.filter(0.05, 0.0, near).refusal is None  # slowly, nearer
+    assert guard.filter(0.3, 0.0, GuardInputs(robot_ahead_m=math.nan)).refusal is not None
