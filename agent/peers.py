@@ -83,6 +83,10 @@ class PeerBodies:
         self._heard[robot] = _Heard(now, stamp, pose.x, pose.y, standing and ok, placed and ok)
         return True
 
+    def heard_from(self) -> tuple[str, ...]:
+        """The peers heard at least once, by name."""
+        return tuple(sorted(self._heard))
+
     def gap_ahead(self, now: float, pose: tuple[float, float, float]) -> float | None:
         """Driving straight on from ``pose`` (site frame), how far the body goes before it touches
         the nearest placed peer heard within ``fresh_s``, standing or moving (its pose now); None

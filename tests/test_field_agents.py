@@ -13,7 +13,7 @@ from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Teleop
 from fleetlink.site.agents import FieldAgents
 from tests.harness import wait_until
-from tests.harness.mosquitto import free_port
+from tests.harness.mosquitto import MosquittoBroker, free_port
 from tests.harness.zenoh_peers import zenoh_config
 from tests.test_field_realtime import quiet_scenario
 
@@ -42,6 +42,8 @@ def test_field_agents_drive_the_field_robots_over_zenoh() -> None:
             lambda: all(a.board.snapshot.connected and a.zenoh is not None and a.zenoh.up for a in running.values()),
             message="every agent on its board and on zenoh",
         )
+        # Each names the other its peer (planned around where it stands: agent/peers.py).
+        assert running["uvc-1"].config.peers == ("uvc-2",) and running["uvc-2"].config.peers == ("uvc-1",)
         robots = {r.name: r for r in field.world.robots}
         start = {name: r.pose for name, r in robots.items()}
         op = wire.HeaderCounter(clock, robot="uvc-1", sender="op-test")
@@ -131,6 +133,41 @@ def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -
             agents.stop()
         if asker is not None:
             asker.close()
+        if session is not None:
+            session.close()
+        field.stop()
+
+
+def test_field_agents_hear_each_others_poses_on_the_broker(mosquitto: MosquittoBroker) -> None:
+    """Each agent hears the other's pose, as the demo wires them: their Zenoh sessions meet at a
+    hub that does not route between peers, so the poses come over MQTT (every second pose while
+    Zenoh is up), as on a site whose router carries them over Zenoh too."""
+    clock = SystemClock()
+    scenario = quiet_scenario(
+        robots=[
+            {"name": "uvc-1", "start": "living", "drive": "idle"},
+            {"name": "uvc-2", "start": "bedroom", "drive": "idle"},
+        ],
+        lidar={"enabled": False},
+    )
+    field = RealtimeField(scenario, clock=clock)
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    session = None
+    agents = None
+    try:
+        endpoints = field.start()
+        session = zenoh.open(zenoh_config(listen=[listen]))
+        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[listen], mqtt_url=mosquitto.url)
+        running = agents.start()
+        wait_until(
+            lambda: all(a.core.peers.heard_from() == a.config.peers for a in running.values()),
+            message="every agent hearing the other's pose",
+        )
+        assert {name: a.config.peers for name, a in running.items()} == {"uvc-1": ("uvc-2",), "uvc-2": ("uvc-1",)}
+        assert all(sum(a.core.gate.stats.rejected.values()) == 0 for a in running.values())
+    finally:
+        if agents is not None:
+            agents.stop()
         if session is not None:
             session.close()
         field.stop()
