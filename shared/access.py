@@ -3,7 +3,7 @@
 Usernames (the same on both links, docs/operations.md):
 
 * an agent logs in as its robot id (``r1``); it writes only its own telemetry and reads only its
-  own commands and UWB fixes;
+  own commands and UWB fixes, and every robot's pose (``PEER_READS``: its peers, planned around);
 * an operator logs in as ``op-<name>``; it reads everything and writes commands to any robot, but
   only under its own name: ``fleetlink/v1/<robot>/<command>/op-<name>`` (``keys.SENDER_TOPICS``),
   and the agent refuses a command whose ``header.sender`` is not that name. So the agent knows who
@@ -81,6 +81,10 @@ FIX_TOPICS: tuple[str, ...] = ("uwb", "uwb/ranges")
 
 AGENT_READS: tuple[str, ...] = COMMAND_TOPICS + FIX_TOPICS
 
+PEER_READS: tuple[str, ...] = ("pose",)
+"""What an agent reads of every other robot: its fused pose, to plan around it and not drive into it
+(robot.toml's ``peers``, agent/peers.py). Read only: a robot still writes nothing but its own."""
+
 DWM_FIX_TOPICS: tuple[str, ...] = ("dwm/node/+/uplink/location", "dwm/node/+/uplink/status")
 """Decawave PANS gateway topics (MQTT only) the positioning system may also write."""
 
@@ -144,6 +148,8 @@ def mosquitto_acl(operators: Iterable[str] = ()) -> str:
     ]
     lines += [f"pattern write {_mqtt('%u', t)}" for t in AGENT_WRITES]
     lines += [f"pattern read {_mqtt('%u', t)}" for t in AGENT_READS]
+    lines += ["# Every robot's pose, for the other robots (their peers: agent/peers.py), read only."]
+    lines += [f"pattern read {_mqtt('+', t)}" for t in PEER_READS]
     lines += [
         "# PANS tag locations straight from a DWM1001 gateway: tag ids are not robot ids, so every",
         "# user may read every tag's location (read only; only uwb-gateway writes them).",
@@ -220,6 +226,7 @@ def zenoh_access_control(
         ids = [*shared, *(r["id"] for r in subject_rules if r["id"] not in shared)]
         policies.append({"id": subject, "rules": ids, "subjects": [subject]})
 
+    peer_reads = [_zenoh("*", t) for t in PEER_READS]
     for robot in robot_ids:
         writes = [_zenoh(robot, t) for t in AGENT_WRITES]
         reads = [_zenoh(robot, t) for t in AGENT_READS]
@@ -233,6 +240,9 @@ def zenoh_access_control(
                 # wildcard subscriber); what it receives is limited on egress to its inputs.
                 _rule(f"{robot}-subscribe", ["ingress"], ["declare_subscriber"], [own]),
                 _rule(f"{robot}-commands-in", ["egress"], ["put", "delete"], reads),
+                # The other robots' poses (its peers), read only.
+                _rule(f"{robot}-peers-subscribe", ["ingress"], ["declare_subscriber"], peer_reads),
+                _rule(f"{robot}-peers-in", ["egress"], ["put"], peer_reads),
                 # Its presence: one liveliness token, its own (keys.alive_key), outside its key tree.
                 _rule(f"{robot}-presence", ["ingress"], ["liveliness_token"], [alive_key(robot)]),
                 _rule(

@@ -149,6 +149,22 @@ def test_operator_drives_and_robots_hear_only_their_own_commands(broker: DeployB
     assert r2.topics_got() == ["fleetlink/v1/r2/teleop/op-alice"]
 
 
+def test_a_robot_hears_the_other_robots_poses_and_nothing_else_of_theirs(
+    broker: DeployBroker, clients: list[Client]
+) -> None:
+    """Its peers' poses (agent/peers.py: planned around, kept out of the way), read only."""
+    r1 = _client(clients, broker, "r1", ["fleetlink/v1/+/pose", "fleetlink/v1/r2/#"]).ready()
+    r2 = _client(clients, broker, "r2").ready()
+    r2.publish("fleetlink/v1/r2/state", b"state")
+    r2.publish("fleetlink/v1/r2/pose", b"pose")  # after the state: once it is in, the state had its turn
+    wait_until(lambda: ("fleetlink/v1/r2/pose", b"pose") in r1.got)
+    assert r1.topics_got() == ["fleetlink/v1/r2/pose"]
+    r1.publish("fleetlink/v1/r2/pose", b"forged")  # and it still writes only its own
+    r2.publish("fleetlink/v1/r2/pose", b"after")
+    wait_until(lambda: ("fleetlink/v1/r2/pose", b"after") in r1.got)
+    assert ("fleetlink/v1/r2/pose", b"forged") not in r1.got
+
+
 def test_an_operator_commands_only_under_its_own_name(broker: DeployBroker, clients: list[Client]) -> None:
     """The last segment of a command's topic is the sender's login: op-bob cannot write under
     op-alice's name (nor under none), so the agent can trust the segment (issue 14)."""
@@ -347,6 +363,18 @@ def test_zenoh_operator_drives_only_the_addressed_robot(router: Router) -> None:
     wait_until(lambda: ("fleetlink/v1/r2/order/op-alice", b"order-r2") in got2)
     wait_until(lambda: ("fleetlink/v1/r1/order/op-alice", b"order-r1") in got1)
     assert {k for k, _ in got2} == {"fleetlink/v1/r2/teleop/op-alice", "fleetlink/v1/r2/order/op-alice"}
+    assert spy == []
+
+
+def test_zenoh_a_robot_hears_the_other_robots_poses_and_nothing_else_of_theirs(router: Router) -> None:
+    r1 = router.client("r1")
+    poses = _collect(r1, "fleetlink/v1/r2/pose")
+    spy = _collect(r1, "fleetlink/v1/r2/state")  # refused at the router: nothing arrives
+    r2 = router.client("r2")
+    r2.put("fleetlink/v1/r2/state", b"state")
+    _until_delivered(r2, "fleetlink/v1/r2/pose", poses)
+    r2.put("fleetlink/v1/r2/state", b"state")
+    _until_delivered(r2, "fleetlink/v1/r2/pose", poses)
     assert spy == []
 
 
