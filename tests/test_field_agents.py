@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
+from typing import Any
 
 import pytest
 import zenoh
 
+from fleetlink.agent.runtime import AgentRuntime
 from fleetlink.field.realtime import RealtimeField
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
@@ -18,7 +22,10 @@ from tests.harness.zenoh_peers import zenoh_config
 from tests.test_field_realtime import quiet_scenario
 
 
-def test_field_agents_drive_the_field_robots_over_zenoh() -> None:
+@contextlib.contextmanager
+def two_agents(**agents_kw: Any) -> Iterator[tuple[RealtimeField, zenoh.Session, dict[str, AgentRuntime]]]:
+    """The field's two disinfection robots, idle, lidars off, and an agent each whose Zenoh session
+    connects to the operator's, which listens (as the console does); ``agents_kw`` go to FieldAgents."""
     clock = SystemClock()
     scenario = quiet_scenario(
         robots=[
@@ -33,10 +40,20 @@ def test_field_agents_drive_the_field_robots_over_zenoh() -> None:
     agents = None
     try:
         endpoints = field.start()
-        # The operator's session listens; every agent connects to it (as the console does).
         session = zenoh.open(zenoh_config(listen=[listen]))
-        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[listen], operators=("op-test",))
-        running = agents.start()
+        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[listen], **agents_kw)
+        yield field, session, agents.start()
+    finally:
+        if agents is not None:
+            agents.stop()
+        if session is not None:
+            session.close()
+        field.stop()
+
+
+def test_field_agents_drive_the_field_robots_over_zenoh() -> None:
+    with two_agents(operators=("op-test",)) as (field, session, running):
+        clock = SystemClock()
         assert set(running) == {"uvc-1", "uvc-2"}
         wait_until(
             lambda: all(a.board.snapshot.connected and a.zenoh is not None and a.zenoh.up for a in running.values()),
@@ -60,12 +77,6 @@ def test_field_agents_drive_the_field_robots_over_zenoh() -> None:
 
         wait_until(drive, interval=0.1, message="uvc-1 to move under teleop over zenoh")
         assert moved("uvc-2") < 0.01  # the other robot was not addressed
-    finally:
-        if agents is not None:
-            agents.stop()
-        if session is not None:
-            session.close()
-        field.stop()
 
 
 @pytest.mark.slow
@@ -139,35 +150,13 @@ def test_field_agent_maps_with_the_field_lidar_and_serves_the_map_over_zenoh() -
 
 
 def test_field_agents_hear_each_others_poses_on_the_broker(mosquitto: MosquittoBroker) -> None:
-    """Each agent hears the other's pose, as the demo wires them: their Zenoh sessions meet at a
-    hub that does not route between peers, so the poses come over MQTT (every second pose while
-    Zenoh is up), as on a site whose router carries them over Zenoh too."""
-    clock = SystemClock()
-    scenario = quiet_scenario(
-        robots=[
-            {"name": "uvc-1", "start": "living", "drive": "idle"},
-            {"name": "uvc-2", "start": "bedroom", "drive": "idle"},
-        ],
-        lidar={"enabled": False},
-    )
-    field = RealtimeField(scenario, clock=clock)
-    listen = f"tcp/127.0.0.1:{free_port()}"
-    session = None
-    agents = None
-    try:
-        endpoints = field.start()
-        session = zenoh.open(zenoh_config(listen=[listen]))
-        agents = FieldAgents(endpoints, clock=clock, zenoh_connect=[listen], mqtt_url=mosquitto.url)
-        running = agents.start()
+    """Each agent hears the other's pose, as the demo wires them: their Zenoh sessions are peers of
+    the operator's, which passes nothing between peers, so the poses come over MQTT (every second
+    pose while Zenoh is up); a site's router carries them over Zenoh too (tests/test_deploy.py)."""
+    with two_agents(mqtt_url=mosquitto.url) as (_, _, running):
         wait_until(
             lambda: all(a.core.peers.heard_from() == a.config.peers for a in running.values()),
             message="every agent hearing the other's pose",
         )
         assert {name: a.config.peers for name, a in running.items()} == {"uvc-1": ("uvc-2",), "uvc-2": ("uvc-1",)}
         assert all(sum(a.core.gate.stats.rejected.values()) == 0 for a in running.values())
-    finally:
-        if agents is not None:
-            agents.stop()
-        if session is not None:
-            session.close()
-        field.stop()
