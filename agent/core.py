@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any
 
 from fleetlink.agent.contact import ContactKeeper
 from fleetlink.agent.fusion import Fusion
@@ -480,29 +480,26 @@ class AgentCore:
             self._next_state = now  # publish the change now
         return out
 
-    def use_map(self, plan: PathProvider | None, sense: MapSense | None = None) -> None:
-        """Route go-tos and return home over the onboard map: the runtime passes its mapper's
-        ``OnboardMapper.plan`` (None while the map is still empty, so the pilot drives straight,
-        exactly as without a map; [] when there is no path). None: no map, straight lines.
-        ``sense``: what else the map says (room to back off, the echo to expect, clear legs; None:
-        the pilot backs off blind and never creeps). A ``BodyAwareProvider`` (the planner's
-        ``route``) is also handed the peers standing still (agent/peers.py)."""
+    def use_map(self, plan: BodyAwareProvider | None, sense: MapSense | None = None) -> None:
+        """Route go-tos and return home over the onboard map: the runtime passes its planner's
+        ``route`` (``OnboardMapper.plan`` does as well: None while the map is still empty, so the
+        pilot drives straight, exactly as without a map; [] when there is no path). None: no map,
+        straight lines. ``sense``: what else the map says (room to back off, the echo to expect,
+        clear legs; None: the pilot backs off blind and never creeps). With ``peers``, the provider
+        is also handed those standing still (agent/peers.py)."""
         self.pilot.path_provider = plan if plan is None or not self.peers.peers else self._among_peers(plan)
         self.pilot.map_sense = sense
 
-    def _among_peers(self, plan: PathProvider) -> PathProvider:
+    def _among_peers(self, plan: BodyAwareProvider) -> PathProvider:
         """``plan`` with the peers standing still in the site frame planned around as bodies, once
         this robot is placed in that frame too. A new provider for each map: the route tells a newer
         map by the provider's identity."""
-        aware = cast("BodyAwareProvider", plan)
 
         def provider(
             start: tuple[float, float], goal: tuple[float, float], /, blocked: Sequence[tuple[float, float]] = ()
         ) -> Sequence[tuple[float, float]] | None:
             bodies = self.peers.standing(self._plan_now) if self.fusion.position_initialized else ()
-            if bodies:
-                return aware(start, goal, blocked=blocked, bodies=bodies)
-            return plan(start, goal, blocked=blocked) if blocked else plan(start, goal)
+            return plan(start, goal, blocked=blocked, bodies=bodies)
 
         return provider
 

@@ -12,9 +12,9 @@ The rescue-robot seed's rules:
 * cliff: stop; forward and turning refused, backing away allowed (the cliff sensors look ahead);
 * bump: stop; forward and turning refused, backing out allowed;
 * another robot (where it reports itself, agent/peers.py) whose body lies in the robot's way ahead
-  nearer than the robot needs to stop short of it at its speed: forward refused (turning in place and backing allowed; a round body
-  turning sweeps nothing new). Never crept into: the ultrasonic sees nothing inside its 0.25 m
-  minimum, and the bumper is no way to meet a robot.
+  nearer than the robot needs to stop short of it at its speed: forward refused (turning in place
+  and backing allowed; a round body turning sweeps nothing new). Never crept into: the ultrasonic
+  sees nothing inside its 0.25 m minimum, and the bumper is no way to meet a robot.
 
 A reading of ``None`` or outside the sensor's range (0.25-1.5 m on the US-100) means "nothing
 seen": the sensor reports no echo as 0 and clamps at its minimum, so an out-of-range value is not

@@ -2,8 +2,10 @@
 
 An agent hears the fused poses its peers publish (``fleetlink/v1/<peer>/pose``, the robots named in
 robot.toml's ``peers``) and keeps the latest of each. When its pilot plans a leg, the peers that
-stand still, in the site frame, are handed to the planner as ``blocked`` points (discs of the
-planner's ``blocked_radius``), as the places where its own way was barred are.
+stand still, in the site frame, are handed to the planner as ``bodies``: discs of the planner's
+``body_radius``, inflated like walls. Not as ``blocked`` points, which the planner drops near a
+mapped wall (an echo off a known wall is that wall): a robot's centre stands a radius behind the
+face its lidar maps.
 
 Why: the lidar sees only a robot's near face, and a robot's map takes a standing robot in a turn
 every few seconds; a leg laid before then, or to a goal just behind that face, ran into it (the
@@ -15,8 +17,9 @@ The collision guard is also handed how far the robot can drive straight on befor
 touch a peer's (``gap_ahead``, any placed peer, moving or not: agent/guard.py), since the front
 ultrasonic sees nothing inside its 0.25 m minimum and a robot is no wall the map vouches for.
 
-Only standing peers are planned around: a moving one is somewhere else by the time the leg is driven, and would
-bar doorways it has already left (the guard and the re-plans answer a moving robot). Only poses in
+Only standing peers are planned around: a moving one is somewhere else by the time the leg is
+driven, and would bar doorways it has already left (the guard and the re-plans answer a moving
+robot). Only poses in
 the site frame count, and only while the robot itself is placed in it: an unplaced robot's pose is
 in its own map's frame, which no one else shares.
 """
@@ -44,7 +47,7 @@ class PeerConfig:
     placed_sd_m: float = 0.5
     """A pose whose position sd is over this is not placed in the site frame (``UNKNOWN_SD_M``)."""
     body_radius_m: float = 0.17
-    """Every robot's body, this one's too (the fleet's robots are alike: the planner's radius)."""
+    """Every robot's body, this one's too (the fleet's robots are alike: ``PlannerConfig.body_radius``)."""
     lane_margin_m: float = 0.02
     """``gap_ahead`` counts a robot in the way if the bodies would pass closer than this (pose error)."""
 
