@@ -57,6 +57,7 @@ import numpy.typing as npt
 
 from fleetlink.agent.mapping.planner import MOVES8, PathPlanner, PlannerConfig
 from fleetlink.shared import dose as _dose
+from fleetlink.shared.body import BODY_RADIUS_M
 from fleetlink.shared.dose import Lamp
 from fleetlink.shared.geometry import components, points_in_polygon
 from fleetlink.shared.messages import (
@@ -110,7 +111,7 @@ standing at (x, y), 0 in a wall's shadow: ``fleetlink.shared.dose.irradiance`` (
 
 @dataclass(frozen=True, slots=True)
 class CoverageConfig:
-    robot_radius_m: float = 0.17  # the planner's robot (PlannerConfig.robot_radius)
+    robot_radius_m: float = BODY_RADIUS_M  # the planner's robot (PlannerConfig.robot_radius)
     margin_m: float = 0.05  # beyond the radius (PlannerConfig.margin)
     plan_resolution_m: float = 0.1  # where the robot may stand is decided on this grid (the planner's)
     speed_mps: float = 0.3  # mean speed along paths, turns included (the pilot's v_max is 0.5)

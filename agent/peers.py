@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from fleetlink.shared.body import BODY_RADIUS_M
 from fleetlink.shared.messages import UNKNOWN_SD_M, Pose
 
 __all__ = ["PeerBodies", "PeerConfig"]
@@ -46,8 +47,8 @@ class PeerConfig:
     """... and this turn rate, a peer stands."""
     placed_sd_m: float = 0.5
     """A pose whose position sd is over this is not placed in the site frame (``UNKNOWN_SD_M``)."""
-    body_radius_m: float = 0.17
-    """Every robot's body, this one's too (the fleet's robots are alike: ``PlannerConfig.body_radius``)."""
+    body_radius_m: float = BODY_RADIUS_M
+    """Every robot's body, this one's too (the fleet's robots are alike)."""
     lane_margin_m: float = 0.02
     """``gap_ahead`` counts a robot in the way if the bodies would pass closer than this (pose error)."""
 

@@ -56,6 +56,7 @@ from fleetlink.agent.route import (
     RouteEnd,
     RoutePhase,
 )
+from fleetlink.shared.body import BODY_RADIUS_M
 from fleetlink.shared.messages import MAX_COORDINATE_M
 
 __all__ = [
@@ -176,7 +177,7 @@ class PilotConfig:
     replan_hold_s: float = 2.0  # held by an obstacle ahead this long: back off and re-plan around it
     no_progress_s: float = 8.0  # no waypoint passed and no closer by ``progress_m`` this long: re-plan
     progress_m: float = 0.05
-    sensor_offset_m: float = 0.17  # the front ultrasonic is this far ahead of the robot's centre
+    sensor_offset_m: float = BODY_RADIUS_M  # the front ultrasonic, on the rim, is this far ahead of the centre
     backoff_m: float = 0.15  # before re-planning around an obstacle ahead (turning is refused there)
     backoff_speed: float = 0.1  # m/s
     mark_depth_m: float = 0.1  # the blocked point handed to the provider: this far beyond the echo

@@ -42,6 +42,7 @@ from typing import Protocol, runtime_checkable
 
 from fleetlink.agent.guard import Refusal, RefusalReason
 from fleetlink.agent.motion import GoToController, GoToPhase
+from fleetlink.shared.body import BODY_RADIUS_M
 from fleetlink.shared.geometry import point_segment_distance
 
 __all__ = [
@@ -89,7 +90,7 @@ class RouteConfig:
     replan_hold_s: float = 2.0
     no_progress_s: float = 8.0
     progress_m: float = 0.05
-    sensor_offset_m: float = 0.17
+    sensor_offset_m: float = BODY_RADIUS_M
     backoff_m: float = 0.15
     backoff_speed: float = 0.1
     mark_depth_m: float = 0.1

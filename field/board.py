@@ -17,6 +17,7 @@ from fleetlink.devices.controlbus import protocol as p
 from fleetlink.devices.controlbus.frames import BOARD_BUFFER, Frame, FrameDecoder
 from fleetlink.devices.ports import InProcessPort
 from fleetlink.field.floor import Floor
+from fleetlink.shared.body import BODY_RADIUS_M
 from fleetlink.shared.clock import Clock
 
 log = logging.getLogger(__name__)
@@ -37,7 +38,7 @@ class BoardConfig:
     hardware: int = 0x0001
     serial: tuple[int, int, int] = (0x464C4B00, 0x00000001, 0x00000001)
     wheel_track: float = 0.22  # m (the sweeping-robot seed's default)
-    radius: float = 0.17  # m, round base
+    radius: float = BODY_RADIUS_M  # round base (GET_BASE_CONF); the ultrasonic sits on its rim
     max_wheel_speed: float = 0.6  # m/s
     motor_tau: float = 0.08  # s, first-order motor lag under PID
     watchdog: float = 1.0  # s without a CTRL_BUS request before the wheels stop

@@ -25,6 +25,7 @@ import numpy.typing as npt
 from fleetlink.field.floor import Floor
 from fleetlink.field.mapserver import MapError, OccupancyMap, image_from_grid, read_map
 from fleetlink.field.radio import AccessPoint, RadioSettings
+from fleetlink.shared.body import BODY_RADIUS_M
 from fleetlink.shared.config import ConfigError, Invalid, Setting, parse, read_toml
 from fleetlink.shared.geometry import Point, Segment, point_in_polygon, points_in_polygon
 from fleetlink.shared.messages import LinkName
@@ -51,7 +52,7 @@ __all__ = [
     "save_plan",
 ]
 
-ROBOT_RADIUS = 0.17  # m: the body every start must clear
+ROBOT_RADIUS = BODY_RADIUS_M  # m: the body every start must clear
 BUILTIN_PLANS = ("apartment", "office", "hall", "expo")  # the hand-drawn plans; builtin_plans() adds example maps
 PLANS_DIR = Path(__file__).with_name("floorplans")  # not "plans/": see docs/field-plans.md
 MAX_GRID_STARTS = 10_000

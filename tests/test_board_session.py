@@ -8,6 +8,7 @@ the board by hand, so their timings are exact.
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 from collections.abc import Callable, Iterator
 
@@ -20,6 +21,7 @@ from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 from fleetlink.devices.ports import InProcessPort, SerialPort
 from fleetlink.field.board import BoardConfig, SimulatedBoard
 from fleetlink.field.device_server import DeviceServer
+from fleetlink.shared.body import BODY_RADIUS_M
 from fleetlink.shared.clock import SimClock, SystemClock
 from tests.test_board_link import serve_board
 
@@ -264,6 +266,25 @@ def test_a_plain_slamtec_base_is_polled_command_by_command() -> None:
     assert snap.motor is not None and snap.motor.left == pytest.approx(ls.board.state.dist_left, abs=0.02)
     assert snap.sensors is not None and len(snap.sensors.distances) == 16
     assert snap.bumpers is not None and snap.bumpers.bitmap == 0xFFFF_FFFF
+    ls.session.stop()
+
+
+def test_a_base_of_another_size_is_reported(caplog: pytest.LogCaptureFixture) -> None:
+    """The agent plans and guards for the fleet's base (shared/body.py): a board that says its base
+    is another size is still driven, and the log says what it is driven as."""
+    with caplog.at_level(logging.WARNING, logger="fleetlink.agent.board.session"):
+        ls = Lockstep(SimulatedBoard(BoardConfig(radius=0.25), pose=(0.0, 0.0, 0.0)), rates=TELEMETRY_RATES)
+        ls.run(0.5)
+    assert ls.session.snapshot.connected
+    assert ls.session.snapshot.conf is not None and ls.session.snapshot.conf.radius == pytest.approx(0.25, abs=0.001)
+    said = [r.getMessage() for r in caplog.records if "radius" in r.getMessage()]
+    assert said == [f"board reports a base of radius 0.250 m; the agent plans and guards for {BODY_RADIUS_M:.3f} m"]
+    ls.session.stop()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="fleetlink.agent.board.session"):
+        ls = Lockstep(SimulatedBoard(pose=(0.0, 0.0, 0.0)), rates=TELEMETRY_RATES)
+        ls.run(0.5)
+    assert ls.session.snapshot.connected and not [r for r in caplog.records if "radius" in r.getMessage()]
     ls.session.stop()
 
 

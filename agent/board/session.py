@@ -32,6 +32,7 @@ from fleetlink.devices.controlbus.client import (
 )
 from fleetlink.devices.controlbus.snapshot import BoardSnapshot
 from fleetlink.devices.ports import Port, PortClosed
+from fleetlink.shared.body import BODY_RADIUS_M
 from fleetlink.shared.clock import Clock
 from fleetlink.shared.worker import Worker
 
@@ -276,6 +277,12 @@ class BoardSession:
             self._schedule_retry(f"board handshake failed: {exc}")
             return False
         assert isinstance(conf, p.BaseConf)
+        if abs(conf.radius - BODY_RADIUS_M) > 0.005:
+            # The planner, the guard and the peers' bodies take the fleet's base (shared/body.py):
+            # a different base is driven as if it were that one, which its operator must know.
+            log.warning(
+                "board reports a base of radius %.3f m; the agent plans and guards for %.3f m", conf.radius, BODY_RADIUS_M
+            )
         try:
             telemetry = self._probe_telemetry(client)
         except BoardError as exc:

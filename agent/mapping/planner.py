@@ -55,6 +55,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from fleetlink.shared.body import BODY_RADIUS_M
+
 __all__ = ["MOVABLE_SIZE_M", "MOVES8", "PathPlanner", "PlannerConfig", "SensorCone"]
 
 Point = tuple[float, float]
@@ -77,7 +79,7 @@ class SensorCone:
     """The front ultrasonic as the collision guard reads it (defaults: ``GuardConfig``, the field's
     board): legs are laid so that the guard's drive-start check passes on the map's own walls."""
 
-    offset: float = 0.17  # m ahead of the robot's centre
+    offset: float = BODY_RADIUS_M  # m ahead of the robot's centre: on the rim
     half_angle: float = math.radians(20.0)  # the cone's half-width
     max_range: float = 1.5  # m: farther echoes read as "nothing seen"
     stop_distance: float = 0.40  # m: the guard's threshold (``GuardConfig.stop_distance_m``)
@@ -88,7 +90,7 @@ class SensorCone:
 
 @dataclass(frozen=True, slots=True)
 class PlannerConfig:
-    robot_radius: float = 0.17  # m
+    robot_radius: float = BODY_RADIUS_M  # m
     margin: float = 0.05  # m beyond the radius
     cost_radius: float = 0.4  # m of soft cost beyond the inflation
     cost_weight: float = 3.0
@@ -98,7 +100,7 @@ class PlannerConfig:
     escape: float = 0.5  # m a blocked start may be moved
     max_expansions: int = 2_000_000
     blocked_radius: float = 0.25  # m: a ``blocked`` point is planned around as a disc this size
-    body_radius: float = 0.17  # m: another robot's body (``bodies``): the fleet's robots are alike
+    body_radius: float = BODY_RADIUS_M  # m: another robot's body (``bodies``): the fleet's robots are alike
     known_tolerance: float = 0.15  # m: a ``blocked`` point this near a mapped wall is that wall: ignored
     back_margin: float = 0.02  # m: backing straight (``room_behind``) stops this short of what the map blocks
     fit_margin: float = 0.02  # m: a goal inside the inflation is reached if the body stays this clear there
