@@ -633,9 +633,10 @@ class AgentCore:
             x, y, _ = self._map_pose()
             self.itinerary.approach(x, y)
         pose = self._map_pose()
-        ahead = self.peers.gap_ahead(now, pose) if self.peers.peers and self.fusion.position_initialized else None
+        placed = self.peers.peers and self.fusion.position_initialized
+        ahead = self.peers.robots_ahead(now, pose, self.fusion.heading_initialized) if placed else ()
         inputs = GuardInputs(
-            ultrasonic_m=self.board.ultrasonic_m, cliff=self.board.cliff, bumped=self.board.bumped, robot_ahead_m=ahead
+            ultrasonic_m=self.board.ultrasonic_m, cliff=self.board.cliff, bumped=self.board.bumped, robots_ahead=ahead
         )
         p = self.pilot.tick(now, pose, inputs)
         self._last_out = p

@@ -12,9 +12,10 @@ The rescue-robot seed's rules:
 * cliff: stop; forward and turning refused, backing away allowed (the cliff sensors look ahead);
 * bump: stop; forward and turning refused, backing out allowed;
 * another robot (where it reports itself, agent/peers.py) whose body lies in the robot's way ahead
-  nearer than the robot needs to stop short of it at its speed: forward refused (turning in place
-  and backing allowed; a round body turning sweeps nothing new). Never crept into: the ultrasonic
-  sees nothing inside its 0.25 m minimum, and the bumper is no way to meet a robot.
+  nearer than the two need to stop short of each other, this one at its speed and that one at the
+  speed it closes in at: forward refused (turning in place and backing allowed; a round body
+  turning sweeps nothing new). Never crept into: the ultrasonic sees nothing inside its 0.25 m
+  minimum, and the bumper is no way to meet a robot.
 
 A reading of ``None`` or outside the sensor's range (0.25-1.5 m on the US-100) means "nothing
 seen": the sensor reports no echo as 0 and clamps at its minimum, so an out-of-range value is not
@@ -28,7 +29,15 @@ import math
 from dataclasses import dataclass
 from enum import StrEnum
 
-__all__ = ["CollisionGuard", "GuardConfig", "GuardDecision", "GuardInputs", "Refusal", "RefusalReason"]
+__all__ = [
+    "CollisionGuard",
+    "GuardConfig",
+    "GuardDecision",
+    "GuardInputs",
+    "Refusal",
+    "RefusalReason",
+    "RobotAhead",
+]
 
 
 class RefusalReason(StrEnum):
@@ -58,9 +67,12 @@ class GuardConfig:
     # (m/s) instead of stopping, and a drive start is not refused for what the cone sees; the
     # bumper is the last stop. 0: the seed's rule (stop at the stop distance).
     creep_speed_mps: float = 0.0
-    # Another robot ahead (``GuardInputs.robot_ahead_m``): forward at v refused once the gap is
-    # under robot_gap_m + v^2 / (2 brake_mps2) + v robot_latency_s, what it takes to stop short of
-    # it (the peer's pose is up to 50 ms old, ours a control tick): 0.2 m at 0.5 m/s, 4 cm at 0.1.
+    # Another robot ahead (``GuardInputs.robots_ahead``): forward at v refused once the gap is
+    # under robot_gap_m + stop(v) + stop(w), stop(u) = u^2 / (2 brake_mps2) + u robot_latency_s,
+    # where w is the speed the other closes in at: each robot keeps room for both to stop (it runs
+    # the same rule, and two robots meeting head-on would each count only itself and touch). The
+    # latency: a control tick of ours and the peer's pose, moved on to now by its own speed.
+    # Alone: 0.2 m at 0.5 m/s, 4.5 cm at 0.1; head-on at 0.5 m/s each, 0.38 m.
     robot_gap_m: float = 0.03
     brake_mps2: float = 1.0
     robot_latency_s: float = 0.1
@@ -86,11 +98,19 @@ class GuardConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class RobotAhead:
+    """Another robot whose body lies in this one's way straight ahead."""
+
+    gap_m: float  # how far this body drives before it touches that one (0: they touch)
+    closing_mps: float = 0.0  # how fast that one comes toward this one (0: standing or going away)
+
+
+@dataclass(frozen=True, slots=True)
 class GuardInputs:
     ultrasonic_m: float | None = None  # front range; None or out of range = clear
     cliff: bool = False
     bumped: bool = False
-    robot_ahead_m: float | None = None  # gap to the nearest other robot in the way ahead; None: none
+    robots_ahead: tuple[RobotAhead, ...] = ()  # the other robots in the way ahead (agent/peers.py)
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,6 +129,11 @@ class CollisionGuard:
 
     def __init__(self, config: GuardConfig | None = None) -> None:
         self.config = config or GuardConfig()
+
+    def _stopping_m(self, v: float) -> float:
+        """How far a robot at ``v`` goes before it stands: it brakes after the latency."""
+        cfg = self.config
+        return v * v / (2.0 * cfg.brake_mps2) + v * cfg.robot_latency_s
 
     def obstacle_m(self, inputs: GuardInputs) -> float | None:
         """The front reading if it is a valid echo inside the sensor's range, else None."""
@@ -146,19 +171,21 @@ class CollisionGuard:
             return GuardDecision(0.0, 0.0, Refusal(RefusalReason.CLIFF, "cliff ahead: only backing away is allowed"))
         if inputs.bumped and moving:
             return GuardDecision(0.0, 0.0, Refusal(RefusalReason.BUMP, "bumper pressed: only backing out is allowed"))
-        gap = inputs.robot_ahead_m
-        need = cfg.robot_gap_m + v * v / (2.0 * cfg.brake_mps2) + v * cfg.robot_latency_s
-        if forward and gap is not None and not gap >= need:  # (NaN: refused too)
-            return GuardDecision(
-                0.0,
-                0.0,
-                Refusal(
-                    RefusalReason.OBSTACLE_AHEAD,
-                    f"another robot {gap:.2f} m ahead (< {need:.2f} m at {v:.2f} m/s): driving forward refused,"
-                    " turning and backing away allowed",
-                    max(0.0, gap) if math.isfinite(gap) else 0.0,
-                ),
-            )
+        for robot in inputs.robots_ahead if forward else ():
+            gap, w = robot.gap_m, max(0.0, robot.closing_mps) if math.isfinite(robot.closing_mps) else math.inf
+            need = cfg.robot_gap_m + self._stopping_m(v) + self._stopping_m(w)
+            if not gap >= need:  # (NaN: refused too)
+                coming = f", it coming at {w:.2f} m/s" if w > 0.0 else ""
+                return GuardDecision(
+                    0.0,
+                    0.0,
+                    Refusal(
+                        RefusalReason.OBSTACLE_AHEAD,
+                        f"another robot {gap:.2f} m ahead (< {need:.2f} m at {v:.2f} m/s{coming}): driving forward"
+                        " refused, turning and backing away allowed",
+                        max(0.0, gap) if math.isfinite(gap) else 0.0,
+                    ),
+                )
         d = self.obstacle_m(inputs)
         creeping = on_path and cfg.creep_speed_mps > 0.0
         if d is not None and d < cfg.stop_distance_m and forward and creeping:

@@ -13,9 +13,12 @@ bedroom's two-robot UV round at seed 16: uvc-1's last leg to a dwell point 0.1 m
 stood, finished, passed 0.24 m from its centre, off the ultrasonic's axis). Where a peer says it
 stands is known to the centimetre with UWB.
 
-The collision guard is also handed how far the robot can drive straight on before its body would
-touch a peer's (``gap_ahead``, any placed peer, moving or not: agent/guard.py), since the front
-ultrasonic sees nothing inside its 0.25 m minimum and a robot is no wall the map vouches for.
+The collision guard is also handed the peers in the robot's way (``robots_ahead``, any placed peer,
+moving or not: agent/guard.py): how far the robot can drive straight on before its body would touch
+each, and how fast each comes toward it, since the front ultrasonic sees nothing inside its 0.25 m
+minimum and a robot is no wall the map vouches for. A peer's pose is moved on to now by its own
+speed (it is up to a pose period old, more over the fallback link). While this robot's heading is
+not known yet (UWB places it before it has driven), every peer near enough counts, whichever way.
 
 Only standing peers are planned around: a moving one is somewhere else by the time the leg is
 driven, and would bar doorways it has already left (the guard and the re-plans answer a moving
@@ -29,6 +32,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from fleetlink.agent.guard import RobotAhead
 from fleetlink.shared.body import BODY_RADIUS_M
 from fleetlink.shared.messages import UNKNOWN_SD_M, Pose
 
@@ -50,7 +54,10 @@ class PeerConfig:
     body_radius_m: float = BODY_RADIUS_M
     """Every robot's body, this one's too (the fleet's robots are alike)."""
     lane_margin_m: float = 0.02
-    """``gap_ahead`` counts a robot in the way if the bodies would pass closer than this (pose error)."""
+    """``robots_ahead`` counts a robot in the way if the bodies would pass closer than this (pose error)."""
+    step_back_s: float = 0.25
+    """A pose stamped before the one kept is a late copy from the other link, unless the kept one was
+    received this long ago: then the peer's clock stepped back (or it restarted), and the pose is news."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,6 +66,8 @@ class _Heard:
     stamp: float  # the peer's header timestamp (a late copy on the other link does not go back)
     x: float
     y: float
+    theta: float
+    vx: float
     standing: bool
     placed: bool
 
@@ -78,48 +87,62 @@ class PeerBodies:
             return False
         last = self._heard.get(robot)
         stamp = pose.header.timestamp
-        if last is not None and stamp <= last.stamp and now - last.at <= self.config.fresh_s:
-            return False  # (once the kept one is stale, any pose replaces it: a peer restarted)
         c = self.config
+        if last is not None and stamp <= last.stamp and now - last.at < c.step_back_s:
+            return False
         standing = abs(pose.vx) <= c.standing_mps and abs(pose.omega) <= c.standing_radps
         placed = max(pose.sd_x_m, pose.sd_y_m) <= min(c.placed_sd_m, UNKNOWN_SD_M)
-        ok = math.isfinite(pose.x) and math.isfinite(pose.y)  # the wire contract's Coordinate says so too
-        self._heard[robot] = _Heard(now, stamp, pose.x, pose.y, standing and ok, placed and ok)
+        # (The wire contract's bounds say all of these are finite too.)
+        ok = all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta, pose.vx))
+        self._heard[robot] = _Heard(now, stamp, pose.x, pose.y, pose.theta, pose.vx, standing and ok, placed and ok)
         return True
+
+    def _fresh(self, h: _Heard, now: float) -> bool:
+        # No lower bound: the control tick may read the clock just before a pose is taken in.
+        return now - h.at <= self.config.fresh_s
 
     def heard_from(self) -> tuple[str, ...]:
         """The peers heard at least once, by name."""
         return tuple(sorted(self._heard))
 
-    def gap_ahead(self, now: float, pose: tuple[float, float, float]) -> float | None:
-        """Driving straight on from ``pose`` (site frame), how far the body goes before it touches
-        the nearest placed peer heard within ``fresh_s``, standing or moving (its pose now); None
-        when no peer lies in the way ahead. 0 when the bodies already touch (ahead or beside)."""
+    def robots_ahead(
+        self, now: float, pose: tuple[float, float, float], heading_known: bool = True
+    ) -> tuple[RobotAhead, ...]:
+        """The placed peers heard within ``fresh_s``, standing or moving, whose bodies lie in the way
+        of this one's (at ``pose``, site frame) driving straight on: how far it drives before they
+        touch (0: they touch already, ahead or beside) and how fast each comes toward it. Without
+        ``heading_known`` every peer counts, its gap the distance between the bodies."""
         c = self.config
         x, y, th = pose
         if not all(math.isfinite(v) for v in pose):
-            return None
+            return ()
         cos, sin = math.cos(th), math.sin(th)
         reach = 2.0 * c.body_radius_m + c.lane_margin_m  # centre to centre, bodies just apart
-        best: float | None = None
+        out: list[RobotAhead] = []
         for h in self._heard.values():
-            if not h.placed or not 0.0 <= now - h.at <= c.fresh_s:
+            if not h.placed or not self._fresh(h, now):
                 continue
-            dx, dy = h.x - x, h.y - y
+            age = max(0.0, now - h.at)
+            hx, hy = h.x + h.vx * age * math.cos(h.theta), h.y + h.vx * age * math.sin(h.theta)
+            dx, dy = hx - x, hy - y
+            apart = math.hypot(dx, dy)
+            # Its speed along the line from it to this robot (positive: coming closer).
+            closing = max(0.0, -h.vx * (dx * math.cos(h.theta) + dy * math.sin(h.theta)) / apart) if apart > 0 else 0.0
             ahead, side = cos * dx + sin * dy, -sin * dx + cos * dy
-            if math.hypot(ahead, side) < reach:
+            if not heading_known:
+                gap: float | None = max(0.0, apart - reach)
+            elif apart < reach:
                 gap = 0.0 if ahead > 0.0 else None  # touching: forward refused unless it lies behind
             elif ahead > 0.0 and abs(side) < reach:
                 gap = ahead - math.sqrt(reach * reach - side * side)
             else:
                 gap = None
-            if gap is not None and (best is None or gap < best):
-                best = gap
-        return best
+            if gap is not None:
+                out.append(RobotAhead(gap, closing))
+        return tuple(sorted(out, key=lambda r: r.gap_m))
 
     def standing(self, now: float) -> tuple[Point, ...]:
         """Where the peers heard within ``fresh_s`` stand still in the site frame, by robot name."""
-        fresh = self.config.fresh_s
         return tuple(
-            (h.x, h.y) for _, h in sorted(self._heard.items()) if h.standing and h.placed and 0.0 <= now - h.at <= fresh
+            (h.x, h.y) for _, h in sorted(self._heard.items()) if h.standing and h.placed and self._fresh(h, now)
         )

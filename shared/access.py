@@ -16,8 +16,9 @@ Usernames (the same on both links, docs/operations.md):
 Robot ids may therefore not start with ``op-`` or ``router-`` nor be ``uwb-gateway`` (``sim`` is
 already reserved by ``shared.keys``); ``check_robot_username`` enforces it.
 
-Mosquitto needs no per-robot lines (``pattern ... %u``); Zenoh's ACL has no such substitution, so
-its rules list every robot. Both renderings come from the tables below, so they cannot drift;
+Mosquitto needs per-robot lines only for the peers' poses (a robot's own topics are ``pattern ...
+%u``; a pattern with no ``%u`` would grant every user, the gateway and the simulator too); Zenoh's
+ACL has no such substitution, so its rules list every robot. Both renderings come from the tables below, so they cannot drift;
 ``python -m fleetlink.shared.access --robot r1 --robot r2 --operator op-alice`` prints both.
 Pure functions, no I/O (except under ``__main__``).
 """
@@ -134,9 +135,11 @@ def _zenoh(robot: str, topic: str, sender: str = "*") -> str:
     return f"{PREFIX}/{robot}/{topic}/**" if topic in _SUBTREE else f"{PREFIX}/{robot}/{topic}"
 
 
-def mosquitto_acl(operators: Iterable[str] = ()) -> str:
-    """The Mosquitto ``acl_file`` text. Agents need no lines of their own (``%u`` is the robot id)."""
+def mosquitto_acl(operators: Iterable[str] = (), robots: Iterable[str] = ()) -> str:
+    """The Mosquitto ``acl_file`` text. A robot's own topics need no lines of its own (``%u`` is the
+    robot id); the ``robots`` named here may also read every robot's pose (``PEER_READS``)."""
     ops = [check_operator_username(o) for o in operators]
+    bots = [check_robot_username(r) for r in robots]
     lines = [
         "# fleetlink Mosquitto ACL. Generated from shared/access.py (python -m fleetlink.shared.access);",
         "# regenerate rather than edit. Anything not granted here is denied: unauthorised publishes are",
@@ -148,8 +151,6 @@ def mosquitto_acl(operators: Iterable[str] = ()) -> str:
     ]
     lines += [f"pattern write {_mqtt('%u', t)}" for t in AGENT_WRITES]
     lines += [f"pattern read {_mqtt('%u', t)}" for t in AGENT_READS]
-    lines += ["# Every robot's pose, for the other robots (their peers: agent/peers.py), read only."]
-    lines += [f"pattern read {_mqtt('+', t)}" for t in PEER_READS]
     lines += [
         "# PANS tag locations straight from a DWM1001 gateway: tag ids are not robot ids, so every",
         "# user may read every tag's location (read only; only uwb-gateway writes them).",
@@ -161,6 +162,10 @@ def mosquitto_acl(operators: Iterable[str] = ()) -> str:
     lines += [f"topic read {PREFIX}/{SIM_USER}/+/truth", "topic read dwm/#"]
     lines += ["", "# The simulated field (test sites only) writes ground truth."]
     lines += [f"user {SIM_USER}", f"topic write {PREFIX}/{SIM_USER}/+/truth"]
+    lines += ["", "# Robots read every robot's pose (their peers: agent/peers.py), read only. One block per robot."]
+    for robot in bots:
+        lines += [f"user {robot}"]
+        lines += [f"topic read {_mqtt('+', t)}" for t in PEER_READS]
     lines += [
         "",
         "# Operators: read everything, write commands to any robot, each only under its own name (the",
@@ -308,14 +313,14 @@ if __name__ == "__main__":
     import argparse
 
     parser = argparse.ArgumentParser(description="Print the Mosquitto ACL and the Zenoh access_control section.")
-    parser.add_argument("--robot", action="append", default=[], help="robot id (Zenoh lists every robot)")
+    parser.add_argument("--robot", action="append", default=[], help="robot id (both list every robot)")
     parser.add_argument("--operator", action="append", default=[], help="op-<name>")
     parser.add_argument("--router", action="append", default=[], help="router-<site> (linked site routers)")
     parser.add_argument("--simulator", action="store_true", help="let the simulated field (user sim) publish truth")
     parser.add_argument("--what", choices=("mosquitto", "zenoh"), default="mosquitto")
     args = parser.parse_args()
     if args.what == "mosquitto":
-        print(mosquitto_acl(args.operator), end="")
+        print(mosquitto_acl(args.operator, args.robot), end="")
     else:
         section = zenoh_access_control(args.robot, args.operator, args.router, simulator=args.simulator)
         print(json.dumps({"access_control": section}, indent=2))

@@ -241,7 +241,7 @@ class SiteSecurity:
                 private_file(self.password_file(user), password + "\n")
             passwd = mosquitto_passwd(self.folder / "mosquitto.passwd", self.passwords)
             acl = self.folder / "mosquitto.acl"
-            acl.write_text(mosquitto_acl(self.operators))
+            acl.write_text(mosquitto_acl(self.operators, self.robots))
             users = private_file(
                 self.folder / "zenoh-users.txt", "".join(f"{u}:{p}\n" for u, p in self.passwords.items())
             )

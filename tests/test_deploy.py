@@ -110,8 +110,9 @@ def _client(
 def test_acl_file_is_the_generated_policy() -> None:
     text = (DEPLOY / "mosquitto.acl").read_text()
     operators = re.findall(r"^user (op-\S+)$", text, flags=re.M)
-    assert operators
-    assert text == mosquitto_acl(operators)
+    robots = re.findall(r"^user (?!op-|uwb-gateway$|sim$)(\S+)$", text, flags=re.M)
+    assert operators and robots
+    assert text == mosquitto_acl(operators, robots)
 
 
 def test_agent_writes_only_its_own_telemetry(broker: DeployBroker, clients: list[Client]) -> None:
@@ -154,6 +155,7 @@ def test_a_robot_hears_the_other_robots_poses_and_nothing_else_of_theirs(
 ) -> None:
     """Its peers' poses (agent/peers.py: planned around, kept out of the way), read only."""
     r1 = _client(clients, broker, "r1", ["fleetlink/v1/+/pose", "fleetlink/v1/r2/#"]).ready()
+    gateway = _client(clients, broker, "uwb-gateway", ["fleetlink/v1/+/pose", "dwm/#"]).ready()  # robots' only
     r2 = _client(clients, broker, "r2").ready()
     r2.publish("fleetlink/v1/r2/state", b"state")
     r2.publish("fleetlink/v1/r2/pose", b"pose")  # after the state: once it is in, the state had its turn
@@ -163,6 +165,10 @@ def test_a_robot_hears_the_other_robots_poses_and_nothing_else_of_theirs(
     r2.publish("fleetlink/v1/r2/pose", b"after")
     wait_until(lambda: ("fleetlink/v1/r2/pose", b"after") in r1.got)
     assert ("fleetlink/v1/r2/pose", b"forged") not in r1.got
+    # The gateway may not read them: its own message, after them, comes to it alone.
+    gateway.publish("dwm/node/t1/uplink/location", b"fix")
+    wait_until(lambda: ("dwm/node/t1/uplink/location", b"fix") in gateway.got)
+    assert gateway.topics_got() == ["dwm/node/t1/uplink/location"]
 
 
 def test_an_operator_commands_only_under_its_own_name(broker: DeployBroker, clients: list[Client]) -> None:

@@ -4,6 +4,7 @@ without taking them for commands."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
@@ -100,6 +101,11 @@ def test_a_robot_standing_behind_its_mapped_face_is_planned_around_as_a_body() -
     around = planner(start, far, bodies=[peer])
     assert around is not None and around[-1] == far
     assert _clearance_to([start, *around], peer) >= cfg.robot_radius + cfg.body_radius + cfg.margin - RES
+    # A goal where the two bodies would stand a few centimetres apart is reached (fit_margin 2 cm),
+    # one where they would touch is not.
+    assert planner(start, (3.0, 1.5 - 0.35), bodies=[peer]) is None
+    for apart in (0.37, 0.40):
+        assert planner(start, (3.0, 1.5 - apart), bodies=[peer]) is not None, apart
     # Non-finite bodies are dropped, not planned around.
     assert planner(start, far, bodies=[(math.nan, 1.0)]) == planner(start, far)
 
@@ -176,35 +182,89 @@ def test_robot_toml_refuses_peers_that_are_not_other_robots(peers: tuple[str, ..
     assert cfg.peers == ("r2", "r3")
 
 
+def _gaps(peers: PeerBodies, now: float, pose: tuple[float, float, float], heading_known: bool = True) -> list[float]:
+    return [r.gap_m for r in peers.robots_ahead(now, pose, heading_known)]
+
+
 def test_the_gap_ahead_is_how_far_the_body_drives_before_it_touches_a_peer() -> None:
     peers = PeerBodies(("r2", "r3"))
     reach = 2 * 0.17 + 0.02
     peers.hear("r2", _pose("r2", 2.0, 0.0, t=1.0, vx=0.3), now=1.0)  # moving ones count too
-    assert peers.gap_ahead(1.0, (0.0, 0.0, 0.0)) == pytest.approx(2.0 - reach)
+    assert _gaps(peers, 1.0, (0.0, 0.0, 0.0)) == [pytest.approx(2.0 - reach)]
     side = 0.2
     peers.hear("r2", _pose("r2", 1.0, side, t=1.1), now=1.1)
-    assert peers.gap_ahead(1.1, (0.0, 0.0, 0.0)) == pytest.approx(1.0 - math.sqrt(reach**2 - side**2))
-    assert peers.gap_ahead(1.1, (0.0, 0.0, math.pi)) is None  # behind
-    assert peers.gap_ahead(1.1, (0.0, 0.0, math.pi / 2)) is None  # beside, passing clear
-    assert peers.gap_ahead(1.1, (0.0, 0.0, -math.pi / 2)) is None
-    assert peers.gap_ahead(1.1, (0.75, 0.0, 0.0)) == 0.0  # touching, ahead
-    assert peers.gap_ahead(1.1, (1.25, 0.0, 0.0)) is None  # touching, behind: it may drive away
+    assert _gaps(peers, 1.1, (0.0, 0.0, 0.0)) == [pytest.approx(1.0 - math.sqrt(reach**2 - side**2))]
+    assert _gaps(peers, 1.1, (0.0, 0.0, math.pi)) == []  # behind
+    assert _gaps(peers, 1.1, (0.0, 0.0, math.pi / 2)) == []  # beside, passing clear
+    assert _gaps(peers, 1.1, (0.0, 0.0, -math.pi / 2)) == []
+    assert _gaps(peers, 1.1, (0.75, 0.0, 0.0)) == [0.0]  # touching, ahead
+    assert _gaps(peers, 1.1, (1.25, 0.0, 0.0)) == []  # touching, behind: it may drive away
     peers.hear("r3", _pose("r3", 0.5, 0.0, t=1.1, sd=UNKNOWN_SD_M), now=1.1)  # not placed: not known where
-    assert peers.gap_ahead(1.1, (0.0, 0.0, 0.0)) == pytest.approx(1.0 - math.sqrt(reach**2 - side**2))
-    assert peers.gap_ahead(3.0, (0.0, 0.0, 0.0)) is None  # stale
-    assert peers.gap_ahead(1.1, (math.nan, 0.0, 0.0)) is None
+    assert _gaps(peers, 1.1, (0.0, 0.0, 0.0)) == [pytest.approx(1.0 - math.sqrt(reach**2 - side**2))]
+    assert _gaps(peers, 3.0, (0.0, 0.0, 0.0)) == []  # stale
+    assert _gaps(peers, 1.1, (math.nan, 0.0, 0.0)) == []
+    # The control tick may read the clock just before the pose is taken in: that pose counts.
+    assert _gaps(peers, 1.099, (0.0, 0.0, 0.0)) == [pytest.approx(1.0 - math.sqrt(reach**2 - side**2))]
+    assert peers.standing(1.099) == ((1.0, side),)
+
+
+def test_before_the_robot_knows_its_heading_every_peer_near_enough_counts_whichever_way() -> None:
+    peers = PeerBodies(("r2",))
+    reach = 2 * 0.17 + 0.02
+    peers.hear("r2", _pose("r2", 0.0, 0.5, t=1.0), now=1.0)  # beside, to the left
+    assert _gaps(peers, 1.0, (0.0, 0.0, 0.0)) == []
+    assert _gaps(peers, 1.0, (0.0, 0.0, 0.0), heading_known=False) == [pytest.approx(0.5 - reach)]
+    peers.hear("r2", _pose("r2", -0.3, 0.0, t=1.1), now=1.1)  # touching, behind the heading it thinks it has
+    assert _gaps(peers, 1.1, (0.0, 0.0, 0.0), heading_known=False) == [0.0]
+
+
+def test_a_peer_coming_closer_is_moved_on_to_now_and_says_how_fast_it_comes() -> None:
+    peers = PeerBodies(("r2", "r3"))
+    reach = 2 * 0.17 + 0.02
+    head_on = _pose("r2", 2.0, 0.0, t=1.0, vx=0.5)
+    peers.hear("r2", _facing(head_on, math.pi), now=1.0)
+    (r,) = peers.robots_ahead(1.1, (0.0, 0.0, 0.0))
+    assert r.gap_m == pytest.approx(2.0 - 0.05 - reach)  # 0.1 s at 0.5 m/s nearer than it said
+    assert r.closing_mps == pytest.approx(0.5)
+    peers.hear("r3", _facing(_pose("r3", 1.0, 0.0, t=1.0, vx=0.5), 0.0), now=1.0)  # ahead, driving away
+    near = peers.robots_ahead(1.0, (0.0, 0.0, 0.0))
+    assert [(round(x.gap_m, 6), x.closing_mps) for x in near] == [
+        (round(1.0 - reach, 6), 0.0),
+        (round(2.0 - reach, 6), 0.5),
+    ]
+
+
+def _facing(pose: Pose, theta: float) -> Pose:
+    return dataclasses.replace(pose, theta=theta)
+
+
+def test_a_peer_whose_clock_steps_back_is_heard_again() -> None:
+    peers = PeerBodies(("r2",))
+    assert peers.hear("r2", _pose("r2", 1.0, 1.0, t=20.0), now=20.0)
+    assert not peers.hear("r2", _pose("r2", 0.0, 0.0, t=19.9), now=20.1)  # a late copy from the other link
+    assert peers.hear("r2", _pose("r2", 1.5, 1.0, t=19.5), now=20.3)  # its clock went back 0.8 s: news
+    assert peers.standing(20.3) == ((1.5, 1.0),)
 
 
 def test_the_guard_refuses_driving_into_another_robot_and_allows_turning_and_backing() -> None:
-    from fleetlink.agent.guard import CollisionGuard, GuardConfig, GuardInputs, RefusalReason
+    from fleetlink.agent.guard import CollisionGuard, GuardConfig, GuardInputs, RefusalReason, RobotAhead
 
     guard = CollisionGuard(GuardConfig(creep_speed_mps=0.05, allow_turn_in_place=True))
-    near = GuardInputs(robot_ahead_m=0.1)  # at 0.3 m/s it needs 0.03 + 0.045 + 0.03 m
+    near = GuardInputs(robots_ahead=(RobotAhead(0.1),))  # at 0.3 m/s it needs 0.03 + 0.045 + 0.03 m
     d = guard.filter(0.3, 0.0, near, on_path=True)  # never crept into, on a path or not
     assert d.v == 0.0 and d.refusal is not None and d.refusal.reason is RefusalReason.OBSTACLE_AHEAD
     assert "another robot" in d.refusal.text and d.refusal.distance_m == pytest.approx(0.1)
     assert guard.filter(0.0, 0.8, near).refusal is None  # a round body turning sweeps nothing new
     assert guard.filter(-0.1, 0.0, near).refusal is None
-    assert guard.filter(0.3, 0.0, GuardInputs(robot_ahead_m=0.11)).refusal is None
+    assert guard.filter(0.3, 0.0, GuardInputs(robots_ahead=(RobotAhead(0.11),))).refusal is None
     assert guard.filter(0.05, 0.0, near).refusal is None  # slowly, nearer
-    assert guard.filter(0.3, 0.0, GuardInputs(robot_ahead_m=math.nan)).refusal is not None
+    assert guard.filter(0.3, 0.0, GuardInputs(robots_ahead=(RobotAhead(math.nan),))).refusal is not None
+    # Each robot keeps room for both to stop: 0.03 + 2 x (0.125 + 0.05) m head-on at 0.5 m/s each.
+    head_on = (RobotAhead(0.37, closing_mps=0.5),)
+    refused = guard.filter(0.5, 0.0, GuardInputs(robots_ahead=head_on)).refusal
+    assert refused is not None and "coming at 0.50 m/s" in refused.text
+    assert guard.filter(0.5, 0.0, GuardInputs(robots_ahead=(RobotAhead(0.39, closing_mps=0.5),))).refusal is None
+    # Any robot in the way may be the one it must stop for, not only the nearest.
+    both = (RobotAhead(0.2), RobotAhead(0.25, closing_mps=0.5))  # needs 0.105 m, and 0.28 m
+    assert guard.filter(0.3, 0.0, GuardInputs(robots_ahead=both)).refusal is not None
+    assert guard.filter(0.3, 0.0, GuardInputs(robots_ahead=both[:1])).refusal is None

@@ -281,7 +281,9 @@ class BoardSession:
             # The planner, the guard and the peers' bodies take the fleet's base (shared/body.py):
             # a different base is driven as if it were that one, which its operator must know.
             log.warning(
-                "board reports a base of radius %.3f m; the agent plans and guards for %.3f m", conf.radius, BODY_RADIUS_M
+                "board reports a base of radius %.3f m; the agent plans and guards for %.3f m",
+                conf.radius,
+                BODY_RADIUS_M,
             )
         try:
             telemetry = self._probe_telemetry(client)

@@ -201,7 +201,7 @@ class PathPlanner:
         marks = self.unknown_marks(blocked)
         robots = [(float(x), float(y)) for x, y in bodies if math.isfinite(x) and math.isfinite(y)]
         free, cost, dist = self._with_blocked(marks, robots)
-        marks += robots  # what the ultrasonic will see (the legs' checks)
+        sensed = marks + self._body_echoes(robots)  # what the ultrasonic will see (the legs' checks)
         goal = self.cell(goal_xy)
         first = self.cell(start_xy)
         start = self._escape(first, free)
@@ -211,13 +211,13 @@ class PathPlanner:
         g = (float(goal_xy[0]), float(goal_xy[1]))
         if self._inside(goal) and free[goal]:
             cells = self._astar(start, goal, free, cost)
-            return None if cells is None else self._lay(s, g, cells, free, dist, marks, escaped=start != first)
+            return None if cells is None else self._lay(s, g, cells, free, dist, sensed, escaped=start != first)
         near = self._near_goal(g, free, marks, robots)
         if near is not None:
             cells = self._astar(start, near, free, cost)
             if cells is None:
                 return None
-            path = self._lay(s, self.center(near), cells, free, dist, marks, escaped=start != first)
+            path = self._lay(s, self.center(near), cells, free, dist, sensed, escaped=start != first)
             return [*path, g] if math.dist(path[-1], g) > 1e-6 else path
         if not self.unexplored(goal_xy):
             return None  # a wall, or too near one, or known space the robot cannot stand in
@@ -230,8 +230,15 @@ class PathPlanner:
         cells = self._astar(start, edge, free, cost)
         if cells is None:
             return None
-        path = self._lay(s, self.center(edge), cells, free, dist, marks, escaped=start != first)
+        path = self._lay(s, self.center(edge), cells, free, dist, sensed, escaped=start != first)
         return [*path, g] if math.dist(path[-1], g) > 1e-6 else path
+
+    def _body_echoes(self, bodies: Sequence[Point]) -> list[Point]:
+        """Another robot's body as the legs' checks see it: marks (discs of ``_MARK_ECHO_M``) round
+        its centre whose union is its disc (to within 6 mm), so that its near face echoes, not its
+        centre."""
+        r = max(0.0, self.config.body_radius - _MARK_ECHO_M)
+        return [(x + r * math.cos(a), y + r * math.sin(a)) for x, y in bodies for a in _BODY_ECHO_ANGLES] + list(bodies)
 
     def unexplored(self, p: Point) -> bool:
         """``p`` lies off the map, or in a plan cell the robot has not seen any of."""
@@ -739,6 +746,7 @@ MOVABLE_SIZE_M = 0.6
 """A piece of occupied cells no longer than this (a robot here is 0.34 m across, a person about
 0.5 m) may be something that moves: ``barred_by_movable``."""
 _MARK_ECHO_M = 0.12  # a marked point (10 cm behind the echo the pilot met) echoes as a disc this size
+_BODY_ECHO_ANGLES = tuple(k * math.pi / 4.0 for k in range(8))
 
 
 def _flood(start: tuple[int, int], free: npt.NDArray[np.bool_], *, diagonal: bool = False) -> npt.NDArray[np.bool_]:
