@@ -42,6 +42,7 @@ __all__ = [
 
 class RefusalReason(StrEnum):
     OBSTACLE_AHEAD = "obstacle_ahead"  # ultrasonic below the stop distance
+    ROBOT_AHEAD = "robot_ahead"  # another robot's body in the way, where it reports itself
     OBSTACLE_IN_PATH = "obstacle_in_path"  # go-to: obstacle nearer than drive distance + stop distance
     CLIFF = "cliff"
     BUMP = "bump"
@@ -52,7 +53,7 @@ class RefusalReason(StrEnum):
 class Refusal:
     reason: RefusalReason
     text: str
-    distance_m: float | None = None  # the ultrasonic reading that caused it, when one did
+    distance_m: float | None = None  # the ultrasonic reading that caused it (robot_ahead: the gap), when one did
 
 
 @dataclass(frozen=True, slots=True)
@@ -180,7 +181,7 @@ class CollisionGuard:
                     0.0,
                     0.0,
                     Refusal(
-                        RefusalReason.OBSTACLE_AHEAD,
+                        RefusalReason.ROBOT_AHEAD,
                         f"another robot {gap:.2f} m ahead (< {need:.2f} m at {v:.2f} m/s{coming}): driving forward"
                         " refused, turning and backing away allowed",
                         max(0.0, gap) if math.isfinite(gap) else 0.0,

@@ -371,12 +371,18 @@ class Route:
             self._finish(False, self._failure[0], f"{self._failure[1]} ({refusal.text})")
             return
         reason = refusal.reason
-        barred = reason in (RefusalReason.OBSTACLE_IN_PATH, RefusalReason.OBSTACLE_AHEAD, RefusalReason.BUMP)
+        barred = reason in (
+            RefusalReason.OBSTACLE_IN_PATH,
+            RefusalReason.OBSTACLE_AHEAD,
+            RefusalReason.ROBOT_AHEAD,
+            RefusalReason.BUMP,
+        )
+        in_front = reason in (RefusalReason.OBSTACLE_AHEAD, RefusalReason.ROBOT_AHEAD)  # it may go away
         if self.phase is RoutePhase.APPROACHING and barred:
             # As near as it gets: it looks from here (something in front, a person passing by, is
             # first given ``replan_hold_s`` to go, as on a path).
             held = 0.0 if self.held_since is None else now - self.held_since
-            if reason is not RefusalReason.OBSTACLE_AHEAD or held >= c.replan_hold_s:
+            if not in_front or held >= c.replan_hold_s:
                 self.held_since = None
                 self._stand(now)
                 return
@@ -385,10 +391,13 @@ class Route:
             # robot touches what it ran into: only backing out is allowed, so back out first), after
             # ``replan_hold_s`` when something stands in front (it may go away).
             held = 0.0 if self.held_since is None else now - self.held_since
-            if reason is not RefusalReason.OBSTACLE_AHEAD or held >= c.replan_hold_s:
+            if not in_front or held >= c.replan_hold_s:
                 ahead = reason is not RefusalReason.OBSTACLE_IN_PATH
                 seen = 0.0 if reason is RefusalReason.BUMP else refusal.distance_m
-                self._barred(now, pose, provider, seen, ahead, refusal.text, room)
+                # Another robot is no mark: where it stands it is planned around as a body
+                # (agent/peers.py), and where it drove on, a mark would bar the way it left.
+                mark = reason is not RefusalReason.ROBOT_AHEAD
+                self._barred(now, pose, provider, seen, ahead, refusal.text, room, mark=mark)
                 return
         elif reason is RefusalReason.OBSTACLE_IN_PATH:
             self._finish(False, reason.value, f"refused: {refusal.text}")
@@ -678,12 +687,16 @@ class Route:
         ahead: bool,
         text: str,
         room: RoomBehind | None,
+        *,
+        mark: bool = True,
     ) -> None:
-        """The guard barred the way on a planned path: mark where, then back off (if near) and re-plan."""
+        """The guard barred the way on a planned path: mark where (``mark``), then back off (if near)
+        and re-plan."""
         c = self.config
-        # The echo is the obstacle's near face: mark a point a little behind it.
-        reach = c.sensor_offset_m + (seen_m if seen_m is not None else c.stop_distance_m) + c.mark_depth_m
-        self.blocked.append((pose[0] + reach * math.cos(pose[2]), pose[1] + reach * math.sin(pose[2])))
+        if mark:
+            # The echo is the obstacle's near face: mark a point a little behind it.
+            reach = c.sensor_offset_m + (seen_m if seen_m is not None else c.stop_distance_m) + c.mark_depth_m
+            self.blocked.append((pose[0] + reach * math.cos(pose[2]), pose[1] + reach * math.sin(pose[2])))
         self.held_since = None
         if self.replans >= c.max_replans:
             self._fail(now, pose, "blocked", f"still blocked after {self.replans} re-plans: {text}", ahead, room)

@@ -252,7 +252,7 @@ def test_the_guard_refuses_driving_into_another_robot_and_allows_turning_and_bac
     guard = CollisionGuard(GuardConfig(creep_speed_mps=0.05, allow_turn_in_place=True))
     near = GuardInputs(robots_ahead=(RobotAhead(0.1),))  # at 0.3 m/s it needs 0.03 + 0.045 + 0.03 m
     d = guard.filter(0.3, 0.0, near, on_path=True)  # never crept into, on a path or not
-    assert d.v == 0.0 and d.refusal is not None and d.refusal.reason is RefusalReason.OBSTACLE_AHEAD
+    assert d.v == 0.0 and d.refusal is not None and d.refusal.reason is RefusalReason.ROBOT_AHEAD
     assert "another robot" in d.refusal.text and d.refusal.distance_m == pytest.approx(0.1)
     assert guard.filter(0.0, 0.8, near).refusal is None  # a round body turning sweeps nothing new
     assert guard.filter(-0.1, 0.0, near).refusal is None
