@@ -55,6 +55,9 @@ class PeerConfig:
     """Every robot's body, this one's too (the fleet's robots are alike)."""
     lane_margin_m: float = 0.02
     """``robots_ahead`` counts a robot in the way if the bodies would pass closer than this (pose error)."""
+    extrapolate_s: float = 0.25
+    """A moving peer's pose is moved on by its speed for at most this long: a few pose periods (20 Hz
+    on Zenoh, 10 on MQTT); poses that stop coming say nothing of where it went after."""
     step_back_s: float = 0.25
     """A pose stamped before the one kept is a late copy from the other link, unless the kept one was
     received this long ago: then the peer's clock stepped back (or it restarted), and the pose is news."""
@@ -122,7 +125,7 @@ class PeerBodies:
         for h in self._heard.values():
             if not h.placed or not self._fresh(h, now):
                 continue
-            age = max(0.0, now - h.at)
+            age = min(max(0.0, now - h.at), c.extrapolate_s)
             hx, hy = h.x + h.vx * age * math.cos(h.theta), h.y + h.vx * age * math.sin(h.theta)
             dx, dy = hx - x, hy - y
             apart = math.hypot(dx, dy)

@@ -392,12 +392,15 @@ class Route:
             # ``replan_hold_s`` when something stands in front (it may go away).
             held = 0.0 if self.held_since is None else now - self.held_since
             if not in_front or held >= c.replan_hold_s:
-                ahead = reason is not RefusalReason.OBSTACLE_IN_PATH
+                robot = reason is RefusalReason.ROBOT_AHEAD
+                # Backed off when the ultrasonic or the bumper barred the way (turning is refused
+                # there); not from another robot, which turning passes and backing may meet (the map
+                # says nothing of a robot behind, and before its heading is known a robot's rule counts
+                # one there too). Nor is another robot a mark: where it stands it is planned around as
+                # a body (agent/peers.py), and where it drove on, a mark would bar the way it left.
+                ahead = reason is not RefusalReason.OBSTACLE_IN_PATH and not robot
                 seen = 0.0 if reason is RefusalReason.BUMP else refusal.distance_m
-                # Another robot is no mark: where it stands it is planned around as a body
-                # (agent/peers.py), and where it drove on, a mark would bar the way it left.
-                mark = reason is not RefusalReason.ROBOT_AHEAD
-                self._barred(now, pose, provider, seen, ahead, refusal.text, room, mark=mark)
+                self._barred(now, pose, provider, seen, ahead, refusal.text, room, mark=not robot)
                 return
         elif reason is RefusalReason.OBSTACLE_IN_PATH:
             self._finish(False, reason.value, f"refused: {refusal.text}")

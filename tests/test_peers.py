@@ -101,21 +101,55 @@ def test_a_robot_standing_behind_its_mapped_face_is_planned_around_as_a_body() -
     around = planner(start, far, bodies=[peer])
     assert around is not None and around[-1] == far
     assert _clearance_to([start, *around], peer) >= cfg.robot_radius + cfg.body_radius + cfg.margin - RES
-    # A goal where the two bodies would stand a few centimetres apart is reached (fit_margin 2 cm),
-    # one where they would touch is not.
-    assert planner(start, (3.0, 1.5 - 0.35), bodies=[peer]) is None
-    for apart in (0.37, 0.40):
-        assert planner(start, (3.0, 1.5 - apart), bodies=[peer]) is not None, apart
+    # A goal is refused where the bodies would stand nearer than the guard lets a robot drive up to
+    # another (``body_clearance``), and only there: the blocked marks' wider radius does not apply.
+    for apart in (0.35, 0.40):
+        assert planner(start, (3.0, 1.5 - apart), bodies=[peer]) is None, apart
+    assert planner(start, (3.0, 1.5 - 0.43), bodies=[peer]) is not None
+    # The legs' ultrasonic checks see a body's face, not its centre: 0.60 m ahead of the sensor, a
+    # robot's face is 0.43 m off, within the stop distance and its margin (0.48 m).
+    body = (1.0 + cfg.robot_radius + 0.60, 1.5)
+    seen = planner.cone_range((1.0, 1.5), 0.0, 1.0, planner._body_echoes([body]))
+    assert seen == pytest.approx(0.43, abs=0.025)  # (the cone is cast in 2.5 cm steps)
+    assert not planner.leg_ok((0.5, 1.5), (1.0, 1.5), planner._body_echoes([body]))
+    assert planner.leg_ok((0.5, 1.5), (1.0, 1.5), [body])  # its centre alone would have let the leg through
     # Non-finite bodies are dropped, not planned around.
     assert planner(start, far, bodies=[(math.nan, 1.0)]) == planner(start, far)
 
 
 class _Placed(Fusion):
     placed = True
+    heading_known = False
 
     @property
     def position_initialized(self) -> bool:
         return self.placed
+
+    @property
+    def heading_initialized(self) -> bool:
+        return self.heading_known
+
+
+def test_the_core_asks_for_the_robots_ahead_once_placed_whichever_way_until_it_knows_its_heading() -> None:
+    from fleetlink.agent.core import BoardView
+
+    fusion = _Placed()
+    peers = PeerBodies(("r2",))
+    core = AgentCore("r1", SimClock(100.0), Pilot(), fusion=fusion, peers=peers)
+    asked: list[bool] = []
+    real = peers.robots_ahead
+
+    def robots_ahead(now: float, pose: tuple[float, float, float], heading_known: bool = True) -> object:
+        asked.append(heading_known)
+        return real(now, pose, heading_known)
+
+    peers.robots_ahead = robots_ahead  # type: ignore[method-assign]
+    core.tick(100.0, BoardView())
+    fusion.heading_known = True
+    core.tick(100.02, BoardView())
+    fusion.placed = False  # unplaced: nobody's pose is in its frame
+    core.tick(100.04, BoardView())
+    assert asked == [False, True]
 
 
 def test_the_core_hands_standing_peers_to_the_planner_once_placed_and_never_takes_them_for_commands() -> None:
@@ -226,6 +260,8 @@ def test_a_peer_coming_closer_is_moved_on_to_now_and_says_how_fast_it_comes() ->
     (r,) = peers.robots_ahead(1.1, (0.0, 0.0, 0.0))
     assert r.gap_m == pytest.approx(2.0 - 0.05 - reach)  # 0.1 s at 0.5 m/s nearer than it said
     assert r.closing_mps == pytest.approx(0.5)
+    (r,) = peers.robots_ahead(1.9, (0.0, 0.0, 0.0))  # no pose since: moved on for 0.25 s at most
+    assert r.gap_m == pytest.approx(2.0 - 0.125 - reach)
     peers.hear("r3", _facing(_pose("r3", 1.0, 0.0, t=1.0, vx=0.5), 0.0), now=1.0)  # ahead, driving away
     near = peers.robots_ahead(1.0, (0.0, 0.0, 0.0))
     assert [(round(x.gap_m, 6), x.closing_mps) for x in near] == [

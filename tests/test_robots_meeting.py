@@ -70,6 +70,6 @@ def test_two_robots_driven_at_each_other_stop_short_where_the_ultrasonic_sees_ne
     # They drove (each most of the way) and never touched.
     assert apart[0] - min(apart) > 4.0, min(apart)
     assert min(apart) > 2 * BODY_RADIUS_M, min(apart)
-    assert {e.header.robot for e in refusals if "another robot" in e.text} == {"r1", "r2"}, [
-        (e.header.robot, e.text) for e in refusals
-    ]
+    said = [(e.header.robot, {kv.key: kv.value for kv in e.data}.get("reason"), e.text) for e in refusals]
+    assert {robot for robot, reason, _ in said if reason == "robot_ahead"} == {"r1", "r2"}, said
+    assert all(reason == "robot_ahead" for _, reason, _ in said), said  # the ultrasonic saw neither

@@ -104,6 +104,10 @@ class PlannerConfig:
     known_tolerance: float = 0.15  # m: a ``blocked`` point this near a mapped wall is that wall: ignored
     back_margin: float = 0.02  # m: backing straight (``room_behind``) stops this short of what the map blocks
     fit_margin: float = 0.02  # m: a goal inside the inflation is reached if the body stays this clear there
+    # m: a goal is refused where the body would stand nearer another robot's (``bodies``) than this:
+    # the guard's robot rule stops a robot driving at another 2 cm lane margin + 3 cm + what it takes
+    # to stop from the approach's 0.1 m/s short of it (agent/guard.py), so a goal nearer is never reached.
+    body_clearance: float = 0.08
     sensor: SensorCone | None = field(default_factory=lambda: SensorCone())  # None: legs not checked
 
     @property
@@ -575,7 +579,7 @@ class PathPlanner:
             return None
         if any(math.dist(goal, m) < cfg.blocked_radius + cfg.robot_radius for m in marks):
             return None
-        if any(math.dist(goal, b) < cfg.body_radius + cfg.robot_radius + cfg.fit_margin for b in bodies):
+        if any(math.dist(goal, b) < cfg.body_radius + cfg.robot_radius + cfg.body_clearance for b in bodies):
             return None
         near = self._escape(rc, free)
         if near is None:
