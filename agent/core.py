@@ -425,7 +425,11 @@ class AgentCore:
             self._rejected(self.gate.reject(link, topic, exc.reason, exc.field), out)
             return out
         assert isinstance(msg, Pose)  # decode_key checks the message against its key's topic
-        self.peers.hear(robot, msg, now)
+        first = robot not in self.peers.heard_from()
+        if self.peers.hear(robot, msg, now) and first:
+            # Once per peer: the log says whom the robot rule and the planner know of (a robot the
+            # site's ACL does not let it hear is never named here).
+            out.logs.append(f"hears {robot}'s pose on {link.value}: planned around and kept clear of")
         return out
 
     def on_pans(self, link: LinkName, topic: str, payload: bytes, now: float) -> Output:

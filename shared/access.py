@@ -18,8 +18,9 @@ already reserved by ``shared.keys``); ``check_robot_username`` enforces it.
 
 Mosquitto needs per-robot lines only for the peers' poses (a robot's own topics are ``pattern ...
 %u``; a pattern with no ``%u`` would grant every user, the gateway and the simulator too); Zenoh's
-ACL has no such substitution, so its rules list every robot. Both renderings come from the tables below, so they cannot drift;
-``python -m fleetlink.shared.access --robot r1 --robot r2 --operator op-alice`` prints both.
+ACL has no such substitution, so its rules list every robot. Both renderings come from the tables
+below, so they cannot drift; ``python -m fleetlink.shared.access --robot r1 --robot r2 --operator
+op-alice`` prints both.
 Pure functions, no I/O (except under ``__main__``).
 """
 

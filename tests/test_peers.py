@@ -172,7 +172,9 @@ def test_the_core_hands_standing_peers_to_the_planner_once_placed_and_never_take
     plan = core.pilot.path_provider
     assert plan is not None
     key = keys.key("r2", Pose.TOPIC)
-    core.on_peer(LinkName.ZENOH, key, wire.encode(_pose("r2", 2.0, 3.0, t=100.0)), 100.0)
+    out = core.on_peer(LinkName.ZENOH, key, wire.encode(_pose("r2", 2.0, 3.0, t=100.0)), 100.0)
+    assert out.logs == ["hears r2's pose on zenoh: planned around and kept clear of"]  # once per peer
+    assert core.on_peer(LinkName.MQTT, key, wire.encode(_pose("r2", 2.0, 3.0, t=100.05)), 100.05).logs == []
     core._plan_now = 100.2  # the control step's time (set by every tick)
     plan((0.0, 0.0), (5.0, 5.0))
     plan((0.0, 0.0), (5.0, 5.0), blocked=[(1.0, 1.0)])
