@@ -211,7 +211,7 @@ def test_a_stalled_zenoh_does_not_delay_the_mqtt_copy_to_a_real_agent(mosquitto:
             # Nothing lost is the point here, not how soon: a CI run with the other worker on a
             # 150 s e2e test once took longer than 5 s for the last of these answers.
             wait_until(
-                lambda: sum(1 for lk, a in list(acks) if lk == "zenoh" and a.commandHeaderId in sent) == len(sent),
+                lambda: set(sent) <= {a.commandHeaderId for lk, a in list(acks) if lk == "zenoh"},
                 timeout=15.0,
                 message="every Zenoh copy answered",
             )
@@ -219,8 +219,12 @@ def test_a_stalled_zenoh_does_not_delay_the_mqtt_copy_to_a_real_agent(mosquitto:
             for _link, a in list(acks):
                 if a.commandTopic == "actions" and a.commandHeaderId in results:
                     results[a.commandHeaderId].append(a.result)
-            # Run once each (accepted on one link), the other copy a duplicate; nothing lost.
-            assert all(sorted(r) == [AckResult.ACCEPTED, AckResult.DUPLICATE] for r in results.values()), results
+            # Run once each (accepted on one link), every other copy a duplicate; nothing lost. A
+            # loaded host can hold an MQTT ack past ack_timeout_s, and the retry then sends another
+            # copy on both links: more duplicates, never a second run.
+            for r in results.values():
+                assert r.count(AckResult.ACCEPTED) == 1, results
+                assert set(r) == {AckResult.ACCEPTED, AckResult.DUPLICATE}, results
             assert op.pending("r1") == 0
         finally:
             op.close()
