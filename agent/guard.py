@@ -131,7 +131,7 @@ class CollisionGuard:
     def __init__(self, config: GuardConfig | None = None) -> None:
         self.config = config or GuardConfig()
 
-    def _stopping_m(self, v: float) -> float:
+    def stopping_m(self, v: float) -> float:
         """How far a robot at ``v`` goes before it stands: it brakes after the latency."""
         cfg = self.config
         return v * v / (2.0 * cfg.brake_mps2) + v * cfg.robot_latency_s
@@ -174,7 +174,7 @@ class CollisionGuard:
             return GuardDecision(0.0, 0.0, Refusal(RefusalReason.BUMP, "bumper pressed: only backing out is allowed"))
         for robot in inputs.robots_ahead if forward else ():
             gap, w = robot.gap_m, max(0.0, robot.closing_mps) if math.isfinite(robot.closing_mps) else math.inf
-            need = cfg.robot_gap_m + self._stopping_m(v) + self._stopping_m(w)
+            need = cfg.robot_gap_m + self.stopping_m(v) + self.stopping_m(w)
             if not gap >= need:  # (NaN: refused too)
                 coming = f", it coming at {w:.2f} m/s" if w > 0.0 else ""
                 return GuardDecision(

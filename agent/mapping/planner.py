@@ -105,8 +105,10 @@ class PlannerConfig:
     back_margin: float = 0.02  # m: backing straight (``room_behind``) stops this short of what the map blocks
     fit_margin: float = 0.02  # m: a goal inside the inflation is reached if the body stays this clear there
     # m: a goal is refused where the body would stand nearer another robot's (``bodies``) than this:
-    # the guard's robot rule stops a robot driving at another 2 cm lane margin + 3 cm + what it takes
-    # to stop from the approach's 0.1 m/s short of it (agent/guard.py), so a goal nearer is never reached.
+    # the guard's robot rule stops a robot driving at another its lane margin (2 cm) + its gap (3 cm)
+    # + what it takes to stop from the approach's 0.1 m/s (1.5 cm) short of it, 6.5 cm in all, so a
+    # goal nearer is never reached (tests/test_peers.py holds this to PeerConfig, GuardConfig and
+    # GoToConfig: the four live in separate configs).
     body_clearance: float = 0.08
     sensor: SensorCone | None = field(default_factory=lambda: SensorCone())  # None: legs not checked
 
