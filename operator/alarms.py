@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 from fleetlink.shared import keys
 from fleetlink.shared.messages import (
+    UNKNOWN_SD_M,
     AckedAlarm,
     AlarmAck,
     BoardStatus,
@@ -44,6 +45,7 @@ from fleetlink.shared.messages import (
     ConnectionState,
     EStop,
     Event,
+    Pose,
     State,
 )
 from fleetlink.shared.wire import Message
@@ -526,17 +528,21 @@ def _battery(percent: float, source: str, prior: Prior) -> Observation:
     return Observation(AlarmKind.LOW_BATTERY, source, level, f"battery {percent:.0f} %")
 
 
-def _state(s: State, prior: Prior) -> list[Observation]:
+def _state(s: State, prior: Prior, heading_known: bool = True) -> list[Observation]:
     estop = s.safetyState.eStop
     p = s.agvPosition
     degraded = prior(AlarmKind.LOCALISATION, "state") is not None
     minimum = LOCALISATION_SCORE_CLEAR if degraded else LOCALISATION_SCORE_MIN
+    # Placed by UWB but not yet driven: the heading is found from the fixes along its first half
+    # metre or so (agent/fusion.py), and until then the score is 0 whatever the fixes say.
+    unheaded = p.positionInitialized and not heading_known
     why = [
         text
         for bad, text in (
             (not p.positionInitialized, "position not initialised"),
+            (unheaded, "heading not found yet: it is found as the robot drives"),
             (s.uwbStale, "UWB stale"),
-            (p.localizationScore < minimum, f"score {p.localizationScore:.2f}"),
+            (p.localizationScore < minimum and not unheaded, f"score {p.localizationScore:.2f}"),
         )
         if bad
     ]
@@ -593,11 +599,15 @@ EVENT_KINDS = {"cliff": AlarmKind.CLIFF, "bump": AlarmKind.BUMP}
 """``Event.kind`` -> the latching alarm it raises."""
 
 
-def derive(msg: Message, prior: Prior = lambda _kind, _source: None) -> list[Observation]:
+def derive(
+    msg: Message, prior: Prior = lambda _kind, _source: None, *, heading_known: bool = True
+) -> list[Observation]:
     """The alarm conditions one message from a robot shows ([] for a message that shows none).
-    ``prior`` says what each source said last (for hysteresis; ``AlarmDesk`` keeps it)."""
+    ``prior`` says what each source said last (for hysteresis; ``AlarmDesk`` keeps it);
+    ``heading_known``: what the robot's last ``Pose`` said of its heading (a ``State`` has no word
+    for it)."""
     if isinstance(msg, State):
-        return _state(msg, prior)
+        return _state(msg, prior, heading_known)
     if isinstance(msg, BoardStatus):
         return _board(msg, prior)
     if isinstance(msg, Event):
@@ -639,6 +649,8 @@ class AlarmDesk:
         self._ack_stamp: dict[tuple[str, str], tuple[float, int]] = {}
         self._published: dict[str, tuple[AckEntry, ...]] = {}
         self._pending: set[str] = set()
+        self._unheaded: set[str] = set()
+        """Robots whose last ``Pose`` said their heading is not known (``UNKNOWN_SD_M``)."""
         self._own_frame: dict[str, str | None] = {}
         """Robots mapping in their own frame (no UWB): None once the fleet map has placed that frame,
         else why it has not (``own_frame``)."""
@@ -666,7 +678,16 @@ class AlarmDesk:
             alive = msg.connectionState is ConnectionState.ONLINE
             self.presence(robot, "mqtt", alive, now)
             return None
-        for obs in derive(msg, lambda kind, source: self._prior(robot, kind, source)):
+        if isinstance(msg, Pose):
+            if msg.sd_theta_rad >= UNKNOWN_SD_M:
+                self._unheaded.add(robot)
+            else:
+                self._unheaded.discard(robot)
+
+        def prior(kind: AlarmKind, source: str) -> AlarmSeverity | None:
+            return self._prior(robot, kind, source)
+
+        for obs in derive(msg, prior, heading_known=robot not in self._unheaded):
             if obs.kind is AlarmKind.LOCALISATION and isinstance(msg, State):
                 obs = self._own_frame_localisation(robot, msg, obs)
             self._apply(robot, obs, now, msg.header.timestamp)

@@ -32,6 +32,7 @@ from fleetlink.shared import wire
 from fleetlink.shared.clock import SimClock
 from fleetlink.shared.messages import (
     MAX_ALARM_ACKS,
+    UNKNOWN_SD_M,
     AckedAlarm,
     AgvPosition,
     AlarmAck,
@@ -44,6 +45,7 @@ from fleetlink.shared.messages import (
     Contact,
     EStop,
     Event,
+    Pose,
     SafetyState,
     Severity,
     State,
@@ -135,6 +137,32 @@ def test_localisation_degraded_with_hysteresis() -> None:
         pos = dataclasses.replace(pos, positionInitialized=True, localizationScore=score)
         heard(desk, r.state(agvPosition=pos))
         assert (K.LOCALISATION in active(desk)) is on, score
+
+
+def test_a_placed_robot_not_yet_driven_says_its_heading_is_not_found() -> None:
+    """UWB places a robot before it has driven, its heading found from the fixes along its first
+    half metre: the score is 0 till then, and the warning says why rather than "score 0.00"."""
+    desk, r = AlarmDesk("op-a"), Robot()
+    placed = AgvPosition(x=1, y=2, theta=0, mapId="m", positionInitialized=True, localizationScore=0.0)
+
+    def pose(sd_theta: float) -> Pose:
+        return r._make(  # type: ignore[no-any-return]
+            Pose,
+            {
+                "x": 1.0, "y": 2.0, "theta": 0.0, "sd_x_m": 0.05, "sd_y_m": 0.05, "sd_theta_rad": sd_theta,
+                "odom_x": 0.0, "odom_y": 0.0, "odom_theta": 0.0, "vx": 0.0, "omega": 0.0, "uwbStale": False,
+            },
+        )  # fmt: skip
+
+    heard(desk, pose(UNKNOWN_SD_M), r.state(agvPosition=placed))
+    alarm = desk.alarms.get("r1", K.LOCALISATION)
+    assert alarm is not None and alarm.severity is AlarmSeverity.WARNING
+    assert alarm.text == "localisation: heading not found yet: it is found as the robot drives"
+    # Driven, the heading found: judged on its score again.
+    heard(desk, pose(0.02), r.state(agvPosition=dataclasses.replace(placed, localizationScore=0.3)))
+    assert desk.alarms.get("r1", K.LOCALISATION).text == "localisation: score 0.30"  # type: ignore[union-attr]
+    heard(desk, r.state(agvPosition=dataclasses.replace(placed, localizationScore=0.9)))
+    assert K.LOCALISATION not in active(desk)
 
 
 def test_a_robot_in_its_own_frame_is_localised_once_the_fleet_map_places_it() -> None:
