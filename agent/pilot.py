@@ -592,9 +592,14 @@ class Pilot:
             decision = self.guard.filter(lv, lw, inputs, on_path=on_path)
         refusal = decision.refusal
         if refusal is None:
-            self._refusal = None
-            if r is not None:
-                r.held_since = None
+            # On a route, only a drive forward ends the episode: the leg starts afresh after each
+            # refusal (turn, then the drive-start check), and a turn the guard lets through moves
+            # nothing out of the way. Ended by it, a door frame 0.37 m ahead was an event every
+            # 0.12 s and never held for replan_hold_s, till no_progress re-planned 8 s on.
+            if r is None or decision.v > 0.0:
+                self._refusal = None
+                if r is not None:
+                    r.held_since = None
             return self._output(decision.v, decision.omega, refusing=False)
         if refusal.reason is not self._refusal:
             self._emit(now, EventKind.GUARD_REFUSAL, refusal.text, refusal.reason.value)
@@ -626,7 +631,10 @@ class Pilot:
         return sense.leg_clear((pose[0], pose[1]), goto.waypoints[goto.index])
 
     def _settle_route(self, now: float, r: Route) -> None:
-        """Report what the route noted, and end it if it ended."""
+        """Report what the route noted, and end it if it ended. A new path (or a wait for one)
+        starts a new refusal episode: a refusal on it is news."""
+        if r.notes:
+            self._refusal = None
         for note in r.notes:
             if note.replanned:
                 kind = EventKind.REPLANNED

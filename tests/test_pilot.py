@@ -8,13 +8,14 @@ from collections.abc import Sequence
 
 import pytest
 
-from fleetlink.agent.guard import GuardInputs
+from fleetlink.agent.guard import GuardConfig, GuardInputs
 from fleetlink.agent.pilot import (
     ActionKind,
     CommandStatus,
     EventKind,
     OperatingMode,
     Pilot,
+    PilotConfig,
     PilotOutput,
 )
 from tests.test_motion import Unicycle
@@ -402,6 +403,33 @@ def test_a_go_to_that_starts_against_a_wall_backs_out_and_plans_around() -> None
     assert any(asked[-1]), "the spot it ran into is marked for the next plan"
     reached = [e for o in outs for e in o.events if e.kind is EventKind.GOAL_REACHED]
     assert reached and not any(e.kind is EventKind.GOAL_FAILED for o in outs for e in o.events)
+
+
+def test_held_on_a_path_by_something_in_front_is_one_refusal_then_a_replan_after_the_hold() -> None:
+    """A round base may turn in place by an obstacle: after each refusal the leg starts afresh (a
+    turn the guard lets through, then the drive), and that turn does not end the episode. Before,
+    it did: a door frame 0.37 m ahead was a refusal event every 0.12 s, never held for
+    ``replan_hold_s``, till the lack of progress re-planned 8 s on (the demo's apartment)."""
+    asked: list[Sequence[tuple[float, float]]] = []
+
+    def planner(
+        start: tuple[float, float], goal: tuple[float, float], blocked: Sequence[tuple[float, float]] = ()
+    ) -> list[tuple[float, float]]:
+        asked.append(tuple(blocked))
+        return [start, goal]
+
+    p = Pilot(PilotConfig(guard=GuardConfig(allow_turn_in_place=True)), path_provider=planner)
+    body = Unicycle()
+    body.th = math.radians(2.0)  # a little off the leg: each fresh start of it turns first
+    p.order(0.0, "o1", 0, 3.0, 0.0, None, "op")
+    _, outs = drive(p, body, 0.0, p.config.replan_hold_s + 3.0, inputs=GuardInputs(ultrasonic_m=0.37))
+    events = [e for o in outs for e in o.events]
+    refusals = [e for e in events if e.kind is EventKind.GUARD_REFUSAL]
+    replans = [e for e in events if e.kind is EventKind.REPLANNED]
+    assert replans and replans[0].t - refusals[0].t < p.config.replan_hold_s + 2.0, replans
+    # One event for the episode; the new path is a new one (it finds the obstacle still there).
+    assert [e.t for e in refusals if e.t < replans[0].t] == [refusals[0].t], [(e.t, e.text) for e in refusals]
+    assert any(asked[-1]), "the echo is marked for the plan around it"
 
 
 class _Sense:
