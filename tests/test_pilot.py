@@ -14,6 +14,7 @@ from fleetlink.agent.pilot import (
     CommandStatus,
     EventKind,
     OperatingMode,
+    PathProvider,
     Pilot,
     PilotConfig,
     PilotOutput,
@@ -379,10 +380,8 @@ def test_a_pose_that_settles_away_during_the_final_turn_is_closed_before_goal_re
     assert abs(math.remainder(body.th - math.pi / 2, 2 * math.pi)) < math.radians(2)
 
 
-def test_a_go_to_that_starts_against_a_wall_backs_out_and_plans_around() -> None:
-    """After a bump the order holds; when the operator resumes, the robot still touches what it ran
-    into, the guard allows only backing out: the route backs out, marks the spot and plans again
-    (before, it waited for the bumper until ``blocked_timeout_s`` and skipped the node)."""
+def straight_planner() -> tuple[list[Sequence[tuple[float, float]]], PathProvider]:
+    """A path provider that plans straight to the goal, and the marks it was asked to plan around."""
     asked: list[Sequence[tuple[float, float]]] = []
 
     def planner(
@@ -391,6 +390,14 @@ def test_a_go_to_that_starts_against_a_wall_backs_out_and_plans_around() -> None
         asked.append(tuple(blocked))
         return [start, goal]
 
+    return asked, planner
+
+
+def test_a_go_to_that_starts_against_a_wall_backs_out_and_plans_around() -> None:
+    """After a bump the order holds; when the operator resumes, the robot still touches what it ran
+    into, the guard allows only backing out: the route backs out, marks the spot and plans again
+    (before, it waited for the bumper until ``blocked_timeout_s`` and skipped the node)."""
+    asked, planner = straight_planner()
     p = Pilot(path_provider=planner)
     body = Unicycle()
     bumped = GuardInputs(bumped=True)
@@ -410,14 +417,7 @@ def test_held_on_a_path_by_something_in_front_is_one_refusal_then_a_replan_after
     turn the guard lets through, then the drive), and that turn does not end the episode. Before,
     it did: a door frame 0.37 m ahead was a refusal event every 0.12 s, never held for
     ``replan_hold_s``, till the lack of progress re-planned 8 s on (the demo's apartment)."""
-    asked: list[Sequence[tuple[float, float]]] = []
-
-    def planner(
-        start: tuple[float, float], goal: tuple[float, float], blocked: Sequence[tuple[float, float]] = ()
-    ) -> list[tuple[float, float]]:
-        asked.append(tuple(blocked))
-        return [start, goal]
-
+    asked, planner = straight_planner()
     p = Pilot(PilotConfig(guard=GuardConfig(allow_turn_in_place=True)), path_provider=planner)
     body = Unicycle()
     body.th = math.radians(2.0)  # a little off the leg: each fresh start of it turns first
