@@ -249,8 +249,9 @@ class Route:
     _leg: int | None = None  # the waypoint index whose leg the trail's last point began
     _trail: list[Point] = field(default_factory=list)  # where the robot stood as each leg began (free)
     _failure: tuple[str, str] | None = None  # (reason, text) reported when the retreat ends
-    _planned_with: PathProvider | None = None  # the provider (the map) the path being driven came from
+    _planned_with: PathProvider | None = None  # the provider (the map) the route last looked at
     _planned_sense: object | None = None  # that map's ``sense`` (``step``)
+    _path_sense: object | None = None  # the ``sense`` of the map the path being driven was planned on
     _sense: object | None = None  # this tick's
     map_replans: int = 0  # re-plans because a newer map showed the leg barred (not in ``replans``)
     waiting_since: float | None = None  # no path since (the first plan, or a map re-plan, found none)
@@ -299,11 +300,16 @@ class Route:
             return _STILL
         if self.phase is RoutePhase.FOLLOWING and provider is not None and provider is not self._planned_with:
             older, self._planned_with = self._planned_with, provider
-            older_sense, self._planned_sense = self._planned_sense, self._sense
+            self._planned_sense = self._sense
+            # Against the map the path was planned on, not the last one looked at: a wall drawn while
+            # the robot drove an earlier leg is news to the later leg it bars when that leg comes
+            # within reach (two legs ahead are checked), though the maps since all held it. Compared
+            # map to map, the demo's apartment drove a leg laid through the unseen wall of a hallway
+            # into that wall and stood refused by it.
             if (
                 older is not None
                 and self.map_replans < c.max_map_replans
-                and self._newly_barred(older_sense, self._sense, pose)
+                and self._newly_barred(self._path_sense, self._sense, pose)
             ):
                 self.map_replans += 1
                 if not self._replan(now, pose, provider, "wall_on_map", counted=False):
@@ -527,6 +533,7 @@ class Route:
         ``source``: where a first path came from (``planned``, or the order's ``trajectory``)."""
         d = self.dest
         goal = (d.x, d.y)
+        self._path_sense = self._planned_sense
         if path is None:
             self.phase = RoutePhase.STRAIGHT
             self.goto.start([goal], d.theta)

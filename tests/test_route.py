@@ -612,12 +612,32 @@ def test_a_wall_the_older_map_held_already_or_off_the_leg_changes_nothing() -> N
 
 
 def test_map_replans_are_bounded() -> None:
+    """Maps that flip between two walls, each on the leg the other's path takes: every map is news
+    to the path planned on the one before, and the re-plans stop at ``max_map_replans``."""
     r = route(RouteConfig(max_map_replans=2))
-    r.step(0.0, (0.0, 0.0, 0.0), Mapped(None, [(4.0, 0.0)]))
+    straight, bent = [(4.0, 0.0)], [(2.0, 1.0), (4.0, 0.0)]
+    r.step(0.0, (0.0, 0.0, 0.0), Mapped(None, straight))
     for k in range(4):
-        r.step(0.1 * (k + 1), (0.5, 0.0, 0.0), Mapped(None, [(4.0, 0.0)]))  # a clear map between
-        r.step(0.1 * (k + 1) + 0.05, (0.5, 0.0, 0.0), Mapped((2.5, 0.0), [(4.0, 0.0)]))
+        r.step(0.1 * (k + 1), (0.5, 0.0, 0.0), Mapped((2.5, 0.0), bent))  # bars the straight leg
+        r.step(0.1 * (k + 1) + 0.05, (0.5, 0.0, 0.0), Mapped((2.0, 1.0), straight))  # bars the bend
     assert r.map_replans == 2 and r.replans == 0 and r.end is None
+
+
+def test_a_wall_drawn_while_an_earlier_leg_is_driven_is_news_when_its_leg_comes_within_reach() -> None:
+    """Two legs ahead are checked against each newer map. A wall on the third leg, drawn while the
+    first is driven, is on every map from then on; it is news to the path, which was planned on a map
+    without it, when the third leg comes within reach (compared map to map it never was: the demo's
+    apartment drove a leg laid through a hallway's unseen wall into that wall)."""
+    r = route()
+    path = [(1.0, 0.0), (2.0, 0.0), (3.0, 0.0), (4.0, 0.0)]
+    r.step(0.0, (0.0, 0.0, 0.0), Mapped(None, path))
+    drawn = Mapped((3.5, 0.0), [(3.0, 0.0), (3.5, 0.5), (4.0, 0.0)])
+    r.step(0.1, (0.1, 0.0, 0.0), drawn)  # legs (0.1)-(1)-(2): clear of it
+    assert r.map_replans == 0
+    r.goto.index = 2  # on to the leg toward (3, 0): the next, (3)-(4), meets the wall
+    later = Mapped((3.5, 0.0), [(3.0, 0.0), (3.5, 0.5), (4.0, 0.0)])
+    r.step(0.2, (2.1, 0.0, 0.0), later)
+    assert r.map_replans == 1 and r.notes[-1].reason == "wall_on_map"
 
 
 # -- an order's trajectory ------------------------------------------------------------------------
