@@ -425,7 +425,7 @@ class AgentCore:
             self._rejected(self.gate.reject(link, topic, exc.reason, exc.field), out)
             return out
         assert isinstance(msg, Pose)  # decode_key checks the message against its key's topic
-        first = robot not in self.peers.heard_from()
+        first = not self.peers.has_heard(robot)
         if self.peers.hear(robot, msg, now) and first:
             # Once per peer: the log says whom the robot rule and the planner know of (a robot the
             # site's ACL does not let it hear is never named here).

@@ -104,6 +104,10 @@ class PeerBodies:
         # No lower bound: the control tick may read the clock just before a pose is taken in.
         return now - h.at <= self.config.fresh_s
 
+    def has_heard(self, robot: str) -> bool:
+        """Whether ``robot``'s pose has been taken at least once."""
+        return robot in self._heard
+
     def heard_from(self) -> tuple[str, ...]:
         """The peers heard at least once, by name."""
         return tuple(sorted(self._heard))

@@ -109,8 +109,8 @@ def test_a_robot_standing_behind_its_mapped_face_is_planned_around_as_a_body() -
         assert planner(start, (3.0, 1.5 - apart), bodies=[peer]) is None, apart
     assert planner(start, (3.0, 1.5 - 0.43), bodies=[peer]) is not None
     # ... no nearer than the guard stops a robot that approaches a goal at the go-to's slowest speed.
-    standoff = PeerConfig().lane_margin_m + CollisionGuard().config.robot_gap_m
-    standoff += CollisionGuard().stopping_m(GoToConfig().approach_v_min)
+    guard = CollisionGuard()
+    standoff = PeerConfig().lane_margin_m + guard.config.robot_gap_m + guard.stopping_m(GoToConfig().approach_v_min)
     assert standoff <= cfg.body_clearance < standoff + 0.03
     # The legs' ultrasonic checks see a body's face, not its centre: 0.60 m ahead of the sensor, a
     # robot's face is 0.43 m off, within the stop distance and its margin (0.48 m).
