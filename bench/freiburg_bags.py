@@ -25,6 +25,17 @@ it needs, by hand: the standard library and numpy only) and writes ``DIR/NAME.cl
 NAME is the bag's name less ``.orig.bag``. A time-sorted conversion (``*.sort.bag``) is refused: a
 scan and the odometry stamped with it come in either order there.
 
+MIT's Killian Court log is kept only as ``mit-killian.clf2bag.bag`` (its ``.orig.bag`` is not in the
+repository). That converter writes each scan with its own odometry (the FLASER line's pose) but stamps
+the messages 0.1 s apart from 1e9 s, not with the log's times, which the relations name. A
+``NAME.clf2bag.bag`` is read with ``NAME.relations`` beside it (or in ``--out``), and the log's times
+are recovered from it where the log's scans came at one fixed period (``recover_times``): the
+relations' stamps, sorted, then lie on that period's grid (Killian: 0.44 s, every gap within 0.27
+period of a whole number of them), which gives each stamp's scan up to one offset; the offset is the
+one at which the relations that turn (under 5 s apart, 8.6 degrees or more) agree best in heading with
+the odometry (Killian: 0.026 rad on 498 such relations at the best offset, 0.033 and 0.070 one scan
+either side, the same offset best in each tenth of the log). Every other scan is timed between them.
+
 Then copy ``NAME.relations`` into DIR (``fr-clinic.relations`` finds ``fr-clinic_robotlaser.clf``) and
 run ``python bench/mapping.py --freiburg DIR``. Put together so (2026-12-05), the logs reproduce the
 figures of docs/mapping.md ("Against the published relations") to the digit.
@@ -256,9 +267,133 @@ def log_lines(data: bytes, robotlaser: bool) -> Iterator[str]:
         raise BagError(f"{len(pending)} scans and no /odom to place them by")
 
 
+def clf2bag_records(data: bytes) -> tuple[list[Scan], list[tuple[float, float, float]]]:
+    """A clf2bag bag's scans, each with the odometry written with it (the /odom stamped as the scan)."""
+    scans: list[Scan] = []
+    odom: dict[Stamp, Odom] = {}
+    for topic, body in messages(data):
+        if topic == "/scan":
+            scans.append(laser_scan(body))
+        elif topic == "/odom":
+            o = odometry(body)
+            odom[o.stamp] = o
+    missing = sum(s.stamp not in odom for s in scans)
+    if missing:
+        raise BagError(f"{missing} of {len(scans)} scans without the /odom stamped as they are")
+    return scans, [odom[s.stamp].pose for s in scans]
+
+
+def read_relation_stamps(text: str) -> list[tuple[float, float, float, float, float]]:
+    """(t1, t2, x, y, yaw) per line of a relations file (``t1 t2 x y z roll pitch yaw``)."""
+    out = []
+    for number, line in enumerate(text.splitlines(), 1):
+        toks = line.split()
+        if not toks or toks[0].startswith("#"):
+            continue
+        if len(toks) < 8:
+            raise BagError(f"relations line {number}: {len(toks)} fields, not 8")
+        t1, t2, x, y, _z, _roll, _pitch, yaw = (float(v) for v in toks[:8])
+        out.append((t1, t2, x, y, yaw))
+    return out
+
+
+PERIOD_SLACK = 0.35  # of a period: how far a gap between two relation stamps may lie from the grid (Killian: 0.27)
+TURN_RAD = 0.15  # a relation that turns at least this much tells an offset of one scan from the next
+TURNS_NEEDED = 20
+
+
+def recover_times(
+    odom: list[tuple[float, float, float]], relations: list[tuple[float, float, float, float, float]]
+) -> tuple[np.ndarray, float, int, list[float]]:
+    """The log's time of each scan, from the relations (see the module's docstring): the times, the
+    period, the first relation stamp's scan, and each offset's mean heading error (rad) at that period.
+    The shortest gap between two stamps is the period or a whole number of them (relations that name
+    every second scan): each of those periods whose grid fits in the bag is tried, and the period and
+    offset where the turning relations agree best with the odometry kept."""
+    stamps = np.array(sorted({r[0] for r in relations} | {r[1] for r in relations}))
+    if len(stamps) < 2:
+        raise BagError("the relations name fewer than two stamps")
+    gaps = np.diff(stamps)
+    base = float(gaps.min())
+    if base <= 0:
+        raise BagError("two relation stamps are the same")
+    period = float(np.median(gaps / np.maximum(np.round(gaps / base), 1.0)))
+    off_grid = float(np.max(np.abs(gaps / period - np.round(gaps / period))))
+    if off_grid > PERIOD_SLACK:
+        raise BagError(
+            f"the relation stamps do not lie on one period's grid (a gap {off_grid:.2f} of {period:.3f} s off it):"
+            " the log's times cannot be recovered"
+        )
+    n = len(odom)
+    at = {float(t): k for k, t in enumerate(stamps)}
+    turns = [r for r in relations if abs(r[1] - r[0]) < 5.0 and abs(r[4]) >= TURN_RAD]
+    if len(turns) < TURNS_NEEDED:
+        raise BagError(
+            f"{len(turns)} relations turn {math.degrees(TURN_RAD):.1f} degrees or more: too few to place them"
+        )
+    heading = np.array([p[2] for p in odom])
+    yaw = np.array([r[4] for r in turns])
+    best: tuple[float, float, np.ndarray, int, list[float]] | None = None
+    for share in range(1, 5):
+        index = np.concatenate(([0], np.cumsum(np.round(gaps / period) * share))).astype(np.int64)
+        if index[-1] >= n:
+            break
+        if float(np.max(np.abs(gaps * share / period - np.diff(index)))) > PERIOD_SLACK:
+            continue  # a finer grid some gap is off
+        i = np.array([index[at[r[0]]] for r in turns])
+        j = np.array([index[at[r[1]]] for r in turns])
+        errors = []
+        for offset in range(n - int(index[-1])):
+            d = heading[j + offset] - heading[i + offset] - yaw
+            errors.append(float(np.mean(np.abs(np.remainder(d + math.pi, 2.0 * math.pi) - math.pi))))
+        first = int(np.argmin(errors))
+        if best is None or errors[first] < best[0]:
+            best = (errors[first], period / share, index + first, first, errors)
+    if best is None:
+        raise BagError(
+            f"the relations span more scans at {period:.3f} s a scan than the bag's {n}: the log's times cannot be recovered"
+        )
+    _, step, known, first, errors = best
+    times = np.interp(np.arange(n, dtype=float), known.astype(float), stamps)
+    times[: known[0]] = stamps[0] - step * (known[0] - np.arange(known[0]))
+    times[known[-1] + 1 :] = stamps[-1] + step * (np.arange(known[-1] + 1, n) - known[-1])
+    times[known] = stamps
+    return times, step, first, errors
+
+
+def clf2bag_lines(data: bytes, relations_text: str) -> tuple[list[str], str]:
+    """A clf2bag bag's CARMEN lines (an ODOM and a FLASER line per scan), timed by ``recover_times``;
+    and a line saying how the times were found."""
+    scans, odom = clf2bag_records(data)
+    if not scans:
+        raise BagError("no /scan messages")
+    times, period, first, errors = recover_times(odom, read_relation_stamps(relations_text))
+    lines = []
+    for scan, pose, t in zip(scans, odom, times, strict=True):
+        n = len(scan.ranges)
+        guess = guess_increment(n)
+        if abs(scan.angle_min + math.pi / 2) > 1e-4 or abs(scan.angle_increment - guess) > 0.01 * guess:
+            raise BagError(f"a scan of {n} beams from {math.degrees(scan.angle_min):.2f} degrees is no FLASER line")
+        stamp = f"{t:.6f}"
+        lines.append(f"ODOM {_pose(pose)} 0 0 0 {stamp} bag {stamp}")
+        lines.append(f"FLASER {n} {_ranges(scan)} {_pose(pose)} {_pose(pose)} {stamp} bag {stamp}")
+    nearby = sorted(errors[max(0, first - 1) : first + 2])
+    note = (
+        f"times recovered on a {period:.3f} s grid, the relations' first stamp at scan {first}"
+        f" (mean heading error of the turning relations there {math.degrees(errors[first]):.2f} deg;"
+        f" next best offset beside it {math.degrees(nearby[1]) if len(nearby) > 1 else float('nan'):.2f} deg)"
+    )
+    return lines, note
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("bags", nargs="+", type=Path, help="NAME.orig.bag files (INESCTEC/ricoslam)")
+    ap.add_argument(
+        "bags",
+        nargs="+",
+        type=Path,
+        help="NAME.orig.bag files (INESCTEC/ricoslam), or NAME.clf2bag.bag with NAME.relations",
+    )
     ap.add_argument("--out", type=Path, required=True, help="folder for NAME.clf")
     args = ap.parse_args(argv)
     names: dict[str, Path] = {}
@@ -268,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
             # last odometry before a scan is then, half the time, the scan before's.
             print(f"{bag}: a time-sorted conversion; give the NAME.orig.bag (the log's line order)", file=sys.stderr)
             return 1
-        name = bag.name.removesuffix(".bag").removesuffix(".orig")
+        name = bag.name.removesuffix(".bag").removesuffix(".orig").removesuffix(".clf2bag")
         if name in names:
             print(f"{bag} and {names[name]} would both be {name}.clf", file=sys.stderr)
             return 1
@@ -277,7 +412,15 @@ def main(argv: list[str] | None = None) -> int:
     for name, bag in names.items():
         try:
             data = bag.read_bytes()
-            lines = list(log_lines(data, robotlaser="_robotlaser" in name))
+            if bag.name.endswith(".clf2bag.bag"):
+                beside = [d / f"{name}.relations" for d in (bag.parent, args.out)]
+                found = [p for p in beside if p.exists()]
+                if not found:
+                    raise BagError(f"its stamps are not the log's: give {name}.relations beside it or in --out")
+                lines, note = clf2bag_lines(data, found[0].read_text())
+                print(f"{bag}: {note}")
+            else:
+                lines = list(log_lines(data, robotlaser="_robotlaser" in name))
         except (OSError, BagError, struct.error, UnicodeDecodeError, ValueError, KeyError, IndexError) as exc:
             print(f"{bag}: not read: {type(exc).__name__}: {exc}", file=sys.stderr)
             return 1

@@ -6,13 +6,16 @@ then takes as the replay would."""
 from __future__ import annotations
 
 import bz2
+import itertools
 import math
+import re
 import struct
 from pathlib import Path
 
 import pytest
 
 from fleetlink.agent.mapping.carmen import LaserRecord, OdomRecord, read_records
+from fleetlink.shared.se2 import relative
 from tests.harness.bench import load_bench
 
 
@@ -176,3 +179,55 @@ def test_what_cannot_be_read_right_is_refused_with_a_reason(tmp_path: Path, caps
     assert tool.main([str(tmp_path / "room.orig.bag"), "--out", out]) == 0
     assert "1 scans, 1 odometry lines" in capsys.readouterr().out
     assert (tmp_path / "out" / "room.clf").read_text().count("FLASER") == 1
+
+
+def _clf2bag(poses: list[tuple[float, float, float]]) -> bytes:
+    """A bag as the clf2bag converter writes one: per scan its /scan, /tf and /odom, stamped 0.1 s apart
+    from 1e9 s, whatever the log's times were."""
+    out: list[tuple[str, bytes]] = []
+    for k, (x, y, th) in enumerate(poses):
+        sec, nsec = 1_000_000_000 + k // 10, (k % 10) * 100_000_000
+        out += [("/scan", _scan(sec, nsec, -math.pi / 2, RANGES)), ("/tf", _tf(x, y, th))]
+        out.append(("/odom", _odom(sec, nsec, x, y, th)))
+    return _bag(out, per_chunk=30)
+
+
+def test_a_clf2bag_bag_gets_the_logs_times_back_from_the_relations(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """MIT's Killian Court log, kept only as a clf2bag bag: its scans came every 0.44 s, so the
+    relations' stamps lie on that grid; the one offset left is where the turning relations agree with
+    the odometry. Each scan a relation names gets that relation's stamp back, to the microsecond."""
+    tool = _tool()
+    poses = [(0.0, 0.0, 0.0)]
+    for k in range(1, 130):
+        th = 0.8 * math.sin(k / 6.0)
+        poses.append((poses[-1][0] + 0.13 * math.cos(th), poses[-1][1] + 0.13 * math.sin(th), th))
+    # The log's times: 0.44 s a scan, with the jitter a logger adds; the relations name every second
+    # scan from scan 17 on (the first stamps of a log are seldom in them).
+    times = [1031745833.448 + 0.44 * k + 0.03 * math.sin(k) for k in range(len(poses))]
+    named = list(range(17, 121, 2))
+    lines = []
+    for a, b in itertools.pairwise(named):
+        x, y, yaw = relative(poses[a], poses[b])
+        lines.append(f"{times[a]:.6f} {times[b]:.6f} {x:.6f} {y:.6f} 0 0 0 {yaw:.6f}")
+    (tmp_path / "killian.clf2bag.bag").write_bytes(_clf2bag(poses))
+    out = tmp_path / "out"
+    # Without its relations the bag's stamps would be taken for the log's: refused.
+    assert tool.main([str(tmp_path / "killian.clf2bag.bag"), "--out", str(out)]) == 1
+    assert "give killian.relations" in capsys.readouterr().err
+    (tmp_path / "killian.relations").write_text("# timestamp1 timestamp2 x y z roll pitch yaw\n" + "\n".join(lines))
+    assert tool.main([str(tmp_path / "killian.clf2bag.bag"), "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert re.search(r"on a 0\.44\d s grid, the relations. first stamp at scan 17 ", said), said
+    lasers = [r for r in read_records((out / "killian.clf").read_text().splitlines()) if isinstance(r, LaserRecord)]
+    assert len(lasers) == len(poses)
+    stamps = [r.ipc_timestamp for r in lasers]
+    assert [stamps[k] for k in named] == [f"{times[k]:.6f}" for k in named]
+    assert all(float(a) < float(b) for a, b in itertools.pairwise(stamps))
+    assert lasers[40].odom == pytest.approx(poses[40], abs=1e-5)
+    # Stamps that are not on one period's grid cannot be placed: refused, with the reason.
+    for bad in (times[30] + 0.22, times[30] + 0.15):  # half a period off: a grid that will not fit; or no grid
+        (tmp_path / "killian.relations").write_text("\n".join([*lines, f"{times[29]:.6f} {bad:.6f} 0 0 0 0 0 0"]))
+        assert tool.main([str(tmp_path / "killian.clf2bag.bag"), "--out", str(out)]) == 1
+        assert "the log's times cannot be recovered" in capsys.readouterr().err
