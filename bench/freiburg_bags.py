@@ -34,7 +34,7 @@ relations' stamps, sorted, then lie on that period's grid (Killian: 0.44 s, ever
 period of a whole number of them), which gives each stamp's scan up to one offset; the offset is the
 one at which the relations that turn (under 5 s apart, 8.6 degrees or more) agree best in heading with
 the odometry (Killian: 0.026 rad on 498 such relations at the best offset, 0.033 and 0.070 one scan
-either side, the same offset best in each tenth of the log). Every other scan is timed between them.
+either side; the best in nine tenths of the log taken apart). Every other scan is timed between them.
 
 Then copy ``NAME.relations`` into DIR (``fr-clinic.relations`` finds ``fr-clinic_robotlaser.clf``) and
 run ``python bench/mapping.py --freiburg DIR``. Put together so (2026-12-05), the logs reproduce the
