@@ -74,6 +74,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " default only submaps whose walls were seen 5 m off or more: halls, outdoors; docs/mapping.md, 'Open"
         " spaces')",
     )
+    rep.add_argument(
+        "--long-loops",
+        action="store_true",
+        help="for loops hundreds of metres long: each submap searched in a window grown with its own drift from"
+        " the robot, three checks a node (docs/mapping.md, 'Against the published relations': MIT's Killian Court)",
+    )
     rep.set_defaults(_run=run_replay)
 
     rel = sub.add_parser("relations", help="write a complete relation set from a corrected CARMEN log")
@@ -247,7 +253,7 @@ def run_replay(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from fleetlink.agent.mapping.carmen import CarmenStats, corrected_lines, open_log, read_records
-    from fleetlink.agent.mapping.closure import open_space
+    from fleetlink.agent.mapping.closure import long_loops, open_space
     from fleetlink.agent.mapping.grid import GridConfig
     from fleetlink.agent.mapping.mapper import MapperConfig
     from fleetlink.agent.mapping.replay import format_trajectory, replay
@@ -259,8 +265,11 @@ def run_replay(args: argparse.Namespace) -> int:
     cfg = MapperConfig(grid=GridConfig(resolution=args.resolution), matching=not args.no_matching)
     if args.no_closure:
         cfg = replace(cfg, closer=None)
-    elif args.open_space:
-        cfg = replace(cfg, closer=open_space(cfg.closer))
+    else:
+        if args.open_space:
+            cfg = replace(cfg, closer=open_space(cfg.closer))
+        if args.long_loops:
+            cfg = replace(cfg, closer=long_loops(cfg.closer))
     stats = CarmenStats()
 
     def progress(stage: str, n: int) -> None:

@@ -854,6 +854,52 @@ def test_the_search_window_follows_the_front_ends_disagreement_with_the_odometry
         closer.add_node(0.0, (0.0, 0.0, 0.0), empty, odometry=(0.0, math.nan, 0.0))
 
 
+def test_with_windows_per_submap_a_closure_on_the_loop_just_driven_does_not_shrink_the_search_of_an_old_one() -> None:
+    """``window_per_submap`` (``long_loops``): each candidate submap's window grows with the drift over
+    the graph's shortest path between it and the node, not over the path since the last closure. MIT's
+    Killian Court came back 34 m off a corridor it had mapped 40 minutes before, and a closure 14 m
+    earlier onto the loop just driven had shrunk the one window to 2.4 m. Here a 400 m loop round a
+    square comes back 5 m beside its start after a closure between nodes 380 and 340."""
+    from fleetlink.agent.mapping.closure import long_loops
+
+    empty = NodeScan(
+        np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
+    )
+    path: list[tuple[float, float, float]] = []
+    for side in range(4):  # 100 m a side, nodes 1 m apart, counter-clockwise from (0, 0)
+        for k in range(100):
+            x, y = [(k, 0.0), (100.0, k), (100.0 - k, 100.0), (0.0, 100.0 - k)][side]
+            path.append((float(x), float(y), side * math.pi / 2))
+    path = path[:396]  # the last node 4 m short of the start, beside where the loop began
+
+    def run(config: CloserConfig) -> LoopCloser:
+        closer = LoopCloser(config, GridConfig())
+        for k, p in enumerate(path):
+            closer.add_node(float(k), p, empty)
+            if k == 380:
+                closer._add([Closure(380, 340, relative(closer.poses[340], p), 0.9, 0.9)])
+        return closer
+
+    k = len(path) - 1
+    cfg = CloserConfig()
+    # One window, grown since the last closure (15 m): 2.5 m; the start's submaps 4 m off are not searched.
+    plain = run(cfg)
+    assert cfg.search_xy + plain._growth()[0] == pytest.approx(cfg.search_xy + 0.1 * 15)
+    assert not [c for c in plain._fresh_checks(k) if c.anchor < 50]
+    # Per submap: the start's, 356 m of chain away (the closure saves 40), at the whole 10 m window.
+    closer = run(long_loops())
+    assert closer.config.attempts_per_node == 3  # three checks a node
+    searched = closer._searches(k)
+    assert sorted(sm.first for sm, _ in searched) == [0, 10]  # the two submaps within reach
+    first = [(sm.first, window) for sm, window in searched if sm.first == 0]
+    assert first and first[0][1][0] == pytest.approx(cfg.max_search_xy)
+    # ... while the submaps of the loop just closed keep a small window: 16 m of path from node 395.
+    drift = closer._drift(k)
+    assert drift[380] == pytest.approx(15.0, abs=1e-6) and drift[340] == pytest.approx(15.0, abs=1e-6)
+    assert drift[0] == pytest.approx(395.0 - 40.0, abs=1e-6)
+    assert closer._growth(350, float(drift[350]))[0] == pytest.approx(0.1 * float(drift[350]))
+
+
 def test_after_a_closure_the_window_counts_the_disagreement_from_there() -> None:
     """The disagreement is the front end's path since the last accepted closure against the
     odometry's over the same nodes: a slip before it is forgiven."""

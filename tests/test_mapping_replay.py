@@ -443,6 +443,32 @@ def test_cli_replay_rejects_a_log_without_scans(tmp_path: Path, capsys: pytest.C
     assert "no usable scans" in capsys.readouterr().err
 
 
+def test_cli_replay_long_loops_searches_each_submap_in_its_own_window(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--long-loops``: the closer of ``closure.long_loops`` (a window per submap, three checks a node),
+    with ``--open-space`` too when both are asked; the same scans and timestamps written."""
+    from fleetlink.agent.mapping import replay as replay_module
+    from fleetlink.agent.mapping.closure import long_loops, open_space
+
+    seen: list[MapperConfig | None] = []
+    real = replay_module.replay
+
+    def spy(records, config=None, **kw):  # type: ignore[no-untyped-def]
+        seen.append(config)
+        return real(records, config, **kw)
+
+    monkeypatch.setattr(replay_module, "replay", spy)
+    log = tmp_path / "room.log"
+    log.write_text("\n".join(_log_lines()) + "\n")
+    assert main(["map", "replay", str(log), "--out", str(tmp_path / "a"), "--long-loops"]) == 0
+    assert main(["map", "replay", str(log), "--out", str(tmp_path / "b"), "--long-loops", "--open-space"]) == 0
+    assert seen[0] is not None and seen[0].closer == long_loops()
+    assert seen[1] is not None and seen[1].closer == long_loops(open_space())
+    rows = [r.split()[0] for r in (tmp_path / "a" / "trajectory.txt").read_text().splitlines()]
+    assert rows == TIMESTAMPS
+
+
 def test_cli_replay_open_space_maps_with_filled_submaps(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``--open-space``: the closer of ``closure.open_space`` (every submap filled, not only those that saw
     far walls); the same scans and timestamps, and a map of the same room."""
