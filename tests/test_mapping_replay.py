@@ -443,13 +443,9 @@ def test_cli_replay_rejects_a_log_without_scans(tmp_path: Path, capsys: pytest.C
     assert "no usable scans" in capsys.readouterr().err
 
 
-def test_cli_replay_long_loops_searches_each_submap_in_its_own_window(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """``--long-loops``: the closer of ``closure.long_loops`` (a window per submap, three checks a node),
-    with ``--open-space`` too when both are asked; the same scans and timestamps written."""
+def _spied_replay(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[list[MapperConfig | None], Path]:
+    """A room's log written, and the configurations ``fleetlink map replay`` hands the replay, as it runs."""
     from fleetlink.agent.mapping import replay as replay_module
-    from fleetlink.agent.mapping.closure import long_loops, open_space
 
     seen: list[MapperConfig | None] = []
     real = replay_module.replay
@@ -461,6 +457,17 @@ def test_cli_replay_long_loops_searches_each_submap_in_its_own_window(
     monkeypatch.setattr(replay_module, "replay", spy)
     log = tmp_path / "room.log"
     log.write_text("\n".join(_log_lines()) + "\n")
+    return seen, log
+
+
+def test_cli_replay_long_loops_searches_each_submap_in_its_own_window(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--long-loops``: the closer of ``closure.long_loops`` (a window per submap, three checks a node),
+    with ``--open-space`` too when both are asked; the same scans and timestamps written."""
+    from fleetlink.agent.mapping.closure import long_loops, open_space
+
+    seen, log = _spied_replay(tmp_path, monkeypatch)
     assert main(["map", "replay", str(log), "--out", str(tmp_path / "a"), "--long-loops"]) == 0
     assert main(["map", "replay", str(log), "--out", str(tmp_path / "b"), "--long-loops", "--open-space"]) == 0
     assert seen[0] is not None and seen[0].closer == long_loops()
@@ -472,19 +479,9 @@ def test_cli_replay_long_loops_searches_each_submap_in_its_own_window(
 def test_cli_replay_open_space_maps_with_filled_submaps(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``--open-space``: the closer of ``closure.open_space`` (every submap filled, not only those that saw
     far walls); the same scans and timestamps, and a map of the same room."""
-    from fleetlink.agent.mapping import replay as replay_module
     from fleetlink.agent.mapping.closure import open_space
 
-    seen: list[MapperConfig | None] = []
-    real = replay_module.replay
-
-    def spy(records, config=None, **kw):  # type: ignore[no-untyped-def]
-        seen.append(config)
-        return real(records, config, **kw)
-
-    monkeypatch.setattr(replay_module, "replay", spy)
-    log = tmp_path / "room.log"
-    log.write_text("\n".join(_log_lines()) + "\n")
+    seen, log = _spied_replay(tmp_path, monkeypatch)
     plain, wide = tmp_path / "plain", tmp_path / "wide"
     assert main(["map", "replay", str(log), "--out", str(plain)]) == 0
     assert main(["map", "replay", str(log), "--out", str(wide), "--open-space"]) == 0
