@@ -55,6 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from fleetlink.agent.mapping.carmen import guess_increment
+from fleetlink.agent.mapping.relations import Relation, parse_relations
 
 MAGIC = b"#ROSBAG V2.0\n"
 OP_MESSAGE, OP_CHUNK, OP_CONNECTION = 0x02, 0x05, 0x07
@@ -216,6 +217,21 @@ def _pose(p: tuple[float, float, float]) -> str:
     return f"{p[0]:.6f} {p[1]:.6f} {p[2]:.6f}"
 
 
+def _flaser(scan: Scan, pose: tuple[float, float, float], t: str) -> str:
+    """A FLASER line of ``scan`` at the robot's ``pose``, stamped ``t``. It has no angles: a reader takes
+    its beams from -90 degrees, as far apart as CARMEN guesses from their count, and no mount (fr079's
+    bag has one, 0.04 m: docs/mapping.md); a scan that is not so is refused."""
+    n = len(scan.ranges)
+    guess = guess_increment(n)
+    if abs(scan.angle_min + math.pi / 2) > 1e-4 or abs(scan.angle_increment - guess) > 0.01 * guess:
+        raise BagError(
+            f"a scan of {n} beams from {math.degrees(scan.angle_min):.2f} degrees,"
+            f" {math.degrees(scan.angle_increment):.3f} apart, is no FLASER line (a reader would take"
+            f" {math.degrees(guess):.3f} from -90): name the bag *_robotlaser*"
+        )
+    return f"FLASER {n} {_ranges(scan)} {_pose(pose)} {_pose(pose)} {t} bag {t}"
+
+
 def log_lines(data: bytes, robotlaser: bool) -> Iterator[str]:
     """A bag's CARMEN lines (see the module's docstring)."""
     mount = (0.0, 0.0, 0.0)
@@ -225,17 +241,7 @@ def log_lines(data: bytes, robotlaser: bool) -> Iterator[str]:
     def line(scan: Scan, odom: Odom) -> str:
         t = scan.stamp.text()
         if not robotlaser:
-            # A FLASER line has no angles: a reader takes its beams from -90 degrees, as far apart as
-            # CARMEN guesses from their count, and no mount (fr079's bag has one, 0.04 m: docs/mapping.md).
-            n = len(scan.ranges)
-            guess = guess_increment(n)
-            if abs(scan.angle_min + math.pi / 2) > 1e-4 or abs(scan.angle_increment - guess) > 0.01 * guess:
-                raise BagError(
-                    f"a scan of {n} beams from {math.degrees(scan.angle_min):.2f} degrees,"
-                    f" {math.degrees(scan.angle_increment):.3f} apart, is no FLASER line (a reader would take"
-                    f" {math.degrees(guess):.3f} from -90): name the bag *_robotlaser*"
-                )
-            return f"FLASER {n} {_ranges(scan)} {_pose(odom.pose)} {_pose(odom.pose)} {t} bag {t}"
+            return _flaser(scan, odom.pose, t)
         x, y, th = odom.pose
         c, s = math.cos(th), math.sin(th)
         laser = (x + c * mount[0] - s * mount[1], y + s * mount[0] + c * mount[1], th + mount[2])
@@ -283,34 +289,20 @@ def clf2bag_records(data: bytes) -> tuple[list[Scan], list[tuple[float, float, f
     return scans, [odom[s.stamp].pose for s in scans]
 
 
-def read_relation_stamps(text: str) -> list[tuple[float, float, float, float, float]]:
-    """(t1, t2, x, y, yaw) per line of a relations file (``t1 t2 x y z roll pitch yaw``)."""
-    out = []
-    for number, line in enumerate(text.splitlines(), 1):
-        toks = line.split()
-        if not toks or toks[0].startswith("#"):
-            continue
-        if len(toks) < 8:
-            raise BagError(f"relations line {number}: {len(toks)} fields, not 8")
-        t1, t2, x, y, _z, _roll, _pitch, yaw = (float(v) for v in toks[:8])
-        out.append((t1, t2, x, y, yaw))
-    return out
-
-
 PERIOD_SLACK = 0.35  # of a period: how far a gap between two relation stamps may lie from the grid (Killian: 0.27)
 TURN_RAD = 0.15  # a relation that turns at least this much tells an offset of one scan from the next
 TURNS_NEEDED = 20
 
 
 def recover_times(
-    odom: list[tuple[float, float, float]], relations: list[tuple[float, float, float, float, float]]
+    odom: list[tuple[float, float, float]], relations: list[Relation]
 ) -> tuple[np.ndarray, float, int, list[float]]:
     """The log's time of each scan, from the relations (see the module's docstring): the times, the
     period, the first relation stamp's scan, and each offset's mean heading error (rad) at that period.
     The shortest gap between two stamps is the period or a whole number of them (relations that name
     every second scan): each of those periods whose grid fits in the bag is tried, and the period and
     offset where the turning relations agree best with the odometry kept."""
-    stamps = np.array(sorted({r[0] for r in relations} | {r[1] for r in relations}))
+    stamps = np.array(sorted({r.t1 for r in relations} | {r.t2 for r in relations}))
     if len(stamps) < 2:
         raise BagError("the relations name fewer than two stamps")
     gaps = np.diff(stamps)
@@ -326,13 +318,13 @@ def recover_times(
         )
     n = len(odom)
     at = {float(t): k for k, t in enumerate(stamps)}
-    turns = [r for r in relations if abs(r[1] - r[0]) < 5.0 and abs(r[4]) >= TURN_RAD]
+    turns = [r for r in relations if abs(r.t2 - r.t1) < 5.0 and abs(r.dtheta) >= TURN_RAD]
     if len(turns) < TURNS_NEEDED:
         raise BagError(
             f"{len(turns)} relations turn {math.degrees(TURN_RAD):.1f} degrees or more: too few to place them"
         )
     heading = np.array([p[2] for p in odom])
-    yaw = np.array([r[4] for r in turns])
+    yaw = np.array([r.dtheta for r in turns])
     best: tuple[float, float, np.ndarray, int, list[float]] | None = None
     for share in range(1, 5):
         index = np.concatenate(([0], np.cumsum(np.round(gaps / period) * share))).astype(np.int64)
@@ -340,8 +332,8 @@ def recover_times(
             break
         if float(np.max(np.abs(gaps * share / period - np.diff(index)))) > PERIOD_SLACK:
             continue  # a finer grid some gap is off
-        i = np.array([index[at[r[0]]] for r in turns])
-        j = np.array([index[at[r[1]]] for r in turns])
+        i = np.array([index[at[r.t1]] for r in turns])
+        j = np.array([index[at[r.t2]] for r in turns])
         errors = []
         for offset in range(n - int(index[-1])):
             d = heading[j + offset] - heading[i + offset] - yaw
@@ -367,16 +359,12 @@ def clf2bag_lines(data: bytes, relations_text: str) -> tuple[list[str], str]:
     scans, odom = clf2bag_records(data)
     if not scans:
         raise BagError("no /scan messages")
-    times, period, first, errors = recover_times(odom, read_relation_stamps(relations_text))
+    times, period, first, errors = recover_times(odom, parse_relations(relations_text.splitlines()))
     lines = []
     for scan, pose, t in zip(scans, odom, times, strict=True):
-        n = len(scan.ranges)
-        guess = guess_increment(n)
-        if abs(scan.angle_min + math.pi / 2) > 1e-4 or abs(scan.angle_increment - guess) > 0.01 * guess:
-            raise BagError(f"a scan of {n} beams from {math.degrees(scan.angle_min):.2f} degrees is no FLASER line")
         stamp = f"{t:.6f}"
         lines.append(f"ODOM {_pose(pose)} 0 0 0 {stamp} bag {stamp}")
-        lines.append(f"FLASER {n} {_ranges(scan)} {_pose(pose)} {_pose(pose)} {stamp} bag {stamp}")
+        lines.append(_flaser(scan, pose, stamp))
     nearby = sorted(errors[max(0, first - 1) : first + 2])
     note = (
         f"times recovered on a {period:.3f} s grid, the relations' first stamp at scan {first}"

@@ -889,10 +889,10 @@ def test_with_windows_per_submap_a_closure_on_the_loop_just_driven_does_not_shri
     # Per submap: the start's, 356 m of chain away (the closure saves 40), at the whole 10 m window.
     closer = run(long_loops())
     assert closer.config.attempts_per_node == 3  # three checks a node
-    searched = closer._searches(k)
+    searched = closer._candidates(k, closer.poses[k])
     assert sorted(sm.first for sm, _ in searched) == [0, 10]  # the two submaps within reach
-    first = [(sm.first, window) for sm, window in searched if sm.first == 0]
-    assert first and first[0][1][0] == pytest.approx(cfg.max_search_xy)
+    first = [window for sm, window in searched if sm.first == 0]
+    assert first and first[0] is not None and first[0][0] == pytest.approx(cfg.max_search_xy)
     # ... while the submaps of the loop just closed keep a small window: 16 m of path from node 395.
     drift = closer._drift(k)
     assert drift[380] == pytest.approx(15.0, abs=1e-6) and drift[340] == pytest.approx(15.0, abs=1e-6)

@@ -88,12 +88,12 @@ class CloserConfig:
     attempts_per_node: int = 1  # closure checks per new node (the rate bound)
     retry_nodes: int = 5  # a submap tried is not tried again for this many nodes
     search_xy: float = 1.0  # m, half-width of the verification's translation window
+    search_theta: float = math.radians(20.0)
     # Each candidate submap searched in a window of its own, grown by the drift over the graph's shortest
-    # path between it and the node (``LoopCloser._searches``), not by the path since the last closure;
+    # path between it and the node (``LoopCloser._candidates``), not by the path since the last closure;
     # off by default (``long_loops`` turns it on, with three checks a node): on the offices' published
     # relations it moved one ambiguous revisit past 0.20 m (aces 0.180 -> 0.226 m).
     window_per_submap: bool = False
-    search_theta: float = math.radians(20.0)
     # The pose drifts while no closure holds it: both the radius and the window grow by this share of
     # the path travelled since the last accepted closure or site prior (and the heading window by
     # drift_theta per metre), up to the caps.
@@ -544,7 +544,6 @@ class LoopCloser:
         self.since_closure = 0.0  # m travelled (node to node) since the last accepted closure or site prior
         self.odometry: list[Pose | None] = []  # the odometry's pose per node, where given (``add_node``)
         self._closed_at = 0  # the newest node when the last closure was accepted
-        self._path: list[float] = []  # m: the front end's path length from the first node to each
 
     def __len__(self) -> int:
         return len(self.graph.poses)
@@ -600,9 +599,6 @@ class LoopCloser:
                 info = _weakened(info, u, along)
             self.graph.add_edge(k - 1, k, z, info)
             self.since_closure += d
-            self._path.append(self._path[-1] + d)
-        else:
-            self._path.append(0.0)
         self.times.append(t)
         self.scans.append(scan)
         self.odometry.append(odometry)
@@ -703,19 +699,14 @@ class LoopCloser:
         at = compose(fix, self.graph.poses[k])
         return [
             self._check(k, sm, fix, (cfg.search_xy, cfg.search_theta), confirms=p)
-            for sm in self._candidates(k, at, fresh_only=False, limit=1)
+            for sm, _ in self._candidates(k, at, fresh_only=False, limit=1)
         ]
 
     def _fresh_checks(self, k: int) -> list[Check]:
         checks = []
-        if self.config.window_per_submap:
-            for sm, window in self._searches(k):
-                sm.tried_at = k
-                checks.append(self._check(k, sm, window=window))
-            return checks
-        for sm in self._candidates(k, self.graph.poses[k]):
+        for sm, window in self._candidates(k, self.graph.poses[k]):
             sm.tried_at = k
-            checks.append(self._check(k, sm))
+            checks.append(self._check(k, sm, window=window))
         return checks
 
     def _note(self, r: CheckResult, attempt: bool = True) -> Closure | None:
@@ -822,71 +813,57 @@ class LoopCloser:
             and abs(wrap(pa[2] - pb[2])) <= cfg.confirm_angle
         )
 
-    def _candidates(self, k: int, at: Pose, *, fresh_only: bool = True, limit: int | None = None) -> list[_Submap]:
+    def _candidates(
+        self, k: int, at: Pose, *, fresh_only: bool = True, limit: int | None = None
+    ) -> list[tuple[_Submap, tuple[float, float] | None]]:
         """Finished submaps far enough back with a node near ``at`` (the node's pose, or where a
-        pending correction puts it), nearest first; ``fresh_only``: not tried in ``retry_nodes``."""
+        pending correction puts it), nearest first; ``fresh_only``: not tried in ``retry_nodes``, each
+        with the window it is searched in (None: the one window, the base grown since the last closure).
+
+        With ``window_per_submap`` a fresh search's window is each submap's own: ``_growth`` over the
+        graph's shortest path between it and the node (``_drift``), and it is a candidate when the node
+        lies within ``search_radius`` + that growth. A closure onto the loop just driven says nothing of
+        how far the map has drifted from a corridor mapped an hour before: MIT's Killian Court came back
+        after a 500 m loop 34 m and 8 degrees from the corridor it had mapped, and a closure 14 m earlier
+        onto its own loop had shrunk the one window to 2.4 m."""
         cfg = self.config
         limit = cfg.attempts_per_node if limit is None else limit
         if limit == 0:
             return []
         here = np.array(at[:2])
         xyt = np.array(self.graph.poses)
-        radius = cfg.search_radius + (self._growth()[0] if fresh_only else 0.0)
-        near: list[tuple[float, int, _Submap]] = []
+        per_submap = fresh_only and cfg.window_per_submap
+        radius = cfg.search_radius + (self._growth()[0] if fresh_only and not per_submap else 0.0)
+        reach = cfg.search_radius + max(cfg.max_search_xy, cfg.odometry_max_search_xy)  # beyond any window
+        drift: F64 | None = None
+        near: list[tuple[float, int, _Submap, tuple[float, float] | None]] = []
         for i, sm in enumerate(self.submaps):
             if sm.last - sm.first < cfg.submap_nodes or sm.last > k - cfg.min_gap_nodes:
                 continue
             if fresh_only and k - sm.tried_at < cfg.retry_nodes:
                 continue
             nodes = xyt[sm.first : sm.last]
-            d = np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1])
-            if float(d.min()) > radius:
+            gap = float(np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1]).min())
+            window: tuple[float, float] | None = None
+            if per_submap:
+                if gap > reach:
+                    continue  # cheaply, before the graph's paths are measured
+                if drift is None:
+                    drift = self._drift(k)
+                part = drift[sm.first : sm.last]
+                gxy, gth = self._growth(sm.first + int(np.argmin(part)), float(part.min()))
+                if gap > cfg.search_radius + gxy:
+                    continue
+                window = (cfg.search_xy + gxy, cfg.search_theta + gth)
+            elif gap > radius:
                 continue
             # Rank by the node that saw most nearly what this one sees: near, and facing the same way
             # (a scanner looking the other way down a corridor sees other walls).
-            turn = np.abs(np.remainder(nodes[:, 2] - at[2] + math.pi, 2.0 * math.pi) - math.pi)
-            near.append((float(np.min(d + VIEW_LEVER_M * turn)), i, sm))
-        near.sort(key=lambda e: (e[0], e[1]))
-        return [sm for _, _, sm in near[:limit]]
-
-    def _searches(self, k: int) -> list[tuple[_Submap, tuple[float, float]]]:
-        """Node ``k``'s fresh searches: finished submaps far enough back and not tried in ``retry_nodes``,
-        each with the window its own drift from the node allows (``_growth`` over the graph's shortest
-        path between them, ``_drift``), those with a node within ``search_radius`` + that growth of the
-        node, nearest by view first, ``attempts_per_node`` of them.
-
-        Per submap, not since the last closure: a closure onto the loop just driven says nothing of
-        how far the map has drifted from a corridor mapped an hour before. MIT's Killian Court log came
-        back after a 500 m loop 34 m and 8 degrees from the corridor it had mapped, and a closure 14 m
-        earlier onto its own loop had shrunk the window to 2.4 m."""
-        cfg = self.config
-        if cfg.attempts_per_node == 0:
-            return []
-        at = self.graph.poses[k]
-        here = np.array(at[:2])
-        xyt = np.array(self.graph.poses)
-        drift: F64 | None = None
-        near: list[tuple[float, int, _Submap, tuple[float, float]]] = []
-        for i, sm in enumerate(self.submaps):
-            if sm.last - sm.first < cfg.submap_nodes or sm.last > k - cfg.min_gap_nodes:
-                continue
-            if k - sm.tried_at < cfg.retry_nodes:
-                continue
-            nodes = xyt[sm.first : sm.last]
             d = np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1])
-            if float(d.min()) > cfg.search_radius + cfg.odometry_max_search_xy:
-                continue  # beyond any window (cheap, before the graph's paths are measured)
-            if drift is None:
-                drift = self._drift(k)
-            part = drift[sm.first : sm.last]
-            j = sm.first + int(np.argmin(part))
-            gxy, gth = self._growth(j, float(part.min()))
-            if float(d.min()) > cfg.search_radius + gxy:
-                continue
             turn = np.abs(np.remainder(nodes[:, 2] - at[2] + math.pi, 2.0 * math.pi) - math.pi)
-            near.append((float(np.min(d + VIEW_LEVER_M * turn)), i, sm, (cfg.search_xy + gxy, cfg.search_theta + gth)))
+            near.append((float(np.min(d + VIEW_LEVER_M * turn)), i, sm, window))
         near.sort(key=lambda e: (e[0], e[1]))
-        return [(sm, window) for _, _, sm, window in near[: cfg.attempts_per_node]]
+        return [(sm, window) for _, _, sm, window in near[:limit]]
 
     def _drift(self, k: int) -> F64:
         """The path (m) from node ``k`` to every node through the graph: a front-end step counts its
@@ -896,10 +873,10 @@ class LoopCloser:
         from scipy.sparse.csgraph import dijkstra
 
         n = len(self.graph.poses)
-        ii, jj = (a.copy() for a in self.graph.edge_nodes())
-        path = np.array(self._path)
-        # scipy's graphs take a stored 0 for no edge: a closure or a prior costs a nanometre.
-        w = np.where(np.abs(ii - jj) == 1, np.abs(path[ii] - path[jj]), 0.0) + 1e-9
+        ii, jj, z = self.graph.edge_arrays()
+        # A step (an edge between neighbours) counts the length it measured; scipy's graphs take a
+        # stored 0 for no edge, so a closure or a prior costs a nanometre.
+        w = np.where(np.abs(ii - jj) == 1, np.hypot(z[:, 0], z[:, 1]), 0.0) + 1e-9
         priors = np.array(sorted({p.i for p in self.graph.priors}), dtype=np.int64)
         if len(priors):  # every measured node tied to one more node, the site
             ii = np.concatenate((ii, priors))

@@ -101,10 +101,11 @@ class PoseGraph:
         ``remove_edges``, which keep the solve's arrays in step)."""
         return self._edges
 
-    def edge_nodes(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-        """Each edge's two nodes (``i``, ``j``) as arrays, in the order added (read-only views)."""
+    def edge_arrays(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64]:
+        """Each edge's two nodes (``i``, ``j``) and measurement ``z`` as arrays, in the order added
+        (views: not to be written)."""
         m = len(self._edges)
-        return self._ii[:m], self._jj[:m]
+        return self._ii[:m], self._jj[:m], self._zz[:m]
 
     def _packed(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64, F64, npt.NDArray[np.bool_]]:
         m = len(self._edges)
