@@ -174,3 +174,23 @@ def test_the_search_does_not_move_a_pair_across_its_step(monkeypatch) -> None:  
     monkeypatch.setattr(closure, "PAIR_ACROSS_M", math.inf)  # the search as it was
     (slid,) = closer._pairs_search([(reference, second, guess)])
     assert slid is not None and math.hypot(slid.pose[0] - 1.114, slid.pose[1] - 0.198) > 0.3
+
+
+def test_a_node_the_final_pass_found_ambiguous_is_paired_only_with_its_neighbours() -> None:
+    """``final_pair_skip_ambiguous``: a node whose submap matches were refused as ambiguous (its guess
+    matched as well as an answer away from it) gets no edge to a scan far back in the chain: a pair
+    is refined from that same guess and would confirm it whatever it is (intel's corrected log: node
+    456, 0.16 m off before the final pass, held 0.28 m off by two pairs 17 nodes back). Its
+    neighbours in the chain (``final_pair_search_nodes``) still pair with it; every other pair stays."""
+    closer = LoopCloser(CloserConfig(submap_nodes=50, min_gap_nodes=50), GridConfig())
+    xs = [1.0 + k for k in range(11)] + [10.5 - k for k in range(10)]  # down the hall and back
+    for k, x in enumerate(xs):
+        closer.add_node(float(k), (x, 2.0, 0.0), _scan(x, 2.0), information=WELL_POSED)
+    xyt = np.array(closer.poses)
+    every = {(c.node, c.anchor) for c in closer._scan_pairs(xyt)}
+    k = 19  # at x = 2.5, on the way back: near nodes 1-3 of the way out
+    assert any(a < k - closer.config.final_pair_search_nodes for n, a in every if n == k)
+    doubted = {(c.node, c.anchor) for c in closer._scan_pairs(xyt, {k})}
+    far = {(n, a) for n, a in every if k in (n, a) and abs(n - a) > closer.config.final_pair_search_nodes}
+    assert doubted == every - far and far
+    assert any(k in pair for pair in doubted)  # its neighbours in the chain
