@@ -365,9 +365,11 @@ def long_loops(config: CloserConfig | None = None) -> CloserConfig:
     """``config`` (default: the defaults) for a log of loops hundreds of metres long: each candidate
     submap searched in its own window (``window_per_submap``) and three checks a node, so a far submap
     the drifted graph ranks behind nearer look-alikes is still tried where the robot is. MIT's Killian
-    Court (1.9 km, published relations): 1.649 -> 0.146 m, a return 34 m off closed. The offices move
-    little but one ambiguous revisit each (aces 0.0351 / 0.180 -> 0.0351 / 0.226 m, intel 0.013 / 0.085 ->
-    0.013 / 0.087 m). ``fleetlink map replay --long-loops``."""
+    Court (1.9 km, published relations): 1.649 -> 0.146 m, a return 34 m off closed; the Freiburg
+    hospital 0.862 -> 0.595 m. Elsewhere the means move a millimetre or less and single worst revisits
+    either way (aces' published 0.180 -> 0.225 m, intel's corrected 0.293 -> 0.255 m), but for the
+    corrected csail log, 0.031 / 0.20 -> 0.040 / 0.40 m: docs/mapping.md, "``--long-loops`` on every
+    log". ``fleetlink map replay --long-loops``."""
     return replace(config or CloserConfig(), window_per_submap=True, attempts_per_node=3)
 
 
