@@ -636,9 +636,16 @@ class AgentCore:
         if self.itinerary is not None and self.itinerary.driving:
             x, y, _ = self._map_pose()
             self.itinerary.approach(x, y)
-        pose = self._map_pose()
+        mp = self.fusion.map_pose()
+        pose = mp.x, mp.y, mp.theta
         placed = self.peers.peers and self.fusion.position_initialized
-        ahead = self.peers.robots_ahead(now, pose, self.fusion.heading_initialized) if placed else ()
+        ahead = (
+            self.peers.robots_ahead(
+                now, pose, self.fusion.heading_initialized, sd_xy=max(mp.sd_x, mp.sd_y), sd_theta=mp.sd_theta
+            )
+            if placed
+            else ()
+        )
         inputs = GuardInputs(
             ultrasonic_m=self.board.ultrasonic_m, cliff=self.board.cliff, bumped=self.board.bumped, robots_ahead=ahead
         )

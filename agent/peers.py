@@ -54,7 +54,14 @@ class PeerConfig:
     body_radius_m: float = BODY_RADIUS_M
     """Every robot's body, this one's too (the fleet's robots are alike)."""
     lane_margin_m: float = 0.02
-    """``robots_ahead`` counts a robot in the way if the bodies would pass closer than this (pose error)."""
+    """``robots_ahead`` counts a robot in the way if the bodies would pass closer than this (pose error)
+    ..."""
+    margin_sds: float = 2.0
+    """... or than this many sd of where the peer lies across this robot's way, if more: both poses'
+    position sd and this robot's heading sd times the distance between them. A robot driven off as soon
+    as UWB has placed it knows its heading to 3-4 degrees and its position to 2-3 cm, and passing a
+    peer 0.33 m to the side (bodies 0.34 m) the fixed 2 cm let it believe the way clear until the
+    bodies were centimetres apart (tests/test_robots_meeting.py, the apartment: it bumped)."""
     extrapolate_s: float = 0.25
     """A moving peer's pose is moved on by its speed for at most this long: a few pose periods (20 Hz
     on Zenoh, 10 on MQTT); poses that stop coming say nothing of where it went after."""
@@ -73,6 +80,7 @@ class _Heard:
     vx: float
     standing: bool
     placed: bool
+    sd: float  # its position sd (m), as it reports it
 
 
 class PeerBodies:
@@ -97,7 +105,10 @@ class PeerBodies:
         placed = max(pose.sd_x_m, pose.sd_y_m) <= min(c.placed_sd_m, UNKNOWN_SD_M)
         # (The wire contract's bounds say all of these are finite too.)
         ok = all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta, pose.vx))
-        self._heard[robot] = _Heard(now, stamp, pose.x, pose.y, pose.theta, pose.vx, standing and ok, placed and ok)
+        sd = max(pose.sd_x_m, pose.sd_y_m)
+        self._heard[robot] = _Heard(
+            now, stamp, pose.x, pose.y, pose.theta, pose.vx, standing and ok, placed and ok, sd if ok else math.inf
+        )
         return True
 
     def _fresh(self, h: _Heard, now: float) -> bool:
@@ -113,18 +124,27 @@ class PeerBodies:
         return tuple(sorted(self._heard))
 
     def robots_ahead(
-        self, now: float, pose: tuple[float, float, float], heading_known: bool = True
+        self,
+        now: float,
+        pose: tuple[float, float, float],
+        heading_known: bool = True,
+        sd_xy: float = 0.0,
+        sd_theta: float = 0.0,
     ) -> tuple[RobotAhead, ...]:
         """The placed peers heard within ``fresh_s``, standing or moving, whose bodies lie in the way
-        of this one's (at ``pose``, site frame) driving straight on: how far it drives before they
-        touch (0: they touch already, ahead or beside) and how fast each comes toward it. Without
-        ``heading_known`` every peer counts, its gap the distance between the bodies."""
+        of this one's (at ``pose``, site frame, its position sd ``sd_xy`` and heading sd ``sd_theta``)
+        driving straight on: how far it drives before they touch (0: they touch already, ahead or
+        beside) and how fast each comes toward it. Without ``heading_known`` every peer counts, its gap
+        the distance between the bodies. The bodies are taken to touch ``lane_margin_m`` apart, or
+        ``margin_sds`` sd of where the peer lies across the way, if more."""
         c = self.config
         x, y, th = pose
         if not all(math.isfinite(v) for v in pose):
             return ()
         cos, sin = math.cos(th), math.sin(th)
-        reach = 2.0 * c.body_radius_m + c.lane_margin_m  # centre to centre, bodies just apart
+        # Not finite (not known): no more than the fixed margin from it; ``heading_known`` says the rest.
+        sd_xy = sd_xy if math.isfinite(sd_xy) else 0.0
+        sd_theta = sd_theta if math.isfinite(sd_theta) else 0.0
         out: list[RobotAhead] = []
         for h in self._heard.values():
             if not h.placed or not self._fresh(h, now):
@@ -136,6 +156,8 @@ class PeerBodies:
             # Its speed along the line from it to this robot (positive: coming closer).
             closing = max(0.0, -h.vx * (dx * math.cos(h.theta) + dy * math.sin(h.theta)) / apart) if apart > 0 else 0.0
             ahead, side = cos * dx + sin * dy, -sin * dx + cos * dy
+            across = math.sqrt(sd_xy**2 + (h.sd if math.isfinite(h.sd) else 0.0) ** 2 + (apart * sd_theta) ** 2)
+            reach = 2.0 * c.body_radius_m + max(c.lane_margin_m, c.margin_sds * across)  # centre to centre
             if not heading_known:
                 gap: float | None = max(0.0, apart - reach)
             elif apart < reach:

@@ -25,7 +25,7 @@ from fleetlink.shared.messages import UNKNOWN_SD_M, LinkName, Pose
 RES = 0.05
 
 
-def _pose(robot: str, x: float, y: float, *, t: float, vx: float = 0.0, omega: float = 0.0, sd: float = 0.02) -> Pose:
+def _pose(robot: str, x: float, y: float, *, t: float, vx: float = 0.0, omega: float = 0.0, sd: float = 0.01) -> Pose:
     counter = wire.HeaderCounter(SimClock(t), robot=robot, sender=f"agent-{robot}")
     return counter.make(
         Pose,
@@ -145,9 +145,10 @@ def test_the_core_asks_for_the_robots_ahead_once_placed_whichever_way_until_it_k
     asked: list[bool] = []
     real = peers.robots_ahead
 
-    def robots_ahead(now: float, pose: tuple[float, float, float], heading_known: bool = True) -> object:
+    def robots_ahead(now: float, pose: tuple[float, float, float], heading_known: bool = True, **sd: float) -> object:
         asked.append(heading_known)
-        return real(now, pose, heading_known)
+        assert set(sd) == {"sd_xy", "sd_theta"}  # its own pose's uncertainty, for the margin
+        return real(now, pose, heading_known, **sd)
 
     peers.robots_ahead = robots_ahead  # type: ignore[method-assign]
     core.tick(100.0, BoardView())
@@ -248,6 +249,36 @@ def test_the_gap_ahead_is_how_far_the_body_drives_before_it_touches_a_peer() -> 
     # The control tick may read the clock just before the pose is taken in: that pose counts.
     assert _gaps(peers, 1.099, (0.0, 0.0, 0.0)) == [pytest.approx(1.0 - math.sqrt(reach**2 - side**2))]
     assert peers.standing(1.099) == ((1.0, side),)
+
+
+def test_the_margin_grows_with_how_uncertain_the_two_poses_are() -> None:
+    """A peer 0.33 m to the side of this robot's way, 1 m ahead: the bodies (0.17 m each) would graze.
+    Both placed to a centimetre and the heading known to a tenth of a degree, the fixed 2 cm margin
+    holds; just driven off after UWB placed it (position 2.3 cm, heading 4 degrees: the apartment, in
+    tests/test_robots_meeting.py) the margin is two sd of where the peer lies across the way, and a
+    peer 0.45 m to the side counts too."""
+    peers = PeerBodies(("r2",))
+    side = 0.33
+    peers.hear("r2", _pose("r2", 1.0, side, t=1.0, sd=0.005), now=1.0)
+    sure = _gaps(peers, 1.0, (0.0, 0.0, 0.0))
+    assert sure == [pytest.approx(1.0 - math.sqrt(0.36**2 - side**2))]
+    assert peers.robots_ahead(1.0, (0.0, 0.0, 0.0), sd_xy=0.005, sd_theta=0.001) == peers.robots_ahead(
+        1.0, (0.0, 0.0, 0.0)
+    )
+    sd_xy, sd_theta = 0.023, math.radians(4.0)
+    apart = math.hypot(1.0, side)
+    reach = 0.34 + 2.0 * math.sqrt(sd_xy**2 + 0.005**2 + (apart * sd_theta) ** 2)
+    (unsure,) = peers.robots_ahead(1.0, (0.0, 0.0, 0.0), sd_xy=sd_xy, sd_theta=sd_theta)
+    assert unsure.gap_m == pytest.approx(1.0 - math.sqrt(reach**2 - side**2))
+    assert unsure.gap_m < sure[0] - 0.1  # refused a tenth of a metre and more sooner
+    peers.hear("r2", _pose("r2", 1.0, 0.45, t=1.1), now=1.1)
+    assert _gaps(peers, 1.1, (0.0, 0.0, 0.0)) == []
+    assert len(peers.robots_ahead(1.1, (0.0, 0.0, 0.0), sd_xy=sd_xy, sd_theta=sd_theta)) == 1
+    # A peer's own uncertainty counts as well; a heading not known at all leaves it to ``heading_known``.
+    peers.hear("r2", _pose("r2", 1.0, side, t=1.2, sd=0.05), now=1.2)
+    (loose,) = peers.robots_ahead(1.2, (0.0, 0.0, 0.0))
+    assert loose.gap_m == pytest.approx(1.0 - math.sqrt((0.34 + 0.1) ** 2 - side**2))
+    assert peers.robots_ahead(1.2, (0.0, 0.0, 0.0), sd_theta=math.inf) == peers.robots_ahead(1.2, (0.0, 0.0, 0.0))
 
 
 def test_before_the_robot_knows_its_heading_every_peer_near_enough_counts_whichever_way() -> None:

@@ -1,0 +1,140 @@
+"""End to end: the guard's robot rule as an operator meets it in the real console, real time, real
+agents (``fleetlink field --scenario FILE --console on``). Two disinfection robots stand in the
+apartment's living room 1.3 m apart, facing each other on lanes 0.33 m apart, both under UWB: their
+bodies (0.17 m each) would touch, but uvc-1's front ultrasonic never sees uvc-2 (as in
+tests/test_robots_meeting.py, the same rule in lockstep). The test holds ``i`` (drive forward) on
+uvc-1: its agent hears uvc-2's pose, and the guard refuses to drive on before the bodies meet. The
+console says why (uvc-1's guard refusal, another robot ahead), uvc-1 stands short of uvc-2 with no
+bump, and backing away (``,``) is still allowed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import re
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.e2e.test_console_field import (
+    UWB_OK,
+    alive,
+    last_screen,
+    needs_tmux,
+    quit_field,
+    screen,
+    start_field,
+    tmux,
+    tmux_cmd,
+)
+from tests.harness import wait_until
+
+pytestmark = needs_tmux  # the console's e2e tests' rule: under CI it must run
+
+POSE = re.compile(r"(uvc-\d) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
+REFUSAL = re.compile(r"uvc-1: guard_refusal: another robot (\d+\.\d+) m ahead")
+BODY_M = 0.17  # the fleet's base radius (agent/body.py): centres nearer than twice it touch
+OFFSET_M = 0.33  # the lanes apart, centre to centre: under two radii
+FACING = f"""name = "robot-rule"
+description = "Two disinfection robots 1.3 m apart in the living room, facing each other on lanes {OFFSET_M} m apart."
+plan = "apartment"
+seed = 3
+duration_s = 600.0
+
+[noise]  # wheels alike: with the key held straight ahead uvc-1 drives its lane, not a curve
+wheel_scale_sd = 0.0
+gyro_bias_sd = 0.0
+
+[[robots]]
+name = "uvc-1"
+pose = [2.2, 2.0, 0.0]
+
+[[robots]]
+name = "uvc-2"
+pose = [3.5, {2.0 + OFFSET_M}, 180.0]
+"""
+
+
+def shown_pose(session: str, robot: str) -> tuple[float, float] | None:
+    m = POSE.search(screen(session))
+    return (float(m.group(2)), float(m.group(3))) if m and m.group(1) == robot else None
+
+
+def hold(session: str, key: str, times: int = 10) -> None:
+    """A key held like a key repeat, every 50 ms."""
+    for _ in range(times):
+        tmux("send-keys", "-t", session, key)
+        time.sleep(0.05)
+
+
+@pytest.mark.slow
+def test_a_robot_driven_at_another_stops_short_of_it_and_says_why(tmp_path: Path) -> None:
+    (tmp_path / "facing.toml").write_text(FACING)
+    session, pane_pid = start_field(tmp_path, f"--scenario {tmp_path / 'facing.toml'}", 160, 48)
+    try:
+        wait_until(lambda: shown_pose(session, "uvc-1") is not None, timeout=60, message="uvc-1 selected, its pose")
+        wait_until(lambda: UWB_OK.search(screen(session)) is not None, timeout=60, message="uvc-1's UWB ok")
+        # uvc-2 where it stands, as the console shows it (Tab selects it, Tab again back to uvc-1).
+        tmux("send-keys", "-t", session, "Tab")
+        wait_until(lambda: shown_pose(session, "uvc-2") is not None, timeout=30, message="uvc-2 selected")
+        # Its pose once UWB has placed it: the map restarts in the site frame, after which it holds.
+        other = [shown_pose(session, "uvc-2")]
+
+        def placed() -> bool:
+            p, before = shown_pose(session, "uvc-2"), other[0]
+            other[0] = p
+            return p is not None and before is not None and math.dist(p, (3.5, 2.0 + OFFSET_M)) < 0.15 and p == before
+
+        wait_until(placed, timeout=90, interval=0.5, message="uvc-2 shown where it stands, in the site frame")
+        there = other[0]
+        assert there is not None
+        tmux("send-keys", "-t", session, "Tab")
+        wait_until(lambda: shown_pose(session, "uvc-1") is not None, timeout=30, message="uvc-1 selected again")
+        start = shown_pose(session, "uvc-1")
+        assert start is not None and math.dist(start, (2.2, 2.0)) < 0.15, start
+
+        def refused() -> bool:
+            hold(session, "i")
+            return REFUSAL.search(screen(session)) is not None
+
+        wait_until(refused, timeout=90, interval=0.1, message="uvc-1's guard refusing: another robot ahead")
+        # Keep holding i a while: it stays where the guard stopped it.
+        hold(session, "i", 20)
+        last: list[tuple[float, float] | None] = [None]
+
+        def still() -> bool:
+            shown = screen(session)
+            p, before = (shown_pose(session, "uvc-1") if "uvc-1 idle pose" in shown else None), last[0]
+            last[0] = p
+            return p is not None and p == before
+
+        wait_until(still, timeout=30, interval=0.25, message="uvc-1 standing after the refusal")
+        stopped = last[0]
+        assert stopped is not None
+        gap = math.dist(stopped, there) - 2 * BODY_M
+        assert stopped[0] > start[0] + 0.3, (start, stopped)  # it drove towards uvc-2 ...
+        assert gap > 0.02, (stopped, there, gap)  # ... and stopped before the bodies met
+        assert "bump" not in screen(session), "a bump on the way"
+        # Backing away is allowed: , drives it back.
+        hold(session, ",", 20)
+        wait_until(
+            lambda: (p := shown_pose(session, "uvc-1")) is not None and p[0] < stopped[0] - 0.1,
+            timeout=30,
+            message="uvc-1 backing away from uvc-2",
+        )
+        quit_field(session, pane_pid)
+    except AssertionError as exc:
+        shown = last_screen(session)
+        log = tmp_path / "field.log"
+        tail = "\n".join(log.read_text().splitlines()[-20:]) if log.exists() else "(no field.log)"
+        raise AssertionError(f"{exc}\n--- screen ---\n{shown}\n--- field.log ---\n{tail}") from None
+    finally:
+        subprocess.run(tmux_cmd("kill-session", "-t", session), capture_output=True)
+        if alive(pane_pid):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pane_pid, signal.SIGKILL)
