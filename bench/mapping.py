@@ -612,6 +612,12 @@ def main(argv: list[str] | None = None) -> int:
         " --open-space)",
     )
     ap.add_argument(
+        "--long-loops",
+        action="store_true",
+        help="sections 6 and 7: replay with a window per submap and three checks a node (closure.long_loops,"
+        " fleetlink map replay --long-loops)",
+    )
+    ap.add_argument(
         "--expo-only",
         action="store_true",
         help="only section 8: the exhibition hall patrol, whole agents, with UWB (fill on and off) and without",
@@ -831,10 +837,10 @@ def freiburg_logs(folder: Path) -> list[tuple[str, Path, Path]]:
     return out
 
 
-def freiburg_log(log: Path, relations: Path, open_space: bool = False) -> dict[str, object]:
+def freiburg_log(log: Path, relations: Path, open_space: bool = False, long_loops: bool = False) -> dict[str, object]:
     """A published log replayed as recorded (its own odometry, no perturbation), closures on and off,
-    and the recorded odometry itself, each scored against the published relations. ``open_space``:
-    the closer of ``closure.open_space`` (``fleetlink map replay --open-space``)."""
+    and the recorded odometry itself, each scored against the published relations. ``open_space``,
+    ``long_loops``: the closer of ``fleetlink map replay --open-space``, ``--long-loops`` (``_replay_config``)."""
     from fleetlink.agent.mapping.carmen import LaserRecord, open_log, read_records
     from fleetlink.agent.mapping.mapper import MapperConfig
     from fleetlink.agent.mapping.relations import parse_relations
@@ -846,7 +852,7 @@ def freiburg_log(log: Path, relations: Path, open_space: bool = False) -> dict[s
         rels = parse_relations(f)
     times = [r.timestamp for r in recs]
     c0 = time.process_time()
-    res = replay(recs, _replay_config(open_space))
+    res = replay(recs, _replay_config(open_space, long_loops))
     cpu = time.process_time() - c0
     c1 = time.process_time()
     open_loop = replay(recs, MapperConfig(closer=None))
@@ -877,14 +883,14 @@ def freiburg_main(args: argparse.Namespace) -> int:
         return 1
     print(
         "published logs, replayed as recorded, against the published relations (translational error, m)"
-        + (", every submap filled (--open-space)" if args.open_space else "")
+        + _options_text(args)
     )
     print(
         f"{'log':>14} {'scans':>6} {'rel':>5} {'mapper':>15} {'rot deg':>7} {'local':>7} {'revisit':>8}"
         f" {'worst rev':>9} {'worst':>7} {'no closure':>10} {'odometry':>9} {'ratio':>6} {'scans/CPU s':>11}"
     )
     for name, log, rel in logs:
-        r = freiburg_log(log, rel, args.open_space)
+        r = freiburg_log(log, rel, args.open_space, args.long_loops)
         results[name] = r
         m, o, n = r["mapper"], r["odometry"], r["no_closure"]
         r["vs_odometry_ratio"] = m["trans_mean_m"] / o["trans_mean_m"]
@@ -905,20 +911,39 @@ def freiburg_main(args: argparse.Namespace) -> int:
     )
     if args.json:
         Path(args.json).write_text(
-            json.dumps({"freiburg": results, "open_space": args.open_space}, indent=2, default=float)
+            json.dumps(
+                {"freiburg": results, "open_space": args.open_space, "long_loops": args.long_loops},
+                indent=2,
+                default=float,
+            )
         )
     return 0
 
 
-def _replay_config(open_space: bool):  # type: ignore[no-untyped-def]
-    """The replay's mapper configuration: the defaults, or with ``closure.open_space``'s closer."""
+def _options_text(args: argparse.Namespace) -> str:
+    """What sections 6 and 7 print of the closer options asked for."""
+    return (", every submap filled (--open-space)" if args.open_space else "") + (
+        ", a window per submap and three checks a node (--long-loops)" if args.long_loops else ""
+    )
+
+
+def _replay_config(open_space: bool, long_loops: bool = False):  # type: ignore[no-untyped-def]
+    """The replay's mapper configuration as ``fleetlink map replay`` makes it: the defaults, with
+    ``closure.open_space``'s and ``closure.long_loops``' closer where asked."""
+    from fleetlink.agent.mapping.closure import CloserConfig
+    from fleetlink.agent.mapping.closure import long_loops as long_closer
     from fleetlink.agent.mapping.closure import open_space as open_closer
     from fleetlink.agent.mapping.mapper import MapperConfig
 
-    return MapperConfig(closer=open_closer()) if open_space else MapperConfig()
+    closer = CloserConfig()
+    if open_space:
+        closer = open_closer(closer)
+    if long_loops:
+        closer = long_closer(closer)
+    return MapperConfig(closer=closer)
 
 
-def corrected_log(path: Path, open_space: bool = False) -> dict[str, object]:
+def corrected_log(path: Path, open_space: bool = False, long_loops: bool = False) -> dict[str, object]:
     """A corrected log replayed as ``fleetlink map replay`` replays it (its poses as the odometry: no
     perturbation), the final graph, the online poses and the front end alone scored against the complete
     sets of ``relation_sets``; ``corrected_log``: the log's own poses against the re-matched set (how far
@@ -937,7 +962,7 @@ def corrected_log(path: Path, open_space: bool = False) -> dict[str, object]:
     times = [r.timestamp for r in recs]
     sets = relation_sets(recs)
     c0 = time.process_time()
-    res = replay(recs, _replay_config(open_space))
+    res = replay(recs, _replay_config(open_space, long_loops))
     cpu = time.process_time() - c0
     front = replay(recs, MapperConfig(closer=None))
     out: dict[str, object] = {"scans": len(recs), "by_index": by_index, "scans_per_cpu_s": len(recs) / cpu}
@@ -960,7 +985,7 @@ def corrected_main(args: argparse.Namespace) -> int:
         return 1
     print(
         "corrected logs replayed on their own poses: complete relation sets, mean / worst revisit (m)"
-        + (", every submap filled (--open-space)" if args.open_space else "")
+        + _options_text(args)
     )
     print(
         f"{'log':>34} {'scans':>6} {'mapper':>13} {'matched':>13} {'online':>13} {'no closure':>13}"
@@ -972,7 +997,7 @@ def corrected_main(args: argparse.Namespace) -> int:
         return f"{e['trans_mean_m']:.3f}/{_or_nan(e['revisit']['trans_max_m']):.3f}"
 
     for path in logs:
-        r = corrected_log(path, args.open_space)
+        r = corrected_log(path, args.open_space, args.long_loops)
         results[path.name] = r
         print(
             f"{path.name:>34} {r['scans']:>6} {cell(r['mapper']['complete']):>13}"  # type: ignore[index]
@@ -987,7 +1012,11 @@ def corrected_main(args: argparse.Namespace) -> int:
     )
     if args.json:
         Path(args.json).write_text(
-            json.dumps({"corrected": results, "open_space": args.open_space}, indent=2, default=float)
+            json.dumps(
+                {"corrected": results, "open_space": args.open_space, "long_loops": args.long_loops},
+                indent=2,
+                default=float,
+            )
         )
     return 0
 

@@ -45,3 +45,20 @@ def test_published_logs_are_found_replayed_and_scored(tmp_path: Path, capsys: py
     assert figures["open_space"] is True and json.loads(out.read_text())["open_space"] is False
     assert figures["freiburg"]["room"]["mapper"]["trans_mean_m"] < 0.02
     assert "every submap filled (--open-space)" in capsys.readouterr().out
+    # --long-loops: the closer of fleetlink map replay --long-loops, with --open-space too when both are asked.
+    loops = tmp_path / "loops.json"
+    assert bench.main(["--freiburg", str(tmp_path), "--long-loops", "--open-space", "--json", str(loops)]) == 0
+    figures = json.loads(loops.read_text())
+    assert figures["long_loops"] is True and figures["open_space"] is True
+    assert figures["freiburg"]["room"]["mapper"]["trans_mean_m"] < 0.02
+    assert "three checks a node (--long-loops)" in capsys.readouterr().out
+
+
+def test_the_bench_replays_with_the_closer_the_cli_would_use() -> None:
+    from fleetlink.agent.mapping.closure import long_loops, open_space
+    from fleetlink.agent.mapping.mapper import MapperConfig
+
+    bench = _bench()
+    assert bench._replay_config(False) == MapperConfig()
+    assert bench._replay_config(False, True).closer == long_loops()
+    assert bench._replay_config(True, True).closer == long_loops(open_space())
