@@ -35,7 +35,7 @@ from typing import Any
 
 from fleetlink.agent.contact import ContactKeeper
 from fleetlink.agent.fusion import Fusion
-from fleetlink.agent.guard import GuardInputs
+from fleetlink.agent.guard import GuardInputs, RobotAhead
 from fleetlink.agent.home import HomeKeeper
 from fleetlink.agent.interlocks import LampSituation, PeopleZone, lamp_interlock
 from fleetlink.agent.itinerary import Finished, GoTo, Itinerary, ItineraryError, RunAction, Stop, StopAction
@@ -636,16 +636,13 @@ class AgentCore:
         if self.itinerary is not None and self.itinerary.driving:
             x, y, _ = self._map_pose()
             self.itinerary.approach(x, y)
-        mp = self.fusion.map_pose()
-        pose = mp.x, mp.y, mp.theta
-        placed = self.peers.peers and self.fusion.position_initialized
-        ahead = (
-            self.peers.robots_ahead(
-                now, pose, self.fusion.heading_initialized, sd_xy=max(mp.sd_x, mp.sd_y), sd_theta=mp.sd_theta
+        pose = self._map_pose()
+        ahead: tuple[RobotAhead, ...] = ()
+        if self.peers.peers and self.fusion.position_initialized:
+            sd = self.fusion.map_pose()  # how sure it is of that pose: the margin it keeps from them
+            ahead = self.peers.robots_ahead(
+                now, pose, self.fusion.heading_initialized, sd_xy=max(sd.sd_x, sd.sd_y), sd_theta=sd.sd_theta
             )
-            if placed
-            else ()
-        )
         inputs = GuardInputs(
             ultrasonic_m=self.board.ultrasonic_m, cliff=self.board.cliff, bumped=self.board.bumped, robots_ahead=ahead
         )
