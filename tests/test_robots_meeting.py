@@ -44,26 +44,34 @@ pose = [23.0, {6.5 + OFFSET_M}, 180.0]
 """
 
 
-def test_two_robots_driven_at_each_other_stop_short_where_the_ultrasonic_sees_neither(tmp_path: Path) -> None:
-    path = tmp_path / "meeting.toml"
-    path.write_text(SCENARIO)
+def _drive(tmp_path: Path, scenario: str, keys: dict[str, float], start_s: float, every_s: float, seconds: float):  # type: ignore[no-untyped-def]
+    """``scenario`` run in lockstep with its robots standing until the keys are held: from ``start_s``
+    on, every ``every_s``, a Teleop forward at ``keys[robot]`` m/s for each robot named. The run's
+    result and the two robots' true distance apart at every step."""
+    path = tmp_path / "scenario.toml"
+    path.write_text(scenario)
     apart: list[float] = []
     with MissionRun(load_scenario(path), record=False, map_worker=False) as run:
         for robot in run.robots:
             robot.wander = False  # they stand until the keys are held
         boards = [rig.robot.board.state for rig in run.field.rigs]
         op = run.operator
-        held = [0.0]
+        held = [-math.inf]
 
         def operate(t: float) -> None:
             apart.append(math.dist((boards[0].x, boards[0].y), (boards[1].x, boards[1].y)))
-            if t >= 5.0 and t - held[0] >= 0.25:  # both keys held from 5 s on, a Teleop every 0.25 s
+            if t >= start_s and t - held[0] >= every_s:
                 held[0] = t
-                op.teleop("r1", 0.5, 0.0)
-                op.teleop("r2", 0.5, 0.0)
+                for robot, v in keys.items():
+                    op.teleop(robot, v, 0.0)
 
         run.field.controllers.append(operate)
-        result = run.run(20.0)
+        return run.run(seconds), apart
+
+
+def test_two_robots_driven_at_each_other_stop_short_where_the_ultrasonic_sees_neither(tmp_path: Path) -> None:
+    # Both keys held from 5 s on, a Teleop every 0.25 s.
+    result, apart = _drive(tmp_path, SCENARIO, {"r1": 0.5, "r2": 0.5}, 5.0, 0.25, 20.0)
     refusals = [e for e in result.events if e.kind == "guard_refusal"]
     bumps = [e for e in result.events if e.kind == "bump"]
     assert not bumps, [(e.header.robot, e.text) for e in bumps]
@@ -75,12 +83,16 @@ def test_two_robots_driven_at_each_other_stop_short_where_the_ultrasonic_sees_ne
     assert all(reason == "robot_ahead" for _, reason, _ in said), said  # the ultrasonic saw neither
 
 
-APARTMENT = f"""
-name = "robot-driven-off-at-once"
-description = "uvc-1 driven at uvc-2 in the living room as soon as UWB has placed it, lanes {OFFSET_M} m apart."
+def facing_in_the_living_room(duration_s: float) -> str:
+    """The apartment's living room: uvc-1 and uvc-2 1.3 m apart, facing each other on lanes ``OFFSET_M``
+    apart, both under UWB; wheels alike, so that uvc-1 driven straight ahead keeps its lane (also the
+    console's test of the rule: tests/e2e/test_console_robot_rule.py)."""
+    return f"""
+name = "robot-rule"
+description = "uvc-1 and uvc-2 1.3 m apart in the living room, facing each other on lanes {OFFSET_M} m apart."
 plan = "apartment"
 seed = 3
-duration_s = 20.0
+duration_s = {duration_s}
 
 [noise]
 wheel_scale_sd = 0.0
@@ -102,24 +114,8 @@ def test_a_robot_driven_off_as_soon_as_it_is_placed_stops_short_of_a_robot_besid
     heading only from driving (3-4 degrees) and its position to 2-3 cm: with the fixed 2 cm margin it
     believed the way clear until the bodies touched (the console's test found it: a bump). With the
     margin grown by both poses' uncertainty (``PeerConfig.margin_sds``) it stops short."""
-    path = tmp_path / "apartment.toml"
-    path.write_text(APARTMENT)
-    apart: list[float] = []
-    with MissionRun(load_scenario(path), record=False, map_worker=False) as run:
-        for robot in run.robots:
-            robot.wander = False
-        boards = [rig.robot.board.state for rig in run.field.rigs]
-        op = run.operator
-        held = [0.0]
-
-        def operate(t: float) -> None:
-            apart.append(math.dist((boards[0].x, boards[0].y), (boards[1].x, boards[1].y)))
-            if t >= 2.0 and t - held[0] >= 0.05:  # the key held from 2 s on, as the console repeats it
-                held[0] = t
-                op.teleop("uvc-1", 0.3, 0.0)
-
-        run.field.controllers.append(operate)
-        result = run.run(12.0)
+    # The key held from 2 s on, as the console repeats it.
+    result, apart = _drive(tmp_path, facing_in_the_living_room(20.0), {"uvc-1": 0.3}, 2.0, 0.05, 12.0)
     bumps = [e for e in result.events if e.kind == "bump"]
     assert not bumps, [(e.header.robot, e.text) for e in bumps]
     assert apart[0] - min(apart) > 0.7, min(apart)  # it drove most of the way

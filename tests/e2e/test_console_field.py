@@ -24,6 +24,7 @@ import subprocess
 import sys
 import time
 import uuid
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -78,8 +79,7 @@ def pose(session: str, shown: str | None = None) -> tuple[float, float] | None:
 
 @pytest.mark.slow
 def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
-    session, pane_pid = start_field(tmp_path, "", 160, 48)
-    try:
+    with console_field(tmp_path, "", 160, 48) as (session, pane_pid):
         wait_until(lambda: pose(session) is not None, timeout=60, message="the console showing uvc-1's pose")
         wait_until(lambda: "zenoh" in screen(session), timeout=30, message="the link column")
         # The UWB simulator runs in the field: the fleet table says so for uvc-1.
@@ -258,16 +258,6 @@ def test_drive_and_goal_in_the_real_console(tmp_path: Path) -> None:
             message="the dose layer at the round's dose over at least 90 % of the round's square",
         )
         quit_field(session, pane_pid)
-    except AssertionError as exc:
-        shown = last_screen(session)
-        log = tmp_path / "field.log"
-        tail = "\n".join(log.read_text().splitlines()[-20:]) if log.exists() else "(no field.log)"
-        raise AssertionError(f"{exc}\n--- screen ---\n{shown}\n--- field.log ---\n{tail}") from None
-    finally:
-        subprocess.run(tmux_cmd("kill-session", "-t", session), capture_output=True)
-        if alive(pane_pid):  # a hung field: kill what this test started
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pane_pid, signal.SIGKILL)
 
 
 def start_field(tmp_path: Path, args: str, width: int, height: int) -> tuple[str, int]:
@@ -284,6 +274,33 @@ def start_field(tmp_path: Path, args: str, width: int, height: int) -> tuple[str
     )
     tmux("new-session", "-d", "-s", session, "-x", str(width), "-y", str(height), cmd)
     return session, int(tmux("list-panes", "-t", session, "-F", "#{pane_pid}").split()[0])
+
+
+@contextlib.contextmanager
+def console_field(
+    tmp_path: Path,
+    args: str,
+    width: int,
+    height: int,
+    log_part: tuple[str, Callable[[list[str]], list[str]]] = ("field.log", lambda lines: lines[-20:]),
+) -> Iterator[tuple[str, int]]:
+    """``start_field``'s session and pane for the ``with`` body; a failed assertion in it comes back
+    with the screen and a part of the field's log (``log_part``: its heading and which lines), and
+    whatever the body did, the session and the field's process are gone after it."""
+    session, pane_pid = start_field(tmp_path, args, width, height)
+    try:
+        yield session, pane_pid
+    except AssertionError as exc:
+        shown = last_screen(session)
+        log = tmp_path / "field.log"
+        heading, pick = log_part
+        part = "\n".join(pick(log.read_text().splitlines())) if log.exists() else "(no field.log)"
+        raise AssertionError(f"{exc}\n--- screen ---\n{shown}\n--- {heading} ---\n{part}") from None
+    finally:
+        subprocess.run(tmux_cmd("kill-session", "-t", session), capture_output=True)
+        if alive(pane_pid):  # a hung field: kill what this test started
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pane_pid, signal.SIGKILL)
 
 
 def quit_field(session: str, pane_pid: int) -> None:

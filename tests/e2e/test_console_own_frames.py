@@ -12,24 +12,18 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import re
-import signal
-import subprocess
 from pathlib import Path
 
 import pytest
 
 from tests.e2e.test_console_field import (
-    alive,
     command,
-    last_screen,
+    console_field,
     needs_tmux,
     quit_field,
     screen,
-    start_field,
     tmux,
-    tmux_cmd,
 )
 from tests.harness import wait_until
 
@@ -48,8 +42,8 @@ def shown_pose(session: str, robot: str) -> tuple[float, float] | None:
 
 @pytest.mark.slow
 def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path: Path) -> None:
-    session, pane_pid = start_field(tmp_path, "--scenario expo-dark-team", 200, 56)
-    try:
+    fleet_map = ("the fleet map", lambda lines: [line for line in lines if "fleet map:" in line])
+    with console_field(tmp_path, "--scenario expo-dark-team", 200, 56, fleet_map) as (session, pane_pid):
         wait_until(lambda: shown_pose(session, "scout-1") is not None, timeout=60, message="scout-1 selected, its pose")
         tmux("send-keys", "-t", session, "Tab")
         wait_until(
@@ -167,13 +161,3 @@ def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path:
 
         wait_until(sweeping, timeout=120, message="scout-2 three nodes into its sweep, inside the rectangle")
         quit_field(session, pane_pid)
-    except AssertionError as exc:
-        shown = last_screen(session)
-        log = tmp_path / "field.log"
-        said = [line for line in log.read_text().splitlines() if "fleet map:" in line] if log.exists() else []
-        raise AssertionError(f"{exc}\n--- screen ---\n{shown}\n--- the fleet map ---\n" + "\n".join(said)) from None
-    finally:
-        subprocess.run(tmux_cmd("kill-session", "-t", session), capture_output=True)
-        if alive(pane_pid):  # a hung field: kill what this test started
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pane_pid, signal.SIGKILL)

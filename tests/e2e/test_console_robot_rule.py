@@ -10,12 +10,8 @@ bump, and backing away (``,``) is still allowed.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
 import re
-import signal
-import subprocess
 import time
 from pathlib import Path
 
@@ -23,41 +19,20 @@ import pytest
 
 from tests.e2e.test_console_field import (
     UWB_OK,
-    alive,
-    last_screen,
+    console_field,
     needs_tmux,
     quit_field,
     screen,
-    start_field,
     tmux,
-    tmux_cmd,
 )
 from tests.harness import wait_until
+from tests.test_robots_meeting import OFFSET_M, facing_in_the_living_room
 
 pytestmark = needs_tmux  # the console's e2e tests' rule: under CI it must run
 
 POSE = re.compile(r"(uvc-\d) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
 REFUSAL = re.compile(r"uvc-1: guard_refusal: another robot (\d+\.\d+) m ahead")
 BODY_M = 0.17  # the fleet's base radius (agent/body.py): centres nearer than twice it touch
-OFFSET_M = 0.33  # the lanes apart, centre to centre: under two radii
-FACING = f"""name = "robot-rule"
-description = "Two disinfection robots 1.3 m apart in the living room, facing each other on lanes {OFFSET_M} m apart."
-plan = "apartment"
-seed = 3
-duration_s = 600.0
-
-[noise]  # wheels alike: with the key held straight ahead uvc-1 drives its lane, not a curve
-wheel_scale_sd = 0.0
-gyro_bias_sd = 0.0
-
-[[robots]]
-name = "uvc-1"
-pose = [2.2, 2.0, 0.0]
-
-[[robots]]
-name = "uvc-2"
-pose = [3.5, {2.0 + OFFSET_M}, 180.0]
-"""
 
 
 def shown_pose(session: str, robot: str) -> tuple[float, float] | None:
@@ -74,9 +49,8 @@ def hold(session: str, key: str, times: int = 10) -> None:
 
 @pytest.mark.slow
 def test_a_robot_driven_at_another_stops_short_of_it_and_says_why(tmp_path: Path) -> None:
-    (tmp_path / "facing.toml").write_text(FACING)
-    session, pane_pid = start_field(tmp_path, f"--scenario {tmp_path / 'facing.toml'}", 160, 48)
-    try:
+    (tmp_path / "facing.toml").write_text(facing_in_the_living_room(600.0))
+    with console_field(tmp_path, f"--scenario {tmp_path / 'facing.toml'}", 160, 48) as (session, pane_pid):
         wait_until(lambda: shown_pose(session, "uvc-1") is not None, timeout=60, message="uvc-1 selected, its pose")
         wait_until(lambda: UWB_OK.search(screen(session)) is not None, timeout=60, message="uvc-1's UWB ok")
         # uvc-2 where it stands, as the console shows it (Tab selects it, Tab again back to uvc-1).
@@ -128,13 +102,3 @@ def test_a_robot_driven_at_another_stops_short_of_it_and_says_why(tmp_path: Path
             message="uvc-1 backing away from uvc-2",
         )
         quit_field(session, pane_pid)
-    except AssertionError as exc:
-        shown = last_screen(session)
-        log = tmp_path / "field.log"
-        tail = "\n".join(log.read_text().splitlines()[-20:]) if log.exists() else "(no field.log)"
-        raise AssertionError(f"{exc}\n--- screen ---\n{shown}\n--- field.log ---\n{tail}") from None
-    finally:
-        subprocess.run(tmux_cmd("kill-session", "-t", session), capture_output=True)
-        if alive(pane_pid):
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pane_pid, signal.SIGKILL)
