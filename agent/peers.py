@@ -56,12 +56,14 @@ class PeerConfig:
     lane_margin_m: float = 0.02
     """``robots_ahead`` counts a robot in the way if the bodies would pass closer than this (pose error)
     ..."""
-    margin_sds: float = 2.0
+    margin_sds: float = 1.5
     """... or than this many sd of where the peer lies across this robot's way, if more: both poses'
     position sd and this robot's heading sd times the distance between them. A robot driven off as soon
     as UWB has placed it knows its heading to 3-4 degrees and its position to 2-3 cm, and passing a
     peer 0.33 m to the side (bodies 0.34 m) the fixed 2 cm let it believe the way clear until the
-    bodies were centimetres apart (tests/test_robots_meeting.py, the apartment: it bumped)."""
+    bodies were centimetres apart (tests/test_robots_meeting.py, the apartment: it bumped). At 1.5 sd it
+    stops 0.41 m from it centre to centre (1 sd: 0.375 m, 2 sd: 0.44 m); the two-robot UV round in the
+    bedroom (bench/coverage.py, seed 16) takes 187 s (2 sd: 195 s, past 0.6x one robot's 320 s)."""
     extrapolate_s: float = 0.25
     """A moving peer's pose is moved on by its speed for at most this long: a few pose periods (20 Hz
     on Zenoh, 10 on MQTT); poses that stop coming say nothing of where it went after."""

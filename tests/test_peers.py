@@ -255,7 +255,7 @@ def test_the_margin_grows_with_how_uncertain_the_two_poses_are() -> None:
     """A peer 0.33 m to the side of this robot's way, 1 m ahead: the bodies (0.17 m each) would graze.
     Both placed to a centimetre and the heading known to a tenth of a degree, the fixed 2 cm margin
     holds; just driven off after UWB placed it (position 2.3 cm, heading 4 degrees: the apartment, in
-    tests/test_robots_meeting.py) the margin is two sd of where the peer lies across the way, and a
+    tests/test_robots_meeting.py) the margin is 1.5 sd of where the peer lies across the way, and a
     peer 0.45 m to the side counts too."""
     peers = PeerBodies(("r2",))
     side = 0.33
@@ -267,7 +267,8 @@ def test_the_margin_grows_with_how_uncertain_the_two_poses_are() -> None:
     )
     sd_xy, sd_theta = 0.023, math.radians(4.0)
     apart = math.hypot(1.0, side)
-    reach = 0.34 + 2.0 * math.sqrt(sd_xy**2 + 0.005**2 + (apart * sd_theta) ** 2)
+    k = PeerConfig().margin_sds
+    reach = 0.34 + k * math.sqrt(sd_xy**2 + 0.005**2 + (apart * sd_theta) ** 2)
     (unsure,) = peers.robots_ahead(1.0, (0.0, 0.0, 0.0), sd_xy=sd_xy, sd_theta=sd_theta)
     assert unsure.gap_m == pytest.approx(1.0 - math.sqrt(reach**2 - side**2))
     assert unsure.gap_m < sure[0] - 0.1  # refused a tenth of a metre and more sooner
@@ -277,7 +278,7 @@ def test_the_margin_grows_with_how_uncertain_the_two_poses_are() -> None:
     # A peer's own uncertainty counts as well; a heading not known at all leaves it to ``heading_known``.
     peers.hear("r2", _pose("r2", 1.0, side, t=1.2, sd=0.05), now=1.2)
     (loose,) = peers.robots_ahead(1.2, (0.0, 0.0, 0.0))
-    assert loose.gap_m == pytest.approx(1.0 - math.sqrt((0.34 + 0.1) ** 2 - side**2))
+    assert loose.gap_m == pytest.approx(1.0 - math.sqrt((0.34 + k * 0.05) ** 2 - side**2))
     assert peers.robots_ahead(1.2, (0.0, 0.0, 0.0), sd_theta=math.inf) == peers.robots_ahead(1.2, (0.0, 0.0, 0.0))
 
 
