@@ -82,7 +82,7 @@ class _Heard:
     vx: float
     standing: bool
     placed: bool
-    sd: float  # its position sd (m), as it reports it
+    sd: float  # its position sd (m), as it reports it (a placed peer's is at most ``placed_sd_m``)
 
 
 class PeerBodies:
@@ -104,13 +104,11 @@ class PeerBodies:
         if last is not None and stamp <= last.stamp and now - last.at < c.step_back_s:
             return False
         standing = abs(pose.vx) <= c.standing_mps and abs(pose.omega) <= c.standing_radps
-        placed = max(pose.sd_x_m, pose.sd_y_m) <= min(c.placed_sd_m, UNKNOWN_SD_M)
+        sd = max(pose.sd_x_m, pose.sd_y_m)
+        placed = sd <= min(c.placed_sd_m, UNKNOWN_SD_M)
         # (The wire contract's bounds say all of these are finite too.)
         ok = all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta, pose.vx))
-        sd = max(pose.sd_x_m, pose.sd_y_m)
-        self._heard[robot] = _Heard(
-            now, stamp, pose.x, pose.y, pose.theta, pose.vx, standing and ok, placed and ok, sd if ok else math.inf
-        )
+        self._heard[robot] = _Heard(now, stamp, pose.x, pose.y, pose.theta, pose.vx, standing and ok, placed and ok, sd)
         return True
 
     def _fresh(self, h: _Heard, now: float) -> bool:
@@ -158,7 +156,7 @@ class PeerBodies:
             # Its speed along the line from it to this robot (positive: coming closer).
             closing = max(0.0, -h.vx * (dx * math.cos(h.theta) + dy * math.sin(h.theta)) / apart) if apart > 0 else 0.0
             ahead, side = cos * dx + sin * dy, -sin * dx + cos * dy
-            across = math.sqrt(sd_xy**2 + (h.sd if math.isfinite(h.sd) else 0.0) ** 2 + (apart * sd_theta) ** 2)
+            across = math.sqrt(sd_xy**2 + h.sd**2 + (apart * sd_theta) ** 2)
             reach = 2.0 * c.body_radius_m + max(c.lane_margin_m, c.margin_sds * across)  # centre to centre
             if not heading_known:
                 gap: float | None = max(0.0, apart - reach)

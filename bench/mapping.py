@@ -928,19 +928,11 @@ def _options_text(args: argparse.Namespace) -> str:
 
 
 def _replay_config(open_space: bool, long_loops: bool = False):  # type: ignore[no-untyped-def]
-    """The replay's mapper configuration as ``fleetlink map replay`` makes it: the defaults, with
-    ``closure.open_space``'s and ``closure.long_loops``' closer where asked."""
-    from fleetlink.agent.mapping.closure import CloserConfig
-    from fleetlink.agent.mapping.closure import long_loops as long_closer
-    from fleetlink.agent.mapping.closure import open_space as open_closer
+    """The replay's mapper configuration as ``fleetlink map replay`` makes it (``closure.replay_closer``)."""
+    from fleetlink.agent.mapping.closure import replay_closer
     from fleetlink.agent.mapping.mapper import MapperConfig
 
-    closer = CloserConfig()
-    if open_space:
-        closer = open_closer(closer)
-    if long_loops:
-        closer = long_closer(closer)
-    return MapperConfig(closer=closer)
+    return MapperConfig(closer=replay_closer(open_space_fill=open_space, long_loops_search=long_loops))
 
 
 def corrected_log(path: Path, open_space: bool = False, long_loops: bool = False) -> dict[str, object]:

@@ -253,7 +253,7 @@ def run_replay(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from fleetlink.agent.mapping.carmen import CarmenStats, corrected_lines, open_log, read_records
-    from fleetlink.agent.mapping.closure import long_loops, open_space
+    from fleetlink.agent.mapping.closure import replay_closer
     from fleetlink.agent.mapping.grid import GridConfig
     from fleetlink.agent.mapping.mapper import MapperConfig
     from fleetlink.agent.mapping.replay import format_trajectory, replay
@@ -263,13 +263,8 @@ def run_replay(args: argparse.Namespace) -> int:
         print("fleetlink map replay: --resolution must be > 0", file=sys.stderr)
         return 2
     cfg = MapperConfig(grid=GridConfig(resolution=args.resolution), matching=not args.no_matching)
-    if args.no_closure:
-        cfg = replace(cfg, closer=None)
-    else:
-        if args.open_space:
-            cfg = replace(cfg, closer=open_space(cfg.closer))
-        if args.long_loops:
-            cfg = replace(cfg, closer=long_loops(cfg.closer))
+    closer = replay_closer(open_space_fill=args.open_space, long_loops_search=args.long_loops)
+    cfg = replace(cfg, closer=None if args.no_closure else closer)
     stats = CarmenStats()
 
     def progress(stage: str, n: int) -> None:

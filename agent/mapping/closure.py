@@ -77,6 +77,7 @@ __all__ = [
     "LoopCloser",
     "NodeScan",
     "degenerate_direction",
+    "replay_closer",
     "run_check",
 ]
 
@@ -382,6 +383,17 @@ def open_space(config: CloserConfig | None = None) -> CloserConfig:
     0.37 m, the Freiburg campus the same; the offices' published relations a little worse (aces' worst
     revisit 0.180 -> 0.199 m, intel's 0.093 -> 0.096 m). ``fleetlink map replay --open-space``."""
     return replace(config or CloserConfig(), fill_from_range=0.0)
+
+
+def replay_closer(*, open_space_fill: bool = False, long_loops_search: bool = False) -> CloserConfig:
+    """The closer ``fleetlink map replay`` maps with: the defaults, with ``open_space`` (``--open-space``)
+    and ``long_loops`` (``--long-loops``) where asked; the bench replays with the same."""
+    config = CloserConfig()
+    if open_space_fill:
+        config = open_space(config)
+    if long_loops_search:
+        config = long_loops(config)
+    return config
 
 
 @dataclass(frozen=True, slots=True)
