@@ -862,6 +862,7 @@ def freiburg_log(log: Path, relations: Path, open_space: bool = False, long_loop
         "relations": len(rels),
         "scans_per_cpu_s": len(recs) / cpu,
         "scans_per_cpu_s_without_closure": len(recs) / cpu_open,
+        "far_loop_checks": res.mapper.closer.stats.far_loop_checks if res.mapper.closer else 0,
         "mapper": relation_error(times, [p for _, p in res.rows], rels),
         "mapper_online": relation_error(times, [p for _, p in res.online], rels),
         "no_closure": relation_error(times, [p for _, p in open_loop.rows], rels),
@@ -957,7 +958,12 @@ def corrected_log(path: Path, open_space: bool = False, long_loops: bool = False
     res = replay(recs, _replay_config(open_space, long_loops))
     cpu = time.process_time() - c0
     front = replay(recs, MapperConfig(closer=None))
-    out: dict[str, object] = {"scans": len(recs), "by_index": by_index, "scans_per_cpu_s": len(recs) / cpu}
+    out: dict[str, object] = {
+        "scans": len(recs),
+        "by_index": by_index,
+        "scans_per_cpu_s": len(recs) / cpu,
+        "far_loop_checks": res.mapper.closer.stats.far_loop_checks if res.mapper.closer else 0,
+    }
     for name, est in (
         ("corrected_log", [r.pose for r in recs]),
         ("mapper", [p for _, p in res.rows]),

@@ -881,7 +881,7 @@ def test_with_windows_per_submap_a_closure_on_the_loop_just_driven_does_not_shri
         return closer
 
     k = len(path) - 1
-    cfg = CloserConfig()
+    cfg = CloserConfig(far_loop_m=0.0)
     # One window, grown since the last closure (15 m): 2.5 m; the start's submaps 4 m off are not searched.
     plain = run(cfg)
     assert cfg.search_xy + plain._growth()[0] == pytest.approx(cfg.search_xy + 0.1 * 15)
@@ -898,6 +898,55 @@ def test_with_windows_per_submap_a_closure_on_the_loop_just_driven_does_not_shri
     assert drift[380] == pytest.approx(15.0, abs=1e-6) and drift[340] == pytest.approx(15.0, abs=1e-6)
     assert drift[0] == pytest.approx(395.0 - 40.0, abs=1e-6)
     assert closer._growth(350, float(drift[350]))[0] == pytest.approx(0.1 * float(drift[350]))
+
+
+def test_a_submap_a_long_loop_back_along_the_graph_is_searched_in_its_own_window_by_default() -> None:
+    """``far_loop_m``: without ``long_loops``, the one window, shrunk by a closure onto the loop just
+    driven, still decides every nearer candidate, but a submap at least ``far_loop_m`` back along the
+    graph (a return after a long loop) is searched too, in the window its own drift asks for, up to
+    ``far_loop_checks`` a node. The same 400 m loop round a square: its start's submaps, 355 m back
+    along the graph, are searched at the whole window; with a shorter loop (the start 155 m back along
+    the graph) nothing changes."""
+    empty = NodeScan(
+        np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
+    )
+
+    def square(side_m: int) -> list[tuple[float, float, float]]:
+        path: list[tuple[float, float, float]] = []
+        for side in range(4):  # nodes 1 m apart, counter-clockwise from (0, 0)
+            for k in range(side_m):
+                x, y = [(k, 0.0), (side_m, k), (side_m - k, side_m), (0.0, side_m - k)][side]
+                path.append((float(x), float(y), side * math.pi / 2))
+        return path[:-4]  # the last node 4 m short of the start, beside where the loop began
+
+    def run(path: list[tuple[float, float, float]], config: CloserConfig) -> LoopCloser:
+        closer = LoopCloser(config, GridConfig())
+        for k, p in enumerate(path):
+            closer.add_node(float(k), p, empty)
+            if k == len(path) - 16:  # a closure onto the loop just driven, 40 nodes back
+                closer._add([Closure(k, k - 40, relative(closer.poses[k - 40], p), 0.9, 0.9)])
+        return closer
+
+    cfg = CloserConfig()
+    assert cfg.far_loop_m == 250.0 and cfg.far_loop_checks == 2 and not cfg.window_per_submap
+    path = square(100)
+    k = len(path) - 1
+    closer = run(path, cfg)
+    searched = closer._candidates(k, closer.poses[k])
+    windows = {sm.first: window for sm, window in searched}
+    # None within the one window (4 m: the loop's last 30 nodes are too recent); the start's two
+    # submaps within reach, far along the graph, each at the whole window.
+    assert sorted(windows) == [0, 10]
+    assert all(w == pytest.approx((cfg.max_search_xy, cfg.max_search_theta)) for w in windows.values())
+    checks = closer._fresh_checks(k)
+    assert sorted(c.anchor for c in checks if c.anchor < 50) == [0, 10]
+    # Off: as before (the one window, 2.5 m, does not reach the start 4 m off).
+    off = run(path, CloserConfig(far_loop_m=0.0))
+    assert not [c for c in off._fresh_checks(k) if c.anchor < 50]
+    # A 200 m loop: its start is nearer than far_loop_m along the graph, and is not searched.
+    short = square(50)
+    closer = run(short, cfg)
+    assert not [c for c in closer._fresh_checks(len(short) - 1) if c.anchor < 50]
 
 
 def test_after_a_closure_the_window_counts_the_disagreement_from_there() -> None:

@@ -98,6 +98,14 @@ class CloserConfig:
     # off by default (``long_loops`` turns it on, with three checks a node): on the offices' published
     # relations it moved one ambiguous revisit past 0.20 m (aces 0.180 -> 0.226 m).
     window_per_submap: bool = False
+    # Without it, a candidate submap at least ``far_loop_m`` from the node along the graph (``_drift``:
+    # a return after a loop that long, however recently the robot closed onto its own loop) is still
+    # searched in a window of its own, up to ``far_loop_checks`` of them a node besides the nearest
+    # candidate (0: never). The one window shrinks at every closure: MIT's Killian Court came back after
+    # loops of 300 m and more 15-19 m from the corridors it had mapped, with windows of 12-18 m. No
+    # candidate of intel, aces, fr079 or mit-csail (published or corrected) lies that far along the graph.
+    far_loop_m: float = 250.0
+    far_loop_checks: int = 2
     # The pose drifts while no closure holds it: both the radius and the window grow by this share of
     # the path travelled since the last accepted closure or site prior (and the heading window by
     # drift_theta per metre), up to the caps.
@@ -366,8 +374,9 @@ def long_loops(config: CloserConfig | None = None) -> CloserConfig:
     """``config`` (default: the defaults) for a log of loops hundreds of metres long: each candidate
     submap searched in its own window (``window_per_submap``) and three checks a node, so a far submap
     the drifted graph ranks behind nearer look-alikes is still tried where the robot is. MIT's Killian
-    Court (1.9 km, published relations): 1.649 -> 0.146 m, a return 34 m off closed; the Freiburg
-    hospital 0.862 -> 0.595 m. Elsewhere the means move a millimetre or less and single worst revisits
+    Court (1.9 km, published relations): 0.214 m by default (``far_loop_m``: submaps 250 m or more back
+    along the graph get such windows; 1.649 m without), 0.146 m with this; the Freiburg hospital
+    0.862 -> 0.595 m. Elsewhere the means move a millimetre or less and single worst revisits
     either way (aces' published 0.180 -> 0.225 m, intel's corrected 0.293 -> 0.255 m), but for the
     corrected csail log, 0.031 / 0.20 -> 0.040 / 0.40 m: docs/mapping.md, "``--long-loops`` on every
     log". ``fleetlink map replay --long-loops``."""
@@ -496,6 +505,7 @@ class CloserStats:
     rejected_degenerate: int = 0
     rejected_outside: int = 0  # refined beyond the search window (slid down a corridor)
     rejected_ambiguous: int = 0  # a large correction where the graph's guess matched too (``large_unique``)
+    far_loop_checks: int = 0  # fresh checks of submaps a long loop back along the graph (``far_loop_m``)
     final_pairs: int = 0  # the final pass's scan-to-scan edges (``final_pair_per_node``)
     final_pairs_searched: int = 0  # of them, found by the search (``final_pair_search``)
     dropped_by_solve: int = 0
@@ -868,6 +878,9 @@ class LoopCloser:
         reach = cfg.search_radius + max(cfg.max_search_xy, cfg.odometry_max_search_xy)  # beyond any window
         drift: F64 | None = None
         near: list[tuple[float, int, _Submap, tuple[float, float] | None]] = []
+        far: list[tuple[float, int, _Submap, tuple[float, float] | None]] = []  # ``far_loop_m``
+        far_loops = fresh_only and not per_submap and cfg.far_loop_m > 0 and cfg.far_loop_checks > 0
+        chain: F64 | None = None  # path along the chain from node 0: an upper bound of the graph's
         for i, sm in enumerate(self.submaps):
             if sm.last - sm.first < cfg.submap_nodes or sm.last > k - cfg.min_gap_nodes:
                 continue
@@ -876,6 +889,24 @@ class LoopCloser:
             nodes = xyt[sm.first : sm.last]
             gap = float(np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1]).min())
             window: tuple[float, float] | None = None
+            if far_loops and radius < gap <= reach:
+                if chain is None:
+                    chain = self._chain_lengths()
+                if chain[k] - chain[sm.last - 1] < cfg.far_loop_m:
+                    continue  # nearer than that along the chain, so along the graph too
+                if drift is None:
+                    drift = self._drift(k)
+                part = drift[sm.first : sm.last]
+                if float(part.min()) < cfg.far_loop_m:
+                    continue
+                gxy, gth = self._growth(sm.first + int(np.argmin(part)), float(part.min()))
+                if gap > cfg.search_radius + gxy:
+                    continue
+                window = (cfg.search_xy + gxy, cfg.search_theta + gth)
+                d = np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1])
+                turn = np.abs(np.remainder(nodes[:, 2] - at[2] + math.pi, 2.0 * math.pi) - math.pi)
+                far.append((float(np.min(d + VIEW_LEVER_M * turn)), i, sm, window))
+                continue
             if per_submap:
                 if gap > reach:
                     continue  # cheaply, before the graph's paths are measured
@@ -894,7 +925,20 @@ class LoopCloser:
             turn = np.abs(np.remainder(nodes[:, 2] - at[2] + math.pi, 2.0 * math.pi) - math.pi)
             near.append((float(np.min(d + VIEW_LEVER_M * turn)), i, sm, window))
         near.sort(key=lambda e: (e[0], e[1]))
-        return [(sm, window) for _, _, sm, window in near[:limit]]
+        far.sort(key=lambda e: (e[0], e[1]))
+        far = far[: cfg.far_loop_checks]
+        self.stats.far_loop_checks += len(far)
+        return [(sm, window) for _, _, sm, window in near[:limit] + far]
+
+    def _chain_lengths(self) -> F64:
+        """The path (m) along the chain of front-end steps from node 0 to every node."""
+        steps = self.graph.edge_arrays()
+        ii, jj, z = steps
+        along = np.zeros(len(self.graph.poses))
+        chain = np.flatnonzero(jj == ii + 1)
+        along[jj[chain]] = np.hypot(z[chain, 0], z[chain, 1])
+        out: F64 = np.cumsum(along)
+        return out
 
     def _drift(self, k: int) -> F64:
         """The path (m) from node ``k`` to every node through the graph: a front-end step counts its
