@@ -889,30 +889,21 @@ class LoopCloser:
             nodes = xyt[sm.first : sm.last]
             gap = float(np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1]).min())
             window: tuple[float, float] | None = None
-            if far_loops and radius < gap <= reach:
-                if chain is None:
-                    chain = self._chain_lengths()
-                if chain[k] - chain[sm.last - 1] < cfg.far_loop_m:
-                    continue  # nearer than that along the chain, so along the graph too
-                if drift is None:
-                    drift = self._drift(k)
-                part = drift[sm.first : sm.last]
-                if float(part.min()) < cfg.far_loop_m:
-                    continue
-                gxy, gth = self._growth(sm.first + int(np.argmin(part)), float(part.min()))
-                if gap > cfg.search_radius + gxy:
-                    continue
-                window = (cfg.search_xy + gxy, cfg.search_theta + gth)
-                d = np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1])
-                turn = np.abs(np.remainder(nodes[:, 2] - at[2] + math.pi, 2.0 * math.pi) - math.pi)
-                far.append((float(np.min(d + VIEW_LEVER_M * turn)), i, sm, window))
-                continue
-            if per_submap:
+            # A window of the submap's own: every candidate's (``window_per_submap``), or a far loop's.
+            own = per_submap or (far_loops and radius < gap <= reach)
+            if own:
                 if gap > reach:
                     continue  # cheaply, before the graph's paths are measured
+                if not per_submap:
+                    if chain is None:
+                        chain = self._chain_lengths()
+                    if chain[k] - chain[sm.last - 1] < cfg.far_loop_m:
+                        continue  # nearer than that along the chain, so along the graph too
                 if drift is None:
                     drift = self._drift(k)
                 part = drift[sm.first : sm.last]
+                if not per_submap and float(part.min()) < cfg.far_loop_m:
+                    continue
                 gxy, gth = self._growth(sm.first + int(np.argmin(part)), float(part.min()))
                 if gap > cfg.search_radius + gxy:
                     continue
@@ -923,7 +914,7 @@ class LoopCloser:
             # (a scanner looking the other way down a corridor sees other walls).
             d = np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1])
             turn = np.abs(np.remainder(nodes[:, 2] - at[2] + math.pi, 2.0 * math.pi) - math.pi)
-            near.append((float(np.min(d + VIEW_LEVER_M * turn)), i, sm, window))
+            (far if own and not per_submap else near).append((float(np.min(d + VIEW_LEVER_M * turn)), i, sm, window))
         near.sort(key=lambda e: (e[0], e[1]))
         far.sort(key=lambda e: (e[0], e[1]))
         far = far[: cfg.far_loop_checks]
