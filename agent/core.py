@@ -78,6 +78,7 @@ from fleetlink.shared.messages import (
     ErrorLevel,
     EStop,
     Event,
+    FleetFrames,
     Goal,
     Home,
     InstantActions,
@@ -292,6 +293,7 @@ class AgentCore:
         self.contact = contact or ContactKeeper()
         self.peers = peers or PeerBodies()
         """The other robots' poses (robot.toml's ``peers``): the standing ones are planned around."""
+        self.peers.robot = robot  # its own frame among the fleet map's (FleetFrames) is its id's
         self._plan_now = -math.inf
         """The control step's time, for the path provider the pilot calls inside it."""
         if self.home.home is not None:
@@ -408,13 +410,27 @@ class AgentCore:
         return out
 
     def on_peer(self, link: LinkName, key: str, payload: bytes, now: float) -> Output:
-        """A peer's fused pose (``fleetlink/v1/<peer>/pose``): kept to plan around, never a command
+        """A peer's fused pose (``fleetlink/v1/<peer>/pose``), or where the fleet map service found the
+        robots in their own frames (``fleetlink/v1/fleet/frames``): kept to plan around, never a command
         and no contact with an operator. Anything else, or what does not decode, is refused and counted."""
         out = Output()
         try:
             robot, topic = keys.parse_key(key)
         except ValueError as exc:
             self._rejected(self.gate.reject(link, "?", f"key: {exc}"), out)
+            return out
+        if robot == keys.FLEET_MAP and topic == FleetFrames.TOPIC and self.peers.peers:
+            try:
+                frames = wire.decode_key(key, payload)
+            except wire.WireError as exc:
+                self._rejected(self.gate.reject(link, topic, exc.reason, exc.field), out)
+                return out
+            assert isinstance(frames, FleetFrames)
+            had = self.peers.framed(now)
+            if self.peers.hear_frames(frames, now) and not had and self.peers.framed(now):
+                # Once each time they begin to place robots: whom it can now keep clear of without UWB.
+                placed = ", ".join(self.peers.framed(now))
+                out.logs.append(f"hears the fleet map's frames on {link.value}: {placed} placed on it")
             return out
         if topic != Pose.TOPIC or robot not in self.peers.peers:
             self._rejected(self.gate.reject(link, topic, f"key: not a peer's pose for agent {self.robot}: {key}"), out)
@@ -502,7 +518,7 @@ class AgentCore:
         def provider(
             start: tuple[float, float], goal: tuple[float, float], /, blocked: Sequence[tuple[float, float]] = ()
         ) -> Sequence[tuple[float, float]] | None:
-            bodies = self.peers.standing(self._plan_now) if self.fusion.position_initialized else ()
+            bodies = self.peers.standing(self._plan_now, self.fusion.position_initialized)
             return plan(start, goal, blocked=blocked, bodies=bodies)
 
         return provider
@@ -638,10 +654,18 @@ class AgentCore:
             self.itinerary.approach(x, y)
         pose = self._map_pose()
         ahead: tuple[RobotAhead, ...] = ()
-        if self.peers.peers and self.fusion.position_initialized:
+        if self.peers.peers:
+            # Placed, its pose is in the site frame; else in its own map's, its heading that map's (known
+            # there), where the fleet map's frames may put the others (agent/peers.py).
+            placed = self.fusion.position_initialized
             sd = self.fusion.map_pose()  # how sure it is of that pose: the margin it keeps from them
             ahead = self.peers.robots_ahead(
-                now, pose, self.fusion.heading_initialized, sd_xy=max(sd.sd_x, sd.sd_y), sd_theta=sd.sd_theta
+                now,
+                pose,
+                self.fusion.heading_initialized or not placed,
+                sd_xy=max(sd.sd_x, sd.sd_y),
+                sd_theta=sd.sd_theta if placed else 0.0,
+                placed=placed,
             )
         inputs = GuardInputs(
             ultrasonic_m=self.board.ultrasonic_m, cliff=self.board.cliff, bumped=self.board.bumped, robots_ahead=ahead

@@ -46,6 +46,7 @@ from fleetlink.shared.dose import FloorMask
 from fleetlink.shared.messages import (
     Connection,
     ConnectionState,
+    FleetFrames,
     LeaseRequest,
     LinkName,
     LinkStatus,
@@ -234,6 +235,10 @@ class AgentNode:
 
             for robot in self.config.peers:
                 link.subscribe(keys.key(robot, Pose.TOPIC), peer)
+            if self.config.peers and name is LinkName.ZENOH:
+                # Where the fleet map found robots without UWB (agent/peers.py): its service shares on
+                # the console's Zenoh link (site/fleetmap.py), and the broker's ACL has no such topic.
+                link.subscribe(keys.key(keys.FLEET_MAP, FleetFrames.TOPIC), peer)
             if name is LinkName.MQTT:
                 link.subscribe(self.pans_topic, receive)
 

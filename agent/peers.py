@@ -22,9 +22,17 @@ not known yet (UWB places it before it has driven), every peer near enough count
 
 Only standing peers are planned around: a moving one is somewhere else by the time the leg is
 driven, and would bar doorways it has already left (the guard and the re-plans answer a moving
-robot). Only poses in
-the site frame count, and only while the robot itself is placed in it: an unplaced robot's pose is
-in its own map's frame, which no one else shares.
+robot).
+
+**Which frame.** A pose counts only where this robot can put it in its own frame. Placed robots (UWB)
+share the site frame. A robot without UWB publishes its pose in its own map's frame, which begins
+where it started; the fleet map service finds each such map on the others' and publishes where each
+frame lies on the fleet map (``FleetFrames``, ``fleetlink/v1/fleet/frames``: site/fleetmap.py). With
+those, a peer in its own frame is put in this robot's frame (its frame onto the fleet map, then back
+through this robot's), whether this robot is placed or not, so two scouts in a building without UWB
+keep clear of each other once the fleet map has found both. Without them (no fleet map service, or
+it has not found the map yet, or its frames are older than ``frames_fresh_s``) such a peer is not
+counted, as before: the guard's ultrasonic is all there is between them.
 """
 
 from __future__ import annotations
@@ -34,11 +42,14 @@ from dataclasses import dataclass
 
 from fleetlink.agent.guard import RobotAhead
 from fleetlink.shared.body import BODY_RADIUS_M
-from fleetlink.shared.messages import UNKNOWN_SD_M, Pose
+from fleetlink.shared.messages import UNKNOWN_SD_M, FleetFrames, Pose
+from fleetlink.shared.se2 import compose, inverse
 
 __all__ = ["PeerBodies", "PeerConfig"]
 
 Point = tuple[float, float]
+Frame = tuple[float, float, float]
+_SAME: Frame = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,6 +81,13 @@ class PeerConfig:
     step_back_s: float = 0.25
     """A pose stamped before the one kept is a late copy from the other link, unless the kept one was
     received this long ago: then the peer's clock stepped back (or it restarted), and the pose is news."""
+    frames_fresh_s: float = 30.0
+    """The fleet map's frames (``FleetFrames``) older than this are not used: the service sends them
+    every 5 s (site/fleetmap.py ``FRAMES_PERIOD_S``), so this is several missed in a row."""
+    framed_sd_m: float = 0.05
+    """How well a robot in its own frame is known on the fleet map (its position sd there, for the
+    margin): where the fleet map's search put its frame, measured within 3 cm on the hall's two scouts
+    (docs/mapping.md, "The fleet map"), and where its own map puts it on that frame."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,13 +103,36 @@ class _Heard:
     sd: float  # its position sd (m), as it reports it (a placed peer's is at most ``placed_sd_m``)
 
 
+@dataclass(frozen=True, slots=True)
+class _Frames:
+    """The fleet map's frames as last heard: ``reference`` "" when the fleet map's frame is the site's."""
+
+    at: float
+    reference: str
+    frames: dict[str, Frame]
+
+
+@dataclass(frozen=True, slots=True)
+class _Placed:
+    """A fresh peer put in this robot's frame."""
+
+    heard: _Heard
+    x: float
+    y: float
+    theta: float
+    sd: float
+
+
 class PeerBodies:
     """The latest pose of each peer; ``standing(now)``: where the placed, still ones stand."""
 
-    def __init__(self, peers: tuple[str, ...] = (), config: PeerConfig | None = None) -> None:
+    def __init__(self, peers: tuple[str, ...] = (), config: PeerConfig | None = None, *, robot: str = "") -> None:
+        """``robot``: this robot's id, to find its own frame among the fleet map's."""
         self.peers = frozenset(peers)
         self.config = config or PeerConfig()
+        self.robot = robot
         self._heard: dict[str, _Heard] = {}
+        self._frames: _Frames | None = None
 
     def hear(self, robot: str, pose: Pose, now: float) -> bool:
         """``robot``'s fused pose, received at ``now``. False (ignored) for a robot that is not a
@@ -110,6 +151,51 @@ class PeerBodies:
         ok = all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta, pose.vx))
         self._heard[robot] = _Heard(now, stamp, pose.x, pose.y, pose.theta, pose.vx, standing and ok, placed and ok, sd)
         return True
+
+    def hear_frames(self, msg: FleetFrames, now: float) -> bool:
+        """Where the robots in their own frames lie on the fleet map, received at ``now``. Two services
+        may briefly disagree while one has not heard a placed robot's map: one whose frame is the site's
+        is kept over one that is a robot's own for as long as it is fresh. False: not taken."""
+        kept = self._frames
+        if msg.reference and kept is not None and not kept.reference and now - kept.at <= self.config.frames_fresh_s:
+            return False
+        frames = {f.robot: (f.x, f.y, f.theta) for f in msg.frames}
+        self._frames = _Frames(now, msg.reference, frames)
+        return True
+
+    def framed(self, now: float) -> tuple[str, ...]:
+        """The robots whose own frames the fleet map's frames (fresh) place, by name."""
+        f = self._frames
+        if f is None or now - f.at > self.config.frames_fresh_s:
+            return ()
+        return tuple(sorted(f.frames))
+
+    def _frame_of(self, robot: str, placed: bool, now: float) -> tuple[str, Frame] | None:
+        """The frame ``robot``'s poses are in (a name: "" the site's, else the fleet map's reference
+        robot's) and how its frame lies in it; None: in a frame no one else's can be put in."""
+        if placed:
+            return "", _SAME
+        f = self._frames
+        if f is None or now - f.at > self.config.frames_fresh_s or robot not in f.frames:
+            return None
+        return f.reference, f.frames[robot]
+
+    def _placed(self, now: float, me_placed: bool) -> list[_Placed]:
+        """The peers heard within ``fresh_s`` whose poses can be put in this robot's frame, put there."""
+        mine = self._frame_of(self.robot, me_placed, now)
+        if mine is None:
+            return []
+        back = inverse(mine[1])
+        out: list[_Placed] = []
+        for name, h in sorted(self._heard.items()):
+            if not self._fresh(h, now) or not all(math.isfinite(v) for v in (h.x, h.y, h.theta, h.vx)):
+                continue
+            theirs = self._frame_of(name, h.placed, now)
+            if theirs is None or theirs[0] != mine[0]:
+                continue
+            x, y, th = compose(back, compose(theirs[1], (h.x, h.y, h.theta)))
+            out.append(_Placed(h, x, y, th, h.sd if h.placed else self.config.framed_sd_m))
+        return out
 
     def _fresh(self, h: _Heard, now: float) -> bool:
         # No lower bound: the control tick may read the clock just before a pose is taken in.
@@ -130,13 +216,16 @@ class PeerBodies:
         heading_known: bool = True,
         sd_xy: float = 0.0,
         sd_theta: float = 0.0,
+        placed: bool = True,
     ) -> tuple[RobotAhead, ...]:
-        """The placed peers heard within ``fresh_s``, standing or moving, whose bodies lie in the way
-        of this one's (at ``pose``, site frame, its position sd ``sd_xy`` and heading sd ``sd_theta``)
-        driving straight on: how far it drives before they touch (0: they touch already, ahead or
-        beside) and how fast each comes toward it. Without ``heading_known`` every peer counts, its gap
-        the distance between the bodies. The bodies are taken to touch ``lane_margin_m`` apart, or
-        ``margin_sds`` sd of where the peer lies across the way, if more."""
+        """The peers heard within ``fresh_s``, standing or moving, that can be put in this robot's
+        frame, whose bodies lie in the way of this one's (at ``pose``, its position sd ``sd_xy`` and
+        heading sd ``sd_theta``) driving straight on: how far it drives before they touch (0: they
+        touch already, ahead or beside) and how fast each comes toward it. ``placed``: ``pose`` is in
+        the site frame; else in this robot's own map's frame (where the fleet map's frames, if heard,
+        put the others). Without ``heading_known`` every peer counts, its gap the distance between the
+        bodies. The bodies are taken to touch ``lane_margin_m`` apart, or ``margin_sds`` sd of where
+        the peer lies across the way, if more."""
         c = self.config
         x, y, th = pose
         if not all(math.isfinite(v) for v in pose):
@@ -145,18 +234,19 @@ class PeerBodies:
         # Not finite (not known): no more than the fixed margin from it; ``heading_known`` says the rest.
         sd_xy = sd_xy if math.isfinite(sd_xy) else 0.0
         sd_theta = sd_theta if math.isfinite(sd_theta) else 0.0
+        if not placed:  # its own frame: where the fleet map put it is known to its search's few cm
+            sd_xy = max(sd_xy, c.framed_sd_m)
         out: list[RobotAhead] = []
-        for h in self._heard.values():
-            if not h.placed or not self._fresh(h, now):
-                continue
+        for p in self._placed(now, placed):
+            h = p.heard
             age = min(max(0.0, now - h.at), c.extrapolate_s)
-            hx, hy = h.x + h.vx * age * math.cos(h.theta), h.y + h.vx * age * math.sin(h.theta)
+            hx, hy = p.x + h.vx * age * math.cos(p.theta), p.y + h.vx * age * math.sin(p.theta)
             dx, dy = hx - x, hy - y
             apart = math.hypot(dx, dy)
             # Its speed along the line from it to this robot (positive: coming closer).
-            closing = max(0.0, -h.vx * (dx * math.cos(h.theta) + dy * math.sin(h.theta)) / apart) if apart > 0 else 0.0
+            closing = max(0.0, -h.vx * (dx * math.cos(p.theta) + dy * math.sin(p.theta)) / apart) if apart > 0 else 0.0
             ahead, side = cos * dx + sin * dy, -sin * dx + cos * dy
-            across = math.sqrt(sd_xy**2 + h.sd**2 + (apart * sd_theta) ** 2)
+            across = math.sqrt(sd_xy**2 + p.sd**2 + (apart * sd_theta) ** 2)
             reach = 2.0 * c.body_radius_m + max(c.lane_margin_m, c.margin_sds * across)  # centre to centre
             if not heading_known:
                 gap: float | None = max(0.0, apart - reach)
@@ -170,8 +260,7 @@ class PeerBodies:
                 out.append(RobotAhead(gap, closing))
         return tuple(sorted(out, key=lambda r: r.gap_m))
 
-    def standing(self, now: float) -> tuple[Point, ...]:
-        """Where the peers heard within ``fresh_s`` stand still in the site frame, by robot name."""
-        return tuple(
-            (h.x, h.y) for _, h in sorted(self._heard.items()) if h.standing and h.placed and self._fresh(h, now)
-        )
+    def standing(self, now: float, placed: bool = True) -> tuple[Point, ...]:
+        """Where the peers heard within ``fresh_s`` stand still, in this robot's frame (``placed``: the
+        site frame; else its own map's), by robot name: those that can be put in it."""
+        return tuple((p.x, p.y) for p in self._placed(now, placed) if p.heard.standing)

@@ -232,7 +232,9 @@ def zenoh_access_control(
         ids = [*shared, *(r["id"] for r in subject_rules if r["id"] not in shared)]
         policies.append({"id": subject, "rules": ids, "subjects": [subject]})
 
-    peer_reads = [_zenoh("*", t) for t in PEER_READS]
+    # ... and where the fleet map service found the robots in their own frames (no UWB), which puts
+    # such a peer in its frame (agent/peers.py). Zenoh only: the service shares on the console's link.
+    peer_reads = [*(_zenoh("*", t) for t in PEER_READS), _zenoh(FLEET_MAP, FLEET_FRAMES)]
     for robot in robot_ids:
         writes = [_zenoh(robot, t) for t in AGENT_WRITES]
         reads = [_zenoh(robot, t) for t in AGENT_READS]

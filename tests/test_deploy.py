@@ -384,6 +384,22 @@ def test_zenoh_a_robot_hears_the_other_robots_poses_and_nothing_else_of_theirs(r
     assert spy == []
 
 
+def test_zenoh_a_robot_hears_where_the_fleet_map_put_the_robots_and_cannot_say_it_itself(router: Router) -> None:
+    """The fleet map's frames (a console's fleet map service shares them): what puts a peer without UWB
+    in a robot's own frame (agent/peers.py). Read only: a robot cannot move where others think it is."""
+    r1 = router.client("r1")
+    frames = _collect(r1, "fleetlink/v1/fleet/frames")
+    op = router.client("op-alice")
+    watcher = _collect(op, "fleetlink/v1/fleet/frames")
+    _until_delivered(op, "fleetlink/v1/fleet/frames", frames)
+    r2 = router.client("r2")
+    r2.put("fleetlink/v1/fleet/frames", b"forged")
+    op.put("fleetlink/v1/fleet/frames", b"after")
+    wait_until(lambda: ("fleetlink/v1/fleet/frames", b"after") in frames)
+    wait_until(lambda: ("fleetlink/v1/fleet/frames", b"after") in watcher)
+    assert all(p != b"forged" for _, p in frames + watcher)
+
+
 def test_zenoh_operator_commands_only_under_its_own_name(router: Router) -> None:
     r1 = router.client("r1")
     got = _collect(r1, "fleetlink/v1/r1/**")

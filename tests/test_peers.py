@@ -19,8 +19,9 @@ from fleetlink.agent.motion import GoToConfig
 from fleetlink.agent.peers import PeerBodies, PeerConfig
 from fleetlink.agent.pilot import Pilot
 from fleetlink.shared import keys, wire
+from fleetlink.shared.body import BODY_RADIUS_M
 from fleetlink.shared.clock import SimClock
-from fleetlink.shared.messages import UNKNOWN_SD_M, LinkName, Pose
+from fleetlink.shared.messages import UNKNOWN_SD_M, FleetFrames, LinkName, Pose, RobotFrame
 
 RES = 0.05
 
@@ -136,27 +137,33 @@ class _Placed(Fusion):
         return self.heading_known
 
 
-def test_the_core_asks_for_the_robots_ahead_once_placed_whichever_way_until_it_knows_its_heading() -> None:
+def test_the_core_asks_for_the_robots_ahead_whichever_way_until_it_knows_its_heading() -> None:
     from fleetlink.agent.core import BoardView
 
     fusion = _Placed()
     peers = PeerBodies(("r2",))
     core = AgentCore("r1", SimClock(100.0), Pilot(), fusion=fusion, peers=peers)
-    asked: list[bool] = []
+    assert peers.robot == "r1"  # its own frame among the fleet map's is found by its id
+    asked: list[tuple[bool, object]] = []
     real = peers.robots_ahead
 
-    def robots_ahead(now: float, pose: tuple[float, float, float], heading_known: bool = True, **sd: float) -> object:
-        asked.append(heading_known)
-        assert set(sd) == {"sd_xy", "sd_theta"}  # its own pose's uncertainty, for the margin
-        return real(now, pose, heading_known, **sd)
+    def robots_ahead(
+        now: float, pose: tuple[float, float, float], heading_known: bool = True, **kw: float
+    ) -> tuple[object, ...]:
+        asked.append((heading_known, kw["placed"]))
+        assert set(kw) == {"sd_xy", "sd_theta", "placed"}  # its own pose's uncertainty, for the margin
+        return real(now, pose, heading_known, **kw)
 
     peers.robots_ahead = robots_ahead  # type: ignore[method-assign]
     core.tick(100.0, BoardView())
     fusion.heading_known = True
     core.tick(100.02, BoardView())
-    fusion.placed = False  # unplaced: nobody's pose is in its frame
+    # Unplaced: its pose is in its own map's frame, its heading that map's (known there); only the
+    # fleet map's frames can put anyone else in it.
+    fusion.placed = False
+    fusion.heading_known = False
     core.tick(100.04, BoardView())
-    assert asked == [False, True]
+    assert asked == [(False, True), (True, True), (True, False)]
 
 
 def test_the_core_hands_standing_peers_to_the_planner_once_placed_and_never_takes_them_for_commands() -> None:
@@ -185,7 +192,7 @@ def test_the_core_hands_standing_peers_to_the_planner_once_placed_and_never_take
     core._plan_now = 100.2  # the control step's time (set by every tick)
     plan((0.0, 0.0), (5.0, 5.0))
     plan((0.0, 0.0), (5.0, 5.0), blocked=[(1.0, 1.0)])
-    fusion.placed = False  # unplaced: its frame is its own map's, which no peer shares
+    fusion.placed = False  # unplaced: its frame is its own map's, where no fleet map has put r2
     plan((0.0, 0.0), (5.0, 5.0))
     assert asked == [((), ((2.0, 3.0),)), (((1.0, 1.0),), ((2.0, 3.0),)), ((), ())]
     assert core.contact._heard_at is None  # a peer's pose is no word from an operator
@@ -344,3 +351,110 @@ def test_the_guard_refuses_driving_into_another_robot_and_allows_turning_and_bac
     both = (RobotAhead(0.2), RobotAhead(0.25, closing_mps=0.5))  # needs 0.105 m, and 0.28 m
     assert guard.filter(0.3, 0.0, GuardInputs(robots_ahead=both)).refusal is not None
     assert guard.filter(0.3, 0.0, GuardInputs(robots_ahead=both[:1])).refusal is None
+
+
+# -- robots in their own frames, placed by the fleet map (FleetFrames) ---------------------------
+
+
+def _frames(reference: str, **frames: tuple[float, float, float]) -> FleetFrames:
+    counter = wire.HeaderCounter(SimClock(0.0), robot=keys.FLEET_MAP, sender="fleet-map")
+    return counter.make(
+        FleetFrames,
+        reference=reference,
+        frames=tuple(RobotFrame(robot=r, x=f[0], y=f[1], theta=f[2]) for r, f in sorted(frames.items())),
+        unframed=(),
+    )
+
+
+def _unplaced(robot: str, x: float, y: float, *, t: float, vx: float = 0.0) -> Pose:
+    return _pose(robot, x, y, t=t, vx=vx, sd=UNKNOWN_SD_M)
+
+
+def test_a_peer_in_its_own_frame_is_put_in_this_robots_own_frame_through_the_fleet_maps_frames() -> None:
+    # r2's frame is the fleet map's; r1's own frame lies at (2, 0) on it, turned 90 degrees. r2 stands
+    # at (1, 1) in its frame, so on the fleet map too; in r1's frame: (1, 1) - (2, 0) = (-1, 1), turned
+    # back 90 degrees, (1, 1).
+    peers = PeerBodies(("r2",), robot="r1")
+    assert peers.hear("r2", _unplaced("r2", 1.0, 1.0, t=10.0), now=10.0)
+    assert peers.standing(10.0, placed=False) == ()  # no fleet map heard: r2's frame is its own
+    assert peers.hear_frames(_frames("r2", r1=(2.0, 0.0, math.pi / 2), r2=(0.0, 0.0, 0.0)), now=10.0)
+    assert peers.framed(10.0) == ("r1", "r2")
+    ((x, y),) = peers.standing(10.0, placed=False)
+    assert (x, y) == pytest.approx((1.0, 1.0), abs=1e-9)
+    # Through a frame that is not the identity on both sides: r2's at (0, 3), turned 180 degrees.
+    assert peers.hear_frames(_frames("r1", r1=(0.0, 0.0, 0.0), r2=(0.0, 3.0, math.pi)), now=10.5)
+    ((x, y),) = peers.standing(10.5, placed=False)
+    assert (x, y) == pytest.approx((-1.0, 2.0), abs=1e-9)
+    # A placed robot (the site frame) cannot use frames whose fleet map is a robot's own frame.
+    assert peers.standing(10.5, placed=True) == ()
+    # Frames not heard for frames_fresh_s are not used; nor is a robot they do not list.
+    peers.hear("r2", _unplaced("r2", 1.0, 1.0, t=45.0), now=45.0)
+    assert peers.standing(45.0, placed=False) == ()
+    assert peers.hear_frames(_frames("r1", r1=(0.0, 0.0, 0.0)), now=45.0)
+    assert peers.standing(45.0, placed=False) == ()
+
+
+def test_with_the_site_frame_as_the_fleet_maps_placed_and_own_frame_robots_see_each_other() -> None:
+    site = _frames("", r2=(1.0, 0.0, math.pi / 2))  # r2 maps in its own frame, which the fleet map placed
+    placed = PeerBodies(("r2",), robot="r1")
+    placed.hear("r2", _unplaced("r2", 1.0, 0.0, t=5.0), now=5.0)
+    placed.hear_frames(site, now=5.0)
+    ((x, y),) = placed.standing(5.0, placed=True)
+    assert (x, y) == pytest.approx((1.0, 1.0), abs=1e-9)  # r2's own (1, 0) on the site frame
+    # And r2, in its own frame, sees r1 (placed, in the site frame) in its own.
+    own = PeerBodies(("r1",), robot="r2")
+    own.hear("r1", _pose("r1", 1.0, 1.0, t=5.0), now=5.0)
+    own.hear_frames(site, now=5.0)
+    ((x, y),) = own.standing(5.0, placed=False)
+    assert (x, y) == pytest.approx((1.0, 0.0), abs=1e-9)
+    # A service that has not heard the placed robot's map yet (its frame a robot's own) does not
+    # replace the site-referenced frames while they are fresh.
+    assert not own.hear_frames(_frames("r2", r2=(0.0, 0.0, 0.0)), now=6.0)
+    ((x, y),) = own.standing(6.0, placed=False)
+    assert (x, y) == pytest.approx((1.0, 0.0), abs=1e-9)
+
+
+def test_two_robots_in_their_own_frames_keep_clear_of_each_other_through_the_fleet_map() -> None:
+    # r1 at its own origin facing +x; r2 0.6 m ahead of it on the fleet map, in a frame turned 180 deg.
+    peers = PeerBodies(("r2",), robot="r1")
+    peers.hear("r2", _unplaced("r2", 0.4, 0.0, t=1.0, vx=0.2), now=1.0)  # driving along its own +x
+    assert peers.robots_ahead(1.0, (0.0, 0.0, 0.0), placed=False) == ()  # no frames: not counted
+    peers.hear_frames(_frames("r1", r1=(0.0, 0.0, 0.0), r2=(1.0, 0.0, math.pi)), now=1.0)
+    (ahead,) = peers.robots_ahead(1.0, (0.0, 0.0, 0.0), placed=False)
+    # r2 at x = 0.6, coming toward r1 at 0.2 m/s; the bodies touch 2 radii plus the margin apart,
+    # the margin 1.5 sd of both frames' placement on the fleet map.
+    reach = 2 * BODY_RADIUS_M + 1.5 * math.hypot(0.05, 0.05)
+    assert ahead.gap_m == pytest.approx(0.6 - reach, abs=1e-9)
+    assert ahead.closing_mps == pytest.approx(0.2)
+
+
+def test_the_core_takes_the_fleet_maps_frames_and_plans_around_a_peer_while_unplaced() -> None:
+    clock = SimClock(100.0)
+    fusion = _Placed()
+    fusion.placed = False
+    core = AgentCore("r1", clock, Pilot(), fusion=fusion, peers=PeerBodies(("r2",)))
+
+    def with_bodies(
+        start: tuple[float, float], goal: tuple[float, float], /, blocked: object = (), bodies: object = ()
+    ) -> list[tuple[float, float]]:
+        seen.append(tuple(bodies))  # type: ignore[call-overload]
+        return [goal]
+
+    seen: list[tuple[object, ...]] = []
+    core.use_map(with_bodies)
+    plan = core.pilot.path_provider
+    assert plan is not None
+    core.on_peer(LinkName.ZENOH, keys.key("r2", Pose.TOPIC), wire.encode(_unplaced("r2", 1.0, 0.0, t=100.0)), 100.0)
+    fkey = keys.key(keys.FLEET_MAP, FleetFrames.TOPIC)
+    out = core.on_peer(LinkName.ZENOH, fkey, wire.encode(_frames("r1", r1=(0, 0, 0), r2=(2.0, 0.0, 0.0))), 100.0)
+    assert out.logs == ["hears the fleet map's frames on zenoh: r1, r2 placed on it"]
+    assert core.on_peer(LinkName.ZENOH, fkey, wire.encode(_frames("r1", r1=(0, 0, 0), r2=(2, 0, 0))), 100.1).logs == []
+    core._plan_now = 100.2
+    plan((0.0, 0.0), (5.0, 0.0))
+    assert seen == [((3.0, 0.0),)]
+    # Garbage on the frames' key is refused and counted; the frames kept are still used.
+    before = sum(core.gate.stats.rejected.values())
+    core.on_peer(LinkName.ZENOH, fkey, b"\x00garbage", 100.3)
+    assert sum(core.gate.stats.rejected.values()) == before + 1
+    assert core.peers.standing(100.3, placed=False) == ((3.0, 0.0),)
+    assert core.contact._heard_at is None  # the fleet map's frames are no word from an operator
