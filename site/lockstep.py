@@ -10,6 +10,10 @@
 * the UWB gateway's core (positioning/gateway.py), fed with the truth, publishing fixes;
 * two in-process links (``InProcessBus``), Zenoh and MQTT, carrying the same wire bytes as the real
   ones, pumped between steps;
+* with ``fleet_map``, the console's fleet map service (site/fleetmap.py) on the operator's Zenoh
+  link, as the demo's console runs it: every robot's map fetched and the fleet map built every
+  ``FLEET_MAP_PERIOD_S``; its frames (``FleetFrames``) reach the agents, which put peers mapping in
+  their own frames into their own with them (agent/peers.py);
 * a scripted operator (``ScriptedOperator``) that sends what the scenario's events ask for
   (teleop bursts, goals, instant actions, marks), turns a robot's ``script`` into teleop and sends a
   wandering robot to its plan's named places one after another (without UWB, as the robot's own map
@@ -36,6 +40,7 @@ import json
 import math
 import os
 import random
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -49,6 +54,7 @@ from fleetlink.agent.config import AgentConfig
 from fleetlink.agent.lidar.driver import LidarDriver
 from fleetlink.agent.mapping.keeper import MapKeeper
 from fleetlink.agent.mapping.mapper import MapperConfig
+from fleetlink.agent.mapping.share import MapShare, fetch_map
 from fleetlink.agent.mapping.worker import DeferredKeeper, MapWorker
 from fleetlink.agent.node import POLL_RATES, AgentNode, LidarFeed, mapper_config
 from fleetlink.devices.controlbus.snapshot import BoardSnapshot
@@ -59,7 +65,10 @@ from fleetlink.field.plans import FloorPlan, load_plan
 from fleetlink.field.radio import LINKS, ContactLog, FleetRadio, RadioModel
 from fleetlink.field.scenario import Scenario
 from fleetlink.links.inprocess import InProcessBus, InProcessLink
+from fleetlink.operator.fleet import FleetModel
+from fleetlink.operator.maps import MapFollower
 from fleetlink.shared import keys, wire
+from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.messages import (
     Action,
     ActionType,
@@ -73,6 +82,7 @@ from fleetlink.shared.messages import (
 )
 from fleetlink.shared.se2 import relative
 from fleetlink.site.agents import field_limits, field_peers, field_uv
+from fleetlink.site.fleetmap import FleetMapService
 
 __all__ = [
     "SESSION_POLL",
@@ -90,6 +100,9 @@ TELEOP_TTL_S = 0.5
 WANDER_GOAL_TIMEOUT_S = 60.0
 """A wandering robot that has neither reached nor failed its goal by then gets the next one."""
 UWB_START_S = 0.0
+FLEET_MAP_PERIOD_S = 2.0
+"""How often the console's map fetcher polls and its fleet map service builds (operator/maps.py polls
+every 0.5 s; site/fleetmap.py builds at most every 2 s)."""
 RADIO_CUT = "radio"
 """The reason the radio cuts an agent's endpoint on a bus (a scenario's cuts are another)."""
 
@@ -228,13 +241,15 @@ class MissionRun:
         record: bool = True,
         map_worker: bool | None = None,
         mapper: MapperConfig | None = None,
+        fleet_map: bool = False,
     ) -> None:
         """``mapping``: agents with a lidar build and share their onboard maps (as on a robot);
         ``record``: keep every message about each robot for the agent logs; ``map_worker``: the
         keepers run in a second process (None: when there are two cores and two robots mapping).
         Either way a turn's map update reaches its agent with the next turn (agent/mapping/worker.py),
         so the outputs do not depend on ``map_worker``. ``mapper``: every agent's mapping configuration
-        instead of its own (``mapper_config``; a benchmark's variant)."""
+        instead of its own (``mapper_config``; a benchmark's variant). ``fleet_map``: run the console's
+        fleet map service (``self.fleet_map``) on the operator's Zenoh link."""
         self._mapper = mapper
         self.scenario = scenario
         self.plan = plan or load_plan(scenario.plan)
@@ -279,6 +294,16 @@ class MissionRun:
                 tap = bus.endpoint(f"recorder-{bus.name.value}")
                 tap.start()
                 tap.subscribe("fleetlink/v1/**", self._recorder(bus.name))
+        self.fleet_map: FleetMapService | None = None
+        """The console's fleet map service, with ``fleet_map`` (its ``result``: the fleet map built)."""
+        self._next_fleet_map = 0.0
+        if fleet_map:
+            share = MapShare(self.operator.zenoh, keys.FLEET_MAP, self.clock, sender=OPERATOR)
+            share.start()
+            follower = MapFollower(FleetModel(OPERATOR))
+            self.fleet_map = FleetMapService(
+                follower, threading.Lock(), self.clock, share=share, query=self.operator.zenoh
+            )
         self.field.controllers.append(self._step_agents)
 
     # -- composition --------------------------------------------------------------------------------
@@ -443,7 +468,21 @@ class MissionRun:
             for pub in self.uwb.tick(t, self.clock.wall()):
                 self._uwb_link.publish(pub.topic, pub.payload)
         self._operate(t)
+        if self.fleet_map is not None and t >= self._next_fleet_map:
+            self._next_fleet_map = t + FLEET_MAP_PERIOD_S
+            self._build_fleet_map(self.fleet_map)
         self._pump()
+
+    def _build_fleet_map(self, service: FleetMapService) -> None:
+        """What the console's map fetcher and fleet map service do between two of its polls: each
+        robot's map fetched over the operator's Zenoh link where it changed, then a build (which
+        fetches the submaps it lacks and publishes the frames on the same link)."""
+        maps = service.follower.maps
+        for r in self.robots:
+            snap = fetch_map(self.operator.zenoh, r.name, timeout=0.0)
+            if snap is not None and (r.name not in maps or maps[r.name].version != snap.version):
+                maps[r.name] = SharedMap.from_snapshot(snap)
+        service.step()
 
     def _pump(self) -> None:
         # A command and its ack cross in one pump; telemetry published on both links interleaves

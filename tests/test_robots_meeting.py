@@ -3,7 +3,9 @@ lockstep in the exhibition hall, placed by UWB. Their bodies (0.17 m each) would
 front ultrasonic ever sees the other (its 40-degree cone is 0.15 m wide at the 0.4 m stop distance,
 and the other body starts 0.16 m to the side): only the guard's robot rule (agent/guard.py, the
 peers' poses from agent/peers.py) keeps them apart. Scored against the truth: they stop short of
-each other, say why (``robot_ahead``), and bump nothing.
+each other, say why (``robot_ahead``), and bump nothing. The same in the apartment without UWB, each
+robot in its own map's frame: the console's fleet map service places both, and its frames put each
+robot's peer in its own frame.
 """
 
 from __future__ import annotations
@@ -83,16 +85,17 @@ def test_two_robots_driven_at_each_other_stop_short_where_the_ultrasonic_sees_ne
     assert all(reason == "robot_ahead" for _, reason, _ in said), said  # the ultrasonic saw neither
 
 
-def facing_in_the_living_room(duration_s: float) -> str:
+def facing_in_the_living_room(duration_s: float, uwb: bool = True) -> str:
     """The apartment's living room: uvc-1 and uvc-2 1.3 m apart, facing each other on lanes ``OFFSET_M``
-    apart, both under UWB; wheels alike, so that uvc-1 driven straight ahead keeps its lane (also the
-    console's test of the rule: tests/e2e/test_console_robot_rule.py)."""
+    apart, both under UWB (``uwb``; else each in its own frame); wheels alike, so that uvc-1 driven
+    straight ahead keeps its lane (also the console's test of the rule: tests/e2e/test_console_robot_rule.py)."""
     return f"""
 name = "robot-rule"
 description = "uvc-1 and uvc-2 1.3 m apart in the living room, facing each other on lanes {OFFSET_M} m apart."
 plan = "apartment"
 seed = 3
 duration_s = {duration_s}
+uwb = {"true" if uwb else "false"}
 
 [noise]
 wheel_scale_sd = 0.0
@@ -126,3 +129,66 @@ def test_a_robot_driven_off_as_soon_as_it_is_placed_stops_short_of_a_robot_besid
         if e.kind == "guard_refusal"
     }
     assert ("uvc-1", "robot_ahead") in said, said
+
+
+def _without_uwb(tmp_path: Path, fleet_map: bool):  # type: ignore[no-untyped-def]
+    """The living room without UWB: both robots turn once where they stand (their maps take in the
+    room from every side), turn back to face each other (the scripted operator steers by the truth, as
+    a person by eye), then uvc-1 is driven straight ahead at 0.3 m/s from 20 s on. With ``fleet_map``
+    the console's fleet map service runs (site/lockstep.py). The run's result, the true distance
+    apart at every step, and the robots each agent had placed in its frame by the time it drove."""
+    path = tmp_path / "scenario.toml"
+    path.write_text(facing_in_the_living_room(30.0, uwb=False))
+    turn_s, drive_s = 1.0 + 2 * math.pi / 0.6, 20.0
+    apart: list[float] = []
+    framed: dict[str, tuple[str, ...]] = {}
+    with MissionRun(load_scenario(path), record=False, map_worker=False, fleet_map=fleet_map) as run:
+        assert run.uwb is None
+        boards = [rig.robot.board.state for rig in run.field.rigs]
+        facing = {"uvc-1": (boards[0], 0.0), "uvc-2": (boards[1], math.pi)}
+        op = run.operator
+        held = [-math.inf]
+
+        def operate(t: float) -> None:
+            apart.append(math.dist((boards[0].x, boards[0].y), (boards[1].x, boards[1].y)))
+            if t - held[0] < 0.1:
+                return
+            held[0] = t
+            if 1.0 <= t < turn_s:
+                for robot in facing:
+                    op.teleop(robot, 0.0, 0.6)
+            elif turn_s <= t < drive_s:
+                for robot, (board, heading) in facing.items():
+                    err = math.remainder(board.theta - heading, math.tau)
+                    op.teleop(robot, 0.0, max(-0.3, min(0.3, -1.5 * err)) if abs(err) > 0.002 else 0.0)
+            elif t >= drive_s:
+                if not framed:
+                    framed.update({r.name: r.node.core.peers.framed(t) for r in run.robots})
+                op.teleop("uvc-1", 0.3, 0.0)
+
+        run.field.controllers.append(operate)
+        return run.run(30.0), apart, framed
+
+
+@pytest.mark.parametrize("fleet_map", [True, False], ids=["fleet-map", "no-fleet-map"])
+def test_robots_without_uwb_keep_clear_once_the_fleet_map_has_placed_both(tmp_path: Path, fleet_map: bool) -> None:
+    """Each robot's pose is in its own map's frame, which no other robot shares. With the fleet map's
+    frames (``FleetFrames``, agent/peers.py) uvc-1 puts uvc-2 in its own frame and its robot rule
+    stops it short; without a fleet map service it drives into uvc-2 as into nothing (the bumper)."""
+    result, apart, framed = _without_uwb(tmp_path, fleet_map)
+    bumps = [e for e in result.events if e.kind == "bump"]
+    said = {
+        (e.header.robot, {kv.key: kv.value for kv in e.data}.get("reason"))
+        for e in result.events
+        if e.kind == "guard_refusal"
+    }
+    if not fleet_map:
+        assert framed == {"uvc-1": (), "uvc-2": ()}
+        assert [e.header.robot for e in bumps] == ["uvc-1"], said
+        assert min(apart) < 2 * BODY_RADIUS_M + 0.01, min(apart)  # the bodies touched
+        return
+    assert framed == {"uvc-1": ("uvc-1", "uvc-2"), "uvc-2": ("uvc-1", "uvc-2")}  # both placed before it drove
+    assert not bumps, [(e.header.robot, e.text) for e in bumps]
+    assert apart[0] - min(apart) > 0.7, min(apart)  # it drove most of the way
+    assert min(apart) > 2 * BODY_RADIUS_M + 0.03, min(apart)
+    assert said == {("uvc-1", "robot_ahead")}, said
