@@ -104,7 +104,9 @@ class CloserConfig:
     # candidate (0: never). The one window shrinks at every closure: MIT's Killian Court came back after
     # loops of 300 m and more 15-19 m from the corridors it had mapped, with windows of 12-18 m. aces'
     # candidates lie at most 159 m along the graph, the corrected csail's 204 m; intel, aces, fr079 and
-    # mit-csail (published and corrected) map the same with it to the bit.
+    # mit-csail (published and corrected) map the same with it to the bit. A far loop's check changes
+    # the map only through a closure it finds (its mark, pace and drawings are its own: ``_fresh_checks``);
+    # from 130 m Killian maps the same as from 250 m, with more checks.
     far_loop_m: float = 250.0
     far_loop_checks: int = 2
     # The pose drifts while no closure holds it: both the radius and the window grow by this share of
@@ -475,6 +477,7 @@ class Check:
     owner: object = field(default=None, compare=False)  # the closer that planned it (``take`` ignores others')
     partial: bool = False  # a match ill-posed along one direction only is kept as a partial closure
     unique: bool = False  # a match away from the guess is refused when the guess is a match too
+    far: bool = False  # a far loop's check (``far_loop_m``): its drawing is not kept in the cache
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -493,6 +496,7 @@ class _Submap:
     last: int  # exclusive
     drawn: Drawn | None = None
     tried_at: int = -(10**9)
+    far_tried_at: int = -(10**9)  # a far loop's check (``far_loop_m``): it does not hold back a near one
 
 
 @dataclass(slots=True)
@@ -577,9 +581,11 @@ class LoopCloser:
         self.stats = CloserStats()
         self._closure_edges: list[int] = []  # graph edge index per entry of ``closures``
         self._pending: list[Closure] = []  # large corrections waiting for a second closure
+        self._far_pending: set[Closure] = set()  # ... those a far loop's check found (``_check``'s ``far``)
         self._drawn: list[_Submap] = []  # the drawn submaps, least recently used first
         self._solved_at = -1  # the newest node at the last solve
         self._searched_t = -math.inf  # the time of the last node whose fresh search was planned
+        self._far_searched_t = -math.inf  # ... whose far loops' checks were (``far_loop_m``)
         self._token = object()  # marks this closer's checks: a search host shared with a successor
         self._solved_t = -math.inf  # the newest node's time at the last solve
         self._unsolved = False  # closures added (or priors due) since the last solve
@@ -679,7 +685,7 @@ class LoopCloser:
                 break
         if not found:
             for check in self._fresh_checks(k):
-                self._classify(self._note(run_check(self._with_drawn(check))), found)
+                self._classify(self._note(run_check(self._with_drawn(check))), found, check.far)
         return self._conclude(k, found)
 
     def plan(self, k: int | None = None) -> list[Check]:
@@ -692,10 +698,15 @@ class LoopCloser:
         cfg = self.config
         self._pending = [p for p in self._pending if k - p.node <= cfg.confirm_nodes]
         checks = [c for p in self._pending for c in self._confirm_checks(k, p)]
-        if self.times[k] - self._searched_t >= cfg.check_period:
-            fresh = self._fresh_checks(k)
-            if fresh:
-                self._searched_t = self.times[k]
+        t = self.times[k]
+        # A far loop's check is paced on its own, so that the near search goes on as without it.
+        near, far = t - self._searched_t >= cfg.check_period, t - self._far_searched_t >= cfg.check_period
+        if near or far:
+            fresh = self._fresh_checks(k, near, far)
+            if any(not c.far for c in fresh):
+                self._searched_t = t
+            if any(c.far for c in fresh):
+                self._far_searched_t = t
             checks.extend(fresh)
         return checks
 
@@ -714,7 +725,7 @@ class LoopCloser:
             if r.check.owner is not self._token:
                 continue  # planned by a closer before this one (a map restarted meanwhile)
             sm = self.submaps[r.check.submap]
-            if r.drawn is not None and sm.drawn is None:
+            if r.drawn is not None and sm.drawn is None and not r.check.far:
                 sm.drawn = r.drawn
                 self._touch(sm)
             c = self._note(r)
@@ -725,7 +736,7 @@ class LoopCloser:
                     self._pending.remove(p)
                     self.stats.confirmed += 1
             else:
-                self._classify(c, found)
+                self._classify(c, found, r.check.far)
         self._pending = [p for p in self._pending if k - p.node <= cfg.confirm_nodes]
         return self._conclude(k, found, paced=True)
 
@@ -745,16 +756,28 @@ class LoopCloser:
             return []  # a node this near sees what the pending closure's node saw: no second opinion
         fix = self._correction(p)
         at = compose(fix, self.graph.poses[k])
+        self._far_pending &= set(self._pending)
         return [
-            self._check(k, sm, fix, (cfg.search_xy, cfg.search_theta), confirms=p)
+            self._check(k, sm, fix, (cfg.search_xy, cfg.search_theta), confirms=p, far=p in self._far_pending)
             for sm, _ in self._candidates(k, at, fresh_only=False, limit=1)
         ]
 
-    def _fresh_checks(self, k: int) -> list[Check]:
+    def _fresh_checks(self, k: int, near: bool = True, far: bool = True) -> list[Check]:
+        """The fresh search's checks of node ``k``: the near candidates' (``near``) and the far loops'
+        (``far``). A far loop's check leaves the near search as it was: its submap's mark, the cache
+        of drawn submaps and the pace (``plan``) are its own."""
         checks = []
+        far_loops = self.config.far_loop_m > 0 and not self.config.window_per_submap
         for sm, window in self._candidates(k, self.graph.poses[k]):
-            sm.tried_at = k
-            checks.append(self._check(k, sm, window=window))
+            is_far = far_loops and window is not None  # a far loop's own window (``_candidates``)
+            if not (far if is_far else near):
+                continue
+            if is_far:
+                sm.far_tried_at = k
+                self.stats.far_loop_checks += 1
+            else:
+                sm.tried_at = k
+            checks.append(self._check(k, sm, window=window, far=is_far))
         return checks
 
     def _note(self, r: CheckResult, attempt: bool = True) -> Closure | None:
@@ -782,9 +805,10 @@ class LoopCloser:
             st.rejected_ambiguous += 1
         return r.closure
 
-    def _classify(self, c: Closure | None, found: list[Closure]) -> None:
+    def _classify(self, c: Closure | None, found: list[Closure], far: bool = False) -> None:
         """A fresh closure: accepted when it moves its node little, else held for a second one that
-        agrees (both accepted then)."""
+        agrees (both accepted then). ``far``: a far loop's check found it (its confirmations are far
+        loops' checks too: ``_confirm_checks``)."""
         if c is None:
             return
         if self._jump(c) <= self.config.confirm_above:
@@ -798,6 +822,8 @@ class LoopCloser:
         else:
             self._pending.append(c)
             self.stats.pending += 1
+            if far:
+                self._far_pending.add(c)
 
     def _conclude(self, k: int, found: list[Closure], paced: bool = False) -> bool:
         """Closures found join the graph; the graph is solved when they did, or when the priors are due
@@ -890,13 +916,16 @@ class LoopCloser:
         for i, sm in enumerate(self.submaps):
             if sm.last - sm.first < cfg.submap_nodes or sm.last > k - cfg.min_gap_nodes:
                 continue
-            if fresh_only and k - sm.tried_at < cfg.retry_nodes:
-                continue
             nodes = xyt[sm.first : sm.last]
             gap = float(np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1]).min())
             window: tuple[float, float] | None = None
             # A window of the submap's own: every candidate's (``window_per_submap``), or a far loop's.
             own = per_submap or (far_loops and radius < gap <= reach)
+            # A far loop's check does not hold back the near one when the robot comes within the one
+            # window of that submap a few nodes on (measured: aces' published log with far loops from
+            # 130 m, not one of its 76 far checks accepted, but their marks delayed near ones there).
+            if fresh_only and k - (sm.far_tried_at if own and not per_submap else sm.tried_at) < cfg.retry_nodes:
+                continue
             if own:
                 if gap > reach:
                     continue  # cheaply, before the graph's paths are measured
@@ -921,7 +950,6 @@ class LoopCloser:
         near.sort(key=lambda e: (e[0], e[1]))
         far.sort(key=lambda e: (e[0], e[1]))
         far = far[: cfg.far_loop_checks]
-        self.stats.far_loop_checks += len(far)
         return [(sm, window) for _, _, sm, window in near[:limit] + far]
 
     def _drift(self, k: int) -> F64:
@@ -1022,9 +1050,12 @@ class LoopCloser:
         fix: Pose = (0.0, 0.0, 0.0),
         window: tuple[float, float] | None = None,
         confirms: Closure | None = None,
+        far: bool = False,
     ) -> Check:
         """Node ``k`` against ``sm``, searched around the node's pose moved by ``fix`` (a pending
-        correction) within ``window`` (default: the base window grown by the drift)."""
+        correction) within ``window`` (default: the base window grown by the drift). ``far``: a far
+        loop's check, which leaves the cache of drawn submaps as it was (its order too): the near
+        search goes on as if it had not been made."""
         cfg = self.config
         if window is None:
             gxy, gth = self._growth()
@@ -1032,7 +1063,7 @@ class LoopCloser:
         anchor = self.graph.poses[sm.first]
         guess = compose(relative(anchor, compose(fix, self.graph.poses[k])), self.mount)
         drawn = sm.drawn
-        if drawn is not None:
+        if drawn is not None and not far:
             self._touch(sm)
         parts = () if drawn is not None else self._parts(sm)
         i = self.submaps.index(sm)
@@ -1050,6 +1081,7 @@ class LoopCloser:
             self.mount,
             confirms,
             self._token,
+            far=far,
         )
 
     def _verify_all(
@@ -1079,10 +1111,13 @@ class LoopCloser:
 
     def _with_drawn(self, check: Check) -> Check:
         """In line: the check with its submap drawn here, into the cache (unless the scan has too few
-        points to be checked at all: then nothing is drawn, as ``run_check`` would not)."""
+        points to be checked at all: then nothing is drawn, as ``run_check`` would not; a far loop's
+        check leaves the cache as it was, ``_check``)."""
         sc = check.scan
         if check.drawn is not None or len(sc.match_points) < 10 or len(sc.points) < 10:
             return check
+        if check.far:
+            return check  # ``run_check`` draws it from the parts the check carries
         return replace(check, drawn=self._draw(self.submaps[check.submap]), parts=())
 
     def finish(self) -> int:
