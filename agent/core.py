@@ -426,11 +426,12 @@ class AgentCore:
                 self._rejected(self.gate.reject(link, topic, exc.reason, exc.field), out)
                 return out
             assert isinstance(frames, FleetFrames)
-            had = self.peers.framed(now)
-            if self.peers.hear_frames(frames, now) and not had and self.peers.framed(now):
-                # Once each time they begin to place robots: whom it can now keep clear of without UWB.
-                placed = ", ".join(self.peers.framed(now))
-                out.logs.append(f"hears the fleet map's frames on {link.value}: {placed} placed on it")
+            had = set(self.peers.framed(now))
+            if self.peers.hear_frames(frames, now):
+                # The robots they newly place (itself, its peers): whom it can now keep clear of without UWB.
+                new = [r for r in self.peers.framed(now) if r not in had and (r in self.peers.peers or r == self.robot)]
+                if new:
+                    out.logs.append(f"hears the fleet map's frames on {link.value}: {', '.join(new)} placed on it")
             return out
         if topic != Pose.TOPIC or robot not in self.peers.peers:
             self._rejected(self.gate.reject(link, topic, f"key: not a peer's pose for agent {self.robot}: {key}"), out)

@@ -446,9 +446,14 @@ def test_the_core_takes_the_fleet_maps_frames_and_plans_around_a_peer_while_unpl
     assert plan is not None
     core.on_peer(LinkName.ZENOH, keys.key("r2", Pose.TOPIC), wire.encode(_unplaced("r2", 1.0, 0.0, t=100.0)), 100.0)
     fkey = keys.key(keys.FLEET_MAP, FleetFrames.TOPIC)
+    out = core.on_peer(LinkName.ZENOH, fkey, wire.encode(_frames("r1", r1=(0, 0, 0))), 99.9)
+    assert out.logs == ["hears the fleet map's frames on zenoh: r1 placed on it"]  # r2 not found yet
     out = core.on_peer(LinkName.ZENOH, fkey, wire.encode(_frames("r1", r1=(0, 0, 0), r2=(2.0, 0.0, 0.0))), 100.0)
-    assert out.logs == ["hears the fleet map's frames on zenoh: r1, r2 placed on it"]
+    assert out.logs == ["hears the fleet map's frames on zenoh: r2 placed on it"]
     assert core.on_peer(LinkName.ZENOH, fkey, wire.encode(_frames("r1", r1=(0, 0, 0), r2=(2, 0, 0))), 100.1).logs == []
+    # A robot that is not its peer is not named; one that the frames newly place is, once.
+    r3 = _frames("r1", r1=(0, 0, 0), r2=(2.0, 0.0, 0.0), r3=(5.0, 0.0, 0.0))
+    assert core.on_peer(LinkName.ZENOH, fkey, wire.encode(r3), 100.15).logs == []
     core._plan_now = 100.2
     plan((0.0, 0.0), (5.0, 0.0))
     assert seen == [((3.0, 0.0),)]
