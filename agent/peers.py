@@ -43,12 +43,12 @@ from dataclasses import dataclass
 from fleetlink.agent.guard import RobotAhead
 from fleetlink.shared.body import BODY_RADIUS_M
 from fleetlink.shared.messages import UNKNOWN_SD_M, FleetFrames, Pose
+from fleetlink.shared.se2 import Pose as Frame
 from fleetlink.shared.se2 import compose, inverse
 
 __all__ = ["PeerBodies", "PeerConfig"]
 
 Point = tuple[float, float]
-Frame = tuple[float, float, float]
 _SAME: Frame = (0.0, 0.0, 0.0)
 
 
@@ -163,20 +163,23 @@ class PeerBodies:
         self._frames = _Frames(now, msg.reference, frames)
         return True
 
+    def _fresh_frames(self, now: float) -> _Frames | None:
+        """The fleet map's frames, unless older than ``frames_fresh_s``."""
+        f = self._frames
+        return f if f is not None and now - f.at <= self.config.frames_fresh_s else None
+
     def framed(self, now: float) -> tuple[str, ...]:
         """The robots whose own frames the fleet map's frames (fresh) place, by name."""
-        f = self._frames
-        if f is None or now - f.at > self.config.frames_fresh_s:
-            return ()
-        return tuple(sorted(f.frames))
+        f = self._fresh_frames(now)
+        return () if f is None else tuple(sorted(f.frames))
 
     def _frame_of(self, robot: str, placed: bool, now: float) -> tuple[str, Frame] | None:
         """The frame ``robot``'s poses are in (a name: "" the site's, else the fleet map's reference
         robot's) and how its frame lies in it; None: in a frame no one else's can be put in."""
         if placed:
             return "", _SAME
-        f = self._frames
-        if f is None or now - f.at > self.config.frames_fresh_s or robot not in f.frames:
+        f = self._fresh_frames(now)
+        if f is None or robot not in f.frames:
             return None
         return f.reference, f.frames[robot]
 

@@ -377,7 +377,7 @@ def long_loops(config: CloserConfig | None = None) -> CloserConfig:
     """``config`` (default: the defaults) for a log of loops hundreds of metres long: each candidate
     submap searched in its own window (``window_per_submap``) and three checks a node, so a far submap
     the drifted graph ranks behind nearer look-alikes is still tried where the robot is. MIT's Killian
-    Court (1.9 km, published relations): 0.214 m by default (``far_loop_m``: submaps 250 m or more back
+    Court (1.9 km, published relations): 0.254 m by default (``far_loop_m``: submaps 250 m or more back
     along the graph get such windows; 1.649 m without), 0.146 m with this; the Freiburg hospital
     0.862 -> 0.595 m. Elsewhere the means move a millimetre or less and single worst revisits
     either way (aces' published 0.180 -> 0.225 m, intel's corrected 0.293 -> 0.255 m), but for the
@@ -920,21 +920,22 @@ class LoopCloser:
             gap = float(np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1]).min())
             window: tuple[float, float] | None = None
             # A window of the submap's own: every candidate's (``window_per_submap``), or a far loop's.
-            own = per_submap or (far_loops and radius < gap <= reach)
+            far_loop = far_loops and radius < gap <= reach
+            own = per_submap or far_loop
             # A far loop's check does not hold back the near one when the robot comes within the one
             # window of that submap a few nodes on (measured: aces' published log with far loops from
             # 130 m, not one of its 76 far checks accepted, but their marks delayed near ones there).
-            if fresh_only and k - (sm.far_tried_at if own and not per_submap else sm.tried_at) < cfg.retry_nodes:
+            if fresh_only and k - (sm.far_tried_at if far_loop else sm.tried_at) < cfg.retry_nodes:
                 continue
             if own:
                 if gap > reach:
                     continue  # cheaply, before the graph's paths are measured
-                if not per_submap and self._chain_m[k] - self._chain_m[sm.last - 1] < cfg.far_loop_m:
+                if far_loop and self._chain_m[k] - self._chain_m[sm.last - 1] < cfg.far_loop_m:
                     continue  # nearer than that along the chain, so along the graph too
                 if drift is None:
                     drift = self._drift(k)
                 part = drift[sm.first : sm.last]
-                if not per_submap and float(part.min()) < cfg.far_loop_m:
+                if far_loop and float(part.min()) < cfg.far_loop_m:
                     continue
                 gxy, gth = self._growth(sm.first + int(np.argmin(part)), float(part.min()))
                 if gap > cfg.search_radius + gxy:
@@ -946,7 +947,7 @@ class LoopCloser:
             # (a scanner looking the other way down a corridor sees other walls).
             d = np.hypot(nodes[:, 0] - here[0], nodes[:, 1] - here[1])
             turn = np.abs(np.remainder(nodes[:, 2] - at[2] + math.pi, 2.0 * math.pi) - math.pi)
-            (far if own and not per_submap else near).append((float(np.min(d + VIEW_LEVER_M * turn)), i, sm, window))
+            (far if far_loop else near).append((float(np.min(d + VIEW_LEVER_M * turn)), i, sm, window))
         near.sort(key=lambda e: (e[0], e[1]))
         far.sort(key=lambda e: (e[0], e[1]))
         far = far[: cfg.far_loop_checks]
