@@ -294,6 +294,8 @@ class AgentCore:
         self.peers = peers or PeerBodies()
         """The other robots' poses (robot.toml's ``peers``): the standing ones are planned around."""
         self.peers.robot = robot  # its own frame among the fleet map's (FleetFrames) is its id's
+        self.map_began = 0.0
+        """When the map its poses are in began (``Pose.map_began``; 0: no map yet): ``map_begun``."""
         self._plan_now = -math.inf
         """The control step's time, for the path provider the pilot calls inside it."""
         if self.home.home is not None:
@@ -1316,7 +1318,15 @@ class AgentCore:
             vx=self._velocity[0],
             omega=self._velocity[1],
             uwbStale=self._uwb_stale(now),
+            map_began=self.map_began,
         )
+
+    def map_begun(self, began: float) -> None:
+        """The map keeper's map (the one the fused pose is on) began at ``began`` (its clock): the poses
+        say which map they are in, and this robot's own frame among the fleet map's is the one found
+        for it (agent/peers.py)."""
+        self.map_began = began
+        self.peers.began = began
 
     def _state(self, now: float) -> State:
         p = self._last_out

@@ -422,6 +422,9 @@ class AgentNode:
             if self.dose is not None:
                 self.dose.set_floor(None, -1)
         pub = update.publication
+        if pub is not None and pub.began != self.core.map_began:
+            with self._lock:
+                self.core.map_begun(pub.began)
         if self.share is not None and pub is not None:
             self.share.publish(pub)
         if self.dose is not None and pub is not None and pub.site_frame:

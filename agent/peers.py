@@ -33,6 +33,11 @@ through this robot's), whether this robot is placed or not, so two scouts in a b
 keep clear of each other once the fleet map has found both. Without them (no fleet map service, or
 it has not found the map yet, or its frames are older than ``frames_fresh_s``) such a peer is not
 counted, as before: the guard's ultrasonic is all there is between them.
+
+A frame is of one map: each ``RobotFrame`` names the map it was found for (``began``) and each pose
+the map it is in (``Pose.map_began``). A robot whose agent restarted begins a new map where it then
+stands, and the old frame would put it where the old map began; so a frame counts only for poses of
+its own map (this robot's too), until the fleet map finds the new one (a build or two).
 """
 
 from __future__ import annotations
@@ -101,6 +106,7 @@ class _Heard:
     standing: bool
     placed: bool
     sd: float  # its position sd (m), as it reports it (a placed peer's is at most ``placed_sd_m``)
+    began: float  # the map its pose is in (``Pose.map_began``)
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,7 +115,8 @@ class _Frames:
 
     at: float
     reference: str
-    frames: dict[str, Frame]
+    frames: dict[str, tuple[Frame, float]]
+    """Robot -> its frame on the fleet map, and which of its maps that frame was found for (``began``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,6 +138,9 @@ class PeerBodies:
         self.peers = frozenset(peers)
         self.config = config or PeerConfig()
         self.robot = robot
+        self.began = 0.0
+        """When this robot's own map began (``Pose.map_began``): its frame among the fleet map's is
+        the one found for that map."""
         self._heard: dict[str, _Heard] = {}
         self._frames: _Frames | None = None
 
@@ -149,7 +159,9 @@ class PeerBodies:
         placed = sd <= min(c.placed_sd_m, UNKNOWN_SD_M)
         # (The wire contract's bounds say all of these are finite too.)
         ok = all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta, pose.vx))
-        self._heard[robot] = _Heard(now, stamp, pose.x, pose.y, pose.theta, pose.vx, standing and ok, placed and ok, sd)
+        self._heard[robot] = _Heard(
+            now, stamp, pose.x, pose.y, pose.theta, pose.vx, standing and ok, placed and ok, sd, pose.map_began
+        )
         return True
 
     def hear_frames(self, msg: FleetFrames, now: float) -> bool:
@@ -159,7 +171,7 @@ class PeerBodies:
         kept = self._frames
         if msg.reference and kept is not None and not kept.reference and now - kept.at <= self.config.frames_fresh_s:
             return False
-        frames = {f.robot: (f.x, f.y, f.theta) for f in msg.frames}
+        frames = {f.robot: ((f.x, f.y, f.theta), f.began) for f in msg.frames}
         self._frames = _Frames(now, msg.reference, frames)
         return True
 
@@ -173,19 +185,21 @@ class PeerBodies:
         f = self._fresh_frames(now)
         return () if f is None else tuple(sorted(f.frames))
 
-    def _frame_of(self, robot: str, placed: bool, now: float) -> tuple[str, Frame] | None:
-        """The frame ``robot``'s poses are in (a name: "" the site's, else the fleet map's reference
-        robot's) and how its frame lies in it; None: in a frame no one else's can be put in."""
+    def _frame_of(self, robot: str, placed: bool, began: float, now: float) -> tuple[str, Frame] | None:
+        """The frame ``robot``'s poses (of its map begun at ``began``) are in (a name: "" the site's, else
+        the fleet map's reference robot's) and how its frame lies in it; None: in a frame no one
+        else's can be put in (not found, or found for another of its maps)."""
         if placed:
             return "", _SAME
         f = self._fresh_frames(now)
-        if f is None or robot not in f.frames:
+        found = None if f is None else f.frames.get(robot)
+        if f is None or found is None or found[1] != began:
             return None
-        return f.reference, f.frames[robot]
+        return f.reference, found[0]
 
     def _placed(self, now: float, me_placed: bool) -> list[_Placed]:
         """The peers heard within ``fresh_s`` whose poses can be put in this robot's frame, put there."""
-        mine = self._frame_of(self.robot, me_placed, now)
+        mine = self._frame_of(self.robot, me_placed, self.began, now)
         if mine is None:
             return []
         back = inverse(mine[1])
@@ -193,7 +207,7 @@ class PeerBodies:
         for name, h in sorted(self._heard.items()):
             if not self._fresh(h, now) or not all(math.isfinite(v) for v in (h.x, h.y, h.theta, h.vx)):
                 continue
-            theirs = self._frame_of(name, h.placed, now)
+            theirs = self._frame_of(name, h.placed, h.began, now)
             if theirs is None or theirs[0] != mine[0]:
                 continue
             x, y, th = compose(back, compose(theirs[1], (h.x, h.y, h.theta)))

@@ -140,6 +140,8 @@ def into_frame(
 FRAME_MOVED_M = 0.1
 FRAME_MOVED_RAD = math.radians(2.0)
 """A round planned through a robot's frame is not sent if the frame moved more than this meanwhile."""
+BEGAN_AGAIN = "its map began again: not found on the fleet map yet"
+"""Why a robot the fleet map had found is off it: its poses are in a new map (its agent restarted)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -178,6 +180,9 @@ class RobotView:
     """Its map is in its own frame and the fleet map has not found that frame yet."""
     off_fleet_map_why: str = ""
     """Why not, as the fleet map's search last said ("" if it has not said)."""
+    map_began: float = 0.0
+    """Which of its maps its poses are in (``Pose.map_began``): a frame found for another (its agent
+    restarted and began a new map) does not place it."""
 
     @property
     def in_own_frame(self) -> bool:
@@ -262,6 +267,8 @@ class FleetModel:
         """robot -> where its map's frame lies on the fleet map, for a robot mapping in its own frame
         (no UWB), as the fleet map service found it (site/fleetmap.py): its poses, goals and scans are
         drawn through it, and goals typed on the fleet map sent back through it (``to_robot``)."""
+        self.frames_began: dict[str, float] = {}
+        """robot -> which of its maps its frame in ``frames`` was found for (``RobotFrame.began``)."""
         self.routes: dict[str, Route] = {}
         """robot -> the round this console last sent it (drawn while the robot runs that order)."""
         self.zones: dict[str, tuple[tuple[float, float], ...]] = {}
@@ -330,6 +337,8 @@ class FleetModel:
             self.notify(now, "info", f"{h.robot}: back (heard on {link})")
         if isinstance(msg, Pose):
             view.pose_sd_m = max(msg.sd_x_m, msg.sd_y_m)
+            if msg.map_began != view.map_began:
+                self._map_begun(view, msg.map_began)
             self._pose(view, msg.x, msg.y, msg.theta)
             view.uwb_stale = msg.uwbStale
         elif isinstance(msg, State):
@@ -370,9 +379,26 @@ class FleetModel:
 
     def _frame(self, robot: str) -> tuple[float, float, float] | None:
         """Where ``robot``'s reports lie on the fleet map: its frame there while it reports poses
-        in its own frame; None (as reported) otherwise."""
+        in its own frame, if found for the map they are in; None (as reported) otherwise."""
         view = self.robots.get(robot)
-        return self.frames.get(robot) if view is not None and view.in_own_frame else None
+        if view is None or not view.in_own_frame or self._other_map(view):
+            return None
+        return self.frames.get(robot)
+
+    def _other_map(self, view: RobotView) -> bool:
+        """The fleet map's frame for ``view``'s robot was found for another of its maps."""
+        return self.frames_began.get(view.robot, view.map_began) != view.map_began
+
+    def _map_begun(self, view: RobotView, began: float) -> None:
+        """``view``'s robot reports poses in another map (its agent restarted, or its first map began):
+        a frame of its old map no longer places it, and its trail, drawn through that, starts again."""
+        view.map_began = began
+        if view.in_own_frame and view.robot in self.frames:
+            stale = self._other_map(view)
+            view.off_fleet_map, view.off_fleet_map_why = stale, BEGAN_AGAIN if stale else ""
+            self.alarms.own_frame(view.robot, BEGAN_AGAIN if stale else None, mapping=True)
+            view.trail.clear()
+            view.trail_added += TRAIL_POINTS + 1  # more than the trail holds: drawn again whole
 
     def _placed(self, robot: str, pose: tuple[float, float, float]) -> tuple[float, float, float]:
         frame = self._frame(robot)
@@ -383,23 +409,30 @@ class FleetModel:
         frames: dict[str, tuple[float, float, float]],
         unframed: Iterable[str] = (),
         why: Mapping[str, str] | None = None,
+        began: Mapping[str, float] | None = None,
     ) -> None:
         """Where each robot mapping in its own frame lies on the fleet map, and which such robots it
-        has not found yet, with why not (the fleet map service, after each build). A robot whose frame
+        has not found yet, with why not (the fleet map service, after each build); ``began``: which of
+        each robot's maps its frame was found for (none: the map its poses are in). A robot whose frame
         moves is drawn there at once; its trail, drawn where it was, starts again."""
-        off = set(unframed)
+        began = {r: b for r, b in (began or {}).items() if r in frames}
+        rebegun = {r for r in set(began) | set(self.frames_began) if began.get(r) != self.frames_began.get(r)}
+        self.frames_began = began
+        off = set(unframed) | {r for r, v in self.robots.items() if v.in_own_frame and self._other_map(v)}
         for robot in off - set(self.robots):
             self.robot(robot)
         for robot, view in self.robots.items():
             reason = (why or {}).get(robot, "") if robot in off else ""
+            if robot in off and robot in frames:  # found, but for the map it reported in before
+                reason = BEGAN_AGAIN
             if (view.off_fleet_map, view.off_fleet_map_why) != (robot in off, reason):
                 view.off_fleet_map, view.off_fleet_map_why = robot in off, reason
                 self.version += 1
             # Its localisation alarm speaks of the fleet map, not of a site position it never has.
             self.alarms.own_frame(robot, reason if robot in off else None, mapping=robot in off or robot in frames)
-        if frames == self.frames:
+        if frames == self.frames and not rebegun:
             return
-        moved = {r for r in set(frames) | set(self.frames) if frames.get(r) != self.frames.get(r)}
+        moved = {r for r in set(frames) | set(self.frames) if frames.get(r) != self.frames.get(r)} | rebegun
         self.frames = dict(frames)
         for robot in moved:
             placed = self.robots.get(robot)

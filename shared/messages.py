@@ -467,6 +467,11 @@ class Pose(Message):
     vx: float
     omega: float
     uwbStale: bool
+    map_began: Annotated[float, bounded(0.0)] = 0.0
+    """When the map that ``x``, ``y``, ``theta`` are in began (``MapSubmaps.began``, the agent's clock);
+    0 before the agent's map has begun (no lidar, or no turn mapped yet). A robot in its own frame
+    whose agent restarted begins a new map, in a new frame: a ``RobotFrame`` found for the old one
+    (its ``began``) no longer places it."""
 
 
 @register
@@ -1114,6 +1119,9 @@ class RobotFrame:
     """Metres, the fleet map's frame."""
     y: Coordinate
     theta: Annotated[float, bounded(-3.2, 3.2)]
+    began: Annotated[float, bounded(0.0)]
+    """Which of the robot's maps the frame was found for (its ``MapSubmaps.began``): a pose whose
+    ``Pose.map_began`` differs is in another frame (a map begun again) that this one does not place."""
 
 
 @register

@@ -80,8 +80,9 @@ __all__ = [
     "sized",
 ]
 
-WIRE_VERSION = "1.1.0"
-"""Version this code speaks, stamped into every header (1.1.0: ``OrderEdge.trajectory``)."""
+WIRE_VERSION = "1.2.0"
+"""Version this code speaks, stamped into every header (1.1.0: ``OrderEdge.trajectory``; 1.2.0:
+``Pose.map_began`` and ``RobotFrame.began``)."""
 
 SUPPORTED_MAJOR = 1
 """Decode accepts any ``1.x.y``; any other major version is rejected."""

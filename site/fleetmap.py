@@ -109,8 +109,11 @@ class FleetMapService:
         # Per robot: its map as last asked about (version, shape, origin) and the answer then.
         self._answered: dict[str, tuple[object, tuple[Submap, ...], bool]] = {}
         self._site_frames: dict[str, bool] = {}  # each robot's map frame as its list last said
+        self._began: dict[str, float] = {}  # each robot's map as its list last said (``MapSubmaps.began``)
+        self._built_began: dict[str, float] = {}  # the same, for the maps the last build was made of
         self._frame_states: dict[str, tuple[str, str]] = {}  # per robot: what was last logged of its frame
-        self._frames_sent: tuple[dict[str, tuple[float, float, float]], tuple[str, ...]] | None = None
+        # The frames, robots not found and maps' ``began`` as last published.
+        self._frames_sent: tuple[dict[str, tuple[float, float, float]], tuple[str, ...], dict[str, float]] | None = None
         self._frames_next = -float("inf")
 
     def step(self) -> bool:
@@ -135,6 +138,8 @@ class FleetMapService:
             del self._answered[robot]
         for robot in set(self._site_frames) - set(copies):
             del self._site_frames[robot]
+        for robot in set(self._began) - set(copies):
+            del self._began[robot]
         self._incomplete = False
         for robot, m in copies.items():
             try:
@@ -151,12 +156,13 @@ class FleetMapService:
         if result is None:
             return False
         self.result = result
+        self._built_began = {r: self._began.get(r, 0.0) for r in copies}
         self.builds += 1
         with self.lock:
             self.follower.fleet.set_grid(
                 keys.FLEET_MAP, to_grid(SharedMap(result.cells, result.resolution, result.origin, result.version))
             )
-            self.follower.fleet.set_frames(result.frames, result.unframed, self.core.global_why)
+            self.follower.fleet.set_frames(result.frames, result.unframed, self.core.global_why, self._built_began)
         self._log_frames(result, copies)
         if self._frames_changed(result):
             self._publish_frames(result, now)
@@ -175,17 +181,21 @@ class FleetMapService:
         sent = self._frames_sent
         if sent is None or set(sent[0]) != set(result.frames) or sent[1] != tuple(sorted(result.unframed)):
             return True
+        if any(self._built_began.get(r) != sent[2].get(r) for r in result.frames):
+            return True  # a map begun again, found where the old one was
         return any(apart(f, sent[0][r], FRAMES_MOVED_M, FRAMES_MOVED_RAD) for r, f in result.frames.items())
 
     def _publish_frames(self, result: FleetResult, now: float) -> None:
         """``FleetFrames`` on ``fleetlink/v1/fleet/frames`` (on the share's link): where the robots in
         their own frames lie on the fleet map, for clients that draw them (Foxglove, a recorder)."""
         self._frames_next = now + FRAMES_PERIOD_S
-        self._frames_sent = (dict(result.frames), tuple(sorted(result.unframed)))
+        self._frames_sent = (dict(result.frames), tuple(sorted(result.unframed)), dict(self._built_began))
         if self.share is None:
             return
         frames = tuple(
-            RobotFrame(robot=r, x=f[0], y=f[1], theta=math.remainder(f[2], math.tau))
+            RobotFrame(
+                robot=r, x=f[0], y=f[1], theta=math.remainder(f[2], math.tau), began=self._built_began.get(r, 0.0)
+            )
             for r, f in sorted(result.frames.items())
         )
         site = any(r not in result.frames for r in result.corrections)
@@ -221,6 +231,9 @@ class FleetMapService:
             # site's if never; asked again at the next build (an answer lost is not remembered).
             return (), self._site_frames.get(robot, True)
         self._site_frames[robot] = listing.site_frame
+        if self._began.get(robot, listing.began) != listing.began:
+            self.core.forget(robot)  # a map begun again: nothing registered of the old one holds
+        self._began[robot] = listing.began
         if not listing.submaps:  # loop closure off: its map whole, in the frame the list says
             self._answered[robot] = (seen, (), listing.site_frame)
             return (), listing.site_frame
@@ -233,8 +246,6 @@ class FleetMapService:
             return (), listing.site_frame
         known = self._submaps.get(robot)
         if known is None or known.began != listing.began:
-            if known is not None:
-                self.core.forget(robot)  # a map begun again: nothing registered of the old one holds
             known = self._submaps[robot] = _Submaps(listing.began)
         listed = {e.index: e for e in listing.submaps}
         for i in set(known.held) - set(listed):

@@ -202,7 +202,11 @@ class FoxgloveScene:
         began again (its agent restarted) would be drawn where its old map lay. So a frame that a
         service placed and then says it has not found (its ``unframed``) is not drawn in ``map``
         again: the robot's records move to a new frame, placed once the fleet map finds it. (Another
-        console that has not found it yet says nothing about the first one's placing.)"""
+        console that has not found it yet says nothing about the first one's placing.) Nor, from
+        its first pose in a new map (``Pose.map_began``), before the service has noticed."""
+        self._map_began: dict[str, float] = {}
+        """Robot -> the map its poses are in (``Pose.map_began``, the last one not 0): a frame found
+        for another of its maps (``RobotFrame.began``) is not sent for it."""
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -223,6 +227,11 @@ class FoxgloveScene:
                     self.own_frames.add(robot)
                 else:
                     self.own_frames.discard(robot)
+                if msg.map_began:
+                    was = self._map_began.get(robot)
+                    if was is not None and was != msg.map_began and robot in self.own_frames:
+                        self._placings[robot] = self._placings.get(robot, 0) + 1  # a map begun again
+                    self._map_began[robot] = msg.map_began
                 data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta, self._frame(robot))
                 channel = self._channels.get(f"{FOXGLOVE_PREFIX}/{robot}/pose") or self.channel(
                     pose_topic(robot), foxglove.POSE_IN_FRAME
@@ -274,6 +283,7 @@ class FoxgloveScene:
             moves = [
                 (foxglove.MAP_FRAME, robot_frame(f.robot, self._placings.get(f.robot, 0)), f.x, f.y, f.theta)
                 for f in msg.frames
+                if f.began == self._map_began.get(f.robot, f.began)  # found for the map its poses are in
             ]
             data = _dumps(foxglove.frame_transforms(header.timestamp, moves))
             channel = self.channel(FRAMES_TOPIC, foxglove.FRAME_TRANSFORMS)

@@ -376,3 +376,45 @@ def test_a_robot_in_its_own_frame_is_drawn_on_the_fleet_map_through_the_frame_fo
     fleet.apply(agent.make(Pose, x=2.0, y=0.0, theta=0.0, sd_x_m=0.1, sd_y_m=0.1, sd_theta_rad=0.1,
                            odom_x=0.0, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=False), "zenoh", 0.2)  # fmt: skip
     assert view.pose == (2.0, 0.0, 0.0) and fleet.to_robot("r1", 5.0, 6.0, 1.0) == (5.0, 6.0, 1.0)
+
+
+def test_a_robot_whose_map_began_again_is_not_placed_or_sent_goals_through_its_old_maps_frame() -> None:
+    """A robot without UWB whose agent restarted reports poses in a new map (``Pose.map_began``),
+    whose frame begins where it then stood. The frame the fleet map found for its old map would draw
+    it, and send it goals, metres off: the console holds it off the fleet map, and says why, until
+    the fleet map has found the new map (``RobotFrame.began``, ``set_frames``'s ``began``)."""
+    import math
+
+    from fleetlink.operator.detail import detail_text
+    from fleetlink.shared.messages import UNKNOWN_SD_M
+
+    fleet = FleetModel(ME)
+    agent = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
+
+    def dark(x: float, began: float, t: float) -> None:
+        fleet.apply(agent.make(Pose, x=x, y=0.0, theta=0.0, sd_x_m=UNKNOWN_SD_M, sd_y_m=UNKNOWN_SD_M, sd_theta_rad=UNKNOWN_SD_M,
+                               odom_x=0.0, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=True, map_began=began),
+                    "zenoh", t)  # fmt: skip
+
+    dark(1.0, 20.0, 0.0)
+    fleet.set_frames({"r1": (5.0, 2.0, 0.0)}, began={"r1": 20.0})
+    view = fleet.robots["r1"]
+    assert view.pose == (6.0, 2.0, 0.0) and not view.off_fleet_map
+    assert fleet.to_robot("r1", 7.0, 2.0) == (2.0, 0.0, None)
+    # Its agent restarts 1 m on: its new map's frame begins there, and its pose there is (0, 0).
+    dark(0.0, 61.0, 1.0)
+    assert view.pose == (0.0, 0.0, 0.0) and view.off_fleet_map  # as reported, not through the old frame
+    assert "its map began again" in detail_text("r1", view, ())
+    assert fleet.to_robot("r1", 7.0, 2.0) == (7.0, 2.0, None)  # not through the old frame either
+    fleet.set_frames({"r1": (5.0, 2.0, 0.0)}, began={"r1": 20.0})  # a build of the old map: still off
+    assert view.off_fleet_map and view.pose == (0.0, 0.0, 0.0)
+    # The fleet map finds the new map, 1 m on from the old one's.
+    fleet.set_frames({"r1": (6.0, 2.0, 0.0)}, began={"r1": 61.0})
+    assert not view.off_fleet_map and view.pose is not None
+    assert math.hypot(view.pose[0] - 6.0, view.pose[1] - 2.0) < 1e-9
+    assert fleet.to_robot("r1", 7.0, 2.0) == (1.0, 0.0, None)
+    # Found where the old one was (restarted where it began): placed again all the same.
+    dark(0.0, 90.0, 2.0)
+    assert view.off_fleet_map
+    fleet.set_frames({"r1": (6.0, 2.0, 0.0)}, began={"r1": 90.0})
+    assert not view.off_fleet_map and view.pose == (6.0, 2.0, 0.0)

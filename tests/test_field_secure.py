@@ -322,7 +322,10 @@ def test_a_consoles_fleet_map_and_frames_reach_another_console(secured: Secured)
         frames: list[FleetFrames] = []
         late.add_sink(lambda m, _l, _t: frames.append(m) if isinstance(m, FleetFrames) else None)
         msg = service.share.counter.make(
-            FleetFrames, reference="", frames=(RobotFrame(robot="uvc-2", x=1.0, y=2.0, theta=0.5),), unframed=()
+            FleetFrames,
+            reference="",
+            frames=(RobotFrame(robot="uvc-2", x=1.0, y=2.0, theta=0.5, began=0.0),),
+            unframed=(),
         )
         query = late.query_link()
         wait_until(

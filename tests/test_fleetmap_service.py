@@ -21,6 +21,7 @@ from fleetlink.agent.mapping.share import MapShare, fetch_submap, fetch_submaps
 from fleetlink.cli.console import fleet_map_service
 from fleetlink.cli.main import main
 from fleetlink.field.mapserver import read_map
+from fleetlink.links.inprocess import InProcessBus
 from fleetlink.links.mqtt import MqttEndpoint
 from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.operator.console import attach
@@ -32,7 +33,7 @@ from fleetlink.operator.mapview import MapView
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SimClock, SystemClock
 from fleetlink.shared.map_codec import SharedMap, decode_cells
-from fleetlink.shared.messages import FleetFrames, MapSubmaps, Pose
+from fleetlink.shared.messages import FleetFrames, LinkName, MapSubmaps, Pose
 from fleetlink.site.fleetmap import FleetMapService
 from tests.harness import wait_until
 from tests.harness.console_rig import Rig
@@ -502,3 +503,70 @@ def test_a_robot_whose_submap_list_goes_unanswered_keeps_the_frame_it_last_said(
     link.replies = []  # the next reply lost, the map moved on
     assert service._fetch("r2", SharedMap(m.cells, m.resolution, m.origin, 2)) == ((), False)
     assert service._fetch("r9", SharedMap(m.cells, m.resolution, m.origin, 2)) == ((), True)
+
+
+def test_the_frames_name_the_map_they_were_found_for_and_a_map_begun_again_goes_out_at_once() -> None:
+    """Each ``RobotFrame`` carries the ``began`` of the map it was found for (the robot's submap list
+    says it): an agent restarted where it began maps the same walls in the same frame, and its new
+    map's frame goes out at the next build, not at the next periodic send, so that peers take its
+    poses again (agent/peers.py counts a frame only for poses of its own map)."""
+    clock = SimClock(100.0)
+    bus = InProcessBus(LinkName.ZENOH, clock_now=clock.now)
+    op, robots_side, tap = bus.endpoint("op-fleet"), bus.endpoint("agents"), bus.endpoint("tap")
+    for endpoint in (op, robots_side, tap):
+        endpoint.start()
+    heard: list[FleetFrames] = []
+    tap.subscribe(
+        keys.key(keys.FLEET_MAP, FleetFrames.TOPIC),
+        lambda key, payload: heard.append(wire.decode_key(key, payload)),  # type: ignore[arg-type]
+    )
+    fleet_share = MapShare(op, keys.FLEET_MAP, clock, sender="op-fleet")
+    fleet_share.start()
+    follower = MapFollower(FleetModel("op-fleet"))
+    service = FleetMapService(follower, threading.Lock(), clock, share=fleet_share, period_s=0.0, query=op)
+    start = (7.5, 1.0, math.radians(137.0))  # where r2 began, in the site frame
+    maps = {"r1": robot_map((0.0, 0.0, 7.5, 6.0), floor=FURNISHED), "r2": own_frame((1.5, 0.0, 9.0, 6.0), start)}
+    shares = {r: MapShare(robots_side, r, clock) for r in maps}
+
+    def share(robot: str, began: float, version: int) -> None:
+        m = maps[robot]
+        shares[robot].publish(
+            MapPublication(version, m.cells, m.resolution, m.origin, None, site_frame=m.site_frame, began=began)
+        )
+        follower.maps[robot] = SharedMap(m.cells, m.resolution, m.origin, version)
+
+    def build() -> FleetFrames:
+        heard.clear()
+        clock.advance(1.0)
+        service.step()
+        while bus.deliver():
+            pass
+        (msg,) = heard
+        return msg
+
+    try:
+        for share_ in shares.values():
+            share_.start()
+        share("r1", 12.0, 1)
+        share("r2", 20.0, 1)
+        for _ in range(10):  # the global search is spread over builds
+            msg = build()
+            if msg.frames:
+                break
+        (frame,) = msg.frames
+        assert frame.robot == "r2" and frame.began == 20.0
+        assert close_to((frame.x, frame.y, frame.theta), start)
+        assert "r1" not in [f.robot for f in msg.frames]  # in the site frame
+        # r2's agent restarts where it began: the same walls, a new map (its versions from 0 again).
+        share("r2", 61.0, 0)
+        for _ in range(10):
+            msg = build()
+            if msg.frames:
+                break
+        (frame,) = msg.frames
+        assert frame.began == 61.0 and close_to((frame.x, frame.y, frame.theta), start)
+    finally:
+        for share_ in (*shares.values(), fleet_share):
+            share_.stop()
+        for endpoint in (op, robots_side, tap):
+            endpoint.close()

@@ -167,7 +167,10 @@ def test_a_robot_without_uwb_is_drawn_in_its_own_frame_placed_where_the_fleet_ma
     assert json.loads(g.data)["frame_id"] == "r2/map"
     # The fleet map service says where that frame lies: a transform from the fleet map's frame.
     frames = wire.HeaderCounter(clock, robot=keys.FLEET_MAP, sender="op-1").make(
-        FleetFrames, reference="", frames=(RobotFrame(robot="r2", x=7.5, y=1.0, theta=2.4),), unframed=("r3",)
+        FleetFrames,
+        reference="",
+        frames=(RobotFrame(robot="r2", x=7.5, y=1.0, theta=2.4, began=0.0),),
+        unframed=("r3",),
     )
     (tf,) = records(frames, 1.4)
     assert tf.channel.topic == FRAMES_TOPIC and tf.channel.schema_name == foxglove.FRAME_TRANSFORMS
@@ -180,7 +183,7 @@ def test_a_robot_without_uwb_is_drawn_in_its_own_frame_placed_where_the_fleet_ma
     # Another console that has no site-frame map yet (its fleet map is r2's own frame) is passed
     # over while this one speaks; a late subscriber gets the latest at once.
     other = wire.HeaderCounter(clock, robot=keys.FLEET_MAP, sender="op-2").make(
-        FleetFrames, reference="r2", frames=(RobotFrame(robot="r2", x=0.0, y=0.0, theta=0.0),), unframed=()
+        FleetFrames, reference="r2", frames=(RobotFrame(robot="r2", x=0.0, y=0.0, theta=0.0, began=0.0),), unframed=()
     )
     assert records(other, 2.0) == []
     core.unsubscribe(FRAMES_TOPIC)
@@ -207,7 +210,7 @@ def test_a_robot_without_uwb_is_drawn_in_its_own_frame_placed_where_the_fleet_ma
     (p_again,) = records(again, 2.3)
     assert json.loads(p_again.data)["frame_id"] == robot_frame("r2", 1) == "r2/map.1"
     found = service.make(
-        FleetFrames, reference="", frames=(RobotFrame(robot="r2", x=-3.0, y=2.0, theta=0.0),), unframed=()
+        FleetFrames, reference="", frames=(RobotFrame(robot="r2", x=-3.0, y=2.0, theta=0.0, began=0.0),), unframed=()
     )
     (tf_found,) = records(found, 2.4)
     (t2,) = json.loads(tf_found.data)["transforms"]
@@ -215,6 +218,53 @@ def test_a_robot_without_uwb_is_drawn_in_its_own_frame_placed_where_the_fleet_ma
     # Placed by UWB later: its poses are in the site frame again.
     (p2,) = records(pose(c, 3.0), 1.5)
     assert json.loads(p2.data)["frame_id"] == "map"
+
+
+def test_a_robot_whose_map_began_again_leaves_the_old_frame_at_its_first_pose_in_the_new_map() -> None:
+    """Its poses say which map they are in (``Pose.map_began``): from the first in a new map, the robot
+    is drawn in a frame of its own, not through the transform of its old map's frame, and a fleet map's
+    frame found for another of its maps (``RobotFrame.began``) is not sent for it."""
+    clock = SystemClock()
+    core = LiveCore()
+    c = wire.HeaderCounter(clock, robot="r2", sender="agent-r2")
+    fleet = wire.HeaderCounter(clock, robot=keys.FLEET_MAP, sender="op-1")
+    for topic in (pose_topic("r2"), FRAMES_TOPIC):
+        core.subscribe(topic, 0.0, 1.0)
+
+    def records(msg: wire.Message, wall: float) -> list[Any]:
+        return core.receive(wire.key_of(msg), wire.encode(msg), wall)
+
+    def dark(x: float, began: float) -> Pose:
+        return c.make(
+            Pose, x=x, y=0.0, theta=0.0, sd_x_m=UNKNOWN_SD_M, sd_y_m=UNKNOWN_SD_M, sd_theta_rad=UNKNOWN_SD_M,
+            odom_x=x, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=True, map_began=began,
+        )  # fmt: skip
+
+    def frames(began: float) -> FleetFrames:
+        return fleet.make(
+            FleetFrames,
+            reference="",
+            frames=(RobotFrame(robot="r2", x=7.5, y=1.0, theta=2.4, began=began),),
+            unframed=(),
+        )
+
+    def frame_of(msg: Pose, wall: float) -> str:
+        (p,) = records(msg, wall)
+        return str(json.loads(p.data)["frame_id"])
+
+    assert frame_of(dark(1.0, 0.0), 1.0) == "r2/map"  # before its map began
+    assert frame_of(dark(1.0, 20.0), 1.1) == "r2/map"
+    (tf,) = records(frames(20.0), 1.2)
+    (t,) = json.loads(tf.data)["transforms"]
+    assert t["child_frame_id"] == "r2/map"
+    # Its agent restarts: the first pose in the new map leaves r2/map, which keeps the old transform.
+    assert frame_of(dark(0.0, 0.0), 2.0) == "r2/map"  # no map yet: poses of 0 say nothing
+    assert frame_of(dark(0.1, 61.0), 2.1) == "r2/map.1"
+    (tf,) = records(frames(20.0), 2.2)  # the service has not noticed yet: its old frame is not sent
+    assert json.loads(tf.data)["transforms"] == []
+    (tf,) = records(frames(61.0), 2.3)
+    (t,) = json.loads(tf.data)["transforms"]
+    assert t["child_frame_id"] == "r2/map.1"
 
 
 def test_a_scan_keeps_the_nearest_return_of_each_beam_and_its_points_land_where_they_were_seen() -> None:

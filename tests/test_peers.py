@@ -26,7 +26,17 @@ from fleetlink.shared.messages import UNKNOWN_SD_M, FleetFrames, LinkName, Pose,
 RES = 0.05
 
 
-def _pose(robot: str, x: float, y: float, *, t: float, vx: float = 0.0, omega: float = 0.0, sd: float = 0.01) -> Pose:
+def _pose(
+    robot: str,
+    x: float,
+    y: float,
+    *,
+    t: float,
+    vx: float = 0.0,
+    omega: float = 0.0,
+    sd: float = 0.01,
+    began: float = 0.0,
+) -> Pose:
     counter = wire.HeaderCounter(SimClock(t), robot=robot, sender=f"agent-{robot}")
     return counter.make(
         Pose,
@@ -42,6 +52,7 @@ def _pose(robot: str, x: float, y: float, *, t: float, vx: float = 0.0, omega: f
         vx=vx,
         omega=omega,
         uwbStale=False,
+        map_began=began,
     )
 
 
@@ -356,18 +367,22 @@ def test_the_guard_refuses_driving_into_another_robot_and_allows_turning_and_bac
 # -- robots in their own frames, placed by the fleet map (FleetFrames) ---------------------------
 
 
-def _frames(reference: str, **frames: tuple[float, float, float]) -> FleetFrames:
+def _frames(reference: str, **frames: tuple[float, ...]) -> FleetFrames:
+    """Each robot's (x, y, theta) on the fleet map, and the ``began`` of the map it was found for (0 unless given)."""
     counter = wire.HeaderCounter(SimClock(0.0), robot=keys.FLEET_MAP, sender="fleet-map")
     return counter.make(
         FleetFrames,
         reference=reference,
-        frames=tuple(RobotFrame(robot=r, x=f[0], y=f[1], theta=f[2]) for r, f in sorted(frames.items())),
+        frames=tuple(
+            RobotFrame(robot=r, x=f[0], y=f[1], theta=f[2], began=f[3] if len(f) > 3 else 0.0)
+            for r, f in sorted(frames.items())
+        ),
         unframed=(),
     )
 
 
-def _unplaced(robot: str, x: float, y: float, *, t: float, vx: float = 0.0) -> Pose:
-    return _pose(robot, x, y, t=t, vx=vx, sd=UNKNOWN_SD_M)
+def _unplaced(robot: str, x: float, y: float, *, t: float, vx: float = 0.0, began: float = 0.0) -> Pose:
+    return _pose(robot, x, y, t=t, vx=vx, sd=UNKNOWN_SD_M, began=began)
 
 
 def test_a_peer_in_its_own_frame_is_put_in_this_robots_own_frame_through_the_fleet_maps_frames() -> None:
@@ -426,6 +441,43 @@ def test_two_robots_in_their_own_frames_keep_clear_of_each_other_through_the_fle
     reach = 2 * BODY_RADIUS_M + 1.5 * math.hypot(0.05, 0.05)
     assert ahead.gap_m == pytest.approx(0.6 - reach, abs=1e-9)
     assert ahead.closing_mps == pytest.approx(0.2)
+
+
+def test_a_frame_places_only_poses_of_the_map_it_was_found_for() -> None:
+    # r2 (no UWB) mapped from 12 s; the fleet map found that map 3 m along r1's +x. Its agent restarts
+    # at 40 s where it then stands, 1 m on: a new map, whose frame begins there. Through the old frame
+    # its new pose (0, 0) would read as the old map's origin, a metre from where it stands.
+    peers = PeerBodies(("r2",), robot="r1")
+    peers.began = 5.0  # r1's own map
+    peers.hear_frames(_frames("r1", r1=(0.0, 0.0, 0.0, 5.0), r2=(3.0, 0.0, 0.0, 12.0)), now=39.0)
+    peers.hear("r2", _unplaced("r2", 1.0, 0.0, t=39.0, began=12.0), now=39.0)
+    assert peers.standing(39.0, placed=False) == ((4.0, 0.0),)
+    peers.hear("r2", _unplaced("r2", 0.0, 0.0, t=41.0, began=40.0), now=41.0)  # the new map
+    assert peers.standing(41.0, placed=False) == ()
+    assert peers.robots_ahead(41.0, (0.0, 0.0, 0.0), placed=False) == ()
+    # The fleet map finds the new one at 44 s: r2 counts again, where it stands.
+    peers.hear_frames(_frames("r1", r1=(0.0, 0.0, 0.0, 5.0), r2=(4.0, 0.0, 0.0, 40.0)), now=44.0)
+    peers.hear("r2", _unplaced("r2", 0.0, 0.0, t=44.0, began=40.0), now=44.0)
+    assert peers.standing(44.0, placed=False) == ((4.0, 0.0),)
+    # Its own frame likewise: r1's map begun again places nobody through the old frame of it.
+    peers.began = 50.0
+    assert peers.standing(44.0, placed=False) == ()
+    assert peers.robots_ahead(44.0, (0.0, 0.0, 0.0), placed=False) == ()
+    # A placed robot needs no frame of its own: the site frame is one map.
+    site = PeerBodies(("r2",), robot="r1")
+    site.hear_frames(_frames("", r2=(3.0, 0.0, 0.0, 12.0)), now=39.0)
+    site.hear("r2", _unplaced("r2", 1.0, 0.0, t=39.0, began=12.0), now=39.0)
+    assert site.standing(39.0, placed=True) == ((4.0, 0.0),)
+
+
+def test_the_core_says_which_map_its_poses_are_in_and_finds_its_own_frame_by_it() -> None:
+    clock = SimClock(100.0)
+    core = AgentCore("r1", clock, Pilot(), peers=PeerBodies(("r2",)))
+    assert core._pose(100.0).map_began == 0.0  # no map yet
+    core.map_begun(60.0)
+    assert core._pose(100.0).map_began == 60.0
+    assert core.peers.began == 60.0
+    assert wire.decode(Pose, wire.encode(core._pose(100.0))).map_began == 60.0
 
 
 def test_the_core_takes_the_fleet_maps_frames_and_plans_around_a_peer_while_unplaced() -> None:

@@ -142,7 +142,9 @@ def test_core_records_fleet_frames_as_sent_and_as_foxglove_transforms() -> None:
 
     core = RecordingCore()
     c = wire.HeaderCounter(SystemClock(), robot=keys.FLEET_MAP, sender="op-1")
-    msg = c.make(FleetFrames, reference="", frames=(RobotFrame(robot="r2", x=1.0, y=2.0, theta=0.3),), unframed=())
+    msg = c.make(
+        FleetFrames, reference="", frames=(RobotFrame(robot="r2", x=1.0, y=2.0, theta=0.3, began=0.0),), unframed=()
+    )
     recs = core.receive("zenoh", wire.key_of(msg), wire.encode(msg), 100.0)
     assert [r.channel.topic for r in recs] == ["/fleetlink/zenoh/frames", "/foxglove/fleet/frames"]
     (t,) = json.loads(recs[1].data)["transforms"]
