@@ -143,8 +143,11 @@ class InProcessBus:
         self._now = clock_now
 
     def endpoint(self, client_id: str) -> InProcessLink:
-        if any(e.client_id == client_id for e in self.endpoints):
+        """A new party on the bus. A closed endpoint's id may be taken again (a restarted process
+        connects under its old id, and its cuts hold for the new endpoint); an open one's may not."""
+        if any(e.client_id == client_id and e._open for e in self.endpoints):
             raise ValueError(f"{self.name.value}: endpoint {client_id!r} exists already")
+        self.endpoints = [e for e in self.endpoints if e.client_id != client_id]
         link = InProcessLink(self, client_id)
         self.endpoints.append(link)
         return link

@@ -251,6 +251,7 @@ class MissionRun:
         instead of its own (``mapper_config``; a benchmark's variant). ``fleet_map``: run the console's
         fleet map service (``self.fleet_map``) on the operator's Zenoh link."""
         self._mapper = mapper
+        self._mapping = mapping
         self.scenario = scenario
         self.plan = plan or load_plan(scenario.plan)
         self.field = FieldRun(scenario, self.plan, open_loop=False, on_command=self._command)
@@ -353,6 +354,31 @@ class MissionRun:
             robot.script = tuple(spec.script)
         robot.wander = spec.drive == "wander" and bool(self._places)
         return robot
+
+    def restart_agent(self, robot: str) -> None:
+        """``robot``'s agent stops and starts again, as a process restarted by systemd: its links, board
+        session and lidar driver closed and opened afresh, everything it held in memory (its map, its
+        pose, its peers) lost, its map begun again where the robot stands. The simulated hardware goes
+        on (the board's link watchdog stops the wheels while no agent speaks to it)."""
+        i = next((k for k, r in enumerate(self.robots) if r.name == robot), None)
+        if i is None:
+            raise ValueError(f"no robot {robot!r} in this run")
+        old = self.robots[i]
+        if old.lidar is not None:
+            old.lidar.close()
+        old.node.close()
+        old.node.board.stop()
+        for link in old.node.links:
+            link.close()
+        if self.map_worker is not None:
+            self.map_worker.forget(robot)
+        new = self._agent(old.index, self._mapping)
+        if old.own_frame is not None:  # the new map's own frame begins where it stands now
+            st = self.field.rigs[old.index].robot.board.state
+            new.own_frame = (st.x, st.y, st.theta)
+        new.wander, new.log = old.wander, old.log
+        self.robots[i] = new
+        self.field.events.log.append(f"t={self.clock.now():.3f} s: {robot}'s agent restarted")
 
     def _uwb_gateway(self) -> Any:
         from fleetlink.positioning.anchors import Anchor

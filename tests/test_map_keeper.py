@@ -149,6 +149,31 @@ def test_a_keeper_in_the_map_worker_gives_what_one_in_line_gives_one_turn_late()
         assert sum(u.publication is not None for u in came) >= 4
 
 
+def test_a_keeper_forgotten_in_the_map_worker_opens_again_with_a_map_begun_anew() -> None:
+    """An agent restarted in a lockstep run (``MissionRun.restart_agent``): its keeper in the worker
+    is let go with a reply still owed, and a new one under its name maps from nothing, one turn late
+    as before, while the other robot's keeper goes on undisturbed."""
+    with MapWorker() as worker:
+        keepers = {r: worker.keeper(r) for r in ("r1", "r2")}
+        alone = DeferredKeeper()
+        for k in range(6):
+            for j, r in enumerate(("r1", "r2")):
+                pose = (1.0 + 0.03 * k, 1.0 + j, 0.02 * k)
+                turn = Turn(0.1 * k, _scan(pose), ANGLES, pose, placed=False, driving=True, now=0.1 * k)
+                keepers[r].add(turn)
+                if r == "r2":
+                    alone.add(turn)
+        worker.forget("r1")  # one reply owed: read and dropped
+        fresh, again = DeferredKeeper(), worker.keeper("r1")
+        for k in range(6, 12):
+            pose = (1.0 + 0.03 * k, 1.0, 0.02 * k)
+            turn = Turn(0.1 * k, _scan(pose), ANGLES, pose, placed=False, driving=True, now=0.1 * k)
+            assert _same(again.add(turn), fresh.add(turn)), k
+            pose2 = (1.0 + 0.03 * k, 2.0, 0.02 * k)
+            turn2 = Turn(0.1 * k, _scan(pose2), ANGLES, pose2, placed=False, driving=True, now=0.1 * k)
+            assert _same(keepers["r2"].add(turn2), alone.add(turn2)), k
+
+
 class _Echo:
     def __init__(self) -> None:
         self.told: list[object] = []

@@ -192,3 +192,65 @@ def test_robots_without_uwb_keep_clear_once_the_fleet_map_has_placed_both(tmp_pa
     assert apart[0] - min(apart) > 0.7, min(apart)  # it drove most of the way
     assert min(apart) > 2 * BODY_RADIUS_M + 0.03, min(apart)
     assert said == {("uvc-1", "robot_ahead")}, said
+
+
+def test_a_peer_whose_agent_restarted_is_not_placed_through_its_old_maps_frame(tmp_path: Path) -> None:
+    """The living room without UWB, the console's fleet map service running. Both robots turn once
+    and are placed on the fleet map; then uvc-2 backs 0.8 m away and its agent restarts there: a new
+    map, whose own frame begins where it now stands. Through the frame found for its old map, uvc-1
+    would put it 0.8 m from where it is (where its old map began). Each pose says which map it is
+    in (``Pose.map_began``) and each frame which map it was found for (``RobotFrame.began``), so
+    uvc-1 places uvc-2 nowhere until the fleet map finds the new map (uvc-2 turns once where it
+    stands), and then where it truly is. Scored against the truth, in uvc-1's own frame."""
+    path = tmp_path / "scenario.toml"
+    path.write_text(facing_in_the_living_room(60.0, uwb=False))
+    turn_s = 1.0 + 2 * math.pi / 0.6
+    back_s, restart_s, turn_again_s = 14.0, 19.0, 23.0
+    seen: list[tuple[float, float | None]] = []  # (t, how far uvc-1 puts uvc-2 from where it is; None: nowhere)
+    restarted: list[float] = []
+    with MissionRun(load_scenario(path), record=False, map_worker=False, fleet_map=True) as run:
+        for robot in run.robots:
+            robot.wander = False  # they move only as the operator drives them
+        boards = [rig.robot.board.state for rig in run.field.rigs]
+        start1 = (boards[0].x, boards[0].y, boards[0].theta)  # where uvc-1's own frame begins
+        op = run.operator
+        held = [-math.inf]
+
+        def operate(t: float) -> None:
+            if t >= restart_s and not restarted:
+                restarted.append(t)
+                run.restart_agent("uvc-2")
+                run.robots[1].wander = False
+            if t - held[0] < 0.1:
+                return
+            held[0] = t
+            if 1.0 <= t < turn_s:
+                for robot in ("uvc-1", "uvc-2"):
+                    op.teleop(robot, 0.0, 0.6)
+            elif back_s <= t < back_s + 4.0:
+                op.teleop("uvc-2", -0.2, 0.0)
+            elif turn_again_s <= t < turn_again_s + turn_s - 1.0:
+                op.teleop("uvc-2", 0.0, 0.6)
+            stands = turn_s + 0.5 <= t < back_s or back_s + 4.5 <= t < turn_again_s or t >= turn_again_s + turn_s
+            if stands:
+                peers = run.robots[0].node.core.peers
+                (x1, y1, th1) = start1
+                found = None
+                for px, py in peers.standing(t, placed=False):
+                    sx = x1 + px * math.cos(th1) - py * math.sin(th1)
+                    sy = y1 + px * math.sin(th1) + py * math.cos(th1)
+                    found = math.dist((sx, sy), (boards[1].x, boards[1].y))
+                seen.append((t, found))
+
+        run.field.controllers.append(operate)
+        run.run(45.0)
+        moved = math.dist((3.5, 2.0 + OFFSET_M), (boards[1].x, boards[1].y))
+    assert restarted and moved > 0.7, moved  # it stands well away from where its old map began
+    before = [d for t, d in seen if back_s - 1.0 <= t < restart_s]  # (found on the fleet map by 12 s)
+    between = [d for t, d in seen if restart_s <= t < turn_again_s]
+    after = [d for t, d in seen if t >= turn_again_s + turn_s + 3.0]
+    assert before and all(d is not None and d < 0.1 for d in before), before  # placed, where it is
+    # Its new map's poses are not put through the old frame: nowhere until the new map is found.
+    assert between and None in between, between
+    assert all(d is None or d < 0.1 for _, d in seen), seen  # never where it is not
+    assert after and all(d is not None and d < 0.1 for d in after), after  # the new map found, placed again

@@ -90,6 +90,14 @@ class MapWorker:
         self._replies[robot] = []
         return RemoteKeeper(self, robot)
 
+    def forget(self, robot: str) -> None:
+        """Let ``robot``'s keeper go (its agent restarted): the replies still owed it are read and
+        dropped, and ``keeper`` may open a new one under its name."""
+        while self._waiting.get(robot, 0):
+            self._take(robot)
+        self._waiting.pop(robot, None)
+        self._replies.pop(robot, None)
+
     def _submit(self, robot: str, request: tuple[str, str, Turn | MapperConfig | None]) -> None:
         self._worker.call(request)
         self._order.append(robot)
