@@ -77,8 +77,10 @@ class MapFollower:
             log.debug("map update from %s rejected: %s", robot, exc)
             applied = False
         if not applied:
-            if msg.version > shared.version:
-                self._stale.add(robot)  # missed one, or the map grew: fetch the whole map
+            if msg.version > shared.version or msg.began != shared.began:
+                # Missed one, the map grew, or its agent began a new map (its versions from 0
+                # again): fetch the whole map.
+                self._stale.add(robot)
             return False
         self.fleet.set_grid(robot, to_grid(shared))
         return True
@@ -93,8 +95,8 @@ class MapFollower:
             log.warning("map snapshot from %s rejected: %s", robot, exc)
             return False
         old = self.maps.get(robot)
-        if old is not None and old.version > shared.version:
-            return False
+        if old is not None and old.began == shared.began and old.version > shared.version:
+            return False  # an older copy of the same map (another map replaces it, whatever its version)
         self.maps[robot] = shared
         self._stale.discard(robot)
         self.fleet.set_grid(robot, to_grid(shared))

@@ -162,8 +162,11 @@ def paste(cells: npt.NDArray[Any], msg: Patch, patch: npt.NDArray[Any]) -> None:
     cells[msg.row : msg.row + msg.patch_height, msg.col : msg.col + msg.patch_width] = patch
 
 
-def snapshot_fields(cells: Cells, resolution: float, origin: tuple[float, float], version: int) -> dict[str, Any]:
-    """Keyword fields of a ``MapSnapshot``; halves the resolution until the compressed cells fit."""
+def snapshot_fields(
+    cells: Cells, resolution: float, origin: tuple[float, float], version: int, began: float = 0.0
+) -> dict[str, Any]:
+    """Keyword fields of a ``MapSnapshot`` (of the map begun at ``began``); halves the resolution until
+    the compressed cells fit."""
     data = _whole(cells)
     while data is None:
         cells = _downsample(cells)
@@ -178,6 +181,7 @@ def snapshot_fields(cells: Cells, resolution: float, origin: tuple[float, float]
         "height": int(cells.shape[0]),
         "encoding": ENCODING,
         "cells": data,
+        "began": float(began),
     }
 
 
@@ -188,8 +192,10 @@ def patch_fields(
     box: tuple[int, int, int, int],
     version: int,
     base_version: int,
+    began: float = 0.0,
 ) -> dict[str, Any] | None:
-    """Keyword fields of a ``MapUpdate`` for ``box`` (row0, col0, row1, col1), or None if it does not fit."""
+    """Keyword fields of a ``MapUpdate`` for ``box`` (row0, col0, row1, col1) of the map begun at
+    ``began``, or None if it does not fit."""
     window = patch_window(cells.shape, box)
     r0, c0, r1, c1 = window
     data = encode_cells(cells[r0:r1, c0:c1], PATCH_LEVEL)
@@ -204,6 +210,7 @@ def patch_fields(
         **patch_place(cells.shape, window),
         "encoding": ENCODING,
         "cells": data,
+        "began": float(began),
     }
 
 
@@ -215,20 +222,27 @@ class SharedMap:
     resolution: float
     origin: tuple[float, float]
     version: int
+    began: float = 0.0
+    """Which of its robot's maps this is a copy of (``MapSnapshot.began``)."""
 
     @classmethod
     def from_snapshot(cls, msg: MapSnapshot) -> SharedMap:
         return cls(
-            decode_cells(msg.cells, msg.width, msg.height), msg.resolution, (msg.origin_x, msg.origin_y), msg.version
+            decode_cells(msg.cells, msg.width, msg.height),
+            msg.resolution,
+            (msg.origin_x, msg.origin_y),
+            msg.version,
+            msg.began,
         )
 
     def apply(self, msg: MapUpdate) -> bool:
-        """Apply a patch; False (unchanged) when it does not follow this copy: fetch a snapshot then.
+        """Apply a patch; False (unchanged) when it does not follow this copy (another map's, or not
+        from this version): fetch a snapshot then.
 
         ValueError for a patch that cannot be right (outside the map, cells of the wrong size)."""
         if patch_outside(msg):
             raise ValueError("the patch lies outside the map")
-        if not patch_follows(msg, self.version, self.cells, self.resolution, self.origin):
+        if msg.began != self.began or not patch_follows(msg, self.version, self.cells, self.resolution, self.origin):
             return False
         paste(self.cells, msg, decode_cells(msg.cells, msg.patch_width, msg.patch_height))
         self.version = msg.version

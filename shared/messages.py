@@ -997,7 +997,8 @@ class MapSnapshot(Message):
     TOPIC: ClassVar[str] = "map"
 
     version: Annotated[int, bounded(0)]
-    """+1 per scan integrated into the map; a restarted agent starts again from 0."""
+    """+1 per scan integrated into the map; a restarted agent starts again from 0 (in a new map:
+    ``began``)."""
     resolution: Annotated[float, bounded(0.001, 10.0)]
     """Metres per cell."""
     origin_x: Coordinate
@@ -1007,6 +1008,9 @@ class MapSnapshot(Message):
     height: Annotated[int, bounded(0, 65_535)]
     encoding: MapEncoding
     cells: Annotated[bytes, sized(MAX_MAP_DATA)]
+    began: Annotated[float, bounded(0.0)] = 0.0
+    """Which of the robot's maps this is (``MapSubmaps.began``; since 1.2.0): a restarted agent's new
+    map counts its versions from 0 again, so a copy of another map is replaced whatever its version."""
 
 
 @register
@@ -1037,6 +1041,9 @@ class MapUpdate(Message):
     patch_height: Annotated[int, bounded(0, 65_535)]
     encoding: MapEncoding
     cells: Annotated[bytes, sized(MAX_MAP_DATA)]
+    began: Annotated[float, bounded(0.0)] = 0.0
+    """Which of the robot's maps it patches (as ``MapSnapshot.began``): an update of another map than
+    the copy's does not follow it, whatever its versions say."""
 
 
 MAX_SUBMAPS = 2000

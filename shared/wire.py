@@ -82,7 +82,7 @@ __all__ = [
 
 WIRE_VERSION = "1.2.0"
 """Version this code speaks, stamped into every header (1.1.0: ``OrderEdge.trajectory``; 1.2.0:
-``Pose.map_began`` and ``RobotFrame.began``)."""
+``Pose.map_began``, ``RobotFrame.began``, ``MapSnapshot.began`` and ``MapUpdate.began``)."""
 
 SUPPORTED_MAJOR = 1
 """Decode accepts any ``1.x.y``; any other major version is rejected."""

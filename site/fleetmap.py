@@ -97,7 +97,7 @@ class FleetMapService:
         self.result: FleetResult | None = None
         self.builds = 0
         self._next = -float("inf")
-        self._seen: dict[str, int] = {}
+        self._seen: dict[str, tuple[float, int]] = {}  # each map (its began, version) as last built from
         self._published: MapPublication | None = None
         self.query = query
         self._submaps: dict[str, _Submaps] = {}
@@ -125,10 +125,10 @@ class FleetMapService:
             return False
         with self.lock:
             maps = {r: m for r, m in self.follower.maps.items() if r != keys.FLEET_MAP}
-            versions = {r: m.version for r, m in maps.items()}
+            versions = {r: (m.began, m.version) for r, m in maps.items()}
             if versions == self._seen and not self._incomplete and not self.core.pending:
                 return False
-            copies = {r: SharedMap(m.cells.copy(), m.resolution, m.origin, m.version) for r, m in maps.items()}
+            copies = {r: SharedMap(m.cells.copy(), m.resolution, m.origin, m.version, m.began) for r, m in maps.items()}
         self._next = now + self.period_s
         for robot in set(self.core.maps) - set(copies):
             self.core.forget(robot)
@@ -217,7 +217,7 @@ class FleetMapService:
             return (), True
         # A robot's submaps change only as its map does (a solve that moves them redraws the map):
         # while its map keeps its version, the answer stands and the robot is not asked again.
-        seen = (m.version, m.cells.shape, m.origin)
+        seen = (m.began, m.version, m.cells.shape, m.origin)
         memo = self._answered.get(robot)
         if memo is not None and memo[0] == seen:
             return memo[1], memo[2]

@@ -388,13 +388,14 @@ class FoxgloveScene:
         held = self.maps.get(robot)
         try:
             if isinstance(msg, MapSnapshot):
-                if held is not None and held.version == msg.version:
+                if held is not None and (held.began, held.version) == (msg.began, msg.version):
                     return False  # the same map again (both links, or a second fetch)
                 self.maps[robot] = SharedMap.from_snapshot(msg)
                 return True
-            if held is None or held.version >= msg.version:
-                if held is None:
-                    self._want.add((robot, MAP))
+            if held is None or held.began != msg.began:
+                self._want.add((robot, MAP))  # none yet, or its agent began a new map
+                return False
+            if held.version >= msg.version:
                 return False
             if not held.apply(msg):
                 self._want.add((robot, MAP))

@@ -506,7 +506,9 @@ class MissionRun:
         maps = service.follower.maps
         for r in self.robots:
             snap = fetch_map(self.operator.zenoh, r.name, timeout=0.0)
-            if snap is not None and (r.name not in maps or maps[r.name].version != snap.version):
+            if snap is not None and (
+                r.name not in maps or (maps[r.name].began, maps[r.name].version) != (snap.began, snap.version)
+            ):
                 maps[r.name] = SharedMap.from_snapshot(snap)
         service.step()
 

@@ -260,7 +260,9 @@ class ReplaySource:
                 return built
             fields: dict[str, Any] | None
             if isinstance(copy, SharedMap):
-                fields = dict(map_codec.snapshot_fields(copy.cells, copy.resolution, copy.origin, copy.version))
+                fields = dict(
+                    map_codec.snapshot_fields(copy.cells, copy.resolution, copy.origin, copy.version, copy.began)
+                )
             else:
                 assert copy.lamp is not None  # (a copy is made from a snapshot, which names its lamp)
                 fields = dose_codec.snapshot_fields(

@@ -45,12 +45,13 @@ class MapRobot:
         self.counter = wire.HeaderCounter(clock, robot=robot, sender=f"agent-{robot}")
         self.cells = np.full((40, 40), -1, dtype=np.int8)  # 4 m x 4 m from (0, 0), row 0 at the bottom
         self.version = 1
+        self.began = 100.0  # when its agent began this map
         self.queries = 0
         self.queryable = session.declare_queryable(keys.key(robot, MapSnapshot.TOPIC), self._answer, complete=True)
 
     def _answer(self, query: Any) -> None:
         self.queries += 1
-        snap = self.counter.make(MapSnapshot, **snapshot_fields(self.cells, RES, (0.0, 0.0), self.version))
+        snap = self.counter.make(MapSnapshot, **snapshot_fields(self.cells, RES, (0.0, 0.0), self.version, self.began))
         query.reply(keys.key(self.robot, MapSnapshot.TOPIC), wire.encode(snap))
 
     def change(self, row: int, col: int, value: int, *, publish: bool = True, base: int | None = None) -> None:
@@ -58,7 +59,8 @@ class MapRobot:
         self.cells[row, col] = value
         self.version += 1
         if publish:
-            f = patch_fields(self.cells, RES, (0.0, 0.0), (row, col, row + 1, col + 1), self.version, base or old)
+            box = (row, col, row + 1, col + 1)
+            f = patch_fields(self.cells, RES, (0.0, 0.0), box, self.version, base or old, self.began)
             assert f is not None
             self.session.put(keys.key(self.robot, MapUpdate.TOPIC), wire.encode(self.counter.make(MapUpdate, **f)))
 
@@ -79,6 +81,11 @@ class MapRobot:
             uwbStale=False,
         )
         self.session.put(keys.key(self.robot, Pose.TOPIC), wire.encode(msg))
+
+    def restart(self, began: float) -> None:
+        """Its agent restarts: a new map (nothing known), its versions from 1 again."""
+        self.cells = np.full((40, 40), -1, dtype=np.int8)
+        self.version, self.began = 1, began
 
     def close(self) -> None:
         self.queryable.undeclare()
@@ -146,6 +153,32 @@ def test_a_robots_map_reaches_the_console_and_follows_its_updates(console: Any) 
         message="the stale copy fetched again",
     )
     assert robot.queries > asked
+
+
+def test_a_robot_whose_agent_restarted_has_its_new_map_taken_though_its_versions_begin_again(console: Any) -> None:
+    """A restarted agent begins a new map whose versions count from 1 again: the console's copy of
+    the old map (hundreds of versions on) must not hold out against it. Each snapshot and patch says
+    which map it is of (``began``): the first patch of the new map makes the console fetch it whole."""
+    robot, _link, fleet, lock, _clock = console
+    robot.cells[10:30, 20] = 100  # the old map: a wall along x = 2.0-2.1 m
+    robot.version = 500
+
+    def known() -> bool:
+        robot.pose(1.0, 1.5)
+        with lock:
+            return cell(fleet, "r1", 15, 20) == 100
+
+    wait_until(known, timeout=20, message="r1's old map in the console")
+    robot.restart(began=900.0)
+    robot.cells[10:30, 30] = 100  # the new map, in its own frame: a wall along x = 3.0-3.1 m
+    robot.change(5, 5, 100)  # version 2, a patch of the new map
+
+    def new_map() -> bool:
+        robot.pose(0.0, 0.0)
+        with lock:
+            return cell(fleet, "r1", 15, 30) == 100 and cell(fleet, "r1", 15, 20) == 255
+
+    wait_until(new_map, timeout=20, message="the restarted agent's new map in the console")
 
 
 @run_async

@@ -427,11 +427,11 @@ def test_bad_submap_replies_leave_the_map_whole_and_are_counted_and_logged_once(
         asked.append(key)
         i = int(key.rpartition("/")[2])
         sm = BENT[i]
-        fields = dict(snapshot_fields(sm.cells, RES, sm.origin, sm.version))
+        began = 6.0 if i == 2 else 5.0  # another map's submap
+        fields = dict(snapshot_fields(sm.cells, RES, sm.origin, sm.version, began))
         if i == 1:
             fields["cells"] = zlib.compress(b"\x00" * 7)  # not width x height cells
-        began = 6.0 if i == 2 else 5.0  # another map's submap
-        msg = counter.make(MapSubmap, began=began, index=i, x=sm.pose[0], y=sm.pose[1], theta=sm.pose[2], **fields)
+        msg = counter.make(MapSubmap, index=i, x=sm.pose[0], y=sm.pose[1], theta=sm.pose[2], **fields)
         return [(key, wire.encode(msg))]
 
     rig.robots_side.serve(keys.indexed_key("r2", "map/submap", "*"), submap)

@@ -27,12 +27,20 @@ from fleetlink.agent.mapping.share import fetch_map
 from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.shared import foxglove, keys, wire
 from fleetlink.shared.clock import SystemClock
-from fleetlink.shared.map_codec import SharedMap, snapshot_fields
-from fleetlink.shared.messages import UNKNOWN_SD_M, FleetFrames, MapSnapshot, Pose, RobotFrame, Scan, Truth
+from fleetlink.shared.map_codec import SharedMap, patch_fields, snapshot_fields
+from fleetlink.shared.messages import UNKNOWN_SD_M, FleetFrames, MapSnapshot, MapUpdate, Pose, RobotFrame, Scan, Truth
 from fleetlink.shared.scan_codec import BEAMS, scan_fields, scan_points, scan_ranges
 from fleetlink.site.agents import FieldAgents
 from fleetlink.site.foxglove_live import LiveCore
-from fleetlink.site.foxglove_scene import FLEET_DOSE_TOPIC, FRAMES_TOPIC, map_topic, pose_topic, robot_frame, scan_topic
+from fleetlink.site.foxglove_scene import (
+    FLEET_DOSE_TOPIC,
+    FRAMES_TOPIC,
+    FoxgloveScene,
+    map_topic,
+    pose_topic,
+    robot_frame,
+    scan_topic,
+)
 from fleetlink.site.foxglove_server import FoxgloveLive
 from fleetlink.site.recorder import open_recorder_links
 from tests.harness import wait_until
@@ -49,10 +57,10 @@ MESSAGE_DATA = 0x01
 # -- the core ---------------------------------------------------------------------------------------
 
 
-def map_snapshot(counter: wire.HeaderCounter, version: int, fill: int = 0) -> MapSnapshot:
+def map_snapshot(counter: wire.HeaderCounter, version: int, fill: int = 0, began: float = 0.0) -> MapSnapshot:
     cells = np.full((4, 6), -1, dtype=np.int8)
     cells[1:3, 1:5] = fill
-    return counter.make(MapSnapshot, **snapshot_fields(cells, 0.05, (-1.0, 2.0), version))
+    return counter.make(MapSnapshot, **snapshot_fields(cells, 0.05, (-1.0, 2.0), version, began))
 
 
 def test_poses_are_built_only_for_watched_channels_and_once_per_copy() -> None:
@@ -107,6 +115,29 @@ def test_grids_are_throttled_and_a_late_subscriber_gets_the_latest_at_once() -> 
     assert core.due(5.0, 15.0) == []  # unchanged: not sent again
     (again,) = core.subscribe(topic, 6.0, 16.0)  # a second client
     assert again.data == second.data
+
+
+def test_a_restarted_agents_new_map_replaces_the_old_though_its_versions_begin_again() -> None:
+    """The scene keeps a robot's map from snapshots and patches. A patch of another map than the copy's
+    (``began``: its agent restarted, its versions from 1 again) puts the robot on ``wanted`` and the
+    new map's snapshot replaces the old whatever its version."""
+    scene = FoxgloveScene()
+    c = wire.HeaderCounter(SystemClock(), robot="r1", sender="agent-r1")
+    scene.message(map_snapshot(c, 400, fill=0, began=10.0), 1.0)
+    cells = np.full((4, 6), -1, dtype=np.int8)
+    cells[0, 0] = 100
+    f = patch_fields(cells, 0.05, (-1.0, 2.0), (0, 0, 1, 1), 2, 1, began=50.0)
+    assert f is not None
+    scene.message(c.make(MapUpdate, **f), 2.0)
+    assert scene.wanted() == [("r1", "map")]
+    scene.message(map_snapshot(c, 2, fill=100, began=50.0), 2.1)
+    assert (scene.maps["r1"].began, scene.maps["r1"].version) == (50.0, 2)
+    assert scene.maps["r1"].cells[1, 1] == 100
+    # And a patch that follows it is applied as before.
+    f = patch_fields(cells, 0.05, (-1.0, 2.0), (0, 0, 1, 1), 3, 2, began=50.0)
+    assert f is not None
+    scene.message(c.make(MapUpdate, **f), 2.2)
+    assert scene.maps["r1"].version == 3 and scene.wanted() == []
 
 
 def test_bad_input_is_refused_counted_and_reported_once() -> None:

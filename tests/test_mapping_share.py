@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
@@ -20,7 +21,7 @@ from fleetlink.field.raycast import Raycaster
 from fleetlink.links.zenoh import ZenohEndpoint
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SimClock
-from fleetlink.shared.map_codec import SharedMap, decode_cells
+from fleetlink.shared.map_codec import SharedMap, decode_cells, patch_fields
 from fleetlink.shared.messages import MapSnapshot, MapUpdate
 
 ROOM = np.array([[0.0, 0.0, 6.0, 0.0], [6.0, 0.0, 6.0, 4.0], [6.0, 4.0, 0.0, 4.0], [0.0, 4.0, 0.0, 0.0]])
@@ -90,6 +91,25 @@ def test_queryable_serves_the_map_and_updates_patch_a_copy(zenoh_peers, tmp_path
             bad = (saved.grid == -1) != unknown
             assert not bad.any(), (cells[bad][:10], saved.grid[bad][:10])
             assert share.queries >= 2
+
+            # Its agent restarted: a new map, its versions from its first scan again. No patch goes
+            # out against the old map; the snapshot served is the new map's, named by its ``began``.
+            sent = len(updates)
+            fresh = OnboardMapper()
+            fresh.add_scan(5.0, _scan((2.0, 2.0, 0.0)), ANGLES, (2.0, 2.0, 0.0))
+            clock.advance(1.0)
+            share.publish(dataclasses.replace(MapPublication.of(fresh), began=5.0))
+            snap2 = _until(lambda: (s := fetch_map(other, "r1", timeout=1.0)) is not None and s.began == 5.0 and s)
+            assert isinstance(snap2, MapSnapshot) and snap2.version == fresh.version < copy.version
+            assert len(updates) == sent
+            fresh.add_scan(5.1, _scan((3.0, 2.0, 0.5)), ANGLES, (3.0, 2.0, 0.5))
+            clock.advance(1.0)
+            share.publish(dataclasses.replace(MapPublication.of(fresh), began=5.0))
+            raw = _until(lambda: updates[sent:])
+            upd2 = wire.decode_key(keys.key("r1", MapUpdate.TOPIC), raw[-1])
+            assert isinstance(upd2, MapUpdate) and upd2.began == 5.0
+            assert not copy.apply(upd2)  # the old map's copy: not followed, whatever the versions say
+            assert SharedMap.from_snapshot(snap2).apply(upd2)
     finally:
         other.close()
         agent.close()
@@ -194,8 +214,8 @@ def test_a_submap_s_key_names_its_index() -> None:
     from fleetlink.shared.messages import MapSubmap
 
     counter = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
-    fields = snapshot_fields(np.zeros((2, 3), dtype=np.int8), 0.05, (0.0, 0.0), 3)
-    msg = counter.make(MapSubmap, began=1.0, index=7, x=0.0, y=0.0, theta=0.0, **fields)
+    fields = snapshot_fields(np.zeros((2, 3), dtype=np.int8), 0.05, (0.0, 0.0), 3, began=1.0)
+    msg = counter.make(MapSubmap, index=7, x=0.0, y=0.0, theta=0.0, **fields)
     assert wire.key_of(msg) == "fleetlink/v1/r1/map/submap/7"
     data = wire.encode(msg)
     assert wire.decode_key("fleetlink/v1/r1/map/submap/7", data) == msg
@@ -221,8 +241,8 @@ def test_a_submap_reply_about_another_robot_is_left_out() -> None:
 
     def submap(robot: str, index: int) -> tuple[str, bytes]:
         counter = wire.HeaderCounter(SimClock(), robot=robot, sender=f"agent-{robot}")
-        fields = snapshot_fields(np.zeros((2, 3), dtype=np.int8), 0.05, (0.0, 0.0), 3)
-        msg = counter.make(MapSubmap, began=1.0, index=index, x=0.0, y=0.0, theta=0.0, **fields)
+        fields = snapshot_fields(np.zeros((2, 3), dtype=np.int8), 0.05, (0.0, 0.0), 3, began=1.0)
+        msg = counter.make(MapSubmap, index=index, x=0.0, y=0.0, theta=0.0, **fields)
         return wire.key_of(msg), wire.encode(msg)
 
     class Answering:
@@ -233,3 +253,18 @@ def test_a_submap_reply_about_another_robot_is_left_out() -> None:
     got = fetch_submap(Answering(), "r2", "*", rejected=rejected)  # type: ignore[arg-type]
     assert [(m.header.robot, m.index) for m in got] == [("r2", 1)]
     assert len(rejected) == 1 and "'r1'" in rejected[0]
+
+
+def test_an_update_of_another_map_does_not_follow_a_copy_whose_versions_it_matches() -> None:
+    """A restarted agent's new map counts its versions again: its update from version 3 to 4 must not
+    be pasted onto a copy of the old map that happens to stand at version 3 (``began`` tells them apart)."""
+    cells = np.zeros((4, 4), dtype=np.int8)
+    copy = SharedMap(cells.copy(), 0.05, (0.0, 0.0), 3, began=1.0)
+    changed = cells.copy()
+    changed[1, 1] = 100
+    other = patch_fields(changed, 0.05, (0.0, 0.0), (1, 1, 2, 2), 4, 3, began=2.0)
+    same = patch_fields(changed, 0.05, (0.0, 0.0), (1, 1, 2, 2), 4, 3, began=1.0)
+    assert other is not None and same is not None
+    c = wire.HeaderCounter(SimClock(), robot="r1", sender="agent-r1")
+    assert not copy.apply(c.make(MapUpdate, **other)) and copy.version == 3 and copy.cells[1, 1] == 0
+    assert copy.apply(c.make(MapUpdate, **same)) and copy.version == 4 and copy.cells[1, 1] == 100

@@ -47,13 +47,13 @@ log = logging.getLogger(__name__)
 
 
 def _snapshot(pub: MapPublication) -> Mapping[str, Any]:
-    return snapshot_fields(pub.cells, pub.resolution, pub.origin, pub.version)
+    return snapshot_fields(pub.cells, pub.resolution, pub.origin, pub.version, pub.began)
 
 
 def _patch(pub: MapPublication, prev: MapPublication) -> Mapping[str, Any] | None:
-    if pub.changed is None or not fits_whole(pub.cells):
-        return None
-    return patch_fields(pub.cells, pub.resolution, pub.origin, pub.changed, pub.version, prev.version)
+    if pub.changed is None or not fits_whole(pub.cells) or pub.began != prev.began:
+        return None  # (a map begun again is fetched whole)
+    return patch_fields(pub.cells, pub.resolution, pub.origin, pub.changed, pub.version, prev.version, pub.began)
 
 
 class MapShare(LayerShare[MapPublication]):
@@ -142,11 +142,9 @@ class MapShare(LayerShare[MapPublication]):
         replies = []
         for i, sm, data in todo:
             if data is None:
-                fields = snapshot_fields(sm.cells, sm.resolution, sm.origin, sm.version)
+                fields = snapshot_fields(sm.cells, sm.resolution, sm.origin, sm.version, began)
                 x, y, th = sm.pose
-                msg = self.counter.make(
-                    MapSubmap, began=began, index=i, x=x, y=y, theta=math.remainder(th, math.tau), **fields
-                )
+                msg = self.counter.make(MapSubmap, index=i, x=x, y=y, theta=math.remainder(th, math.tau), **fields)
                 data = wire.encode(msg)
                 with self._sub_lock:
                     if self._submaps.get(i) is sm:
