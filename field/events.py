@@ -3,7 +3,8 @@
 The runner executes world events itself: doors, obstacles, wheel slip, the home button, and the
 board link (``link_cut``, ``link`` with ``link = "board"``) through its ``cut_link`` callback.
 Everything it cannot execute goes to ``on_command(event, t)``: operator commands (``teleop``,
-``goal``, ``action``, ``mark``) and the other links (``link`` with zenoh, mqtt or lidar). A teleop
+``goal``, ``action``, ``mark``), the other links (``link`` with zenoh, mqtt or lidar) and an agent's
+restart (``agent_restart``). A teleop
 burst is handed over once every ``TELEOP_PERIOD_S`` from its time until its duration is over, so
 the handler sends one Teleop per call.
 """
@@ -23,6 +24,7 @@ from fleetlink.field.plans import FloorPlan
 from fleetlink.field.scenario import (
     TELEOP_PERIOD_S,
     ActionOrder,
+    AgentRestart,
     DoorClose,
     DoorOpen,
     Event,
@@ -53,7 +55,7 @@ def is_handed_over(ev: Event) -> bool:
     """True for events the field cannot execute itself: they go to ``on_command``."""
     if isinstance(ev, LinkState):
         return ev.link != "board"
-    return isinstance(ev, TeleopBurst | GoalOrder | ActionOrder | MarkPlaced)
+    return isinstance(ev, TeleopBurst | GoalOrder | ActionOrder | MarkPlaced | AgentRestart)
 
 
 class EventRunner:

@@ -30,6 +30,7 @@ __all__ = [
     "EVENT_KINDS",
     "TELEOP_PERIOD_S",
     "ActionOrder",
+    "AgentRestart",
     "Casualty",
     "DoorClose",
     "DoorOpen",
@@ -320,6 +321,20 @@ class LinkState:
         return f"t={self.at:g} s: {self.link} link of {self.robot} {'cut' if self.state == 'cut' else 'restored'}"
 
 
+@dataclass(frozen=True, slots=True)
+class AgentRestart:
+    """``robot``'s agent process stops and starts again, as systemd restarts one that crashed: what it
+    held in memory is lost, and its map begins again where the robot stands (without UWB, in a new
+    frame). A lockstep run carries it out (``MissionRun.restart_agent``)."""
+
+    kind: ClassVar[str] = "agent_restart"
+    at: At
+    robot: Name
+
+    def describe(self) -> str:
+        return f"t={self.at:g} s: {self.robot}'s agent restarts"
+
+
 Event = (
     DoorClose
     | DoorOpen
@@ -332,6 +347,7 @@ Event = (
     | ActionOrder
     | MarkPlaced
     | LinkState
+    | AgentRestart
 )
 EVENT_KINDS: tuple[str, ...] = tuple(c.kind for c in typing.get_args(Event))
 COMMAND_KINDS = ("teleop", "goal", "action", "mark")

@@ -569,6 +569,8 @@ class MissionRun:
             op.mark(robot, event.x, event.y, event.mark_kind, event.label, self._id("mark"))
         elif kind == "link":
             self._link(event.robot, event.link, event.state == "cut")
+        elif kind == "agent_restart":
+            self.restart_agent(event.robot)
         else:
             raise ValueError(f"event at {t:g} s: no way to carry out {kind!r} in a lockstep run")
 

@@ -202,10 +202,11 @@ def test_a_peer_whose_agent_restarted_is_not_placed_through_its_old_maps_frame(t
     in (``Pose.map_began``) and each frame which map it was found for (``RobotFrame.began``), so
     uvc-1 places uvc-2 nowhere until the fleet map finds the new map (uvc-2 turns once where it
     stands), and then where it truly is. Scored against the truth, in uvc-1's own frame."""
-    path = tmp_path / "scenario.toml"
-    path.write_text(facing_in_the_living_room(60.0, uwb=False))
     turn_s = 1.0 + 2 * math.pi / 0.6
     back_s, restart_s, turn_again_s = 14.0, 19.0, 23.0
+    path = tmp_path / "scenario.toml"
+    restart = f'\n[[events]]\nat_s = {restart_s}\nkind = "agent_restart"\nrobot = "uvc-2"\n'
+    path.write_text(facing_in_the_living_room(60.0, uwb=False) + restart)
     seen: list[tuple[float, float | None]] = []  # (t, how far uvc-1 puts uvc-2 from where it is; None: nowhere)
     restarted: list[float] = []
     with MissionRun(load_scenario(path), record=False, map_worker=False, fleet_map=True) as run:
@@ -216,11 +217,11 @@ def test_a_peer_whose_agent_restarted_is_not_placed_through_its_old_maps_frame(t
         op = run.operator
         held = [-math.inf]
 
+        agent = run.robots[1].node
+
         def operate(t: float) -> None:
-            if t >= restart_s and not restarted:
-                restarted.append(t)
-                run.restart_agent("uvc-2")
-                run.robots[1].wander = False
+            if run.robots[1].node is not agent and not restarted:
+                restarted.append(t)  # the scenario's event: a new agent
             if t - held[0] < 0.1:
                 return
             held[0] = t
@@ -245,7 +246,8 @@ def test_a_peer_whose_agent_restarted_is_not_placed_through_its_old_maps_frame(t
         run.field.controllers.append(operate)
         run.run(45.0)
         moved = math.dist((3.5, 2.0 + OFFSET_M), (boards[1].x, boards[1].y))
-    assert restarted and moved > 0.7, moved  # it stands well away from where its old map began
+    assert restarted and restarted[0] == pytest.approx(restart_s, abs=0.05), restarted
+    assert moved > 0.7, moved  # it stands well away from where its old map began
     before = [d for t, d in seen if back_s - 1.0 <= t < restart_s]  # (found on the fleet map by 12 s)
     between = [d for t, d in seen if restart_s <= t < turn_again_s]
     after = [d for t, d in seen if t >= turn_again_s + turn_s + 3.0]
