@@ -263,13 +263,18 @@ class _Struct:
     and the field-by-field path if anything is wrong.
     """
 
-    __slots__ = ("cls", "codec", "dec_fields", "enc_fields", "fast", "n", "names", "source", "specs")
+    __slots__ = ("cls", "codec", "dec_fields", "defaults", "enc_fields", "fast", "n", "names", "source", "specs")
 
     def __init__(self, cls: type[Any], specs: tuple[FieldSpec, ...], codecs: tuple[_Codec, ...]) -> None:
         self.cls = cls
         self.specs = specs
         self.n = len(specs)
         self.names = frozenset(s.name for s in specs)
+        # Fields with a default may be left out: a minor version adds fields only with one, so a
+        # sender of an earlier 1.x (an agent not yet upgraded, a recording) is still understood.
+        self.defaults = {
+            f.name: f.default for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING and f.init
+        }
         self.dec_fields = tuple((s.name, c.dec) for s, c in zip(specs, codecs, strict=True))
         self.enc_fields = tuple((s.name, c.enc) for s, c in zip(specs, codecs, strict=True))
         self.fast, self.source = _generate(cls, specs)
@@ -287,16 +292,21 @@ class _Struct:
         if type(value) is not dict:
             raise WireError(f"expected a map, got {_tname(value)}")
         kwargs: dict[str, Any] = {}
+        present = 0
         for name, dec in self.dec_fields:
             try:
                 raw = value[name]
             except KeyError:
+                if name in self.defaults:
+                    kwargs[name] = self.defaults[name]
+                    continue
                 raise WireError("missing field", name) from None
+            present += 1
             try:
                 kwargs[name] = dec(raw)
             except WireError as exc:
                 raise exc.under(name) from None
-        if len(value) != self.n:
+        if len(value) != present:
             extra = [k for k in value if k not in self.names]
             more = f" (and {len(extra) - 1} more)" if len(extra) > 1 else ""
             raise WireError(f"unknown field in {self.cls.__name__}{more}", _field_name(extra[0]))

@@ -178,6 +178,22 @@ def test_another_major_version_is_refused_before_the_shape() -> None:
     )
 
 
+def test_a_message_of_an_earlier_minor_version_without_a_field_added_since_is_read_with_its_default() -> None:
+    """1.2.0 added ``Pose.map_began`` (default 0): a 1.1.0 agent's pose, or one in a recording made
+    before, is still read, the field at its default; a required field left out is still refused, as is
+    a field this side does not know."""
+    obj = wire_dict(dataclasses.replace(pose(), map_began=12.5))
+    assert decode(Pose, pack(obj)).map_began == 12.5
+    obj["header"]["version"] = "1.1.0"
+    del obj["map_began"]
+    assert same_as_generic(Pose, pack(obj))[0] == "ok"
+    assert decode(Pose, pack(obj)).map_began == 0.0
+    obj["later"] = 1
+    assert same_as_generic(Pose, pack(obj)) == ("refused", "later: unknown field in Pose")
+    del obj["later"], obj["x"]
+    assert same_as_generic(Pose, pack(obj)) == ("refused", "x: missing field")
+
+
 def test_oversized_payloads_and_keys_are_refused_with_the_generic_reason() -> None:
     raw = encode(pose())
     for data, max_payload in ((b"\xc1" * (wire.MAX_PAYLOAD + 1), wire.MAX_PAYLOAD), (raw, len(raw) - 1)):
