@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 from fleetlink.agent.guard import RobotAhead
 from fleetlink.shared.body import BODY_RADIUS_M
-from fleetlink.shared.messages import UNKNOWN_SD_M, FleetFrames, Pose
+from fleetlink.shared.messages import UNKNOWN_SD_M, FleetFrames, Pose, same_map
 from fleetlink.shared.se2 import Pose as Frame
 from fleetlink.shared.se2 import compose, inverse
 
@@ -106,7 +106,8 @@ class _Heard:
     standing: bool
     placed: bool
     sd: float  # its position sd (m), as it reports it (a placed peer's is at most ``placed_sd_m``)
-    began: float  # the map its pose is in (``Pose.map_began``)
+    began: float  # the map its pose is in (``Pose.map_began``; 0: not said)
+    named: bool  # its poses have named a map before (``same_map``)
 
 
 @dataclass(frozen=True, slots=True)
@@ -159,8 +160,9 @@ class PeerBodies:
         placed = sd <= min(c.placed_sd_m, UNKNOWN_SD_M)
         # (The wire contract's bounds say all of these are finite too.)
         ok = all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta, pose.vx))
+        named = pose.map_began != 0.0 or (last is not None and last.named)
         self._heard[robot] = _Heard(
-            now, stamp, pose.x, pose.y, pose.theta, pose.vx, standing and ok, placed and ok, sd, pose.map_began
+            now, stamp, pose.x, pose.y, pose.theta, pose.vx, standing and ok, placed and ok, sd, pose.map_began, named
         )
         return True
 
@@ -185,21 +187,22 @@ class PeerBodies:
         f = self._fresh_frames(now)
         return () if f is None else tuple(sorted(f.frames))
 
-    def _frame_of(self, robot: str, placed: bool, began: float, now: float) -> tuple[str, Frame] | None:
-        """The frame ``robot``'s poses (of its map begun at ``began``) are in (a name: "" the site's, else
-        the fleet map's reference robot's) and how its frame lies in it; None: in a frame no one
-        else's can be put in (not found, or found for another of its maps)."""
+    def _frame_of(self, robot: str, placed: bool, began: float, named: bool, now: float) -> tuple[str, Frame] | None:
+        """The frame ``robot``'s poses (of its map begun at ``began``; ``named``: its poses have named
+        a map before) are in (a name: "" the site's, else the fleet map's reference robot's) and how
+        its frame lies in it; None: in a frame no one else's can be put in (not found, or found for
+        another of its maps: ``same_map``)."""
         if placed:
             return "", _SAME
         f = self._fresh_frames(now)
         found = None if f is None else f.frames.get(robot)
-        if f is None or found is None or found[1] != began:
+        if f is None or found is None or not same_map(found[1], began, named):
             return None
         return f.reference, found[0]
 
     def _placed(self, now: float, me_placed: bool) -> list[_Placed]:
         """The peers heard within ``fresh_s`` whose poses can be put in this robot's frame, put there."""
-        mine = self._frame_of(self.robot, me_placed, self.began, now)
+        mine = self._frame_of(self.robot, me_placed, self.began, True, now)
         if mine is None:
             return []
         back = inverse(mine[1])
@@ -207,7 +210,7 @@ class PeerBodies:
         for name, h in sorted(self._heard.items()):
             if not self._fresh(h, now) or not all(math.isfinite(v) for v in (h.x, h.y, h.theta, h.vx)):
                 continue
-            theirs = self._frame_of(name, h.placed, h.began, now)
+            theirs = self._frame_of(name, h.placed, h.began, h.named, now)
             if theirs is None or theirs[0] != mine[0]:
                 continue
             x, y, th = compose(back, compose(theirs[1], (h.x, h.y, h.theta)))

@@ -41,6 +41,7 @@ from fleetlink.shared.messages import (
     Severity,
     State,
     UwbFix,
+    same_map,
 )
 from fleetlink.shared.scan_codec import scan_points
 from fleetlink.shared.se2 import apart, compose, inverse
@@ -182,7 +183,9 @@ class RobotView:
     """Why not, as the fleet map's search last said ("" if it has not said)."""
     map_began: float = 0.0
     """Which of its maps its poses are in (``Pose.map_began``): a frame found for another (its agent
-    restarted and began a new map) does not place it."""
+    restarted and began a new map) does not place it (``same_map``)."""
+    map_named: bool = False
+    """Its poses have named a map (a ``map_began`` other than 0) before: an agent of 1.2.0 or later."""
 
     @property
     def in_own_frame(self) -> bool:
@@ -387,12 +390,13 @@ class FleetModel:
 
     def _other_map(self, view: RobotView) -> bool:
         """The fleet map's frame for ``view``'s robot was found for another of its maps."""
-        return self.frames_began.get(view.robot, view.map_began) != view.map_began
+        return not same_map(self.frames_began.get(view.robot, 0.0), view.map_began, view.map_named)
 
     def _map_begun(self, view: RobotView, began: float) -> None:
         """``view``'s robot reports poses in another map (its agent restarted, or its first map began):
         a frame of its old map no longer places it, and its trail, drawn through that, starts again."""
         view.map_began = began
+        view.map_named = view.map_named or began != 0.0
         if view.in_own_frame and view.robot in self.frames:
             stale = self._other_map(view)
             view.off_fleet_map, view.off_fleet_map_why = stale, BEGAN_AGAIN if stale else ""

@@ -111,6 +111,7 @@ __all__ = [
     "Zone",
     "ZonePoint",
     "ack_fields",
+    "same_map",
 ]
 
 MAX_BOARD_ERRORS = 16
@@ -1126,9 +1127,23 @@ class RobotFrame:
     """Metres, the fleet map's frame."""
     y: Coordinate
     theta: Annotated[float, bounded(-3.2, 3.2)]
-    began: Annotated[float, bounded(0.0)]
-    """Which of the robot's maps the frame was found for (its ``MapSubmaps.began``): a pose whose
-    ``Pose.map_began`` differs is in another frame (a map begun again) that this one does not place."""
+    began: Annotated[float, bounded(0.0)] = 0.0
+    """Which of the robot's maps the frame was found for (its ``MapSubmaps.began``; since 1.2.0, 0: the
+    service does not say): a pose whose ``Pose.map_began`` differs is in another frame (a map begun
+    again) that this one does not place (``same_map``)."""
+
+
+def same_map(frame_began: float, pose_began: float, reported_before: bool) -> bool:
+    """Whether a frame found for the map begun at ``frame_began`` places a pose of the map begun at
+    ``pose_began``, ``reported_before``: the robot's poses have named a map before (a ``map_began``
+    other than 0). 0 on either side is a sender that does not say (before 1.2.0), and then the frame
+    holds, but for a robot that has named its map before: its poses say 0 again when its agent
+    restarted and its new map has not begun yet, and an old frame would place them where it is not."""
+    if frame_began == 0.0:
+        return True
+    if pose_began == 0.0:
+        return not reported_before
+    return frame_began == pose_began
 
 
 @register

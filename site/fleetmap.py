@@ -143,7 +143,14 @@ class FleetMapService:
         self._incomplete = False
         for robot, m in copies.items():
             try:
-                submaps, site_frame = self._fetch(robot, m)
+                fetched = self._fetch(robot, m)
+                if fetched is None:
+                    # The copy is of a map its robot has left (its agent restarted): left out until the
+                    # new one is fetched, lest it be placed, and its frame sent, as the new one's.
+                    self.core.forget(robot)
+                    self._incomplete = True
+                    continue
+                submaps, site_frame = fetched
                 self.core.put(robot, RobotMap(m.cells, m.resolution, m.origin, m.version, submaps, site_frame))
             except ValueError as exc:
                 self._log_once(robot, "put", f"its map left out: {exc}")
@@ -156,7 +163,8 @@ class FleetMapService:
         if result is None:
             return False
         self.result = result
-        self._built_began = {r: self._began.get(r, 0.0) for r in copies}
+        # Each frame is of the map its cells came from: the copy's (a sender before 1.2.0: its list's).
+        self._built_began = {r: m.began or self._began.get(r, 0.0) for r, m in copies.items()}
         self.builds += 1
         with self.lock:
             self.follower.fleet.set_grid(
@@ -205,14 +213,15 @@ class FleetMapService:
         )
         self.share.link.publish(wire.key_of(msg), wire.encode(msg))
 
-    def _fetch(self, robot: str, m: SharedMap) -> tuple[tuple[Submap, ...], bool]:
+    def _fetch(self, robot: str, m: SharedMap) -> tuple[tuple[Submap, ...], bool] | None:
         """``robot``'s submaps at the poses its graph gives them now, once every listed one is held;
         () until then, and when it lists none (its map is then merged whole); and whether its map is
         in the site frame, as its list says (a robot that does not answer, as it last said; the site's
         if it never did). Only the
         submaps whose version is not held are fetched, at most ``FETCH_PER_BUILD`` a build. Bad
         replies are left out, counted and logged once per robot and reason; a link that fails
-        leaves the map whole."""
+        leaves the map whole. None: the copy ``m`` is of another map than the one the robot lists
+        (``began``: its agent restarted since the copy was fetched)."""
         if self.query is None:
             return (), True
         # A robot's submaps change only as its map does (a solve that moves them redraws the map):
@@ -234,6 +243,8 @@ class FleetMapService:
         if self._began.get(robot, listing.began) != listing.began:
             self.core.forget(robot)  # a map begun again: nothing registered of the old one holds
         self._began[robot] = listing.began
+        if m.began and listing.began != m.began:
+            return None  # the copy is of another map than the robot lists now
         if not listing.submaps:  # loop closure off: its map whole, in the frame the list says
             self._answered[robot] = (seen, (), listing.site_frame)
             return (), listing.site_frame

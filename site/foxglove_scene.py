@@ -54,6 +54,7 @@ from fleetlink.shared.messages import (
     Pose,
     Scan,
     Truth,
+    same_map,
 )
 from fleetlink.shared.scan_codec import scan_ranges
 
@@ -203,10 +204,15 @@ class FoxgloveScene:
         service placed and then says it has not found (its ``unframed``) is not drawn in ``map``
         again: the robot's records move to a new frame, placed once the fleet map finds it. (Another
         console that has not found it yet says nothing about the first one's placing.) Nor, from
-        its first pose in a new map (``Pose.map_began``), before the service has noticed."""
+        its first pose of a new map (``Pose.map_began``: another map's, or 0 again), before the
+        service has noticed."""
         self._map_began: dict[str, float] = {}
-        """Robot -> the map its poses are in (``Pose.map_began``, the last one not 0): a frame found
-        for another of its maps (``RobotFrame.began``) is not sent for it."""
+        """Robot -> the map its latest pose is in (``Pose.map_began``): a frame found for another of
+        its maps (``RobotFrame.began``) is not sent for it (``same_map``)."""
+        self._named: set[str] = set()
+        """Robots whose poses have named their map (not 0) before: 0 from them is a new map not begun yet."""
+        self._frames_msg: FleetFrames | None = None
+        """The latest ``FleetFrames`` taken: sent again when a robot's poses move to a new map."""
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -227,16 +233,20 @@ class FoxgloveScene:
                     self.own_frames.add(robot)
                 else:
                     self.own_frames.discard(robot)
+                was = self._map_began.get(robot)
+                begun = was is not None and msg.map_began != was
+                if begun and was != 0.0 and robot in self.own_frames:
+                    # A map begun again (0: its new map has not begun yet; then the new one's began
+                    # is the same map): drawn in a frame the old map's transform does not move.
+                    self._placings[robot] = self._placings.get(robot, 0) + 1
+                self._map_began[robot] = msg.map_began
                 if msg.map_began:
-                    was = self._map_began.get(robot)
-                    if was is not None and was != msg.map_began and robot in self.own_frames:
-                        self._placings[robot] = self._placings.get(robot, 0) + 1  # a map begun again
-                    self._map_began[robot] = msg.map_began
+                    self._named.add(robot)
                 data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta, self._frame(robot))
                 channel = self._channels.get(f"{FOXGLOVE_PREFIX}/{robot}/pose") or self.channel(
                     pose_topic(robot), foxglove.POSE_IN_FRAME
                 )
-                return [
+                out = [
                     Record(
                         channel,
                         data,
@@ -244,6 +254,10 @@ class FoxgloveScene:
                         ns(header.timestamp) if stamp_ns is None else stamp_ns,
                     )
                 ]
+                if begun and msg.map_began and self._frames_msg is not None:
+                    # Frames heard before its first pose in the new map may hold the new map's.
+                    out.append(self._frames(self._frames_msg, wall))
+                return out
         elif isinstance(msg, Truth):
             data = foxglove.pose_in_frame_json(header.timestamp, msg.x, msg.y, msg.theta)
             channel = self.channel(truth_topic(header.robot), foxglove.POSE_IN_FRAME)
@@ -280,15 +294,8 @@ class FoxgloveScene:
             for robot in (before or set()) & set(msg.unframed):
                 self._placings[robot] = self._placings.get(robot, 0) + 1
             self._placed_by[header.sender] = placed
-            moves = [
-                (foxglove.MAP_FRAME, robot_frame(f.robot, self._placings.get(f.robot, 0)), f.x, f.y, f.theta)
-                for f in msg.frames
-                if f.began == self._map_began.get(f.robot, f.began)  # found for the map its poses are in
-            ]
-            data = _dumps(foxglove.frame_transforms(header.timestamp, moves))
-            channel = self.channel(FRAMES_TOPIC, foxglove.FRAME_TRANSFORMS)
-            self.frames_record = Record(channel, data, ns(wall), ns(header.timestamp))
-            return [self.frames_record]
+            self._frames_msg = msg
+            return [self._frames(msg, wall)]
         elif isinstance(msg, MapSnapshot | MapUpdate):
             if self._map(msg):
                 topic = map_topic(header.robot)
@@ -369,6 +376,19 @@ class FoxgloveScene:
                 )
             )
         return Record(self.channel(topic, foxglove.GRID), data, ns(wall), ns(t))
+
+    def _frames(self, msg: FleetFrames, wall: float) -> Record:
+        """``msg``'s transforms, of the frames found for the maps the robots' poses are in
+        (``same_map``), as the latest frames record."""
+        moves = [
+            (foxglove.MAP_FRAME, robot_frame(f.robot, self._placings.get(f.robot, 0)), f.x, f.y, f.theta)
+            for f in msg.frames
+            if same_map(f.began, self._map_began.get(f.robot, 0.0), f.robot in self._named)
+        ]
+        data = _dumps(foxglove.frame_transforms(msg.header.timestamp, moves))
+        channel = self.channel(FRAMES_TOPIC, foxglove.FRAME_TRANSFORMS)
+        self.frames_record = Record(channel, data, ns(wall), ns(msg.header.timestamp))
+        return self.frames_record
 
     def _frame(self, robot: str) -> str:
         """The frame ``robot``'s pose, scan and map are drawn in: its own map's while it reports in it."""

@@ -257,7 +257,7 @@ class ReplaySource:
                 return recorded
             built = self._answers.get(key)
             if built is not None and built.version == copy.version:
-                return built
+                return built  # (an answer of an earlier map is dropped when its snapshot is: ``_follow``)
             fields: dict[str, Any] | None
             if isinstance(copy, SharedMap):
                 fields = dict(
@@ -282,8 +282,10 @@ class ReplaySource:
             with self._copies_lock:
                 if isinstance(msg, MapSnapshot):
                     self._snapshots[key], self._copies[key] = msg, SharedMap.from_snapshot(msg)
+                    self._answers.pop(key, None)  # built from the copy it replaces (another map's, maybe)
                 elif isinstance(msg, DoseSnapshot):
                     self._snapshots[key], self._copies[key] = msg, SharedDose.from_snapshot(msg)
+                    self._answers.pop(key, None)
                 elif isinstance(msg, MapUpdate | DoseUpdate):
                     copy = self._copies.get(key)
                     if copy is not None:

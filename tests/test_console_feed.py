@@ -418,3 +418,13 @@ def test_a_robot_whose_map_began_again_is_not_placed_or_sent_goals_through_its_o
     assert view.off_fleet_map
     fleet.set_frames({"r1": (6.0, 2.0, 0.0)}, began={"r1": 90.0})
     assert not view.off_fleet_map and view.pose == (6.0, 2.0, 0.0)
+    # Restarted once more: its first poses say 0 (its new map not begun yet), and are not placed.
+    dark(0.0, 0.0, 3.0)
+    assert view.off_fleet_map and view.pose == (0.0, 0.0, 0.0)
+    # An agent before 1.2.0 names no map: the frame found for it holds, whatever map it was found for.
+    legacy = wire.HeaderCounter(SimClock(), robot="r2", sender="agent-r2")
+    fleet.apply(legacy.make(Pose, x=1.0, y=0.0, theta=0.0, sd_x_m=UNKNOWN_SD_M, sd_y_m=UNKNOWN_SD_M,
+                            sd_theta_rad=UNKNOWN_SD_M, odom_x=0.0, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0,
+                            uwbStale=True), "zenoh", 4.0)  # fmt: skip
+    fleet.set_frames({"r1": (6.0, 2.0, 0.0), "r2": (5.0, 2.0, 0.0)}, began={"r1": 90.0, "r2": 33.0})
+    assert fleet.robots["r2"].pose == (6.0, 2.0, 0.0) and not fleet.robots["r2"].off_fleet_map

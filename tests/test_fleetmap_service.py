@@ -528,12 +528,14 @@ def test_the_frames_name_the_map_they_were_found_for_and_a_map_begun_again_goes_
     maps = {"r1": robot_map((0.0, 0.0, 7.5, 6.0), floor=FURNISHED), "r2": own_frame((1.5, 0.0, 9.0, 6.0), start)}
     shares = {r: MapShare(robots_side, r, clock) for r in maps}
 
-    def share(robot: str, began: float, version: int) -> None:
+    def share(robot: str, began: float, version: int, fetched: bool = True) -> None:
+        """``robot`` shares its map (begun at ``began``); ``fetched``: the console has fetched it."""
         m = maps[robot]
         shares[robot].publish(
             MapPublication(version, m.cells, m.resolution, m.origin, None, site_frame=m.site_frame, began=began)
         )
-        follower.maps[robot] = SharedMap(m.cells, m.resolution, m.origin, version)
+        if fetched:
+            follower.maps[robot] = SharedMap(m.cells, m.resolution, m.origin, version, began)
 
     def build() -> FleetFrames:
         heard.clear()
@@ -558,6 +560,13 @@ def test_the_frames_name_the_map_they_were_found_for_and_a_map_begun_again_goes_
         assert close_to((frame.x, frame.y, frame.theta), start)
         assert "r1" not in [f.robot for f in msg.frames]  # in the site frame
         # r2's agent restarts where it began: the same walls, a new map (its versions from 0 again).
+        # Until the console has fetched the new map, the copy it holds (the old one) is left out:
+        # no frame goes out for r2 that the new map's poses would be placed through.
+        share("r2", 61.0, 0, fetched=False)
+        m = maps["r2"]
+        follower.maps["r2"] = SharedMap(m.cells, m.resolution, m.origin, 2, 20.0)  # the old map's last update
+        msg = build()
+        assert [f.robot for f in msg.frames] == [], msg.frames
         share("r2", 61.0, 0)
         for _ in range(10):
             msg = build()

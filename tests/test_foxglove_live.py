@@ -280,22 +280,42 @@ def test_a_robot_whose_map_began_again_leaves_the_old_frame_at_its_first_pose_in
         )
 
     def frame_of(msg: Pose, wall: float) -> str:
-        (p,) = records(msg, wall)
-        return str(json.loads(p.data)["frame_id"])
+        return str(json.loads(records(msg, wall)[0].data)["frame_id"])
+
+    def children(tf: Any) -> list[str]:
+        return [t["child_frame_id"] for t in json.loads(tf.data)["transforms"]]
 
     assert frame_of(dark(1.0, 0.0), 1.0) == "r2/map"  # before its map began
     assert frame_of(dark(1.0, 20.0), 1.1) == "r2/map"
     (tf,) = records(frames(20.0), 1.2)
-    (t,) = json.loads(tf.data)["transforms"]
-    assert t["child_frame_id"] == "r2/map"
-    # Its agent restarts: the first pose in the new map leaves r2/map, which keeps the old transform.
-    assert frame_of(dark(0.0, 0.0), 2.0) == "r2/map"  # no map yet: poses of 0 say nothing
-    assert frame_of(dark(0.1, 61.0), 2.1) == "r2/map.1"
+    assert children(tf) == ["r2/map"]
+    # Its agent restarts: its first pose of the new map (0: not begun yet) leaves r2/map, which keeps
+    # the old transform; the new map's began, when it comes, is the same new map.
+    assert frame_of(dark(0.0, 0.0), 2.0) == "r2/map.1"
+    _pose, tf = records(dark(0.1, 61.0), 2.1)  # the frames held, sent again: none for the new map yet
+    assert json.loads(_pose.data)["frame_id"] == "r2/map.1" and children(tf) == []
     (tf,) = records(frames(20.0), 2.2)  # the service has not noticed yet: its old frame is not sent
-    assert json.loads(tf.data)["transforms"] == []
+    assert children(tf) == []
     (tf,) = records(frames(61.0), 2.3)
-    (t,) = json.loads(tf.data)["transforms"]
-    assert t["child_frame_id"] == "r2/map.1"
+    assert children(tf) == ["r2/map.1"]
+    # Restarted again; the service finds the new map before its poses name it: the frame goes out
+    # with its first pose that does.
+    assert frame_of(dark(0.0, 0.0), 3.0) == "r2/map.2"
+    (tf,) = records(frames(90.0), 3.1)
+    assert children(tf) == []
+    _pose, tf = records(dark(0.1, 90.0), 3.2)
+    assert children(tf) == ["r2/map.2"]
+    # An agent before 1.2.0 names no map (0 always): every frame found for it holds.
+    c3 = wire.HeaderCounter(clock, robot="r3", sender="agent-r3")
+    core.subscribe(pose_topic("r3"), 0.0, 3.3)
+    core.receive(wire.key_of(m := c3.make(Pose, x=0.0, y=0.0, theta=0.0, sd_x_m=UNKNOWN_SD_M, sd_y_m=UNKNOWN_SD_M,
+        sd_theta_rad=UNKNOWN_SD_M, odom_x=0.0, odom_y=0.0, odom_theta=0.0, vx=0.0, omega=0.0, uwbStale=True)),
+        wire.encode(m), 3.3)  # fmt: skip
+    legacy = fleet.make(
+        FleetFrames, reference="", frames=(RobotFrame(robot="r3", x=1.0, y=1.0, theta=0.0, began=40.0),), unframed=()
+    )
+    (tf,) = records(legacy, 3.4)
+    assert children(tf) == ["r3/map"]
 
 
 def test_a_scan_keeps_the_nearest_return_of_each_beam_and_its_points_land_where_they_were_seen() -> None:

@@ -463,6 +463,20 @@ def test_a_frame_places_only_poses_of_the_map_it_was_found_for() -> None:
     peers.began = 50.0
     assert peers.standing(44.0, placed=False) == ()
     assert peers.robots_ahead(44.0, (0.0, 0.0, 0.0), placed=False) == ()
+    # Restarted again: until its new map begins, its poses say 0, and no frame places them.
+    peers.began = 5.0
+    peers.hear("r2", _unplaced("r2", 0.0, 0.0, t=46.0, began=0.0), now=46.0)
+    assert peers.standing(46.0, placed=False) == ()
+    # An agent before 1.2.0 names no map (its poses say 0 always): every frame found for it holds.
+    legacy = PeerBodies(("r3",), robot="r1")
+    legacy.began = 5.0
+    legacy.hear_frames(_frames("r1", r1=(0.0, 0.0, 0.0, 5.0), r3=(2.0, 0.0, 0.0, 30.0)), now=50.0)
+    legacy.hear("r3", _unplaced("r3", 1.0, 0.0, t=50.0), now=50.0)
+    assert legacy.standing(50.0, placed=False) == ((3.0, 0.0),)
+    # And a service that does not say which map (0) places whichever map the poses name.
+    legacy.hear_frames(_frames("r1", r1=(0.0, 0.0, 0.0), r3=(2.0, 0.0, 0.0)), now=51.0)
+    legacy.hear("r3", _unplaced("r3", 1.0, 0.0, t=51.0, began=70.0), now=51.0)
+    assert legacy.standing(51.0, placed=False) == ((3.0, 0.0),)
     # A placed robot needs no frame of its own: the site frame is one map.
     site = PeerBodies(("r2",), robot="r1")
     site.hear_frames(_frames("", r2=(3.0, 0.0, 0.0, 12.0)), now=39.0)
