@@ -11,8 +11,8 @@
 * two in-process links (``InProcessBus``), Zenoh and MQTT, carrying the same wire bytes as the real
   ones, pumped between steps;
 * with ``fleet_map``, the console's fleet map service (site/fleetmap.py) on the operator's Zenoh
-  link, as the demo's console runs it: every robot's map fetched and the fleet map built every
-  ``FLEET_MAP_PERIOD_S``; its frames (``FleetFrames``) reach the agents, which put peers mapping in
+  link, as the demo's console runs it: its map follower kept current by the robots' patches, the
+  snapshots it wants fetched and the fleet map built every ``FLEET_MAP_PERIOD_S``; its frames (``FleetFrames``) reach the agents, which put peers mapping in
   their own frames into their own with them (agent/peers.py);
 * a scripted operator (``ScriptedOperator``) that sends what the scenario's events ask for
   (teleop bursts, goals, instant actions, marks), turns a robot's ``script`` into teleop and sends a
@@ -66,9 +66,8 @@ from fleetlink.field.radio import LINKS, ContactLog, FleetRadio, RadioModel
 from fleetlink.field.scenario import Scenario
 from fleetlink.links.inprocess import InProcessBus, InProcessLink
 from fleetlink.operator.fleet import FleetModel
-from fleetlink.operator.maps import MapFollower
+from fleetlink.operator.maps import MapFetcher, MapFollower
 from fleetlink.shared import keys, wire
-from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.messages import (
     Action,
     ActionType,
@@ -76,6 +75,7 @@ from fleetlink.shared.messages import (
     Goal,
     InstantActions,
     LinkName,
+    MapUpdate,
     Mark,
     Order,
     Teleop,
@@ -298,12 +298,26 @@ class MissionRun:
         self.fleet_map: FleetMapService | None = None
         """The console's fleet map service, with ``fleet_map`` (its ``result``: the fleet map built)."""
         self._next_fleet_map = 0.0
+        self._map_fetcher: MapFetcher | None = None
         if fleet_map:
-            share = MapShare(self.operator.zenoh, keys.FLEET_MAP, self.clock, sender=OPERATOR)
+            # As the console wires it (cli/console.py): its map follower kept current by the robots'
+            # patches, its fetcher taking the snapshots the follower wants, then a build.
+            op_link = self.operator.zenoh
+            share = MapShare(op_link, keys.FLEET_MAP, self.clock, sender=OPERATOR)
             share.start()
             follower = MapFollower(FleetModel(OPERATOR))
-            self.fleet_map = FleetMapService(
-                follower, threading.Lock(), self.clock, share=share, query=self.operator.zenoh
+            for r in self.robots:
+                follower.fleet.robot(r.name)  # (the console knows them from their poses)
+            lock = threading.Lock()
+            self.fleet_map = FleetMapService(follower, lock, self.clock, share=share, query=op_link)
+            op_link.subscribe(f"{keys.PREFIX}/*/{MapUpdate.TOPIC}", self._map_update)
+            self._map_fetcher = MapFetcher(
+                follower,
+                lambda robot: fetch_map(op_link, robot, timeout=0.0),
+                self.clock,
+                lock,
+                period_s=FLEET_MAP_PERIOD_S,
+                after_poll=self.fleet_map.step,
             )
         self.field.controllers.append(self._step_agents)
 
@@ -496,21 +510,25 @@ class MissionRun:
         self._operate(t)
         if self.fleet_map is not None and t >= self._next_fleet_map:
             self._next_fleet_map = t + FLEET_MAP_PERIOD_S
-            self._build_fleet_map(self.fleet_map)
+            self._build_fleet_map()
         self._pump()
 
-    def _build_fleet_map(self, service: FleetMapService) -> None:
-        """What the console's map fetcher and fleet map service do between two of its polls: each
-        robot's map fetched over the operator's Zenoh link where it changed, then a build (which
-        fetches the submaps it lacks and publishes the frames on the same link)."""
-        maps = service.follower.maps
-        for r in self.robots:
-            snap = fetch_map(self.operator.zenoh, r.name, timeout=0.0)
-            if snap is not None and (
-                r.name not in maps or (maps[r.name].began, maps[r.name].version) != (snap.began, snap.version)
-            ):
-                maps[r.name] = SharedMap.from_snapshot(snap)
-        service.step()
+    def _map_update(self, key: str, payload: bytes) -> None:
+        """A robot's map patch heard on the operator's Zenoh link: to the console's map follower."""
+        assert self.fleet_map is not None
+        try:
+            msg = wire.decode_key(key, payload)
+        except wire.WireError:
+            return  # (the console's feed counts what does not decode; the agents here send none)
+        if isinstance(msg, MapUpdate):
+            self.fleet_map.follower.on_update(msg)
+
+    def _build_fleet_map(self) -> None:
+        """What the console's map fetcher does at each poll: the snapshots its follower wants (a robot
+        not fetched yet, a copy a patch did not follow) fetched over the operator's Zenoh link, then a
+        build (which fetches the submaps it lacks and publishes the frames on the same link)."""
+        assert self._map_fetcher is not None
+        self._map_fetcher.poll()
 
     def _pump(self) -> None:
         # A command and its ack cross in one pump; telemetry published on both links interleaves
