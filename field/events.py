@@ -4,9 +4,8 @@ The runner executes world events itself: doors, obstacles, wheel slip, the home 
 board link (``link_cut``, ``link`` with ``link = "board"``) through its ``cut_link`` callback.
 Everything it cannot execute goes to ``on_command(event, t)``: operator commands (``teleop``,
 ``goal``, ``action``, ``mark``), the other links (``link`` with zenoh, mqtt or lidar) and an agent's
-restart (``agent_restart``). A teleop
-burst is handed over once every ``TELEOP_PERIOD_S`` from its time until its duration is over, so
-the handler sends one Teleop per call.
+restart (``agent_restart``). A teleop burst is handed over once every ``TELEOP_PERIOD_S`` from its
+time until its duration is over, so the handler sends one Teleop per call.
 """
 
 from __future__ import annotations

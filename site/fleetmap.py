@@ -106,7 +106,7 @@ class FleetMapService:
         """Submap replies left out: cells that do not decode, a bad reply, another map's or robot's."""
         self._logged: set[tuple[str, str]] = set()
         self._incomplete = False  # some robot's listed submaps are still being fetched: build again
-        # Per robot: its map as last asked about (version, shape, origin) and the answer then.
+        # Per robot: its map as last asked about (began, version, shape, origin) and the answer then.
         self._answered: dict[str, tuple[object, tuple[Submap, ...], bool]] = {}
         self._site_frames: dict[str, bool] = {}  # each robot's map frame as its list last said
         self._began: dict[str, float] = {}  # each robot's map as its list last said (``MapSubmaps.began``)

@@ -12,8 +12,9 @@
   ones, pumped between steps;
 * with ``fleet_map``, the console's fleet map service (site/fleetmap.py) on the operator's Zenoh
   link, as the demo's console runs it: its map follower kept current by the robots' patches, the
-  snapshots it wants fetched and the fleet map built every ``FLEET_MAP_PERIOD_S``; its frames (``FleetFrames``) reach the agents, which put peers mapping in
-  their own frames into their own with them (agent/peers.py);
+  snapshots it wants fetched and the fleet map built every ``FLEET_MAP_PERIOD_S``; its frames
+  (``FleetFrames``) reach the agents, which put peers mapping in their own frames into their own
+  with them (agent/peers.py);
 * a scripted operator (``ScriptedOperator``) that sends what the scenario's events ask for
   (teleop bursts, goals, instant actions, marks), turns a robot's ``script`` into teleop and sends a
   wandering robot to its plan's named places one after another (without UWB, as the robot's own map
@@ -101,8 +102,8 @@ WANDER_GOAL_TIMEOUT_S = 60.0
 """A wandering robot that has neither reached nor failed its goal by then gets the next one."""
 UWB_START_S = 0.0
 FLEET_MAP_PERIOD_S = 2.0
-"""How often the console's map fetcher polls and its fleet map service builds (operator/maps.py polls
-every 0.5 s; site/fleetmap.py builds at most every 2 s)."""
+"""How often the console's map fetcher polls, each poll followed by a build of its fleet map service
+(the console polls every 0.5 s, and its service builds at most every 2 s: site/fleetmap.py)."""
 RADIO_CUT = "radio"
 """The reason the radio cuts an agent's endpoint on a bus (a scenario's cuts are another)."""
 
