@@ -17,7 +17,7 @@ import numpy as np
 
 from fleetlink.field.build import build_world, lidar_model
 from fleetlink.field.device_server import DeviceServer, Reactor
-from fleetlink.field.events import EventRunner
+from fleetlink.field.events import CommandHandler, EventRunner
 from fleetlink.field.plans import FloorPlan, load_plan
 from fleetlink.field.rplidar import RplidarConfig, SimulatedRplidar, motor_at_start
 from fleetlink.field.scenario import Scenario
@@ -59,7 +59,10 @@ class RealtimeField:
         step_hz: float = 200.0,
         host: str = "127.0.0.1",
         pty: bool = False,
+        on_command: CommandHandler | None = None,
     ) -> None:
+        """``on_command``: the events the field hands over (field/events.py), called on the physics
+        thread, so it must not block; without it a scenario with such events is refused."""
         self.scenario = scenario
         self.plan = plan or load_plan(scenario.plan)
         self.clock = clock or SystemClock()
@@ -74,7 +77,7 @@ class RealtimeField:
         self.lidars: dict[str, tuple[SimulatedRplidar, DeviceServer]] = {}
         self.endpoints: dict[str, Endpoints] = {}
         self._reactor: Reactor | None = None  # one selector thread serves every device's TCP socket
-        self.events = EventRunner(scenario.events, self.plan, self.world, self._cut_link)
+        self.events = EventRunner(scenario.events, self.plan, self.world, self._cut_link, on_command)
         self._physics: Worker | None = None
         self._start_time = 0.0
 

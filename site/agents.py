@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import threading
 from collections.abc import Callable, Mapping, Sequence
 
 from fleetlink.agent.config import AgentConfig, Limits, MqttSettings, Rates, UvTable, ZenohSettings, mqtt_settings
@@ -129,22 +130,45 @@ class FieldAgents:
                 )
             )
         self.agents: dict[str, AgentRuntime] = {}
+        self._lock = threading.Lock()  # a restart (another thread) and stop() one at a time
 
     def start(self) -> dict[str, AgentRuntime]:
-        for i, cfg in enumerate(self.configs):
-            radio = functools.partial(self.reachable, cfg.robot) if self.reachable is not None else None
-            agent = AgentRuntime(cfg, self.clock, seed=i, reachable=radio)
-            agent.start()
-            self.agents[cfg.robot] = agent
+        with self._lock:
+            for i in range(len(self.configs)):
+                self._start(i)
         return self.agents
 
-    def stop(self) -> None:
-        for agent in self.agents.values():
+    def _start(self, i: int) -> None:
+        cfg = self.configs[i]
+        radio = functools.partial(self.reachable, cfg.robot) if self.reachable is not None else None
+        agent = AgentRuntime(cfg, self.clock, seed=i, reachable=radio)
+        agent.start()
+        self.agents[cfg.robot] = agent
+
+    def restart(self, robot: str) -> None:
+        """``robot``'s agent stopped as its process is on a restart (the robot halted, its links'
+        retained state OFFLINE) and a new one started from the same configuration: all the old one
+        held in memory is gone, and its map begins again where the robot stands (in a new frame
+        without UWB). A no-op once ``stop`` has run."""
+        with self._lock:
+            old = self.agents.pop(robot, None)
+            if old is None:
+                return
+            log.warning("agent %s: restarting", robot)
             try:
-                agent.stop()
-            except Exception:  # keep stopping the others
-                log.exception("stopping agent %s failed", agent.config.robot)
-        self.agents.clear()
+                old.stop()
+            except Exception:  # a new process starts whatever the old one left
+                log.exception("stopping agent %s failed", robot)
+            self._start(next(i for i, cfg in enumerate(self.configs) if cfg.robot == robot))
+
+    def stop(self) -> None:
+        with self._lock:
+            for agent in self.agents.values():
+                try:
+                    agent.stop()
+                except Exception:  # keep stopping the others
+                    log.exception("stopping agent %s failed", agent.config.robot)
+            self.agents.clear()
 
     def __enter__(self) -> FieldAgents:
         self.start()

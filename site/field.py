@@ -16,6 +16,9 @@
    (``site.boards``), what ``fleetlink field --console off`` shows. When the plan has access
    points or dead zones, the field's radio (``site.radio``, field/radio.py) follows every robot's
    true pose and its agent's links pass nothing while out of reach (docs/field-scenarios.md).
+   A scenario's ``agent_restart`` restarts that robot's agent (``FieldAgents.restart``); its other
+   operator commands and link changes are refused when the site is made (the console is the
+   operator here).
 
 ``stop()`` stops whatever started, in reverse. ``operator_link(operator)`` gives a further console
 on a secured site its ``OperatorLink`` (not started).
@@ -34,12 +37,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from fleetlink.field.events import is_handed_over
 from fleetlink.field.radio import FleetRadio, RadioModel
 from fleetlink.field.realtime import Endpoints, RealtimeField, TruthSample
+from fleetlink.field.scenario import AgentRestart
 from fleetlink.shared.access import GATEWAY_USER, SIM_USER
 from fleetlink.shared.clock import Clock, SystemClock
 from fleetlink.shared.messages import LinkName
 from fleetlink.shared.mqtt import MqttSettings
+from fleetlink.shared.worker import Worker
 from fleetlink.site.brokers import AmqttBroker, MosquittoBroker, free_port, start_demo_broker
 from fleetlink.site.operator import open_operator_link
 from fleetlink.site.security import SiteSecurity
@@ -49,7 +55,7 @@ if TYPE_CHECKING:
     from fleetlink.agent.config import Rates
     from fleetlink.field.open_loop import Motion
     from fleetlink.field.plans import FloorPlan
-    from fleetlink.field.scenario import Scenario
+    from fleetlink.field.scenario import Event, Scenario
     from fleetlink.operator.links import OperatorLink
     from fleetlink.positioning.publisher import UwbGateway
     from fleetlink.site.agents import FieldAgents
@@ -97,8 +103,11 @@ class FieldSite:
             raise ValueError("a secured site runs its own broker (deploy/'s configuration): no mqtt_url")
         if security is not None and operator is not None and operator not in security.operators:
             raise ValueError(f"the operator {operator!r} has no account on this site ({', '.join(security.operators)})")
+        _refuse_operator_events(scenario, agents)
         self.clock = clock or SystemClock()
-        self.field = RealtimeField(scenario, plan, self.clock, truth_sink=self._truth_sample, pty=pty)
+        self.field = RealtimeField(
+            scenario, plan, self.clock, truth_sink=self._truth_sample, pty=pty, on_command=self._command
+        )
         self.scenario, self.plan = self.field.scenario, self.field.plan
         self.with_agents = agents
         self.operator = operator
@@ -122,6 +131,7 @@ class FieldSite:
         self._hub_taken = False  # the demo's endpoint has its listener (the console's peer, or _hub)
         self._folder: Path | None = None
         self._truth_sinks: list[Callable[[TruthSample], None]] = []
+        self._restarts: list[Worker] = []  # agents restarting (scenario events), each on a thread of its own
 
     # -- life cycle -------------------------------------------------------------------------------
 
@@ -219,6 +229,9 @@ class FieldSite:
         link, self.link = self.link, None
         if link is not None:
             link.close()
+        for restart in self._restarts:  # one under way finishes first: then every agent is stopped below
+            restart.stop(30.0)
+        self._restarts.clear()
         if self.agents is not None:
             self.agents.stop()
             self.agents = None
@@ -287,6 +300,18 @@ class FieldSite:
         """How to join this site (a secured site's credentials), for the terminal."""
         return self.security.describe() if self.security is not None else []
 
+    def _command(self, event: Event, t: float) -> None:
+        """The field's handed-over events (on its physics thread): an agent's restart, carried out on
+        a thread of its own so the physics goes on meanwhile, as a robot's hardware does while its
+        agent process restarts. Every other kind was refused when the site was made."""
+        if not isinstance(event, AgentRestart) or self.agents is None:
+            log.error("t=%.3f s: %s: nothing here carries it out", t, event.describe())
+            return
+        agents, robot = self.agents, event.robot
+        self._restarts.append(
+            Worker(f"restart-{robot}", clock=self.clock, target=lambda _w: agents.restart(robot)).start()
+        )
+
     def _radio(self) -> Callable[[str, LinkName], bool] | None:
         """The radio's ``reachable(robot, link)``, kept up to date from the truth (None: the plan
         has no radio model: every link reaches everywhere)."""
@@ -308,6 +333,18 @@ class FieldSite:
     def _truth_sample(self, sample: TruthSample) -> None:
         for sink in list(self._truth_sinks):
             sink(sample)
+
+
+def _refuse_operator_events(scenario: Scenario, agents: bool) -> None:
+    """A real-time site carries out no operator commands or network link changes of a scenario (the
+    console is the operator here); an agent's restart it does, when it runs agents."""
+    for ev in scenario.events:
+        if not is_handed_over(ev):
+            continue
+        if not isinstance(ev, AgentRestart):
+            raise ValueError(f"{ev.describe()}: this run has no operator side to execute {ev.kind} events")
+        if not agents:
+            raise ValueError(f"{ev.describe()}: this run has no agents to restart")
 
 
 def uwb_gateway(scenario: Scenario, plan: FloorPlan, mqtt: MqttSettings, clock: Clock) -> UwbGateway | None:

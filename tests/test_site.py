@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from fleetlink.shared.clock import SystemClock
-from fleetlink.shared.messages import Ack, AckResult, Pose, Teleop, UwbFix
+from fleetlink.shared.messages import Ack, AckResult, Connection, Pose, Teleop, UwbFix
 from fleetlink.site import brokers
 from fleetlink.site.brokers import AmqttBroker, MosquittoBroker, start_demo_broker
 from fleetlink.site.field import FieldSite
@@ -120,6 +120,58 @@ def test_without_agents_the_boards_are_driven_open_loop_and_no_broker_starts() -
     finally:
         site.stop()
     assert site.boards is None
+
+
+def test_an_agent_restart_event_restarts_that_agent_in_real_time() -> None:
+    """The scenario's ``agent_restart`` in the real-time field: uvc-2's agent is stopped as a process on
+    a restart is (its retained connection OFFLINE) and a new one started, which reconnects to the
+    same board and is heard again; uvc-1's agent is the same throughout. Operator commands and link
+    changes are refused up front, as is a restart on a field without agents."""
+    robots = [
+        {"name": "uvc-1", "start": "living", "drive": "idle"},
+        {"name": "uvc-2", "start": "bedroom", "drive": "idle"},
+    ]
+    restart = [{"at_s": 1.0, "kind": "agent_restart", "robot": "uvc-2"}]
+    teleop = [{"at_s": 1.0, "kind": "teleop", "robot": "uvc-2", "v": 0.1, "duration_s": 1.0}]
+    with pytest.raises(ValueError, match="no operator side to execute teleop events"):
+        FieldSite(quiet_scenario(robots=robots, events=teleop, lidar={"enabled": False}), say=print)
+    with pytest.raises(ValueError, match="uvc-2's agent restarts: this run has no agents to restart"):
+        FieldSite(quiet_scenario(robots=robots, events=restart, lidar={"enabled": False}), agents=False, say=print)
+    scenario = quiet_scenario(robots=robots, events=restart, lidar={"enabled": False})
+    site = FieldSite(scenario, clock=SystemClock(), operator="operator-1", say=print)
+    got: list[Any] = []
+    lock = threading.Lock()
+    try:
+        site.start()
+        assert site.agents is not None and site.link is not None
+        first = dict(site.agents.agents)
+
+        def sink(msg: Any, _on: str, _t: float) -> None:
+            with lock:
+                got.append(msg)
+
+        site.link.add_sink(sink)
+
+        def restarted() -> bool:
+            assert site.agents is not None
+            agent = site.agents.agents.get("uvc-2")
+            return agent is not None and agent is not first["uvc-2"] and agent.board.snapshot.connected
+
+        wait_until(restarted, timeout=20, message="a new agent for uvc-2, on its board")
+        with lock:
+            mark = len(got)
+        wait_until(
+            lambda: any(isinstance(m, Pose) and m.header.robot == "uvc-2" for m in got[mark:]),
+            timeout=15,
+            message="uvc-2's new agent heard",
+        )
+        assert site.agents.agents["uvc-1"] is first["uvc-1"]
+        with lock:
+            states = [m.connectionState.value for m in got if isinstance(m, Connection) and m.header.robot == "uvc-2"]
+        assert "OFFLINE" in states and states[-1] == "ONLINE", states
+    finally:
+        site.stop()
+    assert site.agents is None
 
 
 def test_a_secured_site_refuses_a_broker_url_and_unknown_operators() -> None:
