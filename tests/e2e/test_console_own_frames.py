@@ -91,21 +91,37 @@ def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path:
         wait_until(scout_2_in_the_middle, timeout=90, message="scout-2 at its first goal, the middle of the hall")
         tmux("send-keys", "-t", session, "Tab")
         wait_until(lambda: shown_pose(session, "scout-1") is not None, timeout=10, message="scout-1 selected again")
+
         # On, past the middle, to the north of the hall: (22, 19.5) on the plan, east of the pillars at
         # x = 20 (heading for (20, 19.5), straight between them, it bumped on loaded runs, 2 of 4).
-        command(session, "goal 18.5 -1.5")
-        wait_until(
-            lambda: "scout-1: goal (18.50, -1.50) sent" in screen(session), timeout=10, message="scout-1's goal sent"
-        )
         # There first: scout-2's legs below cross the middle of the hall that scout-1 drives through,
         # and neither robot knows where the other is (no site frame to share poses in), so only the
         # ultrasonic keeps them apart. On a loaded machine they met there: scout-2 bumped into
         # scout-1, which then failed its goal, blocked three times by scout-2 standing in its way.
-        wait_until(
-            lambda: (p := shown_pose(session, "scout-1")) is not None and math.dist(p, (18.5, -1.5)) < 0.3,
-            timeout=90,
-            message="scout-1 at (18.5, -1.5), to the north of the hall",
-        )
+        # Once (a clean clone's run, 2026-12-06) its ultrasonic barred it 0.38 m short, by the
+        # pillars, and the goal failed: as an operator would, the goal is sent again then.
+        def scout_1_north() -> bool:
+            p = shown_pose(session, "scout-1")
+            return p is not None and math.dist(p, (18.5, -1.5)) < 0.3
+
+        for attempt in range(2):
+            failed = len(re.findall(r"scout-1: goal_failed", screen(session)))
+            command(session, "goal 18.5 -1.5")
+            wait_until(
+                lambda: "scout-1: goal (18.50, -1.50) sent" in screen(session),
+                timeout=10,
+                message="scout-1's goal sent",
+            )
+            wait_until(
+                lambda failed=failed: (  # type: ignore[misc]
+                    scout_1_north() or len(re.findall(r"scout-1: goal_failed", screen(session))) > failed
+                ),
+                timeout=90,
+                message="scout-1 at (18.5, -1.5), to the north of the hall, or its goal failed",
+            )
+            if scout_1_north() or attempt == 1:
+                break
+        wait_until(scout_1_north, timeout=10, message="scout-1 at (18.5, -1.5), to the north of the hall")
         tmux("send-keys", "-t", session, "Tab")
         wait_until(lambda: shown_pose(session, "scout-2") is not None, timeout=10, message="scout-2 selected")
 
