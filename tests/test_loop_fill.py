@@ -10,6 +10,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from fleetlink.agent.mapping import scan as scanprep
 from fleetlink.agent.mapping.closure import Check, CloserConfig, NodeScan, draw_submap, open_space, run_check
@@ -116,12 +117,9 @@ def test_a_large_correction_asks_a_higher_score() -> None:
     assert verdict(0.2, strict) == "accepted"
     assert verdict(1.0, strict) == "score"
     assert verdict(1.0, CloserConfig()) == "accepted"
-    try:
-        CloserConfig(large_min_score=1.5)
-    except ValueError as e:
-        assert "large_min_score" in str(e)
-    else:
-        raise AssertionError("large_min_score=1.5 accepted")
+    for name in ("large_min_score", "large_min_score_unfilled"):
+        with pytest.raises(ValueError, match=name):
+            CloserConfig(**{name: 1.5})
 
 
 # A 5 x 4 m office: walls 1-3 m off, 1-degree beams 2-5 cm apart, already solid under the field's blur.
@@ -151,7 +149,7 @@ def test_only_submaps_that_saw_far_walls_are_filled() -> None:
     assert not draw_submap(_parts(), GridConfig(), CloserConfig(fill_from_range=50.0)).filled
 
     # ``large_min_score`` is asked only of filled submaps: a large correction in the office, drawn as
-    # seen, needs ``min_score`` alone; filled (``open_space``), the higher score.
+    # seen, needs ``large_min_score_unfilled``; filled (``open_space``), the higher score.
     node = (-0.2, 0.4, 0.9)
     scan, truth = _scan_at(*node, OFFICE), relative(poses[0], node)
     guess = (truth[0] + 0.8, truth[1], truth[2])
@@ -166,3 +164,8 @@ def test_only_submaps_that_saw_far_walls_are_filled() -> None:
         if result.closure is not None:
             assert math.dist(result.closure.z[:2], truth[:2]) < 0.05
     assert outcome == {"default": "accepted", "everywhere": "score"}, outcome
+    strict = replace(CloserConfig(), large_min_score_unfilled=0.999)  # above what the office's match scores
+    check = Check(3, 0, 0, scan, guess, (1.5, math.radians(10.0)), None, office, strict, GridConfig(), (0.0, 0.0, 0.0))
+    assert run_check(check).outcome == "score"
+    near = replace(check, guess=(truth[0] + 0.2, truth[1], truth[2]))  # a small correction: min_score alone
+    assert run_check(near).outcome == "accepted"

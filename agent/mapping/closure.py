@@ -187,6 +187,12 @@ class CloserConfig:
     # 0.06 -> 0.16 m); the true large closures there and on the other logs scored 0.63 and up. Asked of
     # unfilled submaps too, 0.55-0.6 cost aces' published worst revisit 0.185 -> 0.201 m.
     large_min_score: float = 0.62
+    # ... and on an unfilled submap at least this, a little above ``min_score``: MIT's Killian Court
+    # took a look-alike 3.6 m along a corridor at 0.507 (node 347 onto submap 160, then confirmed by
+    # the next node), about 110 of its relations 4 m off (0.254 -> 0.115 m without it); its true large
+    # closures and the other logs' scored 0.53 and up. 0.55 turned one of the Freiburg hospital's
+    # returns away (0.86 -> 1.66 m).
+    large_min_score_unfilled: float = 0.52
     confirm_nodes: int = 10  # ... within this many nodes
     # ... from a node at least this far from the first one's, or turned this much: a node nearer sees
     # much what the first saw and agrees with a look-alike as readily (the published MIT CSAIL log:
@@ -369,8 +375,9 @@ class CloserConfig:
             raise ValueError("the search caps must be at least the base windows")
         if not 0.0 <= self.min_facing_share <= 1.0:
             raise ValueError(f"min_facing_share must be in [0, 1], got {self.min_facing_share!r}")
-        if not 0.0 <= self.large_min_score <= 1.0:
-            raise ValueError(f"large_min_score must be in [0, 1], got {self.large_min_score!r}")
+        for name in ("large_min_score", "large_min_score_unfilled"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}")
 
 
 def long_loops(config: CloserConfig | None = None) -> CloserConfig:
@@ -378,7 +385,8 @@ def long_loops(config: CloserConfig | None = None) -> CloserConfig:
     submap searched in its own window (``window_per_submap``) and three checks a node, so a far submap
     the drifted graph ranks behind nearer look-alikes is still tried where the robot is. MIT's Killian
     Court (1.9 km, published relations): 0.254 m by default (``far_loop_m``: submaps 250 m or more back
-    along the graph get such windows; 1.649 m without), 0.146 m with this; the Freiburg hospital
+    along the graph get such windows; 1.649 m without; 0.115 m since ``large_min_score_unfilled``),
+    0.146 m with this (measured before that); the Freiburg hospital
     0.862 -> 0.595 m. Elsewhere the means move a millimetre or less and single worst revisits
     either way (aces' published 0.180 -> 0.225 m, intel's corrected 0.293 -> 0.255 m), but for the
     corrected csail log, 0.031 / 0.20 -> 0.040 / 0.40 m: docs/mapping.md, "``--long-loops`` on every
@@ -1558,7 +1566,8 @@ def _check_judge(check: Check, drawn: Drawn, found: Pose, score: float, r: IcpRe
     large = _move(compose(check.guess, inverse(check.mount)), robot) > cfg.confirm_above
     if facing < cfg.min_facing_share and large:
         return CheckResult(check, None, "behind", drawn)
-    if large and check.confirms is None and drawn.filled and score < cfg.large_min_score:
+    floor = cfg.large_min_score if drawn.filled else cfg.large_min_score_unfilled
+    if large and check.confirms is None and score < floor:
         return CheckResult(check, None, "score", drawn)
     if (
         math.hypot(r.pose[0] - found[0], r.pose[1] - found[1]) > cfg.max_disagreement
