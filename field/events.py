@@ -62,7 +62,8 @@ class EventRunner:
 
     ``cut_link(robot, cut)`` severs or restores a robot's board link: the lockstep run cuts its
     in-process port, the real-time field pauses the board's server. ``on_command`` receives the
-    events listed in the module docstring; a scenario that has any needs one.
+    events listed in the module docstring; a scenario that has any needs one, and ``carries_out(event)``
+    (if given) says which of them it does: the rest are refused when the runner is made.
     """
 
     def __init__(
@@ -72,6 +73,7 @@ class EventRunner:
         world: World,
         cut_link: Callable[[str, bool], None],
         on_command: CommandHandler | None = None,
+        carries_out: Callable[[Event], bool] | None = None,
     ) -> None:
         self.plan = plan
         self.world = world
@@ -87,6 +89,8 @@ class EventRunner:
                 raise ValueError(f"event at {ev.at:g} s: no robot {robot!r} in the world")
             if on_command is None and is_handed_over(ev):
                 raise ValueError(f"{ev.describe()}: this run has no operator side to execute {ev.kind} events")
+            if carries_out is not None and is_handed_over(ev) and not carries_out(ev):
+                raise ValueError(f"{ev.describe()}: this run does not carry out {ev.kind} events")
         # (time, phase, order, action): a heap keeps equal times in the order they were scheduled.
         self._queue: list[tuple[float, int, int, Callable[[float], None]]] = []
         self._order = 0

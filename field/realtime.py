@@ -20,7 +20,7 @@ from fleetlink.field.device_server import DeviceServer, Reactor
 from fleetlink.field.events import CommandHandler, EventRunner
 from fleetlink.field.plans import FloorPlan, load_plan
 from fleetlink.field.rplidar import RplidarConfig, SimulatedRplidar, motor_at_start
-from fleetlink.field.scenario import Scenario
+from fleetlink.field.scenario import Event, Scenario
 from fleetlink.field.world import World, WorldRobot
 from fleetlink.shared.clock import Clock, SystemClock
 from fleetlink.shared.worker import Worker
@@ -60,9 +60,12 @@ class RealtimeField:
         host: str = "127.0.0.1",
         pty: bool = False,
         on_command: CommandHandler | None = None,
+        carries_out: Callable[[Event], bool] | None = None,
     ) -> None:
         """``on_command``: the events the field hands over (field/events.py), called on the physics
-        thread, so it must not block; without it a scenario with such events is refused."""
+        thread under ``self.lock``, so it must not block, take the lock or wait on a device; without
+        it a scenario with such events is refused, and so is one with events ``carries_out`` says
+        it does not carry out."""
         self.scenario = scenario
         self.plan = plan or load_plan(scenario.plan)
         self.clock = clock or SystemClock()
@@ -77,7 +80,7 @@ class RealtimeField:
         self.lidars: dict[str, tuple[SimulatedRplidar, DeviceServer]] = {}
         self.endpoints: dict[str, Endpoints] = {}
         self._reactor: Reactor | None = None  # one selector thread serves every device's TCP socket
-        self.events = EventRunner(scenario.events, self.plan, self.world, self._cut_link, on_command)
+        self.events = EventRunner(scenario.events, self.plan, self.world, self._cut_link, on_command, carries_out)
         self._physics: Worker | None = None
         self._start_time = 0.0
 

@@ -6,7 +6,7 @@ agent/ (the agents talk to the field's boards and lidars through their bytes, li
 ``FieldAgents(field.endpoints, zenoh_connect=[...], mqtt_url=...)``: ``start()`` builds an
 ``AgentRuntime`` per robot (its own Zenoh session connecting to ``zenoh_connect``, the shared
 broker for MQTT, which also carries the UWB fixes: tag id = robot name) and ``stop()`` stops
-them all. An agent is the board's only master: do not also run a demo ``BoardSession`` on the
+them all; ``restart(robot)`` stops one and starts it again (a scenario's ``agent_restart``). An agent is the board's only master: do not also run a demo ``BoardSession`` on the
 same board.
 
 Security (issue 8) can be switched on as on a real site: ``mqtt`` (a ``shared.mqtt.MqttSettings``,
@@ -131,6 +131,7 @@ class FieldAgents:
             )
         self.agents: dict[str, AgentRuntime] = {}
         self._lock = threading.Lock()  # a restart (another thread) and stop() one at a time
+        self._stopped = False
 
     def start(self) -> dict[str, AgentRuntime]:
         with self._lock:
@@ -142,26 +143,40 @@ class FieldAgents:
         cfg = self.configs[i]
         radio = functools.partial(self.reachable, cfg.robot) if self.reachable is not None else None
         agent = AgentRuntime(cfg, self.clock, seed=i, reachable=radio)
-        agent.start()
+        try:
+            agent.start()
+        except BaseException:
+            agent.stop()  # what did start (its board session, links, workers) does not outlive it
+            raise
         self.agents[cfg.robot] = agent
 
     def restart(self, robot: str) -> None:
         """``robot``'s agent stopped as its process is on a restart (the robot halted, its links'
         retained state OFFLINE) and a new one started from the same configuration: all the old one
         held in memory is gone, and its map begins again where the robot stands (in a new frame
-        without UWB). A no-op once ``stop`` has run."""
+        without UWB). A no-op once ``stop`` has begun; the same shutdown as the process's on SIGTERM
+        (cli/main.py), then a new one, as ``systemctl restart`` does."""
+        if self._stopped:
+            return
         with self._lock:
+            if self._stopped:
+                return
             old = self.agents.pop(robot, None)
             if old is None:
+                log.error("agent %s: no such agent to restart", robot)
                 return
             log.warning("agent %s: restarting", robot)
             try:
                 old.stop()
             except Exception:  # a new process starts whatever the old one left
                 log.exception("stopping agent %s failed", robot)
-            self._start(next(i for i, cfg in enumerate(self.configs) if cfg.robot == robot))
+            try:
+                self._start(next(i for i, cfg in enumerate(self.configs) if cfg.robot == robot))
+            except Exception:
+                log.exception("agent %s did not start again: the robot has no agent", robot)
 
     def stop(self) -> None:
+        self._stopped = True  # a restart waiting for the lock gives up
         with self._lock:
             for agent in self.agents.values():
                 try:

@@ -32,12 +32,12 @@ import logging
 import shutil
 import sys
 import tempfile
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from fleetlink.field.events import is_handed_over
 from fleetlink.field.radio import FleetRadio, RadioModel
 from fleetlink.field.realtime import Endpoints, RealtimeField, TruthSample
 from fleetlink.field.scenario import AgentRestart
@@ -103,10 +103,17 @@ class FieldSite:
             raise ValueError("a secured site runs its own broker (deploy/'s configuration): no mqtt_url")
         if security is not None and operator is not None and operator not in security.operators:
             raise ValueError(f"the operator {operator!r} has no account on this site ({', '.join(security.operators)})")
-        _refuse_operator_events(scenario, agents)
         self.clock = clock or SystemClock()
+        # The console is this run's operator: of the events a field hands over, an agent's restart
+        # is the one the site carries out (with agents), the rest refused when the field is made.
         self.field = RealtimeField(
-            scenario, plan, self.clock, truth_sink=self._truth_sample, pty=pty, on_command=self._command
+            scenario,
+            plan,
+            self.clock,
+            truth_sink=self._truth_sample,
+            pty=pty,
+            on_command=self._command,
+            carries_out=lambda ev: agents and isinstance(ev, AgentRestart),
         )
         self.scenario, self.plan = self.field.scenario, self.field.plan
         self.with_agents = agents
@@ -131,7 +138,13 @@ class FieldSite:
         self._hub_taken = False  # the demo's endpoint has its listener (the console's peer, or _hub)
         self._folder: Path | None = None
         self._truth_sinks: list[Callable[[TruthSample], None]] = []
-        self._restarts: list[Worker] = []  # agents restarting (scenario events), each on a thread of its own
+        # Agents restarting (scenario events), each on a thread of its own; a restart due before the
+        # agents have started waits for them (``_deferred``), and none starts once the site stops.
+        self._restarts: list[Worker] = []
+        self._deferred: list[str] = []
+        self._restart_lock = threading.Lock()
+        self._agents_up = False
+        self._closing = False
 
     # -- life cycle -------------------------------------------------------------------------------
 
@@ -223,15 +236,22 @@ class FieldSite:
             reachable=self._radio(),
         )
         self.agents.start()
+        with self._restart_lock:
+            self._agents_up = True
+            for robot in self._deferred:
+                self._restart(robot)
+            self._deferred.clear()
 
     def stop(self) -> None:
         """Stop every part that started, the operator's link (unless taken) first, the brokers last."""
         link, self.link = self.link, None
         if link is not None:
             link.close()
-        for restart in self._restarts:  # one under way finishes first: then every agent is stopped below
+        with self._restart_lock:
+            self._closing = True  # no restart starts from now on
+            restarts, self._restarts = self._restarts, []
+        for restart in restarts:  # one under way finishes first: then every agent is stopped below
             restart.stop(30.0)
-        self._restarts.clear()
         if self.agents is not None:
             self.agents.stop()
             self.agents = None
@@ -301,13 +321,25 @@ class FieldSite:
         return self.security.describe() if self.security is not None else []
 
     def _command(self, event: Event, t: float) -> None:
-        """The field's handed-over events (on its physics thread): an agent's restart, carried out on
-        a thread of its own so the physics goes on meanwhile, as a robot's hardware does while its
-        agent process restarts. Every other kind was refused when the site was made."""
-        if not isinstance(event, AgentRestart) or self.agents is None:
+        """The field's handed-over events (on its physics thread): an agent's restart (the only kind
+        the field lets through, ``carries_out``), carried out on a thread of its own so the physics
+        goes on meanwhile, as a robot's hardware does while its agent process restarts."""
+        if not isinstance(event, AgentRestart):  # not let through (``carries_out``); the physics goes on
             log.error("t=%.3f s: %s: nothing here carries it out", t, event.describe())
             return
-        agents, robot = self.agents, event.robot
+        with self._restart_lock:
+            if self._closing:
+                log.info("t=%.3f s: %s: not carried out, the site is stopping", t, event.describe())
+            elif not self._agents_up:
+                log.info("t=%.3f s: %s: once the agents have started", t, event.describe())
+                self._deferred.append(event.robot)
+            else:
+                self._restart(event.robot)
+
+    def _restart(self, robot: str) -> None:
+        """(under ``_restart_lock``)"""
+        agents = self.agents
+        assert agents is not None
         self._restarts.append(
             Worker(f"restart-{robot}", clock=self.clock, target=lambda _w: agents.restart(robot)).start()
         )
@@ -333,18 +365,6 @@ class FieldSite:
     def _truth_sample(self, sample: TruthSample) -> None:
         for sink in list(self._truth_sinks):
             sink(sample)
-
-
-def _refuse_operator_events(scenario: Scenario, agents: bool) -> None:
-    """A real-time site carries out no operator commands or network link changes of a scenario (the
-    console is the operator here); an agent's restart it does, when it runs agents."""
-    for ev in scenario.events:
-        if not is_handed_over(ev):
-            continue
-        if not isinstance(ev, AgentRestart):
-            raise ValueError(f"{ev.describe()}: this run has no operator side to execute {ev.kind} events")
-        if not agents:
-            raise ValueError(f"{ev.describe()}: this run has no agents to restart")
 
 
 def uwb_gateway(scenario: Scenario, plan: FloorPlan, mqtt: MqttSettings, clock: Clock) -> UwbGateway | None:

@@ -6,6 +6,7 @@ console on the demo site is the tmux e2e test (tests/e2e).
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from pathlib import Path
@@ -122,29 +123,37 @@ def test_without_agents_the_boards_are_driven_open_loop_and_no_broker_starts() -
     assert site.boards is None
 
 
-def test_an_agent_restart_event_restarts_that_agent_in_real_time() -> None:
-    """The scenario's ``agent_restart`` in the real-time field: uvc-2's agent is stopped as a process on
-    a restart is (its retained connection OFFLINE) and a new one started, which reconnects to the
-    same board and is heard again; uvc-1's agent is the same throughout. Operator commands and link
-    changes are refused up front, as is a restart on a field without agents."""
+def test_an_agent_restart_event_restarts_that_agent_in_real_time(caplog: pytest.LogCaptureFixture) -> None:
+    """The scenario's ``agent_restart`` in the real-time field: uvc-2's agent is shut down as on
+    SIGTERM (its retained connection OFFLINE) and a new one started, which reconnects to the same board
+    and is heard again. uvc-1's, due at 0 s, before the agents are up, waits for them. Operator
+    commands and link changes are refused when the site is made, as is a restart on a field without
+    agents."""
     robots = [
         {"name": "uvc-1", "start": "living", "drive": "idle"},
         {"name": "uvc-2", "start": "bedroom", "drive": "idle"},
     ]
-    restart = [{"at_s": 1.0, "kind": "agent_restart", "robot": "uvc-2"}]
-    teleop = [{"at_s": 1.0, "kind": "teleop", "robot": "uvc-2", "v": 0.1, "duration_s": 1.0}]
-    with pytest.raises(ValueError, match="no operator side to execute teleop events"):
-        FieldSite(quiet_scenario(robots=robots, events=teleop, lidar={"enabled": False}), say=print)
-    with pytest.raises(ValueError, match="uvc-2's agent restarts: this run has no agents to restart"):
-        FieldSite(quiet_scenario(robots=robots, events=restart, lidar={"enabled": False}), agents=False, say=print)
-    scenario = quiet_scenario(robots=robots, events=restart, lidar={"enabled": False})
+    restarts = [
+        {"at_s": 0.0, "kind": "agent_restart", "robot": "uvc-1"},
+        {"at_s": 2.0, "kind": "agent_restart", "robot": "uvc-2"},
+    ]
+    refused = {
+        "teleop": {"kind": "teleop", "robot": "uvc-2", "v": 0.1, "duration_s": 1.0},
+        "link": {"kind": "link", "robot": "uvc-2", "link": "mqtt", "state": "cut"},
+    }
+    for kind, event in refused.items():
+        with pytest.raises(ValueError, match=f"this run does not carry out {kind} events"):
+            FieldSite(quiet_scenario(robots=robots, events=[{"at_s": 1.0, **event}], lidar={"enabled": False}))
+    with pytest.raises(ValueError, match="uvc-1's agent restarts: this run does not carry out agent_restart events"):
+        FieldSite(quiet_scenario(robots=robots, events=restarts, lidar={"enabled": False}), agents=False)
+    scenario = quiet_scenario(robots=robots, events=restarts, lidar={"enabled": False})
     site = FieldSite(scenario, clock=SystemClock(), operator="operator-1", say=print)
     got: list[Any] = []
     lock = threading.Lock()
+    caplog.set_level(logging.WARNING, logger="fleetlink.site.agents")
     try:
         site.start()
         assert site.agents is not None and site.link is not None
-        first = dict(site.agents.agents)
 
         def sink(msg: Any, _on: str, _t: float) -> None:
             with lock:
@@ -152,23 +161,31 @@ def test_an_agent_restart_event_restarts_that_agent_in_real_time() -> None:
 
         site.link.add_sink(sink)
 
-        def restarted() -> bool:
+        def restarted(robot: str) -> bool:
+            return any(r.getMessage() == f"agent {robot}: restarting" for r in caplog.records)
+
+        wait_until(lambda: restarted("uvc-1"), timeout=10, message="uvc-1's agent restarted once the agents were up")
+        assert not restarted("uvc-2")
+        first = site.agents.agents["uvc-2"]
+
+        def uvc_2_again() -> bool:
             assert site.agents is not None
             agent = site.agents.agents.get("uvc-2")
-            return agent is not None and agent is not first["uvc-2"] and agent.board.snapshot.connected
+            return agent is not None and agent is not first and agent.board.snapshot.connected
 
-        wait_until(restarted, timeout=20, message="a new agent for uvc-2, on its board")
+        wait_until(uvc_2_again, timeout=20, message="a new agent for uvc-2, on its board")
         with lock:
             mark = len(got)
-        wait_until(
-            lambda: any(isinstance(m, Pose) and m.header.robot == "uvc-2" for m in got[mark:]),
-            timeout=15,
-            message="uvc-2's new agent heard",
-        )
-        assert site.agents.agents["uvc-1"] is first["uvc-1"]
+
+        def heard() -> bool:
+            with lock:
+                return any(isinstance(m, Pose) and m.header.robot == "uvc-2" for m in got[mark:])
+
+        wait_until(heard, timeout=15, message="uvc-2's new agent heard")
         with lock:
             states = [m.connectionState.value for m in got if isinstance(m, Connection) and m.header.robot == "uvc-2"]
         assert "OFFLINE" in states and states[-1] == "ONLINE", states
+        assert sum(r.getMessage().startswith("agent ") for r in caplog.records) == 2  # each once
     finally:
         site.stop()
     assert site.agents is None

@@ -386,7 +386,7 @@ def long_loops(config: CloserConfig | None = None) -> CloserConfig:
     the drifted graph ranks behind nearer look-alikes is still tried where the robot is. MIT's Killian
     Court (1.9 km, published relations): 0.254 m by default (``far_loop_m``: submaps 250 m or more back
     along the graph get such windows; 1.649 m without; 0.115 m since ``large_min_score_unfilled``),
-    0.146 m with this (measured before that); the Freiburg hospital
+    0.146 m with this (with that floor too: the default now does better there); the Freiburg hospital
     0.862 -> 0.595 m. Elsewhere the means move a millimetre or less and single worst revisits
     either way (aces' published 0.180 -> 0.225 m, intel's corrected 0.293 -> 0.255 m), but for the
     corrected csail log, 0.031 / 0.20 -> 0.040 / 0.40 m: docs/mapping.md, "``--long-loops`` on every

@@ -15,41 +15,42 @@ truth: tests/test_robots_meeting.py.
 from __future__ import annotations
 
 import math
-import re
 import time
 from pathlib import Path
 
 import pytest
 
 from tests.e2e.test_console_field import command, console_field, needs_tmux, quit_field, screen, tmux
-from tests.e2e.test_console_robot_rule import hold
+from tests.e2e.test_console_own_frames import OFF_MAP
+from tests.e2e.test_console_robot_rule import POSE, hold, shown_pose
 from tests.harness import wait_until
 from tests.test_robots_meeting import OFFSET_M, facing_in_the_living_room
 
 pytestmark = needs_tmux  # the console's e2e tests' rule: under CI it must run
 
-POSE = re.compile(r"(uvc-\d) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
-OFF_MAP = "not on the fleet map yet"
 BEGAN_AGAIN = "its map began again"
 RESTART_S = 75.0  # field time of uvc-2's restart: after the operator has placed and moved it
 START = (3.5 - 2.2, OFFSET_M)  # where uvc-2 starts, on the fleet map (uvc-1's frame: it starts at (2.2, 2.0))
 
 
-def shown_pose(session: str, robot: str) -> tuple[float, float] | None:
-    m = POSE.search(screen(session))
-    return (float(m.group(2)), float(m.group(3))) if m and m.group(1) == robot else None
+def detail(text: str) -> str:
+    """The left column of a screen (the fleet table, the selected robot's detail, the alarms) as one
+    line: the detail's wrapped lines joined again."""
+    return " ".join(" ".join(line.split("│")[0].split()) for line in text.splitlines())
 
 
-def detail(session: str) -> str:
-    """The left column (the fleet table, the selected robot's detail, the alarms) as one line: the
-    detail's wrapped lines joined again."""
-    return " ".join(" ".join(line.split("│")[0].split()) for line in screen(session).splitlines())
+def uvc_2(session: str) -> tuple[tuple[float, float] | None, bool]:
+    """uvc-2's pose as the detail shows it (selected), and whether it is on the fleet map; one screen."""
+    text = screen(session)
+    m = POSE.search(text)
+    pose = (float(m.group(2)), float(m.group(3))) if m and m.group(1) == "uvc-2" else None
+    return pose, OFF_MAP not in text
 
 
 def on_fleet_map(session: str) -> tuple[float, float] | None:
-    """uvc-2's pose as the detail shows it, when it is on the fleet map (None otherwise)."""
-    p = shown_pose(session, "uvc-2")
-    return p if p is not None and OFF_MAP not in screen(session) else None
+    """uvc-2's pose when it is on the fleet map (None otherwise)."""
+    pose, on = uvc_2(session)
+    return pose if on else None
 
 
 @pytest.mark.slow
@@ -92,18 +93,35 @@ def test_a_robot_whose_agent_restarts_is_shown_off_the_fleet_map_then_where_it_s
         there = last[0]
         assert there is not None
         assert time.monotonic() - began < RESTART_S, "uvc-2 restarted before the operator had placed and moved it"
-        # The restart: off the fleet map, and why.
+        # The restart: off the fleet map, and why. Through the old map's frame it would be drawn where
+        # its old map began (START): never, on any screen from now on.
+        drawn: list[tuple[float, float]] = []
+
+        def sample() -> tuple[tuple[float, float] | None, bool]:
+            pose, on = uvc_2(session)
+            if pose is not None:
+                drawn.append(pose)
+            return pose, on
+
         wait_until(
-            lambda: BEGAN_AGAIN in detail(session),
+            lambda: (sample(), BEGAN_AGAIN in detail(screen(session)))[1],
             timeout=RESTART_S + 30 - (time.monotonic() - began),
+            interval=0.05,
             message="uvc-2's detail saying its map began again",
         )
-        p = shown_pose(session, "uvc-2")
-        assert p is None or math.dist(p, START) > 0.3, p  # never drawn through the old map's frame
-        wait_until(turned_until_found, timeout=60, interval=0.1, message="uvc-2's new map found on the fleet map")
+
+        def turned_until_found_again() -> bool:
+            if sample()[1]:
+                return True
+            hold(session, "j")
+            return False
+
+        wait_until(turned_until_found_again, timeout=60, interval=0.1, message="uvc-2's new map found on the fleet map")
         wait_until(
-            lambda: (p := on_fleet_map(session)) is not None and math.dist(p, there) < 0.1,
+            lambda: (p := sample()[0]) is not None and math.dist(p, there) < 0.1,
             timeout=15,
             message=f"uvc-2 shown where it stands, {there}",
         )
+        near_start = [p for p in drawn if math.dist(p, START) < 0.3]
+        assert not near_start, near_start  # never drawn through the old map's frame
         quit_field(session, pane_pid)

@@ -104,18 +104,18 @@ def test_two_scouts_without_uwb_come_onto_one_fleet_map_in_the_console(tmp_path:
             p = shown_pose(session, "scout-1")
             return p is not None and math.dist(p, (18.5, -1.5)) < 0.3
 
+        sent_text, failed_text = "scout-1: goal (18.50, -1.50) sent", "scout-1: goal_failed"
         for attempt in range(2):
-            failed = len(re.findall(r"scout-1: goal_failed", screen(session)))
+            text = screen(session)
+            sent, failed = text.count(sent_text), text.count(failed_text)
             command(session, "goal 18.5 -1.5")
             wait_until(
-                lambda: "scout-1: goal (18.50, -1.50) sent" in screen(session),
+                lambda sent=sent: screen(session).count(sent_text) > sent,  # type: ignore[misc]
                 timeout=10,
                 message="scout-1's goal sent",
             )
             wait_until(
-                lambda failed=failed: (  # type: ignore[misc]
-                    scout_1_north() or len(re.findall(r"scout-1: goal_failed", screen(session))) > failed
-                ),
+                lambda failed=failed: scout_1_north() or screen(session).count(failed_text) > failed,  # type: ignore[misc]
                 timeout=90,
                 message="scout-1 at (18.5, -1.5), to the north of the hall, or its goal failed",
             )
