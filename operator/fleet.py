@@ -141,7 +141,8 @@ def into_frame(
 FRAME_MOVED_M = 0.1
 FRAME_MOVED_RAD = math.radians(2.0)
 """A round planned through a robot's frame is not sent if the frame moved more than this meanwhile."""
-BEGAN_AGAIN = "its map began again: not found on the fleet map yet"
+BEGAN_AGAIN_SHORT = "its map began again"
+BEGAN_AGAIN = f"{BEGAN_AGAIN_SHORT}: not found on the fleet map yet"
 """Why a robot the fleet map had found is off it: its poses are in a new map (its agent restarted)."""
 
 
@@ -186,6 +187,9 @@ class RobotView:
     restarted and began a new map) does not place it (``same_map``)."""
     map_named: bool = False
     """Its poses have named a map (a ``map_began`` other than 0) before: an agent of 1.2.0 or later."""
+    began_again: bool = False
+    """Its map began again while the fleet map placed it (its agent restarted), and the fleet map has not
+    found the new map yet: said before the fleet map's own reason, which speaks only of the new map."""
 
     @property
     def in_own_frame(self) -> bool:
@@ -399,6 +403,7 @@ class FleetModel:
         view.map_named = view.map_named or began != 0.0
         if view.in_own_frame and view.robot in self.frames:
             stale = self._other_map(view)
+            view.began_again = view.began_again or stale
             view.off_fleet_map, view.off_fleet_map_why = stale, BEGAN_AGAIN if stale else ""
             self.alarms.own_frame(view.robot, BEGAN_AGAIN if stale else None, mapping=True)
             view.trail.clear()
@@ -429,6 +434,9 @@ class FleetModel:
             reason = (why or {}).get(robot, "") if robot in off else ""
             if robot in off and robot in frames:  # found, but for the map it reported in before
                 reason = BEGAN_AGAIN
+            elif robot in off and view.began_again:  # the old map forgotten, the new one not found yet
+                reason = f"{BEGAN_AGAIN_SHORT}; {reason}" if reason else BEGAN_AGAIN
+            view.began_again = view.began_again and robot in off
             if (view.off_fleet_map, view.off_fleet_map_why) != (robot in off, reason):
                 view.off_fleet_map, view.off_fleet_map_why = robot in off, reason
                 self.version += 1

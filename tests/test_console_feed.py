@@ -408,9 +408,18 @@ def test_a_robot_whose_map_began_again_is_not_placed_or_sent_goals_through_its_o
     assert fleet.to_robot("r1", 7.0, 2.0) == (7.0, 2.0, None)  # not through the old frame either
     fleet.set_frames({"r1": (5.0, 2.0, 0.0)}, began={"r1": 20.0})  # a build of the old map: still off
     assert view.off_fleet_map and view.pose == (0.0, 0.0, 0.0)
+    # The service forgets the old map and has not found the new one: its reason, after the restart's.
+    nowhere = {"r1": "on r2's map: no place overlaps enough of the other's known floor"}
+    fleet.set_frames({}, unframed=["r1"], why=nowhere)
+    assert view.off_fleet_map_why == "its map began again; " + nowhere["r1"]
+    assert "its map began again; on r2's map" in " ".join(detail_text("r1", view, ()).split())
     # The fleet map finds the new map, 1 m on from the old one's.
     fleet.set_frames({"r1": (6.0, 2.0, 0.0)}, began={"r1": 61.0})
     assert not view.off_fleet_map and view.pose is not None
+    fleet.set_frames({}, unframed=["r1"], why=nowhere)  # lost again, its map the same: the reason alone
+    assert view.off_fleet_map_why == nowhere["r1"]
+    fleet.set_frames({"r1": (6.0, 2.0, 0.0)}, began={"r1": 61.0})
+    assert not view.off_fleet_map
     assert math.hypot(view.pose[0] - 6.0, view.pose[1] - 2.0) < 1e-9
     assert fleet.to_robot("r1", 7.0, 2.0) == (1.0, 0.0, None)
     # Found where the old one was (restarted where it began): placed again all the same.
