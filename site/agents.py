@@ -6,8 +6,8 @@ agent/ (the agents talk to the field's boards and lidars through their bytes, li
 ``FieldAgents(field.endpoints, zenoh_connect=[...], mqtt_url=...)``: ``start()`` builds an
 ``AgentRuntime`` per robot (its own Zenoh session connecting to ``zenoh_connect``, the shared
 broker for MQTT, which also carries the UWB fixes: tag id = robot name) and ``stop()`` stops
-them all; ``restart(robot)`` stops one and starts it again (a scenario's ``agent_restart``). An agent is the board's only master: do not also run a demo ``BoardSession`` on the
-same board.
+them all; ``restart(robot)`` stops one and starts it again (a scenario's ``agent_restart``). An
+agent is the board's only master: do not also run a demo ``BoardSession`` on the same board.
 
 Security (issue 8) can be switched on as on a real site: ``mqtt`` (a ``shared.mqtt.MqttSettings``,
 instead of ``mqtt_url``: TLS, CA) with ``mqtt_passwords`` (robot -> password, username = robot id),

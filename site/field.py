@@ -337,9 +337,10 @@ class FieldSite:
                 self._restart(event.robot)
 
     def _restart(self, robot: str) -> None:
-        """(under ``_restart_lock``)"""
+        """``robot``'s agent restarted on a thread of its own (under ``_restart_lock``)."""
         agents = self.agents
         assert agents is not None
+        self._restarts = [w for w in self._restarts if w.running]  # those done need no joining
         self._restarts.append(
             Worker(f"restart-{robot}", clock=self.clock, target=lambda _w: agents.restart(robot)).start()
         )

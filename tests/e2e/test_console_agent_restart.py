@@ -39,17 +39,18 @@ def detail(text: str) -> str:
     return " ".join(" ".join(line.split("│")[0].split()) for line in text.splitlines())
 
 
-def uvc_2(session: str) -> tuple[tuple[float, float] | None, bool]:
-    """uvc-2's pose as the detail shows it (selected), and whether it is on the fleet map; one screen."""
+def uvc_2(session: str) -> tuple[tuple[float, float] | None, bool, str]:
+    """uvc-2's pose as the detail shows it (selected), whether it is on the fleet map, and the screen
+    both were read from."""
     text = screen(session)
     m = POSE.search(text)
     pose = (float(m.group(2)), float(m.group(3))) if m and m.group(1) == "uvc-2" else None
-    return pose, OFF_MAP not in text
+    return pose, OFF_MAP not in text, text
 
 
 def on_fleet_map(session: str) -> tuple[float, float] | None:
     """uvc-2's pose when it is on the fleet map (None otherwise)."""
-    pose, on = uvc_2(session)
+    pose, on, _ = uvc_2(session)
     return pose if on else None
 
 
@@ -97,14 +98,14 @@ def test_a_robot_whose_agent_restarts_is_shown_off_the_fleet_map_then_where_it_s
         # its old map began (START): never, on any screen from now on.
         drawn: list[tuple[float, float]] = []
 
-        def sample() -> tuple[tuple[float, float] | None, bool]:
-            pose, on = uvc_2(session)
+        def sample() -> tuple[tuple[float, float] | None, bool, str]:
+            pose, on, text = uvc_2(session)
             if pose is not None:
                 drawn.append(pose)
-            return pose, on
+            return pose, on, text
 
         wait_until(
-            lambda: (sample(), BEGAN_AGAIN in detail(screen(session)))[1],
+            lambda: BEGAN_AGAIN in detail(sample()[2]),
             timeout=RESTART_S + 30 - (time.monotonic() - began),
             interval=0.05,
             message="uvc-2's detail saying its map began again",
