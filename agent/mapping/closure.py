@@ -293,6 +293,18 @@ class CloserConfig:
     # of 0.53; the final pass took none of its submaps, and the closure held it and its neighbours
     # 0.2-0.3 m off).
     final_replaces_online: bool = True
+    # The odometry's steps as edges of their own in the final graph, between consecutive nodes (0:
+    # not), their translation held at this many times its sd as learned from the log itself: the
+    # spread of the odometry's steps against the front end's (the median offset, so a slip or a bump
+    # does not count; robust edges, so one such step does not bend the graph either). The front end's
+    # chain drifts; independent odometry does not drift with it: where the odometry is good (the
+    # corrected logs' GMapping poses, 1.4-1.6 cm a step against the front end's, which the graph holds
+    # at 3-4 cm) it holds the map's length between submap matches; where it is poor it learns a wide
+    # sd and weighs little. The heading is left to the front end and the matches (held there too, the
+    # Freiburg hospital 0.86 -> 1.22 m, the corrected logs no better). Twice the sd: the corrected logs
+    # nearer both their poses and, within a millimetre, their scans (aces 0.029 -> 0.023 m, intel
+    # 0.032 -> 0.030 m); docs/mapping-history.md, "The odometry's steps in the final graph".
+    final_odometry_margin: float = 2.0
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
     # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
@@ -361,6 +373,7 @@ class CloserConfig:
             "fill_from_range",
             "fill_depth_share",
             "fill_depth_m",
+            "final_odometry_margin",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -528,6 +541,8 @@ class CloserStats:
     submaps_drawn: int = 0  # drawings (a submap let go and needed again is drawn again)
     submaps_filled: int = 0  # ... of them, drawn with their surfaces filled (``fill_from_range``)
     final_edges: int = 0  # matches the final pass (``finish``) verified
+    odometry_edges: int = 0  # the odometry's steps in the final graph (``final_odometry_margin``)
+    odometry_sd_xy: float = 0.0  # m: ... and the sd they were held at
     steps_loosened: int = 0  # front-end steps the final solve held loosely (``final_loosen_steps``)
     final_ambiguous: int = 0  # ... and not kept: the graph's guess matched as well (``final_ambiguity_jump``)
     final_wide: int = 0  # of the final pass's matches, found only in the wider window (``final_wide_window_xy``)
@@ -1200,6 +1215,7 @@ class LoopCloser:
         if cfg.final_replaces_online and found:  # (none found: the online closures are all there is)
             self.graph.remove_edges(self._closure_edges)
             self.closures, self._closure_edges = [], []
+        self._odometry_edges()  # (before the pass's edges: a scan pair may join neighbours too)
         info = np.diag([1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_theta**2])
         for c in found:
             edge_info = info
@@ -1215,6 +1231,34 @@ class LoopCloser:
         self.stats.final_edges += len(found)
         self._solve(max_drops=cfg.final_drops, loosen=cfg.final_loosen_steps)
         return len(found) - (before - len(self.closures))
+
+    def _odometry_edges(self) -> None:
+        """The odometry's steps between consecutive nodes as robust edges on translation, its sd
+        learned from its steps against the front end's (``final_odometry_margin``)."""
+        cfg = self.config
+        if cfg.final_odometry_margin <= 0:
+            return
+        fronts = {e.i: e.z for e in self.graph.edges if e.j == e.i + 1 and not e.robust}
+        steps: list[tuple[int, Pose]] = []
+        offsets: list[float] = []
+        for k in range(1, len(self.graph.poses)):
+            a, b, front = self.odometry[k - 1], self.odometry[k], fronts.get(k - 1)
+            if a is None or b is None or front is None:
+                continue
+            z = relative(a, b)
+            steps.append((k, z))
+            offsets.append(math.hypot(z[0] - front[0], z[1] - front[1]))
+        if len(steps) < ODOMETRY_MIN_STEPS:
+            return
+        sd = float(np.median(offsets)) / 1.1774  # the median length of a 2D Gaussian offset is 1.177 sd
+        if sd < ODOMETRY_MIN_SD_XY:
+            return  # the front end's steps are the odometry's (not matched): it has nothing more to say
+        sd *= cfg.final_odometry_margin
+        info = np.diag([1.0 / sd**2, 1.0 / sd**2, ODOMETRY_FREE_THETA])
+        for k, z in steps:
+            self.graph.add_edge(k - 1, k, z, info, robust=True)
+        self.stats.odometry_edges += len(steps)
+        self.stats.odometry_sd_xy = sd
 
     def _scan_pairs(self, xyt: F64, doubtful: Collection[int] = ()) -> list[Closure]:
         """The final pass's scan-to-scan matches (``final_pair_per_node``): node k against earlier
@@ -1376,8 +1420,8 @@ class LoopCloser:
                 steps = [
                     i
                     for i, e in enumerate(self.graph.edges)
-                    if i not in closing and i not in loosened and e.j == e.i + 1
-                ]
+                    if i not in closing and i not in loosened and e.j == e.i + 1 and not e.robust
+                ]  # (a robust edge between neighbours is the odometry's: ``_odometry_edges``)
                 step = max(steps, key=lambda i: chi[i]) if steps else -1
                 if step >= 0 and chi[step] > max(cfg.max_chi2, chi[edge]):
                     e = self.graph.edges[step]
@@ -1397,6 +1441,13 @@ class LoopCloser:
             loosened = {e - 1 if e > edge else e for e in loosened}
 
 
+ODOMETRY_MIN_STEPS = 20
+"""Fewer steps with odometry than this say too little of its worth: no odometry edges."""
+ODOMETRY_MIN_SD_XY = 0.002
+"""Odometry whose steps are within this (m, the learned sd) of the front end's is the front end's own
+(mapped without matching, or the matcher held to it): not an independent measurement, no edges."""
+ODOMETRY_FREE_THETA = 1e-6
+"""The odometry edges' information on heading (1/rad^2): next to none, but positive definite."""
 SUBMAP_GROW_M = 2.0
 """A submap grid grows in steps of this many metres (the mapper's grid uses 8 m)."""
 JUMP_LEVER_M = 3.0
