@@ -467,6 +467,9 @@ def real_log(path: Path, seed: int) -> dict[str, object]:
             "final_pairs": closer.stats.final_pairs if closer else 0,  # scan-to-scan edges (final_pair_per_node)
             "final_pairs_searched": closer.stats.final_pairs_searched if closer else 0,  # of them, searched
             "steps_loosened": closer.stats.steps_loosened if closer else 0,  # by the final solve
+            # the odometry's steps in the final graph, and the sd (m) learned for them
+            "odometry_edges": closer.stats.odometry_edges if closer else 0,
+            "odometry_sd_m": closer.stats.odometry_sd_xy if closer else 0.0,
             "kept": len(closer.closures) if closer else 0,  # closures and final edges the solves kept
             "dropped_by_solve": closer.stats.dropped_by_solve if closer else 0,
             # large corrections refused: their walls matched from the far side (``min_facing_share``)

@@ -5,7 +5,7 @@ that comes back to a room draws it again where its drifted pose says. ``LoopClos
 closure needs (after Cartographer's global SLAM, Hess et al. 2016, on a smaller scale):
 
 - **Nodes**: the mapper's spaced keyframes (0.3 m / 10 deg apart), each with its scan in the sensor
-  frame. Consecutive nodes are joined by the front end's relative pose (an odometry edge whose
+  frame. Consecutive nodes are joined by the front end's relative pose (a step edge whose
   uncertainty grows with the step, and is larger along a direction the front end's match left
   ill-posed: down a corridor, ``step_degenerate_ratio``).
 - **Submaps**: every ``submap_nodes`` consecutive nodes, drawn (once, when a closure check first
@@ -26,7 +26,8 @@ closure needs (after Cartographer's global SLAM, Hess et al. 2016, on a smaller 
   the graph solved again: a verified but wrong closure is rejected, a right one absorbed.
 - **Final pass** (a replay's end, ``finish``): every node matched again against the submaps it sees,
   in a small window around the solved graph, and against nearby nodes' scans; these edges replace the
-  online closures, which only had to bring the graph that near.
+  online closures, which only had to bring the graph that near. The log's odometry joins it too, each
+  step's translation an edge at the sd the log's own steps show (``final_odometry_margin``).
 
 The caller (the mapper) re-renders its grid from the optimised node poses. numpy and scipy (the
 solve); time is an argument; no I/O.
@@ -157,7 +158,7 @@ class CloserConfig:
     max_disagreement: float = 0.1  # m between the correlative and the refined answer
     max_disagreement_angle: float = math.radians(2.0)
     min_weak: float = 10000.0  # smallest eigenvalue of the refinement's information (1/m^2)
-    step_sigma_xy: float = 0.01  # m, odometry edge: sd = base + per metre moved
+    step_sigma_xy: float = 0.01  # m, the front end's step: sd = base + per metre moved
     step_sigma_xy_per_m: float = 0.03
     step_sigma_theta: float = math.radians(0.3)
     step_sigma_theta_per_rad: float = 0.02
@@ -246,7 +247,7 @@ class CloserConfig:
     # answer): two answers in one window are a look-alike, not a correction (intel's corridors; 0: off).
     final_ambiguity_jump: float = 0.1
     # In the final solve, while a front-end step's error is above ``max_chi2`` and above every closure's,
-    # that step is held as loosely as the odometry (sd ``step_sigma_xy`` + ``step_degenerate_sigma_per_m``
+    # that step is held loosely (sd ``step_sigma_xy`` + ``step_degenerate_sigma_per_m``
     # per metre, the heading 3x) before a closure is dropped: a step matched wrong but held tight makes
     # the right matches at its node look like the outliers (aces: a step 0.47 m off, held at 2.6 cm).
     final_loosen_steps: bool = True
@@ -295,15 +296,17 @@ class CloserConfig:
     final_replaces_online: bool = True
     # The odometry's steps as edges of their own in the final graph, between consecutive nodes (0:
     # not), their translation held at this many times its sd as learned from the log itself: the
-    # spread of the odometry's steps against the front end's (the median offset, so a slip or a bump
+    # median offset between the odometry's steps and the front end's matched ones (so a slip or a bump
     # does not count; robust edges, so one such step does not bend the graph either). The front end's
-    # chain drifts; independent odometry does not drift with it: where the odometry is good (the
-    # corrected logs' GMapping poses, 1.4-1.6 cm a step against the front end's, which the graph holds
-    # at 3-4 cm) it holds the map's length between submap matches; where it is poor it learns a wide
-    # sd and weighs little. The heading is left to the front end and the matches (held there too, the
-    # Freiburg hospital 0.86 -> 1.22 m, the corrected logs no better). Twice the sd: the corrected logs
-    # nearer both their poses and, within a millimetre, their scans (aces 0.029 -> 0.023 m, intel
-    # 0.032 -> 0.030 m); docs/mapping-history.md, "The odometry's steps in the final graph".
+    # chain drifts; odometry drifts on its own, not with it: where it is good (the corrected logs'
+    # GMapping poses learn an sd of 1.4-1.6 cm a step; the front end's steps of 0.7-1 m are held at
+    # 3-4 cm) it holds the map's length between submap matches; where it is poor it learns a wide sd
+    # and weighs little. The heading is left to the front end and the matches: with it held too, the
+    # corrected logs gained nothing more and the Freiburg hospital went 0.86 -> 1.22 m (0.91 m as kept).
+    # Twice, chosen on the three-component runs (once came nearer the corrected logs' poses and
+    # further from their scans). Kept: aces' corrected log 0.029 -> 0.023 m, intel's 0.032 -> 0.0297 m,
+    # both 0.5 mm further from the relations their scans measure; docs/mapping-history.md, "The
+    # odometry's steps in the final graph".
     final_odometry_margin: float = 2.0
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
@@ -614,6 +617,7 @@ class LoopCloser:
         self._unsolved = False  # closures added (or priors due) since the last solve
         self.since_closure = 0.0  # m travelled (node to node) since the last accepted closure or site prior
         self.odometry: list[Pose | None] = []  # the odometry's pose per node, where given (``add_node``)
+        self._matched: list[bool] = []  # per node: the front end matched it (``add_node``'s ``information``)
         self._closed_at = 0  # the newest node when the last closure was accepted
         # m along the chain of front-end steps from node 0 to each node: an upper bound of the graph's
         # path (``_drift``), so a submap nearer than ``far_loop_m`` along it needs no graph search.
@@ -679,6 +683,7 @@ class LoopCloser:
         self.times.append(t)
         self.scans.append(scan)
         self.odometry.append(odometry)
+        self._matched.append(information is not None)
         if k % cfg.submap_nodes == 0:
             self.submaps.append(_Submap(k, k + 1))
         else:
@@ -1153,7 +1158,9 @@ class LoopCloser:
         constraints, after Cartographer's global SLAM: a node's pose becomes the average of many
         scan-to-submap matches instead of the front end's chain of steps, and places where no loop
         closure was verified online are tied to what was mapped there before. The online closures are
-        let go once the pass has found anything (``final_replaces_online``). Returns the edges kept."""
+        let go once the pass has found anything (``final_replaces_online``). The log's odometry joins
+        the graph as edges on each step's translation (``final_odometry_margin``). Called once, at the
+        end: returns the edges kept."""
         cfg = self.config
         n = len(self.graph.poses)
         if n == 0:
@@ -1215,7 +1222,7 @@ class LoopCloser:
         if cfg.final_replaces_online and found:  # (none found: the online closures are all there is)
             self.graph.remove_edges(self._closure_edges)
             self.closures, self._closure_edges = [], []
-        self._odometry_edges()  # (before the pass's edges: a scan pair may join neighbours too)
+        self._odometry_edges()
         info = np.diag([1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_xy**2, 1.0 / cfg.final_sigma_theta**2])
         for c in found:
             edge_info = info
@@ -1234,11 +1241,14 @@ class LoopCloser:
 
     def _odometry_edges(self) -> None:
         """The odometry's steps between consecutive nodes as robust edges on translation, its sd
-        learned from its steps against the front end's (``final_odometry_margin``)."""
+        learned from its offsets to the front end's matched steps (``final_odometry_margin``)."""
         cfg = self.config
-        if cfg.final_odometry_margin <= 0:
+        if cfg.final_odometry_margin <= 0 or self.stats.odometry_edges:
             return
-        fronts = {e.i: e.z for e in self.graph.edges if e.j == e.i + 1 and not e.robust}
+        closing = set(self._closure_edges)
+        fronts = {
+            e.i: e.z for n, e in enumerate(self.graph.edges) if e.j == e.i + 1 and not e.robust and n not in closing
+        }
         steps: list[tuple[int, Pose]] = []
         offsets: list[float] = []
         for k in range(1, len(self.graph.poses)):
@@ -1247,17 +1257,18 @@ class LoopCloser:
                 continue
             z = relative(a, b)
             steps.append((k, z))
-            offsets.append(math.hypot(z[0] - front[0], z[1] - front[1]))
-        if len(steps) < ODOMETRY_MIN_STEPS:
+            if self._matched[k]:  # an unmatched step is the odometry's own: no offset to learn from
+                offsets.append(math.hypot(z[0] - front[0], z[1] - front[1]))
+        if len(offsets) < ODOMETRY_MIN_STEPS:
             return
         sd = float(np.median(offsets)) / 1.1774  # the median length of a 2D Gaussian offset is 1.177 sd
         if sd < ODOMETRY_MIN_SD_XY:
-            return  # the front end's steps are the odometry's (not matched): it has nothing more to say
+            return  # the front end's steps are the odometry's (held to it): it has nothing more to say
         sd *= cfg.final_odometry_margin
         info = np.diag([1.0 / sd**2, 1.0 / sd**2, ODOMETRY_FREE_THETA])
         for k, z in steps:
             self.graph.add_edge(k - 1, k, z, info, robust=True)
-        self.stats.odometry_edges += len(steps)
+        self.stats.odometry_edges = len(steps)
         self.stats.odometry_sd_xy = sd
 
     def _scan_pairs(self, xyt: F64, doubtful: Collection[int] = ()) -> list[Closure]:
@@ -1442,10 +1453,10 @@ class LoopCloser:
 
 
 ODOMETRY_MIN_STEPS = 20
-"""Fewer steps with odometry than this say too little of its worth: no odometry edges."""
+"""Fewer matched steps with odometry than this say too little of its worth: no odometry edges."""
 ODOMETRY_MIN_SD_XY = 0.002
-"""Odometry whose steps are within this (m, the learned sd) of the front end's is the front end's own
-(mapped without matching, or the matcher held to it): not an independent measurement, no edges."""
+"""Odometry whose steps are within this (m, the learned sd) of the front end's matched ones is what the
+front end's steps already say (the matcher held to it): not an independent measurement, no edges."""
 ODOMETRY_FREE_THETA = 1e-6
 """The odometry edges' information on heading (1/rad^2): next to none, but positive definite."""
 SUBMAP_GROW_M = 2.0

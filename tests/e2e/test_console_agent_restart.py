@@ -118,10 +118,18 @@ def test_a_robot_whose_agent_restarts_is_shown_off_the_fleet_map_then_where_it_s
             return False
 
         wait_until(turned_until_found_again, timeout=60, interval=0.1, message="uvc-2's new map found on the fleet map")
+
+        def turned_until_where_it_stands() -> bool:
+            # A new map found within seconds of the restart has few walls, and its first placement
+            # can be decimetres off (a clean-clone run: 0.25 m, found 2 s after it); as its map grows
+            # the fleet map refines the frame. The operator turns it in place to show it more.
+            if (p := sample()[0]) is not None and math.dist(p, there) < 0.1:
+                return True
+            hold(session, "j")
+            return False
+
         wait_until(
-            lambda: (p := sample()[0]) is not None and math.dist(p, there) < 0.1,
-            timeout=15,
-            message=f"uvc-2 shown where it stands, {there}",
+            turned_until_where_it_stands, timeout=30, interval=0.1, message=f"uvc-2 shown where it stands, {there}"
         )
         near_start = [p for p in drawn if math.dist(p, START) < 0.3]
         assert not near_start, near_start  # never drawn through the old map's frame
