@@ -302,7 +302,7 @@ class CloserConfig:
     # GMapping poses learn an sd of 1.4-1.6 cm a step; the front end's steps of 0.7-1 m are held at
     # 3-4 cm) it holds the map's length between submap matches; where it is poor it learns a wide sd
     # and weighs little. The heading is left to the front end and the matches: with it held too, the
-    # corrected logs gained nothing more and the Freiburg hospital went 0.86 -> 1.22 m (0.91 m as kept).
+    # corrected logs gained nothing more and the Freiburg hospital went 0.86 -> 1.22 m (0.90 m as kept).
     # Twice, chosen on the three-component runs (once came nearer the corrected logs' poses and
     # further from their scans). Kept: aces' corrected log 0.029 -> 0.023 m, intel's 0.032 -> 0.0297 m,
     # both 0.5 mm further from the relations their scans measure; docs/mapping-history.md, "The
