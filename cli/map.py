@@ -312,6 +312,9 @@ def run_replay(args: argparse.Namespace) -> int:
             f" final pass {st.final_edges - st.final_pairs} submap matches and {st.final_pairs} scan pairs"
             f" ({len(m.closer.closures)} edges kept)"
         )
+        if st.odometry_edges:  # what the log's odometry was found worth, and so weighed at
+            closed += f", the odometry's {st.odometry_edges} steps held at {100 * st.odometry_sd_xy:.1f} cm"
+
     print(
         f"{len(result.rows)} scans mapped ({m.matched} matched, {m.fallbacks} on odometry{closed});"
         f" wrote {out}/map.pgm, map.yaml, trajectory.txt, corrected.log"

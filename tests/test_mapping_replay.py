@@ -6,6 +6,7 @@ from __future__ import annotations
 import gzip
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -492,3 +493,28 @@ def test_cli_replay_open_space_maps_with_filled_submaps(tmp_path: Path, monkeypa
     assert [r[0] for r in b] == [r[0] for r in a] == TIMESTAMPS
     for ra, rb in zip(a, b, strict=True):  # a small room: no closure either way, the same path to centimetres
         assert math.dist([float(v) for v in ra[1:3]], [float(v) for v in rb[1:3]]) < 0.05
+
+
+def test_cli_replay_says_what_the_odometry_was_found_worth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A log long enough for the final graph to learn its odometry's worth (20 matched steps or more):
+    the summary says how many of its steps were weighed, and at what sd."""
+    rc = Raycaster(ROOM)
+    rng = np.random.default_rng(2)
+    lines = ["PARAM robot_frontlaser_offset 0.0 nohost 0"]
+    odom = (10.0, -3.0, 1.0)
+    last = None
+    for i in range(90):  # twice round a circle of 1.2 m about the room's middle, 4 degrees a scan
+        a = math.radians(4.0 * i)
+        pose = (3.0 + 1.2 * math.cos(a), 2.0 + 1.2 * math.sin(a), a + math.pi / 2)
+        if last is not None:
+            step = relative(last, pose)
+            odom = compose(odom, (step[0] + rng.normal(0, 0.005), step[1] + rng.normal(0, 0.005), step[2]))
+        last = pose
+        lines.append(_flaser(rc, pose, odom, f"{1000 + 0.2 * i:.1f}"))
+    log = tmp_path / "circle.log"
+    log.write_text("\n".join(lines) + "\n")
+    assert main(["map", "replay", str(log), "--out", str(tmp_path / "out")]) == 0
+    said = capsys.readouterr().out
+    m = re.search(r"the odometry's (\d+) steps held at (\d+\.\d) cm", said)
+    assert m is not None, said
+    assert int(m.group(1)) >= 20 and 0.2 <= float(m.group(2)) < 5.0
