@@ -314,7 +314,6 @@ def run_replay(args: argparse.Namespace) -> int:
         )
         if st.odometry_edges:  # what the log's odometry was found worth, and so weighed at
             closed += f", the odometry's {st.odometry_edges} steps held at {100 * st.odometry_sd_xy:.1f} cm"
-
     print(
         f"{len(result.rows)} scans mapped ({m.matched} matched, {m.fallbacks} on odometry{closed});"
         f" wrote {out}/map.pgm, map.yaml, trajectory.txt, corrected.log"
