@@ -96,6 +96,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--max-distance", type=float, default=3.0, metavar="M", help="pair scans at most M metres apart (default 3)"
     )
     rel.add_argument(
+        "--min-overlap",
+        type=float,
+        default=0.5,
+        metavar="F",
+        help="pair scans when this share of one's endpoints lies in the other's view (0..1, default 0.5)",
+    )
+    rel.add_argument(
         "--match",
         action="store_true",
         help="measure each relation again by matching its two scans and keep only the unambiguous ones"
@@ -334,6 +341,9 @@ def run_relations(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.max_distance) and args.max_distance > 0):
         print(f"{name}: --max-distance must be a number of metres above 0, got {args.max_distance}", file=sys.stderr)
         return 2
+    if not 0.0 <= args.min_overlap <= 1.0:
+        print(f"{name}: --min-overlap must be a share within 0..1, got {args.min_overlap}", file=sys.stderr)
+        return 2
     stats = CarmenStats()
     try:
         with open_log(args.log) as f:
@@ -357,6 +367,7 @@ def run_relations(args: argparse.Namespace) -> int:
         times,
         [r.pose for r in scans],
         max_distance_m=args.max_distance,
+        min_overlap=args.min_overlap,
         scans=[(d, r.angles) for d, r in zip(ranges, scans, strict=True)],
         max_range=max(r.max_range for r in scans),
         mount=scans[0].laser_offset,  # one mount for the log (ROBOTLASER1 could vary it per record)

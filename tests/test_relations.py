@@ -334,10 +334,10 @@ def _log_poses() -> list[Pose]:
     return [(0.8 + 0.2 * i, 1.5, 0.0) for i in range(12)] + [(0.8 + 0.2 * i, 2.5, 0.0) for i in range(12)]
 
 
-def _write_log(path: Path, times: list[str] = TIMES) -> None:
+def _write_log(path: Path, times: list[str] = TIMES, poses: list[Pose] | None = None) -> None:
     rc = Raycaster(ROOMS)
     lines = ["# synthetic corrected log", "PARAM robot_frontlaser_offset 0.0 nohost 0"]
-    for ts, pose in zip(times, _log_poses(), strict=True):
+    for ts, pose in zip(times, poses or _log_poses(), strict=True):
         r, _ = _scan(rc, pose)
         r = np.where(r >= 30.0, 81.91, r)  # no return, as a SICK reports it
         ranges = " ".join(f"{v:.3f}" for v in r)
@@ -380,6 +380,32 @@ def test_cli_relations_and_score(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert "revisit (>= 20 s)" in capsys.readouterr().out
 
 
+def test_cli_relations_min_overlap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A stricter overlap keeps a subset of the pairs (those whose views share more), a looser one a
+    superset; each pair is the same relation whichever set holds it."""
+    log = tmp_path / "rooms.log"
+    # The second pass comes back the other way: its 180 degree views share less of the first pass's
+    # the further behind them it is.
+    poses = _log_poses()[:12] + [(3.0 - 0.2 * i, 2.5, math.pi) for i in range(12)]
+    _write_log(log, poses=poses)
+    sets = {}
+    for share in ("0.0", "0.5", "0.9"):
+        out = tmp_path / f"{share}.relations"
+        argv = ["map", "relations", "--log", str(log), "--out", str(out), "--max-distance", "3", "--min-overlap", share]
+        assert main(argv) == 0
+        sets[share] = {(r.t1, r.t2): r for r in parse_relations(out.read_text().splitlines())}
+    capsys.readouterr()
+    assert set(sets["0.9"]) < set(sets["0.5"]) < set(sets["0.0"])
+    assert all(sets["0.0"][k] == r for k, r in sets["0.9"].items())
+    # Share 0 pairs every scan within the distance, views or not.
+    near = sum(
+        math.hypot(poses[j][0] - poses[i][0], poses[j][1] - poses[i][1]) <= 3.0
+        for i in range(len(poses))
+        for j in range(i + 1, len(poses))
+    )
+    assert len(sets["0.0"]) == near
+
+
 def test_cli_score_and_relations_refuse_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     traj, rels = tmp_path / "t.txt", tmp_path / "r.txt"
     traj.write_text("1.0 0 0 0\n2.0 1 0 0\n")
@@ -396,6 +422,9 @@ def test_cli_score_and_relations_refuse_bad_input(tmp_path: Path, capsys: pytest
     out = str(tmp_path / "o.rel")
     assert main(["map", "relations", "--log", str(log), "--out", out, "--max-distance", "-1"]) == 2
     assert "--max-distance must be a number of metres above 0" in capsys.readouterr().err
+    for bad in ("1.5", "-0.1", "nan"):
+        assert main(["map", "relations", "--log", str(log), "--out", out, "--min-overlap", bad]) == 2
+        assert "--min-overlap must be a share within 0..1" in capsys.readouterr().err
     log.write_text("ODOM 0 0 0 0 0 0 1.0 h 1.0\n")
     assert main(["map", "relations", "--log", str(log), "--out", out]) == 1
     assert "fewer than two scans" in capsys.readouterr().err
