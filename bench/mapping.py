@@ -361,6 +361,16 @@ def perturb(records, seed: int):  # type: ignore[no-untyped-def]
     return out
 
 
+def scan_views(recs) -> dict[str, Any]:  # type: ignore[no-untyped-def]
+    """What ``relations.generate_relations`` and ``pairmatch.match_relations`` need of a log's scans: each
+    scan's ranges and angles ("no return" as NaN), the log's maximum range and its laser's mount."""
+    return {
+        "scans": [(r.measured(), r.angles) for r in recs],
+        "max_range": max(r.max_range for r in recs),
+        "mount": recs[0].laser_offset,
+    }
+
+
 def relation_sets(recs) -> dict[str, list]:  # type: ignore[no-untyped-def,type-arg]
     """Relations from the log's corrected poses: consecutive scans, 1 m and 10 s spans, and the
     complete set (every overlapping pair within 3 m, revisits included; agent/mapping/relations.py)."""
@@ -382,13 +392,7 @@ def relation_sets(recs) -> dict[str, list]:  # type: ignore[no-untyped-def,type-
         if k < n:
             pairs["10s"].append((i, k))
     out = {name: [Relation(times[i], times[j], *relation(ref[i], ref[j])) for i, j in ij] for name, ij in pairs.items()}
-    out["complete"] = generate_relations(
-        times,
-        ref,
-        scans=[(r.measured(), r.angles) for r in recs],
-        max_range=max(r.max_range for r in recs),
-        mount=recs[0].laser_offset,
-    )
+    out["complete"] = generate_relations(times, ref, **scan_views(recs))
     matched = matched_relations(recs, out["complete"])
     out["complete_matched"] = matched.relations
     return out
@@ -401,12 +405,9 @@ def matched_relations(recs, relations: list):  # type: ignore[no-untyped-def,typ
     machine's check instead of a person's. The corrected logs' own scatter drops out of it."""
     from fleetlink.agent.mapping.pairmatch import match_relations
 
+    views = scan_views(recs)
     return match_relations(
-        relations,
-        [r.timestamp for r in recs],
-        [(r.measured(), r.angles) for r in recs],
-        max_range=max(r.max_range for r in recs),
-        mount=recs[0].laser_offset,
+        relations, [r.timestamp for r in recs], views["scans"], max_range=views["max_range"], mount=views["mount"]
     )
 
 
@@ -993,20 +994,11 @@ def other_sets(recs, mapper: list[Pose], front: list[Pose]) -> list[dict[str, ob
 
     times = [r.timestamp for r in recs]
     ref = [r.pose for r in recs]
-    scans = [(r.measured(), r.angles) for r in recs]
+    views = scan_views(recs)
     rows: list[dict[str, object]] = []
     for distance, overlap in OTHER_SETS:
-        view = (
-            {}
-            if overlap is None
-            else {
-                "scans": scans,
-                "max_range": max(r.max_range for r in recs),
-                "mount": recs[0].laser_offset,
-                "min_overlap": overlap,
-            }
-        )
-        rels = generate_relations(times, ref, max_distance_m=distance, **view)  # type: ignore[arg-type]
+        view = {} if overlap is None else {**views, "min_overlap": overlap}
+        rels = generate_relations(times, ref, max_distance_m=distance, **view)
         rows.append(
             {
                 "max_distance_m": distance,
@@ -1058,7 +1050,8 @@ def corrected_main(args: argparse.Namespace) -> int:
     for name, r in results.items():
         for row in r["other_sets"]:  # type: ignore[index]
             overlap = "heading" if row["min_overlap_ratio"] is None else f"{row['min_overlap_ratio']:.1f}"
-            ratio = row["mapper"]["trans_mean_m"] / row["no_closure"]["trans_mean_m"]
+            front = row["no_closure"]["trans_mean_m"]
+            ratio = row["mapper"]["trans_mean_m"] / front if front else math.nan
             print(
                 f"{name:>34} {row['max_distance_m']:>6.0f}m {overlap:>8} {row['relations']:>9}"
                 f" {cell(row['mapper']):>13} {cell(row['no_closure']):>13} {ratio:>6.2f}"
