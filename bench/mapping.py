@@ -475,6 +475,8 @@ def real_log(path: Path, seed: int) -> dict[str, object]:
             "dropped_by_solve": closer.stats.dropped_by_solve if closer else 0,
             # large corrections refused: their walls matched from the far side (``min_facing_share``)
             "rejected_behind": closer.stats.rejected_behind if closer else 0,
+            # final-pass matches and scan pairs refused for the same (``final_min_facing_share``)
+            "final_behind": closer.stats.final_behind if closer else 0,
             "redraws": matched.mapper.redraws,
         },
     }

@@ -308,6 +308,17 @@ class CloserConfig:
     # both 0.5 mm further from the relations their scans measure; docs/mapping-history.md, "The
     # odometry's steps in the final graph".
     final_odometry_margin: float = 2.0
+    # Every final-pass edge (a submap match, small or large, and a scan pair) needs at least this share
+    # of its inliers on surfaces seen from the side this scan sees them from (``min_facing_share``'s
+    # test, which online checks ask only of large corrections). The final window is small, but a wall
+    # 0.3 m thick is within its reach: intel's corrected log's scan 814 sees one from the corridor
+    # below it, and three final-pass edges (0.44-0.51 of their inliers facing) laid that face on the
+    # one the room above saw, 0.19 m across a step the raw log's odometry drives straight. A match onto
+    # a thin partition's far side (true to a few centimetres) is dropped too; the final pass has matches
+    # to spare (intel's corrected log: 21 of its 3 599 edges go; aces', Killian's: none). Kept: intel's
+    # corrected log 0.0297 -> 0.0293 m, its scans' own sets 0.0125 -> 0.0119 m (docs/mapping.md, "Walls
+    # seen from behind").
+    final_min_facing_share: float = 0.6
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
     # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
@@ -389,8 +400,9 @@ class CloserConfig:
             )
         if self.max_search_xy < self.search_xy or self.max_search_theta < self.search_theta:
             raise ValueError("the search caps must be at least the base windows")
-        if not 0.0 <= self.min_facing_share <= 1.0:
-            raise ValueError(f"min_facing_share must be in [0, 1], got {self.min_facing_share!r}")
+        for name in ("min_facing_share", "final_min_facing_share"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}")
         for name in ("large_min_score", "large_min_score_unfilled"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}")
@@ -502,6 +514,7 @@ class Check:
     partial: bool = False  # a match ill-posed along one direction only is kept as a partial closure
     unique: bool = False  # a match away from the guess is refused when the guess is a match too
     far: bool = False  # a far loop's check (``far_loop_m``): its drawing is not kept in the cache
+    final: bool = False  # a final-pass check: small corrections too need ``final_min_facing_share``
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -549,6 +562,8 @@ class CloserStats:
     steps_loosened: int = 0  # front-end steps the final solve held loosely (``final_loosen_steps``)
     final_ambiguous: int = 0  # ... and not kept: the graph's guess matched as well (``final_ambiguity_jump``)
     final_wide: int = 0  # of the final pass's matches, found only in the wider window (``final_wide_window_xy``)
+    # final-pass matches and scan pairs refused: walls seen from behind (``final_min_facing_share``)
+    final_behind: int = 0
 
 
 class ClosureSearch(Protocol):
@@ -819,6 +834,8 @@ class LoopCloser:
             st.rejected_score += r.outcome == "score"
         elif r.outcome == "inliers":
             st.rejected_inliers += 1
+        elif r.outcome == "behind" and r.check.final:
+            st.final_behind += 1
         elif r.outcome == "behind":
             st.rejected_behind += 1
         elif r.outcome == "disagreement":
@@ -1129,7 +1146,7 @@ class LoopCloser:
         refused are added to ``ambiguous``."""
         checks = []
         for k in ks:  # one by one: the first draws the submap, the rest find it drawn
-            check = self._check(k, sm, window=window)
+            check = replace(self._check(k, sm, window=window), final=True)
             if partial or unique:
                 check = replace(check, partial=partial, unique=self.config.final_ambiguity_jump > 0)
             checks.append(self._with_drawn(check))
@@ -1153,7 +1170,8 @@ class LoopCloser:
         """The final pass: every node matched against the finished submaps it sees (not its own nor
         one beside it, ``final_min_gap_nodes``; the ``final_per_node`` nearest by view within
         ``final_radius``), each in a small window around where the solved graph puts it; every verified
-        match an edge (not one away from the guess where the guess matches too, ``final_ambiguity_jump``); then the graph solved again,
+        match an edge (not one away from the guess where the guess matches too, ``final_ambiguity_jump``, nor one
+        on walls seen from behind, ``final_min_facing_share``); then the graph solved again,
         the worst edges dropped one at a time as for closures (at most ``final_drops``). Dense
         constraints, after Cartographer's global SLAM: a node's pose becomes the average of many
         scan-to-submap matches instead of the front end's chain of steps, and places where no loop
@@ -1274,7 +1292,8 @@ class LoopCloser:
     def _scan_pairs(self, xyt: F64, doubtful: Collection[int] = ()) -> list[Closure]:
         """The final pass's scan-to-scan matches (``final_pair_per_node``): node k against earlier
         nodes' scans near it, point-to-line from the graph's guess (searched along the step for a
-        near pair the guess is too far off for, ``final_pair_search``); each kept one an edge j -> k.
+        near pair the guess is too far off for, ``final_pair_search``); each kept one an edge j -> k (not one
+        on scan j's walls seen from behind, ``final_min_facing_share``).
         A node of ``doubtful`` is paired only with nodes near it in the chain (``final_pair_skip_ambiguous``).
         The pairs do not depend on one another: all are refined together (``icp_refine_many``)."""
         cfg = self.config
@@ -1314,7 +1333,12 @@ class LoopCloser:
                 self.stats.final_pairs_searched += m is not None
         out: list[Closure] = []
         for (k, j, _, _), m in zip(pairs, found, strict=True):
-            if m is not None:
+            if m is None:
+                continue
+            facing = _inliers(references[j], self.scans[k].points, m.pose, cfg.inlier_distance)[1]
+            if facing < cfg.final_min_facing_share:
+                self.stats.final_behind += 1  # scan j's walls matched from their far side
+            else:
                 z = compose(compose(self.mount, m.pose), inv_mount)  # node k in node j's frame
                 # No submap is drawn for a pair, so no field score: its inlier share stands in.
                 share = m.inliers / len(self.scans[k].points)
@@ -1626,7 +1650,7 @@ def _check_judge(check: Check, drawn: Drawn, found: Pose, score: float, r: IcpRe
     # How far it moves the node (the robot, as ``LoopCloser._jump`` measures it), not the sensor.
     robot = compose(r.pose, inverse(check.mount))
     large = _move(compose(check.guess, inverse(check.mount)), robot) > cfg.confirm_above
-    if facing < cfg.min_facing_share and large:
+    if (facing < cfg.min_facing_share and large) or (check.final and facing < cfg.final_min_facing_share):
         return CheckResult(check, None, "behind", drawn)
     floor = cfg.large_min_score if drawn.filled else cfg.large_min_score_unfilled
     if large and check.confirms is None and score < floor:
