@@ -317,7 +317,9 @@ def run_replay(args: argparse.Namespace) -> int:
         closed = (
             f"; {len(m.closer)} nodes, {st.accepted} loop closures of {st.attempts} checked,"
             f" final pass {st.final_edges - st.final_pairs} submap matches and {st.final_pairs} scan pairs"
-            f" ({len(m.closer.closures)} edges kept)"
+            f" ({len(m.closer.closures)} edges kept"
+            + (f"; {st.final_behind} refused, walls seen from behind" if st.final_behind else "")
+            + ")"
         )
         if st.odometry_edges:  # what the log's odometry was found worth, and so weighed at
             closed += f", the odometry's {st.odometry_edges} steps held at {100 * st.odometry_sd_xy:.1f} cm"

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from fleetlink.agent.mapping import scan as scanprep
-from fleetlink.agent.mapping.closure import Check, CloserConfig, LoopCloser, NodeScan, run_check
+from fleetlink.agent.mapping.closure import Check, CheckResult, CloserConfig, LoopCloser, NodeScan, run_check
 from fleetlink.agent.mapping.grid import GridConfig
 from fleetlink.agent.mapping.mapper import MapperConfig
 from fleetlink.agent.mapping.matcher import scan_normals
@@ -131,3 +131,14 @@ def test_a_scan_pair_on_one_side_of_the_wall_is_an_edge() -> None:
 def test_the_final_facing_share_is_a_share(share: float) -> None:
     with pytest.raises(ValueError, match="final_min_facing_share"):
         CloserConfig(final_min_facing_share=share)
+
+
+def test_a_final_refusal_is_counted_apart_from_the_online_ones() -> None:
+    """``final_behind`` counts the final pass's refusals (what ``fleetlink map replay`` reports);
+    ``rejected_behind`` stays the online gate's."""
+    scan = _scan(-1.0, -0.5, math.pi / 2, math.pi, 181)
+    closer = LoopCloser(CloserConfig(), GridConfig())
+    for final in (True, False):
+        check = _final_check(scan, (0.0, -1.3, math.pi / 2), CloserConfig(), final=final)
+        closer._note(CheckResult(check, None, "behind", None), attempt=not final)
+    assert (closer.stats.final_behind, closer.stats.rejected_behind, closer.stats.attempts) == (1, 1, 1)
