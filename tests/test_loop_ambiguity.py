@@ -9,12 +9,10 @@ import math
 
 import numpy as np
 
-from fleetlink.agent.mapping import scan as scanprep
 from fleetlink.agent.mapping.closure import Check, CloserConfig, NodeScan, run_check
 from fleetlink.agent.mapping.grid import GridConfig
-from fleetlink.agent.mapping.mapper import MapperConfig
-from fleetlink.agent.mapping.matcher import scan_normals
 from fleetlink.field.raycast import Raycaster
+from tests.harness.scans import node_scan
 
 # A 6 x 4 m room with a few fins (every direction well posed), the lidar in the middle.
 ROOM = np.array(
@@ -32,15 +30,9 @@ N = 361
 
 
 def _node_scan() -> NodeScan:
-    cfg = MapperConfig()
     angles = np.linspace(-math.pi, math.pi, N, endpoint=False)
     ranges = Raycaster(ROOM).cast_fan(0.0, 0.0, -math.pi, 2.0 * math.pi / N, N, 12.0)
-    r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, cfg.max_range)
-    pts = scanprep.to_points(r[hit], a[hit])
-    labels = scanprep.segment_labels(pts, cfg.segment_eps, cfg.segment_tau)
-    keep = scanprep.filter_segments(labels, cfg.min_segment_points)
-    kept = pts[keep]
-    return NodeScan(r, a, hit, kept, scan_normals(pts, labels)[keep], scanprep.thin(kept, cfg.match_cell))
+    return node_scan(ranges, angles)
 
 
 def _check(

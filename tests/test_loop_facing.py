@@ -12,13 +12,11 @@ import math
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping import scan as scanprep
 from fleetlink.agent.mapping.closure import Check, CheckResult, CloserConfig, LoopCloser, NodeScan, run_check
 from fleetlink.agent.mapping.grid import GridConfig
-from fleetlink.agent.mapping.mapper import MapperConfig
-from fleetlink.agent.mapping.matcher import scan_normals
 from fleetlink.field.raycast import Raycaster
 from fleetlink.shared.se2 import Pose
+from tests.harness.scans import node_scan
 
 
 def _box(x0: float, y0: float, x1: float, y1: float) -> list[list[float]]:
@@ -37,17 +35,10 @@ WELL_POSED = np.diag([1.0e5, 1.0e5, 1.0e3])
 
 def _scan(x: float, y: float, heading: float = 0.0, fov: float = 2.0 * math.pi, beams: int = 720) -> NodeScan:
     """What a lidar at (x, y) facing ``heading`` sees over ``fov``, prepared as the mapper prepares it."""
-    cfg = MapperConfig()
     full = fov >= 2.0 * math.pi
     step = fov / beams if full else fov / (beams - 1)
     angles = -fov / 2.0 + step * np.arange(beams)
-    ranges = Raycaster(WALLS).cast_fan(x, y, heading - fov / 2.0, step, beams, 12.0)
-    r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, cfg.max_range)
-    pts = scanprep.to_points(r[hit], a[hit])
-    labels = scanprep.segment_labels(pts, cfg.segment_eps, cfg.segment_tau)
-    keep = scanprep.filter_segments(labels, cfg.min_segment_points)
-    kept = pts[keep]
-    return NodeScan(r, a, hit, kept, scan_normals(pts, labels)[keep], scanprep.thin(kept, cfg.match_cell))
+    return node_scan(Raycaster(WALLS).cast_fan(x, y, heading - fov / 2.0, step, beams, 12.0), angles)
 
 
 # The submap: three scans from the room above, in the frame of the first (at (-1, 1), facing +x).

@@ -12,13 +12,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping import scan as scanprep
 from fleetlink.agent.mapping.closure import Check, CloserConfig, NodeScan, draw_submap, open_space, run_check
 from fleetlink.agent.mapping.grid import GridConfig
-from fleetlink.agent.mapping.mapper import MapperConfig
-from fleetlink.agent.mapping.matcher import field_score, scan_normals
+from fleetlink.agent.mapping.matcher import field_score
 from fleetlink.field.raycast import Raycaster
 from fleetlink.shared.se2 import relative
+from tests.harness.scans import node_scan
 
 # A 36 x 24 m hall with two stands in it: most walls 10-18 m from the lidar.
 HALL = np.array(
@@ -42,15 +41,9 @@ N = 360
 
 
 def _scan_at(x: float, y: float, theta: float, walls: np.ndarray = HALL) -> NodeScan:
-    cfg = MapperConfig()
     angles = np.linspace(-math.pi, math.pi, N, endpoint=False)
     ranges = Raycaster(walls).cast_fan(x, y, theta - math.pi, 2.0 * math.pi / N, N, 30.0)
-    r, a, hit = scanprep.prepare(ranges, angles, cfg.min_range, 30.0)
-    pts = scanprep.to_points(r[hit], a[hit])
-    labels = scanprep.segment_labels(pts, cfg.segment_eps, cfg.segment_tau)
-    keep = scanprep.filter_segments(labels, cfg.min_segment_points)
-    kept = pts[keep]
-    return NodeScan(r, a, hit, kept, scan_normals(pts, labels)[keep], scanprep.thin(kept, cfg.match_cell))
+    return node_scan(ranges, angles, 30.0)
 
 
 POSES = [(-1.0, -0.5, 0.0), (-0.4, -0.3, 0.2), (0.3, 0.0, 0.35), (0.9, 0.4, 0.5)]
