@@ -2,8 +2,8 @@
 wall 0.3 m thick, a room above it and a corridor below. A scan from the corridor sees the wall's lower
 face; matched onto what the room saw, from a guess a few centimetres off, the refinement pulls that
 face onto the upper one, 0.3 m across, every inlier on a surface that faces away from the scan. So
-intel's corrected log's scan 814 was put 0.33-0.36 m across its step by three final-pass edges, where
-the raw log's own odometry drives straight."""
+three final-pass edges (each 0.33-0.36 m off the reference's relation) laid intel's corrected log's
+scan 814 on such a face, its step 0.19 m across where the raw log's own odometry drives straight."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from fleetlink.agent.mapping.closure import Check, CheckResult, CloserConfig, LoopCloser, NodeScan, run_check
+from fleetlink.agent.mapping.closure import Check, CloserConfig, LoopCloser, NodeScan, compose, run_check
 from fleetlink.agent.mapping.grid import GridConfig
 from fleetlink.field.raycast import Raycaster
 from fleetlink.shared.se2 import Pose
@@ -69,7 +69,7 @@ def test_a_final_match_onto_a_walls_far_face_is_refused(below: float) -> None:
     assert taken.closure is not None, taken.outcome
     assert abs(taken.closure.z[1] - (truth_y + 0.3)) < 0.03, taken.closure.z  # on the far face
     refused = run_check(_final_check(scan, guess, CloserConfig()))
-    assert refused.closure is None and refused.outcome == "behind"
+    assert refused.closure is None and refused.outcome == "far side"
     online = run_check(_final_check(scan, guess, CloserConfig(), final=False))
     assert online.closure is not None, online.outcome
 
@@ -124,12 +124,25 @@ def test_the_final_facing_share_is_a_share(share: float) -> None:
         CloserConfig(final_min_facing_share=share)
 
 
-def test_a_final_refusal_is_counted_apart_from_the_online_ones() -> None:
-    """``final_behind`` counts the final pass's refusals (what ``fleetlink map replay`` reports);
-    ``rejected_behind`` stays the online gate's."""
-    scan = _scan(-1.0, -0.5, math.pi / 2, math.pi, 181)
-    closer = LoopCloser(CloserConfig(), GridConfig())
-    for final in (True, False):
-        check = _final_check(scan, (0.0, -1.3, math.pi / 2), CloserConfig(), final=final)
-        closer._note(CheckResult(check, None, "behind", None), attempt=not final)
-    assert (closer.stats.final_behind, closer.stats.rejected_behind, closer.stats.attempts) == (1, 1, 1)
+def test_the_final_pass_refuses_a_node_laid_on_the_far_face() -> None:
+    """Through ``_verify_all`` (what ``finish`` runs per submap): ten nodes in the room above make a
+    submap; a node in the corridor below, the graph putting it 0.2 m too near the wall, is matched
+    against it as the final pass matches it. Refused with the gate (counted apart from the online
+    gate's refusals); without it, an edge 0.3 m off."""
+    views = [(-2.5 + 0.5 * i, 1.0 + 0.1 * (i % 3)) for i in range(10)]
+    below = (-1.0, -0.5)
+    for share in (0.6, 0.0):
+        cfg = CloserConfig(submap_nodes=10, min_gap_nodes=50, final_min_facing_share=share)
+        closer = LoopCloser(cfg, GridConfig())
+        for k, (x, y) in enumerate(views):
+            closer.add_node(float(k), (x, y, 0.0), _scan(x, y), information=WELL_POSED)
+        scan = _scan(below[0], below[1], math.pi / 2, math.pi, 181)
+        closer.add_node(10.0, (below[0], below[1] + 0.2, math.pi / 2), scan, information=WELL_POSED)
+        window = (cfg.final_window_xy, cfg.final_window_theta)
+        found = closer._verify_all([10], closer.submaps[0], window, partial=True)
+        if share > 0:
+            assert found == [] and closer.stats.final_behind == 1 and closer.stats.rejected_behind == 0
+        else:
+            (edge,) = found
+            at = compose(closer.poses[0], edge.z)
+            assert abs(at[1] - (below[1] + 0.3)) < 0.03, at  # on the room's face of the wall

@@ -514,7 +514,7 @@ class Check:
     partial: bool = False  # a match ill-posed along one direction only is kept as a partial closure
     unique: bool = False  # a match away from the guess is refused when the guess is a match too
     far: bool = False  # a far loop's check (``far_loop_m``): its drawing is not kept in the cache
-    final: bool = False  # a final-pass check: small corrections too need ``final_min_facing_share``
+    final: bool = False  # a final-pass check: every match it accepts needs ``final_min_facing_share``
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -522,7 +522,7 @@ class CheckResult:
     check: Check
     closure: Closure | None
     # "accepted", "few points", "score", "inliers", "behind", "disagreement", "outside", "degenerate",
-    # "ambiguous"
+    # "ambiguous", "far side" (a final-pass match otherwise accepted: ``final_min_facing_share``)
     outcome: str
     drawn: Drawn | None  # the submap as drawn for the check (None: not drawn, too few points)
 
@@ -562,7 +562,8 @@ class CloserStats:
     steps_loosened: int = 0  # front-end steps the final solve held loosely (``final_loosen_steps``)
     final_ambiguous: int = 0  # ... and not kept: the graph's guess matched as well (``final_ambiguity_jump``)
     final_wide: int = 0  # of the final pass's matches, found only in the wider window (``final_wide_window_xy``)
-    # final-pass matches and scan pairs refused: walls seen from behind (``final_min_facing_share``)
+    # final-pass matches and scan pairs that passed every other test, refused: walls seen from behind
+    # (``final_min_facing_share``)
     final_behind: int = 0
 
 
@@ -834,7 +835,7 @@ class LoopCloser:
             st.rejected_score += r.outcome == "score"
         elif r.outcome == "inliers":
             st.rejected_inliers += 1
-        elif r.outcome == "behind" and r.check.final:
+        elif r.outcome == "far side":
             st.final_behind += 1
         elif r.outcome == "behind":
             st.rejected_behind += 1
@@ -1650,7 +1651,7 @@ def _check_judge(check: Check, drawn: Drawn, found: Pose, score: float, r: IcpRe
     # How far it moves the node (the robot, as ``LoopCloser._jump`` measures it), not the sensor.
     robot = compose(r.pose, inverse(check.mount))
     large = _move(compose(check.guess, inverse(check.mount)), robot) > cfg.confirm_above
-    if (facing < cfg.min_facing_share and large) or (check.final and facing < cfg.final_min_facing_share):
+    if facing < cfg.min_facing_share and large:
         return CheckResult(check, None, "behind", drawn)
     floor = cfg.large_min_score if drawn.filled else cfg.large_min_score_unfilled
     if large and check.confirms is None and score < floor:
@@ -1704,6 +1705,9 @@ def _check_judge(check: Check, drawn: Drawn, found: Pose, score: float, r: IcpRe
                 and _inliers(local, sc.points, q.pose, cfg.inlier_distance)[0] >= cfg.min_inlier_ratio
             ):
                 return CheckResult(check, None, "ambiguous", drawn)
+    # Last, so that it refuses only what would be an edge (an ambiguous node stays one: ``_verify_all``).
+    if check.final and facing < cfg.final_min_facing_share:
+        return CheckResult(check, None, "far side", drawn)
     score = field_score(grid, sc.match_points, r.pose)
     closure = Closure(check.node, check.anchor, robot, score, ratio, weak_dir)
     return CheckResult(check, closure, "accepted", drawn)
