@@ -85,8 +85,8 @@ def test_a_final_match_on_the_side_it_was_mapped_from_is_kept() -> None:
 
 
 def _pairs(first: tuple[float, float], second: tuple[float, float], off: float, config: CloserConfig) -> LoopCloser:
-    """Two nodes (360-degree scans), the second put ``off`` m further along y than it was taken; the
-    final pass's scan pairs made (``final_pair_per_node``) and left in the closer's stats."""
+    """A closer with two nodes (360-degree scans), the second put ``off`` m further along y than it was
+    taken, for its final pass's scan pairs (``_scan_pairs``)."""
     closer = LoopCloser(config, GridConfig())
     closer.add_node(0.0, (first[0], first[1], 0.0), _scan(*first), information=WELL_POSED)
     closer.add_node(1.0, (second[0], second[1] + off, 0.0), _scan(*second), information=WELL_POSED)

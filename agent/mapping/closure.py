@@ -1324,6 +1324,7 @@ class LoopCloser:
                 guess = relative(compose(pj, self.mount), compose(pk, self.mount))  # sensor k in sensor j
                 pairs.append((k, j, guess, k - j <= cfg.final_pair_search_nodes))  # near: the front end's steps again
         found = self._pairs_match([(references[j], self.scans[k], g, steps) for k, j, g, steps in pairs])
+        again: list[int] = []  # the pairs refined again by the search (``final_pair_search``)
         if cfg.final_pair_search > 0:
             again = [i for i, (m, p) in enumerate(zip(found, pairs, strict=True)) if m is None and p[3]]
             searched = self._pairs_search(
@@ -1331,15 +1332,16 @@ class LoopCloser:
             )
             for i, m in zip(again, searched, strict=True):
                 found[i] = m
-                self.stats.final_pairs_searched += m is not None
+        by_search = set(again)
         out: list[Closure] = []
-        for (k, j, _, _), m in zip(pairs, found, strict=True):
+        for i, ((k, j, _, _), m) in enumerate(zip(pairs, found, strict=True)):
             if m is None:
                 continue
             facing = _inliers(references[j], self.scans[k].points, m.pose, cfg.inlier_distance)[1]
             if facing < cfg.final_min_facing_share:
                 self.stats.final_behind += 1  # scan j's walls matched from their far side
             else:
+                self.stats.final_pairs_searched += i in by_search  # of the pairs kept, the searched ones
                 z = compose(compose(self.mount, m.pose), inv_mount)  # node k in node j's frame
                 # No submap is drawn for a pair, so no field score: its inlier share stands in.
                 share = m.inliers / len(self.scans[k].points)
