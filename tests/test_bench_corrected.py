@@ -25,10 +25,13 @@ def test_corrected_logs_are_scored_against_sets_made_other_ways(
     rooms = json.loads(out.read_text())["corrected"]["rooms-corrected.log"]
     assert rooms["scans"] == 24
     rows = rooms["other_sets"]
-    assert [(r["max_distance_m"], r["min_overlap_ratio"]) for r in rows] == [(d, f) for d, f in bench.OTHER_SETS]
-    by_set = {(r["max_distance_m"], r["min_overlap_ratio"]): r for r in rows}
+    assert [(r["max_distance_m"], r["min_overlap_ratio"], r["facing_only"]) for r in rows] == list(bench.OTHER_SETS)
+    both_faces = by_set_of(rows, False)[(3.0, 0.5)]
+    by_set = by_set_of(rows, True)
     # The first table's set is one of them: the same relations, the same figures.
     default = by_set[(3.0, 0.5)]
+    # Counting the far faces of surfaces as seen never pairs fewer scans.
+    assert both_faces["relations"] >= default["relations"]
     assert default["mapper"] == rooms["mapper"]["complete"]
     assert default["relations"] == rooms["mapper"]["complete"]["pairs"]
     for d in (1.0, 2.0, 3.0, 5.0):  # a looser overlap or a longer reach never pairs fewer scans
@@ -40,3 +43,7 @@ def test_corrected_logs_are_scored_against_sets_made_other_ways(
         assert r["mapper"]["trans_mean_m"] < 0.05  # the room is mapped where the log's poses put it
     printed = capsys.readouterr().out
     assert "against complete sets made other ways" in printed and "heading" in printed
+
+
+def by_set_of(rows: list[dict[str, object]], facing_only: bool) -> dict[tuple[object, object], dict[str, object]]:
+    return {(r["max_distance_m"], r["min_overlap_ratio"]): r for r in rows if r["facing_only"] is facing_only}

@@ -324,6 +324,38 @@ def test_generate_relations_with_scans_drops_pairs_that_do_not_see_each_other() 
     assert {(r.t1, r.t2) for r in seeing} == {(0.0, 1.0)}
 
 
+# Two rooms either side of a partition 0.1 m thick (its faces at x = 4.0 and x = 4.1): thinner than
+# the occlusion margin, so each room's scans find the other face within it, 0.1 m behind their own.
+PARTITION = np.array(
+    [
+        [0.0, 0.0, 8.1, 0.0],
+        [8.1, 0.0, 8.1, 4.0],
+        [8.1, 4.0, 0.0, 4.0],
+        [0.0, 4.0, 0.0, 0.0],
+        [4.0, 0.0, 4.0, 4.0],
+        [4.1, 0.0, 4.1, 4.0],
+    ]
+)
+
+
+def test_two_faces_of_a_thin_partition_are_not_one_view() -> None:
+    rc = Raycaster(PARTITION)
+    west, east, also_west = (3.0, 2.0, 0.0), (5.1, 2.0, math.pi), (2.5, 1.5, 0.3)
+    sw, se, sa = _scan(rc, west), _scan(rc, east), _scan(rc, also_west)
+    # 2.1 m apart, each facing the partition: the far face lies 0.1 m behind what each one sees.
+    assert view_overlap(west, sw, east, se, max_range=30.0, facing_only=False) > 0.6
+    assert view_overlap(west, sw, east, se, max_range=30.0) < 0.05
+    # The same face seen from two places on its own side is one view.
+    assert view_overlap(west, sw, also_west, sa, max_range=30.0) > 0.8
+    times = [0.0, 1.0, 2.0]
+    poses: list[Pose] = [west, also_west, east]
+    scans = [sw, sa, se]
+    both_faces = generate_relations(times, poses, scans=scans, max_range=30.0, facing_only=False)
+    assert {(r.t1, r.t2) for r in both_faces} == {(0.0, 1.0), (0.0, 2.0), (1.0, 2.0)}
+    seeing = generate_relations(times, poses, scans=scans, max_range=30.0)
+    assert {(r.t1, r.t2) for r in seeing} == {(0.0, 1.0)}
+
+
 # -- the CLI -----------------------------------------------------------------------------------------
 
 # Two passes across the left room, the second 50 s after the first and 1 m to the side of it.
