@@ -73,7 +73,7 @@ DEFAULT_OCCLUSION_M = 0.3  # an endpoint this far behind the other scan's readin
 # their neighbour's).
 SURFACE_BREAK_M = 0.3
 SURFACE_BREAK_RATIO = 5.0
-# intel (910 scans) gives about 10 800 relations with its scans, 12 600 without; a robot that stands
+# intel (910 scans) gives about 9 800 relations with its scans, 12 600 without; a robot that stands
 # still for a long time adds pairs quadratically, so the set is thinned (evenly, by stride) beyond this.
 DEFAULT_MAX_RELATIONS = 20_000
 DEFAULT_LOCAL_S = 20.0
@@ -266,8 +266,10 @@ def generate_relations(
     far apart in time, whose poses lie within ``max_distance_m`` and whose views overlap.
 
     Overlap: with ``scans`` (ranges, angles per pose, sensor frame; ``mount`` is the sensor on the
-    robot, readings >= ``max_range`` are no return), ``view_overlap`` >= ``min_overlap``; without,
-    headings within ``max_heading_rad``. Pairs come in log order (i < j, by i then j); beyond
+    robot, readings >= ``max_range`` are no return), ``view_overlap`` >= ``min_overlap`` (``facing_only``:
+    an endpoint counts only on a surface facing the other sensor; False counts the far faces of walls
+    thinner than ``occlusion_m`` too, as sets were drawn until 2026-12-07); without, headings within
+    ``max_heading_rad``. Pairs come in log order (i < j, by i then j); beyond
     ``max_relations`` every k-th is kept (k the smallest stride that fits), which thins them evenly
     over the log and gives the same set every time. Times must be distinct (``indistinct_times``;
     ValueError): a relation names its two scans by them.
