@@ -324,18 +324,9 @@ def test_generate_relations_with_scans_drops_pairs_that_do_not_see_each_other() 
     assert {(r.t1, r.t2) for r in seeing} == {(0.0, 1.0)}
 
 
-# Two rooms either side of a partition 0.1 m thick (its faces at x = 4.0 and x = 4.1): thinner than
-# the occlusion margin, so each room's scans find the other face within it, 0.1 m behind their own.
-PARTITION = np.array(
-    [
-        [0.0, 0.0, 8.1, 0.0],
-        [8.1, 0.0, 8.1, 4.0],
-        [8.1, 4.0, 0.0, 4.0],
-        [0.0, 4.0, 0.0, 0.0],
-        [4.0, 0.0, 4.0, 4.0],
-        [4.1, 0.0, 4.1, 4.0],
-    ]
-)
+# ROOMS with the wall between them 0.1 m thick (its faces at x = 4.0 and x = 4.1): thinner than the
+# occlusion margin, so each room's scans find the other face within it, 0.1 m behind their own.
+PARTITION = np.vstack((ROOMS, [[4.1, 0.0, 4.1, 4.0]]))
 
 
 def test_two_faces_of_a_thin_partition_are_not_one_view() -> None:
