@@ -74,7 +74,15 @@ def test_a_robot_whose_agent_restarts_is_shown_off_the_fleet_map_then_where_it_s
             return False
 
         wait_until(turned_until_found, timeout=40, interval=0.1, message="uvc-2 found on the fleet map")
-        wait_until(lambda: (p := on_fleet_map(session)) is not None and math.dist(p, START) < 0.15, timeout=10)
+
+        def turned_until_at_start() -> bool:
+            # A map found early can be placed wrong (the fleet map searches for it again as it grows).
+            if (p := on_fleet_map(session)) is not None and math.dist(p, START) < 0.15:
+                return True
+            hold(session, "j")
+            return False
+
+        wait_until(turned_until_at_start, timeout=30, interval=0.1, message=f"uvc-2 shown where it started, {START}")
         # Sent 0.5 m further from uvc-1, on the fleet map: it stands there when its agent restarts.
         goal = (START[0] + 0.5, START[1])
         command(session, f"goal {goal[0]:.2f} {goal[1]:.2f}")
@@ -121,15 +129,16 @@ def test_a_robot_whose_agent_restarts_is_shown_off_the_fleet_map_then_where_it_s
 
         def turned_until_where_it_stands() -> bool:
             # A new map found within seconds of the restart has few walls, and its first placement
-            # can be decimetres off (a clean-clone run: 0.25 m, found 2 s after it); as its map grows
-            # the fleet map refines the frame. The operator turns it in place to show it more.
+            # can be decimetres off (a clean-clone run: 0.25 m, found 2 s after it), or wrong; as its
+            # map grows the fleet map refines the frame, and searches for it again. The operator
+            # turns it in place to show it more.
             if (p := sample()[0]) is not None and math.dist(p, there) < 0.1:
                 return True
             hold(session, "j")
             return False
 
         wait_until(
-            turned_until_where_it_stands, timeout=30, interval=0.1, message=f"uvc-2 shown where it stands, {there}"
+            turned_until_where_it_stands, timeout=45, interval=0.1, message=f"uvc-2 shown where it stands, {there}"
         )
         near_start = [p for p in drawn if math.dist(p, START) < 0.3]
         assert not near_start, near_start  # never drawn through the old map's frame
