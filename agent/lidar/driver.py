@@ -41,7 +41,6 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal, TypeVar
 
-from fleetlink.agent.lidar.stamps import TurnStamps
 from fleetlink.devices.ports import Port, PortClosed
 from fleetlink.devices.rplidar import protocol as lp
 from fleetlink.shared.clock import Clock
@@ -138,7 +137,6 @@ class LidarDriver:
         self.stats = DriverStats()
         self.decoder = lp.LidarDecoder(batch=True)
         self.assembler = lp.RevolutionAssembler()
-        self.turns = TurnStamps()  # each turn's stamp: when it was complete, not when it was read
         self._scanning = False
         self._motor_on = False
         self._ready: list[lp.Revolution] = []
@@ -262,7 +260,6 @@ class LidarDriver:
         self.start_motor()
         self.decoder.reset()
         self.assembler.reset()
-        self.turns.reset()
         self._ready.clear()
         if working_mode < 0:
             cmd = lp.Command.FORCE_SCAN if force else lp.Command.SCAN
@@ -447,22 +444,19 @@ class LidarDriver:
         for ev in events:
             if isinstance(ev, (lp.NodeBatch, lp.Node)):
                 for rev in self.assembler.push(ev):
-                    stamp = self.turns.stamp(len(rev), now)
-                    out.append(lp.Revolution(rev.angles_rad, rev.distances_m, rev.qualities, stamp))
+                    out.append(lp.Revolution(rev.angles_rad, rev.distances_m, rev.qualities, now))
             else:
                 # A descriptor mid-scan: the lidar restarted its stream; the turn in progress is void.
                 self.stats.stray_events += 1
                 if isinstance(ev, lp.Descriptor):
                     self.assembler.reset()
-                    self.turns.reset()
-        self.stats.revolutions += len(out)
+                    self.stats.revolutions += len(out)
         return out
 
     def _end_scan(self) -> None:
         self._scanning = False
         self._ready.clear()
         self.assembler.reset()
-        self.turns.reset()
 
     def _drain(self, quiet: float, keep: bool = False, limit: float = 0.5) -> bytes:
         """Read until the line has been quiet for ``quiet`` s (at most ``limit`` s); then the decoder
