@@ -28,6 +28,15 @@ from tests.harness import MosquittoBroker, wait_until
 from tests.harness.agent_process import agent_process
 from tests.harness.zenoh_peers import zenoh_config
 
+# The holder sends its commands as the console's link does (links/zenoh.py ``URGENT_TOPICS``: express,
+# INTERACTIVE_HIGH, congestion control BLOCK); the flood goes out as zenoh's default (DROP). Sent
+# with the default from the flood's own session, a holder's teleop may be dropped under congestion
+# before it leaves; on a slow 2-core host (CI, twice) one was never acked within 5 s.
+AS_THE_CONSOLE: dict[str, Any] = {
+    "congestion_control": zenoh.CongestionControl.BLOCK,
+    "priority": zenoh.Priority.INTERACTIVE_HIGH,
+    "express": True,
+}
 RATE = 10_000.0
 SECONDS = 3.0
 TTL_S = 0.5
@@ -97,7 +106,7 @@ def test_the_lease_holder_drives_through_garbage_and_valid_floods(tmp_path: Path
                 msg = holder.make(Teleop, v=0.0, omega=0.0, ttl_s=TTL_S)
                 with lock:
                     sent[msg.header.headerId] = time.monotonic()
-                session.put(wire.key_of(msg), wire.encode(msg))
+                session.put(wire.key_of(msg), wire.encode(msg), **AS_THE_CONSOLE)
                 ids.append(msg.header.headerId)
                 time.sleep(0.1)
             return ids
@@ -108,7 +117,7 @@ def test_the_lease_holder_drives_through_garbage_and_valid_floods(tmp_path: Path
             wait_until(lambda: any(i in acked for i in drive(0.3)), timeout=15, message="a first ack")
             # The holder takes the lease, as an operator driving the robot does.
             lease = holder.make(LeaseRequest, duration_s=300.0, release=False)
-            session.put(wire.key_of(lease), wire.encode(lease))
+            session.put(wire.key_of(lease), wire.encode(lease), **AS_THE_CONSOLE)
             ids = drive(1.0)
             wait_until(lambda: all(i in acked for i in ids), timeout=5, message="the holder's acks before the floods")
             rss0, lines0 = _rss(agent.proc.pid), len(log_path.read_bytes().splitlines())
