@@ -608,13 +608,10 @@ class LidarFeed:
             return now + LIDAR_REOPEN_S
         now = self.node.clock.now()
         if revs:
-            # The turn's length from the driver's stamps (when each turn was complete, however late
-            # it was read), smoothed over a few turns.
-            last = revs[-1].stamp if revs[-1].stamp is not None else now
-            gap = None if self._last_turn_at is None else (last - self._last_turn_at) / len(revs)
-            if gap is not None and 0.0 < gap <= MAX_TURN_S:
+            gap = None if self._last_turn_at is None else (now - self._last_turn_at) / len(revs)
+            if gap is not None and gap <= MAX_TURN_S:  # the turn's length, smoothed over a few turns
                 self.turn_s += 0.25 * (gap - self.turn_s)
-            self._last_turn_at = last
+            self._last_turn_at = now
         lo, hi = LIDAR_READ_PERIOD_S
         return now + min(hi, max(lo, self.turn_s / 4.0))
 

@@ -55,4 +55,5 @@ def test_a_feed_held_up_takes_every_turn_waiting_and_maps_the_newest() -> None:
     clock.advance(0.05)
     feed.step(clock.now())  # caught up: the next step finds at most the turn completed since
     assert len(node.mapped) <= prompt + 2 and node.stale_turns == stale
+    assert feed.driver.stats.revolutions == len(node.recorded)  # every turn the driver read, accounted for
     feed.close()

@@ -450,7 +450,7 @@ class LidarDriver:
                 self.stats.stray_events += 1
                 if isinstance(ev, lp.Descriptor):
                     self.assembler.reset()
-                    self.stats.revolutions += len(out)
+        self.stats.revolutions += len(out)
         return out
 
     def _end_scan(self) -> None:
