@@ -287,6 +287,9 @@ class FleetMap:
     on, its map's version then, the frame)."""
     _checked: dict[str, tuple[int, int]] = field(default_factory=dict)
     """Per robot placed by the global search: its map's version and the build when last searched."""
+    _moving: dict[str, Pose] = field(default_factory=dict)
+    """Per robot placed by the global search: another place a search of its grown map found in the
+    slack below ``min_score``, to be confirmed by the next search before it is moved there."""
     _reference: tuple[str, ...] = ()
     """The robots whose frame is the fleet map's: those in the site frame, or the first by name."""
     global_why: dict[str, str] = field(default_factory=dict)
@@ -405,15 +408,20 @@ class FleetMap:
         reference = site or (min(self.maps),)
         if reference != self._reference:
             self._reference, self._frames, self._checked, self._pending = reference, {}, {}, {}
+            self._moving = {}
         framed = set(reference)
         for r, (epoch, _, _) in list(self._frames.items()):
             if r in self.maps and self.maps[r].epoch == epoch:
                 framed.add(r)
             else:
+                # Gone or begun again. The robots found on its map keep their frames: each was placed
+                # in the fleet map's frame through where its map then lay, and that still holds.
                 del self._frames[r]
                 self._checked.pop(r, None)
+        self._moving = {r: v for r, v in self._moving.items() if r in self._frames}
         for b in sorted(self._frames):
-            self._search_again(b, framed, budget)
+            if b in self._frames:  # not left out with the map it was found on
+                self._search_again(b, framed, budget)
         for b in sorted(set(self.maps) - framed):
             for a in sorted(framed):
                 frame = self._place_globally(b, a, budget)
@@ -447,24 +455,59 @@ class FleetMap:
         if budget[0] < 0:
             return
         self._checked[b] = (pb.map.version, self._builds)
-        found, why, _ = _global_match(self.maps[a], pb, cfg)
+        found, why, score = _global_match(self.maps[a], pb, cfg)
+        moving = self._moving.pop(b, None)
         if found is not None:
             again = compose(self._frame(a), found)
-            if apart(again, frame, cfg.window_xy_m, cfg.window_theta_rad):
-                self._frames[b] = (epoch, again, a)
+            if not apart(again, frame, cfg.window_xy_m, cfg.window_theta_rad):
+                return
+            # Moved as a first place is taken: at min_score, or in the slack below it once the
+            # next search puts it there again.
+            if score >= cfg.min_score or (
+                moving is not None and not apart(again, moving, cfg.window_xy_m, cfg.window_theta_rad)
+            ):
+                self._move(b, again)
                 self.global_why[b] = f"on {a}'s map again: {why}"
-            return
-        # No place fits it as the search asks now: kept where it is if it still fits there, else
-        # left out and searched for as a map not yet found.
+                return
+            self._moving[b] = again
+            why = f"elsewhere, {why}; to be confirmed as its map grows"
+            self.global_why[b] = f"on {a}'s map: {why}"
+        # No place fits it as the search asks now (or one to be confirmed): kept where it is if it
+        # still fits there, else left out and searched for as a map not yet found.
         fits, there = _still_fits(self.maps[a], pb, compose(inverse(self._frame(a)), frame), cfg)
         if not fits:
-            del self._frames[b]
-            del self._checked[b]
-            framed.discard(b)
+            self._leave_out(b, framed, f"on {a}'s map: no longer where it was placed ({there}); {why}")
             pa = self.maps[a]
             # Just searched: not again in this build.
             self._global_tried[(b, epoch, a, pa.epoch)] = (pb.map.version, pa.map.version, self._builds)
-            self.global_why[b] = f"on {a}'s map: no longer where it was placed ({there}); {why}"
+            if found is not None:  # the place found, confirmed or not by the next search
+                self._pending[b] = (epoch, a, pb.map.version, compose(self._frame(a), found))
+
+    def _move(self, b: str, to: Pose, moved: set[str] | None = None) -> None:
+        """``b``'s frame moved to ``to``, and with it the frames of the robots found on its map
+        (placed through where its map lay, they lie as far from it as before). Once each: a robot
+        begun again can be found on the map of one that was found on its old one."""
+        moved = moved if moved is not None else set()
+        moved.add(b)
+        epoch, old, a = self._frames[b]
+        self._frames[b] = (epoch, to, a)
+        step = compose(to, inverse(old))
+        for c, (_, at, on) in sorted(self._frames.items()):
+            if on == b and c not in moved:
+                self._move(c, compose(step, at), moved)
+
+    def _leave_out(self, b: str, framed: set[str], why: str) -> None:
+        """``b``'s frame given up, and those of the robots found on its map (placed through where it
+        no longer lies): each searched for again as a map not yet found."""
+        if self._frames.pop(b, None) is None:
+            return
+        self._checked.pop(b, None)
+        self._moving.pop(b, None)
+        framed.discard(b)
+        self.global_why[b] = why
+        for c, (_, _, on) in sorted(self._frames.items()):
+            if on == b:
+                self._leave_out(c, framed, f"on {b}'s map, which was left out: {why}")
 
     def _place_globally(self, b: str, a: str, budget: list[int]) -> Pose | None:
         """Where ``b``'s map frame lies in the fleet map's frame, found by matching its map onto
