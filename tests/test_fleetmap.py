@@ -426,24 +426,34 @@ def test_a_map_that_fits_two_places_as_well_is_not_placed() -> None:
             assert result.unframed == ("b",) and result.registrations == ()
 
 
-def test_a_map_placed_by_the_global_search_is_searched_for_again_as_it_grows() -> None:
-    # A young map can fit a wrong place (in the real-time field, a map 4 s old fitted 0.6 m and 46
-    # degrees off): b's first map is what a robot that began at ``wrong`` would have drawn, and it is
-    # placed there; its next version is its map as it grew, which fits only where b began. Searched
-    # for again once ``retry_builds`` builds have passed, it moves there.
+WRONG, RIGHT = (7.5, 1.0, math.radians(137.0)), (2.0, 4.5, math.radians(-20.0))
+"""Where b's first map (a robot's young map) fits and where its grown map belongs."""
+
+
+def placed_where_its_first_map_fits() -> FleetMap:
+    """a's site map of the furnished floor; b's first map, what a robot that began at ``WRONG`` would
+    have drawn, placed there."""
     fm = FleetMap()
     assert fm.put("a", robot_map((0.0, 0.0, 9.0, 6.0), floor=FURNISHED))
-    wrong, right = (7.5, 1.0, math.radians(137.0)), (2.0, 4.5, math.radians(-20.0))
-    assert fm.put("b", own_frame((1.5, 0.0, 9.0, 6.0), wrong))
+    assert fm.put("b", own_frame((1.5, 0.0, 9.0, 6.0), WRONG))
     result = fm.build()
-    assert result is not None and close_to(result.frames["b"], wrong)
-    assert fm.put("b", own_frame((0.0, 0.0, 9.0, 6.0), right, version=2))
+    assert result is not None and close_to(result.frames["b"], WRONG)
+    return fm
+
+
+def test_a_map_placed_by_the_global_search_is_searched_for_again_as_it_grows() -> None:
+    # A young map can fit a wrong place (in the real-time field, a map 4 s old fitted 0.6 m and 46
+    # degrees off): b's first map is what a robot that began at ``WRONG`` would have drawn, and it is
+    # placed there; its next version is its map as it grew, which fits only where b began. Searched
+    # for again once ``retry_builds`` builds have passed, it moves there.
+    fm = placed_where_its_first_map_fits()
+    assert fm.put("b", own_frame((0.0, 0.0, 9.0, 6.0), RIGHT, version=2))
     builds = [fm.build() for _ in range(FleetMapConfig().retry_builds)]
     assert all(r is not None for r in builds)
-    assert close_to(builds[0].frames["b"], wrong, 0.5, math.radians(5.0))  # type: ignore[union-attr]
+    assert close_to(builds[0].frames["b"], WRONG, 0.5, math.radians(5.0))  # type: ignore[union-attr]
     final = builds[-1]
     assert final is not None and final.unframed == ()
-    assert close_to(final.frames["b"], right), final.frames["b"]
+    assert close_to(final.frames["b"], RIGHT), final.frames["b"]
     assert "again" in fm.global_why["b"]
 
 
@@ -498,22 +508,17 @@ def test_a_move_found_below_min_score_waits_for_the_next_version_to_confirm_it()
     # b placed where its first map fits (as in the test above); its next map fits only elsewhere, and
     # there only in the slack below min_score: b is not moved on one search's word (it is left out,
     # as it no longer fits where it was), and is placed there once its next version agrees.
-    fm = FleetMap()
-    assert fm.put("a", robot_map((0.0, 0.0, 9.0, 6.0), floor=FURNISHED))
-    wrong, right = (7.5, 1.0, math.radians(137.0)), (2.0, 4.5, math.radians(-20.0))
-    assert fm.put("b", own_frame((1.5, 0.0, 9.0, 6.0), wrong))
-    result = fm.build()
-    assert result is not None and close_to(result.frames["b"], wrong)
+    fm = placed_where_its_first_map_fits()
     retry = FleetMapConfig().retry_builds
-    assert fm.put("b", smeared(own_frame((0.0, 0.0, 9.0, 6.0), right, version=2), seed=1))
+    assert fm.put("b", smeared(own_frame((0.0, 0.0, 9.0, 6.0), RIGHT, version=2), seed=1))
     builds = [fm.build() for _ in range(retry)]
-    assert all(r is not None and not close_to(r.frames.get("b", wrong), right, 0.5, 0.1) for r in builds)
+    assert all(r is not None and not close_to(r.frames.get("b", WRONG), RIGHT, 0.5, 0.1) for r in builds)
     assert "to be confirmed" in fm.global_why["b"]
-    assert fm.put("b", smeared(own_frame((0.0, 0.0, 9.0, 6.0), right, version=3), seed=2))
+    assert fm.put("b", smeared(own_frame((0.0, 0.0, 9.0, 6.0), RIGHT, version=3), seed=2))
     for _ in range(retry):
         result = fm.build()
     assert result is not None and result.unframed == ()
-    assert close_to(result.frames["b"], right, 0.1, math.radians(2.0)), result.frames["b"]
+    assert close_to(result.frames["b"], RIGHT, 0.1, math.radians(2.0)), result.frames["b"]
 
 
 def test_a_map_found_on_a_map_that_moves_moves_with_it() -> None:
