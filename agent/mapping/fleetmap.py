@@ -53,6 +53,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -263,6 +264,19 @@ WHOLE = -1
 """The piece index of a map shared whole (submaps count from 0)."""
 
 
+class _Placed(NamedTuple):
+    """A robot in its own frame, placed by the global search."""
+
+    epoch: int
+    """Its map's epoch when placed (a restarted agent's new map is not placed by this)."""
+    frame: Pose
+    """Where its map frame lies in the fleet map's frame."""
+    on: str
+    """The robot on whose map it was found ..."""
+    on_epoch: int
+    """... and that map's epoch (robots found on it move and are left out with it)."""
+
+
 @dataclass
 class FleetMap:
     config: FleetMapConfig = field(default_factory=FleetMapConfig)
@@ -278,18 +292,19 @@ class FleetMap:
     _epochs: dict[str, int] = field(default_factory=dict)
     _version: int = 0
     _last: FleetResult | None = None
-    _frames: dict[str, tuple[int, Pose, str]] = field(default_factory=dict)
-    """Per robot in its own frame that the global search placed: (its epoch then, where its frame
-    lies in the fleet map's frame, the robot on whose map it was found)."""
-    _pending: dict[str, tuple[int, str, int, Pose]] = field(default_factory=dict)
+    _frames: dict[str, _Placed] = field(default_factory=dict)
+    """Per robot in its own frame that the global search placed: where its frame lies in the fleet
+    map's frame, and on which map (robot and epoch) it was found."""
+    _pending: dict[str, tuple[int, str, int, int, Pose]] = field(default_factory=dict)
     """Per robot not yet placed: a place the global search found in the slack below ``min_score``, to
     be confirmed by a search of its map's next version (its epoch, the robot whose map it was found
-    on, its map's version then, the frame)."""
+    on and that map's epoch, its own map's version then, where its frame lies on that map)."""
     _checked: dict[str, tuple[int, int]] = field(default_factory=dict)
     """Per robot placed by the global search: its map's version and the build when last searched."""
-    _moving: dict[str, Pose] = field(default_factory=dict)
+    _moving: dict[str, tuple[int, Pose]] = field(default_factory=dict)
     """Per robot placed by the global search: another place a search of its grown map found in the
-    slack below ``min_score``, to be confirmed by the next search before it is moved there."""
+    slack below ``min_score`` (the epoch of the map it was found on, where its frame lies on that
+    map), to be confirmed by the next search before it is moved there."""
     _reference: tuple[str, ...] = ()
     """The robots whose frame is the fleet map's: those in the site frame, or the first by name."""
     global_why: dict[str, str] = field(default_factory=dict)
@@ -396,7 +411,7 @@ class FleetMap:
     def _frame(self, robot: str) -> Pose:
         """Where ``robot``'s map frame lies in the fleet map's frame (identity for the reference)."""
         held = self._frames.get(robot)
-        return held[1] if held is not None else (0.0, 0.0, 0.0)
+        return held.frame if held is not None else (0.0, 0.0, 0.0)
 
     def _framed(self, budget: list[int]) -> list[str]:
         """The robots whose maps can be placed in the fleet map's frame, sorted: those in the site
@@ -410,8 +425,8 @@ class FleetMap:
             self._reference, self._frames, self._checked, self._pending = reference, {}, {}, {}
             self._moving = {}
         framed = set(reference)
-        for r, (epoch, _, _) in list(self._frames.items()):
-            if r in self.maps and self.maps[r].epoch == epoch:
+        for r, placed in list(self._frames.items()):
+            if r in self.maps and self.maps[r].epoch == placed.epoch:
                 framed.add(r)
             else:
                 # Gone or begun again. The robots found on its map keep their frames: each was placed
@@ -426,7 +441,7 @@ class FleetMap:
             for a in sorted(framed):
                 frame = self._place_globally(b, a, budget)
                 if frame is not None:
-                    self._frames[b] = (self.maps[b].epoch, frame, a)
+                    self._frames[b] = _Placed(self.maps[b].epoch, frame, a, self.maps[a].epoch)
                     self._checked[b] = (self.maps[b].map.version, self._builds)
                     framed.add(b)
                     break
@@ -444,9 +459,10 @@ class FleetMap:
         restarted) can fit a wrong place better than its right one, and a frame once placed is
         otherwise kept while its map lasts (measured in the real-time field: a map 4 s old placed
         0.6 m and 46 degrees off, at 0.57; the same robot's older map fitted where it belonged at
-        0.67)."""
+        0.67). (Where the robot it was found on has begun again, on that robot's new map.)"""
         cfg = self.config
-        epoch, frame, a = self._frames[b]
+        placed = self._frames[b]
+        a = placed.on
         version, built = self._checked.get(b, (-1, -(10**9)))
         pb = self.maps[b]
         if a not in framed or a == b or pb.map.version == version or self._builds - built < cfg.retry_builds:
@@ -455,58 +471,66 @@ class FleetMap:
         if budget[0] < 0:
             return
         self._checked[b] = (pb.map.version, self._builds)
-        found, why, score = _global_match(self.maps[a], pb, cfg)
+        pa = self.maps[a]
+        self._frames[b] = placed = placed._replace(on_epoch=pa.epoch)  # searched on its map as it is now
+        found, why, score = _global_match(pa, pb, cfg)
         moving = self._moving.pop(b, None)
         if found is not None:
             again = compose(self._frame(a), found)
-            if not apart(again, frame, cfg.window_xy_m, cfg.window_theta_rad):
+            if not apart(again, placed.frame, cfg.window_xy_m, cfg.window_theta_rad):
                 return
             # Moved as a first place is taken: at min_score, or in the slack below it once the
-            # next search puts it there again.
+            # next search puts it there again (on the same map: where it lies in the fleet map's
+            # frame may have moved).
             if score >= cfg.min_score or (
-                moving is not None and not apart(again, moving, cfg.window_xy_m, cfg.window_theta_rad)
+                moving is not None
+                and moving[0] == pa.epoch
+                and not apart(found, moving[1], cfg.window_xy_m, cfg.window_theta_rad)
             ):
                 self._move(b, again)
                 self.global_why[b] = f"on {a}'s map again: {why}"
                 return
-            self._moving[b] = again
+            self._moving[b] = (pa.epoch, found)
             why = f"elsewhere, {why}; to be confirmed as its map grows"
             self.global_why[b] = f"on {a}'s map: {why}"
         # No place fits it as the search asks now (or one to be confirmed): kept where it is if it
         # still fits there, else left out and searched for as a map not yet found.
-        fits, there = _still_fits(self.maps[a], pb, compose(inverse(self._frame(a)), frame), cfg)
+        fits, there = _still_fits(pa, pb, compose(inverse(self._frame(a)), placed.frame), cfg)
         if not fits:
             self._leave_out(b, framed, f"on {a}'s map: no longer where it was placed ({there}); {why}")
-            pa = self.maps[a]
             # Just searched: not again in this build.
-            self._global_tried[(b, epoch, a, pa.epoch)] = (pb.map.version, pa.map.version, self._builds)
+            self._global_tried[(b, placed.epoch, a, pa.epoch)] = (pb.map.version, pa.map.version, self._builds)
             if found is not None:  # the place found, confirmed or not by the next search
-                self._pending[b] = (epoch, a, pb.map.version, compose(self._frame(a), found))
+                self._pending[b] = (placed.epoch, a, pa.epoch, pb.map.version, found)
+        elif found is None:
+            self.global_why[b] = f"on {a}'s map: still where it was placed ({there}); {why}"
 
     def _move(self, b: str, to: Pose, moved: set[str] | None = None) -> None:
-        """``b``'s frame moved to ``to``, and with it the frames of the robots found on its map
-        (placed through where its map lay, they lie as far from it as before). Once each: a robot
-        begun again can be found on the map of one that was found on its old one."""
-        moved = moved if moved is not None else set()
+        """``b``'s frame moved to ``to``, and with it the frames of the robots found on its map as it
+        is (placed through where that map lay, they lie as far from it as before; not those found on
+        an earlier map of a robot begun again). Each once: robots can be found on each other's maps
+        (b on c's after c was found on b's old map, then searched again on its new one)."""
+        moved = set() if moved is None else moved
         moved.add(b)
-        epoch, old, a = self._frames[b]
-        self._frames[b] = (epoch, to, a)
-        step = compose(to, inverse(old))
-        for c, (_, at, on) in sorted(self._frames.items()):
-            if on == b and c not in moved:
-                self._move(c, compose(step, at), moved)
+        placed = self._frames[b]
+        self._frames[b] = placed._replace(frame=to)
+        step = compose(to, inverse(placed.frame))
+        for c, other in sorted(self._frames.items()):
+            if other.on == b and other.on_epoch == placed.epoch and c not in moved:
+                self._move(c, compose(step, other.frame), moved)
 
     def _leave_out(self, b: str, framed: set[str], why: str) -> None:
-        """``b``'s frame given up, and those of the robots found on its map (placed through where it
-        no longer lies): each searched for again as a map not yet found."""
-        if self._frames.pop(b, None) is None:
+        """``b``'s frame given up, and those of the robots found on its map as it is (placed through
+        where it no longer lies): each searched for again as a map not yet found."""
+        placed = self._frames.pop(b, None)
+        if placed is None:
             return
         self._checked.pop(b, None)
         self._moving.pop(b, None)
         framed.discard(b)
         self.global_why[b] = why
-        for c, (_, _, on) in sorted(self._frames.items()):
-            if on == b:
+        for c, other in sorted(self._frames.items()):
+            if other.on == b and other.on_epoch == placed.epoch:
                 self._leave_out(c, framed, f"on {b}'s map, which was left out: {why}")
 
     def _place_globally(self, b: str, a: str, budget: list[int]) -> Pose | None:
@@ -527,28 +551,27 @@ class FleetMap:
         if budget[0] < 0:
             return None
         pending = self._pending.get(b)
-        if pending is not None and pending[:3] == (pb.epoch, a, pb.map.version):
+        on_a = pending is not None and pending[:3] == (pb.epoch, a, pa.epoch)  # found on this map
+        if on_a and pending is not None and pending[3] == pb.map.version:
             return None  # a place to be confirmed: searched again once b's map has changed
         found, why, score = _global_match(pa, pb, cfg)
-        self.global_why[b] = f"on {a}'s map: {why}"
         if found is None:
-            self._pending.pop(b, None)
+            if on_a:
+                del self._pending[b]
+            if b not in self._pending:  # else a place found on another map, which says more
+                self.global_why[b] = f"on {a}'s map: {why}"
             self._global_tried[key] = (pb.map.version, pa.map.version, self._builds)
             return None
-        frame = compose(self._frame(a), found)
+        self.global_why[b] = f"on {a}'s map: {why}"
         if score >= cfg.min_score:
-            return frame
+            self._pending.pop(b, None)
+            return compose(self._frame(a), found)
         # In the slack below min_score, where real-time maps' true places and young maps' false
         # ones both score: taken once a search of its grown map puts it there again.
-        confirmed = (
-            pending is not None
-            and pending[:2] == (pb.epoch, a)
-            and not apart(frame, pending[3], cfg.window_xy_m, cfg.window_theta_rad)
-        )
-        if confirmed:
+        if on_a and pending is not None and not apart(found, pending[4], cfg.window_xy_m, cfg.window_theta_rad):
             del self._pending[b]
-            return frame
-        self._pending[b] = (pb.epoch, a, pb.map.version, frame)
+            return compose(self._frame(a), found)
+        self._pending[b] = (pb.epoch, a, pa.epoch, pb.map.version, found)
         self.global_why[b] = f"on {a}'s map: {why}; to be confirmed as its map grows"
         return None
 
