@@ -416,7 +416,14 @@ class AgentNode:
                 log.info("%s: lidar turns read faster than mapped: only the newest of each read is mapped", self.robot)
             if self.scan_sink is not None:
                 self.scan_sink(rev)
-        self.add_revolution(revs[-1], turn_s)
+        newest = revs[-1]
+        earliest = self.clock.now() - NEWEST_TURN_AGE * turn_s
+        if newest.stamp is not None and turn_s > 0.0 and newest.stamp < earliest:
+            # Everything that had arrived was read, so the next turn is under way: the newest was
+            # complete at most about a turn ago. Stamped earlier, it is on the lidar's line from
+            # before samples were lost, which the driver's stamps draw again within a few reads.
+            newest = dataclasses.replace(newest, stamp=earliest)
+        self.add_revolution(newest, turn_s)
 
     def _share_scan(self, rev: Any, seen: tuple[float, float, float], now: float) -> None:
         """The turn as a ``Scan`` on the map's link (Zenoh), at most ``[rates] scan_hz`` a second."""
@@ -555,6 +562,8 @@ arrive every few milliseconds (an A1 sends 40 kB/s); reading them as they came w
 thread ~200 times a second and ran the decoder on a few dozen nodes each time. A turn of the A1
 at 5.5 Hz (180 ms) is read in four batches, a slow 1 Hz turn in four too, and a finished turn
 reaches the mapper at most a quarter of a turn late."""
+NEWEST_TURN_AGE = 1.5
+"""How many turns before it was read the newest turn of a drained read was complete, at most."""
 LIDAR_DRAIN_READS = 64
 """Polls a feed's step makes at most to take what has arrived (64 turns: seconds of a backlog)."""
 LIDAR_REOPEN_S = 1.0
@@ -608,10 +617,13 @@ class LidarFeed:
             return now + LIDAR_REOPEN_S
         now = self.node.clock.now()
         if revs:
-            gap = None if self._last_turn_at is None else (now - self._last_turn_at) / len(revs)
-            if gap is not None and gap <= MAX_TURN_S:  # the turn's length, smoothed over a few turns
+            # The turn's length from the driver's stamps (when each turn was complete, on the lidar's
+            # clock, however late it was read), smoothed over a few turns.
+            last = revs[-1].stamp if revs[-1].stamp is not None else now
+            gap = None if self._last_turn_at is None else (last - self._last_turn_at) / len(revs)
+            if gap is not None and 0.0 < gap <= MAX_TURN_S:
                 self.turn_s += 0.25 * (gap - self.turn_s)
-            self._last_turn_at = now
+            self._last_turn_at = last
         lo, hi = LIDAR_READ_PERIOD_S
         return now + min(hi, max(lo, self.turn_s / 4.0))
 

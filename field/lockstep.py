@@ -252,7 +252,7 @@ class FieldRun:
             self.raycast_seconds += time.perf_counter() - t0
             return turn
 
-        source = scan_source_for(model, lambda now: robot.pose, lambda: self.world.raycaster, circles)
+        source = scan_source_for(model, robot.pose_at, lambda: self.world.raycaster, circles)
         return counted
 
     def _scan(self, rig: Rig) -> None:

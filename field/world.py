@@ -10,6 +10,7 @@ commands. Pure: time comes in as an argument; no threads, no sockets.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -24,6 +25,8 @@ __all__ = ["Pose", "RobotView", "World", "WorldRobot"]
 Pose = tuple[float, float, float]
 
 NEIGHBOUR_REFRESH = 0.05  # s between neighbour-list refreshes
+POSE_HISTORY_S = 1.0
+"""How far back ``WorldRobot.pose_at`` reaches (a lidar turn's start is at most a turn or two back)."""
 NEIGHBOUR_MARGIN = 0.5  # m beyond touching, so fast robots cannot cross it between refreshes
 SHORT_RANGE = 2.0  # m: rays up to this long are cast in Python against nearby geometry
 SENSING_MARGIN = SHORT_RANGE + 0.5  # m: robots a short-range sensor could see before the next refresh
@@ -106,9 +109,42 @@ class WorldRobot:
         return st.x, st.y, st.theta
 
     radius: float = field(init=False)
+    _past: deque[tuple[float, float, float, float]] = field(init=False)
+    """(t, x, y, theta) after each physics step of the last ``POSE_HISTORY_S``."""
 
     def __post_init__(self) -> None:
         self.radius = self.board.config.radius
+        self._past = deque()
+
+    def pose_at(self, t: float) -> Pose:
+        """Where the robot was at ``t``: between the physics' steps of the last ``POSE_HISTORY_S``,
+        linearly; its pose now for a later ``t``, the oldest kept for an earlier one. A lidar turn
+        begins at its own time, which the field learns only when the device is next stepped (when its
+        reader polls, in lockstep: up to a quarter turn later); cast from the pose then, a turning
+        robot's turn is drawn degrees off the pose its agent dates it at."""
+        past = self._past
+        if not past or t >= past[-1][0]:
+            return self.pose
+        later = past[-1]
+        for earlier in reversed(past):
+            if earlier[0] <= t:
+                span = later[0] - earlier[0]
+                f = (t - earlier[0]) / span if span > 0.0 else 1.0
+                turn = math.remainder(later[3] - earlier[3], math.tau)
+                return (
+                    earlier[1] + f * (later[1] - earlier[1]),
+                    earlier[2] + f * (later[2] - earlier[2]),
+                    earlier[3] + f * turn,
+                )
+            later = earlier
+        return later[1], later[2], later[3]
+
+    def _remember(self, t: float) -> None:
+        st = self.board.state
+        past = self._past
+        past.append((t, st.x, st.y, st.theta))
+        while past[0][0] < t - POSE_HISTORY_S:
+            past.popleft()
 
 
 class RobotView:
@@ -228,6 +264,7 @@ class World:
         view = RobotView(self, index)
         board = SimulatedBoard(config or BoardConfig(), view, pose=pose, now=self.now)  # type: ignore[arg-type]
         robot = WorldRobot(name, index, board, view)
+        robot._remember(self.now)
         self.robots.append(robot)
         self.by_name[name] = robot
         self.neighbours.append([])
@@ -258,6 +295,7 @@ class World:
                 self._next_neighbours = t + NEIGHBOUR_REFRESH
             for robot in self.robots:
                 robot.board.step(t, max_dt=dt)
+                robot._remember(t)
             self.now = t
 
     def truth(self) -> dict[str, tuple[float, float, float, float, float]]:

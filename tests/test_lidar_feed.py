@@ -50,8 +50,10 @@ def test_a_feed_held_up_takes_every_turn_waiting_and_maps_the_newest() -> None:
     stale = node.stale_turns
     assert stale >= 2  # the rest counted, not mapped ...
     assert len(node.recorded) == len(node.mapped) + node.stale_turns  # ... and still recorded
+    # The newest turn, dated on the lidar's clock: complete within a turn and a half of the read (the
+    # device skipped what it could not send, so the line of the turns before lies 0.7 s early).
     newest = node.mapped[-1].stamp
-    assert newest == clock.now()
+    assert clock.now() - 1.5 * feed.turn_s - 1e-9 <= newest <= clock.now()
     clock.advance(0.05)
     feed.step(clock.now())  # caught up: the next step finds at most the turn completed since
     assert len(node.mapped) <= prompt + 2 and node.stale_turns == stale

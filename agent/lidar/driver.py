@@ -41,6 +41,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal, TypeVar
 
+from fleetlink.agent.lidar.stamps import TurnStamps
 from fleetlink.devices.ports import Port, PortClosed
 from fleetlink.devices.rplidar import protocol as lp
 from fleetlink.shared.clock import Clock
@@ -137,6 +138,7 @@ class LidarDriver:
         self.stats = DriverStats()
         self.decoder = lp.LidarDecoder(batch=True)
         self.assembler = lp.RevolutionAssembler()
+        self.turns = TurnStamps()  # each turn's stamp: when it was complete, not when it was read
         self._scanning = False
         self._motor_on = False
         self._ready: list[lp.Revolution] = []
@@ -260,6 +262,7 @@ class LidarDriver:
         self.start_motor()
         self.decoder.reset()
         self.assembler.reset()
+        self.turns.reset()
         self._ready.clear()
         if working_mode < 0:
             cmd = lp.Command.FORCE_SCAN if force else lp.Command.SCAN
@@ -439,24 +442,36 @@ class LidarDriver:
                     self.stats.stray_events += 1
 
     def _absorb(self, events: Iterable[lp.Event]) -> list[lp.Revolution]:
+        """The turns the events complete, each stamped when it was complete on the lidar's clock
+        (``TurnStamps``: from every sample read so far and when)."""
         out: list[lp.Revolution] = []
+        ends: list[float | None] = []
         now = self.clock.now()
         for ev in events:
             if isinstance(ev, (lp.NodeBatch, lp.Node)):
                 for rev in self.assembler.push(ev):
-                    out.append(lp.Revolution(rev.angles_rad, rev.distances_m, rev.qualities, now))
+                    out.append(rev)
+                    ends.append(self.turns.count(len(rev)))
             else:
                 # A descriptor mid-scan: the lidar restarted its stream; the turn in progress is void.
                 self.stats.stray_events += 1
                 if isinstance(ev, lp.Descriptor):
                     self.assembler.reset()
+                    self.turns.reset()
+                    ends = [None] * len(ends)  # on the line before the restart: stamped when read
+        # Every sample whose bytes have come: the turns', the turn under way's and a capsule's held back.
+        self.turns.observe(self.turns.samples + self.assembler.partial + self.decoder.held_samples, now)
         self.stats.revolutions += len(out)
-        return out
+        return [
+            lp.Revolution(r.angles_rad, r.distances_m, r.qualities, now if end is None else self.turns.stamp(end))
+            for r, end in zip(out, ends, strict=True)
+        ]
 
     def _end_scan(self) -> None:
         self._scanning = False
         self._ready.clear()
         self.assembler.reset()
+        self.turns.reset()
 
     def _drain(self, quiet: float, keep: bool = False, limit: float = 0.5) -> bytes:
         """Read until the line has been quiet for ``quiet`` s (at most ``limit`` s); then the decoder

@@ -692,6 +692,12 @@ class LidarDecoder:
     def buffered(self) -> int:
         return len(self._buf)
 
+    @property
+    def held_samples(self) -> int:
+        """Samples received but not yet emitted: a capsule is decoded once the next one comes (its
+        samples' angles lie between the two capsules' start angles)."""
+        return CAPSULE_SAMPLES if self._cap_prev is not None else 0
+
     def reset(self) -> None:
         """Forget everything buffered and wait for a descriptor (after a STOP, before a request)."""
         self._buf.clear()
@@ -1277,6 +1283,12 @@ class RequestDecoder:
     @property
     def buffered(self) -> int:
         return len(self._buf)
+
+    @property
+    def held_samples(self) -> int:
+        """Samples received but not yet emitted: a capsule is decoded once the next one comes (its
+        samples' angles lie between the two capsules' start angles)."""
+        return CAPSULE_SAMPLES if self._cap_prev is not None else 0
 
     def reset(self) -> None:
         self._buf.clear()

@@ -1,0 +1,139 @@
+"""A lidar turn is stamped when it was complete, not when a late reader found it
+(agent/lidar/stamps.py ``TurnStamps``, used by the driver for every turn it reads)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fleetlink.agent.lidar.driver import LidarDriver
+from fleetlink.agent.lidar.stamps import TurnStamps
+from fleetlink.shared.clock import SimClock
+from tests.test_lidar_link import make_lidar
+
+RATE = 8000.0  # samples per second
+TURN = 800  # samples a turn: 10 turns a second
+T0 = 3.0  # the first sample's time
+
+
+def sent_by(t: float, lost_after: float = math.inf, lost_s: float = 0.0) -> int:
+    """Samples received by ``t``: one every 1/RATE s from T0, but those sent from ``lost_after`` for
+    ``lost_s`` never arrive (a serial buffer overflowed)."""
+    if t <= lost_after:
+        return math.floor((t - T0) * RATE)
+    return math.floor((lost_after - T0) * RATE) + max(0, math.floor((t - lost_after - lost_s) * RATE))
+
+
+def read(stamps: TurnStamps, received: int, read_at: float, counted: int) -> tuple[int, list[float]]:
+    """A read at ``read_at`` that takes everything received by then: the turns it completes, counted
+    and stamped. (Turns counted so far, their stamps.)"""
+    ends = []
+    while (counted + 1) * TURN < received:  # a turn is complete when the next one's first sample comes
+        counted += 1
+        ends.append(stamps.count(TURN))
+    stamps.observe(received, read_at)
+    return counted, [stamps.stamp(end) for end in ends]
+
+
+def run(
+    reads: np.ndarray, lost_after: float = math.inf, lost_s: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, TurnStamps]:
+    """(each turn's completion, its stamp, the stamps) for reads at ``reads``."""
+    stamps = TurnStamps()
+    counted, stamped = 0, []
+    for r in reads:
+        counted, got = read(stamps, sent_by(float(r), lost_after, lost_s), float(r), counted)
+        stamped += got
+    n = len(stamped)
+    complete = T0 + np.arange(1, n + 1) * TURN / RATE  # as the samples count time
+    complete[complete > lost_after] += lost_s
+    return complete, np.array(stamped), stamps
+
+
+def late_reads(seed: int, seconds: float = 30.0) -> np.ndarray:
+    """A reader that polls every 50 ms but is held up now and then (up to a second and more)."""
+    rng = np.random.default_rng(seed)
+    reads, t = [], T0
+    while t < T0 + seconds:
+        t += 0.05 + (rng.exponential(0.3) if rng.random() < 0.15 else 0.0)
+        reads.append(t)
+    return np.array(reads)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_turns_read_late_in_bunches_are_stamped_when_they_were_complete(seed: int) -> None:
+    reads = late_reads(seed)
+    complete, stamped, stamps = run(reads)
+    read_at = reads[np.searchsorted(reads, complete + 1.0 / RATE)]  # each turn's read
+    late = read_at - complete
+    assert np.mean(np.diff(read_at) == 0.0) > 0.1  # many turns read together with the one before
+    assert late.max() > 0.5
+    assert np.all(stamped <= read_at + 1e-12)  # never later than read
+    assert np.all(np.diff(stamped) >= 0.0)
+    assert stamps.resyncs == 0  # late, however late, is not lost
+    # Stamped by the read, a turn is off by the reader's delay; by the line of every sample read, by
+    # a sample or so (the line touches the reading sent the least before its read).
+    error = np.abs(stamped - complete)[8:]
+    assert error.max() <= 2.0 / RATE, error.max()
+
+
+def test_a_reader_polling_on_a_fixed_period_is_not_late_by_its_phase() -> None:
+    # Polls every 25 ms, 22 ms after each turn's end (lockstep: a poll every quarter turn, in phase
+    # with the turns). Stamped by the reads of whole turns alone, every turn is 22 ms late; the
+    # samples of the turn under way say when the read was.
+    reads = T0 + 0.022 + np.arange(1, 400) * 0.025
+    complete, stamped, _ = run(reads)
+    assert np.abs(stamped - complete)[8:].max() <= 2.0 / RATE
+
+
+def test_prompt_reads_are_their_own_stamps() -> None:
+    reads = T0 + np.arange(1, 50) * 0.1 + 1.0 / RATE  # as each turn's next sample arrives
+    complete, stamped, _ = run(reads)
+    assert stamped == pytest.approx(list(complete), abs=1.5 / RATE)
+
+
+def test_a_reset_forgets_the_line() -> None:
+    stamps = TurnStamps()
+    counted = 0
+    for r in T0 + np.arange(1, 20) * 0.1 + 0.01:
+        counted, _ = read(stamps, sent_by(float(r)), float(r), counted)
+    stamps.reset()
+    # The stream restarted: its first turn's read is all there is to go by.
+    stamps.observe(900, 10.0)
+    assert stamps.stamp(stamps.count(800)) == 10.0
+
+
+def test_after_samples_are_lost_the_line_is_drawn_again_within_a_few_reads() -> None:
+    # Read promptly every 25-50 ms for 10 s; then 0.7 s of samples never arrive (a serial buffer
+    # overflowed), and the turns after them are complete 0.7 s later than their samples say. The old
+    # line would stamp them 0.7 s early for the whole window.
+    rng = np.random.default_rng(7)
+    reads = T0 + np.cumsum(rng.uniform(0.025, 0.05, 800))
+    complete, stamped, stamps = run(reads, lost_after=T0 + 10.05, lost_s=0.7)
+    assert stamps.resyncs == 1
+    error = np.abs(stamped - complete)
+    after = np.flatnonzero(complete > T0 + 10.05)
+    assert error[8 : after[0]].max() <= 2.0 / RATE  # before: on the line
+    assert error[after[2] :].max() <= 2.0 / RATE, error[after[2] :].max()  # within three reads, drawn again
+    assert np.all(np.diff(stamped) >= 0.0)
+
+
+def test_the_driver_stamps_a_bunch_of_turns_a_turn_apart() -> None:
+    """Real bytes, lockstep: the driver reads promptly for 3 s, then not for half a second. The turns
+    it then finds at once are stamped 0.1 s apart, as they came off the lidar."""
+    clock = SimClock(start=100.0)
+    lidar = make_lidar(now=clock.now())
+    with LidarDriver(lidar.in_process_port(clock), clock) as drv:
+        drv.start_scan()
+        prompt = [r for _ in range(150) for r in drv.poll(clock.now() + 0.02)]
+        assert len(prompt) >= 25
+        clock.advance(0.45)
+        now = clock.now()
+        bunch = drv.poll(now)
+        assert len(bunch) >= 4
+        stamps = np.array([r.stamp for r in bunch])
+        assert np.all(stamps <= now)
+        np.testing.assert_allclose(np.diff(stamps), 0.1, atol=0.002)
+        assert stamps[0] < now - 0.25  # the oldest was complete long before it was read
