@@ -1284,12 +1284,6 @@ class RequestDecoder:
     def buffered(self) -> int:
         return len(self._buf)
 
-    @property
-    def held_samples(self) -> int:
-        """Samples received but not yet emitted: a capsule is decoded once the next one comes (its
-        samples' angles lie between the two capsules' start angles)."""
-        return CAPSULE_SAMPLES if self._cap_prev is not None else 0
-
     def reset(self) -> None:
         self._buf.clear()
 
