@@ -20,7 +20,7 @@ from fleetlink.field.board import BoardConfig, SimulatedBoard
 from fleetlink.field.raycast import Raycaster
 from fleetlink.shared.geometry import point_segment_distance
 
-__all__ = ["Pose", "RobotView", "World", "WorldRobot"]
+__all__ = ["POSE_HISTORY_S", "Pose", "RobotView", "World", "WorldRobot"]
 
 Pose = tuple[float, float, float]
 

@@ -13,7 +13,7 @@ from fleetlink.field.board import BoardConfig
 from fleetlink.field.lockstep import FieldRun, write_outputs
 from fleetlink.field.plans import load_plan
 from fleetlink.field.scenario import DoorClose, LidarSettings, Noise, RobotSpec, Scenario, parse_scenario
-from fleetlink.field.world import World
+from fleetlink.field.world import POSE_HISTORY_S, World
 
 ROOM = np.array([(0, 0, 10, 0), (10, 0, 10, 10), (10, 10, 0, 10), (0, 10, 0, 0)], dtype=float)
 
@@ -234,3 +234,30 @@ def test_the_lidar_worker_process_gives_the_same_scans_as_in_process() -> None:
             assert a.last_scan is not None and b.last_scan is not None
             for x, y in zip(a.last_scan, b.last_scan, strict=True):  # type: ignore[call-overload]
                 assert np.array_equal(x, y)
+
+
+def test_a_robots_pose_at_a_moment_between_the_physics_steps_is_where_it_was_then() -> None:
+    # A lidar turn begins at its own time, which the field learns only when the device is next
+    # stepped: it is cast from the pose then (field/lockstep.py, field/realtime.py).
+    world = World(ROOM)
+    robot = world.add_robot("r", (5.0, 5.0, 3.0), BoardConfig(ultrasonic_noise=0.0))
+    robot.board.drive(0.2, 1.0, 0.0)
+    past: list[tuple[float, float, float, float]] = []
+    t = 0.0
+    while t < 2.0 - 1e-9:
+        t += 0.025
+        robot.board.state.last_ctrl_bus = t
+        world.step(t)  # five physics steps of 5 ms each
+        past.append((t, *robot.pose))
+    assert robot.pose_at(t + 1.0) == robot.pose  # not yet: where it is
+    times = np.array([p[0] for p in past])
+    for k in (len(past) - 30, len(past) - 20, len(past) - 10):  # within the last second
+        mid = float(times[k] + 0.0125)  # between two of these samples, on a physics step
+        x, y, th = robot.pose_at(mid)
+        a, b = past[k], past[k + 1]
+        assert math.hypot(x - a[1], y - a[2]) < math.hypot(b[1] - a[1], b[2] - a[2])
+        assert 0.0 < math.remainder(th - a[3], math.tau) < math.remainder(b[3] - a[3], math.tau)
+        assert robot.pose_at(float(times[k])) == pytest.approx(a[1:], abs=1e-12)
+    # Before the last second it keeps: the oldest pose it kept, a second back.
+    oldest = robot.pose_at(t - 5.0)
+    assert oldest == robot.pose_at(t - POSE_HISTORY_S) and oldest != robot.pose_at(t - POSE_HISTORY_S + 0.01)

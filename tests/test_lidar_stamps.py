@@ -4,12 +4,18 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
 
 from fleetlink.agent.lidar.driver import LidarDriver
 from fleetlink.agent.lidar.stamps import TurnStamps
+from fleetlink.field import lidar as field_lidar
+from fleetlink.field import lockstep
+from fleetlink.field.lockstep import FieldRun
+from fleetlink.field.scenario import LidarSettings, RobotSpec, Scenario
 from fleetlink.shared.clock import SimClock
 from tests.test_lidar_link import make_lidar
 
@@ -137,3 +143,61 @@ def test_the_driver_stamps_a_bunch_of_turns_a_turn_apart() -> None:
         assert np.all(stamps <= now)
         np.testing.assert_allclose(np.diff(stamps), 0.1, atol=0.002)
         assert stamps[0] < now - 0.25  # the oldest was complete long before it was read
+
+
+def test_in_lockstep_a_turning_robots_turns_are_dated_when_the_field_cast_them(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The lockstep field, a robot turning at 1 rad/s, its lidar's bytes read by the driver a quarter
+    turn apart (as the agent's feed reads them, in phase with the turns): each turn's date (its stamp
+    less a turn) is the time the field cast it, and the field cast it from where the robot was then."""
+    scenario = Scenario(
+        name="spin",
+        plan="hall",
+        seed=3,
+        duration=6.0,
+        robots=(RobotSpec("r1", pose=(10.0, 10.0, 0.0), drive="idle"),),
+        lidar=LidarSettings(enabled=True),
+    )
+    casts: list[tuple[float, tuple[float, float, float]]] = []
+
+    def recording(model: Any, pose: Callable[[float], Any], *args: Any) -> Callable[[float], Any]:
+        def where(t: float) -> Any:  # the pose the field casts a turn from, and when
+            casts.append((t, pose(t)))
+            return casts[-1][1]
+
+        return field_lidar.scan_source_for(model, where, *args)
+
+    monkeypatch.setattr(lockstep, "scan_source_for", recording)
+    with FieldRun(scenario, open_loop=False) as fr:
+        robot = fr.rigs[0].robot
+        driver = LidarDriver(fr.lidar_port(0), fr.clock, pwm_motor_control=True)
+        revs: list[tuple[float, float | None]] = []
+        due = [0.5]
+
+        def controller(t: float) -> None:
+            robot.board.state.last_ctrl_bus = t  # the watchdog fed, as a master would
+            robot.board.drive(0.0, 1.0, t)
+            if t >= due[0]:
+                if not driver.scanning:
+                    driver.start_scan()
+                revs.extend((t, r.stamp) for r in driver.poll(t))
+                due[0] = t + 0.025
+
+        fr.controllers.append(controller)
+        fr.run()
+        truth = np.array([row[:4] for row in fr.result(fr.clock.now(), 0.0).truth["r1"]])
+    stamps = np.array([s for _, s in revs if s is not None])
+    assert len(stamps) >= 40
+    turn = float(np.median(np.diff(stamps)))
+    assert turn == pytest.approx(0.1, abs=0.002)
+    dates = stamps[4:] - turn
+    cast_t = np.array([c[0] for c in casts])
+    nearest = cast_t[np.abs(cast_t[None, :] - dates[:, None]).argmin(axis=1)]
+    # Read a poll late, up to 25 ms; dated to a sample once the line has two seconds of readings.
+    assert np.abs(dates - nearest).max() <= 0.005
+    assert np.abs(dates - nearest)[16:].max() <= 2.0 / RATE
+    # The cast's heading is the truth's at the date (the physics' steps, 5 ms, interpolated).
+    th = np.unwrap(truth[:, 3])
+    for t, (_, _, heading) in casts[5:]:
+        assert abs(math.remainder(heading - float(np.interp(t, truth[:, 0], th)), math.tau)) < math.radians(0.1)
