@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -240,7 +241,7 @@ def test_a_robots_pose_at_a_moment_between_the_physics_steps_is_where_it_was_the
     # A lidar turn begins at its own time, which the field learns only when the device is next
     # stepped: it is cast from the pose then (field/lockstep.py, field/realtime.py).
     world = World(ROOM)
-    robot = world.add_robot("r", (5.0, 5.0, 3.0), BoardConfig(ultrasonic_noise=0.0))
+    robot = world.add_robot("r", (5.0, 5.0, 1.9), BoardConfig(ultrasonic_noise=0.0))
     robot.board.drive(0.2, 1.0, 0.0)
     past: list[tuple[float, float, float, float]] = []
     t = 0.0
@@ -250,14 +251,20 @@ def test_a_robots_pose_at_a_moment_between_the_physics_steps_is_where_it_was_the
         world.step(t)  # five physics steps of 5 ms each
         past.append((t, *robot.pose))
     assert robot.pose_at(t + 1.0) == robot.pose  # not yet: where it is
-    times = np.array([p[0] for p in past])
-    for k in (len(past) - 30, len(past) - 20, len(past) - 10):  # within the last second
-        mid = float(times[k] + 0.0125)  # between two of these samples, on a physics step
+    crossed = 0
+    for a, b in itertools.pairwise(past[-38:]):  # within the last second it keeps
+        mid = a[0] + 0.0125  # halfway between these two samples, between two physics steps
         x, y, th = robot.pose_at(mid)
-        a, b = past[k], past[k + 1]
         assert math.hypot(x - a[1], y - a[2]) < math.hypot(b[1] - a[1], b[2] - a[2])
+        # Turned part of the way from a's heading to b's, the short way (across +-pi too).
         assert 0.0 < math.remainder(th - a[3], math.tau) < math.remainder(b[3] - a[3], math.tau)
-        assert robot.pose_at(float(times[k])) == pytest.approx(a[1:], abs=1e-12)
+        assert robot.pose_at(a[0]) == pytest.approx(a[1:], abs=1e-12)
+        if b[3] < a[3]:  # the heading wrapped from +pi to -pi: millisecond by millisecond, it turns on
+            crossed += 1
+            headings = [robot.pose_at(a[0] + k * 0.001)[2] for k in range(26)]
+            steps = [math.remainder(q - p, math.tau) for p, q in itertools.pairwise(headings)]
+            assert all(0.0 <= d < 0.002 for d in steps), steps
+    assert crossed == 1
     # Before the last second it keeps: the oldest pose it kept, a second back.
     oldest = robot.pose_at(t - 5.0)
     assert oldest == robot.pose_at(t - POSE_HISTORY_S) and oldest != robot.pose_at(t - POSE_HISTORY_S + 0.01)

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal, TypeVar
@@ -313,7 +314,8 @@ class LidarDriver:
                     self.stats.timeouts += 1
                     raise LidarTimeout(f"scanning, but nothing received for {self.clock.now() - last:.1f} s")
                 return []
-            revs = self._absorb(self.decoder.feed(data))
+            # A read as long as the port's chunk (``SerialPort.READ_CHUNK``) may have left more waiting.
+            revs = self._absorb(self.decoder.feed(data), len(data) < getattr(self.port, "READ_CHUNK", math.inf))
             if revs:
                 return revs
 
@@ -441,9 +443,11 @@ class LidarDriver:
                 if not (isinstance(ev, lp.Descriptor) and ev.type == answer):
                     self.stats.stray_events += 1
 
-    def _absorb(self, events: Iterable[lp.Event]) -> list[lp.Revolution]:
+    def _absorb(self, events: Iterable[lp.Event], drained: bool = True) -> list[lp.Revolution]:
         """The turns the events complete, each stamped when it was complete on the lidar's clock
-        (``TurnStamps``: from every sample read so far and when)."""
+        (``TurnStamps``: from the samples read so far and when). ``drained``: the read took all that
+        was waiting (a read cut at the port's chunk size left more behind: it was late by whatever
+        followed, and is not a reading of when its samples were sent)."""
         out: list[lp.Revolution] = []
         ends: list[float | None] = []
         now = self.clock.now()
@@ -459,11 +463,13 @@ class LidarDriver:
                     self.assembler.reset()
                     self.turns.reset()
                     ends = [None] * len(ends)  # on the line before the restart: stamped when read
-        # Every sample whose bytes have come: the turns', the turn under way's and a capsule's held back.
-        self.turns.observe(self.turns.samples + self.assembler.partial + self.decoder.held_samples, now)
+        if drained and self.assembler.started:
+            # Every sample whose bytes have come: the turns', the turn under way's and a capsule's held
+            # back (not before a turn's start: the nodes before it are dropped, a capsule's with them).
+            self.turns.observe(self.turns.samples + self.assembler.partial + self.decoder.held_samples, now)
         self.stats.revolutions += len(out)
         return [
-            lp.Revolution(r.angles_rad, r.distances_m, r.qualities, now if end is None else self.turns.stamp(end))
+            lp.Revolution(r.angles_rad, r.distances_m, r.qualities, now if end is None else self.turns.stamp(end, now))
             for r, end in zip(out, ends, strict=True)
         ]
 

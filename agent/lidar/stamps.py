@@ -39,9 +39,9 @@ class TurnStamps:
     """Completion times of consecutive turns from the times their samples were read.
 
     For each read: ``count(samples)`` for each turn it completed, in order (returns where the turn
-    ends, in samples since the stream began), then ``observe(received, read_at)`` with every sample
-    received so far (those of the turn under way too) and when; then ``stamp(end)`` for each of
-    those turns. ``reset()`` when the stream restarts (a new scan, a reconnection): the samples
+    ends, in samples since the stream began), then, if the read took everything that was waiting,
+    ``observe(received, read_at)`` with every sample received so far (those of the turn under way
+    too) and when; then ``stamp(end, read_at)`` for each of those turns. ``reset()`` when the stream restarts (a new scan, a reconnection): the samples
     before a gap are not on the line of those after it.
     """
 
@@ -53,9 +53,8 @@ class TurnStamps:
         """The last reads: (read time, the least height above the line of a reading then, the
         samples received before it)."""
         self._samples = 0.0
-        self._turn = 0
+        self._turn = 0.0
         self._line: tuple[float, float] | None = None
-        self._read_at: float | None = None
         self._last: float | None = None
         self.resync_reads = resync_reads
         self.resyncs = 0
@@ -67,23 +66,24 @@ class TurnStamps:
         return self._samples
 
     def reset(self) -> None:
+        """The stream restarted: its samples are counted anew, on a line of their own (stamps still
+        never go back)."""
         self._readings.clear()
         self._reads.clear()
         self._samples = 0.0
         self._line = None
-        self._read_at = None
-        self._last = None
 
     def count(self, samples: int) -> float:
         """A turn of ``samples`` completed: where it ends, in samples since the stream began."""
-        self._turn = max(1, samples)
-        self._samples += self._turn
+        n = max(1, samples)
+        # The turn's length, smoothed (a short turn, where the stream restarted, says little of it).
+        self._turn = n if self._turn == 0 else 0.8 * self._turn + 0.2 * n
+        self._samples += n
         return self._samples
 
     def observe(self, received: float, read_at: float) -> None:
         """``received`` samples in all (the turns counted and the turn under way) by ``read_at``."""
         before = self._readings[-1][0] if self._readings else 0.0
-        self._read_at = read_at
         if received <= before:
             return  # nothing new arrived: it says nothing of when the samples were sent
         self._readings.append((received, read_at))
@@ -107,10 +107,10 @@ class TurnStamps:
                 line = _line_below(kept)
         self._line = line
 
-    def stamp(self, end: float) -> float:
-        """When the turn ending at sample ``end`` was complete (``count``'s answer), as the
-        readings observed so far tell: never later than the last read, never before the last stamp."""
-        read_at = self._read_at if self._read_at is not None else 0.0
+    def stamp(self, end: float, read_at: float) -> float:
+        """When the turn ending at sample ``end`` (``count``'s answer), read at ``read_at``, was
+        complete, as the readings observed so far tell: never later than its read, never before the
+        last stamp."""
         line = self._line
         t = read_at if line is None else min(read_at, line[0] + line[1] * end)
         if self._last is not None:

@@ -1095,6 +1095,11 @@ class RevolutionAssembler:
         """Nodes of the revolution in progress."""
         return self._count
 
+    @property
+    def started(self) -> bool:
+        """A turn's start has been seen (nodes before it are the tail of a turn not seen begin)."""
+        return self._started
+
     def reset(self) -> None:
         """Drop the revolution in progress (after a STOP or a resynchronisation)."""
         self._chunks.clear()
