@@ -24,9 +24,10 @@ __all__ = ["POSE_HISTORY_S", "Pose", "RobotView", "World", "WorldRobot"]
 
 Pose = tuple[float, float, float]
 
-NEIGHBOUR_REFRESH = 0.05  # s between neighbour-list refreshes
 POSE_HISTORY_S = 1.0
 """How far back ``WorldRobot.pose_at`` reaches (a lidar turn's start is at most a turn or two back)."""
+
+NEIGHBOUR_REFRESH = 0.05  # s between neighbour-list refreshes
 NEIGHBOUR_MARGIN = 0.5  # m beyond touching, so fast robots cannot cross it between refreshes
 SHORT_RANGE = 2.0  # m: rays up to this long are cast in Python against nearby geometry
 SENSING_MARGIN = SHORT_RANGE + 0.5  # m: robots a short-range sensor could see before the next refresh

@@ -41,8 +41,9 @@ class TurnStamps:
     For each read: ``count(samples)`` for each turn it completed, in order (returns where the turn
     ends, in samples since the stream began), then, if the read took everything that was waiting,
     ``observe(received, read_at)`` with every sample received so far (those of the turn under way
-    too) and when; then ``stamp(end, read_at)`` for each of those turns. ``reset()`` when the stream restarts (a new scan, a reconnection): the samples
-    before a gap are not on the line of those after it.
+    too) and when; then ``stamp(end, read_at)`` for each of those turns. ``reset()`` when the
+    stream restarts (a new scan, a reconnection): the samples before a gap are not on the line of
+    those after it.
     """
 
     def __init__(self, window: int = 64, resync_reads: int = 3) -> None:

@@ -277,6 +277,22 @@ class _Placed(NamedTuple):
     """... and that map's epoch (robots found on it move and are left out with it)."""
 
 
+class _Pending(NamedTuple):
+    """A place the global search found for a robot not yet placed, in the slack below ``min_score``:
+    taken once a search of the robot's next map version puts it there again."""
+
+    epoch: int
+    """The robot's map's epoch."""
+    on: str
+    """The robot on whose map it was found ..."""
+    on_epoch: int
+    """... and that map's epoch."""
+    version: int
+    """The robot's map's version then (searched again once it has changed)."""
+    found: Pose
+    """Where the robot's frame lies on that map."""
+
+
 @dataclass
 class FleetMap:
     config: FleetMapConfig = field(default_factory=FleetMapConfig)
@@ -295,10 +311,8 @@ class FleetMap:
     _frames: dict[str, _Placed] = field(default_factory=dict)
     """Per robot in its own frame that the global search placed: where its frame lies in the fleet
     map's frame, and on which map (robot and epoch) it was found."""
-    _pending: dict[str, tuple[int, str, int, int, Pose]] = field(default_factory=dict)
-    """Per robot not yet placed: a place the global search found in the slack below ``min_score``, to
-    be confirmed by a search of its map's next version (its epoch, the robot whose map it was found
-    on and that map's epoch, its own map's version then, where its frame lies on that map)."""
+    _pending: dict[str, _Pending] = field(default_factory=dict)
+    """Per robot not yet placed: a place to be confirmed by a search of its map's next version."""
     _checked: dict[str, tuple[int, int]] = field(default_factory=dict)
     """Per robot placed by the global search: its map's version and the build when last searched."""
     _moving: dict[str, tuple[int, Pose]] = field(default_factory=dict)
@@ -446,7 +460,7 @@ class FleetMap:
                     framed.add(b)
                     break
         live = {(b, self.maps[b].epoch) for b in self.maps}
-        self._pending = {b: v for b, v in self._pending.items() if (b, v[0]) in live and b not in framed}
+        self._pending = {b: v for b, v in self._pending.items() if (b, v.epoch) in live and b not in framed}
         self._global_tried = {k: v for k, v in self._global_tried.items() if (k[0], k[1]) in live}
         return sorted(framed)
 
@@ -501,7 +515,7 @@ class FleetMap:
             # Just searched: not again in this build.
             self._global_tried[(b, placed.epoch, a, pa.epoch)] = (pb.map.version, pa.map.version, self._builds)
             if found is not None:  # the place found, confirmed or not by the next search
-                self._pending[b] = (placed.epoch, a, pa.epoch, pb.map.version, found)
+                self._pending[b] = _Pending(placed.epoch, a, pa.epoch, pb.map.version, found)
         elif found is None:
             self.global_why[b] = f"on {a}'s map: still where it was placed ({there}); {why}"
 
@@ -551,12 +565,13 @@ class FleetMap:
         if budget[0] < 0:
             return None
         pending = self._pending.get(b)
-        on_a = pending is not None and pending[:3] == (pb.epoch, a, pa.epoch)  # found on this map
-        if on_a and pending is not None and pending[3] == pb.map.version:
+        if pending is not None and (pending.epoch, pending.on, pending.on_epoch) != (pb.epoch, a, pa.epoch):
+            pending = None  # found on another map (or another epoch of either): not this search's to confirm
+        if pending is not None and pending.version == pb.map.version:
             return None  # a place to be confirmed: searched again once b's map has changed
         found, why, score = _global_match(pa, pb, cfg)
         if found is None:
-            if on_a:
+            if pending is not None:
                 del self._pending[b]
             if b not in self._pending:  # else a place found on another map, which says more
                 self.global_why[b] = f"on {a}'s map: {why}"
@@ -568,10 +583,10 @@ class FleetMap:
             return compose(self._frame(a), found)
         # In the slack below min_score, where real-time maps' true places and young maps' false
         # ones both score: taken once a search of its grown map puts it there again.
-        if on_a and pending is not None and not apart(found, pending[4], cfg.window_xy_m, cfg.window_theta_rad):
+        if pending is not None and not apart(found, pending.found, cfg.window_xy_m, cfg.window_theta_rad):
             del self._pending[b]
             return compose(self._frame(a), found)
-        self._pending[b] = (pb.epoch, a, pa.epoch, pb.map.version, found)
+        self._pending[b] = _Pending(pb.epoch, a, pa.epoch, pb.map.version, found)
         self.global_why[b] = f"on {a}'s map: {why}; to be confirmed as its map grows"
         return None
 
