@@ -43,8 +43,13 @@
    form in which SLAM systems report on it: every ``NAME.relations`` in DIR with its raw log
    (``NAME.clf``; the files of the benchmark's site), replayed with the log's own odometry, and the
    final trajectory scored against the hand-checked relations; beside it the front end alone and the
-   log's odometry, in the same run. The logs are not in this repository (docs/mapping.md, "Against
-   the published relations").
+   log's odometry, in the same run. Each relation file measured too: its relations matched again
+   from their scans, against the published ones beside the mapper on the same pairs (the baseline an
+   exact answer would score), and the share lying on 5 cm / 1 cm steps of the log's odometry (made
+   by hand in such steps). A raw log whose corrected subset is in ../shared/data (intel, aces) is also
+   scored at those scans, on its real odometry, against the complete sets from the corrected poses
+   and re-measured from the scans. The logs are not in this repository (docs/mapping.md, "Against
+   the published relations", "The relations' steps").
 7. ``--corrected DIR`` (alone): every corrected CARMEN log in DIR (the collection ../shared/data's two
    come from holds a dozen more: a museum, a convention hall, a castle, a campus), replayed on its own
    poses as ``fleetlink map replay`` replays it, the final graph, the online poses and the front end

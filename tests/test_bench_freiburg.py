@@ -62,3 +62,56 @@ def test_the_bench_replays_with_the_closer_the_cli_would_use() -> None:
     assert bench._replay_config(False) == MapperConfig()
     assert bench._replay_config(False, True).closer == long_loops()
     assert bench._replay_config(True, True).closer == long_loops(open_space())
+
+
+def _room_records():  # type: ignore[no-untyped-def]
+    from fleetlink.agent.mapping.carmen import LaserRecord, read_records
+
+    return [r for r in read_records(_log_lines()) if isinstance(r, LaserRecord)]
+
+
+def test_a_relation_file_made_in_steps_of_the_odometry_is_seen_so() -> None:
+    """``published_reference``: relations made by moving the log's odometry in 5 cm steps along the
+    first scan's heading (as aces' and MIT CSAIL's files are) all lie on that grid; relations from
+    the true poses do not, and the scans, matched again, agree with them."""
+    bench = _bench()
+    recs = _room_records()
+    times, truth = [r.timestamp for r in recs], _poses()
+    pairs = [(0, 1), (1, 2), (2, 3), (3, 5), (0, 2), (4, 6), (5, 7)]
+    stepped = []
+    for k, (i, j) in enumerate(pairs):
+        dx, dy, dth = relation(recs[i].odom, recs[j].odom)
+        stepped.append(Relation(times[i], times[j], dx + 0.05 * (k % 3 - 1), dy, dth))
+    made = bench.published_reference(recs, stepped, truth)
+    assert made["on_5cm_step_share"] == 1.0 and made["on_1cm_step_share"] == 1.0 and made["step_m"] == 0.05
+    true_rels = [Relation(times[i], times[j], *relation(truth[i], truth[j])) for i, j in pairs]
+    seen = bench.published_reference(recs, true_rels, truth)
+    assert seen["on_5cm_step_share"] < 0.5 and seen["step_m"] == 0.01
+    # The scans, matched again, find the true relations, and so does the truth itself.
+    assert seen["kept"] >= 3 and seen["scans_vs_published_m"] < 0.01
+    assert seen["mapper_vs_published_same_pairs_m"] < 1e-9
+
+
+def test_a_raw_log_is_scored_on_the_complete_sets_of_its_corrected_subset(tmp_path: Path) -> None:
+    """``raw_log_complete_sets``: a corrected subset of the log (every other scan, GMapping's way: the
+    corrected pose in both of a FLASER line's poses, times of its own) is found in the raw log by its
+    ranges, and the trajectory given is scored at those scans on the complete sets from its poses."""
+    bench = _bench()
+    raw = _room_records()
+    lines = ["PARAM robot_frontlaser_offset 0.0 nohost 0"]
+    for k, line in enumerate(ln for ln in _log_lines() if ln.startswith("FLASER 181 ") and len(ln.split()) > 100):
+        if k % 2 == 0:
+            toks = line.split()
+            toks[-6:-3] = toks[-9:-6]  # odometry = the corrected pose
+            ts = f"{50.0 + k:.3f}"
+            toks[-3], toks[-1] = ts, ts
+            lines.append(" ".join(toks))
+    corrected = tmp_path / "room-corrected.log"
+    corrected.write_text("\n".join(lines) + "\n")
+    truth = _poses()
+    out = bench.raw_log_complete_sets(raw, truth, corrected)
+    assert out["corrected_scans"] == 4 and out["found"] == 4
+    complete = out["mapper"]["complete"]
+    assert complete["pairs"] > 0 and complete["missing"] == 0 and complete["trans_mean_m"] < 1e-9
+    assert out["corrected_log"]["complete"]["trans_mean_m"] < 1e-9
+    assert out["odometry"]["complete"]["trans_mean_m"] > 0.02  # the log's odometry drifts
