@@ -167,17 +167,17 @@ def scan_source_for(
     model: LidarModel,
     pose: Callable[[float], tuple[float, float, float]],
     raycaster: Raycaster | Callable[[], Raycaster],
-    circles: Callable[[float, float], npt.ArrayLike | None] | None = None,
+    circles: Callable[[float, float, float], npt.ArrayLike | None] | None = None,
 ) -> ScanSource:
     """A ``scan_source(now)`` for ``SimulatedRplidar``: one turn of ``model`` from ``pose(now)``.
 
     ``raycaster`` may be a callable returning the current one (the world may rebuild it);
-    ``circles(x, y)`` gives the other bodies near the lidar.
+    ``circles(x, y, now)`` gives the other bodies near the lidar, where they were at ``now``.
     """
 
     def source(now: float) -> Turn:
         x, y, theta = pose(now)
         rc = raycaster if isinstance(raycaster, Raycaster) else raycaster()
-        return model.revolution(x, y, theta, rc, circles(x, y) if circles is not None else None)
+        return model.revolution(x, y, theta, rc, circles(x, y, now) if circles is not None else None)
 
     return source

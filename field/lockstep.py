@@ -242,8 +242,8 @@ class FieldRun:
     def _scan_source(self, rig: Rig) -> Callable[[float], Any]:
         robot, model = rig.robot, rig.lidar
 
-        def circles(x: float, y: float) -> Any:
-            return self.world.other_bodies(robot.index, x, y, model.config.max_range)
+        def circles(x: float, y: float, at: float) -> Any:
+            return self.world.other_bodies(robot.index, x, y, model.config.max_range, at)
 
         def counted(now: float) -> Any:
             rig.scans += 1

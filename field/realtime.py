@@ -190,7 +190,7 @@ class RealtimeField:
     ) -> Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]:
         def source(now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             x, y, th = robot.pose_at(now)  # the turn's start: the physics may have stepped past it
-            circles = self.world.other_bodies(robot.index, x, y, model.config.max_range)  # type: ignore[attr-defined]
+            circles = self.world.other_bodies(robot.index, x, y, model.config.max_range, now)  # type: ignore[attr-defined]
             return model.revolution(x, y, th, self.world.raycaster, circles)  # type: ignore[attr-defined]
 
         return source

@@ -314,12 +314,20 @@ class World:
         """Every robot as a circle: x, y, radius."""
         return [(r.board.state.x, r.board.state.y, r.radius) for r in self.robots]
 
-    def other_bodies(self, index: int, x: float, y: float, max_range: float) -> np.ndarray | None:
-        """Other robots as circles (cx, cy, r) within reach of a sensor at (x, y)."""
-        if self._bodies_at != self.now or self._bodies_array is None:
-            self._bodies_array = np.asarray(self.bodies, dtype=float).reshape(-1, 3)
-            self._bodies_at = self.now
-        arr = self._bodies_array
+    def other_bodies(
+        self, index: int, x: float, y: float, max_range: float, at: float | None = None
+    ) -> np.ndarray | None:
+        """Other robots as circles (cx, cy, r) within reach of a sensor at (x, y); ``at``: where they
+        were then (``WorldRobot.pose_at``), for a lidar turn cast from its start, which the physics may
+        have stepped past: the robot casting it is placed where it was, and the others with it."""
+        if at is not None and at < self.now:
+            then = [(*robot.pose_at(at)[:2], robot.radius) for robot in self.robots]
+            arr = np.asarray(then, dtype=float).reshape(-1, 3)
+        else:
+            if self._bodies_at != self.now or self._bodies_array is None:
+                self._bodies_array = np.asarray(self.bodies, dtype=float).reshape(-1, 3)
+                self._bodies_at = self.now
+            arr = self._bodies_array
         reach = np.hypot(arr[:, 0] - x, arr[:, 1] - y) - arr[:, 2] <= max_range
         reach[index] = False
         return arr[reach] if reach.any() else None

@@ -268,3 +268,28 @@ def test_a_robots_pose_at_a_moment_between_the_physics_steps_is_where_it_was_the
     # Before the last second it keeps: the oldest pose it kept, a second back.
     oldest = robot.pose_at(t - 5.0)
     assert oldest == robot.pose_at(t - POSE_HISTORY_S) and oldest != robot.pose_at(t - POSE_HISTORY_S + 0.01)
+
+
+def test_other_robots_in_a_turn_cast_from_its_start_are_where_they_were_then() -> None:
+    # A turn cast from its start (the physics stepped past it) places the robot casting it where it
+    # was, and the robots it sees with it: a robot crossing at 0.4 m/s is 1 cm on after a 25 ms poll.
+    world = World(ROOM)
+    world.add_robot("a", (2.0, 5.0, 0.0), BoardConfig(ultrasonic_noise=0.0))
+    b = world.add_robot("b", (4.0, 3.0, math.pi / 2), BoardConfig(ultrasonic_noise=0.0))
+    b.board.drive(0.4, 0.4, 0.0)
+    t = 0.0
+    while t < 1.0 - 1e-9:
+        t += 0.025
+        for robot in world.robots:
+            robot.board.state.last_ctrl_bus = t
+        world.step(t)
+    earlier = t - 0.0125
+    now = world.other_bodies(0, 2.0, 5.0, 12.0)
+    then = world.other_bodies(0, 2.0, 5.0, 12.0, at=earlier)
+    assert now is not None and then is not None and len(now) == len(then) == 1
+    assert tuple(now[0]) == (*b.pose[:2], b.radius)
+    assert tuple(then[0]) == pytest.approx((*b.pose_at(earlier)[:2], b.radius), abs=1e-12)
+    assert 0.004 < math.hypot(now[0][0] - then[0][0], now[0][1] - then[0][1]) < 0.006  # 12.5 ms at 0.4 m/s
+    # At the world's time or later: where they are (the same circles as without ``at``).
+    later = world.other_bodies(0, 2.0, 5.0, 12.0, at=t + 0.5)
+    assert later is not None and np.array_equal(later, now)

@@ -253,7 +253,7 @@ def test_fov_and_other_robots() -> None:
     assert np.all(dist[behind] == 0.0) and np.all(dist[~behind] > 0.0)
     model = LidarModel(LidarConfig().noiseless(), np.random.default_rng(0))
     source = scan_source_for(
-        model, lambda t: (3.0, 2.0, 0.0), Raycaster(ROOM), lambda x, y: np.array([(4.0, 2.0, 0.2)])
+        model, lambda t: (3.0, 2.0, 0.0), Raycaster(ROOM), lambda x, y, t: np.array([(4.0, 2.0, 0.2)])
     )
     _, dist, _ = source(0.0)
     assert dist[0] == pytest.approx(0.8)

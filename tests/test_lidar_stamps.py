@@ -282,3 +282,57 @@ def test_in_lockstep_a_turning_robots_turns_are_dated_when_the_field_cast_them(
     th = np.unwrap(truth[:, 3])
     for t, (_, _, heading) in casts[5:]:
         assert abs(math.remainder(heading - float(np.interp(t, truth[:, 0], th)), math.tau)) < math.radians(0.1)
+
+
+def test_in_lockstep_the_robots_a_turn_sees_are_where_they_were_when_it_was_cast(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A turn is cast from its start, which the lockstep field learns a poll later: the robot casting
+    it is placed where it was then, and another robot crossing in front of it is too (0.4 m/s moves it
+    up to a centimetre in a 25 ms poll)."""
+    scenario = Scenario(
+        name="crossing",
+        plan="hall",
+        seed=3,
+        duration=3.0,
+        robots=(
+            RobotSpec("r1", pose=(10.0, 10.0, 0.0), drive="idle"),
+            RobotSpec("r2", pose=(12.0, 8.0, math.pi / 2), drive="idle"),
+        ),
+        lidar=LidarSettings(enabled=True),
+    )
+    seen: list[tuple[float, Any]] = []
+
+    def recording(model: Any, pose: Callable[[float], Any], raycaster: Any, circles: Any) -> Callable[[float], Any]:
+        def bodies(x: float, y: float, at: float) -> Any:
+            out = circles(x, y, at)
+            seen.append((at, None if out is None else np.array(out)))
+            return out
+
+        return field_lidar.scan_source_for(model, pose, raycaster, bodies)
+
+    monkeypatch.setattr(lockstep, "scan_source_for", recording)
+    with FieldRun(scenario, open_loop=False) as fr:
+        r1, r2 = fr.rigs[0].robot, fr.rigs[1].robot
+        driver = LidarDriver(fr.lidar_port(0), fr.clock, pwm_motor_control=True)
+        due = [0.5]
+
+        def controller(t: float) -> None:
+            for robot in (r1, r2):
+                robot.board.state.last_ctrl_bus = t
+            r2.board.drive(0.4, 0.4, t)
+            if t >= due[0]:
+                if not driver.scanning:
+                    driver.start_scan()
+                driver.poll(t)
+                due[0] = t + 0.025
+
+        fr.controllers.append(controller)
+        fr.run()
+        truth = np.array([row[:3] for row in fr.result(fr.clock.now(), 0.0).truth["r2"]])
+    casts = [(t, c) for t, c in seen if t > 1.0]  # r2 at speed
+    assert len(casts) >= 15
+    for t, circles in casts:
+        assert circles is not None and len(circles) == 1
+        x, y = float(np.interp(t, truth[:, 0], truth[:, 1])), float(np.interp(t, truth[:, 0], truth[:, 2]))
+        assert math.hypot(circles[0][0] - x, circles[0][1] - y) < 0.001, (t, circles[0], (x, y))
