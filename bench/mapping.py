@@ -881,7 +881,7 @@ def freiburg_log(log: Path, relations: Path, open_space: bool = False, long_loop
         "odometry": relation_error(times, [r.odom for r in recs], rels),
         "reference": published_reference(recs, rels, final),
     }
-    corrected = DATA / f"{log.name.split('.')[0]}-corrected.log.gz"
+    corrected = DATA / f"{relations.stem}-corrected.log.gz"  # ../shared/data's subset of the same log
     if corrected.exists():
         out["complete_sets"] = raw_log_complete_sets(recs, final, corrected)
     return out
@@ -892,6 +892,7 @@ def freiburg_log(log: Path, relations: Path, open_space: bool = False, long_loop
 RELATION_STEPS_M = (0.05, 0.01)
 ON_STEP_M = 0.001
 COARSE_STEP_HOLDS = 0.6
+NO_STEP_BELOW = 0.4  # twice what chance puts on the 1 cm grid (20 %): below it, no step is the file's
 
 
 def published_reference(recs, rels: list, final: list[Pose]) -> dict[str, object]:  # type: ignore[no-untyped-def,type-arg]
@@ -901,25 +902,50 @@ def published_reference(recs, rels: list, final: list[Pose]) -> dict[str, object
     of the relations whose offset from the log's own odometry, along the first scan's heading, lies
     on a grid of each of ``RELATION_STEPS_M`` (within ``ON_STEP_M``; by chance 4 % at 5 cm, 20 % at
     1 cm). aces' relations lie on a 5 cm grid: the log's odometry moved by hand in 5 cm steps, so even
-    an exact answer is off by its rounding to that grid (``scans_rounding_m``, on the step with the
-    larger share; ``scans_same_step_share``: pairs whose scans' answer rounds to the relation's step)."""
+    an exact answer is off by its rounding to that grid. ``step_m``: the coarse step when it holds
+    ``COARSE_STEP_HOLDS`` of what lies on the fine one (a 5 cm grid lies on the 1 cm grid too), the
+    fine one when that holds ``NO_STEP_BELOW`` of the relations, else none (NaN); on it,
+    ``scans_rounding_m`` (the scans' answers rounded to the step) and ``scans_same_step_share`` (pairs
+    whose scans' answer rounds to the relation's step). ``unjudged``: the relations the scans cannot
+    judge (a corridor, or the two ways disagree), medians of the mapper against the log's odometry and
+    of each against the relation. A relation's times name the log's scans within a millisecond, as
+    ``fleetlink map score`` takes them (MIT CSAIL's file writes five decimals, its log six)."""
     from fleetlink.agent.mapping.mapper import relative
+    from fleetlink.agent.mapping.relations import nearest_times
 
     times = [r.timestamp for r in recs]
-    index = {t: k for k, t in enumerate(times)}
+    order = np.argsort(np.asarray(times), kind="stable")
+    sorted_t = np.asarray(times)[order]
+
+    def scan_of(t: np.ndarray) -> np.ndarray:
+        k = nearest_times(sorted_t, t, 1e-3)
+        return np.where(k >= 0, order[np.maximum(k, 0)], -1)
+
+    ends = np.array([(r.t1, r.t2) for r in rels], dtype=np.float64).reshape(-1, 2)
+    first, second = scan_of(ends[:, 0]), scan_of(ends[:, 1])
     matched = matched_relations(recs, rels)
-    published = {(r.t1, r.t2): r for r in rels}
-    kept = [(published[(m.t1, m.t2)], m) for m in matched.relations if (m.t1, m.t2) in published]
+    judged = {(m.t1, m.t2): m for m in matched.relations}
+    kept = [(r, judged[(r.t1, r.t2)]) for r in rels if (r.t1, r.t2) in judged]
     scans_err = np.array([math.hypot(m.dx - r.dx, m.dy - r.dy) for r, m in kept])
     mapper_same = relation_error(times, final, [r for r, _ in kept]) if kept else None
-    offsets, odometry_x = [], []
-    for r in rels:
-        i, j = index.get(r.t1), index.get(r.t2)
-        if i is None or j is None:
+    offsets: list[float] = []
+    odometry_x: dict[tuple[float, float], float] = {}
+    unjudged: list[tuple[float, float, float]] = []  # mapper vs odometry, mapper vs relation, odometry vs it
+    for r, i, j in zip(rels, first.tolist(), second.tolist(), strict=True):
+        if i < 0 or j < 0:
             continue
         o = relative(recs[i].odom, recs[j].odom)
         offsets.append(r.dx - o[0])
-        odometry_x.append(((r.t1, r.t2), o[0]))
+        odometry_x[(r.t1, r.t2)] = o[0]
+        if (r.t1, r.t2) not in judged:
+            e = relative(final[i], final[j])
+            unjudged.append(
+                (
+                    math.hypot(e[0] - o[0], e[1] - o[1]),
+                    math.hypot(e[0] - r.dx, e[1] - r.dy),
+                    math.hypot(o[0] - r.dx, o[1] - r.dy),
+                )
+            )
     off = np.array(offsets)
     shares = {
         f"on_{round(step * 100)}cm_step_share": float(np.mean(np.abs(off - step * np.round(off / step)) <= ON_STEP_M))
@@ -927,28 +953,35 @@ def published_reference(recs, rels: list, final: list[Pose]) -> dict[str, object
         else math.nan
         for step in RELATION_STEPS_M
     }
-    # A 5 cm grid lies on the 1 cm grid too: the coarse step is the file's when it holds most of what
-    # lies on the fine one.
     coarse, fine = (shares[f"on_{round(s * 100)}cm_step_share"] for s in RELATION_STEPS_M)
-    step = RELATION_STEPS_M[0] if coarse >= COARSE_STEP_HOLDS * fine else RELATION_STEPS_M[1]
-    odo = dict(odometry_x)
+    step = math.nan
+    if fine >= NO_STEP_BELOW:
+        step = RELATION_STEPS_M[0] if coarse >= COARSE_STEP_HOLDS * fine else RELATION_STEPS_M[1]
     same, rounding = [], []
-    for r, m in kept:
-        o = odo.get((r.t1, r.t2))
-        if o is None:
+    for r, m in kept if math.isfinite(step) else []:
+        ox = odometry_x.get((r.t1, r.t2))
+        if ox is None:
             continue
-        k_scans, k_rel = round((m.dx - o) / step), round((r.dx - o) / step)
+        k_scans, k_rel = round((m.dx - ox) / step), round((r.dx - ox) / step)
         same.append(k_scans == k_rel)
-        rounding.append(abs(m.dx - (o + step * k_scans)))
+        rounding.append(abs(m.dx - (ox + step * k_scans)))
+    u = np.array(unjudged).reshape(-1, 3)
     return {
         "kept": len(kept),
         "refused": dict(matched.refused),
         "scans_vs_published_m": float(scans_err.mean()) if len(scans_err) else math.nan,
         "mapper_vs_published_same_pairs_m": mapper_same["trans_mean_m"] if mapper_same else math.nan,
+        "relations_on_the_log": len(off),
         **shares,
         "step_m": step,
         "scans_same_step_share": float(np.mean(same)) if same else math.nan,
         "scans_rounding_m": float(np.mean(rounding)) if rounding else math.nan,
+        "unjudged": {
+            "pairs": len(u),
+            "mapper_vs_odometry_median_m": float(np.median(u[:, 0])) if len(u) else math.nan,
+            "mapper_vs_published_median_m": float(np.median(u[:, 1])) if len(u) else math.nan,
+            "odometry_vs_published_median_m": float(np.median(u[:, 2])) if len(u) else math.nan,
+        },
     }
 
 
@@ -969,11 +1002,13 @@ def raw_log_complete_sets(recs, final: list[Pose], corrected: Path) -> dict[str,
         where.setdefault(np.round(r.ranges, 2).tobytes(), []).append(k)
     pairs = [(c, where.get(np.round(c.ranges, 2).tobytes(), [])) for c in cor]
     found = [(c, ks[0]) for c, ks in pairs if len(ks) == 1]
+    out: dict[str, object] = {"corrected_scans": len(pairs), "found": len(found)}
+    if len(found) < 2:
+        return out  # another recording of the same name: nothing to score
     cor = [c for c, _ in found]
     at = [k for _, k in found]
     times = [c.timestamp for c in cor]
     sets = relation_sets(cor)
-    out: dict[str, object] = {"corrected_scans": len(pairs), "found": len(found)}
     for name, est in (
         ("mapper", [final[k] for k in at]),
         ("odometry", [recs[k].odom for k in at]),
@@ -985,6 +1020,11 @@ def raw_log_complete_sets(recs, final: list[Pose], corrected: Path) -> dict[str,
 
 def _or_nan(v: float | None) -> float:
     return math.nan if v is None else v
+
+
+def _ratio(a: float, b: float) -> float:
+    """a / b, NaN where b is not a positive figure (nothing scored, or nothing to divide by)."""
+    return a / b if b > 0 else math.nan
 
 
 def freiburg_main(args: argparse.Namespace) -> int:
@@ -1007,7 +1047,7 @@ def freiburg_main(args: argparse.Namespace) -> int:
         r = freiburg_log(log, rel, args.open_space, args.long_loops)
         results[name] = r
         m, o, n = r["mapper"], r["odometry"], r["no_closure"]
-        r["vs_odometry_ratio"] = m["trans_mean_m"] / o["trans_mean_m"]
+        r["vs_odometry_ratio"] = _ratio(m["trans_mean_m"], o["trans_mean_m"])
         print(
             f"{name:>14} {r['scans']:>6} {m['pairs']:>5} {m['trans_mean_m']:>7.3f}±{m['trans_sd_m']:<7.3f}"
             f" {math.degrees(m['rot_mean_rad']):>7.2f} {m['local']['trans_mean_m']:>7.3f}"
@@ -1018,15 +1058,28 @@ def freiburg_main(args: argparse.Namespace) -> int:
         if m["missing"]:
             print(f"{'':>14} {m['missing']} relations name a time the log does not have")
         ref = r["reference"]
-        r["vs_scans_same_pairs_ratio"] = ref["mapper_vs_published_same_pairs_m"] / ref["scans_vs_published_m"]
+        r["vs_scans_same_pairs_ratio"] = _ratio(ref["mapper_vs_published_same_pairs_m"], ref["scans_vs_published_m"])
+        un = ref["unjudged"]
+        steps = (
+            f"on the relation's {ref['step_m'] * 100:.0f} cm step the scans' answer {ref['scans_same_step_share']:.0%},"
+            f" rounding alone {ref['scans_rounding_m']:.3f} m"
+            if math.isfinite(ref["step_m"])
+            else "no step of the two"
+        )
         print(
             f"{'':>14} the relations measured again from their scans ({ref['kept']} kept): the scans"
             f" {ref['scans_vs_published_m']:.3f} m from the published, the mapper {ref['mapper_vs_published_same_pairs_m']:.3f} m"
             f" (ratio {r['vs_scans_same_pairs_ratio']:.2f}); offsets from the log's odometry on a 5 cm / 1 cm step:"
-            f" {ref['on_5cm_step_share']:.0%} / {ref['on_1cm_step_share']:.0%}; the scans' answer on the relation's"
-            f" {ref['step_m'] * 100:.0f} cm step {ref['scans_same_step_share']:.0%}, rounding alone {ref['scans_rounding_m']:.3f} m"
+            f" {ref['on_5cm_step_share']:.0%} / {ref['on_1cm_step_share']:.0%}, {steps}; the {un['pairs']} the scans"
+            f" cannot judge, medians: mapper vs odometry {un['mapper_vs_odometry_median_m']:.3f} m, each vs published"
+            f" {un['mapper_vs_published_median_m']:.3f} / {un['odometry_vs_published_median_m']:.3f} m"
         )
-        if "complete_sets" in r:
+        if "complete_sets" in r and "mapper" not in r["complete_sets"]:
+            cs = r["complete_sets"]
+            print(
+                f"{'':>14} ../shared/data's corrected log: {cs['found']} of its {cs['corrected_scans']} scans in this log, not scored"
+            )
+        elif "complete_sets" in r:
             cs = r["complete_sets"]
             for k in ("complete", "complete_matched"):
                 ms, cl, od = cs["mapper"][k], cs["corrected_log"][k], cs["odometry"][k]

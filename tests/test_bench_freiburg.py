@@ -72,22 +72,31 @@ def _room_records():  # type: ignore[no-untyped-def]
 
 def test_a_relation_file_made_in_steps_of_the_odometry_is_seen_so() -> None:
     """``published_reference``: relations made by moving the log's odometry in 5 cm steps along the
-    first scan's heading (as aces' and MIT CSAIL's files are) all lie on that grid; relations from
-    the true poses do not, and the scans, matched again, agree with them."""
+    first scan's heading (as aces' and MIT CSAIL's files are) all lie on that grid, their times
+    written to five decimals as MIT CSAIL's are (the log's to six); the scans, matched again, find the
+    true relations, each rounded to that grid as a person stepping from the odometry would have.
+    Relations from the true poses lie on no such grid."""
     bench = _bench()
     recs = _room_records()
     times, truth = [r.timestamp for r in recs], _poses()
     pairs = [(0, 1), (1, 2), (2, 3), (3, 5), (0, 2), (4, 6), (5, 7)]
-    stepped = []
-    for k, (i, j) in enumerate(pairs):
-        dx, dy, dth = relation(recs[i].odom, recs[j].odom)
-        stepped.append(Relation(times[i], times[j], dx + 0.05 * (k % 3 - 1), dy, dth))
+    stepped, rounding = [], []
+    for i, j in pairs:
+        odo, true = relation(recs[i].odom, recs[j].odom), relation(truth[i], truth[j])
+        k = round((true[0] - odo[0]) / 0.05)  # the step nearest the truth along the first scan's heading
+        rounding.append(abs(true[0] - (odo[0] + 0.05 * k)))
+        stepped.append(Relation(times[i] + 4e-6, times[j] - 3e-6, odo[0] + 0.05 * k, odo[1], odo[2]))
     made = bench.published_reference(recs, stepped, truth)
+    assert made["relations_on_the_log"] == len(pairs)
     assert made["on_5cm_step_share"] == 1.0 and made["on_1cm_step_share"] == 1.0 and made["step_m"] == 0.05
+    kept = made["kept"]
+    assert kept >= 3 and made["scans_same_step_share"] == 1.0
+    assert made["unjudged"]["pairs"] == len(pairs) - kept
+    if kept == len(pairs):  # every pair judged: the scans' rounding is the hand-computed one
+        assert made["scans_rounding_m"] == pytest.approx(sum(rounding) / len(rounding), abs=2e-3)
     true_rels = [Relation(times[i], times[j], *relation(truth[i], truth[j])) for i, j in pairs]
     seen = bench.published_reference(recs, true_rels, truth)
-    assert seen["on_5cm_step_share"] < 0.5 and seen["step_m"] == 0.01
-    # The scans, matched again, find the true relations, and so does the truth itself.
+    assert seen["on_5cm_step_share"] < 0.5
     assert seen["kept"] >= 3 and seen["scans_vs_published_m"] < 0.01
     assert seen["mapper_vs_published_same_pairs_m"] < 1e-9
 
@@ -115,3 +124,15 @@ def test_a_raw_log_is_scored_on_the_complete_sets_of_its_corrected_subset(tmp_pa
     assert complete["pairs"] > 0 and complete["missing"] == 0 and complete["trans_mean_m"] < 1e-9
     assert out["corrected_log"]["complete"]["trans_mean_m"] < 1e-9
     assert out["odometry"]["complete"]["trans_mean_m"] > 0.02  # the log's odometry drifts
+
+
+def test_a_corrected_log_of_another_recording_is_not_scored(tmp_path: Path) -> None:
+    """A corrected log of the same name whose scans are not in this raw log (another recording) is
+    reported as found nowhere, and the bench goes on."""
+    bench = _bench()
+    raw = _room_records()
+    other = [f"FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 {50 + k}.0 nohost {50 + k}.0" for k in range(3)]
+    corrected = tmp_path / "room-corrected.log"
+    corrected.write_text("\n".join(other) + "\n")
+    out = bench.raw_log_complete_sets(raw, _poses(), corrected)
+    assert out == {"corrected_scans": 3, "found": 0}
