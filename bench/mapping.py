@@ -911,14 +911,14 @@ def published_reference(recs, rels: list, final: list[Pose]) -> dict[str, object
     of each against the relation. A relation's times name the log's scans within a millisecond, as
     ``fleetlink map score`` takes them (MIT CSAIL's file writes five decimals, its log six)."""
     from fleetlink.agent.mapping.mapper import relative
-    from fleetlink.agent.mapping.relations import nearest_times
+    from fleetlink.agent.mapping.relations import DEFAULT_TOLERANCE_S, nearest_times
 
     times = [r.timestamp for r in recs]
     order = np.argsort(np.asarray(times), kind="stable")
     sorted_t = np.asarray(times)[order]
 
     def scan_of(t: np.ndarray) -> np.ndarray:
-        k = nearest_times(sorted_t, t, 1e-3)
+        k = nearest_times(sorted_t, t, DEFAULT_TOLERANCE_S)  # as ``relations.score`` names them
         return np.where(k >= 0, order[np.maximum(k, 0)], -1)
 
     ends = np.array([(r.t1, r.t2) for r in rels], dtype=np.float64).reshape(-1, 2)
