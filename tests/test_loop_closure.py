@@ -432,6 +432,33 @@ def test_a_drawn_submap_keeps_its_field_and_lets_its_grid_go() -> None:
     assert np.array_equal(drawn.grids.level(0)[pad:-pad, pad:-pad], grid.field)
 
 
+def test_the_open_submap_shared_as_it_grows_is_the_submap_drawn_whole() -> None:
+    """``draw_occupancy`` draws only the open submap's new scans into the grid it kept from the last
+    time while the earlier ones stand where they were drawn: after every node, through the closures'
+    solves that move them, what it shares is what drawing every scan again gives."""
+    _, odom, scans = _drive()
+    m = OnboardMapper(MapperConfig(matching=False, closer=CloserConfig()))
+    closer = m.closer
+    assert closer is not None
+    grown = moved = 0
+    nodes = 0
+    for i, ((r, a), o) in enumerate(zip(scans, odom, strict=True)):
+        m.add_scan_odometry(0.1 * i, r, a, o)
+        if len(closer.graph.poses) == nodes:
+            continue
+        nodes = len(closer.graph.poses)
+        last = closer._shared
+        shared = closer.draw_occupancy(len(closer.submaps) - 1)
+        if last is not None and closer._shared is not None and closer._shared[2] is last[2]:
+            grown += 1  # drawn on from the kept grid
+        elif last is not None and last[0] == len(closer.submaps) - 1:
+            moved += 1  # a solve moved its scans: drawn whole
+        closer._shared = None
+        whole = closer.draw_occupancy(len(closer.submaps) - 1)
+        assert np.array_equal(shared[0], whole[0]) and shared[1:] == whole[1:], i
+    assert grown > 20 and moved > 0 and closer.stats.solves > 0
+
+
 def test_each_level_holds_the_maximum_of_its_window() -> None:
     """Branch and bound's levels: level d at (r, c) is the maximum of the padded field over the 2^d x 2^d
     cells from (r, c) up and to the right (cut off at the array's edge)."""

@@ -121,6 +121,35 @@ def test_chunked_free_space_and_banded_occupancy_change_no_value(monkeypatch: py
     assert (occ >= 0).any() and (occ == -1).any()
 
 
+def test_occupancy_read_between_scans_is_the_occupancy_computed_whole() -> None:
+    """``occupancy`` computes again only the box the scans since its last call changed: read after
+    every scan, through the grid's growth and a clear, it gives what computing every cell gives, and
+    a caller's copy is its own."""
+    from fleetlink.agent.mapping.grid import _p_occupied
+
+    def whole(g: LogOddsGrid) -> np.ndarray:
+        out = np.rint(100.0 * _p_occupied(g.logodds)).astype(np.int8)
+        out[~g.seen] = -1
+        return out
+
+    rng = np.random.default_rng(11)
+    g = LogOddsGrid(GridConfig(grow_step=1.0))
+    reads = 0
+    for k in range(40):
+        n = int(rng.integers(1, 300))
+        centre = (float(rng.uniform(-6, 6)), float(rng.uniform(-6, 6)))  # far apart: the grid grows
+        pose = (centre[0], centre[1], float(rng.uniform(-3, 3)))
+        g.integrate(pose, rng.uniform(0.16, 5.0, n), np.sort(rng.uniform(-np.pi, np.pi, n)), rng.random(n) > 0.2)
+        if k == 25:
+            g.clear()  # a redraw begins: every cell unknown again
+        if rng.random() < 0.6:
+            cells = g.occupancy()
+            reads += 1
+            assert np.array_equal(cells, whole(g)), k
+            cells[:] = 100  # the caller's copy
+    assert reads > 10 and np.array_equal(g.occupancy(), whole(g))
+
+
 def test_a_field_refreshed_late_is_the_field_refreshed_per_scan() -> None:
     """``integrate(refresh=False)`` remembers what it changed (shifted when the grid grows) and
     ``refresh_stale`` brings the likelihood field and its coarse copy to the same values, to the bit,

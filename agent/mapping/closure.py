@@ -625,6 +625,8 @@ class LoopCloser:
         self._pending: list[Closure] = []  # large corrections waiting for a second closure
         self._far_pending: set[Closure] = set()  # ... those a far loop's check found (``_check``'s ``far``)
         self._drawn: list[_Submap] = []  # the drawn submaps, least recently used first
+        # The submap ``draw_occupancy`` drew last: its index, its scans at the poses drawn, its grid.
+        self._shared: tuple[int, tuple[tuple[Pose, NodeScan], ...], LogOddsGrid] | None = None
         self._solved_at = -1  # the newest node at the last solve
         self._searched_t = -math.inf  # the time of the last node whose fresh search was planned
         self._far_searched_t = -math.inf  # ... whose far loops' checks were (``far_loop_m``)
@@ -1063,8 +1065,22 @@ class LoopCloser:
     def draw_occupancy(self, i: int) -> tuple[npt.NDArray[np.int8], float, tuple[float, float]]:
         """Submap ``i``'s map_server cells (-1 unknown, 0-100), drawn from its nodes' scans at the
         graph's poses now, in its first node's frame, cropped to the cells seen: what a robot shares
-        of it (agent/mapping/keeper.py ``MapPublication.submaps``; the fleet map merges submaps)."""
-        g = _submap_grid(self._parts(self.submaps[i]), self.grid_config)
+        of it (agent/mapping/keeper.py ``MapPublication.submaps``; the fleet map merges submaps).
+        The open submap is shared again as it grows: while its earlier scans stand where they were
+        drawn, only its new ones are drawn into the grid kept from last time (the same grid, to the
+        bit, as drawing them all again)."""
+        parts = self._parts(self.submaps[i])
+        last = self._shared
+        if (
+            last is not None
+            and last[0] == i
+            and len(last[1]) <= len(parts)
+            and all(a[1] is b[1] and a[0] == b[0] for a, b in zip(last[1], parts, strict=False))
+        ):
+            g = _submap_grid(parts[len(last[1]) :], self.grid_config, into=last[2])
+        else:
+            g = _submap_grid(parts, self.grid_config)
+        self._shared = (i, parts, g)
         cells = g.occupancy()
         rows = np.flatnonzero((cells != -1).any(axis=1))
         cols = np.flatnonzero((cells != -1).any(axis=0))
@@ -1529,14 +1545,18 @@ noisy) and still count as seen from the same side."""
 
 
 def _submap_grid(
-    parts: tuple[tuple[Pose, NodeScan], ...], grid: GridConfig, fill: CloserConfig | None = None
+    parts: tuple[tuple[Pose, NodeScan], ...],
+    grid: GridConfig,
+    fill: CloserConfig | None = None,
+    into: LogOddsGrid | None = None,
 ) -> LogOddsGrid:
     """A submap's log-odds grid, its scans integrated at their sensor poses in its frame; its field
     left stale (refreshed once, over what the scans changed, by whoever reads it: the same field as
     refreshed per scan). With ``fill``, each scan's surfaces are filled between neighbouring hits
-    (``CloserConfig.fill_max_gap``): for matching against; a shared map shows only what was seen."""
+    (``CloserConfig.fill_max_gap``): for matching against; a shared map shows only what was seen.
+    ``into``: a grid already drawn from the submap's earlier scans, which ``parts`` follow."""
     # A small growth step: the mapper's 8 m padding would make every submap a big grid.
-    g = LogOddsGrid(replace(grid, grow_step=SUBMAP_GROW_M))
+    g = into if into is not None else LogOddsGrid(replace(grid, grow_step=SUBMAP_GROW_M))
     for sensor, sc in parts:
         r, a, hit = sc.ranges, sc.angles, sc.hit
         if fill is not None:

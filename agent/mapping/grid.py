@@ -93,6 +93,10 @@ class LogOddsGrid:
         self.version = 0  # +1 per integrated scan
         self.dirty: Box | None = None  # cells changed since the last take_dirty()
         self.stale: Box | None = None  # cells whose likelihood field waits for refresh_stale()
+        # ``occupancy``'s cells as last computed, and the box changed since (None: none changed); the
+        # map is read every share period while a scan changes a small part of it.
+        self._cells: npt.NDArray[np.int8] | None = None
+        self._cells_stale: Box | None = None
 
     # -- geometry ------------------------------------------------------------------------------
 
@@ -167,6 +171,7 @@ class LogOddsGrid:
                 r0, c0, r1, c1 = self.stale
                 self.stale = (r0 + row0, c0 + col0, r1 + row0, c1 + col0)
         self.logodds, self.seen, self.field = lo, seen, fld
+        self._cells = None
         self.origin = (ox, oy)
         self.coarse_field = _max_pool(fld, c)
         self._tag = np.zeros(h * w, dtype=np.uint8)
@@ -212,10 +217,12 @@ class LogOddsGrid:
         # Every cell lies inside the grid (``ensure`` above), but clip the indices if some box says not.
         if box is not None and not (box[0] >= 0 and box[1] >= 0 and box[2] <= h and box[3] <= w):
             np.clip(free_idx, 0, h * w - 1, out=free_idx)
+            self._cells = None  # a clipped index lands outside any box
         if orow.size and not (
             int(orow.min()) >= 0 and int(ocol.min()) >= 0 and int(orow.max()) < h and int(ocol.max()) < w
         ):
             np.clip(occ_idx, 0, h * w - 1, out=occ_idx)
+            self._cells = None
         tag = self._tag
         tag[free_idx] = 1
         tag[occ_idx] = 2  # hit wins over crossed
@@ -246,6 +253,7 @@ class LogOddsGrid:
         self.empty = False
         self.version += 1
         self.dirty = box if self.dirty is None else _union(self.dirty, box)
+        self._cells_stale = box if self._cells_stale is None else _union(self._cells_stale, box)
         return box
 
     def clear(self) -> None:
@@ -258,6 +266,7 @@ class LogOddsGrid:
         self.empty = True
         self.dirty = (0, 0, *self.shape)
         self.stale = None
+        self._cells = None
 
     def blank_like(self) -> LogOddsGrid:
         """An empty grid in this one's place and size, its version going on from this one's: a grid to
@@ -368,14 +377,27 @@ class LogOddsGrid:
     def occupancy(self) -> npt.NDArray[np.int8]:
         """map_server-style cells: -1 unknown, else round(100 * p).
 
-        Computed in bands of rows: the float64 chain over a whole 650 x 650 grid held ~7 MB of
-        temporaries at once (an agent's peak memory); a band holds a few hundred kB."""
-        out = np.empty(self.shape, dtype=np.int8)
-        band = max(1, _OCCUPANCY_BAND // max(1, self.shape[1]))
-        for r0 in range(0, self.shape[0], band):
-            out[r0 : r0 + band] = np.rint(100.0 * _p_occupied(self.logodds[r0 : r0 + band]))
-        out[~self.seen] = -1
-        return out
+        Computed again only over the box the scans integrated since the last call changed (a cell's
+        value depends on its own log-odds alone: the same cells as computing them all), in bands of
+        rows: the float64 chain over a whole 650 x 650 grid held ~7 MB of temporaries at once (an
+        agent's peak memory); a band holds a few hundred kB. Returns a copy the caller may keep."""
+        if self._cells is None:
+            self._cells = np.empty(self.shape, dtype=np.int8)
+            box: Box | None = (0, 0, *self.shape)
+        else:
+            box = self._cells_stale
+        self._cells_stale = None
+        if box is not None:
+            h, w = self.shape
+            r0, c0, r1, c1 = max(box[0], 0), max(box[1], 0), min(box[2], h), min(box[3], w)
+            if r1 > r0 and c1 > c0:
+                band = max(1, _OCCUPANCY_BAND // (c1 - c0))
+                for b0 in range(r0, r1, band):
+                    b1 = min(b0 + band, r1)
+                    part = np.rint(100.0 * _p_occupied(self.logodds[b0:b1, c0:c1])).astype(np.int8)
+                    part[~self.seen[b0:b1, c0:c1]] = -1
+                    self._cells[b0:b1, c0:c1] = part
+        return self._cells.copy()
 
     def take_dirty(self) -> Box | None:
         box, self.dirty = self.dirty, None
