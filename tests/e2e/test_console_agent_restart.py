@@ -20,13 +20,13 @@ from pathlib import Path
 
 import pytest
 
-from tests.e2e.test_console_field import command, console_field, needs_tmux, quit_field, screen, tmux
+from tests.e2e.test_console_field import CONSOLE_E2E, command, console_field, quit_field, screen, tmux
 from tests.e2e.test_console_own_frames import OFF_MAP
 from tests.e2e.test_console_robot_rule import POSE, hold, shown_pose
 from tests.harness import wait_until
 from tests.test_robots_meeting import OFFSET_M, facing_in_the_living_room
 
-pytestmark = needs_tmux  # the console's e2e tests' rule: under CI it must run
+pytestmark = CONSOLE_E2E  # the console's e2e tests' rules: under CI they must run, one at a time
 
 BEGAN_AGAIN = "its map began again"
 RESTART_S = 75.0  # field time of uvc-2's restart: after the operator has placed and moved it

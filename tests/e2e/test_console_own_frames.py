@@ -18,16 +18,16 @@ from pathlib import Path
 import pytest
 
 from tests.e2e.test_console_field import (
+    CONSOLE_E2E,
     command,
     console_field,
-    needs_tmux,
     quit_field,
     screen,
     tmux,
 )
 from tests.harness import wait_until
 
-pytestmark = needs_tmux  # the console's e2e tests' rule: under CI it must run
+pytestmark = CONSOLE_E2E  # the console's e2e tests' rules: under CI they must run, one at a time
 
 POSE = re.compile(r"(scout-\d) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
 OFF_MAP = "not on the fleet map yet"

@@ -18,9 +18,9 @@ from pathlib import Path
 import pytest
 
 from tests.e2e.test_console_field import (
+    CONSOLE_E2E,
     UWB_OK,
     console_field,
-    needs_tmux,
     quit_field,
     screen,
     tmux,
@@ -28,7 +28,7 @@ from tests.e2e.test_console_field import (
 from tests.harness import wait_until
 from tests.test_robots_meeting import OFFSET_M, facing_in_the_living_room
 
-pytestmark = needs_tmux  # the console's e2e tests' rule: under CI it must run
+pytestmark = CONSOLE_E2E  # the console's e2e tests' rules: under CI they must run, one at a time
 
 POSE = re.compile(r"(uvc-\d) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")
 REFUSAL = re.compile(r"uvc-1: guard_refusal: another robot (\d+\.\d+) m ahead")
