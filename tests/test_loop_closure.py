@@ -453,8 +453,9 @@ def test_the_open_submap_shared_as_it_grows_is_the_submap_drawn_whole() -> None:
             grown += 1  # drawn on from the kept grid
         elif last is not None and last[0] == len(closer.submaps) - 1:
             moved += 1  # a solve moved its scans: drawn whole
-        closer._shared = None
+        kept, closer._shared = closer._shared, None
         whole = closer.draw_occupancy(len(closer.submaps) - 1)
+        closer._shared = kept  # drawn on from the kept grid again next time, draw after draw
         assert np.array_equal(shared[0], whole[0]) and shared[1:] == whole[1:], i
     assert grown > 20 and moved > 0 and closer.stats.solves > 0
 

@@ -39,7 +39,8 @@ needs_tmux = pytest.mark.skipif(
 # The console's real-time end-to-end tests run one after another on one worker: each runs a field,
 # its agents and a console in real time, and two at once on a 2-core machine left the agents short of
 # CPU (lidar turns dropped unmapped; a standing robot's map pose moved 5 cm, 2026-12-07).
-CONSOLE_E2E = [needs_tmux, pytest.mark.xdist_group("console_e2e")]
+ONE_AT_A_TIME = pytest.mark.xdist_group("console_e2e")
+CONSOLE_E2E = [needs_tmux, ONE_AT_A_TIME]
 pytestmark = CONSOLE_E2E
 
 POSE = re.compile(r"(uvc-1) [^│\n]*?pose ([+-]\d+\.\d+) ([+-]\d+\.\d+)")

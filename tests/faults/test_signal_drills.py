@@ -29,7 +29,7 @@ from fleetlink.links.zenoh import peer_config
 from fleetlink.shared import keys, wire
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import ActionType, Connection, ConnectionState, InstantActions, Teleop
-from tests.e2e.test_console_field import TMUX, pose, screen, tmux
+from tests.e2e.test_console_field import ONE_AT_A_TIME, needs_tmux, pose, screen, tmux
 from tests.harness import MosquittoBroker, wait_until
 from tests.harness.agent_process import AgentProcess, agent_process
 
@@ -134,11 +134,11 @@ def test_sigterm_on_a_secured_field_leaves_no_secrets(tmp_path: Path) -> None:
             proc.wait(5)
 
 
-# As the tmux e2e test: .ci/install-tool installs tmux, so under CI this drill must run (a missing
-# tmux fails it there); only a developer's machine without tmux skips it.
-@pytest.mark.skipif(
-    TMUX is None and not os.environ.get("CI"), reason="tmux not installed (./dev test installs it with apt-get)"
-)
+# As the tmux e2e tests: .ci/install-tool installs tmux, so under CI this drill must run (a missing
+# tmux fails it there); only a developer's machine without tmux skips it. A real-time field and console
+# too: one at a time with them.
+@needs_tmux
+@ONE_AT_A_TIME
 @pytest.mark.slow
 def test_sigterm_on_a_console_in_a_terminal_sends_stop(tmp_path: Path) -> None:
     """The real console in tmux, joined to a secured field as op-alice, driving uvc-1: SIGTERM and
