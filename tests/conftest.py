@@ -7,7 +7,7 @@ Fixtures:
   rig                            a started console rig (tests/harness/console_rig.py), closed at teardown
   _no_thread_leaks (autouse)     fails a test that leaves a non-daemon thread running
 
-The suite runs on three pytest-xdist workers (addopts in pyproject.toml). Tests marked ``slow`` are
+The suite runs on two pytest-xdist workers (addopts in pyproject.toml). Tests marked ``slow`` are
 collected first, so each worker starts on a long one and the short ones fill in around them: the
 run does not end with one worker idle while another finishes a long test it picked up last.
 Tests that share a module-scoped fixture carry an ``xdist_group`` mark (one worker, one set-up); so
@@ -33,7 +33,7 @@ __all__ = ["mosquitto", "mosquitto_factory", "rig", "zenoh_peers"]
 THREAD_GRACE_S = 2.0
 
 # Hypothesis times every example (a 200 ms deadline) and its data generation (the too_slow health
-# check): on three workers sharing two cores with other work, those are timings of the machine, not
+# check): on two workers sharing two cores with other work, those are timings of the machine, not
 # behaviour of the code, and fail now and then. The properties are checked without them.
 settings.register_profile("fleetlink", deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("fleetlink")

@@ -30,7 +30,7 @@ MOTION_PERIOD = 1.0 / 50  # the session's motion poll (which is what feeds the w
 WATCHDOG = 1.0
 # From 0.3 m/s the wheels brake to a standstill in ~35 ms (PID and 80 ms motor lag); allow 100 ms.
 BRAKE_BUDGET = 0.1
-# How late a real-time test may see the board's state change on a loaded machine (three workers on
+# How late a real-time test may see the board's state change on a loaded machine (two workers on
 # two cores, other work besides): the board steps on its own thread, the test polls from another.
 LATE_SEEN = 0.5
 CORE_DISCONNECTED = p.HealthError(p.HealthErrorCode.CORE_DISCONNECTED, "core disconnected")
