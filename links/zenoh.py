@@ -94,6 +94,8 @@ INBOX_SIZE = 1024
 """Samples waiting for the receivers; beyond this new ones are dropped and counted."""
 PRIORITY_INBOX_SIZE = 256
 """Samples on prioritised keys waiting (``ZenohEndpoint.prioritise``), in a lane of their own."""
+LANE_NAMES = ("priority", "second", "bulk")
+"""The inbox's lanes, in the order they are served (module docstring: priority lane)."""
 
 Answer = Callable[[str], list[tuple[str, bytes]]]
 """``answer(key_expr asked)`` -> the replies, as (key, payload)."""
@@ -241,6 +243,10 @@ class _Inbox:
         self.maxsize = size
         self._delivering = False  # the delivery thread has an item from get() it has not done()
         self._claimed = False  # a network thread is delivering a sample itself
+
+    def size(self, lane: int) -> int:
+        """How many samples ``lane`` holds at most."""
+        return self._sizes[lane]
 
     def claim(self) -> bool:
         """True if the caller may hand its sample to the receiver itself (nothing queued, nothing
@@ -571,9 +577,10 @@ class ZenohEndpoint:
                 self.stats.dropped += 1
                 if self.stats.dropped == 1:
                     log.warning(
-                        "%s: inbox full (%d samples): receivers not keeping up; dropping",
+                        "%s: inbox full (%s lane, %d samples): receivers not keeping up; dropping",
                         self.label,
-                        self._inbox.maxsize,
+                        LANE_NAMES[lane],
+                        inbox.size(lane),
                     )
                 return
             self.stats.received += 1

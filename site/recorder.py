@@ -288,6 +288,9 @@ class Recorder:
             self._file,
             chunk_size=self.chunk_size,
             compression=CompressionType.ZSTD if self.compression == "zstd" else CompressionType.LZ4,
+            # The data section's CRC in Data End: without it a chunk whose opcode byte is damaged
+            # is an "unknown record" a reader skips without a word (its messages silently gone).
+            enable_data_crcs=True,
         )
         self._writer.start(profile=PROFILE, library="fleetlink recorder")
         self._append = MessageAppender(self._writer)
@@ -700,6 +703,13 @@ def _bad_magic(exc: Exception) -> bool:
 
 
 def _describe(exc: Exception) -> str:
+    from mcap.records import DataEnd
+    from mcap.stream_reader import CRCValidationError
+
+    if isinstance(exc, CRCValidationError) and isinstance(exc.record, DataEnd):
+        # Found at the data section's end: the damage is somewhere before it, where nothing else
+        # noticed (a chunk whose opcode is damaged is skipped as an unknown record).
+        return "damaged: the data section's CRC does not match, so messages read from it may be missing or wrong"
     text = str(exc) or type(exc).__name__
     return f"damaged or truncated after this point ({type(exc).__name__}: {text[:120]})"
 

@@ -292,6 +292,29 @@ def test_a_truncated_or_damaged_file_gives_what_came_before(tmp_path: Path) -> N
     assert 0 < summary.messages < 400 and any("damaged" in n for n in summary.notes)
 
 
+def test_a_chunk_whose_opcode_is_damaged_is_not_skipped_without_a_word(tmp_path: Path) -> None:
+    # MCAP readers skip records of an unknown opcode: a chunk whose opcode byte is damaged (and its
+    # length not) would vanish with its messages and no note, were the data section's CRC not
+    # written. Every chunk in turn, as the flipped window of the test above can land on any.
+    whole = tmp_path / "whole.mcap"
+    record_poses(whole, 60, chunk_size=1_000)
+    total = summarise(whole, index=False).messages
+    data = whole.read_bytes()
+    chunks, at = [], 8
+    while data[at] != 0x0F:  # up to Data End
+        if data[at] == 0x06:
+            chunks.append(at)
+        at += 9 + struct.unpack_from("<Q", data, at + 1)[0]
+    assert len(chunks) >= 5
+    for at in chunks:
+        damaged = tmp_path / "damaged.mcap"
+        damaged.write_bytes(data[:at] + bytes([data[at] ^ 0x5A]) + data[at + 1 :])
+        summary = summarise(damaged, index=False)
+        assert summary.messages < total and any("damaged" in n for n in summary.notes), (at, summary.notes)
+        reader = RecordingReader(damaged)
+        assert sum(1 for _ in reader.messages()) < total and not reader.complete and "CRC" in (reader.problem or "")
+
+
 def record_poses(path: Path, n: int, *, chunk_size: int = 16 * 1024) -> None:
     """``n`` poses of r1 on Zenoh (every second one on MQTT too) and a state, recorded into ``path``."""
     clock = SystemClock()
