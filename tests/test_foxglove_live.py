@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import re
 import struct
 import threading
 import time
@@ -52,6 +53,8 @@ SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 """foxglove-sdk 0.30 accepts only ``foxglove.sdk.v1`` (the same protocol as ``foxglove.websocket.v1``
 under a new name); a client offers both, as Foxglove and Lichtblick do."""
 MESSAGE_DATA = 0x01
+UNKNOWN_CHANNEL = re.compile(r"Unknown channel ID: (\d+)")
+"""The status the server sends when a subscription names a channel it does not know."""
 
 
 # -- the core ---------------------------------------------------------------------------------------
@@ -353,6 +356,8 @@ class FoxgloveClient:
         self.server_info: dict[str, Any] | None = None
         self.channels: dict[str, dict[str, Any]] = {}
         self.subs: dict[int, str] = {}
+        self.sub_channels: dict[int, int] = {}
+        self.retries = 0
         self.messages: dict[str, list[tuple[int, Any]]] = {}
         self.lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -372,6 +377,8 @@ class FoxgloveClient:
                         elif op["op"] == "unadvertise":
                             for cid in op["channelIds"]:
                                 self.channels = {t: c for t, c in self.channels.items() if c["id"] != cid}
+                        elif op["op"] == "status" and (m := UNKNOWN_CHANNEL.fullmatch(op.get("message", ""))):
+                            self._subscribe_again(int(m.group(1)))
                 elif frame[0] == MESSAGE_DATA:
                     sub, log_time = struct.unpack_from("<IQ", frame, 1)
                     with self.lock:
@@ -384,7 +391,20 @@ class FoxgloveClient:
             sub = len(self.subs) + 1
             self.subs[sub] = topic
             cid = self.channels[topic]["id"]
+            self.sub_channels[sub] = cid
         self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": sub, "channelId": cid}]}))
+
+    def _subscribe_again(self, cid: int) -> None:
+        """The server refused a subscription to a channel it had just advertised (under self.lock).
+
+        The SDK sends a channel's advertisement before it records the channel as advertised to
+        this client (foxglove-sdk rust/foxglove/src/websocket/connected_client.rs,
+        ``advertise_channels``): a client that subscribes at once can be told "Unknown channel ID"
+        (seen in the suite). A client asks again, as a person in Foxglove would click again."""
+        subs = [{"id": sub, "channelId": c} for sub, c in self.sub_channels.items() if c == cid]
+        if subs and self.retries < 20:
+            self.retries += 1
+            self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
 
     def got(self, topic: str) -> list[tuple[int, Any]]:
         with self.lock:
