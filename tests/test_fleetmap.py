@@ -276,6 +276,38 @@ def test_a_bent_map_is_straightened_submap_by_submap_against_another_robots_map(
     assert np.mean(d_rigid > 0.1) > 0.05
 
 
+def test_pieces_that_stand_still_are_drawn_from_the_last_drawing_and_the_same_cells(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """``_draw`` with a cache resamples only the pieces whose cells or pose changed since its last
+    call, and draws what it draws without one, through moves, a new piece and pieces gone."""
+    resampled: list[int] = []
+    resample = fleetmap._resample
+
+    def counted(p, pose, res, lattice):  # type: ignore[no-untyped-def]
+        resampled.append(p.index)
+        return resample(p, pose, res, lattice)
+
+    monkeypatch.setattr(fleetmap, "_resample", counted)
+    pieces = fleetmap._pieces(with_submaps(BENT), 4000)
+    cache: fleetmap.DrawCache = {}
+    lattice = (0.013, -0.021)
+    moved = compose((0.07, -0.03, math.radians(1.5)), pieces[1].placed)
+    steps = [
+        [(p, p.placed) for p in pieces],  # all new
+        [(p, p.placed) for p in pieces],  # nothing changed
+        [(pieces[0], pieces[0].placed), (pieces[1], moved), (pieces[2], pieces[2].placed)],  # one moved
+        [(pieces[0], pieces[0].placed), (pieces[1], moved)],  # one gone
+        [(p, p.placed) for p in pieces],  # back as at first: those dropped are resampled again
+    ]
+    expected = [[0, 1, 2], [], [1], [], [1, 2]]
+    for placed, want in zip(steps, expected, strict=True):
+        resampled.clear()
+        cells, origin = fleetmap._draw(placed, RES, lattice, cache)
+        assert resampled == want
+        whole, whole_origin = fleetmap._draw(placed, RES, lattice)  # every piece resampled
+        assert origin == whole_origin and np.array_equal(cells, whole)
+        assert len(cache) == len(placed)
+
+
 def test_a_build_searches_within_its_budget_and_the_next_builds_catch_up() -> None:
     def fleet(budget: int) -> FleetMap:
         fm = FleetMap(FleetMapConfig(max_searches_per_build=budget))

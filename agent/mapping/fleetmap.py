@@ -327,6 +327,10 @@ class FleetMap:
     _global_tried: dict[tuple[str, int, str, int], tuple[int, int, int]] = field(default_factory=dict)
     """(b, its epoch, a, its epoch) -> a refused global search of b's map onto a's: both versions
     then and the build."""
+    _drawn: dict[str, DrawCache] = field(default_factory=dict)
+    """Per robot: its pieces as its map was last drawn from them (``put``)."""
+    _drawn_fleet: DrawCache = field(default_factory=dict)
+    """The pieces as the fleet map was last drawn from them (``build``)."""
 
     def put(self, robot: str, m: RobotMap) -> bool:
         """Take ``robot``'s map (a newer version replaces the old). False: nothing new, or no walls
@@ -350,7 +354,8 @@ class FleetMap:
         if m.submaps:
             # Drawn from its pieces at the poses given with them: a match onto it is then tied to
             # those poses, not to a shared map of another moment (a closure solved in between).
-            cells, origin = _draw([(p, p.placed) for p in pieces], m.resolution, m.origin)
+            cache = self._drawn.setdefault(robot, {})
+            cells, origin = _draw([(p, p.placed) for p in pieces], m.resolution, m.origin, cache)
         else:
             cells, origin = m.cells, m.origin
         known = cells != UNKNOWN
@@ -364,6 +369,7 @@ class FleetMap:
 
     def forget(self, robot: str) -> None:
         """Let ``robot``'s map go (gone, or begun again: what was registered of it no longer holds)."""
+        self._drawn.pop(robot, None)
         if self.maps.pop(robot, None) is not None:
             self._epochs[robot] = self._epochs.get(robot, 0) + 1
 
@@ -405,7 +411,7 @@ class FleetMap:
         # lattice moves no wall by half a cell.
         first = self.maps[robots[0]].map
         placed = [(p, solved[(r, p.index)]) for r in robots for p in self.maps[r].pieces]
-        cells, origin = _draw(placed, self.config.resolution_m, first.origin)
+        cells, origin = _draw(placed, self.config.resolution_m, first.origin, self._drawn_fleet)
         last = self._last
         if (
             last is None
@@ -698,46 +704,80 @@ MAX_CELLS = 16_000_000
 """The most cells a drawn map may hold (the wire's ``MAX_MAP_CELLS``: 200 m x 200 m at 5 cm)."""
 
 
+_Drawn = tuple[I8, int, int, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]
+"""A piece resampled at one pose onto one lattice: its cells (held, so their ``id`` stays its own),
+the lattice row and column of its box's first cell, and where it sees a wall and floor there."""
+DrawCache = dict[tuple[int, float, tuple[float, float], Pose, float, tuple[float, float]], _Drawn]
+"""``_draw``'s pieces as last resampled, by (``id`` of the cells, their resolution and origin, the
+pose, the lattice's resolution and point)."""
+
+
 def _draw(
-    placed: list[tuple[_Piece, Pose]], res: float, lattice: tuple[float, float]
+    placed: list[tuple[_Piece, Pose]],
+    res: float,
+    lattice: tuple[float, float],
+    cache: DrawCache | None = None,
 ) -> tuple[I8, tuple[float, float]]:
     """``placed`` pieces, each resampled (nearest cell) at its pose onto the lattice of cells of
     ``res`` through ``lattice``: a wall where at least one sees a wall and at least as many see a
-    wall as see floor, floor where more see floor, unknown where none knows it."""
-    boxes = [_placed_box(p, pose) for p, pose in placed]
+    wall as see floor, floor where more see floor, unknown where none knows it.
+
+    ``cache``: the pieces as the last call with it resampled them; a piece at the same pose is taken
+    from it instead of resampled (most of a fleet map's pieces stand still between two drawings, and
+    the resampling was most of a drawing's cost). Left holding this call's pieces only."""
     px, py = lattice
-    x0 = px + math.floor((min(b[0] for b in boxes) - px) / res) * res
-    y0 = py + math.floor((min(b[1] for b in boxes) - py) / res) * res
-    w = math.ceil((max(b[2] for b in boxes) - x0) / res)
-    h = math.ceil((max(b[3] for b in boxes) - y0) / res)
+    drawn: list[_Drawn] = []
+    kept: DrawCache = {}
+    for p, pose in placed:
+        key = (id(p.cells), p.resolution, p.origin, pose, res, lattice)
+        d = cache.get(key) if cache is not None else None
+        if d is None:
+            d = _resample(p, pose, res, lattice)
+        kept[key] = d
+        drawn.append(d)
+    if cache is not None:
+        cache.clear()
+        cache.update(kept)
+    r0 = min(d[1] for d in drawn)
+    c0 = min(d[2] for d in drawn)
+    h = max(d[1] + d[3].shape[0] for d in drawn) - r0
+    w = max(d[2] + d[3].shape[1] for d in drawn) - c0
     if w * h > MAX_CELLS:
         raise ValueError(f"the pieces span {w * res:.0f} x {h * res:.0f} m, over {MAX_CELLS} cells")
     walls = np.zeros((h, w), dtype=np.int16)
     free = np.zeros((h, w), dtype=np.int16)
-    for (p, pose), (bx0, by0, bx1, by1) in zip(placed, boxes, strict=True):
-        c0, c1 = max(0, math.floor((bx0 - x0) / res)), min(w, math.ceil((bx1 - x0) / res))
-        r0, r1 = max(0, math.floor((by0 - y0) / res)), min(h, math.ceil((by1 - y0) / res))
-        if c1 <= c0 or r1 <= r0:
-            continue
-        xs = x0 + (np.arange(c0, c1) + 0.5) * res
-        ys = y0 + (np.arange(r0, r1) + 0.5) * res
-        gx, gy = np.meshgrid(xs, ys)
-        ix, iy, ith = inverse(pose)
-        cs, sn = math.cos(ith), math.sin(ith)
-        sx = ix + cs * gx - sn * gy
-        sy = iy + sn * gx + cs * gy
-        sc = np.floor((sx - p.origin[0]) / p.resolution).astype(np.int64)
-        sr = np.floor((sy - p.origin[1]) / p.resolution).astype(np.int64)
-        mh, mw = p.cells.shape
-        ok = (sr >= 0) & (sr < mh) & (sc >= 0) & (sc < mw)
-        src = np.full(sc.shape, UNKNOWN, dtype=np.int8)
-        src[ok] = p.cells[sr[ok], sc[ok]]
-        walls[r0:r1, c0:c1] += src >= 65
-        free[r0:r1, c0:c1] += (src >= 0) & (src <= 25)
+    for _, r, c, wall, floor in drawn:
+        rows, cols = slice(r - r0, r - r0 + wall.shape[0]), slice(c - c0, c - c0 + wall.shape[1])
+        walls[rows, cols] += wall
+        free[rows, cols] += floor
     out = np.full((h, w), UNKNOWN, dtype=np.int8)
     out[free > walls] = FREE
     out[(walls > 0) & (walls >= free)] = WALL
-    return out, (float(x0), float(y0))
+    return out, (float(px + c0 * res), float(py + r0 * res))
+
+
+def _resample(p: _Piece, pose: Pose, res: float, lattice: tuple[float, float]) -> _Drawn:
+    """``p`` at ``pose`` on the lattice of ``res`` through ``lattice``: each lattice cell of its box
+    takes the piece's cell under its centre."""
+    px, py = lattice
+    bx0, by0, bx1, by1 = _placed_box(p, pose)
+    c0, c1 = math.floor((bx0 - px) / res), math.ceil((bx1 - px) / res)
+    r0, r1 = math.floor((by0 - py) / res), math.ceil((by1 - py) / res)
+    xs = px + (np.arange(c0, c1) + 0.5) * res
+    ys = py + (np.arange(r0, r1) + 0.5) * res
+    ix, iy, ith = inverse(pose)
+    cs, sn = math.cos(ith), math.sin(ith)
+    # The cell centres in the piece's frame, (ix + cs x) - sn y and (iy + sn x) + cs y, a column's
+    # part and a row's part added: the same sums in the same order as over a meshgrid.
+    sx = (ix + cs * xs)[None, :] - (sn * ys)[:, None]
+    sy = (iy + sn * xs)[None, :] + (cs * ys)[:, None]
+    sc = np.floor((sx - p.origin[0]) / p.resolution).astype(np.int64)
+    sr = np.floor((sy - p.origin[1]) / p.resolution).astype(np.int64)
+    mh, mw = p.cells.shape
+    ok = (sr >= 0) & (sr < mh) & (sc >= 0) & (sc < mw)
+    src = np.full(sc.shape, UNKNOWN, dtype=np.int8)
+    src[ok] = p.cells[sr[ok], sc[ok]]
+    return p.cells, r0, c0, src >= 65, (src >= 0) & (src <= 25)
 
 
 def _anchor(pieces: list[_Piece], matched: F64, pose: Pose) -> _Piece:
