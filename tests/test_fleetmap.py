@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -282,9 +283,9 @@ def test_pieces_that_stand_still_are_drawn_from_the_last_drawing_and_the_same_ce
     resampled: list[int] = []
     resample = fleetmap._resample
 
-    def counted(p, pose, res, lattice):  # type: ignore[no-untyped-def]
+    def counted(p, pose, span, res, lattice):  # type: ignore[no-untyped-def]
         resampled.append(p.index)
-        return resample(p, pose, res, lattice)
+        return resample(p, pose, span, res, lattice)
 
     monkeypatch.setattr(fleetmap, "_resample", counted)
     pieces = fleetmap._pieces(with_submaps(BENT), 4000)
@@ -306,6 +307,12 @@ def test_pieces_that_stand_still_are_drawn_from_the_last_drawing_and_the_same_ce
         whole, whole_origin = fleetmap._draw(placed, RES, lattice)  # every piece resampled
         assert origin == whole_origin and np.array_equal(cells, whole)
         assert len(cache) == len(placed)
+    # Pieces too wide to draw are refused before any is resampled (a 5 m piece on a 1 cm lattice).
+    coarse = dataclasses.replace(pieces[0], resolution=5.0)
+    resampled.clear()
+    with pytest.raises(ValueError, match="cells"):
+        fleetmap._draw([(coarse, coarse.placed)], 0.01, lattice, cache)
+    assert resampled == [] and len(cache) == len(steps[-1])  # the cache as the last drawing left it
 
 
 def test_a_build_searches_within_its_budget_and_the_next_builds_catch_up() -> None:

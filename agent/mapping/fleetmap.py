@@ -351,6 +351,8 @@ class FleetMap:
             # Versions that go back, or a whole map of the same version that is not the same map:
             # a restarted agent, whose pieces' (index, version) mean other pieces now.
             self._epochs[robot] = self._epochs.get(robot, 0) + 1
+        if not m.submaps:
+            self._drawn.pop(robot, None)
         if m.submaps:
             # Drawn from its pieces at the poses given with them: a match onto it is then tied to
             # those poses, not to a shared map of another moment (a closure solved in between).
@@ -704,12 +706,13 @@ MAX_CELLS = 16_000_000
 """The most cells a drawn map may hold (the wire's ``MAX_MAP_CELLS``: 200 m x 200 m at 5 cm)."""
 
 
-_Drawn = tuple[I8, int, int, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]
-"""A piece resampled at one pose onto one lattice: its cells (held, so their ``id`` stays its own),
-the lattice row and column of its box's first cell, and where it sees a wall and floor there."""
+_Drawn = tuple[I8, I8]
+"""A piece resampled at one pose onto one lattice: its cells (held, so their ``id`` stays its own)
+and, over its box's lattice cells, the piece's cell under each one's centre (unknown off the piece)."""
 DrawCache = dict[tuple[int, float, tuple[float, float], Pose, float, tuple[float, float]], _Drawn]
 """``_draw``'s pieces as last resampled, by (``id`` of the cells, their resolution and origin, the
-pose, the lattice's resolution and point)."""
+pose, the lattice's resolution and point). A piece's cells must not change in place once drawn
+(nothing does: a robot's new map comes as new arrays)."""
 
 
 def _draw(
@@ -722,47 +725,52 @@ def _draw(
     ``res`` through ``lattice``: a wall where at least one sees a wall and at least as many see a
     wall as see floor, floor where more see floor, unknown where none knows it.
 
-    ``cache``: the pieces as the last call with it resampled them; a piece at the same pose is taken
-    from it instead of resampled (most of a fleet map's pieces stand still between two drawings, and
-    the resampling was most of a drawing's cost). Left holding this call's pieces only."""
+    Each piece is resampled over the lattice cells its placed box covers, whatever else is drawn with
+    it, so ``cache`` (the pieces as the last call with it resampled them) gives a piece at the same
+    pose as it was: most of a fleet map's pieces stand still between two drawings, and the resampling
+    was most of a drawing's cost. Left holding this call's pieces only. ValueError, before anything
+    is resampled, for pieces that span more than ``MAX_CELLS``."""
     px, py = lattice
-    drawn: list[_Drawn] = []
-    kept: DrawCache = {}
-    for p, pose in placed:
-        key = (id(p.cells), p.resolution, p.origin, pose, res, lattice)
-        d = cache.get(key) if cache is not None else None
-        if d is None:
-            d = _resample(p, pose, res, lattice)
-        kept[key] = d
-        drawn.append(d)
-    if cache is not None:
-        cache.clear()
-        cache.update(kept)
-    r0 = min(d[1] for d in drawn)
-    c0 = min(d[2] for d in drawn)
-    h = max(d[1] + d[3].shape[0] for d in drawn) - r0
-    w = max(d[2] + d[3].shape[1] for d in drawn) - c0
+    spans = [_lattice_span(_placed_box(p, pose), res, lattice) for p, pose in placed]
+    r0, c0 = min(s[0] for s in spans), min(s[1] for s in spans)
+    h, w = max(s[2] for s in spans) - r0, max(s[3] for s in spans) - c0
     if w * h > MAX_CELLS:
         raise ValueError(f"the pieces span {w * res:.0f} x {h * res:.0f} m, over {MAX_CELLS} cells")
     walls = np.zeros((h, w), dtype=np.int16)
     free = np.zeros((h, w), dtype=np.int16)
-    for _, r, c, wall, floor in drawn:
-        rows, cols = slice(r - r0, r - r0 + wall.shape[0]), slice(c - c0, c - c0 + wall.shape[1])
-        walls[rows, cols] += wall
-        free[rows, cols] += floor
+    kept: DrawCache = {}
+    for (p, pose), (r, c, r1, c1) in zip(placed, spans, strict=True):
+        key = (id(p.cells), p.resolution, p.origin, pose, res, lattice)
+        d = cache.get(key) if cache is not None else None
+        if d is None:
+            d = (p.cells, _resample(p, pose, (r, c, r1, c1), res, lattice))
+        kept[key] = d
+        src = d[1]
+        walls[r - r0 : r1 - r0, c - c0 : c1 - c0] += src >= 65
+        free[r - r0 : r1 - r0, c - c0 : c1 - c0] += (src >= 0) & (src <= 25)
+    if cache is not None:
+        cache.clear()
+        cache.update(kept)
     out = np.full((h, w), UNKNOWN, dtype=np.int8)
     out[free > walls] = FREE
     out[(walls > 0) & (walls >= free)] = WALL
     return out, (float(px + c0 * res), float(py + r0 * res))
 
 
-def _resample(p: _Piece, pose: Pose, res: float, lattice: tuple[float, float]) -> _Drawn:
-    """``p`` at ``pose`` on the lattice of ``res`` through ``lattice``: each lattice cell of its box
-    takes the piece's cell under its centre."""
+def _lattice_span(
+    box: tuple[float, float, float, float], res: float, lattice: tuple[float, float]
+) -> tuple[int, int, int, int]:
+    """The lattice cells (first row, first column, end row, end column) that cover ``box``."""
     px, py = lattice
-    bx0, by0, bx1, by1 = _placed_box(p, pose)
-    c0, c1 = math.floor((bx0 - px) / res), math.ceil((bx1 - px) / res)
-    r0, r1 = math.floor((by0 - py) / res), math.ceil((by1 - py) / res)
+    c0, r0 = math.floor((box[0] - px) / res), math.floor((box[1] - py) / res)
+    return r0, c0, max(r0, math.ceil((box[3] - py) / res)), max(c0, math.ceil((box[2] - px) / res))
+
+
+def _resample(p: _Piece, pose: Pose, span: tuple[int, int, int, int], res: float, lattice: tuple[float, float]) -> I8:
+    """``p`` at ``pose`` on the lattice cells ``span`` of ``res`` through ``lattice``: each cell takes
+    the piece's cell under its centre."""
+    px, py = lattice
+    r0, c0, r1, c1 = span
     xs = px + (np.arange(c0, c1) + 0.5) * res
     ys = py + (np.arange(r0, r1) + 0.5) * res
     ix, iy, ith = inverse(pose)
@@ -777,7 +785,7 @@ def _resample(p: _Piece, pose: Pose, res: float, lattice: tuple[float, float]) -
     ok = (sr >= 0) & (sr < mh) & (sc >= 0) & (sc < mw)
     src = np.full(sc.shape, UNKNOWN, dtype=np.int8)
     src[ok] = p.cells[sr[ok], sc[ok]]
-    return p.cells, r0, c0, src >= 65, (src >= 0) & (src <= 25)
+    return src
 
 
 def _anchor(pieces: list[_Piece], matched: F64, pose: Pose) -> _Piece:
