@@ -18,6 +18,7 @@ import contextlib
 import logging
 import os
 import pwd
+import random
 import re
 import shutil
 import signal
@@ -85,8 +86,33 @@ def find_mosquitto(fallback: str = FALLBACK_BINARY) -> str:
     return found
 
 
+EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+"""Where Linux says which ports it hands out to outgoing connections (and to a bind to port 0)."""
+PORT_SPAN = 12_000
+"""``free_port`` picks among this many ports just below that range."""
+
+
 def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that was free a moment ago (bind port 0, read it back, release it)."""
+    """A TCP port that was free a moment ago (bound, released), from just below the range the OS
+    hands out to outgoing connections: a port the OS picked (bind to port 0) comes from that range,
+    and a connection made before the caller binds it could take it ("Address already in use": a
+    test's listener, after its field's clients had connected, 2026-12-07). Picked at random there,
+    so callers in other processes seldom pick the same one; where that range cannot be read, the
+    OS picks."""
+    try:
+        low = int(EPHEMERAL_RANGE.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 0
+    if low - PORT_SPAN >= 1024:
+        pick = random.SystemRandom()
+        for _ in range(64):
+            port = pick.randrange(low - PORT_SPAN, low)
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+                try:
+                    s.bind((host, port))
+                except OSError:
+                    continue
+                return port
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])

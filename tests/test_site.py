@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+import socket
 import threading
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,7 @@ import pytest
 from fleetlink.shared.clock import SystemClock
 from fleetlink.shared.messages import Ack, AckResult, Connection, Pose, Teleop, UwbFix
 from fleetlink.site import brokers
-from fleetlink.site.brokers import AmqttBroker, MosquittoBroker, start_demo_broker
+from fleetlink.site.brokers import AmqttBroker, MosquittoBroker, free_port, start_demo_broker
 from fleetlink.site.field import FieldSite
 from tests.harness import wait_until
 from tests.test_field_realtime import quiet_scenario
@@ -222,3 +223,16 @@ def test_mosquitto_restarts_on_its_port(tmp_path: Path) -> None:
     finally:
         broker.stop()
     assert not broker.running
+
+
+def test_a_free_port_lies_outside_the_range_outgoing_connections_take(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A port the OS picks comes from the range it hands out to outgoing connections, one of which
+    may take it before its caller binds it; ``free_port`` picks below that range, a free one."""
+    low = int(brokers.EPHEMERAL_RANGE.read_text().split()[0])
+    ports = [free_port() for _ in range(20)]
+    assert all(low - brokers.PORT_SPAN <= p < low for p in ports)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", ports[0]))  # free, as said
+    # Where the range cannot be read, the OS picks.
+    monkeypatch.setattr(brokers, "EPHEMERAL_RANGE", tmp_path / "missing")
+    assert 0 < free_port() < 65536
