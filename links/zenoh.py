@@ -240,7 +240,6 @@ class _Inbox:
         self._cond = threading.Condition()
         self._lanes: tuple[deque[Item | None], ...] = (deque(), deque(), deque())
         self._sizes = (priority_size, priority_size, size)
-        self.maxsize = size
         self._delivering = False  # the delivery thread has an item from get() it has not done()
         self._claimed = False  # a network thread is delivering a sample itself
 

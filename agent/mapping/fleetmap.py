@@ -351,14 +351,13 @@ class FleetMap:
             # Versions that go back, or a whole map of the same version that is not the same map:
             # a restarted agent, whose pieces' (index, version) mean other pieces now.
             self._epochs[robot] = self._epochs.get(robot, 0) + 1
-        if not m.submaps:
-            self._drawn.pop(robot, None)
         if m.submaps:
             # Drawn from its pieces at the poses given with them: a match onto it is then tied to
             # those poses, not to a shared map of another moment (a closure solved in between).
             cache = self._drawn.setdefault(robot, {})
             cells, origin = _draw([(p, p.placed) for p in pieces], m.resolution, m.origin, cache)
         else:
+            self._drawn.pop(robot, None)  # a whole map: no pieces to keep drawn
             cells, origin = m.cells, m.origin
         known = cells != UNKNOWN
         reach = math.ceil(cfg.window_xy_m / m.resolution)
