@@ -74,6 +74,12 @@ loop closure (issue 17) <= 0.03 m mean over complete sets on intel and aces and 
 
 from __future__ import annotations
 
+# ruff: noqa: E402 -- first, before numpy is imported: the BLAS kernels every fleetlink command runs
+# (shared/blas.py), so the figures are the same on every x86-64 host.
+from fleetlink.shared.blas import pin_blas_kernels
+
+pin_blas_kernels()
+
 import argparse
 import json
 import math
