@@ -76,13 +76,14 @@ from __future__ import annotations
 
 # ruff: noqa: E402 -- first, before numpy is imported: the BLAS kernels every fleetlink command runs
 # (shared/blas.py), so the figures are the same on every x86-64 host.
-from fleetlink.shared.blas import pin_blas_kernels
+from fleetlink.shared.blas import CORE_VARIABLE, pin_blas_kernels
 
 pin_blas_kernels()
 
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import replace
@@ -100,6 +101,13 @@ DATA = ROOT.parent / "shared" / "data"
 Pose = tuple[float, float, float]
 
 TOUR = [(5.0, 9.75), (20.0, 9.75), (36.0, 9.75), (20.0, 9.9), (5.0, 9.75), (3.0, 12.5), (3.0, 6.0), (5.0, 9.75)]
+
+
+def write_json(path: str, figures: dict[str, Any]) -> None:
+    """Every section's ``--json``: its figures, and which OpenBLAS kernels computed them (the replays'
+    figures depend on them: shared/blas.py; None where OpenBLAS chose for itself)."""
+    out = {**figures, "openblas_coretype": os.environ.get(CORE_VARIABLE)}
+    Path(path).write_text(json.dumps(out, indent=2, default=float))
 
 
 def wrap(a: float) -> float:
@@ -828,7 +836,7 @@ def main(argv: list[str] | None = None) -> int:
     results["fleet_own_frames"] = print_fleet_own_frames(fleet_own_frames(160.0 if args.quick else 240.0))
 
     if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=2, default=float))
+        write_json(args.json, results)
     return 0
 
 
@@ -1107,13 +1115,7 @@ def freiburg_main(args: argparse.Namespace) -> int:
         " relation (>= 20 s apart) worse than 0.20 m)"
     )
     if args.json:
-        Path(args.json).write_text(
-            json.dumps(
-                {"freiburg": results, "open_space": args.open_space, "long_loops": args.long_loops},
-                indent=2,
-                default=float,
-            )
-        )
+        write_json(args.json, {"freiburg": results, "open_space": args.open_space, "long_loops": args.long_loops})
     return 0
 
 
@@ -1261,13 +1263,7 @@ def corrected_main(args: argparse.Namespace) -> int:
         " seen; ratio: the final graph's mean over the front end's. The first table's sets are 3 m, 0.5)"
     )
     if args.json:
-        Path(args.json).write_text(
-            json.dumps(
-                {"corrected": results, "open_space": args.open_space, "long_loops": args.long_loops},
-                indent=2,
-                default=float,
-            )
-        )
+        write_json(args.json, {"corrected": results, "open_space": args.open_space, "long_loops": args.long_loops})
     return 0
 
 
@@ -1381,7 +1377,7 @@ def expo_section(duration: float) -> dict[str, Any]:
 def expo_main(args: argparse.Namespace) -> int:
     out = expo_section(120.0 if args.quick else 300.0)
     if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=2, default=float))
+        write_json(args.json, out)
     return 0
 
 
@@ -1405,7 +1401,7 @@ def onboard_section(duration: float, loops: int = 1) -> dict[str, object]:
 def onboard_main(args: argparse.Namespace) -> int:
     out = onboard_section(200.0 * args.loops if not args.quick else 60.0, args.loops)
     if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=2, default=float))
+        write_json(args.json, out)
     return 0
 
 
@@ -1432,7 +1428,7 @@ def fleet_main(args: argparse.Namespace) -> int:
     fm = print_fleet_map(fleet_map(120.0 if args.quick else 240.0))
     own = print_fleet_own_frames(fleet_own_frames(160.0 if args.quick else 240.0))
     if args.json:
-        Path(args.json).write_text(json.dumps({"fleet_map": fm, "own_frames": own}, indent=2, default=float))
+        write_json(args.json, {"fleet_map": fm, "own_frames": own})
     return 0
 
 

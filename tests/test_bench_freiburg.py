@@ -5,6 +5,7 @@ true poses stand in for the benchmark's files, which are not in this repository.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -29,7 +30,10 @@ def test_published_logs_are_found_replayed_and_scored(tmp_path: Path, capsys: py
     assert [name for name, _, _ in bench.freiburg_logs(tmp_path)] == ["room"]
     out = tmp_path / "figures.json"
     assert bench.main(["--freiburg", str(tmp_path), "--json", str(out)]) == 0
-    room = json.loads(out.read_text())["freiburg"]["room"]
+    figures = json.loads(out.read_text())
+    # Which BLAS kernels computed the figures goes with them (shared/blas.py).
+    assert figures["openblas_coretype"] == os.environ.get("OPENBLAS_CORETYPE")
+    room = figures["freiburg"]["room"]
     assert room["scans"] == len(TIMESTAMPS) and room["relations"] == len(pairs)
     for key in ("mapper", "mapper_online", "no_closure", "odometry"):
         assert room[key]["pairs"] == len(pairs) and room[key]["missing"] == 0
