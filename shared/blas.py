@@ -10,7 +10,12 @@ ones, every other input the same (docs/mapping.md, "The same figures on every ho
 
 OpenBLAS reads ``OPENBLAS_CORETYPE`` once, when it is loaded, so ``pin_blas_kernels`` must run
 before numpy or scipy is first imported: the CLI's package does it (every ``fleetlink`` command, the
-agents the field starts among them), and so do the test suite and the mapping bench. Stdlib only.
+agents the field starts among them), and so do the test suite (tests/conftest.py) and the mapping
+bench. It sets the variable in the process's environment, so the processes it starts inherit it.
+
+What it covers: OpenBLAS (numpy's and scipy's), on Linux x86-64 with AVX2 and FMA, the same numpy
+and scipy versions. Not numpy's own vector loops (float64 ``exp``, ``log``, ``arctan2`` take AVX-512
+paths where the CPU has them; they did not move mit-csail's poses), nor other systems. Stdlib only.
 """
 
 from __future__ import annotations
@@ -22,8 +27,8 @@ from collections.abc import Container, MutableMapping
 from pathlib import Path
 
 PINNED_CORE = "Haswell"
-"""OpenBLAS's AVX2 + FMA kernels: every x86-64 CPU since 2013-2015 runs them (an AVX-512 CPU too),
-and AMD's (OpenBLAS's "Zen" family) are the same kernels."""
+"""OpenBLAS's AVX2 + FMA kernels: Intel's Core and Xeon CPUs since 2013 and AMD's since 2015 run them
+(an AVX-512 CPU too); some Pentiums, Celerons and Atoms do not, and are left alone."""
 NEEDED_FLAGS = frozenset({"avx2", "fma"})
 CORE_VARIABLE = "OPENBLAS_CORETYPE"
 
@@ -42,7 +47,7 @@ def pin_blas_kernels(
     alone would mix the two). The arguments are for tests: the process's environment, CPU and
     modules by default."""
     env = os.environ if environ is None else environ
-    if CORE_VARIABLE in env:
+    if env.get(CORE_VARIABLE):  # (empty is no choice: OpenBLAS says "Core not found" and picks)
         return env[CORE_VARIABLE]
     loaded = sys.modules if modules is None else modules
     if "numpy" in loaded or "scipy" in loaded:

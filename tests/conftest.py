@@ -14,7 +14,13 @@ Tests that share a module-scoped fixture carry an ``xdist_group`` mark (one work
 do the console's real-time tmux tests (one at a time: tests/e2e/test_console_field.py).
 """
 
+# ruff: noqa: E402 -- first, before anything imports numpy: the BLAS kernels every fleetlink command
+# runs (shared/blas.py), so the suite computes alike on every host.
 from __future__ import annotations
+
+from fleetlink.shared.blas import pin_blas_kernels
+
+pin_blas_kernels()
 
 import signal
 import threading
