@@ -648,6 +648,8 @@ def main(argv: list[str] | None = None) -> int:
         help="only section 8: the exhibition hall patrol, whole agents, with UWB (fill on and off) and without",
     )
     args = ap.parse_args(argv)
+    # The replays' figures depend on the BLAS kernels that computed them (shared/blas.py).
+    print(f"OpenBLAS kernels: {os.environ.get(CORE_VARIABLE) or 'as OpenBLAS chose for this CPU'}")
     if args.expo_only:
         return expo_main(args)
     if args.corrected is not None:
