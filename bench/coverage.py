@@ -32,6 +32,12 @@ reported. Goals (issue 16): >= 99 % of the reachable floor at the target dose in
 
 from __future__ import annotations
 
+# ruff: noqa: E402 -- first, before numpy is imported: the BLAS kernels every fleetlink command runs
+# (shared/blas.py), so the figures are the same on every x86-64 host.
+from fleetlink.shared.blas import pin_blas_kernels
+
+pin_blas_kernels()
+
 import argparse
 import json
 import logging

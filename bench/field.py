@@ -24,6 +24,12 @@ alone); >= 2x for 10 whole agents with mapping (50 reported).
 
 from __future__ import annotations
 
+# ruff: noqa: E402 -- first, before numpy is imported: the BLAS kernels every fleetlink command runs
+# (shared/blas.py), so the figures are the same on every x86-64 host.
+from fleetlink.shared.blas import pin_blas_kernels
+
+pin_blas_kernels()
+
 import argparse
 import json
 import logging

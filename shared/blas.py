@@ -10,8 +10,9 @@ ones, every other input the same (docs/mapping.md, "The same figures on every ho
 
 OpenBLAS reads ``OPENBLAS_CORETYPE`` once, when it is loaded, so ``pin_blas_kernels`` must run
 before numpy or scipy is first imported: the CLI's package does it (every ``fleetlink`` command, the
-agents the field starts among them), and so do the test suite (tests/conftest.py) and the mapping
-bench. It sets the variable in the process's environment, so the processes it starts inherit it.
+agents the field starts among them), and so do the test suite (tests/conftest.py) and the benches
+that run maps and missions (bench/mapping.py, sortie.py, coverage.py, field.py). It sets the
+variable in the process's environment, so the processes it starts inherit it.
 
 What it covers: OpenBLAS (numpy's and scipy's), on Linux x86-64 with AVX2 and FMA, the same numpy
 and scipy versions. Not numpy's own vector loops (float64 ``exp``, ``log``, ``arctan2`` take AVX-512
