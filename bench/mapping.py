@@ -76,14 +76,13 @@ from __future__ import annotations
 
 # ruff: noqa: E402 -- first, before numpy is imported: the BLAS kernels every fleetlink command runs
 # (shared/blas.py), so the figures are the same on every x86-64 host.
-from fleetlink.shared.blas import CORE_VARIABLE, pin_blas_kernels
+from fleetlink.shared.blas import pin_blas_kernels
 
-pin_blas_kernels()
+BLAS_KERNELS = pin_blas_kernels()  # None: as OpenBLAS chose for this CPU
 
 import argparse
 import json
 import math
-import os
 import sys
 import time
 from dataclasses import replace
@@ -106,7 +105,7 @@ TOUR = [(5.0, 9.75), (20.0, 9.75), (36.0, 9.75), (20.0, 9.9), (5.0, 9.75), (3.0,
 def write_json(path: str, figures: dict[str, Any]) -> None:
     """Every section's ``--json``: its figures, and which OpenBLAS kernels computed them (the replays'
     figures depend on them: shared/blas.py; None where OpenBLAS chose for itself)."""
-    out = {**figures, "openblas_coretype": os.environ.get(CORE_VARIABLE)}
+    out = {**figures, "openblas_coretype": BLAS_KERNELS}
     Path(path).write_text(json.dumps(out, indent=2, default=float))
 
 
@@ -649,7 +648,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     # The replays' figures depend on the BLAS kernels that computed them (shared/blas.py).
-    print(f"OpenBLAS kernels: {os.environ.get(CORE_VARIABLE) or 'as OpenBLAS chose for this CPU'}")
+    print(f"OpenBLAS kernels: {BLAS_KERNELS or 'as OpenBLAS chose for this CPU'}")
     if args.expo_only:
         return expo_main(args)
     if args.corrected is not None:

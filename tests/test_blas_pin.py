@@ -66,6 +66,8 @@ def test_unreadable_cpu_flags_leave_it(tmp_path: Path) -> None:
 
 
 def _runs_haswell_kernels() -> bool:
+    """This host's CPU read apart from ``pin_blas_kernels``: a pin that wrongly declined here would
+    otherwise skip the test below instead of failing it."""
     try:
         flags = next(line for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("flags"))
     except (OSError, StopIteration):
