@@ -43,6 +43,8 @@ the last one), so the search costs at most so much per second however fast nodes
 
 from __future__ import annotations
 
+import bisect
+import copy
 import math
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field, replace
@@ -321,6 +323,25 @@ class CloserConfig:
     # corrected log 0.0297 -> 0.0293 m, its scans' own sets 0.0125 -> 0.0119 m (docs/mapping.md, "Walls
     # seen from behind").
     final_min_facing_share: float = 0.6
+    # Before the final pass, the online closures that were large corrections (over ``confirm_above``:
+    # each believed on a second node's word) are weighed against everything else once more. Grouped
+    # with the closures beside them (their nodes within ``conflict_gap_nodes`` of the one before, their
+    # submaps' first nodes within ``conflict_anchor_nodes``), a group whose removal lowers the solved
+    # graph's chi2 by more than ``conflict_chi2``, and by more than ``conflict_chi2_per_closure`` per
+    # closure in it, is let go and the graph solved again, the worst per closure first, at most
+    # ``conflict_drops`` groups (0: off). A look-alike taken where the front end had drifted far
+    # holds its few nodes in the wrong place; the true closures that come later are many, and the
+    # graph bends the front end's chain between the two: each step a little, none past ``max_chi2``.
+    # MIT's Killian Court: node 847, mid-turn, matched a submap 7.1 m along a corridor of repeated
+    # doorways and was confirmed by node 849 (three closures, 69 of the graph's chi2 of 201 theirs
+    # alone, 23 a closure); the fifteen true ones at 1 315-1 390 s 53 (3.5 a closure). Let go, the
+    # final pass finds the true place: 0.114 -> 0.041 m. The other published logs' largest groups
+    # weigh 2.4 (aces), 3.4 (intel), 0.6 (fr079) and 28 (mit-csail, 9 a closure): none goes.
+    conflict_chi2: float = 20.0
+    conflict_chi2_per_closure: float = 15.0
+    conflict_gap_nodes: int = 20
+    conflict_anchor_nodes: int = 30
+    conflict_drops: int = 3
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
     # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
@@ -390,6 +411,11 @@ class CloserConfig:
             "fill_depth_share",
             "fill_depth_m",
             "final_odometry_margin",
+            "conflict_chi2",
+            "conflict_chi2_per_closure",
+            "conflict_gap_nodes",
+            "conflict_anchor_nodes",
+            "conflict_drops",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -559,6 +585,7 @@ class CloserStats:
     submaps_drawn: int = 0  # drawings (a submap let go and needed again is drawn again)
     submaps_filled: int = 0  # ... of them, drawn with their surfaces filled (``fill_from_range``)
     final_edges: int = 0  # matches the final pass (``finish``) verified
+    conflicts_dropped: int = 0  # online closures let go before the final pass (``conflict_chi2``)
     odometry_edges: int = 0  # the odometry's steps in the final graph (``final_odometry_margin``)
     odometry_sd_xy: float = 0.0  # m: ... and the sd they were held at
     steps_loosened: int = 0  # front-end steps the final solve held loosely (``final_loosen_steps``)
@@ -626,6 +653,7 @@ class LoopCloser:
         self._closure_edges: list[int] = []  # graph edge index per entry of ``closures``
         self._pending: list[Closure] = []  # large corrections waiting for a second closure
         self._far_pending: set[Closure] = set()  # ... those a far loop's check found (``_check``'s ``far``)
+        self._large: set[Closure] = set()  # closures accepted as large corrections (``conflict_chi2``)
         self._drawn: list[_Submap] = []  # the drawn submaps, least recently used first
         # The submap ``draw_occupancy`` drew last: its index, its scans at the poses drawn, its grid.
         self._shared: tuple[int, tuple[tuple[Pose, NodeScan], ...], LogOddsGrid] | None = None
@@ -911,6 +939,8 @@ class LoopCloser:
     def _add(self, closures: list[Closure]) -> None:
         info = self._closure_info()
         for c in closures:
+            if self._jump(c) > self.config.confirm_above:
+                self._large.add(c)
             self.graph.add_edge(c.anchor, c.node, c.z, info)
             self.closures.append(c)
             self._closure_edges.append(len(self.graph.edges) - 1)
@@ -1204,6 +1234,8 @@ class LoopCloser:
             return 0
         if self._unsolved:  # closures still waiting for a solve (``lazy_solve_below``)
             self._solve()
+        if cfg.conflict_drops > 0:
+            self._drop_conflicts()
         xyt = np.array(self.graph.poses)
         full = [i for i, sm in enumerate(self.submaps) if sm.last - sm.first >= cfg.submap_nodes]
         pairs: dict[int, list[int]] = {}  # submap -> nodes, so each submap is drawn once
@@ -1275,6 +1307,66 @@ class LoopCloser:
         self.stats.final_edges += len(found)
         self._solve(max_drops=cfg.final_drops, loosen=cfg.final_loosen_steps)
         return len(found) - (before - len(self.closures))
+
+    def _drop_conflicts(self) -> None:
+        """Let go the groups of online closures that the rest of the graph does not bear out
+        (``conflict_chi2``): each group holding a large correction is taken out of a copy of the graph,
+        solved as ``_solve`` solves, and the chi2 it lowers counted; the worst per closure over both
+        gates goes, the graph is solved again, and the rest are weighed again."""
+        cfg = self.config
+        if not self._large:
+            return
+        fixed = None if self.graph.priors else 0
+
+        def solved_chi2(drop: Sequence[int] = ()) -> float:
+            g = copy.deepcopy(self.graph)
+            g.remove_edges([self._closure_edges[k] for k in drop])
+            g.optimize(fixed=fixed, iterations=cfg.iterations, tolerance=1e-5)
+            return g.chi2()
+
+        for _ in range(cfg.conflict_drops):
+            suspects = [g for g in self._closure_groups() if any(self.closures[k] in self._large for k in g)]
+            if not suspects:
+                return
+            base = solved_chi2()
+            worst: list[int] | None = None
+            worst_share = 0.0
+            for group in suspects:
+                gain = base - solved_chi2(group)
+                share = gain / len(group)
+                if gain > cfg.conflict_chi2 and share > max(cfg.conflict_chi2_per_closure, worst_share):
+                    worst, worst_share = group, share
+            if worst is None:
+                return
+            edges = sorted(self._closure_edges[k] for k in worst)
+            self.graph.remove_edges(edges)
+            gone = set(worst)
+            kept = [k for k in range(len(self.closures)) if k not in gone]
+            self.closures = [self.closures[k] for k in kept]
+            self._closure_edges = [
+                self._closure_edges[k] - bisect.bisect_left(edges, self._closure_edges[k]) for k in kept
+            ]
+            self.stats.conflicts_dropped += len(worst)
+            self._solve()
+
+    def _closure_groups(self) -> list[list[int]]:
+        """The closures (indices into ``closures``) in groups: by node, each joins the group of the one
+        before it when their nodes are within ``conflict_gap_nodes`` and their submaps' first nodes
+        within ``conflict_anchor_nodes``."""
+        cfg = self.config
+        groups: list[list[int]] = []
+        for k in sorted(range(len(self.closures)), key=lambda k: self.closures[k].node):
+            c = self.closures[k]
+            if groups:
+                last = self.closures[groups[-1][-1]]
+                if (
+                    c.node - last.node <= cfg.conflict_gap_nodes
+                    and abs(c.anchor - last.anchor) <= cfg.conflict_anchor_nodes
+                ):
+                    groups[-1].append(k)
+                    continue
+            groups.append([k])
+        return groups
 
     def _odometry_edges(self) -> None:
         """The odometry's steps between consecutive nodes as robust edges on translation, its sd

@@ -1,0 +1,136 @@
+"""Online closures weighed against each other before the final pass (``CloserConfig.conflict_chi2``).
+
+A look-alike taken where the front end had drifted far holds a few nodes in the wrong place; the
+true closures that come later are many, and the graph bends the front end's chain between the two, a
+little each step, none past the solve's gate. Before the final pass, each group of closures holding a
+large correction is taken out of a copy of the graph and the chi2 that lowers counted: the group
+the rest does not bear out goes (MIT's Killian Court: 0.114 -> 0.041 m)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fleetlink.agent.mapping.closure import CloserConfig, Closure, LoopCloser, NodeScan, compose, relative
+from fleetlink.agent.mapping.grid import GridConfig
+
+Pose = tuple[float, float, float]
+
+EMPTY = NodeScan(
+    np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
+)
+# The final pass's matches off: these graphs have no scans, only the online closures to weigh.
+NO_MATCHES = {"final_per_node": 0, "final_any_heading": 0, "final_pair_per_node": 0}
+
+
+def _laps() -> list[Pose]:
+    """Twice round a 12 x 6 m rectangle, a node every 0.3 m."""
+    corners = [(0.0, 0.0), (12.0, 0.0), (12.0, 6.0), (0.0, 6.0)]
+    out: list[Pose] = []
+    for _ in range(2):
+        for i in range(4):
+            (x0, y0), (x1, y1) = corners[i], corners[(i + 1) % 4]
+            th = math.atan2(y1 - y0, x1 - x0)
+            n = round(math.hypot(x1 - x0, y1 - y0) / 0.3)
+            out += [(x0 + (x1 - x0) * k / n, y0 + (y1 - y0) * k / n, th) for k in range(n)]
+    return out
+
+
+TRUTH = _laps()
+LAP = len(TRUTH) // 2
+
+
+def _closer(config: CloserConfig, drift_deg: float = 0.1) -> LoopCloser:
+    """The laps as a front end would chain them: every step turned ``drift_deg`` too far."""
+    rng = np.random.default_rng(3)
+    closer = LoopCloser(config, GridConfig())
+    est = TRUTH[0]
+    for k, p in enumerate(TRUTH):
+        if k:
+            z = relative(TRUTH[k - 1], p)
+            est = compose(est, (z[0], z[1], z[2] + math.radians(drift_deg) + rng.normal(0.0, 0.002)))
+        closer.add_node(float(k), est, EMPTY, information=np.diag([1e5, 1e5, 1e3]))
+    return closer
+
+
+def _closures(nodes: range, along: float = 0.0) -> list[Closure]:
+    """Second-lap nodes matched onto the first lap's submaps, ``along`` metres further on than they are."""
+    out = []
+    for k in nodes:
+        a = k - LAP - (k - LAP) % 10  # the first node of the submap the node passes again
+        z = relative(TRUTH[a], TRUTH[k])
+        out.append(Closure(k, a, (z[0] + along, z[1], z[2]), 0.9, 0.9))
+    return out
+
+
+def _worst_revisit(closer: LoopCloser, nodes: range) -> float:
+    """The worst error (m) of the second lap's ``nodes`` seen from where the first lap passed."""
+    return max(
+        math.dist(relative(closer.poses[k - LAP], closer.poses[k])[:2], relative(TRUTH[k - LAP], TRUTH[k])[:2])
+        for k in nodes
+    )
+
+
+SPAN = range(LAP + 30, LAP + 67)  # the look-alike's nodes, the chain after them, the true closures'
+
+
+def _look_alike_then_true(config: CloserConfig) -> LoopCloser:
+    closer = _closer(config)
+    closer.add_closures(_closures(range(LAP + 30, LAP + 33), along=3.0))  # three nodes, 3 m along
+    closer.add_closures(_closures(range(LAP + 55, LAP + 67)))  # twelve, right, 22 nodes on
+    return closer
+
+
+def test_a_look_alike_group_the_true_closures_after_it_disagree_with_goes_before_the_final_pass() -> None:
+    closer = _look_alike_then_true(CloserConfig(**NO_MATCHES))
+    # Both groups were large corrections and the online solve kept them all: the chain between bent.
+    assert len(closer.closures) == 15 and closer.stats.dropped_by_solve == 0
+    assert _worst_revisit(closer, SPAN) > 2.5
+    closer.finish()
+    assert closer.stats.conflicts_dropped == 3
+    assert sorted(c.node for c in closer.closures) == list(range(LAP + 55, LAP + 67))
+    assert _worst_revisit(closer, SPAN) < 0.2
+    # The bookkeeping holds: each closure kept is still its own edge.
+    for c, e in zip(closer.closures, closer._closure_edges, strict=True):
+        edge = closer.graph.edges[e]
+        assert (edge.i, edge.j, edge.z) == (c.anchor, c.node, c.z)
+
+
+def test_without_the_check_the_look_alike_holds_its_nodes_off() -> None:
+    closer = _look_alike_then_true(CloserConfig(conflict_drops=0, **NO_MATCHES))
+    closer.finish()
+    assert closer.stats.conflicts_dropped == 0 and len(closer.closures) == 15
+    assert _worst_revisit(closer, SPAN) > 2.5
+
+
+def test_true_large_corrections_after_a_long_drift_are_kept() -> None:
+    """A return after a whole lap drifting a degree every metre: a correction of metres the rest
+    bears out (nothing else holds the chain), and twelve closures of it, not a conflict."""
+    closer = _closer(CloserConfig(**NO_MATCHES), drift_deg=0.3)
+    closer.add_closures(_closures(range(LAP + 30, LAP + 33)))
+    closer.add_closures(_closures(range(LAP + 55, LAP + 67)))
+    jumps = closer._large
+    assert len(jumps) >= 3  # large corrections, so weighed again
+    closer.finish()
+    assert closer.stats.conflicts_dropped == 0 and len(closer.closures) == 15
+    assert _worst_revisit(closer, SPAN) < 0.2
+
+
+def test_the_same_graph_weighs_the_same_way() -> None:
+    a, b = (_look_alike_then_true(CloserConfig(**NO_MATCHES)) for _ in range(2))
+    a.finish()
+    b.finish()
+    assert a.poses == b.poses and a.closures == b.closures
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["conflict_chi2", "conflict_chi2_per_closure", "conflict_gap_nodes", "conflict_anchor_nodes", "conflict_drops"],
+)
+def test_a_conflict_setting_out_of_range_is_refused_with_its_name(name: str) -> None:
+    with pytest.raises(ValueError, match=name):
+        CloserConfig(**{name: -1})
+    with pytest.raises(ValueError, match=name):
+        CloserConfig(**{name: math.nan})
