@@ -491,6 +491,7 @@ def real_log(path: Path, seed: int) -> dict[str, object]:
             "odometry_sd_m": closer.stats.odometry_sd_xy if closer else 0.0,
             "kept": len(closer.closures) if closer else 0,  # closures and final edges the solves kept
             "dropped_by_solve": closer.stats.dropped_by_solve if closer else 0,
+            "conflicts_dropped": closer.stats.conflicts_dropped if closer else 0,  # before the final pass
             # large corrections refused: their walls matched from the far side (``min_facing_share``)
             "rejected_behind": closer.stats.rejected_behind if closer else 0,
             # final-pass matches and scan pairs refused for the same (``final_min_facing_share``)
@@ -890,6 +891,8 @@ def freiburg_log(log: Path, relations: Path, open_space: bool = False, long_loop
         "scans_per_cpu_s": len(recs) / cpu,
         "scans_per_cpu_s_without_closure": len(recs) / cpu_open,
         "far_loop_checks": res.mapper.closer.stats.far_loop_checks if res.mapper.closer else 0,
+        # online closures let go before the final pass: the rest of the graph did not bear them out
+        "conflicts_dropped": res.mapper.closer.stats.conflicts_dropped if res.mapper.closer else 0,
         "mapper": relation_error(times, final, rels),
         "mapper_online": relation_error(times, [p for _, p in res.online], rels),
         "no_closure": relation_error(times, [p for _, p in open_loop.rows], rels),
@@ -1162,6 +1165,7 @@ def corrected_log(path: Path, open_space: bool = False, long_loops: bool = False
         "by_index": by_index,
         "scans_per_cpu_s": len(recs) / cpu,
         "far_loop_checks": res.mapper.closer.stats.far_loop_checks if res.mapper.closer else 0,
+        "conflicts_dropped": res.mapper.closer.stats.conflicts_dropped if res.mapper.closer else 0,
     }
     for name, est in (
         ("corrected_log", [r.pose for r in recs]),

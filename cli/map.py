@@ -320,6 +320,12 @@ def run_replay(args: argparse.Namespace) -> int:
             f" ({len(m.closer.closures)} edges kept"
             + (f"; {st.final_behind} refused, walls seen from behind" if st.final_behind else "")
             + ")"
+            + (
+                f"; {st.conflicts_dropped} online closures let go before it, the rest of the graph did not bear"
+                " them out"
+                if st.conflicts_dropped
+                else ""
+            )
         )
         if st.odometry_edges:  # what the log's odometry was found worth, and so weighed at
             closed += f", the odometry's {st.odometry_edges} steps held at {100 * st.odometry_sd_xy:.1f} cm"
