@@ -336,12 +336,15 @@ class CloserConfig:
     # doorways and was confirmed by node 849 (three closures, 69 of the graph's chi2 of 201 theirs
     # alone, 23 a closure); the fifteen true ones at 1 315-1 390 s 53 (3.5 a closure). Let go, the
     # final pass finds the true place: 0.114 -> 0.041 m. The other published logs' largest groups
-    # weigh 2.4 (aces), 3.4 (intel), 0.6 (fr079) and 28 (mit-csail, 9 a closure): none goes.
+    # weigh 2.4 (aces), 3.4 (intel), 0.6 (fr079) and 28 (mit-csail, 9 a closure): none goes. One group
+    # at most: letting a group go bets that the final pass finds the true place, and each more is a
+    # bet on a graph the last one changed (Killian with ``long_loops``: 0.147 m as it was, 0.130 m
+    # with one group let go, 0.179 m with three, the last two partly right).
     conflict_chi2: float = 20.0
     conflict_chi2_per_closure: float = 15.0
     conflict_gap_nodes: int = 20
     conflict_anchor_nodes: int = 30
-    conflict_drops: int = 3
+    conflict_drops: int = 1
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
     # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
