@@ -332,8 +332,8 @@ class CloserConfig:
     # ``conflict_drops`` groups (0: off). A look-alike taken where the front end had drifted far
     # holds its few nodes in the wrong place; the true closures that come later are many, and the
     # graph bends the front end's chain between the two: each step a little, none past ``max_chi2``.
-    # MIT's Killian Court: node 847, mid-turn, matched a submap 7.1 m along a corridor of repeated
-    # doorways and was confirmed by node 849 (three closures, 69 of the graph's chi2 of 201 theirs
+    # MIT's Killian Court: node 847, mid-turn, matched a submap 7.1 m along a corridor that repeats
+    # itself and was confirmed by node 849 (three closures, 69 of the graph's chi2 of 201 theirs
     # alone, 23 a closure); the fifteen true ones at 1 315-1 390 s 53 (3.5 a closure). Let go, the
     # final pass finds the true place: 0.114 -> 0.041 m. The other published logs' largest groups
     # weigh 2.4 (aces), 3.4 (intel), 0.6 (fr079) and 28 (mit-csail, 9 a closure): none goes. One group
@@ -1228,9 +1228,11 @@ class LoopCloser:
         constraints, after Cartographer's global SLAM: a node's pose becomes the average of many
         scan-to-submap matches instead of the front end's chain of steps, and places where no loop
         closure was verified online are tied to what was mapped there before. The online closures are
-        let go once the pass has found anything (``final_replaces_online``). The log's odometry joins
-        the graph as edges on each step's translation (``final_odometry_margin``). Called once, at the
-        end: returns the edges kept."""
+        let go once the pass has found anything (``final_replaces_online``), and before it the group of
+        them the rest of the graph bears out least, if it is over the gates, is let go
+        (``conflict_chi2``: a look-alike's bend would keep the pass's windows off the true place).
+        The log's odometry joins the graph as edges on each step's translation
+        (``final_odometry_margin``). Called once, at the end: returns the edges kept."""
         cfg = self.config
         n = len(self.graph.poses)
         if n == 0:
