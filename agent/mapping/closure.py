@@ -1343,16 +1343,19 @@ class LoopCloser:
                     worst, worst_share = group, share
             if worst is None:
                 return
-            edges = sorted(self._closure_edges[k] for k in worst)
-            self.graph.remove_edges(edges)
-            gone = set(worst)
-            kept = [k for k in range(len(self.closures)) if k not in gone]
-            self.closures = [self.closures[k] for k in kept]
-            self._closure_edges = [
-                self._closure_edges[k] - bisect.bisect_left(edges, self._closure_edges[k]) for k in kept
-            ]
+            self._remove_closures(worst)
             self.stats.conflicts_dropped += len(worst)
             self._solve()
+
+    def _remove_closures(self, indices: Collection[int]) -> None:
+        """Take the closures ``indices`` (into ``closures``) and their edges out of the graph; the
+        other closures keep their edges (renumbered)."""
+        edges = sorted(self._closure_edges[k] for k in indices)
+        self.graph.remove_edges(edges)
+        gone = set(indices)
+        kept = [k for k in range(len(self.closures)) if k not in gone]
+        self.closures = [self.closures[k] for k in kept]
+        self._closure_edges = [self._closure_edges[k] - bisect.bisect_left(edges, self._closure_edges[k]) for k in kept]
 
     def _closure_groups(self) -> list[list[int]]:
         """The closures (indices into ``closures``) in groups: by node, each joins the group of the one
@@ -1588,9 +1591,7 @@ class LoopCloser:
             if chi[edge] <= cfg.max_chi2:
                 return
             self.stats.dropped_by_solve += 1
-            self.graph.remove_edges([edge])
-            del self.closures[worst], self._closure_edges[worst]
-            self._closure_edges = [e - 1 if e > edge else e for e in self._closure_edges]
+            self._remove_closures([worst])
             loosened = {e - 1 if e > edge else e for e in loosened}
 
 
