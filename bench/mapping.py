@@ -491,7 +491,9 @@ def real_log(path: Path, seed: int) -> dict[str, object]:
             "odometry_sd_m": closer.stats.odometry_sd_xy if closer else 0.0,
             "kept": len(closer.closures) if closer else 0,  # closures and final edges the solves kept
             "dropped_by_solve": closer.stats.dropped_by_solve if closer else 0,
-            "conflicts_dropped": closer.stats.conflicts_dropped if closer else 0,  # before the final pass
+            # online closures let go, the rest of the graph not bearing them out: as it mapped, or before the final pass
+            "conflicts_dropped": closer.stats.conflicts_dropped if closer else 0,
+            "conflicts_online": closer.stats.conflicts_online if closer else 0,  # ... of them, as it mapped
             # large corrections refused: their walls matched from the far side (``min_facing_share``)
             "rejected_behind": closer.stats.rejected_behind if closer else 0,
             # final-pass matches and scan pairs refused for the same (``final_min_facing_share``)
@@ -891,8 +893,9 @@ def freiburg_log(log: Path, relations: Path, open_space: bool = False, long_loop
         "scans_per_cpu_s": len(recs) / cpu,
         "scans_per_cpu_s_without_closure": len(recs) / cpu_open,
         "far_loop_checks": res.mapper.closer.stats.far_loop_checks if res.mapper.closer else 0,
-        # online closures let go before the final pass: the rest of the graph did not bear them out
+        # online closures let go, the rest of the graph not bearing them out (as it mapped, or before the final pass)
         "conflicts_dropped": res.mapper.closer.stats.conflicts_dropped if res.mapper.closer else 0,
+        "conflicts_online": res.mapper.closer.stats.conflicts_online if res.mapper.closer else 0,
         "mapper": relation_error(times, final, rels),
         "mapper_online": relation_error(times, [p for _, p in res.online], rels),
         "no_closure": relation_error(times, [p for _, p in open_loop.rows], rels),
@@ -1166,6 +1169,7 @@ def corrected_log(path: Path, open_space: bool = False, long_loops: bool = False
         "scans_per_cpu_s": len(recs) / cpu,
         "far_loop_checks": res.mapper.closer.stats.far_loop_checks if res.mapper.closer else 0,
         "conflicts_dropped": res.mapper.closer.stats.conflicts_dropped if res.mapper.closer else 0,
+        "conflicts_online": res.mapper.closer.stats.conflicts_online if res.mapper.closer else 0,
     }
     for name, est in (
         ("corrected_log", [r.pose for r in recs]),

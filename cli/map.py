@@ -321,8 +321,9 @@ def run_replay(args: argparse.Namespace) -> int:
             + (f"; {st.final_behind} refused, walls seen from behind" if st.final_behind else "")
             + ")"
             + (
-                f"; {st.conflicts_dropped} online closures let go before it, the rest of the graph did not bear"
-                " them out"
+                f"; {st.conflicts_dropped} online closures let go, the rest of the graph did not bear them out"
+                f" ({st.conflicts_online} as it mapped, {st.conflicts_dropped - st.conflicts_online} before the"
+                " final pass)"
                 if st.conflicts_dropped
                 else ""
             )

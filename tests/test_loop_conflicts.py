@@ -1,10 +1,13 @@
-"""Online closures weighed against each other before the final pass (``CloserConfig.conflict_chi2``).
+"""Online closures weighed against each other (``CloserConfig.conflict_chi2``), before the final pass
+and online (``conflict_pair_chi2``).
 
 A look-alike taken where the front end had drifted far holds a few nodes in the wrong place; the
 true closures that come later are many, and the graph bends the front end's chain between the two, a
 little each step, none past the solve's gate. Before the final pass, each group of closures holding a
 large correction is taken out of a copy of the graph and the chi2 that lowers counted: the group
-the rest does not bear out goes (MIT's Killian Court: 0.114 -> 0.041 m)."""
+the rest does not bear out goes (MIT's Killian Court: 0.114 -> 0.041 m). Online, where no final pass
+runs (a robot), the complete groups are weighed in pairs: two in conflict lower the chi2 by less
+together than the two alone, summed, and the one worse per closure goes."""
 
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ EMPTY = NodeScan(
 )
 # The final pass's matches off: these graphs have no scans, only the online closures to weigh.
 NO_MATCHES = {"final_per_node": 0, "final_any_heading": 0, "final_pair_per_node": 0}
+FINAL_ONLY = {"conflict_pair_chi2": 0.0, **NO_MATCHES}  # the online weighing off
 
 
 def _laps() -> list[Pose]:
@@ -42,17 +46,23 @@ TRUTH = _laps()
 LAP = len(TRUTH) // 2
 
 
-def _closer(config: CloserConfig, drift_deg: float = 0.1) -> LoopCloser:
-    """The laps as a front end would chain them: every step turned ``drift_deg`` too far."""
-    rng = np.random.default_rng(3)
+def _closer(config: CloserConfig, drift_deg: float = 0.1, nodes: int = len(TRUTH)) -> LoopCloser:
+    """The laps as a front end would chain them (the first ``nodes``): every step turned ``drift_deg``
+    too far."""
     closer = LoopCloser(config, GridConfig())
-    est = TRUTH[0]
-    for k, p in enumerate(TRUTH):
-        if k:
-            z = relative(TRUTH[k - 1], p)
-            est = compose(est, (z[0], z[1], z[2] + math.radians(drift_deg) + rng.normal(0.0, 0.002)))
-        closer.add_node(float(k), est, EMPTY, information=np.diag([1e5, 1e5, 1e3]))
+    _extend(closer, nodes, drift_deg)
     return closer
+
+
+def _extend(closer: LoopCloser, nodes: int, drift_deg: float = 0.1) -> None:
+    """Chain the laps on up to ``nodes`` (the same steps, to the bit, whether made at once or not)."""
+    noise = np.random.default_rng(3).normal(0.0, 0.002, len(TRUTH) - 1)
+    for k in range(len(closer), nodes):
+        est = TRUTH[0]
+        if k:  # from where the graph has the node before now, as a front end goes on after a solve
+            z = relative(TRUTH[k - 1], TRUTH[k])
+            est = compose(closer.poses[k - 1], (z[0], z[1], z[2] + math.radians(drift_deg) + noise[k - 1]))
+        closer.add_node(float(k), est, EMPTY, information=np.diag([1e5, 1e5, 1e3]))
 
 
 def _closures(nodes: range, along: float = 0.0) -> list[Closure]:
@@ -84,7 +94,7 @@ def _look_alike_then_true(config: CloserConfig) -> LoopCloser:
 
 
 def test_a_look_alike_group_the_true_closures_after_it_disagree_with_goes_before_the_final_pass() -> None:
-    closer = _look_alike_then_true(CloserConfig(**NO_MATCHES))
+    closer = _look_alike_then_true(CloserConfig(**FINAL_ONLY))
     # Both groups were large corrections and the online solve kept them all: the chain between bent.
     assert len(closer.closures) == 15 and closer.stats.dropped_by_solve == 0
     assert _worst_revisit(closer, SPAN) > 2.5
@@ -99,7 +109,7 @@ def test_a_look_alike_group_the_true_closures_after_it_disagree_with_goes_before
 
 
 def test_without_the_check_the_look_alike_holds_its_nodes_off() -> None:
-    closer = _look_alike_then_true(CloserConfig(conflict_drops=0, **NO_MATCHES))
+    closer = _look_alike_then_true(CloserConfig(conflict_drops=0, **FINAL_ONLY))
     closer.finish()
     assert closer.stats.conflicts_dropped == 0 and len(closer.closures) == 15
     assert _worst_revisit(closer, SPAN) > 2.5
@@ -112,21 +122,83 @@ def test_true_large_corrections_after_a_long_drift_are_kept() -> None:
     closer.add_closures(_closures(range(LAP + 30, LAP + 33)))
     closer.add_closures(_closures(range(LAP + 55, LAP + 67)))
     assert len(closer._large) >= 3  # large corrections, so weighed again
+    assert closer.stats.conflicts_online == 0 and len(closer.closures) == 15  # weighed online: one return
     closer.finish()
     assert closer.stats.conflicts_dropped == 0 and len(closer.closures) == 15
     assert _worst_revisit(closer, SPAN) < 0.2
 
 
+def test_online_the_look_alike_goes_once_the_true_closures_after_it_are_complete() -> None:
+    """No final pass: the robot's own map. While the true group still grows (its last closure within
+    ``conflict_gap_nodes`` of the newest node) nothing is weighed; once it is complete, the two are
+    weighed as a pair and the look-alike goes."""
+    closer = _closer(CloserConfig(**NO_MATCHES), nodes=LAP + 70)
+    closer.add_closures(_closures(range(LAP + 30, LAP + 33), along=3.0))
+    closer.add_closures(_closures(range(LAP + 55, LAP + 67)))
+    assert closer.stats.conflicts_online == 0 and len(closer.closures) == 15
+    _extend(closer, LAP + 90)
+    closer.add_closures(_closures(range(LAP + 88, LAP + 90)))  # more closures, so a solve: weighed now
+    assert closer.stats.conflicts_online == 3 and closer.stats.conflicts_dropped == 3
+    assert sorted(c.node for c in closer.closures) == [*range(LAP + 55, LAP + 67), LAP + 88, LAP + 89]
+    assert _worst_revisit(closer, SPAN) < 0.2
+    for c, e in zip(closer.closures, closer._closure_edges, strict=True):
+        edge = closer.graph.edges[e]
+        assert (edge.i, edge.j, edge.z) == (c.anchor, c.node, c.z)
+
+
+def test_online_the_look_alike_goes_with_all_the_nodes_there() -> None:
+    closer = _look_alike_then_true(CloserConfig(**NO_MATCHES))
+    assert closer.stats.conflicts_online == 3 and len(closer.closures) == 12
+    assert _worst_revisit(closer, SPAN) < 0.2
+    closer.finish()  # nothing more to let go
+    assert closer.stats.conflicts_dropped == 3 and len(closer.closures) == 12
+
+
+def test_online_a_heavy_group_alone_is_not_a_conflict() -> None:
+    """A return after a long drift weighs much when it arrives, with nothing it conflicts with: kept."""
+    closer = _closer(CloserConfig(**NO_MATCHES), drift_deg=0.3)
+    closer.add_closures(_closures(range(LAP + 30, LAP + 40)))
+    assert len(closer._large) >= 1
+    heaviest = closer._chi2_without() - closer._chi2_without(range(len(closer.closures)))
+    assert heaviest > closer.config.conflict_chi2  # heavy, and alone
+    closer.add_closures(_closures(range(LAP + 80, LAP + 82)))  # a later solve weighs it again
+    assert closer.stats.conflicts_online == 0 and len(closer.closures) == 12
+
+
+def test_online_two_true_groups_are_no_conflict_however_heavy() -> None:
+    """Two true returns on one loop hold each other up: taking both out lowers the chi2 by more than
+    the two alone, summed, not less. With the gates lowered so that both count as heavy and either
+    could go on its weight per closure, the pair alone keeps them."""
+    config = CloserConfig(conflict_chi2=1.0, conflict_chi2_per_closure=0.5, **NO_MATCHES)
+    closer = _closer(config, drift_deg=0.3)
+    closer.add_closures(_closures(range(LAP + 30, LAP + 33)))
+    closer.add_closures(_closures(range(LAP + 55, LAP + 67)))
+    base = closer._chi2_without()
+    a, b = base - closer._chi2_without(range(3)), base - closer._chi2_without(range(3, 15))
+    assert min(a / 3, b / 12) > 0.5  # each over the gates on its own
+    assert a + b < base - closer._chi2_without(range(15))  # together: more, not less
+    assert closer.stats.conflicts_online == 0 and len(closer.closures) == 15
+
+
 def test_the_same_graph_weighs_the_same_way() -> None:
-    a, b = (_look_alike_then_true(CloserConfig(**NO_MATCHES)) for _ in range(2))
+    a, b = (_look_alike_then_true(CloserConfig(**FINAL_ONLY)) for _ in range(2))
     a.finish()
     b.finish()
     assert a.poses == b.poses and a.closures == b.closures
+    c, d = (_look_alike_then_true(CloserConfig(**NO_MATCHES)) for _ in range(2))
+    assert c.poses == d.poses and c.closures == d.closures
 
 
 @pytest.mark.parametrize(
     "name",
-    ["conflict_chi2", "conflict_chi2_per_closure", "conflict_gap_nodes", "conflict_anchor_nodes", "conflict_drops"],
+    [
+        "conflict_chi2",
+        "conflict_chi2_per_closure",
+        "conflict_gap_nodes",
+        "conflict_anchor_nodes",
+        "conflict_drops",
+        "conflict_pair_chi2",
+    ],
 )
 def test_a_conflict_setting_out_of_range_is_refused_with_its_name(name: str) -> None:
     with pytest.raises(ValueError, match=name):
