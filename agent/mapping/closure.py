@@ -349,15 +349,18 @@ class CloserConfig:
     conflict_gap_nodes: int = 20
     conflict_anchor_nodes: int = 30
     conflict_drops: int = 1
-    # The same weighing online, where no final pass runs (a robot): whenever the set of such groups that
-    # are complete (no closure within ``conflict_gap_nodes`` after the group's last) has changed at a
-    # solve, each heavy pair of them (each over ``conflict_chi2``) is taken out of a copy together too.
-    # Two groups in conflict bend the same chain: taking out either relieves it, so both together lower
-    # the chi2 by less than the two alone, summed; by more than ``conflict_pair_chi2`` (0: off), the one
-    # of the two worse per closure goes, if over ``conflict_chi2_per_closure``. A pair is needed: a true
-    # return after a long drift is as heavy when it arrives, with nothing to conflict with (mit-csail's at
-    # 404 s: 84 for its three closures, 28 a closure). MIT's Killian Court: the look-alike and the true
-    # closures 100 s later, 68 and 53 alone, 50 less together; its independent pairs 0.4 or less.
+    # The same weighing online, where no final pass runs (a robot). A group is complete once the newest
+    # node is ``conflict_gap_nodes`` past its last closure and no large correction waiting for its
+    # confirmation lies that near it (none can join it then). Whenever the complete groups holding a
+    # large correction are not those weighed last, at a solve while mapping, each is taken out of a copy
+    # of the graph, and each pair of heavy ones (each over ``conflict_chi2``) together too. Two groups in
+    # conflict bend the same chain: taking out either relieves it, so both together lower the chi2 by
+    # less than the two alone, summed. Of the groups in a pair short by more than ``conflict_pair_chi2``
+    # (0: off), the one worst per closure goes, if over ``conflict_chi2_per_closure``: one a weighing.
+    # A pair is needed: a true return after a long drift is as heavy when it arrives, with nothing to
+    # conflict with (mit-csail's at 404 s: 84 for its three closures, 28 a closure). MIT's Killian
+    # Court: the look-alike and the true closures 100 s later, 68 and 53 alone, 50 less together; its
+    # other pairs of heavy groups within 0.4 of their sum.
     conflict_pair_chi2: float = 20.0
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
@@ -943,7 +946,7 @@ class LoopCloser:
         wait = len(self.graph.poses) / cfg.solve_nodes_per_s if paced and cfg.solve_nodes_per_s > 0 else 0.0
         if self.times[k] - self._solved_t < wait:
             return False
-        self._solve_online()
+        self._solve_online(wait)
         return True
 
     def _closure_info(self) -> F64:
@@ -1357,41 +1360,54 @@ class LoopCloser:
             self.stats.conflicts_dropped += len(worst)
             self._solve()
 
-    def _solve_online(self) -> None:
+    def _solve_online(self, wait: float = 0.0) -> None:
         """A solve while mapping (``close``, ``take``, ``add_closures``): ``_solve``, then the groups of
-        large corrections weighed against each other (``_weigh_conflicts``)."""
+        large corrections weighed against each other (``_weigh_conflicts``). ``wait``: the pace's time
+        between solves (``solve_nodes_per_s``); the weighing's solves count against it, so the next
+        solve waits for them too and the share of a core stays what the pace allows."""
         self._solve()
-        self._weigh_conflicts()
+        self._solved_t += wait * self._weigh_conflicts()
 
-    def _weigh_conflicts(self) -> None:
-        """Online: the complete groups of large corrections weighed in pairs (``conflict_pair_chi2``),
-        when they are not those weighed last; of a pair in conflict, the group worse per closure let
-        go (over ``conflict_chi2_per_closure``) and the graph solved again."""
+    def _weigh_conflicts(self) -> int:
+        """Online: the complete groups of large corrections weighed, and in pairs (``conflict_pair_chi2``),
+        when they are not those weighed last; of the groups in a pair in conflict, the one worst per
+        closure let go (over ``conflict_chi2_per_closure``) and the graph solved again. Returns the
+        solves it made (each of a copy of the whole graph)."""
         cfg = self.config
         if cfg.conflict_pair_chi2 <= 0 or not self._large:
-            return
+            return 0
         k = len(self.graph.poses) - 1
-        done = [g for g in self._suspects() if max(self.closures[i].node for i in g) <= k - cfg.conflict_gap_nodes]
+        gap = cfg.conflict_gap_nodes
+        done = []
+        for g in self._suspects():
+            first = min(self.closures[i].node for i in g)
+            last = max(self.closures[i].node for i in g)
+            # Complete: no closure can join it any more, a confirmed one waiting included.
+            if last <= k - gap and not any(first - gap <= p.node <= last + gap for p in self._pending):
+                done.append(g)
         key = frozenset(frozenset(self.closures[i] for i in g) for g in done)
         if len(done) < 2 or key == self._weighed:
-            return
+            return 0
         self._weighed = key
         base = self._chi2_without()
         gains = [base - self._chi2_without(g) for g in done]
         heavy = [i for i, gain in enumerate(gains) if gain > cfg.conflict_chi2]
+        solves = 1 + len(done)
         worst, worst_share = -1, cfg.conflict_chi2_per_closure
         for a, b in itertools.combinations(heavy, 2):
+            solves += 1
             if gains[a] + gains[b] - (base - self._chi2_without(done[a] + done[b])) <= cfg.conflict_pair_chi2:
                 continue  # apart, each bends its own part of the chain
             for i in (a, b):
                 if gains[i] / len(done[i]) > worst_share:
                     worst, worst_share = i, gains[i] / len(done[i])
         if worst < 0:
-            return
+            return solves
         self._remove_closures(done[worst])
         self.stats.conflicts_dropped += len(done[worst])
         self.stats.conflicts_online += len(done[worst])
         self._solve()
+        return solves + 1
 
     def _suspects(self) -> list[list[int]]:
         """The groups of closures (``_closure_groups``) holding a large correction."""
