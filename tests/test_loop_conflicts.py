@@ -198,6 +198,20 @@ def test_online_the_weighing_counts_against_the_pace_of_solves() -> None:
     assert closer._solved_t == closer.times[-1] + 2.0 * 5
 
 
+def test_online_only_the_newest_complete_groups_are_weighed() -> None:
+    """A weighing's cost grows with the groups it weighs: only the newest ``conflict_online_groups``.
+    The true group and a later one complete at once: with two, the look-alike is left out."""
+    stats = []
+    for newest in (2, 3):
+        closer = _closer(CloserConfig(conflict_online_groups=newest, **NO_MATCHES), nodes=LAP + 110)
+        closer.add_closures(_closures(range(LAP + 30, LAP + 33), along=3.0))
+        # Two true groups found at once, both large corrections of the drifted chain, both complete.
+        closer._add(_closures(range(LAP + 55, LAP + 60)) + _closures(range(LAP + 80, LAP + 85)))
+        closer._solve_online()
+        stats.append((closer.stats.conflicts_online, len(closer.closures), len(closer._suspects())))
+    assert stats == [(0, 13, 3), (3, 10, 2)]  # (let go, closures kept, groups of large corrections)
+
+
 def test_the_same_graph_weighs_the_same_way() -> None:
     a, b = (_look_alike_then_true(CloserConfig(**FINAL_ONLY)) for _ in range(2))
     a.finish()

@@ -360,8 +360,12 @@ class CloserConfig:
     # A pair is needed: a true return after a long drift is as heavy when it arrives, with nothing to
     # conflict with (mit-csail's at 404 s: 84 for its three closures, 28 a closure). MIT's Killian
     # Court: the look-alike and the true closures 100 s later, 68 and 53 alone, 50 less together; its
-    # other pairs of heavy groups within 0.4 of their sum.
+    # other pairs of heavy groups within 0.4 of their sum. Only the newest ``conflict_online_groups``
+    # complete groups are weighed: a weighing solves the whole graph once, once per group and once per
+    # heavy pair, in the mapping thread (Killian's look-alike went with three complete groups, and it
+    # never had more than twelve).
     conflict_pair_chi2: float = 20.0
+    conflict_online_groups: int = 10
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
     check_period: float = 0.0  # s: a node's fresh search at least this long after the last one's (0: every node)
     # ``take`` (a search run elsewhere, on a robot) solves at most once per len(graph) / this seconds:
@@ -447,6 +451,8 @@ class CloserConfig:
             raise ValueError(
                 "need final_pair_gap_nodes >= 1 (not a node against itself) and 0 <= final_pair_inliers <= 1"
             )
+        if not self.conflict_online_groups >= 2:  # a pair at least
+            raise ValueError(f"conflict_online_groups must be >= 2, got {self.conflict_online_groups!r}")
         if self.max_search_xy < self.search_xy or self.max_search_theta < self.search_theta:
             raise ValueError("the search caps must be at least the base windows")
         for name in ("min_facing_share", "final_min_facing_share"):
@@ -1385,6 +1391,7 @@ class LoopCloser:
             # Complete: no closure can join it any more, a confirmed one waiting included.
             if last <= k - gap and not any(first - gap <= p.node <= last + gap for p in self._pending):
                 done.append(g)
+        done = done[-cfg.conflict_online_groups :]
         key = frozenset(frozenset(self.closures[i] for i in g) for g in done)
         if len(done) < 2 or key == self._weighed:
             return 0
