@@ -362,8 +362,8 @@ class CloserConfig:
     # Court: the look-alike and the true closures 100 s later, 68 and 53 alone, 50 less together; its
     # other pairs of heavy groups within 0.4 of their sum. Only the newest ``conflict_online_groups``
     # complete groups are weighed: a weighing solves the whole graph once, once per group and once per
-    # heavy pair, in the mapping thread (Killian's look-alike went with three complete groups, and it
-    # never had more than twelve).
+    # heavy pair, in the mapping thread (Killian's look-alike went when three groups were complete, and
+    # the log never had more than twelve).
     conflict_pair_chi2: float = 20.0
     conflict_online_groups: int = 10
     cached_submaps: int = 16  # drawn submaps kept (least recently used dropped; drawn again if needed)
