@@ -1362,9 +1362,7 @@ class LoopCloser:
                     worst, worst_share = group, share
             if worst is None:
                 return
-            self._remove_closures(worst)
-            self.stats.conflicts_dropped += len(worst)
-            self._solve()
+            self._let_go(worst)
 
     def _solve_online(self, wait: float = 0.0) -> None:
         """A solve while mapping (``close``, ``take``, ``add_closures``): ``_solve``, then the groups of
@@ -1384,37 +1382,42 @@ class LoopCloser:
             return 0
         k = len(self.graph.poses) - 1
         gap = cfg.conflict_gap_nodes
-        done = []
+        complete = []
         for g in self._suspects():
             first = min(self.closures[i].node for i in g)
             last = max(self.closures[i].node for i in g)
-            # Complete: no closure can join it any more, a confirmed one waiting included.
+            # No closure can join it any more, a large correction waiting for its confirmation included.
             if last <= k - gap and not any(first - gap <= p.node <= last + gap for p in self._pending):
-                done.append(g)
-        done = done[-cfg.conflict_online_groups :]
-        key = frozenset(frozenset(self.closures[i] for i in g) for g in done)
-        if len(done) < 2 or key == self._weighed:
+                complete.append(g)
+        complete = complete[-cfg.conflict_online_groups :]
+        key = frozenset(frozenset(self.closures[i] for i in g) for g in complete)
+        if len(complete) < 2 or key == self._weighed:
             return 0
         self._weighed = key
         base = self._chi2_without()
-        gains = [base - self._chi2_without(g) for g in done]
+        gains = [base - self._chi2_without(g) for g in complete]
         heavy = [i for i, gain in enumerate(gains) if gain > cfg.conflict_chi2]
-        solves = 1 + len(done)
+        solves = 1 + len(complete)
         worst, worst_share = -1, cfg.conflict_chi2_per_closure
         for a, b in itertools.combinations(heavy, 2):
             solves += 1
-            if gains[a] + gains[b] - (base - self._chi2_without(done[a] + done[b])) <= cfg.conflict_pair_chi2:
+            if gains[a] + gains[b] - (base - self._chi2_without(complete[a] + complete[b])) <= cfg.conflict_pair_chi2:
                 continue  # apart, each bends its own part of the chain
             for i in (a, b):
-                if gains[i] / len(done[i]) > worst_share:
-                    worst, worst_share = i, gains[i] / len(done[i])
+                if gains[i] / len(complete[i]) > worst_share:
+                    worst, worst_share = i, gains[i] / len(complete[i])
         if worst < 0:
             return solves
-        self._remove_closures(done[worst])
-        self.stats.conflicts_dropped += len(done[worst])
-        self.stats.conflicts_online += len(done[worst])
-        self._solve()
+        self._let_go(complete[worst], online=True)
         return solves + 1
+
+    def _let_go(self, group: Collection[int], online: bool = False) -> None:
+        """A group of closures the rest of the graph does not bear out taken out, counted (``online``:
+        while mapping), and the graph solved without it."""
+        self._remove_closures(group)
+        self.stats.conflicts_dropped += len(group)
+        self.stats.conflicts_online += len(group) if online else 0
+        self._solve()
 
     def _suspects(self) -> list[list[int]]:
         """The groups of closures (``_closure_groups``) holding a large correction."""
