@@ -53,7 +53,7 @@ __all__ = [
 ]
 
 ROBOT_RADIUS = BODY_RADIUS_M  # m: the body every start must clear
-BUILTIN_PLANS = ("apartment", "office", "hall", "expo")  # the hand-drawn plans; builtin_plans() adds example maps
+BUILTIN_PLANS = ("apartment", "office", "hall", "expo", "ward")  # the drawn plans; builtin_plans() adds example maps
 PLANS_DIR = Path(__file__).with_name("floorplans")  # not "plans/": see docs/field-plans.md
 MAX_GRID_STARTS = 10_000
 

@@ -349,14 +349,16 @@ class MapKeeper:
         # frame (loop closures then straighten the map without pulling it off the anchors' frame).
         site = (pose[0], pose[1], SITE_SIGMA_M) if placed and turn.anchored else None
         was_anchored = self._map_anchored()
-        guess = pose
         if odom is not None:
             # The turn is sought where the map's last pose moved by the odometry puts it (at first the
-            # odometry's frame is the map's), not at the fused pose (the odometry, drift and all).
-            guess = odom if self._odom_frame is None else compose(self._odom_frame, odom)
-        result = self.mapper.add_scan(
-            t, turn.distances_m, turn.angles_rad, guess, site=site, odometry=odom, waiting=turn.waiting
-        )
+            # odometry's frame is the map's), not at the fused pose (the odometry, drift and all), and
+            # held there as the odometry's step is worth, as a replay holds it: down a corridor longer
+            # than the lidar sees, the scans alone would hold the pose back where the map is drawn.
+            result = self.mapper.add_scan_odometry(
+                t, turn.distances_m, turn.angles_rad, odom, site=site, waiting=turn.waiting
+            )
+        else:
+            result = self.mapper.add_scan(t, turn.distances_m, turn.angles_rad, pose, site=site, waiting=turn.waiting)
         moved = self.mapper.take_moved()
         if odom is not None and self.mapper.pose is not None:
             self._odom_frame = compose(self.mapper.pose, inverse_pose(odom))  # after the solves, if any

@@ -247,8 +247,11 @@ class OnboardMapper:
         angles: npt.ArrayLike,
         odom: Pose,
         site: tuple[float, float, float] | None = None,
+        waiting: bool = False,
     ) -> ScanResult:
-        """Like ``add_scan`` with the guess = last pose moved by the odometry increment since the last scan."""
+        """Like ``add_scan`` with the guess = last pose moved by the odometry increment since the last scan,
+        held to it as the odometry's step is worth (``odom_sigma_*``, scaled by ``odom_scale`` once learned):
+        down a corridor the scans cannot place, the odometry carries the pose."""
         cfg = self.config
         prior: tuple[float, float] | None = None
         d = 0.0  # m, the odometry's step
@@ -264,9 +267,11 @@ class OnboardMapper:
             )
         self._last_odom = odom
         if prior is None:
-            return self.add_scan(t, ranges, angles, guess, prior, site, odometry=odom)
+            return self.add_scan(t, ranges, angles, guess, prior, site, odometry=odom, waiting=waiting)
         moved = self._moved
-        res = self.add_scan(t, ranges, angles, guess, prior, site, odometry=odom, refine_scale=self.odom_scale)
+        res = self.add_scan(
+            t, ranges, angles, guess, prior, site, odometry=odom, refine_scale=self.odom_scale, waiting=waiting
+        )
         # Learned from steps along the way, where holding the heading is what the prior is for (a turn
         # in place mixes in the wheels' slip and the matcher's own turn), and long enough that the
         # distance's share of the guess's sd is at least its fixed share: on shorter steps the
