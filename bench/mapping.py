@@ -65,6 +65,11 @@
    submaps drawn filled. Without UWB (``expo-dark.toml``: the same, the site's UWB off): the map in its own frame against
    the odometry at its nodes (the baseline: where the robot would be without a map), both after the
    best rigid alignment, the own frame against the start's, the walls moved by the same alignment.
+9. ``--ward-only`` (alone): a corridor longer than the lidar sees (``field/scenarios/ward-dark.toml``:
+   a UV robot without UWB, two identical hospital wings joined by a plain 40 m link), its round of both
+   wings with the whole agent in lockstep, goals sent on its own map one after another
+   (tests/test_ward_round.py's round): the map against the odometry at its nodes (the baseline), both
+   after the best rigid alignment, every closure against the truth, the walls against the plan's.
 
 Goals: >= 200 scans/s at 360 samples; office ATE <= 0.05 m; intel mean translational relation
 error <= 0.14 m (2x the published RBPF figure, 0.070 m); 10 Hz mapping <= 25 % of one core; with
@@ -649,11 +654,18 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only section 8: the exhibition hall patrol, whole agents, with UWB (fill on and off) and without",
     )
+    ap.add_argument(
+        "--ward-only",
+        action="store_true",
+        help="only section 9: the ward round without UWB (two identical wings, a plain 40 m link), whole agent",
+    )
     args = ap.parse_args(argv)
     # The replays' figures depend on the BLAS kernels that computed them (shared/blas.py).
     print(f"OpenBLAS kernels: {BLAS_KERNELS or 'as OpenBLAS chose for this CPU'}")
     if args.expo_only:
         return expo_main(args)
+    if args.ward_only:
+        return ward_main(args)
     if args.corrected is not None:
         return corrected_main(args)
     if args.onboard_only:
@@ -1385,6 +1397,101 @@ def expo_section(duration: float) -> dict[str, Any]:
 
 def expo_main(args: argparse.Namespace) -> int:
     out = expo_section(120.0 if args.quick else 300.0)
+    if args.json:
+        write_json(args.json, out)
+    return 0
+
+
+WARD_ROUND = ("a-3", "link-east", "b-3", "link-west", "a-4", "a-end")
+"""tests/test_ward_round.py's round: wing A's room 3, the link, wing B's room 3, back, room 4, the start."""
+
+
+def ward_round(limit_s: float = 900.0) -> dict[str, Any]:
+    """Section 9: a UV robot's round of two identical hospital wings joined by a plain 40 m link
+    (field/scenarios/ward-dark.toml), without UWB, whole agent in lockstep, each goal sent on its own
+    map once the last one ended. Its map's poses of the robot after the best rigid alignment, beside
+    the odometry at its nodes (the baseline: where it would be without a map), both against the
+    truth; every closure against the truth's relative pose; the served map's walls, moved by the same
+    alignment, against the plan's."""
+    from fleetlink.agent.mapping.share import fetch_map
+    from fleetlink.field.scenario import load_scenario
+    from fleetlink.shared.map_codec import SharedMap
+    from fleetlink.shared.se2 import relative
+    from fleetlink.site.lockstep import MissionRun
+
+    wall0 = time.perf_counter()
+    with MissionRun(
+        load_scenario(ROOT / "field" / "scenarios" / "ward-dark.toml"), record=False, map_worker=False
+    ) as run:
+        robot = run.robots[0].name
+        run.run(5.0)
+        outcomes = run.visit(robot, WARD_ROUND, until_s=limit_s)
+        result = run.run(run.clock.now() + 5.0)
+        keeper = run.robots[0].node.keeper.keeper  # type: ignore[union-attr]
+        snap = fetch_map(run.operator.zenoh, robot, timeout=2.0)
+        segments = run.plan.segments()
+    wall = time.perf_counter() - wall0
+    truth = np.array([row[:4] for row in result.field.truth[robot]])
+
+    def at(t: float) -> Pose:
+        return (
+            float(np.interp(t, truth[:, 0], truth[:, 1])),
+            float(np.interp(t, truth[:, 0], truth[:, 2])),
+            float(np.interp(t, truth[:, 0], np.unwrap(truth[:, 3]))),
+        )
+
+    closer = keeper.mapper.closer
+    assert closer is not None and snap is not None
+    traj = keeper.mapper.corrected_trajectory()
+    est, ref = [p for _, p in traj], [at(t) for t, _ in traj]
+    tf = align(est, ref)
+    err = np.hypot(*(apply(tf, np.array([p[:2] for p in est])) - np.array([q[:2] for q in ref])).T)
+    false = 0
+    for c in closer.closures:
+        z = relative(at(closer.times[c.anchor]), at(closer.times[c.node]))
+        false += math.hypot(c.z[0] - z[0], c.z[1] - z[1]) >= 0.1 or abs(wrap(c.z[2] - z[2])) >= math.radians(3.0)
+    nodes = [(closer.times[k], o) for k, o in enumerate(closer.odometry) if o is not None]
+    odometry = ate([o for _, o in nodes], [at(t) for t, _ in nodes])
+    m = SharedMap.from_snapshot(snap)
+    rows, cols = np.nonzero(m.cells >= 65)
+    cells = np.column_stack((m.origin[0] + (cols + 0.5) * m.resolution, m.origin[1] + (rows + 0.5) * m.resolution))
+    walls = nearest_segment_distances(apply(tf, cells), segments)
+    out: dict[str, Any] = {
+        "sim_s": result.field.sim_seconds,
+        "wall_s": wall,
+        "goals": len(WARD_ROUND),
+        "goals_reached": sum(o == "goal_reached" for _, o in outcomes),
+        "furthest_x_m": float(truth[:, 1].max()),
+        "closures": len(closer.closures),
+        "false_closures": int(false),
+        "map_pose_aligned_rmse_m": float(np.sqrt(np.mean(err**2))),
+        "map_pose_aligned_max_m": float(err.max()),
+        "odometry_aligned_rmse_m": odometry,
+        "median_wall_distance_m": float(np.median(walls)),
+        "mean_wall_distance_m": float(walls.mean()),
+    }
+    out["map_over_odometry_ratio"] = out["map_pose_aligned_rmse_m"] / odometry
+    print(
+        f"\nthe ward round: a UV robot without UWB, two identical wings and a 40 m link, whole agent, {out['sim_s']:.0f} s"
+    )
+    print(
+        f"{'goals':>7} {'closures':>8} {'false':>5} {'map m':>7} {'map max':>8} {'odometry m':>10} {'ratio':>6} {'wall med':>9} {'wall s':>7}"
+    )
+    print(
+        f"{out['goals_reached']:>3}/{out['goals']:<3} {out['closures']:>8} {out['false_closures']:>5}"
+        f" {out['map_pose_aligned_rmse_m']:>7.3f} {out['map_pose_aligned_max_m']:>8.2f} {odometry:>10.3f}"
+        f" {out['map_over_odometry_ratio']:>6.3f} {out['median_wall_distance_m']:>9.3f} {wall:>7.1f}"
+    )
+    print(
+        "(map / odometry: the map's poses of the robot and the odometry at its nodes against the truth, each after"
+        " the best rigid alignment; false: closures 0.1 m or 3 degrees off the truth's relative pose; walls: the"
+        " served map's occupied cells, moved by the map's alignment, to the plan's)"
+    )
+    return out
+
+
+def ward_main(args: argparse.Namespace) -> int:
+    out = ward_round()
     if args.json:
         write_json(args.json, out)
     return 0

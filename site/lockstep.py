@@ -18,8 +18,9 @@
 * a scripted operator (``ScriptedOperator``) that sends what the scenario's events ask for
   (teleop bursts, goals, instant actions, marks), turns a robot's ``script`` into teleop and sends a
   wandering robot to its plan's named places one after another (without UWB, as the robot's own map
-  has them: its frame begins where the robot started); it sends on Zenoh, and on MQTT while its
-  Zenoh link is cut (the fallback).
+  has them: its frame begins where the robot started), or, for a mission script, a round of places
+  each sent once the last goal ended (``visit``); it sends on Zenoh, and on MQTT while its Zenoh link
+  is cut (the fallback).
 
 Every step runs in a fixed order (events, physics, radio, links, each agent: board, control, lidar;
 UWB; links; truth), every random stream is seeded from the scenario, and time comes only from the
@@ -43,7 +44,7 @@ import os
 import random
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -436,6 +437,32 @@ class MissionRun:
             commands=self.operator.sent,
             contact=self.contact,
         )
+
+    def visit(
+        self, robot: str, places: Sequence[str], *, step_s: float = 5.0, until_s: float = math.inf
+    ) -> list[tuple[str, str | None]]:
+        """The operator's round: ``robot`` sent to each of the plan's named ``places`` in turn, each goal
+        sent once the last one ended (reached or failed), as a person at the console sends them: on the
+        robot's own map without UWB (its frame begins where it started). The field runs ``step_s`` at a
+        time until the goal ends or until ``until_s`` (simulated). Each place with how its goal ended
+        (``"goal_reached"``, ``"goal_failed"``, or None: still going at ``until_s``)."""
+        r = next(r for r in self.robots if r.name == robot)
+        outcomes: list[tuple[str, str | None]] = []
+        t = self.clock.now()
+        for place in places:
+            x, y, _ = self.plan.starts[place]
+            if r.own_frame is not None:  # the place as the robot's own map has it
+                x, y, _ = relative(r.own_frame, (x, y, 0.0))
+            seen = len(self.operator.events)
+            self.operator.goal(robot, float(x), float(y), None, self._id("visit"))
+            outcome: str | None = None
+            while outcome is None and t < until_s:
+                t = min(until_s, t + step_s)
+                self.run(t)
+                ends = (e.kind for e in self.operator.events[seen:] if e.header.robot == robot)
+                outcome = next((k for k in ends if k in ("goal_reached", "goal_failed")), None)
+            outcomes.append((place, outcome))
+        return outcomes
 
     def close(self) -> None:
         for r in self.robots:

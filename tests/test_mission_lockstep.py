@@ -146,3 +146,21 @@ def test_the_teleop_burst_moved_the_robot_through_its_agent(twice: tuple[object,
     sent = [c for c in result.commands if " scout-2 teleop " in c]
     assert len(sent) >= 8  # one every 0.25 s, and the release
     assert '"v": 0.0' in sent[-1]
+
+
+def test_a_round_of_places_is_sent_one_goal_after_another_in_the_site_frame() -> None:
+    """``MissionRun.visit``: with UWB, each place goes out in the site frame once the last goal ended
+    (the ward round, tests/test_ward_round.py, sends them on a robot's own map)."""
+    from fleetlink.field.plans import load_plan
+
+    text = SCENARIO.split("[[events]]")[0].replace('drive = "agent"', 'drive = "idle"')
+    with MissionRun(parse_scenario(tomllib.loads(text)), record=False, map_worker=False) as run:
+        assert run.uwb is not None and run.robots[0].own_frame is None
+        outcomes = run.visit("scout-1", ["lobby-01", "entrance"], step_s=1.0, until_s=90.0)
+        result = run.run(run.clock.now() + 0.5)
+    assert outcomes == [("lobby-01", "goal_reached"), ("entrance", "goal_reached")], outcomes
+    x, y, _ = load_plan("office").starts["entrance"]
+    end = result.field.truth["scout-1"][-1]
+    assert math.hypot(end[1] - x, end[2] - y) < 0.3, end
+    # The second robot was sent nowhere.
+    assert [e for e in result.events if e.header.robot == "scout-2" and e.kind.startswith("goal")] == []
