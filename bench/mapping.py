@@ -90,6 +90,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -1288,6 +1289,14 @@ def corrected_main(args: argparse.Namespace) -> int:
     return 0
 
 
+def truth_at(rows: Sequence[Sequence[float]]) -> Callable[[float], Pose]:
+    """A lockstep run's truth rows (t, x, y, theta, ...) of one robot as a pose at any time, interpolated
+    (the heading unwrapped first)."""
+    truth = np.array([row[:4] for row in rows])
+    t, x, y, th = truth[:, 0], truth[:, 1], truth[:, 2], np.unwrap(truth[:, 3])
+    return lambda s: (float(np.interp(s, t, x)), float(np.interp(s, t, y)), float(np.interp(s, t, th)))
+
+
 def expo_patrol(duration: float, uwb: bool, fill: bool = True) -> dict[str, Any]:
     """One expo patrol with whole agents in lockstep, scored against the plan and the truth."""
     from fleetlink.agent.config import AgentConfig
@@ -1313,14 +1322,7 @@ def expo_patrol(duration: float, uwb: bool, fill: bool = True) -> dict[str, Any]
         keeper = run.robots[0].node.keeper.keeper  # type: ignore[union-attr]
         snap = fetch_map(run.operator.zenoh, robot, timeout=2.0)
     wall = time.perf_counter() - wall0
-    truth = np.array([row[:4] for row in result.field.truth[robot]])
-
-    def at(t: float) -> Pose:
-        return (
-            float(np.interp(t, truth[:, 0], truth[:, 1])),
-            float(np.interp(t, truth[:, 0], truth[:, 2])),
-            float(np.interp(t, truth[:, 0], np.unwrap(truth[:, 3]))),
-        )
+    at = truth_at(result.field.truth[robot])
 
     mapper, closer = keeper.mapper, keeper.mapper.closer
     traj = mapper.corrected_trajectory()
@@ -1431,14 +1433,7 @@ def ward_round(limit_s: float = 900.0) -> dict[str, Any]:
         snap = fetch_map(run.operator.zenoh, robot, timeout=2.0)
         segments = run.plan.segments()
     wall = time.perf_counter() - wall0
-    truth = np.array([row[:4] for row in result.field.truth[robot]])
-
-    def at(t: float) -> Pose:
-        return (
-            float(np.interp(t, truth[:, 0], truth[:, 1])),
-            float(np.interp(t, truth[:, 0], truth[:, 2])),
-            float(np.interp(t, truth[:, 0], np.unwrap(truth[:, 3]))),
-        )
+    at = truth_at(result.field.truth[robot])
 
     closer = keeper.mapper.closer
     assert closer is not None and snap is not None
@@ -1461,7 +1456,7 @@ def ward_round(limit_s: float = 900.0) -> dict[str, Any]:
         "wall_s": wall,
         "goals": len(WARD_ROUND),
         "goals_reached": sum(o == "goal_reached" for _, o in outcomes),
-        "furthest_x_m": float(truth[:, 1].max()),
+        "furthest_x_m": max(float(row[1]) for row in result.field.truth[robot]),
         "closures": len(closer.closures),
         "false_closures": int(false),
         "map_pose_aligned_rmse_m": float(np.sqrt(np.mean(err**2))),

@@ -101,6 +101,8 @@ TELEOP_PERIOD_S = 0.25
 TELEOP_TTL_S = 0.5
 WANDER_GOAL_TIMEOUT_S = 60.0
 """A wandering robot that has neither reached nor failed its goal by then gets the next one."""
+GOAL_ENDS = ("goal_reached", "goal_failed", "goal_cancelled")
+"""The events that end a go-to (``visit`` waits for one about its order)."""
 UWB_START_S = 0.0
 FLEET_MAP_PERIOD_S = 2.0
 """How often the console's map fetcher polls, each poll followed by a build of its fleet map service
@@ -442,25 +444,36 @@ class MissionRun:
         self, robot: str, places: Sequence[str], *, step_s: float = 5.0, until_s: float = math.inf
     ) -> list[tuple[str, str | None]]:
         """The operator's round: ``robot`` sent to each of the plan's named ``places`` in turn, each goal
-        sent once the last one ended (reached or failed), as a person at the console sends them: on the
-        robot's own map without UWB (its frame begins where it started). The field runs ``step_s`` at a
-        time until the goal ends or until ``until_s`` (simulated). Each place with how its goal ended
-        (``"goal_reached"``, ``"goal_failed"``, or None: still going at ``until_s``)."""
-        r = next(r for r in self.robots if r.name == robot)
+        sent once the last one ended, as a person at the console sends them: on the robot's own map
+        without UWB (its frame begins where it started, or where its agent last restarted). The field
+        runs ``step_s`` at a time until the robot says how that order ended (``"goal_reached"``,
+        ``"goal_failed"`` or ``"goal_cancelled"``) or until ``until_s`` (simulated); from then on
+        nothing more is sent. Each place with how its goal ended (None: still going at ``until_s``, or
+        never sent)."""
+        if not any(r.name == robot for r in self.robots):
+            raise ValueError(f"no robot {robot!r} in this run")
         outcomes: list[tuple[str, str | None]] = []
         t = self.clock.now()
         for place in places:
+            if t >= until_s:
+                outcomes.append((place, None))
+                continue
+            r = next(r for r in self.robots if r.name == robot)  # a restarted agent's frame is its new one
             x, y, _ = self.plan.starts[place]
             if r.own_frame is not None:  # the place as the robot's own map has it
                 x, y, _ = relative(r.own_frame, (x, y, 0.0))
+            order = self._id("visit")
             seen = len(self.operator.events)
-            self.operator.goal(robot, float(x), float(y), None, self._id("visit"))
+            self.operator.goal(robot, float(x), float(y), None, order)
             outcome: str | None = None
             while outcome is None and t < until_s:
                 t = min(until_s, t + step_s)
                 self.run(t)
-                ends = (e.kind for e in self.operator.events[seen:] if e.header.robot == robot)
-                outcome = next((k for k in ends if k in ("goal_reached", "goal_failed")), None)
+                for e in self.operator.events[seen:]:
+                    data = {kv.key: kv.value for kv in e.data}
+                    if e.header.robot == robot and data.get("orderId") == order and e.kind in GOAL_ENDS:
+                        outcome = e.kind
+                        break
             outcomes.append((place, outcome))
         return outcomes
 

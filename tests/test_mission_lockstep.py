@@ -164,3 +164,15 @@ def test_a_round_of_places_is_sent_one_goal_after_another_in_the_site_frame() ->
     assert math.hypot(end[1] - x, end[2] - y) < 0.3, end
     # The second robot was sent nowhere.
     assert [e for e in result.events if e.header.robot == "scout-2" and e.kind.startswith("goal")] == []
+
+
+def test_a_round_cut_short_sends_nothing_after_its_time_and_names_no_unknown_robot() -> None:
+    text = SCENARIO.split("[[events]]")[0].replace('drive = "agent"', 'drive = "idle"')
+    with MissionRun(parse_scenario(tomllib.loads(text)), record=False, map_worker=False) as run:
+        with pytest.raises(ValueError, match="no robot 'scout-9'"):
+            run.visit("scout-9", ["entrance"])
+        outcomes = run.visit("scout-1", ["lobby-01", "entrance"], step_s=0.5, until_s=1.0)
+        orders = [line for line in run.operator.sent if " scout-1 order " in line]
+    # The first goal still going at 1 s; the second never sent (the robot keeps its one order).
+    assert outcomes == [("lobby-01", None), ("entrance", None)], outcomes
+    assert len(orders) == 1, orders
