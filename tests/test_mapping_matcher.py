@@ -395,3 +395,21 @@ def test_many_field_refinements_at_once_are_each_refined_alone() -> None:
         moved += math.dist(pose[:2], start[:2]) > 0.01
     assert moved > 10
     assert _refine_many(m.grid, tasks[:3], iterations=0) == [(t[1], -1.0) for t in tasks[:3]]
+
+
+def test_a_refused_odometry_leaves_the_next_turn_measured_from_the_last_good_one() -> None:
+    # The agent without UWB and a replay take each turn through add_scan_odometry: one NaN odometry
+    # pose is refused, and the turns after it map as if it had not come.
+    rc = Raycaster(ROOM)
+    m, clean = OnboardMapper(), OnboardMapper()
+    poses = [(2.0 + 0.05 * i, 1.2, 0.3) for i in range(6)]
+    for i, p in enumerate(poses[:3]):
+        m.add_scan_odometry(0.1 * i, _scan(rc, p), ANGLES, p)
+        clean.add_scan_odometry(0.1 * i, _scan(rc, p), ANGLES, p)
+    with pytest.raises(ValueError):
+        m.add_scan_odometry(0.3, _scan(rc, poses[3]), ANGLES, (math.nan, 1.2, 0.3))
+    assert m.rejected == 1
+    for i, p in enumerate(poses[3:], start=3):
+        a = m.add_scan_odometry(0.1 * i + 0.05, _scan(rc, p), ANGLES, p)
+        b = clean.add_scan_odometry(0.1 * i + 0.05, _scan(rc, p), ANGLES, p)
+        assert a.matched and a.pose == pytest.approx(b.pose, abs=1e-9)

@@ -265,13 +265,17 @@ class OnboardMapper:
                 cfg.odom_sigma_xy + cfg.odom_sigma_xy_per_m * d,
                 cfg.odom_sigma_theta + cfg.odom_sigma_theta_per_m * d + cfg.odom_sigma_theta_per_rad * abs(inc[2]),
             )
-        self._last_odom = odom
         if prior is None:
-            return self.add_scan(t, ranges, angles, guess, prior, site, odometry=odom, waiting=waiting)
+            res = self.add_scan(t, ranges, angles, guess, prior, site, odometry=odom, waiting=waiting)
+            self._last_odom = odom
+            return res
         moved = self._moved
         res = self.add_scan(
             t, ranges, angles, guess, prior, site, odometry=odom, refine_scale=self.odom_scale, waiting=waiting
         )
+        # Only once the turn was taken: a refused one (a NaN odometry, say) leaves the next step measured
+        # from the last good odometry, not from the refused one.
+        self._last_odom = odom
         # Learned from steps along the way, where holding the heading is what the prior is for (a turn
         # in place mixes in the wheels' slip and the matcher's own turn), and long enough that the
         # distance's share of the guess's sd is at least its fixed share: on shorter steps the
