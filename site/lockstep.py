@@ -460,18 +460,16 @@ class MissionRun:
                 continue
             r = next(r for r in self.robots if r.name == robot)  # a restarted agent's frame is its new one
             x, y, _ = self.plan.starts[place]
-            if r.own_frame is not None:  # the place as the robot's own map has it
-                x, y, _ = relative(r.own_frame, (x, y, 0.0))
             order = self._id("visit")
             seen = len(self.operator.events)
-            self.operator.goal(robot, float(x), float(y), None, order)
+            self.operator.goal(robot, *_on_map(r, x, y), None, order)
             outcome: str | None = None
             while outcome is None and t < until_s:
                 t = min(until_s, t + step_s)
                 self.run(t)
-                for e in self.operator.events[seen:]:
-                    data = {kv.key: kv.value for kv in e.data}
-                    if e.header.robot == robot and data.get("orderId") == order and e.kind in GOAL_ENDS:
+                events, seen = self.operator.events[seen:], len(self.operator.events)
+                for e in events:
+                    if e.header.robot == robot and e.kind in GOAL_ENDS and _order_of(e) == order:
                         outcome = e.kind
                         break
             outcomes.append((place, outcome))
@@ -601,9 +599,7 @@ class MissionRun:
     def _next_wander_goal(self, r: _Robot, t: float) -> None:
         _, (x, y, _th) = self._places[self._rng.randrange(len(self._places))]
         r.wander_goal_at = t + WANDER_GOAL_TIMEOUT_S
-        if r.own_frame is not None:  # the place as the robot's own map has it
-            x, y, _ = relative(r.own_frame, (x, y, 0.0))
-        self.operator.goal(r.name, float(x), float(y), None, self._id("wander"))
+        self.operator.goal(r.name, *_on_map(r, x, y), None, self._id("wander"))
 
     def _robot_event(self, ev: Event) -> None:
         if ev.kind in ("goal_reached", "goal_failed"):
@@ -682,6 +678,18 @@ SESSION_POLL = PollRates(
 """A hand-assembled driver's board polls: enough to drive, cheap enough for 50 robots."""
 
 Drive = Callable[[BoardSnapshot, float], tuple[float, float]]
+
+
+def _on_map(r: _Robot, x: float, y: float) -> tuple[float, float]:
+    """A place of the plan (site frame) as the robot's map has it: without UWB, in its own frame."""
+    if r.own_frame is not None:
+        x, y, _ = relative(r.own_frame, (x, y, 0.0))
+    return float(x), float(y)
+
+
+def _order_of(event: Event) -> str | None:
+    """The order an agent's event is about (its ``orderId`` datum), if any."""
+    return next((kv.value for kv in event.data if kv.key == "orderId"), None)
 
 
 def drive_by_session(run: FieldRun, index: int, drive: Drive, rates: PollRates = SESSION_POLL) -> BoardSession:

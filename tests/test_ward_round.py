@@ -31,7 +31,7 @@ from fleetlink.field.scenario import load_scenario
 from fleetlink.shared.map_codec import SharedMap
 from fleetlink.shared.se2 import relative
 from fleetlink.site.lockstep import MissionResult, MissionRun
-from tests.harness.scoring import aligned_rmse, wall_distances
+from tests.harness.scoring import aligned_rmse, truth_at, wall_distances
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("ward_round")]
 
@@ -42,8 +42,6 @@ ROUND = ("a-3", "link-east", "b-3", "link-west", "a-4", "a-end")
 STEP_S = 5.0
 LIMIT_S = 900.0  # the round takes 435 s (measured)
 
-Pose = tuple[float, float, float]
-
 
 @dataclass
 class Round:
@@ -53,13 +51,8 @@ class Round:
     map: SharedMap
     segments: np.ndarray
 
-    def truth_at(self, t: float) -> Pose:
-        truth = np.array([row[:4] for row in self.result.field.truth["uvc-1"]])
-        return (
-            float(np.interp(t, truth[:, 0], truth[:, 1])),
-            float(np.interp(t, truth[:, 0], truth[:, 2])),
-            float(np.interp(t, truth[:, 0], np.unwrap(truth[:, 3]))),
-        )
+    def __post_init__(self) -> None:
+        self.truth_at = truth_at(self.result.field.truth["uvc-1"])
 
 
 @pytest.fixture(scope="module")

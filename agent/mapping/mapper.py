@@ -250,8 +250,8 @@ class OnboardMapper:
         waiting: bool = False,
     ) -> ScanResult:
         """Like ``add_scan`` with the guess = last pose moved by the odometry increment since the last scan,
-        held to it as the odometry's step is worth (``odom_sigma_*``, scaled by ``odom_scale`` once learned):
-        down a corridor the scans cannot place, the odometry carries the pose."""
+        held to it as the odometry's step is worth (``odom_sigma_*``; in the point-to-line refinement scaled
+        by ``odom_scale`` once learned): down a corridor the scans cannot place, the odometry carries the pose."""
         cfg = self.config
         prior: tuple[float, float] | None = None
         d = 0.0  # m, the odometry's step

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -12,7 +12,7 @@ from fleetlink.agent.mapping.relations import align_se2, transform_xy
 from fleetlink.field.plans import nearest_segment_distances
 from fleetlink.shared.se2 import Pose
 
-__all__ = ["aligned_rmse", "wall_distances", "wall_points"]
+__all__ = ["aligned_rmse", "truth_at", "wall_distances", "wall_points"]
 
 F64 = npt.NDArray[np.float64]
 OCCUPIED_AT = 65
@@ -45,3 +45,11 @@ def aligned_rmse(est: Sequence[Pose], truth: Sequence[Pose]) -> tuple[float, Pos
     xy = transform_xy(tf, np.array([p[:2] for p in est]))
     ref = np.array([p[:2] for p in truth])
     return math.sqrt(float(np.mean(np.sum((xy - ref) ** 2, axis=1)))), tf
+
+
+def truth_at(rows: Sequence[Sequence[float]]) -> Callable[[float], Pose]:
+    """A lockstep run's truth rows of one robot (t, x, y, theta, ...) as its pose at any time,
+    interpolated (the heading unwrapped first)."""
+    truth = np.array([row[:4] for row in rows], dtype=np.float64)
+    t, x, y, th = truth[:, 0], truth[:, 1], truth[:, 2], np.unwrap(truth[:, 3])
+    return lambda s: (float(np.interp(s, t, x)), float(np.interp(s, t, y)), float(np.interp(s, t, th)))
